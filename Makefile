@@ -1,0 +1,41 @@
+# The two commands of the README: `make demo` and `make test`. Both set everything up first.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+PLUGIN_DIR ?= $(HOME)/.local/lib/wireshark/plugins
+DEMO_DIR := out/demo
+
+.PHONY: setup system-deps demo test bench install-wireshark clean
+
+setup: system-deps $(STAMP)
+
+system-deps:
+	@bash scripts/setup-system.sh
+
+$(STAMP): requirements.lock pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip==24.3.1
+	$(PY) -m pip install -q -r requirements.lock
+	$(PY) -m pip install -q --no-deps -e .
+	@touch $@
+
+demo: setup
+	@mkdir -p $(DEMO_DIR)
+	$(VENV)/bin/vm110 craft --out $(DEMO_DIR)/crafted.pcap
+	$(VENV)/bin/vm110 decode $(DEMO_DIR)/crafted.pcap
+
+test: setup
+	$(PY) -m pytest -n 2 -q
+
+bench: setup
+	@set -e; for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b; done
+
+install-wireshark:
+	mkdir -p $(PLUGIN_DIR)
+	cp dissector/vm110.lua $(PLUGIN_DIR)/
+	@echo "installed $(PLUGIN_DIR)/vm110.lua (check: Help > About Wireshark > Plugins)"
+
+clean:
+	rm -rf $(VENV) out .pytest_cache .hypothesis

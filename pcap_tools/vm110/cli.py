@@ -1,0 +1,50 @@
+"""The `vm110` command: one subcommand per module, registered in COMMANDS.
+
+Exit codes are those of `vm110.errors`: 0 success, 1 findings (rule violations, fuzzer findings),
+2 usage error or unreadable input, 130 interrupted.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Optional, Sequence
+
+from . import __version__
+from .errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, CliError
+
+# Subcommand name -> module under vm110.commands with `add_arguments(parser)` and `run(args)`.
+COMMANDS = {
+    "craft": "craft",
+    "decode": "decode",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vm110", description="Tools for the VM-110 EG-Link (TS-0006).")
+    parser.add_argument("--version", action="version", version=f"vm110 {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, module_name in COMMANDS.items():
+        module = importlib.import_module(f"vm110.commands.{module_name}")
+        doc = (module.__doc__ or "").strip().splitlines()
+        command = sub.add_parser(name, help=doc[0] if doc else None, description=module.__doc__)
+        module.add_arguments(command)
+        command.set_defaults(run=module.run)
+    return parser
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.run(args) or EXIT_OK)
+    except CliError as exc:
+        print(f"vm110 {args.command}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,62 @@
+"""Write a capture with one crafted packet of each EG-Link type (a sampler for Wireshark).
+
+The packets go from a base unit (10.0.0.10) and a controller (10.0.0.20) to the default multicast
+group, as a network tap would see them. Nothing is sent anywhere.
+"""
+from __future__ import annotations
+
+import argparse
+
+from scapy.layers.inet import IP, UDP
+from scapy.layers.l2 import Ether
+from scapy.utils import wrpcap
+
+from .. import constants as C
+from ..errors import CliError
+from ..layers import VM110, VRAI, VRAO, VRCI, VRCO, VRPI, VRPO
+
+BU_ADDR, CONTROLLER_ADDR = "10.0.0.10", "10.0.0.20"
+GROUP_MAC = "01:00:5e:7f:2a:14"  # 239.255.42.20 mapped to Ethernet multicast
+
+
+def sample_packets() -> list:
+    """One packet of each type, with typical values, spaced out in time."""
+    inputs = [
+        VRPI(bu_state=C.BuState.ARMED, vlaps=1, eg_link=1, ec_link=1, c_link=1, armed_ru=0x0C07,
+             ru_state=C.RuState.ENABLED, ru_battery=88, ru_rssi=76, joystick1=250, joystick2=-400,
+             switch1=1, switch3=-1, encoder=200),
+        VRCI(command_id=17, command_data=b"START PUMP".ljust(C.COMMAND_DATA_LEN, b"\0")),
+        VRAI(command_id=3),
+    ]
+    outputs = [
+        VRPO(packet_number=0, periodic_data=bytes(range(64))),
+        VRAO(command_id=17),
+        VRCO(command_id=3, command_data=b"ALARM HIGH LOAD".ljust(C.COMMAND_DATA_LEN, b"\0")),
+    ]
+    frames = []
+    for serial, payload in enumerate(inputs):
+        frames.append(_frame(BU_ADDR, C.INPUT_PORT, VM110(origin=0x0101, serial=serial) / payload))
+    for serial, payload in enumerate(outputs):
+        frames.append(_frame(CONTROLLER_ADDR, C.OUTPUT_PORT, VM110(serial=serial) / payload))
+    for index, frame in enumerate(frames):
+        frame.time = 1_700_000_000 + index * C.COMMAND_RESEND_MS / 1000
+    return frames
+
+
+def _frame(src: str, port: int, packet):
+    return (Ether(dst=GROUP_MAC) / IP(src=src, dst=C.MULTICAST_GROUP, ttl=C.MULTICAST_TTL)
+            / UDP(sport=port, dport=port) / packet)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", required=True, help="capture file to write (pcap)")
+
+
+def run(args: argparse.Namespace) -> int:
+    frames = sample_packets()
+    try:
+        wrpcap(args.out, frames)
+    except OSError as exc:
+        raise CliError(f"cannot write {args.out}: {exc.strerror}") from None
+    print(f"wrote {len(frames)} packets to {args.out}")
+    return 0

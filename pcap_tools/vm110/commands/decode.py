@@ -1,0 +1,82 @@
+"""Decode the EG-Link packets of a capture (pcap or pcapng), one line or JSON object each.
+
+Packets on the configured ports are decoded with the fast path (`vm110.decode`), illegal ones
+are shown with their reasons; other traffic is skipped.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any, Iterator
+
+from scapy.error import Scapy_Exception
+from scapy.layers.inet import UDP
+from scapy.utils import PcapReader
+
+from .. import constants as C
+from ..crc import BYTE_ORDERS, VARIANTS
+from ..decode import decode
+from ..errors import CliError
+
+_SUMMARY_FIELDS = {
+    "VRPI": ("bu_state", "armed_ru", "ru_state", "ru_battery"),
+    "VRPO": ("packet_number",),
+    "VRCI": ("command_id",), "VRCO": ("command_id",),
+    "VRAI": ("command_id",), "VRAO": ("command_id",),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("capture", help="pcap or pcapng file")
+    parser.add_argument("--port", type=int, default=C.INPUT_PORT,
+                        help=f"input port (output port is +{C.OUTPUT_PORT_OFFSET}); default {C.INPUT_PORT}")
+    parser.add_argument("--crc", choices=VARIANTS, default=VARIANTS[0], help="CRC variant")
+    parser.add_argument("--crc-order", choices=BYTE_ORDERS, default=BYTE_ORDERS[0],
+                        help="byte order of the stored CRC")
+    parser.add_argument("--json", action="store_true", help="one JSON object per packet")
+
+
+def eglink_payloads(path: str, port: int) -> Iterator[tuple[int, float, str, bytes]]:
+    """(frame number, time, source, UDP payload) of each UDP packet on the EG-Link ports."""
+    ports = {port, port + C.OUTPUT_PORT_OFFSET}
+    try:
+        reader = PcapReader(path)
+    except (OSError, Scapy_Exception) as exc:
+        raise CliError(f"cannot read {path}: {exc}") from None
+    with reader:
+        for number, frame in enumerate(reader, start=1):
+            udp = frame.getlayer(UDP)
+            if udp is None or not ports & {udp.sport, udp.dport}:
+                continue
+            src = f"{frame.payload.src}:{udp.sport}" if hasattr(frame.payload, "src") else str(udp.sport)
+            yield number, float(frame.time), src, bytes(udp.payload)[:max(udp.len - 8, 0)] if udp.len else bytes(udp.payload)
+
+
+def _line(number: int, when: float, src: str, fields: dict[str, Any]) -> str:
+    names = _SUMMARY_FIELDS.get(fields.get("type", ""), ())
+    parts = [f"{number:>6} {when:.6f} {src:<21} {fields.get('type', '?'):<4} serial={fields.get('serial', '?')}"]
+    parts += [f"{name}={fields[name]}" for name in names if name in fields]
+    if fields["problems"]:
+        parts.append("ILLEGAL(" + ",".join(fields["problems"]) + ")")
+    if fields["warnings"]:
+        parts.append("warn(" + ",".join(fields["warnings"]) + ")")
+    return " ".join(parts)
+
+
+def _jsonable(value: Any) -> Any:
+    return value.hex() if isinstance(value, bytes) else value
+
+
+def run(args: argparse.Namespace) -> int:
+    count = 0
+    for number, when, src, data in eglink_payloads(args.capture, args.port):
+        fields = decode(data, args.crc, args.crc_order)
+        count += 1
+        if args.json:
+            print(json.dumps({"frame": number, "time": when, "src": src,
+                              **{k: _jsonable(v) for k, v in fields.items()}}))
+        else:
+            print(_line(number, when, src, fields))
+    if not args.json:
+        print(f"{count} EG-Link packets")
+    return 0

@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# Installs the Debian/Ubuntu packages the project needs, when any is missing.
+# Non-interactive (the wireshark-common debconf question is pre-answered), root without sudo.
+set -euo pipefail
+
+packages=(tshark lua5.2 lua5.4 python3-venv iproute2)
+commands=(tshark lua5.2 lua5.4 ip)
+
+missing=0
+for c in "${commands[@]}"; do command -v "$c" >/dev/null 2>&1 || missing=1; done
+python3 -c 'import venv, ensurepip' 2>/dev/null || missing=1
+[ "$missing" = 0 ] && exit 0
+
+if [ "$(id -u)" = 0 ]; then SUDO=(); else SUDO=(sudo); fi
+export DEBIAN_FRONTEND=noninteractive
+echo "wireshark-common wireshark-common/install-setuid boolean false" | "${SUDO[@]}" debconf-set-selections
+"${SUDO[@]}" apt-get update -q
+# python3-venv is only needed where python3 is Debian's own; skip it when apt does not know it.
+apt-cache show python3-venv >/dev/null 2>&1 || packages=("${packages[@]/python3-venv}")
+"${SUDO[@]}" apt-get install -y -q --no-install-recommends "${packages[@]}"
