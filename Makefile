@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 PLUGIN_DIR ?= $(HOME)/.local/lib/wireshark/plugins
 DEMO_DIR := out/demo
 
-.PHONY: setup system-deps demo test bench install-wireshark clean
+.PHONY: setup system-deps demo test bench install-wireshark clean tshark44 golden
 
 setup: system-deps $(STAMP)
 
@@ -26,11 +26,19 @@ demo: setup
 	$(VENV)/bin/vm110 craft --out $(DEMO_DIR)/crafted.pcap
 	$(VENV)/bin/vm110 decode $(DEMO_DIR)/crafted.pcap
 
-test: setup
+test: setup tshark44
 	$(PY) -m pytest -n 2 -q
 
 bench: setup
 	@set -e; for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b; done
+
+# Debian 13 chroot with tshark 4.4 (Lua 5.4): the dissector tests run on it as well as on the host's tshark.
+tshark44:
+	@bash scripts/setup-tshark44.sh >/dev/null
+
+# Regenerate the dissector's `tshark -V -O vm110` goldens (tests/golden/), one per tshark version.
+golden: setup tshark44
+	$(PY) -m tests.test_dissector_golden
 
 install-wireshark:
 	mkdir -p $(PLUGIN_DIR)

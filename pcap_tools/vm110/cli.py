@@ -17,6 +17,8 @@ from .errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, CliError
 COMMANDS = {
     "craft": "craft",
     "decode": "decode",
+    "simulate": "simulate",
+    "synth": "synth",
 }
 
 

@@ -38,20 +38,37 @@ LAYOUTS = {
 }
 
 
-def _compile(layout: tuple[tuple[str, str], ...]) -> tuple[struct.Struct, tuple[tuple[str, struct.Struct, int], ...]]:
-    """One Struct for the whole layout, plus (name, struct, offset) for partial decoding."""
+def _compile(layout: tuple[tuple[str, str], ...]) -> tuple[struct.Struct, tuple[str, ...], tuple[tuple[str, struct.Struct, int], ...]]:
+    """One Struct and the names for the whole layout, plus (name, struct, offset) for partial decoding."""
     parts, offset = [], 0
     for name, code in layout:
         part = struct.Struct("<" + code)
         parts.append((name, part, offset))
         offset += part.size
-    return struct.Struct("<" + "".join(code for _, code in layout)), tuple(parts)
+    whole = struct.Struct("<" + "".join(code for _, code in layout))
+    return whole, tuple(name for name, _ in layout), tuple(parts)
 
 
 _COMPILED = {ptype: _compile(layout) for ptype, layout in LAYOUTS.items()}
 _TYPES = {t.value.encode(): t for t in C.PacketType}
-_ENUM_VALUES = {name: frozenset(int(v) for v in names) for name, names in C.ENUM_FIELDS.items()}
-_SPARE_FIELDS = ("vrpi_spare", "command_spare")
+_DIRECTIONS = {raw: t.direction.value for raw, t in _TYPES.items()}
+_OUTPUTS = frozenset(raw for raw, t in _TYPES.items() if t.direction is C.Direction.OUTPUT)
+
+# Problem and warning strings built once: decode() runs per packet on days-long captures.
+_UNKNOWN_ID, _BAD_CRC, _REVISION, _SIZE_MISMATCH, _SIZE_TOO_LARGE, _TRUNCATED = (
+    p.value for p in (C.Problem.UNKNOWN_ID, C.Problem.BAD_CRC, C.Problem.REVISION,
+                      C.Problem.SIZE_MISMATCH, C.Problem.SIZE_TOO_LARGE, C.Problem.TRUNCATED))
+W = C.WarningCode
+_HEADER_SPARE = f"{W.SPARE_NONZERO.value}:spare"
+_ORIGIN = f"{W.ORIGIN_NONZERO.value}:origin"
+_EXTRA = W.EXTRA_PAYLOAD.value
+_SPARE_CHECKS = tuple((name, f"{W.SPARE_NONZERO.value}:{name}") for name in ("vrpi_spare", "command_spare"))
+_ENUM_CHECKS = tuple((name, frozenset(int(v) for v in names), f"{W.UNKNOWN_ENUM.value}:{name}")
+                     for name, names in C.ENUM_FIELDS.items())
+_RANGE_CHECKS = tuple((name, low, high, f"{W.OUT_OF_RANGE.value}:{name}")
+                      for name, (low, high) in C.RANGES.items())
+_DISARMED_CHECKS = tuple((name, f"{W.DISARMED_RU_DATA.value}:{name}") for name in C.RU_FIELDS)
+_VRPI, _VRPO = C.PacketType.VRPI, C.PacketType.VRPO
 
 
 def crc_span(data: bytes, size: int) -> int:
@@ -76,9 +93,9 @@ def decode(data: bytes, crc: str = DEFAULT_VARIANT, crc_order: str = DEFAULT_BYT
 
     if n < C.PREFIX_LEN:
         _decode_partial_header(data, out)
-        problems.append(C.Problem.TRUNCATED.value)
+        problems.append(_TRUNCATED)
         if "type" in out and data[:C.ID_LEN] not in _TYPES:
-            problems.insert(0, C.Problem.UNKNOWN_ID.value)
+            problems.insert(0, _UNKNOWN_ID)
         return out
 
     raw_id, revision, origin, serial, size, spare = _HEADER.unpack_from(data)
@@ -86,9 +103,9 @@ def decode(data: bytes, crc: str = DEFAULT_VARIANT, crc_order: str = DEFAULT_BYT
     out.update(type=raw_id.decode("latin-1"), revision=revision, origin=origin, serial=serial,
                size=size, spare=spare)
     if ptype is None:
-        problems.append(C.Problem.UNKNOWN_ID.value)
+        problems.append(_UNKNOWN_ID)
     else:
-        out["direction"] = ptype.direction.value
+        out["direction"] = _DIRECTIONS[raw_id]
 
     end = crc_span(data, size)
     if n >= C.OVERHEAD:
@@ -97,30 +114,31 @@ def decode(data: bytes, crc: str = DEFAULT_VARIANT, crc_order: str = DEFAULT_BYT
         out["crc"], out["crc.calculated"] = stored, calculated
         out["crc.status"] = C.CRC_GOOD if stored == calculated else C.CRC_BAD
         if stored != calculated:
-            problems.append(C.Problem.BAD_CRC.value)
-    else:
-        end = n
+            problems.append(_BAD_CRC)
     if revision != C.SUPPORTED_REVISION:
-        problems.append(C.Problem.REVISION.value)
+        problems.append(_REVISION)
     if n != C.OVERHEAD + size:
-        problems.append(C.Problem.SIZE_MISMATCH.value)
+        problems.append(_SIZE_MISMATCH)
     if size > C.MAX_PAYLOAD:
-        problems.append(C.Problem.SIZE_TOO_LARGE.value)
+        problems.append(_SIZE_TOO_LARGE)
 
     if spare:
-        warnings.append(f"{C.WarningCode.SPARE_NONZERO.value}:spare")
-    if ptype is not None and ptype.direction is C.Direction.OUTPUT and origin:
-        warnings.append(f"{C.WarningCode.ORIGIN_NONZERO.value}:origin")
+        warnings.append(_HEADER_SPARE)
+    if origin and raw_id in _OUTPUTS:
+        warnings.append(_ORIGIN)
+    if n < C.OVERHEAD:
+        problems.append(_TRUNCATED)  # no room for a CRC: nothing after the header
+        return out
     if ptype is None or revision != C.SUPPORTED_REVISION:
         return out  # unknown layout: the header is all there is to decode
 
     payload = data[C.PREFIX_LEN:end]
     low, high = C.PAYLOAD_BOUNDS[ptype]
     if len(payload) < low:
-        problems.append(C.Problem.TRUNCATED.value)
+        problems.append(_TRUNCATED)
     _decode_payload(ptype, payload, out)
     if len(payload) > high:
-        warnings.append(C.WarningCode.EXTRA_PAYLOAD.value)
+        warnings.append(_EXTRA)
     _check_values(ptype, out, warnings)
     return out
 
@@ -141,34 +159,37 @@ def _decode_partial_header(data: bytes, out: dict[str, Any]) -> None:
 
 
 def _decode_payload(ptype: C.PacketType, payload: bytes, out: dict[str, Any]) -> None:
-    whole, parts = _COMPILED[ptype]
+    whole, names, parts = _COMPILED[ptype]
     if len(payload) >= whole.size:
-        out.update(zip((name for name, _, _ in parts), whole.unpack_from(payload)))
+        out.update(zip(names, whole.unpack_from(payload)))
     else:
         for name, part, offset in parts:
             if offset + part.size > len(payload):
                 break
             out[name] = part.unpack_from(payload, offset)[0]
-    if ptype is C.PacketType.VRPO and len(payload) >= whole.size:
+    if ptype is _VRPO and len(payload) >= whole.size:
         out["periodic_data"] = payload[whole.size:whole.size + C.VRPO_MAX_DATA]
-    if ptype is C.PacketType.VRPI and "bu_state" in out:
+    if ptype is _VRPI and "bu_state" in out:
         out["es_relays_open"] = out["bu_state"] < C.ES_RELAYS_CLOSED_FROM
 
 
 def _check_values(ptype: C.PacketType, out: dict[str, Any], warnings: list[str]) -> None:
-    for name in _SPARE_FIELDS:
+    for name, warning in _SPARE_CHECKS:
         value = out.get(name)
         if value and (not isinstance(value, bytes) or any(value)):
-            warnings.append(f"{C.WarningCode.SPARE_NONZERO.value}:{name}")
-    if ptype is not C.PacketType.VRPI:
+            warnings.append(warning)
+    if ptype is not _VRPI:
         return
-    for name, allowed in _ENUM_VALUES.items():
-        if name in out and out[name] not in allowed:
-            warnings.append(f"{C.WarningCode.UNKNOWN_ENUM.value}:{name}")
-    for name, (low, high) in C.RANGES.items():
-        if name in out and not low <= out[name] <= high:
-            warnings.append(f"{C.WarningCode.OUT_OF_RANGE.value}:{name}")
-    if out.get("armed_ru") == 0:
-        for name in C.RU_FIELDS:
-            if out.get(name):
-                warnings.append(f"{C.WarningCode.DISARMED_RU_DATA.value}:{name}")
+    get = out.get
+    for name, allowed, warning in _ENUM_CHECKS:
+        value = get(name)
+        if value is not None and value not in allowed:
+            warnings.append(warning)
+    for name, low, high, warning in _RANGE_CHECKS:
+        value = get(name)
+        if value is not None and not low <= value <= high:
+            warnings.append(warning)
+    if get("armed_ru") == 0:
+        for name, warning in _DISARMED_CHECKS:
+            if get(name):
+                warnings.append(warning)

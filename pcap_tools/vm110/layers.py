@@ -16,7 +16,7 @@ from typing import Iterator, Optional
 from scapy.config import conf
 from scapy.fields import (
     ByteEnumField, ByteField, Field, LEIntField, LEShortField, LESignedShortField,
-    StrFixedLenEnumField, XLEShortField, XStrField, XStrFixedLenField,
+    StrFixedLenEnumField, XLEShortField, XStrFixedLenField, XStrLenField,
 )
 from scapy.layers.inet import UDP
 from scapy.packet import Packet, bind_layers, split_layers
@@ -178,7 +178,8 @@ class VRPO(Packet):
     name = "VRPO (VisionRemote Periodic Output)"
     fields_desc = [
         LEShortField("packet_number", 0),
-        XStrField("periodic_data", b""),
+        # Bytes beyond the layout's 488 are not periodic data: they dissect as a Raw payload.
+        XStrLenField("periodic_data", b"", length_from=lambda _: C.VRPO_MAX_DATA),
     ]
 
     def mysummary(self) -> str:

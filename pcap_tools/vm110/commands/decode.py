@@ -18,6 +18,7 @@ from ..crc import BYTE_ORDERS, VARIANTS
 from ..decode import decode
 from ..errors import CliError
 
+UDP_HEADER_LEN = 8
 _SUMMARY_FIELDS = {
     "VRPI": ("bu_state", "armed_ru", "ru_state", "ru_battery"),
     "VRPO": ("packet_number",),
@@ -49,7 +50,8 @@ def eglink_payloads(path: str, port: int) -> Iterator[tuple[int, float, str, byt
             if udp is None or not ports & {udp.sport, udp.dport}:
                 continue
             src = f"{frame.payload.src}:{udp.sport}" if hasattr(frame.payload, "src") else str(udp.sport)
-            yield number, float(frame.time), src, bytes(udp.payload)[:max(udp.len - 8, 0)] if udp.len else bytes(udp.payload)
+            # The bytes as captured: the UDP length bounds the payload (Ethernet padding follows).
+            yield number, float(frame.time), src, udp.original[UDP_HEADER_LEN:udp.len]
 
 
 def _line(number: int, when: float, src: str, fields: dict[str, Any]) -> str:

@@ -1,0 +1,707 @@
+-- Wireshark dissector for the VM-110 UDP EG-Link (TS-0006), following shared/spec/interpretation.md.
+--
+-- One file on purpose: Wireshark 4.4 loads every .lua in a plugin folder as a plugin.
+-- Runs unchanged on Lua 5.2 (Wireshark 4.0) and Lua 5.4 (Wireshark 4.4): no bit32, no 5.3
+-- operators; the CRC uses table lookups instead of a bit library.
+--
+-- Layout of this file, top to bottom:
+--   1. protocol constants (the values and display names of vm110/constants.py)
+--   2. CRC engine
+--   3. decode(): UDP payload bytes -> a plain record (no Wireshark objects), the rules of
+--      vm110/decode.py; a later analysis layer works on these records
+--   4. fields, experts, preferences
+--   5. tree and Info column built from a record
+--   6. dissector, heuristic and port registration
+
+local PLUGIN_VERSION = "0.1.0"
+if set_plugin_info then
+    set_plugin_info({
+        version = PLUGIN_VERSION,
+        description = "VM-110 EG-Link (TS-0006) dissector",
+        repository = "vm110 project: dissector/vm110.lua",
+    })
+end
+
+local byte, sub, fmt, concat = string.byte, string.sub, string.format, table.concat
+local floor = math.floor
+
+---------------------------------------------------------------------------------------------
+-- 1. Protocol constants
+---------------------------------------------------------------------------------------------
+local ID_LEN, HEADER_LEN, CRC_LEN = 4, 12, 4
+local PREFIX_LEN = ID_LEN + HEADER_LEN
+local OVERHEAD = PREFIX_LEN + CRC_LEN
+local MAX_PAYLOAD = 492
+local SUPPORTED_REVISION = 0
+local VRPO_MAX_DATA = 488
+local DEFAULT_INPUT_PORT, OUTPUT_PORT_OFFSET = 5825, 2
+local ES_RELAYS_CLOSED_FROM = 0x10
+
+local BU_STATE = {
+    [0x00] = "Initial", [0x01] = "Stopped", [0x02] = "External link error", [0x03] = "Blocked",
+    [0x04] = "Failed", [0x10] = "Disarmed", [0x11] = "Armed",
+}
+local LINK_STATUS = {
+    [0] = "Unused", [1] = "Operational", [2] = "No link", [3] = "Link error",
+    [4] = "Interface error", [5] = "Data error", [6] = "Passive",
+}
+local RU_STATE = { [0] = "Initial", [1] = "Disarmed", [2] = "Armed", [3] = "Enabled", [4] = "Stopped" }
+local RU_DISABLED = { [0] = "Enabled", [1] = "Disabled (tilt)", [2] = "Disabled (inactivity)" }
+local RU_CABLE = { [0] = "Wireless", [1] = "Cable" }
+local RU_DOCKED = { [0] = "Not docked", [1] = "Docked" }
+local ENCODER_SWITCH = { [0] = "Released", [1] = "Pushed" }
+local CRC_STATUS = { [0] = "Bad", [1] = "Good", [2] = "Unverified" }
+local CRC_BAD, CRC_GOOD, CRC_UNVERIFIED = 0, 1, 2
+
+-- Payload layouts: {name, width, kind, names}; kind "u" unsigned LE, "s" signed LE, "b" bytes.
+local VRPI_LAYOUT = {
+    { "bu_state", 1, "u", BU_STATE }, { "vlaps", 1, "u" }, { "unarmed_rus", 1, "u" },
+    { "eg_link", 1, "u", LINK_STATUS }, { "ec_link", 1, "u", LINK_STATUS },
+    { "c_link", 1, "u", LINK_STATUS }, { "armed_ru", 2, "u" },
+    { "ru_state", 1, "u", RU_STATE }, { "ru_battery", 1, "u" }, { "ru_rssi", 1, "u" },
+    { "ru_cable", 1, "u", RU_CABLE }, { "ru_docked", 1, "u", RU_DOCKED },
+    { "ru_disabled", 1, "u", RU_DISABLED },
+    { "joystick1", 2, "s" }, { "joystick2", 2, "s" }, { "joystick3", 2, "s" }, { "joystick4", 2, "s" },
+    { "switch1", 2, "s" }, { "switch2", 2, "s" }, { "switch3", 2, "s" }, { "switch4", 2, "s" },
+    { "switch5", 2, "s" }, { "switch6", 2, "s" }, { "switch7", 2, "s" }, { "switch8", 2, "s" },
+    { "encoder", 1, "u" }, { "encoder_switch", 1, "u", ENCODER_SWITCH }, { "vrpi_spare", 6, "b" },
+}
+local COMMAND_LAYOUT = { { "command_id", 2, "u" }, { "command_spare", 4, "u" }, { "command_data", 16, "b" } }
+local ACK_LAYOUT = { { "command_id", 2, "u" } }
+-- periodic_data (the rest, up to 488 bytes) follows the packet number.
+local VRPO_LAYOUT = { { "packet_number", 2, "u" } }
+
+local function layout_size(layout)
+    local size = 0
+    for _, f in ipairs(layout) do size = size + f[2] end
+    return size
+end
+
+-- Packet types by ID. min/max: payload sizes; the 4th ID character gives the direction.
+local TYPES = {}
+for _, t in ipairs({
+    { "VRPI", "VisionRemote Periodic Input", VRPI_LAYOUT },
+    { "VRPO", "VisionRemote Periodic Output", VRPO_LAYOUT, VRPO_MAX_DATA },
+    { "VRCI", "VisionRemote Command Input", COMMAND_LAYOUT },
+    { "VRCO", "VisionRemote Command Output", COMMAND_LAYOUT },
+    { "VRAI", "VisionRemote Acknowledge Input", ACK_LAYOUT },
+    { "VRAO", "VisionRemote Acknowledge Output", ACK_LAYOUT },
+}) do
+    local min = layout_size(t[3])
+    TYPES[t[1]] = {
+        id = t[1], description = t[2], layout = t[3], min = min, max = min + (t[4] or 0),
+        direction = sub(t[1], 4, 4) == "I" and "Input" or "Output",
+    }
+end
+
+-- Documented ranges (warnings): VRPI fields only.
+local RANGES = { vlaps = { 0, 3 }, ru_battery = { 0, 100 }, ru_rssi = { 0, 100 } }
+for i = 1, 4 do RANGES["joystick" .. i] = { -1000, 1000 } end
+for i = 1, 8 do RANGES["switch" .. i] = { -1, 1000 } end
+-- Fields that must be zero while armed_ru is 0 (TS-0006 4.1).
+local RU_FIELDS = { ru_state = true, ru_battery = true, ru_rssi = true, ru_cable = true,
+    ru_docked = true, ru_disabled = true, encoder = true, encoder_switch = true }
+for i = 1, 4 do RU_FIELDS["joystick" .. i] = true end
+for i = 1, 8 do RU_FIELDS["switch" .. i] = true end
+local SPARE_FIELDS = { vrpi_spare = true, command_spare = true }
+
+---------------------------------------------------------------------------------------------
+-- 2. CRC engine
+-- The register is kept as 4 bytes c0..c3 in the order they are consumed (MSB first for the
+-- non-reflected variants, LSB first for the reflected ones), so one step is the same code for
+-- both. XOR of two bytes is a lookup in a 64K table; two message bytes are processed per step
+-- through four 64K tables (the register change caused by a 16-bit index), so the hot loop has
+-- no function calls at all.
+---------------------------------------------------------------------------------------------
+local X = {} -- X[a * 256 + b] = a xor b
+do
+    local nib = {}
+    for a = 0, 15 do
+        for b = 0, 15 do
+            local r, p, x, y = 0, 1, a, b
+            for _ = 1, 4 do
+                if x % 2 ~= y % 2 then r = r + p end
+                x, y, p = floor(x / 2), floor(y / 2), p * 2
+            end
+            nib[a * 16 + b] = r
+        end
+    end
+    for a = 0, 255 do
+        local ah, al = floor(a / 16) * 16, a % 16 * 16
+        for b = 0, 255 do
+            X[a * 256 + b] = nib[ah + floor(b / 16)] * 16 + nib[al + b % 16]
+        end
+    end
+end
+
+local function xor32(a, b)
+    local r, p = 0, 1
+    for _ = 1, 4 do
+        r = r + X[(a % 256) * 256 + b % 256] * p
+        a, b, p = floor(a / 256), floor(b / 256), p * 256
+    end
+    return r
+end
+
+-- Byte k (0 = consumed first) of a 32-bit register value.
+local function reg_byte(value, k, reflected)
+    local shift = reflected and k or 3 - k
+    return floor(value / 256 ^ shift) % 256
+end
+
+local function build_engine(reflected)
+    -- One-byte table: the register change for consumed byte value a.
+    local t = { {}, {}, {}, {} }
+    for a = 0, 255 do
+        local crc
+        if reflected then
+            crc = a
+            for _ = 1, 8 do
+                if crc % 2 == 1 then crc = xor32(floor(crc / 2), 0xEDB88320) else crc = floor(crc / 2) end
+            end
+        else
+            crc = a * 0x1000000
+            for _ = 1, 8 do
+                if crc >= 0x80000000 then crc = xor32((crc - 0x80000000) * 2, 0x04C11DB7) else crc = crc * 2 end
+            end
+        end
+        for k = 1, 4 do t[k][a] = reg_byte(crc, k - 1, reflected) end
+    end
+    -- Two-byte tables for consumed pair (x0, x1) (see the step in crc_of).
+    local A, B, C, D = {}, {}, {}, {}
+    local t0, t1, t2, t3 = t[1], t[2], t[3], t[4]
+    for x0 = 0, 255 do
+        for x1 = 0, 255 do
+            local i1 = X[x1 * 256 + t0[x0]]
+            local k = x0 * 256 + x1
+            A[k] = X[t1[x0] * 256 + t0[i1]]
+            B[k] = X[t2[x0] * 256 + t1[i1]]
+            C[k] = X[t3[x0] * 256 + t2[i1]]
+            D[k] = t3[i1]
+        end
+    end
+    return { reflected = reflected, A = A, B = B, C = C, D = D, t0 = t0, t1 = t1, t2 = t2, t3 = t3 }
+end
+
+local engines = {} -- built on first use: 4 x 64K entries each
+local function engine(reflected)
+    local e = engines[reflected]
+    if not e then
+        e = build_engine(reflected)
+        engines[reflected] = e
+    end
+    return e
+end
+
+-- CRC variants of interpretation.md: all with init 0xFFFFFFFF and polynomial 0x04C11DB7.
+local CRC_VARIANTS = {
+    { name = "mpeg2", label = "CRC-32/MPEG-2 (default)", reflected = false, xorout = false },
+    { name = "iso-hdlc", label = "CRC-32/ISO-HDLC (zlib)", reflected = true, xorout = true },
+    { name = "bzip2", label = "CRC-32/BZIP2", reflected = false, xorout = true },
+    { name = "jamcrc", label = "CRC-32/JAMCRC", reflected = true, xorout = false },
+}
+
+-- CRC of bytes b[1..len] (a table of byte values).
+local function crc_of(b, len, variant)
+    local e = engine(variant.reflected)
+    local A, B, C, D = e.A, e.B, e.C, e.D
+    local c0, c1, c2, c3 = 255, 255, 255, 255
+    local i, last = 1, len - 1
+    while i <= last do
+        local k = X[c0 * 256 + b[i]] * 256 + X[c1 * 256 + b[i + 1]]
+        c0, c1, c2, c3 = X[c2 * 256 + A[k]], X[c3 * 256 + B[k]], C[k], D[k]
+        i = i + 2
+    end
+    if i == len then
+        local a = X[c0 * 256 + b[i]]
+        c0, c1, c2, c3 = X[c1 * 256 + e.t0[a]], X[c2 * 256 + e.t1[a]], X[c3 * 256 + e.t2[a]], e.t3[a]
+    end
+    local value
+    if e.reflected then
+        value = ((c3 * 256 + c2) * 256 + c1) * 256 + c0
+    else
+        value = ((c0 * 256 + c1) * 256 + c2) * 256 + c3
+    end
+    if variant.xorout then value = 0xFFFFFFFF - value end
+    return value
+end
+
+---------------------------------------------------------------------------------------------
+-- 3. decode(): the rules of vm110/decode.py, on a Lua string
+-- Record: type, info (TYPES entry or nil), header values, crc_off (offset of the CRC or nil),
+-- crc, crc_calc, crc_status, pay_end (end of the decoded payload span), values (payload
+-- field -> value), present (list of decoded layout entries), data_len (VRPO periodic data),
+-- problems (code -> true), fieldwarn (field -> list of codes), extra (extra_payload).
+---------------------------------------------------------------------------------------------
+local function u16(b, o) return b[o + 1] + b[o + 2] * 256 end
+local function u32(b, o) return ((b[o + 4] * 256 + b[o + 3]) * 256 + b[o + 2]) * 256 + b[o + 1] end
+
+local function warn(r, field, code)
+    local list = r.fieldwarn[field]
+    if not list then
+        list = {}
+        r.fieldwarn[field] = list
+    end
+    list[#list + 1] = code
+    r.nwarn = r.nwarn + 1
+end
+
+local HEADER = { { "revision", 4, 2 }, { "origin", 6, 2 }, { "serial", 8, 2 }, { "size", 10, 2 }, { "spare", 12, 4 } }
+
+local function check_values(r, info)
+    local v = r.values
+    for name in pairs(SPARE_FIELDS) do
+        local value = v[name]
+        if value and value ~= 0 and not (type(value) == "string" and not value:find("[^\0]")) then
+            warn(r, name, "spare_nonzero")
+        end
+    end
+    if info.id ~= "VRPI" then return end
+    for _, f in ipairs(info.layout) do
+        local name, value = f[1], v[f[1]]
+        if value ~= nil then
+            if f[4] and f[4][value] == nil then warn(r, name, "unknown_enum") end
+            local range = RANGES[name]
+            if range and (value < range[1] or value > range[2]) then warn(r, name, "out_of_range") end
+            if v.armed_ru == 0 and RU_FIELDS[name] and value ~= 0 then warn(r, name, "disarmed_ru_data") end
+        end
+    end
+end
+
+local function decode_payload(r, b, s, info)
+    local v, present = r.values, {}
+    local off, limit = PREFIX_LEN, r.pay_end
+    for _, f in ipairs(info.layout) do
+        local width = f[2]
+        if off + width > limit then break end
+        local kind, value = f[3]
+        if kind == "b" then
+            value = sub(s, off + 1, off + width)
+        elseif width == 1 then
+            value = b[off + 1]
+        elseif width == 2 then
+            value = u16(b, off)
+            if kind == "s" and value >= 0x8000 then value = value - 0x10000 end
+        else
+            value = u32(b, off)
+        end
+        v[f[1]] = value
+        present[#present + 1] = f
+        off = off + width
+    end
+    r.present, r.decoded_end = present, off
+    if info.id == "VRPO" and #present == 1 then
+        r.data_len = limit - off
+        if r.data_len > VRPO_MAX_DATA then r.data_len = VRPO_MAX_DATA end
+        v.periodic_data = sub(s, off + 1, off + r.data_len)
+        r.decoded_end = off + r.data_len
+    end
+    if info.id == "VRPI" and v.bu_state ~= nil then r.es_relays_open = v.bu_state < ES_RELAYS_CLOSED_FROM end
+end
+
+-- s: the UDP payload; variant: a CRC_VARIANTS entry, or nil when validation is off;
+-- big_endian: stored CRC byte order; known_crc: the calculated CRC when memoised.
+local function decode(s, variant, big_endian, known_crc)
+    local n = #s
+    local b = { byte(s, 1, n) }
+    local r = { n = n, b = b, problems = {}, nproblems = 0, fieldwarn = {}, nwarn = 0, values = {} }
+    local function problem(code)
+        if not r.problems[code] then
+            r.problems[code] = true
+            r.nproblems = r.nproblems + 1
+        end
+    end
+    if n >= ID_LEN then
+        r.type = sub(s, 1, ID_LEN)
+        r.info = TYPES[r.type]
+        if not r.info then problem("unknown_id") end
+    end
+    for _, h in ipairs(HEADER) do
+        if h[2] + h[3] <= n then r[h[1]] = h[3] == 2 and u16(b, h[2]) or u32(b, h[2]) end
+    end
+    if n < PREFIX_LEN then
+        problem("truncated")
+        return r
+    end
+    local info, size = r.info, r.size
+    if n >= OVERHEAD then
+        local off = PREFIX_LEN + size
+        if off > n - CRC_LEN then off = n - CRC_LEN end
+        r.crc_off, r.pay_end = off, off
+        if big_endian then
+            r.crc = ((b[off + 1] * 256 + b[off + 2]) * 256 + b[off + 3]) * 256 + b[off + 4]
+        else
+            r.crc = u32(b, off)
+        end
+        if variant then
+            r.crc_calc = known_crc or crc_of(b, off, variant)
+            r.crc_status = r.crc_calc == r.crc and CRC_GOOD or CRC_BAD
+            if r.crc_status == CRC_BAD then problem("bad_crc") end
+        else
+            r.crc_status = CRC_UNVERIFIED
+        end
+    end
+    if r.revision ~= SUPPORTED_REVISION then problem("revision") end
+    if n ~= OVERHEAD + size then problem("size_mismatch") end
+    if size > MAX_PAYLOAD then problem("size_too_large") end
+    if r.spare ~= 0 then warn(r, "spare", "spare_nonzero") end
+    if info and info.direction == "Output" and r.origin ~= 0 then warn(r, "origin", "origin_nonzero") end
+    if n < OVERHEAD then
+        problem("truncated") -- no room for a CRC: nothing after the header
+        return r
+    end
+    if not info or r.revision ~= SUPPORTED_REVISION then return r end -- header only
+
+    r.payload = true
+    local plen = r.pay_end - PREFIX_LEN
+    if plen < info.min then problem("truncated") end
+    decode_payload(r, b, s, info)
+    if plen > info.max then
+        r.extra = true
+        r.nwarn = r.nwarn + 1
+    end
+    check_values(r, info)
+    return r
+end
+
+---------------------------------------------------------------------------------------------
+-- 4. Protocol, fields, experts, preferences
+---------------------------------------------------------------------------------------------
+local vm110 = Proto("vm110", "VM-110 EG-Link")
+
+local ID_NAMES = {}
+for id, info in pairs(TYPES) do ID_NAMES[id] = info.description end
+
+local F = {
+    type = ProtoField.string("vm110.type", "Packet ID"),
+    direction = ProtoField.string("vm110.direction", "Direction"),
+    revision = ProtoField.uint16("vm110.revision", "Revision", base.DEC),
+    origin = ProtoField.uint16("vm110.origin", "Origin", base.HEX),
+    serial = ProtoField.uint16("vm110.serial", "Serial", base.DEC),
+    size = ProtoField.uint16("vm110.size", "Payload size", base.DEC),
+    spare = ProtoField.uint32("vm110.spare", "Spare", base.HEX),
+    crc = ProtoField.uint32("vm110.crc", "CRC", base.HEX),
+    crc_calculated = ProtoField.uint32("vm110.crc.calculated", "Calculated CRC", base.HEX),
+    crc_status = ProtoField.uint8("vm110.crc.status", "CRC status", base.DEC, CRC_STATUS),
+    undecoded = ProtoField.bytes("vm110.undecoded", "Undecoded bytes"),
+    -- VRPI
+    bu_state = ProtoField.uint8("vm110.bu_state", "BU state", base.HEX, BU_STATE),
+    es_relays_open = ProtoField.bool("vm110.es_relays_open", "ES-Link relays open"),
+    vlaps = ProtoField.uint8("vm110.vlaps", "VLAPs", base.DEC),
+    unarmed_rus = ProtoField.uint8("vm110.unarmed_rus", "Unarmed RUs", base.DEC),
+    eg_link = ProtoField.uint8("vm110.eg_link", "EG-Link status", base.HEX, LINK_STATUS),
+    ec_link = ProtoField.uint8("vm110.ec_link", "EC-Link status", base.HEX, LINK_STATUS),
+    c_link = ProtoField.uint8("vm110.c_link", "C-Link status", base.HEX, LINK_STATUS),
+    armed_ru = ProtoField.uint16("vm110.armed_ru", "Armed RU", base.HEX),
+    ru_state = ProtoField.uint8("vm110.ru_state", "RU state", base.HEX, RU_STATE),
+    ru_battery = ProtoField.uint8("vm110.ru_battery", "RU battery (%)", base.DEC),
+    ru_rssi = ProtoField.uint8("vm110.ru_rssi", "RU C-Link RSSI (%)", base.DEC),
+    ru_cable = ProtoField.uint8("vm110.ru_cable", "RU cable", base.HEX, RU_CABLE),
+    ru_docked = ProtoField.uint8("vm110.ru_docked", "RU docked", base.HEX, RU_DOCKED),
+    ru_disabled = ProtoField.uint8("vm110.ru_disabled", "RU disabled", base.HEX, RU_DISABLED),
+    encoder = ProtoField.uint8("vm110.encoder", "Encoder value", base.DEC),
+    encoder_switch = ProtoField.uint8("vm110.encoder_switch", "Encoder switch", base.HEX, ENCODER_SWITCH),
+    vrpi_spare = ProtoField.bytes("vm110.vrpi_spare", "Spare"),
+    -- VRPO
+    packet_number = ProtoField.uint16("vm110.packet_number", "Packet number", base.DEC),
+    periodic_data = ProtoField.bytes("vm110.periodic_data", "Periodic data"),
+    -- VRCI / VRCO / VRAI / VRAO: one command_id field, so a filter shows a command with its acks
+    command_id = ProtoField.uint16("vm110.command_id", "Command ID", base.DEC),
+    command_spare = ProtoField.uint32("vm110.command_spare", "Spare", base.HEX),
+    command_data = ProtoField.bytes("vm110.command_data", "Command data"),
+}
+for i = 1, 4 do F["joystick" .. i] = ProtoField.int16("vm110.joystick" .. i, "Joystick " .. i, base.DEC) end
+for i = 1, 8 do F["switch" .. i] = ProtoField.int16("vm110.switch" .. i, "Switch " .. i, base.DEC) end
+local field_list = {}
+for _, f in pairs(F) do field_list[#field_list + 1] = f end
+vm110.fields = field_list
+
+-- One expert per problem and warning code of vm110.decode(): abbrev "vm110.expert.<code>".
+local group, severity = expert.group, expert.severity
+local E = {
+    unknown_id = ProtoExpert.new("vm110.expert.unknown_id", "Unknown packet ID", group.PROTOCOL, severity.ERROR),
+    bad_crc = ProtoExpert.new("vm110.expert.bad_crc", "Bad CRC", group.CHECKSUM, severity.ERROR),
+    revision = ProtoExpert.new("vm110.expert.revision", "Unsupported revision", group.PROTOCOL, severity.ERROR),
+    size_mismatch = ProtoExpert.new("vm110.expert.size_mismatch", "Size does not match the UDP length",
+        group.MALFORMED, severity.ERROR),
+    size_too_large = ProtoExpert.new("vm110.expert.size_too_large", "Size above 492", group.MALFORMED, severity.ERROR),
+    truncated = ProtoExpert.new("vm110.expert.truncated", "Truncated", group.MALFORMED, severity.ERROR),
+    spare_nonzero = ProtoExpert.new("vm110.expert.spare_nonzero", "Spare not zero", group.PROTOCOL, severity.WARN),
+    origin_nonzero = ProtoExpert.new("vm110.expert.origin_nonzero", "Origin not zero on an output packet",
+        group.PROTOCOL, severity.WARN),
+    out_of_range = ProtoExpert.new("vm110.expert.out_of_range", "Value outside the documented range",
+        group.PROTOCOL, severity.WARN),
+    unknown_enum = ProtoExpert.new("vm110.expert.unknown_enum", "Unknown enumerated value",
+        group.PROTOCOL, severity.WARN),
+    disarmed_ru_data = ProtoExpert.new("vm110.expert.disarmed_ru_data", "RU field not zero while no RU is armed",
+        group.PROTOCOL, severity.WARN),
+    extra_payload = ProtoExpert.new("vm110.expert.extra_payload", "Payload longer than the packet type's layout",
+        group.UNDECODED, severity.WARN),
+    es_relays_open = ProtoExpert.new("vm110.expert.es_relays_open", "ES-Link relays open",
+        group.RESPONSE_CODE, severity.WARN),
+}
+local expert_list = {}
+for _, e in pairs(E) do expert_list[#expert_list + 1] = e end
+vm110.experts = expert_list
+
+local variant_enum, order_enum = {}, { { "little", "Little-endian (TS-0006 2.1)", 1 }, { "big", "Big-endian", 2 } }
+for i, v in ipairs(CRC_VARIANTS) do variant_enum[i] = { v.name, v.label, i } end
+vm110.prefs.crc_variant = Pref.enum("CRC variant", 1, "CRC-32 variant the packets are checked with", variant_enum, false)
+vm110.prefs.crc_byte_order = Pref.enum("Stored CRC byte order", 1, "Byte order of the CRC trailer", order_enum, false)
+vm110.prefs.check_crc = Pref.bool("Validate the CRC", true, "Calculate the CRC of each packet and flag bad ones")
+vm110.prefs.input_port = Pref.uint("Input UDP port", DEFAULT_INPUT_PORT,
+    "UDP port of input packets; output packets use this port + 2 (TS-0006 2.2)")
+vm110.prefs.heuristic = Pref.bool("Find EG-Link on other UDP ports", true,
+    "Heuristic: a known packet ID with a size that matches the UDP length")
+
+---------------------------------------------------------------------------------------------
+-- 5. Tree and Info column
+---------------------------------------------------------------------------------------------
+local function enum_text(names, value)
+    return names[value] or fmt("Unknown (0x%02x)", value)
+end
+
+local PROBLEM_TEXT = {
+    unknown_id = "unknown packet ID", bad_crc = "bad CRC", revision = "unsupported revision",
+    size_mismatch = "size mismatch", size_too_large = "size > 492", truncated = "truncated",
+}
+local PROBLEM_ORDER = { "unknown_id", "bad_crc", "revision", "size_mismatch", "size_too_large", "truncated" }
+
+local function summary(r)
+    local v, id, parts = r.values, r.type, {}
+    if not r.info then
+        parts[1] = r.type and fmt("Unknown packet ID %q", r.type) or "EG-Link fragment"
+    elseif id == "VRPI" and v.bu_state ~= nil then
+        parts[1] = "VRPI " .. enum_text(BU_STATE, v.bu_state)
+        if v.armed_ru and v.armed_ru ~= 0 then
+            parts[#parts + 1] = fmt("RU 0x%04X", v.armed_ru)
+            if v.ru_state then parts[#parts + 1] = enum_text(RU_STATE, v.ru_state) end
+            if v.ru_battery then parts[#parts + 1] = fmt("bat %d%%", v.ru_battery) end
+        elseif v.unarmed_rus then
+            parts[#parts + 1] = fmt("unarmed RUs %d", v.unarmed_rus)
+        end
+    elseif v.command_id and (id == "VRCI" or id == "VRCO") then
+        parts[1] = fmt("%s cmd %d", id, v.command_id)
+    elseif v.command_id then
+        parts[1] = fmt("%s ack %d", id, v.command_id)
+    elseif v.packet_number then
+        parts[1] = fmt("VRPO #%d %d bytes", v.packet_number, r.data_len)
+    else
+        parts[1] = id
+    end
+    local text = concat(parts, " ")
+    if r.serial then text = text .. fmt(", serial %d", r.serial) end
+    if r.nproblems > 0 then
+        local p = {}
+        for _, code in ipairs(PROBLEM_ORDER) do
+            if r.problems[code] then p[#p + 1] = PROBLEM_TEXT[code] end
+        end
+        text = text .. " [Illegal: " .. concat(p, ", ") .. "]"
+    end
+    return text
+end
+
+local function field_message(code, name, value)
+    local shown = type(value) == "string" and "bytes not zero" or fmt("%d", value)
+    if code == "out_of_range" then
+        local range = RANGES[name]
+        return fmt("vm110.%s = %s is outside %d..%d", name, shown, range[1], range[2])
+    elseif code == "unknown_enum" then
+        return fmt("vm110.%s = 0x%02x is not a defined value", name, value)
+    elseif code == "disarmed_ru_data" then
+        return fmt("vm110.%s = %s while vm110.armed_ru = 0", name, shown)
+    elseif code == "origin_nonzero" then
+        return fmt("vm110.%s = 0x%04x: should be 0 on output packets", name, value)
+    end
+    return fmt("vm110.%s: %s", name, type(value) == "string" and "bytes not zero" or fmt("0x%x, should be 0", value))
+end
+
+local function field_experts(r, item, name, value)
+    local codes = r.fieldwarn[name]
+    if codes then
+        for _, code in ipairs(codes) do item:add_proto_expert_info(E[code], field_message(code, name, value)) end
+    end
+end
+
+local function add_undecoded(tree, tvb, off, len, why)
+    if len > 0 then return tree:add(F.undecoded, tvb(off, len)):append_text(" (" .. why .. ")") end
+end
+
+local function add_header(r, tvb, root)
+    local n = r.n
+    local id_item
+    if r.type then
+        id_item = root:add(F.type, tvb(0, ID_LEN))
+        if r.info then
+            id_item:append_text(" (" .. r.info.description .. ")")
+            id_item:add(F.direction, tvb(ID_LEN - 1, 1), r.info.direction):set_generated()
+        else
+            id_item:append_text(" (Unknown)")
+            id_item:add_proto_expert_info(E.unknown_id, fmt("Unknown packet ID %q: the payload is not decoded", r.type))
+        end
+    else
+        add_undecoded(root, tvb, 0, n, "shorter than a packet ID")
+    end
+    if n <= ID_LEN then return id_item end
+    local hlen = n < PREFIX_LEN and n - ID_LEN or HEADER_LEN
+    local header = root:add(tvb(ID_LEN, hlen), "Header")
+    local off = ID_LEN
+    for _, h in ipairs(HEADER) do
+        local name = h[1]
+        if r[name] == nil then break end
+        local item = header:add_le(F[name], tvb(h[2], h[3]))
+        field_experts(r, item, name, r[name])
+        if name == "revision" and r.problems.revision then
+            item:add_proto_expert_info(E.revision, fmt("Revision %d is not supported: only the header is decoded", r.revision))
+        elseif name == "size" then
+            if r.problems.size_mismatch then
+                item:add_proto_expert_info(E.size_mismatch,
+                    fmt("Size %d needs a UDP payload of %d bytes, got %d", r.size, OVERHEAD + r.size, n))
+            end
+            if r.problems.size_too_large then
+                item:add_proto_expert_info(E.size_too_large, fmt("Size %d is above the maximum of %d", r.size, MAX_PAYLOAD))
+            end
+        end
+        off = h[2] + h[3]
+    end
+    add_undecoded(header, tvb, off, ID_LEN + hlen - off, "header cut short")
+    return id_item
+end
+
+local function add_payload(r, tvb, root)
+    local info, v = r.info, r.values
+    local plen = r.pay_end - PREFIX_LEN
+    local payload = root:add(tvb(PREFIX_LEN, plen), fmt("%s payload (%d bytes)", r.type, plen))
+    for _, f in ipairs(r.present) do
+        local name = f[1]
+        local item = payload:add_le(F[name], tvb(f.off, f[2]))
+        field_experts(r, item, name, v[name])
+        if name == "bu_state" then
+            local relays = payload:add(F.es_relays_open, tvb(f.off, 1), r.es_relays_open):set_generated()
+            if r.es_relays_open then
+                relays:add_proto_expert_info(E.es_relays_open,
+                    fmt("ES-Link relays open: BU state %s is below Disarmed", enum_text(BU_STATE, v.bu_state)))
+            end
+        end
+    end
+    local off = r.decoded_end
+    if r.data_len then
+        payload:add(F.periodic_data, tvb(off - r.data_len, r.data_len))
+    end
+    if r.problems.truncated then
+        payload:add_proto_expert_info(E.truncated,
+            fmt("%s payload is %d bytes, its layout needs %d", r.type, plen, info.min))
+        add_undecoded(payload, tvb, off, r.pay_end - off, "part of a field")
+    elseif r.extra then
+        local item = add_undecoded(payload, tvb, off, r.pay_end - off, "beyond the layout")
+        item:add_proto_expert_info(E.extra_payload,
+            fmt("%d bytes beyond the %s layout of %d bytes", r.pay_end - off, r.type, info.max))
+    end
+end
+
+local function add_crc(r, tvb, root, big_endian)
+    local range = tvb(r.crc_off, CRC_LEN)
+    local item = big_endian and root:add(F.crc, range) or root:add_le(F.crc, range)
+    if r.crc_calc then
+        item:add(F.crc_calculated, range, r.crc_calc):set_generated()
+    end
+    item:add(F.crc_status, range, r.crc_status):set_generated()
+    if r.crc_status == CRC_BAD then
+        item:append_text(" [incorrect]")
+        item:add_proto_expert_info(E.bad_crc, fmt("Bad CRC: stored 0x%08x, calculated 0x%08x", r.crc, r.crc_calc))
+    elseif r.crc_status == CRC_GOOD then
+        item:append_text(" [correct]")
+    else
+        item:append_text(" [unverified]")
+    end
+end
+
+local function add_tree(r, tvb, tree, big_endian)
+    local root = tree:add(vm110, tvb(), "VM-110 EG-Link, " .. r.info_text)
+    add_header(r, tvb, root)
+    local n = r.n
+    if n < PREFIX_LEN then
+        root:add_proto_expert_info(E.truncated, fmt("%d bytes, shorter than the %d-byte packet ID and header", n, PREFIX_LEN))
+        return
+    end
+    if not r.crc_off then
+        local item = add_undecoded(root, tvb, PREFIX_LEN, n - PREFIX_LEN, "no room for a CRC") or root
+        item:add_proto_expert_info(E.truncated, fmt("%d bytes, too short for a CRC", n))
+        return
+    end
+    if r.payload then
+        add_payload(r, tvb, root)
+    else
+        add_undecoded(root, tvb, PREFIX_LEN, r.crc_off - PREFIX_LEN, "payload not decoded")
+    end
+    add_crc(r, tvb, root, big_endian)
+    add_undecoded(root, tvb, r.crc_off + CRC_LEN, n - r.crc_off - CRC_LEN, "after the CRC")
+end
+
+-- Layout entries carry their payload offset (the tree needs it; decode only walks).
+for _, info in pairs(TYPES) do
+    local off = PREFIX_LEN
+    for _, f in ipairs(info.layout) do
+        f.off = off
+        off = off + f[2]
+    end
+end
+
+---------------------------------------------------------------------------------------------
+-- 6. Dissector, registration
+---------------------------------------------------------------------------------------------
+-- Calculated CRC per frame number: re-dissection (GUI clicks, second pass) skips the CRC.
+-- Emptied when a capture is (re)loaded and when the preferences change.
+local crc_memo = {}
+
+function vm110.init()
+    crc_memo = {}
+end
+
+function vm110.dissector(tvb, pinfo, tree)
+    local prefs = vm110.prefs
+    local variant = prefs.check_crc and CRC_VARIANTS[prefs.crc_variant] or nil
+    local big_endian = prefs.crc_byte_order == 2
+    -- Keyed by frame and offset: a frame may carry more than one EG-Link packet (tunnels).
+    local key = pinfo.number * 0x10000 + tvb:offset()
+    local r = decode(tvb:raw(), variant, big_endian, pinfo.visited and crc_memo[key] or nil)
+    if r.crc_calc then crc_memo[key] = r.crc_calc end
+
+    pinfo.cols.protocol = "VM110"
+    r.info_text = summary(r)
+    pinfo.cols.info = r.info_text
+    add_tree(r, tvb, tree, big_endian)
+    return r.n
+end
+
+local function heuristic(tvb, pinfo, tree)
+    if not vm110.prefs.heuristic then return false end
+    local n = tvb:len()
+    if n < OVERHEAD or n > OVERHEAD + MAX_PAYLOAD or not TYPES[tvb:raw(0, ID_LEN)] then return false end
+    if OVERHEAD + tvb(10, 2):le_uint() ~= n then return false end
+    vm110.dissector(tvb, pinfo, tree)
+    return true
+end
+
+local udp_port = DissectorTable.get("udp.port")
+local registered_port
+local function register_ports()
+    local port = floor(vm110.prefs.input_port) -- an integer on Lua 5.4 too
+    if port == registered_port then return end
+    if registered_port then
+        udp_port:remove(registered_port, vm110)
+        udp_port:remove(registered_port + OUTPUT_PORT_OFFSET, vm110)
+    end
+    udp_port:add(port, vm110)
+    udp_port:add(port + OUTPUT_PORT_OFFSET, vm110)
+    registered_port = port
+end
+
+function vm110.prefs_changed()
+    crc_memo = {}
+    register_ports()
+end
+
+register_ports()
+udp_port:add_for_decode_as(vm110)
+vm110:register_heuristic("udp", heuristic)

@@ -1,0 +1,245 @@
+"""From `Collected` to the report dictionary (the JSON report, docs/report.md) and its verdict."""
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import asdict, dataclass
+from itertools import compress
+from typing import Optional
+
+from .. import __version__
+from .. import constants as C
+from . import bursts, commands, serials, state, timing
+from .collect import CODE, TYPES, VRPI_CODE, VRPO_CODE, Collected, Sender
+
+SCHEMA_VERSION = 1
+SCOPES = ("auto", "sender", "type")
+HISTOGRAM_BINS = 60
+SERIES_POINTS = 600
+_ONLY = serials._ONLY
+
+
+@dataclass
+class Options:
+    serial_scope: str = "auto"
+    vrpi_period_ms: float = C.VRPI_PERIOD_MS
+    vrpo_period_ms: Optional[float] = None        # None: the median interval between bursts
+    vrpi_watchdog_ms: float = C.VRPI_WATCHDOG_MS
+    vrpo_watchdog_ms: float = C.VRPO_WATCHDOG_MS
+    vrpo_min_ms: float = C.VRPO_PERIOD_MIN_MS
+    vrpo_max_ms: float = C.VRPO_PERIOD_MAX_MS
+    resend_ms: float = C.COMMAND_RESEND_MS
+    vrci_fail_ms: float = C.VRCI_FAIL_MS
+    burst_gap_ms: float = C.VRPO_BURST_GAP_MS
+    vrpo_start: int = 0
+    vrpo_data_size: int = 0
+    plots: bool = False
+
+
+def build(got: Collected, opt: Options) -> dict:
+    """The whole report of one capture."""
+    sender_list = sorted(got.senders.values(), key=lambda s: s.id)
+    sender_reports, periodic, events, burst_rows, states = [], [], [], [], []
+    backwards = 0
+    for snd in sender_list:
+        codes = snd.code.tobytes()
+        res, scope = _serials(snd, codes, opt.serial_scope)
+        dup = set(res.duplicate_index)
+        sender_reports.append(_sender_report(snd, codes, res, scope))
+        for code in (VRPI_CODE, VRPO_CODE):
+            mask = bytearray(codes.translate(_ONLY[code]))
+            if not any(mask):
+                continue
+            for i in dup:
+                mask[i] = 0
+            times = list(compress(snd.ts, mask))
+            row, back = _periodic(TYPES[code].value, snd, times, opt)
+            backwards += back
+            periodic.append(row)
+        live = [e for e in snd.events if e[0] not in dup] if dup else snd.events
+        events.extend((e[1], e[2], e[3], snd.id, e[4]) for e in live if e[3] != VRPO_CODE)
+        vrpo = [e for e in live if e[3] == VRPO_CODE]
+        if vrpo:
+            burst_rows.append(_bursts(snd, vrpo, opt, periodic))
+        if len(snd.state):
+            vrpi_times = list(compress(snd.ts, codes.translate(_ONLY[VRPI_CODE])))
+            states.append({"sender": snd.id, **state.timeline(vrpi_times, snd.state, got.states,
+                                                              snd.vrpi_frame, got.last_ts)})
+    periodic.sort(key=lambda p: (p["type"], p["sender"]))
+    events.sort()
+    tallies = commands.track(events)
+    cmd = {t.value: commands.report(CODE[t], tallies[CODE[t]],
+                                    opt.vrci_fail_ms if t is C.PacketType.VRCI else None, opt.resend_ms)
+           for t in commands.COMMAND_TYPES}
+    valid = got.crc_counts[(got.crc_variant, got.crc_order)]
+    report = {
+        "schema_version": SCHEMA_VERSION,
+        "tool": {"name": "vm110", "version": __version__, "engine": got.engine},
+        "capture": {
+            "file": got.path, "format": got.format, "link_types": got.link_types,
+            "packets": got.frames, "udp_packets": got.udp, "eglink_packets": got.eglink,
+            "other_udp_packets": got.other_udp, "non_udp_packets": got.non_udp,
+            "fragments": got.fragments, "snaplen_truncated": got.snap_truncated,
+            "first_time": got.first_ts, "last_time": got.last_ts,
+            "duration_s": (got.last_ts - got.first_ts) if got.first_ts is not None else 0.0,
+            "time_backwards": backwards, "problem": got.problem, "ports": list(got.ports),
+        },
+        "crc": {"variant": got.crc_variant, "byte_order": got.crc_order, "auto": got.crc_auto,
+                "valid": valid, "invalid": got.crc_checked - valid,
+                "candidates": {f"{v}/{o}": n for (v, o), n in sorted(got.crc_counts.items())}},
+        "illegal": {"total": got.illegal, "by_reason": dict(sorted(got.illegal_reasons.items())),
+                    "examples": [{"frame": f, "time": t, "src": s, "type": p, "reasons": list(r)}
+                                 for f, t, s, p, r in got.illegal_examples]},
+        "senders": sender_reports,
+        "periodic": periodic,
+        "commands": cmd,
+        "vrpo_bursts": {"complete": sum(b["complete"] for b in burst_rows),
+                        "incomplete": sum(b["incomplete"] for b in burst_rows), "per_sender": burst_rows},
+        "state": states,
+        "options": asdict(opt),
+    }
+    report["totals"] = totals(report)
+    report["verdict"] = verdict(report)
+    return report
+
+
+def _serials(snd: Sender, codes: bytes, scope: str) -> tuple[serials.SerialResult, str]:
+    by_sender = serials.classify_sender(snd.serial, snd.ts, codes, "sender")
+    if scope == "sender" or (scope == "auto" and (by_sender.anomalies == 0 or len(set(codes)) < 2)):
+        return by_sender, "sender"
+    if scope == "type":
+        return serials.classify_sender(snd.serial, snd.ts, codes, "type"), "type"
+    by_type = serials.classify_sender(snd.serial, snd.ts, codes, "type", limit=by_sender.anomalies)
+    if not by_type.aborted and by_type.anomalies < by_sender.anomalies:
+        return by_type, "type"
+    return by_sender, "sender"
+
+
+def _sender_report(snd: Sender, codes: bytes, res: serials.SerialResult, scope: str) -> dict:
+    counts = Counter(codes)
+    return {
+        "id": snd.id, "direction": snd.direction, "origin": snd.origin, "src": snd.src,
+        "by_type": {TYPES[c].value: counts[c] for c in sorted(counts, key=lambda c: TYPES[c].value)},
+        "serial": {
+            "scope": scope, "received": res.received, "lost": res.lost, "duplicates": res.duplicates,
+            "out_of_order": res.out_of_order, "wraps": res.wraps, "lost_serials": res.lost_serials,
+            "duplicate_serials": res.duplicate_serials, "out_of_order_serials": res.out_of_order_serials,
+            "gaps": [{"after": a, "count": n, "time": t} for a, n, t in res.gaps],
+        },
+    }
+
+
+def _periodic(ptype: str, snd: Sender, times: list, opt: Options) -> tuple[dict, int]:
+    vrpi = ptype == C.PacketType.VRPI.value
+    gaps = timing.intervals_ms(times)
+    limit = opt.vrpi_watchdog_ms if vrpi else opt.vrpo_watchdog_ms
+    row = {
+        "type": ptype, "sender": snd.id, "count": len(times),
+        "interval_ms": timing.summary(gaps),
+        "nominal_ms": opt.vrpi_period_ms if vrpi else None,
+        "jitter_ms": timing.jitter_ms(times, opt.vrpi_period_ms) if vrpi else None,
+        "watchdog": {"limit_ms": limit, "violations": timing.violations(times, gaps, limit)},
+        "time_backwards": sum(1 for g in gaps if g < 0),
+    }
+    if opt.plots:
+        row["plot"] = _plot(times, gaps)
+    return row, row["time_backwards"]
+
+
+def _bursts(snd: Sender, vrpo: list, opt: Options, periodic: list) -> dict:
+    times = [e[2] for e in vrpo]
+    complete, incomplete, starts = bursts.count(times, [e[4] for e in vrpo], [e[5] for e in vrpo],
+                                                opt.burst_gap_ms, opt.vrpo_start, opt.vrpo_data_size)
+    # Period, jitter and the 50-200 ms recommendation apply to bursts: split packets go back to back.
+    between = timing.intervals_ms(starts)
+    ordered = sorted(between)
+    period = opt.vrpo_period_ms or (round(timing.percentile(ordered, 50.0)) if ordered else None)
+    row = next(p for p in periodic if p["type"] == C.PacketType.VRPO.value and p["sender"] == snd.id)
+    row["nominal_ms"] = period
+    row["jitter_ms"] = timing.jitter_ms(starts, period) if period else timing.jitter_ms([], 1.0)
+    row["bursts"] = len(starts)
+    row["burst_interval_ms"] = timing.summary(between)
+    row["outside_recommended"] = {"low_ms": opt.vrpo_min_ms, "high_ms": opt.vrpo_max_ms,
+                                  "count": timing.outside(between, opt.vrpo_min_ms, opt.vrpo_max_ms)}
+    return {"sender": snd.id, "complete": complete, "incomplete": incomplete}
+
+
+def _plot(times: list, gaps: list) -> dict:
+    """Histogram of intervals and a down-sampled interval-over-time series (max per bucket)."""
+    if not gaps:
+        return {"histogram": [], "series": []}
+    ordered = sorted(gaps)
+    low, high = ordered[0], timing.percentile(ordered, 99.9)
+    high = max(high, low + 1e-3)
+    width = (high - low) / HISTOGRAM_BINS
+    counts = Counter(min(int((g - low) / width), HISTOGRAM_BINS) for g in gaps)
+    hist = [[low + i * width, counts.get(i, 0)] for i in range(HISTOGRAM_BINS + 1)]
+    step = max(1, math.ceil(len(gaps) / SERIES_POINTS))
+    series = [[times[i + 1], max(gaps[i:i + step])] for i in range(0, len(gaps), step)]
+    return {"histogram": hist, "bin_ms": width, "series": series}
+
+
+def totals(report: dict) -> dict:
+    """The numbers `--fail-on` rules refer to."""
+    senders, periodic, cmds = report["senders"], report["periodic"], report["commands"]
+    jitters = [p["jitter_ms"]["max"] for p in periodic if p["jitter_ms"] and p["jitter_ms"]["max"] is not None]
+    maxes = [p["interval_ms"]["max"] for p in periodic if p["interval_ms"]["max"] is not None]
+    lat = [c["ack_latency_ms"]["max"] for c in cmds.values() if c["ack_latency_ms"]["max"] is not None]
+    return {
+        "packets": report["capture"]["packets"],
+        "eglink_packets": report["capture"]["eglink_packets"],
+        "lost": sum(s["serial"]["lost"] for s in senders),
+        "duplicates": sum(s["serial"]["duplicates"] for s in senders),
+        "out_of_order": sum(s["serial"]["out_of_order"] for s in senders),
+        "illegal": report["illegal"]["total"],
+        "crc_invalid": report["crc"]["invalid"],
+        "watchdog": sum(len(p["watchdog"]["violations"]) for p in periodic),
+        "vrpo_outside_recommended": sum(p.get("outside_recommended", {}).get("count", 0) for p in periodic),
+        "commands": sum(c["commands"] for c in cmds.values()),
+        "retransmissions": sum(c["retransmissions"] for c in cmds.values()),
+        "unacked": sum(c["unacked"] for c in cmds.values()),
+        "failed": sum(c["failed"] for c in cmds.values()),
+        "spurious": sum(c["spurious_retransmissions"] for c in cmds.values()),
+        "acks_without_command": sum(c["acks_without_command"] for c in cmds.values()),
+        "duplicate_acks": sum(c["duplicate_acks"] for c in cmds.values()),
+        "relays_open": sum(len(s["episodes_relays_open"]) for s in report["state"]),
+        "vrpo_incomplete": report["vrpo_bursts"]["incomplete"],
+        "time_backwards": report["capture"]["time_backwards"],
+        "snaplen_truncated": report["capture"]["snaplen_truncated"],
+        "jitter_max_ms": max(jitters) if jitters else 0.0,
+        "interval_max_ms": max(maxes) if maxes else 0.0,
+        "ack_latency_max_ms": max(lat) if lat else 0.0,
+    }
+
+
+# (total, severity, message) for each finding the verdict reports when its total is above 0.
+FINDINGS = (
+    ("lost", "error", "packets lost (serial gaps)"),
+    ("illegal", "error", "illegal packets"),
+    ("watchdog", "error", "watchdog violations"),
+    ("failed", "error", "VRCI commands failed (no VRAO within the limit)"),
+    ("unacked", "error", "commands never acknowledged"),
+    ("relays_open", "error", "episodes with the ES-Link relays open"),
+    ("duplicates", "warning", "duplicated packets"),
+    ("out_of_order", "warning", "packets out of order"),
+    ("spurious", "warning", "retransmissions after the acknowledgement"),
+    ("acks_without_command", "warning", "acknowledgements without a command"),
+    ("duplicate_acks", "warning", "duplicate acknowledgements"),
+    ("vrpo_incomplete", "warning", "incomplete VRPO bursts"),
+    ("vrpo_outside_recommended", "warning", "VRPO intervals outside the recommended range"),
+    ("time_backwards", "warning", "timestamps going backwards"),
+    ("snaplen_truncated", "warning", "datagrams cut short by the capture's snaplen"),
+)
+
+
+def verdict(report: dict) -> dict:
+    tot = report["totals"]
+    findings = [{"rule": key, "severity": sev, "count": tot[key], "message": f"{tot[key]} {msg}"}
+                for key, sev, msg in FINDINGS if tot[key] > 0]
+    if report["capture"]["problem"]:
+        findings.insert(0, {"rule": "capture", "severity": "error", "count": 1,
+                            "message": report["capture"]["problem"]})
+    if not report["capture"]["eglink_packets"]:
+        findings.insert(0, {"rule": "no_eglink", "severity": "warning", "count": 0,
+                            "message": "no EG-Link packets in the capture"})
+    return {"ok": not any(f["severity"] == "error" for f in findings), "findings": findings}

@@ -1,0 +1,1 @@
+"""Capture files: reading (reader.py) and writing (writer.py) pcap and pcapng."""

@@ -1,0 +1,38 @@
+"""Link-layer and network numbers the capture reader understands (pcap LINKTYPE_* values)."""
+from __future__ import annotations
+
+LINKTYPE_NULL = 0            # BSD loopback: 4-byte address family in the writer's byte order
+LINKTYPE_ETHERNET = 1
+LINKTYPE_RAW = 101           # raw IPv4 or IPv6, version from the first nibble
+LINKTYPE_LOOP = 108          # OpenBSD loopback: address family in network byte order
+LINKTYPE_LINUX_SLL = 113
+LINKTYPE_IPV4 = 228
+LINKTYPE_IPV6 = 229
+LINKTYPE_LINUX_SLL2 = 276
+DLT_RAW_ALIASES = (12, 14)   # DLT_RAW as some platforms number it in pcap files
+
+NAMES = {
+    LINKTYPE_NULL: "null", LINKTYPE_ETHERNET: "ethernet", LINKTYPE_RAW: "raw",
+    LINKTYPE_LOOP: "loop", LINKTYPE_LINUX_SLL: "linux-sll", LINKTYPE_IPV4: "ipv4",
+    LINKTYPE_IPV6: "ipv6", LINKTYPE_LINUX_SLL2: "linux-sll2",
+    **{n: "raw" for n in DLT_RAW_ALIASES},
+}
+
+ETHERTYPE_IPV4 = 0x0800
+ETHERTYPE_IPV6 = 0x86DD
+ETHERTYPE_VLANS = (0x8100, 0x88A8, 0x9100)   # 802.1Q, 802.1ad (QinQ), legacy QinQ
+ETH_HEADER_LEN = 14
+VLAN_TAG_LEN = 4
+SLL_HEADER_LEN = 16
+SLL2_HEADER_LEN = 20
+NULL_HEADER_LEN = 4
+AF_INET = 2
+AF_INET6 = (10, 24, 28, 30)  # Linux, NetBSD/OpenBSD, FreeBSD, macOS
+
+IPPROTO_UDP = 17
+IPV4_MIN_HEADER = 20
+IPV4_FRAGMENT_MASK = 0x3FFF   # MF flag and fragment offset
+IPV6_HEADER_LEN = 40
+IPV6_FRAGMENT = 44
+IPV6_EXTENSIONS = (0, 43, 60)  # hop-by-hop, routing, destination options: skipped over
+UDP_HEADER_LEN = 8

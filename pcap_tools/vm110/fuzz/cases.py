@@ -1,0 +1,232 @@
+"""The case schedule: case index -> Case, reproducible from (seed, case index).
+
+The first cases are a fixed sweep, families interleaved so that the cheap, high-yield cases of
+every family come first (one bad CRC, one oversize packet, one retransmission ...); after the
+sweep, each case is drawn from its own random generator seeded with (seed, index).
+
+Serial numbers and the base-unit stream are the session's: a step is built when it is sent,
+from the base unit's next serial. Command IDs are a function of the case index alone.
+"""
+from __future__ import annotations
+
+import functools
+import random
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional
+
+from .. import constants as C
+from . import mutate as M
+
+IDS_PER_CASE = 4
+ID_BASE = 16
+WRAP_IDS = (C.SERIAL_MODULUS - 2, C.SERIAL_MODULUS - 1, 0, 1)   # command IDs across the wrap
+
+# Builds one packet from the base unit's next serial: (packet, its valid twin).
+Builder = Callable[[int], tuple[bytes, bytes]]
+
+
+@dataclass
+class Step:
+    build: Builder
+    delay_ms: float = 0.0          # wait before sending
+    expect_ack: bool = True        # False for an exact duplicate frame (same serial)
+
+
+@dataclass
+class Case:
+    index: int
+    family: str
+    description: str
+    steps: list[Step] = field(default_factory=list)
+    pause_vrpi_ms: float = 0.0      # base unit holds its VRPI stream back after the steps
+    withhold_vrai_ms: float = 0.0   # base unit does not acknowledge the next VRCO for this long
+    stream: Optional[dict[str, Any]] = None   # VRPI fields of the stream during the case
+    settle_ms: float = 0.0          # quiet time after the steps
+
+
+def command_ids(index: int) -> list[int]:
+    """The command IDs case `index` may use: fresh within any window shorter than ~16000 cases."""
+    return [(ID_BASE + IDS_PER_CASE * index + j) % C.SERIAL_MODULUS for j in range(IDS_PER_CASE)]
+
+
+def _valid(ptype: C.PacketType, fields: dict[str, Any], header: Optional[dict[str, Any]] = None) -> Builder:
+    def build(serial: int) -> tuple[bytes, bytes]:
+        twin = M.build(ptype, serial, fields)
+        return (M.build(ptype, serial, fields, header) if header else twin), twin
+    return build
+
+
+def _mutated(ptype: C.PacketType, fields: dict[str, Any], change: Callable[[bytes], bytes]) -> Builder:
+    def build(serial: int) -> tuple[bytes, bytes]:
+        twin = M.build(ptype, serial, fields)
+        return change(twin), twin
+    return build
+
+
+def _single(family: str, text: str, builder: Builder) -> Callable[[int], Case]:
+    return lambda index: Case(index, family, text, [Step(builder)])
+
+
+def _fields_for(ptype: C.PacketType, index: int, sweep: bool = False) -> dict[str, Any]:
+    if ptype is C.PacketType.VRPI:
+        return dict(M.SWEEP_VRPI if sweep else M.ARMED_VRPI)
+    return M.default_fields(ptype, command_ids(index)[0])
+
+
+# --- sweep families ---------------------------------------------------------------------------
+def _structural_family(ptype: C.PacketType, rng: random.Random) -> list[Callable[[int], Case]]:
+    family = f"{ptype.value.lower()}-structure"
+    # The mutation list is the same for every packet of this type; index-specific fields go in later.
+    names = [name for name, _ in M.structural(M.build(ptype, 0, _fields_for(ptype, 0)), random.Random(0))]
+    out = []
+    for position, name in enumerate(names):
+        seed = rng.randrange(1 << 32)
+
+        def make(index: int, position: int = position, name: str = name, seed: int = seed) -> Case:
+            def change(valid: bytes) -> bytes:
+                return list(M.structural(valid, random.Random(seed)))[position][1]
+            return Case(index, family, f"{ptype.value} {name}",
+                        [Step(_mutated(ptype, _fields_for(ptype, index), change))])
+        out.append(make)
+    for name, value, legal in M.header_mutations():
+        if not legal:
+            out.insert(min(len(out), 2), lambda index, n=name, v=value: Case(
+                index, family, f"{ptype.value} header {n}={v:#x}",
+                [Step(_valid(ptype, _fields_for(ptype, index), {n: v}))]))
+    return out
+
+
+def _field_family(ptype: C.PacketType, rng: random.Random) -> list[Callable[[int], Case]]:
+    family = f"{ptype.value.lower()}-fields"
+    out = []
+    skip = ("command_id",)   # command IDs are the session's bookkeeping; sequences cover their edges
+    for name, value in M.field_mutations(ptype, _fields_for(ptype, 0, sweep=True), rng, skip):
+        def make(index: int, name: str = name, value: Any = value) -> Case:
+            fields = dict(_fields_for(ptype, index, sweep=True), **{name: value})
+            shown = value.hex() if isinstance(value, bytes) else value
+            return Case(index, family, f"{ptype.value} {name}={shown}", [Step(_valid(ptype, fields))])
+        out.append(make)
+    for name, value, legal in M.header_mutations():
+        if legal:
+            out.insert(min(len(out), 3), lambda index, n=name, v=value: Case(
+                index, family, f"{ptype.value} header {n}={v:#x}",
+                [Step(_valid(ptype, _fields_for(ptype, index, sweep=True), {n: v}))]))
+    return out
+
+
+def _vrci(command_id: int, serial_offset: int = 0) -> Builder:
+    fields = dict(command_id=command_id, command_data=b"FUZZ".ljust(C.COMMAND_DATA_LEN, b"\0"))
+    return lambda serial: (M.build(C.PacketType.VRCI, serial + serial_offset, fields),) * 2
+
+
+def _vrpi_serial(offset: int, absolute: Optional[int] = None) -> Builder:
+    def build(serial: int) -> tuple[bytes, bytes]:
+        s = absolute if absolute is not None else serial + offset
+        return M.build(C.PacketType.VRPI, s, M.ARMED_VRPI), M.build(C.PacketType.VRPI, serial, M.ARMED_VRPI)
+    return build
+
+
+def _sequence_family() -> list[Callable[[int], Case]]:
+    F = "sequence"
+    VRCI, VRAI = C.PacketType.VRCI, C.PacketType.VRAI
+    resend = C.COMMAND_RESEND_MS
+    wd = C.VRPI_WATCHDOG_MS
+    return [
+        lambda i: Case(i, F, "VRCI retransmitted after 100 ms (same command ID, new serial)",
+                       [Step(_vrci(command_ids(i)[0])), Step(_vrci(command_ids(i)[0]), resend)]),
+        lambda i: Case(i, F, "command ID wrap 65534, 65535, 0, 1",
+                       [Step(_vrci(c), 20.0) for c in WRAP_IDS]),
+        lambda i: Case(i, F, f"VRPI gap of {wd + 100} ms (controller watchdog {wd} ms)", pause_vrpi_ms=wd + 100),
+        lambda i: Case(i, F, "VRCI retransmission storm: 20 transmissions",
+                       [Step(_vrci(command_ids(i)[0]))] + [Step(_vrci(command_ids(i)[0]), 5.0) for _ in range(19)]),
+        lambda i: Case(i, F, "VRAI for a command never sent",
+                       [Step(_valid(VRAI, dict(command_id=command_ids(i)[0])))]),
+        lambda i: Case(i, F, "VRPI with a repeated serial", [Step(_vrpi_serial(-1))]),
+        lambda i: Case(i, F, "VRCI frame received twice (same serial: a duplicate)",
+                       [Step(_vrci(command_ids(i)[0])), Step(_vrci(command_ids(i)[0], -1), 10.0, expect_ack=False)]),
+        lambda i: Case(i, F, "withhold VRAI for 800 ms: the VRCO must be resent every 100 ms",
+                       withhold_vrai_ms=800.0),
+        lambda i: Case(i, F, "VRPI serial going back by 5", [Step(_vrpi_serial(-5))]),
+        lambda i: Case(i, F, "VRCI while the base unit is disarmed", [Step(_vrci(command_ids(i)[0]), 130.0)],
+                       stream=dict(M.DISARMED_VRPI), settle_ms=130.0),
+        lambda i: Case(i, F, "VRPI serial jump by 1000", [Step(_vrpi_serial(1000))]),
+        lambda i: Case(i, F, "VRPI serial wrap 65535 -> 0",
+                       [Step(_vrpi_serial(0, C.SERIAL_MODULUS - 1)), Step(_vrpi_serial(0, 0), 10.0)]),
+        lambda i: Case(i, F, f"VRPI gap of {wd - 100} ms (below the watchdog)", pause_vrpi_ms=wd - 100),
+        lambda i: Case(i, F, "four new commands back to back",
+                       [Step(_vrci(c)) for c in command_ids(i)]),
+        lambda i: Case(i, F, "VRCI command ID going back by 1 (new command with an old ID)",
+                       [Step(_vrci(command_ids(i)[1])), Step(_vrci(command_ids(i)[0]), resend)]),
+        lambda i: Case(i, F, f"VRPI gap of {wd + 10} ms", pause_vrpi_ms=wd + 10),
+        lambda i: Case(i, F, "VRPI gap of 1000 ms", pause_vrpi_ms=1000.0),
+        lambda i: Case(i, F, "VRAI for command IDs 0 and 65535",
+                       [Step(_valid(VRAI, dict(command_id=0))), Step(_valid(VRAI, dict(command_id=0xFFFF)))]),
+        lambda i: Case(i, F, "VRCI command IDs 0 and 65535 as new commands",
+                       [Step(_vrci(0xFFFF), 20.0), Step(_vrci(0), 20.0)]),
+    ]
+
+
+def _direction_family() -> list[Callable[[int], Case]]:
+    """Output packets sent to the controller: legal packets it must not choke on."""
+    out = []
+    for ptype in M.OUTPUT_TYPES:
+        out.append(lambda i, p=ptype: Case(i, "wrong-direction", f"{p.value} sent to the controller",
+                                           [Step(_valid(p, M.default_fields(p, command_ids(i)[0]), {"origin": 0}))]))
+    return out
+
+
+@functools.lru_cache(maxsize=4)
+def sweep(seed: int) -> tuple[Callable[[int], Case], ...]:
+    """The deterministic first part of the schedule, families interleaved round-robin."""
+    rng = random.Random(f"vm110-fuzz-sweep/{seed}")
+    VRPI, VRCI, VRAI = C.PacketType.VRPI, C.PacketType.VRCI, C.PacketType.VRAI
+    families = [
+        _structural_family(VRCI, rng),
+        _sequence_family(),
+        _structural_family(VRPI, rng),
+        _field_family(VRPI, rng),
+        _field_family(VRCI, rng),
+        _structural_family(VRAI, rng),
+        _field_family(VRAI, rng),
+        _direction_family(),
+    ]
+    longest = max(len(f) for f in families)
+    return tuple(f[k] for k in range(longest) for f in families if k < len(f))
+
+
+def _random_case(seed: int, index: int) -> Case:
+    rng = random.Random(f"vm110-fuzz/{seed}/{index}")
+    ptype = rng.choice(M.INPUT_TYPES)
+    fields = _fields_for(ptype, index)
+    kind = rng.random()
+    if kind < 0.5:
+        def change(valid: bytes) -> bytes:
+            return M.random_bytes(valid, random.Random(f"{seed}/{index}/bytes"))[1]
+        text = M.random_bytes(M.build(ptype, 0, fields), random.Random(f"{seed}/{index}/bytes"))[0]
+        return Case(index, "random-bytes", f"{ptype.value} {text}", [Step(_mutated(ptype, fields, change))])
+    if kind < 0.8:
+        skip = ("command_id",) if ptype is C.PacketType.VRCI else ()
+        name, value = rng.choice(M.field_mutations(ptype, fields, rng, skip))
+        fields[name] = value
+        if ptype is C.PacketType.VRPI and rng.random() < 0.5:   # and a second field
+            name2, value2 = rng.choice(M.field_mutations(ptype, fields, rng, skip))
+            fields[name2] = value2
+            name, value = f"{name}={value!r} {name2}", value2
+        shown = value.hex() if isinstance(value, bytes) else value
+        return Case(index, "random-fields", f"{ptype.value} {name}={shown}", [Step(_valid(ptype, fields))])
+    mutations = list(M.structural(M.build(ptype, 0, fields), random.Random(0)))
+    position = rng.randrange(len(mutations))
+    sub_seed = rng.randrange(1 << 32)
+
+    def change(valid: bytes) -> bytes:
+        return list(M.structural(valid, random.Random(sub_seed)))[position][1]
+    return Case(index, "random-structure", f"{ptype.value} {mutations[position][0]}",
+                [Step(_mutated(ptype, fields, change))])
+
+
+def generate(seed: int, index: int) -> Case:
+    """Case `index` of the schedule for `seed`."""
+    cases = sweep(seed)
+    if index < len(cases):
+        return cases[index](index)
+    return _random_case(seed, index)

@@ -1,0 +1,90 @@
+"""The fuzzer's one UDP socket: sends only to the target, receives the controller's output.
+
+Receive times are kernel timestamps (SO_TIMESTAMPNS) where available, so that a fuzzer that was
+slow to read its socket does not mistake late reading for a late controller.
+"""
+from __future__ import annotations
+
+import ipaddress
+import socket
+import struct
+import time
+from typing import Optional
+
+from .. import constants as C
+from ..errors import CliError
+
+_RCVBUF = 4 << 20
+_TIMESPEC = struct.Struct("@ll")
+_MAX_DATAGRAM = 65535
+
+
+def parse_endpoint(text: str, what: str) -> tuple[str, int]:
+    """HOST:PORT -> (host, port); CliError for anything else."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise CliError(f"{what} must be HOST:PORT, got {text!r}")
+    try:
+        return socket.gethostbyname(host), int(port)
+    except OSError:
+        raise CliError(f"{what}: cannot resolve {host!r}") from None
+
+
+class Link:
+    def __init__(self, target: tuple[str, int], listen: tuple[str, int], group: Optional[str] = None) -> None:
+        self.target = target
+        self.sock = sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _RCVBUF)
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, C.MULTICAST_TTL)
+            self._stamped = hasattr(socket, "SO_TIMESTAMPNS")
+            if self._stamped:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_TIMESTAMPNS, 1)
+            if group is not None:
+                if not ipaddress.IPv4Address(group).is_multicast:
+                    raise CliError(f"--group {group} is not a multicast address")
+                sock.bind(("", listen[1]))
+                local = listen[0] if listen[0] != "0.0.0.0" else "0.0.0.0"
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
+                                socket.inet_aton(group) + socket.inet_aton(local))
+            else:
+                sock.bind(listen)
+        except (OSError, ValueError) as exc:
+            sock.close()
+            if isinstance(exc, CliError):
+                raise
+            raise CliError(f"cannot listen on {listen[0]}:{listen[1]}: {exc}") from None
+        sock.setblocking(False)
+        self.local = sock.getsockname()
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def send(self, data: bytes) -> float:
+        """Send to the target (the only destination there is); the time it left."""
+        try:
+            self.sock.sendto(data, self.target)
+        except OSError:
+            pass   # e.g. ECONNREFUSED echoes while the controller restarts: the oracles judge that
+        return time.time()
+
+    def receive(self) -> list[tuple[float, bytes, tuple[str, int]]]:
+        """Every datagram waiting: (arrival time, bytes, source)."""
+        out = []
+        while True:
+            try:
+                data, ancdata, _flags, src = self.sock.recvmsg(_MAX_DATAGRAM, 64)
+            except (BlockingIOError, InterruptedError):
+                return out
+            except OSError:
+                continue   # ICMP errors reported on the socket
+            stamp = None
+            for level, kind, value in ancdata:
+                if level == socket.SOL_SOCKET and kind == getattr(socket, "SO_TIMESTAMPNS", -1):
+                    sec, nsec = _TIMESPEC.unpack_from(value)
+                    stamp = sec + nsec / 1e9
+            out.append((stamp if stamp is not None else time.time(), data, src))
+
+    def close(self) -> None:
+        self.sock.close()

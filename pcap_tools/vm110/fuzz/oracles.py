@@ -1,0 +1,237 @@
+"""The oracles: judge what the controller does, and say which case to blame.
+
+A `Monitor` sees every packet the base unit sends (`on_tx`) and every packet the controller
+sends (`on_rx`), the exit of a supervised controller (`on_exit`) and the passing of time
+(`tick`); it appends a `Trigger` for each oracle that fires. Tolerances (documented in the
+README) make the timing oracles robust on a loaded machine.
+"""
+from __future__ import annotations
+
+import collections
+import copy
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from .. import constants as C
+from ..decode import decode
+
+CRASH, STALL, MISSING_ACK, ILLEGAL_ACKED, MALFORMED_OUTPUT, VRCO_RETRANSMIT = ORACLES = (
+    "crash", "stall", "missing_ack", "illegal_acked", "malformed_output", "vrco_retransmit")
+_CMD_ID_AT = slice(C.PREFIX_LEN, C.PREFIX_LEN + 2)
+_VRCI = C.PacketType.VRCI.value
+_HISTORY_S = 10.0
+
+
+@dataclass
+class Limits:
+    """Oracle thresholds in milliseconds."""
+
+    stall_ms: float = C.VRPO_WATCHDOG_MS          # the base unit's VRPO watchdog
+    ack_timeout_ms: float = 1000.0                # VRAO must follow each valid VRCI within this
+    resend_max_ms: float = 250.0                  # "about 100 ms": a resend interval up to this is fine
+    after_ack_grace_ms: float = 300.0             # a VRCO in flight when the VRAI went out is fine
+    vrco_give_up_ms: float = C.VRCO_GIVE_UP_MS    # no resends are expected past this
+
+
+@dataclass
+class Trigger:
+    oracle: str
+    time: float
+    detail: str
+    case_index: Optional[int] = None              # known culprit (acks), else see suspects
+    suspects: list[int] = field(default_factory=list)   # most likely first
+    output: Optional[bytes] = None                # the controller packet that was judged
+    kind: str = ""                                # what went wrong, for de-duplication
+
+
+@dataclass
+class _Vrco:
+    first: float
+    last: float
+    count: int = 1
+    withheld: bool = False
+    acked_at: Optional[float] = None
+    reported: bool = False
+
+
+class Monitor:
+    def __init__(self, limits: Limits, now: float) -> None:
+        self.limits = limits
+        self.triggers: list[Trigger] = []
+        self.notes: collections.deque[tuple[float, int]] = collections.deque()   # (time, case index)
+        self.pending: dict[int, collections.deque[tuple[float, int]]] = {}      # id -> (deadline, case)
+        self.illegal_ids: dict[int, tuple[float, int]] = {}
+        self.sent_ids: set[int] = set()
+        self.withholding = False
+        self.reset_controller(now)
+
+    # --- state ----------------------------------------------------------------------------------
+    def reset_controller(self, now: float) -> None:
+        """The controller (re)started: forget what it sent, and what it owed."""
+        self.serials: dict[Any, int] = {}
+        self.last_vrpo: Optional[float] = None
+        self.vrpo_interval = 0.0
+        self.last_rx: Optional[float] = None
+        self.vrco: dict[int, _Vrco] = {}
+        self.vrco_seen = getattr(self, "vrco_seen", False)
+        self.stall_reported = False
+        self.pending.clear()
+        self.illegal_ids.clear()
+
+    def fork(self) -> "Monitor":
+        """A monitor for a trial: what is known of the controller, none of the expectations."""
+        other = Monitor(self.limits, 0.0)
+        other.adopt(self)
+        other.sent_ids = set(self.sent_ids)
+        return other
+
+    def adopt(self, other: "Monitor") -> None:
+        """Take over what `other` learned about the controller's output."""
+        self.serials = dict(other.serials)
+        self.last_vrpo, self.vrpo_interval, self.last_rx = other.last_vrpo, other.vrpo_interval, other.last_rx
+        self.vrco = copy.deepcopy(other.vrco)
+        self.vrco_seen = other.vrco_seen
+        self.sent_ids |= other.sent_ids
+
+    def fire(self, trigger: Trigger) -> None:
+        self.triggers.append(trigger)
+
+    def note_case(self, t: float, index: int) -> None:
+        self.notes.append((t, index))
+        while self.notes and self.notes[0][0] < t - _HISTORY_S:
+            self.notes.popleft()
+
+    def _between(self, start: float, end: float) -> list[int]:
+        seen: list[int] = []
+        for t, index in self.notes:
+            if start <= t <= end and index not in seen:
+                seen.append(index)
+        return seen
+
+    # --- base unit -> controller ---------------------------------------------------------------
+    def on_tx(self, t: float, data: bytes, twin: bytes, index: int, expect_ack: bool = True) -> None:
+        self.note_case(t, index)
+        if len(data) < _CMD_ID_AT.stop or _VRCI.encode() not in (data[:C.ID_LEN], twin[:C.ID_LEN]):
+            return
+        fields = decode(data)
+        command_id = int.from_bytes(data[_CMD_ID_AT], "little")
+        self.sent_ids.add(command_id)
+        if fields.get("type") != _VRCI:
+            return
+        if not fields["problems"]:
+            if expect_ack:
+                deadline = t + self.limits.ack_timeout_ms / 1000
+                self.pending.setdefault(command_id, collections.deque()).append((deadline, index))
+        else:
+            self.illegal_ids[command_id] = (t, index)
+
+    def on_vrai(self, t: float, command_id: int) -> None:
+        entry = self.vrco.get(command_id)
+        if entry is not None and entry.acked_at is None:
+            entry.acked_at = t
+
+    # --- controller -> base unit ---------------------------------------------------------------
+    def on_rx(self, t: float, data: bytes, src: Any) -> dict[str, Any]:
+        fields = decode(data)
+        self.last_rx = t
+        ptype = fields.get("type", "?")
+        if fields["problems"]:
+            self._malformed(t, data, f"{ptype} with {'+'.join(fields['problems'])}",
+                            f"illegal {ptype} from the controller: {', '.join(fields['problems'])}")
+            return fields
+        if fields.get("direction") != C.Direction.OUTPUT.value:
+            self._malformed(t, data, f"{ptype} direction", f"the controller sent an input packet {ptype}")
+            return fields
+        if fields["origin"] != 0:
+            self._malformed(t, data, f"{ptype} origin", f"{ptype} with origin {fields['origin']:#06x} (must be 0)")
+        last, serial = self.serials.get(src), fields["serial"]
+        step = None if last is None else (serial - last) % C.SERIAL_MODULUS
+        if step is not None and (step == 0 or step >= C.SERIAL_HALF):
+            self._malformed(t, data, "serial", f"{ptype} serial {serial} after {last}: not incrementing")
+        else:
+            self.serials[src] = serial
+        if ptype == C.PacketType.VRPO.value:
+            if self.last_vrpo is not None:
+                self.vrpo_interval = max(self.vrpo_interval * 0.9, t - self.last_vrpo)
+            self.last_vrpo = t
+            self.stall_reported = False
+        elif ptype == C.PacketType.VRAO.value:
+            self._vrao(t, data, fields["command_id"])
+        elif ptype == C.PacketType.VRCO.value:
+            self._vrco(t, fields["command_id"])
+        return fields
+
+    def _malformed(self, t: float, data: bytes, kind: str, detail: str, index: Optional[int] = None) -> None:
+        suspects = [index] if index is not None else list(reversed(self._between(t - 0.5, t)))
+        self.fire(Trigger(MALFORMED_OUTPUT, t, detail, index, suspects, data, kind))
+
+    def _vrao(self, t: float, data: bytes, command_id: int) -> None:
+        queue = self.pending.get(command_id)
+        if queue:
+            queue.popleft()
+            if not queue:
+                del self.pending[command_id]
+            return
+        illegal = self.illegal_ids.get(command_id)
+        if illegal is not None and t - illegal[0] < _HISTORY_S:
+            self.fire(Trigger(ILLEGAL_ACKED, t, f"VRAO for command ID {command_id} of an illegal VRCI",
+                              illegal[1], [illegal[1]], data, "acked"))
+        elif command_id not in self.sent_ids:
+            self._malformed(t, data, "VRAO unknown", f"VRAO for command ID {command_id}, never sent")
+
+    def _vrco(self, t: float, command_id: int) -> None:
+        self.vrco_seen = True
+        entry = self.vrco.get(command_id)
+        give_up = self.limits.vrco_give_up_ms / 1000
+        if entry is None or t - entry.last > 2 * give_up:
+            self.vrco[command_id] = _Vrco(t, t, withheld=self.withholding)
+            return
+        entry.count += 1
+        if entry.acked_at is not None and t - entry.acked_at > self.limits.after_ack_grace_ms / 1000 \
+                and not entry.reported:
+            entry.reported = True
+            late = (t - entry.acked_at) * 1000
+            suspects = list(reversed(self._between(entry.acked_at - 0.5, t)))
+            self.fire(Trigger(VRCO_RETRANSMIT, t, f"VRCO {command_id} resent {late:.0f} ms after its VRAI",
+                              None, suspects, None, "resent after VRAI"))
+        entry.last = t
+
+    def on_exit(self, t: float, returncode: int) -> None:
+        start = (self.last_rx or t) - 0.05
+        suspects = list(reversed(self._between(start, t)))[:40]
+        self.fire(Trigger(CRASH, t, f"controller exited with code {returncode}", None, suspects, None,
+                          f"exit {returncode}"))
+
+    # --- time ------------------------------------------------------------------------------------
+    def tick(self, now: float) -> None:
+        for command_id in [c for c, q in self.pending.items() if q[0][0] < now]:
+            queue = self.pending[command_id]
+            while queue and queue[0][0] < now:
+                _, index = queue.popleft()
+                self.fire(Trigger(MISSING_ACK, now, f"no VRAO for command ID {command_id} within "
+                                  f"{self.limits.ack_timeout_ms:.0f} ms", index, [index], None, "no ack"))
+            if not queue:
+                del self.pending[command_id]
+        if self.last_vrpo is not None and not self.stall_reported \
+                and now - self.last_vrpo > self.limits.stall_ms / 1000:
+            self.stall_reported = True
+            window = max(self.vrpo_interval, 0.1) + 0.1
+            after = self._between(self.last_vrpo, self.last_vrpo + window)
+            before = list(reversed(self._between(self.last_vrpo - 0.1, self.last_vrpo)))
+            self.fire(Trigger(STALL, now, f"no VRPO for {(now - self.last_vrpo) * 1000:.0f} ms",
+                              None, after + [i for i in before if i not in after], None, "no VRPO"))
+        self._check_resends(now)
+        for command_id in [c for c, (t, _) in self.illegal_ids.items() if now - t > _HISTORY_S]:
+            del self.illegal_ids[command_id]
+
+    def _check_resends(self, now: float) -> None:
+        limit = self.limits.resend_max_ms / 1000
+        give_up = self.limits.vrco_give_up_ms / 1000
+        for command_id, entry in self.vrco.items():
+            if entry.withheld and entry.acked_at is None and not entry.reported and self.withholding \
+                    and now - entry.last > limit and now - entry.first < give_up - limit:
+                entry.reported = True
+                suspects = list(reversed(self._between(entry.first - 1.0, now)))
+                self.fire(Trigger(VRCO_RETRANSMIT, now, f"VRCO {command_id} not resent within "
+                                  f"{limit * 1000:.0f} ms while unacknowledged ({entry.count} transmissions)",
+                                  None, suspects, None, "not resent"))

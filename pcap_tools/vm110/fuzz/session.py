@@ -1,0 +1,206 @@
+"""The base-unit role over real UDP: a valid VRPI stream every 125 ms, VRAI for each VRCO, the
+cases' packets at a limited rate, and every packet shown to the oracles.
+
+One thread, one socket: `pump` runs the stream, reads the controller, polls the supervised
+process and ticks the oracles until a given time.
+"""
+from __future__ import annotations
+
+import collections
+import select
+import time
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from .. import constants as C
+from . import mutate as M
+from .link import Link
+from .oracles import Limits, Monitor
+from .supervisor import Supervisor
+
+_TICK_S = 0.005
+_TRAFFIC_S = 12.0     # traffic kept for the pcap of a finding
+
+
+@dataclass
+class Settings:
+    target: tuple[str, int]
+    listen: tuple[str, int]
+    group: Optional[str] = None
+    rate: float = 100.0                     # case packets per second
+    limits: Limits = field(default_factory=Limits)
+    startup_s: float = 10.0                 # time allowed for the first VRPO
+    vrco_wait_s: float = 3.0                # withhold cases wait this long for a fresh VRCO
+
+
+@dataclass
+class Sent:
+    """A packet a case sent: what replay needs."""
+
+    time: float
+    data: bytes
+    twin: bytes
+    delay_ms: float
+    expect_ack: bool
+
+
+class TargetLost(Exception):
+    """The controller sends no VRPO and cannot be restarted."""
+
+
+class Session:
+    def __init__(self, settings: Settings, supervisor: Optional[Supervisor] = None) -> None:
+        self.settings = settings
+        self.supervisor = supervisor
+        self.link = Link(settings.target, settings.listen, settings.group)
+        now = time.time()
+        self.monitor = Monitor(settings.limits, now)
+        self.serial = 0
+        self.stream: dict[str, Any] = dict(M.ARMED_VRPI)
+        self.next_vrpi = now
+        self.vrpi_paused_until = 0.0
+        self.withheld: dict[int, float] = {}     # VRCO IDs seen while withholding -> first seen
+        self.traffic: collections.deque[tuple[float, bool, bytes, tuple[str, int]]] = collections.deque()
+        self.last_case_send = 0.0
+        self.exit_reported = False
+        self.started_at = now
+
+    # --- the loop ---------------------------------------------------------------------------------
+    def pump(self, until: float) -> None:
+        while True:
+            now = time.time()
+            if now >= self.next_vrpi:
+                if now >= self.vrpi_paused_until:
+                    self._send(M.build(C.PacketType.VRPI, self._take_serial(), self.stream))
+                self.next_vrpi += C.VRPI_PERIOD_MS / 1000
+                if self.next_vrpi <= now:
+                    self.next_vrpi = now + C.VRPI_PERIOD_MS / 1000
+            for t, data, src in self.link.receive():
+                self._on_rx(t, data, src)
+            if self.supervisor is not None and not self.exit_reported:
+                code = self.supervisor.poll()
+                if code is not None:
+                    self.exit_reported = True
+                    self.monitor.on_exit(time.time(), code)
+            self.monitor.tick(time.time())
+            now = time.time()
+            if now >= until:
+                return
+            wait = max(0.0, min(until, self.next_vrpi, now + _TICK_S) - now)
+            select.select([self.link], [], [], wait)
+
+    def _take_serial(self) -> int:
+        serial, self.serial = self.serial, (self.serial + 1) & 0xFFFF
+        return serial
+
+    def _send(self, data: bytes) -> float:
+        t = self.link.send(data)
+        self._log(t, True, data, self.settings.target)
+        return t
+
+    def _log(self, t: float, outbound: bool, data: bytes, peer: tuple[str, int]) -> None:
+        self.traffic.append((t, outbound, data, peer))
+        while self.traffic and self.traffic[0][0] < t - _TRAFFIC_S:
+            self.traffic.popleft()
+
+    def _on_rx(self, t: float, data: bytes, src: tuple[str, int]) -> None:
+        self._log(t, False, data, src)
+        fields = self.monitor.on_rx(t, data, src)
+        if fields["problems"] or fields.get("type") != C.PacketType.VRCO.value:
+            return
+        command_id = fields["command_id"]
+        if self.monitor.withholding:
+            self.withheld.setdefault(command_id, t)
+        else:
+            self.ack_vrco(command_id)
+
+    def ack_vrco(self, command_id: int) -> bytes:
+        data = M.build(C.PacketType.VRAI, self._take_serial(), dict(command_id=command_id))
+        t = self._send(data)
+        self.monitor.on_vrai(t, command_id)
+        return data
+
+    # --- cases ------------------------------------------------------------------------------------
+    def send_case_packet(self, index: int, build: Any, delay_ms: float, expect_ack: bool) -> Sent:
+        """Wait `delay_ms` and for the rate limit, then build the packet on the next serial and send it."""
+        self.pump(time.time() + delay_ms / 1000)
+        self.pump(self.last_case_send + 1.0 / self.settings.rate)
+        data, twin = build(self._take_serial())
+        t = self._send(data)
+        self.last_case_send = t
+        self.monitor.on_tx(t, data, twin, index, expect_ack)
+        return Sent(t, data, twin, delay_ms, expect_ack)
+
+    def run_steps(self, index: int, steps: list[tuple[Any, float, bool]], pause_vrpi_ms: float = 0.0,
+                  withhold_vrai_ms: float = 0.0, stream: Optional[dict[str, Any]] = None,
+                  settle_ms: float = 0.0) -> list[Sent]:
+        """Play one case: (builder, delay ms, expect ack) steps, then its stream pause or VRAI withholding."""
+        self.monitor.note_case(time.time(), index)
+        if stream is not None:
+            self.stream = dict(stream)
+        sent = [self.send_case_packet(index, build, delay, expect) for build, delay, expect in steps]
+        if pause_vrpi_ms:
+            self.vrpi_paused_until = time.time() + pause_vrpi_ms / 1000
+            self.pump(self.vrpi_paused_until)
+            self.next_vrpi = time.time()
+        if withhold_vrai_ms:
+            sent += self._withhold(index, withhold_vrai_ms)
+        if settle_ms:
+            self.pump(time.time() + settle_ms / 1000)
+        self.stream = dict(M.ARMED_VRPI)
+        return sent
+
+    def _withhold(self, index: int, hold_ms: float) -> list[Sent]:
+        """Leave the next fresh VRCO unacknowledged for `hold_ms`, then acknowledge it."""
+        if not self.monitor.vrco_seen:
+            return []    # this controller has sent no VRCO yet: nothing to withhold
+        self.monitor.withholding = True
+        self.withheld.clear()
+        deadline = time.time() + self.settings.vrco_wait_s
+        while not self.withheld and time.time() < deadline:
+            self.pump(min(deadline, time.time() + 0.05))
+        if self.withheld:
+            self.pump(min(self.withheld.values()) + hold_ms / 1000)
+        self.monitor.withholding = False
+        sent = []
+        for command_id in list(self.withheld):
+            self.monitor.note_case(time.time(), index)
+            data = self.ack_vrco(command_id)
+            sent.append(Sent(time.time(), data, data, hold_ms, False))
+        self.withheld.clear()
+        return sent
+
+    # --- the controller's life --------------------------------------------------------------------
+    def wait_for_vrpo(self, since: float, timeout: float) -> bool:
+        """Pump until a VRPO newer than `since` arrives; False after `timeout` seconds."""
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            if self.monitor.last_vrpo is not None and self.monitor.last_vrpo > since:
+                return True
+            self.pump(min(deadline, time.time() + 0.02))
+        return self.monitor.last_vrpo is not None and self.monitor.last_vrpo > since
+
+    def restart_target(self) -> None:
+        """Restart the supervised controller and wait for its first VRPO (TargetLost if none)."""
+        assert self.supervisor is not None
+        self.supervisor.restart()
+        now = time.time()
+        self.exit_reported = False
+        self.monitor.reset_controller(now)
+        if not self.wait_for_vrpo(now, self.settings.startup_s):
+            code = self.supervisor.poll()
+            raise TargetLost("controller restarted but sent no VRPO within "
+                             f"{self.settings.startup_s:.0f} s" + (f" (exit code {code})" if code is not None else ""))
+        self.pump(time.time() + 2 * C.VRPI_PERIOD_MS / 1000)   # let it see a few VRPI first
+
+    def healthy(self) -> bool:
+        """Alive and sending VRPO."""
+        if self.supervisor is not None and self.supervisor.poll() is not None:
+            return False
+        last = self.monitor.last_vrpo
+        return last is not None and time.time() - last < max(0.5, 3 * self.monitor.vrpo_interval)
+
+    def close(self) -> None:
+        if self.supervisor is not None:
+            self.supervisor.stop()
+        self.link.close()

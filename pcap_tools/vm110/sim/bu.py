@@ -1,0 +1,202 @@
+"""The simulated base unit (BU), TS-0006 section 5 as the BU sees it.
+
+- VRPI every 125 ms with the remote's state (`sim.remote`).
+- Operator commands as VRCI, one at a time: resent every 100 ms until the VRAO, failed (logged,
+  no more resends) after 2000 ms without one; the next command waits for the previous one.
+- Every VRCO is acknowledged with a VRAI (retransmissions too) and handed to the RU application
+  once per command ID.
+- VRPO watchdog: no VRPO for 2000 ms shows in VRPI as EG-Link "No link" and, with an RU armed,
+  BU state "External link error" (ES-Link relays open) until VRPO comes back.
+- G-Link fallback windows: the RU application answers over the slower C-Link, so each VRAI leaves
+  later (`glink_ack_delay_ms`), and the reported C-Link RSSI drops.
+One serial counter for everything it sends (interpretation.md).
+"""
+from __future__ import annotations
+
+import collections
+import random
+import struct
+from dataclasses import dataclass
+from typing import Any, Optional
+
+from .. import constants as C
+from .. import encode
+from .clock import ms, seconds
+from .node import Node, Rx
+from .remote import Remote
+
+_CMD_ID = struct.Struct("<H")
+DEFAULT_ORIGIN = 0x0101
+
+
+@dataclass
+class BaseUnitConfig:
+    origin: int = DEFAULT_ORIGIN
+    vrpi_period_ms: float = C.VRPI_PERIOD_MS
+    vrci_resend_ms: float = C.COMMAND_RESEND_MS
+    vrci_fail_ms: float = C.VRCI_FAIL_MS
+    vrpo_watchdog_ms: float = C.VRPO_WATCHDOG_MS
+    command_id_start: int = 0
+    glink: tuple[tuple[float, float], ...] = ()          # G-Link fallback windows (s)
+    glink_ack_delay_ms: tuple[float, float] = (250.0, 650.0)
+    glink_rssi: int = 25
+    stalls: tuple[tuple[float, float], ...] = ()         # (start s, end s): the BU hangs
+    seed: int = 0
+
+
+class BaseUnit(Node):
+    """Simulated BU. Sends Input packets with its origin."""
+
+    direction = C.Direction.INPUT
+
+    def __init__(self, remote: Optional[Remote] = None, config: Optional[BaseUnitConfig] = None,
+                 name: str = "bu", **node: Any) -> None:
+        self.config = cfg = config or BaseUnitConfig()
+        node.setdefault("stalls", tuple((seconds(a), seconds(b)) for a, b in cfg.stalls))
+        super().__init__(name, origin=cfg.origin, **node)
+        self.remote = remote or Remote.simple()
+        self._rng = random.Random(f"bu:{cfg.seed}")
+        self._glink = tuple((seconds(a), seconds(b)) for a, b in cfg.glink)
+        self._t0 = 0
+        self._next_vrpi = 0
+        self.last_vrpo: Optional[int] = None
+        self.watchdog_tripped = False
+        self.next_command_id = cfg.command_id_start & 0xFFFF
+        self._commands: collections.deque[tuple[int, bytes]] = collections.deque()
+        self._next_periodic_command: Optional[int] = None
+        self.pending: Optional[dict[str, Any]] = None     # the VRCI in flight
+        self._acks: list[tuple[int, int]] = []            # delayed VRAI: (due, command ID)
+        self.delivered: dict[int, int] = {}               # last VRCO command ID handed to the RU app
+
+    def start(self, now: int) -> None:
+        self._t0 = self._next_vrpi = now
+        self.last_vrpo = now      # grace period from start-up
+        self._commands = collections.deque((now + t, d) for t, d in self.remote.commands)
+        if self.remote.command_every:
+            self._next_periodic_command = now + self.remote.command_every
+
+    def _due(self) -> Optional[int]:
+        due = [self._next_vrpi]
+        if self.pending is not None:
+            due.append(min(self.pending["next"], self.pending["first"] + ms(self.config.vrci_fail_ms)))
+        else:
+            nxt = self._next_command_time()
+            if nxt is not None:
+                due.append(nxt)
+        if self._acks:
+            due.append(self._acks[0][0])
+        return min(due)
+
+    def _tick(self, now: int) -> None:
+        while self._acks and self._acks[0][0] <= now:
+            self.send(C.PacketType.VRAI, encode.ack_payload(self._acks[0][1]), now, key=self._acks[0][1])
+            self._acks.pop(0)
+        self._tick_vrci(now)
+        if now >= self._next_vrpi:
+            self.send(C.PacketType.VRPI, encode.vrpi_payload(self.vrpi_fields(now)), now)
+            self._next_vrpi += ms(self.config.vrpi_period_ms)
+            if self._next_vrpi <= now:      # after a stall: no catch-up burst
+                self._next_vrpi = now + ms(self.config.vrpi_period_ms)
+
+    def in_glink_fallback(self, now: int) -> bool:
+        return any(a <= now < b for a, b in self._glink)
+
+    # --- VRPI and the VRPO watchdog -----------------------------------------------------------
+    def vrpi_fields(self, now: int) -> dict[str, int]:
+        fields = self.remote.fields(now - self._t0)
+        self._check_watchdog(now)
+        if self.watchdog_tripped:
+            fields["eg_link"] = C.LinkStatus.NO_LINK
+            if fields.get("armed_ru"):
+                fields["bu_state"] = C.BuState.EXTERNAL_LINK_ERROR
+        if fields.get("armed_ru") and self.in_glink_fallback(now):
+            fields["ru_rssi"] = self.config.glink_rssi
+        return fields
+
+    def _check_watchdog(self, now: int) -> None:
+        limit = ms(self.config.vrpo_watchdog_ms)
+        if not self.watchdog_tripped and self.last_vrpo is not None and now - self.last_vrpo > limit:
+            self.watchdog_tripped = True
+            self.event(self.last_vrpo + limit, "vrpo_watchdog", last_vrpo=self.last_vrpo / 1e6,
+                       es_relays_open=bool(self.remote.fields(now - self._t0).get("armed_ru")))
+
+    def on_vrpo(self, rx: Rx, now: int) -> None:
+        self._check_watchdog(now)
+        if self.watchdog_tripped:
+            self.watchdog_tripped = False
+            self.event(now, "vrpo_restored")
+        self.last_vrpo = now
+
+    def on_resume(self, now: int) -> None:
+        self.last_vrpo = now
+
+    # --- operator commands (VRCI) -------------------------------------------------------------
+    def queue_command(self, data: bytes, at: int) -> None:
+        """The operator issues a command at `at` (µs); sent once the previous one is done."""
+        self._commands.append((at, data))
+
+    def _next_command_time(self) -> Optional[int]:
+        times = [t for t in (self._commands[0][0] if self._commands else None, self._next_periodic_command)
+                 if t is not None]
+        return min(times) if times else None
+
+    def _tick_vrci(self, now: int) -> None:
+        cfg = self.config
+        if self.pending is not None:
+            if now - self.pending["first"] >= ms(cfg.vrci_fail_ms):
+                self.event(now, "command_failed", command_id=self.pending["id"],
+                           transmissions=self.pending["count"])
+                self.pending = None
+            elif now >= self.pending["next"]:
+                self._send_vrci(now)
+                return
+        if self.pending is not None:
+            return
+        data = None
+        if self._commands and self._commands[0][0] <= now:
+            data = self._commands.popleft()[1]
+        elif self._next_periodic_command is not None and self._next_periodic_command <= now:
+            data = f"OP CMD {self.next_command_id}".encode()
+            self._next_periodic_command += self.remote.command_every
+        if data is not None:
+            self.pending = {"id": self.next_command_id, "data": data, "first": now, "next": now, "count": 0}
+            self.next_command_id = (self.next_command_id + 1) & 0xFFFF
+            self._send_vrci(now)
+
+    def _send_vrci(self, now: int) -> None:
+        p = self.pending
+        assert p is not None
+        self.send(C.PacketType.VRCI, encode.command_payload(p["id"], p["data"]), now, key=p["id"])
+        p["count"] += 1
+        p["next"] = now + ms(self.config.vrci_resend_ms)
+        if p["count"] == 1:
+            self.event(now, "command_sent", command_id=p["id"])
+
+    def on_vrao(self, rx: Rx, now: int) -> None:
+        command_id = _CMD_ID.unpack_from(rx.payload)[0]
+        if self.pending is not None and self.pending["id"] == command_id:
+            self.event(now, "command_acked", command_id=command_id,
+                       latency_ms=(now - self.pending["first"]) / 1000, transmissions=self.pending["count"])
+            self.pending = None
+        else:
+            self.event(now, "vrao_ignored", command_id=command_id)
+
+    # --- controller commands (VRCO) -----------------------------------------------------------
+    def on_vrco(self, rx: Rx, now: int) -> None:
+        command_id = _CMD_ID.unpack_from(rx.payload)[0]
+        if self.delivered.get(rx.origin) != command_id:
+            self.delivered[rx.origin] = command_id
+            data = rx.payload[6:6 + C.COMMAND_DATA_LEN].rstrip(b"\0").decode("ascii", "replace")
+            self.event(now, "vrco_delivered", command_id=command_id, data=data)
+        if self.in_glink_fallback(now):
+            low, high = self.config.glink_ack_delay_ms
+            self._acks.append((now + ms(self._rng.uniform(low, high)), command_id))
+            self._acks.sort()
+        else:
+            self.send(C.PacketType.VRAI, encode.ack_payload(command_id), now, key=command_id)
+
+    def summary(self) -> dict[str, Any]:
+        return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
+                "illegal": dict(self.illegal), "commands_acked": len(self.events("command_acked")),
+                "commands_failed": len(self.events("command_failed")),
+                "vrpo_watchdog": len(self.events("vrpo_watchdog"))}

@@ -1,0 +1,212 @@
+"""The reference machine controller: correct in every point of TS-0006 section 5 and interpretation.md.
+
+- VRPO every `period_ms` (default 100 ms); periodic data above 488 bytes goes out as a burst of
+  back-to-back packets numbered from 0 (section 4.2, 5.1.2).
+- Every VRCI is acknowledged with a VRAO, retransmissions too; each command ID is executed once,
+  and only while the last VRPI showed an armed RU (section 4.3).
+- Own commands (VRCO) are resent every 100 ms until the VRAI, and given up after `vrco_timeout_ms`.
+- No VRPI for 500 ms is flagged (and logged) until VRPI comes back (section 5.1.1).
+- Illegal packets are ignored and counted by reason (section 5.1.5).
+
+Subclasses (the fuzzer's planted bugs) override the hooks: `on_vrci`, `on_vrai`, `on_vrpi`,
+`on_illegal`, `acknowledge`, `execute`, `periodic_data`, `vrpo_payloads`, `transmit`.
+"""
+from __future__ import annotations
+
+import collections
+import struct
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from .. import constants as C
+from .. import encode
+from .clock import ms, seconds
+from .node import Node, Rx
+
+_CMD_ID = struct.Struct("<H")
+_VRPI_STATE = struct.Struct("<B5xHB")  # bu_state, (vlaps..c_link), armed_ru, ru_state
+
+
+@dataclass
+class ControllerConfig:
+    period_ms: float = 100.0
+    data_size: int = 64                       # periodic data bytes per cycle (split above 488)
+    first_packet_number: int = 0
+    vrpi_timeout_ms: float = C.VRPI_WATCHDOG_MS
+    vrco_resend_ms: float = C.COMMAND_RESEND_MS
+    vrco_timeout_ms: float = C.VRCO_GIVE_UP_MS
+    command_id_start: int = 0
+    commands: tuple[tuple[float, bytes], ...] = ()   # VRCO to send: (time s, data)
+    command_every_s: float = 0.0              # and one every N s (0: none)
+    require_armed: bool = True                # execute commands only for an armed RU (4.3)
+    glink: tuple[tuple[float, float], ...] = ()      # G-Link fallback windows (s): slower VRPO
+    glink_period_ms: float = 400.0
+    stalls: tuple[tuple[float, float], ...] = ()     # (start s, end s): the controller hangs
+    extra: dict[str, Any] = field(default_factory=dict)  # free room for subclasses
+
+
+class Controller(Node):
+    """Reference controller. Sends Output packets with origin 0."""
+
+    direction = C.Direction.OUTPUT
+
+    def __init__(self, config: Optional[ControllerConfig] = None, name: str = "controller", **node: Any) -> None:
+        self.config = cfg = config or ControllerConfig()
+        node.setdefault("stalls", tuple((seconds(a), seconds(b)) for a, b in cfg.stalls))
+        super().__init__(name, origin=0, **node)
+        self._period = ms(cfg.period_ms)
+        self._glink = tuple((seconds(a), seconds(b)) for a, b in cfg.glink)
+        self._next_vrpo = 0
+        self.cycle = 0
+        self.last_vrpi: Optional[int] = None
+        self.vrpi_alarm = False
+        self.ru_armed = False
+        self.executed: dict[int, int] = {}        # origin -> last executed command ID
+        self._commands: collections.deque[tuple[int, bytes]] = collections.deque(
+            sorted((seconds(t), d) for t, d in cfg.commands))
+        self._next_periodic_command = seconds(cfg.command_every_s) if cfg.command_every_s > 0 else None
+        self.next_command_id = cfg.command_id_start & 0xFFFF
+        self.pending: Optional[dict[str, Any]] = None   # the VRCO in flight
+        self._data_base = bytes(i & 0xFF for i in range(cfg.data_size))
+
+    # --- schedule -----------------------------------------------------------------------------
+    def start(self, now: int) -> None:
+        self._next_vrpo = now
+        self.last_vrpi = now     # the watchdog runs from start-up: no VRPI at all is an error too
+        if self._next_periodic_command is not None:
+            self._next_periodic_command += now
+        self._commands = collections.deque((t + now, d) for t, d in self._commands)
+
+    def _due(self) -> Optional[int]:
+        due = [self._next_vrpo]
+        if not self.vrpi_alarm and self.last_vrpi is not None:
+            due.append(self.last_vrpi + ms(self.config.vrpi_timeout_ms) + 1)
+        if self.pending is not None:
+            due.append(min(self.pending["next"], self.pending["first"] + ms(self.config.vrco_timeout_ms)))
+        else:
+            nxt = self._next_command_time()
+            if nxt is not None:
+                due.append(nxt)
+        return min(due)
+
+    def _tick(self, now: int) -> None:
+        if not self.vrpi_alarm and self.last_vrpi is not None \
+                and now - self.last_vrpi > ms(self.config.vrpi_timeout_ms):
+            self.vrpi_alarm = True
+            self.event(self.last_vrpi + ms(self.config.vrpi_timeout_ms), "vrpi_timeout",
+                       last_vrpi=self.last_vrpi / 1e6)
+        self._tick_vrco(now)
+        if now >= self._next_vrpo:
+            for index, chunk in enumerate(self.vrpo_payloads(now)):
+                self.send(C.PacketType.VRPO, chunk, now, key=self.config.first_packet_number + index,
+                          data_len=len(chunk) - C.VRPO_HEADER_SIZE)
+            self.cycle += 1
+            self._next_vrpo += self._vrpo_period(now)
+            if self._next_vrpo <= now:     # after a stall: carry on from now, no catch-up burst
+                self._next_vrpo = now + self._vrpo_period(now)
+
+    def _vrpo_period(self, now: int) -> int:
+        if any(a <= now < b for a, b in self._glink):
+            return ms(self.config.glink_period_ms)
+        return self._period
+
+    def on_resume(self, now: int) -> None:
+        self.last_vrpi = now     # it was not listening: judge VRPI from here on
+
+    # --- VRPO ---------------------------------------------------------------------------------
+    def periodic_data(self, now: int) -> bytes:
+        """This cycle's periodic data: the cycle counter, then a fixed pattern."""
+        return (struct.pack("<I", self.cycle & 0xFFFFFFFF) + self._data_base[4:])[:self.config.data_size]
+
+    def vrpo_payloads(self, now: int) -> list[bytes]:
+        """The VRPO payloads of one cycle: full 488-byte chunks, the last one shorter."""
+        data = self.periodic_data(now)
+        chunks = [data[i:i + C.VRPO_MAX_DATA] for i in range(0, len(data), C.VRPO_MAX_DATA)] or [b""]
+        first = self.config.first_packet_number
+        return [encode.vrpo_payload((first + n) & 0xFFFF, chunk) for n, chunk in enumerate(chunks)]
+
+    # --- input handling -----------------------------------------------------------------------
+    def on_vrpi(self, rx: Rx, now: int) -> None:
+        if self.vrpi_alarm:
+            self.vrpi_alarm = False
+            self.event(now, "vrpi_restored", gap_ms=(now - (self.last_vrpi or now)) / 1000)
+        self.last_vrpi = now
+        bu_state, armed_ru, ru_state = _VRPI_STATE.unpack_from(rx.payload)
+        self.ru_armed = (bu_state == C.BuState.ARMED and armed_ru != 0
+                         and ru_state in (C.RuState.ARMED, C.RuState.ENABLED))
+
+    def on_vrci(self, rx: Rx, now: int) -> None:
+        command_id = _CMD_ID.unpack_from(rx.payload)[0]
+        self.acknowledge(command_id, now)
+        if self.executed.get(rx.origin) != command_id:
+            self.executed[rx.origin] = command_id
+            self.execute(rx.origin, command_id, rx.payload[6:6 + C.COMMAND_DATA_LEN], now)
+        else:
+            self.event(now, "repeat", command_id=command_id)
+
+    def acknowledge(self, command_id: int, now: int) -> None:
+        self.send(C.PacketType.VRAO, encode.ack_payload(command_id), now, key=command_id)
+
+    def execute(self, origin: int, command_id: int, data: bytes, now: int) -> None:
+        """Carry out an operator command (here: log it); refused while no RU is armed."""
+        text = data.rstrip(b"\0").decode("ascii", "replace")
+        if self.config.require_armed and not self.ru_armed:
+            self.event(now, "refused", command_id=command_id, origin=f"0x{origin:04x}", data=text)
+        else:
+            self.event(now, "executed", command_id=command_id, origin=f"0x{origin:04x}", data=text)
+
+    def on_vrai(self, rx: Rx, now: int) -> None:
+        command_id = _CMD_ID.unpack_from(rx.payload)[0]
+        if self.pending is not None and self.pending["id"] == command_id:
+            self.event(now, "vrco_acked", command_id=command_id,
+                       latency_ms=(now - self.pending["first"]) / 1000, transmissions=self.pending["count"])
+            self.pending = None
+        else:
+            self.event(now, "vrai_ignored", command_id=command_id)
+
+    # --- own commands (VRCO) ------------------------------------------------------------------
+    def queue_command(self, data: bytes, at: int) -> None:
+        """Send a VRCO with `data` at time `at` (µs) or as soon as the one in flight is done."""
+        self._commands.append((at, data))
+
+    def _next_command_time(self) -> Optional[int]:
+        times = [t for t in (self._commands[0][0] if self._commands else None, self._next_periodic_command)
+                 if t is not None]
+        return min(times) if times else None
+
+    def _tick_vrco(self, now: int) -> None:
+        cfg = self.config
+        if self.pending is not None:
+            if now - self.pending["first"] >= ms(cfg.vrco_timeout_ms):
+                self.event(now, "vrco_gave_up", command_id=self.pending["id"], transmissions=self.pending["count"])
+                self.pending = None
+            elif now >= self.pending["next"]:
+                self._send_vrco(now)
+                return
+        if self.pending is not None:
+            return
+        data = None
+        if self._commands and self._commands[0][0] <= now:
+            data = self._commands.popleft()[1]
+        elif self._next_periodic_command is not None and self._next_periodic_command <= now:
+            data = f"ALARM {self.next_command_id}".encode()
+            self._next_periodic_command += seconds(cfg.command_every_s)
+        if data is not None:
+            self.pending = {"id": self.next_command_id, "data": data, "first": now, "next": now, "count": 0}
+            self.next_command_id = (self.next_command_id + 1) & 0xFFFF
+            self._send_vrco(now)
+
+    def _send_vrco(self, now: int) -> None:
+        p = self.pending
+        assert p is not None
+        self.send(C.PacketType.VRCO, encode.command_payload(p["id"], p["data"]), now, key=p["id"])
+        p["count"] += 1
+        p["next"] = now + ms(self.config.vrco_resend_ms)
+        if p["count"] == 1:
+            self.event(now, "vrco_sent", command_id=p["id"])
+
+    def summary(self) -> dict[str, Any]:
+        """Counters for logs and tests."""
+        return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
+                "illegal": dict(self.illegal), "executed": len(self.events("executed")),
+                "refused": len(self.events("refused")), "vrpi_timeouts": len(self.events("vrpi_timeout"))}

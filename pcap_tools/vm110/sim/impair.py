@@ -1,0 +1,114 @@
+"""Network impairments between a sender and its receivers, reproducible from a seed.
+
+Random loss, duplication, reordering, delay with jitter and CRC corruption; scheduled outages
+(nothing gets through), type-selective drops (e.g. every VRAO for two seconds: a failed command)
+and scheduled manglings that turn the next packet illegal for a chosen reason of
+interpretation.md. `Impairer.apply` says what arrives, when, and why it is illegal: that is the
+event log the ground truth is made from.
+"""
+from __future__ import annotations
+
+import random
+import struct
+from dataclasses import dataclass
+from typing import Optional
+
+from .. import constants as C
+from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, crc_bytes
+from .clock import ms, seconds
+
+# Order in which `vm110.decode` lists the reasons.
+REASON_ORDER = tuple(p.value for p in C.Problem)
+OVERSIZE = C.MAX_PAYLOAD + 8
+_SIZE = struct.Struct("<H")
+
+
+@dataclass
+class Impairment:
+    loss: float = 0.0            # % of packets lost
+    duplicate: float = 0.0       # % delivered twice
+    reorder: float = 0.0         # % held back by about `reorder_ms`, so later packets overtake them
+    reorder_ms: float = 150.0
+    delay_ms: float = 0.0
+    jitter_ms: float = 0.0       # extra delay, uniform in [0, jitter]
+    corrupt: float = 0.0         # % with a corrupted CRC
+    outages: tuple[tuple[float, float], ...] = ()                 # (start s, end s): all lost
+    drops: tuple[tuple[float, float, tuple[str, ...]], ...] = ()  # (start, end, types): those lost
+    mangles: tuple[tuple[float, str, Optional[str]], ...] = ()    # (at s, reason[+reason], type or None)
+    seed: int = 0
+
+    def active(self) -> bool:
+        return any((self.loss, self.duplicate, self.reorder, self.delay_ms, self.jitter_ms, self.corrupt,
+                    self.outages, self.drops, self.mangles))
+
+
+def mangle(data: bytes, reasons: str, variant: str = DEFAULT_VARIANT, order: str = DEFAULT_BYTE_ORDER) -> tuple[bytes, tuple[str, ...]]:
+    """Turn a legal packet illegal for exactly the given reasons ("revision", "revision+bad_crc")."""
+    wanted = reasons.split("+")
+    unknown = set(wanted) - set(REASON_ORDER)
+    if unknown:
+        raise ValueError(f"unknown illegal reason {', '.join(sorted(unknown))}; choose from {', '.join(REASON_ORDER)}")
+    body, trailer = data[:-C.CRC_LEN], b""
+    if C.Problem.UNKNOWN_ID.value in wanted:
+        body = b"VRX" + body[3:]                        # keeps the direction letter, no known type
+    if C.Problem.REVISION.value in wanted:
+        body = body[:4] + _SIZE.pack(1) + body[6:]
+    if C.Problem.SIZE_TOO_LARGE.value in wanted:
+        payload = body[C.PREFIX_LEN:].ljust(OVERSIZE, b"\0")
+        body = body[:10] + _SIZE.pack(len(payload)) + body[12:C.PREFIX_LEN] + payload
+    if C.Problem.TRUNCATED.value in wanted:
+        payload = body[C.PREFIX_LEN:]
+        payload = payload[:max(1, len(payload) // 2)] if len(payload) > 1 else b""
+        body = body[:10] + _SIZE.pack(len(payload)) + body[12:C.PREFIX_LEN] + payload
+    if C.Problem.SIZE_MISMATCH.value in wanted:
+        trailer = b"\xde\xad\xbe\xef"                   # bytes beyond 20 + size: the CRC stays valid
+    crc = crc_bytes(body, variant, order)
+    if C.Problem.BAD_CRC.value in wanted:
+        crc = crc[:-1] + bytes((crc[-1] ^ 0x5A,))
+    return body + crc + trailer, tuple(r for r in REASON_ORDER if r in wanted)
+
+
+class Impairer:
+    """Applies one `Impairment` to one sender's packets. Times are µs; windows count from `t0`."""
+
+    def __init__(self, imp: Impairment, name: str, variant: str = DEFAULT_VARIANT,
+                 order: str = DEFAULT_BYTE_ORDER, t0: int = 0) -> None:
+        self.imp = imp
+        self._rng = random.Random(f"{name}:{imp.seed}")
+        self._variant, self._order = variant, order
+        self.set_origin(t0)
+
+    def set_origin(self, t0: int) -> None:
+        imp = self.imp
+        self._outages = [(t0 + seconds(a), t0 + seconds(b)) for a, b in imp.outages]
+        self._drops = [(t0 + seconds(a), t0 + seconds(b), frozenset(types)) for a, b, types in imp.drops]
+        self._mangles = sorted((t0 + seconds(at), reason, ptype) for at, reason, ptype in imp.mangles)
+
+    def apply(self, data: bytes, now: int, ptype: str) -> list[tuple[int, bytes, tuple[str, ...]]]:
+        """(arrival time, bytes, illegal reasons) for every copy that arrives; [] when lost."""
+        imp, rng = self.imp, self._rng
+        if any(a <= now < b for a, b in self._outages):
+            return []
+        if any(a <= now < b and ptype in types for a, b, types in self._drops):
+            return []
+        if imp.loss and rng.random() * 100 < imp.loss:
+            return []
+        problems: tuple[str, ...] = ()
+        for i, (at, reason, only) in enumerate(self._mangles):
+            if at > now:
+                break
+            if only is None or only == ptype:
+                data, problems = mangle(data, reason, self._variant, self._order)
+                del self._mangles[i]
+                break
+        if not problems and imp.corrupt and rng.random() * 100 < imp.corrupt:
+            data, problems = mangle(data, C.Problem.BAD_CRC.value, self._variant, self._order)
+        delay = ms(imp.delay_ms)
+        if imp.jitter_ms:
+            delay += ms(rng.uniform(0, imp.jitter_ms))
+        if imp.reorder and rng.random() * 100 < imp.reorder:
+            delay += ms(rng.uniform(0.5, 1.5) * imp.reorder_ms)
+        out = [(now + delay, data, problems)]
+        if imp.duplicate and rng.random() * 100 < imp.duplicate:
+            out.append((now + delay + ms(rng.uniform(0.05, 2.0)), data, problems))
+        return out

@@ -1,0 +1,198 @@
+"""What both ends of the EG-Link share: one serial counter, sending, receiving, ignoring illegal packets.
+
+A node is a passive state machine on integer microseconds. A runner (virtual clock in
+`sim.virtual`, sockets and wall clock in `sim.realtime`) calls `start`, `tick` when `next_due`
+has come, and `receive` for every datagram; the node sends through the callable the runner
+attached. Subclasses override the `on_*` hooks.
+"""
+from __future__ import annotations
+
+import struct
+from collections import Counter
+from typing import Any, Callable, NamedTuple, Optional
+
+from .. import constants as C
+from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, check_byte_order, crc_function
+from ..decode import crc_span, decode
+from .. import encode
+from .clock import US_PER_S
+
+_HEADER = struct.Struct("<4sHHHHI")
+_TYPES = {t.value.encode(): t for t in C.PacketType}
+NEVER: Optional[int] = None
+
+
+class Rx(NamedTuple):
+    """A legal packet as a node receives it; decode `data` with `vm110.decode` for every field."""
+
+    ptype: C.PacketType
+    origin: int
+    serial: int
+    payload: bytes
+    data: bytes
+    src: Any
+
+
+class Meta(NamedTuple):
+    """What the sender knows about a packet it sent: the event log of the ground truth."""
+
+    sender: str        # node name
+    ptype: C.PacketType
+    serial: int
+    key: int           # command ID (commands, acks), packet number (VRPO), else 0
+    data_len: int      # VRPO periodic data bytes, else 0
+
+
+Send = Callable[[bytes, int, Meta], None]
+
+
+def inspect(data: bytes, crc_fn: Callable[[bytes], int], order: str) -> tuple[list[str], Optional[C.PacketType]]:
+    """Illegal reasons (as `vm110.decode` gives them) and the type, without decoding the fields."""
+    n = len(data)
+    if n < C.OVERHEAD:
+        return decode(data)["problems"], None   # rare: let the full decoder sort it out
+    raw_id, revision, _origin, _serial, size, _spare = _HEADER.unpack_from(data)
+    ptype = _TYPES.get(raw_id)
+    problems = [] if ptype else [C.Problem.UNKNOWN_ID.value]
+    end = crc_span(data, size)
+    if int.from_bytes(data[end:end + C.CRC_LEN], order) != crc_fn(data[:end]):
+        problems.append(C.Problem.BAD_CRC.value)
+    if revision != C.SUPPORTED_REVISION:
+        problems.append(C.Problem.REVISION.value)
+    if n != C.OVERHEAD + size:
+        problems.append(C.Problem.SIZE_MISMATCH.value)
+    if size > C.MAX_PAYLOAD:
+        problems.append(C.Problem.SIZE_TOO_LARGE.value)
+    if ptype and revision == C.SUPPORTED_REVISION and end - C.PREFIX_LEN < C.PAYLOAD_BOUNDS[ptype][0]:
+        problems.append(C.Problem.TRUNCATED.value)
+    return problems, ptype
+
+
+class Node:
+    """One end of the link. `name` identifies it in logs and in the ground truth."""
+
+    direction: C.Direction = C.Direction.INPUT
+
+    def __init__(self, name: str, *, origin: int = 0, serial_start: int = 0,
+                 stalls: tuple[tuple[int, int], ...] = (), crc: str = DEFAULT_VARIANT,
+                 crc_order: str = DEFAULT_BYTE_ORDER, printer: Optional[Callable[[str], None]] = None) -> None:
+        self.name = name
+        self.origin = origin
+        self.serial = serial_start & 0xFFFF
+        self.stalls = tuple(sorted(stalls))      # (start, end) in µs: neither sends nor receives
+        self.crc, self.crc_order = crc, check_byte_order(crc_order)
+        self._crc_fn = crc_function(crc)
+        self._send: Optional[Send] = None
+        self.printer = printer
+        self.listeners: list[Callable[[dict[str, Any]], None]] = []   # called with every log entry
+        self.log: list[dict[str, Any]] = []
+        self.sent: Counter[str] = Counter()
+        self.received: Counter[str] = Counter()
+        self.illegal: Counter[str] = Counter()      # by reason; each packet counts once per reason
+        self.illegal_packets = 0
+        self._stall_index = 0
+
+    # --- wiring -------------------------------------------------------------------------------
+    def attach(self, send: Send) -> None:
+        """The runner's send function: takes (bytes, now µs, Meta)."""
+        self._send = send
+
+    def start(self, now: int) -> None:
+        """Called once by the runner before the first tick."""
+
+    def next_due(self) -> Optional[int]:
+        """When `tick` must run next (µs), None for nothing scheduled. Stalls postpone it."""
+        due = self._due()
+        if due is None:
+            return None
+        stall_end = self._stall_end(due)
+        return due if stall_end is None else stall_end
+
+    def tick(self, now: int) -> None:
+        if self._stall_check(now):
+            return
+        self._tick(now)
+
+    def receive(self, data: bytes, now: int, src: Any = None) -> None:
+        """A datagram arrived. Illegal packets are counted and otherwise ignored (TS-0006 5.1.5)."""
+        if self._stall_check(now):
+            return
+        problems, ptype = inspect(data, self._crc_fn, self.crc_order)
+        if problems:
+            self.illegal_packets += 1
+            self.illegal.update(problems)
+            self.on_illegal(data, problems, now, src)
+            return
+        assert ptype is not None
+        _, _, origin, serial, size, _ = _HEADER.unpack_from(data)
+        self.received[ptype.value] += 1
+        self.on_packet(Rx(ptype, origin, serial, data[C.PREFIX_LEN:C.PREFIX_LEN + size], data, src), now)
+
+    # --- sending ------------------------------------------------------------------------------
+    def send(self, ptype: C.PacketType, payload: bytes, now: int, key: int = 0, data_len: int = 0) -> bytes:
+        """Frame `payload` with the next serial of this node's single counter and send it."""
+        serial = self.serial
+        self.serial = (serial + 1) & 0xFFFF
+        data = encode.packet(ptype, payload, origin=self.origin, serial=serial,
+                             variant=self.crc, order=self.crc_order)
+        self.sent[ptype.value] += 1
+        self.transmit(data, now, Meta(self.name, ptype, serial, key, data_len))
+        return data
+
+    def transmit(self, data: bytes, now: int, meta: Meta) -> None:
+        """Last hook before the wire (override to alter bytes on purpose)."""
+        if self._send is None:
+            raise RuntimeError(f"{self.name}: not attached to a runner")
+        self._send(data, now, meta)
+
+    # --- hooks and helpers for subclasses -----------------------------------------------------
+    def on_packet(self, rx: Rx, now: int) -> None:
+        """A legal packet; dispatches to `on_<type>` (e.g. `on_vrci`)."""
+        handler = getattr(self, f"on_{rx.ptype.value.lower()}", None)
+        if handler is not None:
+            handler(rx, now)
+
+    def on_illegal(self, data: bytes, problems: list[str], now: int, src: Any) -> None:
+        """An illegal packet, already counted; the specification says: ignore it silently."""
+
+    def _due(self) -> Optional[int]:
+        return None
+
+    def _tick(self, now: int) -> None:
+        pass
+
+    def event(self, now: int, kind: str, **details: Any) -> None:
+        """Record (and, with a printer, print) something the node did or detected."""
+        entry = {"t": now / US_PER_S, "node": self.name, "event": kind, **details}
+        self.log.append(entry)
+        for listener in self.listeners:
+            listener(entry)
+        if self.printer is not None:
+            extra = " ".join(f"{k}={v}" for k, v in details.items())
+            self.printer(f"{now / US_PER_S:10.3f} {self.name} {kind} {extra}".rstrip())
+
+    def events(self, kind: str) -> list[dict[str, Any]]:
+        return [e for e in self.log if e["event"] == kind]
+
+    def _stall_end(self, now: int) -> Optional[int]:
+        for start, end in self.stalls:
+            if start <= now < end:
+                return end
+        return None
+
+    def _stall_check(self, now: int) -> bool:
+        """True while stalled; logs each stall once and lets subclasses resynchronise after it."""
+        while self._stall_index < len(self.stalls):
+            start, end = self.stalls[self._stall_index]
+            if now < start:
+                return False
+            if now < end:
+                return True
+            self.event(start, "stall_start")
+            self.event(end, "stall_end")
+            self._stall_index += 1
+            self.on_resume(end)
+        return False
+
+    def on_resume(self, now: int) -> None:
+        """The node runs again after a stall."""

@@ -1,0 +1,135 @@
+"""A scriptable remote unit (RU) and operator, as the base unit reports them in VRPI and VRCI.
+
+A script is JSON (or the same dict in Python):
+
+    {"steps": [{"at": 0, "state": "armed", "ru": 3079, "battery": 90, "motion": true},
+               {"at": 12, "state": "disarmed", "unarmed_rus": 2},
+               {"at": 20, "set": {"ru_state": 4, "ru_docked": 1}}],
+     "commands": [{"at": 1.5, "data": "START PUMP"}],
+     "command_every": 2.0}
+
+`state` is `armed` or `disarmed` (the VRPI fields that go with it), `set` overrides VRPI fields
+by their canonical names, `motion` moves joysticks, switches and the encoder in deterministic
+patterns, `battery` drains 1 % a minute from the given level. Times are seconds from start.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Optional
+
+from .. import constants as C
+from ..errors import CliError
+from .clock import US_PER_S, seconds
+
+DEFAULT_RU = 0x0C07
+_BATTERY_DRAIN_US = 60 * US_PER_S          # 1 % per minute
+_JOYSTICK_PERIODS_US = (4_000_000, 6_000_000, 5_000_000, 7_000_000)
+
+
+def armed_fields(ru: int = DEFAULT_RU, battery: int = 90, rssi: int = 80) -> dict[str, int]:
+    return {"bu_state": C.BuState.ARMED, "vlaps": 1, "unarmed_rus": 0,
+            "eg_link": C.LinkStatus.OPERATIONAL, "ec_link": C.LinkStatus.OPERATIONAL,
+            "c_link": C.LinkStatus.OPERATIONAL, "armed_ru": ru, "ru_state": C.RuState.ENABLED,
+            "ru_battery": battery, "ru_rssi": rssi, "ru_cable": C.RuCable.WIRELESS,
+            "ru_docked": C.RuDocked.NOT_DOCKED, "ru_disabled": C.RuDisabled.ENABLED}
+
+
+def disarmed_fields(unarmed_rus: int = 0) -> dict[str, int]:
+    """No RU data (section 4.1: all RU fields 0); C-Link passive when no remote talks to the BU."""
+    return {"bu_state": C.BuState.DISARMED, "vlaps": 1, "unarmed_rus": unarmed_rus,
+            "eg_link": C.LinkStatus.OPERATIONAL, "ec_link": C.LinkStatus.OPERATIONAL,
+            "c_link": C.LinkStatus.OPERATIONAL if unarmed_rus else C.LinkStatus.PASSIVE, "armed_ru": 0}
+
+
+def _triangle(t: int, period: int, amplitude: int) -> int:
+    """Integer triangle wave in [-amplitude, amplitude]: exact, so captures are reproducible."""
+    phase = t % period
+    quarter = period // 4
+    if phase < quarter:
+        return amplitude * phase // quarter
+    if phase < 3 * quarter:
+        return amplitude - 2 * amplitude * (phase - quarter) // (2 * quarter)
+    return -amplitude + amplitude * (phase - 3 * quarter) // quarter
+
+
+@dataclass
+class _Step:
+    at: int
+    fields: dict[str, int]
+    motion: Optional[bool] = None
+    battery: Optional[int] = None
+
+
+@dataclass
+class Remote:
+    """The RU and operator script. `fields(t)` gives the VRPI payload fields at time t (µs)."""
+
+    steps: list[_Step] = field(default_factory=list)
+    commands: list[tuple[int, bytes]] = field(default_factory=list)
+    command_every: int = 0
+
+    @classmethod
+    def from_script(cls, script: Mapping[str, Any]) -> "Remote":
+        steps = []
+        for raw in script.get("steps", []):
+            values: dict[str, int] = {}
+            state = raw.get("state")
+            if state == "armed":
+                values.update(armed_fields(int(raw.get("ru", DEFAULT_RU)), int(raw.get("battery", 90)),
+                                           int(raw.get("rssi", 80))))
+            elif state == "disarmed":
+                values.update(disarmed_fields(int(raw.get("unarmed_rus", 0))))
+            elif state is not None:
+                raise CliError(f"remote script: unknown state {state!r} (armed or disarmed)")
+            values.update({k: int(v) for k, v in raw.get("set", {}).items()})
+            battery = raw.get("battery") if state == "armed" or "battery" in raw.get("set", {}) else None
+            steps.append(_Step(seconds(float(raw.get("at", 0))), values, raw.get("motion"),
+                               None if battery is None else int(battery)))
+        commands = [(seconds(float(c["at"])), str(c.get("data", "CMD")).encode("ascii", "replace"))
+                    for c in script.get("commands", [])]
+        return cls(sorted(steps, key=lambda s: s.at), sorted(commands), seconds(float(script.get("command_every", 0))))
+
+    @classmethod
+    def load(cls, path: str) -> "Remote":
+        try:
+            with open(path, encoding="utf-8") as fh:
+                return cls.from_script(json.load(fh))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise CliError(f"cannot read remote script {path}: {exc}") from None
+
+    @classmethod
+    def simple(cls, armed: bool = True, unarmed_rus: int = 0, motion: bool = True,
+               command_every: float = 0.0, ru: int = DEFAULT_RU) -> "Remote":
+        state = {"at": 0, "state": "armed" if armed else "disarmed", "ru": ru,
+                 "unarmed_rus": unarmed_rus, "motion": motion}
+        return cls.from_script({"steps": [state], "command_every": command_every})
+
+    def fields(self, t: int) -> dict[str, int]:
+        """VRPI payload fields at time t (µs since start)."""
+        values: dict[str, int] = disarmed_fields()
+        motion, battery, battery_at = False, None, 0
+        for step in self.steps:
+            if step.at > t:
+                break
+            values.update(step.fields)
+            if step.motion is not None:
+                motion = step.motion
+            if step.battery is not None:
+                battery, battery_at = step.battery, step.at
+        if values.get("armed_ru"):
+            if battery is not None:
+                values["ru_battery"] = max(0, battery - (t - battery_at) // _BATTERY_DRAIN_US)
+            if motion and values.get("ru_state") == C.RuState.ENABLED:
+                self._move(t, values)
+        return values
+
+    @staticmethod
+    def _move(t: int, values: dict[str, int]) -> None:
+        for i, period in enumerate(_JOYSTICK_PERIODS_US, start=1):
+            values[f"joystick{i}"] = _triangle(t, period, C.JOYSTICK_LIMIT)
+        values["switch1"] = (t // 3_000_000) % 2                 # pushbutton
+        values["switch2"] = (t // 2_000_000) % 3 - 1             # 3-position toggle
+        values["switch3"] = (t // 10_000) % (C.SWITCH_MAX + 1)   # potentiometer sweep
+        values["encoder"] = (t // 250_000) & 0xFF
+        values["encoder_switch"] = int((t // 5_000_000) % 4 == 0)

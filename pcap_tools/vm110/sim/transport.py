@@ -1,0 +1,163 @@
+"""UDP sockets for a node on the wall clock: multicast as the specification says, or unicast.
+
+Each node has a receiving socket (bound to `listen`, joined to `group` when one is given) and a
+sending socket (bound to `source`, so that packets leave from the node's port, e.g. the BU's
+inputs from IP:5825) that sends to `dest`. Impairments are applied before sending; delayed
+copies wait in a queue that the runner flushes (`next_due`, `flush`).
+"""
+from __future__ import annotations
+
+import errno
+import heapq
+import ipaddress
+import socket
+from dataclasses import dataclass
+from typing import Optional
+
+from .. import constants as C
+from ..errors import CliError
+from .impair import Impairer
+from .node import Meta
+
+IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)   # Linux: only the groups this socket joined
+Address = tuple[str, int]
+
+
+@dataclass
+class UdpConfig:
+    listen: Address                 # bind of the receiving socket
+    dest: Address                   # where packets go (the group, or a unicast peer)
+    source: Address = ("0.0.0.0", 0)
+    group: Optional[str] = None     # multicast group to join on `iface` for receiving
+    iface: str = "0.0.0.0"          # interface address: membership and outgoing multicast
+    ttl: int = C.MULTICAST_TTL
+
+
+def parse_address(text: str, default_port: Optional[int] = None) -> Address:
+    """"HOST:PORT" (or "HOST" with a default port) to a tuple; CliError when malformed."""
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = text, ""
+    try:
+        ipaddress.IPv4Address(host)
+        number = int(port) if port else default_port
+    except ValueError:
+        raise CliError(f"bad address {text!r}: expected IPv4:PORT") from None
+    if number is None or not 0 <= number <= 65535:
+        raise CliError(f"bad address {text!r}: expected IPv4:PORT")
+    return host, number
+
+
+def multicast_config(role: str, group: str = C.MULTICAST_GROUP, port: int = C.INPUT_PORT,
+                     iface: str = "0.0.0.0") -> UdpConfig:
+    """The specification's set-up for `bu` or `controller`: inputs on `port`, outputs on `port + 2`."""
+    out_port = port + C.OUTPUT_PORT_OFFSET
+    send_port, recv_port = (port, out_port) if role == "bu" else (out_port, port)
+    return UdpConfig(listen=("0.0.0.0", recv_port), dest=(group, send_port), source=(iface, send_port),
+                     group=group, iface=iface)
+
+
+class UdpTransport:
+    """The sockets of one node. `open()` binds them; `rx_address` is where peers must send."""
+
+    def __init__(self, config: UdpConfig, impairer: Optional[Impairer] = None) -> None:
+        self.config = config
+        self.impairer = impairer
+        self.rx: Optional[socket.socket] = None
+        self.tx: Optional[socket.socket] = None
+        self._queue: list[tuple[int, int, bytes]] = []
+        self._seq = 0
+        self.sent = 0
+        self.send_errors = 0
+
+    def open(self) -> "UdpTransport":
+        cfg = self.config
+        try:
+            self.rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self.rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if cfg.group:
+                self.rx.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
+                self.rx.bind(("0.0.0.0" if cfg.listen[0] in ("", "0.0.0.0") else cfg.listen[0], cfg.listen[1]))
+                membership = socket.inet_aton(cfg.group) + socket.inet_aton(cfg.iface)
+                self.rx.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership)
+            else:
+                self.rx.bind(cfg.listen)
+            self.rx.setblocking(False)
+            self.tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self.tx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if ipaddress.IPv4Address(cfg.dest[0]).is_multicast:
+                self.tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, cfg.ttl)
+                self.tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+                self.tx.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
+                if cfg.iface != "0.0.0.0":
+                    self.tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(cfg.iface))
+            self.tx.bind(cfg.source)
+            self.tx.setblocking(False)
+        except OSError as exc:
+            self.close()
+            raise CliError(f"cannot open UDP sockets ({cfg.listen[0]}:{cfg.listen[1]} -> "
+                           f"{cfg.dest[0]}:{cfg.dest[1]}): {exc.strerror or exc}") from None
+        return self
+
+    @property
+    def rx_address(self) -> Address:
+        assert self.rx is not None, "open() first"
+        return self.rx.getsockname()
+
+    @property
+    def tx_address(self) -> Address:
+        assert self.tx is not None, "open() first"
+        return self.tx.getsockname()
+
+    def set_dest(self, dest: Address) -> None:
+        """Point the node at its peer (tests bind port 0 first, then wire the two ends)."""
+        self.config.dest = dest
+
+    # --- sending ------------------------------------------------------------------------------
+    def send(self, data: bytes, now: int, meta: Meta) -> None:
+        if self.impairer is None:
+            self._sendto(data)
+            return
+        for due, copy, _problems in self.impairer.apply(data, now, meta.ptype.value):
+            if due <= now:
+                self._sendto(copy)
+            else:
+                heapq.heappush(self._queue, (due, self._seq, copy))
+                self._seq += 1
+
+    def next_due(self) -> Optional[int]:
+        return self._queue[0][0] if self._queue else None
+
+    def flush(self, now: int) -> None:
+        while self._queue and self._queue[0][0] <= now:
+            self._sendto(heapq.heappop(self._queue)[2])
+
+    def _sendto(self, data: bytes) -> None:
+        assert self.tx is not None, "open() first"
+        try:
+            self.tx.sendto(data, self.config.dest)
+            self.sent += 1
+        except OSError as exc:   # a full buffer or an unreachable peer loses the packet, like UDP does
+            if exc.errno not in (errno.EAGAIN, errno.ECONNREFUSED, errno.ENOBUFS, errno.EHOSTUNREACH,
+                                 errno.ENETUNREACH):
+                raise
+            self.send_errors += 1
+
+    # --- receiving ----------------------------------------------------------------------------
+    def recv_all(self) -> list[tuple[bytes, Address]]:
+        """Every datagram waiting on the receiving socket."""
+        assert self.rx is not None, "open() first"
+        out = []
+        while True:
+            try:
+                out.append(self.rx.recvfrom(65535))
+            except (BlockingIOError, InterruptedError):
+                return out
+            except ConnectionRefusedError:
+                continue
+
+    def close(self) -> None:
+        for sock in (self.rx, self.tx):
+            if sock is not None:
+                sock.close()
+        self.rx = self.tx = None

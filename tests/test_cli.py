@@ -1,0 +1,50 @@
+"""The `vm110` command line: crafting, decoding, and clean errors with documented exit codes."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from vm110.errors import EXIT_OK, EXIT_USAGE
+
+
+def vm110(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vm110", *args], capture_output=True, text=True)
+
+
+def test_craft_then_decode_gives_every_type(tmp_path):
+    capture = tmp_path / "crafted.pcap"
+    assert vm110("craft", "--out", str(capture)).returncode == EXIT_OK
+    result = vm110("decode", str(capture), "--json")
+    assert result.returncode == EXIT_OK, result.stderr
+    packets = [json.loads(line) for line in result.stdout.splitlines()]
+    assert sorted(p["type"] for p in packets) == ["VRAI", "VRAO", "VRCI", "VRCO", "VRPI", "VRPO"]
+    assert all(p["problems"] == [] and p["crc.status"] == "Good" for p in packets)
+
+
+def test_decode_with_the_wrong_crc_variant_flags_every_packet(tmp_path):
+    capture = tmp_path / "crafted.pcap"
+    vm110("craft", "--out", str(capture))
+    result = vm110("decode", str(capture), "--crc", "bzip2")
+    assert result.stdout.count("ILLEGAL(bad_crc)") == 6
+
+
+def test_not_a_capture_is_one_line_and_exit_2(tmp_path):
+    bogus = tmp_path / "notes.txt"
+    bogus.write_text("hello\n")
+    for path in (str(bogus), str(tmp_path / "missing.pcap")):
+        result = vm110("decode", path)
+        assert result.returncode == EXIT_USAGE
+        assert result.stderr.startswith("vm110 decode: cannot read") and "Traceback" not in result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_unwritable_output_is_exit_2(tmp_path):
+    result = vm110("craft", "--out", str(tmp_path / "no" / "such" / "dir.pcap"))
+    assert result.returncode == EXIT_USAGE and "cannot write" in result.stderr
+
+
+def test_usage_errors_exit_2():
+    assert vm110("decode").returncode == EXIT_USAGE
+    assert vm110("no-such-command").returncode == EXIT_USAGE
+    assert vm110("--version").stdout.startswith("vm110 ")

@@ -1,0 +1,122 @@
+"""The scapy layers against the shared vectors, round trips, port binding and answers()."""
+from __future__ import annotations
+
+import pytest
+from scapy.layers.inet import IP, UDP
+from scapy.layers.l2 import Ether
+from scapy.packet import Raw
+
+from vectorlib import expected_fields, load_vectors, packet_bytes, vector_ids
+from vm110 import constants as C
+from vm110.layers import (
+    PAYLOAD_CLASSES, VM110, VRAI, VRAO, VRCI, VRCO, VRPI, VRPO, bind_ports, crc_settings, unbind_ports,
+)
+
+VECTORS = load_vectors()
+# Vectors whose whole layout is on the wire: scapy dissects them field for field.
+WHOLE = [v for v in VECTORS if set(v["problems"]) <= {"bad_crc", "unknown_id", "revision"}]
+# Vectors a user could have crafted with the layers from their field values.
+CRAFTABLE = [v for v in VECTORS if not v["problems"] and "extra_payload" not in v["warnings"]]
+HEADER = ("type", "revision", "origin", "serial", "size", "spare", "crc")
+
+
+def _layer_fields(vector):
+    fields = expected_fields(vector)
+    header = {k: fields[k] for k in HEADER}
+    header["type"] = header["type"].encode("latin-1")
+    ptype = fields["type"]
+    cls = PAYLOAD_CLASSES.get(C.PacketType(ptype)) if ptype in C.PacketType.__members__ else None
+    names = {f.name for f in cls.fields_desc} if cls else set()
+    payload = {k: v for k, v in fields.items() if k in names}
+    return header, cls, payload
+
+
+@pytest.mark.parametrize("vector", WHOLE, ids=vector_ids(WHOLE))
+def test_dissect_matches_vector(vector):
+    header, cls, payload = _layer_fields(vector)
+    with crc_settings(vector["crc_variant"], vector["crc_byte_order"]):
+        pkt = VM110(packet_bytes(vector))
+        assert pkt.crc_ok() == ("bad_crc" not in vector["problems"])
+    assert {k: pkt.getfieldval(k) for k in HEADER} == header
+    if cls is None:
+        assert not isinstance(pkt.payload, tuple(PAYLOAD_CLASSES.values()))
+        return
+    layer = pkt[cls]
+    assert {k: layer.getfieldval(k) for k in payload} == payload
+    for name, shown in vector["names"].items():
+        if name != "type" and not shown.startswith("Unknown"):
+            assert layer.get_field(name).i2repr(layer, layer.getfieldval(name)) == shown
+
+
+@pytest.mark.parametrize("vector", CRAFTABLE, ids=vector_ids(CRAFTABLE))
+def test_build_from_fields_gives_vector_bytes(vector):
+    header, cls, payload = _layer_fields(vector)
+    del header["size"], header["crc"]  # computed
+    with crc_settings(vector["crc_variant"], vector["crc_byte_order"]):
+        assert bytes(VM110(**header) / cls(**payload)) == packet_bytes(vector)
+
+
+def test_explicit_size_and_crc_are_kept():
+    pkt = VM110(size=99, crc=0x12345678) / VRAO(command_id=1)
+    raw = bytes(pkt)
+    assert raw[10:12] == b"\x63\x00" and raw[-4:] == bytes.fromhex("78563412")
+    assert not VM110(raw).crc_ok()
+
+
+def test_crc_found_from_size_not_frame_end():
+    raw = bytes(VM110() / VRAO(command_id=5))
+    padded = VM110(raw + b"\x00" * 12)  # Ethernet padding after the CRC
+    assert padded.crc_ok() and padded[VRAO].command_id == 5
+    assert bytes(padded)[:len(raw)] == raw
+
+
+def test_type_is_set_by_the_payload_layer():
+    for ptype, cls in PAYLOAD_CLASSES.items():
+        assert bytes(VM110() / cls())[:4] == ptype.value.encode()
+
+
+def test_unknown_id_keeps_header_and_raw_payload():
+    raw = bytes(VM110(type=b"VRXX") / Raw(b"\x01\x02\x03"))
+    pkt = VM110(raw)
+    assert pkt.type == b"VRXX" and pkt.size == 3 and pkt[Raw].load == b"\x01\x02\x03"
+    assert pkt.crc_ok()
+
+
+def test_show_prints_enum_names_and_numbers_for_unknown():
+    text = (VM110() / VRPI(bu_state=0x11, eg_link=6, ru_state=0x42)).show(dump=True)
+    assert "bu_state  = Armed" in text and "eg_link   = Passive" in text and "ru_state  = 66" in text
+
+
+@pytest.mark.parametrize("sport,dport", [(C.INPUT_PORT, C.INPUT_PORT), (40000, C.OUTPUT_PORT)])
+def test_bound_to_default_ports(sport, dport):
+    frame = Ether(bytes(Ether() / IP() / UDP(sport=sport, dport=dport) / VM110() / VRAO(command_id=9)))
+    assert frame[VRAO].command_id == 9
+
+
+def test_bind_other_input_port():
+    def dissected(port):
+        return VM110 in Ether(bytes(Ether() / IP() / UDP(sport=40000, dport=port) / Raw(bytes(VM110() / VRAO()))))
+    assert not dissected(7002)
+    bind_ports(7000)
+    try:
+        assert dissected(7000) and dissected(7002)
+    finally:
+        unbind_ports(7000)
+    assert not dissected(7002)
+
+
+def test_ack_answers_command_with_same_id():
+    vrci, vrco = VM110() / VRCI(command_id=17), VM110() / VRCO(command_id=17)
+    vrao, vrai = VM110() / VRAO(command_id=17), VM110() / VRAI(command_id=17)
+    assert vrao.answers(vrci) and vrai.answers(vrco)
+    assert not vrao.answers(vrco) and not vrai.answers(vrci)
+    assert not (VM110() / VRAO(command_id=18)).answers(vrci)
+    assert not vrci.answers(vrao)
+    assert vrao.hashret() == vrci.hashret() != vrai.hashret()
+    dissected = [VM110(bytes(p)) for p in (vrci, vrao)]
+    assert dissected[1].answers(dissected[0])
+
+
+def test_vrpo_data_fills_the_rest_of_the_payload():
+    pkt = VM110(bytes(VM110() / VRPO(packet_number=2, periodic_data=b"abc")))
+    assert pkt.size == 5 and pkt[VRPO].periodic_data == b"abc"
