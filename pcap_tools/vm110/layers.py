@@ -67,7 +67,7 @@ class CRCField(Field[Optional[int], bytes]):
         return "None" if x is None else f"0x{x:08X}"
 
 
-PACKET_IDS = {t.value.encode(): f"{t.value} ({C.PACKET_DESCRIPTIONS[t]})" for t in C.PacketType}
+PACKET_IDS = {t.value.encode(): C.PACKET_DESCRIPTIONS[t] for t in C.PacketType}
 
 
 def _names(table: dict) -> dict[int, str]:
