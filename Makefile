@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 PLUGIN_DIR ?= $(HOME)/.local/lib/wireshark/plugins
 DEMO_DIR := out/demo
 
-.PHONY: setup system-deps demo test bench install-wireshark clean tshark44 golden
+.PHONY: setup system-deps demo test bench install-wireshark clean tshark44 golden captures
 
 setup: system-deps $(STAMP)
 
@@ -31,6 +31,12 @@ test: setup tshark44
 
 bench: setup
 	@set -e; for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b; done
+
+# The synthesised part of captures/ (each with its .truth.json; see captures/README.md).
+CAPTURES := normal.pcap disarmed.pcap loss.pcapng retransmit.pcap vrco.pcap vrpo-split.pcapng illegal.pcap \
+	bu-watchdog.pcap controller-watchdog.pcap glink.pcapng
+captures: setup
+	@set -e; for c in $(CAPTURES); do $(VENV)/bin/vm110 synth "$${c%.*}" --seed 1 --out "captures/$$c"; done
 
 # Debian 13 chroot with tshark 4.4 (Lua 5.4): the dissector tests run on it as well as on the host's tshark.
 tshark44:

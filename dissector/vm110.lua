@@ -228,13 +228,47 @@ end
 
 ---------------------------------------------------------------------------------------------
 -- 3. decode(): the rules of vm110/decode.py, on a Lua string
--- Record: type, info (TYPES entry or nil), header values, crc_off (offset of the CRC or nil),
--- crc, crc_calc, crc_status, pay_end (end of the decoded payload span), values (payload
--- field -> value), present (list of decoded layout entries), data_len (VRPO periodic data),
+-- Record: n, type, info (TYPES entry or nil), header values (revision ... spare), crc_off
+-- (offset of the CRC or nil), crc, crc_calc, crc_status, pay_end (end of the payload span),
+-- payload (true when the payload is decoded), values (payload field -> value), present
+-- (layout entries decoded), decoded_end, data_len (VRPO periodic data), es_relays_open,
 -- problems (code -> true), fieldwarn (field -> list of codes), extra (extra_payload).
 ---------------------------------------------------------------------------------------------
 local function u16(b, o) return b[o + 1] + b[o + 2] * 256 end
 local function u32(b, o) return ((b[o + 4] * 256 + b[o + 3]) * 256 + b[o + 2]) * 256 + b[o + 1] end
+local function s16(v) if v >= 0x8000 then return v - 0x10000 end return v end
+
+-- A reader per layout for whole payloads: one table constructor, no loop. Generated from the
+-- layout, so that the layout stays the only description of each packet.
+local function compile_reader(layout)
+    local parts, off = {}, PREFIX_LEN
+    for _, f in ipairs(layout) do
+        local name, width, kind, expr = f[1], f[2], f[3], nil
+        if kind == "b" then
+            expr = fmt("sub(s, %d, %d)", off + 1, off + width)
+        elseif width == 1 then
+            expr = fmt("b[%d]", off + 1)
+        elseif width == 2 then
+            expr = fmt(kind == "s" and "s16(b[%d] + b[%d] * 256)" or "b[%d] + b[%d] * 256", off + 1, off + 2)
+        else
+            expr = fmt("((b[%d] * 256 + b[%d]) * 256 + b[%d]) * 256 + b[%d]", off + 4, off + 3, off + 2, off + 1)
+        end
+        parts[#parts + 1] = name .. " = " .. expr
+        off = off + width
+    end
+    local code = "local sub, s16 = ...\nreturn function(b, s) return { " .. concat(parts, ", ") .. " } end"
+    return assert(load(code, "=vm110 reader", "t", {}))(sub, s16)
+end
+
+local HEADER = { { "revision", 4, 2 }, { "origin", 6, 2 }, { "serial", 8, 2 }, { "size", 10, 2 }, { "spare", 12, 4 } }
+
+-- VRPI value checks, one entry per field: {name, value names, low, high, is an RU field}.
+local VRPI_CHECKS = {}
+for _, f in ipairs(VRPI_LAYOUT) do
+    local range = RANGES[f[1]]
+    VRPI_CHECKS[#VRPI_CHECKS + 1] = { f[1], f[4] or false, range and range[1] or false,
+        range and range[2] or false, RU_FIELDS[f[1]] or false }
+end
 
 local function warn(r, field, code)
     local list = r.fieldwarn[field]
@@ -243,45 +277,40 @@ local function warn(r, field, code)
         r.fieldwarn[field] = list
     end
     list[#list + 1] = code
-    r.nwarn = r.nwarn + 1
 end
-
-local HEADER = { { "revision", 4, 2 }, { "origin", 6, 2 }, { "serial", 8, 2 }, { "size", 10, 2 }, { "spare", 12, 4 } }
 
 local function check_values(r, info)
     local v = r.values
-    for name in pairs(SPARE_FIELDS) do
-        local value = v[name]
-        if value and value ~= 0 and not (type(value) == "string" and not value:find("[^\0]")) then
-            warn(r, name, "spare_nonzero")
-        end
-    end
+    if v.vrpi_spare and v.vrpi_spare:find("[^\0]") then warn(r, "vrpi_spare", "spare_nonzero") end
+    if v.command_spare and v.command_spare ~= 0 then warn(r, "command_spare", "spare_nonzero") end
     if info.id ~= "VRPI" then return end
-    for _, f in ipairs(info.layout) do
-        local name, value = f[1], v[f[1]]
+    local disarmed = v.armed_ru == 0
+    for i = 1, #VRPI_CHECKS do
+        local c = VRPI_CHECKS[i]
+        local name = c[1]
+        local value = v[name]
         if value ~= nil then
-            if f[4] and f[4][value] == nil then warn(r, name, "unknown_enum") end
-            local range = RANGES[name]
-            if range and (value < range[1] or value > range[2]) then warn(r, name, "out_of_range") end
-            if v.armed_ru == 0 and RU_FIELDS[name] and value ~= 0 then warn(r, name, "disarmed_ru_data") end
+            if c[2] and c[2][value] == nil then warn(r, name, "unknown_enum") end
+            if c[3] and (value < c[3] or value > c[4]) then warn(r, name, "out_of_range") end
+            if disarmed and c[5] and value ~= 0 then warn(r, name, "disarmed_ru_data") end
         end
     end
 end
 
-local function decode_payload(r, b, s, info)
-    local v, present = r.values, {}
-    local off, limit = PREFIX_LEN, r.pay_end
-    for _, f in ipairs(info.layout) do
-        local width = f[2]
+-- The fields that fit whole in a payload cut short.
+local function read_partial(b, s, layout, limit)
+    local v, present, off = {}, {}, PREFIX_LEN
+    for _, f in ipairs(layout) do
+        local width, kind = f[2], f[3]
         if off + width > limit then break end
-        local kind, value = f[3]
+        local value
         if kind == "b" then
             value = sub(s, off + 1, off + width)
         elseif width == 1 then
             value = b[off + 1]
         elseif width == 2 then
             value = u16(b, off)
-            if kind == "s" and value >= 0x8000 then value = value - 0x10000 end
+            if kind == "s" then value = s16(value) end
         else
             value = u32(b, off)
         end
@@ -289,41 +318,68 @@ local function decode_payload(r, b, s, info)
         present[#present + 1] = f
         off = off + width
     end
-    r.present, r.decoded_end = present, off
-    if info.id == "VRPO" and #present == 1 then
-        r.data_len = limit - off
-        if r.data_len > VRPO_MAX_DATA then r.data_len = VRPO_MAX_DATA end
-        v.periodic_data = sub(s, off + 1, off + r.data_len)
-        r.decoded_end = off + r.data_len
-    end
-    if info.id == "VRPI" and v.bu_state ~= nil then r.es_relays_open = v.bu_state < ES_RELAYS_CLOSED_FROM end
+    return v, present, off
 end
+
+local function decode_payload(r, b, s, info)
+    local limit = r.pay_end
+    local v
+    if limit - PREFIX_LEN >= info.min then
+        v = info.read(b, s)
+        r.present, r.decoded_end = info.layout, PREFIX_LEN + info.min
+    else
+        r.problems.truncated = true
+        v, r.present, r.decoded_end = read_partial(b, s, info.layout, limit)
+    end
+    r.values = v
+    if info.id == "VRPO" and v.packet_number then
+        local off = r.decoded_end
+        local len = limit - off
+        if len > VRPO_MAX_DATA then len = VRPO_MAX_DATA end
+        r.data_len = len
+        v.periodic_data = sub(s, off + 1, off + len)
+        r.decoded_end = off + len
+    elseif info.id == "VRPI" and v.bu_state then
+        r.es_relays_open = v.bu_state < ES_RELAYS_CLOSED_FROM
+    end
+end
+
+-- Each type gets its reader; layout entries get their offset in the packet (for the tree).
+for _, info in pairs(TYPES) do
+    info.read = compile_reader(info.layout)
+    local off = PREFIX_LEN
+    for _, f in ipairs(info.layout) do
+        f.off = off
+        off = off + f[2]
+    end
+end
+
+local NO_VALUES = setmetatable({}, { __newindex = function() error("read-only") end })
 
 -- s: the UDP payload; variant: a CRC_VARIANTS entry, or nil when validation is off;
 -- big_endian: stored CRC byte order; known_crc: the calculated CRC when memoised.
 local function decode(s, variant, big_endian, known_crc)
     local n = #s
     local b = { byte(s, 1, n) }
-    local r = { n = n, b = b, problems = {}, nproblems = 0, fieldwarn = {}, nwarn = 0, values = {} }
-    local function problem(code)
-        if not r.problems[code] then
-            r.problems[code] = true
-            r.nproblems = r.nproblems + 1
-        end
-    end
+    local problems = {}
+    local r = { n = n, problems = problems, fieldwarn = {}, values = NO_VALUES }
+    local info
     if n >= ID_LEN then
         r.type = sub(s, 1, ID_LEN)
-        r.info = TYPES[r.type]
-        if not r.info then problem("unknown_id") end
-    end
-    for _, h in ipairs(HEADER) do
-        if h[2] + h[3] <= n then r[h[1]] = h[3] == 2 and u16(b, h[2]) or u32(b, h[2]) end
+        info = TYPES[r.type]
+        r.info = info
+        if not info then problems.unknown_id = true end
     end
     if n < PREFIX_LEN then
-        problem("truncated")
+        for _, h in ipairs(HEADER) do
+            if h[2] + h[3] > n then break end
+            r[h[1]] = h[3] == 2 and u16(b, h[2]) or u32(b, h[2])
+        end
+        problems.truncated = true
         return r
     end
-    local info, size = r.info, r.size
+    local revision, origin, size, spare = u16(b, 4), u16(b, 6), u16(b, 10), u32(b, 12)
+    r.revision, r.origin, r.serial, r.size, r.spare = revision, origin, u16(b, 8), size, spare
     if n >= OVERHEAD then
         local off = PREFIX_LEN + size
         if off > n - CRC_LEN then off = n - CRC_LEN end
@@ -334,32 +390,32 @@ local function decode(s, variant, big_endian, known_crc)
             r.crc = u32(b, off)
         end
         if variant then
-            r.crc_calc = known_crc or crc_of(b, off, variant)
-            r.crc_status = r.crc_calc == r.crc and CRC_GOOD or CRC_BAD
-            if r.crc_status == CRC_BAD then problem("bad_crc") end
+            local calc = known_crc or crc_of(b, off, variant)
+            r.crc_calc = calc
+            if calc == r.crc then
+                r.crc_status = CRC_GOOD
+            else
+                r.crc_status = CRC_BAD
+                problems.bad_crc = true
+            end
         else
             r.crc_status = CRC_UNVERIFIED
         end
     end
-    if r.revision ~= SUPPORTED_REVISION then problem("revision") end
-    if n ~= OVERHEAD + size then problem("size_mismatch") end
-    if size > MAX_PAYLOAD then problem("size_too_large") end
-    if r.spare ~= 0 then warn(r, "spare", "spare_nonzero") end
-    if info and info.direction == "Output" and r.origin ~= 0 then warn(r, "origin", "origin_nonzero") end
+    if revision ~= SUPPORTED_REVISION then problems.revision = true end
+    if n ~= OVERHEAD + size then problems.size_mismatch = true end
+    if size > MAX_PAYLOAD then problems.size_too_large = true end
+    if spare ~= 0 then warn(r, "spare", "spare_nonzero") end
+    if origin ~= 0 and info and info.direction == "Output" then warn(r, "origin", "origin_nonzero") end
     if n < OVERHEAD then
-        problem("truncated") -- no room for a CRC: nothing after the header
+        problems.truncated = true -- no room for a CRC: nothing after the header
         return r
     end
-    if not info or r.revision ~= SUPPORTED_REVISION then return r end -- header only
+    if not info or revision ~= SUPPORTED_REVISION then return r end -- header only
 
     r.payload = true
-    local plen = r.pay_end - PREFIX_LEN
-    if plen < info.min then problem("truncated") end
     decode_payload(r, b, s, info)
-    if plen > info.max then
-        r.extra = true
-        r.nwarn = r.nwarn + 1
-    end
+    r.extra = r.pay_end - PREFIX_LEN > info.max
     check_values(r, info)
     return r
 end
@@ -491,7 +547,7 @@ local function summary(r)
     end
     local text = concat(parts, " ")
     if r.serial then text = text .. fmt(", serial %d", r.serial) end
-    if r.nproblems > 0 then
+    if next(r.problems) then
         local p = {}
         for _, code in ipairs(PROBLEM_ORDER) do
             if r.problems[code] then p[#p + 1] = PROBLEM_TEXT[code] end
@@ -636,15 +692,6 @@ local function add_tree(r, tvb, tree, big_endian)
     end
     add_crc(r, tvb, root, big_endian)
     add_undecoded(root, tvb, r.crc_off + CRC_LEN, n - r.crc_off - CRC_LEN, "after the CRC")
-end
-
--- Layout entries carry their payload offset (the tree needs it; decode only walks).
-for _, info in pairs(TYPES) do
-    local off = PREFIX_LEN
-    for _, f in ipairs(info.layout) do
-        f.off = off
-        off = off + f[2]
-    end
 end
 
 ---------------------------------------------------------------------------------------------

@@ -15,8 +15,10 @@ from .errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, CliError
 
 # Subcommand name -> module under vm110.commands with `add_arguments(parser)` and `run(args)`.
 COMMANDS = {
+    "analyze": "analyze",
     "craft": "craft",
     "decode": "decode",
+    "fuzz": "fuzz",
     "simulate": "simulate",
     "synth": "synth",
 }

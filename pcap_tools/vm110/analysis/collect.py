@@ -40,7 +40,8 @@ def sender_id(direction: str, origin: int, src: str) -> str:
 
 @dataclass
 class Sender:
-    """Legal packets of one sender in arrival order; `events` holds the non-VRPI details."""
+    """Legal packets of one sender in arrival order, one entry per packet in each array but
+    `state`, which has one per VRPI."""
 
     direction: str
     origin: int
@@ -48,10 +49,10 @@ class Sender:
     ts: array = field(default_factory=lambda: array("d"))
     serial: array = field(default_factory=lambda: array("H"))
     code: array = field(default_factory=lambda: array("B"))
+    frame: array = field(default_factory=lambda: array("I"))
+    aux: array = field(default_factory=lambda: array("H"))     # command ID or VRPO packet number
+    size: array = field(default_factory=lambda: array("H"))    # payload size
     state: array = field(default_factory=lambda: array("I"))   # VRPI only: index into states
-    vrpi_frame: array = field(default_factory=lambda: array("I"))
-    # (index in the arrays, frame, ts, type code, command ID or packet number, payload size)
-    events: list = field(default_factory=list)
 
     @property
     def id(self) -> str:
@@ -90,4 +91,4 @@ class Collected:
         self.illegal += 1
         self.illegal_reasons.update(reasons)
         if len(self.illegal_examples) < MAX_EXAMPLES:
-            self.illegal_examples.append((frame, ts, src, ptype, tuple(reasons)))
+            self.illegal_examples.append((frame, ts, src, ptype, tuple(sorted(reasons))))

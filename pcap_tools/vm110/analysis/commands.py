@@ -52,7 +52,6 @@ def track(events: Iterable[tuple]) -> dict[int, Tally]:
     """events: (frame, ts, type code, sender id, command ID) in capture order, commands and acks."""
     tallies = {CODE[t]: Tally() for t in COMMAND_TYPES}
     current: dict[tuple[int, str], Command] = {}          # (code, sender) -> current command
-    by_id: dict[tuple[int, int], Command] = {}            # (code, command ID) -> latest live command
     for frame, ts, code, sender, cid in events:
         if code in _COMMAND_CODES:
             tally = tallies[code]
@@ -63,19 +62,16 @@ def track(events: Iterable[tuple]) -> dict[int, Tally]:
                 if cmd.ack_frame is not None:
                     cmd.spurious += 1
                 continue
-            if cmd is not None:
-                if cid < cmd.command_id:
-                    tally.id_wraps += 1
-                if by_id.get((code, cmd.command_id)) is cmd:
-                    del by_id[(code, cmd.command_id)]    # superseded
-            cmd = Command(sender, cid, [frame], [ts])
+            if cmd is not None and cid < cmd.command_id:
+                tally.id_wraps += 1
+            cmd = Command(sender, cid, [frame], [ts])     # supersedes the sender's previous one
             current[(code, sender)] = cmd
-            by_id[(code, cid)] = cmd
             tally.commands.append(cmd)
         else:
             target = _ACK_OF_CODE[code]
             tally = tallies[target]
-            cmd = by_id.get((target, cid))
+            live = [c for (k, _), c in current.items() if k == target and c.command_id == cid]
+            cmd = max(live, key=lambda c: c.frames[0]) if live else None
             if cmd is None:
                 tally.acks_without_command += 1
                 tally.orphan_acks.append((frame, ts, cid))

@@ -114,6 +114,7 @@ class FastEngine:
         from_bytes = int.from_bytes
         unpack = _HDR.unpack_from
         vrpi_code = VRPI_CODE
+        max_payload = C.MAX_PAYLOAD
         hot_valid = udp = 0
         slow = self._slow
         total = reader.size
@@ -129,7 +130,11 @@ class FastEngine:
                     continue
                 pid, rev, origin, serial, size, spare, aux = unpack(payload)
                 entry = streams.get((pid, src, sport, origin))
-                if entry is None or rev or n != size + 20 or size < entry[3]:
+                if entry is None or rev or n != size + 20:
+                    slow(got, reader, streams, state_ids, variant, order, ts, src, sport, payload, frame, True)
+                    continue
+                add_ts, add_serial, code, low, add_code, add_frame, add_aux, add_size, add_state = entry
+                if not low <= size <= max_payload:
                     slow(got, reader, streams, state_ids, variant, order, ts, src, sport, payload, frame, True)
                     continue
                 if reversed_bytes:
@@ -141,20 +146,19 @@ class FastEngine:
                     slow(got, reader, streams, state_ids, variant, order, ts, src, sport, payload, frame, True)
                     continue
                 hot_valid += 1
-                code = entry[2]
                 if code == vrpi_code:
-                    key = payload[16:16 + STATE_LEN]
+                    key = payload[16:30]
                     sid = state_ids.get(key)
                     if sid is None:
                         sid = state_ids[key] = len(states)
                         states.append(key)
-                    entry[6](sid)
-                    entry[7](frame)
-                else:
-                    entry[5]((len(entry[8]), frame, ts, code, aux, size))
-                entry[0](ts)
-                entry[1](serial)
-                entry[4](code)
+                    add_state(sid)
+                add_ts(ts)
+                add_serial(serial)
+                add_code(code)
+                add_frame(frame)
+                add_aux(aux)
+                add_size(size)
             if self.progress is not None:
                 self.progress(reader.bytes_read, total)
         got.eglink += hot_valid
@@ -172,7 +176,7 @@ class FastEngine:
         n = len(payload)
         if not on_port:
             # Heuristic for other ports: a known packet ID and a size consistent with the length.
-            if n < C.OVERHEAD or payload[:C.ID_LEN] not in CODE_OF_ID \
+            if not C.OVERHEAD <= n <= C.MAX_PACKET or payload[:C.ID_LEN] not in CODE_OF_ID \
                     or n != C.OVERHEAD + struct.unpack_from("<H", payload, 10)[0]:
                 got.other_udp += 1
                 return
@@ -194,10 +198,18 @@ class FastEngine:
 
 def add_legal(got: Collected, streams: dict, state_ids: dict, ts: float, src: bytes, sport: int,
               payload: bytes, frame: int, fields: dict) -> None:
-    """Record one legal packet (creating its sender and hot-path entry when new)."""
-    pid = payload[:C.ID_LEN]
+    """Record one legal packet from its bytes and its decoded header."""
+    aux = struct.unpack_from("<H", payload, C.PREFIX_LEN)[0]
+    state = payload[C.PREFIX_LEN:C.PREFIX_LEN + STATE_LEN]
+    record(got, streams, state_ids, ts, src, sport, payload[:C.ID_LEN], fields["origin"], fields["direction"],
+           fields["serial"], fields["size"], aux, state, frame)
+
+
+def record(got: Collected, streams: dict, state_ids: dict, ts: float, src: bytes, sport: int, pid: bytes,
+           origin: int, direction: str, serial: int, size: int, aux: int, state: bytes, frame: int) -> None:
+    """Record one legal packet (creating its sender and hot-path entry when new). `aux` is the
+    command ID or VRPO packet number, `state` the VRPI state bytes (see collect.STATE)."""
     code = CODE_OF_ID[pid]
-    origin, direction = fields["origin"], fields["direction"]
     key = (pid, src, sport, origin)
     entry = streams.get(key)
     if entry is None:
@@ -205,20 +217,18 @@ def add_legal(got: Collected, streams: dict, state_ids: dict, ts: float, src: by
         sender = got.senders.get(skey)
         if sender is None:
             sender = got.senders[skey] = Sender(direction, origin, address(src, sport))
-        entry = streams[key] = (sender.ts.append, sender.serial.append, code, _LOW[code],
-                                sender.code.append, sender.events.append, sender.state.append,
-                                sender.vrpi_frame.append, sender.ts)
+        entry = streams[key] = (sender.ts.append, sender.serial.append, code, _LOW[code], sender.code.append,
+                                sender.frame.append, sender.aux.append, sender.size.append, sender.state.append)
+    add_ts, add_serial, code, _, add_code, add_frame, add_aux, add_size, add_state = entry
     if code == VRPI_CODE:
-        state = payload[C.PREFIX_LEN:C.PREFIX_LEN + STATE_LEN]
         sid = state_ids.get(state)
         if sid is None:
             sid = state_ids[state] = len(got.states)
             got.states.append(state)
-        entry[6](sid)
-        entry[7](frame)
-    else:
-        aux = struct.unpack_from("<H", payload, C.PREFIX_LEN)[0]
-        entry[5]((len(entry[8]), frame, ts, code, aux, fields["size"]))
-    entry[0](ts)
-    entry[1](fields["serial"])
-    entry[4](code)
+        add_state(sid)
+    add_ts(ts)
+    add_serial(serial)
+    add_code(code)
+    add_frame(frame)
+    add_aux(aux)
+    add_size(size)

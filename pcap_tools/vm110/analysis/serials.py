@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 from itertools import compress
 from typing import Optional, Sequence
 
+import numpy as np
+
 from .. import constants as C
 
 MOD, HALF = C.SERIAL_MODULUS, C.SERIAL_HALF
@@ -49,53 +51,74 @@ class SerialResult:
 def classify(serials: Sequence[int], times: Sequence[float], index: Optional[Sequence[int]] = None,
              limit: Optional[int] = None) -> SerialResult:
     """Classify a sender's serials in arrival order. `index` maps positions back to the caller's
-    arrays (for `duplicate_index`); `limit` stops early once the anomalies exceed it."""
+    arrays (for `duplicate_index`); `limit` stops early once the anomalies exceed it.
+
+    Runs of consecutive serials continuing the highest one are handled a run at a time with
+    numpy; only the packets around anomalies go through the per-packet rules."""
     res = SerialResult(received=len(serials))
-    if not serials:
+    n = len(serials)
+    if not n:
         return res
-    seen = bytearray(MOD)
+    arr = np.asarray(serials, dtype=np.int64)
+    breaks = np.flatnonzero((np.diff(arr) & MASK) != 1) + 1   # where s[i] != s[i-1] + 1
+    breaks_list = breaks.tolist()
+    seen = np.zeros(MOD, dtype=bool)
+    is_missing = np.zeros(MOD, dtype=bool)
     missing: dict[int, None] = {}         # insertion-ordered set of serials in open gaps
     lost_for_good: list[int] = []
-    h = serials[0]
-    seen[h] = 1
     dup, ooo, gaps = res.duplicate_serials, res.out_of_order_serials, res.gaps
     dup_index = res.duplicate_index
+    h = int(arr[0])
+    seen[h] = True
     wraps = 0
-    for i in range(1, len(serials)):
-        s = serials[i]
+    i, b = 1, 0                           # position, and index of the next break at or after it
+    while i < n:
+        s = int(serials[i])
         d = (s - h) & MASK
         if d == 1:
-            if missing and s in missing:          # an old gap's number comes round again
-                del missing[s]
-                lost_for_good.append(s)
-            seen[s] = 1
-            if s == 0:
-                wraps += 1
-            h = s
+            while b < len(breaks_list) and breaks_list[b] <= i:
+                b += 1
+            j = breaks_list[b] if b < len(breaks_list) else n
+            run = arr[i:j]                # s[i] = h + 1 and every later one follows its predecessor
+            seen[run] = True
+            if missing:
+                hits = run[is_missing[run]]
+                if len(hits):
+                    is_missing[hits] = False
+                    for x in hits.tolist():
+                        del missing[x]
+                        lost_for_good.append(x)   # an old gap's number came round again
+            wraps += int(np.count_nonzero(run == 0))
+            h = int(arr[j - 1])
+            i = j
             continue
         if d == 0 or (d >= HALF and seen[s]):
             dup.append(s)
             dup_index.append(index[i] if index is not None else i)
         elif d < HALF:
-            gaps.append((h, d - 1, times[i]))
-            first = h + 1
-            new = [(first + k) & MASK for k in range(d)]
+            gaps.append((h, d - 1, float(times[i])))
+            new = (np.arange(h + 1, h + d + 1) & MASK)
             if missing:
-                for x in new:
-                    if x in missing:
-                        del missing[x]
-                        lost_for_good.append(x)
-            for x in new[:-1]:
-                seen[x] = 0
-                missing[x] = None
-            seen[s] = 1
+                hits = new[is_missing[new]]
+                is_missing[hits] = False
+                for x in hits.tolist():
+                    del missing[x]
+                    lost_for_good.append(x)
+            hole = new[:-1]
+            seen[hole] = False
+            is_missing[hole] = True
+            missing.update(dict.fromkeys(hole.tolist()))
+            seen[s] = True
             if s < h:
                 wraps += 1
             h = s
         else:
             ooo.append(s)
-            seen[s] = 1
-            missing.pop(s, None)
+            seen[s] = True
+            if is_missing[s]:
+                is_missing[s] = False
+                del missing[s]
+        i += 1
         if limit is not None and len(dup) + len(ooo) + len(missing) + len(lost_for_good) > limit:
             res.aborted = True
             break

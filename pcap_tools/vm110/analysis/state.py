@@ -2,7 +2,10 @@
 state, battery and RSSI, and the episodes with the ES-Link relays open (BU state below 0x10)."""
 from __future__ import annotations
 
+from array import array
 from typing import Optional, Sequence
+
+import numpy as np
 
 from .. import constants as C
 from .collect import STATE, STATE_FIELDS
@@ -23,13 +26,11 @@ def _name(field: str, value: int) -> str:
 def timeline(times: Sequence[float], state_ids: Sequence[int], states: Sequence[bytes],
              frames: Sequence[int], end_time: Optional[float]) -> dict:
     """Segments per field, battery/RSSI samples, and ES-Link relay open episodes."""
-    changes = []                     # (time, frame, decoded state) where any state byte changed
-    prev = -1
-    for i, sid in enumerate(state_ids):
-        if sid != prev:
-            changes.append((times[i], frames[i], dict(zip(STATE_FIELDS, STATE.unpack(states[sid])))))
-            prev = sid
-    last_time = times[-1] if len(times) else None
+    ids = np.frombuffer(state_ids, dtype=np.uint32) if isinstance(state_ids, array) else np.asarray(state_ids)
+    at = np.flatnonzero(np.diff(ids)) + 1 if len(ids) else ids
+    changes = [(float(times[i]), int(frames[i]), dict(zip(STATE_FIELDS, STATE.unpack(states[ids[i]]))))
+               for i in ([0] + at.tolist() if len(ids) else [])]
+    last_time = float(times[-1]) if len(times) else None
     segments: dict = {f: [] for f in SEGMENT_FIELDS}
     levels: dict = {f: [] for f in LEVEL_FIELDS}
     for when, frame, st in changes:

@@ -1,74 +1,87 @@
-"""Intervals, percentiles, RFC 3550-style jitter and watchdog violations of a periodic stream."""
+"""Intervals, percentiles, RFC 3550-style jitter and watchdog violations of a periodic stream.
+
+Times come in as numpy float64 arrays of seconds; results go out as plain floats in ms.
+"""
 from __future__ import annotations
 
-import math
-from itertools import islice
-from operator import sub
 from typing import Optional, Sequence
 
+import numpy as np
+
 PERCENTILES = (("p50", 50.0), ("p95", 95.0), ("p99", 99.0), ("p999", 99.9))
+SUMMARY_KEYS = ("min", "mean", *(k for k, _ in PERCENTILES), "max")
 MS = 1000.0
+JITTER_GAIN = 1.0 / 16.0
+_BLOCK = 256          # (16/15)**256 ~ 1.5e7: the block recurrence stays well inside float64
 
 
-def intervals_ms(times: Sequence[float]) -> list[float]:
+def intervals_ms(times: Sequence[float]) -> np.ndarray:
     """Differences of consecutive times, in milliseconds."""
-    return [d * MS for d in map(sub, islice(times, 1, None), times)]
+    return np.diff(np.asarray(times, dtype=np.float64)) * MS
 
 
 def percentile(ordered: Sequence[float], q: float) -> Optional[float]:
     """The q-th percentile of sorted values, linear between closest ranks (numpy's default)."""
-    if not ordered:
+    n = len(ordered)
+    if not n:
         return None
-    pos = (len(ordered) - 1) * q / 100.0
-    low = math.floor(pos)
-    high = min(low + 1, len(ordered) - 1)
-    return ordered[low] + (ordered[high] - ordered[low]) * (pos - low)
+    pos = (n - 1) * q / 100.0
+    low = int(pos)
+    high = min(low + 1, n - 1)
+    return float(ordered[low] + (ordered[high] - ordered[low]) * (pos - low))
 
 
-def summary(values: Sequence[float], keys: tuple = ("min", "mean", *(k for k, _ in PERCENTILES), "max")) -> dict:
+def summary(values: Sequence[float], keys: tuple = SUMMARY_KEYS) -> dict:
     """min, mean, percentiles and max of values (None each when there are none)."""
-    ordered = sorted(values)
+    ordered = np.sort(np.asarray(values, dtype=np.float64))
     out: dict = {}
+    pct = dict(PERCENTILES)
     for key in keys:
-        if not ordered:
+        if not len(ordered):
             out[key] = None
         elif key == "min":
-            out[key] = ordered[0]
+            out[key] = float(ordered[0])
         elif key == "max":
-            out[key] = ordered[-1]
+            out[key] = float(ordered[-1])
         elif key == "mean":
-            out[key] = math.fsum(ordered) / len(ordered)
+            out[key] = float(np.mean(ordered))
         else:
-            out[key] = percentile(ordered, dict(PERCENTILES)[key])
+            out[key] = percentile(ordered, pct[key])
+    return out
+
+
+def jitter_series(times: Sequence[float], period_ms: float) -> np.ndarray:
+    """J after each interval: J += (|D| - J)/16, D = (R_j - R_i) - k*T, k = max(1, round(dR/T)),
+    round half up. The recurrence J_i = a*J_(i-1) + x_i (a = 15/16, x = |D|/16) is evaluated a
+    block at a time in closed form: J_i = a^(i+1) * (J_0 + cumsum(x_m / a^(m+1)))."""
+    delta = intervals_ms(times)
+    k = np.maximum(1.0, np.floor(delta / period_ms + 0.5))
+    x = np.abs(delta - k * period_ms) * JITTER_GAIN
+    out = np.empty_like(x)
+    a = 1.0 - JITTER_GAIN
+    powers = a ** np.arange(1, _BLOCK + 1)
+    j = 0.0
+    for start in range(0, len(x), _BLOCK):
+        block = x[start:start + _BLOCK]
+        pw = powers[:len(block)]
+        values = pw * (j + np.cumsum(block / pw))
+        out[start:start + len(block)] = values
+        j = float(values[-1])
     return out
 
 
 def jitter_ms(times: Sequence[float], period_ms: float) -> dict:
-    """Interarrival jitter J += (|D| - J)/16 with D = (R_j - R_i) - k*T, k = max(1, round(dR/T)).
-
-    round() is half-up. Returns the final J, the mean of J over every update and its maximum.
-    """
-    j = total = peak = 0.0
-    n = 0
-    t = period_ms
-    for delta in intervals_ms(times):
-        k = math.floor(delta / t + 0.5)
-        if k < 1:
-            k = 1
-        j += (abs(delta - k * t) - j) / 16.0
-        total += j
-        n += 1
-        if j > peak:
-            peak = j
-    if not n:
+    """Final, mean (over every update) and maximum jitter."""
+    series = jitter_series(times, period_ms) if period_ms else np.empty(0)
+    if not len(series):
         return {"final": None, "mean": None, "max": None}
-    return {"final": j, "mean": total / n, "max": peak}
+    return {"final": float(series[-1]), "mean": float(series.mean()), "max": float(series.max())}
 
 
-def violations(times: Sequence[float], gaps_ms: Sequence[float], limit_ms: float) -> list[dict]:
+def violations(times: Sequence[float], gaps_ms: np.ndarray, limit_ms: float) -> list[dict]:
     """Intervals above the limit: start (time of the packet before the gap) and gap."""
-    return [{"start": times[i], "gap_ms": g} for i, g in enumerate(gaps_ms) if g > limit_ms]
+    return [{"start": float(times[i]), "gap_ms": float(gaps_ms[i])} for i in np.flatnonzero(gaps_ms > limit_ms)]
 
 
-def outside(gaps_ms: Sequence[float], low: float, high: float) -> int:
-    return sum(1 for g in gaps_ms if g < low or g > high)
+def outside(gaps_ms: np.ndarray, low: float, high: float) -> int:
+    return int(np.count_nonzero((gaps_ms < low) | (gaps_ms > high)))

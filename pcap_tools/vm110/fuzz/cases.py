@@ -49,10 +49,14 @@ def command_ids(index: int) -> list[int]:
     return [(ID_BASE + IDS_PER_CASE * index + j) % C.SERIAL_MODULUS for j in range(IDS_PER_CASE)]
 
 
-def _valid(ptype: C.PacketType, fields: dict[str, Any], header: Optional[dict[str, Any]] = None) -> Builder:
+def _valid(ptype: C.PacketType, fields: dict[str, Any], header: Optional[dict[str, Any]] = None,
+           twin_fields: Optional[dict[str, Any]] = None) -> Builder:
+    """A legal packet with `fields` and `header`; its twin has `twin_fields` (default: the same)."""
     def build(serial: int) -> tuple[bytes, bytes]:
-        twin = M.build(ptype, serial, fields)
-        return (M.build(ptype, serial, fields, header) if header else twin), twin
+        twin = M.build(ptype, serial, fields if twin_fields is None else twin_fields)
+        if header is None and twin_fields is None:
+            return twin, twin
+        return M.build(ptype, serial, fields, header), twin
     return build
 
 
@@ -102,9 +106,10 @@ def _field_family(ptype: C.PacketType, rng: random.Random) -> list[Callable[[int
     skip = ("command_id",)   # command IDs are the session's bookkeeping; sequences cover their edges
     for name, value in M.field_mutations(ptype, _fields_for(ptype, 0, sweep=True), rng, skip):
         def make(index: int, name: str = name, value: Any = value) -> Case:
-            fields = dict(_fields_for(ptype, index, sweep=True), **{name: value})
+            base = _fields_for(ptype, index, sweep=True)
             shown = value.hex() if isinstance(value, bytes) else value
-            return Case(index, family, f"{ptype.value} {name}={shown}", [Step(_valid(ptype, fields))])
+            return Case(index, family, f"{ptype.value} {name}={shown}",
+                        [Step(_valid(ptype, dict(base, **{name: value}), twin_fields=base))])
         out.append(make)
     for name, value, legal in M.header_mutations():
         if legal:
@@ -206,14 +211,16 @@ def _random_case(seed: int, index: int) -> Case:
         return Case(index, "random-bytes", f"{ptype.value} {text}", [Step(_mutated(ptype, fields, change))])
     if kind < 0.8:
         skip = ("command_id",) if ptype is C.PacketType.VRCI else ()
+        base = dict(fields)
         name, value = rng.choice(M.field_mutations(ptype, fields, rng, skip))
         fields[name] = value
         if ptype is C.PacketType.VRPI and rng.random() < 0.5:   # and a second field
-            name2, value2 = rng.choice(M.field_mutations(ptype, fields, rng, skip))
+            name2, value2 = rng.choice(M.field_mutations(ptype, fields, rng, skip + (name,)))
             fields[name2] = value2
             name, value = f"{name}={value!r} {name2}", value2
         shown = value.hex() if isinstance(value, bytes) else value
-        return Case(index, "random-fields", f"{ptype.value} {name}={shown}", [Step(_valid(ptype, fields))])
+        return Case(index, "random-fields", f"{ptype.value} {name}={shown}",
+                    [Step(_valid(ptype, fields, twin_fields=base))])
     mutations = list(M.structural(M.build(ptype, 0, fields), random.Random(0)))
     position = rng.randrange(len(mutations))
     sub_seed = rng.randrange(1 << 32)

@@ -20,7 +20,7 @@ from ..layers import PAYLOAD_CLASSES, VM110, crc_settings
 
 BU_ORIGIN = 0x0101          # the origin the fuzzing base unit claims
 OTHER_ORIGIN = 0x0202       # a second base unit, for origin variations
-MAX_UDP_PAYLOAD = 65507     # largest UDP payload over IPv4
+LARGE_DATAGRAM = 60000      # big, yet a whole Ethernet/IP/UDP frame still fits a pcap snaplen
 INPUT_TYPES = (C.PacketType.VRPI, C.PacketType.VRCI, C.PacketType.VRAI)
 OUTPUT_TYPES = (C.PacketType.VRPO, C.PacketType.VRCO, C.PacketType.VRAO)
 
@@ -158,7 +158,7 @@ def structural(valid: bytes, rng: random.Random) -> Iterator[tuple[str, bytes]]:
     yield "size field 0xFFFF", recrc(set_u16(body, SIZE_OFFSET, 0xFFFF))
     grown = body + bytes(C.MAX_PAYLOAD + 1 - size)
     yield f"oversize: payload {C.MAX_PAYLOAD + 1} bytes, size field and CRC matching", recrc(set_u16(grown, SIZE_OFFSET, C.MAX_PAYLOAD + 1))
-    for total in (1472, 9000, MAX_UDP_PAYLOAD):
+    for total in (1472, 9000, LARGE_DATAGRAM):
         yield f"oversize {total} bytes (random trailing bytes)", valid + rng.randbytes(total - len(valid))
     for cut in (0, 1, C.ID_LEN, C.PREFIX_LEN - 1, C.PREFIX_LEN, C.OVERHEAD - 1, len(valid) - 1, len(valid) // 2):
         if cut < len(valid):
@@ -172,10 +172,12 @@ def structural(valid: bytes, rng: random.Random) -> Iterator[tuple[str, bytes]]:
 
 def random_bytes(valid: bytes, rng: random.Random) -> tuple[str, bytes]:
     """1 to 8 random byte changes; the CRC is left stale or fixed up (half of the time each)."""
+    fix = rng.random() < 0.5
+    span = len(valid) - C.CRC_LEN if fix else len(valid)
     data = bytearray(valid)
-    changes = []
+    changes = set()
     for _ in range(rng.randint(1, 8)):
-        pos = rng.randrange(len(data))
+        pos = rng.randrange(span)
         how = rng.randrange(3)
         if how == 0:
             data[pos] ^= 1 << rng.randrange(8)
@@ -183,11 +185,11 @@ def random_bytes(valid: bytes, rng: random.Random) -> tuple[str, bytes]:
             data[pos] = rng.choice((0x00, 0x01, 0x7F, 0x80, 0xFE, 0xFF))
         else:
             data[pos] = rng.randrange(256)
-        changes.append(pos)
-    fix = rng.random() < 0.5
+        changes.add(pos)
+    if data[:span] == valid[:span]:   # the changes undid each other: keep one for real
+        data[pos] ^= 0x01
     if fix:
         end = crc_span(bytes(data), struct.unpack_from("<H", data, SIZE_OFFSET)[0])
-        if end >= 0:
-            data[end:end + C.CRC_LEN] = crc_bytes(bytes(data[:end]))
-    where = ",".join(str(p) for p in sorted(set(changes)))
+        data[end:end + C.CRC_LEN] = crc_bytes(bytes(data[:end]))
+    where = ",".join(str(p) for p in sorted(changes))
     return f"random bytes at {where}" + (" (CRC fixed)" if fix else ""), bytes(data)

@@ -42,6 +42,8 @@ class Trigger:
     suspects: list[int] = field(default_factory=list)   # most likely first
     output: Optional[bytes] = None                # the controller packet that was judged
     kind: str = ""                                # what went wrong, for de-duplication
+    command_id: Optional[int] = None              # the command concerned, if any
+    packet: Optional[bytes] = None                # a base-unit packet that is not a case's (a VRAI)
 
 
 @dataclass
@@ -51,6 +53,7 @@ class _Vrco:
     count: int = 1
     withheld: bool = False
     acked_at: Optional[float] = None
+    vrai: Optional[bytes] = None
     reported: bool = False
 
 
@@ -62,6 +65,7 @@ class Monitor:
         self.pending: dict[int, collections.deque[tuple[float, int]]] = {}      # id -> (deadline, case)
         self.illegal_ids: dict[int, tuple[float, int]] = {}
         self.sent_ids: set[int] = set()
+        self.id_case: dict[int, int] = {}        # command ID -> last case that sent it
         self.withholding = False
         self.reset_controller(now)
 
@@ -83,6 +87,7 @@ class Monitor:
         other = Monitor(self.limits, 0.0)
         other.adopt(self)
         other.sent_ids = set(self.sent_ids)
+        other.id_case = dict(self.id_case)
         return other
 
     def adopt(self, other: "Monitor") -> None:
@@ -116,6 +121,7 @@ class Monitor:
         fields = decode(data)
         command_id = int.from_bytes(data[_CMD_ID_AT], "little")
         self.sent_ids.add(command_id)
+        self.id_case[command_id] = index
         if fields.get("type") != _VRCI:
             return
         if not fields["problems"]:
@@ -125,10 +131,10 @@ class Monitor:
         else:
             self.illegal_ids[command_id] = (t, index)
 
-    def on_vrai(self, t: float, command_id: int) -> None:
+    def on_vrai(self, t: float, command_id: int, data: bytes) -> None:
         entry = self.vrco.get(command_id)
         if entry is not None and entry.acked_at is None:
-            entry.acked_at = t
+            entry.acked_at, entry.vrai = t, data
 
     # --- controller -> base unit ---------------------------------------------------------------
     def on_rx(self, t: float, data: bytes, src: Any) -> dict[str, Any]:
@@ -136,8 +142,9 @@ class Monitor:
         self.last_rx = t
         ptype = fields.get("type", "?")
         if fields["problems"]:
+            command_id = fields.get("command_id") if ptype == C.PacketType.VRAO.value else None
             self._malformed(t, data, f"{ptype} with {'+'.join(fields['problems'])}",
-                            f"illegal {ptype} from the controller: {', '.join(fields['problems'])}")
+                            f"illegal {ptype} from the controller: {', '.join(fields['problems'])}", command_id)
             return fields
         if fields.get("direction") != C.Direction.OUTPUT.value:
             self._malformed(t, data, f"{ptype} direction", f"the controller sent an input packet {ptype}")
@@ -161,9 +168,12 @@ class Monitor:
             self._vrco(t, fields["command_id"])
         return fields
 
-    def _malformed(self, t: float, data: bytes, kind: str, detail: str, index: Optional[int] = None) -> None:
-        suspects = [index] if index is not None else list(reversed(self._between(t - 0.5, t)))
-        self.fire(Trigger(MALFORMED_OUTPUT, t, detail, index, suspects, data, kind))
+    def _malformed(self, t: float, data: bytes, kind: str, detail: str, command_id: Optional[int] = None) -> None:
+        """Blame the case that sent `command_id` (an ack's), then the cases of the last 500 ms."""
+        culprit = None if command_id is None else self.id_case.get(command_id)
+        recent = list(reversed(self._between(t - 0.5, t)))
+        suspects = ([culprit] if culprit is not None else []) + [i for i in recent if i != culprit]
+        self.fire(Trigger(MALFORMED_OUTPUT, t, detail, None, suspects, data, kind, command_id))
 
     def _vrao(self, t: float, data: bytes, command_id: int) -> None:
         queue = self.pending.get(command_id)
@@ -175,9 +185,9 @@ class Monitor:
         illegal = self.illegal_ids.get(command_id)
         if illegal is not None and t - illegal[0] < _HISTORY_S:
             self.fire(Trigger(ILLEGAL_ACKED, t, f"VRAO for command ID {command_id} of an illegal VRCI",
-                              illegal[1], [illegal[1]], data, "acked"))
+                              illegal[1], [illegal[1]], data, "acked", command_id))
         elif command_id not in self.sent_ids:
-            self._malformed(t, data, "VRAO unknown", f"VRAO for command ID {command_id}, never sent")
+            self._malformed(t, data, "VRAO unknown", f"VRAO for command ID {command_id}, never sent", command_id)
 
     def _vrco(self, t: float, command_id: int) -> None:
         self.vrco_seen = True
@@ -191,9 +201,9 @@ class Monitor:
                 and not entry.reported:
             entry.reported = True
             late = (t - entry.acked_at) * 1000
-            suspects = list(reversed(self._between(entry.acked_at - 0.5, t)))
+            # No case to blame: the base unit only acknowledged, as it always does.
             self.fire(Trigger(VRCO_RETRANSMIT, t, f"VRCO {command_id} resent {late:.0f} ms after its VRAI",
-                              None, suspects, None, "resent after VRAI"))
+                              None, [], None, "resent after VRAI", command_id, entry.vrai))
         entry.last = t
 
     def on_exit(self, t: float, returncode: int) -> None:
@@ -209,7 +219,8 @@ class Monitor:
             while queue and queue[0][0] < now:
                 _, index = queue.popleft()
                 self.fire(Trigger(MISSING_ACK, now, f"no VRAO for command ID {command_id} within "
-                                  f"{self.limits.ack_timeout_ms:.0f} ms", index, [index], None, "no ack"))
+                                  f"{self.limits.ack_timeout_ms:.0f} ms", index, [index], None, "no ack",
+                                  command_id))
             if not queue:
                 del self.pending[command_id]
         if self.last_vrpo is not None and not self.stall_reported \

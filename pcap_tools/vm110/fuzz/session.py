@@ -117,7 +117,7 @@ class Session:
     def ack_vrco(self, command_id: int) -> bytes:
         data = M.build(C.PacketType.VRAI, self._take_serial(), dict(command_id=command_id))
         t = self._send(data)
-        self.monitor.on_vrai(t, command_id)
+        self.monitor.on_vrai(t, command_id, data)
         return data
 
     # --- cases ------------------------------------------------------------------------------------
@@ -191,7 +191,7 @@ class Session:
             code = self.supervisor.poll()
             raise TargetLost("controller restarted but sent no VRPO within "
                              f"{self.settings.startup_s:.0f} s" + (f" (exit code {code})" if code is not None else ""))
-        self.pump(time.time() + 2 * C.VRPI_PERIOD_MS / 1000)   # let it see a few VRPI first
+        self.pump(time.time() + C.VRPI_PERIOD_MS / 1000 + 0.01)   # let it see a VRPI first
 
     def healthy(self) -> bool:
         """Alive and sending VRPO."""

@@ -16,7 +16,10 @@ class Supervisor:
     """One controller process at a time, in its own process group so that its children go too."""
 
     def __init__(self, command: str, log: Optional[IO[bytes]] = None) -> None:
-        self.argv = shlex.split(command)
+        try:
+            self.argv = shlex.split(command)
+        except ValueError as exc:
+            raise CliError(f"--target-cmd: {exc}") from None
         if not self.argv:
             raise CliError("--target-cmd is empty")
         self.command = command

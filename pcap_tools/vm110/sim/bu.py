@@ -21,11 +21,16 @@ from typing import Any, Optional
 
 from .. import constants as C
 from .. import encode
+from ..decode import VRPI_LAYOUT
 from .clock import ms, seconds
 from .node import Node, Rx
-from .remote import Remote
+from .remote import VRPI_INDEX, VRPI_NAMES, Remote
 
 _CMD_ID = struct.Struct("<H")
+_VRPI = C.PacketType.VRPI
+_VRPI_STRUCT = struct.Struct("<" + "".join(code for _, code in VRPI_LAYOUT))
+_ARMED_RU, _BU_STATE = VRPI_INDEX["armed_ru"], VRPI_INDEX["bu_state"]
+_EG_LINK, _RSSI = VRPI_INDEX["eg_link"], VRPI_INDEX["ru_rssi"]
 DEFAULT_ORIGIN = 0x0101
 
 
@@ -57,6 +62,8 @@ class BaseUnit(Node):
         self.remote = remote or Remote.simple()
         self._rng = random.Random(f"bu:{cfg.seed}")
         self._glink = tuple((seconds(a), seconds(b)) for a, b in cfg.glink)
+        self._period_us, self._watchdog_us = ms(cfg.vrpi_period_ms), ms(cfg.vrpo_watchdog_ms)
+        self._resend_us, self._fail_us = ms(cfg.vrci_resend_ms), ms(cfg.vrci_fail_ms)
         self._t0 = 0
         self._next_vrpi = 0
         self.last_vrpo: Optional[int] = None
@@ -64,6 +71,7 @@ class BaseUnit(Node):
         self.next_command_id = cfg.command_id_start & 0xFFFF
         self._commands: collections.deque[tuple[int, bytes]] = collections.deque()
         self._next_periodic_command: Optional[int] = None
+        self._command_until: Optional[int] = None
         self.pending: Optional[dict[str, Any]] = None     # the VRCI in flight
         self._acks: list[tuple[int, int]] = []            # delayed VRAI: (due, command ID)
         self.delivered: dict[int, int] = {}               # last VRCO command ID handed to the RU app
@@ -74,54 +82,61 @@ class BaseUnit(Node):
         self._commands = collections.deque((now + t, d) for t, d in self.remote.commands)
         if self.remote.command_every:
             self._next_periodic_command = now + self.remote.command_every
+        self._command_until = now + self.remote.command_until if self.remote.command_until else None
 
     def _due(self) -> Optional[int]:
         due = [self._next_vrpi]
         if self.pending is not None:
-            due.append(min(self.pending["next"], self.pending["first"] + ms(self.config.vrci_fail_ms)))
-        else:
-            nxt = self._next_command_time()
-            if nxt is not None:
-                due.append(nxt)
+            due.append(min(self.pending["next"], self.pending["first"] + self._fail_us))
+        elif self._commands or self._next_periodic_command is not None:
+            due.append(self._next_command_time())
         if self._acks:
             due.append(self._acks[0][0])
         return min(due)
 
     def _tick(self, now: int) -> None:
+        if self.pending is not None or self._commands or self._next_periodic_command is not None:
+            self._tick_vrci(now)
         while self._acks and self._acks[0][0] <= now:
             self.send(C.PacketType.VRAI, encode.ack_payload(self._acks[0][1]), now, key=self._acks[0][1])
             self._acks.pop(0)
-        self._tick_vrci(now)
         if now >= self._next_vrpi:
-            self.send(C.PacketType.VRPI, encode.vrpi_payload(self.vrpi_fields(now)), now)
-            self._next_vrpi += ms(self.config.vrpi_period_ms)
+            self.send(_VRPI, _VRPI_STRUCT.pack(*self.vrpi_values(now)), now)
+            self._next_vrpi += self._period_us
             if self._next_vrpi <= now:      # after a stall: no catch-up burst
-                self._next_vrpi = now + ms(self.config.vrpi_period_ms)
+                self._next_vrpi = now + self._period_us
 
     def in_glink_fallback(self, now: int) -> bool:
         return any(a <= now < b for a, b in self._glink)
 
     # --- VRPI and the VRPO watchdog -----------------------------------------------------------
-    def vrpi_fields(self, now: int) -> dict[str, int]:
-        fields = self.remote.fields(now - self._t0)
-        self._check_watchdog(now)
+    def vrpi_values(self, now: int) -> list[Any]:
+        """This VRPI's payload values (payload order): the remote's, with the BU's own state on top."""
+        values = self.remote.values(now - self._t0)
+        armed = values[_ARMED_RU]
+        if self.last_vrpo is not None and now - self.last_vrpo > self._watchdog_us:
+            self._check_watchdog(now, bool(armed))
         if self.watchdog_tripped:
-            fields["eg_link"] = C.LinkStatus.NO_LINK
-            if fields.get("armed_ru"):
-                fields["bu_state"] = C.BuState.EXTERNAL_LINK_ERROR
-        if fields.get("armed_ru") and self.in_glink_fallback(now):
-            fields["ru_rssi"] = self.config.glink_rssi
-        return fields
+            values[_EG_LINK] = C.LinkStatus.NO_LINK
+            if armed:
+                values[_BU_STATE] = C.BuState.EXTERNAL_LINK_ERROR
+        if armed and self._glink and self.in_glink_fallback(now):
+            values[_RSSI] = self.config.glink_rssi
+        return values
 
-    def _check_watchdog(self, now: int) -> None:
-        limit = ms(self.config.vrpo_watchdog_ms)
-        if not self.watchdog_tripped and self.last_vrpo is not None and now - self.last_vrpo > limit:
+    def vrpi_fields(self, now: int) -> dict[str, Any]:
+        """`vrpi_values` by canonical field name."""
+        return dict(zip(VRPI_NAMES, self.vrpi_values(now)))
+
+    def _check_watchdog(self, now: int, armed: bool) -> None:
+        if not self.watchdog_tripped and self.last_vrpo is not None and now - self.last_vrpo > self._watchdog_us:
             self.watchdog_tripped = True
-            self.event(self.last_vrpo + limit, "vrpo_watchdog", last_vrpo=self.last_vrpo / 1e6,
-                       es_relays_open=bool(self.remote.fields(now - self._t0).get("armed_ru")))
+            self.event(self.last_vrpo + self._watchdog_us, "vrpo_watchdog", last_vrpo=self.last_vrpo / 1e6,
+                       es_relays_open=armed)
 
     def on_vrpo(self, rx: Rx, now: int) -> None:
-        self._check_watchdog(now)
+        if self.last_vrpo is not None and now - self.last_vrpo > self._watchdog_us:
+            self._check_watchdog(now, bool(self.remote.values(now - self._t0)[_ARMED_RU]))
         if self.watchdog_tripped:
             self.watchdog_tripped = False
             self.event(now, "vrpo_restored")
@@ -143,7 +158,7 @@ class BaseUnit(Node):
     def _tick_vrci(self, now: int) -> None:
         cfg = self.config
         if self.pending is not None:
-            if now - self.pending["first"] >= ms(cfg.vrci_fail_ms):
+            if now - self.pending["first"] >= self._fail_us:
                 self.event(now, "command_failed", command_id=self.pending["id"],
                            transmissions=self.pending["count"])
                 self.pending = None
@@ -158,6 +173,8 @@ class BaseUnit(Node):
         elif self._next_periodic_command is not None and self._next_periodic_command <= now:
             data = f"OP CMD {self.next_command_id}".encode()
             self._next_periodic_command += self.remote.command_every
+            if self._command_until is not None and self._next_periodic_command >= self._command_until:
+                self._next_periodic_command = None
         if data is not None:
             self.pending = {"id": self.next_command_id, "data": data, "first": now, "next": now, "count": 0}
             self.next_command_id = (self.next_command_id + 1) & 0xFFFF
@@ -168,7 +185,7 @@ class BaseUnit(Node):
         assert p is not None
         self.send(C.PacketType.VRCI, encode.command_payload(p["id"], p["data"]), now, key=p["id"])
         p["count"] += 1
-        p["next"] = now + ms(self.config.vrci_resend_ms)
+        p["next"] = now + self._resend_us
         if p["count"] == 1:
             self.event(now, "command_sent", command_id=p["id"])
 

@@ -24,6 +24,11 @@ from .clock import ms, seconds
 from .node import Node, Rx
 
 _CMD_ID = struct.Struct("<H")
+_VRPO = C.PacketType.VRPO
+_CYCLE = struct.Struct("<I")
+_VRPO_NUMBER = struct.Struct("<H")
+_BU_ARMED = int(C.BuState.ARMED)
+_RU_ARMED = frozenset((int(C.RuState.ARMED), int(C.RuState.ENABLED)))
 _VRPI_STATE = struct.Struct("<B5xHB")  # bu_state, (vlaps..c_link), armed_ru, ru_state
 
 
@@ -38,6 +43,7 @@ class ControllerConfig:
     command_id_start: int = 0
     commands: tuple[tuple[float, bytes], ...] = ()   # VRCO to send: (time s, data)
     command_every_s: float = 0.0              # and one every N s (0: none)
+    command_until_s: float = 0.0              # no periodic VRCO from then on (0: no end)
     require_armed: bool = True                # execute commands only for an armed RU (4.3)
     glink: tuple[tuple[float, float], ...] = ()      # G-Link fallback windows (s): slower VRPO
     glink_period_ms: float = 400.0
@@ -55,8 +61,10 @@ class Controller(Node):
         node.setdefault("stalls", tuple((seconds(a), seconds(b)) for a, b in cfg.stalls))
         super().__init__(name, origin=0, **node)
         self._period = ms(cfg.period_ms)
+        self._vrpi_timeout_us, self._vrco_timeout_us = ms(cfg.vrpi_timeout_ms), ms(cfg.vrco_timeout_ms)
+        self._resend_us = ms(cfg.vrco_resend_ms)
         self._glink = tuple((seconds(a), seconds(b)) for a, b in cfg.glink)
-        self._next_vrpo = 0
+        self._t0 = self._next_vrpo = 0
         self.cycle = 0
         self.last_vrpi: Optional[int] = None
         self.vrpi_alarm = False
@@ -67,38 +75,35 @@ class Controller(Node):
         self._next_periodic_command = seconds(cfg.command_every_s) if cfg.command_every_s > 0 else None
         self.next_command_id = cfg.command_id_start & 0xFFFF
         self.pending: Optional[dict[str, Any]] = None   # the VRCO in flight
-        self._data_base = bytes(i & 0xFF for i in range(cfg.data_size))
+        self._data_tail = bytes(i & 0xFF for i in range(4, cfg.data_size))
 
     # --- schedule -----------------------------------------------------------------------------
     def start(self, now: int) -> None:
-        self._next_vrpo = now
+        self._t0 = self._next_vrpo = now
         self.last_vrpi = now     # the watchdog runs from start-up: no VRPI at all is an error too
         if self._next_periodic_command is not None:
             self._next_periodic_command += now
         self._commands = collections.deque((t + now, d) for t, d in self._commands)
 
     def _due(self) -> Optional[int]:
-        due = [self._next_vrpo]
+        due = self._next_vrpo
         if not self.vrpi_alarm and self.last_vrpi is not None:
-            due.append(self.last_vrpi + ms(self.config.vrpi_timeout_ms) + 1)
+            due = min(due, self.last_vrpi + self._vrpi_timeout_us + 1)
         if self.pending is not None:
-            due.append(min(self.pending["next"], self.pending["first"] + ms(self.config.vrco_timeout_ms)))
-        else:
-            nxt = self._next_command_time()
-            if nxt is not None:
-                due.append(nxt)
-        return min(due)
+            due = min(due, self.pending["next"], self.pending["first"] + self._vrco_timeout_us)
+        elif self._commands or self._next_periodic_command is not None:
+            due = min(due, self._next_command_time())
+        return due
 
     def _tick(self, now: int) -> None:
-        if not self.vrpi_alarm and self.last_vrpi is not None \
-                and now - self.last_vrpi > ms(self.config.vrpi_timeout_ms):
+        if not self.vrpi_alarm and self.last_vrpi is not None and now - self.last_vrpi > self._vrpi_timeout_us:
             self.vrpi_alarm = True
-            self.event(self.last_vrpi + ms(self.config.vrpi_timeout_ms), "vrpi_timeout",
-                       last_vrpi=self.last_vrpi / 1e6)
-        self._tick_vrco(now)
+            self.event(self.last_vrpi + self._vrpi_timeout_us, "vrpi_timeout", last_vrpi=self.last_vrpi / 1e6)
+        if self.pending is not None or self._commands or self._next_periodic_command is not None:
+            self._tick_vrco(now)
         if now >= self._next_vrpo:
             for index, chunk in enumerate(self.vrpo_payloads(now)):
-                self.send(C.PacketType.VRPO, chunk, now, key=self.config.first_packet_number + index,
+                self.send(_VRPO, chunk, now, key=self.config.first_packet_number + index,
                           data_len=len(chunk) - C.VRPO_HEADER_SIZE)
             self.cycle += 1
             self._next_vrpo += self._vrpo_period(now)
@@ -106,7 +111,7 @@ class Controller(Node):
                 self._next_vrpo = now + self._vrpo_period(now)
 
     def _vrpo_period(self, now: int) -> int:
-        if any(a <= now < b for a, b in self._glink):
+        if self._glink and any(a <= now < b for a, b in self._glink):
             return ms(self.config.glink_period_ms)
         return self._period
 
@@ -116,11 +121,13 @@ class Controller(Node):
     # --- VRPO ---------------------------------------------------------------------------------
     def periodic_data(self, now: int) -> bytes:
         """This cycle's periodic data: the cycle counter, then a fixed pattern."""
-        return (struct.pack("<I", self.cycle & 0xFFFFFFFF) + self._data_base[4:])[:self.config.data_size]
+        return (_CYCLE.pack(self.cycle & 0xFFFFFFFF) + self._data_tail)[:self.config.data_size]
 
     def vrpo_payloads(self, now: int) -> list[bytes]:
         """The VRPO payloads of one cycle: full 488-byte chunks, the last one shorter."""
         data = self.periodic_data(now)
+        if len(data) < C.VRPO_MAX_DATA:
+            return [_VRPO_NUMBER.pack(self.config.first_packet_number & 0xFFFF) + data]
         chunks = [data[i:i + C.VRPO_MAX_DATA] for i in range(0, len(data), C.VRPO_MAX_DATA)] or [b""]
         first = self.config.first_packet_number
         return [encode.vrpo_payload((first + n) & 0xFFFF, chunk) for n, chunk in enumerate(chunks)]
@@ -132,8 +139,7 @@ class Controller(Node):
             self.event(now, "vrpi_restored", gap_ms=(now - (self.last_vrpi or now)) / 1000)
         self.last_vrpi = now
         bu_state, armed_ru, ru_state = _VRPI_STATE.unpack_from(rx.payload)
-        self.ru_armed = (bu_state == C.BuState.ARMED and armed_ru != 0
-                         and ru_state in (C.RuState.ARMED, C.RuState.ENABLED))
+        self.ru_armed = bu_state == _BU_ARMED and armed_ru != 0 and ru_state in _RU_ARMED
 
     def on_vrci(self, rx: Rx, now: int) -> None:
         command_id = _CMD_ID.unpack_from(rx.payload)[0]
@@ -177,7 +183,7 @@ class Controller(Node):
     def _tick_vrco(self, now: int) -> None:
         cfg = self.config
         if self.pending is not None:
-            if now - self.pending["first"] >= ms(cfg.vrco_timeout_ms):
+            if now - self.pending["first"] >= self._vrco_timeout_us:
                 self.event(now, "vrco_gave_up", command_id=self.pending["id"], transmissions=self.pending["count"])
                 self.pending = None
             elif now >= self.pending["next"]:
@@ -191,6 +197,8 @@ class Controller(Node):
         elif self._next_periodic_command is not None and self._next_periodic_command <= now:
             data = f"ALARM {self.next_command_id}".encode()
             self._next_periodic_command += seconds(cfg.command_every_s)
+            if cfg.command_until_s and self._next_periodic_command >= self._t0 + seconds(cfg.command_until_s):
+                self._next_periodic_command = None
         if data is not None:
             self.pending = {"id": self.next_command_id, "data": data, "first": now, "next": now, "count": 0}
             self.next_command_id = (self.next_command_id + 1) & 0xFFFF
@@ -201,7 +209,7 @@ class Controller(Node):
         assert p is not None
         self.send(C.PacketType.VRCO, encode.command_payload(p["id"], p["data"]), now, key=p["id"])
         p["count"] += 1
-        p["next"] = now + ms(self.config.vrco_resend_ms)
+        p["next"] = now + self._resend_us
         if p["count"] == 1:
             self.event(now, "vrco_sent", command_id=p["id"])
 

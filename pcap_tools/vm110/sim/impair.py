@@ -35,6 +35,7 @@ class Impairment:
     outages: tuple[tuple[float, float], ...] = ()                 # (start s, end s): all lost
     drops: tuple[tuple[float, float, tuple[str, ...]], ...] = ()  # (start, end, types): those lost
     mangles: tuple[tuple[float, str, Optional[str]], ...] = ()    # (at s, reason[+reason], type or None)
+    only: tuple[str, ...] = ()   # random loss/duplication/reordering/delay/corruption hit only these types
     seed: int = 0
 
     def active(self) -> bool:
@@ -57,8 +58,8 @@ def mangle(data: bytes, reasons: str, variant: str = DEFAULT_VARIANT, order: str
         payload = body[C.PREFIX_LEN:].ljust(OVERSIZE, b"\0")
         body = body[:10] + _SIZE.pack(len(payload)) + body[12:C.PREFIX_LEN] + payload
     if C.Problem.TRUNCATED.value in wanted:
-        payload = body[C.PREFIX_LEN:]
-        payload = payload[:max(1, len(payload) // 2)] if len(payload) > 1 else b""
+        low = C.PAYLOAD_BOUNDS[C.PacketType(data[:C.ID_LEN].decode("latin-1"))][0]
+        payload = body[C.PREFIX_LEN:C.PREFIX_LEN + max(1, low // 2)]      # shorter than the type's layout
         body = body[:10] + _SIZE.pack(len(payload)) + body[12:C.PREFIX_LEN] + payload
     if C.Problem.SIZE_MISMATCH.value in wanted:
         trailer = b"\xde\xad\xbe\xef"                   # bytes beyond 20 + size: the CRC stays valid
@@ -76,6 +77,7 @@ class Impairer:
         self.imp = imp
         self._rng = random.Random(f"{name}:{imp.seed}")
         self._variant, self._order = variant, order
+        self._delay = ms(imp.delay_ms)
         self.set_origin(t0)
 
     def set_origin(self, t0: int) -> None:
@@ -87,23 +89,18 @@ class Impairer:
     def apply(self, data: bytes, now: int, ptype: str) -> list[tuple[int, bytes, tuple[str, ...]]]:
         """(arrival time, bytes, illegal reasons) for every copy that arrives; [] when lost."""
         imp, rng = self.imp, self._rng
-        if any(a <= now < b for a, b in self._outages):
+        if self._outages and any(a <= now < b for a, b in self._outages):
             return []
-        if any(a <= now < b and ptype in types for a, b, types in self._drops):
+        if self._drops and any(a <= now < b and ptype in types for a, b, types in self._drops):
             return []
+        data, problems = self._scheduled_mangle(data, now, ptype) if self._mangles else (data, ())
+        if imp.only and ptype not in imp.only:
+            return [(now, data, problems)]
         if imp.loss and rng.random() * 100 < imp.loss:
             return []
-        problems: tuple[str, ...] = ()
-        for i, (at, reason, only) in enumerate(self._mangles):
-            if at > now:
-                break
-            if only is None or only == ptype:
-                data, problems = mangle(data, reason, self._variant, self._order)
-                del self._mangles[i]
-                break
         if not problems and imp.corrupt and rng.random() * 100 < imp.corrupt:
             data, problems = mangle(data, C.Problem.BAD_CRC.value, self._variant, self._order)
-        delay = ms(imp.delay_ms)
+        delay = self._delay
         if imp.jitter_ms:
             delay += ms(rng.uniform(0, imp.jitter_ms))
         if imp.reorder and rng.random() * 100 < imp.reorder:
@@ -112,3 +109,12 @@ class Impairer:
         if imp.duplicate and rng.random() * 100 < imp.duplicate:
             out.append((now + delay + ms(rng.uniform(0.05, 2.0)), data, problems))
         return out
+
+    def _scheduled_mangle(self, data: bytes, now: int, ptype: str) -> tuple[bytes, tuple[str, ...]]:
+        for i, (at, reason, only) in enumerate(self._mangles):
+            if at > now:
+                break
+            if only is None or only == ptype:
+                del self._mangles[i]
+                return mangle(data, reason, self._variant, self._order)
+        return data, ()

@@ -6,7 +6,7 @@ A script is JSON (or the same dict in Python):
                {"at": 12, "state": "disarmed", "unarmed_rus": 2},
                {"at": 20, "set": {"ru_state": 4, "ru_docked": 1}}],
      "commands": [{"at": 1.5, "data": "START PUMP"}],
-     "command_every": 2.0}
+     "command_every": 2.0, "command_until": 50}
 
 `state` is `armed` or `disarmed` (the VRPI fields that go with it), `set` overrides VRPI fields
 by their canonical names, `motion` moves joysticks, switches and the encoder in deterministic
@@ -14,17 +14,25 @@ patterns, `battery` drains 1 % a minute from the given level. Times are seconds 
 """
 from __future__ import annotations
 
+import bisect
 import json
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Optional
 
 from .. import constants as C
+from ..decode import VRPI_LAYOUT
 from ..errors import CliError
 from .clock import US_PER_S, seconds
 
 DEFAULT_RU = 0x0C07
 _BATTERY_DRAIN_US = 60 * US_PER_S          # 1 % per minute
 _JOYSTICK_PERIODS_US = (4_000_000, 6_000_000, 5_000_000, 7_000_000)
+VRPI_NAMES = tuple(name for name, _ in VRPI_LAYOUT)
+VRPI_INDEX = {name: i for i, name in enumerate(VRPI_NAMES)}
+_ARMED_RU, _BATTERY, _RU_STATE = VRPI_INDEX["armed_ru"], VRPI_INDEX["ru_battery"], VRPI_INDEX["ru_state"]
+_JOYSTICKS = tuple(VRPI_INDEX[f"joystick{i}"] for i in range(1, C.JOYSTICKS + 1))
+_SWITCHES = tuple(VRPI_INDEX[f"switch{i}"] for i in range(1, C.SWITCHES + 1))
+_ENCODER, _ENCODER_SWITCH = VRPI_INDEX["encoder"], VRPI_INDEX["encoder_switch"]
 
 
 def armed_fields(ru: int = DEFAULT_RU, battery: int = 90, rssi: int = 80) -> dict[str, int]:
@@ -42,17 +50,6 @@ def disarmed_fields(unarmed_rus: int = 0) -> dict[str, int]:
             "c_link": C.LinkStatus.OPERATIONAL if unarmed_rus else C.LinkStatus.PASSIVE, "armed_ru": 0}
 
 
-def _triangle(t: int, period: int, amplitude: int) -> int:
-    """Integer triangle wave in [-amplitude, amplitude]: exact, so captures are reproducible."""
-    phase = t % period
-    quarter = period // 4
-    if phase < quarter:
-        return amplitude * phase // quarter
-    if phase < 3 * quarter:
-        return amplitude - 2 * amplitude * (phase - quarter) // (2 * quarter)
-    return -amplitude + amplitude * (phase - 3 * quarter) // quarter
-
-
 @dataclass
 class _Step:
     at: int
@@ -68,6 +65,7 @@ class Remote:
     steps: list[_Step] = field(default_factory=list)
     commands: list[tuple[int, bytes]] = field(default_factory=list)
     command_every: int = 0
+    command_until: int = 0      # no periodic commands from then on (0: no end)
 
     @classmethod
     def from_script(cls, script: Mapping[str, Any]) -> "Remote":
@@ -88,7 +86,8 @@ class Remote:
                                None if battery is None else int(battery)))
         commands = [(seconds(float(c["at"])), str(c.get("data", "CMD")).encode("ascii", "replace"))
                     for c in script.get("commands", [])]
-        return cls(sorted(steps, key=lambda s: s.at), sorted(commands), seconds(float(script.get("command_every", 0))))
+        return cls(sorted(steps, key=lambda s: s.at), sorted(commands), seconds(float(script.get("command_every", 0))),
+                   seconds(float(script.get("command_until", 0))))
 
     @classmethod
     def load(cls, path: str) -> "Remote":
@@ -100,36 +99,57 @@ class Remote:
 
     @classmethod
     def simple(cls, armed: bool = True, unarmed_rus: int = 0, motion: bool = True,
-               command_every: float = 0.0, ru: int = DEFAULT_RU) -> "Remote":
+               command_every: float = 0.0, ru: int = DEFAULT_RU, command_until: float = 0.0) -> "Remote":
         state = {"at": 0, "state": "armed" if armed else "disarmed", "ru": ru,
                  "unarmed_rus": unarmed_rus, "motion": motion}
-        return cls.from_script({"steps": [state], "command_every": command_every})
+        return cls.from_script({"steps": [state], "command_every": command_every, "command_until": command_until})
 
-    def fields(self, t: int) -> dict[str, int]:
-        """VRPI payload fields at time t (µs since start)."""
-        values: dict[str, int] = disarmed_fields()
-        motion, battery, battery_at = False, None, 0
+    def __post_init__(self) -> None:
+        # The VRPI values of each step, cumulated, in payload order: one list copy per VRPI.
+        current, motion, battery, battery_at = disarmed_fields(), False, None, 0
+        self._ats = [-1]
+        self._states = [(_values(current), motion, battery, battery_at)]
         for step in self.steps:
-            if step.at > t:
-                break
-            values.update(step.fields)
-            if step.motion is not None:
-                motion = step.motion
+            current.update(step.fields)
+            motion = motion if step.motion is None else step.motion
             if step.battery is not None:
                 battery, battery_at = step.battery, step.at
-        if values.get("armed_ru"):
+            self._ats.append(step.at)
+            self._states.append((_values(current), motion, battery, battery_at))
+
+    def values(self, t: int) -> list[Any]:
+        """VRPI payload values at time t (µs since start), in the order of the payload layout."""
+        base, motion, battery, battery_at = self._states[bisect.bisect_right(self._ats, t) - 1]
+        values = base.copy()
+        if values[_ARMED_RU]:
             if battery is not None:
-                values["ru_battery"] = max(0, battery - (t - battery_at) // _BATTERY_DRAIN_US)
-            if motion and values.get("ru_state") == C.RuState.ENABLED:
-                self._move(t, values)
+                values[_BATTERY] = max(0, battery - (t - battery_at) // _BATTERY_DRAIN_US)
+            if motion and values[_RU_STATE] == C.RuState.ENABLED:
+                _move(t, values)
         return values
 
-    @staticmethod
-    def _move(t: int, values: dict[str, int]) -> None:
-        for i, period in enumerate(_JOYSTICK_PERIODS_US, start=1):
-            values[f"joystick{i}"] = _triangle(t, period, C.JOYSTICK_LIMIT)
-        values["switch1"] = (t // 3_000_000) % 2                 # pushbutton
-        values["switch2"] = (t // 2_000_000) % 3 - 1             # 3-position toggle
-        values["switch3"] = (t // 10_000) % (C.SWITCH_MAX + 1)   # potentiometer sweep
-        values["encoder"] = (t // 250_000) & 0xFF
-        values["encoder_switch"] = int((t // 5_000_000) % 4 == 0)
+    def fields(self, t: int) -> dict[str, Any]:
+        """VRPI payload fields at time t (µs since start) by canonical name."""
+        return dict(zip(VRPI_NAMES, self.values(t)))
+
+
+def _values(fields: Mapping[str, Any]) -> list[Any]:
+    return [fields.get(name, bytes(C.VRPI_SPARE_LEN) if name == "vrpi_spare" else 0) for name in VRPI_NAMES]
+
+
+def _move(t: int, values: list[Any]) -> None:
+    limit = C.JOYSTICK_LIMIT
+    for index, period in zip(_JOYSTICKS, _JOYSTICK_PERIODS_US):
+        quarter = period // 4
+        phase = t % period
+        if phase < quarter:
+            values[index] = limit * phase // quarter
+        elif phase < 3 * quarter:
+            values[index] = limit - limit * (phase - quarter) // quarter
+        else:
+            values[index] = limit * (phase - 3 * quarter) // quarter - limit
+    values[_SWITCHES[0]] = (t // 3_000_000) % 2                  # pushbutton
+    values[_SWITCHES[1]] = (t // 2_000_000) % 3 - 1              # 3-position toggle
+    values[_SWITCHES[2]] = (t // 10_000) % (C.SWITCH_MAX + 1)    # potentiometer sweep
+    values[_ENCODER] = (t // 250_000) & 0xFF
+    values[_ENCODER_SWITCH] = int((t // 5_000_000) % 4 == 0)

@@ -1,0 +1,306 @@
+"""The HTML report: one self-contained file (inline CSS and SVG, no script, nothing fetched).
+
+Plots per capture: interval histogram with nominal and watchdog lines, interval over time with
+the watchdog line, serial gap timeline, ack latency distribution, retransmissions per command and
+the state timeline. Each plot is an <svg> inside <figure data-plot="...">.
+"""
+from __future__ import annotations
+
+import html
+import math
+from typing import Iterable, Optional
+
+from .. import __version__
+from ..errors import CliError
+from . import summary
+
+W, H = 640, 220
+ML, MR, MT, MB = 72, 16, 14, 34           # plot margins
+COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
+          "#bcbd22", "#17becf")
+CSS = """
+body{font:14px/1.4 system-ui,sans-serif;margin:24px;color:#222;max-width:1400px}
+h1{font-size:22px}h2{font-size:18px;margin-top:28px;border-bottom:1px solid #ccc}h3{font-size:15px}
+table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
+th{background:#f2f2f2}td:first-child,th:first-child{text-align:left}
+.ok{color:#fff;background:#2a8a2a;padding:4px 10px;border-radius:4px}
+.fail{color:#fff;background:#c62828;padding:4px 10px;border-radius:4px}
+.error{color:#c62828}.warning{color:#a66a00}
+figure{display:inline-block;margin:8px 12px 8px 0;vertical-align:top}figcaption{font-weight:600}
+svg text{font:11px sans-serif}pre{background:#f6f6f6;padding:8px;overflow:auto}
+"""
+
+
+def _e(value: object) -> str:
+    return html.escape(str(value))
+
+
+def _num(value: Optional[float], digits: int = 2) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.{digits}f}" if isinstance(value, float) else str(value)
+
+
+def _ticks(low: float, high: float, count: int = 5) -> list[float]:
+    if high <= low:
+        return [low]
+    raw = (high - low) / count
+    mag = 10 ** math.floor(math.log10(raw))
+    step = min((m * mag for m in (1, 2, 5, 10) if m * mag >= raw), default=raw)
+    first = math.ceil(low / step) * step
+    return [first + i * step for i in range(int((high - first) / step) + 1)]
+
+
+class Chart:
+    """A tiny SVG plotter: linear axes, then lines, bars, points and rectangles in data units."""
+
+    def __init__(self, x0: float, x1: float, y0: float, y1: float, xlabel: str, ylabel: str,
+                 xtime: bool = False) -> None:
+        self.x0, self.x1 = x0, x1 if x1 > x0 else x0 + 1
+        self.y0, self.y1 = y0, y1 if y1 > y0 else y0 + 1
+        self.parts: list[str] = []
+        self.xlabel, self.ylabel, self.xtime = xlabel, ylabel, xtime
+
+    def x(self, v: float) -> float:
+        return ML + (v - self.x0) / (self.x1 - self.x0) * (W - ML - MR)
+
+    def y(self, v: float) -> float:
+        return H - MB - (v - self.y0) / (self.y1 - self.y0) * (H - MT - MB)
+
+    def axes(self, yticks: bool = True) -> None:
+        p = self.parts
+        p.append(f'<rect x="{ML}" y="{MT}" width="{W - ML - MR}" height="{H - MT - MB}" fill="none" stroke="#999"/>')
+        for t in _ticks(self.x0, self.x1):
+            label = f"{t - self.x0:g}" if self.xtime else f"{t:g}"
+            p.append(f'<text x="{self.x(t):.1f}" y="{H - MB + 14}" text-anchor="middle">{_e(label)}</text>')
+        for t in _ticks(self.y0, self.y1) if yticks else ():
+            p.append(f'<text x="{ML - 4}" y="{self.y(t) + 4:.1f}" text-anchor="end">{t:g}</text>')
+            p.append(f'<line x1="{ML}" x2="{W - MR}" y1="{self.y(t):.1f}" y2="{self.y(t):.1f}" stroke="#eee"/>')
+        p.append(f'<text x="{(ML + W - MR) / 2}" y="{H - 4}" text-anchor="middle">{_e(self.xlabel)}</text>')
+        p.append(f'<text x="12" y="{(MT + H - MB) / 2}" text-anchor="middle" '
+                 f'transform="rotate(-90 12 {(MT + H - MB) / 2})">{_e(self.ylabel)}</text>')
+
+    def vline(self, v: float, color: str, label: str) -> None:
+        if self.x0 <= v <= self.x1:
+            self.parts.append(f'<line class="marker" x1="{self.x(v):.1f}" x2="{self.x(v):.1f}" y1="{MT}" '
+                              f'y2="{H - MB}" stroke="{color}" stroke-dasharray="4 3"/>'
+                              f'<text x="{self.x(v) + 3:.1f}" y="{MT + 11}" fill="{color}">{_e(label)}</text>')
+
+    def hline(self, v: float, color: str, label: str) -> None:
+        if self.y0 <= v <= self.y1:
+            self.parts.append(f'<line class="marker" x1="{ML}" x2="{W - MR}" y1="{self.y(v):.1f}" '
+                              f'y2="{self.y(v):.1f}" stroke="{color}" stroke-dasharray="4 3"/>'
+                              f'<text x="{W - MR - 3}" y="{self.y(v) - 3:.1f}" text-anchor="end" fill="{color}">'
+                              f'{_e(label)}</text>')
+
+    def bars(self, items: Iterable[tuple[float, float, float]], color: str) -> None:
+        for left, width, height in items:
+            x, x2 = self.x(left), self.x(left + width)
+            self.parts.append(f'<rect class="bar" x="{x:.1f}" y="{self.y(height):.1f}" width="{max(x2 - x - 1, 1):.1f}" '
+                              f'height="{self.y(self.y0) - self.y(height):.1f}" fill="{color}"/>')
+
+    def polyline(self, points: Iterable[tuple[float, float]], color: str) -> None:
+        pts = " ".join(f"{self.x(a):.1f},{self.y(b):.1f}" for a, b in points)
+        self.parts.append(f'<polyline class="series" points="{pts}" fill="none" stroke="{color}"/>')
+
+    def points(self, points: Iterable[tuple[float, float]], color: str) -> None:
+        for a, b in points:
+            self.parts.append(f'<circle class="point" cx="{self.x(a):.1f}" cy="{self.y(b):.1f}" r="3" fill="{color}"/>')
+
+    def rect(self, a: float, b: float, row: float, height: float, color: str, title: str) -> None:
+        x, x2 = self.x(a), self.x(b)
+        self.parts.append(f'<rect class="segment" x="{x:.1f}" y="{self.y(row + height):.1f}" '
+                          f'width="{max(x2 - x, 1):.1f}" height="{self.y(row) - self.y(row + height):.1f}" '
+                          f'fill="{color}"><title>{_e(title)}</title></rect>')
+
+    def svg(self, name: str, caption: str) -> str:
+        return (f'<figure data-plot="{_e(name)}"><figcaption>{_e(caption)}</figcaption>'
+                f'<svg xmlns="http://www.w3.org/2000/svg" width="{W}" height="{H}" viewBox="0 0 {W} {H}">'
+                + "".join(self.parts) + "</svg></figure>")
+
+
+def _empty(name: str, caption: str, why: str) -> str:
+    c = Chart(0, 1, 0, 1, "", "")
+    c.parts.append(f'<text x="{W / 2}" y="{H / 2}" text-anchor="middle">{_e(why)}</text>')
+    return c.svg(name, caption)
+
+
+def _histogram_plot(p: dict) -> str:
+    name = f"{p['type']} interval histogram — {p['sender']}"
+    hist = p.get("plot", {}).get("histogram", [])
+    if not hist:
+        return _empty("interval-histogram", name, "fewer than two packets")
+    width = p["plot"]["bin_ms"]
+    limit, nominal = p["watchdog"]["limit_ms"], p.get("nominal_ms")
+    x1 = max(hist[-1][0] + width, (nominal or 0) * 1.2, limit * 1.05)
+    c = Chart(min(hist[0][0], nominal or hist[0][0]), x1, 0, max(n for _, n in hist) * 1.1,
+              "interval (ms; last bar: beyond p99.9)", "packets")
+    c.axes()
+    c.bars(((a, width, n) for a, n in hist if n), COLORS[0])
+    if nominal:
+        c.vline(nominal, "#2a8a2a", f"nominal {nominal:g}")
+    c.vline(limit, "#c62828", f"watchdog {limit:g}")
+    return c.svg("interval-histogram", name)
+
+
+def _series_plot(p: dict, t0: float) -> str:
+    name = f"{p['type']} interval over time — {p['sender']}"
+    series = p.get("plot", {}).get("series", [])
+    if not series:
+        return _empty("interval-time", name, "fewer than two packets")
+    limit = p["watchdog"]["limit_ms"]
+    c = Chart(t0, max(t for t, _ in series), 0, max(max(v for _, v in series), limit) * 1.1,
+              "time since capture start (s)", "interval (ms, max per bucket)", xtime=True)
+    c.axes()
+    c.polyline(series, COLORS[0])
+    c.hline(limit, "#c62828", f"watchdog {limit:g} ms")
+    return c.svg("interval-time", name)
+
+
+def _gap_plot(report: dict, t0: float, t1: float) -> str:
+    senders = [s for s in report["senders"] if s["serial"]["gaps"]]
+    if not senders:
+        return _empty("serial-gaps", "Serial gaps", "no serial gaps")
+    top = max(g["count"] for s in senders for g in s["serial"]["gaps"])
+    c = Chart(t0, t1, 0, top * 1.2, "time since capture start (s)", "packets missing", xtime=True)
+    c.axes()
+    for i, s in enumerate(senders):
+        c.points(((g["time"], g["count"]) for g in s["serial"]["gaps"]), COLORS[i % len(COLORS)])
+    return c.svg("serial-gaps", "Serial gaps (one colour per sender: " +
+                 ", ".join(s["id"] for s in senders) + ")")
+
+
+def _latency_plot(report: dict) -> str:
+    values = {n: [c["latency_first_ms"] for c in cmd["list"] if c["latency_first_ms"] is not None]
+              for n, cmd in report["commands"].items()}
+    every = [v for vs in values.values() for v in vs]
+    if not every:
+        return _empty("ack-latency", "Ack latency", "no acknowledged commands")
+    low, high = min(every), max(every)
+    bins = 30
+    width = max((high - low) / bins, 1e-3)
+    counts = {n: [0] * (bins + 1) for n in values}
+    for n, vs in values.items():
+        for v in vs:
+            counts[n][min(int((v - low) / width), bins)] += 1
+    c = Chart(low, low + width * (bins + 1), 0, max(max(v) for v in counts.values()) * 1.1,
+              "ack latency from the first transmission (ms)", "commands")
+    c.axes()
+    for i, (n, cs) in enumerate(counts.items()):
+        c.bars(((low + k * width + i * width / 2, width / 2, m) for k, m in enumerate(cs) if m), COLORS[i])
+    return c.svg("ack-latency", "Ack latency distribution (" + ", ".join(
+        f"{n}: {COLORS[i]}" for i, n in enumerate(counts)) + ")")
+
+
+def _retransmission_plot(report: dict) -> str:
+    hists = {n: {int(k): v for k, v in cmd["retransmission_histogram"].items()} for n, cmd in report["commands"].items()}
+    keys = sorted({k for h in hists.values() for k in h})
+    if not keys:
+        return _empty("retransmissions", "Retransmissions per command", "no commands")
+    c = Chart(-0.5, keys[-1] + 0.5, 0, max(v for h in hists.values() for v in h.values()) * 1.1,
+              "retransmissions of a command", "commands")
+    c.axes()
+    for i, (n, h) in enumerate(hists.items()):
+        c.bars(((k - 0.4 + i * 0.4, 0.4, v) for k, v in h.items()), COLORS[i])
+    return c.svg("retransmissions", "Retransmissions per command (" + ", ".join(
+        f"{n}: {COLORS[i]}" for i, n in enumerate(hists)) + ")")
+
+
+def _state_plot(st: dict, t0: float, t1: float) -> str:
+    fields = list(st["segments"])
+    c = Chart(t0, t1, 0, len(fields) + 1, "time since capture start (s)", "", xtime=True)
+    c.axes(yticks=False)
+    for row, f in enumerate(reversed(fields)):
+        values = sorted({s["value"] for s in st["segments"][f]})
+        for s in st["segments"][f]:
+            color = COLORS[values.index(s["value"]) % len(COLORS)]
+            end = s["end"] if s["end"] is not None else t1
+            c.rect(s["start"], end, row + 0.1, 0.8, color, f"{f}: {s['name']} from {s['start'] - t0:.3f} s")
+    for ep in st["episodes_relays_open"]:
+        end = ep["end"] if ep["end"] is not None else t1
+        c.rect(ep["start"], end, len(fields) + 0.1, 0.8, "#c62828", "ES-Link relays open")
+    for row, label in enumerate([*reversed(fields), "relays open"]):
+        c.parts.append(f'<text x="{ML - 4}" y="{c.y(row + 0.5) + 4:.1f}" text-anchor="end">{_e(label)}</text>')
+    return c.svg("state-timeline", f"State timeline — {st['sender']}")
+
+
+def _table(header: list[str], rows: list[list[object]]) -> str:
+    head = "".join(f"<th>{_e(h.replace('_', ' '))}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{_e(v)}</td>" for v in r) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _section(report: dict) -> str:
+    cap, crc, verdict = report["capture"], report["crc"], report["verdict"]
+    t0 = cap["first_time"] or 0.0
+    t1 = cap["last_time"] or t0 + 1
+    out = [f"<h2>{_e(cap['file'])}</h2>",
+           f'<p><span class="{"ok" if verdict["ok"] else "fail"}">{"OK" if verdict["ok"] else "FAIL"}</span> '
+           f"{cap['packets']} packets, {cap['eglink_packets']} EG-Link, {cap['duration_s']:.1f} s; "
+           f"CRC {_e(crc['variant'])}/{_e(crc['byte_order'])}: {crc['valid']} valid, {crc['invalid']} invalid</p>"]
+    if verdict["findings"]:
+        out.append("<ul>" + "".join(f'<li class="{_e(f["severity"])}">{_e(f["severity"])}: {_e(f["message"])}</li>'
+                                    for f in verdict["findings"]) + "</ul>")
+    if report["illegal"]["total"]:
+        out.append("<h3>Illegal packets</h3>" + _table(["reason", "packets"], list(report["illegal"]["by_reason"].items())))
+    out.append("<h3>Senders</h3>")
+    out.append(_table(["sender", "packets by type", "scope", "received", "lost", "gaps", "duplicates",
+                       "out of order", "wraps"],
+                      [[s["id"], ", ".join(f"{k} {v}" for k, v in s["by_type"].items()), s["serial"]["scope"],
+                        s["serial"]["received"], s["serial"]["lost"], len(s["serial"]["gaps"]),
+                        s["serial"]["duplicates"], s["serial"]["out_of_order"], s["serial"]["wraps"]]
+                       for s in report["senders"]]))
+    out.append("<h3>Periodic streams (ms)</h3>")
+    out.append(_table(["stream", "sender", "count", "min", "mean", "p50", "p95", "p99", "p99.9", "max",
+                       "jitter final", "jitter mean", "jitter max", "watchdog violations"],
+                      [[p["type"], p["sender"], p["count"], *(_num(p["interval_ms"][k]) for k in
+                                                              ("min", "mean", "p50", "p95", "p99", "p999", "max")),
+                        *(_num((p["jitter_ms"] or {}).get(k), 3) for k in ("final", "mean", "max")),
+                        f"{len(p['watchdog']['violations'])} (> {p['watchdog']['limit_ms']:g})"]
+                       for p in report["periodic"]]))
+    out.append("<h3>Commands</h3>")
+    keys = ("commands", "transmissions", "retransmissions", "acked", "unacked", "failed",
+            "spurious_retransmissions", "acks_without_command", "duplicate_acks")
+    out.append(_table(["type", *keys, "latency p50", "latency p95", "latency max"],
+                      [[n, *(c[k] for k in keys), *(_num(c["ack_latency_ms"][k]) for k in ("p50", "p95", "max"))]
+                       for n, c in report["commands"].items()]))
+    b = report["vrpo_bursts"]
+    out.append(f"<p>VRPO bursts: {b['complete']} complete, {b['incomplete']} incomplete.</p>")
+    out.append("<h3>Plots</h3>")
+    for p in report["periodic"]:
+        out.append(_histogram_plot(p))
+        out.append(_series_plot(p, t0))
+    out.append(_gap_plot(report, t0, t1))
+    out.append(_latency_plot(report))
+    out.append(_retransmission_plot(report))
+    for st in report["state"]:
+        out.append(_state_plot(st, t0, t1))
+        if st["episodes_relays_open"]:
+            out.append("<h3>ES-Link relays open</h3>" + _table(
+                ["start (s)", "duration (s)", "BU states", "still open at end"],
+                [[f"{e['start'] - t0:.3f}", _num(e["duration_s"], 3), "/".join(e["states"]), e["open_at_end"]]
+                 for e in st["episodes_relays_open"]]))
+    out.append("<details><summary>Terminal summary</summary><pre>" + _e(summary.render(report)) + "</pre></details>")
+    return "\n".join(out)
+
+
+def render(reports: list[dict], combined: Optional[dict] = None) -> str:
+    ok = all(r["verdict"]["ok"] for r in reports)
+    parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+             "<title>VM-110 EG-Link capture analysis</title>", f"<style>{CSS}</style></head><body>",
+             f"<h1>VM-110 EG-Link capture analysis "
+             f'<span class="{"ok" if ok else "fail"}">{"OK" if ok else "FAIL"}</span></h1>',
+             f"<p>vm110 {_e(__version__)}, engine {_e(reports[0]['tool']['engine'])}</p>"]
+    if combined:
+        parts.append("<pre>" + _e(summary.render_combined(combined)) + "</pre>")
+    parts += [_section(r) for r in reports]
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def write(path: str, reports: list[dict], combined: Optional[dict] = None) -> None:
+    try:
+        with open(path, "w", encoding="utf-8") as out:
+            out.write(render(reports, combined))
+    except OSError as exc:
+        raise CliError(f"cannot write {path}: {exc.strerror}") from None

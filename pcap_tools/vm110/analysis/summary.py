@@ -1,0 +1,75 @@
+"""The terminal summary: verdict, then one table per sender, commands, bursts and relays."""
+from __future__ import annotations
+
+from typing import Optional
+
+
+def _f(value: Optional[float], digits: int = 1) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _table(rows: list[list[str]], indent: str = "  ") -> list[str]:
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return [indent + "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths)))
+            for r in rows]
+
+
+def render(report: dict) -> str:
+    cap, crc, verdict = report["capture"], report["crc"], report["verdict"]
+    lines = [f"{cap['file']}: {cap['packets']} packets, {cap['eglink_packets']} EG-Link, "
+             f"{cap['duration_s']:.1f} s; CRC {crc['variant']}/{crc['byte_order']}"
+             f"{' (auto)' if crc['auto'] else ''}: {crc['valid']} valid, {crc['invalid']} invalid"]
+    errors = sum(1 for f in verdict["findings"] if f["severity"] == "error")
+    warnings = len(verdict["findings"]) - errors
+    lines.append(f"VERDICT: {'OK' if verdict['ok'] else 'FAIL'} ({errors} errors, {warnings} warnings)")
+    lines += [f"  {f['severity']:<7} {f['message']}" for f in verdict["findings"]]
+    if report["illegal"]["total"]:
+        reasons = ", ".join(f"{k} {v}" for k, v in report["illegal"]["by_reason"].items())
+        lines.append(f"Illegal packets: {report['illegal']['total']} ({reasons})")
+    periodic = {(p["sender"], p["type"]): p for p in report["periodic"]}
+    for snd in report["senders"]:
+        ser = snd["serial"]
+        lines.append("")
+        lines.append(f"Sender {snd['id']}  (serial scope {ser['scope']})")
+        types = ", ".join(f"{t} {n}" for t, n in snd["by_type"].items())
+        lines.append(f"  packets: {types}")
+        lines.append(f"  serials: received {ser['received']}, lost {ser['lost']} in {len(ser['gaps'])} gaps, "
+                     f"duplicates {ser['duplicates']}, out of order {ser['out_of_order']}, wraps {ser['wraps']}")
+        rows = [["stream", "count", "min", "mean", "p50", "p95", "p99", "p99.9", "max", "jitter", "watchdog"]]
+        for ptype in ("VRPI", "VRPO"):
+            p = periodic.get((snd["id"], ptype))
+            if not p:
+                continue
+            iv, jit = p["interval_ms"], p["jitter_ms"] or {}
+            rows.append([f"{ptype} ms", str(p["count"]), *(_f(iv[k]) for k in ("min", "mean", "p50", "p95", "p99", "p999", "max")),
+                         _f(jit.get("max"), 2), f"{len(p['watchdog']['violations'])} > {p['watchdog']['limit_ms']:g}"])
+        if len(rows) > 1:
+            lines += _table(rows)
+    lines.append("")
+    rows = [["commands", "cmds", "tx", "retx", "acked", "unacked", "failed", "spurious", "orphan acks",
+             "dup acks", "lat p50", "lat p95", "lat max"]]
+    for name, c in report["commands"].items():
+        lat = c["ack_latency_ms"]
+        rows.append([name, *(str(c[k]) for k in ("commands", "transmissions", "retransmissions", "acked", "unacked",
+                                                 "failed", "spurious_retransmissions", "acks_without_command",
+                                                 "duplicate_acks")), _f(lat["p50"]), _f(lat["p95"]), _f(lat["max"])])
+    lines += _table(rows, "")
+    b = report["vrpo_bursts"]
+    lines.append(f"VRPO bursts: {b['complete']} complete, {b['incomplete']} incomplete")
+    for st in report["state"]:
+        eps = st["episodes_relays_open"]
+        if eps:
+            lines.append(f"ES-Link relays open ({st['sender']}): " + "; ".join(
+                f"{e['start']:.3f}+{_f(e['duration_s'], 3)} s {'/'.join(e['states'])}" for e in eps[:5])
+                + (f" ... {len(eps)} in all" if len(eps) > 5 else ""))
+    return "\n".join(lines)
+
+
+def render_combined(combined: dict) -> str:
+    rows = [["capture", "verdict", "packets", "lost", "illegal", "watchdog", "unacked", "failed"]]
+    for c in combined["captures"]:
+        t = c["totals"]
+        rows.append([c["file"], "OK" if c["ok"] else "FAIL", *(str(t[k]) for k in ("packets", "lost", "illegal",
+                                                                                   "watchdog", "unacked", "failed"))])
+    return "\n".join([f"Combined: {len(combined['captures'])} captures, "
+                      f"{'all OK' if combined['ok'] else 'FAIL'}", *_table(rows)])

@@ -1,0 +1,146 @@
+"""The tshark engine: the capture read through the project's Lua dissector (dissector/vm110.lua)
+with pyshark, into the same `Collected` as the fast engine.
+
+Per packet it takes the dissector's fields (`vm110.<name>`, tests/vectors/README.md) and its
+expert infos `vm110.expert.<reason>`; a packet with an expert for an illegal reason is illegal.
+CRC `auto` dissects once per candidate variant and byte order (dissector preferences
+`vm110.crc_variant`, `vm110.crc_byte_order`) when the default one leaves packets invalid. File-level
+facts that tshark does not report (format, link types, a file cut short) come from the reader.
+"""
+from __future__ import annotations
+
+import ipaddress
+import os
+import shutil
+import subprocess
+from pathlib import Path
+from typing import Iterator, Optional
+
+from .. import constants as C
+from ..capture.reader import CaptureReader
+from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS
+from ..errors import CliError
+from .collect import STATE, STATE_FIELDS, Collected, address
+from .engine import record
+
+PLUGIN_ENV = "VM110_DISSECTOR"
+REASONS = frozenset(p.value for p in C.Problem)
+_EXPERT = "vm110.expert."
+_CRC_GOOD = "1"                        # value of vm110.crc.status for a good CRC
+
+
+def plugin_path() -> Path:
+    """The Lua dissector: $VM110_DISSECTOR, else dissector/vm110.lua of this source tree."""
+    env = os.environ.get(PLUGIN_ENV)
+    return Path(env) if env else Path(__file__).resolve().parents[3] / "dissector" / "vm110.lua"
+
+
+def check_available() -> None:
+    """CliError (exit 2) when tshark or the dissector is missing, or the dissector does not load."""
+    if shutil.which("tshark") is None:
+        raise CliError("--engine tshark needs tshark (Wireshark's command-line tool) on the PATH")
+    plugin = plugin_path()
+    if not plugin.is_file():
+        raise CliError(f"--engine tshark needs the Lua dissector; not found at {plugin} (set {PLUGIN_ENV})")
+    done = subprocess.run(["tshark", "-G", "protocols", "-X", f"lua_script:{plugin}"],
+                          capture_output=True, text=True, check=False)
+    if not any(line.split("\t")[-1:] == ["vm110"] for line in done.stdout.splitlines()):
+        lines = [ln for ln in done.stderr.splitlines() if "dangerous" not in ln]
+        raise CliError(f"the Lua dissector {plugin} did not load in tshark: {(lines or ['no vm110 protocol'])[0]}")
+
+
+def _int(value: str) -> int:
+    return int(value, 0)
+
+
+class TsharkEngine:
+    def __init__(self, port: int = C.INPUT_PORT, crc: str = "auto", crc_order: str = "auto") -> None:
+        self.port, self.crc, self.crc_order = port, crc, crc_order
+
+    def _params(self, variant: str, order: str) -> list[str]:
+        return ["-X", f"lua_script:{plugin_path()}", "-o", f"vm110.input_port:{self.port}",
+                "-o", f"vm110.crc_variant:{variant}", "-o", f"vm110.crc_byte_order:{order}"]
+
+    def _packets(self, path: str, variant: str, order: str, display_filter: Optional[str] = None) -> Iterator:
+        import pyshark     # imported here: the fast engine and the CLI start without it
+        cap = pyshark.FileCapture(path, keep_packets=False, display_filter=display_filter,
+                                  custom_parameters=self._params(variant, order))
+        try:
+            yield from cap
+        except pyshark.capture.capture.TSharkCrashException:
+            pass           # tshark stops at a record cut short; the reader reports the cut
+        finally:
+            cap.close()
+
+    def _count_good(self, path: str, variant: str, order: str) -> int:
+        return sum(1 for _ in self._packets(path, variant, order, "vm110.crc.status == 1"))
+
+    def collect(self, path: str) -> Collected:
+        check_available()
+        reader = CaptureReader(path)           # clean errors for unreadable files, and file facts
+        for _ in reader.batches():
+            pass
+        variants = VARIANTS if self.crc == "auto" else (self.crc,)
+        orders = BYTE_ORDERS if self.crc_order == "auto" else (self.crc_order,)
+        candidates = [(v, o) for v in variants for o in orders]
+        first = (DEFAULT_VARIANT, DEFAULT_BYTE_ORDER) if (DEFAULT_VARIANT, DEFAULT_BYTE_ORDER) in candidates \
+            else candidates[0]
+        got = self._pass(path, reader, *first)
+        counts = {first: got.crc_counts[first]}
+        if len(candidates) > 1 and got.crc_checked > counts[first]:
+            for combo in candidates:
+                if combo != first:
+                    counts[combo] = self._count_good(path, *combo)
+            best = max(candidates, key=lambda c: (counts[c], -candidates.index(c)))
+            if best != first:
+                got = self._pass(path, reader, *best)
+            got.crc_counts.update(counts)
+        return got
+
+    def _pass(self, path: str, reader: CaptureReader, variant: str, order: str) -> Collected:
+        got = Collected(path=path, engine="tshark", format=reader.format, link_types=sorted(reader.link_types),
+                        ports=(self.port, self.port + C.OUTPUT_PORT_OFFSET), crc_variant=variant,
+                        crc_order=order, crc_auto=self.crc == "auto" or self.crc_order == "auto",
+                        problem=reader.problem, first_ts=reader.first_ts, last_ts=reader.last_ts)
+        streams: dict = {}
+        state_ids: dict = {}
+        frames = 0
+        for pkt in self._packets(path, variant, order):
+            frames += 1
+            layers = {layer.layer_name for layer in pkt.layers}
+            if "udp" not in layers:
+                got.non_udp += 1
+                got.fragments += "ip" in layers and (pkt.ip.flags_mf == "1" or pkt.ip.frag_offset != "0")
+                continue
+            got.udp += 1
+            if "vm110" not in layers:
+                got.other_udp += 1
+                continue
+            self._eglink(got, streams, state_ids, pkt, layers)
+        got.frames = frames
+        got.crc_counts[(variant, order)] = got.crc_checked - got.illegal_reasons[C.Problem.BAD_CRC.value]
+        return got
+
+    def _eglink(self, got: Collected, streams: dict, state_ids: dict, pkt, layers: set) -> None:
+        f = pkt.vm110._all_fields
+        got.eglink += 1
+        frame, ts = int(pkt.frame_info.number), float(pkt.sniff_timestamp)
+        src_text = pkt.ip.src if "ip" in layers else pkt.ipv6.src
+        src = ipaddress.ip_address(src_text).packed
+        sport = int(pkt.udp.srcport)
+        reasons = sorted(k[len(_EXPERT):] for k in f if k.startswith(_EXPERT) and k[len(_EXPERT):] in REASONS)
+        if "vm110.crc.status" in f:
+            got.crc_checked += 1
+        if reasons and int(pkt.frame_info.cap_len) < int(pkt.frame_info.len):
+            got.snap_truncated += 1
+            reasons = [C.Problem.TRUNCATED.value]   # the capture cut it: nothing else can be judged
+        if reasons:
+            got.add_illegal(frame, ts, address(src, sport), f.get("vm110.type", ""), reasons)
+            return
+        ptype = f["vm110.type"]
+        aux = _int(f.get("vm110.command_id", f.get("vm110.packet_number", "0")))
+        state = b""
+        if ptype == C.PacketType.VRPI.value:
+            state = STATE.pack(*(_int(f[f"vm110.{name}"]) for name in STATE_FIELDS))
+        record(got, streams, state_ids, ts, src, sport, ptype.encode(), _int(f["vm110.origin"]),
+               f["vm110.direction"], _int(f["vm110.serial"]), _int(f["vm110.size"]), aux, state, frame)

@@ -1,0 +1,127 @@
+"""Analyse captures: serial gaps, timing and jitter, watchdogs, commands, bursts; verdict and reports.
+
+Prints a summary per capture (and a combined one for several), writes the JSON report (--json,
+docs/report.md) and the self-contained HTML report (--html). Exit code 1 when a --fail-on rule
+is violated, 2 for unreadable input or bad arguments.
+"""
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import sys
+from typing import Optional
+
+from .. import constants as C
+from ..analysis import analyze, report_html, report_json, rules, summary
+from ..analysis.report import MAX_TOTALS, SCHEMA_VERSION, SCOPES, TOTAL_NAMES, Options
+from ..crc import BYTE_ORDERS, VARIANTS
+from ..errors import EXIT_FINDINGS, EXIT_OK, CliError
+
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("captures", nargs="+", metavar="CAPTURE", help="pcap or pcapng files")
+    parser.add_argument("--json", metavar="FILE", help="write the JSON report (docs/report.md)")
+    parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report")
+    parser.add_argument("--engine", choices=("fast", "tshark"), default="fast",
+                        help="fast (default, streams the file) or tshark (the Lua dissector through pyshark)")
+    parser.add_argument("--crc", choices=("auto", *VARIANTS), default="auto",
+                        help="CRC variant; auto picks the one that validates most packets")
+    parser.add_argument("--crc-order", choices=("auto", *BYTE_ORDERS), default="auto",
+                        help="byte order of the stored CRC; default auto")
+    parser.add_argument("--serial-scope", choices=SCOPES, default="auto",
+                        help="one serial counter per sender or per packet type; auto picks per sender")
+    parser.add_argument("--port", type=int, default=C.INPUT_PORT,
+                        help=f"input port (output port is +{C.OUTPUT_PORT_OFFSET}); default {C.INPUT_PORT}")
+    parser.add_argument("--fail-on", metavar="RULES", default="",
+                        help="exit 1 when a rule holds, e.g. lost>0,watchdog>0,unacked>0,illegal>0; "
+                             f"names: {', '.join(TOTAL_NAMES)}")
+    parser.add_argument("--jobs", type=int, default=1, help="captures analysed in parallel")
+    parser.add_argument("--vrpo-period", type=float, metavar="MS",
+                        help="nominal VRPO period for jitter (default: median interval between bursts)")
+    parser.add_argument("--burst-gap", type=float, default=C.VRPO_BURST_GAP_MS, metavar="MS",
+                        help=f"largest gap inside a VRPO burst; default {C.VRPO_BURST_GAP_MS}")
+    parser.add_argument("--vrpo-start", type=int, choices=(0, 1), default=0, help="first VRPO packet number")
+    parser.add_argument("--vrpo-data-size", type=int, default=0, metavar="BYTES",
+                        help="configured periodic data size; 0 infers it")
+    parser.add_argument("--quiet", action="store_true", help="no summary on standard output")
+
+
+def _progress(path: str):
+    if not sys.stderr.isatty():
+        return None
+    name = path if len(path) < 40 else "..." + path[-37:]
+
+    def show(done: int, total: int) -> None:
+        pct = 100 * done // total if total else 100
+        bar = "#" * (pct // 4)
+        sys.stderr.write(f"\r{name} [{bar:<25}] {pct:3d}%")
+        sys.stderr.flush()
+    return show
+
+
+def _one(job: tuple) -> dict:
+    path, engine, port, crc, crc_order, options, show_progress = job
+    progress = _progress(path) if show_progress else None
+    try:
+        return analyze(path, engine, port, crc, crc_order, options, progress)
+    except CliError:
+        raise
+    except MemoryError:
+        raise CliError(f"{path}: out of memory") from None
+    except Exception as exc:     # a broken file must give one line, never a traceback
+        raise CliError(f"cannot analyse {path}: {type(exc).__name__}: {exc}") from None
+    finally:
+        if progress is not None:
+            sys.stderr.write("\r\033[K")
+
+
+def combine(reports: list[dict]) -> dict:
+    """Totals over several captures (sums; maxima for the *_max_ms ones) and each one's verdict."""
+    total = {}
+    for name in TOTAL_NAMES:
+        values = [r["totals"][name] for r in reports]
+        total[name] = max(values) if name in MAX_TOTALS else sum(values)
+    return {"ok": all(r["verdict"]["ok"] for r in reports), "totals": total,
+            "captures": [{"file": r["capture"]["file"], "ok": r["verdict"]["ok"], "totals": r["totals"]}
+                         for r in reports]}
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.jobs < 1:
+        raise CliError("--jobs must be at least 1")
+    if not 0 < args.port < 65535 - C.OUTPUT_PORT_OFFSET:
+        raise CliError(f"--port {args.port} is not a usable UDP port")
+    fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on else []
+    if args.engine == "tshark":
+        from ..analysis.tshark_engine import check_available
+        check_available()
+    options = Options(serial_scope=args.serial_scope, vrpo_period_ms=args.vrpo_period,
+                      burst_gap_ms=args.burst_gap, vrpo_start=args.vrpo_start,
+                      vrpo_data_size=args.vrpo_data_size)
+    jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1 and not args.quiet)
+            for p in args.captures]
+    if args.jobs > 1 and len(jobs) > 1:
+        with multiprocessing.Pool(min(args.jobs, len(jobs))) as pool:
+            reports = pool.map(_one, jobs)
+    else:
+        reports = [_one(job) for job in jobs]
+    combined: Optional[dict] = combine(reports) if len(reports) > 1 else None
+    if not args.quiet:
+        print("\n\n".join(summary.render(r) for r in reports))
+        if combined:
+            print()
+            print(summary.render_combined(combined))
+    if args.json:
+        document = reports[0] if combined is None else {
+            "schema_version": SCHEMA_VERSION, "reports": reports, "combined": combined}
+        report_json.write(args.json, document)
+    if args.html:
+        report_html.write(args.html, reports, combined)
+    broken = []
+    for r in reports:
+        for v in rules.violations(fail_rules, r["totals"]):
+            broken.append(f"{r['capture']['file']}: {v}")
+    for line in broken:
+        print(f"fail-on: {line}", file=sys.stderr)
+    return EXIT_FINDINGS if broken else EXIT_OK

@@ -1,0 +1,129 @@
+"""Fuzz a machine controller: play the base unit, inject odd packets, judge what it does.
+
+Keeps a valid VRPI stream going (every 125 ms) so the controller stays in normal operation,
+answers its VRCO with VRAI, and sends cases (field boundary values, structural defects, sequences,
+random byte changes) reproducible from --seed and the case index. Oracles: crash, stall,
+missing_ack, illegal_acked, malformed_output, vrco_retransmit. Each confirmed finding is saved in
+--out as JSON (with the minimised packet) and a pcap; --out/findings.json summarises the run.
+Sends only to --target (multicast TTL 1). Exit code 1 when there are findings, 0 when none,
+2 on usage errors. `--replay FINDING` sends a finding again and says whether it still triggers.
+"""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+from .. import constants as C
+from ..errors import EXIT_FINDINGS, EXIT_OK, CliError
+from ..fuzz.findings import load_finding, write_summary
+from ..fuzz.link import parse_endpoint
+from ..fuzz.oracles import Limits
+from ..fuzz.runner import RunConfig, Runner, replay_finding
+from ..fuzz.session import Settings, TargetLost
+
+DEFAULT_RATE = 100.0
+DEFAULT_DURATION_S = 60.0
+
+
+def _positive(kind: type) -> Callable[[str], Any]:
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
+        return value
+    return parse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--target", metavar="HOST:PORT",
+                        help="where the controller receives input packets (the only destination)")
+    parser.add_argument("--listen", metavar="HOST:PORT",
+                        help=f"where the controller's output arrives (default 0.0.0.0:<target port + "
+                             f"{C.OUTPUT_PORT_OFFSET}>; with --group: the group's port {C.OUTPUT_PORT})")
+    parser.add_argument("--group", metavar="ADDR", help=f"join this multicast group for the output "
+                        f"(the specification's is {C.MULTICAST_GROUP})")
+    parser.add_argument("--target-cmd", metavar="CMD", help="command that starts the controller; "
+                        "it is started, watched, restarted after a crash and stopped at the end")
+    parser.add_argument("--seed", type=int, default=0, help="case schedule seed (default 0)")
+    stop = parser.add_mutually_exclusive_group()
+    stop.add_argument("--duration", type=_positive(float), metavar="S",
+                      help=f"seconds to fuzz (default {DEFAULT_DURATION_S:.0f})")
+    stop.add_argument("--cases", type=_positive(int), metavar="N", help="number of cases to run")
+    parser.add_argument("--rate", type=_positive(float), default=DEFAULT_RATE, metavar="PPS",
+                        help=f"case packets per second at most (default {DEFAULT_RATE:.0f})")
+    parser.add_argument("--out", default="fuzz-out", metavar="DIR", help="findings directory (default fuzz-out)")
+    parser.add_argument("--max-findings", type=_positive(int), default=20, metavar="N",
+                        help="stop after N findings (default 20)")
+    parser.add_argument("--minimize-budget", type=_positive(float), default=30.0, metavar="S",
+                        help="seconds of replays spent minimising one finding (default 30)")
+    parser.add_argument("--startup", type=_positive(float), default=10.0, metavar="S",
+                        help="seconds allowed for the controller's first VRPO (default 10)")
+    parser.add_argument("--replay", metavar="FINDING", help="send a saved finding again; exit 1 if it still triggers")
+
+
+def _settings(args: argparse.Namespace, target: str, listen: str | None, group: str | None) -> Settings:
+    host_port = parse_endpoint(target, "--target")
+    if listen:
+        listen_at = parse_endpoint(listen, "--listen")
+    else:
+        listen_at = ("0.0.0.0", C.OUTPUT_PORT if group else host_port[1] + C.OUTPUT_PORT_OFFSET)
+    if listen_at[1] > 65535:
+        raise CliError("--listen is needed: target port + 2 is not a port")
+    return Settings(target=host_port, listen=listen_at, group=group, rate=args.rate, limits=Limits(),
+                    startup_s=args.startup)
+
+
+def _progress(text: str) -> None:
+    print(f"vm110 fuzz: {text}", file=sys.stderr, flush=True)
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt   # unwinds through the runner, which stops the supervised controller
+
+
+def run(args: argparse.Namespace) -> int:
+    signal.signal(signal.SIGTERM, _interrupt)
+    if args.replay:
+        return _replay(args)
+    if not args.target:
+        raise CliError("--target HOST:PORT is required (or --replay FINDING)")
+    settings = _settings(args, args.target, args.listen, args.group)
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"cannot create {out}: {exc.strerror}") from None
+    duration = None if args.cases else (args.duration or DEFAULT_DURATION_S)
+    cfg = RunConfig(settings=settings, seed=args.seed, duration_s=duration, cases=args.cases, out=out,
+                    target_cmd=args.target_cmd, minimize_budget_s=args.minimize_budget,
+                    max_findings=args.max_findings, progress=_progress)
+    summary = Runner(cfg).run()
+    write_summary(out, summary)
+    if summary["stopped_early"] and not summary["findings"] and summary["cases_run"] == 0:
+        raise CliError(summary["stopped_early"])
+    for item in summary["findings"]:
+        print(f"{item['oracle']}: case {item['case_index']} ({item['mutation']}): {item['detail']} -> {out / item['file']}")
+    print(f"{summary['cases_run']} cases in {summary['duration_s']:.1f} s, {len(summary['findings'])} findings, "
+          f"{len(summary['unreproduced'])} unreproduced triggers, {summary['restarts']} restarts"
+          + (f"; stopped early: {summary['stopped_early']}" if summary["stopped_early"] else ""))
+    return EXIT_FINDINGS if summary["findings"] else EXIT_OK
+
+
+def _replay(args: argparse.Namespace) -> int:
+    finding = load_finding(args.replay)
+    settings = _settings(args, args.target or finding.target, args.listen or finding.listen,
+                         args.group or finding.group)
+    target_cmd = args.target_cmd or finding.target_cmd
+    try:
+        triggered = replay_finding(finding, settings, target_cmd, Path(args.replay).parent)
+    except TargetLost as exc:
+        raise CliError(str(exc)) from None
+    verdict = "still triggers" if triggered else "does not trigger any more"
+    print(f"{args.replay}: {finding.oracle} ({finding.mutation}): {verdict}")
+    return EXIT_FINDINGS if triggered else EXIT_OK

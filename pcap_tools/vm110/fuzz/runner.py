@@ -1,0 +1,346 @@
+"""A fuzzing run: cases in schedule order, triggers confirmed by replay and minimised, findings saved.
+
+A trigger is a finding only when replaying its case (against a freshly restarted controller when
+`--target-cmd` is given) triggers the same oracle again; triggers that do not reproduce are listed
+in `findings.json` as unreproduced, so that a hiccup of a loaded machine is visible but not
+reported as a bug.
+"""
+from __future__ import annotations
+
+import collections
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+from .. import constants as C
+from . import cases as K
+from . import findings as F
+from .minimize import ddmin, difference, minimize
+from .oracles import CRASH, STALL, VRCO_RETRANSMIT, Monitor, Trigger
+from .session import Sent, Session, Settings, TargetLost
+from .supervisor import Supervisor
+
+TRIAL = -1               # the case index of replayed packets
+_MAX_SUSPECTS = 12
+_RECORDS_KEPT = 2000
+
+
+@dataclass
+class Replay:
+    """A case as it was sent: exact bytes, delays, and what the base unit did around them."""
+
+    packets: list[Sent]
+    pause_vrpi_ms: float = 0.0
+    withhold_vrai_ms: float = 0.0
+    stream: Optional[dict[str, Any]] = None
+    settle_ms: float = 0.0
+
+    @classmethod
+    def of(cls, case: K.Case, sent: list[Sent]) -> "Replay":
+        return cls(sent, case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream, case.settle_ms)
+
+
+@dataclass
+class RunConfig:
+    settings: Settings
+    seed: int = 0
+    duration_s: Optional[float] = 60.0
+    cases: Optional[int] = None
+    out: Path = Path("fuzz-out")
+    target_cmd: Optional[str] = None
+    minimize_budget_s: float = 30.0
+    max_findings: int = 20
+    progress: Callable[[str], None] = field(default=lambda text: None)
+
+
+def _const(data: bytes, twin: bytes) -> K.Builder:
+    return lambda serial: (data, twin)
+
+
+def trial(session: Session, replay: Replay, oracle: str) -> bool:
+    """Play `replay` once and say whether `oracle` fires for it."""
+    main = session.monitor
+    mon = session.monitor = main.fork()
+    try:
+        steps = [(_const(p.data, p.twin), p.delay_ms, p.expect_ack) for p in replay.packets]
+        session.run_steps(TRIAL, steps, replay.pause_vrpi_ms, replay.withhold_vrai_ms, replay.stream, replay.settle_ms)
+        _observe(session, mon, oracle, time.time())
+        return any(t.oracle == oracle for t in mon.triggers)
+    finally:
+        session.monitor = main
+        main.adopt(mon)
+
+
+def _observe(session: Session, mon: Monitor, oracle: str, t_end: float) -> None:
+    limits = mon.limits
+    fired = lambda: any(t.oracle == oracle for t in mon.triggers)   # noqa: E731
+    if oracle == STALL:
+        # A stall that starts within `grace` of the packets: VRPO after that clears the case.
+        grace = max(0.3, 2 * mon.vrpo_interval)
+        deadline = t_end + grace + limits.stall_ms / 1000
+        while time.time() < deadline:
+            if mon.last_vrpo is not None and mon.last_vrpo > t_end + grace:
+                return
+            session.pump(min(deadline, time.time() + 0.02))
+        mon.fire(Trigger(STALL, time.time(), "no VRPO after the replayed packets"))
+        return
+    window = {CRASH: 0.5, VRCO_RETRANSMIT: session.settings.vrco_wait_s}.get(
+        oracle, limits.ack_timeout_ms / 1000 + 0.3)
+    deadline = t_end + window
+    while time.time() < deadline and not fired():
+        session.pump(min(deadline, time.time() + 0.02))
+
+
+def start_target(s: Session) -> None:
+    """Start the controller (when supervised) and wait until it sends VRPO."""
+    if s.supervisor is not None:
+        s.supervisor.start()
+    if not s.wait_for_vrpo(0.0, s.settings.startup_s):
+        where = f"{s.link.local[0]}:{s.link.local[1]}"
+        code = s.supervisor.poll() if s.supervisor else None
+        raise TargetLost(f"no VRPO from the controller on {where} within {s.settings.startup_s:.0f} s"
+                         + (f" (it exited with code {code})" if code is not None else ""))
+    s.pump(time.time() + 2 * C.VRPI_PERIOD_MS / 1000)
+    s.monitor.triggers.clear()     # whatever happened before the first VRPI is not a case's doing
+
+
+class Runner:
+    def __init__(self, cfg: RunConfig) -> None:
+        self.cfg = cfg
+        self.supervisor = Supervisor(cfg.target_cmd) if cfg.target_cmd else None
+        self.session = Session(cfg.settings, self.supervisor)
+        cfg.out.mkdir(parents=True, exist_ok=True)
+        self._log = (cfg.out / "target.log").open("ab") if cfg.target_cmd else None
+        if self.supervisor is not None:
+            self.supervisor.log = self._log
+        self.records: collections.OrderedDict[int, tuple[K.Case, list[Sent]]] = collections.OrderedDict()
+        self.findings: list[F.Finding] = []
+        self.files: list[str] = []
+        self.unreproduced: list[dict[str, Any]] = []
+        self.repeats: collections.Counter[str] = collections.Counter()
+        self.found: set[tuple[str, str]] = set()
+        self.cases_run = 0
+        self.started = time.time()
+        self.stopped_early: Optional[str] = None
+
+    # --- the run ----------------------------------------------------------------------------------
+    def run(self) -> dict[str, Any]:
+        cfg, s = self.cfg, self.session
+        self.started = time.time()
+        end = None if cfg.duration_s is None else self.started + cfg.duration_s
+        index = 0
+        try:
+            start_target(s)
+            while (cfg.cases is None or index < cfg.cases) and (end is None or time.time() < end) \
+                    and len(self.findings) < cfg.max_findings:
+                case = K.generate(cfg.seed, index)
+                sent = s.run_steps(index, [(st.build, st.delay_ms, st.expect_ack) for st in case.steps],
+                                   case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream, case.settle_ms)
+                self.records[index] = (case, sent)
+                while len(self.records) > _RECORDS_KEPT:
+                    self.records.popitem(last=False)
+                self.cases_run = index = index + 1
+                if s.monitor.triggers:
+                    self._investigate_all()
+            # The last cases are judged too: wait out the ack timeout and the VRPO watchdog.
+            limits = s.settings.limits
+            s.pump(time.time() + max(limits.ack_timeout_ms, limits.stall_ms) / 1000 + 0.2)
+            self._investigate_all()
+        except TargetLost as exc:
+            self.stopped_early = str(exc)
+        finally:
+            s.close()
+            if self._log is not None:
+                self._log.close()
+        return self.summary()
+
+    def summary(self) -> dict[str, Any]:
+        cfg = self.cfg
+        counts = collections.Counter(f.oracle for f in self.findings)
+        return {
+            "schema": F.SCHEMA, "seed": cfg.seed, "target": "%s:%d" % cfg.settings.target,
+            "cases_run": self.cases_run, "duration_s": round(time.time() - self.started, 3),
+            "restarts": max(0, (self.supervisor.starts - 1) if self.supervisor else 0),
+            "findings": [{"oracle": f.oracle, "case_index": f.case_index, "mutation": f.mutation,
+                          "detail": f.detail, "file": name} for f, name in zip(self.findings, self.files)],
+            "counts": dict(counts), "repeats": dict(self.repeats), "unreproduced": self.unreproduced,
+            "stopped_early": self.stopped_early,
+        }
+
+    # --- triggers -----------------------------------------------------------------------------------
+    def _settle(self) -> None:
+        """Let outstanding acknowledgements arrive (or time out) before replays borrow the link."""
+        s = self.session
+        deadline = time.time() + s.settings.limits.ack_timeout_ms / 1000 + 0.05
+        while s.monitor.pending and time.time() < deadline:
+            s.pump(min(deadline, time.time() + 0.02))
+
+    def _investigate_all(self) -> None:
+        s = self.session
+        self._settle()
+        queue, s.monitor.triggers = s.monitor.triggers, []
+        investigated = False
+        for trig in queue:
+            if len(self.findings) >= self.cfg.max_findings:
+                break
+            investigated = self._investigate(trig) or investigated
+        if investigated or not s.healthy():
+            self._recover()
+        s.monitor.pending.clear()
+        s.monitor.triggers.clear()    # what happened during replays was judged there
+
+    def _recover(self) -> None:
+        """Back to a clean controller: restart it, or wait for it to come back on its own."""
+        s = self.session
+        if self.supervisor is not None:
+            s.restart_target()
+        elif not s.healthy() and not s.wait_for_vrpo(time.time(), s.settings.startup_s):
+            raise TargetLost("the controller stopped sending VRPO and there is no --target-cmd to restart it")
+
+    def _key(self, oracle: str, index: Optional[int], kind: str) -> tuple[str, str]:
+        family = self.records[index][0].family if index in self.records else "none"
+        return oracle, f"{family.split('-', 1)[-1]}/{kind}"
+
+    def _investigate(self, trig: Trigger) -> bool:
+        """Confirm `trig` by replaying its suspects; save a finding. True if replays were run."""
+        suspects = [i for i in ([trig.case_index] if trig.case_index is not None else trig.suspects)
+                    if i in self.records]
+        spontaneous = not trig.suspects and trig.case_index is None
+        # A suspect of a kind already found most likely did it again: not worth the replays.
+        known = [i for i in suspects if self._key(trig.oracle, i, trig.kind) in self.found]
+        if known or (spontaneous and self._key(trig.oracle, None, trig.kind) in self.found):
+            self.repeats[trig.oracle] += 1
+            return False
+        what = "observing the controller again" if spontaneous else f"replaying {len(suspects)} suspect case(s)"
+        self.cfg.progress(f"{trig.oracle}: {trig.detail}; {what}")
+        traffic = [p for p in self.session.traffic if p[0] >= trig.time - 4.0]
+        if spontaneous:   # nothing the cases did: does the controller do it again on its own?
+            if self._trial(Replay([]), trig.oracle):
+                self.found.add(self._key(trig.oracle, None, trig.kind))
+                vrai = trig.packet or b""
+                what = "none: the base unit's normal VRAI" if trig.packet else "none: no case in the window"
+                self._write(trig, max(0, self.cases_run - 1), "none", what, [],
+                            Sent(trig.time, vrai, vrai, 0.0, False), None, False, None, traffic)
+            else:
+                self._unreproduced(trig, [])
+            return True
+        for index in suspects[:_MAX_SUSPECTS]:
+            if self._trial(Replay.of(*self.records[index]), trig.oracle):
+                self.found.add(self._key(trig.oracle, index, trig.kind))
+                case, sent = self.records[index]
+                shown, small, complete = self._minimize(trig, case, sent)
+                self._write(trig, index, case.family, case.description, sent, shown, small, complete, case, traffic)
+                return True
+        self._unreproduced(trig, suspects[:_MAX_SUSPECTS])
+        return True
+
+    def _unreproduced(self, trig: Trigger, suspects: list[int]) -> None:
+        self.unreproduced.append({"oracle": trig.oracle, "detail": trig.detail, "time": trig.time,
+                                  "suspects": suspects})
+
+    def _trial(self, replay: Replay, oracle: str) -> bool:
+        """One replay against a clean controller: restarted first when supervised, so that no
+        state left by earlier replays decides the result."""
+        s = self.session
+        if self.supervisor is not None:
+            s.restart_target()
+        elif not s.healthy() and not s.wait_for_vrpo(time.time(), s.settings.startup_s):
+            raise TargetLost("the controller stopped sending VRPO and there is no --target-cmd to restart it")
+        return trial(s, replay, oracle)
+
+    def _minimize(self, trig: Trigger, case: K.Case, sent: list[Sent]) -> tuple[Optional[Sent], Optional[Sent], bool]:
+        """(the packet the finding shows, its minimised version or None, complete): first the
+        fewest steps of the case that still trigger, then, with one packet left, its fewest changes."""
+        deadline = time.time() + self.cfg.minimize_budget_s
+        shown = _pick(sent, trig.command_id)
+
+        def again(packets: list[Sent]) -> bool:
+            if time.time() > deadline:
+                raise _Budget
+            return self._trial(Replay(packets, case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream,
+                                      case.settle_ms), trig.oracle)
+        chosen: list[object] = list(range(len(sent)))
+        complete = True
+        if len(chosen) > 1:
+            cache: dict[tuple[object, ...], bool] = {tuple(chosen): True}
+
+            def test(subset: list[object]) -> bool:
+                if tuple(subset) not in cache:
+                    cache[tuple(subset)] = again([sent[int(i)] for i in subset])  # type: ignore[call-overload]
+                return cache[tuple(subset)]
+            try:
+                chosen = ddmin(chosen, test)
+            except _Budget:
+                complete = False
+        if len(chosen) != 1:
+            return shown, None, False
+        one = sent[int(chosen[0])]  # type: ignore[call-overload]
+        if one.data == one.twin:
+            return one, one, complete
+        result = minimize(one.data, one.twin, lambda candidate: again(
+            [Sent(0.0, candidate, one.twin, 0.0, one.expect_ack)]), budget_s=max(0.0, deadline - time.time()))
+        return one, Sent(0.0, result.packet, one.twin, 0.0, one.expect_ack), complete and result.complete
+
+    def _write(self, trig: Trigger, index: int, family: str, description: str, sent: list[Sent],
+               shown: Optional[Sent], small: Optional[Sent], complete: bool, case: Optional[K.Case],
+               traffic: list[Any]) -> None:
+        st = self.cfg.settings
+        packet = small or shown
+        steps = [small] if small is not None else sent
+        finding = F.Finding(
+            oracle=trig.oracle, seed=self.cfg.seed, case_index=index, family=family, mutation=description,
+            detail=trig.detail, packet_hex=packet.data.hex() if packet else "",
+            original_hex=shown.data.hex() if shown else "", valid_hex=shown.twin.hex() if shown else "",
+            differences=difference(packet.data, packet.twin) if packet else 0,
+            minimised=small is not None and complete,
+            steps=[{"hex": p.data.hex(), "valid_hex": p.twin.hex(), "delay_ms": p.delay_ms if len(steps) > 1 else 0.0,
+                    "expect_ack": p.expect_ack} for p in steps],
+            pause_vrpi_ms=case.pause_vrpi_ms if case else 0.0,
+            withhold_vrai_ms=case.withhold_vrai_ms if case else 0.0,
+            stream=_jsonable(case.stream if case else None), settle_ms=case.settle_ms if case else 0.0,
+            output_hex=trig.output.hex() if trig.output else None,
+            target="%s:%d" % st.target, listen="%s:%d" % st.listen, group=st.group, target_cmd=self.cfg.target_cmd)
+        self.findings.append(finding)
+        path = F.write_finding(self.cfg.out, len(self.findings), finding, traffic, self.session.link.local)
+        self.files.append(path.name)
+        self.cfg.progress(f"finding {path.name}: {trig.oracle} at case {index} ({description})")
+
+
+class _Budget(Exception):
+    pass
+
+
+def _pick(sent: list[Sent], command_id: Optional[int]) -> Optional[Sent]:
+    """The packet of a case a finding shows: the VRCI with the command concerned, else the last."""
+    vrci = C.PacketType.VRCI.value.encode()
+    for p in sent:
+        if command_id is not None and p.data[:C.ID_LEN] == vrci and len(p.data) >= C.PREFIX_LEN + 2 \
+                and int.from_bytes(p.data[C.PREFIX_LEN:C.PREFIX_LEN + 2], "little") == command_id:
+            return p
+    return sent[-1] if sent else None
+
+
+def _jsonable(stream: Optional[dict[str, Any]]) -> Optional[dict[str, Any]]:
+    return None if stream is None else {k: int(v) for k, v in stream.items()}
+
+
+def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[str],
+                   out: Optional[Path] = None) -> bool:
+    """Send the finding again (minimised packet when there is one); True when it still triggers."""
+    log = (out / "target.log").open("ab") if out is not None and target_cmd else None
+    supervisor = Supervisor(target_cmd, log) if target_cmd else None
+    session = Session(settings, supervisor)
+    try:
+        start_target(session)
+        steps = finding.steps
+        if len(steps) == 1 and finding.packet_hex:
+            steps = [dict(steps[0], hex=finding.packet_hex)]
+        packets = [Sent(0.0, bytes.fromhex(st["hex"]), bytes.fromhex(st["valid_hex"]),
+                        float(st["delay_ms"]), bool(st["expect_ack"])) for st in steps]
+        return trial(session, Replay(packets, finding.pause_vrpi_ms, finding.withhold_vrai_ms, finding.stream,
+                                     finding.settle_ms), finding.oracle)
+    finally:
+        session.close()
+        if log is not None:
+            log.close()

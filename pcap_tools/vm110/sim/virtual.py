@@ -1,0 +1,123 @@
+"""Run nodes on a virtual clock: the same node logic as on sockets, with no sleeping.
+
+Each station is a node with the address it sends from; what it sends passes its impairments
+(`sim.impair`) and the 100 Mbit/s wire, then reaches every node of the other direction and the
+tap. The tap sits where the receivers are: it sees what they receive, in arrival order, and
+remembers for each packet the sender's own account of it (`Meta`) and why it is illegal, if it
+is. That record is the event log the ground truth is computed from (`sim.truth`).
+"""
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass, field
+from typing import Iterator, NamedTuple, Optional
+
+from .clock import VirtualClock, seconds
+from .impair import Impairer, Impairment
+from .node import _NAMES, Meta, Node
+
+WIRE_NS_PER_BYTE = 80        # 100 Mbit/s
+WIRE_OVERHEAD = 66           # Ethernet preamble, headers, FCS and gap, IPv4 and UDP headers
+
+
+@dataclass
+class Station:
+    """A node on the network: where its packets come from and what happens to them on the way."""
+
+    node: Node
+    ip: str
+    port: int
+    impairment: Impairment = field(default_factory=Impairment)
+
+    @property
+    def sender_id(self) -> str:
+        """The analysis' name of this sender (truth-contract.md)."""
+        return f"{self.node.direction.value} {self.ip}:{self.port} origin 0x{self.node.origin:04x}"
+
+
+class Arrival(NamedTuple):
+    """One packet as the tap saw it."""
+
+    t: int                      # µs on the virtual clock
+    station: int                # index of the sending station
+    data: bytes
+    problems: tuple[str, ...]   # illegal reasons by construction; () for a legal packet
+    meta: Meta
+
+
+class VirtualNetwork:
+    """Stations on one multicast group, run for a given time on a virtual clock."""
+
+    def __init__(self, stations: list[Station]) -> None:
+        self.stations = stations
+        self.clock = VirtualClock()
+        self._heap: list[tuple[int, int, int, bytes, tuple[str, ...], Meta]] = []
+        self._seq = 0
+        self._wire_free = [0] * len(stations)
+        self._receivers = [[other.node for other in stations if other.node.direction is not s.node.direction]
+                           for s in stations]
+        for index, station in enumerate(stations):
+            node = station.node
+            imp = station.impairment
+            impairer = Impairer(imp, f"{node.name}:{index}", node.crc, node.crc_order) if imp.active() else None
+            node.attach(self._sender(index, impairer))
+
+    def _sender(self, index: int, impairer: Optional[Impairer]):
+        heap, push = self._heap, heapq.heappush
+
+        def send(data: bytes, now: int, meta: Meta) -> None:
+            start = max(now, self._wire_free[index])
+            self._wire_free[index] = start + (WIRE_OVERHEAD + len(data)) * WIRE_NS_PER_BYTE // 1000 + 1
+            if impairer is None:
+                push(heap, (start, self._seq, index, data, (), meta))
+                self._seq += 1
+                return
+            for t, copy, problems in impairer.apply(data, start, _NAMES[meta.ptype]):
+                push(heap, (t, self._seq, index, copy, problems, meta))
+                self._seq += 1
+        return send
+
+    def run(self, duration_s: float) -> Iterator[Arrival]:
+        """Yield what the tap sees, in order, until `duration_s` of virtual time."""
+        end = seconds(duration_s)
+        nodes = [s.node for s in self.stations]
+        for node in nodes:
+            node.start(0)
+        heap, pop = self._heap, heapq.heappop
+        receivers = [[nodes.index(n) for n in group] for group in self._receivers]
+        never = end + 1
+        # Each node's next deadline, recomputed only when that node has run.
+        dues = [node.next_due() for node in nodes]
+        dues = [never if d is None else d for d in dues]
+        ips = [s.ip for s in self.stations]
+        clock = self.clock
+        make = tuple.__new__
+        now = 0
+        while True:
+            t_node = min(dues)
+            first = dues.index(t_node)
+            if t_node < now:          # overdue (e.g. a command waiting for the previous one)
+                t_node = now
+            t_net = heap[0][0] if heap else never
+            if t_net <= t_node:
+                if t_net >= end:
+                    return
+                t, _, index, data, problems, meta = pop(heap)
+                clock.advance(t)
+                now = t
+                yield make(Arrival, (t, index, data, problems, meta))
+                for r in receivers[index]:
+                    node = nodes[r]
+                    node.vouch(problems)
+                    node.receive(data, t, ips[index])
+                    due = node.next_due()
+                    dues[r] = never if due is None else due
+            else:
+                if t_node >= end:
+                    return
+                clock.advance(t_node)
+                now = t_node
+                node = nodes[first]
+                node.tick(t_node)
+                due = node.next_due()
+                dues[first] = never if due is None else due

@@ -1,0 +1,79 @@
+"""Capture synthesis: a scenario on the virtual clock, written as a tap sees it, with its ground truth.
+
+Frames are Ethernet/IPv4/UDP from each station to the multicast group (TTL 1, valid checksums,
+the group's multicast MAC), timestamps in microseconds from a fixed epoch. The ground truth
+(`truth_path(out)`, JSON, see /work/notes/truth-contract.md and captures/README.md) is computed
+while the frames are written, from the event log, in one pass: memory stays small for long runs.
+The same scenario, seed and duration give byte-identical files.
+"""
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Iterator, Optional
+
+from . import constants as C
+from .capture.writer import Format, UdpFlow, open_writer
+from .sim.clock import seconds
+from .sim.scenario import EPOCH_US, SCENARIOS, Scenario
+from .sim.truth import ground_truth
+from .sim.virtual import Arrival, VirtualNetwork
+
+TRUTH_SUFFIX = ".truth.json"
+# Other traffic a tap also sees: an mDNS query for _vm110._udp.local (not EG-Link).
+OTHER_SOURCE, OTHER_GROUP, MDNS_PORT = "10.0.0.30", "224.0.0.251", 5353
+OTHER_PAYLOAD = bytes.fromhex("000000000001000000000000") + b"\x06_vm110\x04_udp\x05local\x00" + bytes.fromhex("000c0001")
+
+
+def truth_path(out: str) -> str:
+    """Where the ground truth of capture `out` goes: `<out>.truth.json`."""
+    return out + TRUTH_SUFFIX
+
+
+def scenario(name: str) -> Scenario:
+    try:
+        return SCENARIOS[name]
+    except KeyError:
+        raise ValueError(f"unknown scenario {name!r}; choose from {', '.join(SCENARIOS)}") from None
+
+
+def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] = None,
+               fmt: Format = "pcap") -> dict[str, Any]:
+    """Write capture `out` and its truth next to it; returns the truth."""
+    sc = scenario(name)
+    duration = sc.duration_s if duration_s is None else duration_s
+    if duration <= 0:
+        raise ValueError("duration must be positive")
+    stations = sc.build(seed, duration)
+    net = VirtualNetwork(stations)
+    flows = [UdpFlow(s.ip, s.port, C.MULTICAST_GROUP, s.port, ttl=C.MULTICAST_TTL) for s in stations]
+    other = UdpFlow(OTHER_SOURCE, MDNS_PORT, OTHER_GROUP, MDNS_PORT, ttl=255)
+    with open(out, "wb") as stream:
+        writer = open_writer(stream, fmt)
+
+        def tap() -> Iterator[tuple[int, Optional[Arrival]]]:
+            write = writer.write
+            others = [seconds(t) for t in sc.other_traffic if seconds(t) < seconds(duration)]
+            for arrival in net.run(duration):
+                while others and others[0] <= arrival.t:
+                    write(EPOCH_US + others[0], other.frame(OTHER_PAYLOAD))
+                    yield others.pop(0), None
+                write(EPOCH_US + arrival.t, flows[arrival.station].frame(arrival.data))
+                yield arrival.t, arrival
+            for t in others:
+                write(EPOCH_US + t, other.frame(OTHER_PAYLOAD))
+                yield t, None
+
+        truth = ground_truth(tap(), stations, EPOCH_US)
+        writer.close()
+    with open(truth_path(out), "w", encoding="utf-8") as fh:
+        json.dump(truth, fh, indent=1)
+        fh.write("\n")
+    return truth
+
+
+def remove_outputs(out: str) -> None:
+    """Remove a half-written capture and its truth (after an error)."""
+    for path in (out, truth_path(out)):
+        if os.path.exists(path):
+            os.remove(path)

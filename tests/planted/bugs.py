@@ -1,0 +1,97 @@
+"""Planted-bug controllers: the reference controller with one realistic defect each.
+
+Every class names the fuzzer oracle that must catch it (`ORACLE`). They change the reference
+controller only through its documented hooks (see vm110.sim.controller).
+"""
+from __future__ import annotations
+
+import os
+
+from vm110 import constants as C
+from vm110.decode import decode
+from vm110.sim.controller import Controller
+from vm110.sim.impair import mangle
+from vm110.sim.node import Meta, Rx
+
+CRASH_EXIT_CODE = 3
+
+
+class CrashOnJoystick(Controller):
+    """Dies on joystick 1 = -32768: abs() of the most negative 16-bit value overflows (C habit)."""
+
+    ORACLE = "crash"
+
+    def on_vrpi(self, rx: Rx, now: int) -> None:
+        if decode(rx.data).get("joystick1") == -0x8000:
+            os._exit(CRASH_EXIT_CODE)
+        super().on_vrpi(rx, now)
+
+
+class StallAfterOversize(Controller):
+    """Stops sending VRPO for good after a datagram longer than the largest legal packet
+    (a receive buffer of MAX_PACKET bytes overflows into the VRPO timer)."""
+
+    ORACLE = "stall"
+    dead = False
+
+    def receive(self, data: bytes, now: int, src: object = None) -> None:
+        if len(data) > C.MAX_PACKET:
+            self.dead = True
+        super().receive(data, now, src)
+
+    def vrpo_payloads(self, now: int) -> list[bytes]:
+        return [] if self.dead else super().vrpo_payloads(now)
+
+
+class AckBadCrc(Controller):
+    """Checks the CRC of everything but commands: a VRCI with a bad CRC is acknowledged (and run)."""
+
+    ORACLE = "illegal_acked"
+
+    def on_illegal(self, data: bytes, problems: list[str], now: int, src: object) -> None:
+        if data[:C.ID_LEN] == C.PacketType.VRCI.value.encode() and problems == [C.Problem.BAD_CRC.value]:
+            fields = decode(data)
+            self.on_vrci(Rx(C.PacketType.VRCI, fields["origin"], fields["serial"],
+                            data[C.PREFIX_LEN:C.PREFIX_LEN + fields["size"]], data, src), now)
+
+
+class NoReack(Controller):
+    """Acknowledges a command ID only the first time: retransmissions get no VRAO."""
+
+    ORACLE = "missing_ack"
+
+    def on_vrci(self, rx: Rx, now: int) -> None:
+        if self.executed.get(rx.origin) == int.from_bytes(rx.payload[:2], "little"):
+            return
+        super().on_vrci(rx, now)
+
+
+class BadCrcAfterWrap(Controller):
+    """Sends the VRAO for command ID 65535 with a bad CRC (an off-by-one at the ID wrap)."""
+
+    ORACLE = "malformed_output"
+
+    def transmit(self, data: bytes, now: int, meta: Meta) -> None:
+        if meta.ptype is C.PacketType.VRAO and meta.key == C.SERIAL_MODULUS - 1:
+            data = mangle(data, C.Problem.BAD_CRC.value)[0]
+        super().transmit(data, now, meta)
+
+
+class ResendAfterVrai(Controller):
+    """Ignores VRAI: keeps resending each VRCO every 100 ms until its give-up timeout."""
+
+    ORACLE = "vrco_retransmit"
+
+    def on_vrai(self, rx: Rx, now: int) -> None:
+        self.event(now, "vrai_ignored", command_id=int.from_bytes(rx.payload[:2], "little"))
+
+
+BUGS: dict[str, type[Controller]] = {
+    "reference": Controller,
+    "crash-on-joystick": CrashOnJoystick,
+    "stall-after-oversize": StallAfterOversize,
+    "ack-bad-crc": AckBadCrc,
+    "no-reack": NoReack,
+    "bad-crc-after-wrap": BadCrcAfterWrap,
+    "resend-after-vrai": ResendAfterVrai,
+}

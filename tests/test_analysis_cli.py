@@ -1,0 +1,91 @@
+"""`vm110 analyze`: summary, JSON and HTML files, several captures, --jobs, --fail-on, exit codes."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from test_analysis_craft import Traffic, vrpi
+from vm110.errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE
+
+
+def vm110(*args: str, env: dict = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vm110", "analyze", *args], capture_output=True, text=True,
+                          env=env)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    base = tmp_path_factory.mktemp("cli")
+    clean, lossy = Traffic(), Traffic()
+    for i in range(16):
+        clean.add(i * 0.125, vrpi(i))
+        if i != 7:
+            lossy.add(i * 0.125, vrpi(i))
+    clean.write(base / "clean.pcap")
+    lossy.write(base / "lossy.pcapng", "pcapng")
+    (base / "text.pcap").write_text("this is not a capture\n")
+    Traffic().write(base / "empty.pcap")
+    return base
+
+
+def one_line_error(result: subprocess.CompletedProcess) -> None:
+    assert result.returncode == EXIT_USAGE
+    assert "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_clean_capture_summary_and_exit_zero(files):
+    result = vm110(str(files / "clean.pcap"), "--fail-on", "lost>0,watchdog>0,unacked>0,illegal>0")
+    assert result.returncode == EXIT_OK, result.stderr
+    assert "VERDICT: OK" in result.stdout and "VRPI 16" in result.stdout
+    assert result.stderr == ""                     # no progress bar when stderr is not a terminal
+
+
+def test_fail_on_violation_exits_one(files):
+    result = vm110(str(files / "lossy.pcapng"), "--fail-on", "lost>0")
+    assert result.returncode == EXIT_FINDINGS
+    assert "VERDICT: FAIL" in result.stdout and "lost=1 (rule lost>0)" in result.stderr
+    assert vm110(str(files / "lossy.pcapng"), "--fail-on", "lost>1,watchdog").returncode == EXIT_OK
+
+
+@pytest.mark.parametrize("args", [
+    ["--fail-on", "lost>>0"], ["--fail-on", "nonsense>1"], ["--jobs", "0"], ["--port", "70000"],
+])
+def test_bad_arguments(files, args):
+    one_line_error(vm110(str(files / "clean.pcap"), *args))
+
+
+def test_unreadable_inputs(files):
+    one_line_error(vm110(str(files / "text.pcap")))
+    one_line_error(vm110(str(files / "missing.pcap")))
+
+
+def test_tshark_engine_without_its_dissector(files, tmp_path):
+    import os
+    env = {**os.environ, "VM110_DISSECTOR": str(tmp_path / "nope.lua")}
+    one_line_error(vm110(str(files / "clean.pcap"), "--engine", "tshark", env=env))
+
+
+def test_empty_capture(files, tmp_path):
+    result = vm110(str(files / "empty.pcap"), "--json", str(tmp_path / "e.json"))
+    assert result.returncode == EXIT_OK
+    report = json.loads((tmp_path / "e.json").read_text())
+    assert report["capture"]["packets"] == 0 and report["verdict"]["findings"][0]["rule"] == "no_eglink"
+
+
+def test_json_and_html_of_several_captures_in_parallel(files, tmp_path):
+    caps = [str(files / "clean.pcap"), str(files / "lossy.pcapng")]
+    serial = vm110(*caps, "--json", str(tmp_path / "a.json"), "--html", str(tmp_path / "a.html"))
+    parallel = vm110(*caps, "--json", str(tmp_path / "b.json"), "--jobs", "2")
+    assert serial.returncode == parallel.returncode == EXIT_OK
+    assert "Combined: 2 captures, FAIL" in serial.stdout
+    a, b = (json.loads((tmp_path / n).read_text()) for n in ("a.json", "b.json"))
+    assert a["schema_version"] == 1 and [r["capture"]["file"] for r in a["reports"]] == caps
+    assert a["combined"]["totals"]["lost"] == 1 and a["combined"]["ok"] is False
+    assert a == b
+    page = (tmp_path / "a.html").read_text()
+    assert page.count('data-plot="interval-histogram"') == 2 and "http" not in page.replace(
+        "http://www.w3.org/2000/svg", "")

@@ -1,0 +1,60 @@
+"""Both engines give the same report: the fast one (own reader and decoder) and the tshark one
+(the Lua dissector through pyshark), on every bundled capture and on crafted and synthesised ones."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from test_analysis_engine import build_mixed
+from test_analysis_truth import ALL_CAPTURES
+from vm110.analysis import analyze
+from vm110.synth import synthesize
+
+pytestmark = pytest.mark.tshark
+
+
+def comparable(report: dict) -> dict:
+    """Everything but the engine's name and the CRC candidates the tshark engine did not need to try."""
+    out = json.loads(json.dumps(report))
+    del out["tool"]
+    del out["crc"]["candidates"]
+    return out
+
+
+def assert_same(path: str) -> None:
+    fast, slow = comparable(analyze(path)), comparable(analyze(path, engine="tshark"))
+    for key in fast:
+        assert slow[key] == fast[key], key
+    assert slow == fast
+
+
+@pytest.mark.parametrize("capture", ALL_CAPTURES, ids=lambda p: p.name)
+def test_engines_agree_on_bundled_captures(capture):
+    assert_same(str(capture))
+
+
+def test_engines_agree_on_the_crafted_capture(tmp_path):
+    build_mixed(tmp_path / "mixed.pcap")
+    assert_same(str(tmp_path / "mixed.pcap"))
+
+
+@pytest.mark.parametrize("scenario,fmt", [("illegal", "pcap"), ("loss", "pcapng"), ("vrpo-split", "pcap")])
+def test_engines_agree_on_synthesised_captures(tmp_path, scenario, fmt):
+    out = tmp_path / f"{scenario}.{fmt}"
+    synthesize(scenario, str(out), 3, None, fmt)
+    assert_same(str(out))
+
+
+def test_engines_agree_on_another_crc_variant(tmp_path):
+    from test_analysis_craft import BU_ORIGIN, Traffic, payload
+    from vm110 import constants as C
+    from vm110.layers import VRPI
+    tr = Traffic()
+    for i in range(10):
+        tr.add(i * 0.125, payload(VRPI, i, BU_ORIGIN, variant="iso-hdlc", order="big", bu_state=C.BuState.ARMED,
+                                  crc=0 if i == 4 else None))
+    tr.write(tmp_path / "iso.pcap")
+    report = analyze(str(tmp_path / "iso.pcap"), engine="tshark")
+    assert (report["crc"]["variant"], report["crc"]["byte_order"], report["crc"]["valid"]) == ("iso-hdlc", "big", 9)
+    assert_same(str(tmp_path / "iso.pcap"))

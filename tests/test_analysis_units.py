@@ -1,0 +1,218 @@
+"""Serial classification, jitter and bursts against plain reference implementations, CRC and
+serial-scope auto-detection, wraps, and the robustness cases of issue 6 through `analyze`."""
+from __future__ import annotations
+
+import math
+import random
+import struct
+
+import pytest
+from hypothesis import given, strategies as st
+
+from test_analysis_craft import BU_ORIGIN, T0, Traffic, payload, vrpi
+from vm110 import constants as C
+from vm110.analysis import analyze, bursts, serials, timing
+from vm110.analysis.report import Options
+from vm110.layers import VRAO, VRCI, VRPI, VRPO
+
+MOD = C.SERIAL_MODULUS
+
+
+def reference_serials(seq: list) -> dict:
+    """Unwrapping version of interpretation.md's rules, written independently."""
+    high, seen, lost = None, set(), set()
+    dup = ooo = wraps = 0
+    for s in seq:
+        if high is None:
+            high = s
+            seen.add(s)
+            continue
+        d = (s - high) % MOD
+        if 0 < d < MOD // 2:
+            new = high + d
+            lost.update(range(high + 1, new))
+            wraps += new // MOD - high // MOD
+            high = new
+            seen.add(new)
+        else:
+            u = high - (MOD - d) % MOD
+            if d == 0 or u in seen:
+                dup += 1
+            else:
+                ooo += 1
+                lost.discard(u)
+                seen.add(u)
+    return {"lost": len(lost), "duplicates": dup, "out_of_order": ooo, "wraps": wraps}
+
+
+@given(st.integers(0, MOD - 1), st.lists(st.integers(-3, 6), max_size=300), st.integers(0, 2**32))
+def test_serials_match_the_reference(start, steps, seed):
+    seq, s = [start], start
+    rng = random.Random(seed)
+    for step in steps:
+        if step < 0 and len(seq) > 1:
+            seq.append(seq[rng.randrange(len(seq))])          # a repeat or a late one
+        else:
+            s = (s + max(step, 1)) % MOD
+            seq.append(s)
+    got = serials.classify(seq, [float(i) for i in range(len(seq))])
+    ref = reference_serials(seq)
+    assert {k: getattr(got, k) for k in ref} == ref
+
+
+def test_serial_wrap_and_loss_across_it():
+    got = serials.classify([65533, 65534, 65535, 0, 1], [0.0] * 5)
+    assert (got.lost, got.wraps, got.gaps) == (0, 1, [])
+    got = serials.classify([65534, 1, 0, 2], [0.0, 1.0, 2.0, 3.0])
+    assert (got.gaps, got.lost_serials, got.out_of_order_serials, got.wraps) == ([(65534, 2, 1.0)], [65535], [0], 1)
+
+
+def test_a_gap_left_behind_a_whole_cycle_stays_lost():
+    seq = [0, 2] + list(range(3, MOD)) + [0, 1, 2]        # 1 missing; 65536 later, 1 comes round again
+    got = serials.classify(seq, [0.0] * len(seq))
+    assert (got.lost_serials, got.out_of_order, got.duplicates) == ([1], 0, 0)
+
+
+def reference_jitter(times: list, period: float) -> list:
+    j, out = 0.0, []
+    for a, b in zip(times, times[1:]):
+        delta = (b - a) * 1000.0
+        k = max(1, math.floor(delta / period + 0.5))
+        j = j + (abs(delta - k * period) - j) / 16
+        out.append(j)
+    return out
+
+
+def test_jitter_block_recurrence_equals_the_plain_loop():
+    rng = random.Random(5)
+    times, t = [], 1.7e9
+    for _ in range(5000):
+        t += rng.choice([0.125, 0.125, 0.25, 0.6]) + rng.gauss(0, 0.004)
+        times.append(t)
+    want = reference_jitter(times, 125.0)
+    got = timing.jitter_series(times, 125.0)
+    assert max(abs(a - b) for a, b in zip(got, want)) < 1e-6
+    assert timing.jitter_ms(times, 125.0)["final"] == pytest.approx(want[-1], abs=1e-9)
+
+
+def test_percentiles_are_linear_between_ranks():
+    assert timing.summary([1.0, 2.0, 3.0, 4.0]) == {"min": 1.0, "mean": 2.5, "p50": 2.5, "p95": 3.85,
+                                                    "p99": pytest.approx(3.97), "p999": pytest.approx(3.997),
+                                                    "max": 4.0}
+
+
+def test_bursts():
+    full, tail = 2 + C.VRPO_MAX_DATA, 2 + 100
+    times = [0.0, 0.001, 0.002, 0.1, 0.101, 0.2, 0.201, 0.202, 0.3]
+    numbers = [0, 1, 2, 0, 2, 1, 0, 2, 0]
+    sizes = [full, full, tail, full, tail, full, full, tail, tail]
+    complete, incomplete, starts = bursts.count(times, numbers, sizes)
+    assert (complete, incomplete, list(starts)) == (3, 1, [0.0, 0.1, 0.2, 0.3])   # 0.2: reordered, still whole
+    assert bursts.count([0.0, 0.1], [0, 1], [tail, tail])[:2] == (1, 1)
+    assert bursts.count([0.0, 0.01], [0, 0], [tail, tail])[:2] == (0, 1)        # closer than the burst gap
+    assert bursts.count([0.0, 0.001], [0, 1], [full, full], data_size=2 * C.VRPO_MAX_DATA)[:2] == (1, 0)
+
+
+def test_crc_auto_finds_another_variant_and_byte_order(tmp_path):
+    tr = Traffic()
+    for i in range(20):
+        tr.add(i * 0.125, payload(VRPI, i, BU_ORIGIN, variant="bzip2", order="big", bu_state=C.BuState.ARMED))
+    tr.write(tmp_path / "b.pcap")
+    report = analyze(str(tmp_path / "b.pcap"))
+    assert (report["crc"]["variant"], report["crc"]["byte_order"], report["crc"]["valid"]) == ("bzip2", "big", 20)
+    assert report["illegal"]["total"] == 0 and report["senders"][0]["serial"]["received"] == 20
+    forced = analyze(str(tmp_path / "b.pcap"), crc="mpeg2", crc_order="little")
+    assert forced["crc"]["invalid"] == 20 and forced["illegal"]["by_reason"] == {"bad_crc": 20}
+
+
+def test_serial_scope_auto_detects_per_type_counters(tmp_path):
+    tr = Traffic()
+    for i in range(40):
+        tr.add(i * 0.125, vrpi(i))
+        if i % 4 == 1:
+            tr.add(i * 0.125 + 0.01, payload(VRCI, i // 4, BU_ORIGIN, command_id=i // 4))   # own counter
+    tr.write(tmp_path / "t.pcap")
+    report = analyze(str(tmp_path / "t.pcap"))
+    ser = report["senders"][0]["serial"]
+    assert (ser["scope"], ser["lost"], ser["out_of_order"], ser["duplicates"]) == ("type", 0, 0, 0)
+    forced = analyze(str(tmp_path / "t.pcap"), options=Options(serial_scope="sender"))["senders"][0]["serial"]
+    assert forced["scope"] == "sender" and forced["duplicates"] == 10
+
+
+def _vrpi_traffic(n: int = 12) -> Traffic:
+    tr = Traffic()
+    for i in range(n):
+        tr.add(i * 0.125, vrpi(i))
+    return tr
+
+
+def test_file_cut_in_a_record_is_reported_and_the_rest_analysed(tmp_path):
+    path = tmp_path / "cut.pcap"
+    _vrpi_traffic().write(path)
+    data = path.read_bytes()
+    path.write_bytes(data[:-30])
+    report = analyze(str(path))
+    assert report["capture"]["packets"] == 11 and report["senders"][0]["by_type"] == {"VRPI": 11}
+    assert "cut in the middle" in report["capture"]["problem"]
+    assert report["verdict"]["findings"][0]["rule"] == "capture" and not report["verdict"]["ok"]
+
+
+def test_snaplen_truncated_eglink_packet_is_illegal_truncated(tmp_path):
+    path = tmp_path / "snap.pcap"
+    _vrpi_traffic(3).write(path)
+    data = bytearray(path.read_bytes())
+    # Cut the second record's frame to 60 bytes as a snaplen would (records start after the 24-byte header).
+    first_len = struct.unpack_from("<I", data, 24 + 8)[0]
+    second = 24 + 16 + first_len
+    incl = struct.unpack_from("<I", data, second + 8)[0]
+    struct.pack_into("<I", data, second + 8, 60)
+    del data[second + 16 + 60:second + 16 + incl]
+    path.write_bytes(bytes(data))
+    report = analyze(str(path))
+    assert report["capture"]["snaplen_truncated"] == 1
+    assert report["illegal"]["by_reason"] == {"truncated": 1}
+    assert report["senders"][0]["serial"]["lost"] == 1
+
+
+def test_timestamps_going_backwards(tmp_path):
+    tr = _vrpi_traffic(6)
+    t, *rest = tr.frames[3]
+    tr.frames[3] = (t - 1.0, *rest)                   # one packet stamped a second early
+    tr.write(tmp_path / "back.pcap")
+    report = analyze(str(tmp_path / "back.pcap"))
+    p = report["periodic"][0]
+    assert p["time_backwards"] == 1 and report["capture"]["time_backwards"] == 1
+    assert p["interval_ms"]["min"] == -875.0 and p["watchdog"]["violations"] == [
+        {"start": T0 + 3 * 0.125 - 1.0, "gap_ms": 1125.0}]
+    assert report["senders"][0]["serial"]["lost"] == 0
+
+
+def test_empty_capture(tmp_path):
+    Traffic().write(tmp_path / "empty.pcap")
+    report = analyze(str(tmp_path / "empty.pcap"))
+    assert report["capture"]["packets"] == 0 and report["senders"] == [] and report["periodic"] == []
+    assert report["verdict"]["ok"] and report["verdict"]["findings"][0]["rule"] == "no_eglink"
+
+
+def test_command_id_wrap_and_ack_matching(tmp_path):
+    tr = Traffic()
+    s = 0
+    for cid in (65534, 65535, 0, 1):
+        tr.add(s * 0.2, payload(VRCI, s, BU_ORIGIN, command_id=cid))
+        tr.add(s * 0.2 + 0.05, payload(VRAO, s, command_id=cid), src="10.0.0.20", sport=C.OUTPUT_PORT)
+        s += 1
+    tr.write(tmp_path / "wrap.pcap")
+    vrci = analyze(str(tmp_path / "wrap.pcap"))["commands"]["VRCI"]
+    assert (vrci["commands"], vrci["acked"], vrci["command_id_wraps"], vrci["acks_without_command"]) == (4, 4, 1, 0)
+    assert vrci["ack_latency_ms"]["max"] == 50.0
+
+
+def test_vrpo_on_another_port_found_by_its_header(tmp_path):
+    tr = Traffic()
+    for i in range(5):
+        tr.add(i * 0.1, payload(VRPO, i, packet_number=0, periodic_data=b"abc"), src="10.9.9.9", sport=7000)
+    tr.add(0.55, b"VRPO-not-really", src="10.9.9.9", sport=7000)
+    tr.write(tmp_path / "port.pcap")
+    report = analyze(str(tmp_path / "port.pcap"))
+    assert report["capture"]["eglink_packets"] == 5 and report["capture"]["other_udp_packets"] == 1
+    assert report["senders"][0]["src"] == "10.9.9.9:7000" and report["vrpo_bursts"]["complete"] == 5

@@ -1,0 +1,169 @@
+"""The fuzzer's oracles on scripted traffic: each fires on its defect and stays quiet on correct
+behaviour. Packets are made with vm110.encode (and corrupted by hand), times are given explicitly."""
+from __future__ import annotations
+
+import pytest
+
+from vm110 import constants as C
+from vm110 import encode
+from vm110.fuzz.oracles import Limits, Monitor
+
+CTL = ("127.0.0.1", 40000)
+T0 = 1000.0
+
+
+def vrci(command_id: int, serial: int = 1) -> bytes:
+    return encode.packet("VRCI", encode.command_payload(command_id), origin=0x0101, serial=serial)
+
+
+def out(ptype: str, payload: bytes, serial: int, origin: int = 0) -> bytes:
+    return encode.packet(ptype, payload, origin=origin, serial=serial)
+
+
+def bad_crc(data: bytes) -> bytes:
+    return data[:-1] + bytes([data[-1] ^ 0xFF])
+
+
+class Link:
+    """Feeds a Monitor the controller's packets with increasing serials."""
+
+    def __init__(self) -> None:
+        self.mon = Monitor(Limits(), T0)
+        self.serial = 0
+
+    def rx(self, t: float, ptype: str, payload: bytes = b"", origin: int = 0, corrupt: bool = False) -> None:
+        data = out(ptype, payload, self.serial, origin)
+        self.serial += 1
+        self.mon.on_rx(t, bad_crc(data) if corrupt else data, CTL)
+
+    def vrpo(self, t: float) -> None:
+        self.rx(t, "VRPO", encode.vrpo_payload(0, b"x"))
+
+    def oracles(self) -> list[str]:
+        return [t.oracle for t in self.mon.triggers]
+
+
+@pytest.fixture
+def link() -> Link:
+    return Link()
+
+
+def test_acknowledged_commands_are_fine(link):
+    for n, cid in enumerate((5, 5, 6)):          # a retransmission of 5, then 6
+        link.mon.on_tx(T0 + n * 0.1, vrci(cid, n), vrci(cid, n), index=n)
+    for n, cid in enumerate((5, 5, 6)):
+        link.rx(T0 + 0.05 + n * 0.1, "VRAO", encode.ack_payload(cid))
+    link.mon.tick(T0 + 5)
+    assert link.oracles() == []
+
+
+def test_missing_ack_for_a_retransmission(link):
+    link.mon.on_tx(T0, vrci(9), vrci(9), index=3)
+    link.mon.on_tx(T0 + 0.1, vrci(9, 2), vrci(9, 2), index=3)
+    link.rx(T0 + 0.01, "VRAO", encode.ack_payload(9))
+    link.mon.tick(T0 + 0.5)
+    assert link.oracles() == []
+    link.mon.tick(T0 + 0.1 + 1.01)
+    assert link.oracles() == ["missing_ack"]
+    assert link.mon.triggers[0].case_index == 3 and link.mon.triggers[0].command_id == 9
+
+
+def test_duplicate_frames_need_no_ack(link):
+    link.mon.on_tx(T0, vrci(4), vrci(4), index=1, expect_ack=False)
+    link.mon.tick(T0 + 3)
+    assert link.oracles() == []
+
+
+def test_illegal_command_acknowledged(link):
+    link.mon.on_tx(T0, bad_crc(vrci(7)), vrci(7), index=11)
+    link.mon.tick(T0 + 2)                          # no ack is right: nothing fires
+    assert link.oracles() == []
+    link.rx(T0 + 2.1, "VRAO", encode.ack_payload(7))
+    assert link.oracles() == ["illegal_acked"] and link.mon.triggers[0].case_index == 11
+
+
+def test_unknown_packet_id_from_a_command_is_judged_by_its_twin(link):
+    mutated = b"VRXI" + vrci(8)[4:]
+    link.mon.on_tx(T0, mutated, vrci(8), index=2)
+    link.rx(T0 + 0.01, "VRAO", encode.ack_payload(8))
+    assert link.oracles() == [], "an ack of a non-VRCI packet is not an illegal VRCI ack"
+
+
+def test_ack_for_a_command_never_sent(link):
+    link.rx(T0, "VRAO", encode.ack_payload(321))
+    assert link.oracles() == ["malformed_output"]
+
+
+@pytest.mark.parametrize("defect", ["crc", "origin", "direction", "repeat", "backwards"])
+def test_malformed_output(link, defect):
+    link.vrpo(T0)
+    if defect == "crc":
+        link.rx(T0 + 0.1, "VRPO", encode.vrpo_payload(0, b""), corrupt=True)
+    elif defect == "origin":
+        link.rx(T0 + 0.1, "VRPO", encode.vrpo_payload(0, b""), origin=0x0101)
+    elif defect == "direction":
+        link.rx(T0 + 0.1, "VRPI", encode.vrpi_payload({}))
+    else:
+        link.serial -= 1 if defect == "repeat" else 5
+        link.vrpo(T0 + 0.1)
+    assert link.oracles() == ["malformed_output"]
+
+
+def test_serials_may_wrap(link):
+    link.serial = C.SERIAL_MODULUS - 2
+    for n in range(4):
+        link.vrpo(T0 + n * 0.1)
+    assert link.oracles() == []
+
+
+def test_stall_blames_the_cases_right_after_the_last_vrpo(link):
+    link.mon.note_case(T0 - 0.05, 1)
+    link.vrpo(T0)
+    link.mon.note_case(T0 + 0.02, 2)
+    link.mon.note_case(T0 + 0.6, 3)
+    link.mon.tick(T0 + 1.9)
+    assert link.oracles() == []
+    link.mon.tick(T0 + 2.01)
+    assert link.oracles() == ["stall"]
+    assert link.mon.triggers[0].suspects[:2] == [2, 1]
+    link.mon.tick(T0 + 3)
+    assert link.oracles() == ["stall"], "reported once per silence"
+
+
+def test_vrco_resent_while_withheld_is_fine_until_it_stops(link):
+    link.mon.withholding = True
+    for n in range(4):
+        link.rx(T0 + n * 0.1, "VRCO", encode.command_payload(2))
+        link.mon.tick(T0 + n * 0.1 + 0.05)
+    assert link.oracles() == []
+    link.mon.tick(T0 + 0.3 + 0.26)
+    assert link.oracles() == ["vrco_retransmit"]
+    assert "not resent" in link.mon.triggers[0].detail
+
+
+def test_vrco_after_its_vrai(link):
+    link.rx(T0, "VRCO", encode.command_payload(2))
+    vrai = encode.packet("VRAI", encode.ack_payload(2), origin=0x0101)
+    link.mon.on_vrai(T0 + 0.001, 2, vrai)
+    link.rx(T0 + 0.1, "VRCO", encode.command_payload(2))     # already in flight: fine
+    assert link.oracles() == []
+    link.rx(T0 + 0.4, "VRCO", encode.command_payload(2))
+    assert link.oracles() == ["vrco_retransmit"] and link.mon.triggers[0].packet == vrai
+
+
+def test_new_vrco_after_an_acked_one_is_fine(link):
+    for cid in range(3):
+        t = T0 + cid * 0.5
+        link.rx(t, "VRCO", encode.command_payload(cid))
+        link.mon.on_vrai(t + 0.001, cid, b"")
+    link.mon.tick(T0 + 5)
+    assert link.oracles() == []
+
+
+def test_exit_is_a_crash_blaming_recent_cases(link):
+    link.mon.note_case(T0 - 1, 1)
+    link.vrpo(T0)
+    link.mon.note_case(T0 + 0.01, 2)
+    link.mon.note_case(T0 + 0.02, 3)
+    link.mon.on_exit(T0 + 0.03, 3)
+    assert link.oracles() == ["crash"] and link.mon.triggers[0].suspects == [3, 2]

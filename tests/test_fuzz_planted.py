@@ -1,0 +1,120 @@
+"""End to end: `vm110 fuzz` against planted-bug controllers (tests/planted) over loopback.
+
+With a fixed seed the fuzzer must find each planted bug within 60 s (`--duration 60`; it stops at
+the first finding) and name the right oracle; `--replay` must reproduce the finding, and must not
+against the reference controller. Against the reference controller itself it must find nothing.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import socket
+import struct
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+import pytest
+from scapy.layers.inet import UDP
+from scapy.utils import PcapReader
+
+from planted.bugs import BUGS
+from vm110 import constants as C
+from vm110.decode import decode
+from vm110.fuzz import cases
+
+PLANTED = Path(__file__).resolve().parent / "planted" / "run.py"
+SEED = 1
+
+
+def free_ports(count: int) -> list[int]:
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def controller_cmd(bug: str, rx: int, listen: int) -> str:
+    return " ".join(shlex.quote(part) for part in (
+        sys.executable, str(PLANTED), bug, "--listen", f"127.0.0.1:{rx}", "--peer", f"127.0.0.1:{listen}"))
+
+
+def vm110(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vm110", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def fuzz(out: Path, bug: str, *extra: str) -> tuple[subprocess.CompletedProcess, dict[str, Any]]:
+    rx, listen = free_ports(2)
+    result = vm110("fuzz", "--target", f"127.0.0.1:{rx}", "--listen", f"127.0.0.1:{listen}",
+                   "--target-cmd", controller_cmd(bug, rx, listen), "--seed", str(SEED), "--out", str(out), *extra)
+    summary_path = out / "findings.json"
+    assert summary_path.exists(), result.stderr
+    return result, json.loads(summary_path.read_text())
+
+
+def payloads(pcap: Path) -> list[bytes]:
+    with PcapReader(str(pcap)) as reader:
+        return [bytes(frame[UDP].payload) for frame in reader if UDP in frame]
+
+
+def command_id(packet: bytes) -> int:
+    return struct.unpack_from("<H", packet, C.PREFIX_LEN)[0]
+
+
+# What each finding's minimised packet must be, beyond naming the oracle.
+CHECKS: dict[str, Callable[[dict[str, Any], bytes], None]] = {
+    "crash-on-joystick": lambda f, p: (decode(p)["joystick1"] == -32768 and not decode(p)["problems"]) or pytest.fail(f["packet_hex"]),
+    "stall-after-oversize": lambda f, p: len(p) == C.MAX_PACKET + 1 or pytest.fail(str(len(p))),
+    "ack-bad-crc": lambda f, p: (f["differences"] == 1 and decode(p)["problems"] == [C.Problem.BAD_CRC.value]) or pytest.fail(f["packet_hex"]),
+    "no-reack": lambda f, p: (len(f["steps"]) == 2 and len({command_id(bytes.fromhex(s["hex"])) for s in f["steps"]}) == 1) or pytest.fail(str(f["steps"])),
+    "bad-crc-after-wrap": lambda f, p: (command_id(p) == 0xFFFF and len(f["steps"]) == 1) or pytest.fail(f["packet_hex"]),
+    "resend-after-vrai": lambda f, p: decode(p)["type"] == C.PacketType.VRAI.value or pytest.fail(f["packet_hex"]),
+}
+
+
+@pytest.mark.parametrize("bug", sorted(CHECKS))
+def test_planted_bug_is_found_named_and_replayable(tmp_path, bug):
+    result, summary = fuzz(tmp_path, bug, "--duration", "60", "--max-findings", "1")
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert summary["findings"], summary
+    first = summary["findings"][0]
+    assert first["oracle"] == BUGS[bug].ORACLE, summary
+    finding = json.loads((tmp_path / first["file"]).read_text())
+    assert finding["seed"] == SEED and finding["oracle"] == BUGS[bug].ORACLE
+    assert isinstance(finding["case_index"], int) and finding["mutation"]
+    packet = bytes.fromhex(finding["packet_hex"])
+    CHECKS[bug](finding, packet)
+    sent = payloads(tmp_path / finding["pcap"])
+    assert bytes.fromhex(finding["original_hex"]) in sent, "the pcap holds the traffic around the finding"
+    if finding["case_index"] < len(cases.sweep(SEED)) and finding["family"] != "none":
+        assert cases.generate(SEED, finding["case_index"]).description == finding["mutation"]
+
+    again = vm110("fuzz", "--replay", str(tmp_path / first["file"]))
+    assert again.returncode == 1 and "still triggers" in again.stdout, again.stdout + again.stderr
+    rx, listen = (int(finding[k].rsplit(":", 1)[1]) for k in ("target", "listen"))
+    fixed = vm110("fuzz", "--replay", str(tmp_path / first["file"]),
+                  "--target-cmd", controller_cmd("reference", rx, listen))
+    assert fixed.returncode == 0 and "does not trigger" in fixed.stdout, fixed.stdout + fixed.stderr
+
+
+def _clean_run(tmp_path: Path, seconds: str) -> None:
+    result, summary = fuzz(tmp_path, "reference", "--duration", seconds)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert summary["findings"] == [] and summary["counts"] == {}
+    assert summary["cases_run"] >= len(cases.sweep(SEED)), "the whole sweep ran"
+    assert summary["stopped_early"] is None
+
+
+def test_reference_controller_has_no_findings(tmp_path):
+    _clean_run(tmp_path, "15")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not os.environ.get("VM110_LONG_TESTS"), reason="long run: make test-long")
+def test_reference_controller_has_no_findings_in_60_s(tmp_path):
+    _clean_run(tmp_path, "60")

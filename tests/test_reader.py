@@ -1,0 +1,188 @@
+"""The streaming capture reader: formats, link types, and every way a file can be broken.
+
+Frames are built with scapy and written with struct here, so the expectations do not come from
+the reader's own code."""
+from __future__ import annotations
+
+import struct
+
+import pytest
+from scapy.layers.inet import IP, TCP, UDP, fragment
+from scapy.layers.inet6 import IPv6
+from scapy.layers.l2 import ARP, CookedLinux, CookedLinuxV2, Dot1AD, Dot1Q, Ether, Loopback
+from scapy.packet import Padding
+
+from vm110.capture.reader import CaptureError, CaptureReader
+
+PAYLOAD = b"VRPI" + bytes(30)
+SRC = "10.1.2.3"
+
+
+def udp_ip(payload: bytes = PAYLOAD, sport: int = 5825, dport: int = 5825, src: str = SRC):
+    return IP(src=SRC if src is None else src, dst="239.255.42.20") / UDP(sport=sport, dport=dport) / payload
+
+
+def pcap(records, linktype: int = 1, endian: str = "<", nanos: bool = False, snaplen: int = 65535) -> bytes:
+    """records: (seconds as int/float, frame bytes[, original length])."""
+    magic = 0xA1B23C4D if nanos else 0xA1B2C3D4
+    out = [struct.pack(endian + "IHHiIII", magic, 2, 4, 0, 0, snaplen, linktype)]
+    for rec in records:
+        t, frame = rec[0], bytes(rec[1])
+        orig = rec[2] if len(rec) > 2 else len(frame)
+        sec = int(t)
+        frac = round((t - sec) * (1e9 if nanos else 1e6))
+        out.append(struct.pack(endian + "IIII", sec, frac, len(frame), orig) + frame)
+    return b"".join(out)
+
+
+def block(btype: int, body: bytes, e: str = "<") -> bytes:
+    body += bytes(-len(body) % 4)
+    return struct.pack(e + "II", btype, 12 + len(body)) + body + struct.pack(e + "I", 12 + len(body))
+
+
+def option(code: int, value: bytes, e: str = "<") -> bytes:
+    return struct.pack(e + "HH", code, len(value)) + value + bytes(-len(value) % 4)
+
+
+def read(tmp_path, data: bytes, name: str = "c.pcap", **kw):
+    path = tmp_path / name
+    path.write_bytes(data)
+    reader = CaptureReader(str(path), **kw)
+    return reader, list(reader)
+
+
+def test_ethernet_pcap_gives_udp_payload_without_padding(tmp_path):
+    short = Ether() / udp_ip(b"VRAO") / Padding(b"\xee" * 14)       # padded to the Ethernet minimum
+    assert len(bytes(short)) == 60
+    reader, got = read(tmp_path, pcap([(100.25, short), (101.5, Ether() / udp_ip(sport=5827, dport=6000))]))
+    assert got == [(100.25, bytes([10, 1, 2, 3]), 5825, 5825, b"VRAO", 1),
+                   (101.5, bytes([10, 1, 2, 3]), 5827, 6000, PAYLOAD, 2)]
+    assert (reader.frames, reader.non_udp, reader.problem, reader.format) == (2, 0, None, "pcap")
+    assert (reader.first_ts, reader.last_ts) == (100.25, 101.5)
+
+
+@pytest.mark.parametrize("endian", ["<", ">"])
+@pytest.mark.parametrize("nanos", [False, True])
+def test_byte_orders_and_resolutions(tmp_path, endian, nanos):
+    _, got = read(tmp_path, pcap([(1_700_000_000.123456, Ether() / udp_ip())], endian=endian, nanos=nanos))
+    assert got[0][0] == pytest.approx(1_700_000_000.123456, abs=1e-7)
+    assert got[0][4] == PAYLOAD
+
+
+@pytest.mark.parametrize("frame,linktype", [
+    (Ether() / Dot1Q(vlan=7) / udp_ip(), 1),
+    (Ether() / Dot1AD(vlan=1) / Dot1Q(vlan=7) / udp_ip(), 1),
+    (CookedLinux(proto=0x0800) / udp_ip(), 113),
+    (CookedLinuxV2(proto=0x0800) / udp_ip(), 276),
+    (udp_ip(), 101),
+    (udp_ip(), 228),
+    (Loopback(type=2) / udp_ip(), 0),
+    (Ether() / IP(src=SRC, dst="239.255.42.20", options=b"\x01\x01\x01\x00") / UDP(sport=5825, dport=5825) / PAYLOAD, 1),
+], ids=["vlan", "qinq", "sll", "sll2", "raw", "ipv4", "null", "ip-options"])
+def test_link_types(tmp_path, frame, linktype):
+    reader, got = read(tmp_path, pcap([(5.0, frame)], linktype=linktype))
+    assert [(g[1], g[2], g[4]) for g in got] == [(bytes([10, 1, 2, 3]), 5825, PAYLOAD)]
+    assert reader.non_udp == 0
+
+
+def test_ipv6_udp(tmp_path):
+    frame = Ether() / IPv6(src="fe80::1", dst="ff02::1") / UDP(sport=5825, dport=5825) / PAYLOAD
+    _, got = read(tmp_path, pcap([(1.0, frame)]))
+    assert got[0][1] == bytes.fromhex("fe800000000000000000000000000001") and got[0][4] == PAYLOAD
+
+
+def test_other_traffic_is_counted_not_yielded(tmp_path):
+    frags = fragment(IP(src=SRC, dst="10.0.0.1") / UDP(sport=1, dport=2) / bytes(3000), fragsize=1000)
+    frames = [Ether() / ARP(), Ether() / IP() / TCP(), *(Ether() / f for f in frags), Ether() / udp_ip()]
+    reader, got = read(tmp_path, pcap([(1.0, f) for f in frames]))
+    assert len(got) == 1 and got[0][5] == len(frames)
+    assert reader.frames == len(frames)
+    assert reader.non_udp == len(frames) - 1 and reader.fragments == len(frags)
+
+
+def test_pcapng_interfaces_resolutions_and_blocks(tmp_path):
+    ether, raw = bytes(Ether() / udp_ip()), bytes(udp_ip(sport=5827))
+    shb = block(0x0A0D0D0A, struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1))
+    idb0 = block(1, struct.pack("<HHI", 1, 0, 65535))                                   # microseconds
+    idb1 = block(1, struct.pack("<HHI", 101, 0, 65535) + option(9, b"\x09") + option(0, b""))   # nanoseconds
+    idb2 = block(1, struct.pack("<HHI", 228, 0, 65535) + option(9, b"\x83") + option(14, struct.pack("<q", 10)))
+    def epb(iface, ticks, frame):
+        return block(6, struct.pack("<IIIII", iface, ticks >> 32, ticks & 0xFFFFFFFF, len(frame), len(frame)) + frame)
+    data = b"".join([shb, idb0, idb1, idb2,
+                     epb(0, 1_700_000_000_250_000, ether),
+                     block(0x0BAD, b"unknown block"),                                    # skipped
+                     epb(1, 1_700_000_001_000_000_500, raw),
+                     block(3, struct.pack("<I", len(ether)) + ether),                    # simple packet block
+                     epb(2, 12, raw)])                                                   # 12/8 s + 10 s
+    reader, got = read(tmp_path, data, "c.pcapng")
+    assert [g[0] for g in got] == [1_700_000_000.25, pytest.approx(1_700_000_001.0000005, abs=1e-6),
+                                   1_700_000_001.0000005, 11.5]
+    assert [(g[2], g[5]) for g in got] == [(5825, 1), (5827, 2), (5825, 3), (5827, 4)]
+    assert reader.format == "pcapng" and reader.frames == 4 and reader.link_types == {"ethernet", "raw", "ipv4"}
+
+
+def test_big_endian_pcapng(tmp_path):
+    frame = bytes(Ether() / udp_ip())
+    shb = block(0x0A0D0D0A, struct.pack(">IHHq", 0x1A2B3C4D, 1, 0, -1), ">")
+    idb = block(1, struct.pack(">HHI", 1, 0, 65535), ">")
+    epb = block(6, struct.pack(">IIIII", 0, 0, 3_000_000, len(frame), len(frame)) + frame, ">")
+    _, got = read(tmp_path, shb + idb + epb, "c.pcapng")
+    assert [(g[0], g[4]) for g in got] == [(3.0, PAYLOAD)]
+
+
+@pytest.mark.parametrize("cut", [3, 10, 20])
+def test_file_cut_in_the_middle_of_a_record(tmp_path, cut):
+    data = pcap([(1.0, Ether() / udp_ip()), (2.0, Ether() / udp_ip()), (3.0, Ether() / udp_ip())])
+    reader, got = read(tmp_path, data[:-cut])
+    assert [g[5] for g in got] == [1, 2]
+    assert reader.frames == 2 and "cut in the middle of a record" in reader.problem
+
+
+def test_pcapng_cut_and_corrupt_block(tmp_path):
+    frame = bytes(Ether() / udp_ip())
+    shb = block(0x0A0D0D0A, struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1))
+    idb = block(1, struct.pack("<HHI", 1, 0, 65535))
+    epb = block(6, struct.pack("<IIIII", 0, 0, 1, len(frame), len(frame)) + frame)
+    reader, got = read(tmp_path, shb + idb + epb + epb[:-9], "cut.pcapng")
+    assert len(got) == 1 and "cut" in reader.problem
+    reader, got = read(tmp_path, shb + idb + epb + struct.pack("<II", 6, 7) + bytes(40), "bad.pcapng")
+    assert len(got) == 1 and "corrupt pcapng block" in reader.problem
+
+
+def test_snaplen_truncated_packet(tmp_path):
+    frame = bytes(Ether() / udp_ip(b"VRPI" + bytes(62)))
+    reader, got = read(tmp_path, pcap([(1.0, frame[:60], len(frame)), (2.0, frame)], snaplen=60))
+    assert [len(g[4]) for g in got] == [60 - 42, 66]
+    assert reader.snap_truncated == {1}
+
+
+def test_empty_capture_and_backwards_time(tmp_path):
+    reader, got = read(tmp_path, pcap([]))
+    assert got == [] and reader.frames == 0 and reader.problem is None and reader.first_ts is None
+    _, got = read(tmp_path, pcap([(5.0, Ether() / udp_ip()), (4.0, Ether() / udp_ip())]))
+    assert [g[0] for g in got] == [5.0, 4.0]
+
+
+@pytest.mark.parametrize("content,message", [
+    (b"", "empty file"), (b"ab", "too short"), (b"hello, this is text\n", "not a pcap or pcapng"),
+    (struct.pack("<IHHiI", 0xA1B2C3D4, 2, 4, 0, 0), "file header cut short"),
+])
+def test_not_a_capture(tmp_path, content, message):
+    path = tmp_path / "x.pcap"
+    path.write_bytes(content)
+    with pytest.raises(CaptureError, match=message):
+        list(CaptureReader(str(path)))
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(CaptureError, match="No such file"):
+        CaptureReader(str(tmp_path / "nope.pcap"))
+
+
+def test_chunk_boundaries_do_not_matter(tmp_path):
+    frames = [(1.0 + i, Ether() / udp_ip(bytes([i]) * (i + 1))) for i in range(40)]
+    data = pcap(frames)
+    _, whole = read(tmp_path, data)
+    for size in (17, 64, 100):
+        _, chunked = read(tmp_path, data, chunk_size=size)
+        assert chunked == whole

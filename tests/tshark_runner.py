@@ -1,0 +1,331 @@
+"""Runs dissector/vm110.lua through real tshark: the host's (Debian 12: 4.0, Lua 5.2) and Debian 13's
+(4.4, Lua 5.4) inside the chroot that scripts/setup-tshark44.sh builds and caches.
+
+Also writes EG-Link payloads into a pcap (Ethernet/IPv4/UDP, padded to 60 bytes like a real wire) and
+reads tshark's PDML back into plain Python objects, with the field an expert is attached to.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import shutil
+import struct
+import subprocess
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator, Optional, Sequence
+
+from lxml import etree
+
+from vm110 import constants as C
+
+REPO = Path(__file__).resolve().parents[1]
+PLUGIN = REPO / "dissector" / "vm110.lua"
+TRIXIE_ROOT = Path(os.environ.get("VM110_TRIXIE_ROOT") or
+                   Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "vm110" / "trixie")
+LUA_ERROR = "Lua Error"
+BU_ADDR, CONTROLLER_ADDR, OTHER_ADDR = "10.0.0.10", "10.0.0.20", "10.0.0.30"
+GROUP_ADDR = C.MULTICAST_GROUP
+
+
+class TsharkUnavailable(RuntimeError):
+    """The tshark of a runner cannot be used on this machine."""
+
+
+@dataclass(frozen=True)
+class Tshark:
+    """One tshark installation: the host's, or the one in a chroot (`root`)."""
+
+    name: str
+    root: Optional[Path] = None
+
+    def check(self) -> None:
+        if self.root is None:
+            if shutil.which("tshark") is None:
+                raise TsharkUnavailable("tshark is not installed: run `make setup`")
+            return
+        if not (self.root / ".vm110-ready").exists():
+            raise TsharkUnavailable(f"no tshark 4.4 chroot at {self.root}: run `make tshark44` "
+                                    "(scripts/setup-tshark44.sh, needs root)")
+        if os.geteuid() != 0:
+            raise TsharkUnavailable("running tshark inside the 4.4 chroot needs root")
+
+    @contextlib.contextmanager
+    def workspace(self, base: Path) -> Iterator["Workspace"]:
+        """A directory that tshark sees too (inside the chroot for the chroot's tshark)."""
+        self.check()
+        if self.root is None:
+            base.mkdir(parents=True, exist_ok=True)
+            yield Workspace(self, base)
+            return
+        path = Path(tempfile.mkdtemp(prefix="vm110-", dir=self.root / "tmp"))
+        try:
+            yield Workspace(self, path)
+        finally:
+            shutil.rmtree(path, ignore_errors=True)
+
+    def inner(self, path: Path) -> str:
+        """`path` as tshark sees it."""
+        if self.root is None:
+            return str(path)
+        return "/" + str(Path(path).resolve().relative_to(self.root.resolve()))
+
+    def command(self, args: Sequence[str]) -> list[str]:
+        prefix = ["tshark"] if self.root is None else ["chroot", str(self.root), "tshark"]
+        return prefix + list(args)
+
+
+HOST = Tshark("host")
+TRIXIE = Tshark("trixie", TRIXIE_ROOT)
+RUNNERS = (HOST, TRIXIE)
+
+
+@dataclass
+class Workspace:
+    tshark: Tshark
+    dir: Path
+
+    def plugin_file(self) -> Path:
+        """The plugin file on the host (a copy inside the chroot for the chroot's tshark)."""
+        if self.tshark.root is None:
+            return PLUGIN
+        target = self.dir / PLUGIN.name
+        if not target.exists():
+            shutil.copyfile(PLUGIN, target)
+        return target
+
+    def plugin(self) -> str:
+        """The plugin as tshark sees it."""
+        return self.tshark.inner(self.plugin_file())
+
+    def run(self, args: Sequence[str], plugin: bool = True, check: bool = True,
+            timeout: float = 600) -> subprocess.CompletedProcess:
+        """Run tshark (with the plugin) and return its output; paths in `args` are host paths."""
+        inner_args = [self._translate(a) for a in args]
+        if plugin:
+            inner_args = ["-X", f"lua_script:{self.plugin()}"] + inner_args
+        proc = subprocess.run(self.tshark.command(inner_args), capture_output=True, text=True,
+                              timeout=timeout, errors="replace")
+        if check and proc.returncode != 0:
+            raise AssertionError(f"tshark ({self.tshark.name}) exited {proc.returncode}: {proc.stderr[-2000:]}")
+        return proc
+
+    def _translate(self, arg: str) -> str:
+        if self.tshark.root is None:
+            return arg
+        return arg.replace(str(self.dir), self.tshark.inner(self.dir))
+
+    def pyshark_tshark_path(self) -> str:
+        """An executable named `tshark` for pyshark's `tshark_path`: the chroot's, behind a wrapper."""
+        if self.tshark.root is None:
+            return shutil.which("tshark") or "tshark"
+        wrapper_dir = self.dir / "bin"
+        wrapper_dir.mkdir(exist_ok=True)
+        wrapper = wrapper_dir / "tshark"
+        root = str(self.tshark.root.resolve())
+        wrapper.write_text(
+            "#!/bin/bash\n"
+            "# pyshark passes host paths: strip the chroot prefix from every argument.\n"
+            f"root='{root}'\n"
+            'exec chroot "$root" tshark "${@//"$root"/}"\n')
+        wrapper.chmod(0o755)
+        return str(wrapper)
+
+
+# --- Captures ------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Datagram:
+    payload: bytes
+    sport: Optional[int] = None   # default: by the packet ID's direction (input 5825, output 5827)
+    dport: Optional[int] = None
+
+
+def _ip_checksum(header: bytes) -> int:
+    total = sum(struct.unpack(f"!{len(header) // 2}H", header))
+    while total >> 16:
+        total = (total & 0xFFFF) + (total >> 16)
+    return ~total & 0xFFFF
+
+
+def _addr(text: str) -> bytes:
+    return bytes(int(x) for x in text.split("."))
+
+
+def default_port(payload: bytes) -> int:
+    return C.OUTPUT_PORT if payload[3:4] == b"O" else C.INPUT_PORT
+
+
+def frame(d: Datagram) -> bytes:
+    """Ethernet + IPv4 + UDP (no UDP checksum) around the payload, padded to the 60-byte minimum."""
+    port = default_port(d.payload)
+    sport, dport = d.sport or port, d.dport or port
+    src = CONTROLLER_ADDR if d.payload[3:4] == b"O" else BU_ADDR
+    udp = struct.pack("!HHHH", sport, dport, 8 + len(d.payload), 0) + d.payload
+    ip = struct.pack("!BBHHHBBH4s4s", 0x45, 0, 20 + len(udp), 0, 0, C.MULTICAST_TTL, 17, 0,
+                     _addr(src), _addr(GROUP_ADDR))
+    ip = ip[:10] + struct.pack("!H", _ip_checksum(ip)) + ip[12:]
+    eth = bytes.fromhex("01005e7f2a14" "02fc00000001" "0800")
+    return (eth + ip + udp).ljust(60, b"\0")
+
+
+def write_pcap(path: Path, datagrams: Iterable[Datagram | bytes]) -> int:
+    """Write one frame per datagram, 1 ms apart; returns the number of frames."""
+    count = 0
+    with open(path, "wb") as out:
+        out.write(struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 65535, 1))
+        for count, d in enumerate(datagrams, start=1):
+            data = frame(d if isinstance(d, Datagram) else Datagram(d))
+            seconds, micros = divmod(1_700_000_000_000_000 + count * 1000, 1_000_000)
+            out.write(struct.pack("<IIII", seconds, micros, len(data), len(data)) + data)
+    return count
+
+
+# --- PDML ----------------------------------------------------------------------------------------
+@dataclass
+class Item:
+    name: str
+    show: str
+    showname: str
+    pos: int
+    size: int
+    parent: str            # name of the enclosing field ("" for the vm110 protocol item itself)
+
+
+@dataclass
+class Expert:
+    abbrev: str
+    message: str
+    parent: str            # name of the field the expert is attached to
+
+
+@dataclass
+class Frame:
+    number: int
+    vm110: bool = False
+    pos: int = 0            # where the vm110 protocol starts in the frame
+    size: int = 0
+    items: list[Item] = field(default_factory=list)
+    experts: list[Expert] = field(default_factory=list)
+    text: str = ""          # the protocol item's text
+
+    def first(self, name: str) -> Optional[Item]:
+        return next((i for i in self.items if i.name == name), None)
+
+
+_PLAIN_PARENTS = {"_ws.lua.text", None}
+
+
+def _parent_name(element: etree._Element) -> str:
+    parent = element.getparent()
+    while parent is not None and parent.tag == "field" and parent.get("name") in _PLAIN_PARENTS:
+        parent = parent.getparent()
+    if parent is None or parent.tag != "field":
+        return ""
+    return parent.get("name") or ""
+
+
+def parse_pdml(text: str) -> list[Frame]:
+    frames = []
+    root = etree.fromstring(text.encode(), parser=etree.XMLParser(huge_tree=True))
+    for number, packet in enumerate(root.iter("packet"), start=1):
+        frame_ = Frame(number)
+        proto = packet.find("proto[@name='vm110']")
+        if proto is not None:
+            frame_.vm110 = True
+            frame_.pos, frame_.size = int(proto.get("pos")), int(proto.get("size"))
+            frame_.text = proto.get("showname") or ""
+            for el in proto.iter("field"):
+                name = el.get("name") or ""
+                if name == "_ws.expert":
+                    abbrev = next((c.get("name") for c in el if (c.get("name") or "").startswith("vm110.expert.")), "")
+                    message = next((c.get("show") for c in el if c.get("name") == "_ws.expert.message"), "")
+                    frame_.experts.append(Expert(abbrev, message, _parent_name(el)))
+                elif name.startswith("vm110.") and not name.startswith("vm110.expert."):
+                    frame_.items.append(Item(name, el.get("show") or "", el.get("showname") or "",
+                                             int(el.get("pos") or 0), int(el.get("size") or 0), _parent_name(el)))
+        frames.append(frame_)
+    return frames
+
+
+def dissect_pdml(ws: Workspace, pcap: Path, prefs: Optional[dict[str, str]] = None,
+                 extra: Sequence[str] = ()) -> tuple[list[Frame], str]:
+    """One tshark run over the capture: the frames, and stdout+stderr for error checks."""
+    args = ["-r", str(pcap), "-T", "pdml", *pref_args(prefs), *extra]
+    proc = ws.run(args)
+    return parse_pdml(proc.stdout), proc.stdout + proc.stderr
+
+
+def pref_args(prefs: Optional[dict[str, str]]) -> list[str]:
+    return [a for key, value in (prefs or {}).items() for a in ("-o", f"{key}:{value}")]
+
+
+# --- From tshark's items to the vectors' canonical form -----------------------------------------
+BYTE_FIELDS = frozenset({"vrpi_spare", "command_data", "periodic_data"})
+STRING_FIELDS = frozenset({"type", "direction"})
+NAMED_FIELDS = frozenset({"crc.status"})         # compared by display name
+BOOL_FIELDS = frozenset({"es_relays_open"})
+NOT_CANONICAL = frozenset({"undecoded"})          # tree filler for bytes no field owns
+_FIELD_IN_MESSAGE = re.compile(r"^vm110\.([a-z0-9_]+)")
+PROBLEM_CODES = frozenset(p.value for p in C.Problem)
+FIELD_WARNING_CODES = frozenset(w.value for w in C.WarningCode) - {C.WarningCode.EXTRA_PAYLOAD.value}
+
+
+def showname_value(item: Item) -> str:
+    return item.showname.split(": ", 1)[1] if ": " in item.showname else item.showname
+
+
+def item_value(name: str, item: Item):
+    if name in BYTE_FIELDS:
+        return item.show.replace(":", "")
+    if name in STRING_FIELDS:
+        return item.show
+    if name in NAMED_FIELDS:
+        return re.sub(r" \(\d+\)$", "", showname_value(item))
+    if name in BOOL_FIELDS:
+        return item.show in ("1", "True")
+    return int(item.show, 0)
+
+
+def canonical_fields(frame_: Frame) -> dict:
+    """{canonical name: value} of every vm110 field in the frame (first occurrence)."""
+    out = {}
+    for item in frame_.items:
+        name = item.name[len("vm110."):]
+        if name not in NOT_CANONICAL and name not in out:
+            out[name] = item_value(name, item)
+    return out
+
+
+def problems_and_warnings(frame_: Frame) -> tuple[list[str], list[str], list[str]]:
+    """(problems, warnings, unattributed) from the experts: warnings as `code` or `code:field`."""
+    problems, warnings, odd = [], [], []
+    for e in frame_.experts:
+        code = e.abbrev[len("vm110.expert."):]
+        if code in PROBLEM_CODES:
+            problems.append(code)
+        elif code in FIELD_WARNING_CODES:
+            match = _FIELD_IN_MESSAGE.match(e.message)
+            if match is None or e.parent != f"vm110.{match.group(1)}":
+                odd.append(f"{code}: {e.message!r} on {e.parent!r}")
+            warnings.append(f"{code}:{match.group(1) if match else '?'}")
+        elif code == C.WarningCode.EXTRA_PAYLOAD.value:
+            warnings.append(code)
+        elif code != "es_relays_open":
+            odd.append(f"unexpected expert {e.abbrev}: {e.message!r}")
+    return sorted(problems), sorted(warnings), odd
+
+
+def uncovered_bytes(frame_: Frame) -> list[int]:
+    """Offsets of the vm110 payload that no vm110 field covers (the tree must cover them all)."""
+    covered = set()
+    for item in frame_.items:
+        covered.update(range(item.pos, item.pos + item.size))
+    return [p - frame_.pos for p in range(frame_.pos, frame_.pos + frame_.size) if p not in covered]
+
+
+def python_expectation(decoded: dict) -> dict:
+    """`vm110.decode()` output in the canonical form of `canonical_fields`."""
+    return {k: (v.hex() if isinstance(v, bytes) else v)
+            for k, v in decoded.items() if k not in ("problems", "warnings")}
