@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 PLUGIN_DIR ?= $(HOME)/.local/lib/wireshark/plugins
 DEMO_DIR := out/demo
 
-.PHONY: setup system-deps demo test bench install-wireshark clean tshark44 golden captures
+.PHONY: setup system-deps demo test test-long bench install-wireshark clean tshark44 golden captures
 
 setup: system-deps $(STAMP)
 
@@ -29,6 +29,10 @@ demo: setup
 test: setup tshark44
 	$(PY) -m pytest -n 2 -q
 
+# Long runs kept out of `make test` (e.g. the fuzzer against the reference controller for 60 s).
+test-long: setup
+	VM110_LONG_TESTS=1 $(PY) -m pytest -n 2 -q -m slow
+
 bench: setup
 	@set -e; for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b; done
 
@@ -44,7 +48,7 @@ tshark44:
 
 # Regenerate the dissector's `tshark -V -O vm110` goldens (tests/golden/), one per tshark version.
 golden: setup tshark44
-	$(PY) -m tests.test_dissector_golden
+	$(PY) tests/test_dissector_golden.py
 
 install-wireshark:
 	mkdir -p $(PLUGIN_DIR)

@@ -5,8 +5,8 @@ ground truth) in packets per second, against baselines measured in the same run:
 - writer: `vm110.capture.writer` writing the same frames, already built (the floor of any synthesis).
 
 Target (issue 5): at least 100,000 packets/s synthesised, i.e. a 24-hour capture (about 1.5 million
-packets) in seconds. CPU time of this process is reported next to wall time, because other jobs
-on the machine slow the wall clock down.
+packets) in seconds. CPU time is reported next to wall time, because other jobs on the machine
+slow the wall clock down.
 """
 from __future__ import annotations
 
@@ -62,8 +62,8 @@ def main() -> int:
     print(f"  writer only      {writer_rate:>10,.0f} packets/s (pre-built frames)")
     print(f"  ratio synthesis / scapy wrpcap: {rate / scapy_rate:.2f}  (CPU: {rate_cpu / (len(sample) / scapy_cpu):.2f})")
     print(f"  ratio synthesis / writer only:  {rate / writer_rate:.3f}")
-    print(f"  24 h (~1.5 M packets) would take {1_500_000 / rate_cpu:.0f} s of CPU")
-    verdict = "met" if rate_cpu >= TARGET else "NOT met"
+    print(f"  24 h (~1.5 M packets): about {1_500_000 / rate:.0f} s at this rate ({1_500_000 / rate_cpu:.0f} s of CPU)")
+    verdict = "met" if rate >= TARGET else "NOT met"
     print(f"  target >= {TARGET:,} packets/s: {verdict}")
     return 0
 

@@ -89,3 +89,16 @@ def test_json_and_html_of_several_captures_in_parallel(files, tmp_path):
     page = (tmp_path / "a.html").read_text()
     assert page.count('data-plot="interval-histogram"') == 2 and "http" not in page.replace(
         "http://www.w3.org/2000/svg", "")
+
+
+def test_progress_bar_only_on_a_terminal(files):
+    import os
+    import pty
+    main, sub = pty.openpty()
+    done = subprocess.run([sys.executable, "-m", "vm110", "analyze", str(files / "clean.pcap"), "--quiet"],
+                          stdout=subprocess.PIPE, stderr=sub, timeout=120)
+    os.close(sub)
+    shown = os.read(main, 65536).decode(errors="replace")
+    os.close(main)
+    assert done.returncode == EXIT_OK
+    assert "100%" in shown and "clean.pcap" in shown

@@ -223,3 +223,4 @@ def test_library_is_what_make_captures_writes(path, tmp_path):
     synthesize(name, str(out), seed=1, fmt="pcapng" if capture.suffix == ".pcapng" else "pcap")
     assert out.read_bytes() == capture.read_bytes(), f"run `make captures`: {capture.name} is stale"
     assert (tmp_path / path.name).read_bytes() == path.read_bytes()
+

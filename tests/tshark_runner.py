@@ -140,6 +140,7 @@ class Datagram:
     payload: bytes
     sport: Optional[int] = None   # default: by the packet ID's direction (input 5825, output 5827)
     dport: Optional[int] = None
+    trailer: bytes = b""          # after the IP packet, inside the Ethernet frame
 
 
 def _ip_checksum(header: bytes) -> int:
@@ -158,7 +159,8 @@ def default_port(payload: bytes) -> int:
 
 
 def frame(d: Datagram) -> bytes:
-    """Ethernet + IPv4 + UDP (no UDP checksum) around the payload, padded to the 60-byte minimum."""
+    """Ethernet + IPv4 + UDP (no UDP checksum) around the payload, padded to the 60-byte minimum
+    (after the trailer, if any)."""
     port = default_port(d.payload)
     sport, dport = d.sport or port, d.dport or port
     src = CONTROLLER_ADDR if d.payload[3:4] == b"O" else BU_ADDR
@@ -167,7 +169,7 @@ def frame(d: Datagram) -> bytes:
                      _addr(src), _addr(GROUP_ADDR))
     ip = ip[:10] + struct.pack("!H", _ip_checksum(ip)) + ip[12:]
     eth = bytes.fromhex("01005e7f2a14" "02fc00000001" "0800")
-    return (eth + ip + udp).ljust(60, b"\0")
+    return (eth + ip + udp + d.trailer).ljust(60, b"\0")
 
 
 def write_pcap(path: Path, datagrams: Iterable[Datagram | bytes]) -> int:

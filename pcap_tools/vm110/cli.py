@@ -18,6 +18,7 @@ COMMANDS = {
     "analyze": "analyze",
     "craft": "craft",
     "decode": "decode",
+    "dissect": "dissect",
     "fuzz": "fuzz",
     "simulate": "simulate",
     "synth": "synth",

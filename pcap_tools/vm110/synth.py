@@ -45,7 +45,6 @@ def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] =
     if duration <= 0:
         raise ValueError("duration must be positive")
     stations = sc.build(seed, duration)
-    net = VirtualNetwork(stations)
     flows = [UdpFlow(s.ip, s.port, C.MULTICAST_GROUP, s.port, ttl=C.MULTICAST_TTL) for s in stations]
     other = UdpFlow(OTHER_SOURCE, MDNS_PORT, OTHER_GROUP, MDNS_PORT, ttl=255)
     with open(out, "wb") as stream:
@@ -54,7 +53,7 @@ def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] =
         def tap() -> Iterator[tuple[int, Optional[Arrival]]]:
             write = writer.write
             others = [seconds(t) for t in sc.other_traffic if seconds(t) < seconds(duration)]
-            for arrival in net.run(duration):
+            for arrival in VirtualNetwork(stations).run(duration):
                 while others and others[0] <= arrival.t:
                     write(EPOCH_US + others[0], other.frame(OTHER_PAYLOAD))
                     yield others.pop(0), None

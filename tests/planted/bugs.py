@@ -86,6 +86,18 @@ class ResendAfterVrai(Controller):
         self.event(now, "vrai_ignored", command_id=int.from_bytes(rx.payload[:2], "little"))
 
 
+class NoVrcoResend(Controller):
+    """Sends each VRCO once: the resends are lost before the wire, so an unacknowledged command
+    is silently dropped."""
+
+    ORACLE = "vrco_retransmit"
+
+    def transmit(self, data: bytes, now: int, meta: Meta) -> None:
+        if meta.ptype is C.PacketType.VRCO and self.pending is not None and self.pending["count"] >= 1:   # counted after sending
+            return
+        super().transmit(data, now, meta)
+
+
 BUGS: dict[str, type[Controller]] = {
     "reference": Controller,
     "crash-on-joystick": CrashOnJoystick,
@@ -94,4 +106,5 @@ BUGS: dict[str, type[Controller]] = {
     "no-reack": NoReack,
     "bad-crc-after-wrap": BadCrcAfterWrap,
     "resend-after-vrai": ResendAfterVrai,
+    "no-vrco-resend": NoVrcoResend,
 }

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import ipaddress
 import struct
-from array import array
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Optional
+
+import numpy as np
 
 from .. import constants as C
 
@@ -38,25 +39,40 @@ def sender_id(direction: str, origin: int, src: str) -> str:
     return f"{direction} {src} origin 0x{origin:04x}"
 
 
+# One legal packet: time, frame, source (index into `Collected.sources`), source port, and the
+# first PREFIX bytes of the EG-Link packet (ID, header, first payload bytes), zero-padded.
+PREFIX = C.PREFIX_LEN + STATE_LEN
+RECORD = struct.Struct(f"<dIHH{PREFIX}s")
+RECORD_DTYPE = np.dtype({
+    "names": ["ts", "frame", "src", "sport", "pid", "origin", "serial", "size", "aux", "state"],
+    "formats": ["<f8", "<u4", "<u2", "<u2", "S4", "<u2", "<u2", "<u2", "<u2", f"V{STATE_LEN}"],
+    "offsets": [0, 8, 12, 14, 16, 22, 24, 26, 16 + C.PREFIX_LEN, 16 + C.PREFIX_LEN],
+    "itemsize": RECORD.size,
+})
+
+
 @dataclass
 class Sender:
-    """Legal packets of one sender in arrival order, one entry per packet in each array but
-    `state`, which has one per VRPI."""
+    """Legal packets of one sender in arrival order (numpy arrays, one entry per packet)."""
 
     direction: str
     origin: int
     src: str
-    ts: array = field(default_factory=lambda: array("d"))
-    serial: array = field(default_factory=lambda: array("H"))
-    code: array = field(default_factory=lambda: array("B"))
-    frame: array = field(default_factory=lambda: array("I"))
-    aux: array = field(default_factory=lambda: array("H"))     # command ID or VRPO packet number
-    size: array = field(default_factory=lambda: array("H"))    # payload size
-    state: array = field(default_factory=lambda: array("I"))   # VRPI only: index into states
+    ts: np.ndarray
+    serial: np.ndarray
+    code: np.ndarray
+    frame: np.ndarray
+    aux: np.ndarray       # command ID or VRPO packet number
+    size: np.ndarray      # payload size
+    state: np.ndarray     # VRPI: the state bytes (STATE)
 
     @property
     def id(self) -> str:
         return sender_id(self.direction, self.origin, self.src)
+
+
+_CODE_TABLE = {t.value.encode(): i for i, t in enumerate(TYPES)}
+_INPUT = np.array([t.direction is C.Direction.INPUT for t in TYPES])
 
 
 @dataclass
@@ -84,11 +100,72 @@ class Collected:
     illegal: int = 0
     illegal_reasons: Counter = field(default_factory=Counter)
     illegal_examples: list = field(default_factory=list)   # (frame, ts, src, type, reasons)
-    senders: dict = field(default_factory=dict)            # key -> Sender
-    states: list = field(default_factory=list)             # state id -> STATE_LEN bytes
+    records: bytearray = field(default_factory=bytearray)  # RECORD per legal packet
+    sources: dict = field(default_factory=dict)            # packed source address -> index
 
     def add_illegal(self, frame: int, ts: float, src: str, ptype: str, reasons: list) -> None:
         self.illegal += 1
         self.illegal_reasons.update(reasons)
         if len(self.illegal_examples) < MAX_EXAMPLES:
             self.illegal_examples.append((frame, ts, src, ptype, tuple(sorted(reasons))))
+
+    def source(self, src: bytes) -> int:
+        index = self.sources.get(src)
+        if index is None:
+            index = self.sources[src] = len(self.sources)
+        return index
+
+    def add_legal(self, ts: float, frame: int, src: bytes, sport: int, packet: bytes) -> None:
+        self.records += RECORD.pack(ts, frame, self.source(src), sport, packet)
+
+    def merge(self, later: "Collected") -> None:
+        """Append what another engine read from the part of the file that follows this one."""
+        rec = np.frombuffer(later.records, dtype=RECORD_DTYPE)     # a bytearray: changed in place
+        if len(rec):
+            remap = np.zeros(len(later.sources), dtype=np.uint16)
+            for src, index in later.sources.items():
+                remap[index] = self.source(src)
+            rec["src"] = remap[rec["src"]]
+            rec["frame"] += self.frames
+        self.records += later.records
+        later.records = bytearray()
+        for f, t, s, p, r in later.illegal_examples[:max(0, MAX_EXAMPLES - len(self.illegal_examples))]:
+            self.illegal_examples.append((f + self.frames, t, s, p, r))
+        for name in ("udp", "non_udp", "fragments", "other_udp", "snap_truncated", "eglink", "crc_checked",
+                     "illegal"):
+            setattr(self, name, getattr(self, name) + getattr(later, name))
+        self.crc_counts.update(later.crc_counts)
+        self.illegal_reasons.update(later.illegal_reasons)
+        self.frames += later.frames
+        if later.frames:
+            self.last_ts = later.last_ts
+            self.first_ts = self.first_ts if self.first_ts is not None else later.first_ts
+        self.problem = self.problem or later.problem
+        self.link_types = sorted(set(self.link_types) | set(later.link_types))
+
+    def take_senders(self) -> list[Sender]:
+        """The legal packets grouped by sender (direction, origin, source, port), sorted by id.
+        Takes the records: they are regrouped, not copied twice."""
+        rec = np.frombuffer(self.records, dtype=RECORD_DTYPE)
+        if not len(rec):
+            return []
+        ids, inverse = np.unique(rec["pid"], return_inverse=True)
+        code = np.array([_CODE_TABLE[bytes(i)] for i in ids], dtype=np.uint8)[inverse.ravel()]
+        key = ((_INPUT[code].astype(np.int64) << 48) | (rec["src"].astype(np.int64) << 32)
+               | (rec["sport"].astype(np.int64) << 16) | rec["origin"].astype(np.int64))
+        keys, which = np.unique(key, return_inverse=True)
+        del key
+        order = np.argsort(which.ravel(), kind="stable")        # by sender, arrival order kept
+        bounds = np.searchsorted(which.ravel()[order], np.arange(len(keys) + 1))
+        rec, code = rec[order], code[order]
+        self.records = bytearray()
+        sources = {i: s for s, i in self.sources.items()}
+        out = []
+        for k, value in enumerate(keys.tolist()):
+            rows = slice(bounds[k], bounds[k + 1])
+            part = rec[rows]
+            direction = (C.Direction.INPUT if value >> 48 else C.Direction.OUTPUT).value
+            src = address(sources[(value >> 32) & 0xFFFF], (value >> 16) & 0xFFFF)
+            out.append(Sender(direction, value & 0xFFFF, src, part["ts"], part["serial"], code[rows],
+                              part["frame"], part["aux"], part["size"], part["state"]))
+        return sorted(out, key=lambda s: s.id)

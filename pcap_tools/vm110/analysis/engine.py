@@ -1,25 +1,44 @@
-"""The fast engine: one streaming pass over the file into compact arrays (`Collected`).
+"""The fast engine: one streaming pass over the file into compact records (`Collected`).
 
-Per datagram the hot path does a handful of C-level operations: a port test, one `struct`
-call for the header, a dict lookup for the sender, a structural test, the CRC (zlib, see
-`_hot_crc`) and a few `array.append`s. Anything unusual (illegal, unknown sender, other port)
-takes `_slow`, which decodes with `vm110.decode` and so applies exactly its rules.
+The budget is a few C-level operations per packet. For the common file (little-endian pcap,
+Ethernet, IPv4 without options, UDP) one `struct` call reads the record header, the frame headers
+and the EG-Link header together (`_FUSED`); other files go through the reader's datagrams. Then a
+structural test, the CRC (zlib, see `_hot_crc`) and one packed record per legal packet.
+Anything unusual (illegal, other ports, odd frames) takes `_slow`, which decodes with
+`vm110.decode` and so applies exactly its rules.
 """
 from __future__ import annotations
 
+import multiprocessing
+import os
 import struct
 import zlib
 from typing import Callable, Optional
 
 from .. import constants as C
-from ..capture.reader import CaptureReader
+from ..capture import linktypes as L
+from ..capture.reader import PCAP_HEADER_LEN, CaptureReader
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, MASK, VARIANTS, _REVERSE, crc32
 from ..decode import decode
-from .collect import CODE_OF_ID, STATE_LEN, VRPI_CODE, Collected, Sender, address
+from .collect import CODE_OF_ID, RECORD, Collected, address
 
-_HDR = struct.Struct("<4sHHHHIH")           # packet ID, header, first payload u16
-_LOW = {CODE_OF_ID[t.value.encode()]: C.PAYLOAD_BOUNDS[t][0] for t in C.PacketType}
-_SNIFF = 256                                # EG-Link packets looked at to guess the CRC variant
+_HDR = struct.Struct("<4sH6xH")                    # packet ID, revision, size
+# pcap record header, Ethernet, IPv4, UDP and the EG-Link header: see _fused_pcap for the fields.
+_FUSED = struct.Struct("<IIII12x2sB5xHxB2x4s4xHHH2x4sH4xH")
+_FUSED_MIN_FRAME = _FUSED.size - 16
+_ETH_IPV4 = L.ETHERTYPE_IPV4.to_bytes(2, "big")
+_IPV4_PLAIN = 0x45                                 # version 4, 20-byte header
+_FRAG_LE = 0xFF3F                                  # MF + fragment offset, read little-endian
+_UDP_PAYLOAD = L.ETH_HEADER_LEN + L.IPV4_MIN_HEADER + L.UDP_HEADER_LEN
+_SWAP = [((x & 0xFF) << 8) | (x >> 8) for x in range(1 << 16)]   # big-endian u16 read little-endian
+_LOW = {raw: C.PAYLOAD_BOUNDS[C.PacketType(raw.decode())][0] for raw in CODE_OF_ID}
+_SNIFF = 256                                       # EG-Link packets looked at to guess the CRC variant
+PARALLEL_MIN_BYTES = 32 << 20                      # smaller files: one process is quicker
+MAX_WORKERS = 4
+WORKERS_ENV = "VM110_ANALYZE_WORKERS"              # processes reading one large pcap (1: no split)
+SPLIT_WINDOW = 1 << 20
+CHAIN = 16                                         # record headers that must look right in a row
+PLAUSIBLE_SPAN_S = 10 * 365 * 86400
 TRUNCATED = C.Problem.TRUNCATED.value
 Progress = Callable[[int, int], None]
 
@@ -51,14 +70,58 @@ def _hot_crc(variant: str, order: str) -> tuple[bool, int, str]:
     }[variant]
 
 
+def _read_part(job: tuple) -> Collected:
+    port, crc, crc_order, path, variant, order, start, stop = job
+    return FastEngine(port, crc, crc_order, workers=1)._part(path, variant, order, start, stop)
+
+
+def split_points(path: str, reader: CaptureReader, layout, parts: int) -> Optional[list[int]]:
+    """File offsets [24, b1, ..., size] cutting a pcap into `parts` at plausible record starts:
+    a chain of CHAIN headers with sane lengths and times near the first packet's. The readers
+    of the parts then prove each boundary (see FastEngine._parallel)."""
+    rec = struct.Struct(layout.endian + "IIII")
+    bounds = [PCAP_HEADER_LEN]
+    with open(path, "rb") as f:
+        first = f.read(PCAP_HEADER_LEN + rec.size)[PCAP_HEADER_LEN:]
+        if len(first) < rec.size:
+            return None
+        first_sec = rec.unpack(first)[0]
+        for k in range(1, parts):
+            target = PCAP_HEADER_LEN + (reader.size - PCAP_HEADER_LEN) * k // parts
+            f.seek(target)
+            window = f.read(SPLIT_WINDOW)
+            found = next((target + off for off in range(len(window) - CHAIN * rec.size)
+                          if _plausible_chain(window, off, rec, first_sec, layout.limit)), None)
+            if found is None or found <= bounds[-1]:
+                return None
+            bounds.append(found)
+    return bounds + [reader.size]
+
+
+def _plausible_chain(window: bytes, pos: int, rec: struct.Struct, first_sec: int, limit: int) -> bool:
+    for _ in range(CHAIN):
+        if pos + rec.size > len(window):
+            return False
+        sec, frac, incl, orig = rec.unpack_from(window, pos)
+        if not (abs(sec - first_sec) < PLAUSIBLE_SPAN_S and frac < 1_000_000_000 and 0 < incl <= limit
+                and incl <= orig):
+            return False
+        pos += rec.size + incl
+    return True
+
+
 class FastEngine:
     """Analyse one capture file with the streaming reader."""
 
     def __init__(self, port: int = C.INPUT_PORT, crc: str = "auto", crc_order: str = "auto",
-                 progress: Optional[Progress] = None) -> None:
+                 progress: Optional[Progress] = None, workers: Optional[int] = None) -> None:
+        self.port = port
         self.ports = frozenset((port, port + C.OUTPUT_PORT_OFFSET))
         self.crc, self.crc_order = crc, crc_order
         self.progress = progress
+        if workers is None:
+            workers = int(os.environ.get(WORKERS_ENV, 0)) or min(os.cpu_count() or 1, MAX_WORKERS)
+        self.workers = workers
 
     def collect(self, path: str) -> Collected:
         variant = DEFAULT_VARIANT if self.crc == "auto" else self.crc
@@ -101,41 +164,156 @@ class FastEngine:
 
     def _pass(self, path: str, variant: str, order: str) -> Collected:
         reader = CaptureReader(path)
+        layout = reader.pcap_layout() if reader.format == "pcap" else None
+        fused = layout is not None and layout.endian == "<" and layout.link == L.LINKTYPE_ETHERNET
+        if (fused and self.workers > 1 and reader.size >= PARALLEL_MIN_BYTES
+                and not multiprocessing.current_process().daemon):
+            got = self._parallel(path, reader, layout, variant, order)
+            if got is not None:
+                return got
+        return self._part(path, variant, order)
+
+    def _part(self, path: str, variant: str, order: str, start: Optional[int] = None,
+              stop: Optional[int] = None) -> Collected:
+        """Read the whole file, or the records between two record boundaries of a pcap."""
+        reader = CaptureReader(path)
         got = Collected(path=path, engine="fast", format=reader.format, ports=tuple(sorted(self.ports)),
                         crc_variant=variant, crc_order=order,
                         crc_auto=self.crc == "auto" or self.crc_order == "auto")
-        streams: dict = {}
-        state_ids: dict = {}
-        states = got.states
+        layout = reader.pcap_layout() if reader.format == "pcap" else None
+        if layout is not None and layout.endian == "<" and layout.link == L.LINKTYPE_ETHERNET:
+            valid = self._fused_pcap(got, reader, layout, variant, order, start, stop)
+        else:
+            valid = self._datagrams(got, reader, variant, order)
+        got.eglink += valid
+        got.crc_checked += valid
+        got.crc_counts[(variant, order)] += valid
+        got.frames, got.non_udp, got.fragments = reader.frames, reader.non_udp, reader.fragments
+        got.snap_truncated, got.problem = len(reader.snap_truncated), reader.problem
+        got.first_ts, got.last_ts = reader.first_ts, reader.last_ts
+        got.link_types = sorted(reader.link_types)
+        return got
+
+    def _parallel(self, path: str, reader: CaptureReader, layout, variant: str, order: str) -> Optional[Collected]:
+        """Split a large pcap at record boundaries and read the parts in parallel processes.
+        None when no boundary can be proven (the caller then reads the file in one go): a part's
+        walk must end exactly where the next begins, which only a true boundary gives."""
+        bounds = split_points(path, reader, layout, self.workers)
+        if bounds is None:
+            return None
+        jobs = [(self.port, self.crc, self.crc_order, path, variant, order, a, b) for a, b in zip(bounds, bounds[1:])]
+        with multiprocessing.get_context("fork").Pool(len(jobs) - 1) as pool:
+            others = pool.map_async(_read_part, jobs[1:])     # the later parts in children,
+            got = _read_part(jobs[0])                           # the first one here meanwhile
+            if got.problem is not None:
+                return None
+            for later in others.get():
+                if got.problem is not None:
+                    return None
+                got.merge(later)
+        return got
+
+    def _fused_pcap(self, got: Collected, reader: CaptureReader, layout, variant: str, order: str,
+                    start: Optional[int] = None, stop: Optional[int] = None) -> int:
+        """Walk the records of a little-endian Ethernet pcap (from `start` to `stop`, offsets of
+        record boundaries, when given); returns the legal packets recorded."""
+        scale, link, limit = layout.scale, layout.link, layout.limit
+        fused, rec = _FUSED.unpack_from, struct.Struct("<IIII").unpack_from
+        ports_le = frozenset(_SWAP[p] for p in self.ports)
+        swap, low_of, eth_ipv4 = _SWAP, _LOW, _ETH_IPV4
+        reversed_bytes, xor, stored_order = _hot_crc(variant, order)
+        rev_table, crc, from_bytes = _REVERSE, zlib.crc32, int.from_bytes
+        pack, sources, records = RECORD.pack, got.sources, got.records
+        slow, udp_of = self._slow, reader.udp_of
+        min_frame, max_payload = _FUSED_MIN_FRAME, C.MAX_PAYLOAD
+        fused_len = _FUSED.size
+        valid = frame = 0
+        ts = 0.0
+        chunks = reader.pcap_chunks(start or PCAP_HEADER_LEN, stop)
+        data = next(chunks, None)
+        while data is not None:
+            end = len(data)
+            pos = 0
+            # The CRC runs on the bytes as they are, or bit-reversed: reverse the chunk in one go.
+            cdata = data.translate(rev_table) if reversed_bytes else data
+            if not frame and end >= 16:
+                sec, frac = rec(data, 0)[:2]
+                reader.first_ts = sec + frac * scale
+            while True:
+                if pos + fused_len <= end:
+                    (sec, frac, incl, orig, et, vi, frag, proto, src, sp, dp, ulen,
+                     pid, rev, size) = fused(data, pos)
+                elif pos + 16 <= end:
+                    sec, frac, incl, orig = rec(data, pos)
+                    et = None
+                else:
+                    break
+                if incl > limit:
+                    reader.corrupt(pos, incl)
+                    chunks.close()
+                    data = None
+                    break
+                p = pos + 16
+                if p + incl > end:
+                    break
+                pos = p + incl
+                frame += 1
+                ts = sec + frac * scale
+                if et == eth_ipv4 and vi == 0x45 and proto == 17 and not frag & 0xFF3F and incl >= min_frame:
+                    low = low_of.get(pid)
+                    if (low is not None and not rev and low <= size <= max_payload and ulen == swap[size + 28]
+                            and size + 62 <= incl and (sp in ports_le or dp in ports_le)):
+                        q = p + 42                  # the EG-Link packet: q .. e, then the CRC
+                        e = q + 16 + size
+                        if crc(cdata[q:e]) ^ xor == from_bytes(cdata[e:e + 4], stored_order):
+                            index = sources.get(src)
+                            if index is None:
+                                index = got.source(src)
+                            records += pack(ts, frame, index, swap[sp], data[q:e + 4])
+                            valid += 1
+                            continue
+                    n = swap[ulen]
+                    if 8 <= n <= incl - 34:
+                        slow(got, reader, variant, order, ts, src, swap[sp], swap[dp], data[p + 42:p + 34 + n], frame)
+                        continue
+                found = udp_of(link, data, p, incl, orig, frame)
+                if found is not None:
+                    slow(got, reader, variant, order, ts, *found, frame)
+            if not frame:
+                reader.first_ts = None
+            reader.last_ts = ts if frame else None
+            reader.frames = frame
+            if data is None:
+                break
+            if self.progress is not None:
+                self.progress(reader.bytes_read + pos, reader.size)
+            try:
+                data = chunks.send(pos)
+            except StopIteration:
+                data = None
+        got.udp = frame - reader.non_udp        # every frame the reader did not count as other
+        return valid
+
+    def _datagrams(self, got: Collected, reader: CaptureReader, variant: str, order: str) -> int:
+        """Any other file, through the reader's datagrams; returns the legal packets recorded."""
         ports = self.ports
         reversed_bytes, xor, stored_order = _hot_crc(variant, order)
-        rev_table = _REVERSE
-        crc = zlib.crc32
-        from_bytes = int.from_bytes
-        unpack = _HDR.unpack_from
-        vrpi_code = VRPI_CODE
-        max_payload = C.MAX_PAYLOAD
-        hot_valid = udp = 0
+        rev_table, crc, from_bytes = _REVERSE, zlib.crc32, int.from_bytes
+        unpack, low_of, max_payload = _HDR.unpack_from, _LOW, C.MAX_PAYLOAD
+        pack, sources, records = RECORD.pack, got.sources, got.records
         slow = self._slow
-        total = reader.size
+        valid = udp = 0
         for batch in reader.batches():
             udp += len(batch)
             for ts, src, sport, dport, payload, frame in batch:
-                if sport not in ports and dport not in ports:
-                    slow(got, reader, streams, state_ids, variant, order, ts, src, sport, payload, frame, False)
-                    continue
                 n = len(payload)
-                if n < 22:
-                    slow(got, reader, streams, state_ids, variant, order, ts, src, sport, payload, frame, True)
+                if (sport not in ports and dport not in ports) or n < C.OVERHEAD:
+                    slow(got, reader, variant, order, ts, src, sport, dport, payload, frame)
                     continue
-                pid, rev, origin, serial, size, spare, aux = unpack(payload)
-                entry = streams.get((pid, src, sport, origin))
-                if entry is None or rev or n != size + 20:
-                    slow(got, reader, streams, state_ids, variant, order, ts, src, sport, payload, frame, True)
-                    continue
-                add_ts, add_serial, code, low, add_code, add_frame, add_aux, add_size, add_state = entry
-                if not low <= size <= max_payload:
-                    slow(got, reader, streams, state_ids, variant, order, ts, src, sport, payload, frame, True)
+                pid, rev, size = unpack(payload)
+                low = low_of.get(pid)
+                if low is None or rev or n != size + C.OVERHEAD or not low <= size <= max_payload:
+                    slow(got, reader, variant, order, ts, src, sport, dport, payload, frame)
                     continue
                 if reversed_bytes:
                     t = payload.translate(rev_table)
@@ -143,38 +321,22 @@ class FastEngine:
                 else:
                     ok = crc(payload[:-4]) ^ xor == from_bytes(payload[-4:], stored_order)
                 if not ok:
-                    slow(got, reader, streams, state_ids, variant, order, ts, src, sport, payload, frame, True)
+                    slow(got, reader, variant, order, ts, src, sport, dport, payload, frame)
                     continue
-                hot_valid += 1
-                if code == vrpi_code:
-                    key = payload[16:30]
-                    sid = state_ids.get(key)
-                    if sid is None:
-                        sid = state_ids[key] = len(states)
-                        states.append(key)
-                    add_state(sid)
-                add_ts(ts)
-                add_serial(serial)
-                add_code(code)
-                add_frame(frame)
-                add_aux(aux)
-                add_size(size)
+                index = sources.get(src)
+                if index is None:
+                    index = got.source(src)
+                records += pack(ts, frame, index, sport, payload)
+                valid += 1
             if self.progress is not None:
-                self.progress(reader.bytes_read, total)
-        got.eglink += hot_valid
-        got.crc_checked += hot_valid
-        got.crc_counts[(variant, order)] += hot_valid
+                self.progress(reader.bytes_read, reader.size)
         got.udp = udp
-        got.frames, got.non_udp, got.fragments = reader.frames, reader.non_udp, reader.fragments
-        got.snap_truncated, got.problem = len(reader.snap_truncated), reader.problem
-        got.first_ts, got.last_ts = reader.first_ts, reader.last_ts
-        got.link_types = sorted(reader.link_types)
-        return got
+        return valid
 
-    def _slow(self, got: Collected, reader: CaptureReader, streams: dict, state_ids: dict, variant: str,
-              order: str, ts: float, src: bytes, sport: int, payload: bytes, frame: int, on_port: bool) -> None:
+    def _slow(self, got: Collected, reader: CaptureReader, variant: str, order: str, ts: float, src: bytes,
+              sport: int, dport: int, payload: bytes, frame: int) -> None:
         n = len(payload)
-        if not on_port:
+        if sport not in self.ports and dport not in self.ports:
             # Heuristic for other ports: a known packet ID and a size consistent with the length.
             if not C.OVERHEAD <= n <= C.MAX_PACKET or payload[:C.ID_LEN] not in CODE_OF_ID \
                     or n != C.OVERHEAD + struct.unpack_from("<H", payload, 10)[0]:
@@ -189,46 +351,7 @@ class FastEngine:
             got.crc_counts.update(crc_matches(payload, end))
         if frame in reader.snap_truncated:
             problems = [TRUNCATED]       # the capture cut it: nothing else can be judged
-        where = address(src, sport)
         if problems:
-            got.add_illegal(frame, ts, where, fields.get("type", ""), problems)
+            got.add_illegal(frame, ts, address(src, sport), fields.get("type", ""), problems)
             return
-        add_legal(got, streams, state_ids, ts, src, sport, payload, frame, fields)
-
-
-def add_legal(got: Collected, streams: dict, state_ids: dict, ts: float, src: bytes, sport: int,
-              payload: bytes, frame: int, fields: dict) -> None:
-    """Record one legal packet from its bytes and its decoded header."""
-    aux = struct.unpack_from("<H", payload, C.PREFIX_LEN)[0]
-    state = payload[C.PREFIX_LEN:C.PREFIX_LEN + STATE_LEN]
-    record(got, streams, state_ids, ts, src, sport, payload[:C.ID_LEN], fields["origin"], fields["direction"],
-           fields["serial"], fields["size"], aux, state, frame)
-
-
-def record(got: Collected, streams: dict, state_ids: dict, ts: float, src: bytes, sport: int, pid: bytes,
-           origin: int, direction: str, serial: int, size: int, aux: int, state: bytes, frame: int) -> None:
-    """Record one legal packet (creating its sender and hot-path entry when new). `aux` is the
-    command ID or VRPO packet number, `state` the VRPI state bytes (see collect.STATE)."""
-    code = CODE_OF_ID[pid]
-    key = (pid, src, sport, origin)
-    entry = streams.get(key)
-    if entry is None:
-        skey = (direction, origin, src, sport)
-        sender = got.senders.get(skey)
-        if sender is None:
-            sender = got.senders[skey] = Sender(direction, origin, address(src, sport))
-        entry = streams[key] = (sender.ts.append, sender.serial.append, code, _LOW[code], sender.code.append,
-                                sender.frame.append, sender.aux.append, sender.size.append, sender.state.append)
-    add_ts, add_serial, code, _, add_code, add_frame, add_aux, add_size, add_state = entry
-    if code == VRPI_CODE:
-        sid = state_ids.get(state)
-        if sid is None:
-            sid = state_ids[state] = len(got.states)
-            got.states.append(state)
-        add_state(sid)
-    add_ts(ts)
-    add_serial(serial)
-    add_code(code)
-    add_frame(frame)
-    add_aux(aux)
-    add_size(size)
+        got.add_legal(ts, frame, src, sport, payload)

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-from collections import Counter
 from dataclasses import asdict, dataclass
 from typing import Optional
 
@@ -40,39 +39,32 @@ class Options:
 
 def build(got: Collected, opt: Options) -> dict:
     """The whole report of one capture."""
-    sender_list = sorted(got.senders.values(), key=lambda s: s.id)
     sender_reports, periodic, events, burst_rows, states = [], [], [], [], []
     backwards = 0
-    for snd in sender_list:
-        codes = snd.code.tobytes()
-        res, scope = _serials(snd, codes, opt.serial_scope)
-        dup = set(res.duplicate_index)
-        sender_reports.append(_sender_report(snd, codes, res, scope))
-        ts = np.frombuffer(snd.ts, dtype=np.float64)
-        code_arr = np.frombuffer(codes, dtype=np.uint8)
+    for snd in got.take_senders():
+        res, scope = _serials(snd, opt.serial_scope)
+        dup = res.duplicate_index
+        sender_reports.append(_sender_report(snd, res, scope))
         for code in (VRPI_CODE, VRPO_CODE):
-            mask = code_arr == code
+            mask = snd.code == code
             if not mask.any():
                 continue
-            times = ts[mask]              # duplicates are legal packets too: they count here
+            times = snd.ts[mask]              # duplicates are legal packets too: they count here
             row, back = _periodic(TYPES[code].value, snd, times, opt)
             backwards += back
             periodic.append(row)
-        live = np.ones(len(code_arr), dtype=bool)     # duplicates are neither commands nor burst parts
+        live = np.ones(len(snd.code), dtype=bool)     # duplicates are neither commands nor burst parts
         if dup:
-            live[list(dup)] = False
-        frames = np.frombuffer(snd.frame, dtype=np.uint32)
-        aux = np.frombuffer(snd.aux, dtype=np.uint16)
-        for i in np.flatnonzero(live & np.isin(code_arr, COMMAND_CODES)).tolist():
-            events.append((int(frames[i]), float(ts[i]), int(code_arr[i]), snd.id, int(aux[i])))
-        vrpo = live & (code_arr == VRPO_CODE)
+            live[dup] = False
+        for i in np.flatnonzero(live & np.isin(snd.code, COMMAND_CODES)).tolist():
+            events.append((int(snd.frame[i]), float(snd.ts[i]), int(snd.code[i]), snd.id, int(snd.aux[i])))
+        vrpo = live & (snd.code == VRPO_CODE)
         if vrpo.any():
-            sizes = np.frombuffer(snd.size, dtype=np.uint16)
-            burst_rows.append(_bursts(snd, ts[vrpo], aux[vrpo], sizes[vrpo], opt, periodic))
-        if len(snd.state):
-            vrpi = code_arr == VRPI_CODE
-            states.append({"sender": snd.id, **state.timeline(ts[vrpi], snd.state, got.states,
-                                                              frames[vrpi], got.last_ts)})
+            burst_rows.append(_bursts(snd, snd.ts[vrpo], snd.aux[vrpo], snd.size[vrpo], opt, periodic))
+        vrpi = snd.code == VRPI_CODE
+        if vrpi.any():
+            states.append({"sender": snd.id, **state.timeline(snd.ts[vrpi], snd.state[vrpi], snd.frame[vrpi],
+                                                              got.last_ts)})
     periodic.sort(key=lambda p: (p["type"], p["sender"]))
     events.sort()
     tallies = commands.track(events)
@@ -112,9 +104,10 @@ def build(got: Collected, opt: Options) -> dict:
     return report
 
 
-def _serials(snd: Sender, codes: bytes, scope: str) -> tuple[serials.SerialResult, str]:
+def _serials(snd: Sender, scope: str) -> tuple[serials.SerialResult, str]:
+    codes = snd.code
     by_sender = serials.classify_sender(snd.serial, snd.ts, codes, "sender")
-    if scope == "sender" or (scope == "auto" and (by_sender.anomalies == 0 or len(set(codes)) < 2)):
+    if scope == "sender" or (scope == "auto" and (by_sender.anomalies == 0 or len(np.unique(codes)) < 2)):
         return by_sender, "sender"
     if scope == "type":
         return serials.classify_sender(snd.serial, snd.ts, codes, "type"), "type"
@@ -126,8 +119,9 @@ def _serials(snd: Sender, codes: bytes, scope: str) -> tuple[serials.SerialResul
     return by_sender, "sender"
 
 
-def _sender_report(snd: Sender, codes: bytes, res: serials.SerialResult, scope: str) -> dict:
-    counts = Counter(codes)
+def _sender_report(snd: Sender, res: serials.SerialResult, scope: str) -> dict:
+    counts = dict(enumerate(np.bincount(snd.code, minlength=len(TYPES)).tolist()))
+    counts = {c: n for c, n in counts.items() if n}
     return {
         "id": snd.id, "direction": snd.direction, "origin": snd.origin, "src": snd.src,
         "by_type": {TYPES[c].value: counts[c] for c in sorted(counts, key=lambda c: TYPES[c].value)},

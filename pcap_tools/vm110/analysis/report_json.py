@@ -12,23 +12,31 @@ MS_DECIMALS = 3        # durations in ms (keys ending in _ms, and everything und
 
 def normalise(value: Any, ms: bool = False) -> Any:
     """Round every float to the microsecond: an absolute time in a float carries about 0.1 us of
-    noise, which differs between engines. Tuples become lists."""
-    if isinstance(value, float):
+    noise, which differs between engines. Dicts and lists are changed in place (a report of a
+    long capture is large); tuples become lists."""
+    kind = type(value)
+    if kind is float:
         return round(value, MS_DECIMALS if ms else SECONDS_DECIMALS)
-    if isinstance(value, dict):
-        return {k: normalise(v, ms or k.endswith("_ms")) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [normalise(v, ms) for v in value]
+    if kind is dict:
+        for k, v in value.items():
+            if type(v) is not int and v is not None and type(v) is not str:
+                value[k] = normalise(v, ms or k.endswith("_ms"))
+        return value
+    if kind is list or kind is tuple:
+        if all(type(v) is int for v in value):
+            return value if kind is list else list(value)   # frame lists: nothing to round
+        if kind is tuple:
+            value = list(value)
+        for i, v in enumerate(value):
+            value[i] = normalise(v, ms)
+        return value
     return value
-
-
-def dumps(document: dict) -> str:
-    return json.dumps(document, indent=1, allow_nan=False) + "\n"
 
 
 def write(path: str, document: dict) -> None:
     try:
         with open(path, "w", encoding="utf-8") as out:
-            out.write(dumps(document))
+            json.dump(document, out, indent=1, allow_nan=False)    # streamed: no second copy in memory
+            out.write("\n")
     except OSError as exc:
         raise CliError(f"cannot write {path}: {exc.strerror}") from None

@@ -8,7 +8,6 @@ past it can never be filled (its number will come round again) and stays lost.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from itertools import compress
 from typing import Optional, Sequence
 
 import numpy as np
@@ -73,7 +72,7 @@ def classify(serials: Sequence[int], times: Sequence[float], index: Optional[Seq
     wraps = 0
     i, b = 1, 0                           # position, and index of the next break at or after it
     while i < n:
-        s = int(serials[i])
+        s = int(arr[i])
         d = (s - h) & MASK
         if d == 1:
             while b < len(breaks_list) and breaks_list[b] <= i:
@@ -128,23 +127,19 @@ def classify(serials: Sequence[int], times: Sequence[float], index: Optional[Seq
     return res
 
 
-def classify_sender(serials: Sequence[int], times: Sequence[float], codes: bytes, scope: str,
+def classify_sender(serials: np.ndarray, times: np.ndarray, codes: np.ndarray, scope: str,
                     limit: Optional[int] = None) -> SerialResult:
     """One counter for the sender (`sender`) or one per packet type (`type`)."""
     if scope == "sender":
         return classify(serials, times, limit=limit)
     total = SerialResult()
-    for code in sorted(set(codes)):
-        mask = codes.translate(_ONLY[code])
-        positions = list(compress(range(len(serials)), mask))
-        part = classify(list(compress(serials, mask)), list(compress(times, mask)), positions,
+    for code in np.unique(codes).tolist():
+        positions = np.flatnonzero(codes == code)
+        part = classify(serials[positions], times[positions], positions.tolist(),
                         None if limit is None else limit - total.anomalies)
         total.merge(part)
         if part.aborted:
             break
     total.gaps.sort(key=lambda g: g[2])
+    total.duplicate_index.sort()
     return total
-
-
-# bytes.translate tables that keep 1 where the code matches, 0 elsewhere: masks for compress().
-_ONLY = [bytes(1 if b == code else 0 for b in range(256)) for code in range(256)]

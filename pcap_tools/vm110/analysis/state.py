@@ -2,7 +2,6 @@
 state, battery and RSSI, and the episodes with the ES-Link relays open (BU state below 0x10)."""
 from __future__ import annotations
 
-from array import array
 from typing import Optional, Sequence
 
 import numpy as np
@@ -23,13 +22,12 @@ def _name(field: str, value: int) -> str:
     return names.get(value, f"Unknown (0x{value:02x})")
 
 
-def timeline(times: Sequence[float], state_ids: Sequence[int], states: Sequence[bytes],
-             frames: Sequence[int], end_time: Optional[float]) -> dict:
-    """Segments per field, battery/RSSI samples, and ES-Link relay open episodes."""
-    ids = np.frombuffer(state_ids, dtype=np.uint32) if isinstance(state_ids, array) else np.asarray(state_ids)
-    at = np.flatnonzero(np.diff(ids)) + 1 if len(ids) else ids
-    changes = [(float(times[i]), int(frames[i]), dict(zip(STATE_FIELDS, STATE.unpack(states[ids[i]]))))
-               for i in ([0] + at.tolist() if len(ids) else [])]
+def timeline(times: Sequence[float], states: np.ndarray, frames: Sequence[int], end_time: Optional[float]) -> dict:
+    """Segments per field, battery/RSSI samples, and ES-Link relay open episodes, from the VRPI
+    times, state bytes (collect.STATE) and frame numbers of one base unit."""
+    at = ([0] + (np.flatnonzero(states[1:] != states[:-1]) + 1).tolist()) if len(states) else []
+    changes = [(float(times[i]), int(frames[i]), dict(zip(STATE_FIELDS, STATE.unpack(states[i].tobytes()))))
+               for i in at]
     last_time = float(times[-1]) if len(times) else None
     segments: dict = {f: [] for f in SEGMENT_FIELDS}
     levels: dict = {f: [] for f in LEVEL_FIELDS}

@@ -12,6 +12,7 @@ from __future__ import annotations
 import ipaddress
 import os
 import shutil
+import struct
 import subprocess
 from pathlib import Path
 from typing import Iterator, Optional
@@ -21,12 +22,12 @@ from ..capture.reader import CaptureReader
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS
 from ..errors import CliError
 from .collect import STATE, STATE_FIELDS, Collected, address
-from .engine import record
 
 PLUGIN_ENV = "VM110_DISSECTOR"
 REASONS = frozenset(p.value for p in C.Problem)
 _EXPERT = "vm110.expert."
-_CRC_GOOD = "1"                        # value of vm110.crc.status for a good CRC
+_HEADER = struct.Struct("<4sHHHHI")      # what the fast engine records: packet ID and header ...
+_AUX = struct.Struct("<H")                 # ... then the command ID or VRPO packet number
 
 
 def plugin_path() -> Path:
@@ -102,8 +103,6 @@ class TsharkEngine:
                         ports=(self.port, self.port + C.OUTPUT_PORT_OFFSET), crc_variant=variant,
                         crc_order=order, crc_auto=self.crc == "auto" or self.crc_order == "auto",
                         problem=reader.problem, first_ts=reader.first_ts, last_ts=reader.last_ts)
-        streams: dict = {}
-        state_ids: dict = {}
         frames = 0
         for pkt in self._packets(path, variant, order):
             frames += 1
@@ -116,12 +115,12 @@ class TsharkEngine:
             if "vm110" not in layers:
                 got.other_udp += 1
                 continue
-            self._eglink(got, streams, state_ids, pkt, layers)
+            self._eglink(got, pkt, layers)
         got.frames = frames
         got.crc_counts[(variant, order)] = got.crc_checked - got.illegal_reasons[C.Problem.BAD_CRC.value]
         return got
 
-    def _eglink(self, got: Collected, streams: dict, state_ids: dict, pkt, layers: set) -> None:
+    def _eglink(self, got: Collected, pkt, layers: set) -> None:
         f = pkt.vm110._all_fields
         got.eglink += 1
         frame, ts = int(pkt.frame_info.number), float(pkt.sniff_timestamp)
@@ -138,9 +137,10 @@ class TsharkEngine:
             got.add_illegal(frame, ts, address(src, sport), f.get("vm110.type", ""), reasons)
             return
         ptype = f["vm110.type"]
-        aux = _int(f.get("vm110.command_id", f.get("vm110.packet_number", "0")))
-        state = b""
         if ptype == C.PacketType.VRPI.value:
-            state = STATE.pack(*(_int(f[f"vm110.{name}"]) for name in STATE_FIELDS))
-        record(got, streams, state_ids, ts, src, sport, ptype.encode(), _int(f["vm110.origin"]),
-               f["vm110.direction"], _int(f["vm110.serial"]), _int(f["vm110.size"]), aux, state, frame)
+            body = STATE.pack(*(_int(f[f"vm110.{name}"]) for name in STATE_FIELDS))
+        else:
+            body = _AUX.pack(_int(f.get("vm110.command_id", f.get("vm110.packet_number", "0"))))
+        head = _HEADER.pack(ptype.encode(), _int(f["vm110.revision"]), _int(f["vm110.origin"]),
+                            _int(f["vm110.serial"]), _int(f["vm110.size"]), _int(f["vm110.spare"]))
+        got.add_legal(ts, frame, src, sport, head + body)

@@ -5,7 +5,7 @@ seconds, source address as packed bytes (4 or 16), ports, the UDP payload cut to
 (Ethernet padding excluded) and the 1-based frame number. Everything else is counted, not yielded.
 
 The file is read in large chunks; the common frame (Ethernet + IPv4 without options + UDP) is
-decoded by one `struct` call, every other layout by `_udp_of`. A file that ends in the middle of a
+decoded by one `struct` call, every other layout by `udp_of`. A file that ends in the middle of a
 record keeps what was read and says so in `problem`; a file that is not a capture raises
 `CaptureError` (exit code 2 in the CLI).
 """
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 import struct
-from typing import BinaryIO, Callable, Iterator, Optional
+from typing import BinaryIO, Callable, Generator, Iterator, NamedTuple, Optional
 
 from ..errors import CliError
 from . import linktypes as L
@@ -26,6 +26,7 @@ PCAPNG_SHB = 0x0A0D0D0A
 PCAPNG_BOM = 0x1A2B3C4D
 PCAPNG_IDB, PCAPNG_PB, PCAPNG_SPB, PCAPNG_EPB = 1, 2, 3, 6
 OPT_END, OPT_TSRESOL, OPT_TSOFFSET = 0, 9, 14
+PCAP_HEADER_LEN = 24
 MAX_RECORD = 1 << 18           # Wireshark's largest standard packet; a longer record is corruption
 CHUNK = 1 << 22
 
@@ -34,6 +35,13 @@ CHUNK = 1 << 22
 _FAST = struct.Struct("!12xHB5xHxB2x4s4xHHH")
 _FAST_HEAD = L.ETH_HEADER_LEN + L.IPV4_MIN_HEADER + L.UDP_HEADER_LEN
 _FAST_VI = 0x45
+
+
+class PcapLayout(NamedTuple):
+    endian: str          # struct byte order of the record headers
+    scale: float         # seconds per unit of the fraction field (us or ns)
+    link: int
+    limit: int           # largest plausible record
 
 
 class CaptureError(CliError):
@@ -89,31 +97,59 @@ class CaptureReader:
             yield from batch
 
     # -- pcap ----------------------------------------------------------------------------------
-    def _pcap(self) -> Iterator[list[Datagram]]:
-        head = self._file.read(24)
-        if len(head) < 24:
+    def pcap_layout(self) -> PcapLayout:
+        """Read the pcap file header: byte order, seconds per fraction unit, link type, record limit."""
+        head = self._file.read(PCAP_HEADER_LEN)
+        if len(head) < PCAP_HEADER_LEN:
             raise CaptureError(f"{self.path}: pcap file header cut short")
         e = "<" if struct.unpack("<I", head[:4])[0] in (PCAP_MAGIC_US, PCAP_MAGIC_NS) else ">"
         magic, _, _, _, _, snaplen, network = struct.unpack(e + "IHHiIII", head)
-        scale = 1e-9 if magic == PCAP_MAGIC_NS else 1e-6
         link = network & 0x0FFFFFFF      # the top bits may carry FCS information
         self.link_types.add(L.NAMES.get(link, str(link)))
-        limit = max(snaplen, MAX_RECORD)
+        return PcapLayout(e, 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link, max(snaplen, MAX_RECORD))
+
+    def pcap_chunks(self, start: int = PCAP_HEADER_LEN, stop: Optional[int] = None) -> Generator[bytes, int, None]:
+        """Chunks of pcap records for a consumer that walks them itself: each chunk starts at a
+        record; the consumer sends back how many bytes (whole records) it used. Call after
+        `pcap_layout()`; a consumer that stops at a corrupt record calls `corrupt()`. `start` and
+        `stop` (file offsets of record boundaries) select a part of the file."""
+        leftover = b""
+        offset = self.bytes_read = start
+        self._file.seek(start)
+        remaining = (self.size if stop is None else stop) - start
+        read = self._file.read
+        try:
+            while remaining > 0:
+                chunk = read(min(self.chunk_size, remaining))
+                if not chunk:
+                    break
+                remaining -= len(chunk)
+                data = leftover + chunk if leftover else chunk
+                used = yield data
+                leftover = data[used:]
+                offset += used
+                self.bytes_read = offset
+        finally:
+            self._file.close()
+        self.bytes_read = offset + len(leftover)
+        if leftover and self.problem is None:
+            self.problem = f"file cut in the middle of a record at byte {offset} ({len(leftover)} bytes ignored)"
+
+    def corrupt(self, pos: int, length: int) -> None:
+        """Record that the record header at `pos` of the current chunk is corrupt."""
+        self.problem = f"corrupt record header at byte {self.bytes_read + pos} (length {length})"
+
+    def _pcap(self) -> Iterator[list[Datagram]]:
+        e, scale, link, limit = self.pcap_layout()
         rec = struct.Struct(e + "IIII").unpack_from
         fast = _FAST.unpack_from if link == L.LINKTYPE_ETHERNET else None
-        parse = self._udp_of
+        parse = self.udp_of
         vi45, head_len, frag_mask = _FAST_VI, _FAST_HEAD, L.IPV4_FRAGMENT_MASK
         ipv4, udp = L.ETHERTYPE_IPV4, L.IPPROTO_UDP
         frame = 0
-        leftover = b""
-        offset = 24                       # file offset of data[0]
-        read = self._file.read
-        chunk_size = self.chunk_size
-        while True:
-            chunk = read(chunk_size)
-            if not chunk:
-                break
-            data = leftover + chunk if leftover else chunk
+        chunks = self.pcap_chunks()
+        data = next(chunks, None)
+        while data is not None:
             end = len(data)
             pos = 0
             out: list[Datagram] = []
@@ -122,8 +158,9 @@ class CaptureReader:
                 sec, frac, incl, orig = rec(data, pos)
                 p = pos + 16
                 if incl > limit:
-                    self.problem = f"corrupt record header at byte {offset + pos} (length {incl})"
-                    self._finish(frame, offset + pos)
+                    self.corrupt(pos, incl)
+                    chunks.close()
+                    self.frames = frame
                     yield out
                     return
                 if p + incl > end:
@@ -145,12 +182,12 @@ class CaptureReader:
                 if self.first_ts is None:
                     sec, frac = rec(data, 0)[:2]
                     self.first_ts = sec + frac * scale
-            leftover = data[pos:]
-            offset += pos
-            self.bytes_read = offset
+            self.frames = frame
             yield out
-        self._finish(frame, offset, leftover)
-
+            try:
+                data = chunks.send(pos)
+            except StopIteration:
+                data = None
     def _finish(self, frames: int, offset: int, leftover: bytes = b"") -> None:
         self.frames = frames
         self.bytes_read = offset + len(leftover)
@@ -163,7 +200,7 @@ class CaptureReader:
         blk = struct.Struct("<II").unpack_from
         epb = struct.Struct("<IIIII").unpack_from
         ifaces: list[tuple[int, int, float, int, Optional[Callable]]] = []
-        parse = self._udp_of
+        parse = self.udp_of
         vi45, head_len, frag_mask = _FAST_VI, _FAST_HEAD, L.IPV4_FRAGMENT_MASK
         ipv4, udp = L.ETHERTYPE_IPV4, L.IPPROTO_UDP
         fast_unpack = _FAST.unpack_from
@@ -277,7 +314,7 @@ class CaptureReader:
         return div, scale, tsoff
 
     # -- every layout but the fast one ---------------------------------------------------------
-    def _udp_of(self, link: int, data: bytes, start: int, incl: int, orig: int,
+    def udp_of(self, link: int, data: bytes, start: int, incl: int, orig: int,
                 frame: int) -> Optional[tuple[bytes, int, int, bytes]]:
         """(src, sport, dport, payload) of the UDP datagram in a frame, or None (counted)."""
         end = start + incl

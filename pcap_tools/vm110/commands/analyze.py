@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     options = Options(serial_scope=args.serial_scope, vrpo_period_ms=args.vrpo_period,
                       burst_gap_ms=args.burst_gap, vrpo_start=args.vrpo_start,
                       vrpo_data_size=args.vrpo_data_size)
-    jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1 and not args.quiet)
+    jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1)
             for p in args.captures]
     if args.jobs > 1 and len(jobs) > 1:
         with multiprocessing.Pool(min(args.jobs, len(jobs))) as pool:

@@ -11,6 +11,7 @@ Sends only to --target (multicast TTL 1). Exit code 1 when there are findings, 0
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import signal
 import sys
 from pathlib import Path
@@ -45,9 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where the controller receives input packets (the only destination)")
     parser.add_argument("--listen", metavar="HOST:PORT",
                         help=f"where the controller's output arrives (default 0.0.0.0:<target port + "
-                             f"{C.OUTPUT_PORT_OFFSET}>; with --group: the group's port {C.OUTPUT_PORT})")
-    parser.add_argument("--group", metavar="ADDR", help=f"join this multicast group for the output "
-                        f"(the specification's is {C.MULTICAST_GROUP})")
+                             f"{C.OUTPUT_PORT_OFFSET}>, as the specification has it)")
+    parser.add_argument("--group", metavar="ADDR", help=f"join this multicast group on the --listen port "
+                        f"for the output (the specification's is {C.MULTICAST_GROUP})")
     parser.add_argument("--target-cmd", metavar="CMD", help="command that starts the controller; "
                         "it is started, watched, restarted after a crash and stopped at the end")
     parser.add_argument("--seed", type=int, default=0, help="case schedule seed (default 0)")
@@ -69,11 +70,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _settings(args: argparse.Namespace, target: str, listen: str | None, group: str | None) -> Settings:
     host_port = parse_endpoint(target, "--target")
+    if group is not None:
+        try:
+            if not ipaddress.IPv4Address(group).is_multicast:
+                raise ValueError
+        except ValueError:
+            raise CliError(f"--group {group!r} is not an IPv4 multicast address") from None
     if listen:
         listen_at = parse_endpoint(listen, "--listen")
+    elif host_port[1] + C.OUTPUT_PORT_OFFSET <= 65535:
+        listen_at = ("0.0.0.0", host_port[1] + C.OUTPUT_PORT_OFFSET)
     else:
-        listen_at = ("0.0.0.0", C.OUTPUT_PORT if group else host_port[1] + C.OUTPUT_PORT_OFFSET)
-    if listen_at[1] > 65535:
         raise CliError("--listen is needed: target port + 2 is not a port")
     return Settings(target=host_port, listen=listen_at, group=group, rate=args.rate, limits=Limits(),
                     startup_s=args.startup)

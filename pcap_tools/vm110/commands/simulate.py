@@ -97,6 +97,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def udp_config(args: argparse.Namespace) -> UdpConfig:
     """The sockets for the role from the network options."""
+    if not 0 < args.port <= 0xFFFF - C.OUTPUT_PORT_OFFSET:
+        raise CliError(f"--port must be 1..{0xFFFF - C.OUTPUT_PORT_OFFSET} (the output port is port + 2)")
     cfg = multicast_config(args.role, args.group, args.port, args.iface)
     if args.peer:
         cfg.dest = parse_address(args.peer)
@@ -130,6 +132,9 @@ def build_node(args: argparse.Namespace, printer: Callable[[str], None]) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.duration is not None and args.duration <= 0:
+        raise CliError("--duration must be positive")
+
     def printer(line: str) -> None:
         if not args.quiet and not args.json:
             print(line, flush=True)

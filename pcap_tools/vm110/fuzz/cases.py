@@ -10,6 +10,7 @@ from the base unit's next serial. Command IDs are a function of the case index a
 from __future__ import annotations
 
 import functools
+import itertools
 import random
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
@@ -51,7 +52,8 @@ def command_ids(index: int) -> list[int]:
 
 def _valid(ptype: C.PacketType, fields: dict[str, Any], header: Optional[dict[str, Any]] = None,
            twin_fields: Optional[dict[str, Any]] = None) -> Builder:
-    """A legal packet with `fields` and `header`; its twin has `twin_fields` (default: the same)."""
+    """A packet with `fields` and `header` (legal unless the header makes it not); its valid twin
+    has `twin_fields` (default: `fields`) and the default header."""
     def build(serial: int) -> tuple[bytes, bytes]:
         twin = M.build(ptype, serial, fields if twin_fields is None else twin_fields)
         if header is None and twin_fields is None:
@@ -67,14 +69,14 @@ def _mutated(ptype: C.PacketType, fields: dict[str, Any], change: Callable[[byte
     return build
 
 
-def _single(family: str, text: str, builder: Builder) -> Callable[[int], Case]:
-    return lambda index: Case(index, family, text, [Step(builder)])
-
-
 def _fields_for(ptype: C.PacketType, index: int, sweep: bool = False) -> dict[str, Any]:
     if ptype is C.PacketType.VRPI:
         return dict(M.SWEEP_VRPI if sweep else M.ARMED_VRPI)
     return M.default_fields(ptype, command_ids(index)[0])
+
+
+def _nth_structural(valid: bytes, seed: int, position: int) -> bytes:
+    return next(itertools.islice(M.structural(valid, random.Random(seed)), position, None))[1]
 
 
 # --- sweep families ---------------------------------------------------------------------------
@@ -88,7 +90,7 @@ def _structural_family(ptype: C.PacketType, rng: random.Random) -> list[Callable
 
         def make(index: int, position: int = position, name: str = name, seed: int = seed) -> Case:
             def change(valid: bytes) -> bytes:
-                return list(M.structural(valid, random.Random(seed)))[position][1]
+                return _nth_structural(valid, seed, position)
             return Case(index, family, f"{ptype.value} {name}",
                         [Step(_mutated(ptype, _fields_for(ptype, index), change))])
         out.append(make)
@@ -119,9 +121,20 @@ def _field_family(ptype: C.PacketType, rng: random.Random) -> list[Callable[[int
     return out
 
 
-def _vrci(command_id: int, serial_offset: int = 0) -> Builder:
+def _vrci(command_id: int) -> Builder:
     fields = dict(command_id=command_id, command_data=b"FUZZ".ljust(C.COMMAND_DATA_LEN, b"\0"))
-    return lambda serial: (M.build(C.PacketType.VRCI, serial + serial_offset, fields),) * 2
+    return lambda serial: (M.build(C.PacketType.VRCI, serial, fields),) * 2
+
+
+def _duplicate_frame(command_id: int) -> list[Step]:
+    """A VRCI and then the very same frame again (same serial): a duplicate, not a retransmission."""
+    first = _vrci(command_id)
+    frame: list[tuple[bytes, bytes]] = []
+
+    def original(serial: int) -> tuple[bytes, bytes]:
+        frame[:] = [first(serial)]
+        return frame[0]
+    return [Step(original), Step(lambda serial: frame[0], 10.0, expect_ack=False)]
 
 
 def _vrpi_serial(offset: int, absolute: Optional[int] = None) -> Builder:
@@ -148,7 +161,7 @@ def _sequence_family() -> list[Callable[[int], Case]]:
                        [Step(_valid(VRAI, dict(command_id=command_ids(i)[0])))]),
         lambda i: Case(i, F, "VRPI with a repeated serial", [Step(_vrpi_serial(-1))]),
         lambda i: Case(i, F, "VRCI frame received twice (same serial: a duplicate)",
-                       [Step(_vrci(command_ids(i)[0])), Step(_vrci(command_ids(i)[0], -1), 10.0, expect_ack=False)]),
+                       _duplicate_frame(command_ids(i)[0])),
         lambda i: Case(i, F, "withhold VRAI for 800 ms: the VRCO must be resent every 100 ms",
                        withhold_vrai_ms=800.0),
         lambda i: Case(i, F, "VRPI serial going back by 5", [Step(_vrpi_serial(-5))]),
@@ -176,7 +189,7 @@ def _direction_family() -> list[Callable[[int], Case]]:
     out = []
     for ptype in M.OUTPUT_TYPES:
         out.append(lambda i, p=ptype: Case(i, "wrong-direction", f"{p.value} sent to the controller",
-                                           [Step(_valid(p, M.default_fields(p, command_ids(i)[0]), {"origin": 0}))]))
+                                           [Step(_valid(p, M.default_fields(p, command_ids(i)[0])))]))
     return out
 
 
@@ -226,7 +239,7 @@ def _random_case(seed: int, index: int) -> Case:
     sub_seed = rng.randrange(1 << 32)
 
     def change(valid: bytes) -> bytes:
-        return list(M.structural(valid, random.Random(sub_seed)))[position][1]
+        return _nth_structural(valid, sub_seed, position)
     return Case(index, "random-structure", f"{ptype.value} {mutations[position][0]}",
                 [Step(_mutated(ptype, fields, change))])
 

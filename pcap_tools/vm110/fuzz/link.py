@@ -5,7 +5,6 @@ slow to read its socket does not mistake late reading for a late controller.
 """
 from __future__ import annotations
 
-import ipaddress
 import socket
 import struct
 import time
@@ -17,6 +16,7 @@ from ..errors import CliError
 _RCVBUF = 4 << 20
 _TIMESPEC = struct.Struct("@ll")
 _MAX_DATAGRAM = 65535
+_IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)   # Linux
 
 
 def parse_endpoint(text: str, what: str) -> tuple[str, int]:
@@ -38,23 +38,19 @@ class Link:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _RCVBUF)
             sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, C.MULTICAST_TTL)
-            self._stamped = hasattr(socket, "SO_TIMESTAMPNS")
-            if self._stamped:
+            if hasattr(socket, "SO_TIMESTAMPNS"):
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_TIMESTAMPNS, 1)
             if group is not None:
-                if not ipaddress.IPv4Address(group).is_multicast:
-                    raise CliError(f"--group {group} is not a multicast address")
+                sock.setsockopt(socket.IPPROTO_IP, _IP_MULTICAST_ALL, 0)   # only the group joined here
                 sock.bind(("", listen[1]))
-                local = listen[0] if listen[0] != "0.0.0.0" else "0.0.0.0"
+                # The listen host names the interface to join on (0.0.0.0: the kernel's choice).
                 sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
-                                socket.inet_aton(group) + socket.inet_aton(local))
+                                socket.inet_aton(group) + socket.inet_aton(listen[0]))
             else:
                 sock.bind(listen)
-        except (OSError, ValueError) as exc:
+        except OSError as exc:
             sock.close()
-            if isinstance(exc, CliError):
-                raise
-            raise CliError(f"cannot listen on {listen[0]}:{listen[1]}: {exc}") from None
+            raise CliError(f"cannot listen on {listen[0]}:{listen[1]}: {exc.strerror or exc}") from None
         sock.setblocking(False)
         self.local = sock.getsockname()
 

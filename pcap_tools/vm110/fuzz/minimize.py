@@ -16,9 +16,9 @@ from typing import Callable, Optional
 from .. import constants as C
 from ..crc import crc_bytes
 from ..decode import crc_span, decode
+from .mutate import SIZE_OFFSET
 
 Predicate = Callable[[bytes], bool]
-_SIZE_AT = C.ID_LEN + 6
 
 
 @dataclass
@@ -33,14 +33,14 @@ def _strip_crc(data: bytes) -> Optional[bytes]:
     """The packet without its CRC when the CRC is valid there, else None."""
     if len(data) < C.OVERHEAD or C.Problem.BAD_CRC.value in decode(data)["problems"]:
         return None
-    end = crc_span(data, struct.unpack_from("<H", data, _SIZE_AT)[0])
+    end = crc_span(data, struct.unpack_from("<H", data, SIZE_OFFSET)[0])
     return data[:end] + data[end + C.CRC_LEN:]
 
 
 def _with_crc(content: bytes) -> bytes:
     if len(content) < C.PREFIX_LEN:
         return content + crc_bytes(content)
-    end = min(C.PREFIX_LEN + struct.unpack_from("<H", content, _SIZE_AT)[0], len(content))
+    end = min(C.PREFIX_LEN + struct.unpack_from("<H", content, SIZE_OFFSET)[0], len(content))
     return content[:end] + crc_bytes(content[:end]) + content[end:]
 
 

@@ -11,7 +11,6 @@ import struct
 from typing import Any, Iterator
 
 from scapy.fields import Field, StrField
-from scapy.packet import Packet
 
 from .. import constants as C
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS, crc_bytes
@@ -44,7 +43,7 @@ def build(ptype: C.PacketType | str, serial: int, fields: dict[str, Any] | None 
           order: str = DEFAULT_BYTE_ORDER) -> bytes:
     """A packet of a known type with the given payload and header fields, as the wire carries it."""
     ptype = C.PacketType(ptype)
-    head = dict(origin=0 if ptype.direction is C.Direction.OUTPUT else BU_ORIGIN, serial=serial & 0xFFFF)
+    head = dict(origin=0 if ptype.direction is C.Direction.OUTPUT else BU_ORIGIN, serial=serial % C.SERIAL_MODULUS)
     head.update(header or {})
     pkt = VM110(type=ptype.value.encode(), **head) / PAYLOAD_CLASSES[ptype](**(fields or {}))
     with crc_settings(variant, order):

@@ -67,6 +67,7 @@ class Monitor:
         self.sent_ids: set[int] = set()
         self.id_case: dict[int, int] = {}        # command ID -> last case that sent it
         self.withholding = False
+        self.vrco_seen = False                    # has this controller ever sent a VRCO?
         self.reset_controller(now)
 
     # --- state ----------------------------------------------------------------------------------
@@ -77,7 +78,6 @@ class Monitor:
         self.vrpo_interval = 0.0
         self.last_rx: Optional[float] = None
         self.vrco: dict[int, _Vrco] = {}
-        self.vrco_seen = getattr(self, "vrco_seen", False)
         self.stall_reported = False
         self.pending.clear()
         self.illegal_ids.clear()

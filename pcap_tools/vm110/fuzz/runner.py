@@ -333,6 +333,7 @@ def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[
     session = Session(settings, supervisor)
     try:
         start_target(session)
+        session.monitor.vrco_seen = bool(finding.withhold_vrai_ms)   # it had VRCO to withhold: wait for one
         steps = finding.steps
         if len(steps) == 1 and finding.packet_hex:
             steps = [dict(steps[0], hex=finding.packet_hex)]

@@ -63,7 +63,6 @@ class Session:
         self.traffic: collections.deque[tuple[float, bool, bytes, tuple[str, int]]] = collections.deque()
         self.last_case_send = 0.0
         self.exit_reported = False
-        self.started_at = now
 
     # --- the loop ---------------------------------------------------------------------------------
     def pump(self, until: float) -> None:
@@ -90,7 +89,7 @@ class Session:
             select.select([self.link], [], [], wait)
 
     def _take_serial(self) -> int:
-        serial, self.serial = self.serial, (self.serial + 1) & 0xFFFF
+        serial, self.serial = self.serial, (self.serial + 1) % C.SERIAL_MODULUS
         return serial
 
     def _send(self, data: bytes) -> float:
@@ -114,11 +113,9 @@ class Session:
         else:
             self.ack_vrco(command_id)
 
-    def ack_vrco(self, command_id: int) -> bytes:
+    def ack_vrco(self, command_id: int) -> None:
         data = M.build(C.PacketType.VRAI, self._take_serial(), dict(command_id=command_id))
-        t = self._send(data)
-        self.monitor.on_vrai(t, command_id, data)
-        return data
+        self.monitor.on_vrai(self._send(data), command_id, data)
 
     # --- cases ------------------------------------------------------------------------------------
     def send_case_packet(self, index: int, build: Any, delay_ms: float, expect_ack: bool) -> Sent:
@@ -144,16 +141,16 @@ class Session:
             self.pump(self.vrpi_paused_until)
             self.next_vrpi = time.time()
         if withhold_vrai_ms:
-            sent += self._withhold(index, withhold_vrai_ms)
+            self._withhold(index, withhold_vrai_ms)
         if settle_ms:
             self.pump(time.time() + settle_ms / 1000)
         self.stream = dict(M.ARMED_VRPI)
         return sent
 
-    def _withhold(self, index: int, hold_ms: float) -> list[Sent]:
+    def _withhold(self, index: int, hold_ms: float) -> None:
         """Leave the next fresh VRCO unacknowledged for `hold_ms`, then acknowledge it."""
         if not self.monitor.vrco_seen:
-            return []    # this controller has sent no VRCO yet: nothing to withhold
+            return    # this controller has sent no VRCO yet: nothing to withhold
         self.monitor.withholding = True
         self.withheld.clear()
         deadline = time.time() + self.settings.vrco_wait_s
@@ -162,13 +159,10 @@ class Session:
         if self.withheld:
             self.pump(min(self.withheld.values()) + hold_ms / 1000)
         self.monitor.withholding = False
-        sent = []
+        self.monitor.note_case(time.time(), index)
         for command_id in list(self.withheld):
-            self.monitor.note_case(time.time(), index)
-            data = self.ack_vrco(command_id)
-            sent.append(Sent(time.time(), data, data, hold_ms, False))
+            self.ack_vrco(command_id)
         self.withheld.clear()
-        return sent
 
     # --- the controller's life --------------------------------------------------------------------
     def wait_for_vrpo(self, since: float, timeout: float) -> bool:

@@ -85,14 +85,20 @@ class BaseUnit(Node):
         self._command_until = now + self.remote.command_until if self.remote.command_until else None
 
     def _due(self) -> Optional[int]:
-        due = [self._next_vrpi]
-        if self.pending is not None:
-            due.append(min(self.pending["next"], self.pending["first"] + self._fail_us))
-        elif self._commands or self._next_periodic_command is not None:
-            due.append(self._next_command_time())
-        if self._acks:
-            due.append(self._acks[0][0])
-        return min(due)
+        due = self._next_vrpi
+        pending = self.pending
+        if pending is not None:
+            t = min(pending["next"], pending["first"] + self._fail_us)
+            due = t if t < due else due
+        else:
+            t = self._next_periodic_command
+            if t is not None and t < due:
+                due = t
+            if self._commands and self._commands[0][0] < due:
+                due = self._commands[0][0]
+        if self._acks and self._acks[0][0] < due:
+            due = self._acks[0][0]
+        return due
 
     def _tick(self, now: int) -> None:
         if self.pending is not None or self._commands or self._next_periodic_command is not None:
@@ -149,11 +155,6 @@ class BaseUnit(Node):
     def queue_command(self, data: bytes, at: int) -> None:
         """The operator issues a command at `at` (µs); sent once the previous one is done."""
         self._commands.append((at, data))
-
-    def _next_command_time(self) -> Optional[int]:
-        times = [t for t in (self._commands[0][0] if self._commands else None, self._next_periodic_command)
-                 if t is not None]
-        return min(times) if times else None
 
     def _tick_vrci(self, now: int) -> None:
         cfg = self.config

@@ -18,26 +18,20 @@ def seconds(value: float) -> int:
 
 
 class WallClock:
-    """Monotonic time since the clock was made; `epoch_us` maps it to wall time for captures."""
+    """Monotonic time since the clock was made."""
 
     def __init__(self) -> None:
         self._start = time.monotonic_ns()
-        self.epoch_us = time.time_ns() // 1000
 
     def now(self) -> int:
         return (time.monotonic_ns() - self._start) // 1000
 
 
 class VirtualClock:
-    """Time that moves only when the synthesis loop advances it: no sleeping."""
+    """Time that moves only when the synthesis loop sets `t`: no sleeping."""
 
-    def __init__(self, epoch_us: int = 0) -> None:
-        self.epoch_us = epoch_us
-        self._now = 0
+    def __init__(self) -> None:
+        self.t = 0          # µs; the loop assigns it directly (it is on the hot path)
 
     def now(self) -> int:
-        return self._now
-
-    def advance(self, t_us: int) -> None:
-        if t_us > self._now:
-            self._now = t_us
+        return self.t

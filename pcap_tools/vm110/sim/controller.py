@@ -88,11 +88,18 @@ class Controller(Node):
     def _due(self) -> Optional[int]:
         due = self._next_vrpo
         if not self.vrpi_alarm and self.last_vrpi is not None:
-            due = min(due, self.last_vrpi + self._vrpi_timeout_us + 1)
-        if self.pending is not None:
-            due = min(due, self.pending["next"], self.pending["first"] + self._vrco_timeout_us)
-        elif self._commands or self._next_periodic_command is not None:
-            due = min(due, self._next_command_time())
+            t = self.last_vrpi + self._vrpi_timeout_us + 1
+            due = t if t < due else due
+        pending = self.pending
+        if pending is not None:
+            t = min(pending["next"], pending["first"] + self._vrco_timeout_us)
+            due = t if t < due else due
+        else:
+            t = self._next_periodic_command
+            if t is not None and t < due:
+                due = t
+            if self._commands and self._commands[0][0] < due:
+                due = self._commands[0][0]
         return due
 
     def _tick(self, now: int) -> None:
@@ -174,11 +181,6 @@ class Controller(Node):
     def queue_command(self, data: bytes, at: int) -> None:
         """Send a VRCO with `data` at time `at` (µs) or as soon as the one in flight is done."""
         self._commands.append((at, data))
-
-    def _next_command_time(self) -> Optional[int]:
-        times = [t for t in (self._commands[0][0] if self._commands else None, self._next_periodic_command)
-                 if t is not None]
-        return min(times) if times else None
 
     def _tick_vrco(self, now: int) -> None:
         cfg = self.config

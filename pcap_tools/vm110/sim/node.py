@@ -8,11 +8,12 @@ attached. Subclasses override the `on_*` hooks.
 from __future__ import annotations
 
 import struct
+import zlib
 from collections import Counter
 from typing import Any, Callable, NamedTuple, Optional
 
 from .. import constants as C
-from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, check_byte_order, crc_function
+from ..crc import _REVERSE, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, MASK, check_byte_order, crc_function
 from ..decode import crc_span, decode
 from .clock import US_PER_S
 
@@ -46,6 +47,19 @@ class Meta(NamedTuple):
 
 
 Send = Callable[[bytes, int, Meta], None]
+
+
+def _mpeg2_little(body: bytes) -> bytes:
+    """The default CRC trailer straight as bytes: MPEG-2 is the reflected CRC of bit-reversed
+    bytes, reflected back; stored little-endian that reflection is a byte-wise one, reversed."""
+    return ((zlib.crc32(body.translate(_REVERSE)) ^ MASK).to_bytes(C.CRC_LEN, "little").translate(_REVERSE))[::-1]
+
+
+def _trailer_function(variant: str, order: str) -> Callable[[bytes], bytes]:
+    if (variant, order) == ("mpeg2", "little"):
+        return _mpeg2_little
+    fn = crc_function(variant)
+    return lambda body: fn(body).to_bytes(C.CRC_LEN, order)
 
 
 def inspect(data: bytes, crc_fn: Callable[[bytes], int], order: str) -> tuple[list[str], Optional[C.PacketType]]:
@@ -84,6 +98,7 @@ class Node:
         self.stalls = tuple(sorted(stalls))      # (start, end) in µs: neither sends nor receives
         self.crc, self.crc_order = crc, check_byte_order(crc_order)
         self._crc_fn = crc_function(crc)
+        self._trailer = _trailer_function(crc, self.crc_order)
         self._send: Optional[Send] = None
         self.printer = printer
         self.listeners: list[Callable[[dict[str, Any]], None]] = []   # called with every log entry
@@ -147,7 +162,7 @@ class Node:
         serial = self.serial
         self.serial = (serial + 1) & 0xFFFF
         body = _HEADER.pack(_RAW_IDS[ptype], C.SUPPORTED_REVISION, self.origin, serial, len(payload), 0) + payload
-        data = body + self._crc_fn(body).to_bytes(C.CRC_LEN, self.crc_order)
+        data = body + self._trailer(body)
         self.sent[_NAMES[ptype]] += 1
         self.transmit(data, now, _new(Meta, (self.name, ptype, serial, key, data_len)))
         return data

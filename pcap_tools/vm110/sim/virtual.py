@@ -9,6 +9,7 @@ is. That record is the event log the ground truth is computed from (`sim.truth`)
 from __future__ import annotations
 
 import heapq
+import itertools
 from dataclasses import dataclass, field
 from typing import Iterator, NamedTuple, Optional
 
@@ -52,7 +53,6 @@ class VirtualNetwork:
         self.stations = stations
         self.clock = VirtualClock()
         self._heap: list[tuple[int, int, int, bytes, tuple[str, ...], Meta]] = []
-        self._seq = 0
         self._wire_free = [0] * len(stations)
         self._receivers = [[other.node for other in stations if other.node.direction is not s.node.direction]
                            for s in stations]
@@ -63,18 +63,19 @@ class VirtualNetwork:
             node.attach(self._sender(index, impairer))
 
     def _sender(self, index: int, impairer: Optional[Impairer]):
-        heap, push = self._heap, heapq.heappush
+        heap, push, seq = self._heap, heapq.heappush, itertools.count()
+        wire_free = self._wire_free
 
         def send(data: bytes, now: int, meta: Meta) -> None:
-            start = max(now, self._wire_free[index])
-            self._wire_free[index] = start + (WIRE_OVERHEAD + len(data)) * WIRE_NS_PER_BYTE // 1000 + 1
+            start = wire_free[index]
+            if now > start:
+                start = now
+            wire_free[index] = start + (WIRE_OVERHEAD + len(data)) * WIRE_NS_PER_BYTE // 1000 + 1
             if impairer is None:
-                push(heap, (start, self._seq, index, data, (), meta))
-                self._seq += 1
+                push(heap, (start, next(seq), index, data, (), meta))
                 return
             for t, copy, problems in impairer.apply(data, start, _NAMES[meta.ptype]):
-                push(heap, (t, self._seq, index, copy, problems, meta))
-                self._seq += 1
+                push(heap, (t, next(seq), index, copy, problems, meta))
         return send
 
     def run(self, duration_s: float) -> Iterator[Arrival]:
@@ -103,8 +104,7 @@ class VirtualNetwork:
                 if t_net >= end:
                     return
                 t, _, index, data, problems, meta = pop(heap)
-                clock.advance(t)
-                now = t
+                clock.t = now = t
                 yield make(Arrival, (t, index, data, problems, meta))
                 for r in receivers[index]:
                     node = nodes[r]
@@ -115,8 +115,7 @@ class VirtualNetwork:
             else:
                 if t_node >= end:
                     return
-                clock.advance(t_node)
-                now = t_node
+                clock.t = now = t_node
                 node = nodes[first]
                 node.tick(t_node)
                 due = node.next_due()

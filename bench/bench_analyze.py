@@ -1,0 +1,127 @@
+"""Benchmark of `vm110 analyze` (fast engine) on a synthesised capture of 1,000,000 packets.
+
+Prints, all measured in this run:
+- analysis time / time scapy's RawPcapReader needs merely to iterate the same file (target <= 1.0);
+- analysis time / `tshark -T fields` with the Lua dissector, both on the first 100,000 packets
+  (tshark with a Lua dissector needs minutes for the whole file);
+- peak memory (ru_maxrss) of a child process running `vm110 analyze` on the whole file
+  (target <= 300 MiB).
+Each timing is the best of REPEAT runs, alternating, so that a busy machine hurts both sides alike.
+The capture is cached in out/bench/ (synthesis is deterministic; delete it to rebuild).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from scapy.utils import RawPcapReader
+
+from vm110.analysis import analyze
+from vm110.analysis.engine import WORKERS_ENV, FastEngine
+from vm110.analysis.tshark_engine import plugin_path
+from vm110.synth import synthesize
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "out" / "bench"
+PACKETS_PER_S = 18.6          # of the `day` scenario
+REPEAT = 3
+TSHARK_PACKETS = 100_000
+
+
+def capture(packets: int) -> Path:
+    path = OUT / f"analyze-{packets}.pcap"
+    if not path.exists():
+        OUT.mkdir(parents=True, exist_ok=True)
+        start = time.perf_counter()
+        truth = synthesize("day", str(path), 1, packets / PACKETS_PER_S, "pcap")
+        print(f"synthesised {truth['capture']['packets']} packets in {time.perf_counter() - start:.1f} s")
+    return path
+
+
+def prefix(path: Path, count: int) -> Path:
+    """The first `count` records of a little-endian pcap."""
+    out = path.with_name(f"{path.stem}-first{count}.pcap")
+    if not out.exists():
+        data = path.read_bytes()
+        pos = 24
+        for _ in range(count):
+            pos += 16 + struct.unpack_from("<I", data, pos + 8)[0]
+        out.write_bytes(data[:pos])
+    return out
+
+
+def best(fn, repeat: int = REPEAT) -> float:
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def scapy_iterate(path: Path) -> None:
+    for _ in RawPcapReader(str(path)):
+        pass
+
+
+def child_peak(path: Path, workers: int) -> tuple[float, float]:
+    """(wall seconds, peak RSS MiB) of `vm110 analyze` in its own process. With parts read in
+    parallel, ru_maxrss is that of the largest process (helpers run at the same time)."""
+    start = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "vm110", "analyze", str(path), "--quiet",
+                             "--json", os.devnull], env={**os.environ, WORKERS_ENV: str(workers)})
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - start
+    if status:
+        raise SystemExit(f"vm110 analyze failed with status {status}")
+    return wall, usage.ru_maxrss / 1024.0
+
+
+def tshark_fields(path: Path) -> None:
+    subprocess.run(["tshark", "-r", str(path), "-X", f"lua_script:{plugin_path()}", "-T", "fields",
+                    "-e", "frame.number", "-e", "vm110.type", "-e", "vm110.serial", "-e", "vm110.crc.status",
+                    "-e", "vm110.command_id"], check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--packets", type=int, default=1_000_000)
+    args = parser.parse_args()
+    path = capture(args.packets)
+    scapy_times, analysis_times = [], []
+    for _ in range(REPEAT):
+        scapy_times.append(best(lambda: scapy_iterate(path), 1))
+        analysis_times.append(best(lambda: analyze(str(path)), 1))
+    report = analyze(str(path))
+    packets = report["capture"]["packets"]
+    scapy_s, analysis_s = min(scapy_times), min(analysis_times)
+    print(f"capture: {packets} packets, {path.stat().st_size / 2**20:.1f} MiB ({path})")
+    print(f"scapy RawPcapReader, iterate only: {scapy_s:.2f} s ({scapy_s / packets * 1e6:.2f} us/packet)")
+    print(f"vm110 analyze, fast engine:        {analysis_s:.2f} s ({analysis_s / packets * 1e6:.2f} us/packet, "
+          f"{FastEngine().workers} reading processes)")
+    print(f"RATIO analysis / scapy iterate = {analysis_s / scapy_s:.2f} (target <= 1.0)")
+    for workers in (1, FastEngine().workers):
+        wall, peak = child_peak(path, workers)
+        print(f"PEAK MEMORY of `vm110 analyze` with {workers} reading process(es) ({wall:.2f} s wall, CLI with "
+              f"--json) = {peak:.0f} MiB (target <= 300)")
+        if FastEngine().workers == 1:
+            break
+    if shutil.which("tshark") and plugin_path().is_file():
+        small = prefix(path, min(TSHARK_PACKETS, packets))
+        tshark_s = best(lambda: tshark_fields(small), 1)
+        ours = best(lambda: analyze(str(small)))
+        print(f"tshark -T fields with the Lua dissector, first {min(TSHARK_PACKETS, packets)} packets: {tshark_s:.2f} s; "
+              f"vm110 analyze: {ours:.2f} s")
+        print(f"RATIO analysis / tshark -T fields = {ours / tshark_s:.3f}")
+    else:
+        print("tshark or dissector/vm110.lua missing: no tshark ratio")
+
+
+if __name__ == "__main__":
+    main()

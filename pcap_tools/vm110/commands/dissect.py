@@ -1,0 +1,56 @@
+"""Run tshark on a capture with the bundled Wireshark dissector (dissector/vm110.lua).
+
+For people who have not installed the plugin: everything after the capture goes to tshark
+unchanged, e.g. `vm110 dissect cap.pcap -V -Y "vm110.command_id == 17"`. The exit status is
+tshark's; 2 when tshark or the dissector cannot be used.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+from ..errors import CliError
+
+PLUGIN_ENV = "VM110_DISSECTOR"
+
+
+def plugin_path() -> Path:
+    """$VM110_DISSECTOR, else dissector/vm110.lua of the source tree this package runs from.
+
+    The project installs the package in editable mode (`make setup`), so the plugin is found
+    beside the package's source directory: pcap_tools/vm110 -> ../../dissector/vm110.lua.
+    """
+    env = os.environ.get(PLUGIN_ENV)
+    return Path(env) if env else Path(__file__).resolve().parents[3] / "dissector" / "vm110.lua"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("capture", help="pcap or pcapng file")
+    parser.add_argument("tshark_args", nargs=argparse.REMAINDER, metavar="TSHARK_ARGS",
+                        help="passed to tshark, e.g. -V, -T fields -e vm110.serial, -Y FILTER")
+
+
+def _check_loads(tshark: str, plugin: Path) -> None:
+    """Wireshark 4.4 silently skips Lua plugins when run as root: say so instead of decoding nothing."""
+    done = subprocess.run([tshark, "-G", "protocols", "-X", f"lua_script:{plugin}"],
+                          capture_output=True, text=True, check=False)
+    if not any(line.split("\t")[-1:] == ["vm110"] for line in done.stdout.splitlines()):
+        hint = " (Wireshark 4.4 loads no Lua plugin as root: run as a normal user)" if os.geteuid() == 0 else ""
+        raise CliError(f"tshark did not load the dissector {plugin}{hint}")
+
+
+def run(args: argparse.Namespace) -> int:
+    tshark = shutil.which("tshark")
+    if tshark is None:
+        raise CliError("tshark not found on the PATH: install Wireshark's tshark (Debian/Ubuntu: apt-get install tshark)")
+    plugin = plugin_path()
+    if not plugin.is_file():
+        raise CliError(f"the dissector is not at {plugin} (set {PLUGIN_ENV} to its path)")
+    if not os.access(args.capture, os.R_OK) or not os.path.isfile(args.capture):
+        raise CliError(f"cannot read {args.capture}")
+    _check_loads(tshark, plugin)
+    extra = args.tshark_args[1:] if args.tshark_args[:1] == ["--"] else args.tshark_args
+    return subprocess.call([tshark, "-X", f"lua_script:{plugin}", "-r", args.capture, *extra])

@@ -1,0 +1,145 @@
+"""How the dissector is found and set up in tshark: default ports, the input-port preference,
+Decode As, the heuristic and its switch, CRC validation off, the Info column, display filters;
+and the `vm110 dissect` command. Every check runs on both tshark versions."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+import tshark_runner as T
+from vm110 import constants as C
+from vm110.layers import VM110, VRAO, VRCI, VRPI, VRPO
+
+pytestmark = pytest.mark.tshark
+
+VRPI_ARMED = bytes(VM110(origin=0x0101, serial=12) / VRPI(
+    bu_state=C.BuState.ARMED, armed_ru=0x0C07, ru_state=C.RuState.ENABLED, ru_battery=88))
+VRPI_STOPPED = bytes(VM110(origin=0x0101, serial=13) / VRPI(bu_state=C.BuState.STOPPED, unarmed_rus=2))
+VRCI_17 = bytes(VM110(origin=0x0101, serial=14) / VRCI(command_id=17))
+VRAO_17 = bytes(VM110(serial=3) / VRAO(command_id=17))
+VRPO_0 = bytes(VM110(serial=4) / VRPO(packet_number=0, periodic_data=bytes(64)))
+OTHER_PORT = 40000
+
+
+@pytest.fixture(params=T.RUNNERS, ids=lambda r: r.name)
+def ws(request, tmp_path):
+    try:
+        with request.param.workspace(tmp_path) as workspace:
+            yield workspace
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+
+
+def _fields(ws: T.Workspace, datagrams, *fields: str, prefs=None, extra=()) -> list[list[str]]:
+    pcap = ws.dir / "capture.pcap"
+    T.write_pcap(pcap, datagrams)
+    args = ["-r", str(pcap), *T.pref_args(prefs), *extra, "-T", "fields", *(a for f in fields for a in ("-e", f))]
+    proc = ws.run(args)
+    assert T.LUA_ERROR not in proc.stdout + proc.stderr
+    return [line.split("\t") for line in proc.stdout.splitlines()]
+
+
+def test_info_column(ws):
+    rows = _fields(ws, [VRPI_ARMED, VRPI_STOPPED, VRCI_17, VRAO_17, VRPO_0], "_ws.col.Protocol", "_ws.col.Info")
+    assert rows == [
+        ["VM110", "VRPI Armed RU 0x0C07 Enabled bat 88%, serial 12"],
+        ["VM110", "VRPI Stopped unarmed RUs 2, serial 13"],
+        ["VM110", "VRCI cmd 17, serial 14"],
+        ["VM110", "VRAO ack 17, serial 3"],
+        ["VM110", "VRPO #0 64 bytes, serial 4"],
+    ]
+
+
+def test_info_column_names_the_illegal_reasons(ws):
+    bad_crc = VRAO_17[:-1] + bytes([VRAO_17[-1] ^ 1])
+    rows = _fields(ws, [bad_crc, VRPI_ARMED[:30]], "_ws.col.Info")
+    assert rows == [["VRAO ack 17, serial 3 [Illegal: bad CRC]"],
+                    ["VRPI Armed RU 0x0C07 Enabled bat 88%, serial 12 [Illegal: bad CRC, size mismatch, truncated]"]]
+
+
+def test_command_id_filter_pairs_commands_and_acks(ws):
+    rows = _fields(ws, [VRPI_ARMED, VRCI_17, VRAO_17, VRPO_0], "vm110.type", extra=["-Y", "vm110.command_id == 17"])
+    assert rows == [["VRCI"], ["VRAO"]]
+
+
+def test_filters_on_names_and_generated_fields(ws):
+    packets = [VRPI_ARMED, VRPI_STOPPED, VRCI_17, VRAO_17]
+    assert _fields(ws, packets, "vm110.serial", extra=["-Y", 'vm110.bu_state == "Stopped"']) == [["13"]]
+    assert _fields(ws, packets, "vm110.serial", extra=["-Y", "vm110.es_relays_open == 1"]) == [["13"]]
+    assert _fields(ws, packets, "vm110.serial", extra=["-Y", 'vm110.direction == "Output"']) == [["3"]]
+    assert _fields(ws, packets, "vm110.serial", extra=["-Y", "vm110.crc.status == 1"]) == [["12"], ["13"], ["14"], ["3"]]
+
+
+def test_default_ports_and_heuristic(ws):
+    elsewhere = [T.Datagram(VRPI_ARMED, OTHER_PORT, OTHER_PORT), T.Datagram(VRCI_17, OTHER_PORT + 1, 33333)]
+    # A payload whose size does not match the UDP length is not claimed on other ports.
+    inconsistent = T.Datagram(VRPI_ARMED + b"\0", OTHER_PORT, OTHER_PORT)
+    packets = [VRPI_ARMED, VRAO_17, *elsewhere, inconsistent]
+    assert [r[0] for r in _fields(ws, packets, "frame.protocols")] == [
+        "eth:ethertype:ip:udp:vm110"] * 4 + ["eth:ethertype:ip:udp:data"]
+    off = _fields(ws, packets, "frame.protocols", prefs={"vm110.heuristic": "FALSE"})
+    assert [r[0].endswith(":vm110") for r in off] == [True, True, False, False, False]
+
+
+def test_input_port_preference(ws):
+    port = 6000
+    packets = [T.Datagram(VRPI_ARMED, port, port), T.Datagram(VRAO_17, port + C.OUTPUT_PORT_OFFSET, 1234),
+               T.Datagram(VRPI_ARMED, C.INPUT_PORT, C.INPUT_PORT)]
+    rows = _fields(ws, packets, "frame.protocols", prefs={"vm110.heuristic": "FALSE", "vm110.input_port": str(port)})
+    assert [r[0].endswith(":vm110") for r in rows] == [True, True, False]
+
+
+def test_decode_as(ws):
+    packets = [T.Datagram(VRPI_ARMED, 7000, 7001)]
+    prefs = {"vm110.heuristic": "FALSE"}
+    assert _fields(ws, packets, "frame.protocols", prefs=prefs) == [["eth:ethertype:ip:udp:data"]]
+    rows = _fields(ws, packets, "frame.protocols", "vm110.serial", prefs=prefs, extra=["-d", "udp.port==7000,vm110"])
+    assert rows == [["eth:ethertype:ip:udp:vm110", "12"]]
+
+
+def test_crc_validation_off(ws):
+    bad_crc = VRAO_17[:-1] + bytes([VRAO_17[-1] ^ 1])
+    rows = _fields(ws, [bad_crc], "vm110.crc.status", "vm110.crc.calculated", "vm110.expert.bad_crc", "vm110.crc",
+                   prefs={"vm110.check_crc": "FALSE"})
+    assert rows[0][:3] == ["2", "", ""]
+    assert int(rows[0][3], 16) == int.from_bytes(bad_crc[-4:], "little")
+
+
+def test_ethernet_trailer_does_not_move_the_crc(ws):
+    """Bytes after the UDP datagram (padding, trailers) are not EG-Link: the CRC comes from `size`."""
+    rows = _fields(ws, [T.Datagram(VRAO_17, trailer=bytes(8))], "frame.len", "udp.length", "vm110.crc.status")
+    assert rows == [["72", "30", "1"]]
+
+
+@pytest.fixture
+def sample_capture(tmp_path):
+    pcap = tmp_path / "sample.pcap"
+    T.write_pcap(pcap, [VRPI_ARMED, VRCI_17, VRAO_17])
+    return pcap
+
+
+def _vm110(*args: str, env=None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vm110", *args], capture_output=True, text=True, env=env)
+
+
+def test_dissect_command(sample_capture):
+    T.HOST.check()
+    done = _vm110("dissect", str(sample_capture), "-T", "fields", "-e", "vm110.type", "-e", "vm110.command_id")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["VRPI\t", "VRCI\t17", "VRAO\t17"]
+    done = _vm110("dissect", str(sample_capture), "--", "-Y", "vm110.command_id == 17")
+    assert done.returncode == 0 and len(done.stdout.splitlines()) == 2
+
+
+def test_dissect_command_errors(sample_capture, tmp_path):
+    done = _vm110("dissect", str(tmp_path / "missing.pcap"))
+    assert done.returncode == 2 and done.stderr.startswith("vm110 dissect: cannot read")
+    no_tshark = dict(os.environ, PATH=str(tmp_path))
+    done = _vm110("dissect", str(sample_capture), env=no_tshark)
+    assert done.returncode == 2 and "tshark not found" in done.stderr
+    elsewhere = dict(os.environ, VM110_DISSECTOR=str(tmp_path / "none.lua"))
+    done = _vm110("dissect", str(sample_capture), env=elsewhere)
+    assert done.returncode == 2 and "dissector is not at" in done.stderr

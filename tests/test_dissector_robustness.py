@@ -1,0 +1,106 @@
+"""Robustness: over 20,000 random and mutated packets (random bytes behind a valid packet ID, scapy
+fuzz(), truncations and extensions, wrong sizes, bit flips, other revisions and IDs) in one capture,
+one tshark run per tshark version. No "Lua Error", no exception in dissection, tshark exits 0,
+every packet gets a vm110 tree (the empty datagrams excepted: UDP hands them to no dissector); and each packet still decodes like Python's `vm110.decode()`:
+every field, the set of problems, and the number of warnings of each code."""
+from __future__ import annotations
+
+from collections import Counter
+
+import pytest
+
+import dissector_packets as P
+import tshark_runner as T
+from vm110 import constants as C
+from vm110 import decode
+
+pytestmark = pytest.mark.tshark
+
+SEED = 3_110
+FIELDS = ["type", "direction", "revision", "origin", "serial", "size", "spare", "crc", "crc.calculated",
+          "crc.status", *(name for name, _ in __import__("vm110.decode", fromlist=["x"]).VRPI_LAYOUT),
+          "es_relays_open", "packet_number", "periodic_data", "command_id", "command_spare", "command_data"]
+EXPERTS = sorted({*T.PROBLEM_CODES, *(w.value for w in C.WarningCode), "es_relays_open"})
+CRC_STATUS = {"0": "Bad", "1": "Good", "2": "Unverified"}
+
+
+@pytest.fixture(scope="module")
+def packets() -> list[bytes]:
+    out = P.malformed_packets(SEED)
+    assert len(out) >= 20_000
+    return out
+
+
+def _value(name: str, text: str):
+    if name in T.BYTE_FIELDS:
+        return "" if text == "<MISSING>" else text      # zero bytes, as tshark 4.0 prints them
+    if name in T.STRING_FIELDS:
+        return text
+    if name in T.BOOL_FIELDS:
+        return text in ("1", "True")
+    if name == "crc.status":
+        return CRC_STATUS[text]
+    return int(text, 0)
+
+
+def _printable(text: str) -> bool:
+    return all(" " <= ch <= "~" for ch in text) and "\\" not in text
+
+
+def _differences(columns: list[str], data: bytes) -> list[str]:
+    expected = decode(data)
+    want = T.python_expectation(expected)
+    if "type" in want and not _printable(want["type"]):
+        want.pop("type")        # tshark escapes what it cannot print; compared where printable
+        columns[0] = ""
+    got = {name: _value(name, text) for name, text in zip(FIELDS, columns) if text != ""}
+    if want.get("periodic_data") == "":
+        got.setdefault("periodic_data", "")   # zero bytes of data print as nothing
+    errors = [f"{k}: tshark {got.get(k)!r} python {want.get(k)!r}"
+              for k in sorted(set(got) | set(want)) if got.get(k) != want.get(k)]
+    counts = {code: len(text.split(",")) if text else 0 for code, text in zip(EXPERTS, columns[len(FIELDS):])}
+    warned = Counter(w.split(":")[0] for w in expected["warnings"])
+    for code in EXPERTS:
+        if code in T.PROBLEM_CODES:
+            want_count = int(code in expected["problems"])
+        elif code == "es_relays_open":
+            want_count = int(bool(expected.get("es_relays_open")))
+        else:
+            want_count = warned[code]
+        if counts[code] != want_count:
+            errors.append(f"expert {code}: tshark {counts[code]} python {want_count}")
+    return errors
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_malformed_packets(tshark, packets, tmp_path):
+    # An exception in dissection would add a _ws.malformed layer after vm110 in frame.protocols.
+    args = ["-T", "fields", "-E", "occurrence=a", "-e", "frame.protocols", "-e", "_ws.lua.error",
+            *(a for name in FIELDS for a in ("-e", f"vm110.{name}")),
+            *(a for code in EXPERTS for a in ("-e", f"vm110.expert.{code}"))]
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            pcap = ws.dir / "malformed.pcap"
+            T.write_pcap(pcap, packets)
+            proc = ws.run(["-r", str(pcap), *args])
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert T.LUA_ERROR not in proc.stdout + proc.stderr
+    lines = proc.stdout.split("\n")[:-1]
+    assert len(lines) == len(packets)
+    failures = {}
+    for number, (line, data) in enumerate(zip(lines, packets), start=1):
+        columns = line.split("\t")
+        if len(columns) != 2 + len(FIELDS) + len(EXPERTS):
+            failures[number] = [f"unparsable line {line!r}"]
+            continue
+        protocols, lua_error = columns[:2]
+        if not data:
+            continue            # an empty datagram reaches no dissector: nothing to compare
+        errors = [] if protocols.endswith(":vm110") else [f"protocols {protocols}"]
+        if lua_error:
+            errors.append(f"lua error {lua_error!r}")
+        errors += _differences(columns[2:], data)
+        if errors:
+            failures[number] = errors
+    assert not failures, f"{len(failures)} of {len(packets)} frames fail, e.g. {list(failures.items())[:3]}"

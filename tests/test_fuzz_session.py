@@ -1,0 +1,86 @@
+"""The base-unit role in-process against the reference controller on loopback: a VRPI stream that
+keeps the controller in normal operation, one serial counter, only the target as destination,
+multicast TTL 1 and the rate limit."""
+from __future__ import annotations
+
+import socket
+import struct
+import time
+
+import pytest
+
+from vm110 import constants as C
+from vm110.decode import decode
+from vm110.fuzz import cases
+from vm110.fuzz.runner import start_target
+from vm110.fuzz.session import Session, Settings
+from vm110.sim.controller import Controller, ControllerConfig
+from vm110.sim.realtime import RealtimeRunner
+from vm110.sim.transport import UdpConfig, UdpTransport
+
+RATE = 40.0
+
+
+class Recorder:
+    """Stands in for the fuzzer's socket and writes down every sendto."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock, self.sent = sock, []
+
+    def sendto(self, data: bytes, address: tuple[str, int]) -> int:
+        self.sent.append((time.monotonic(), data, address))
+        return self.sock.sendto(data, address)
+
+    def __getattr__(self, name: str):
+        return getattr(self.sock, name)
+
+
+@pytest.fixture
+def reference():
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    listen = probe.getsockname()
+    probe.close()
+    ctl = Controller(ControllerConfig(command_every_s=0.5))
+    transport = UdpTransport(UdpConfig(listen=("127.0.0.1", 0), dest=listen, source=("127.0.0.1", 0))).open()
+    runner = RealtimeRunner([(ctl, transport)])
+    runner.start_thread()
+    yield ctl, transport.rx_address, listen
+    runner.stop()
+
+
+def test_base_unit_role(reference):
+    ctl, target, listen = reference
+    session = Session(Settings(target=target, listen=listen, rate=RATE))
+    recorder = session.link.sock = Recorder(session.link.sock)
+    assert session.link.sock.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) == C.MULTICAST_TTL
+    try:
+        start_target(session)
+        start = time.monotonic()
+        case_packets = []
+        for index in range(12):    # the sweep's first cases: no VRPI gaps among them
+            case = cases.generate(1, index)
+            assert not case.pause_vrpi_ms
+            sent = session.run_steps(index, [(s.build, s.delay_ms, s.expect_ack) for s in case.steps],
+                                     0.0, case.withhold_vrai_ms, case.stream, case.settle_ms)
+            case_packets += [p.data for p in sent]
+        session.pump(time.time() + 0.6)
+        elapsed = time.monotonic() - start
+    finally:
+        session.close()
+    assert {address for _, _, address in recorder.sent} == {target}
+    serials = [struct.unpack_from("<H", data, 8)[0] for _, data, _ in recorder.sent]
+    assert serials == list(range(serials[0], serials[0] + len(serials))), "one counter for all it sends"
+    stream = [t for t, data, _ in recorder.sent if data not in case_packets and data[:4] == b"VRPI"]
+    assert len(stream) >= elapsed * 1000 / C.VRPI_PERIOD_MS - 2
+    gaps = [b - a for a, b in zip(stream, stream[1:])]
+    assert max(gaps) < C.VRPI_WATCHDOG_MS / 1000, "no VRPI gap reaches the controller's watchdog"
+    case_sends = [t for t, data, _ in recorder.sent if data in case_packets]
+    assert len(case_sends) >= 12
+    assert min(b - a for a, b in zip(case_sends, case_sends[1:])) >= 1 / RATE - 0.002, "rate limit"
+    assert not ctl.events("vrpi_timeout"), "the stream kept the controller in normal operation"
+    assert ctl.events("vrco_acked"), "VRCO answered with VRAI"
+    legal_vrci = {struct.unpack_from("<H", d, C.PREFIX_LEN)[0] for d in case_packets
+                  if d[:4] == b"VRCI" and not decode(d)["problems"]}
+    handled = {e["command_id"] for e in ctl.events("executed") + ctl.events("refused") + ctl.events("repeat")}
+    assert legal_vrci and legal_vrci <= handled

@@ -1,0 +1,46 @@
+"""Both simulators with the specification's multicast set-up (group 239.255.42.20, ports 5825/5827,
+TTL 1), inside a network namespace this test creates: its only interface is its own loopback, so
+the multicast never reaches a real interface. Skipped without root or `ip netns`."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import uuid
+
+import pytest
+
+pytestmark = pytest.mark.skipif(os.geteuid() != 0 or shutil.which("ip") is None,
+                                reason="needs root and iproute2 to make a network namespace")
+
+
+@pytest.fixture
+def netns():
+    name = f"vm110-{uuid.uuid4().hex[:8]}"
+    if subprocess.run(["ip", "netns", "add", name], capture_output=True).returncode != 0:
+        pytest.skip("cannot create a network namespace here")
+    try:
+        for cmd in (["link", "set", "lo", "up"], ["link", "set", "lo", "multicast", "on"],
+                    ["route", "add", "224.0.0.0/4", "dev", "lo"]):
+            subprocess.run(["ip", "-n", name, *cmd], check=True, capture_output=True)
+        yield name
+    finally:
+        subprocess.run(["ip", "netns", "del", name], capture_output=True)
+
+
+def test_multicast_defaults_inside_a_namespace(netns):
+    run = ["ip", "netns", "exec", netns, sys.executable, "-m", "vm110", "simulate"]
+    common = ["--iface", "127.0.0.1", "--duration", "2.5", "--json"]
+    ctl = subprocess.Popen(run + ["controller", *common], stdout=subprocess.PIPE, text=True)
+    bu = subprocess.run(run + ["bu", "--command-every", "0.5", *common], capture_output=True, text=True, timeout=30)
+    ctl_out, _ = ctl.communicate(timeout=30)
+    assert bu.returncode == 0 and ctl.returncode == 0, bu.stderr
+    assert "group 239.255.42.20" in bu.stdout and "to 239.255.42.20:5825" in bu.stdout
+    assert "to 239.255.42.20:5827" in ctl_out
+    bu_log = [json.loads(line) for line in bu.stdout.splitlines() if line.startswith("{")]
+    ctl_log = [json.loads(line) for line in ctl_out.splitlines() if line.startswith("{")]
+    assert bu_log[-1]["summary"]["received"]["VRPO"] >= 15 and ctl_log[-1]["summary"]["received"]["VRPI"] >= 12
+    acked = [e["command_id"] for e in bu_log if e.get("event") == "command_acked"]
+    assert len(acked) >= 3 and acked == [e["command_id"] for e in ctl_log if e.get("event") == "executed"]
