@@ -70,17 +70,30 @@ def scapy_iterate(path: Path) -> None:
         pass
 
 
-def child_peak(path: Path, workers: int) -> tuple[float, float]:
-    """(wall seconds, peak RSS MiB) of `vm110 analyze` in its own process. With parts read in
-    parallel, ru_maxrss is that of the largest process (helpers run at the same time)."""
+# Runs the CLI in a fresh process and prints its VmHWM (peak RSS of this process's own memory map:
+# unlike ru_maxrss it does not inherit the RSS of the parent that spawned it) and the largest
+# ru_maxrss of its children (the processes reading parts of the file).
+_CHILD = """
+import resource, sys
+from vm110.cli import main
+code = main(sys.argv[1:])
+hwm = next(int(l.split()[1]) for l in open('/proc/self/status') if l.startswith('VmHWM:'))
+kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+print('PEAK', hwm, kids, code, file=sys.stderr)
+"""
+
+
+def child_peak(path: Path, workers: int) -> tuple[float, float, float]:
+    """(wall seconds, peak RSS MiB of the main process, of the largest helper) of `vm110 analyze`."""
     start = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "vm110", "analyze", str(path), "--quiet",
-                             "--json", os.devnull], env={**os.environ, WORKERS_ENV: str(workers)})
-    _, status, usage = os.wait4(proc.pid, 0)
+    done = subprocess.run([sys.executable, "-c", _CHILD, "analyze", str(path), "--quiet", "--json", os.devnull],
+                          env={**os.environ, WORKERS_ENV: str(workers)}, capture_output=True, text=True)
     wall = time.perf_counter() - start
-    if status:
-        raise SystemExit(f"vm110 analyze failed with status {status}")
-    return wall, usage.ru_maxrss / 1024.0
+    line = next((ln for ln in done.stderr.splitlines() if ln.startswith("PEAK ")), None)
+    if line is None:
+        raise SystemExit(f"vm110 analyze failed: {done.stderr[-500:]}")
+    _, hwm, kids, _ = line.split()
+    return wall, int(hwm) / 1024.0, int(kids) / 1024.0
 
 
 def tshark_fields(path: Path) -> None:
@@ -94,6 +107,9 @@ def main() -> None:
     parser.add_argument("--packets", type=int, default=1_000_000)
     args = parser.parse_args()
     path = capture(args.packets)
+    peaks = []
+    for workers in sorted({1, FastEngine().workers}):
+        peaks.append((workers, *child_peak(path, workers)))
     scapy_times, analysis_times = [], []
     for _ in range(REPEAT):
         scapy_times.append(best(lambda: scapy_iterate(path), 1))
@@ -106,12 +122,10 @@ def main() -> None:
     print(f"vm110 analyze, fast engine:        {analysis_s:.2f} s ({analysis_s / packets * 1e6:.2f} us/packet, "
           f"{FastEngine().workers} reading processes)")
     print(f"RATIO analysis / scapy iterate = {analysis_s / scapy_s:.2f} (target <= 1.0)")
-    for workers in (1, FastEngine().workers):
-        wall, peak = child_peak(path, workers)
-        print(f"PEAK MEMORY of `vm110 analyze` with {workers} reading process(es) ({wall:.2f} s wall, CLI with "
-              f"--json) = {peak:.0f} MiB (target <= 300)")
-        if FastEngine().workers == 1:
-            break
+    for workers, wall, peak, helper in peaks:
+        extra = f"; each of the {workers - 1} helper process(es) at most {helper:.0f} MiB" if workers > 1 else ""
+        print(f"PEAK MEMORY of `vm110 analyze --json` with {workers} reading process(es) = {peak:.0f} MiB "
+              f"(target <= 300; {wall:.2f} s wall{extra})")
     if shutil.which("tshark") and plugin_path().is_file():
         small = prefix(path, min(TSHARK_PACKETS, packets))
         tshark_s = best(lambda: tshark_fields(small), 1)

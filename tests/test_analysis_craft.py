@@ -13,7 +13,7 @@ from scapy.utils import rdpcap
 
 from vm110 import constants as C
 from vm110.capture.writer import UdpFlow, open_writer
-from vm110.layers import VM110, VRAI, VRAO, VRCI, VRCO, VRPI, VRPO, crc_settings
+from vm110.layers import VM110, VRAI, VRAO, VRCO, VRPI, VRPO, crc_settings
 
 BU, CTRL, GROUP = "10.0.0.10", "10.0.0.20", C.MULTICAST_GROUP
 BU_ORIGIN = 0x0101

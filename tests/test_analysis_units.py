@@ -251,3 +251,46 @@ def test_a_wrong_split_point_is_caught(synthesised, monkeypatch):
     size = Path(synthesised).stat().st_size
     monkeypatch.setattr(engine, "split_points", lambda *a: [24, size // 2 + 3, size])   # not a record start
     assert _report(synthesised, 2) == one
+
+
+@pytest.mark.parametrize("few", [1, 2, 32])
+def test_grouping_many_senders(monkeypatch, few):
+    import numpy as np
+    from vm110.analysis import collect
+    monkeypatch.setattr(collect, "FEW_SENDERS", few)
+    key = np.array([5, 3, 5, 9, 3, 1, 7, 1, 2, 8, 2], dtype=np.int64)
+    groups = {v: rows.tolist() for v, rows in collect._groups(key)}
+    assert groups == {5: [0, 2], 3: [1, 4], 9: [3], 1: [5, 7], 7: [6], 2: [8, 10], 8: [9]}
+
+
+def test_corrupt_record_header_stops_the_reading_with_a_finding(tmp_path):
+    path = tmp_path / "corrupt.pcap"
+    _vrpi_traffic(8).write(path)
+    data = bytearray(path.read_bytes())
+    pos = 24
+    for _ in range(5):
+        pos += 16 + struct.unpack_from("<I", data, pos + 8)[0]
+    struct.pack_into("<I", data, pos + 8, 0x7FFFFFFF)        # the sixth record claims 2 GB
+    path.write_bytes(bytes(data))
+    report = analyze(str(path))
+    assert report["capture"]["packets"] == 5 and report["senders"][0]["serial"]["received"] == 5
+    assert report["capture"]["problem"].startswith(f"corrupt record header at byte {pos}")
+
+
+def test_vlan_and_ipv6_frames_in_an_ethernet_pcap(tmp_path):
+    from scapy.layers.inet import IP, UDP
+    from scapy.layers.inet6 import IPv6
+    from scapy.layers.l2 import Dot1Q, Ether
+    from scapy.utils import wrpcap
+    frames = []
+    for i in range(6):
+        data = vrpi(i)
+        head = Ether() / Dot1Q(vlan=3) / IP(src="10.0.0.10") if i % 2 else Ether() / IP(src="10.0.0.10")
+        frames.append(head / UDP(sport=C.INPUT_PORT, dport=C.INPUT_PORT) / data)
+        frames.append(Ether() / IPv6(src="fd00::10") / UDP(sport=C.INPUT_PORT, dport=C.INPUT_PORT) / vrpi(i, 0x0202))
+    for i, f in enumerate(frames):
+        f.time = T0 + i * 0.0625
+    wrpcap(str(tmp_path / "mixed-l2.pcap"), frames)
+    report = analyze(str(tmp_path / "mixed-l2.pcap"))
+    assert [(s["src"], s["by_type"], s["serial"]["lost"]) for s in report["senders"]] == [
+        (f"10.0.0.10:{C.INPUT_PORT}", {"VRPI": 6}, 0), (f"[fd00::10]:{C.INPUT_PORT}", {"VRPI": 6}, 0)]

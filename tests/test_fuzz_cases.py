@@ -133,9 +133,11 @@ def test_wrap_case_sends_65535_then_0():
 
 def test_random_cases_mutate_valid_packets():
     kinds = set()
-    for index in range(SWEEP, SWEEP + 200):
+    for index in range(SWEEP, SWEEP + 300):
         case = K.generate(SEED, index)
         kinds.add(case.family)
         for data, twin in packets(case):
-            assert crc_ok(twin) and data != twin, case.description
-    assert kinds == {"random-bytes", "random-fields", "random-structure"}
+            assert crc_ok(twin), case.description
+            if case.family != "random-sequence":    # sequences send valid packets, in odd order or timing
+                assert data != twin, case.description
+    assert kinds == {"random-bytes", "random-fields", "random-structure", "random-sequence"}

@@ -45,7 +45,7 @@ PREFIX = C.PREFIX_LEN + STATE_LEN
 RECORD = struct.Struct(f"<dIHH{PREFIX}s")
 RECORD_DTYPE = np.dtype({
     "names": ["ts", "frame", "src", "sport", "pid", "origin", "serial", "size", "aux", "state"],
-    "formats": ["<f8", "<u4", "<u2", "<u2", "S4", "<u2", "<u2", "<u2", "<u2", f"V{STATE_LEN}"],
+    "formats": ["<f8", "<u4", "<u2", "<u2", "<u4", "<u2", "<u2", "<u2", "<u2", f"V{STATE_LEN}"],
     "offsets": [0, 8, 12, 14, 16, 22, 24, 26, 16 + C.PREFIX_LEN, 16 + C.PREFIX_LEN],
     "itemsize": RECORD.size,
 })
@@ -72,6 +72,25 @@ class Sender:
 
 
 _CODE_TABLE = {t.value.encode(): i for i, t in enumerate(TYPES)}
+FEW_SENDERS = 32       # up to this many, one comparison per sender beats sorting the key
+
+
+def _groups(key: np.ndarray):
+    """(key value, row indices in arrival order) per distinct key."""
+    left = np.ones(len(key), dtype=bool)
+    for _ in range(FEW_SENDERS):
+        first = int(np.argmax(left))
+        if not left[first]:
+            return
+        mine = key == key[first]
+        left &= ~mine
+        yield int(key[first]), np.flatnonzero(mine)
+    rest = np.flatnonzero(left)
+    if len(rest):
+        order = rest[np.argsort(key[rest], kind="stable")]
+        values, starts = np.unique(key[order], return_index=True)
+        for value, a, b in zip(values.tolist(), starts, [*starts[1:], len(order)]):
+            yield value, order[a:b]
 _INPUT = np.array([t.direction is C.Direction.INPUT for t in TYPES])
 
 
@@ -145,24 +164,21 @@ class Collected:
 
     def take_senders(self) -> list[Sender]:
         """The legal packets grouped by sender (direction, origin, source, port), sorted by id.
-        Takes the records: they are regrouped, not copied twice."""
+        Takes the records (they are regrouped, not kept twice). Senders are few: each is picked
+        out with one vectorised comparison, which keeps the arrival order and needs no sort."""
         rec = np.frombuffer(self.records, dtype=RECORD_DTYPE)
+        self.records = bytearray()
         if not len(rec):
             return []
-        ids, inverse = np.unique(rec["pid"], return_inverse=True)
-        code = np.array([_CODE_TABLE[bytes(i)] for i in ids], dtype=np.uint8)[inverse.ravel()]
+        pid = rec["pid"]
+        code = np.zeros(len(rec), dtype=np.uint8)
+        for raw, value in _CODE_TABLE.items():
+            code[pid == int.from_bytes(raw, "little")] = value
         key = ((_INPUT[code].astype(np.int64) << 48) | (rec["src"].astype(np.int64) << 32)
                | (rec["sport"].astype(np.int64) << 16) | rec["origin"].astype(np.int64))
-        keys, which = np.unique(key, return_inverse=True)
-        del key
-        order = np.argsort(which.ravel(), kind="stable")        # by sender, arrival order kept
-        bounds = np.searchsorted(which.ravel()[order], np.arange(len(keys) + 1))
-        rec, code = rec[order], code[order]
-        self.records = bytearray()
         sources = {i: s for s, i in self.sources.items()}
         out = []
-        for k, value in enumerate(keys.tolist()):
-            rows = slice(bounds[k], bounds[k + 1])
+        for value, rows in _groups(key):
             part = rec[rows]
             direction = (C.Direction.INPUT if value >> 48 else C.Direction.OUTPUT).value
             src = address(sources[(value >> 32) & 0xFFFF], (value >> 16) & 0xFFFF)

@@ -12,7 +12,7 @@ from typing import Iterable, Optional
 
 from .. import constants as C
 from . import timing
-from .collect import CODE, TYPES
+from .collect import CODE
 
 COMMAND_TYPES = (C.PacketType.VRCI, C.PacketType.VRCO)
 _ACK_OF_CODE = {CODE[ack]: CODE[cmd] for ack, cmd in C.ACK_OF.items()}
@@ -82,7 +82,7 @@ def track(events: Iterable[tuple]) -> dict[int, Tally]:
     return tallies
 
 
-def report(code: int, tally: Tally, fail_ms: Optional[float], resend_ms: float) -> dict:
+def report(tally: Tally, fail_ms: Optional[float], resend_ms: float) -> dict:
     """The `commands.<TYPE>` section."""
     cmds = tally.commands
     transmissions = sum(len(c.frames) for c in cmds)
@@ -119,6 +119,3 @@ def report(code: int, tally: Tally, fail_ms: Optional[float], resend_ms: float) 
         "acks_without_command_list": [{"frame": f, "time": t, "command_id": i} for f, t, i in tally.orphan_acks],
     }
 
-
-def type_name(code: int) -> str:
-    return TYPES[code].value

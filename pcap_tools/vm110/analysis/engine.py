@@ -23,13 +23,17 @@ from ..decode import decode
 from .collect import CODE_OF_ID, RECORD, Collected, address
 
 _HDR = struct.Struct("<4sH6xH")                    # packet ID, revision, size
-# pcap record header, Ethernet, IPv4, UDP and the EG-Link header: see _fused_pcap for the fields.
+# One little-endian read of a record of the common frame: pcap record header (sec, frac, incl,
+# orig); Ethernet type (raw bytes); IPv4 version/IHL, fragment field, protocol, source; UDP ports
+# and length (big-endian fields read little-endian: compared through _SWAP); EG-Link packet ID,
+# revision and size.
 _FUSED = struct.Struct("<IIII12x2sB5xHxB2x4s4xHHH2x4sH4xH")
 _FUSED_MIN_FRAME = _FUSED.size - 16
 _ETH_IPV4 = L.ETHERTYPE_IPV4.to_bytes(2, "big")
 _IPV4_PLAIN = 0x45                                 # version 4, 20-byte header
+_IP_END = L.ETH_HEADER_LEN + L.IPV4_MIN_HEADER     # where UDP starts in the common frame
+_FRAME_OVER = _IP_END + L.UDP_HEADER_LEN + C.OVERHEAD   # frame length = this + EG-Link size
 _FRAG_LE = 0xFF3F                                  # MF + fragment offset, read little-endian
-_UDP_PAYLOAD = L.ETH_HEADER_LEN + L.IPV4_MIN_HEADER + L.UDP_HEADER_LEN
 _SWAP = [((x & 0xFF) << 8) | (x >> 8) for x in range(1 << 16)]   # big-endian u16 read little-endian
 _LOW = {raw: C.PAYLOAD_BOUNDS[C.PacketType(raw.decode())][0] for raw in CODE_OF_ID}
 _SNIFF = 256                                       # EG-Link packets looked at to guess the CRC variant
@@ -226,6 +230,9 @@ class FastEngine:
         pack, sources, records = RECORD.pack, got.sources, got.records
         slow, udp_of = self._slow, reader.udp_of
         min_frame, max_payload = _FUSED_MIN_FRAME, C.MAX_PAYLOAD
+        ipv4_plain, udp, frag_le = _IPV4_PLAIN, L.IPPROTO_UDP, _FRAG_LE
+        udp_head, prefix, ip_end = L.UDP_HEADER_LEN, C.PREFIX_LEN, _IP_END
+        udp_data, udp_over, frame_over = _IP_END + L.UDP_HEADER_LEN, L.UDP_HEADER_LEN + C.OVERHEAD, _FRAME_OVER
         fused_len = _FUSED.size
         valid = frame = 0
         ts = 0.0
@@ -259,12 +266,13 @@ class FastEngine:
                 pos = p + incl
                 frame += 1
                 ts = sec + frac * scale
-                if et == eth_ipv4 and vi == 0x45 and proto == 17 and not frag & 0xFF3F and incl >= min_frame:
+                if (et == eth_ipv4 and vi == ipv4_plain and proto == udp and not frag & frag_le
+                        and incl >= min_frame):
                     low = low_of.get(pid)
-                    if (low is not None and not rev and low <= size <= max_payload and ulen == swap[size + 28]
-                            and size + 62 <= incl and (sp in ports_le or dp in ports_le)):
-                        q = p + 42                  # the EG-Link packet: q .. e, then the CRC
-                        e = q + 16 + size
+                    if (low is not None and not rev and low <= size <= max_payload and ulen == swap[size + udp_over]
+                            and size + frame_over <= incl and (sp in ports_le or dp in ports_le)):
+                        q = p + udp_data            # the EG-Link packet: q .. e, then the CRC
+                        e = q + prefix + size
                         if crc(cdata[q:e]) ^ xor == from_bytes(cdata[e:e + 4], stored_order):
                             index = sources.get(src)
                             if index is None:
@@ -273,8 +281,9 @@ class FastEngine:
                             valid += 1
                             continue
                     n = swap[ulen]
-                    if 8 <= n <= incl - 34:
-                        slow(got, reader, variant, order, ts, src, swap[sp], swap[dp], data[p + 42:p + 34 + n], frame)
+                    if udp_head <= n <= incl - ip_end:
+                        slow(got, reader, variant, order, ts, src, swap[sp], swap[dp], data[p + udp_data:p + ip_end + n],
+                             frame)
                         continue
                 found = udp_of(link, data, p, incl, orig, frame)
                 if found is not None:

@@ -68,8 +68,8 @@ def build(got: Collected, opt: Options) -> dict:
     periodic.sort(key=lambda p: (p["type"], p["sender"]))
     events.sort()
     tallies = commands.track(events)
-    cmd = {t.value: commands.report(CODE[t], tallies[CODE[t]],
-                                    opt.vrci_fail_ms if t is C.PacketType.VRCI else None, opt.resend_ms)
+    cmd = {t.value: commands.report(tallies[CODE[t]], opt.vrci_fail_ms if t is C.PacketType.VRCI else None,
+                                    opt.resend_ms)
            for t in commands.COMMAND_TYPES}
     invalid = got.illegal_reasons[C.Problem.BAD_CRC.value]
     report = {
@@ -156,8 +156,8 @@ def _bursts(snd: Sender, times: np.ndarray, numbers: np.ndarray, sizes: np.ndarr
                                                 opt.vrpo_data_size)
     # Period, jitter and the 50-200 ms recommendation apply to bursts: split packets go back to back.
     between = timing.intervals_ms(starts)
-    ordered = sorted(between)
-    period = opt.vrpo_period_ms or (round(timing.percentile(ordered, 50.0)) if ordered else None)
+    ordered = np.sort(between)
+    period = opt.vrpo_period_ms or (round(timing.percentile(ordered, 50.0)) if len(ordered) else None)
     row = next(p for p in periodic if p["type"] == C.PacketType.VRPO.value and p["sender"] == snd.id)
     row["nominal_ms"] = period
     row["jitter_ms"] = timing.jitter_ms(starts, period) if period else timing.jitter_ms([], 1.0)

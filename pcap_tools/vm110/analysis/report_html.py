@@ -55,11 +55,11 @@ class Chart:
     """A tiny SVG plotter: linear axes, then lines, bars, points and rectangles in data units."""
 
     def __init__(self, x0: float, x1: float, y0: float, y1: float, xlabel: str, ylabel: str,
-                 xtime: bool = False) -> None:
+                 xtime: bool = False, xint: bool = False) -> None:
         self.x0, self.x1 = x0, x1 if x1 > x0 else x0 + 1
         self.y0, self.y1 = y0, y1 if y1 > y0 else y0 + 1
         self.parts: list[str] = []
-        self.xlabel, self.ylabel, self.xtime = xlabel, ylabel, xtime
+        self.xlabel, self.ylabel, self.xtime, self.xint = xlabel, ylabel, xtime, xint
 
     def x(self, v: float) -> float:
         return ML + (v - self.x0) / (self.x1 - self.x0) * (W - ML - MR)
@@ -70,9 +70,12 @@ class Chart:
     def axes(self, yticks: bool = True) -> None:
         p = self.parts
         p.append(f'<rect x="{ML}" y="{MT}" width="{W - ML - MR}" height="{H - MT - MB}" fill="none" stroke="#999"/>')
-        for t in _ticks(self.x0, self.x1):
-            label = f"{t - self.x0:g}" if self.xtime else f"{t:g}"
-            p.append(f'<text x="{self.x(t):.1f}" y="{H - MB + 14}" text-anchor="middle">{_e(label)}</text>')
+        # Time axes count seconds from the start of the capture, so their ticks are placed on that.
+        base = self.x0 if self.xtime else 0.0
+        for t in _ticks(self.x0 - base, self.x1 - base):
+            if self.xint and t != int(t):
+                continue
+            p.append(f'<text x="{self.x(t + base):.1f}" y="{H - MB + 14}" text-anchor="middle">{t:g}</text>')
         for t in _ticks(self.y0, self.y1) if yticks else ():
             p.append(f'<text x="{ML - 4}" y="{self.y(t) + 4:.1f}" text-anchor="end">{t:g}</text>')
             p.append(f'<line x1="{ML}" x2="{W - MR}" y1="{self.y(t):.1f}" y2="{self.y(t):.1f}" stroke="#eee"/>')
@@ -102,6 +105,16 @@ class Chart:
     def polyline(self, points: Iterable[tuple[float, float]], color: str) -> None:
         pts = " ".join(f"{self.x(a):.1f},{self.y(b):.1f}" for a, b in points)
         self.parts.append(f'<polyline class="series" points="{pts}" fill="none" stroke="{color}"/>')
+
+    def steps(self, points: list, color: str) -> None:
+        """A step line: each value holds from its time to the next (gaps show as one jump)."""
+        stepped = [pt for (a, b), (c, _) in zip(points, points[1:] + [points[-1]]) for pt in ((a, b), (c, b))]
+        self.polyline(stepped, color)
+
+    def legend(self, items: list) -> None:
+        for i, (label, color) in enumerate(items):
+            self.parts.append(f'<text x="{W - MR - 6}" y="{MT + 14 + 13 * i}" text-anchor="end" fill="{color}">'
+                              f'{_e(label)}</text>')
 
     def points(self, points: Iterable[tuple[float, float]], color: str) -> None:
         for a, b in points:
@@ -152,7 +165,7 @@ def _series_plot(p: dict, t0: float) -> str:
     c = Chart(t0, max(t for t, _ in series), 0, max(max(v for _, v in series), limit) * 1.1,
               "time since capture start (s)", "interval (ms, max per bucket)", xtime=True)
     c.axes()
-    c.polyline(series, COLORS[0])
+    c.steps(series, COLORS[0])
     c.hline(limit, "#c62828", f"watchdog {limit:g} ms")
     return c.svg("interval-time", name)
 
@@ -166,8 +179,8 @@ def _gap_plot(report: dict, t0: float, t1: float) -> str:
     c.axes()
     for i, s in enumerate(senders):
         c.points(((g["time"], g["count"]) for g in s["serial"]["gaps"]), COLORS[i % len(COLORS)])
-    return c.svg("serial-gaps", "Serial gaps (one colour per sender: " +
-                 ", ".join(s["id"] for s in senders) + ")")
+    c.legend([(s["id"], COLORS[i % len(COLORS)]) for i, s in enumerate(senders)])
+    return c.svg("serial-gaps", "Serial gaps")
 
 
 def _latency_plot(report: dict) -> str:
@@ -188,8 +201,8 @@ def _latency_plot(report: dict) -> str:
     c.axes()
     for i, (n, cs) in enumerate(counts.items()):
         c.bars(((low + k * width + i * width / 2, width / 2, m) for k, m in enumerate(cs) if m), COLORS[i])
-    return c.svg("ack-latency", "Ack latency distribution (" + ", ".join(
-        f"{n}: {COLORS[i]}" for i, n in enumerate(counts)) + ")")
+    c.legend([(n, COLORS[i]) for i, n in enumerate(counts)])
+    return c.svg("ack-latency", "Ack latency distribution")
 
 
 def _retransmission_plot(report: dict) -> str:
@@ -198,12 +211,12 @@ def _retransmission_plot(report: dict) -> str:
     if not keys:
         return _empty("retransmissions", "Retransmissions per command", "no commands")
     c = Chart(-0.5, keys[-1] + 0.5, 0, max(v for h in hists.values() for v in h.values()) * 1.1,
-              "retransmissions of a command", "commands")
+              "retransmissions of a command", "commands", xint=True)
     c.axes()
     for i, (n, h) in enumerate(hists.items()):
         c.bars(((k - 0.4 + i * 0.4, 0.4, v) for k, v in h.items()), COLORS[i])
-    return c.svg("retransmissions", "Retransmissions per command (" + ", ".join(
-        f"{n}: {COLORS[i]}" for i, n in enumerate(hists)) + ")")
+    c.legend([(n, COLORS[i]) for i, n in enumerate(hists)])
+    return c.svg("retransmissions", "Retransmissions per command")
 
 
 def _state_plot(st: dict, t0: float, t1: float) -> str:

@@ -82,10 +82,8 @@ def _nth_structural(valid: bytes, seed: int, position: int) -> bytes:
 # --- sweep families ---------------------------------------------------------------------------
 def _structural_family(ptype: C.PacketType, rng: random.Random) -> list[Callable[[int], Case]]:
     family = f"{ptype.value.lower()}-structure"
-    # The mutation list is the same for every packet of this type; index-specific fields go in later.
-    names = [name for name, _ in M.structural(M.build(ptype, 0, _fields_for(ptype, 0)), random.Random(0))]
     out = []
-    for position, name in enumerate(names):
+    for position, name in enumerate(_structural_names(ptype)):
         seed = rng.randrange(1 << 32)
 
         def make(index: int, position: int = position, name: str = name, seed: int = seed) -> Case:
@@ -212,17 +210,43 @@ def sweep(seed: int) -> tuple[Callable[[int], Case], ...]:
     return tuple(f[k] for k in range(longest) for f in families if k < len(f))
 
 
+@functools.lru_cache(maxsize=None)
+def _structural_names(ptype: C.PacketType) -> tuple[str, ...]:
+    return tuple(name for name, _ in M.structural(M.build(ptype, 0, _fields_for(ptype, 0)), random.Random(0)))
+
+
+def _random_sequence(rng: random.Random, index: int) -> Case:
+    F, ids = "random-sequence", command_ids(index)
+    kind = rng.choices(range(5), weights=(30, 15, 15, 20, 20))[0]   # the slow ones (gaps, withholding) rarer
+    if kind == 0:
+        count, delay = rng.randint(2, 6), rng.choice((0.0, 5.0, 20.0, 50.0, C.COMMAND_RESEND_MS, 150.0))
+        return Case(index, F, f"VRCI sent {count} times, {delay:.0f} ms apart",
+                    [Step(_vrci(ids[0]), delay if n else 0.0) for n in range(count)])
+    if kind == 1:
+        gap = rng.randrange(C.VRPI_PERIOD_MS * 2, C.VRPI_WATCHDOG_MS * 2 + 200, 10)
+        return Case(index, F, f"VRPI gap of {gap} ms", pause_vrpi_ms=float(gap))
+    if kind == 2:
+        hold = rng.randrange(2 * C.COMMAND_RESEND_MS, 15 * C.COMMAND_RESEND_MS, 50)
+        return Case(index, F, f"withhold VRAI for {hold} ms", withhold_vrai_ms=float(hold))
+    if kind == 3:
+        offset = rng.choice((-100, -2, 0, 2, 100, C.SERIAL_HALF))
+        return Case(index, F, f"VRPI serial off by {offset:+d}", [Step(_vrpi_serial(offset - 1))])
+    command_id = rng.randrange(C.SERIAL_MODULUS)
+    return Case(index, F, f"VRAI for command ID {command_id}",
+                [Step(_valid(C.PacketType.VRAI, dict(command_id=command_id)))])
+
+
 def _random_case(seed: int, index: int) -> Case:
     rng = random.Random(f"vm110-fuzz/{seed}/{index}")
     ptype = rng.choice(M.INPUT_TYPES)
     fields = _fields_for(ptype, index)
     kind = rng.random()
-    if kind < 0.5:
+    if kind < 0.48:
         def change(valid: bytes) -> bytes:
             return M.random_bytes(valid, random.Random(f"{seed}/{index}/bytes"))[1]
         text = M.random_bytes(M.build(ptype, 0, fields), random.Random(f"{seed}/{index}/bytes"))[0]
         return Case(index, "random-bytes", f"{ptype.value} {text}", [Step(_mutated(ptype, fields, change))])
-    if kind < 0.8:
+    if kind < 0.78:
         skip = ("command_id",) if ptype is C.PacketType.VRCI else ()
         base = dict(fields)
         name, value = rng.choice(M.field_mutations(ptype, fields, rng, skip))
@@ -234,14 +258,16 @@ def _random_case(seed: int, index: int) -> Case:
         shown = value.hex() if isinstance(value, bytes) else value
         return Case(index, "random-fields", f"{ptype.value} {name}={shown}",
                     [Step(_valid(ptype, fields, twin_fields=base))])
-    mutations = list(M.structural(M.build(ptype, 0, fields), random.Random(0)))
-    position = rng.randrange(len(mutations))
-    sub_seed = rng.randrange(1 << 32)
+    if kind < 0.96:    # the rest: timing-heavy sequences, few so that the rate stays up
+        names = _structural_names(ptype)
+        position = rng.randrange(len(names))
+        sub_seed = rng.randrange(1 << 32)
 
-    def change(valid: bytes) -> bytes:
-        return _nth_structural(valid, sub_seed, position)
-    return Case(index, "random-structure", f"{ptype.value} {mutations[position][0]}",
-                [Step(_mutated(ptype, fields, change))])
+        def change(valid: bytes) -> bytes:
+            return _nth_structural(valid, sub_seed, position)
+        return Case(index, "random-structure", f"{ptype.value} {names[position]}",
+                    [Step(_mutated(ptype, fields, change))])
+    return _random_sequence(rng, index)
 
 
 def generate(seed: int, index: int) -> Case:

@@ -60,7 +60,7 @@ class Controller(Node):
         self.config = cfg = config or ControllerConfig()
         node.setdefault("stalls", tuple((seconds(a), seconds(b)) for a, b in cfg.stalls))
         super().__init__(name, origin=0, **node)
-        self._period = ms(cfg.period_ms)
+        self._period, self._glink_period = ms(cfg.period_ms), ms(cfg.glink_period_ms)
         self._vrpi_timeout_us, self._vrco_timeout_us = ms(cfg.vrpi_timeout_ms), ms(cfg.vrco_timeout_ms)
         self._resend_us = ms(cfg.vrco_resend_ms)
         self._glink = tuple((seconds(a), seconds(b)) for a, b in cfg.glink)
@@ -90,28 +90,30 @@ class Controller(Node):
         if not self.vrpi_alarm and self.last_vrpi is not None:
             t = self.last_vrpi + self._vrpi_timeout_us + 1
             due = t if t < due else due
+        t = self._vrco_due()
+        return t if t is not None and t < due else due
+
+    def _vrco_due(self) -> Optional[int]:
+        """When `_tick_vrco` has something to do: a resend, giving up, or the next VRCO to start."""
         pending = self.pending
         if pending is not None:
-            t = min(pending["next"], pending["first"] + self._vrco_timeout_us)
-            due = t if t < due else due
-        else:
-            t = self._next_periodic_command
-            if t is not None and t < due:
-                due = t
-            if self._commands and self._commands[0][0] < due:
-                due = self._commands[0][0]
+            return min(pending["next"], pending["first"] + self._vrco_timeout_us)
+        due = self._next_periodic_command
+        if self._commands and (due is None or self._commands[0][0] < due):
+            due = self._commands[0][0]
         return due
 
     def _tick(self, now: int) -> None:
         if not self.vrpi_alarm and self.last_vrpi is not None and now - self.last_vrpi > self._vrpi_timeout_us:
             self.vrpi_alarm = True
             self.event(self.last_vrpi + self._vrpi_timeout_us, "vrpi_timeout", last_vrpi=self.last_vrpi / 1e6)
-        if self.pending is not None or self._commands or self._next_periodic_command is not None:
+        due = self._vrco_due()
+        if due is not None and due <= now:
             self._tick_vrco(now)
         if now >= self._next_vrpo:
+            first = self.config.first_packet_number
             for index, chunk in enumerate(self.vrpo_payloads(now)):
-                self.send(_VRPO, chunk, now, key=self.config.first_packet_number + index,
-                          data_len=len(chunk) - C.VRPO_HEADER_SIZE)
+                self.send(_VRPO, chunk, now, key=first + index, data_len=len(chunk) - C.VRPO_HEADER_SIZE)
             self.cycle += 1
             self._next_vrpo += self._vrpo_period(now)
             if self._next_vrpo <= now:     # after a stall: carry on from now, no catch-up burst
@@ -119,7 +121,7 @@ class Controller(Node):
 
     def _vrpo_period(self, now: int) -> int:
         if self._glink and any(a <= now < b for a, b in self._glink):
-            return ms(self.config.glink_period_ms)
+            return self._glink_period
         return self._period
 
     def on_resume(self, now: int) -> None:

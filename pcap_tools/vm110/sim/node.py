@@ -21,6 +21,7 @@ _HEADER = struct.Struct("<4sHHHHI")
 _TYPES = {t.value.encode(): t for t in C.PacketType}
 _RAW_IDS = {t: t.value.encode() for t in C.PacketType}
 _NAMES = {t: t.value for t in C.PacketType}
+_RAW_NAMES = {raw: t.value for raw, t in _TYPES.items()}
 _HANDLERS = {t: f"on_{t.value.lower()}" for t in C.PacketType}
 _new = tuple.__new__     # builds a NamedTuple without its Python-level __new__
 
@@ -51,8 +52,9 @@ Send = Callable[[bytes, int, Meta], None]
 
 def _mpeg2_little(body: bytes) -> bytes:
     """The default CRC trailer straight as bytes: MPEG-2 is the reflected CRC of bit-reversed
-    bytes, reflected back; stored little-endian that reflection is a byte-wise one, reversed."""
-    return ((zlib.crc32(body.translate(_REVERSE)) ^ MASK).to_bytes(C.CRC_LEN, "little").translate(_REVERSE))[::-1]
+    bytes, reflected back; stored little-endian that reflection is a byte-wise one of the
+    big-endian bytes."""
+    return (zlib.crc32(body.translate(_REVERSE)) ^ MASK).to_bytes(C.CRC_LEN, "big").translate(_REVERSE)
 
 
 def _trailer_function(variant: str, order: str) -> Callable[[bytes], bytes]:
@@ -84,6 +86,18 @@ def inspect(data: bytes, crc_fn: Callable[[bytes], int], order: str) -> tuple[li
     return problems, ptype
 
 
+_TABLES: dict[type, Optional[dict[C.PacketType, Optional[Callable[..., None]]]]] = {}
+
+
+def _handler_table(cls: type) -> Optional[dict[C.PacketType, Optional[Callable[..., None]]]]:
+    """The `on_<type>` function of `cls` for each type, or None when `cls` overrides `on_packet`
+    (then every packet goes through it). Hooks are looked up on the class, once."""
+    if cls not in _TABLES:
+        _TABLES[cls] = (None if cls.on_packet is not Node.on_packet
+                        else {t: getattr(cls, name, None) for t, name in _HANDLERS.items()})
+    return _TABLES[cls]
+
+
 class Node:
     """One end of the link. `name` identifies it in logs and in the ground truth."""
 
@@ -110,6 +124,7 @@ class Node:
         self._stall_index = 0
         self._stalls_ahead = bool(self.stalls)
         self._vouched: Optional[tuple[str, ...]] = None
+        self._handlers = _handler_table(type(self))
 
     # --- wiring -------------------------------------------------------------------------------
     def attach(self, send: Send) -> None:
@@ -141,20 +156,27 @@ class Node:
         """A datagram arrived. Illegal packets are counted and otherwise ignored (TS-0006 5.1.5)."""
         if self._stalls_ahead and self._stall_check(now):
             return
-        vouched = self._vouched
-        if vouched is None:
-            problems, ptype = inspect(data, self._crc_fn, self.crc_order)
+        problems = self._vouched
+        if problems is None:
+            problems = inspect(data, self._crc_fn, self.crc_order)[0]
         else:                     # the virtual network made this packet: it knows the verdict
             self._vouched = None
-            problems, ptype = vouched, _TYPES.get(data[:C.ID_LEN])
         if problems:
             self.illegal_packets += 1
             self.illegal.update(problems)
             self.on_illegal(data, list(problems), now, src)
             return
-        _, _, origin, serial, size, _ = _HEADER.unpack_from(data)
-        self.received[_NAMES[ptype]] += 1
-        self.on_packet(_new(Rx, (ptype, origin, serial, data[C.PREFIX_LEN:C.PREFIX_LEN + size], data, src)), now)
+        raw_id, _, origin, serial, size, _ = _HEADER.unpack_from(data)
+        ptype = _TYPES[raw_id]
+        self.received[_RAW_NAMES[raw_id]] += 1
+        rx = _new(Rx, (ptype, origin, serial, data[C.PREFIX_LEN:C.PREFIX_LEN + size], data, src))
+        handlers = self._handlers
+        if handlers is None:
+            self.on_packet(rx, now)
+        else:                     # on_packet not overridden: the class's on_<type>, looked up once
+            handler = handlers[ptype]
+            if handler is not None:
+                handler(self, rx, now)
 
     # --- sending ------------------------------------------------------------------------------
     def send(self, ptype: C.PacketType, payload: bytes, now: int, key: int = 0, data_len: int = 0) -> bytes:

@@ -33,6 +33,9 @@ _ARMED_RU, _BATTERY, _RU_STATE = VRPI_INDEX["armed_ru"], VRPI_INDEX["ru_battery"
 _JOYSTICKS = tuple(VRPI_INDEX[f"joystick{i}"] for i in range(1, C.JOYSTICKS + 1))
 _SWITCHES = tuple(VRPI_INDEX[f"switch{i}"] for i in range(1, C.SWITCHES + 1))
 _ENCODER, _ENCODER_SWITCH = VRPI_INDEX["encoder"], VRPI_INDEX["encoder_switch"]
+_SWEEPS = tuple((index, period, period // 4) for index, period in zip(_JOYSTICKS, _JOYSTICK_PERIODS_US))
+_PUSHBUTTON, _TOGGLE, _POTENTIOMETER = _SWITCHES[:3]
+_SWITCH_STEPS = C.SWITCH_MAX + 1
 
 
 def armed_fields(ru: int = DEFAULT_RU, battery: int = 90, rssi: int = 80) -> dict[str, int]:
@@ -137,19 +140,24 @@ def _values(fields: Mapping[str, Any]) -> list[Any]:
     return [fields.get(name, bytes(C.VRPI_SPARE_LEN) if name == "vrpi_spare" else 0) for name in VRPI_NAMES]
 
 
+def _triangle(t: int, period: int, quarter: int, limit: int = C.JOYSTICK_LIMIT) -> int:
+    """A joystick sweep: 0 up to the limit, down to minus the limit and back, over `period` µs."""
+    phase = t % period
+    if phase < quarter:
+        return limit * phase // quarter
+    if phase < 3 * quarter:
+        return limit - limit * (phase - quarter) // quarter
+    return limit * (phase - 3 * quarter) // quarter - limit
+
+
 def _move(t: int, values: list[Any]) -> None:
-    limit = C.JOYSTICK_LIMIT
-    for index, period in zip(_JOYSTICKS, _JOYSTICK_PERIODS_US):
-        quarter = period // 4
-        phase = t % period
-        if phase < quarter:
-            values[index] = limit * phase // quarter
-        elif phase < 3 * quarter:
-            values[index] = limit - limit * (phase - quarter) // quarter
-        else:
-            values[index] = limit * (phase - 3 * quarter) // quarter - limit
-    values[_SWITCHES[0]] = (t // 3_000_000) % 2                  # pushbutton
-    values[_SWITCHES[1]] = (t // 2_000_000) % 3 - 1              # 3-position toggle
-    values[_SWITCHES[2]] = (t // 10_000) % (C.SWITCH_MAX + 1)    # potentiometer sweep
+    (j1, p1, q1), (j2, p2, q2), (j3, p3, q3), (j4, p4, q4) = _SWEEPS    # unrolled: runs for every VRPI
+    values[j1] = _triangle(t, p1, q1)
+    values[j2] = _triangle(t, p2, q2)
+    values[j3] = _triangle(t, p3, q3)
+    values[j4] = _triangle(t, p4, q4)
+    values[_PUSHBUTTON] = (t // 3_000_000) % 2
+    values[_TOGGLE] = (t // 2_000_000) % 3 - 1                   # 3 positions
+    values[_POTENTIOMETER] = (t // 10_000) % _SWITCH_STEPS       # a sweep
     values[_ENCODER] = (t // 250_000) & 0xFF
     values[_ENCODER_SWITCH] = int((t // 5_000_000) % 4 == 0)
