@@ -102,3 +102,10 @@ def test_progress_bar_only_on_a_terminal(files):
     os.close(main)
     assert done.returncode == EXIT_OK
     assert "100%" in shown and "clean.pcap" in shown
+
+
+def test_thresholds_are_options(files, tmp_path):
+    out = tmp_path / "t.json"
+    assert vm110(str(files / "lossy.pcapng"), "--vrpi-watchdog", "200", "--json", str(out), "--quiet").returncode == 0
+    p = json.loads(out.read_text())["periodic"][0]
+    assert p["watchdog"]["limit_ms"] == 200 and [round(v["gap_ms"]) for v in p["watchdog"]["violations"]] == [250]

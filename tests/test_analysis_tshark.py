@@ -57,3 +57,25 @@ def test_engines_agree_on_another_crc_variant(tmp_path):
     report = analyze(str(tmp_path / "iso.pcap"), engine="tshark")
     assert (report["crc"]["variant"], report["crc"]["byte_order"], report["crc"]["valid"]) == ("iso-hdlc", "big", 9)
     assert_same(str(tmp_path / "iso.pcap"))
+
+
+def test_engines_agree_on_mixed_traffic(tmp_path):
+    from scapy.layers.inet import IP, TCP, UDP, fragment
+    from scapy.layers.inet6 import IPv6
+    from scapy.layers.l2 import ARP, Dot1Q, Ether
+    from test_analysis_craft import vrpi
+    from test_reader import pcap
+    from vm110 import constants as C
+    port = C.INPUT_PORT
+    records = []
+    for i in range(8):
+        head = Ether() / Dot1Q(vlan=5) if i % 2 else Ether()
+        records.append((1_700_000_000 + i * 0.125, head / IP(src="10.0.0.10", dst="239.255.42.20")
+                        / UDP(sport=port, dport=port) / vrpi(i if i != 5 else 40)))
+        records.append((1_700_000_000 + i * 0.125 + 0.01, Ether() / IPv6(src="fd00::7", dst="ff02::1")
+                        / UDP(sport=port, dport=port) / vrpi(i, 0x0303)))
+    frags = fragment(IP(src="10.0.0.1", dst="10.0.0.2") / UDP(sport=1, dport=2) / bytes(3000), fragsize=1000)
+    records += [(1_700_000_002.0, Ether() / ARP()), (1_700_000_002.1, Ether() / IP() / TCP()),
+                *((1_700_000_002.2 + i / 100, Ether() / f) for i, f in enumerate(frags))]
+    (tmp_path / "mixed.pcap").write_bytes(pcap(records))
+    assert_same(str(tmp_path / "mixed.pcap"))

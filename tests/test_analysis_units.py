@@ -294,3 +294,86 @@ def test_vlan_and_ipv6_frames_in_an_ethernet_pcap(tmp_path):
     report = analyze(str(tmp_path / "mixed-l2.pcap"))
     assert [(s["src"], s["by_type"], s["serial"]["lost"]) for s in report["senders"]] == [
         (f"10.0.0.10:{C.INPUT_PORT}", {"VRPI": 6}, 0), (f"[fd00::10]:{C.INPUT_PORT}", {"VRPI": 6}, 0)]
+
+
+@pytest.mark.parametrize("endian", ["<", ">"])
+def test_pcapng_interfaces_and_odd_blocks_through_the_engine(tmp_path, endian):
+    from scapy.layers.inet import IP, UDP
+    from scapy.layers.l2 import Ether
+    from test_reader import block, option
+    e = endian
+    shb = block(0x0A0D0D0A, struct.pack(e + "IHHq", 0x1A2B3C4D, 1, 0, -1), e)
+    idb_eth = block(1, struct.pack(e + "HHI", 1, 0, 65535), e)
+    idb_raw = block(1, struct.pack(e + "HHI", 101, 0, 65535) + option(9, b"\x09", e) + option(0, b"", e), e)
+
+    def epb(iface, ticks, frame):
+        return block(6, struct.pack(e + "IIIII", iface, ticks >> 32, ticks & 0xFFFFFFFF, len(frame), len(frame))
+                     + frame, e)
+
+    def ip(serial):
+        return bytes(IP(src="10.0.0.10", dst="239.255.42.20") / UDP(sport=C.INPUT_PORT, dport=C.INPUT_PORT)
+                     / vrpi(serial))
+    blocks = [shb, idb_eth, idb_raw]
+    for i in range(6):
+        t_us = 1_700_000_000_000_000 + i * 125_000
+        if i == 2:
+            blocks.append(block(0x0BAD, b"skip me", e))
+        if i == 3:
+            frame = bytes(Ether(type=0x0800) / ip(i))
+            blocks.append(block(3, struct.pack(e + "I", len(frame)) + frame, e))   # simple packet block
+        elif i % 2:
+            blocks.append(epb(1, t_us * 1000, ip(i)))                               # raw IP, nanoseconds
+        else:
+            blocks.append(epb(0, t_us, bytes(Ether(type=0x0800) / ip(i))))
+    path = tmp_path / "ifaces.pcapng"
+    path.write_bytes(b"".join(blocks))
+    report = analyze(str(path))
+    assert report["capture"]["packets"] == 6 and report["capture"]["link_types"] == ["ethernet", "raw"]
+    snd = report["senders"][0]["serial"]
+    assert (snd["received"], snd["lost"], snd["out_of_order"]) == (6, 0, 0)
+    assert report["periodic"][0]["interval_ms"]["min"] == 0.0       # the simple packet block: previous time
+    assert report["periodic"][0]["interval_ms"]["max"] == 250.0
+
+
+@pytest.mark.parametrize("linktype,endian", [(101, "<"), (1, ">"), (113, "<")])
+def test_other_pcap_layouts_through_the_engine(tmp_path, linktype, endian):
+    from scapy.layers.inet import IP, UDP
+    from scapy.layers.l2 import CookedLinux, Ether
+    from test_reader import pcap
+    wrap = {101: lambda p: p, 1: lambda p: Ether() / p, 113: lambda p: CookedLinux(proto=0x0800) / p}[linktype]
+    records = [(1_700_000_000 + i * 0.125, wrap(IP(src="10.0.0.10", dst="239.255.42.20")
+                                                 / UDP(sport=C.INPUT_PORT, dport=C.INPUT_PORT) / vrpi(i if i != 3 else 9)))
+               for i in range(8)]
+    path = tmp_path / "other.pcap"
+    path.write_bytes(pcap(records, linktype=linktype, endian=endian))
+    report = analyze(str(path))
+    ser = report["senders"][0]["serial"]
+    assert (ser["received"], ser["lost"], ser["out_of_order"]) == (8, 2, 4)   # 9 after 2; 4..7 late; 3, 8 lost
+
+
+@pytest.mark.parametrize("fmt", ["pcap", "pcapng"])
+def test_damaged_files_never_raise(tmp_path, fmt):
+    """Random byte damage and cuts: a report (that renders as JSON, HTML and summary) or a
+    CaptureError, nothing else."""
+    from vm110.analysis import report_html, report_json, summary
+    from vm110.capture.reader import CaptureError
+    from vm110.synth import synthesize
+    clean = tmp_path / f"clean.{fmt}"
+    synthesize("illegal", str(clean), 2, 3.0, fmt)
+    data = clean.read_bytes()
+    rng = random.Random(11)
+    for case in range(40):
+        damaged = bytearray(data)
+        for _ in range(rng.choice([1, 5, 50])):
+            damaged[rng.randrange(len(damaged))] = rng.randrange(256)
+        if case % 3 == 0:
+            del damaged[rng.randrange(len(damaged)):]
+        path = tmp_path / f"d{case}.{fmt}"
+        path.write_bytes(bytes(damaged))
+        try:
+            report = analyze(str(path))
+        except CaptureError:
+            continue
+        assert report["capture"]["packets"] >= 0 and isinstance(report["verdict"]["ok"], bool)
+        report_json.write(str(tmp_path / "r.json"), report)
+        assert "<svg" in report_html.render([report]) and "VERDICT" in summary.render(report)

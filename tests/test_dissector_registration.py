@@ -143,3 +143,39 @@ def test_dissect_command_errors(sample_capture, tmp_path):
     elsewhere = dict(os.environ, VM110_DISSECTOR=str(tmp_path / "none.lua"))
     done = _vm110("dissect", str(sample_capture), env=elsewhere)
     assert done.returncode == 2 and "dissector is not at" in done.stderr
+
+
+def test_readme_filters_are_valid(ws):
+    """The display filters the README shows compile in this tshark and match the golden capture."""
+    readme = (T.REPO / "README.md").read_text()
+    block = readme.split("**Filters.**", 1)[1].split("```text\n", 1)[1].split("```", 1)[0]
+    filters = [line.split("  ")[0].strip() for line in block.splitlines() if line.strip()]
+    assert len(filters) >= 5
+    pcap = ws.dir / "golden.pcap"
+    pcap.write_bytes((T.REPO / "tests" / "golden" / "vm110-sample.pcap").read_bytes())
+    for expression in filters:
+        proc = ws.run(["-r", str(pcap), "-Y", expression], check=False)
+        assert proc.returncode == 0, f"{expression!r}: {proc.stderr.strip()}"
+        assert proc.stdout.strip(), f"{expression!r} matches nothing in the golden capture"
+
+
+def test_make_install_wireshark(tmp_path):
+    """`make install-wireshark` puts the plugin where tshark finds it without -X."""
+    T.HOST.check()
+    env = dict(os.environ, HOME=str(tmp_path), XDG_CONFIG_HOME=str(tmp_path / ".config"))
+    done = subprocess.run(["make", "-s", "-C", str(T.REPO), "install-wireshark"], env=env,
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    installed = tmp_path / ".local" / "lib" / "wireshark" / "plugins" / "vm110.lua"
+    assert installed.read_bytes() == T.PLUGIN.read_bytes()
+    plugins = subprocess.run(["tshark", "-G", "plugins"], env=env, capture_output=True, text=True).stdout
+    assert any(line.startswith("vm110.lua") and str(installed) in line for line in plugins.splitlines())
+
+
+@pytest.mark.parametrize("lua", ["lua5.2", "lua5.4"])
+def test_plugin_compiles_on_lua_52_and_54(lua):
+    """Lua 5.2 rejects 5.3 operators (& | ~ << >> //) at compile time; bit32 is not in Wireshark 4.4."""
+    source = T.PLUGIN.read_text()
+    assert "bit32." not in source and "module(" not in source
+    done = subprocess.run([lua, "-e", f"assert(loadfile({str(T.PLUGIN)!r}))"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr

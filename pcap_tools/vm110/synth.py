@@ -8,15 +8,16 @@ The same scenario, seed and duration give byte-identical files.
 """
 from __future__ import annotations
 
+import gc
 import json
 import os
-from typing import Any, Iterator, Optional
+from typing import Any, Optional
 
 from . import constants as C
 from .capture.writer import Format, UdpFlow, open_writer
 from .sim.clock import seconds
 from .sim.scenario import EPOCH_US, SCENARIOS, Scenario
-from .sim.truth import ground_truth
+from .sim.truth import GroundTruth
 from .sim.virtual import Arrival, VirtualNetwork
 
 TRUTH_SUFFIX = ".truth.json"
@@ -45,30 +46,45 @@ def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] =
     if duration <= 0:
         raise ValueError("duration must be positive")
     stations = sc.build(seed, duration)
+    # One flow per station, then the other traffic's: its arrivals carry that index.
     flows = [UdpFlow(s.ip, s.port, C.MULTICAST_GROUP, s.port, ttl=C.MULTICAST_TTL) for s in stations]
-    other = UdpFlow(OTHER_SOURCE, MDNS_PORT, OTHER_GROUP, MDNS_PORT, ttl=255)
-    with open(out, "wb") as stream:
-        writer = open_writer(stream, fmt)
-
-        def tap() -> Iterator[tuple[int, Optional[Arrival]]]:
-            write = writer.write
-            others = [seconds(t) for t in sc.other_traffic if seconds(t) < seconds(duration)]
-            for arrival in VirtualNetwork(stations).run(duration):
-                while others and others[0] <= arrival.t:
-                    write(EPOCH_US + others[0], other.frame(OTHER_PAYLOAD))
-                    yield others.pop(0), None
-                write(EPOCH_US + arrival.t, flows[arrival.station].frame(arrival.data))
-                yield arrival.t, arrival
-            for t in others:
-                write(EPOCH_US + t, other.frame(OTHER_PAYLOAD))
-                yield t, None
-
-        truth = ground_truth(tap(), stations, EPOCH_US)
-        writer.close()
+    flows.append(UdpFlow(OTHER_SOURCE, MDNS_PORT, OTHER_GROUP, MDNS_PORT, ttl=255))
+    others = [(t, 0, len(stations), OTHER_PAYLOAD, (), None)
+              for t in map(seconds, sc.other_traffic) if t < seconds(duration)]
+    frame = [flow.frame for flow in flows]
+    truth = GroundTruth(stations, EPOCH_US)
+    collecting = gc.isenabled()
+    gc.disable()      # millions of short-lived tuples and no cycles: the collector would only cost time
+    try:
+        with open(out, "wb") as stream:
+            writer = open_writer(stream, fmt)
+            for batch in VirtualNetwork(stations).run(duration):
+                if others and others[0][0] <= batch[-1][0]:
+                    batch = _interleave(batch, others)
+                writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _ in batch])
+                truth.add(batch)
+            writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _ in others])   # after the end
+            truth.add(others)
+            writer.close()
+    finally:
+        if collecting:
+            gc.enable()
+    result = truth.report()
     with open(truth_path(out), "w", encoding="utf-8") as fh:
-        json.dump(truth, fh, indent=1)
+        json.dump(result, fh, indent=1)
         fh.write("\n")
-    return truth
+    return result
+
+
+def _interleave(batch: list[Arrival], others: list[Arrival]) -> list[Arrival]:
+    """Merge the other traffic that falls within `batch` into it (taking it off `others`); a
+    frame at the same time as an EG-Link packet comes first."""
+    merged: list[Arrival] = []
+    for arrival in batch:
+        while others and others[0][0] <= arrival[0]:
+            merged.append(others.pop(0))
+        merged.append(arrival)
+    return merged
 
 
 def remove_outputs(out: str) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import ipaddress
 import struct
 from collections import Counter
+from array import array
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -72,6 +73,12 @@ class Sender:
 
 
 _CODE_TABLE = {t.value.encode(): i for i, t in enumerate(TYPES)}
+# Where, before a located EG-Link packet, its pcap record starts, and its source address and port
+# are (pcap record header + Ethernet + IPv4 + UDP; offsets into the rows of _gather_pcap).
+_BEFORE = 16 + 14 + 20 + 8
+_SRC = 16 + 14 + 12
+_SPORT = 16 + 14 + 20
+_WINDOW = 1 << 22
 FEW_SENDERS = 32       # up to this many, one comparison per sender beats sorting the key
 
 
@@ -119,7 +126,12 @@ class Collected:
     illegal: int = 0
     illegal_reasons: Counter = field(default_factory=Counter)
     illegal_examples: list = field(default_factory=list)   # (frame, ts, src, type, reasons)
-    records: bytearray = field(default_factory=bytearray)  # RECORD per legal packet
+    records: bytearray = field(default_factory=bytearray)  # RECORD per legal packet, but:
+    # legal packets found by the fused pcap loop are only located (file offset of the EG-Link
+    # packet, frame) and gathered from the file afterwards, all at once (`_gather_pcap`).
+    offsets: array = field(default_factory=lambda: array("Q"))
+    offset_frames: array = field(default_factory=lambda: array("I"))
+    pcap_scale: float = 1e-6
     sources: dict = field(default_factory=dict)            # packed source address -> index
 
     def add_illegal(self, frame: int, ts: float, src: str, ptype: str, reasons: list) -> None:
@@ -137,6 +149,40 @@ class Collected:
     def add_legal(self, ts: float, frame: int, src: bytes, sport: int, packet: bytes) -> None:
         self.records += RECORD.pack(ts, frame, self.source(src), sport, packet)
 
+    def _gather_pcap(self) -> np.ndarray:
+        """RECORDs of the located packets, read back from the pcap a window at a time. Before
+        each EG-Link packet lie its pcap record header (time) and the Ethernet/IPv4/UDP headers
+        (source address and port) at fixed distances: the common frame of the fused loop."""
+        offsets = np.frombuffer(self.offsets, dtype=np.uint64).astype(np.int64)
+        frames = np.frombuffer(self.offset_frames, dtype=np.uint32)
+        self.offsets, self.offset_frames = array("Q"), array("I")
+        out = np.zeros(len(offsets), dtype=RECORD_DTYPE)
+        out["frame"] = frames
+        as_bytes = out.view(np.uint8).reshape(len(out), RECORD.size)
+        span = np.arange(-_BEFORE, PREFIX)
+        src = np.zeros(len(out), dtype=np.uint32)
+        with open(self.path, "rb") as f:
+            i = 0
+            while i < len(offsets):
+                first = int(offsets[i]) - _BEFORE
+                j = int(np.searchsorted(offsets, first + _WINDOW - PREFIX, side="right"))
+                j = max(j, i + 1)
+                f.seek(first)
+                want = int(offsets[j - 1]) + PREFIX - first
+                window = np.frombuffer(f.read(want).ljust(want, b"\0"), dtype=np.uint8)
+                rows = window[(offsets[i:j] - first)[:, None] + span]
+                sec = rows[:, 0:4].copy().view("<u4").ravel()
+                frac = rows[:, 4:8].copy().view("<u4").ravel()
+                out["ts"][i:j] = sec + frac * self.pcap_scale
+                src[i:j] = rows[:, _SRC:_SRC + 4].copy().view("<u4").ravel()
+                out["sport"][i:j] = rows[:, _SPORT].astype(np.uint16) * 256 + rows[:, _SPORT + 1]
+                as_bytes[i:j, RECORD.size - PREFIX:] = rows[:, _BEFORE:]
+                i = j
+        values, which = np.unique(src, return_inverse=True)
+        index = np.array([self.source(int(v).to_bytes(4, "little")) for v in values.tolist()], dtype=np.uint16)
+        out["src"] = index[which.ravel()]
+        return out
+
     def merge(self, later: "Collected") -> None:
         """Append what another engine read from the part of the file that follows this one."""
         rec = np.frombuffer(later.records, dtype=RECORD_DTYPE)     # a bytearray: changed in place
@@ -148,6 +194,10 @@ class Collected:
             rec["frame"] += self.frames
         self.records += later.records
         later.records = bytearray()
+        self.offsets += later.offsets
+        frames = np.frombuffer(later.offset_frames, dtype=np.uint32)     # an array: changed in place
+        frames += self.frames
+        self.offset_frames += later.offset_frames
         for f, t, s, p, r in later.illegal_examples[:max(0, MAX_EXAMPLES - len(self.illegal_examples))]:
             self.illegal_examples.append((f + self.frames, t, s, p, r))
         for name in ("udp", "non_udp", "fragments", "other_udp", "snap_truncated", "eglink", "crc_checked",
@@ -168,6 +218,9 @@ class Collected:
         out with one vectorised comparison, which keeps the arrival order and needs no sort."""
         rec = np.frombuffer(self.records, dtype=RECORD_DTYPE)
         self.records = bytearray()
+        if len(self.offsets):
+            located = self._gather_pcap()
+            rec = np.insert(located, np.searchsorted(located["frame"], rec["frame"]), rec) if len(rec) else located
         if not len(rec):
             return []
         pid = rec["pid"]

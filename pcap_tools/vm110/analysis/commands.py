@@ -12,6 +12,7 @@ from typing import Iterable, Optional
 
 from .. import constants as C
 from . import timing
+from .report_json import round_ms, round_s
 from .collect import CODE
 
 COMMAND_TYPES = (C.PacketType.VRCI, C.PacketType.VRCO)
@@ -112,10 +113,12 @@ def report(tally: Tally, fail_ms: Optional[float], resend_ms: float) -> dict:
                                "nominal": resend_ms, "count": len(resend)},
         "retransmission_histogram": {str(k): histogram[k] for k in sorted(histogram)},
         "fail_limit_ms": fail_ms,
+        # Long lists: rounded here, so that report_json.normalise need not walk them (PRE_ROUNDED).
         "list": [{"sender": c.sender, "command_id": c.command_id, "frames": c.frames,
-                  "ack_frame": c.ack_frame, "latency_first_ms": c.latency_first_ms,
-                  "latency_last_ms": c.latency_last_ms, "time": c.times[0],
+                  "ack_frame": c.ack_frame, "latency_first_ms": round_ms(c.latency_first_ms),
+                  "latency_last_ms": round_ms(c.latency_last_ms), "time": round_s(c.times[0]),
                   "retransmissions": len(c.frames) - 1, "spurious": c.spurious} for c in cmds],
-        "acks_without_command_list": [{"frame": f, "time": t, "command_id": i} for f, t, i in tally.orphan_acks],
+        "acks_without_command_list": [{"frame": f, "time": round_s(t), "command_id": i}
+                                      for f, t, i in tally.orphan_acks],
     }
 

@@ -1,9 +1,11 @@
 """The fast engine: one streaming pass over the file into compact records (`Collected`).
 
-The budget is a few C-level operations per packet. For the common file (little-endian pcap,
-Ethernet, IPv4 without options, UDP) one `struct` call reads the record header, the frame headers
-and the EG-Link header together (`_FUSED`); other files go through the reader's datagrams. Then a
-structural test, the CRC (zlib, see `_hot_crc`) and one packed record per legal packet.
+The budget is a few C-level operations per packet. For the common frame (Ethernet, IPv4 without
+options, UDP) in a little-endian pcap or pcapng, one `struct` call reads the record or block
+header, the frame headers and the EG-Link header together (`_FUSED`, `_FUSED_NG`); other frames
+go through the reader's general decoder, other files through its datagrams. Then a structural
+test, the CRC (zlib, see `_hot_crc`) and one packed record per legal packet. Large pcaps are read
+in parts by several processes (`_parallel`).
 Anything unusual (illegal, other ports, odd frames) takes `_slow`, which decodes with
 `vm110.decode` and so applies exactly its rules.
 """
@@ -17,7 +19,7 @@ from typing import Callable, Optional
 
 from .. import constants as C
 from ..capture import linktypes as L
-from ..capture.reader import PCAP_HEADER_LEN, CaptureReader
+from ..capture.reader import PCAP_HEADER_LEN, PCAPNG_EPB, PCAPNG_SHB, CaptureReader
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, MASK, VARIANTS, _REVERSE, crc32
 from ..decode import decode
 from .collect import CODE_OF_ID, RECORD, Collected, address
@@ -29,11 +31,16 @@ _HDR = struct.Struct("<4sH6xH")                    # packet ID, revision, size
 # revision and size.
 _FUSED = struct.Struct("<IIII12x2sB5xHxB2x4s4xHHH2x4sH4xH")
 _FUSED_MIN_FRAME = _FUSED.size - 16
+# The same for a pcapng enhanced packet block: block type and length, interface, time high and
+# low, captured and original length, then the frame as above.
+_EPB_HEAD = 28
+_FUSED_NG = struct.Struct("<IIIIIII" + _FUSED.format[len("<IIII"):])
 _ETH_IPV4 = L.ETHERTYPE_IPV4.to_bytes(2, "big")
 _IPV4_PLAIN = 0x45                                 # version 4, 20-byte header
 _IP_END = L.ETH_HEADER_LEN + L.IPV4_MIN_HEADER     # where UDP starts in the common frame
 _FRAME_OVER = _IP_END + L.UDP_HEADER_LEN + C.OVERHEAD   # frame length = this + EG-Link size
 _FRAG_LE = 0xFF3F                                  # MF + fragment offset, read little-endian
+_U32 = {"little": struct.Struct("<I"), "big": struct.Struct(">I")}
 _SWAP = [((x & 0xFF) << 8) | (x >> 8) for x in range(1 << 16)]   # big-endian u16 read little-endian
 _LOW = {raw: C.PAYLOAD_BOUNDS[C.PacketType(raw.decode())][0] for raw in CODE_OF_ID}
 _SNIFF = 256                                       # EG-Link packets looked at to guess the CRC variant
@@ -72,6 +79,13 @@ def _hot_crc(variant: str, order: str) -> tuple[bool, int, str]:
         "iso-hdlc": (False, 0, order), "jamcrc": (False, MASK, order),
         "mpeg2": (True, MASK, other), "bzip2": (True, 0, other),
     }[variant]
+
+
+def idle_cores() -> int:
+    """Cores not busy with other work (by the load average), at least 1, at most MAX_WORKERS:
+    reading parts in parallel only pays when the cores are free."""
+    cores = os.cpu_count() or 1
+    return max(1, min(MAX_WORKERS, cores, int(cores - os.getloadavg()[0] + 0.5)))
 
 
 def _read_part(job: tuple) -> Collected:
@@ -123,9 +137,7 @@ class FastEngine:
         self.ports = frozenset((port, port + C.OUTPUT_PORT_OFFSET))
         self.crc, self.crc_order = crc, crc_order
         self.progress = progress
-        if workers is None:
-            workers = int(os.environ.get(WORKERS_ENV, 0)) or min(os.cpu_count() or 1, MAX_WORKERS)
-        self.workers = workers
+        self.workers = workers or int(os.environ.get(WORKERS_ENV, 0)) or idle_cores()
 
     def collect(self, path: str) -> Collected:
         variant = DEFAULT_VARIANT if self.crc == "auto" else self.crc
@@ -187,6 +199,8 @@ class FastEngine:
         layout = reader.pcap_layout() if reader.format == "pcap" else None
         if layout is not None and layout.endian == "<" and layout.link == L.LINKTYPE_ETHERNET:
             valid = self._fused_pcap(got, reader, layout, variant, order, start, stop)
+        elif layout is None:
+            valid = self._fused_pcapng(got, reader, variant, order)
         else:
             valid = self._datagrams(got, reader, variant, order)
         got.eglink += valid
@@ -223,38 +237,36 @@ class FastEngine:
         record boundaries, when given); returns the legal packets recorded."""
         scale, link, limit = layout.scale, layout.link, layout.limit
         fused, rec = _FUSED.unpack_from, struct.Struct("<IIII").unpack_from
+        slack = bytes(_FUSED.size)
         ports_le = frozenset(_SWAP[p] for p in self.ports)
         swap, low_of, eth_ipv4 = _SWAP, _LOW, _ETH_IPV4
         reversed_bytes, xor, stored_order = _hot_crc(variant, order)
-        rev_table, crc, from_bytes = _REVERSE, zlib.crc32, int.from_bytes
-        pack, sources, records = RECORD.pack, got.sources, got.records
+        rev_table, crc = _REVERSE, zlib.crc32
+        stored = _U32[stored_order].unpack_from
+        locate, add_frame = got.offsets.append, got.offset_frames.append
+        got.pcap_scale = scale
         slow, udp_of = self._slow, reader.udp_of
         min_frame, max_payload = _FUSED_MIN_FRAME, C.MAX_PAYLOAD
         ipv4_plain, udp, frag_le = _IPV4_PLAIN, L.IPPROTO_UDP, _FRAG_LE
         udp_head, prefix, ip_end = L.UDP_HEADER_LEN, C.PREFIX_LEN, _IP_END
         udp_data, udp_over, frame_over = _IP_END + L.UDP_HEADER_LEN, L.UDP_HEADER_LEN + C.OVERHEAD, _FRAME_OVER
-        fused_len = _FUSED.size
         valid = frame = 0
         ts = 0.0
-        chunks = reader.pcap_chunks(start or PCAP_HEADER_LEN, stop)
+        chunks = reader.raw_chunks(start or PCAP_HEADER_LEN, stop)
         data = next(chunks, None)
         while data is not None:
             end = len(data)
             pos = 0
             # The CRC runs on the bytes as they are, or bit-reversed: reverse the chunk in one go.
-            cdata = data.translate(rev_table) if reversed_bytes else data
             if not frame and end >= 16:
                 sec, frac = rec(data, 0)[:2]
                 reader.first_ts = sec + frac * scale
-            while True:
-                if pos + fused_len <= end:
-                    (sec, frac, incl, orig, et, vi, frag, proto, src, sp, dp, ulen,
-                     pid, rev, size) = fused(data, pos)
-                elif pos + 16 <= end:
-                    sec, frac, incl, orig = rec(data, pos)
-                    et = None
-                else:
-                    break
+            base = reader.bytes_read            # file offset of data[0]
+            data += slack               # so that the fused read never runs off the end of a chunk
+            cdata = data.translate(rev_table) if reversed_bytes else data
+            while pos + 16 <= end:
+                (sec, frac, incl, orig, et, vi, frag, proto, src, sp, dp, ulen,
+                 pid, rev, size) = fused(data, pos)
                 if incl > limit:
                     reader.corrupt(pos, incl)
                     chunks.close()
@@ -273,11 +285,9 @@ class FastEngine:
                             and size + frame_over <= incl and (sp in ports_le or dp in ports_le)):
                         q = p + udp_data            # the EG-Link packet: q .. e, then the CRC
                         e = q + prefix + size
-                        if crc(cdata[q:e]) ^ xor == from_bytes(cdata[e:e + 4], stored_order):
-                            index = sources.get(src)
-                            if index is None:
-                                index = got.source(src)
-                            records += pack(ts, frame, index, swap[sp], data[q:e + 4])
+                        if crc(cdata[q:e]) ^ xor == stored(cdata, e)[0]:
+                            locate(base + q)
+                            add_frame(frame)
                             valid += 1
                             continue
                     n = swap[ulen]
@@ -303,11 +313,115 @@ class FastEngine:
         got.udp = frame - reader.non_udp        # every frame the reader did not count as other
         return valid
 
+    def _fused_pcapng(self, got: Collected, reader: CaptureReader, variant: str, order: str) -> int:
+        """Walk the blocks of a pcapng file: enhanced packet blocks of little-endian sections go
+        the way of `_fused_pcap` (`_FUSED_NG`), every other block through the reader."""
+        fused, slack = _FUSED_NG.unpack_from, bytes(_FUSED_NG.size)
+        ports_le = frozenset(_SWAP[p] for p in self.ports)
+        swap, low_of, eth_ipv4 = _SWAP, _LOW, _ETH_IPV4
+        reversed_bytes, xor, stored_order = _hot_crc(variant, order)
+        rev_table, crc = _REVERSE, zlib.crc32
+        stored = _U32[stored_order].unpack_from
+        pack, sources, records = RECORD.pack, got.sources, got.records
+        slow, udp_of = self._slow, reader.udp_of
+        min_frame, max_payload = _FUSED_MIN_FRAME, C.MAX_PAYLOAD
+        ipv4_plain, udp, frag_le = _IPV4_PLAIN, L.IPPROTO_UDP, _FRAG_LE
+        prefix, udp_data = C.PREFIX_LEN, _IP_END + L.UDP_HEADER_LEN
+        udp_over, frame_over, epb_head = L.UDP_HEADER_LEN + C.OVERHEAD, _FRAME_OVER, _EPB_HEAD
+        shb, epb = PCAPNG_SHB, PCAPNG_EPB
+        ifaces, little = reader.interfaces, True
+        valid = frame = 0
+        ts = 0.0
+        first = None
+        chunks = reader.raw_chunks(0)
+        data = next(chunks, None)
+        while data is not None:
+            end = len(data)
+            pos = 0
+            data += slack               # so that the fused read never runs off the end of a chunk
+            cdata = data.translate(rev_table) if reversed_bytes else data
+            while pos + 12 <= end:
+                (btype, blen, iface, tsh, tsl, incl, orig, et, vi, frag, proto, src, sp, dp, ulen,
+                 pid, rev, size) = fused(data, pos)
+                if btype == shb:
+                    reader.pcapng_section(data, pos)
+                    ifaces, little = reader.interfaces, reader.endian == "<"
+                if not little:
+                    btype, blen = struct.unpack_from(">II", data, pos)
+                    et = None
+                if reader.bad_block(pos, blen):
+                    chunks.close()
+                    data = None
+                    break
+                p = pos
+                if p + blen > end:
+                    break
+                pos = p + blen
+                if btype == epb and et is not None and iface < len(ifaces) and incl <= blen - epb_head:
+                    link, div, scale, tsoff, eth = ifaces[iface]
+                    frame += 1
+                    ticks = (tsh << 32) | tsl
+                    if div:
+                        q, r = divmod(ticks, div)
+                        ts = q + r * scale + tsoff
+                    else:
+                        ts = ticks * scale + tsoff
+                    if first is None:
+                        first = ts
+                    d = p + epb_head
+                    if (eth and et == eth_ipv4 and vi == ipv4_plain and proto == udp and not frag & frag_le
+                            and incl >= min_frame):
+                        low = low_of.get(pid)
+                        if (low is not None and not rev and low <= size <= max_payload
+                                and ulen == swap[size + udp_over] and size + frame_over <= incl
+                                and (sp in ports_le or dp in ports_le)):
+                            q = d + udp_data            # the EG-Link packet: q .. e, then the CRC
+                            e = q + prefix + size
+                            if crc(cdata[q:e]) ^ xor == stored(cdata, e)[0]:
+                                index = sources.get(src)
+                                if index is None:
+                                    index = got.source(src)
+                                records += pack(ts, frame, index, swap[sp], data[q:e + 4])
+                                valid += 1
+                                continue
+                    found = udp_of(link, data, d, incl, orig, frame)
+                    if found is not None:
+                        slow(got, reader, variant, order, ts, *found, frame)
+                    continue
+                reader.last_ts = ts if frame else None      # a simple packet block takes this time
+                block = reader.pcapng_block(data, p, btype, blen)
+                if block is None:
+                    continue
+                frame += 1
+                block_ts, link, d, incl, orig = block
+                if link is None:
+                    reader.non_udp += 1
+                    continue
+                ts = block_ts
+                if first is None:
+                    first = ts
+                found = udp_of(link, data, d, incl, orig, frame)
+                if found is not None:
+                    slow(got, reader, variant, order, ts, *found, frame)
+            reader.frames = frame
+            reader.first_ts, reader.last_ts = first, (ts if frame else None)
+            if data is None:
+                break
+            if self.progress is not None:
+                self.progress(reader.bytes_read + pos, reader.size)
+            try:
+                data = chunks.send(pos)
+            except StopIteration:
+                data = None
+        got.udp = frame - reader.non_udp
+        return valid
+
     def _datagrams(self, got: Collected, reader: CaptureReader, variant: str, order: str) -> int:
         """Any other file, through the reader's datagrams; returns the legal packets recorded."""
         ports = self.ports
         reversed_bytes, xor, stored_order = _hot_crc(variant, order)
-        rev_table, crc, from_bytes = _REVERSE, zlib.crc32, int.from_bytes
+        rev_table, crc = _REVERSE, zlib.crc32
+        stored = _U32[stored_order].unpack_from
         unpack, low_of, max_payload = _HDR.unpack_from, _LOW, C.MAX_PAYLOAD
         pack, sources, records = RECORD.pack, got.sources, got.records
         slow = self._slow
@@ -326,9 +440,9 @@ class FastEngine:
                     continue
                 if reversed_bytes:
                     t = payload.translate(rev_table)
-                    ok = crc(t[:-4]) ^ xor == from_bytes(t[-4:], stored_order)
+                    ok = crc(t[:-4]) ^ xor == stored(t, n - C.CRC_LEN)[0]
                 else:
-                    ok = crc(payload[:-4]) ^ xor == from_bytes(payload[-4:], stored_order)
+                    ok = crc(payload[:-4]) ^ xor == stored(payload, n - C.CRC_LEN)[0]
                 if not ok:
                     slow(got, reader, variant, order, ts, src, sport, dport, payload, frame)
                     continue

@@ -39,6 +39,12 @@ class Options:
 
 def build(got: Collected, opt: Options) -> dict:
     """The whole report of one capture."""
+    # Damaged timestamps can make inf and nan on the way; the report shows them as null.
+    with np.errstate(all="ignore"):
+        return _build(got, opt)
+
+
+def _build(got: Collected, opt: Options) -> dict:
     sender_reports, periodic, events, burst_rows, states = [], [], [], [], []
     backwards = 0
     for snd in got.take_senders():
@@ -56,8 +62,10 @@ def build(got: Collected, opt: Options) -> dict:
         live = np.ones(len(snd.code), dtype=bool)     # duplicates are neither commands nor burst parts
         if dup:
             live[dup] = False
-        for i in np.flatnonzero(live & np.isin(snd.code, COMMAND_CODES)).tolist():
-            events.append((int(snd.frame[i]), float(snd.ts[i]), int(snd.code[i]), snd.id, int(snd.aux[i])))
+        rows = np.flatnonzero(live & np.isin(snd.code, COMMAND_CODES))
+        name = snd.id
+        events += zip(snd.frame[rows].tolist(), snd.ts[rows].tolist(), snd.code[rows].tolist(),
+                      [name] * len(rows), snd.aux[rows].tolist())
         vrpo = live & (snd.code == VRPO_CODE)
         if vrpo.any():
             burst_rows.append(_bursts(snd, snd.ts[vrpo], snd.aux[vrpo], snd.size[vrpo], opt, periodic))
@@ -171,13 +179,17 @@ def _bursts(snd: Sender, times: np.ndarray, numbers: np.ndarray, sizes: np.ndarr
 def _plot(times: np.ndarray, gaps: np.ndarray) -> dict:
     """Histogram of intervals (the last bin holds everything above p99.9) and a down-sampled
     interval-over-time series (the largest interval of each bucket, so no watchdog gap hides)."""
+    finite = np.isfinite(gaps)
+    if not finite.all():                       # damaged timestamps: plot what can be plotted
+        times, gaps = times[1:][finite], gaps[finite]
+        times = np.concatenate(([times[0] if len(times) else 0.0], times))
     if not len(gaps):
         return {"histogram": [], "bin_ms": None, "series": []}
     ordered = np.sort(gaps)
     low, high = float(ordered[0]), timing.percentile(ordered, 99.9)
     high = max(high, low + 1e-3)
     width = (high - low) / HISTOGRAM_BINS
-    bins = np.minimum(((gaps - low) / width).astype(np.int64), HISTOGRAM_BINS)
+    bins = np.clip(np.nan_to_num((gaps - low) / width), 0, HISTOGRAM_BINS).astype(np.int64)
     counts = np.bincount(bins, minlength=HISTOGRAM_BINS + 1)
     hist = [[low + i * width, int(c)] for i, c in enumerate(counts)]
     step = max(1, math.ceil(len(gaps) / SERIES_POINTS))

@@ -249,7 +249,7 @@ def _section(report: dict) -> str:
     t1 = cap["last_time"] or t0 + 1
     out = [f"<h2>{_e(cap['file'])}</h2>",
            f'<p><span class="{"ok" if verdict["ok"] else "fail"}">{"OK" if verdict["ok"] else "FAIL"}</span> '
-           f"{cap['packets']} packets, {cap['eglink_packets']} EG-Link, {cap['duration_s']:.1f} s; "
+           f"{cap['packets']} packets, {cap['eglink_packets']} EG-Link, {_num(cap['duration_s'], 1)} s; "
            f"CRC {_e(crc['variant'])}/{_e(crc['byte_order'])}: {crc['valid']} valid, {crc['invalid']} invalid</p>"]
     if verdict["findings"]:
         out.append("<ul>" + "".join(f'<li class="{_e(f["severity"])}">{_e(f["severity"])}: {_e(f["message"])}</li>'

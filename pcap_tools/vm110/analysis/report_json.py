@@ -2,12 +2,24 @@
 from __future__ import annotations
 
 import json
-from typing import Any
+import math
+from typing import Any, Optional
 
 from ..errors import CliError
 
 SECONDS_DECIMALS = 6   # times to the microsecond, the resolution of a capture's timestamps
 MS_DECIMALS = 3        # durations in ms (keys ending in _ms, and everything under them) likewise
+
+
+PRE_ROUNDED = frozenset({"list", "acks_without_command_list"})   # commands.report rounds these itself
+
+
+def round_s(value: Optional[float]) -> Optional[float]:
+    return None if value is None else round(value, SECONDS_DECIMALS)
+
+
+def round_ms(value: Optional[float]) -> Optional[float]:
+    return None if value is None else round(value, MS_DECIMALS)
 
 
 def normalise(value: Any, ms: bool = False) -> Any:
@@ -16,10 +28,12 @@ def normalise(value: Any, ms: bool = False) -> Any:
     long capture is large); tuples become lists."""
     kind = type(value)
     if kind is float:
+        if not math.isfinite(value):
+            return None                 # only damaged timestamps get here; JSON has no inf/nan
         return round(value, MS_DECIMALS if ms else SECONDS_DECIMALS)
     if kind is dict:
         for k, v in value.items():
-            if type(v) is not int and v is not None and type(v) is not str:
+            if type(v) is not int and v is not None and type(v) is not str and k not in PRE_ROUNDED:
                 value[k] = normalise(v, ms or k.endswith("_ms"))
         return value
     if kind is list or kind is tuple:

@@ -17,7 +17,7 @@ def _table(rows: list[list[str]], indent: str = "  ") -> list[str]:
 def render(report: dict) -> str:
     cap, crc, verdict = report["capture"], report["crc"], report["verdict"]
     lines = [f"{cap['file']}: {cap['packets']} packets, {cap['eglink_packets']} EG-Link, "
-             f"{cap['duration_s']:.1f} s; CRC {crc['variant']}/{crc['byte_order']}"
+             f"{_f(cap['duration_s'])} s; CRC {crc['variant']}/{crc['byte_order']}"
              f"{' (auto)' if crc['auto'] else ''}: {crc['valid']} valid, {crc['invalid']} invalid"]
     errors = sum(1 for f in verdict["findings"] if f["severity"] == "error")
     warnings = len(verdict["findings"]) - errors

@@ -59,7 +59,8 @@ class TsharkEngine:
         self.port, self.crc, self.crc_order = port, crc, crc_order
 
     def _params(self, variant: str, order: str) -> list[str]:
-        return ["-X", f"lua_script:{plugin_path()}", "-o", f"vm110.input_port:{self.port}",
+        # IP fragments stay fragments, as the fast engine counts them (no reassembly).
+        return ["-X", f"lua_script:{plugin_path()}", "-o", "ip.defragment:FALSE", "-o", f"vm110.input_port:{self.port}",
                 "-o", f"vm110.crc_variant:{variant}", "-o", f"vm110.crc_byte_order:{order}"]
 
     def _packets(self, path: str, variant: str, order: str, display_filter: Optional[str] = None) -> Iterator:
@@ -107,9 +108,10 @@ class TsharkEngine:
         for pkt in self._packets(path, variant, order):
             frames += 1
             layers = {layer.layer_name for layer in pkt.layers}
-            if "udp" not in layers:
+            fragment = "ip" in layers and (pkt.ip.flags_mf == "1" or pkt.ip.frag_offset != "0")
+            if fragment or "udp" not in layers:
                 got.non_udp += 1
-                got.fragments += "ip" in layers and (pkt.ip.flags_mf == "1" or pkt.ip.frag_offset != "0")
+                got.fragments += fragment
                 continue
             got.udp += 1
             if "vm110" not in layers:

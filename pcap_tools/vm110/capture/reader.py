@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 import struct
-from typing import BinaryIO, Callable, Generator, Iterator, NamedTuple, Optional
+from typing import BinaryIO, Generator, Iterator, NamedTuple, Optional
 
 from ..errors import CliError
 from . import linktypes as L
@@ -83,6 +83,9 @@ class CaptureReader:
         self.bytes_read = 0
         self.first_ts: Optional[float] = None   # of the first and last packet record
         self.last_ts: Optional[float] = None
+        self._layout: Optional[PcapLayout] = None
+        self.endian = "<"                       # pcapng: of the current section
+        self.interfaces: list[tuple] = []       # pcapng: (link, ticks/s or 0, s/tick, offset, Ethernet?)
 
     # -- public --------------------------------------------------------------------------------
     def batches(self) -> Iterator[list[Datagram]]:
@@ -98,7 +101,10 @@ class CaptureReader:
 
     # -- pcap ----------------------------------------------------------------------------------
     def pcap_layout(self) -> PcapLayout:
-        """Read the pcap file header: byte order, seconds per fraction unit, link type, record limit."""
+        """The pcap file header: byte order, seconds per fraction unit, link type, record limit."""
+        if self._layout is not None:
+            return self._layout
+        self._file.seek(0)
         head = self._file.read(PCAP_HEADER_LEN)
         if len(head) < PCAP_HEADER_LEN:
             raise CaptureError(f"{self.path}: pcap file header cut short")
@@ -106,13 +112,14 @@ class CaptureReader:
         magic, _, _, _, _, snaplen, network = struct.unpack(e + "IHHiIII", head)
         link = network & 0x0FFFFFFF      # the top bits may carry FCS information
         self.link_types.add(L.NAMES.get(link, str(link)))
-        return PcapLayout(e, 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link, max(snaplen, MAX_RECORD))
+        self._layout = PcapLayout(e, 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link, max(snaplen, MAX_RECORD))
+        return self._layout
 
-    def pcap_chunks(self, start: int = PCAP_HEADER_LEN, stop: Optional[int] = None) -> Generator[bytes, int, None]:
-        """Chunks of pcap records for a consumer that walks them itself: each chunk starts at a
-        record; the consumer sends back how many bytes (whole records) it used. Call after
-        `pcap_layout()`; a consumer that stops at a corrupt record calls `corrupt()`. `start` and
-        `stop` (file offsets of record boundaries) select a part of the file."""
+    def raw_chunks(self, start: int = PCAP_HEADER_LEN, stop: Optional[int] = None) -> Generator[bytes, int, None]:
+        """Chunks of records (pcap) or blocks (pcapng) for a consumer that walks them itself: each
+        chunk starts at a record; the consumer sends back how many bytes (whole records) it used.
+        For pcap call `pcap_layout()` first; a consumer that stops at a corrupt record calls
+        `corrupt()`. `start` and `stop` (file offsets of record boundaries) select a part."""
         leftover = b""
         offset = self.bytes_read = start
         self._file.seek(start)
@@ -147,7 +154,7 @@ class CaptureReader:
         vi45, head_len, frag_mask = _FAST_VI, _FAST_HEAD, L.IPV4_FRAGMENT_MASK
         ipv4, udp = L.ETHERTYPE_IPV4, L.IPPROTO_UDP
         frame = 0
-        chunks = self.pcap_chunks()
+        chunks = self.raw_chunks()
         data = next(chunks, None)
         while data is not None:
             end = len(data)
@@ -188,110 +195,109 @@ class CaptureReader:
                 data = chunks.send(pos)
             except StopIteration:
                 data = None
-    def _finish(self, frames: int, offset: int, leftover: bytes = b"") -> None:
-        self.frames = frames
-        self.bytes_read = offset + len(leftover)
-        if leftover and self.problem is None:
-            self.problem = f"file cut in the middle of a record at byte {offset} ({len(leftover)} bytes ignored)"
-
     # -- pcapng --------------------------------------------------------------------------------
+    def pcapng_block(self, data: bytes, pos: int, btype: int, blen: int) -> Optional[tuple]:
+        """Take in one pcapng block (its header checked by the caller). Section and interface
+        blocks update the reader; a packet block returns (ts, link, start of frame, captured
+        length, original length); anything else None. A bad byte-order magic raises CaptureError."""
+        e = self.endian
+        if btype == PCAPNG_EPB or btype == PCAPNG_PB:
+            if btype == PCAPNG_EPB:
+                iface, tsh, tsl, incl, orig = struct.unpack_from(e + "IIIII", data, pos + 8)
+            else:
+                iface, _, tsh, tsl, incl, orig = struct.unpack_from(e + "HHIIII", data, pos + 8)
+            if iface >= len(self.interfaces) or incl > blen - 28:
+                return (self.last_ts or 0.0, None, pos + 28, 0, 0)
+            link, div, scale, tsoff, _ = self.interfaces[iface]
+            ticks = (tsh << 32) | tsl
+            if div:
+                q, r = divmod(ticks, div)
+                ts = q + r * scale + tsoff
+            else:
+                ts = ticks * scale + tsoff
+            return ts, link, pos + 28, incl, orig
+        if btype == PCAPNG_SPB:
+            if not self.interfaces:
+                return (self.last_ts or 0.0, None, pos + 12, 0, 0)
+            orig = struct.unpack_from(e + "I", data, pos + 8)[0]
+            # A simple packet block has no time: it gets the time of the packet before it.
+            return self.last_ts or 0.0, self.interfaces[0][0], pos + 12, min(orig, blen - 16), orig
+        if btype == PCAPNG_IDB:
+            link = struct.unpack_from(e + "H", data, pos + 8)[0]
+            div, scale, tsoff = self._idb_options(data, pos + 16, pos + blen - 4, e)
+            self.link_types.add(L.NAMES.get(link, str(link)))
+            self.interfaces.append((link, div, scale, tsoff, link == L.LINKTYPE_ETHERNET))
+        return None
+
+    def pcapng_section(self, data: bytes, pos: int) -> None:
+        """A section header block at `pos`: its byte order; the interfaces start afresh."""
+        if struct.unpack_from("<I", data, pos + 8)[0] == PCAPNG_BOM:
+            self.endian = "<"
+        elif struct.unpack_from(">I", data, pos + 8)[0] == PCAPNG_BOM:
+            self.endian = ">"
+        else:
+            raise CaptureError(f"{self.path}: bad pcapng byte-order magic at byte {self.bytes_read + pos}")
+        self.interfaces = []
+
+    def bad_block(self, pos: int, blen: int) -> bool:
+        """Whether a block length is corrupt (and if so, say where)."""
+        if blen < 12 or blen % 4 or blen > MAX_RECORD * 4:
+            self.problem = f"corrupt pcapng block at byte {self.bytes_read + pos} (length {blen})"
+            return True
+        return False
+
     def _pcapng(self) -> Iterator[list[Datagram]]:
-        e = "<"
-        blk = struct.Struct("<II").unpack_from
-        epb = struct.Struct("<IIIII").unpack_from
-        ifaces: list[tuple[int, int, float, int, Optional[Callable]]] = []
         parse = self.udp_of
         vi45, head_len, frag_mask = _FAST_VI, _FAST_HEAD, L.IPV4_FRAGMENT_MASK
         ipv4, udp = L.ETHERTYPE_IPV4, L.IPPROTO_UDP
-        fast_unpack = _FAST.unpack_from
+        fast = _FAST.unpack_from
         frame = 0
-        last_ts = 0.0
-        leftover = b""
-        offset = 0
-        read = self._file.read
-        while True:
-            chunk = read(self.chunk_size)
-            if not chunk:
-                break
-            data = leftover + chunk if leftover else chunk
+        chunks = self.raw_chunks(0)
+        data = next(chunks, None)
+        while data is not None:
             end = len(data)
             pos = 0
             out: list[Datagram] = []
             append = out.append
             while pos + 12 <= end:
-                btype, blen = blk(data, pos)
-                if btype == PCAPNG_SHB:
-                    bom = struct.unpack_from("<I", data, pos + 8)[0]
-                    if bom == PCAPNG_BOM:
-                        e = "<"
-                    elif struct.unpack_from(">I", data, pos + 8)[0] == PCAPNG_BOM:
-                        e = ">"
-                    else:
-                        raise CaptureError(f"{self.path}: bad pcapng byte-order magic at byte {offset + pos}")
-                    blk = struct.Struct(e + "II").unpack_from
-                    epb = struct.Struct(e + "IIIII").unpack_from
-                    btype, blen = blk(data, pos)
-                    ifaces = []
-                if blen < 12 or blen % 4 or blen > MAX_RECORD * 4:
-                    self.problem = f"corrupt pcapng block at byte {offset + pos} (length {blen})"
-                    self._finish(frame, offset + pos)
+                if struct.unpack_from("<I", data, pos)[0] == PCAPNG_SHB:
+                    self.pcapng_section(data, pos)
+                btype, blen = struct.unpack_from(self.endian + "II", data, pos)
+                if self.bad_block(pos, blen):
+                    chunks.close()
+                    self.frames = frame
                     yield out
                     return
                 if pos + blen > end:
                     break
                 p = pos
                 pos += blen
-                if btype == PCAPNG_EPB or btype == PCAPNG_PB:
-                    if btype == PCAPNG_EPB:
-                        iface, tsh, tsl, incl, orig = epb(data, p + 8)
-                    else:
-                        iface, _, tsh, tsl, incl, orig = struct.unpack_from(e + "HHIIII", data, p + 8)
-                    frame += 1
-                    if iface >= len(ifaces) or incl > blen - 28:
-                        self.non_udp += 1
+                found = self.pcapng_block(data, p, btype, blen)
+                if found is None:
+                    continue
+                frame += 1
+                ts, link, d, incl, orig = found
+                if link is None:
+                    self.non_udp += 1
+                    continue
+                self.last_ts = ts
+                if self.first_ts is None:
+                    self.first_ts = ts
+                if link == L.LINKTYPE_ETHERNET and incl >= head_len:
+                    et, vi, frag, proto, src, sport, dport, ulen = fast(data, d)
+                    if (et == ipv4 and vi == vi45 and proto == udp and not frag & frag_mask
+                            and 34 + ulen <= incl and ulen >= 8):
+                        append((ts, src, sport, dport, data[d + 42:d + 34 + ulen], frame))
                         continue
-                    link, div, scale, tsoff, fast = ifaces[iface]
-                    ticks = (tsh << 32) | tsl
-                    if div:
-                        q, r = divmod(ticks, div)
-                        ts = q + r * scale + tsoff
-                    else:
-                        ts = ticks * scale + tsoff
-                    last_ts = ts
-                    if self.first_ts is None:
-                        self.first_ts = ts
-                    d = p + 28
-                    if fast is not None and incl >= head_len:
-                        et, vi, frag, proto, src, sport, dport, ulen = fast(data, d)
-                        if (et == ipv4 and vi == vi45 and proto == udp and not frag & frag_mask
-                                and 34 + ulen <= incl and ulen >= 8):
-                            append((ts, src, sport, dport, data[d + 42:d + 34 + ulen], frame))
-                            continue
-                    got = parse(link, data, d, incl, orig, frame)
-                    if got is not None:
-                        append((ts, *got, frame))
-                elif btype == PCAPNG_SPB:
-                    frame += 1
-                    if not ifaces:
-                        self.non_udp += 1
-                        continue
-                    orig = struct.unpack_from(e + "I", data, p + 8)[0]
-                    incl = min(orig, blen - 16)
-                    got = parse(ifaces[0][0], data, p + 12, incl, orig, frame)
-                    if got is not None:
-                        append((last_ts, *got, frame))   # a simple packet block has no time
-                elif btype == PCAPNG_IDB:
-                    link = struct.unpack_from(e + "H", data, p + 8)[0]
-                    div, scale, tsoff = self._idb_options(data, p + 16, p + blen - 4, e)
-                    self.link_types.add(L.NAMES.get(link, str(link)))
-                    ifaces.append((link, div, scale, tsoff,
-                                   fast_unpack if link == L.LINKTYPE_ETHERNET else None))
-            self.last_ts = last_ts if frame else None
-            leftover = data[pos:]
-            offset += pos
-            self.bytes_read = offset
+                got = parse(link, data, d, incl, orig, frame)
+                if got is not None:
+                    append((ts, *got, frame))
+            self.frames = frame
             yield out
-        self._finish(frame, offset, leftover)
+            try:
+                data = chunks.send(pos)
+            except StopIteration:
+                data = None
 
     @staticmethod
     def _idb_options(data: bytes, pos: int, end: int, e: str) -> tuple[int, float, int]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import ipaddress
 import struct
-from typing import BinaryIO, Literal, Optional
+from typing import BinaryIO, Iterable, Literal, Optional
 
 LINKTYPE_ETHERNET = 1
 SNAPLEN = 65535
@@ -21,10 +21,15 @@ UDP_HEADER_LEN = 8
 Format = Literal["pcap", "pcapng"]
 FORMATS: tuple[Format, ...] = ("pcap", "pcapng")
 
-_ETH_IP = struct.Struct("!6s6sHBBHHHBBH4s4sHHHH")   # Ethernet + IPv4 + UDP headers in one go
+ETH_HEADER_LEN = 14
+# Ethernet + IPv4 + UDP headers in one go: the constant runs as bytes, the rest as numbers.
+_HEAD = struct.Struct("!16sHH4sH12sHH")
+_PAD_BELOW = ETH_MIN_FRAME - ETH_HEADER_LEN - IP_HEADER_LEN - UDP_HEADER_LEN    # payload sizes to pad
+_PADDING = [bytes(_PAD_BELOW - size) for size in range(_PAD_BELOW)]
 _PCAP_GLOBAL = struct.Struct("<IHHiIII")
 _PCAP_RECORD = struct.Struct("<IIII")
 _PCAP_MAGIC_US = 0xA1B2C3D4
+_US = 1_000_000
 _ONES = 0xFFFF
 
 
@@ -49,9 +54,12 @@ class UdpFlow:
     def __init__(self, src_ip: str, src_port: int, dst_ip: str, dst_port: int, ttl: int = 1,
                  src_mac: Optional[bytes] = None, dst_mac: Optional[bytes] = None) -> None:
         self._src, self._dst = ipaddress.IPv4Address(src_ip).packed, ipaddress.IPv4Address(dst_ip).packed
-        self._macs = (dst_mac or _mac_for(dst_ip), src_mac or _mac_for(src_ip))
-        self._ports = (src_port, dst_port)
-        self._ttl = ttl
+        # The constant runs of the headers, packed once: MACs, EtherType, version/IHL and TOS;
+        # flags/fragment, TTL and protocol; addresses and ports.
+        self._head = (dst_mac or _mac_for(dst_ip)) + (src_mac or _mac_for(src_ip)) + struct.pack(
+            "!HBB", ETHERTYPE_IPV4, 0x45, 0)
+        self._ttl_proto = struct.pack("!HBB", 0, ttl, IPPROTO_UDP)
+        self._addresses = self._src + self._dst + struct.pack("!HH", src_port, dst_port)
         self._ip_id = 0
         # Constant parts of both checksums, folded once: the IP header without length and id,
         # and the UDP pseudo-header plus ports.
@@ -63,21 +71,22 @@ class UdpFlow:
 
     def frame(self, payload: bytes) -> bytes:
         """One Ethernet frame carrying `payload`, padded to the Ethernet minimum."""
-        udp_len = UDP_HEADER_LEN + len(payload)
+        size = len(payload)
+        udp_len = UDP_HEADER_LEN + size
         total = IP_HEADER_LEN + udp_len
         ip_id = self._ip_id
         self._ip_id = (ip_id + 1) & 0xFFFF
         s = (self._ip_const + total + ip_id) % _ONES
         ip_sum = _ONES - s if s else 0
-        padded = payload + b"\0" if len(payload) & 1 else payload
-        s = (self._udp_const + 2 * udp_len + int.from_bytes(padded, "big")) % _ONES
+        words = int.from_bytes(payload, "big")
+        if size & 1:
+            words <<= 8                        # an odd payload is summed with a zero byte after it
+        s = (self._udp_const + 2 * udp_len + words) % _ONES
         udp_sum = _ONES - s if s else _ONES    # a computed 0 goes on the wire as 0xFFFF
-        head = _ETH_IP.pack(self._macs[0], self._macs[1], ETHERTYPE_IPV4, 0x45, 0, total, ip_id, 0,
-                            self._ttl, IPPROTO_UDP, ip_sum, self._src, self._dst, self._ports[0],
-                            self._ports[1], udp_len, udp_sum)
-        frame = head + payload
-        if len(frame) < ETH_MIN_FRAME:
-            frame += bytes(ETH_MIN_FRAME - len(frame))
+        frame = _HEAD.pack(self._head, total, ip_id, self._ttl_proto, ip_sum, self._addresses, udp_len,
+                           udp_sum) + payload
+        if size < _PAD_BELOW:
+            frame += _PADDING[size]
         return frame
 
 
@@ -90,9 +99,15 @@ class _Writer:
         self.count = 0
 
     def write(self, t_us: int, frame: bytes) -> None:
-        self._parts.append(self._record(t_us, frame))
-        self.count += 1
-        if len(self._parts) >= self._FLUSH_EVERY:
+        self.write_many(((t_us, frame),))
+
+    def write_many(self, frames: Iterable[tuple[int, bytes]]) -> None:
+        """Write (timestamp µs, frame) pairs, in order."""
+        parts = self._parts
+        before = len(parts)
+        parts.extend(self._records(frames))
+        self.count += len(parts) - before
+        if len(parts) >= self._FLUSH_EVERY:
             self.flush()
 
     def flush(self) -> None:
@@ -103,7 +118,7 @@ class _Writer:
         self.flush()
         self._stream.flush()
 
-    def _record(self, t_us: int, frame: bytes) -> bytes:
+    def _records(self, frames: Iterable[tuple[int, bytes]]) -> list[bytes]:
         raise NotImplementedError
 
     def __enter__(self) -> "_Writer":
@@ -120,9 +135,9 @@ class PcapWriter(_Writer):
         super().__init__(stream)
         stream.write(_PCAP_GLOBAL.pack(_PCAP_MAGIC_US, 2, 4, 0, 0, snaplen, linktype))
 
-    def _record(self, t_us: int, frame: bytes) -> bytes:
-        sec, usec = divmod(t_us, 1_000_000)
-        return _PCAP_RECORD.pack(sec, usec, len(frame), len(frame)) + frame
+    def _records(self, frames: Iterable[tuple[int, bytes]]) -> list[bytes]:
+        pack = _PCAP_RECORD.pack
+        return [pack(t // _US, t % _US, len(frame), len(frame)) + frame for t, frame in frames]
 
 
 def _option(code: int, value: bytes) -> bytes:
@@ -139,6 +154,11 @@ class PcapngWriter(_Writer):
 
     _SHB, _IDB, _EPB = 0x0A0D0D0A, 0x00000001, 0x00000006
     _END_OF_OPTIONS = b"\0\0\0\0"
+    # An Enhanced Packet Block up to its data: type, length, interface 0, timestamp, lengths.
+    _EPB_HEAD = struct.Struct("<IIIIIII")
+    _EPB_TAIL = struct.Struct("<I")
+    _EPB_OVERHEAD = _EPB_HEAD.size + _EPB_TAIL.size
+    _PADS = tuple(bytes(-n % 4) for n in range(4))
 
     def __init__(self, stream: BinaryIO, linktype: int = LINKTYPE_ETHERNET, snaplen: int = SNAPLEN,
                  application: str = "vm110") -> None:
@@ -147,9 +167,16 @@ class PcapngWriter(_Writer):
         idb = struct.pack("<HHI", linktype, 0, snaplen)
         stream.write(_block(self._SHB, shb) + _block(self._IDB, idb))
 
-    def _record(self, t_us: int, frame: bytes) -> bytes:
-        body = struct.pack("<IIIII", 0, t_us >> 32, t_us & 0xFFFFFFFF, len(frame), len(frame))
-        return _block(self._EPB, body + frame + bytes(-len(frame) % 4))
+    def _records(self, frames: Iterable[tuple[int, bytes]]) -> list[bytes]:
+        head, tail, pads, epb, overhead = (self._EPB_HEAD.pack, self._EPB_TAIL.pack, self._PADS, self._EPB,
+                                           self._EPB_OVERHEAD)
+        records = []
+        for t, frame in frames:
+            size = len(frame)
+            pad = pads[size & 3]
+            length = overhead + size + len(pad)
+            records.append(head(epb, length, 0, t >> 32, t & 0xFFFFFFFF, size, size) + frame + pad + tail(length))
+        return records
 
 
 def open_writer(stream: BinaryIO, fmt: Format = "pcap") -> _Writer:

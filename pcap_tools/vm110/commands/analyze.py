@@ -43,7 +43,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"largest gap inside a VRPO burst; default {C.VRPO_BURST_GAP_MS}")
     parser.add_argument("--vrpo-start", type=int, choices=(0, 1), default=0, help="first VRPO packet number")
     parser.add_argument("--vrpo-data-size", type=int, default=0, metavar="BYTES",
-                        help="configured periodic data size; 0 infers it")
+                        help="configured periodic data size; 0: a burst ends with a packet under 488 data bytes")
+    limits = parser.add_argument_group("thresholds (interpretation.md, 'Timing')")
+    limits.add_argument("--vrpi-watchdog", type=float, default=C.VRPI_WATCHDOG_MS, metavar="MS",
+                        help=f"controller watchdog on VRPI; default {C.VRPI_WATCHDOG_MS}")
+    limits.add_argument("--vrpo-watchdog", type=float, default=C.VRPO_WATCHDOG_MS, metavar="MS",
+                        help=f"base-unit watchdog on VRPO; default {C.VRPO_WATCHDOG_MS}")
+    limits.add_argument("--vrpo-range", type=float, nargs=2, default=(C.VRPO_PERIOD_MIN_MS, C.VRPO_PERIOD_MAX_MS),
+                        metavar=("MIN", "MAX"), help=f"recommended VRPO interval; default {C.VRPO_PERIOD_MIN_MS} "
+                                                     f"{C.VRPO_PERIOD_MAX_MS}")
+    limits.add_argument("--vrci-fail", type=float, default=C.VRCI_FAIL_MS, metavar="MS",
+                        help=f"VRCI not acknowledged within this has failed; default {C.VRCI_FAIL_MS}")
+    limits.add_argument("--resend", type=float, default=C.COMMAND_RESEND_MS, metavar="MS",
+                        help=f"nominal command resend interval; default {C.COMMAND_RESEND_MS}")
     parser.add_argument("--quiet", action="store_true", help="no summary on standard output")
 
 
@@ -97,7 +109,9 @@ def run(args: argparse.Namespace) -> int:
         from ..analysis.tshark_engine import check_available
         check_available()
     options = Options(serial_scope=args.serial_scope, vrpo_period_ms=args.vrpo_period,
-                      burst_gap_ms=args.burst_gap, vrpo_start=args.vrpo_start,
+                      vrpi_watchdog_ms=args.vrpi_watchdog, vrpo_watchdog_ms=args.vrpo_watchdog,
+                      vrpo_min_ms=args.vrpo_range[0], vrpo_max_ms=args.vrpo_range[1], resend_ms=args.resend,
+                      vrci_fail_ms=args.vrci_fail, burst_gap_ms=args.burst_gap, vrpo_start=args.vrpo_start,
                       vrpo_data_size=args.vrpo_data_size)
     jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1)
             for p in args.captures]

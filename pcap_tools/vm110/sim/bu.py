@@ -86,26 +86,27 @@ class BaseUnit(Node):
 
     def _due(self) -> Optional[int]:
         due = self._next_vrpi
-        t = self._vrci_due()
-        if t is not None and t < due:
-            due = t
+        pending = self.pending
+        if pending is not None:
+            t = min(pending["next"], pending["first"] + self._fail_us)
+            due = t if t < due else due
+        else:
+            t = self._next_periodic_command
+            if t is not None and t < due:
+                due = t
+            if self._commands and self._commands[0][0] < due:
+                due = self._commands[0][0]
         if self._acks and self._acks[0][0] < due:
             due = self._acks[0][0]
         return due
 
-    def _vrci_due(self) -> Optional[int]:
-        """When `_tick_vrci` has something to do: a resend, a failure, or the next command to start."""
-        pending = self.pending
-        if pending is not None:
-            return min(pending["next"], pending["first"] + self._fail_us)
-        due = self._next_periodic_command
-        if self._commands and (due is None or self._commands[0][0] < due):
-            due = self._commands[0][0]
-        return due
-
     def _tick(self, now: int) -> None:
-        due = self._vrci_due()
-        if due is not None and due <= now:
+        pending = self.pending
+        if pending is not None:                  # _tick_vrci only when it has something to do
+            if now >= pending["next"] or now - pending["first"] >= self._fail_us:
+                self._tick_vrci(now)
+        elif ((self._commands and self._commands[0][0] <= now)
+              or (self._next_periodic_command is not None and self._next_periodic_command <= now)):
             self._tick_vrci(now)
         while self._acks and self._acks[0][0] <= now:
             self.send(C.PacketType.VRAI, encode.ack_payload(self._acks[0][1]), now, key=self._acks[0][1])

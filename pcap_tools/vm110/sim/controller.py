@@ -30,6 +30,7 @@ _VRPO_NUMBER = struct.Struct("<H")
 _BU_ARMED = int(C.BuState.ARMED)
 _RU_ARMED = frozenset((int(C.RuState.ARMED), int(C.RuState.ENABLED)))
 _VRPI_STATE = struct.Struct("<B5xHB")  # bu_state, (vlaps..c_link), armed_ru, ru_state
+_VRPO_HEADER_SIZE, _VRPO_MAX_DATA = C.VRPO_HEADER_SIZE, C.VRPO_MAX_DATA
 
 
 @dataclass
@@ -90,32 +91,35 @@ class Controller(Node):
         if not self.vrpi_alarm and self.last_vrpi is not None:
             t = self.last_vrpi + self._vrpi_timeout_us + 1
             due = t if t < due else due
-        t = self._vrco_due()
-        return t if t is not None and t < due else due
-
-    def _vrco_due(self) -> Optional[int]:
-        """When `_tick_vrco` has something to do: a resend, giving up, or the next VRCO to start."""
         pending = self.pending
         if pending is not None:
-            return min(pending["next"], pending["first"] + self._vrco_timeout_us)
-        due = self._next_periodic_command
-        if self._commands and (due is None or self._commands[0][0] < due):
-            due = self._commands[0][0]
+            t = min(pending["next"], pending["first"] + self._vrco_timeout_us)
+            due = t if t < due else due
+        else:
+            t = self._next_periodic_command
+            if t is not None and t < due:
+                due = t
+            if self._commands and self._commands[0][0] < due:
+                due = self._commands[0][0]
         return due
 
     def _tick(self, now: int) -> None:
         if not self.vrpi_alarm and self.last_vrpi is not None and now - self.last_vrpi > self._vrpi_timeout_us:
             self.vrpi_alarm = True
             self.event(self.last_vrpi + self._vrpi_timeout_us, "vrpi_timeout", last_vrpi=self.last_vrpi / 1e6)
-        due = self._vrco_due()
-        if due is not None and due <= now:
+        pending = self.pending
+        if pending is not None:                  # _tick_vrco only when it has something to do
+            if now >= pending["next"] or now - pending["first"] >= self._vrco_timeout_us:
+                self._tick_vrco(now)
+        elif ((self._commands and self._commands[0][0] <= now)
+              or (self._next_periodic_command is not None and self._next_periodic_command <= now)):
             self._tick_vrco(now)
         if now >= self._next_vrpo:
             first = self.config.first_packet_number
             for index, chunk in enumerate(self.vrpo_payloads(now)):
-                self.send(_VRPO, chunk, now, key=first + index, data_len=len(chunk) - C.VRPO_HEADER_SIZE)
+                self.send(_VRPO, chunk, now, key=first + index, data_len=len(chunk) - _VRPO_HEADER_SIZE)
             self.cycle += 1
-            self._next_vrpo += self._vrpo_period(now)
+            self._next_vrpo += self._vrpo_period(now) if self._glink else self._period
             if self._next_vrpo <= now:     # after a stall: carry on from now, no catch-up burst
                 self._next_vrpo = now + self._vrpo_period(now)
 
@@ -135,7 +139,7 @@ class Controller(Node):
     def vrpo_payloads(self, now: int) -> list[bytes]:
         """The VRPO payloads of one cycle: full 488-byte chunks, the last one shorter."""
         data = self.periodic_data(now)
-        if len(data) < C.VRPO_MAX_DATA:
+        if len(data) < _VRPO_MAX_DATA:
             return [_VRPO_NUMBER.pack(self.config.first_packet_number & 0xFFFF) + data]
         chunks = [data[i:i + C.VRPO_MAX_DATA] for i in range(0, len(data), C.VRPO_MAX_DATA)] or [b""]
         first = self.config.first_packet_number

@@ -78,6 +78,8 @@ class Impairer:
         self._rng = random.Random(f"{name}:{imp.seed}")
         self._variant, self._order = variant, order
         self._delay = ms(imp.delay_ms)
+        self._loss, self._duplicate = imp.loss, imp.duplicate
+        self._rare = bool(imp.corrupt or imp.jitter_ms or imp.reorder)   # checked in that order, after loss
         self.set_origin(t0)
 
     def set_origin(self, t0: int) -> None:
@@ -85,30 +87,37 @@ class Impairer:
         self._outages = [(t0 + seconds(a), t0 + seconds(b)) for a, b in imp.outages]
         self._drops = [(t0 + seconds(a), t0 + seconds(b), frozenset(types)) for a, b, types in imp.drops]
         self._mangles = sorted((t0 + seconds(at), reason, ptype) for at, reason, ptype in imp.mangles)
+        self._scheduled = bool(self._outages or self._drops or self._mangles)
 
     def apply(self, data: bytes, now: int, ptype: str) -> list[tuple[int, bytes, tuple[str, ...]]]:
         """(arrival time, bytes, illegal reasons) for every copy that arrives; [] when lost."""
-        imp, rng = self.imp, self._rng
-        if self._outages and any(a <= now < b for a, b in self._outages):
-            return []
-        if self._drops and any(a <= now < b and ptype in types for a, b, types in self._drops):
-            return []
-        data, problems = self._scheduled_mangle(data, now, ptype) if self._mangles else (data, ())
-        if imp.only and ptype not in imp.only:
+        problems: tuple[str, ...] = ()
+        if self._scheduled:
+            if self._outages and any(a <= now < b for a, b in self._outages):
+                return []
+            if self._drops and any(a <= now < b and ptype in types for a, b, types in self._drops):
+                return []
+            if self._mangles:
+                data, problems = self._scheduled_mangle(data, now, ptype)
+        only = self.imp.only
+        if only and ptype not in only:
             return [(now, data, problems)]
-        if imp.loss and rng.random() * 100 < imp.loss:
+        rng = self._rng
+        loss, duplicate = self._loss, self._duplicate
+        if loss and rng.random() * 100 < loss:
             return []
-        if not problems and imp.corrupt and rng.random() * 100 < imp.corrupt:
-            data, problems = mangle(data, C.Problem.BAD_CRC.value, self._variant, self._order)
         delay = self._delay
-        if imp.jitter_ms:
-            delay += ms(rng.uniform(0, imp.jitter_ms))
-        if imp.reorder and rng.random() * 100 < imp.reorder:
-            delay += ms(rng.uniform(0.5, 1.5) * imp.reorder_ms)
-        out = [(now + delay, data, problems)]
-        if imp.duplicate and rng.random() * 100 < imp.duplicate:
-            out.append((now + delay + ms(rng.uniform(0.05, 2.0)), data, problems))
-        return out
+        if self._rare:
+            imp = self.imp
+            if not problems and imp.corrupt and rng.random() * 100 < imp.corrupt:
+                data, problems = mangle(data, C.Problem.BAD_CRC.value, self._variant, self._order)
+            if imp.jitter_ms:
+                delay += ms(rng.uniform(0, imp.jitter_ms))
+            if imp.reorder and rng.random() * 100 < imp.reorder:
+                delay += ms(rng.uniform(0.5, 1.5) * imp.reorder_ms)
+        if duplicate and rng.random() * 100 < duplicate:
+            return [(now + delay, data, problems), (now + delay + ms(rng.uniform(0.05, 2.0)), data, problems)]
+        return [(now + delay, data, problems)]
 
     def _scheduled_mangle(self, data: bytes, now: int, ptype: str) -> tuple[bytes, tuple[str, ...]]:
         for i, (at, reason, only) in enumerate(self._mangles):

@@ -8,7 +8,7 @@ attached. Subclasses override the `on_*` hooks.
 from __future__ import annotations
 
 import struct
-import zlib
+from zlib import crc32
 from collections import Counter
 from typing import Any, Callable, NamedTuple, Optional
 
@@ -24,6 +24,7 @@ _NAMES = {t: t.value for t in C.PacketType}
 _RAW_NAMES = {raw: t.value for raw, t in _TYPES.items()}
 _HANDLERS = {t: f"on_{t.value.lower()}" for t in C.PacketType}
 _new = tuple.__new__     # builds a NamedTuple without its Python-level __new__
+_PREFIX_LEN, _CRC_LEN, _REVISION = C.PREFIX_LEN, C.CRC_LEN, C.SUPPORTED_REVISION    # hot paths
 
 
 class Rx(NamedTuple):
@@ -50,16 +51,10 @@ class Meta(NamedTuple):
 Send = Callable[[bytes, int, Meta], None]
 
 
-def _mpeg2_little(body: bytes) -> bytes:
-    """The default CRC trailer straight as bytes: MPEG-2 is the reflected CRC of bit-reversed
-    bytes, reflected back; stored little-endian that reflection is a byte-wise one of the
-    big-endian bytes."""
-    return (zlib.crc32(body.translate(_REVERSE)) ^ MASK).to_bytes(C.CRC_LEN, "big").translate(_REVERSE)
-
-
-def _trailer_function(variant: str, order: str) -> Callable[[bytes], bytes]:
+def _trailer_function(variant: str, order: str) -> Optional[Callable[[bytes], bytes]]:
+    """The CRC trailer function; None for the default, which `Node.send` computes inline."""
     if (variant, order) == ("mpeg2", "little"):
-        return _mpeg2_little
+        return None
     fn = crc_function(variant)
     return lambda body: fn(body).to_bytes(C.CRC_LEN, order)
 
@@ -123,13 +118,28 @@ class Node:
         self.illegal_packets = 0
         self._stall_index = 0
         self._stalls_ahead = bool(self.stalls)
-        self._vouched: Optional[tuple[str, ...]] = None
+        if not self._stalls_ahead:
+            self._bind_direct()
+        # Set just before `receive` by a caller that built the packet and knows its illegal reasons
+        # (the virtual network; tests hold `impair.mangle` to `inspect`): `receive` skips `inspect`.
+        self.vouched: Optional[tuple[str, ...]] = None
         self._handlers = _handler_table(type(self))
 
     # --- wiring -------------------------------------------------------------------------------
     def attach(self, send: Send) -> None:
         """The runner's send function: takes (bytes, now µs, Meta)."""
         self._send = send
+        if type(self).transmit is Node.transmit:
+            self.transmit = send            # type: ignore[method-assign]  # no hook in between: call it directly
+
+    def _bind_direct(self) -> None:
+        """Without stalls ahead, `tick` and `next_due` are `_tick` and `_due` themselves (unless a
+        subclass overrides them): the runners call them for every packet."""
+        cls = type(self)
+        if cls.tick is Node.tick:
+            self.tick = self._tick              # type: ignore[method-assign]
+        if cls.next_due is Node.next_due:
+            self.next_due = self._due           # type: ignore[method-assign]
 
     def start(self, now: int) -> None:
         """Called once by the runner before the first tick."""
@@ -147,20 +157,15 @@ class Node:
             return
         self._tick(now)
 
-    def vouch(self, problems: tuple[str, ...]) -> None:
-        """The next `receive` may skip `inspect`: the caller built that packet and knows its illegal
-        reasons (the virtual network; tests hold `impair.mangle` to `inspect`)."""
-        self._vouched = problems
-
     def receive(self, data: bytes, now: int, src: Any = None) -> None:
         """A datagram arrived. Illegal packets are counted and otherwise ignored (TS-0006 5.1.5)."""
         if self._stalls_ahead and self._stall_check(now):
             return
-        problems = self._vouched
+        problems = self.vouched
         if problems is None:
             problems = inspect(data, self._crc_fn, self.crc_order)[0]
-        else:                     # the virtual network made this packet: it knows the verdict
-            self._vouched = None
+        else:
+            self.vouched = None
         if problems:
             self.illegal_packets += 1
             self.illegal.update(problems)
@@ -169,7 +174,7 @@ class Node:
         raw_id, _, origin, serial, size, _ = _HEADER.unpack_from(data)
         ptype = _TYPES[raw_id]
         self.received[_RAW_NAMES[raw_id]] += 1
-        rx = _new(Rx, (ptype, origin, serial, data[C.PREFIX_LEN:C.PREFIX_LEN + size], data, src))
+        rx = _new(Rx, (ptype, origin, serial, data[_PREFIX_LEN:_PREFIX_LEN + size], data, src))
         handlers = self._handlers
         if handlers is None:
             self.on_packet(rx, now)
@@ -183,8 +188,15 @@ class Node:
         """Frame `payload` with the next serial of this node's single counter and send it."""
         serial = self.serial
         self.serial = (serial + 1) & 0xFFFF
-        body = _HEADER.pack(_RAW_IDS[ptype], C.SUPPORTED_REVISION, self.origin, serial, len(payload), 0) + payload
-        data = body + self._trailer(body)
+        body = _HEADER.pack(_RAW_IDS[ptype], _REVISION, self.origin, serial, len(payload), 0) + payload
+        trailer = self._trailer
+        if trailer is None:
+            # The default, MPEG-2 stored little-endian, straight as bytes: MPEG-2 is the reflected
+            # CRC of bit-reversed bytes, reflected back, which is a byte-wise reflection of the
+            # big-endian bytes once stored little-endian.
+            data = body + (crc32(body.translate(_REVERSE)) ^ MASK).to_bytes(_CRC_LEN, "big").translate(_REVERSE)
+        else:
+            data = body + trailer(body)
         self.sent[_NAMES[ptype]] += 1
         self.transmit(data, now, _new(Meta, (self.name, ptype, serial, key, data_len)))
         return data
@@ -242,6 +254,8 @@ class Node:
             self.event(end, "stall_end")
             self._stall_index += 1
             self._stalls_ahead = self._stall_index < len(self.stalls)
+            if not self._stalls_ahead:
+                self._bind_direct()
             self.on_resume(end)
         return False
 

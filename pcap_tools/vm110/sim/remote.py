@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import bisect
 import json
+import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Optional
 
@@ -34,8 +35,11 @@ _JOYSTICKS = tuple(VRPI_INDEX[f"joystick{i}"] for i in range(1, C.JOYSTICKS + 1)
 _SWITCHES = tuple(VRPI_INDEX[f"switch{i}"] for i in range(1, C.SWITCHES + 1))
 _ENCODER, _ENCODER_SWITCH = VRPI_INDEX["encoder"], VRPI_INDEX["encoder_switch"]
 _SWEEPS = tuple((index, period, period // 4) for index, period in zip(_JOYSTICKS, _JOYSTICK_PERIODS_US))
+_SWEEP_CYCLE_US = math.lcm(*_JOYSTICK_PERIODS_US)         # every sweep's period divides it
+_STEP_US = 10_000           # switches and encoder move in steps of 10 ms
 _PUSHBUTTON, _TOGGLE, _POTENTIOMETER = _SWITCHES[:3]
 _SWITCH_STEPS = C.SWITCH_MAX + 1
+_ENABLED = C.RuState.ENABLED
 
 
 def armed_fields(ru: int = DEFAULT_RU, battery: int = 90, rssi: int = 80) -> dict[str, int]:
@@ -127,7 +131,7 @@ class Remote:
         if values[_ARMED_RU]:
             if battery is not None:
                 values[_BATTERY] = max(0, battery - (t - battery_at) // _BATTERY_DRAIN_US)
-            if motion and values[_RU_STATE] == C.RuState.ENABLED:
+            if motion and values[_RU_STATE] == _ENABLED:
                 _move(t, values)
         return values
 
@@ -140,24 +144,21 @@ def _values(fields: Mapping[str, Any]) -> list[Any]:
     return [fields.get(name, bytes(C.VRPI_SPARE_LEN) if name == "vrpi_spare" else 0) for name in VRPI_NAMES]
 
 
-def _triangle(t: int, period: int, quarter: int, limit: int = C.JOYSTICK_LIMIT) -> int:
-    """A joystick sweep: 0 up to the limit, down to minus the limit and back, over `period` µs."""
-    phase = t % period
-    if phase < quarter:
-        return limit * phase // quarter
-    if phase < 3 * quarter:
-        return limit - limit * (phase - quarter) // quarter
-    return limit * (phase - 3 * quarter) // quarter - limit
-
-
 def _move(t: int, values: list[Any]) -> None:
-    (j1, p1, q1), (j2, p2, q2), (j3, p3, q3), (j4, p4, q4) = _SWEEPS    # unrolled: runs for every VRPI
-    values[j1] = _triangle(t, p1, q1)
-    values[j2] = _triangle(t, p2, q2)
-    values[j3] = _triangle(t, p3, q3)
-    values[j4] = _triangle(t, p4, q4)
-    values[_PUSHBUTTON] = (t // 3_000_000) % 2
-    values[_TOGGLE] = (t // 2_000_000) % 3 - 1                   # 3 positions
-    values[_POTENTIOMETER] = (t // 10_000) % _SWITCH_STEPS       # a sweep
-    values[_ENCODER] = (t // 250_000) & 0xFF
-    values[_ENCODER_SWITCH] = int((t // 5_000_000) % 4 == 0)
+    # After 18 minutes t no longer fits one 30-bit digit: reduce it once, then work on small numbers.
+    cycle = t % _SWEEP_CYCLE_US
+    limit = C.JOYSTICK_LIMIT
+    for index, period, quarter in _SWEEPS:      # 0 up to the limit, down to minus the limit, back
+        phase = cycle % period
+        if phase < quarter:
+            values[index] = limit * phase // quarter
+        elif phase < 3 * quarter:
+            values[index] = limit - limit * (phase - quarter) // quarter
+        else:
+            values[index] = limit * (phase - 3 * quarter) // quarter - limit
+    steps = t // _STEP_US
+    values[_PUSHBUTTON] = (steps // 300) % 2                     # every 3 s
+    values[_TOGGLE] = (steps // 200) % 3 - 1                     # 3 positions, every 2 s
+    values[_POTENTIOMETER] = steps % _SWITCH_STEPS               # a sweep
+    values[_ENCODER] = (steps // 25) & 0xFF                      # every 250 ms
+    values[_ENCODER_SWITCH] = int((steps // 500) % 4 == 0)       # 5 s of every 20 s

@@ -8,8 +8,8 @@ captures/README.md.
 """
 from __future__ import annotations
 
-from collections import Counter, defaultdict
-from typing import Any, Iterable, Optional, Sequence
+from collections import Counter
+from typing import Any, Optional, Sequence
 
 from .. import constants as C
 from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT
@@ -18,10 +18,12 @@ from .virtual import Arrival, Station
 
 SCHEMA_VERSION = 1
 _WATCHDOG_MS = {C.PacketType.VRPI: C.VRPI_WATCHDOG_MS, C.PacketType.VRPO: C.VRPO_WATCHDOG_MS}
+_WATCHDOG_US = {ptype: limit * 1000 for ptype, limit in _WATCHDOG_MS.items()}
 _COMMAND_TYPES = (C.PacketType.VRCI, C.PacketType.VRCO)
 _VRPO = C.PacketType.VRPO
 _BAD_CRC = C.Problem.BAD_CRC.value
 _NAMES = {t: t.value for t in C.PacketType}
+_MODULUS, _HALF = C.SERIAL_MODULUS, C.SERIAL_HALF
 
 
 def _time(t_us: int) -> float:
@@ -39,47 +41,57 @@ class _SerialTrack:
     so "already seen" means seen in this cycle of the counter.
     """
 
-    def __init__(self) -> None:
+    __slots__ = ("epoch_us", "high", "seen", "lost", "wraps", "duplicates", "out_of_order", "gaps")
+
+    def __init__(self, epoch_us: int) -> None:
+        self.epoch_us = epoch_us                 # added to times (µs) when reported
         self.high: Optional[int] = None          # unwrapped highest serial
         self.seen: set[int] = set()
         self.lost: set[int] = set()
-        self.received = self.wraps = 0
+        self.wraps = 0
         self.duplicates: list[int] = []
         self.out_of_order: list[int] = []
         self.gaps: list[dict[str, Any]] = []
 
     def add(self, serial: int, t: int) -> bool:
         """Classify one received serial; False when it is a duplicate."""
-        self.received += 1
-        if self.high is None:
+        high = self.high
+        if high is None:
             self.high = serial
             self.seen.add(serial)
             return True
-        d = (serial - self.high) % C.SERIAL_MODULUS
-        if 0 < d < C.SERIAL_HALF:
-            unwrapped = self.high + d
-            if d > 1:
-                self.lost.update(range(self.high + 1, unwrapped))
-                self.gaps.append({"after": self.high % C.SERIAL_MODULUS, "count": d - 1, "time": _time(t)})
-            self.wraps += unwrapped // C.SERIAL_MODULUS - self.high // C.SERIAL_MODULUS
-            self.high = unwrapped
+        d = (serial - high) % _MODULUS
+        if d == 1:                                 # the next one: most packets
+            unwrapped = self.high = high + 1
+            if not serial:
+                self._wrapped(1)
+        elif 0 < d < _HALF:
+            unwrapped = self.high = high + d
+            self.lost.update(range(high + 1, unwrapped))
+            self.gaps.append({"after": high % _MODULUS, "count": d - 1, "time": _time(self.epoch_us + t)})
+            if unwrapped // _MODULUS != high // _MODULUS:
+                self._wrapped(unwrapped // _MODULUS - high // _MODULUS)
         else:
-            unwrapped = self.high - (C.SERIAL_MODULUS - d) % C.SERIAL_MODULUS
+            unwrapped = high - (_MODULUS - d) % _MODULUS
             if d == 0 or unwrapped in self.seen:
                 self.duplicates.append(serial)
                 return False
             self.out_of_order.append(serial)
             self.lost.discard(unwrapped)
         self.seen.add(unwrapped)
-        if len(self.seen) > C.SERIAL_MODULUS:      # only the last half cycle can be "already seen"
-            floor = self.high - C.SERIAL_HALF
-            self.seen = {u for u in self.seen if u >= floor}
         return True
 
-    def report(self) -> dict[str, Any]:
-        return {"scope": "sender", "received": self.received, "lost": len(self.lost),
+    def _wrapped(self, count: int) -> None:
+        """The counter wrapped: only the last half cycle can still be "already seen" (the others
+        are never looked up again), so the older serials are forgotten."""
+        self.wraps += count
+        floor = self.high - _HALF
+        self.seen = {u for u in self.seen if u >= floor}
+
+    def report(self, received: int) -> dict[str, Any]:
+        return {"scope": "sender", "received": received, "lost": len(self.lost),
                 "duplicates": len(self.duplicates), "out_of_order": len(self.out_of_order), "wraps": self.wraps,
-                "lost_serials": [s % C.SERIAL_MODULUS for s in sorted(self.lost)],
+                "lost_serials": [s % _MODULUS for s in sorted(self.lost)],
                 "duplicate_serials": self.duplicates, "out_of_order_serials": self.out_of_order,
                 "gaps": self.gaps}
 
@@ -133,92 +145,144 @@ class _Commands:
                 "list": [{k: v for k, v in c.items() if not k.startswith("_")} for c in self.list]}
 
 
-def _bursts(packets: Sequence[tuple[int, int, int]]) -> tuple[int, int]:
-    """(complete, incomplete) VRPO bursts of one sender from (time, packet number, data length).
-
-    A burst: packets less than 20 ms apart. Complete: numbers 0..n-1 each once, every packet but
-    the last 488 data bytes, the last fewer (interpretation.md, 'VRPO split').
-    """
-    complete = incomplete = 0
-    gap = C.VRPO_BURST_GAP_MS * 1000
-    burst: list[tuple[int, int]] = []
-    last_t: Optional[int] = None
-    for t, number, length in list(packets) + [(-1, 0, 0)]:
-        if burst and last_t is not None and (t < 0 or t - last_t >= gap):
-            ordered = sorted(burst)
-            numbers = [n for n, _ in ordered]
-            ok = (numbers == list(range(len(numbers)))
-                  and all(n == C.VRPO_MAX_DATA for _, n in ordered[:-1]) and ordered[-1][1] < C.VRPO_MAX_DATA)
-            complete += ok
-            incomplete += not ok
-            burst = []
-        burst.append((number, length))
-        last_t = t
-    return complete, incomplete
+def _complete_burst(burst: list[tuple[int, int]]) -> bool:
+    """A VRPO burst of (packet number, data length): complete when the numbers are 0..n-1 each
+    once, every packet but the last carries 488 data bytes and the last fewer (interpretation.md,
+    'VRPO split'). A burst: packets less than 20 ms apart."""
+    ordered = sorted(burst)
+    numbers = [n for n, _ in ordered]
+    return (numbers == list(range(len(numbers)))
+            and all(n == C.VRPO_MAX_DATA for _, n in ordered[:-1]) and ordered[-1][1] < C.VRPO_MAX_DATA)
 
 
-def ground_truth(frames: Iterable[tuple[int, Optional[Arrival]]], stations: Sequence[Station],
-                 epoch_us: int) -> dict[str, Any]:
-    """The truth dict for a capture: `frames` are (time µs, arrival) in file order, arrival None
-    for a frame that is not EG-Link."""
-    ids = [s.sender_id for s in stations]
-    illegal: Counter[str] = Counter()
-    illegal_total = crc_bad = eglink = frame = 0
-    serials: dict[str, _SerialTrack] = defaultdict(_SerialTrack)
-    by_type: dict[str, Counter[str]] = defaultdict(Counter)
-    periodic: dict[tuple[str, str], list[int]] = defaultdict(list)
-    commands = {kind: _Commands(kind) for kind in _COMMAND_TYPES}
-    vrpo: dict[str, list[tuple[int, int, int]]] = defaultdict(list)
-    first_t = last_t = 0
-    for t, a in frames:
-        frame += 1
-        if frame == 1:
-            first_t = t
-        last_t = t
-        if a is None:
-            continue
-        eglink += 1
-        if a.problems:
-            illegal_total += 1
-            illegal.update(a.problems)
-            crc_bad += _BAD_CRC in a.problems
-            continue
-        sender, meta = ids[a.station], a.meta
-        ptype = meta.ptype
-        name = _NAMES[ptype]
-        by_type[sender][name] += 1
-        if ptype in _WATCHDOG_MS:
-            periodic[(name, sender)].append(t)
-        if not serials[sender].add(meta.serial, epoch_us + t):
-            continue      # a repeated serial is a duplicate, not a transmission or an ack
-        if ptype in _COMMAND_TYPES:
-            commands[ptype].command(sender, meta.key, frame, t)
-        elif ptype in C.ACK_OF:
-            commands[C.ACK_OF[ptype]].ack(meta.key, frame, t)
-        elif ptype is _VRPO:
-            vrpo[sender].append((t, meta.key, meta.data_len))
-    bursts = [_bursts(packets) for packets in vrpo.values()]
-    return {
-        "schema_version": SCHEMA_VERSION,
-        "capture": {"packets": frame, "eglink_packets": eglink, "duration_s": _time(last_t - first_t)},
-        "crc": {"variant": DEFAULT_VARIANT, "byte_order": DEFAULT_BYTE_ORDER,
-                "valid": eglink - crc_bad, "invalid": crc_bad},
-        "illegal": {"total": illegal_total, "by_reason": dict(sorted(illegal.items()))},
-        "senders": [_sender(sid, stations[ids.index(sid)], by_type[sid], serials[sid]) for sid in sorted(serials)],
-        "periodic": [_periodic(ptype, sender, times, epoch_us) for (ptype, sender), times in sorted(periodic.items())],
-        "commands": {kind.value: c.report() for kind, c in commands.items()},
-        "vrpo_bursts": {"complete": sum(c for c, _ in bursts), "incomplete": sum(i for _, i in bursts)},
-    }
+class _Sender:
+    """What the truth keeps per sender, updated packet by packet."""
+
+    __slots__ = ("id", "station", "by_type", "serial", "last", "violations", "burst", "burst_t", "complete",
+                 "incomplete")
+
+    def __init__(self, sid: str, station: Station, epoch_us: int) -> None:
+        self.id, self.station = sid, station
+        self.by_type: Counter[C.PacketType] = Counter()
+        self.serial = _SerialTrack(epoch_us)
+        self.last: dict[C.PacketType, int] = {}        # periodic type -> time of its latest packet
+        self.violations: dict[C.PacketType, list[tuple[int, int]]] = {}   # -> gaps over its limit
+        self.burst: list[tuple[int, int]] = []         # the VRPO burst being received
+        self.burst_t = 0
+        self.complete = self.incomplete = 0
+
+    def close_burst(self) -> None:
+        burst = self.burst
+        if not burst:
+            return
+        if len(burst) == 1:                        # most bursts: one packet
+            number, length = burst[0]
+            complete = number == 0 and length < C.VRPO_MAX_DATA
+        else:
+            complete = _complete_burst(burst)
+        if complete:
+            self.complete += 1
+        else:
+            self.incomplete += 1
+        self.burst = []
+
+    def report(self) -> dict[str, Any]:
+        station = self.station
+        return {"id": self.id, "direction": station.node.direction.value, "origin": station.node.origin,
+                "src": f"{station.ip}:{station.port}",
+                "by_type": {_NAMES[t]: n for t, n in sorted(self.by_type.items())},
+                "serial": self.serial.report(sum(self.by_type.values()))}
 
 
-def _sender(sid: str, station: Station, types: Counter[str], track: _SerialTrack) -> dict[str, Any]:
-    return {"id": sid, "direction": station.node.direction.value, "origin": station.node.origin,
-            "src": f"{station.ip}:{station.port}", "by_type": dict(sorted(types.items())), "serial": track.report()}
+class GroundTruth:
+    """The truth of a capture, fed with the tap's arrivals in file order (`add`, batch by batch);
+    an arrival whose station index is past the last station is a frame that is not EG-Link."""
 
+    def __init__(self, stations: Sequence[Station], epoch_us: int) -> None:
+        self.stations, self.epoch_us = stations, epoch_us
+        self._ids = [s.sender_id for s in stations]
+        self._senders: dict[str, _Sender] = {}                   # by id, from the first legal packet
+        self._by_station: list[Optional[_Sender]] = [None] * len(stations)
+        self.illegal: Counter[str] = Counter()
+        self.frames = self.other = self.illegal_total = self.crc_bad = 0
+        self.first_t: Optional[int] = None
+        self.last_t = 0
+        self.commands = {kind: _Commands(kind) for kind in _COMMAND_TYPES}
 
-def _periodic(ptype: str, sender: str, times: list[int], epoch_us: int) -> dict[str, Any]:
-    limit = _WATCHDOG_MS[C.PacketType(ptype)]
-    violations = [{"start": _time(epoch_us + a), "gap_ms": _ms(b - a)}
-                  for a, b in zip(times, times[1:]) if b - a > limit * 1000]
-    return {"type": ptype, "sender": sender, "count": len(times),
-            "watchdog": {"limit_ms": limit, "violations": violations}}
+    def _sender(self, station: int) -> _Sender:
+        sid = self._ids[station]
+        sender = self._senders.get(sid)
+        if sender is None:
+            sender = self._senders[sid] = _Sender(sid, self.stations[station], self.epoch_us)
+        self._by_station[station] = sender
+        return sender
+
+    def add(self, arrivals: Sequence[Arrival]) -> None:
+        if not arrivals:
+            return
+        if self.first_t is None:
+            self.first_t = arrivals[0][0]
+        self.last_t = arrivals[-1][0]
+        by_station, count = self._by_station, len(self._by_station)
+        commands, watchdogs, acks = self.commands, _WATCHDOG_US, C.ACK_OF
+        burst_gap = C.VRPO_BURST_GAP_MS * 1000
+        frame = self.frames
+        for t, _, station, _, problems, meta in arrivals:
+            frame += 1
+            if station >= count:
+                self.other += 1
+                continue
+            if problems:
+                self.illegal_total += 1
+                self.illegal.update(problems)
+                self.crc_bad += _BAD_CRC in problems
+                continue
+            sender = by_station[station] or self._sender(station)
+            ptype = meta.ptype
+            sender.by_type[ptype] += 1
+            if ptype in watchdogs:
+                last = sender.last.get(ptype)
+                if last is not None and t - last > watchdogs[ptype]:
+                    sender.violations.setdefault(ptype, []).append((last, t))
+                sender.last[ptype] = t
+            if not sender.serial.add(meta.serial, t):
+                continue      # a repeated serial is a duplicate, not a transmission or an ack
+            if ptype is _VRPO:
+                if sender.burst and t - sender.burst_t >= burst_gap:
+                    sender.close_burst()
+                sender.burst.append((meta.key, meta.data_len))
+                sender.burst_t = t
+            elif ptype in commands:
+                commands[ptype].command(sender.id, meta.key, frame, t)
+            elif ptype in acks:
+                commands[acks[ptype]].ack(meta.key, frame, t)
+        self.frames = frame
+
+    def report(self) -> dict[str, Any]:
+        """The truth dict (truth-contract.md)."""
+        senders = [self._senders[sid] for sid in sorted(self._senders)]
+        for sender in senders:
+            sender.close_burst()
+        periodic = sorted(((ptype, sender) for sender in senders for ptype in sender.last),
+                          key=lambda item: (_NAMES[item[0]], item[1].id))
+        eglink = self.frames - self.other
+        duration = self.last_t - self.first_t if self.first_t is not None else 0
+        return {
+            "schema_version": SCHEMA_VERSION,
+            "capture": {"packets": self.frames, "eglink_packets": eglink, "duration_s": _time(duration)},
+            "crc": {"variant": DEFAULT_VARIANT, "byte_order": DEFAULT_BYTE_ORDER,
+                    "valid": eglink - self.crc_bad, "invalid": self.crc_bad},
+            "illegal": {"total": self.illegal_total, "by_reason": dict(sorted(self.illegal.items()))},
+            "senders": [sender.report() for sender in senders],
+            "periodic": [self._periodic(ptype, sender) for ptype, sender in periodic],
+            "commands": {kind.value: c.report() for kind, c in self.commands.items()},
+            "vrpo_bursts": {"complete": sum(s.complete for s in senders),
+                            "incomplete": sum(s.incomplete for s in senders)},
+        }
+
+    def _periodic(self, ptype: C.PacketType, sender: _Sender) -> dict[str, Any]:
+        epoch = self.epoch_us
+        return {"type": ptype.value, "sender": sender.id, "count": sender.by_type[ptype],
+                "watchdog": {"limit_ms": _WATCHDOG_MS[ptype],
+                             "violations": [{"start": _time(epoch + a), "gap_ms": _ms(b - a)}
+                                            for a, b in sender.violations.get(ptype, ())]}}

@@ -11,11 +11,11 @@ from __future__ import annotations
 import heapq
 import itertools
 from dataclasses import dataclass, field
-from typing import Iterator, NamedTuple, Optional
+from typing import Iterator, Optional
 
 from .clock import VirtualClock, seconds
 from .impair import Impairer, Impairment
-from .node import _NAMES, Meta, Node
+from .node import Meta, Node
 
 WIRE_NS_PER_BYTE = 80        # 100 Mbit/s
 WIRE_OVERHEAD = 66           # Ethernet preamble, headers, FCS and gap, IPv4 and UDP headers
@@ -36,14 +36,11 @@ class Station:
         return f"{self.node.direction.value} {self.ip}:{self.port} origin 0x{self.node.origin:04x}"
 
 
-class Arrival(NamedTuple):
-    """One packet as the tap saw it."""
-
-    t: int                      # µs on the virtual clock
-    station: int                # index of the sending station
-    data: bytes
-    problems: tuple[str, ...]   # illegal reasons by construction; () for a legal packet
-    meta: Meta
+# One packet as the tap saw it: (t µs on the virtual clock, sequence number of its sender, index
+# of the sending station, bytes, illegal reasons by construction (() for a legal packet), the
+# sender's `Meta`). It is the network's own queue entry, handed over as it is: no copy per packet.
+Arrival = tuple[int, int, int, bytes, tuple[str, ...], Meta]
+BATCH = 4096                 # arrivals handed to the tap at a time
 
 
 class VirtualNetwork:
@@ -52,7 +49,7 @@ class VirtualNetwork:
     def __init__(self, stations: list[Station]) -> None:
         self.stations = stations
         self.clock = VirtualClock()
-        self._heap: list[tuple[int, int, int, bytes, tuple[str, ...], Meta]] = []
+        self._heap: list[Arrival] = []
         self._wire_free = [0] * len(stations)
         self._receivers = [[other.node for other in stations if other.node.direction is not s.node.direction]
                            for s in stations]
@@ -65,58 +62,76 @@ class VirtualNetwork:
     def _sender(self, index: int, impairer: Optional[Impairer]):
         heap, push, seq = self._heap, heapq.heappush, itertools.count()
         wire_free = self._wire_free
+        apply = impairer.apply if impairer is not None else None
 
         def send(data: bytes, now: int, meta: Meta) -> None:
             start = wire_free[index]
             if now > start:
                 start = now
             wire_free[index] = start + (WIRE_OVERHEAD + len(data)) * WIRE_NS_PER_BYTE // 1000 + 1
-            if impairer is None:
+            if apply is None:
                 push(heap, (start, next(seq), index, data, (), meta))
                 return
-            for t, copy, problems in impairer.apply(data, start, _NAMES[meta.ptype]):
+            for t, copy, problems in apply(data, start, meta.ptype):     # a str: the type's name
                 push(heap, (t, next(seq), index, copy, problems, meta))
         return send
 
-    def run(self, duration_s: float) -> Iterator[Arrival]:
-        """Yield what the tap sees, in order, until `duration_s` of virtual time."""
+    def run(self, duration_s: float) -> Iterator[list[Arrival]]:
+        """What the tap sees until `duration_s` of virtual time, in order, in lists of up to `BATCH`."""
         end = seconds(duration_s)
         nodes = [s.node for s in self.stations]
         for node in nodes:
             node.start(0)
         heap, pop = self._heap, heapq.heappop
-        receivers = [[nodes.index(n) for n in group] for group in self._receivers]
+        receivers = [[(nodes.index(n), n) for n in group] for group in self._receivers]
         never = end + 1
         # Each node's next deadline, recomputed only when that node has run.
         dues = [node.next_due() for node in nodes]
         dues = [never if d is None else d for d in dues]
         ips = [s.ip for s in self.stations]
         clock = self.clock
-        make = tuple.__new__
+        batch: list[Arrival] = []
+        append, room = batch.append, BATCH
+        pair = len(nodes) == 2       # the usual case: no min() over two deadlines
         now = 0
         while True:
-            t_node = min(dues)
-            first = dues.index(t_node)
-            if t_node < now:          # overdue (e.g. a command waiting for the previous one)
-                t_node = now
-            t_net = heap[0][0] if heap else never
-            if t_net <= t_node:
-                if t_net >= end:
-                    return
-                t, _, index, data, problems, meta = pop(heap)
-                clock.t = now = t
-                yield make(Arrival, (t, index, data, problems, meta))
-                for r in receivers[index]:
-                    node = nodes[r]
-                    node.vouch(problems)
-                    node.receive(data, t, ips[index])
+            if pair:
+                low, other = dues
+                if other < low:
+                    low, first = other, 1
+                else:
+                    first = 0
+            else:
+                low = min(dues)
+                first = dues.index(low)
+            if low < now:             # overdue: e.g. a command waiting for the previous one
+                low = now
+            if heap and heap[0][0] <= low:
+                arrival = pop(heap)
+                now = arrival[0]
+                if now >= end:
+                    break
+                clock.t = now
+                append(arrival)
+                room -= 1
+                if not room:
+                    yield batch
+                    batch = []
+                    append, room = batch.append, BATCH
+                _, _, index, data, problems, _ = arrival
+                src = ips[index]
+                for r, node in receivers[index]:
+                    node.vouched = problems       # it built this packet: skip the legality check
+                    node.receive(data, now, src)
                     due = node.next_due()
                     dues[r] = never if due is None else due
             else:
-                if t_node >= end:
-                    return
-                clock.t = now = t_node
+                if low >= end:
+                    break
+                clock.t = now = low
                 node = nodes[first]
-                node.tick(t_node)
+                node.tick(now)
                 due = node.next_due()
                 dues[first] = never if due is None else due
+        if batch:
+            yield batch
