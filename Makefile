@@ -21,10 +21,12 @@ $(STAMP): requirements.lock pyproject.toml
 	$(PY) -m pip install -q --no-deps -e .
 	@touch $@
 
+# The main job: analyse a bundled capture (5 % loss, duplicates, reordering) into the terminal
+# summary, a JSON and an HTML report.
 demo: setup
 	@mkdir -p $(DEMO_DIR)
-	$(VENV)/bin/vm110 craft --out $(DEMO_DIR)/crafted.pcap
-	$(VENV)/bin/vm110 decode $(DEMO_DIR)/crafted.pcap
+	$(VENV)/bin/vm110 analyze captures/loss.pcapng --json $(DEMO_DIR)/report.json --html $(DEMO_DIR)/report.html
+	@echo "reports: $(DEMO_DIR)/report.json $(DEMO_DIR)/report.html"
 
 test: setup tshark44
 	$(PY) -m pytest -n 2 -q

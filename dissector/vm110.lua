@@ -210,8 +210,8 @@ end
 
 ---------------------------------------------------------------------------------------------
 -- 3. decode(): the rules of vm110/decode.py, on a Lua string
--- Record: n, type, info (TYPES entry or nil), header values (revision ... spare), crc_off
--- (offset of the CRC or nil), crc, crc_calc, crc_status, pay_end (end of the payload span),
+-- Record (false = absent): n, type, info (TYPES entry), header values (revision ... spare),
+-- crc_off (offset of the CRC), crc, crc_calc, crc_status, pay_end (end of the payload span),
 -- payload (true when the payload is decoded), values (payload field -> value), present
 -- (layout entries decoded), decoded_end, data_len (VRPO periodic data), es_relays_open,
 -- problems (code -> true), fieldwarn (field -> list of codes), extra (extra_payload).
@@ -513,6 +513,11 @@ vm110.prefs.heuristic = Pref.bool("Find EG-Link on other UDP ports", true,
 local tree_add, tree_add_le, set_generated = TreeItem.add, TreeItem.add_le, TreeItem.set_generated
 local add_expert, append_text, tvb_range = TreeItem.add_proto_expert_info, TreeItem.append_text, Tvb.range
 
+-- Bytes outside printable ASCII as \xNN (a packet ID can be anything).
+local function printable(text)
+    return (text:gsub("[^\32-\126]", function(c) return fmt("\\x%02x", byte(c)) end))
+end
+
 local function enum_text(names, value)
     return names[value] or fmt("Unknown (0x%02x)", value)
 end
@@ -526,7 +531,7 @@ local PROBLEM_ORDER = { "unknown_id", "bad_crc", "revision", "size_mismatch", "s
 local function summary(r)
     local v, id, text = r.values, r.type, nil
     if not r.info then
-        text = id and fmt("Unknown packet ID %q", id) or "EG-Link fragment"
+        text = id and fmt('Unknown packet ID "%s"', printable(id)) or "EG-Link fragment"
     elseif id == "VRPI" and v.bu_state then
         text = "VRPI " .. enum_text(BU_STATE, v.bu_state)
         if v.armed_ru and v.armed_ru ~= 0 then
@@ -586,11 +591,11 @@ local function add_header(r, tvb, root)
         local range = tvb_range(tvb, 0, ID_LEN)
         local info = r.info
         local item = tree_add(root, F.type, range, r.type,
-            fmt("Packet ID: %s (%s)", r.type, info and info.description or "Unknown"))
+            fmt("Packet ID: %s (%s)", printable(r.type), info and info.description or "Unknown"))
         if info then
             set_generated(tree_add(item, F.direction, range, info.direction))
         else
-            add_expert(item, E.unknown_id, fmt("Unknown packet ID %q: the payload is not decoded", r.type))
+            add_expert(item, E.unknown_id, fmt('Unknown packet ID "%s": the payload is not decoded', printable(r.type)))
         end
     else
         add_undecoded(root, tvb, 0, n, "shorter than a packet ID")
@@ -712,8 +717,9 @@ local function dissect(tvb, pinfo, tree)
     local r = decode(tvb:raw(), settings.variant, settings.big_endian, pinfo.visited and crc_memo[key] or nil)
     if r.crc_calc then crc_memo[key] = r.crc_calc end
     r.info_text = summary(r)
-    pinfo.cols.protocol = "VM110"
-    pinfo.cols.info = r.info_text
+    local cols = pinfo.cols
+    cols.protocol = "VM110"
+    cols.info = r.info_text
     add_tree(r, tvb, tree)
     return r.n
 end

@@ -179,3 +179,13 @@ def test_plugin_compiles_on_lua_52_and_54(lua):
     assert "bit32." not in source and "module(" not in source
     done = subprocess.run([lua, "-e", f"assert(loadfile({str(T.PLUGIN)!r}))"], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
+
+
+def test_two_pass_reuses_the_crc_and_agrees(ws):
+    """`tshark -2` dissects every frame twice; the second pass takes the CRC from the per-frame memo."""
+    pcap = ws.dir / "golden.pcap"
+    pcap.write_bytes((T.REPO / "tests" / "golden" / "vm110-sample.pcap").read_bytes())
+    fields = ["-T", "fields", "-e", "vm110.crc.calculated", "-e", "vm110.crc.status", "-e", "_ws.col.Info"]
+    one = ws.run(["-r", str(pcap), *fields]).stdout
+    two = ws.run(["-2", "-r", str(pcap), *fields]).stdout
+    assert one == two and "0x" in one

@@ -13,12 +13,13 @@ import dissector_packets as P
 import tshark_runner as T
 from vm110 import constants as C
 from vm110 import decode
+from vm110.decode import VRPI_LAYOUT
 
 pytestmark = pytest.mark.tshark
 
 SEED = 3_110
 FIELDS = ["type", "direction", "revision", "origin", "serial", "size", "spare", "crc", "crc.calculated",
-          "crc.status", *(name for name, _ in __import__("vm110.decode", fromlist=["x"]).VRPI_LAYOUT),
+          "crc.status", *(name for name, _ in VRPI_LAYOUT),
           "es_relays_open", "packet_number", "periodic_data", "command_id", "command_spare", "command_data"]
 EXPERTS = sorted({*T.PROBLEM_CODES, *(w.value for w in C.WarningCode), "es_relays_open"})
 CRC_STATUS = {"0": "Bad", "1": "Good", "2": "Unverified"}

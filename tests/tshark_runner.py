@@ -26,7 +26,7 @@ PLUGIN = REPO / "dissector" / "vm110.lua"
 TRIXIE_ROOT = Path(os.environ.get("VM110_TRIXIE_ROOT") or
                    Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "vm110" / "trixie")
 LUA_ERROR = "Lua Error"
-BU_ADDR, CONTROLLER_ADDR, OTHER_ADDR = "10.0.0.10", "10.0.0.20", "10.0.0.30"
+BU_ADDR, CONTROLLER_ADDR = "10.0.0.10", "10.0.0.20"
 GROUP_ADDR = C.MULTICAST_GROUP
 
 

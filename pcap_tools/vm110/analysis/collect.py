@@ -16,6 +16,8 @@ from typing import Optional
 import numpy as np
 
 from .. import constants as C
+from ..capture import linktypes as L
+from ..capture.reader import PCAP_RECORD_LEN
 
 TYPES = tuple(C.PacketType)
 CODE = {t: i for i, t in enumerate(TYPES)}               # packet type -> small integer code
@@ -45,9 +47,9 @@ def sender_id(direction: str, origin: int, src: str) -> str:
 PREFIX = C.PREFIX_LEN + STATE_LEN
 RECORD = struct.Struct(f"<dIHH{PREFIX}s")
 RECORD_DTYPE = np.dtype({
-    "names": ["ts", "frame", "src", "sport", "pid", "origin", "serial", "size", "aux", "state"],
-    "formats": ["<f8", "<u4", "<u2", "<u2", "<u4", "<u2", "<u2", "<u2", "<u2", f"V{STATE_LEN}"],
-    "offsets": [0, 8, 12, 14, 16, 22, 24, 26, 16 + C.PREFIX_LEN, 16 + C.PREFIX_LEN],
+    "names": ["ts", "frame", "src", "sport", "packet", "pid", "origin", "serial", "size", "aux", "state"],
+    "formats": ["<f8", "<u4", "<u2", "<u2", f"V{PREFIX}", "<u4", "<u2", "<u2", "<u2", "<u2", f"V{STATE_LEN}"],
+    "offsets": [0, 8, 12, 14, 16, 16, 22, 24, 26, 16 + C.PREFIX_LEN, 16 + C.PREFIX_LEN],
     "itemsize": RECORD.size,
 })
 
@@ -73,11 +75,15 @@ class Sender:
 
 
 _CODE_TABLE = {t.value.encode(): i for i, t in enumerate(TYPES)}
-# Where, before a located EG-Link packet, its pcap record starts, and its source address and port
-# are (pcap record header + Ethernet + IPv4 + UDP; offsets into the rows of _gather_pcap).
-_BEFORE = 16 + 14 + 20 + 8
-_SRC = 16 + 14 + 12
-_SPORT = 16 + 14 + 20
+# The bytes _gather_pcap picks, relative to a located EG-Link packet: the pcap record header's
+# time (it starts _BEFORE bytes earlier: record header, Ethernet, IPv4, UDP), the IPv4 source,
+# the UDP source port, and the first PREFIX bytes of the packet.
+_IP = PCAP_RECORD_LEN + L.ETH_HEADER_LEN          # where IPv4 starts, from the record start
+_BEFORE = _IP + L.IPV4_MIN_HEADER + L.UDP_HEADER_LEN
+_PICK = np.concatenate([np.arange(0, 8), np.arange(_IP + L.IPV4_SRC, _IP + L.IPV4_SRC + 4),
+                        np.arange(_IP + L.IPV4_MIN_HEADER, _IP + L.IPV4_MIN_HEADER + 2),
+                        np.arange(_BEFORE, _BEFORE + PREFIX)]) - _BEFORE
+_PICKED = np.dtype([("sec", "<u4"), ("frac", "<u4"), ("src", "<u4"), ("sport", ">u2"), ("packet", f"V{PREFIX}")])
 _WINDOW = 1 << 22
 FEW_SENDERS = 32       # up to this many, one comparison per sender beats sorting the key
 
@@ -158,25 +164,20 @@ class Collected:
         self.offsets, self.offset_frames = array("Q"), array("I")
         out = np.zeros(len(offsets), dtype=RECORD_DTYPE)
         out["frame"] = frames
-        as_bytes = out.view(np.uint8).reshape(len(out), RECORD.size)
-        span = np.arange(-_BEFORE, PREFIX)
         src = np.zeros(len(out), dtype=np.uint32)
         with open(self.path, "rb") as f:
             i = 0
             while i < len(offsets):
                 first = int(offsets[i]) - _BEFORE
-                j = int(np.searchsorted(offsets, first + _WINDOW - PREFIX, side="right"))
-                j = max(j, i + 1)
+                j = max(int(np.searchsorted(offsets, first + _WINDOW - PREFIX, side="right")), i + 1)
                 f.seek(first)
                 want = int(offsets[j - 1]) + PREFIX - first
                 window = np.frombuffer(f.read(want).ljust(want, b"\0"), dtype=np.uint8)
-                rows = window[(offsets[i:j] - first)[:, None] + span]
-                sec = rows[:, 0:4].copy().view("<u4").ravel()
-                frac = rows[:, 4:8].copy().view("<u4").ravel()
-                out["ts"][i:j] = sec + frac * self.pcap_scale
-                src[i:j] = rows[:, _SRC:_SRC + 4].copy().view("<u4").ravel()
-                out["sport"][i:j] = rows[:, _SPORT].astype(np.uint16) * 256 + rows[:, _SPORT + 1]
-                as_bytes[i:j, RECORD.size - PREFIX:] = rows[:, _BEFORE:]
+                rows = window[(offsets[i:j] - first)[:, None] + _PICK].view(_PICKED).ravel()
+                out["ts"][i:j] = rows["sec"] + rows["frac"] * self.pcap_scale
+                src[i:j] = rows["src"]
+                out["sport"][i:j] = rows["sport"]
+                out["packet"][i:j] = rows["packet"]
                 i = j
         values, which = np.unique(src, return_inverse=True)
         index = np.array([self.source(int(v).to_bytes(4, "little")) for v in values.tolist()], dtype=np.uint16)

@@ -4,8 +4,9 @@ The budget is a few C-level operations per packet. For the common frame (Etherne
 options, UDP) in a little-endian pcap or pcapng, one `struct` call reads the record or block
 header, the frame headers and the EG-Link header together (`_FUSED`, `_FUSED_NG`); other frames
 go through the reader's general decoder, other files through its datagrams. Then a structural
-test, the CRC (zlib, see `_hot_crc`) and one packed record per legal packet. Large pcaps are read
-in parts by several processes (`_parallel`).
+test, the CRC (zlib, see `_hot_crc`), and for a legal packet two array appends (pcap: where it is,
+read back later in bulk by `Collected`) or one packed record (pcapng). Large pcaps are read in
+parts by several processes (`_parallel`).
 Anything unusual (illegal, other ports, odd frames) takes `_slow`, which decodes with
 `vm110.decode` and so applies exactly its rules.
 """
@@ -44,6 +45,7 @@ _U32 = {"little": struct.Struct("<I"), "big": struct.Struct(">I")}
 _SWAP = [((x & 0xFF) << 8) | (x >> 8) for x in range(1 << 16)]   # big-endian u16 read little-endian
 _LOW = {raw: C.PAYLOAD_BOUNDS[C.PacketType(raw.decode())][0] for raw in CODE_OF_ID}
 _SNIFF = 256                                       # EG-Link packets looked at to guess the CRC variant
+_SNIFF_CHUNK = 1 << 16
 PARALLEL_MIN_BYTES = 32 << 20                      # smaller files: one process is quicker
 MAX_WORKERS = 4
 WORKERS_ENV = "VM110_ANALYZE_WORKERS"              # processes reading one large pcap (1: no split)
@@ -164,7 +166,7 @@ class FastEngine:
     def _sniff(self, path: str) -> Optional[tuple[str, str]]:
         counts: dict[tuple[str, str], int] = {}
         seen = 0
-        for ts, src, sport, dport, payload, frame in CaptureReader(path):
+        for ts, src, sport, dport, payload, frame in CaptureReader(path, chunk_size=_SNIFF_CHUNK):
             if (sport in self.ports or dport in self.ports) and len(payload) >= C.OVERHEAD:
                 size = struct.unpack_from("<H", payload, 10)[0]
                 end = min(C.PREFIX_LEN + size, len(payload) - C.CRC_LEN)

@@ -16,6 +16,7 @@ from . import summary
 
 W, H = 640, 220
 ML, MR, MT, MB = 72, 16, 14, 34           # plot margins
+MAX_POINTS = 2000                          # gap markers per sender
 COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
           "#bcbd22", "#17becf")
 CSS = """
@@ -178,7 +179,9 @@ def _gap_plot(report: dict, t0: float, t1: float) -> str:
     c = Chart(t0, t1, 0, top * 1.2, "time since capture start (s)", "packets missing", xtime=True)
     c.axes()
     for i, s in enumerate(senders):
-        c.points(((g["time"], g["count"]) for g in s["serial"]["gaps"]), COLORS[i % len(COLORS)])
+        gaps = s["serial"]["gaps"]
+        step = max(1, math.ceil(len(gaps) / MAX_POINTS))       # a page stays small on a bad day
+        c.points(((g["time"], g["count"]) for g in gaps[::step]), COLORS[i % len(COLORS)])
     c.legend([(s["id"], COLORS[i % len(COLORS)]) for i, s in enumerate(senders)])
     return c.svg("serial-gaps", "Serial gaps")
 

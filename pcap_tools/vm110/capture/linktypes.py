@@ -31,6 +31,7 @@ AF_INET6 = (10, 24, 28, 30)  # Linux, NetBSD/OpenBSD, FreeBSD, macOS
 
 IPPROTO_UDP = 17
 IPV4_MIN_HEADER = 20
+IPV4_SRC = 12                 # offset of the source address in the IPv4 header
 IPV4_FRAGMENT_MASK = 0x3FFF   # MF flag and fragment offset
 IPV6_HEADER_LEN = 40
 IPV6_FRAGMENT = 44

@@ -27,6 +27,7 @@ PCAPNG_BOM = 0x1A2B3C4D
 PCAPNG_IDB, PCAPNG_PB, PCAPNG_SPB, PCAPNG_EPB = 1, 2, 3, 6
 OPT_END, OPT_TSRESOL, OPT_TSOFFSET = 0, 9, 14
 PCAP_HEADER_LEN = 24
+PCAP_RECORD_LEN = 16
 MAX_RECORD = 1 << 18           # Wireshark's largest standard packet; a longer record is corruption
 CHUNK = 1 << 22
 

@@ -63,6 +63,7 @@ class Controller(Node):
         super().__init__(name, origin=0, **node)
         self._period, self._glink_period = ms(cfg.period_ms), ms(cfg.glink_period_ms)
         self._vrpi_timeout_us, self._vrco_timeout_us = ms(cfg.vrpi_timeout_ms), ms(cfg.vrco_timeout_ms)
+        self._vrpi_alarm_after = self._vrpi_timeout_us + 1
         self._resend_us = ms(cfg.vrco_resend_ms)
         self._glink = tuple((seconds(a), seconds(b)) for a, b in cfg.glink)
         self._t0 = self._next_vrpo = 0
@@ -89,7 +90,7 @@ class Controller(Node):
     def _due(self) -> Optional[int]:
         due = self._next_vrpo
         if not self.vrpi_alarm and self.last_vrpi is not None:
-            t = self.last_vrpi + self._vrpi_timeout_us + 1
+            t = self.last_vrpi + self._vrpi_alarm_after     # the first µs past the timeout
             due = t if t < due else due
         pending = self.pending
         if pending is not None:
@@ -117,7 +118,7 @@ class Controller(Node):
         if now >= self._next_vrpo:
             first = self.config.first_packet_number
             for index, chunk in enumerate(self.vrpo_payloads(now)):
-                self.send(_VRPO, chunk, now, key=first + index, data_len=len(chunk) - _VRPO_HEADER_SIZE)
+                self.send(_VRPO, chunk, now, first + index, len(chunk) - _VRPO_HEADER_SIZE)   # key, data_len
             self.cycle += 1
             self._next_vrpo += self._vrpo_period(now) if self._glink else self._period
             if self._next_vrpo <= now:     # after a stall: carry on from now, no catch-up burst

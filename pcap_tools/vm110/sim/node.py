@@ -112,8 +112,8 @@ class Node:
         self.printer = printer
         self.listeners: list[Callable[[dict[str, Any]], None]] = []   # called with every log entry
         self.log: list[dict[str, Any]] = []
-        self.sent: Counter[str] = Counter()
-        self.received: Counter[str] = Counter()
+        self._sent: dict[C.PacketType, int] = {}         # counted per packet: plain dicts, see `sent`
+        self._received: dict[bytes, int] = {}
         self.illegal: Counter[str] = Counter()      # by reason; each packet counts once per reason
         self.illegal_packets = 0
         self._stall_index = 0
@@ -124,6 +124,16 @@ class Node:
         # (the virtual network; tests hold `impair.mangle` to `inspect`): `receive` skips `inspect`.
         self.vouched: Optional[tuple[str, ...]] = None
         self._handlers = _handler_table(type(self))
+
+    @property
+    def sent(self) -> Counter[str]:
+        """Packets sent, by type name."""
+        return Counter({_NAMES[ptype]: n for ptype, n in self._sent.items()})
+
+    @property
+    def received(self) -> Counter[str]:
+        """Legal packets received, by type name."""
+        return Counter({_RAW_NAMES[raw_id]: n for raw_id, n in self._received.items()})
 
     # --- wiring -------------------------------------------------------------------------------
     def attach(self, send: Send) -> None:
@@ -173,7 +183,10 @@ class Node:
             return
         raw_id, _, origin, serial, size, _ = _HEADER.unpack_from(data)
         ptype = _TYPES[raw_id]
-        self.received[_RAW_NAMES[raw_id]] += 1
+        try:
+            self._received[raw_id] += 1
+        except KeyError:
+            self._received[raw_id] = 1
         rx = _new(Rx, (ptype, origin, serial, data[_PREFIX_LEN:_PREFIX_LEN + size], data, src))
         handlers = self._handlers
         if handlers is None:
@@ -197,7 +210,10 @@ class Node:
             data = body + (crc32(body.translate(_REVERSE)) ^ MASK).to_bytes(_CRC_LEN, "big").translate(_REVERSE)
         else:
             data = body + trailer(body)
-        self.sent[_NAMES[ptype]] += 1
+        try:
+            self._sent[ptype] += 1
+        except KeyError:
+            self._sent[ptype] = 1
         self.transmit(data, now, _new(Meta, (self.name, ptype, serial, key, data_len)))
         return data
 

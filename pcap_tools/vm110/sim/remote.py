@@ -34,7 +34,10 @@ _ARMED_RU, _BATTERY, _RU_STATE = VRPI_INDEX["armed_ru"], VRPI_INDEX["ru_battery"
 _JOYSTICKS = tuple(VRPI_INDEX[f"joystick{i}"] for i in range(1, C.JOYSTICKS + 1))
 _SWITCHES = tuple(VRPI_INDEX[f"switch{i}"] for i in range(1, C.SWITCHES + 1))
 _ENCODER, _ENCODER_SWITCH = VRPI_INDEX["encoder"], VRPI_INDEX["encoder_switch"]
-_SWEEPS = tuple((index, period, period // 4) for index, period in zip(_JOYSTICKS, _JOYSTICK_PERIODS_US))
+# (payload index, period, quarter period, sweep value by phase): a VRPI every 125 ms meets few
+# phases, so the values are remembered (up to _KNOWN_PHASES of them).
+_SWEEPS = tuple((index, period, period // 4, {}) for index, period in zip(_JOYSTICKS, _JOYSTICK_PERIODS_US))
+_KNOWN_PHASES = 4096
 _SWEEP_CYCLE_US = math.lcm(*_JOYSTICK_PERIODS_US)         # every sweep's period divides it
 _STEP_US = 10_000           # switches and encoder move in steps of 10 ms
 _PUSHBUTTON, _TOGGLE, _POTENTIOMETER = _SWITCHES[:3]
@@ -144,18 +147,26 @@ def _values(fields: Mapping[str, Any]) -> list[Any]:
     return [fields.get(name, bytes(C.VRPI_SPARE_LEN) if name == "vrpi_spare" else 0) for name in VRPI_NAMES]
 
 
+def _sweep(phase: int, quarter: int, limit: int = C.JOYSTICK_LIMIT) -> int:
+    """A joystick sweeping 0 up to the limit, down to minus the limit and back, over 4 quarters."""
+    if phase < quarter:
+        return limit * phase // quarter
+    if phase < 3 * quarter:
+        return limit - limit * (phase - quarter) // quarter
+    return limit * (phase - 3 * quarter) // quarter - limit
+
+
 def _move(t: int, values: list[Any]) -> None:
     # After 18 minutes t no longer fits one 30-bit digit: reduce it once, then work on small numbers.
     cycle = t % _SWEEP_CYCLE_US
-    limit = C.JOYSTICK_LIMIT
-    for index, period, quarter in _SWEEPS:      # 0 up to the limit, down to minus the limit, back
+    for index, period, quarter, known in _SWEEPS:
         phase = cycle % period
-        if phase < quarter:
-            values[index] = limit * phase // quarter
-        elif phase < 3 * quarter:
-            values[index] = limit - limit * (phase - quarter) // quarter
-        else:
-            values[index] = limit * (phase - 3 * quarter) // quarter - limit
+        try:
+            values[index] = known[phase]
+        except KeyError:
+            values[index] = value = _sweep(phase, quarter)
+            if len(known) < _KNOWN_PHASES:
+                known[phase] = value
     steps = t // _STEP_US
     values[_PUSHBUTTON] = (steps // 300) % 2                     # every 3 s
     values[_TOGGLE] = (steps // 200) % 3 - 1                     # 3 positions, every 2 s

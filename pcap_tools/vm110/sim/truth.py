@@ -14,6 +14,7 @@ from typing import Any, Optional, Sequence
 from .. import constants as C
 from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT
 from .clock import US_PER_S
+from .node import Meta
 from .virtual import Arrival, Station
 
 SCHEMA_VERSION = 1
@@ -163,11 +164,11 @@ class _Sender:
 
     def __init__(self, sid: str, station: Station, epoch_us: int) -> None:
         self.id, self.station = sid, station
-        self.by_type: Counter[C.PacketType] = Counter()
+        self.by_type: dict[C.PacketType, int] = {}     # legal packets (duplicates too), by type
         self.serial = _SerialTrack(epoch_us)
         self.last: dict[C.PacketType, int] = {}        # periodic type -> time of its latest packet
         self.violations: dict[C.PacketType, list[tuple[int, int]]] = {}   # -> gaps over its limit
-        self.burst: list[tuple[int, int]] = []         # the VRPO burst being received
+        self.burst: list[Meta] = []                    # the VRPO burst being received
         self.burst_t = 0
         self.complete = self.incomplete = 0
 
@@ -176,10 +177,10 @@ class _Sender:
         if not burst:
             return
         if len(burst) == 1:                        # most bursts: one packet
-            number, length = burst[0]
-            complete = number == 0 and length < C.VRPO_MAX_DATA
+            meta = burst[0]
+            complete = meta.key == 0 and meta.data_len < C.VRPO_MAX_DATA
         else:
-            complete = _complete_burst(burst)
+            complete = _complete_burst([(meta.key, meta.data_len) for meta in burst])
         if complete:
             self.complete += 1
         else:
@@ -239,18 +240,27 @@ class GroundTruth:
                 continue
             sender = by_station[station] or self._sender(station)
             ptype = meta.ptype
-            sender.by_type[ptype] += 1
-            if ptype in watchdogs:
+            try:
+                sender.by_type[ptype] += 1
+            except KeyError:
+                sender.by_type[ptype] = 1
+            limit = watchdogs.get(ptype)
+            if limit is not None:
                 last = sender.last.get(ptype)
-                if last is not None and t - last > watchdogs[ptype]:
+                if last is not None and t - last > limit:
                     sender.violations.setdefault(ptype, []).append((last, t))
                 sender.last[ptype] = t
-            if not sender.serial.add(meta.serial, t):
+            track, serial = sender.serial, meta.serial
+            high = track.high
+            if high is not None and serial and serial - high % _MODULUS == 1:    # next, no wrap: most packets
+                track.high = high + 1
+                track.seen.add(high + 1)
+            elif not track.add(serial, t):
                 continue      # a repeated serial is a duplicate, not a transmission or an ack
             if ptype is _VRPO:
                 if sender.burst and t - sender.burst_t >= burst_gap:
                     sender.close_burst()
-                sender.burst.append((meta.key, meta.data_len))
+                sender.burst.append(meta)
                 sender.burst_t = t
             elif ptype in commands:
                 commands[ptype].command(sender.id, meta.key, frame, t)

@@ -63,12 +63,18 @@ class VirtualNetwork:
         heap, push, seq = self._heap, heapq.heappush, itertools.count()
         wire_free = self._wire_free
         apply = impairer.apply if impairer is not None else None
+        wire_us: dict[int, int] = {}     # by packet length: time on the wire (rounded up)
 
         def send(data: bytes, now: int, meta: Meta) -> None:
             start = wire_free[index]
             if now > start:
                 start = now
-            wire_free[index] = start + (WIRE_OVERHEAD + len(data)) * WIRE_NS_PER_BYTE // 1000 + 1
+            size = len(data)
+            try:
+                wire_free[index] = start + wire_us[size]
+            except KeyError:
+                wire_us[size] = (WIRE_OVERHEAD + size) * WIRE_NS_PER_BYTE // 1000 + 1
+                wire_free[index] = start + wire_us[size]
             if apply is None:
                 push(heap, (start, next(seq), index, data, (), meta))
                 return
