@@ -47,6 +47,11 @@ local MAX_PAYLOAD = 492
 local SUPPORTED_REVISION = 0
 local VRPO_MAX_DATA = 488
 local DEFAULT_INPUT_PORT, OUTPUT_PORT_OFFSET = 5825, 2
+-- Timing and numbering of section 5.1 (interpretation.md "Timing", "Serial numbers", "VRPO split").
+local VRPI_WATCHDOG_MS, VRPO_WATCHDOG_MS, VRPO_PERIOD_MIN_MS, VRPO_PERIOD_MAX_MS = 500, 2000, 50, 200
+local COMMAND_RESEND_MS, VRCI_FAIL_MS, VRCO_GIVE_UP_MS, VRPO_BURST_GAP_MS = 100, 2000, 2000, 20
+local SERIAL_MODULUS, SERIAL_HALF, VRPO_HEADER_SIZE = 65536, 32768, 2
+local ACK_OF = { VRAO = "VRCI", VRAI = "VRCO" }
 local ES_RELAYS_CLOSED_FROM = 0x10
 
 local BU_STATE = {
@@ -462,6 +467,26 @@ local F = {
 }
 for i = 1, 4 do F["joystick" .. i] = ProtoField.int16("vm110.joystick" .. i, "Joystick " .. i, base.DEC) end
 for i = 1, 8 do F["switch" .. i] = ProtoField.int16("vm110.switch" .. i, "Switch " .. i, base.DEC) end
+-- Stream analysis (section 7): generated fields, all computed from earlier frames of the capture.
+local frametypes = frametype or {} -- framenum types (arrows in the GUI) where this Wireshark has them
+F.serial_missing = ProtoField.uint32("vm110.analysis.serial_missing", "Packets missing before this one", base.DEC)
+F.serial_duplicate = ProtoField.uint8("vm110.analysis.serial_duplicate", "Duplicate serial", base.DEC)
+F.serial_out_of_order = ProtoField.uint8("vm110.analysis.serial_out_of_order", "Out-of-order (late) serial", base.DEC)
+F.interval = ProtoField.double("vm110.analysis.interval", "Interval since the previous packet of this type (ms)")
+F.retransmission_of = ProtoField.framenum("vm110.analysis.retransmission_of", "Retransmission of frame",
+    base.NONE, frametypes.RETRANS_PREV)
+F.retransmission_number = ProtoField.uint16("vm110.analysis.retransmission_number", "Retransmission number", base.DEC)
+F.since_first = ProtoField.double("vm110.analysis.since_first", "Time since the first transmission (ms)")
+F.resend_interval = ProtoField.double("vm110.analysis.resend_interval", "Time since the previous transmission (ms)")
+F.ack_in = ProtoField.framenum("vm110.analysis.ack_in", "Acknowledged in frame", base.NONE, frametypes.ACK)
+F.ack_to = ProtoField.framenum("vm110.analysis.ack_to", "Acknowledges the command of frame", base.NONE,
+    frametypes.REQUEST)
+F.ack_time = ProtoField.double("vm110.analysis.ack_time", "Acknowledged after, from the first transmission (ms)")
+F.ack_time_last = ProtoField.double("vm110.analysis.ack_time_last", "Acknowledged after, from the last transmission (ms)")
+F.burst_packets = ProtoField.uint16("vm110.burst.packets", "VRPO packets in the burst", base.DEC)
+F.burst_size = ProtoField.uint32("vm110.burst.size", "Periodic data in the burst (bytes)", base.DEC)
+F.burst_frame = ProtoField.framenum("vm110.burst.frame", "VRPO packet in frame")
+F.reassembled = ProtoField.bytes("vm110.reassembled", "Reassembled periodic data")
 local field_list = {}
 for _, f in pairs(F) do field_list[#field_list + 1] = f end
 vm110.fields = field_list
@@ -490,6 +515,25 @@ local E = {
     es_relays_open = ProtoExpert.new("vm110.expert.es_relays_open", "ES-Link relays open",
         group.RESPONSE_CODE, severity.WARN),
 }
+-- Stream analysis experts (section 7).
+local function seq(code, text, sev, grp)
+    E[code] = ProtoExpert.new("vm110.expert." .. code, text, grp or group.SEQUENCE, sev or severity.WARN)
+end
+seq("serial_gap", "Serial gap: packets lost")
+seq("serial_duplicate", "Duplicate serial")
+seq("serial_out_of_order", "Out-of-order serial")
+seq("watchdog_vrpi", "VRPI interval above the controller watchdog")
+seq("watchdog_vrpo", "VRPO interval above the base unit watchdog")
+seq("vrpo_interval", "VRPO interval outside the recommended range", severity.NOTE)
+seq("retransmission", "Command retransmission", severity.NOTE)
+seq("resend_interval", "Resend interval far from nominal", severity.NOTE)
+seq("spurious_retransmission", "Retransmission after the acknowledgement", severity.NOTE)
+seq("ack_without_command", "Acknowledgement without a matching command")
+seq("duplicate_ack", "Duplicate acknowledgement", severity.NOTE)
+seq("ack_late", "Command not acknowledged in time")
+seq("never_acked", "Command never acknowledged in the capture")
+seq("burst_missing", "VRPO burst: packet number missing", severity.WARN, group.REASSEMBLE)
+seq("burst_incomplete", "Incomplete VRPO burst", severity.WARN, group.REASSEMBLE)
 local expert_list = {}
 for _, e in pairs(E) do expert_list[#expert_list + 1] = e end
 vm110.experts = expert_list
@@ -503,6 +547,25 @@ vm110.prefs.input_port = Pref.uint("Input UDP port", DEFAULT_INPUT_PORT,
     "UDP port of input packets; output packets use this port + 2 (TS-0006 2.2)")
 vm110.prefs.heuristic = Pref.bool("Find EG-Link on other UDP ports", true,
     "Heuristic: a known packet ID with a size that matches the UDP length")
+vm110.prefs.analysis = Pref.bool("Analyse the streams", true,
+    "Serial gaps, intervals and watchdogs, retransmissions and acknowledgements, VRPO reassembly")
+vm110.prefs.serial_scope = Pref.enum("Serial number scope", 1, "One counter per sender, or one per packet type per sender",
+    { { "sender", "Per sender (all packet types)", 1 }, { "type", "Per packet type per sender", 2 } }, false)
+vm110.prefs.vrpi_watchdog_ms = Pref.uint("VRPI watchdog (ms)", VRPI_WATCHDOG_MS, "Warn above this VRPI interval")
+vm110.prefs.vrpo_watchdog_ms = Pref.uint("VRPO watchdog (ms)", VRPO_WATCHDOG_MS, "Warn above this VRPO interval")
+vm110.prefs.vrpo_min_ms = Pref.uint("VRPO recommended minimum interval (ms)", VRPO_PERIOD_MIN_MS, "Note below this")
+vm110.prefs.vrpo_max_ms = Pref.uint("VRPO recommended maximum interval (ms)", VRPO_PERIOD_MAX_MS, "Note above this")
+vm110.prefs.resend_ms = Pref.uint("Command resend interval (ms)", COMMAND_RESEND_MS, "Nominal resend interval")
+vm110.prefs.resend_tolerance_ms = Pref.uint("Resend interval tolerance (ms)", COMMAND_RESEND_MS / 2,
+    "Note when a resend interval differs from the nominal one by more than this")
+vm110.prefs.vrci_fail_ms = Pref.uint("VRCI failure timeout (ms)", VRCI_FAIL_MS, "Acknowledgement later than this: failed")
+vm110.prefs.vrco_give_up_ms = Pref.uint("VRCO give-up timeout (ms)", VRCO_GIVE_UP_MS, "Acknowledgement later than this: late")
+vm110.prefs.vrpo_data_size = Pref.uint("Configured periodic data size (bytes)", 0,
+    "Total VRPO periodic data of a burst; 0 = infer (a burst ends with a packet of fewer than 488 bytes)")
+vm110.prefs.vrpo_number_start = Pref.uint("First VRPO packet number", 0, "Packet number of a burst's first packet (0 or 1)")
+vm110.prefs.burst_gap_ms = Pref.uint("VRPO burst gap (ms)", VRPO_BURST_GAP_MS, "A new burst starts after this gap")
+vm110.prefs.machine = Pref.string("Machine", "",
+    "Key of the machine-specific sub-dissectors in the vm110.periodic_data and vm110.command_data tables")
 
 ---------------------------------------------------------------------------------------------
 -- 5. Tree and Info column

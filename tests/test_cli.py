@@ -35,7 +35,8 @@ def test_not_a_capture_is_one_line_and_exit_2(tmp_path):
     for path in (str(bogus), str(tmp_path / "missing.pcap")):
         result = vm110("decode", path)
         assert result.returncode == EXIT_USAGE
-        assert result.stderr.startswith("vm110 decode: cannot read") and "Traceback" not in result.stderr
+        assert result.stderr.startswith("vm110 decode: ") and path in result.stderr
+        assert "Traceback" not in result.stderr
         assert len(result.stderr.strip().splitlines()) == 1
 
 

@@ -5,7 +5,9 @@ import pytest
 from hypothesis import given, strategies as st
 
 from reference_crc import MODELS, reference_crc
-from vm110.crc import BYTE_ORDERS, VARIANTS, crc32, crc_bytes
+import zlib
+
+from vm110.crc import BYTE_ORDERS, REVERSE_BITS, VARIANTS, crc32, crc_bytes, trailer_function, zlib_form
 
 CHECK = {"mpeg2": 0x0376E6E7, "iso-hdlc": 0xCBF43926, "bzip2": 0xFC891918, "jamcrc": 0x340BC6D9}
 
@@ -35,3 +37,13 @@ def test_stored_byte_order():
 def test_unknown_settings_are_refused_by_name(call):
     with pytest.raises(ValueError, match="choose from"):
         call()
+
+
+@given(st.binary(max_size=300), st.sampled_from(sorted(CHECK)), st.sampled_from(BYTE_ORDERS))
+def test_hot_path_forms_agree_with_crc_bytes(data, variant, order):
+    assert trailer_function(variant, order)(data) == crc_bytes(data, variant, order)
+    reversed_input, xor, written = zlib_form(variant, order)
+    stored = crc_bytes(data, variant, order)
+    if reversed_input:
+        data, stored = data.translate(REVERSE_BITS), stored.translate(REVERSE_BITS)
+    assert zlib.crc32(data) ^ xor == int.from_bytes(stored, written)

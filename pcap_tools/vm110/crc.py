@@ -18,7 +18,8 @@ DEFAULT_VARIANT: Variant = "mpeg2"
 DEFAULT_BYTE_ORDER: ByteOrder = "little"
 MASK = 0xFFFFFFFF
 
-_REVERSE = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
+REVERSE_BITS = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))  # for bytes.translate
+_REVERSE = REVERSE_BITS
 
 
 def _bitrev32(value: int) -> int:
@@ -67,3 +68,32 @@ def crc32(data: bytes, variant: str = DEFAULT_VARIANT) -> int:
 def crc_bytes(data: bytes, variant: str = DEFAULT_VARIANT, order: str = DEFAULT_BYTE_ORDER) -> bytes:
     """The 4-byte trailer for `data` as it is stored on the wire."""
     return crc32(data, variant).to_bytes(4, check_byte_order(order))
+
+
+def zlib_form(variant: str = DEFAULT_VARIANT, order: str = DEFAULT_BYTE_ORDER) -> tuple[bool, int, ByteOrder]:
+    """How one `zlib.crc32` call checks or makes a trailer, for loops that cannot afford a call
+    per packet into this module: (run over the bit-reversed bytes, XOR to apply, byte order of the
+    trailer as the 32-bit result is written; with reversed bytes, that trailer is bit-reversed
+    with `bytes.translate(REVERSE_BITS)`).
+
+    iso-hdlc is zlib's CRC and jamcrc its complement. mpeg2 is bitrev32(zlib(rev(data)) ^ MASK):
+    writing that in the other byte order and bit-reversing each byte gives the trailer, so the
+    stored trailer, bit-reversed and read in the other byte order, equals zlib(rev(data)) ^ MASK.
+    bzip2 is the complement of mpeg2.
+    """
+    crc_function(variant)
+    order = check_byte_order(order)
+    other: ByteOrder = BYTE_ORDERS[1 - BYTE_ORDERS.index(order)]
+    return {
+        "iso-hdlc": (False, 0, order), "jamcrc": (False, MASK, order),
+        "mpeg2": (True, MASK, other), "bzip2": (True, 0, other),
+    }[variant]
+
+
+def trailer_function(variant: str = DEFAULT_VARIANT, order: str = DEFAULT_BYTE_ORDER) -> Callable[[bytes], bytes]:
+    """A `data -> 4-byte trailer` function for one setting, with the fewest calls (hot paths)."""
+    reflected_input, xor, written = zlib_form(variant, order)
+    if reflected_input:
+        return lambda data: ((zlib.crc32(data.translate(REVERSE_BITS)) ^ xor).to_bytes(4, written)
+                             .translate(REVERSE_BITS))
+    return lambda data: (zlib.crc32(data) ^ xor).to_bytes(4, written)

@@ -6,7 +6,6 @@ only differ in what they read, never in how it is judged.
 """
 from __future__ import annotations
 
-import ipaddress
 import struct
 from collections import Counter
 from array import array
@@ -17,7 +16,7 @@ import numpy as np
 
 from .. import constants as C
 from ..capture import linktypes as L
-from ..capture.reader import PCAP_RECORD_LEN
+from ..capture.reader import PCAP_RECORD_LEN, address
 
 TYPES = tuple(C.PacketType)
 CODE = {t: i for i, t in enumerate(TYPES)}               # packet type -> small integer code
@@ -29,13 +28,6 @@ STATE = struct.Struct("<BBBBBBHBBBBBB")
 STATE_FIELDS = ("bu_state", "vlaps", "unarmed_rus", "eg_link", "ec_link", "c_link", "armed_ru",
                 "ru_state", "ru_battery", "ru_rssi", "ru_cable", "ru_docked", "ru_disabled")
 MAX_EXAMPLES = 1000                                       # illegal packets listed in a report
-
-
-def address(src: bytes, port: int) -> str:
-    """"ip:port" of a packed source address (IPv6 in brackets)."""
-    if len(src) == 4:
-        return f"{src[0]}.{src[1]}.{src[2]}.{src[3]}:{port}"
-    return f"[{ipaddress.IPv6Address(src)}]:{port}"
 
 
 def sender_id(direction: str, origin: int, src: str) -> str:

@@ -4,7 +4,7 @@ The budget is a few C-level operations per packet. For the common frame (Etherne
 options, UDP) in a little-endian pcap or pcapng, one `struct` call reads the record or block
 header, the frame headers and the EG-Link header together (`_FUSED`, `_FUSED_NG`); other frames
 go through the reader's general decoder, other files through its datagrams. Then a structural
-test, the CRC (zlib, see `_hot_crc`), and for a legal packet two array appends (pcap: where it is,
+test, the CRC (one zlib call, see `vm110.crc.zlib_form`), and for a legal packet two array appends (pcap: where it is,
 read back later in bulk by `Collected`) or one packed record (pcapng). Large pcaps are read in
 parts by several processes (`_parallel`).
 Anything unusual (illegal, other ports, odd frames) takes `_slow`, which decodes with
@@ -20,10 +20,10 @@ from typing import Callable, Optional
 
 from .. import constants as C
 from ..capture import linktypes as L
-from ..capture.reader import PCAP_HEADER_LEN, PCAPNG_EPB, PCAPNG_SHB, CaptureReader
-from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, MASK, VARIANTS, _REVERSE, crc32
+from ..capture.reader import PCAP_HEADER_LEN, PCAPNG_EPB, PCAPNG_SHB, CaptureReader, address
+from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, VARIANTS, crc32, zlib_form
 from ..decode import decode
-from .collect import CODE_OF_ID, RECORD, Collected, address
+from .collect import CODE_OF_ID, RECORD, Collected
 
 _HDR = struct.Struct("<4sH6xH")                    # packet ID, revision, size
 # One little-endian read of a record of the common frame: pcap record header (sec, frac, incl,
@@ -66,21 +66,6 @@ def crc_matches(data: bytes, end: int) -> set[tuple[str, str]]:
             if value == int.from_bytes(stored, order):
                 got.add((variant, order))
     return got
-
-
-def _hot_crc(variant: str, order: str) -> tuple[bool, int, str]:
-    """(work on bit-reversed bytes, XOR, byte order to read the stored CRC) for the hot path.
-
-    iso-hdlc is zlib's CRC; jamcrc is it XOR 0xFFFFFFFF. mpeg2 is bitrev(zlib(rev(bytes)) ^ MASK),
-    so on the bit-reversed packet (`bytes.translate`) it compares zlib(...) ^ MASK with the
-    stored CRC bit-reversed, which is the reversed stored bytes read in the other byte order;
-    bzip2 is mpeg2 XOR 0xFFFFFFFF.
-    """
-    other = BYTE_ORDERS[1 - BYTE_ORDERS.index(order)]
-    return {
-        "iso-hdlc": (False, 0, order), "jamcrc": (False, MASK, order),
-        "mpeg2": (True, MASK, other), "bzip2": (True, 0, other),
-    }[variant]
 
 
 def idle_cores() -> int:
@@ -242,8 +227,8 @@ class FastEngine:
         slack = bytes(_FUSED.size)
         ports_le = frozenset(_SWAP[p] for p in self.ports)
         swap, low_of, eth_ipv4 = _SWAP, _LOW, _ETH_IPV4
-        reversed_bytes, xor, stored_order = _hot_crc(variant, order)
-        rev_table, crc = _REVERSE, zlib.crc32
+        reversed_bytes, xor, stored_order = zlib_form(variant, order)
+        rev_table, crc = REVERSE_BITS, zlib.crc32
         stored = _U32[stored_order].unpack_from
         locate, add_frame = got.offsets.append, got.offset_frames.append
         got.pcap_scale = scale
@@ -321,8 +306,8 @@ class FastEngine:
         fused, slack = _FUSED_NG.unpack_from, bytes(_FUSED_NG.size)
         ports_le = frozenset(_SWAP[p] for p in self.ports)
         swap, low_of, eth_ipv4 = _SWAP, _LOW, _ETH_IPV4
-        reversed_bytes, xor, stored_order = _hot_crc(variant, order)
-        rev_table, crc = _REVERSE, zlib.crc32
+        reversed_bytes, xor, stored_order = zlib_form(variant, order)
+        rev_table, crc = REVERSE_BITS, zlib.crc32
         stored = _U32[stored_order].unpack_from
         pack, sources, records = RECORD.pack, got.sources, got.records
         slow, udp_of = self._slow, reader.udp_of
@@ -421,8 +406,8 @@ class FastEngine:
     def _datagrams(self, got: Collected, reader: CaptureReader, variant: str, order: str) -> int:
         """Any other file, through the reader's datagrams; returns the legal packets recorded."""
         ports = self.ports
-        reversed_bytes, xor, stored_order = _hot_crc(variant, order)
-        rev_table, crc = _REVERSE, zlib.crc32
+        reversed_bytes, xor, stored_order = zlib_form(variant, order)
+        rev_table, crc = REVERSE_BITS, zlib.crc32
         stored = _U32[stored_order].unpack_from
         unpack, low_of, max_payload = _HDR.unpack_from, _LOW, C.MAX_PAYLOAD
         pack, sources, records = RECORD.pack, got.sources, got.records

@@ -18,10 +18,10 @@ from pathlib import Path
 from typing import Iterator, Optional
 
 from .. import constants as C
-from ..capture.reader import CaptureReader
+from ..capture.reader import CaptureReader, address
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS
 from ..errors import CliError
-from .collect import STATE, STATE_FIELDS, Collected, address
+from .collect import STATE, STATE_FIELDS, Collected
 
 PLUGIN_ENV = "VM110_DISSECTOR"
 REASONS = frozenset(p.value for p in C.Problem)

@@ -11,6 +11,7 @@ record keeps what was read and says so in `problem`; a file that is not a captur
 """
 from __future__ import annotations
 
+import ipaddress
 import os
 import struct
 from typing import BinaryIO, Generator, Iterator, NamedTuple, Optional
@@ -43,6 +44,13 @@ class PcapLayout(NamedTuple):
     scale: float         # seconds per unit of the fraction field (us or ns)
     link: int
     limit: int           # largest plausible record
+
+
+def address(src: bytes, port: int) -> str:
+    """"ip:port" of a packed source address as the reader yields it (IPv6 in brackets)."""
+    if len(src) == 4:
+        return f"{src[0]}.{src[1]}.{src[2]}.{src[3]}:{port}"
+    return f"[{ipaddress.IPv6Address(src)}]:{port}"
 
 
 class CaptureError(CliError):

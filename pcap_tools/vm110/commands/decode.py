@@ -1,7 +1,8 @@
 """Decode the EG-Link packets of a capture (pcap or pcapng), one line or JSON object each.
 
-Packets on the configured ports are decoded with the fast path (`vm110.decode`), illegal ones
-are shown with their reasons; other traffic is skipped.
+Datagrams on the configured ports, and on any UDP port when they start with a known packet ID,
+are decoded with the fast path (`vm110.decode`); illegal ones are shown with their reasons.
+Other traffic is skipped.
 """
 from __future__ import annotations
 
@@ -9,16 +10,12 @@ import argparse
 import json
 from typing import Any, Iterator
 
-from scapy.error import Scapy_Exception
-from scapy.layers.inet import UDP
-from scapy.utils import PcapReader
-
 from .. import constants as C
+from ..capture.reader import CaptureReader, address
 from ..crc import BYTE_ORDERS, VARIANTS
 from ..decode import decode
-from ..errors import CliError
 
-UDP_HEADER_LEN = 8
+_IDS = frozenset(t.value.encode() for t in C.PacketType)
 _SUMMARY_FIELDS = {
     "VRPI": ("bu_state", "armed_ru", "ru_state", "ru_battery"),
     "VRPO": ("packet_number",),
@@ -37,21 +34,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="one JSON object per packet")
 
 
-def eglink_payloads(path: str, port: int) -> Iterator[tuple[int, float, str, bytes]]:
-    """(frame number, time, source, UDP payload) of each UDP packet on the EG-Link ports."""
+def eglink_datagrams(path: str, port: int) -> Iterator[tuple[int, float, str, bytes]]:
+    """(frame number, time, source "ip:port", UDP payload) of each EG-Link datagram."""
     ports = {port, port + C.OUTPUT_PORT_OFFSET}
-    try:
-        reader = PcapReader(path)
-    except (OSError, Scapy_Exception) as exc:
-        raise CliError(f"cannot read {path}: {exc}") from None
-    with reader:
-        for number, frame in enumerate(reader, start=1):
-            udp = frame.getlayer(UDP)
-            if udp is None or not ports & {udp.sport, udp.dport}:
-                continue
-            src = f"{frame.payload.src}:{udp.sport}" if hasattr(frame.payload, "src") else str(udp.sport)
-            # The bytes as captured: the UDP length bounds the payload (Ethernet padding follows).
-            yield number, float(frame.time), src, udp.original[UDP_HEADER_LEN:udp.len]
+    for ts, src, sport, dport, payload, frame in CaptureReader(path):
+        if sport in ports or dport in ports or payload[:C.ID_LEN] in _IDS:
+            yield frame, ts, address(src, sport), payload
 
 
 def _line(number: int, when: float, src: str, fields: dict[str, Any]) -> str:
@@ -71,7 +59,7 @@ def _jsonable(value: Any) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     count = 0
-    for number, when, src, data in eglink_payloads(args.capture, args.port):
+    for number, when, src, data in eglink_datagrams(args.capture, args.port):
         fields = decode(data, args.crc, args.crc_order)
         count += 1
         if args.json:

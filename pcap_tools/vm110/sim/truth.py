@@ -39,15 +39,18 @@ class _SerialTrack:
     """Serial classification of one sender: interpretation.md, 'Serial numbers'.
 
     Serials are unwrapped against the highest one seen (forward distance below 32768 is ahead),
-    so "already seen" means seen in this cycle of the counter.
+    so "already seen" means seen in this cycle of the counter. Between the first serial and the
+    highest one, a serial has been seen exactly when it is not lost (a gap puts it in `lost`, its
+    late arrival takes it out): no set of every serial is kept.
     """
 
-    __slots__ = ("epoch_us", "high", "seen", "lost", "wraps", "duplicates", "out_of_order", "gaps")
+    __slots__ = ("epoch_us", "first", "high", "early", "lost", "wraps", "duplicates", "out_of_order", "gaps")
 
     def __init__(self, epoch_us: int) -> None:
         self.epoch_us = epoch_us                 # added to times (µs) when reported
+        self.first = 0                           # unwrapped first serial
         self.high: Optional[int] = None          # unwrapped highest serial
-        self.seen: set[int] = set()
+        self.early: set[int] = set()             # seen late, from before the first serial
         self.lost: set[int] = set()
         self.wraps = 0
         self.duplicates: list[int] = []
@@ -58,36 +61,30 @@ class _SerialTrack:
         """Classify one received serial; False when it is a duplicate."""
         high = self.high
         if high is None:
-            self.high = serial
-            self.seen.add(serial)
+            self.first = self.high = serial
             return True
         d = (serial - high) % _MODULUS
         if d == 1:                                 # the next one: most packets
-            unwrapped = self.high = high + 1
+            self.high = high + 1
             if not serial:
-                self._wrapped(1)
+                self.wraps += 1
         elif 0 < d < _HALF:
             unwrapped = self.high = high + d
             self.lost.update(range(high + 1, unwrapped))
             self.gaps.append({"after": high % _MODULUS, "count": d - 1, "time": _time(self.epoch_us + t)})
-            if unwrapped // _MODULUS != high // _MODULUS:
-                self._wrapped(unwrapped // _MODULUS - high // _MODULUS)
+            self.wraps += unwrapped // _MODULUS - high // _MODULUS
         else:
             unwrapped = high - (_MODULUS - d) % _MODULUS
-            if d == 0 or unwrapped in self.seen:
+            early = unwrapped < self.first
+            if d == 0 or (unwrapped in self.early if early else unwrapped not in self.lost):
                 self.duplicates.append(serial)
                 return False
             self.out_of_order.append(serial)
-            self.lost.discard(unwrapped)
-        self.seen.add(unwrapped)
+            if early:
+                self.early.add(unwrapped)
+            else:
+                self.lost.discard(unwrapped)
         return True
-
-    def _wrapped(self, count: int) -> None:
-        """The counter wrapped: only the last half cycle can still be "already seen" (the others
-        are never looked up again), so the older serials are forgotten."""
-        self.wraps += count
-        floor = self.high - _HALF
-        self.seen = {u for u in self.seen if u >= floor}
 
     def report(self, received: int) -> dict[str, Any]:
         return {"scope": "sender", "received": received, "lost": len(self.lost),
@@ -254,7 +251,6 @@ class GroundTruth:
             high = track.high
             if high is not None and serial and serial - high % _MODULUS == 1:    # next, no wrap: most packets
                 track.high = high + 1
-                track.seen.add(high + 1)
             elif not track.add(serial, t):
                 continue      # a repeated serial is a duplicate, not a transmission or an ack
             if ptype is _VRPO:
