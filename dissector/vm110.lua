@@ -11,7 +11,10 @@
 --      vm110/decode.py; a later analysis layer works on these records
 --   4. fields, experts, preferences
 --   5. tree and Info column built from a record
---   6. dissector, heuristic and port registration
+--   6. preferences as values, per-frame memos; stream analysis (serial numbers, intervals and
+--      watchdogs, retransmissions and acknowledgements, VRPO bursts and reassembly, the
+--      machine-specific sub-dissector tables vm110.periodic_data / vm110.command_data)
+--   7. dissector, heuristic and port registration; statistics (-z vm110,stat, GUI menu)
 
 local PLUGIN_VERSION = "0.1.0"
 if set_plugin_info then
@@ -486,6 +489,7 @@ F.ack_time_last = ProtoField.double("vm110.analysis.ack_time_last", "Acknowledge
 F.burst_packets = ProtoField.uint16("vm110.burst.packets", "VRPO packets in the burst", base.DEC)
 F.burst_size = ProtoField.uint32("vm110.burst.size", "Periodic data in the burst (bytes)", base.DEC)
 F.burst_frame = ProtoField.framenum("vm110.burst.frame", "VRPO packet in frame")
+F.burst_complete = ProtoField.bool("vm110.burst.complete", "Burst complete")
 F.reassembled = ProtoField.bytes("vm110.reassembled", "Reassembled periodic data")
 local field_list = {}
 for _, f in pairs(F) do field_list[#field_list + 1] = f end
@@ -751,6 +755,7 @@ local function add_tree(r, tvb, tree)
     end
     add_crc(r, tvb, root)
     add_undecoded(root, tvb, r.crc_off + CRC_LEN, n - r.crc_off - CRC_LEN, "after the CRC")
+    return root
 end
 
 ---------------------------------------------------------------------------------------------
@@ -763,27 +768,517 @@ local function read_settings()
     settings.variant = prefs.check_crc and CRC_VARIANTS[prefs.crc_variant] or nil
     settings.big_endian = prefs.crc_byte_order == 2
     settings.heuristic = prefs.heuristic
+    settings.analysis = prefs.analysis
+    settings.per_type = prefs.serial_scope == 2
+    settings.vrpi_watchdog, settings.vrpo_watchdog = prefs.vrpi_watchdog_ms, prefs.vrpo_watchdog_ms
+    settings.vrpo_min, settings.vrpo_max = prefs.vrpo_min_ms, prefs.vrpo_max_ms
+    settings.resend, settings.resend_tolerance = prefs.resend_ms, prefs.resend_tolerance_ms
+    settings.vrci_fail, settings.vrco_give_up = prefs.vrci_fail_ms, prefs.vrco_give_up_ms
+    settings.data_size, settings.number_start = prefs.vrpo_data_size, prefs.vrpo_number_start
+    settings.burst_gap, settings.machine = prefs.burst_gap_ms, prefs.machine
 end
 
--- Calculated CRC per frame and offset (a frame may carry more than one EG-Link packet):
--- re-dissection (GUI clicks, second pass) skips the CRC. Emptied when a capture is (re)loaded
--- and when the preferences change.
+-- Per-frame memos, keyed by frame number and offset (a frame may carry more than one EG-Link
+-- packet), in chunks of 256 frames: the collector traverses a table again whenever a new object
+-- is stored in it, so small chunks keep that work from growing with the capture.
+local CHUNK_SPAN = 256 * 0x10000
+local function memo_get(memo, key)
+    local chunk = memo[floor(key / CHUNK_SPAN)]
+    if chunk then return chunk[key] end
+end
+local function memo_set(memo, key, value)
+    local i = floor(key / CHUNK_SPAN)
+    local chunk = memo[i]
+    if not chunk then
+        chunk = {}
+        memo[i] = chunk
+    end
+    chunk[key] = value
+end
+
+-- Calculated CRC per frame: re-dissection (GUI clicks, second pass) skips the CRC. Emptied when
+-- a capture is (re)loaded and when the preferences change.
 local crc_memo = {}
+
+---------------------------------------------------------------------------------------------
+-- Stream analysis (interpretation.md: serial numbers, timing, commands, VRPO split)
+-- Computed once per packet, on the first pass in capture order (pinfo.visited false), into a
+-- per-frame table of numbers plus references to shared command and burst records; every later
+-- dissection (GUI clicks in any order, tshark -2) only reads them. What needs the whole capture
+-- (never acknowledged, a burst left incomplete) is shown on visited passes only. Illegal packets
+-- are not analysed (treated as not received). All state is rebuilt in init().
+---------------------------------------------------------------------------------------------
+local results = {}     -- frame key -> analysis of that packet (false: not analysed)
+local senders = {}     -- (origin, port, direction) -> source address -> per-sender state and statistics
+local sender_list = {} -- the same, in order of first appearance (statistics)
+local serial_states = {} -- sender -> serial state (per-type scope: sender -> type -> serial state)
+local current = {}     -- command type -> {sender -> the sender's current command}
+local command_list = {} -- every command, in order of first transmission (statistics)
+
+local function reset_analysis()
+    results, senders, sender_list, serial_states = {}, {}, {}, {}
+    current, command_list = { VRCI = {}, VRCO = {} }, {}
+end
+reset_analysis()
+
+
+-- Serial classification of interpretation.md on unwrapped numbers. Open gaps are kept as ranges
+-- {low, high}; a range more than half the number space behind the highest serial can no longer
+-- be filled and is dropped (its packets stay counted in `lost`). Returns missing (>= 0) or
+-- -1 duplicate, -2 late (out of order).
+local function classify_serial(st, s)
+    local h = st.h
+    if not h then
+        st.h, st.first = s, s
+        return 0
+    end
+    local d = (s - h) % SERIAL_MODULUS
+    if d == 0 then return -1 end
+    if d < SERIAL_HALF then
+        local top = h + d
+        if floor(top / SERIAL_MODULUS) > floor(h / SERIAL_MODULUS) then st.wraps = st.wraps + 1 end
+        st.h = top
+        if d == 1 then return 0 end
+        local gaps = st.gaps
+        while gaps[1] and gaps[1][2] < top - SERIAL_HALF do table.remove(gaps, 1) end
+        gaps[#gaps + 1] = { h + 1, top - 1 }
+        st.lost = st.lost + d - 1
+        return d - 1
+    end
+    local u = h - (SERIAL_MODULUS - d)
+    if u < st.first then
+        if st.early[u] then return -1 end
+        st.early[u] = true
+        return -2
+    end
+    local gaps = st.gaps
+    for i = #gaps, 1, -1 do
+        local g = gaps[i]
+        if u >= g[1] and u <= g[2] then
+            st.lost = st.lost - 1
+            if g[1] == g[2] then
+                table.remove(gaps, i)
+            elseif u == g[1] then
+                g[1] = u + 1
+            elseif u == g[2] then
+                g[2] = u - 1
+            else
+                table.insert(gaps, i + 1, { u + 1, g[2] })
+                g[2] = u - 1
+            end
+            return -2
+        end
+    end
+    return -1
+end
+
+-- Complete: numbers start, start+1, ... each once (in any order), every packet but the last by
+-- number carries 488 bytes, the last fewer (or the data add up to the configured size).
+-- Returns the data in number order when complete, else false.
+-- A burst packet's data, or just their length where they were not kept (see analyse()).
+local function data_length(data)
+    return type(data) == "string" and #data or data
+end
+
+local function burst_data(b)
+    local n, start, by_number = b.n, settings.number_start, {}
+    for i = 1, n do
+        local k = b[3 * i - 1] - start
+        if k < 0 or k >= n or by_number[k + 1] then return false end
+        by_number[k + 1] = b[3 * i]
+    end
+    for k = 1, n - 1 do
+        if data_length(by_number[k]) ~= VRPO_MAX_DATA then return false end
+    end
+    if settings.data_size > 0 then
+        if b.size ~= settings.data_size then return false end
+    elseif data_length(by_number[n]) >= VRPO_MAX_DATA then
+        return false
+    end
+    return concat(by_number)
+end
+
+-- Seconds to milliseconds, rounded to the microsecond: capture times are doubles of the epoch,
+-- whose last bits are noise; pcap timestamps are (at most) microseconds in practice.
+local function ms(seconds)
+    return floor(seconds * 1e6 + 0.5) / 1000
+end
+
+local function analyse_commands(r, res, snd, t, frame, cid)
+    local id = r.type
+    local target = ACK_OF[id]
+    if not target then
+        local cur = current[id]
+        local cmd = cur[snd]
+        if cmd and cmd.id == cid then -- a retransmission (serial-duplicated frames never get here)
+            res.cmd, res.number = cmd, cmd.n
+            res.since, res.resend = ms(t - cmd.t1), ms(t - cmd.tlast)
+            res.spurious = cmd.ack and true or false
+            cmd.n, cmd.tlast = cmd.n + 1, t
+            snd.retransmissions = snd.retransmissions + 1
+            return
+        end
+        cmd = { id = cid, type = id, sender = snd, frame = frame, t1 = t, tlast = t, n = 1, ack = false, ack_ms = false }
+        cur[snd] = cmd -- supersedes the sender's previous command (command IDs may wrap)
+        command_list[#command_list + 1] = cmd
+        res.cmd, res.number = cmd, 0
+        return
+    end
+    local best = false -- the latest current command with this ID, from any sender
+    for _, c in pairs(current[target]) do
+        if c.id == cid and (not best or c.frame > best.frame) then best = c end
+    end
+    res.ack_of = best
+    if not best then return end
+    res.ack_ms = ms(t - best.t1)
+    if best.ack then
+        res.duplicate_ack = true
+    else
+        best.ack, best.ack_ms = frame, res.ack_ms
+        res.ack_last_ms = ms(t - best.tlast)
+    end
+end
+
+local function new_sender(name)
+    local snd = { name = name, count = {}, duplicates = 0, late = 0, retransmissions = 0, states = {},
+        last = {}, iv_min = {}, iv_max = {}, iv_sum = {}, iv_n = {},
+        -- the current VRPO burst while it has one packet: no table of its own (most bursts)
+        burst = { b = false, tlast = false, key = false, frame = false, number = false, size = false, data = false } }
+    sender_list[#sender_list + 1] = snd
+    return snd
+end
+
+-- A burst table once a second VRPO packet joins: packet i at [3i - 2] frame, [3i - 1] packet
+-- number, [3i] data (or their length where they were not kept, see analyse()). The first
+-- packet's stored result is rewritten to point to it (still on the first pass).
+local function join_burst(cur, res, frame, number, data, size)
+    local b = cur.b
+    if not b then
+        b = { cur.frame, cur.number, cur.data, n = 1, size = cur.size, top = settings.number_start - 1 }
+        cur.b = b
+        local first = memo_get(results, cur.key)
+        if type(first) == "number" then first = { serial = 0, interval = first >= 0 and first } end
+        if cur.number > b.top + 1 then first.burst_missing = b.top + 1 end
+        if cur.number > b.top then b.top = cur.number end
+        first.burst, first.burst_index = b, 1
+        memo_set(results, cur.key, first)
+    end
+    if type(res) == "number" then res = { serial = 0, interval = res >= 0 and res } end
+    local n = b.n + 1
+    b.n, b.size = n, b.size + size
+    b[3 * n - 2], b[3 * n - 1], b[3 * n] = frame, number, data
+    if number > b.top + 1 then res.burst_missing = b.top + 1 end
+    if number > b.top then b.top = number end
+    res.burst, res.burst_index = b, n
+    return res
+end
+
+-- Senders by (origin, port, direction) then source address: no string built per packet.
+local function sender_of(r, pinfo)
+    local port = pinfo.src_port
+    local k = (r.origin * 65536 + port) * 2 + (r.info.direction == "Input" and 1 or 0)
+    local by_addr = senders[k]
+    if not by_addr then
+        by_addr = {}
+        senders[k] = by_addr
+    end
+    local addr = tostring(pinfo.src)
+    local snd = by_addr[addr]
+    if not snd then
+        snd = new_sender(fmt("%s %s:%d origin 0x%04x", r.info.direction, addr, port, r.origin))
+        by_addr[addr] = snd
+    end
+    return snd
+end
+
+-- Returns the frame's result: a number for most packets (the interval, -1 for none: keeps the
+-- retained heap small for the collector), else a table.
+local function analyse(r, s, pinfo, frame, key)
+    local id = r.type
+    local t = pinfo.abs_ts
+    local snd = sender_of(r, pinfo)
+    snd.count[id] = (snd.count[id] or 0) + 1
+    local st
+    if settings.per_type then
+        st = serial_states[snd]
+        if not st then
+            st = {}
+            serial_states[snd] = st
+        end
+        local by_type = st
+        st = by_type[id]
+        if not st then
+            st = { h = false, first = false, gaps = {}, early = {}, lost = 0, wraps = 0 }
+            by_type[id] = st
+            snd.states[#snd.states + 1] = st
+        end
+    else
+        st = serial_states[snd]
+        if not st then
+            st = { h = false, first = false, gaps = {}, early = {}, lost = 0, wraps = 0 }
+            serial_states[snd] = st
+            snd.states[#snd.states + 1] = st
+        end
+    end
+    local missing = classify_serial(st, r.serial)
+    if missing == -1 then
+        snd.duplicates = snd.duplicates + 1
+    elseif missing == -2 then
+        snd.late = snd.late + 1
+    end
+    local iv = false
+    if id == "VRPI" or id == "VRPO" then -- intervals include serial duplicates
+        local last = snd.last[id]
+        if last then
+            iv = ms(t - last)
+            if not snd.iv_n[id] then
+                snd.iv_min[id], snd.iv_max[id], snd.iv_sum[id], snd.iv_n[id] = iv, iv, 0, 0
+            end
+            if iv < snd.iv_min[id] then snd.iv_min[id] = iv end
+            if iv > snd.iv_max[id] then snd.iv_max[id] = iv end
+            snd.iv_sum[id], snd.iv_n[id] = snd.iv_sum[id] + iv, snd.iv_n[id] + 1
+        end
+        snd.last[id] = t
+    end
+    local res = missing == 0 and (iv or -1) or { serial = missing, interval = iv }
+    if missing == -1 then return res end -- a duplicated frame is neither a command nor a burst packet
+    local v = r.values
+    if v.command_id then
+        if type(res) == "number" then res = { serial = 0, interval = iv } end
+        analyse_commands(r, res, snd, t, frame, v.command_id)
+    elseif r.data_len then
+        local number, size, cur = v.packet_number, r.data_len, snd.burst
+        -- The data are kept only where a reassembly may need them: a short first-numbered packet
+        -- completes a burst only alone, and then its own packet shows them (most VRPO).
+        local data = size
+        if size == VRPO_MAX_DATA or number ~= settings.number_start then
+            local start = r.decoded_end - size
+            data = sub(s, start + 1, start + size)
+        end
+        if cur.tlast and ms(t - cur.tlast) < settings.burst_gap then
+            res = join_burst(cur, res, frame, number, data, size)
+        else
+            cur.b, cur.key, cur.frame, cur.number, cur.size, cur.data = false, key, frame, number, size, data
+        end
+        cur.tlast = t
+    end
+    return res
+end
+
+-- Machine-specific sub-dissectors, keyed by the "Machine" preference (see the README and
+-- dissector/examples/crane.lua): they get the (reassembled) periodic data or the 16 bytes of
+-- command data as their tvb; pinfo.private.vm110_type tells them the packet type.
+-- A machine plugin that loads first creates the tables itself (see the example).
+local function table_named(name, description)
+    local ok, t = pcall(DissectorTable.get, name)
+    if ok and t then return t end
+    return DissectorTable.new(name, description, ftypes.STRING)
+end
+local periodic_table = table_named("vm110.periodic_data", "VM-110 periodic data (machine-specific)")
+local command_table = table_named("vm110.command_data", "VM-110 command data (machine-specific)")
+
+local function sub_dissect(table_, data_tvb, pinfo, tree)
+    if settings.machine ~= "" then table_:try(settings.machine, data_tvb, pinfo, tree) end
+end
+
+local function generated(root, field, range, value)
+    local item = tree_add(root, field, range, value)
+    set_generated(item)
+    return item
+end
+
+local function add_serial_analysis(res, tvb, root, r, pinfo)
+    local missing = res.serial
+    if missing == 0 then return end
+    local range = tvb_range(tvb, 8, 2)
+    if missing > 0 then
+        add_expert(generated(root, F.serial_missing, range, missing), E.serial_gap,
+            fmt("%d packet(s) missing before serial %d", missing, r.serial))
+        pinfo.cols.info:append(fmt(" [%d lost]", missing))
+    elseif missing == -1 then
+        add_expert(generated(root, F.serial_duplicate, range, 1), E.serial_duplicate,
+            fmt("Serial %d already received from this sender", r.serial))
+        pinfo.cols.info:append(" [duplicate]")
+    else
+        add_expert(generated(root, F.serial_out_of_order, range, 1), E.serial_out_of_order,
+            fmt("Serial %d arrived late (out of order)", r.serial))
+        pinfo.cols.info:append(" [out of order]")
+    end
+end
+
+local function add_interval(iv, tvb, root, r)
+    local item = generated(root, F.interval, tvb_range(tvb, 0, ID_LEN), iv)
+    if r.type == "VRPI" then
+        if iv > settings.vrpi_watchdog then
+            add_expert(item, E.watchdog_vrpi, fmt("VRPI interval %.3f ms above the controller watchdog of %d ms",
+                iv, settings.vrpi_watchdog))
+        end
+    elseif iv > settings.vrpo_watchdog then
+        add_expert(item, E.watchdog_vrpo, fmt("VRPO interval %.3f ms above the base unit watchdog of %d ms "
+            .. "(ES-Link relays open if an RU is armed)", iv, settings.vrpo_watchdog))
+    elseif (iv < settings.vrpo_min and iv >= settings.burst_gap) or iv > settings.vrpo_max then
+        -- (intervals below the burst gap are packets of one split burst, not the period)
+        add_expert(item, E.vrpo_interval, fmt("VRPO interval %.3f ms outside the recommended %d-%d ms",
+            iv, settings.vrpo_min, settings.vrpo_max))
+    end
+end
+
+local function timeout_of(cmd)
+    return cmd.type == "VRCI" and settings.vrci_fail or settings.vrco_give_up
+end
+
+local function add_command_analysis(res, tvb, root, pinfo, visited)
+    local range = tvb_range(tvb, PREFIX_LEN, 2)
+    local cmd = res.cmd
+    if cmd then
+        if res.number > 0 then
+            local item = generated(root, F.retransmission_of, range, cmd.frame)
+            add_expert(item, E.retransmission, fmt("Retransmission %d of the command in frame %d, %.3f ms after it",
+                res.number, cmd.frame, res.since))
+            generated(root, F.retransmission_number, range, res.number)
+            generated(root, F.since_first, range, res.since)
+            local resend = generated(root, F.resend_interval, range, res.resend)
+            if math.abs(res.resend - settings.resend) > settings.resend_tolerance then
+                add_expert(resend, E.resend_interval, fmt("Resent after %.3f ms, nominal %d ms", res.resend, settings.resend))
+            end
+            if res.spurious then
+                add_expert(item, E.spurious_retransmission,
+                    fmt("Retransmission after the acknowledgement in frame %d", cmd.ack))
+            end
+            pinfo.cols.info:append(fmt(" [retransmission %d of frame %d]", res.number, cmd.frame))
+        end
+        if cmd.ack then
+            local item = generated(root, F.ack_in, range, cmd.ack)
+            if res.number == 0 and cmd.ack_ms > timeout_of(cmd) then
+                add_expert(item, E.ack_late, fmt("Acknowledged after %.3f ms, later than %d ms%s", cmd.ack_ms,
+                    timeout_of(cmd), cmd.type == "VRCI" and ": the base unit reports failure" or ""))
+            end
+        elseif visited and res.number == 0 then
+            add_expert(root, E.never_acked, fmt("%s command %d is never acknowledged in the capture", cmd.type, cmd.id))
+        end
+        return
+    end
+    local target = res.ack_of
+    if not target then
+        add_expert(root, E.ack_without_command, "No current command with this command ID")
+        pinfo.cols.info:append(" [no command]")
+        return
+    end
+    generated(root, F.ack_to, range, target.frame)
+    local item = generated(root, F.ack_time, range, res.ack_ms)
+    if res.duplicate_ack then
+        add_expert(item, E.duplicate_ack, fmt("The command of frame %d was already acknowledged in frame %d",
+            target.frame, target.ack))
+        pinfo.cols.info:append(" [duplicate ack]")
+        return
+    end
+    generated(root, F.ack_time_last, range, res.ack_last_ms)
+    if res.ack_ms > timeout_of(target) then
+        add_expert(item, E.ack_late, fmt("Acknowledged after %.3f ms, later than %d ms", res.ack_ms, timeout_of(target)))
+    end
+end
+
+local BURST_FRAMES_SHOWN = 64
+
+local function add_burst(res, tvb, root, pinfo, tree, visited)
+    local b = res.burst
+    local n = b.n
+    local bt = tree_add(root, tvb_range(tvb, PREFIX_LEN, 2), fmt("VRPO burst: %d packet(s), %d bytes", n, b.size))
+    set_generated(bt)
+    local range = tvb_range(tvb, PREFIX_LEN, 2)
+    generated(bt, F.burst_packets, range, n)
+    generated(bt, F.burst_size, range, b.size)
+    -- (VRPO packets closer than the burst gap that never end a burst would make this list long)
+    for i = 1, n < BURST_FRAMES_SHOWN and n or BURST_FRAMES_SHOWN do generated(bt, F.burst_frame, range, b[3 * i - 2]) end
+    if res.burst_missing then
+        add_expert(bt, E.burst_missing, fmt("Packet number %d missing before this one", res.burst_missing))
+    end
+    if b[3 * n - 2] ~= pinfo.number then return end -- the data are shown with the burst's last packet
+    local data = b.reassembled
+    if data == nil then
+        data = burst_data(b)
+        if visited then b.reassembled = data end -- final once every frame has been seen
+    end
+    if not data then
+        if visited then
+            add_expert(generated(bt, F.burst_complete, range, false), E.burst_incomplete,
+                "Incomplete burst: its data are not reassembled")
+        end
+        return
+    end
+    generated(bt, F.burst_complete, range, true)
+    local data_tvb = ByteArray.new(data, true):tvb("Reassembled periodic data")
+    tree_add(bt, F.reassembled, tvb_range(data_tvb, 0, #data))
+    pinfo.cols.info:append(fmt(" [reassembled %d bytes]", #data))
+    sub_dissect(periodic_table, data_tvb, pinfo, tree)
+end
+
+-- A VRPO packet alone in its burst (so far, on the first pass): complete when it is numbered
+-- first and its data end the burst.
+local function add_single_burst(r, tvb, root, pinfo, tree, visited)
+    local number, size, start = r.values.packet_number, r.data_len, settings.number_start
+    local range = tvb_range(tvb, PREFIX_LEN, 2)
+    local full = settings.data_size > 0 and size == settings.data_size
+        or settings.data_size == 0 and size < VRPO_MAX_DATA
+    if number == start and full then
+        generated(root, F.burst_complete, range, true)
+        if size > 0 then sub_dissect(periodic_table, tvb_range(tvb, PREFIX_LEN + VRPO_HEADER_SIZE, size):tvb(), pinfo, tree) end
+        return
+    end
+    if number > start then
+        add_expert(root, E.burst_missing, fmt("Packet number %d missing before this one", start))
+    end
+    if visited then
+        add_expert(generated(root, F.burst_complete, range, false), E.burst_incomplete,
+            "Incomplete burst: its data are not reassembled")
+    end
+end
+
+local function add_analysis(res, r, tvb, pinfo, tree, root)
+    local visited = pinfo.visited
+    add_serial_analysis(res, tvb, root, r, pinfo)
+    if res.interval then add_interval(res.interval, tvb, root, r) end
+    if res.cmd or res.ack_of ~= nil then add_command_analysis(res, tvb, root, pinfo, visited) end
+    if res.burst then
+        add_burst(res, tvb, root, pinfo, tree, visited)
+    elseif r.data_len and res.serial ~= -1 then
+        add_single_burst(r, tvb, root, pinfo, tree, visited)
+    end
+    if r.values.command_data and settings.machine ~= "" then
+        pinfo.private.vm110_type = r.type
+        sub_dissect(command_table, tvb_range(tvb, PREFIX_LEN + 6, 16):tvb(), pinfo, tree)
+    end
+end
 
 function vm110.init()
     crc_memo = {}
+    reset_analysis()
     read_settings()
 end
 
 local function dissect(tvb, pinfo, tree)
     local key = pinfo.number * 0x10000 + tvb:offset()
-    local r = decode(tvb:raw(), settings.variant, settings.big_endian, pinfo.visited and crc_memo[key] or nil)
-    if r.crc_calc then crc_memo[key] = r.crc_calc end
+    local s = tvb:raw()
+    local r = decode(s, settings.variant, settings.big_endian, pinfo.visited and memo_get(crc_memo, key) or nil)
+    if r.crc_calc then memo_set(crc_memo, key, r.crc_calc) end
     r.info_text = summary(r)
     local cols = pinfo.cols
     cols.protocol = "VM110"
     cols.info = r.info_text
-    add_tree(r, tvb, tree)
+    local root = add_tree(r, tvb, tree)
+    if settings.analysis then
+        local res = memo_get(results, key)
+        if res == nil and not pinfo.visited then
+            res = not next(r.problems) and analyse(r, s, pinfo, pinfo.number, key)
+            memo_set(results, key, res)
+        end
+        if type(res) == "number" then
+            if res >= 0 then add_interval(res, tvb, root, r) end
+            if r.data_len then add_single_burst(r, tvb, root, pinfo, tree, pinfo.visited) end
+        elseif res then
+            add_analysis(res, r, tvb, pinfo, tree, root)
+        end
+    end
     return r.n
 end
 vm110.dissector = dissect
@@ -813,6 +1308,7 @@ end
 
 function vm110.prefs_changed()
     crc_memo = {}
+    reset_analysis()
     read_settings()
     register_ports()
 end
@@ -821,3 +1317,54 @@ read_settings()
 register_ports()
 udp_port:add_for_decode_as(vm110)
 vm110:register_heuristic("udp", heuristic)
+
+---------------------------------------------------------------------------------------------
+-- Statistics: `tshark -z vm110,stat` and Statistics → VM-110 EG-Link (GUI), from the state the
+-- analysis built on the first pass.
+---------------------------------------------------------------------------------------------
+local STAT_TYPES = { "VRPI", "VRPO", "VRCI", "VRCO", "VRAI", "VRAO" }
+
+local function stats_text()
+    local out = { "VM-110 EG-Link stream statistics" }
+    if not settings.analysis then out[2] = "(stream analysis is off: preference vm110.analysis)" end
+    local acked, unacked = {}, {}
+    for _, cmd in ipairs(command_list) do
+        local t = cmd.ack and acked or unacked
+        t[cmd.sender] = (t[cmd.sender] or 0) + 1
+    end
+    for _, snd in ipairs(sender_list) do
+        local lost, wraps = 0, 0
+        for _, st in ipairs(snd.states) do lost, wraps = lost + st.lost, wraps + st.wraps end
+        local types = {}
+        for _, id in ipairs(STAT_TYPES) do
+            if snd.count[id] then types[#types + 1] = fmt("%s %d", id, snd.count[id]) end
+        end
+        out[#out + 1] = "Sender " .. snd.name
+        out[#out + 1] = "  Packets: " .. concat(types, ", ")
+        out[#out + 1] = fmt("  Serial: lost %d, duplicates %d, out of order %d, wraps %d", lost, snd.duplicates,
+            snd.late, wraps)
+        out[#out + 1] = fmt("  Commands: acked %d, unacknowledged %d, retransmissions %d", acked[snd] or 0,
+            unacked[snd] or 0, snd.retransmissions)
+        for _, id in ipairs({ "VRPI", "VRPO" }) do
+            local n = snd.iv_n[id]
+            if n and n > 0 then
+                out[#out + 1] = fmt("  %s interval (ms): min %.3f, avg %.3f, max %.3f (%d intervals)", id,
+                    snd.iv_min[id], snd.iv_sum[id] / n, snd.iv_max[id], n)
+            end
+        end
+    end
+    return concat(out, "\n") .. "\n"
+end
+
+if register_stat_cmd_arg then
+    register_stat_cmd_arg("vm110,stat", function()
+        local tap = Listener.new("frame", "vm110")
+        function tap.draw() io.write(stats_text()) end
+    end)
+end
+-- GUI only: these functions exist when Wireshark runs with a GUI.
+if gui_enabled and gui_enabled() and register_menu then
+    register_menu("VM-110 EG-Link/Stream statistics", function()
+        TextWindow.new("VM-110 EG-Link stream statistics"):set(stats_text())
+    end, MENU_STAT_GENERIC)
+end

@@ -25,7 +25,6 @@ ETH_HEADER_LEN = 14
 # Ethernet + IPv4 + UDP headers in one go: the constant runs as bytes, the rest as numbers.
 _HEAD = struct.Struct("!16sHH4sH12sHH")
 _PAD_BELOW = ETH_MIN_FRAME - ETH_HEADER_LEN - IP_HEADER_LEN - UDP_HEADER_LEN    # payload sizes to pad
-_PADDING = [bytes(_PAD_BELOW - size) for size in range(_PAD_BELOW)]
 _PCAP_GLOBAL = struct.Struct("<IHHiIII")
 _PCAP_RECORD = struct.Struct("<IIII")
 _PCAP_MAGIC_US = 0xA1B2C3D4
@@ -61,6 +60,7 @@ class UdpFlow:
         self._ttl_proto = struct.pack("!HBB", 0, ttl, IPPROTO_UDP)
         self._addresses = self._src + self._dst + struct.pack("!HH", src_port, dst_port)
         self._ip_id = 0
+        self._shapes: dict[int, tuple[int, int, int, int, bool, bytes]] = {}    # by payload size
         # Constant parts of both checksums, folded once: the IP header without length and id,
         # and the UDP pseudo-header plus ports.
         ip_const = int.from_bytes(struct.pack("!BBHHHBBH4s4s", 0x45, 0, 0, 0, 0, ttl, IPPROTO_UDP, 0,
@@ -71,23 +71,30 @@ class UdpFlow:
 
     def frame(self, payload: bytes) -> bytes:
         """One Ethernet frame carrying `payload`, padded to the Ethernet minimum."""
-        size = len(payload)
-        udp_len = UDP_HEADER_LEN + size
-        total = IP_HEADER_LEN + udp_len
+        try:
+            total, udp_len, ip_base, udp_base, odd, pad = self._shapes[len(payload)]
+        except KeyError:
+            total, udp_len, ip_base, udp_base, odd, pad = self._shape(len(payload))
         ip_id = self._ip_id
         self._ip_id = (ip_id + 1) & 0xFFFF
-        s = (self._ip_const + total + ip_id) % _ONES
+        s = (ip_base + ip_id) % _ONES
         ip_sum = _ONES - s if s else 0
         words = int.from_bytes(payload, "big")
-        if size & 1:
+        if odd:
             words <<= 8                        # an odd payload is summed with a zero byte after it
-        s = (self._udp_const + 2 * udp_len + words) % _ONES
+        s = (udp_base + words) % _ONES
         udp_sum = _ONES - s if s else _ONES    # a computed 0 goes on the wire as 0xFFFF
-        frame = _HEAD.pack(self._head, total, ip_id, self._ttl_proto, ip_sum, self._addresses, udp_len,
-                           udp_sum) + payload
-        if size < _PAD_BELOW:
-            frame += _PADDING[size]
-        return frame
+        return _HEAD.pack(self._head, total, ip_id, self._ttl_proto, ip_sum, self._addresses, udp_len,
+                          udp_sum) + payload + pad
+
+    def _shape(self, size: int) -> tuple[int, int, int, int, bool, bytes]:
+        """What depends on the payload size alone: IP total and UDP lengths, the constant parts
+        of both checksums with them, odd length, padding to the Ethernet minimum."""
+        udp_len = UDP_HEADER_LEN + size
+        total = IP_HEADER_LEN + udp_len
+        shape = self._shapes[size] = (total, udp_len, self._ip_const + total, self._udp_const + 2 * udp_len,
+                                      bool(size & 1), bytes(max(0, _PAD_BELOW - size)))
+        return shape
 
 
 class _Writer:

@@ -78,7 +78,7 @@ class Impairer:
         self._rng = random.Random(f"{name}:{imp.seed}")
         self._variant, self._order = variant, order
         self._delay = ms(imp.delay_ms)
-        self._loss, self._duplicate = imp.loss, imp.duplicate
+        self._loss, self._duplicate, self._only = imp.loss, imp.duplicate, imp.only
         self._rare = bool(imp.corrupt or imp.jitter_ms or imp.reorder)   # checked in that order, after loss
         self.set_origin(t0)
 
@@ -99,11 +99,9 @@ class Impairer:
                 return []
             if self._mangles:
                 data, problems = self._scheduled_mangle(data, now, ptype)
-        only = self.imp.only
-        if only and ptype not in only:
+        if self._only and ptype not in self._only:
             return [(now, data, problems)]
-        rng = self._rng
-        loss, duplicate = self._loss, self._duplicate
+        rng, loss, duplicate = self._rng, self._loss, self._duplicate
         if loss and rng.random() * 100 < loss:
             return []
         delay = self._delay

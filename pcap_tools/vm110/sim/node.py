@@ -7,10 +7,12 @@ attached. Subclasses override the `on_*` hooks.
 """
 from __future__ import annotations
 
+import functools
 import struct
-from zlib import crc32
+import types
 from collections import Counter
 from typing import Any, Callable, NamedTuple, Optional
+from zlib import crc32
 
 from .. import constants as C
 from ..crc import _REVERSE, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, MASK, check_byte_order, crc_function
@@ -18,6 +20,7 @@ from ..decode import crc_span, decode
 from .clock import US_PER_S
 
 _HEADER = struct.Struct("<4sHHHHI")
+_RX_HEADER = struct.Struct("<4s2xHHH4x")      # what a receiver needs: ID, origin, serial, size
 _TYPES = {t.value.encode(): t for t in C.PacketType}
 _RAW_IDS = {t: t.value.encode() for t in C.PacketType}
 _NAMES = {t: t.value for t in C.PacketType}
@@ -98,6 +101,19 @@ class Node:
 
     direction: C.Direction = C.Direction.INPUT
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        # CPython caches attribute lookups in each code object for one class at a time: `send` and
+        # `receive`, run for every packet by a base unit and a controller in turn, would keep
+        # missing. Each node class gets its own copy of their code: the same logic, own caches.
+        for name in ("send", "receive"):
+            if name not in cls.__dict__:
+                shared = getattr(cls, name)
+                own = types.FunctionType(shared.__code__.replace(), shared.__globals__, name,
+                                         shared.__defaults__, shared.__closure__)
+                own.__kwdefaults__ = shared.__kwdefaults__
+                setattr(cls, name, functools.update_wrapper(own, shared))
+
     def __init__(self, name: str, *, origin: int = 0, serial_start: int = 0,
                  stalls: tuple[tuple[int, int], ...] = (), crc: str = DEFAULT_VARIANT,
                  crc_order: str = DEFAULT_BYTE_ORDER, printer: Optional[Callable[[str], None]] = None) -> None:
@@ -140,16 +156,16 @@ class Node:
         """The runner's send function: takes (bytes, now µs, Meta)."""
         self._send = send
         if type(self).transmit is Node.transmit:
-            self.transmit = send            # type: ignore[method-assign]  # no hook in between: call it directly
+            self.transmit = send      # type: ignore[method-assign]  # no hook overridden: straight to the runner
 
     def _bind_direct(self) -> None:
-        """Without stalls ahead, `tick` and `next_due` are `_tick` and `_due` themselves (unless a
-        subclass overrides them): the runners call them for every packet."""
+        """Without stalls ahead, `tick` and `next_due` are `_tick` and `_due` themselves, bound on
+        the instance (unless a subclass overrides them): one call less per packet for the runners."""
         cls = type(self)
         if cls.tick is Node.tick:
-            self.tick = self._tick              # type: ignore[method-assign]
+            self.tick = self._tick    # type: ignore[method-assign]
         if cls.next_due is Node.next_due:
-            self.next_due = self._due           # type: ignore[method-assign]
+            self.next_due = self._due   # type: ignore[method-assign]
 
     def start(self, now: int) -> None:
         """Called once by the runner before the first tick."""
@@ -181,7 +197,7 @@ class Node:
             self.illegal.update(problems)
             self.on_illegal(data, list(problems), now, src)
             return
-        raw_id, _, origin, serial, size, _ = _HEADER.unpack_from(data)
+        raw_id, origin, serial, size = _RX_HEADER.unpack_from(data)
         ptype = _TYPES[raw_id]
         try:
             self._received[raw_id] += 1

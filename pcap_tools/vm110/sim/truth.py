@@ -24,7 +24,7 @@ _COMMAND_TYPES = (C.PacketType.VRCI, C.PacketType.VRCO)
 _VRPO = C.PacketType.VRPO
 _BAD_CRC = C.Problem.BAD_CRC.value
 _NAMES = {t: t.value for t in C.PacketType}
-_MODULUS, _HALF = C.SERIAL_MODULUS, C.SERIAL_HALF
+_MODULUS, _HALF, _VRPO_MAX_DATA = C.SERIAL_MODULUS, C.SERIAL_HALF, C.VRPO_MAX_DATA
 
 
 def _time(t_us: int) -> float:
@@ -175,7 +175,7 @@ class _Sender:
             return
         if len(burst) == 1:                        # most bursts: one packet
             meta = burst[0]
-            complete = meta.key == 0 and meta.data_len < C.VRPO_MAX_DATA
+            complete = meta.key == 0 and meta.data_len < _VRPO_MAX_DATA
         else:
             complete = _complete_burst([(meta.key, meta.data_len) for meta in burst])
         if complete:
@@ -254,9 +254,11 @@ class GroundTruth:
             elif not track.add(serial, t):
                 continue      # a repeated serial is a duplicate, not a transmission or an ack
             if ptype is _VRPO:
-                if sender.burst and t - sender.burst_t >= burst_gap:
+                burst = sender.burst
+                if burst and t - sender.burst_t >= burst_gap:
                     sender.close_burst()
-                sender.burst.append(meta)
+                    burst = sender.burst
+                burst.append(meta)
                 sender.burst_t = t
             elif ptype in commands:
                 commands[ptype].command(sender.id, meta.key, frame, t)

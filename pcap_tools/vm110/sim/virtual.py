@@ -88,13 +88,17 @@ class VirtualNetwork:
         nodes = [s.node for s in self.stations]
         for node in nodes:
             node.start(0)
-        heap, pop = self._heap, heapq.heappop
-        receivers = [[(nodes.index(n), n) for n in group] for group in self._receivers]
+        heap, push, pop = self._heap, heapq.heappush, heapq.heappop
+        # Methods bound once: the call sites below see both kinds of node, which defeats the
+        # interpreter's attribute caches.
+        receivers = [[(nodes.index(n), n, n.receive, n.next_due) for n in group] for group in self._receivers]
+        ticks = [(node.tick, node.next_due) for node in nodes]
         never = end + 1
         # Each node's next deadline, recomputed only when that node has run.
         dues = [node.next_due() for node in nodes]
         dues = [never if d is None else d for d in dues]
         ips = [s.ip for s in self.stations]
+        push(heap, (never + 1, -1, -1, b"", (), None))     # a last entry past the end: never empty
         clock = self.clock
         batch: list[Arrival] = []
         append, room = batch.append, BATCH
@@ -112,7 +116,7 @@ class VirtualNetwork:
                 first = dues.index(low)
             if low < now:             # overdue: e.g. a command waiting for the previous one
                 low = now
-            if heap and heap[0][0] <= low:
+            if heap[0][0] <= low:
                 arrival = pop(heap)
                 now = arrival[0]
                 if now >= end:
@@ -126,18 +130,18 @@ class VirtualNetwork:
                     append, room = batch.append, BATCH
                 _, _, index, data, problems, _ = arrival
                 src = ips[index]
-                for r, node in receivers[index]:
+                for r, node, receive, next_due in receivers[index]:
                     node.vouched = problems       # it built this packet: skip the legality check
-                    node.receive(data, now, src)
-                    due = node.next_due()
+                    receive(data, now, src)
+                    due = next_due()
                     dues[r] = never if due is None else due
             else:
                 if low >= end:
                     break
                 clock.t = now = low
-                node = nodes[first]
-                node.tick(now)
-                due = node.next_due()
+                tick, next_due = ticks[first]
+                tick(now)
+                due = next_due()
                 dues[first] = never if due is None else due
         if batch:
             yield batch
