@@ -813,11 +813,10 @@ local senders = {}     -- (origin, port, direction) -> source address -> per-sen
 local sender_list = {} -- the same, in order of first appearance (statistics)
 local serial_states = {} -- sender -> serial state (per-type scope: sender -> type -> serial state)
 local current = {}     -- command type -> {sender -> the sender's current command}
-local command_list = {} -- every command, in order of first transmission (statistics)
 
 local function reset_analysis()
     results, senders, sender_list, serial_states = {}, {}, {}, {}
-    current, command_list = { VRCI = {}, VRCO = {} }, {}
+    current = { VRCI = {}, VRCO = {} }
 end
 reset_analysis()
 
@@ -920,7 +919,7 @@ local function analyse_commands(r, res, snd, t, frame, cid)
         end
         cmd = { id = cid, type = id, sender = snd, frame = frame, t1 = t, tlast = t, n = 1, ack = false, ack_ms = false }
         cur[snd] = cmd -- supersedes the sender's previous command (command IDs may wrap)
-        command_list[#command_list + 1] = cmd
+        snd.commands = snd.commands + 1
         res.cmd, res.number = cmd, 0
         return
     end
@@ -935,12 +934,14 @@ local function analyse_commands(r, res, snd, t, frame, cid)
         res.duplicate_ack = true
     else
         best.ack, best.ack_ms = frame, res.ack_ms
+        best.sender.acked = best.sender.acked + 1
         res.ack_last_ms = ms(t - best.tlast)
     end
 end
 
 local function new_sender(name)
     local snd = { name = name, count = {}, duplicates = 0, late = 0, retransmissions = 0, states = {},
+        commands = 0, acked = 0,
         last = {}, iv_min = {}, iv_max = {}, iv_sum = {}, iv_n = {},
         -- the current VRPO burst while it has one packet: no table of its own (most bursts)
         burst = { b = false, tlast = false, key = false, frame = false, number = false, size = false, data = false } }
@@ -1327,11 +1328,6 @@ local STAT_TYPES = { "VRPI", "VRPO", "VRCI", "VRCO", "VRAI", "VRAO" }
 local function stats_text()
     local out = { "VM-110 EG-Link stream statistics" }
     if not settings.analysis then out[2] = "(stream analysis is off: preference vm110.analysis)" end
-    local acked, unacked = {}, {}
-    for _, cmd in ipairs(command_list) do
-        local t = cmd.ack and acked or unacked
-        t[cmd.sender] = (t[cmd.sender] or 0) + 1
-    end
     for _, snd in ipairs(sender_list) do
         local lost, wraps = 0, 0
         for _, st in ipairs(snd.states) do lost, wraps = lost + st.lost, wraps + st.wraps end
@@ -1343,8 +1339,8 @@ local function stats_text()
         out[#out + 1] = "  Packets: " .. concat(types, ", ")
         out[#out + 1] = fmt("  Serial: lost %d, duplicates %d, out of order %d, wraps %d", lost, snd.duplicates,
             snd.late, wraps)
-        out[#out + 1] = fmt("  Commands: acked %d, unacknowledged %d, retransmissions %d", acked[snd] or 0,
-            unacked[snd] or 0, snd.retransmissions)
+        out[#out + 1] = fmt("  Commands: acked %d, unacknowledged %d, retransmissions %d", snd.acked,
+            snd.commands - snd.acked, snd.retransmissions)
         for _, id in ipairs({ "VRPI", "VRPO" }) do
             local n = snd.iv_n[id]
             if n and n > 0 then

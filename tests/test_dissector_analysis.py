@@ -345,3 +345,38 @@ def test_readme_analysis_filters(tshark, tmp_path):
                 assert matched, f"{expression!r} matches nothing"
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_preferences_type_scope_and_thresholds(tshark, tmp_path):
+    """Per-type serial scope equals vm110.analysis.serials (the Python analysis) run per sender and
+    type; a watchdog preference moves the threshold."""
+    from vm110.analysis.serials import classify
+    capture = CAPTURES / "loss.pcapng"
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            rows, _ = run_fields(ws, capture, ["-2"], prefs={**ON, "vm110.serial_scope": "type",
+                                                            "vm110.vrpi_watchdog_ms": "100"})
+            relaxed, _ = run_fields(ws, CAPTURES / "bu-watchdog.pcap", ["-2"],
+                                    prefs={**ON, "vm110.vrpo_watchdog_ms": "3200"})
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    streams = defaultdict(list)
+    for r in legal_rows(rows):
+        streams[(r.sender, r.get("vm110.type"))].append(r)
+    assert len(streams) > 2
+    seen = Counter()
+    for key, stream in streams.items():
+        want = classify([r.int("vm110.serial") for r in stream], [r.time for r in stream])
+        gaps = [(r.int("vm110.serial"), r.int("vm110.analysis.serial_missing")) for r in stream
+                if r.get("vm110.analysis.serial_missing")]
+        assert gaps == [((after + count + 1) % C.SERIAL_MODULUS, count) for after, count, _ in want.gaps], key
+        assert [r.int("vm110.serial") for r in stream if r.get("vm110.analysis.serial_duplicate")] \
+            == want.duplicate_serials, key
+        assert [r.int("vm110.serial") for r in stream if r.get("vm110.analysis.serial_out_of_order")] \
+            == want.out_of_order_serials, key
+        seen.update(gaps=len(want.gaps), duplicates=want.duplicates, late=want.out_of_order)
+    assert min(seen["gaps"], seen["duplicates"], seen["late"]) > 0
+    vrpi = [r for r in legal_rows(rows) if r.get("vm110.type") == "VRPI" and r.get("vm110.analysis.interval")]
+    assert vrpi and all(r.has("watchdog_vrpi") == (r.float("vm110.analysis.interval") > 100) for r in vrpi)
+    assert not any(r.has("watchdog_vrpo") for r in relaxed)

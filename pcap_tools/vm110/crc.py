@@ -19,15 +19,14 @@ DEFAULT_BYTE_ORDER: ByteOrder = "little"
 MASK = 0xFFFFFFFF
 
 REVERSE_BITS = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))  # for bytes.translate
-_REVERSE = REVERSE_BITS
 
 
 def _bitrev32(value: int) -> int:
-    return int.from_bytes(value.to_bytes(4, "little").translate(_REVERSE), "big")
+    return int.from_bytes(value.to_bytes(4, "little").translate(REVERSE_BITS), "big")
 
 
 def _mpeg2(data: bytes) -> int:
-    return _bitrev32(zlib.crc32(data.translate(_REVERSE)) ^ MASK)
+    return _bitrev32(zlib.crc32(data.translate(REVERSE_BITS)) ^ MASK)
 
 
 def _bzip2(data: bytes) -> int:

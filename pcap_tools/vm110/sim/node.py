@@ -7,15 +7,12 @@ attached. Subclasses override the `on_*` hooks.
 """
 from __future__ import annotations
 
-import functools
 import struct
-import types
 from collections import Counter
 from typing import Any, Callable, NamedTuple, Optional
-from zlib import crc32
 
 from .. import constants as C
-from ..crc import _REVERSE, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, MASK, check_byte_order, crc_function
+from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, check_byte_order, crc_function, trailer_function
 from ..decode import crc_span, decode
 from .clock import US_PER_S
 
@@ -27,7 +24,7 @@ _NAMES = {t: t.value for t in C.PacketType}
 _RAW_NAMES = {raw: t.value for raw, t in _TYPES.items()}
 _HANDLERS = {t: f"on_{t.value.lower()}" for t in C.PacketType}
 _new = tuple.__new__     # builds a NamedTuple without its Python-level __new__
-_PREFIX_LEN, _CRC_LEN, _REVISION = C.PREFIX_LEN, C.CRC_LEN, C.SUPPORTED_REVISION    # hot paths
+_PREFIX_LEN, _REVISION = C.PREFIX_LEN, C.SUPPORTED_REVISION    # hot paths
 
 
 class Rx(NamedTuple):
@@ -52,14 +49,6 @@ class Meta(NamedTuple):
 
 
 Send = Callable[[bytes, int, Meta], None]
-
-
-def _trailer_function(variant: str, order: str) -> Optional[Callable[[bytes], bytes]]:
-    """The CRC trailer function; None for the default, which `Node.send` computes inline."""
-    if (variant, order) == ("mpeg2", "little"):
-        return None
-    fn = crc_function(variant)
-    return lambda body: fn(body).to_bytes(C.CRC_LEN, order)
 
 
 def inspect(data: bytes, crc_fn: Callable[[bytes], int], order: str) -> tuple[list[str], Optional[C.PacketType]]:
@@ -101,19 +90,6 @@ class Node:
 
     direction: C.Direction = C.Direction.INPUT
 
-    def __init_subclass__(cls, **kwargs: Any) -> None:
-        super().__init_subclass__(**kwargs)
-        # CPython caches attribute lookups in each code object for one class at a time: `send` and
-        # `receive`, run for every packet by a base unit and a controller in turn, would keep
-        # missing. Each node class gets its own copy of their code: the same logic, own caches.
-        for name in ("send", "receive"):
-            if name not in cls.__dict__:
-                shared = getattr(cls, name)
-                own = types.FunctionType(shared.__code__.replace(), shared.__globals__, name,
-                                         shared.__defaults__, shared.__closure__)
-                own.__kwdefaults__ = shared.__kwdefaults__
-                setattr(cls, name, functools.update_wrapper(own, shared))
-
     def __init__(self, name: str, *, origin: int = 0, serial_start: int = 0,
                  stalls: tuple[tuple[int, int], ...] = (), crc: str = DEFAULT_VARIANT,
                  crc_order: str = DEFAULT_BYTE_ORDER, printer: Optional[Callable[[str], None]] = None) -> None:
@@ -123,7 +99,7 @@ class Node:
         self.stalls = tuple(sorted(stalls))      # (start, end) in µs: neither sends nor receives
         self.crc, self.crc_order = crc, check_byte_order(crc_order)
         self._crc_fn = crc_function(crc)
-        self._trailer = _trailer_function(crc, self.crc_order)
+        self._trailer = trailer_function(crc, self.crc_order)
         self._send: Optional[Send] = None
         self.printer = printer
         self.listeners: list[Callable[[dict[str, Any]], None]] = []   # called with every log entry
@@ -218,14 +194,7 @@ class Node:
         serial = self.serial
         self.serial = (serial + 1) & 0xFFFF
         body = _HEADER.pack(_RAW_IDS[ptype], _REVISION, self.origin, serial, len(payload), 0) + payload
-        trailer = self._trailer
-        if trailer is None:
-            # The default, MPEG-2 stored little-endian, straight as bytes: MPEG-2 is the reflected
-            # CRC of bit-reversed bytes, reflected back, which is a byte-wise reflection of the
-            # big-endian bytes once stored little-endian.
-            data = body + (crc32(body.translate(_REVERSE)) ^ MASK).to_bytes(_CRC_LEN, "big").translate(_REVERSE)
-        else:
-            data = body + trailer(body)
+        data = body + self._trailer(body)
         try:
             self._sent[ptype] += 1
         except KeyError:

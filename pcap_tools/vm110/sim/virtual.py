@@ -88,7 +88,7 @@ class VirtualNetwork:
         nodes = [s.node for s in self.stations]
         for node in nodes:
             node.start(0)
-        heap, push, pop = self._heap, heapq.heappush, heapq.heappop
+        heap, pop = self._heap, heapq.heappop
         # Methods bound once: the call sites below see both kinds of node, which defeats the
         # interpreter's attribute caches.
         receivers = [[(nodes.index(n), n, n.receive, n.next_due) for n in group] for group in self._receivers]
@@ -98,7 +98,6 @@ class VirtualNetwork:
         dues = [node.next_due() for node in nodes]
         dues = [never if d is None else d for d in dues]
         ips = [s.ip for s in self.stations]
-        push(heap, (never + 1, -1, -1, b"", (), None))     # a last entry past the end: never empty
         clock = self.clock
         batch: list[Arrival] = []
         append, room = batch.append, BATCH
@@ -116,7 +115,7 @@ class VirtualNetwork:
                 first = dues.index(low)
             if low < now:             # overdue: e.g. a command waiting for the previous one
                 low = now
-            if heap[0][0] <= low:
+            if heap and heap[0][0] <= low:
                 arrival = pop(heap)
                 now = arrival[0]
                 if now >= end:
