@@ -1184,9 +1184,9 @@ local BURST_FRAMES_SHOWN = 64
 local function add_burst(res, tvb, root, pinfo, tree, visited)
     local b = res.burst
     local n = b.n
-    local bt = tree_add(root, tvb_range(tvb, PREFIX_LEN, 2), fmt("VRPO burst: %d packet(s), %d bytes", n, b.size))
-    set_generated(bt)
     local range = tvb_range(tvb, PREFIX_LEN, 2)
+    local bt = tree_add(root, range, fmt("VRPO burst: %d packet(s), %d bytes", n, b.size))
+    set_generated(bt)
     generated(bt, F.burst_packets, range, n)
     generated(bt, F.burst_size, range, b.size)
     -- (VRPO packets closer than the burst gap that never end a burst would make this list long)

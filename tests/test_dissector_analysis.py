@@ -380,3 +380,29 @@ def test_preferences_type_scope_and_thresholds(tshark, tmp_path):
     vrpi = [r for r in legal_rows(rows) if r.get("vm110.type") == "VRPI" and r.get("vm110.analysis.interval")]
     assert vrpi and all(r.has("watchdog_vrpi") == (r.float("vm110.analysis.interval") > 100) for r in vrpi)
     assert not any(r.has("watchdog_vrpo") for r in relaxed)
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_burst_preferences(tshark, tmp_path):
+    """Numbering from 1 and a configured periodic data size: a crafted burst reassembles, one with a
+    skipped packet number does not."""
+    from vm110.layers import VM110, VRPO
+    data = bytes(i % 251 for i in range(808))
+    parts = [data[:C.VRPO_MAX_DATA], data[C.VRPO_MAX_DATA:]]
+    packets = [bytes(VM110(serial=1) / VRPO(packet_number=1, periodic_data=parts[0])),
+               bytes(VM110(serial=2) / VRPO(packet_number=2, periodic_data=parts[1])),
+               bytes(VM110(serial=3) / VRPO(packet_number=1, periodic_data=parts[0])),
+               bytes(VM110(serial=4) / VRPO(packet_number=3, periodic_data=parts[1]))]
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            pcap = ws.dir / "bursts.pcap"
+            T.write_pcap(pcap, packets, [0, 100, 100_000, 100_100])
+            rows, _ = run_fields(ws, pcap, ["-2"], prefs={**ON, "vm110.vrpo_number_start": "1",
+                                                        "vm110.vrpo_data_size": "808"})
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert [r.get("vm110.burst.complete") in ("1", "True") for r in rows] == [False, True, False, False]
+    assert bytes.fromhex(rows[1].get("vm110.reassembled").replace(":", "")) == data
+    assert rows[3].get("vm110.burst.complete") in ("0", "False") and rows[3].has("burst_incomplete")
+    assert rows[3].has("burst_missing") and not rows[3].get("vm110.reassembled")
+    assert [r.get("vm110.burst.frame") for r in rows] == ["1|2", "1|2", "3|4", "3|4"]
