@@ -1,11 +1,34 @@
-"""Suite-wide settings."""
+"""Suite-wide settings and fixtures."""
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
+import uuid
+from typing import Iterator
 
+import pytest
 from hypothesis import settings
 
 # CI runs the same examples every time, so that a red run is reproducible; locally they vary.
 settings.register_profile("ci", derandomize=True, deadline=None)
 settings.register_profile("dev", deadline=None)
 settings.load_profile("ci" if os.environ.get("CI") else "dev")
+
+
+@pytest.fixture
+def netns() -> Iterator[str]:
+    """A network namespace of the test's own whose only interface is its loopback, with multicast
+    routed there: multicast tests never reach a real interface. Skips without root or iproute2."""
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        pytest.skip("needs root and iproute2 to make a network namespace")
+    name = f"vm110-{uuid.uuid4().hex[:8]}"
+    if subprocess.run(["ip", "netns", "add", name], capture_output=True).returncode != 0:
+        pytest.skip("cannot create a network namespace here")
+    try:
+        for cmd in (["link", "set", "lo", "up"], ["link", "set", "lo", "multicast", "on"],
+                    ["route", "add", "224.0.0.0/4", "dev", "lo"]):
+            subprocess.run(["ip", "-n", name, *cmd], check=True, capture_output=True)
+        yield name
+    finally:
+        subprocess.run(["ip", "netns", "del", name], capture_output=True)

@@ -4,33 +4,11 @@ so the multicast never reaches a real interface. Skipped without root or `ip net
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import subprocess
 import sys
-import uuid
 
-import pytest
 
 from vm110 import constants as C
-
-pytestmark = pytest.mark.skipif(os.geteuid() != 0 or shutil.which("ip") is None,
-                                reason="needs root and iproute2 to make a network namespace")
-
-
-@pytest.fixture
-def netns():
-    name = f"vm110-fuzz-{uuid.uuid4().hex[:8]}"
-    if subprocess.run(["ip", "netns", "add", name], capture_output=True).returncode != 0:
-        pytest.skip("cannot create a network namespace here")
-    try:
-        for cmd in (["link", "set", "lo", "up"], ["link", "set", "lo", "multicast", "on"],
-                    ["route", "add", "224.0.0.0/4", "dev", "lo"]):
-            subprocess.run(["ip", "-n", name, *cmd], check=True, capture_output=True)
-        yield name
-    finally:
-        subprocess.run(["ip", "netns", "del", name], capture_output=True)
-
 
 def test_fuzz_over_multicast_inside_a_namespace(netns, tmp_path):
     inside = ["ip", "netns", "exec", netns, sys.executable, "-m", "vm110"]

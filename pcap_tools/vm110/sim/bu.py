@@ -13,7 +13,6 @@ One serial counter for everything it sends (interpretation.md).
 """
 from __future__ import annotations
 
-import collections
 import random
 import struct
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ from .. import encode
 from ..decode import VRPI_LAYOUT
 from .clock import ms, seconds
 from .node import Node, Rx
+from .outbox import CommandOutbox, OutboxEvents
 from .remote import VRPI_INDEX, VRPI_NAMES, Remote
 
 _CMD_ID = struct.Struct("<H")
@@ -49,10 +49,13 @@ class BaseUnitConfig:
     seed: int = 0
 
 
-class BaseUnit(Node):
+class BaseUnit(CommandOutbox, Node):
     """Simulated BU. Sends Input packets with its origin."""
 
     direction = C.Direction.INPUT
+    command_type = C.PacketType.VRCI
+    command_events = OutboxEvents("command_sent", "command_acked", "command_failed", "vrao_ignored")
+    command_label = "OP CMD"
 
     def __init__(self, remote: Optional[Remote] = None, config: Optional[BaseUnitConfig] = None,
                  name: str = "bu", **node: Any) -> None:
@@ -63,51 +66,32 @@ class BaseUnit(Node):
         self._rng = random.Random(f"bu:{cfg.seed}")
         self._glink = tuple((seconds(a), seconds(b)) for a, b in cfg.glink)
         self._period_us, self._watchdog_us = ms(cfg.vrpi_period_ms), ms(cfg.vrpo_watchdog_ms)
-        self._resend_us, self._fail_us = ms(cfg.vrci_resend_ms), ms(cfg.vrci_fail_ms)
         self._t0 = 0
         self._next_vrpi = 0
         self.last_vrpo: Optional[int] = None
         self.watchdog_tripped = False
-        self.next_command_id = cfg.command_id_start & 0xFFFF
-        self._commands: collections.deque[tuple[int, bytes]] = collections.deque()
-        self._next_periodic_command: Optional[int] = None
-        self._command_until: Optional[int] = None
-        self.pending: Optional[dict[str, Any]] = None     # the VRCI in flight
+        self._outbox_init(cfg.command_id_start, ms(cfg.vrci_resend_ms), ms(cfg.vrci_fail_ms))
         self._acks: list[tuple[int, int]] = []            # delayed VRAI: (due, command ID)
         self.delivered: dict[int, int] = {}               # last VRCO command ID handed to the RU app
 
     def start(self, now: int) -> None:
         self._t0 = self._next_vrpi = now
         self.last_vrpo = now      # grace period from start-up
-        self._commands = collections.deque((now + t, d) for t, d in self.remote.commands)
-        if self.remote.command_every:
-            self._next_periodic_command = now + self.remote.command_every
-        self._command_until = now + self.remote.command_until if self.remote.command_until else None
+        every, until = self.remote.command_every, self.remote.command_until
+        self._outbox_start(((now + t, d) for t, d in self.remote.commands), now + every if every else None,
+                           every, now + until if until else None)
 
     def _due(self) -> Optional[int]:
         due = self._next_vrpi
-        pending = self.pending
-        if pending is not None:
-            t = min(pending["next"], pending["first"] + self._fail_us)
-            due = t if t < due else due
-        else:
-            t = self._next_periodic_command
-            if t is not None and t < due:
-                due = t
-            if self._commands and self._commands[0][0] < due:
-                due = self._commands[0][0]
+        if self._command_due < due:
+            due = self._command_due
         if self._acks and self._acks[0][0] < due:
             due = self._acks[0][0]
         return due
 
     def _tick(self, now: int) -> None:
-        pending = self.pending
-        if pending is not None:                  # _tick_vrci only when it has something to do
-            if now >= pending["next"] or now - pending["first"] >= self._fail_us:
-                self._tick_vrci(now)
-        elif ((self._commands and self._commands[0][0] <= now)
-              or (self._next_periodic_command is not None and self._next_periodic_command <= now)):
-            self._tick_vrci(now)
+        if now >= self._command_due:
+            self._tick_commands(now)
         while self._acks and self._acks[0][0] <= now:
             self.send(C.PacketType.VRAI, encode.ack_payload(self._acks[0][1]), now, key=self._acks[0][1])
             self._acks.pop(0)
@@ -156,53 +140,8 @@ class BaseUnit(Node):
     def on_resume(self, now: int) -> None:
         self.last_vrpo = now
 
-    # --- operator commands (VRCI) -------------------------------------------------------------
-    def queue_command(self, data: bytes, at: int) -> None:
-        """The operator issues a command at `at` (µs); sent once the previous one is done."""
-        self._commands.append((at, data))
-
-    def _tick_vrci(self, now: int) -> None:
-        cfg = self.config
-        if self.pending is not None:
-            if now - self.pending["first"] >= self._fail_us:
-                self.event(now, "command_failed", command_id=self.pending["id"],
-                           transmissions=self.pending["count"])
-                self.pending = None
-            elif now >= self.pending["next"]:
-                self._send_vrci(now)
-                return
-        if self.pending is not None:
-            return
-        data = None
-        if self._commands and self._commands[0][0] <= now:
-            data = self._commands.popleft()[1]
-        elif self._next_periodic_command is not None and self._next_periodic_command <= now:
-            data = f"OP CMD {self.next_command_id}".encode()
-            self._next_periodic_command += self.remote.command_every
-            if self._command_until is not None and self._next_periodic_command >= self._command_until:
-                self._next_periodic_command = None
-        if data is not None:
-            self.pending = {"id": self.next_command_id, "data": data, "first": now, "next": now, "count": 0}
-            self.next_command_id = (self.next_command_id + 1) & 0xFFFF
-            self._send_vrci(now)
-
-    def _send_vrci(self, now: int) -> None:
-        p = self.pending
-        assert p is not None
-        self.send(C.PacketType.VRCI, encode.command_payload(p["id"], p["data"]), now, key=p["id"])
-        p["count"] += 1
-        p["next"] = now + self._resend_us
-        if p["count"] == 1:
-            self.event(now, "command_sent", command_id=p["id"])
-
-    def on_vrao(self, rx: Rx, now: int) -> None:
-        command_id = _CMD_ID.unpack_from(rx.payload)[0]
-        if self.pending is not None and self.pending["id"] == command_id:
-            self.event(now, "command_acked", command_id=command_id,
-                       latency_ms=(now - self.pending["first"]) / 1000, transmissions=self.pending["count"])
-            self.pending = None
-        else:
-            self.event(now, "vrao_ignored", command_id=command_id)
+    # --- operator commands (VRCI): `CommandOutbox` ---------------------------------------------
+    on_vrao = CommandOutbox.on_command_ack
 
     # --- controller commands (VRCO) -----------------------------------------------------------
     def on_vrco(self, rx: Rx, now: int) -> None:

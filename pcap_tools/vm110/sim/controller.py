@@ -13,7 +13,6 @@ Subclasses (the fuzzer's planted bugs) override the hooks: `on_vrci`, `on_vrai`,
 """
 from __future__ import annotations
 
-import collections
 import struct
 from dataclasses import dataclass, field
 from typing import Any, Optional
@@ -22,6 +21,7 @@ from .. import constants as C
 from .. import encode
 from .clock import ms, seconds
 from .node import Node, Rx
+from .outbox import CommandOutbox, OutboxEvents
 
 _CMD_ID = struct.Struct("<H")
 _VRPO = C.PacketType.VRPO
@@ -52,69 +52,55 @@ class ControllerConfig:
     extra: dict[str, Any] = field(default_factory=dict)  # free room for subclasses
 
 
-class Controller(Node):
+class Controller(CommandOutbox, Node):
     """Reference controller. Sends Output packets with origin 0."""
 
     direction = C.Direction.OUTPUT
+    command_type = C.PacketType.VRCO
+    command_events = OutboxEvents("vrco_sent", "vrco_acked", "vrco_gave_up", "vrai_ignored")
+    command_label = "ALARM"
 
     def __init__(self, config: Optional[ControllerConfig] = None, name: str = "controller", **node: Any) -> None:
         self.config = cfg = config or ControllerConfig()
         node.setdefault("stalls", tuple((seconds(a), seconds(b)) for a, b in cfg.stalls))
         super().__init__(name, origin=0, **node)
         self._period, self._glink_period = ms(cfg.period_ms), ms(cfg.glink_period_ms)
-        self._vrpi_timeout_us, self._vrco_timeout_us = ms(cfg.vrpi_timeout_ms), ms(cfg.vrco_timeout_ms)
+        self._vrpi_timeout_us = ms(cfg.vrpi_timeout_ms)
         self._vrpi_alarm_after = self._vrpi_timeout_us + 1
-        self._resend_us = ms(cfg.vrco_resend_ms)
         self._glink = tuple((seconds(a), seconds(b)) for a, b in cfg.glink)
-        self._t0 = self._next_vrpo = 0
+        self._next_vrpo = 0
         self.cycle = 0
         self.last_vrpi: Optional[int] = None
         self.vrpi_alarm = False
         self.ru_armed = False
         self.executed: dict[int, int] = {}        # origin -> last executed command ID
-        self._commands: collections.deque[tuple[int, bytes]] = collections.deque(
-            sorted((seconds(t), d) for t, d in cfg.commands))
-        self._next_periodic_command = seconds(cfg.command_every_s) if cfg.command_every_s > 0 else None
-        self.next_command_id = cfg.command_id_start & 0xFFFF
-        self.pending: Optional[dict[str, Any]] = None   # the VRCO in flight
+        self._outbox_init(cfg.command_id_start, ms(cfg.vrco_resend_ms), ms(cfg.vrco_timeout_ms))
+        self._commands.extend(sorted((seconds(t), d) for t, d in cfg.commands))   # made absolute in `start`
         self._data_tail = bytes(i & 0xFF for i in range(4, cfg.data_size))
 
     # --- schedule -----------------------------------------------------------------------------
     def start(self, now: int) -> None:
-        self._t0 = self._next_vrpo = now
+        self._next_vrpo = now
         self.last_vrpi = now     # the watchdog runs from start-up: no VRPI at all is an error too
-        if self._next_periodic_command is not None:
-            self._next_periodic_command += now
-        self._commands = collections.deque((t + now, d) for t, d in self._commands)
+        cfg = self.config
+        every = seconds(cfg.command_every_s)
+        self._outbox_start(((t + now, d) for t, d in self._commands),
+                           every + now if cfg.command_every_s > 0 else None, every,
+                           now + seconds(cfg.command_until_s) if cfg.command_until_s else None)
 
     def _due(self) -> Optional[int]:
         due = self._next_vrpo
         if not self.vrpi_alarm and self.last_vrpi is not None:
             t = self.last_vrpi + self._vrpi_alarm_after     # the first µs past the timeout
             due = t if t < due else due
-        pending = self.pending
-        if pending is not None:
-            t = min(pending["next"], pending["first"] + self._vrco_timeout_us)
-            due = t if t < due else due
-        else:
-            t = self._next_periodic_command
-            if t is not None and t < due:
-                due = t
-            if self._commands and self._commands[0][0] < due:
-                due = self._commands[0][0]
-        return due
+        return self._command_due if self._command_due < due else due
 
     def _tick(self, now: int) -> None:
         if not self.vrpi_alarm and self.last_vrpi is not None and now - self.last_vrpi > self._vrpi_timeout_us:
             self.vrpi_alarm = True
             self.event(self.last_vrpi + self._vrpi_timeout_us, "vrpi_timeout", last_vrpi=self.last_vrpi / 1e6)
-        pending = self.pending
-        if pending is not None:                  # _tick_vrco only when it has something to do
-            if now >= pending["next"] or now - pending["first"] >= self._vrco_timeout_us:
-                self._tick_vrco(now)
-        elif ((self._commands and self._commands[0][0] <= now)
-              or (self._next_periodic_command is not None and self._next_periodic_command <= now)):
-            self._tick_vrco(now)
+        if now >= self._command_due:
+            self._tick_commands(now)
         if now >= self._next_vrpo:
             first = self.config.first_packet_number
             for index, chunk in enumerate(self.vrpo_payloads(now)):
@@ -175,52 +161,8 @@ class Controller(Node):
         else:
             self.event(now, "executed", command_id=command_id, origin=f"0x{origin:04x}", data=text)
 
-    def on_vrai(self, rx: Rx, now: int) -> None:
-        command_id = _CMD_ID.unpack_from(rx.payload)[0]
-        if self.pending is not None and self.pending["id"] == command_id:
-            self.event(now, "vrco_acked", command_id=command_id,
-                       latency_ms=(now - self.pending["first"]) / 1000, transmissions=self.pending["count"])
-            self.pending = None
-        else:
-            self.event(now, "vrai_ignored", command_id=command_id)
-
-    # --- own commands (VRCO) ------------------------------------------------------------------
-    def queue_command(self, data: bytes, at: int) -> None:
-        """Send a VRCO with `data` at time `at` (µs) or as soon as the one in flight is done."""
-        self._commands.append((at, data))
-
-    def _tick_vrco(self, now: int) -> None:
-        cfg = self.config
-        if self.pending is not None:
-            if now - self.pending["first"] >= self._vrco_timeout_us:
-                self.event(now, "vrco_gave_up", command_id=self.pending["id"], transmissions=self.pending["count"])
-                self.pending = None
-            elif now >= self.pending["next"]:
-                self._send_vrco(now)
-                return
-        if self.pending is not None:
-            return
-        data = None
-        if self._commands and self._commands[0][0] <= now:
-            data = self._commands.popleft()[1]
-        elif self._next_periodic_command is not None and self._next_periodic_command <= now:
-            data = f"ALARM {self.next_command_id}".encode()
-            self._next_periodic_command += seconds(cfg.command_every_s)
-            if cfg.command_until_s and self._next_periodic_command >= self._t0 + seconds(cfg.command_until_s):
-                self._next_periodic_command = None
-        if data is not None:
-            self.pending = {"id": self.next_command_id, "data": data, "first": now, "next": now, "count": 0}
-            self.next_command_id = (self.next_command_id + 1) & 0xFFFF
-            self._send_vrco(now)
-
-    def _send_vrco(self, now: int) -> None:
-        p = self.pending
-        assert p is not None
-        self.send(C.PacketType.VRCO, encode.command_payload(p["id"], p["data"]), now, key=p["id"])
-        p["count"] += 1
-        p["next"] = now + self._resend_us
-        if p["count"] == 1:
-            self.event(now, "vrco_sent", command_id=p["id"])
+    # --- own commands (VRCO): `CommandOutbox` -------------------------------------------------
+    on_vrai = CommandOutbox.on_command_ack     # completes the VRCO in flight (`self.pending`)
 
     def summary(self) -> dict[str, Any]:
         """Counters for logs and tests."""
