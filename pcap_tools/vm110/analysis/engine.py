@@ -48,6 +48,7 @@ _SNIFF = 256                                       # EG-Link packets looked at t
 _SNIFF_CHUNK = 1 << 16
 PARALLEL_MIN_BYTES = 32 << 20                      # smaller files: one process is quicker
 MAX_WORKERS = 4
+IDLE_FRACTION = 0.9                                # share of a core's idleness that counts it as free
 WORKERS_ENV = "VM110_ANALYZE_WORKERS"              # processes reading one large pcap (1: no split)
 SPLIT_WINDOW = 1 << 20
 CHAIN = 16                                         # record headers that must look right in a row
@@ -70,9 +71,12 @@ def crc_matches(data: bytes, end: int) -> set[tuple[str, str]]:
 
 def idle_cores() -> int:
     """Cores not busy with other work (by the load average), at least 1, at most MAX_WORKERS:
-    reading parts in parallel only pays when the cores are free."""
+    reading parts in parallel only pays when the cores are free. A core counts as idle when at
+    least a tenth of it is: the 1-minute average still carries the work that just led up to this
+    run (often this very process), so rounding to the nearest core would keep one process on a
+    machine that has just become idle."""
     cores = os.cpu_count() or 1
-    return max(1, min(MAX_WORKERS, cores, int(cores - os.getloadavg()[0] + 0.5)))
+    return max(1, min(MAX_WORKERS, cores, int(cores - os.getloadavg()[0] + IDLE_FRACTION)))
 
 
 def _read_part(job: tuple) -> Collected:
