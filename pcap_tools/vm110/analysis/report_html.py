@@ -88,7 +88,15 @@ class Chart:
         if self.x0 <= v <= self.x1:
             self.parts.append(f'<line class="marker" x1="{self.x(v):.1f}" x2="{self.x(v):.1f}" y1="{MT}" '
                               f'y2="{H - MB}" stroke="{color}" stroke-dasharray="4 3"/>'
-                              f'<text x="{self.x(v) + 3:.1f}" y="{MT + 11}" fill="{color}">{_e(label)}</text>')
+                              + self._vlabel(self.x(v), color, label))
+
+    @staticmethod
+    def _vlabel(x: float, color: str, label: str) -> str:
+        """The label right of its line, or left of it when the line is in the plot's right half
+        (where the text would run past the edge)."""
+        right_half = x > (ML + W - MR) / 2
+        anchor, dx = ("end", -3) if right_half else ("start", 3)
+        return f'<text x="{x + dx:.1f}" y="{MT + 11}" text-anchor="{anchor}" fill="{color}">{_e(label)}</text>'
 
     def hline(self, v: float, color: str, label: str) -> None:
         if self.y0 <= v <= self.y1:
