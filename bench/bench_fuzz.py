@@ -17,23 +17,17 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
-from vm110.fuzz import cases
-from vm110.fuzz.oracles import Limits
-from vm110.fuzz.runner import start_target
-from vm110.fuzz.session import Session, Settings
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from loopback import free_ports  # noqa: E402
+from vm110.fuzz import cases  # noqa: E402
+from vm110.fuzz.oracles import Limits  # noqa: E402
+from vm110.fuzz.runner import start_target  # noqa: E402
+from vm110.fuzz.session import Session, Settings  # noqa: E402
 
 SEED = 1
-
-
-def free_ports(count: int) -> list[int]:
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 def main() -> None:

@@ -20,6 +20,7 @@ import pytest
 from scapy.layers.inet import UDP
 from scapy.utils import PcapReader
 
+from loopback import free_ports
 from planted.bugs import BUGS
 from vm110 import constants as C
 from vm110.decode import decode
@@ -27,16 +28,6 @@ from vm110.fuzz import cases
 
 PLANTED = Path(__file__).resolve().parent / "planted" / "run.py"
 SEED = 1
-
-
-def free_ports(count: int) -> list[int]:
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 def controller_cmd(bug: str, rx: int, listen: int) -> str:

@@ -6,11 +6,11 @@ few seconds of wall-clock time.
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 from collections import Counter
 
+from loopback import LOOPBACK, free_ports
 from vm110 import constants as C
 from vm110.decode import decode
 from vm110.sim.bu import BaseUnit, BaseUnitConfig
@@ -19,8 +19,6 @@ from vm110.sim.impair import Impairer, Impairment
 from vm110.sim.realtime import RealtimeRunner
 from vm110.sim.remote import Remote
 from vm110.sim.transport import UdpConfig, UdpTransport
-
-LOOPBACK = "127.0.0.1"
 
 
 class RecordingBU(BaseUnit):
@@ -112,16 +110,6 @@ def test_illegal_packets_are_ignored_and_counted():
     assert len(acked) == 1 and acked[0]["transmissions"] == 2
     assert ids(ctl, "executed") == [acked[0]["command_id"]] and ctl.sent["VRAO"] == 1
     assert not ctl.events("vrpi_timeout") and not bu.events("vrpo_watchdog")
-
-
-def free_ports(n: int) -> list[int]:
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
-    for s in socks:
-        s.bind((LOOPBACK, 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 def test_cli_simulators_talk_over_loopback():

@@ -222,6 +222,12 @@ class FastEngine:
                 got.merge(later)
         return got
 
+    def _advance(self, reader: CaptureReader, chunks, pos: int) -> Optional[bytes]:
+        """Report progress and move the fused loops on to the next chunk (None at the end)."""
+        if self.progress is not None:
+            self.progress(reader.bytes_read + pos, reader.size)
+        return reader.next_chunk(chunks, pos)
+
     def _fused_pcap(self, got: Collected, reader: CaptureReader, layout, variant: str, order: str,
                     start: Optional[int] = None, stop: Optional[int] = None) -> int:
         """Walk the records of a little-endian Ethernet pcap (from `start` to `stop`, offsets of
@@ -295,12 +301,7 @@ class FastEngine:
             reader.frames = frame
             if data is None:
                 break
-            if self.progress is not None:
-                self.progress(reader.bytes_read + pos, reader.size)
-            try:
-                data = chunks.send(pos)
-            except StopIteration:
-                data = None
+            data = self._advance(reader, chunks, pos)
         got.udp = frame - reader.non_udp        # every frame the reader did not count as other
         return valid
 
@@ -398,12 +399,7 @@ class FastEngine:
             reader.first_ts, reader.last_ts = first, (ts if frame else None)
             if data is None:
                 break
-            if self.progress is not None:
-                self.progress(reader.bytes_read + pos, reader.size)
-            try:
-                data = chunks.send(pos)
-            except StopIteration:
-                data = None
+            data = self._advance(reader, chunks, pos)
         got.udp = frame - reader.non_udp
         return valid
 

@@ -200,10 +200,15 @@ class CaptureReader:
                     self.first_ts = sec + frac * scale
             self.frames = frame
             yield out
-            try:
-                data = chunks.send(pos)
-            except StopIteration:
-                data = None
+            data = self.next_chunk(chunks, pos)
+    @staticmethod
+    def next_chunk(chunks: Generator[bytes, int, None], pos: int) -> Optional[bytes]:
+        """The next chunk of `raw_chunks`, resuming at `pos` of the current one; None at the end."""
+        try:
+            return chunks.send(pos)
+        except StopIteration:
+            return None
+
     # -- pcapng --------------------------------------------------------------------------------
     def pcapng_block(self, data: bytes, pos: int, btype: int, blen: int) -> Optional[tuple]:
         """Take in one pcapng block (its header checked by the caller). Section and interface
@@ -303,10 +308,7 @@ class CaptureReader:
                     append((ts, *got, frame))
             self.frames = frame
             yield out
-            try:
-                data = chunks.send(pos)
-            except StopIteration:
-                data = None
+            data = self.next_chunk(chunks, pos)
 
     @staticmethod
     def _idb_options(data: bytes, pos: int, end: int, e: str) -> tuple[int, float, int]:
