@@ -126,45 +126,52 @@ for i = 1, 8 do RU_FIELDS["switch" .. i] = true end
 
 ---------------------------------------------------------------------------------------------
 -- 2. CRC engine
--- Slicing by 4 with the `bit` library (LuaBitOp, which Wireshark ships with Lua 5.2 and 5.4
--- alike): per 4 bytes one string.byte call, two bit calls and four lookups in 256-entry
--- tables that stay in the CPU cache. (A 64K-entry XOR table with no calls at all measured
--- slower inside tshark: the lookups miss the cache.) Registers are LuaBitOp's signed 32 bits.
+-- Slicing by 16 with the `bit` library (LuaBitOp, which Wireshark ships with Lua 5.2 and 5.4
+-- alike): per 16 bytes one string.byte call, two bit calls and sixteen lookups in 256-entry
+-- tables; C calls, not arithmetic, are what costs in Lua. Then slicing by 4, then bytes.
+-- (A 64K-entry XOR table with no calls at all measured slower inside tshark: cache misses.)
+-- Registers are LuaBitOp's signed 32 bits.
 ---------------------------------------------------------------------------------------------
 local bit = bit or require("bit")
 local bxor, band, lshift, rshift = bit.bxor, bit.band, bit.lshift, bit.rshift
 local TWO32 = 4294967296
+local SLICES = 16
 
--- The register after 8 zero bits, bit by bit: builds the tables only.
-local function shift8(r, reflected)
-    for _ = 1, 8 do
-        if reflected then
-            local low = band(r, 1)
-            r = rshift(r, 1)
-            if low ~= 0 then r = bxor(r, 0xEDB88320) end
-        else
-            local high = band(r, 0x80000000)
-            r = lshift(r, 1)
-            if high ~= 0 then r = bxor(r, 0x04C11DB7) end
-        end
-    end
-    return r
+-- The register after one zero byte.
+local function zero_byte(r, reflected, T)
+    if reflected then return bxor(rshift(r, 8), T[band(r, 255)]) end
+    return bxor(lshift(r, 8), T[rshift(r, 24)])
 end
 
--- T8[v]: the register after one byte, from v in the byte consumed next. Wk[v]: the register
--- after four zero bytes, from v in byte k of the register (k = 1 the low byte). By linearity
--- the register after four bytes is W1[x0] ^ W2[x1] ^ W3[x2] ^ W4[x3], x = register ^ word.
+-- S[j][v]: the register after the rest of a 16-byte block when byte j of the block (j = 0
+-- first) is v and everything else is zero; S[15] is the byte-at-a-time table. By linearity the
+-- register after a block is the XOR of S[j][x_j], x = the block with the register XORed into
+-- its first four bytes. Blocks of 4 use S[12..15] the same way.
 local function build_engine(reflected)
-    local T8, W = {}, { {}, {}, {}, {} }
+    local T = {}
     for v = 0, 255 do
-        T8[v] = shift8(reflected and v or lshift(v, 24), reflected)
-        for k = 1, 4 do
-            local r = lshift(v, 8 * (k - 1))
-            for _ = 1, 4 do r = shift8(r, reflected) end
-            W[k][v] = r
+        local r = reflected and v or lshift(v, 24)
+        for _ = 1, 8 do
+            if reflected then
+                local low = band(r, 1)
+                r = rshift(r, 1)
+                if low ~= 0 then r = bxor(r, 0xEDB88320) end
+            else
+                local high = band(r, 0x80000000)
+                r = lshift(r, 1)
+                if high ~= 0 then r = bxor(r, 0x04C11DB7) end
+            end
         end
+        T[v] = r
     end
-    return { reflected = reflected, T8 = T8, W1 = W[1], W2 = W[2], W3 = W[3], W4 = W[4] }
+    local S = { [SLICES - 1] = T }
+    for j = SLICES - 2, 0, -1 do
+        local next_, this = S[j + 1], {}
+        for v = 0, 255 do this[v] = zero_byte(next_[v], reflected, T) end
+        S[j] = this
+    end
+    S.reflected = reflected
+    return S
 end
 
 local ENGINES = { [false] = build_engine(false), [true] = build_engine(true) }
@@ -177,39 +184,59 @@ local CRC_VARIANTS = {
     { name = "jamcrc", label = "CRC-32/JAMCRC", reflected = true, xorout = false },
 }
 
--- CRC of the first len bytes of s, as an unsigned number.
+-- CRC of the first len bytes of s, as an unsigned number. The register's byte consumed first
+-- is its low byte when reflected, its high byte otherwise: only the word order differs.
 local function crc_of(s, len, variant)
-    local e = ENGINES[variant.reflected]
-    local W1, W2, W3, W4, T8 = e.W1, e.W2, e.W3, e.W4, e.T8
-    local r, i, words = -1, 1, len - len % 4
-    if e.reflected then
-        while i <= words do
-            local a, b, c, d = byte(s, i, i + 3)
-            local x = bxor(r, ((d * 256 + c) * 256 + b) * 256 + a)
-            if x < 0 then x = x + TWO32 end
-            local x0 = x % 256
-            x = (x - x0) / 256
-            local x1 = x % 256
-            x = (x - x1) / 256
-            local x2 = x % 256
-            r = bxor(W1[x0], W2[x1], W3[x2], W4[(x - x2) / 256])
-            i = i + 4
+    local S = ENGINES[variant.reflected]
+    local S0, S1, S2, S3, S4, S5, S6, S7 = S[0], S[1], S[2], S[3], S[4], S[5], S[6], S[7]
+    local S8, S9, S10, S11, S12, S13, S14, S15 = S[8], S[9], S[10], S[11], S[12], S[13], S[14], S[15]
+    local reflected = S.reflected
+    local r, i = -1, 1
+    while i + 15 <= len do
+        local a, b, c, d, e, f, g, h, j, k, l, m, n, o, p, q = byte(s, i, i + 15)
+        local x
+        if reflected then
+            x = bxor(r, ((d * 256 + c) * 256 + b) * 256 + a)
+        else
+            x = bxor(r, ((a * 256 + b) * 256 + c) * 256 + d)
         end
-        for j = i, len do r = bxor(rshift(r, 8), T8[bxor(band(r, 255), byte(s, j))]) end
-    else
-        while i <= words do
-            local a, b, c, d = byte(s, i, i + 3)
-            local x = bxor(r, ((a * 256 + b) * 256 + c) * 256 + d)
-            if x < 0 then x = x + TWO32 end
-            local x0 = x % 256
-            x = (x - x0) / 256
-            local x1 = x % 256
-            x = (x - x1) / 256
-            local x2 = x % 256
-            r = bxor(W1[x0], W2[x1], W3[x2], W4[(x - x2) / 256])
-            i = i + 4
+        if x < 0 then x = x + TWO32 end
+        local x0 = x % 256
+        x = (x - x0) / 256
+        local x1 = x % 256
+        x = (x - x1) / 256
+        local x2 = x % 256
+        local x3 = (x - x2) / 256
+        if not reflected then x0, x1, x2, x3 = x3, x2, x1, x0 end
+        r = bxor(S0[x0], S1[x1], S2[x2], S3[x3], S4[e], S5[f], S6[g], S7[h],
+            S8[j], S9[k], S10[l], S11[m], S12[n], S13[o], S14[p], S15[q])
+        i = i + 16
+    end
+    while i + 3 <= len do
+        local a, b, c, d = byte(s, i, i + 3)
+        local x
+        if reflected then
+            x = bxor(r, ((d * 256 + c) * 256 + b) * 256 + a)
+        else
+            x = bxor(r, ((a * 256 + b) * 256 + c) * 256 + d)
         end
-        for j = i, len do r = bxor(lshift(r, 8), T8[bxor(rshift(r, 24), byte(s, j))]) end
+        if x < 0 then x = x + TWO32 end
+        local x0 = x % 256
+        x = (x - x0) / 256
+        local x1 = x % 256
+        x = (x - x1) / 256
+        local x2 = x % 256
+        local x3 = (x - x2) / 256
+        if not reflected then x0, x1, x2, x3 = x3, x2, x1, x0 end
+        r = bxor(S12[x0], S13[x1], S14[x2], S15[x3])
+        i = i + 4
+    end
+    for j = i, len do
+        if reflected then
+            r = bxor(rshift(r, 8), S15[bxor(band(r, 255), byte(s, j))])
+        else
+            r = bxor(lshift(r, 8), S15[bxor(rshift(r, 24), byte(s, j))])
+        end
     end
     if r < 0 then r = r + TWO32 end
     if variant.xorout then r = TWO32 - 1 - r end
@@ -278,22 +305,32 @@ local function warn(r, field, code)
     list[#list + 1] = code
 end
 
+-- The VRPI checks as straight-line code (generated from VRPI_CHECKS, like the readers): a
+-- loop over the table costs several lookups per field on every packet.
+local function compile_vrpi_checks()
+    local lines, names = { "local warn, names = ...", "return function(r, v)", "local disarmed = v.armed_ru == 0" }, {}
+    for i, c in ipairs(VRPI_CHECKS) do
+        local name, tests = c[1], {}
+        names[i] = c[2]
+        if c[2] then tests[#tests + 1] = fmt('if names[%d][x] == nil then warn(r, "%s", "unknown_enum") end', i, name) end
+        if c[3] then
+            tests[#tests + 1] = fmt('if x < %d or x > %d then warn(r, "%s", "out_of_range") end', c[3], c[4], name)
+        end
+        if c[5] then tests[#tests + 1] = fmt('if disarmed and x ~= 0 then warn(r, "%s", "disarmed_ru_data") end', name) end
+        if #tests > 0 then
+            lines[#lines + 1] = fmt("do local x = v.%s if x ~= nil then %s end end", name, concat(tests, " "))
+        end
+    end
+    lines[#lines + 1] = "end"
+    return assert(load(concat(lines, "\n"), "=vm110 checks", "t", {}))(warn, names)
+end
+local check_vrpi = compile_vrpi_checks()
+
 local function check_values(r, info)
     local v = r.values
     if v.vrpi_spare and v.vrpi_spare:find("[^\0]") then warn(r, "vrpi_spare", "spare_nonzero") end
     if v.command_spare and v.command_spare ~= 0 then warn(r, "command_spare", "spare_nonzero") end
-    if info.id ~= "VRPI" then return end
-    local disarmed = v.armed_ru == 0
-    for i = 1, #VRPI_CHECKS do
-        local c = VRPI_CHECKS[i]
-        local name = c[1]
-        local value = v[name]
-        if value ~= nil then
-            if c[2] and c[2][value] == nil then warn(r, name, "unknown_enum") end
-            if c[3] and (value < c[3] or value > c[4]) then warn(r, name, "out_of_range") end
-            if disarmed and c[5] and value ~= 0 then warn(r, name, "disarmed_ru_data") end
-        end
-    end
+    if info.id == "VRPI" then check_vrpi(r, v) end
 end
 
 -- The fields that fit whole in a payload cut short.
@@ -573,12 +610,74 @@ vm110.prefs.machine = Pref.string("Machine", "",
 
 ---------------------------------------------------------------------------------------------
 -- 5. Tree and Info column
--- Tree items are the dissector's main cost (each one is a TvbRange and a TreeItem userdata),
--- so the methods are fetched once (`item:add(...)` looks the method up in C on every call)
--- and generated items reuse the range of the bytes they are computed from.
+-- Every Lua tree item costs a TvbRange and a TreeItem userdata, even one Wireshark discards:
+-- far more than a C dissector pays. So a visible tree (packet details, tshark -V/-O, PDML)
+-- gets every field, with labels and subtrees; an invisible one (tshark -T fields, display
+-- filters, the GUI's packet list, taps) only the fields something references
+-- (TreeItem:referenced), flat under the protocol item. Experts are always added, on the
+-- protocol item when their field is not built. Methods are fetched once (`item:add(...)`
+-- looks the method up in C on every call).
 ---------------------------------------------------------------------------------------------
 local tree_add, tree_add_le, set_generated = TreeItem.add, TreeItem.add_le, TreeItem.set_generated
 local add_expert, append_text, tvb_range = TreeItem.add_proto_expert_info, TreeItem.append_text, Tvb.range
+local referenced = TreeItem.referenced
+
+-- A view: field name -> true when it is built; `visible` for labels and subtrees; `layouts`:
+-- per packet type, the payload layout entries that are built.
+local function with_layouts(view)
+    view.layouts = {}
+    for id, info in pairs(TYPES) do
+        local list = {}
+        for _, f in ipairs(info.layout) do
+            if view[f[1]] then list[#list + 1] = f end
+        end
+        view.layouts[id] = list
+    end
+    return view
+end
+
+local EVERY = { visible = true, any = true, columns = true }
+for name in pairs(F) do EVERY[name] = true end
+with_layouts(EVERY)
+
+-- `any`: some field is built; `columns`: the Info column is written (not by tshark -T fields).
+local function referenced_view(tree, columns)
+    local view = { visible = false, any = false, columns = columns }
+    for name, f in pairs(F) do
+        if referenced(tree, f) then
+            view[name], view.any = true, true
+        end
+    end
+    return with_layouts(view)
+end
+
+-- What is referenced changes only when Wireshark primes other fields (a new display filter,
+-- column, tap, or tshark's second pass), and it then dissects frames again (pinfo.visited):
+-- so one view serves a run of first-pass dissections, and visited ones ask per packet.
+local first_pass_view = false
+local want = EVERY -- the view of the packet being dissected
+
+local function choose_view(tree, pinfo, visited)
+    if visited then first_pass_view = false end
+    if tree.visible then return EVERY end
+    if visited then return referenced_view(tree, true) end
+    if not first_pass_view then
+        -- Without column data (tshark -T fields without _ws.col) a column reads "(info)".
+        first_pass_view = referenced_view(tree, tostring(pinfo.cols.info) ~= "(info)")
+    end
+    return first_pass_view
+end
+
+-- TvbRanges of the packet being dissected, by offset and length: a field and the generated
+-- fields derived from it share one (each is a userdata the collector must finalise).
+local ranges, range_owner, dissection = {}, {}, 0
+local function range(tvb, off, len)
+    local k = off * 65536 + len
+    if range_owner[k] == dissection then return ranges[k] end
+    local r = tvb_range(tvb, off, len)
+    ranges[k], range_owner[k] = r, dissection
+    return r
+end
 
 -- Bytes outside printable ASCII as \xNN (a packet ID can be anything).
 local function printable(text)
@@ -648,19 +747,35 @@ local function field_experts(r, item, name, value)
     end
 end
 
+-- Bytes no field owns; returns the item, or nil when there are none or it is not built.
 local function add_undecoded(tree, tvb, off, len, why)
-    if len > 0 then return append_text(tree_add(tree, F.undecoded, tvb_range(tvb, off, len)), " (" .. why .. ")") end
+    if len <= 0 or not want.undecoded then return end
+    local item = tree_add(tree, F.undecoded, range(tvb, off, len))
+    if want.visible then append_text(item, " (" .. why .. ")") end
+    return item
+end
+
+-- A generated field when it is built; else the parent, which then carries the field's experts.
+local function generated(parent, name, tvb, off, len, value)
+    if not want[name] then return parent end
+    local item = tree_add(parent, F[name], range(tvb, off, len), value)
+    set_generated(item)
+    return item
 end
 
 local function add_header(r, tvb, root)
-    local n = r.n
+    local n, visible = r.n, want.visible
     if r.type then
-        local range = tvb_range(tvb, 0, ID_LEN)
         local info = r.info
-        local item = tree_add(root, F.type, range, r.type,
-            fmt("Packet ID: %s (%s)", printable(r.type), info and info.description or "Unknown"))
+        local item = root
+        if visible then
+            item = tree_add(root, F.type, range(tvb, 0, ID_LEN), r.type,
+                fmt("Packet ID: %s (%s)", printable(r.type), info and info.description or "Unknown"))
+        elseif want.type then
+            item = tree_add(root, F.type, range(tvb, 0, ID_LEN), r.type)
+        end
         if info then
-            set_generated(tree_add(item, F.direction, range, info.direction))
+            generated(item, "direction", tvb, 0, ID_LEN, info.direction)
         else
             add_expert(item, E.unknown_id, fmt('Unknown packet ID "%s": the payload is not decoded', printable(r.type)))
         end
@@ -669,22 +784,23 @@ local function add_header(r, tvb, root)
     end
     if n <= ID_LEN then return end
     local hlen = n < PREFIX_LEN and n - ID_LEN or HEADER_LEN
-    local header = tree_add(root, tvb_range(tvb, ID_LEN, hlen), "Header")
+    local header = visible and tree_add(root, range(tvb, ID_LEN, hlen), "Header") or root
     local off = ID_LEN
     for _, h in ipairs(HEADER) do
         local name = h[1]
-        if not r[name] then break end
-        local item = tree_add_le(header, F[name], tvb_range(tvb, h[2], h[3]))
-        field_experts(r, item, name, r[name])
+        local value = r[name]
+        if not value then break end
+        local item = want[name] and tree_add_le(header, F[name], range(tvb, h[2], h[3])) or header
+        field_experts(r, item, name, value)
         if name == "revision" and r.problems.revision then
-            add_expert(item, E.revision, fmt("Revision %d is not supported: only the header is decoded", r.revision))
+            add_expert(item, E.revision, fmt("Revision %d is not supported: only the header is decoded", value))
         elseif name == "size" then
             if r.problems.size_mismatch then
                 add_expert(item, E.size_mismatch,
-                    fmt("Size %d needs a UDP payload of %d bytes, got %d", r.size, OVERHEAD + r.size, n))
+                    fmt("Size %d needs a UDP payload of %d bytes, got %d", value, OVERHEAD + value, n))
             end
             if r.problems.size_too_large then
-                add_expert(item, E.size_too_large, fmt("Size %d is above the maximum of %d", r.size, MAX_PAYLOAD))
+                add_expert(item, E.size_too_large, fmt("Size %d is above the maximum of %d", value, MAX_PAYLOAD))
             end
         end
         off = h[2] + h[3]
@@ -692,33 +808,50 @@ local function add_header(r, tvb, root)
     add_undecoded(header, tvb, off, ID_LEN + hlen - off, "header cut short")
 end
 
+local function add_relays(r, tvb, parent)
+    local item = generated(parent, "es_relays_open", tvb, PREFIX_LEN, 1, r.es_relays_open)
+    if r.es_relays_open then
+        add_expert(item, E.es_relays_open,
+            fmt("ES-Link relays open: BU state %s is below Disarmed", enum_text(BU_STATE, r.values.bu_state)))
+    end
+end
+
 local function add_payload(r, tvb, root)
     local info, v, fieldwarn = r.info, r.values, r.fieldwarn
     local plen = r.pay_end - PREFIX_LEN
-    local payload = tree_add(root, tvb_range(tvb, PREFIX_LEN, plen), fmt("%s payload (%d bytes)", r.type, plen))
-    for _, f in ipairs(r.present) do
+    local payload = root
+    if want.visible then
+        payload = tree_add(root, range(tvb, PREFIX_LEN, plen), fmt("%s payload (%d bytes)", r.type, plen))
+    end
+    local whole = r.present == info.layout
+    local relays = v.bu_state ~= nil
+    for _, f in ipairs(whole and want.layouts[r.type] or r.present) do
         local name = f[1]
-        local range = tvb_range(tvb, f.off, f[2])
-        local item = tree_add_le(payload, F[name], range)
-        if fieldwarn[name] then field_experts(r, item, name, v[name]) end
-        if name == "bu_state" then
-            local relays = tree_add(payload, F.es_relays_open, range, r.es_relays_open)
-            set_generated(relays)
-            if r.es_relays_open then
-                add_expert(relays, E.es_relays_open,
-                    fmt("ES-Link relays open: BU state %s is below Disarmed", enum_text(BU_STATE, v.bu_state)))
+        if whole or want[name] then
+            local item = tree_add_le(payload, F[name], range(tvb, f.off, f[2]))
+            if fieldwarn[name] then
+                field_experts(r, item, name, v[name])
+                fieldwarn[name] = nil -- shown
+            end
+            if name == "bu_state" then -- (es_relays_open right below the state it is derived from)
+                add_relays(r, tvb, payload)
+                relays = false
             end
         end
     end
+    for name in pairs(fieldwarn) do -- warnings of fields not built (header fields: shown already)
+        if v[name] ~= nil then field_experts(r, payload, name, v[name]) end
+    end
+    if relays then add_relays(r, tvb, payload) end
     local off = r.decoded_end
-    if r.data_len then
-        tree_add(payload, F.periodic_data, tvb_range(tvb, off - r.data_len, r.data_len))
+    if r.data_len and want.periodic_data then
+        tree_add(payload, F.periodic_data, range(tvb, off - r.data_len, r.data_len))
     end
     if r.problems.truncated then
         add_expert(payload, E.truncated, fmt("%s payload is %d bytes, its layout needs %d", r.type, plen, info.min))
         add_undecoded(payload, tvb, off, r.pay_end - off, "part of a field")
     elseif r.extra then
-        local item = add_undecoded(payload, tvb, off, r.pay_end - off, "beyond the layout")
+        local item = add_undecoded(payload, tvb, off, r.pay_end - off, "beyond the layout") or payload
         add_expert(item, E.extra_payload, fmt("%d bytes beyond the %s layout of %d bytes", r.pay_end - off, r.type, info.max))
     end
 end
@@ -726,27 +859,40 @@ end
 local CRC_VERDICT = { [CRC_BAD] = " [incorrect]", [CRC_GOOD] = " [correct]", [CRC_UNVERIFIED] = " [unverified]" }
 
 local function add_crc(r, tvb, root)
-    local range = tvb_range(tvb, r.crc_off, CRC_LEN)
-    local item = tree_add(root, F.crc, range, r.crc, fmt("CRC: 0x%08x%s", r.crc, CRC_VERDICT[r.crc_status]))
-    if r.crc_calc then set_generated(tree_add(item, F.crc_calculated, range, r.crc_calc)) end
-    set_generated(tree_add(item, F.crc_status, range, r.crc_status))
+    local item = root
+    if want.visible then
+        item = tree_add(root, F.crc, range(tvb, r.crc_off, CRC_LEN), r.crc,
+            fmt("CRC: 0x%08x%s", r.crc, CRC_VERDICT[r.crc_status]))
+    elseif want.crc then
+        item = tree_add(root, F.crc, range(tvb, r.crc_off, CRC_LEN), r.crc)
+    end
+    if r.crc_calc then generated(item, "crc_calculated", tvb, r.crc_off, CRC_LEN, r.crc_calc) end
+    generated(item, "crc_status", tvb, r.crc_off, CRC_LEN, r.crc_status)
     if r.crc_status == CRC_BAD then
         add_expert(item, E.bad_crc, fmt("Bad CRC: stored 0x%08x, calculated 0x%08x", r.crc, r.crc_calc))
     end
 end
 
 local function add_tree(r, tvb, tree)
-    local root = tree_add(tree, vm110, tvb_range(tvb, 0, r.n), "VM-110 EG-Link, " .. r.info_text)
+    local root
+    if want.visible then
+        root = tree_add(tree, vm110, range(tvb, 0, r.n), "VM-110 EG-Link, " .. r.info_text)
+    else
+        root = tree_add(tree, vm110, range(tvb, 0, r.n))
+    end
+    if not want.any and not (next(r.problems) or next(r.fieldwarn) or r.es_relays_open or r.extra) then
+        return root -- nothing referenced, nothing to flag
+    end
     add_header(r, tvb, root)
     local n = r.n
     if n < PREFIX_LEN then
         add_expert(root, E.truncated, fmt("%d bytes, shorter than the %d-byte packet ID and header", n, PREFIX_LEN))
-        return
+        return root
     end
     if not r.crc_off then
         local item = add_undecoded(root, tvb, PREFIX_LEN, n - PREFIX_LEN, "no room for a CRC") or root
         add_expert(item, E.truncated, fmt("%d bytes, too short for a CRC", n))
-        return
+        return root
     end
     if r.payload then
         add_payload(r, tvb, root)
@@ -1079,36 +1225,29 @@ local periodic_table = table_named("vm110.periodic_data", "VM-110 periodic data 
 local command_table = table_named("vm110.command_data", "VM-110 command data (machine-specific)")
 
 local function sub_dissect(table_, data_tvb, pinfo, tree)
-    if settings.machine ~= "" then table_:try(settings.machine, data_tvb, pinfo, tree) end
-end
-
-local function generated(root, field, range, value)
-    local item = tree_add(root, field, range, value)
-    set_generated(item)
-    return item
+    table_:try(settings.machine, data_tvb, pinfo, tree)
 end
 
 local function add_serial_analysis(res, tvb, root, r, pinfo)
     local missing = res.serial
     if missing == 0 then return end
-    local range = tvb_range(tvb, 8, 2)
     if missing > 0 then
-        add_expert(generated(root, F.serial_missing, range, missing), E.serial_gap,
+        add_expert(generated(root, "serial_missing", tvb, 8, 2, missing), E.serial_gap,
             fmt("%d packet(s) missing before serial %d", missing, r.serial))
         pinfo.cols.info:append(fmt(" [%d lost]", missing))
     elseif missing == -1 then
-        add_expert(generated(root, F.serial_duplicate, range, 1), E.serial_duplicate,
+        add_expert(generated(root, "serial_duplicate", tvb, 8, 2, 1), E.serial_duplicate,
             fmt("Serial %d already received from this sender", r.serial))
         pinfo.cols.info:append(" [duplicate]")
     else
-        add_expert(generated(root, F.serial_out_of_order, range, 1), E.serial_out_of_order,
+        add_expert(generated(root, "serial_out_of_order", tvb, 8, 2, 1), E.serial_out_of_order,
             fmt("Serial %d arrived late (out of order)", r.serial))
         pinfo.cols.info:append(" [out of order]")
     end
 end
 
 local function add_interval(iv, tvb, root, r)
-    local item = generated(root, F.interval, tvb_range(tvb, 0, ID_LEN), iv)
+    local item = generated(root, "interval", tvb, 0, ID_LEN, iv)
     if r.type == "VRPI" then
         if iv > settings.vrpi_watchdog then
             add_expert(item, E.watchdog_vrpi, fmt("VRPI interval %.3f ms above the controller watchdog of %d ms",
@@ -1129,16 +1268,16 @@ local function timeout_of(cmd)
 end
 
 local function add_command_analysis(res, tvb, root, pinfo, visited)
-    local range = tvb_range(tvb, PREFIX_LEN, 2)
+    local id = PREFIX_LEN -- generated fields point at the command ID
     local cmd = res.cmd
     if cmd then
         if res.number > 0 then
-            local item = generated(root, F.retransmission_of, range, cmd.frame)
+            local item = generated(root, "retransmission_of", tvb, id, 2, cmd.frame)
             add_expert(item, E.retransmission, fmt("Retransmission %d of the command in frame %d, %.3f ms after it",
                 res.number, cmd.frame, res.since))
-            generated(root, F.retransmission_number, range, res.number)
-            generated(root, F.since_first, range, res.since)
-            local resend = generated(root, F.resend_interval, range, res.resend)
+            generated(root, "retransmission_number", tvb, id, 2, res.number)
+            generated(root, "since_first", tvb, id, 2, res.since)
+            local resend = generated(root, "resend_interval", tvb, id, 2, res.resend)
             if math.abs(res.resend - settings.resend) > settings.resend_tolerance then
                 add_expert(resend, E.resend_interval, fmt("Resent after %.3f ms, nominal %d ms", res.resend, settings.resend))
             end
@@ -1149,7 +1288,7 @@ local function add_command_analysis(res, tvb, root, pinfo, visited)
             pinfo.cols.info:append(fmt(" [retransmission %d of frame %d]", res.number, cmd.frame))
         end
         if cmd.ack then
-            local item = generated(root, F.ack_in, range, cmd.ack)
+            local item = generated(root, "ack_in", tvb, id, 2, cmd.ack)
             if res.number == 0 and cmd.ack_ms > timeout_of(cmd) then
                 add_expert(item, E.ack_late, fmt("Acknowledged after %.3f ms, later than %d ms%s", cmd.ack_ms,
                     timeout_of(cmd), cmd.type == "VRCI" and ": the base unit reports failure" or ""))
@@ -1165,15 +1304,15 @@ local function add_command_analysis(res, tvb, root, pinfo, visited)
         pinfo.cols.info:append(" [no command]")
         return
     end
-    generated(root, F.ack_to, range, target.frame)
-    local item = generated(root, F.ack_time, range, res.ack_ms)
+    generated(root, "ack_to", tvb, id, 2, target.frame)
+    local item = generated(root, "ack_time", tvb, id, 2, res.ack_ms)
     if res.duplicate_ack then
         add_expert(item, E.duplicate_ack, fmt("The command of frame %d was already acknowledged in frame %d",
             target.frame, target.ack))
         pinfo.cols.info:append(" [duplicate ack]")
         return
     end
-    generated(root, F.ack_time_last, range, res.ack_last_ms)
+    generated(root, "ack_time_last", tvb, id, 2, res.ack_last_ms)
     if res.ack_ms > timeout_of(target) then
         add_expert(item, E.ack_late, fmt("Acknowledged after %.3f ms, later than %d ms", res.ack_ms, timeout_of(target)))
     end
@@ -1184,13 +1323,19 @@ local BURST_FRAMES_SHOWN = 64
 local function add_burst(res, tvb, root, pinfo, tree, visited)
     local b = res.burst
     local n = b.n
-    local range = tvb_range(tvb, PREFIX_LEN, 2)
-    local bt = tree_add(root, range, fmt("VRPO burst: %d packet(s), %d bytes", n, b.size))
-    set_generated(bt)
-    generated(bt, F.burst_packets, range, n)
-    generated(bt, F.burst_size, range, b.size)
-    -- (VRPO packets closer than the burst gap that never end a burst would make this list long)
-    for i = 1, n < BURST_FRAMES_SHOWN and n or BURST_FRAMES_SHOWN do generated(bt, F.burst_frame, range, b[3 * i - 2]) end
+    local bt = root
+    if want.visible then
+        bt = tree_add(root, range(tvb, PREFIX_LEN, 2), fmt("VRPO burst: %d packet(s), %d bytes", n, b.size))
+        set_generated(bt)
+    end
+    generated(bt, "burst_packets", tvb, PREFIX_LEN, 2, n)
+    generated(bt, "burst_size", tvb, PREFIX_LEN, 2, b.size)
+    if want.burst_frame then
+        -- (VRPO packets closer than the burst gap that never end a burst would make this list long)
+        for i = 1, n < BURST_FRAMES_SHOWN and n or BURST_FRAMES_SHOWN do
+            generated(bt, "burst_frame", tvb, PREFIX_LEN, 2, b[3 * i - 2])
+        end
+    end
     if res.burst_missing then
         add_expert(bt, E.burst_missing, fmt("Packet number %d missing before this one", res.burst_missing))
     end
@@ -1202,35 +1347,39 @@ local function add_burst(res, tvb, root, pinfo, tree, visited)
     end
     if not data then
         if visited then
-            add_expert(generated(bt, F.burst_complete, range, false), E.burst_incomplete,
+            add_expert(generated(bt, "burst_complete", tvb, PREFIX_LEN, 2, false), E.burst_incomplete,
                 "Incomplete burst: its data are not reassembled")
         end
         return
     end
-    generated(bt, F.burst_complete, range, true)
-    local data_tvb = ByteArray.new(data, true):tvb("Reassembled periodic data")
-    tree_add(bt, F.reassembled, tvb_range(data_tvb, 0, #data))
+    generated(bt, "burst_complete", tvb, PREFIX_LEN, 2, true)
     pinfo.cols.info:append(fmt(" [reassembled %d bytes]", #data))
-    sub_dissect(periodic_table, data_tvb, pinfo, tree)
+    local machine = settings.machine ~= ""
+    if want.visible or want.reassembled or machine then -- (a new data source: only when shown or used)
+        local data_tvb = ByteArray.new(data, true):tvb("Reassembled periodic data")
+        if want.reassembled then tree_add(bt, F.reassembled, tvb_range(data_tvb, 0, #data)) end
+        if machine then sub_dissect(periodic_table, data_tvb, pinfo, tree) end
+    end
 end
 
 -- A VRPO packet alone in its burst (so far, on the first pass): complete when it is numbered
 -- first and its data end the burst.
 local function add_single_burst(r, tvb, root, pinfo, tree, visited)
     local number, size, start = r.values.packet_number, r.data_len, settings.number_start
-    local range = tvb_range(tvb, PREFIX_LEN, 2)
     local full = settings.data_size > 0 and size == settings.data_size
         or settings.data_size == 0 and size < VRPO_MAX_DATA
     if number == start and full then
-        generated(root, F.burst_complete, range, true)
-        if size > 0 then sub_dissect(periodic_table, tvb_range(tvb, PREFIX_LEN + VRPO_HEADER_SIZE, size):tvb(), pinfo, tree) end
+        generated(root, "burst_complete", tvb, PREFIX_LEN, 2, true)
+        if size > 0 and settings.machine ~= "" then
+            sub_dissect(periodic_table, range(tvb, PREFIX_LEN + VRPO_HEADER_SIZE, size):tvb(), pinfo, tree)
+        end
         return
     end
     if number > start then
         add_expert(root, E.burst_missing, fmt("Packet number %d missing before this one", start))
     end
     if visited then
-        add_expert(generated(root, F.burst_complete, range, false), E.burst_incomplete,
+        add_expert(generated(root, "burst_complete", tvb, PREFIX_LEN, 2, false), E.burst_incomplete,
             "Incomplete burst: its data are not reassembled")
     end
 end
@@ -1247,35 +1396,43 @@ local function add_analysis(res, r, tvb, pinfo, tree, root)
     end
     if r.values.command_data and settings.machine ~= "" then
         pinfo.private.vm110_type = r.type
-        sub_dissect(command_table, tvb_range(tvb, PREFIX_LEN + 6, 16):tvb(), pinfo, tree)
+        sub_dissect(command_table, range(tvb, PREFIX_LEN + 6, 16):tvb(), pinfo, tree)
     end
 end
 
 function vm110.init()
     crc_memo = {}
+    first_pass_view = false
     reset_analysis()
     read_settings()
 end
 
 local function dissect(tvb, pinfo, tree)
-    local key = pinfo.number * 0x10000 + tvb:offset()
+    local visited = pinfo.visited
+    want = choose_view(tree, pinfo, visited)
+    dissection = dissection + 1
+    local number = pinfo.number
+    local key = number * 0x10000 + tvb:offset()
     local s = tvb:raw()
-    local r = decode(s, settings.variant, settings.big_endian, pinfo.visited and memo_get(crc_memo, key) or nil)
-    if r.crc_calc then memo_set(crc_memo, key, r.crc_calc) end
-    r.info_text = summary(r)
-    local cols = pinfo.cols
-    cols.protocol = "VM110"
-    cols.info = r.info_text
+    local known = visited and memo_get(crc_memo, key) or nil
+    local r = decode(s, settings.variant, settings.big_endian, known)
+    if r.crc_calc and not known then memo_set(crc_memo, key, r.crc_calc) end
+    if want.columns then
+        r.info_text = summary(r)
+        local cols = pinfo.cols
+        cols.protocol = "VM110"
+        cols.info = r.info_text
+    end
     local root = add_tree(r, tvb, tree)
     if settings.analysis then
         local res = memo_get(results, key)
-        if res == nil and not pinfo.visited then
-            res = not next(r.problems) and analyse(r, s, pinfo, pinfo.number, key)
+        if res == nil and not visited then
+            res = not next(r.problems) and analyse(r, s, pinfo, number, key)
             memo_set(results, key, res)
         end
         if type(res) == "number" then
             if res >= 0 then add_interval(res, tvb, root, r) end
-            if r.data_len then add_single_burst(r, tvb, root, pinfo, tree, pinfo.visited) end
+            if r.data_len then add_single_burst(r, tvb, root, pinfo, tree, visited) end
         elseif res then
             add_analysis(res, r, tvb, pinfo, tree, root)
         end
@@ -1309,6 +1466,7 @@ end
 
 function vm110.prefs_changed()
     crc_memo = {}
+    first_pass_view = false
     reset_analysis()
     read_settings()
     register_ports()
