@@ -929,11 +929,11 @@ end
 -- is stored in it, so small chunks keep that work from growing with the capture.
 local CHUNK_SPAN = 256 * 0x10000
 local function memo_get(memo, key)
-    local chunk = memo[floor(key / CHUNK_SPAN)]
+    local chunk = memo[key - key % CHUNK_SPAN]
     if chunk then return chunk[key] end
 end
 local function memo_set(memo, key, value)
-    local i = floor(key / CHUNK_SPAN)
+    local i = key - key % CHUNK_SPAN
     local chunk = memo[i]
     if not chunk then
         chunk = {}
@@ -981,7 +981,7 @@ local function classify_serial(st, s)
     if d == 0 then return -1 end
     if d < SERIAL_HALF then
         local top = h + d
-        if floor(top / SERIAL_MODULUS) > floor(h / SERIAL_MODULUS) then st.wraps = st.wraps + 1 end
+        if top - top % SERIAL_MODULUS > h - h % SERIAL_MODULUS then st.wraps = st.wraps + 1 end
         st.h = top
         if d == 1 then return 0 end
         local gaps = st.gaps
@@ -1046,7 +1046,8 @@ end
 -- Seconds to milliseconds, rounded to the microsecond: capture times are doubles of the epoch,
 -- whose last bits are noise; pcap timestamps are (at most) microseconds in practice.
 local function ms(seconds)
-    return floor(seconds * 1e6 + 0.5) / 1000
+    local us = seconds * 1e6 + 0.5
+    return (us - us % 1) / 1000 -- (floor without a call)
 end
 
 local function analyse_commands(r, res, snd, t, frame, cid)
@@ -1088,7 +1089,7 @@ end
 local function new_sender(name)
     local snd = { name = name, count = {}, duplicates = 0, late = 0, retransmissions = 0, states = {},
         commands = 0, acked = 0,
-        last = {}, iv_min = {}, iv_max = {}, iv_sum = {}, iv_n = {},
+        intervals = {}, -- type -> {last = time, n, min, max, sum}
         -- the current VRPO burst while it has one packet: no table of its own (most bursts)
         burst = { b = false, tlast = false, key = false, frame = false, number = false, size = false, data = false } }
     sender_list[#sender_list + 1] = snd
@@ -1175,17 +1176,16 @@ local function analyse(r, s, pinfo, frame, key)
     end
     local iv = false
     if id == "VRPI" or id == "VRPO" then -- intervals include serial duplicates
-        local last = snd.last[id]
-        if last then
-            iv = ms(t - last)
-            if not snd.iv_n[id] then
-                snd.iv_min[id], snd.iv_max[id], snd.iv_sum[id], snd.iv_n[id] = iv, iv, 0, 0
-            end
-            if iv < snd.iv_min[id] then snd.iv_min[id] = iv end
-            if iv > snd.iv_max[id] then snd.iv_max[id] = iv end
-            snd.iv_sum[id], snd.iv_n[id] = snd.iv_sum[id] + iv, snd.iv_n[id] + 1
+        local stats = snd.intervals[id]
+        if stats then
+            iv = ms(t - stats.last)
+            if stats.n == 0 then stats.min, stats.max = iv, iv end
+            if iv < stats.min then stats.min = iv end
+            if iv > stats.max then stats.max = iv end
+            stats.sum, stats.n, stats.last = stats.sum + iv, stats.n + 1, t
+        else
+            snd.intervals[id] = { last = t, n = 0, min = false, max = false, sum = 0 }
         end
-        snd.last[id] = t
     end
     local res = missing == 0 and (iv or -1) or { serial = missing, interval = iv }
     if missing == -1 then return res end -- a duplicated frame is neither a command nor a burst packet
@@ -1500,10 +1500,10 @@ local function stats_text()
         out[#out + 1] = fmt("  Commands: acked %d, unacknowledged %d, retransmissions %d", snd.acked,
             snd.commands - snd.acked, snd.retransmissions)
         for _, id in ipairs({ "VRPI", "VRPO" }) do
-            local n = snd.iv_n[id]
-            if n and n > 0 then
+            local stats = snd.intervals[id]
+            if stats and stats.n > 0 then
                 out[#out + 1] = fmt("  %s interval (ms): min %.3f, avg %.3f, max %.3f (%d intervals)", id,
-                    snd.iv_min[id], snd.iv_sum[id] / n, snd.iv_max[id], n)
+                    stats.min, stats.sum / stats.n, stats.max, stats.n)
             end
         end
     end
