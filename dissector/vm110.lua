@@ -1425,8 +1425,10 @@ local function dissect(tvb, pinfo, tree)
     end
     local root = add_tree(r, tvb, tree)
     if settings.analysis then
-        local res = memo_get(results, key)
-        if res == nil and not visited then
+        local res
+        if visited then
+            res = memo_get(results, key)
+        else -- (tshark -2 -R gives a frame the read filter drops the number of the next one it keeps)
             res = not next(r.problems) and analyse(r, s, pinfo, number, key)
             memo_set(results, key, res)
         end

@@ -24,24 +24,29 @@ from vectorlib import load_vectors, packet_bytes
 from vm110 import constants as C
 from vm110.capture.reader import CaptureReader, address
 from vm110.decode import decode
+from vm110.layers import VM110, VRAO, VRCI, VRPI, VRPO
 
 pytestmark = pytest.mark.tshark
 
 CAPTURES = T.REPO / "captures"
-# Commands and retransmissions, serial loss/duplicates/reordering, VRPO bursts, illegal packets
-# and other traffic, relays open and watchdogs.
+# Commands, retransmissions and unacknowledged ones; serial loss, duplicates and reordering; VRPO
+# bursts; illegal packets among other traffic. (bu-watchdog.pcap: display filters only.)
 ANALYSED = ("retransmit.pcap", "loss.pcapng", "vrpo-split.pcapng", "illegal.pcap")
-VECTORS = "vectors"
-SOURCES = (VECTORS, *ANALYSED)
+VECTORS, CRAFTED = "vectors", "crafted"
+SOURCES = (VECTORS, CRAFTED, *ANALYSED)
 ON = {"vm110.analysis": "TRUE"}
 PASSES = {"single": (), "two-pass": ("-2",)}
 AGGREGATOR = "\x1f"          # between occurrences: in no value (numbers, hex, 4-character packet IDs)
 PACKET_END = "@@vm110-end-of-packet@@"
-# Sparse reference sets, per pass: a header field on the first pass (one view for every frame);
-# a generated field of the analysis and one of the CRC's on the second (a view per frame).
-SPARSE = {"single": ("vm110.serial",), "two-pass": ("vm110.analysis.ack_to", "vm110.crc.status")}
-# Shown on the second pass only: they need the whole capture.
-WHOLE_CAPTURE_EXPERTS = frozenset({"never_acked", "burst_incomplete"})
+MESSAGES = "_ws.expert.message"
+# Sparse reference sets: on the first pass (one view for every frame) a header field, and a field
+# derived from an unbuilt one with the VRPO data; on the second (a view per frame) a generated
+# field of the analysis and one of the CRC's.
+SPARSE = (("single", ("vm110.serial",)), ("single", ("vm110.es_relays_open", "vm110.periodic_data")),
+          ("two-pass", ("vm110.analysis.ack_to", "vm110.crc.status")))
+# Experts of the crafted capture (no capture of captures/ has the first two).
+CRAFTED_EXPERTS = frozenset({"ack_late", "ack_without_command", "watchdog_vrpo", "watchdog_vrpi", "duplicate_ack",
+                             "spurious_retransmission", "retransmission", "never_acked"})
 
 Values = dict[str, list]     # field abbreviation -> its values in the frame, in tree order
 
@@ -143,18 +148,42 @@ def info_visible(ws: T.Workspace, pcap: Path, prefs: dict, extra: Sequence[str] 
 
 
 # --- What the tests read ---------------------------------------------------------------------------
+def crafted(pcap: Path) -> None:
+    """A few ms-timed packets with the experts no capture of captures/ has: a late acknowledgement,
+    one without a command, and both watchdogs (with a retransmission, a spurious one, a duplicate
+    acknowledgement and a command never acknowledged)."""
+    bu = {"origin": 0x0101}
+    vrpo = VRPO(packet_number=0, periodic_data=bytes(64))
+    late = C.VRCI_FAIL_MS + 500
+    timeline = [
+        (0, VM110(serial=1, **bu) / VRPI()), (0, VM110(serial=1) / vrpo),
+        (10, VM110(serial=2, **bu) / VRCI(command_id=1)),
+        (10 + C.COMMAND_RESEND_MS, VM110(serial=3, **bu) / VRCI(command_id=1)),
+        (C.VRPI_WATCHDOG_MS + 200, VM110(serial=4, **bu) / VRPI()),
+        (late, VM110(serial=2) / vrpo),                                   # VRPO watchdog
+        (late + 10, VM110(serial=3) / VRAO(command_id=1)),                # late
+        (late + 20, VM110(serial=4) / VRAO(command_id=7)),                # no such command
+        (late + 30, VM110(serial=5) / VRAO(command_id=1)),                # duplicate
+        (late + 40, VM110(serial=5, **bu) / VRCI(command_id=1)),          # after the ack
+        (late + 100, VM110(serial=6, **bu) / VRCI(command_id=2)),         # never acknowledged
+    ]
+    T.write_pcap(pcap, [bytes(p) for _, p in timeline], [ms * 1000 for ms, _ in timeline])
+
+
 def materialise(ws: T.Workspace, source: str) -> tuple[Path, dict]:
-    """The capture inside the workspace and its preferences: a capture of captures/ with the
-    analysis on, or every shared vector in one capture, decoding only. (The few vectors of other
-    CRC settings then have a bad CRC: both paths see the same, and one capture instead of eight
-    keeps the module fast; test_dissector_vectors checks each CRC setting.)"""
+    """The capture inside the workspace and its preferences: a capture of captures/ or the crafted
+    one with the analysis on, or every shared vector in one capture, decoding only. (The few
+    vectors of other CRC settings then have a bad CRC: both paths see the same, and one capture
+    instead of eight keeps the module fast; test_dissector_vectors checks each CRC setting.)"""
+    pcap = ws.dir / (f"{source}.pcap" if source in (VECTORS, CRAFTED) else source)
     if source == VECTORS:
-        pcap = ws.dir / "vectors.pcap"
         T.write_pcap(pcap, (packet_bytes(v) for v in load_vectors()))
         return pcap, {}
-    local = ws.dir / source
-    local.write_bytes((CAPTURES / source).read_bytes())
-    return local, ON
+    if source == CRAFTED:
+        crafted(pcap)
+    else:
+        pcap.write_bytes((CAPTURES / source).read_bytes())
+    return pcap, ON
 
 
 _PDML: dict = {}
@@ -188,7 +217,8 @@ def differences(want: dict[int, Values], got: dict[int, Values], limit: int = 12
     for number in sorted(set(want) & set(got)):
         for name in want[number]:
             if want[number][name] != got[number][name]:
-                errors.append(f"frame {number} {name}: {names[0]} {want[number][name]!r}, {names[1]} {got[number][name]!r}")
+                errors.append(f"frame {number} {name}: {names[0]} {want[number][name]!r}, "
+                              f"{names[1]} {got[number][name]!r}")
     return errors[:limit] + ([f"... {len(errors) - limit} more"] if len(errors) > limit else [])
 
 
@@ -205,14 +235,23 @@ def workspace(runner: T.Tshark, base: Path) -> Iterator[T.Workspace]:
 runner_ids = pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 
 
-# --- 1, 2, 5: fields, experts and Info per source (one test: each PDML is read once) -----------------
+# --- Fields, experts and the Info column per source (one test each: its PDML is read once) ---------
 def all_fields(ws: T.Workspace, source: str, pcap: Path, prefs: dict) -> list[str]:
-    """`-T fields` with every vm110 field, single pass and -2, equals PDML frame by frame."""
+    """`-T fields` with every vm110 field, single pass and -2, equals PDML frame by frame; so do
+    the expert messages (in any order: the fast path attaches an expert to the protocol item when
+    its field is not built)."""
     errors, fields = [], catalogue(ws)
     for passes, extra in PASSES.items():
-        want = pdml_values(visible(ws, source, passes), fields)
+        frames = visible(ws, source, passes)
+        want = pdml_values(frames, fields)
         assert sum(bool(v) for values in want.values() for v in values.values()) > len(want)
-        errors += [f"all fields, {passes}: {e}" for e in differences(want, field_dump(ws, pcap, prefs, fields, extra))]
+        for f in frames:   # (vm110 frames: other protocols' experts are not in the vm110 PDML)
+            if f.vm110:
+                want[f.number][MESSAGES] = sorted(e.message for e in f.experts)
+        got = field_dump(ws, pcap, prefs, {**fields, MESSAGES: "FT_STRING"}, extra)
+        for values in got.values():
+            values[MESSAGES] = sorted(values[MESSAGES])
+        errors += [f"all fields, {passes}: {e}" for e in differences(want, got)]
     return errors
 
 
@@ -221,8 +260,9 @@ def experts(ws: T.Workspace, source: str, pcap: Path, prefs: dict) -> list[str]:
     expert where PDML has it, single pass and -2. One run per pass: `-Y "vm110.expert.a ||
     vm110.expert.b ..."` with a custom column per code (experts are no field of the dissector's,
     so it builds what it builds for `-Y vm110.expert.<code>` alone); the filter keeps exactly the
-    frames with some expert. The experts only the second pass can show also alone."""
-    errors = []
+    frames with some expert. The experts the second pass adds (never_acked, burst_incomplete,
+    ack_late on the command) also alone: `-2 -Y vm110.expert.<code>`."""
+    errors, first = [], expert_frames(visible(ws, source, "single"))
     for passes, extra in PASSES.items():
         want = expert_frames(visible(ws, source, passes))
         codes = sorted(want)
@@ -237,7 +277,7 @@ def experts(ws: T.Workspace, source: str, pcap: Path, prefs: dict) -> list[str]:
             if got != want[code]:
                 errors.append(f"experts, {passes} {code}: PDML {want[code]}, fast {got}")
         if passes == "two-pass":
-            for code in sorted(WHOLE_CAPTURE_EXPERTS & set(codes)):
+            for code in [c for c in codes if want[c] != first.get(c)]:
                 got = frames_matching(ws, pcap, prefs, f"vm110.expert.{code}", extra)
                 if got != want[code]:
                     errors.append(f"-2 -Y vm110.expert.{code}: PDML {want[code]}, fast {got}")
@@ -245,16 +285,22 @@ def experts(ws: T.Workspace, source: str, pcap: Path, prefs: dict) -> list[str]:
 
 
 def info_and_sparse(ws: T.Workspace, source: str, pcap: Path, prefs: dict) -> list[str]:
-    """`-T fields -e _ws.col.Info` with one or two vm110 fields (only they are built) equals the
-    Info column of `-V -P` and the fields' values in PDML, single pass and -2; the vm110 tree's
-    text starts with the same summary."""
-    errors, catalog = [], catalogue(ws)
-    for passes, extra in PASSES.items():
-        frames = visible(ws, source, passes)
-        fields = {n: catalog[n] for n in SPARSE[passes]}
-        got = field_dump(ws, pcap, prefs, {"_ws.col.Info": "FT_STRING", **fields}, extra)
-        errors += [f"sparse {SPARSE[passes]}, {passes}: {e}" for e in
-                   differences(pdml_values(frames, fields), {n: {f: v[f] for f in fields} for n, v in got.items()})]
+    """`-T fields` with one or two vm110 fields (only they are built) equals their values in PDML;
+    with `-e _ws.col.Info` added to the first such run of a pass, the Info column equals that of
+    `-V -P`, single pass and -2. The vm110 tree's text starts with the same summary."""
+    errors, catalog, with_info = [], catalogue(ws), set()
+    for passes, names in SPARSE:
+        extra, frames = PASSES[passes], visible(ws, source, passes)
+        fields = {n: catalog[n] for n in names}
+        column = {} if passes in with_info else {"_ws.col.Info": "FT_STRING"}
+        got = field_dump(ws, pcap, prefs, {**column, **fields}, extra)
+        want = pdml_values(frames, fields)
+        assert any(v for values in want.values() for v in values.values()), names
+        errors += [f"sparse {names}, {passes}: {e}" for e in
+                   differences(want, {n: {f: v[f] for f in fields} for n, v in got.items()})]
+        if not column:
+            continue
+        with_info.add(passes)
         want = info_visible(ws, pcap, prefs, extra)
         assert len(want) == len(frames) == len(got), passes
         errors += [f"Info, {passes} frame {n}: visible {w!r}, fast {got[n]['_ws.col.Info']!r}"
@@ -267,6 +313,7 @@ def info_and_sparse(ws: T.Workspace, source: str, pcap: Path, prefs: dict) -> li
 @runner_ids
 @pytest.mark.parametrize("source", SOURCES)
 def test_fast_path_equals_visible_path(tshark, source, tmp_path):
+    """Every field, the experts, a sparse reference set and the Info column: fast path = PDML."""
     with workspace(tshark, tmp_path) as ws:
         pcap, prefs = materialise(ws, source)
         errors = all_fields(ws, source, pcap, prefs) + experts(ws, source, pcap, prefs) \
@@ -277,9 +324,11 @@ def test_fast_path_equals_visible_path(tshark, source, tmp_path):
         assert ("never_acked", "two-pass") in checked and ("never_acked", "single") not in checked
     if source == "vrpo-split.pcapng":
         assert ("burst_incomplete", "two-pass") in checked and ("burst_incomplete", "single") not in checked
+    if source == CRAFTED:
+        assert CRAFTED_EXPERTS <= {code for code, _ in checked}
 
 
-# --- 3. Display filters against independent expectations -------------------------------------------------
+# --- Display filters against independent expectations ------------------------------------------------
 @functools.lru_cache(maxsize=None)
 def _datagrams(capture: str) -> dict[int, tuple[str, float, dict]]:
     """frame -> (source "ip:port", time, vm110.decode() of the UDP payload), for every UDP frame to
@@ -324,6 +373,7 @@ CAPTURE_FILTERS = (
      lambda c: _where(c, lambda d: d.get("bu_state") == C.BuState.EXTERNAL_LINK_ERROR)),
     ("bu-watchdog.pcap", "single", "vm110.es_relays_open == 1", lambda c: _where(c, lambda d: d.get("es_relays_open"))),
     ("illegal.pcap", "single", "vm110.crc.status == 0", lambda c: _where(c, lambda d: "bad_crc" in d["problems"])),
+    ("illegal.pcap", "single", "_ws.expert.severity >= error", lambda c: _where(c, lambda d: d["problems"])),
     ("retransmit.pcap", "single", 'vm110.type == "VRCI" && vm110.command_id == 5',
      lambda c: _command_frames(c, "VRCI", 5)),
     ("retransmit.pcap", "single", "vm110.analysis.retransmission_number >= 1", _retransmissions),
@@ -345,6 +395,7 @@ VECTOR_FILTERS = (
 
 @runner_ids
 def test_display_filters_match_independent_expectations(tshark, tmp_path):
+    """`-Y` on vm110 fields (only they are built) keeps the frames the decoder or the truth names."""
     errors = []
     with workspace(tshark, tmp_path) as ws:
         for capture, passes, expression, expected in CAPTURE_FILTERS:
@@ -370,7 +421,7 @@ def test_display_filters_match_independent_expectations(tshark, tmp_path):
     assert not errors, "\n".join(errors)
 
 
-# --- 4. Different fields referenced on each pass ---------------------------------------------------------
+# --- Different fields referenced on each pass ---------------------------------------------------------
 # (capture, -R, -Y, the field written, read filter and display filter as Python predicates on
 # the single pass's field values)
 SWITCHES = {
@@ -405,4 +456,6 @@ def test_pass_switching(tshark, case, tmp_path):
     kept = [values for _, values in sorted(full.items()) if keep(values)]
     want = {number: {shown: values[shown]} for number, values in enumerate(kept, start=1) if match(values)}
     assert want and any(v[shown] for v in want.values())
-    assert got == want, "\n".join(differences(want, got, names=("expected", "tshark")))
+    if got != want:
+        pytest.fail(f"tshark -2 -R '{read}' -Y '{display}' -e {shown}:\n"
+                    + "\n".join(differences(want, got, names=("expected", "tshark"))), pytrace=False)
