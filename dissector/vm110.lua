@@ -127,17 +127,17 @@ for i = 1, 8 do RU_FIELDS["switch" .. i] = true end
 ---------------------------------------------------------------------------------------------
 -- 2. CRC engine
 -- Slicing by 16 with the `bit` library (LuaBitOp, which Wireshark ships with Lua 5.2 and 5.4
--- alike): per 16 bytes one string.byte call, two bit calls and sixteen lookups in 256-entry
--- tables; C calls, not arithmetic, are what costs in Lua. Then slicing by 4, then bytes.
--- (A 64K-entry XOR table with no calls at all measured slower inside tshark: cache misses.)
--- Registers are LuaBitOp's signed 32 bits.
+-- alike). C calls, not arithmetic, are what costs in Lua: a block of up to 16 bytes takes one
+-- string.byte call, two bit calls and one lookup per byte in 256-entry tables, and the
+-- remainder of a packet (4 to 15 bytes) is one such block too. The code per block length is
+-- generated, like the payload readers. (A 64K-entry XOR table with no calls at all measured
+-- slower inside tshark: cache misses.) Registers are LuaBitOp's signed 32 bits.
 ---------------------------------------------------------------------------------------------
 local bit = bit or require("bit")
 local bxor, band, lshift, rshift = bit.bxor, bit.band, bit.lshift, bit.rshift
 local TWO32 = 4294967296
 local SLICES = 16
 
--- The register after one zero byte.
 local function zero_byte(r, reflected, T)
     if reflected then return bxor(rshift(r, 8), T[band(r, 255)]) end
     return bxor(lshift(r, 8), T[rshift(r, 24)])
@@ -146,8 +146,8 @@ end
 -- S[j][v]: the register after the rest of a 16-byte block when byte j of the block (j = 0
 -- first) is v and everything else is zero; S[15] is the byte-at-a-time table. By linearity the
 -- register after a block is the XOR of S[j][x_j], x = the block with the register XORed into
--- its first four bytes. Blocks of 4 use S[12..15] the same way.
-local function build_engine(reflected)
+-- its first four bytes; a block of n bytes uses S[16 - n .. 15].
+local function build_tables(reflected)
     local T = {}
     for v = 0, 255 do
         local r = reflected and v or lshift(v, 24)
@@ -170,11 +170,47 @@ local function build_engine(reflected)
         for v = 0, 255 do this[v] = zero_byte(next_[v], reflected, T) end
         S[j] = this
     end
-    S.reflected = reflected
     return S
 end
 
-local ENGINES = { [false] = build_engine(false), [true] = build_engine(true) }
+-- Lua source of one block of n (4..16) bytes at s[i]: updates r. The register's byte consumed
+-- first is its low byte when reflected, its high byte otherwise.
+local function block_source(n, reflected)
+    local b, lookups = {}, {}
+    for j = 1, n do b[j] = "b" .. j end
+    local word = reflected and "((b4 * 256 + b3) * 256 + b2) * 256 + b1" or "((b1 * 256 + b2) * 256 + b3) * 256 + b4"
+    local order = reflected and { "x0", "x1", "x2", "x3" } or { "x3", "x2", "x1", "x0" }
+    for j = 1, n do
+        lookups[j] = fmt("S%d[%s]", SLICES - n + j - 1, j <= 4 and order[j] or b[j])
+    end
+    return fmt("local %s = byte(s, i, i + %d)\n", concat(b, ", "), n - 1)
+        .. fmt("local x = bxor(r, %s)\nif x < 0 then x = x + 4294967296 end\n", word)
+        .. "local x0 = x % 256\nx = (x - x0) / 256\nlocal x1 = x % 256\nx = (x - x1) / 256\n"
+        .. "local x2 = x % 256\nlocal x3 = (x - x2) / 256\n"
+        .. fmt("r = bxor(%s)\n", concat(lookups, ", "))
+end
+
+-- crc(s, len): the register after the first len bytes of s, from 0xFFFFFFFF, unsigned.
+local function build_crc(reflected)
+    local S, tables = build_tables(reflected), {}
+    for j = 0, SLICES - 1 do tables[j + 1] = "S" .. j end
+    local tails = {}
+    for n = SLICES - 1, 4, -1 do
+        tails[#tails + 1] = fmt("%s t == %d then\n%s", n == SLICES - 1 and "if" or "elseif", n, block_source(n, reflected))
+    end
+    local byte_step = reflected and "r = bxor(rshift(r, 8), S15[bxor(band(r, 255), byte(s, j))])"
+        or "r = bxor(lshift(r, 8), S15[bxor(rshift(r, 24), byte(s, j))])"
+    local code = fmt("local byte, bxor, band, lshift, rshift, %s = ...\n", concat(tables, ", "))
+        .. "return function(s, len)\nlocal r, i = -1, 1\nwhile i + 15 <= len do\n"
+        .. block_source(SLICES, reflected) .. "i = i + 16\nend\nlocal t = len - i + 1\n"
+        .. concat(tails) .. fmt("else\nfor j = i, len do %s end\nend\n", byte_step)
+        .. "if r < 0 then r = r + 4294967296 end\nreturn r\nend\n"
+    local args = { byte, bxor, band, lshift, rshift }
+    for j = 0, SLICES - 1 do args[#args + 1] = S[j] end
+    return assert(load(code, "=vm110 crc", "t", {}))(table.unpack(args))
+end
+
+local CRC_REGISTER = { [false] = build_crc(false), [true] = build_crc(true) }
 
 -- CRC variants of interpretation.md: all with init 0xFFFFFFFF and polynomial 0x04C11DB7.
 local CRC_VARIANTS = {
@@ -184,61 +220,9 @@ local CRC_VARIANTS = {
     { name = "jamcrc", label = "CRC-32/JAMCRC", reflected = true, xorout = false },
 }
 
--- CRC of the first len bytes of s, as an unsigned number. The register's byte consumed first
--- is its low byte when reflected, its high byte otherwise: only the word order differs.
+-- CRC of the first len bytes of s, as an unsigned number.
 local function crc_of(s, len, variant)
-    local S = ENGINES[variant.reflected]
-    local S0, S1, S2, S3, S4, S5, S6, S7 = S[0], S[1], S[2], S[3], S[4], S[5], S[6], S[7]
-    local S8, S9, S10, S11, S12, S13, S14, S15 = S[8], S[9], S[10], S[11], S[12], S[13], S[14], S[15]
-    local reflected = S.reflected
-    local r, i = -1, 1
-    while i + 15 <= len do
-        local a, b, c, d, e, f, g, h, j, k, l, m, n, o, p, q = byte(s, i, i + 15)
-        local x
-        if reflected then
-            x = bxor(r, ((d * 256 + c) * 256 + b) * 256 + a)
-        else
-            x = bxor(r, ((a * 256 + b) * 256 + c) * 256 + d)
-        end
-        if x < 0 then x = x + TWO32 end
-        local x0 = x % 256
-        x = (x - x0) / 256
-        local x1 = x % 256
-        x = (x - x1) / 256
-        local x2 = x % 256
-        local x3 = (x - x2) / 256
-        if not reflected then x0, x1, x2, x3 = x3, x2, x1, x0 end
-        r = bxor(S0[x0], S1[x1], S2[x2], S3[x3], S4[e], S5[f], S6[g], S7[h],
-            S8[j], S9[k], S10[l], S11[m], S12[n], S13[o], S14[p], S15[q])
-        i = i + 16
-    end
-    while i + 3 <= len do
-        local a, b, c, d = byte(s, i, i + 3)
-        local x
-        if reflected then
-            x = bxor(r, ((d * 256 + c) * 256 + b) * 256 + a)
-        else
-            x = bxor(r, ((a * 256 + b) * 256 + c) * 256 + d)
-        end
-        if x < 0 then x = x + TWO32 end
-        local x0 = x % 256
-        x = (x - x0) / 256
-        local x1 = x % 256
-        x = (x - x1) / 256
-        local x2 = x % 256
-        local x3 = (x - x2) / 256
-        if not reflected then x0, x1, x2, x3 = x3, x2, x1, x0 end
-        r = bxor(S12[x0], S13[x1], S14[x2], S15[x3])
-        i = i + 4
-    end
-    for j = i, len do
-        if reflected then
-            r = bxor(rshift(r, 8), S15[bxor(band(r, 255), byte(s, j))])
-        else
-            r = bxor(lshift(r, 8), S15[bxor(rshift(r, 24), byte(s, j))])
-        end
-    end
-    if r < 0 then r = r + TWO32 end
+    local r = CRC_REGISTER[variant.reflected](s, len)
     if variant.xorout then r = TWO32 - 1 - r end
     return r
 end
@@ -924,27 +908,40 @@ local function read_settings()
     settings.burst_gap, settings.machine = prefs.burst_gap_ms, prefs.machine
 end
 
--- Per-frame memos, keyed by frame number and offset (a frame may carry more than one EG-Link
--- packet), in chunks of 256 frames: the collector traverses a table again whenever a new object
--- is stored in it, so small chunks keep that work from growing with the capture.
-local CHUNK_SPAN = 256 * 0x10000
-local function memo_get(memo, key)
-    local chunk = memo[key - key % CHUNK_SPAN]
-    if chunk then return chunk[key] end
+-- Per-frame memos, by frame number and offset (a frame may carry more than one EG-Link packet:
+-- one quoted in an ICMP error, say). Per chunk of 256 frames one array, preallocated: [2i + 1]
+-- the offset of frame i's first EG-Link packet, [2i + 2] its value; further packets of a frame
+-- go to `more`. Array slots cost no hashing; small chunks matter because the collector traverses
+-- a table again whenever a new object is stored in it.
+local CHUNK_FRAMES = 256
+local new_chunk = assert(load("return {" .. string.rep("false,", 2 * CHUNK_FRAMES) .. "}", "=vm110 chunk", "t", {}))
+local function new_memo()
+    return { more = {} }
 end
-local function memo_set(memo, key, value)
-    local i = key - key % CHUNK_SPAN
-    local chunk = memo[i]
+local function memo_get(memo, number, offset)
+    local i = number % CHUNK_FRAMES
+    local chunk = memo[number - i]
+    if chunk and chunk[2 * i + 1] == offset then return chunk[2 * i + 2] end
+    return memo.more[number * 0x10000 + offset]
+end
+local function memo_set(memo, number, offset, value)
+    local i = number % CHUNK_FRAMES
+    local chunk = memo[number - i]
     if not chunk then
-        chunk = {}
-        memo[i] = chunk
+        chunk = new_chunk()
+        memo[number - i] = chunk
     end
-    chunk[key] = value
+    local owner = chunk[2 * i + 1]
+    if owner == false or owner == offset then
+        chunk[2 * i + 1], chunk[2 * i + 2] = offset, value
+    else
+        memo.more[number * 0x10000 + offset] = value
+    end
 end
 
 -- Calculated CRC per frame: re-dissection (GUI clicks, second pass) skips the CRC. Emptied when
 -- a capture is (re)loaded and when the preferences change.
-local crc_memo = {}
+local crc_memo = new_memo()
 
 ---------------------------------------------------------------------------------------------
 -- Stream analysis (interpretation.md: serial numbers, timing, commands, VRPO split)
@@ -954,14 +951,14 @@ local crc_memo = {}
 -- (never acknowledged, a burst left incomplete) is shown on visited passes only. Illegal packets
 -- are not analysed (treated as not received). All state is rebuilt in init().
 ---------------------------------------------------------------------------------------------
-local results = {}     -- frame key -> analysis of that packet (false: not analysed)
+local results = new_memo() -- frame -> analysis of that packet (false: not analysed)
 local senders = {}     -- (origin, port, direction) -> source address -> per-sender state and statistics
 local sender_list = {} -- the same, in order of first appearance (statistics)
 local serial_states = {} -- sender -> serial state (per-type scope: sender -> type -> serial state)
 local current = {}     -- command type -> {sender -> the sender's current command}
 
 local function reset_analysis()
-    results, senders, sender_list, serial_states = {}, {}, {}, {}
+    results, senders, sender_list, serial_states = new_memo(), {}, {}, {}
     current = { VRCI = {}, VRCO = {} }
 end
 reset_analysis()
@@ -1091,7 +1088,7 @@ local function new_sender(name)
         commands = 0, acked = 0,
         intervals = {}, -- type -> {last = time, n, min, max, sum}
         -- the current VRPO burst while it has one packet: no table of its own (most bursts)
-        burst = { b = false, tlast = false, key = false, frame = false, number = false, size = false, data = false } }
+        burst = { b = false, tlast = false, offset = false, frame = false, number = false, size = false, data = false } }
     sender_list[#sender_list + 1] = snd
     return snd
 end
@@ -1104,12 +1101,12 @@ local function join_burst(cur, res, frame, number, data, size)
     if not b then
         b = { cur.frame, cur.number, cur.data, n = 1, size = cur.size, top = settings.number_start - 1 }
         cur.b = b
-        local first = memo_get(results, cur.key)
+        local first = memo_get(results, cur.frame, cur.offset)
         if type(first) == "number" then first = { serial = 0, interval = first >= 0 and first } end
         if cur.number > b.top + 1 then first.burst_missing = b.top + 1 end
         if cur.number > b.top then b.top = cur.number end
         first.burst, first.burst_index = b, 1
-        memo_set(results, cur.key, first)
+        memo_set(results, cur.frame, cur.offset, first)
     end
     if type(res) == "number" then res = { serial = 0, interval = res >= 0 and res } end
     local n = b.n + 1
@@ -1141,7 +1138,7 @@ end
 
 -- Returns the frame's result: a number for most packets (the interval, -1 for none: keeps the
 -- retained heap small for the collector), else a table.
-local function analyse(r, s, pinfo, frame, key)
+local function analyse(r, s, pinfo, frame, offset)
     local id = r.type
     local t = pinfo.abs_ts
     local snd = sender_of(r, pinfo)
@@ -1205,7 +1202,7 @@ local function analyse(r, s, pinfo, frame, key)
         if cur.tlast and ms(t - cur.tlast) < settings.burst_gap then
             res = join_burst(cur, res, frame, number, data, size)
         else
-            cur.b, cur.key, cur.frame, cur.number, cur.size, cur.data = false, key, frame, number, size, data
+            cur.b, cur.offset, cur.frame, cur.number, cur.size, cur.data = false, offset, frame, number, size, data
         end
         cur.tlast = t
     end
@@ -1401,7 +1398,7 @@ local function add_analysis(res, r, tvb, pinfo, tree, root)
 end
 
 function vm110.init()
-    crc_memo = {}
+    crc_memo = new_memo()
     first_pass_view = false
     reset_analysis()
     read_settings()
@@ -1412,11 +1409,11 @@ local function dissect(tvb, pinfo, tree)
     want = choose_view(tree, pinfo, visited)
     dissection = dissection + 1
     local number = pinfo.number
-    local key = number * 0x10000 + tvb:offset()
+    local offset = tvb:offset()
     local s = tvb:raw()
-    local known = visited and memo_get(crc_memo, key) or nil
+    local known = visited and memo_get(crc_memo, number, offset) or nil
     local r = decode(s, settings.variant, settings.big_endian, known)
-    if r.crc_calc and not known then memo_set(crc_memo, key, r.crc_calc) end
+    if r.crc_calc and not known then memo_set(crc_memo, number, offset, r.crc_calc) end
     if want.columns then
         r.info_text = summary(r)
         local cols = pinfo.cols
@@ -1427,10 +1424,10 @@ local function dissect(tvb, pinfo, tree)
     if settings.analysis then
         local res
         if visited then
-            res = memo_get(results, key)
+            res = memo_get(results, number, offset)
         else -- (tshark -2 -R gives a frame the read filter drops the number of the next one it keeps)
-            res = not next(r.problems) and analyse(r, s, pinfo, number, key)
-            memo_set(results, key, res)
+            res = not next(r.problems) and analyse(r, s, pinfo, number, offset)
+            memo_set(results, number, offset, res)
         end
         if type(res) == "number" then
             if res >= 0 then add_interval(res, tvb, root, r) end
@@ -1467,7 +1464,7 @@ local function register_ports()
 end
 
 function vm110.prefs_changed()
-    crc_memo = {}
+    crc_memo = new_memo()
     first_pass_view = false
     reset_analysis()
     read_settings()
