@@ -653,7 +653,8 @@ local function choose_view(tree, pinfo, visited)
 end
 
 -- TvbRanges of the packet being dissected, by offset and length: a field and the generated
--- fields derived from it share one (each is a userdata the collector must finalise).
+-- fields derived from it share one (each is a userdata the collector must finalise). Header and
+-- payload fields, which nothing derives from, take Tvb.range directly.
 local ranges, range_owner, dissection = {}, {}, 0
 local function range(tvb, off, len)
     local k = off * 65536 + len
@@ -774,7 +775,7 @@ local function add_header(r, tvb, root)
         local name = h[1]
         local value = r[name]
         if not value then break end
-        local item = want[name] and tree_add_le(header, F[name], range(tvb, h[2], h[3])) or header
+        local item = want[name] and tree_add_le(header, F[name], tvb_range(tvb, h[2], h[3])) or header
         field_experts(r, item, name, value)
         if name == "revision" and r.problems.revision then
             add_expert(item, E.revision, fmt("Revision %d is not supported: only the header is decoded", value))
@@ -812,7 +813,7 @@ local function add_payload(r, tvb, root)
     for _, f in ipairs(whole and want.layouts[r.type] or r.present) do
         local name = f[1]
         if whole or want[name] then
-            local item = tree_add_le(payload, F[name], range(tvb, f.off, f[2]))
+            local item = tree_add_le(payload, F[name], tvb_range(tvb, f.off, f[2]))
             if fieldwarn[name] then
                 field_experts(r, item, name, v[name])
                 fieldwarn[name] = nil -- shown
