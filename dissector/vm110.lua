@@ -377,7 +377,8 @@ end
 local NO_VALUES = {} -- values of a packet whose payload is not decoded: shared, never written
 
 -- s: the UDP payload; variant: a CRC_VARIANTS entry, or nil when validation is off;
--- big_endian: stored CRC byte order; known_crc: the calculated CRC when memoised.
+-- big_endian: stored CRC byte order; known_crc: the calculated CRC when memoised, true when it
+-- is known to match the stored one.
 local function decode(s, variant, big_endian, known_crc)
     local n = #s
     local problems = {}
@@ -416,7 +417,7 @@ local function decode(s, variant, big_endian, known_crc)
             r.crc = u32(s, off)
         end
         if variant then
-            local calc = known_crc or crc_of(s, off, variant)
+            local calc = known_crc == true and r.crc or known_crc or crc_of(s, off, variant)
             r.crc_calc = calc
             if calc == r.crc then
                 r.crc_status = CRC_GOOD
@@ -754,8 +755,9 @@ local function add_header(r, tvb, root)
         local info = r.info
         local item = root
         if visible then
-            item = tree_add(root, F.type, range(tvb, 0, ID_LEN), r.type,
-                fmt("Packet ID: %s (%s)", printable(r.type), info and info.description or "Unknown"))
+            local label = info and fmt("Packet ID: %s (%s)", r.type, info.description) -- (a known ID is printable)
+                or fmt("Packet ID: %s (Unknown)", printable(r.type))
+            item = tree_add(root, F.type, range(tvb, 0, ID_LEN), r.type, label)
         elseif want.type then
             item = tree_add(root, F.type, range(tvb, 0, ID_LEN), r.type)
         end
@@ -1412,9 +1414,18 @@ local function dissect(tvb, pinfo, tree)
     local number = pinfo.number
     local offset = tvb:offset()
     local s = tvb:raw()
-    local known = visited and memo_get(crc_memo, number, offset) or nil
+    local res, known -- the frame's analysis and calculated CRC, from the first pass
+    if visited then
+        known = memo_get(crc_memo, number, offset) or nil
+        if settings.analysis then
+            res = memo_get(results, number, offset)
+            if res and not known then known = true end -- (analysed: no problems, so the CRC matched)
+        end
+    end
     local r = decode(s, settings.variant, settings.big_endian, known)
-    if r.crc_calc and not known then memo_set(crc_memo, number, offset, r.crc_calc) end
+    if r.crc_calc and not known and not (settings.analysis and not next(r.problems)) then
+        memo_set(crc_memo, number, offset, r.crc_calc) -- (an analysed packet's is its stored CRC)
+    end
     if want.columns then
         r.info_text = summary(r)
         local cols = pinfo.cols
@@ -1423,10 +1434,7 @@ local function dissect(tvb, pinfo, tree)
     end
     local root = add_tree(r, tvb, tree)
     if settings.analysis then
-        local res
-        if visited then
-            res = memo_get(results, number, offset)
-        else -- (tshark -2 -R gives a frame the read filter drops the number of the next one it keeps)
+        if not visited then -- (tshark -2 -R gives a frame the read filter drops the number of the next one it keeps)
             res = not next(r.problems) and analyse(r, s, pinfo, number, offset)
             memo_set(results, number, offset, res)
         end

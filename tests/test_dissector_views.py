@@ -459,3 +459,24 @@ def test_pass_switching(tshark, case, tmp_path):
     if got != want:
         pytest.fail(f"tshark -2 -R '{read}' -Y '{display}' -e {shown}:\n"
                     + "\n".join(differences(want, got, names=("expected", "tshark"))), pytrace=False)
+
+
+@runner_ids
+@pytest.mark.parametrize("passes", sorted(PASSES))
+def test_crc_on_every_pass_matches_the_decoder(tshark, passes, tmp_path):
+    """The calculated CRC and its status on each pass equal vm110.decode's, with the analysis on
+    (on the second pass an analysed packet's CRC is not recalculated: it matched on the first)."""
+    capture = "illegal.pcap"   # good and bad CRCs, every illegal reason, other traffic
+    with workspace(tshark, tmp_path) as ws:
+        local = ws.dir / capture
+        local.write_bytes((CAPTURES / capture).read_bytes())
+        fields = {"vm110.crc.calculated": "FT_UINT32", "vm110.crc.status": "FT_UINT8"}
+        dump = field_dump(ws, local, ON, fields, PASSES[passes])
+    expected = {}
+    for _, _, _, dport, payload, number in CaptureReader(str(CAPTURES / capture)):
+        d = decode(payload)
+        if dport in (C.INPUT_PORT, C.OUTPUT_PORT) and d.get("crc.status"):
+            expected[number] = {"vm110.crc.calculated": [d["crc.calculated"]],
+                                "vm110.crc.status": [1 if d["crc.status"] == "Good" else 0]}
+    got = {n: v for n, v in dump.items() if v["vm110.crc.status"]}
+    assert expected and got == expected
