@@ -231,8 +231,9 @@ end
 -- 3. decode(): the rules of vm110/decode.py, on a Lua string
 -- Record (false = absent): n, type, info (TYPES entry), header values (revision ... spare),
 -- crc_off (offset of the CRC), crc, crc_calc, crc_status, pay_end (end of the payload span),
--- payload (true when the payload is decoded), values (payload field -> value), present
--- (layout entries decoded), decoded_end, data_len (VRPO periodic data), es_relays_open,
+-- payload (true when the payload is decoded), values (layout field -> value), present (layout
+-- entries decoded), decoded_end, data_len (VRPO periodic data: the data_len bytes before
+-- decoded_end), es_relays_open,
 -- problems (code -> true), fieldwarn (field -> list of codes), extra (extra_payload).
 ---------------------------------------------------------------------------------------------
 local function u16(s, o)
@@ -310,9 +311,11 @@ local function compile_vrpi_checks()
 end
 local check_vrpi = compile_vrpi_checks()
 
+local VRPI_SPARE_ZERO = string.rep("\0", 6)
+
 local function check_values(r, info)
     local v = r.values
-    if v.vrpi_spare and v.vrpi_spare:find("[^\0]") then warn(r, "vrpi_spare", "spare_nonzero") end
+    if v.vrpi_spare and v.vrpi_spare ~= VRPI_SPARE_ZERO then warn(r, "vrpi_spare", "spare_nonzero") end
     if v.command_spare and v.command_spare ~= 0 then warn(r, "command_spare", "spare_nonzero") end
     if info.id == "VRPI" then check_vrpi(r, v) end
 end
@@ -356,8 +359,7 @@ local function decode_payload(r, s, info)
         local off = r.decoded_end
         local len = limit - off
         if len > VRPO_MAX_DATA then len = VRPO_MAX_DATA end
-        r.data_len = len
-        v.periodic_data = sub(s, off + 1, off + len)
+        r.data_len = len -- (the data are read from the packet where needed, not copied per packet)
         r.decoded_end = off + len
     elseif info.id == "VRPI" and v.bu_state then
         r.es_relays_open = v.bu_state < ES_RELAYS_CLOSED_FROM
