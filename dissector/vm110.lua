@@ -610,16 +610,20 @@ local add_expert, append_text, tvb_range = TreeItem.add_proto_expert_info, TreeI
 local referenced = TreeItem.referenced
 
 -- A view: field name -> true when it is built; `visible` for labels and subtrees; `layouts`:
--- per packet type, the payload layout entries that are built.
-local function with_layouts(view)
-    view.layouts = {}
-    for id, info in pairs(TYPES) do
-        local list = {}
-        for _, f in ipairs(info.layout) do
+-- per packet type, the payload layout entries that are built (made when first asked for: a
+-- view of a visited dissection serves one packet).
+local LAZY_LAYOUTS = {
+    __index = function(layouts, id)
+        local view, list = layouts.view, {}
+        for _, f in ipairs(TYPES[id].layout) do
             if view[f[1]] then list[#list + 1] = f end
         end
-        view.layouts[id] = list
-    end
+        layouts[id] = list
+        return list
+    end,
+}
+local function with_layouts(view)
+    view.layouts = setmetatable({ view = view }, LAZY_LAYOUTS)
     return view
 end
 
@@ -628,6 +632,9 @@ for name in pairs(F) do EVERY[name] = true end
 with_layouts(EVERY)
 
 -- `any`: some field is built; `columns`: the Info column is written (not by tshark -T fields).
+local NOTHING = with_layouts({ visible = false, any = false, columns = true })
+local vm110_handle -- (the dissector handle, once registered: referenced when any vm110 field is)
+
 local function referenced_view(tree, columns)
     local view = { visible = false, any = false, columns = columns }
     for name, f in pairs(F) do
@@ -647,7 +654,7 @@ local want = EVERY -- the view of the packet being dissected
 local function choose_view(tree, pinfo, visited)
     if visited then first_pass_view = false end
     if tree.visible then return EVERY end
-    if visited then return referenced_view(tree, true) end
+    if visited then return referenced(tree, vm110_handle) and referenced_view(tree, true) or NOTHING end
     if not first_pass_view then
         -- Without column data (tshark -T fields without _ws.col) a column reads "(info)".
         first_pass_view = referenced_view(tree, tostring(pinfo.cols.info) ~= "(info)")
@@ -1450,6 +1457,7 @@ local function dissect(tvb, pinfo, tree)
     return r.n
 end
 vm110.dissector = dissect
+vm110_handle = Dissector.get("vm110")
 
 local function heuristic(tvb, pinfo, tree)
     if not settings.heuristic then return false end
