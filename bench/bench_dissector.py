@@ -13,6 +13,15 @@ figure of the issues; and CPU time, which other load disturbs less). Measured on
 tshark (4.0, Lua 5.2) and, when scripts/setup-tshark44.sh has built it, on tshark 4.4 (Lua 5.4)
 in its chroot. Wireshark 4.0's tshark builds the full, visible tree for -T fields (4.4 builds it
 invisible and only the referenced fields), so there every field of every packet is built.
+
+Two references measured in the same run put the ratios in context:
+- "plain, 8 / 12 columns": plain UDP printing four / eight more frame/Ethernet/IP/UDP fields, so
+  that the "+ vm110 fields" runs are also compared with a run that writes as many columns;
+- "Lua tree floor": a Lua dissector that adds, per packet, as many tree items as vm110's visible
+  tree has for that packet type (counted from vm110's own PDML of the capture), each over its own
+  TvbRange, and does nothing else: no CRC, no checks, no labels. It is what any Lua dissector
+  that shows every field pays for its items where the tree is visible (all of tshark 4.0's
+  -T fields); vm110 / floor is then the cost of everything vm110 does besides its items.
 """
 from __future__ import annotations
 
@@ -26,6 +35,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import tshark_runner as T  # noqa: E402
+from lxml import etree  # noqa: E402
+from vm110 import constants as C  # noqa: E402
 from vm110.synth import synthesize  # noqa: E402
 
 DURATION_S = 5400     # about 100,000 packets of 'day'
@@ -36,6 +47,58 @@ COMMON = ["-e", "frame.number", "-e", "ip.src", "-e", "udp.srcport", "-e", "udp.
 VM110_FIELDS = ["-e", "vm110.type", "-e", "vm110.serial", "-e", "vm110.crc.status", "-e", "vm110.command_id"]
 ANALYSIS_FIELDS = ["-e", "vm110.analysis.serial_missing", "-e", "vm110.analysis.interval",
                    "-e", "vm110.analysis.retransmission_of", "-e", "vm110.analysis.ack_to"]
+# Plain fields printed instead of the vm110 ones: the first four for VM110_FIELDS, all for both lists.
+PLAIN_EXTRA = ["-e", "ip.dst", "-e", "udp.dstport", "-e", "ip.ttl", "-e", "udp.checksum",
+               "-e", "frame.len", "-e", "eth.src", "-e", "eth.dst", "-e", "ip.id"]
+COUNT_PACKETS = 2000  # packets whose visible vm110 tree is counted for the floor
+
+FLOOR_LUA = """-- Written by bench/bench_dissector.py: items only, as many per packet type as vm110's visible tree.
+{gc}
+local p = Proto("vm110floor", "Lua tree floor")
+local f = ProtoField.uint8("vm110floor.byte", "Byte", base.DEC)
+p.fields = {{ f }}
+local ITEMS = {{ {items} }}
+function p.dissector(tvb, pinfo, tree)
+    local n = tvb:len()
+    local root = tree:add(p, tvb(0, n))
+    for i = 2, ITEMS[tvb:raw(0, 4)] or 1 do root:add(f, tvb(i % n, 1)) end
+    return n
+end
+local udp = DissectorTable.get("udp.port")
+udp:add({input}, p)
+udp:add({output}, p)
+"""
+
+
+def visible_items(ws: T.Workspace, capture: str) -> dict[str, int]:
+    """Packet type -> the most tree items vm110's visible tree has for it (its protocol item,
+    fields, text items and subtrees; expert items not counted), from its PDML."""
+    proc = ws.run(["-n", "-r", capture, "-c", str(COUNT_PACKETS), "-T", "pdml", "-o", "vm110.analysis:FALSE"])
+    items: dict[str, int] = {}
+    for proto in etree.fromstring(proc.stdout.encode(), parser=etree.XMLParser(huge_tree=True)).iter("proto"):
+        if proto.get("name") != "vm110":
+            continue
+        kind = next((f.get("show") for f in proto.iter("field") if f.get("name") == "vm110.type"), None)
+        count = 1 + sum(1 for f in proto.iter("field") if not (f.get("name") or "").startswith("_ws.expert"))
+        if kind:
+            items[kind] = max(items.get(kind, 0), count)
+    return items
+
+
+def collector_settings() -> str:
+    """vm110.lua's tuning of the Lua collector (it applies to every Lua plugin): the floor runs with it too."""
+    text = T.PLUGIN.read_text()
+    start = text.index('if _VERSION == "Lua 5.4" then')
+    return text[start:text.index("\nend\n", start) + 4]
+
+
+def floor_plugin(ws: T.Workspace, capture: str) -> str:
+    """The floor dissector, written where tshark sees it; returns its path as tshark sees it."""
+    items = ", ".join(f"{kind} = {n}" for kind, n in sorted(visible_items(ws, capture).items()))
+    path = ws.dir / "floor.lua"
+    path.write_text(FLOOR_LUA.format(gc=collector_settings(), items=items, input=C.INPUT_PORT, output=C.OUTPUT_PORT))
+    print(f"  (Lua tree floor: items per packet type {items})")
+    return ws.tshark.inner(path)
 
 
 def timed(command: list[str]) -> tuple[float, float]:
@@ -55,6 +118,10 @@ def measure(ws: T.Workspace, pcap: Path) -> dict[str, tuple[float, float]]:
     off, on = ["-o", "vm110.analysis:FALSE"], ["-o", "vm110.analysis:TRUE"]
     commands = {
         "plain": ws.tshark.command(["-n", "-r", capture, "-T", "fields", *COMMON]),
+        "plain_8": ws.tshark.command(["-n", "-r", capture, "-T", "fields", *COMMON, *PLAIN_EXTRA[:8]]),
+        "plain_12": ws.tshark.command(["-n", "-r", capture, "-T", "fields", *COMMON, *PLAIN_EXTRA]),
+        "floor": ws.tshark.command(["-n", "-X", f"lua_script:{floor_plugin(ws, capture)}", "-r", capture,
+                                    "-T", "fields", *COMMON]),
         "decode": ws.tshark.command([*plugin, *off]),
         "decode_fields": ws.tshark.command([*plugin, *VM110_FIELDS, *off]),
         "analysis": ws.tshark.command([*plugin, *on]),
@@ -92,16 +159,22 @@ def main() -> int:
             except T.TsharkUnavailable as exc:
                 print(f"{runner.name}: not measured ({exc})")
                 continue
-            plain = t["plain"]
+            plain, floor = t["plain"], t["floor"]
             print(f"{version}: tshark -T fields, {packets} EG-Link packets ('day', {DURATION_S} s); "
                   f"plain UDP {plain[0]:.2f} s (CPU {plain[1]:.2f} s)")
             print(ratio_line("vm110 plugin, CRC on, analysis off", t["decode"], plain, f" (target <= {TARGET})"))
-            print(ratio_line("  + vm110 fields", t["decode_fields"], plain))
+            print(ratio_line("  + vm110 fields", t["decode_fields"], plain)
+                  + f"; against plain with as many columns {t['decode_fields'][0] / t['plain_8'][0]:.2f}")
             print(ratio_line("vm110 plugin, CRC on, analysis on", t["analysis"], plain,
                              f" (target <= {ANALYSIS_TARGET})"))
-            print(ratio_line("  + vm110 and analysis fields", t["analysis_fields"], plain))
+            print(ratio_line("  + vm110 and analysis fields", t["analysis_fields"], plain)
+                  + f"; against plain with as many columns {t['analysis_fields'][0] / t['plain_12'][0]:.2f}")
             print(f"  analysis cost on/off: wall {t['analysis'][0] / t['decode'][0]:.2f}, "
                   f"CPU {t['analysis'][1] / t['decode'][1]:.2f}")
+            print(ratio_line("reference: plain, 8 columns", t["plain_8"], plain))
+            print(ratio_line("reference: plain, 12 columns", t["plain_12"], plain))
+            print(ratio_line("reference: Lua tree floor (items only)", floor, plain)
+                  + f"; vm110 (analysis off) / floor {t['decode'][0] / floor[0]:.2f}")
     return 0
 
 

@@ -1496,8 +1496,8 @@ udp_port:add_for_decode_as(vm110)
 vm110:register_heuristic("udp", heuristic)
 
 ---------------------------------------------------------------------------------------------
--- Statistics: `tshark -z vm110,stat` and Statistics → VM-110 EG-Link (GUI), from the state the
--- analysis built on the first pass.
+-- Statistics: `tshark -z vm110,stat` and Statistics → VM-110 EG-Link Stream Statistics (GUI),
+-- from the state the analysis built on the first pass.
 ---------------------------------------------------------------------------------------------
 local STAT_TYPES = { "VRPI", "VRPO", "VRCI", "VRCO", "VRAI", "VRAO" }
 
@@ -1534,9 +1534,9 @@ if register_stat_cmd_arg then
         function tap.draw() io.write(stats_text()) end
     end)
 end
--- GUI only: these functions exist when Wireshark runs with a GUI.
+-- GUI only: these functions exist when Wireshark runs with a GUI. The Qt GUI shows a Lua menu of
+-- MENU_STAT_UNSORTED in Statistics (not one of MENU_STAT_GENERIC), and a "/" in its name as is.
+local MENU_NAME = "VM-110 EG-Link Stream Statistics"
 if gui_enabled and gui_enabled() and register_menu then
-    register_menu("VM-110 EG-Link/Stream statistics", function()
-        TextWindow.new("VM-110 EG-Link stream statistics"):set(stats_text())
-    end, MENU_STAT_GENERIC)
+    register_menu(MENU_NAME, function() TextWindow.new(MENU_NAME):set(stats_text()) end, MENU_STAT_UNSORTED)
 end

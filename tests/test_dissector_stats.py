@@ -91,3 +91,47 @@ def test_stat_matches_truth(tshark, capture, tmp_path):
                 continue
             assert g["intervals"][kind][3] == want[3]
             assert g["intervals"][kind][:3] == pytest.approx(want[:3], abs=1.5e-3)
+
+
+# Stands in for Wireshark's GUI inside tshark (loaded before the plugin; each script has an
+# environment of its own over _G): records the menus the plugin registers; a tap's draw then opens
+# each one, and its text window prints to stdout.
+GUI_STUB = """
+local menus = {}
+_G.gui_enabled = function() return true end
+_G.register_menu = function(name, action, group) menus[#menus + 1] = { name = name, action = action, group = group } end
+_G.TextWindow = { new = function(title) return { set = function(_, text) io.write("WINDOW ", title, "\\n", text) end } end }
+register_stat_cmd_arg("vm110gui", function()
+    local tap = Listener.new("frame", "vm110")
+    function tap.draw()
+        for _, m in ipairs(menus) do
+            io.write("MENU ", m.name, " ", m.group == MENU_STAT_UNSORTED and "MENU_STAT_UNSORTED" or tostring(m.group), "\\n")
+            m.action()
+        end
+    end
+end)
+"""
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_gui_menu_shows_the_statistics(tshark, tmp_path):
+    """Statistics menu entry: the Qt GUI shows a Lua menu of group MENU_STAT_UNSORTED in Statistics
+    (one of MENU_STAT_GENERIC not at all, seen in Wireshark 4.0), and its window has the text of
+    `-z vm110,stat`."""
+    capture = CAPTURES[1]
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            local = ws.dir / capture.name
+            local.write_bytes(capture.read_bytes())
+            stub = ws.dir / "gui_stub.lua"
+            stub.write_text(GUI_STUB)
+            stat = ws.run(["-r", str(local), "-q", "-z", "vm110,stat"]).stdout
+            gui = ws.run(["-X", f"lua_script:{stub}", "-X", f"lua_script:{ws.plugin()}", "-r", str(local), "-q",
+                          "-z", "vm110gui"], plugin=False)
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert T.LUA_ERROR not in gui.stdout + gui.stderr, gui.stderr
+    menu, window, text = gui.stdout.split("\n", 2)
+    assert menu == "MENU VM-110 EG-Link Stream Statistics MENU_STAT_UNSORTED"
+    assert window == "WINDOW VM-110 EG-Link Stream Statistics"
+    assert text == stat and "Sender Input 10.0.0.10:5825 origin 0x0101" in text
