@@ -109,8 +109,13 @@ for _, t in ipairs({
 }) do
     local min = layout_size(t[3])
     TYPES[t[1]] = {
-        id = t[1], description = t[2], layout = t[3], min = min, max = min + (t[4] or 0),
+        id = t[1], layout = t[3], min = min, max = min + (t[4] or 0),
         direction = sub(t[1], 4, 4) == "I" and "Input" or "Output",
+        label = fmt("Packet ID: %s (%s)", t[1], t[2]), -- (tree labels made once, not per packet)
+        payload_labels = setmetatable({}, { __index = function(labels, len)
+            labels[len] = fmt("%s payload (%d bytes)", t[1], len)
+            return labels[len]
+        end }),
     }
 end
 
@@ -627,11 +632,13 @@ local function with_layouts(view)
     return view
 end
 
-local EVERY = { visible = true, any = true, columns = true }
-for name in pairs(F) do EVERY[name] = true end
-with_layouts(EVERY)
-
 -- `any`: some field is built; `columns`: the Info column is written (not by tshark -T fields).
+local function every_view(columns)
+    local view = { visible = true, any = true, columns = columns }
+    for name in pairs(F) do view[name] = true end
+    return with_layouts(view)
+end
+local EVERY, EVERY_NO_COLUMNS = every_view(true), every_view(false)
 local NOTHING = with_layouts({ visible = false, any = false, columns = true })
 local vm110_handle -- (the dissector handle, once registered: referenced when any vm110 field is)
 
@@ -652,12 +659,17 @@ local first_pass_view = false
 local want = EVERY -- the view of the packet being dissected
 
 local function choose_view(tree, pinfo, visited)
-    if visited then first_pass_view = false end
-    if tree.visible then return EVERY end
-    if visited then return referenced(tree, vm110_handle) and referenced_view(tree, true) or NOTHING end
-    if not first_pass_view then
-        -- Without column data (tshark -T fields without _ws.col) a column reads "(info)".
-        first_pass_view = referenced_view(tree, tostring(pinfo.cols.info) ~= "(info)")
+    local visible = tree.visible
+    if visited then
+        first_pass_view = false
+        if visible then return EVERY end
+        return referenced(tree, vm110_handle) and referenced_view(tree, true) or NOTHING
+    end
+    if not first_pass_view or first_pass_view.visible ~= visible then
+        -- Without column data (tshark -T fields without _ws.col; tshark 4.0's tree is visible
+        -- there) a column reads "(info)".
+        local columns = tostring(pinfo.cols.info) ~= "(info)"
+        first_pass_view = visible and (columns and EVERY or EVERY_NO_COLUMNS) or referenced_view(tree, columns)
     end
     return first_pass_view
 end
@@ -764,8 +776,7 @@ local function add_header(r, tvb, root)
         local info = r.info
         local item = root
         if visible then
-            local label = info and fmt("Packet ID: %s (%s)", r.type, info.description) -- (a known ID is printable)
-                or fmt("Packet ID: %s (Unknown)", printable(r.type))
+            local label = info and info.label or fmt("Packet ID: %s (Unknown)", printable(r.type))
             item = tree_add(root, F.type, range(tvb, 0, ID_LEN), r.type, label)
         elseif want.type then
             item = tree_add(root, F.type, range(tvb, 0, ID_LEN), r.type)
@@ -817,7 +828,7 @@ local function add_payload(r, tvb, root)
     local plen = r.pay_end - PREFIX_LEN
     local payload = root
     if want.visible then
-        payload = tree_add(root, range(tvb, PREFIX_LEN, plen), fmt("%s payload (%d bytes)", r.type, plen))
+        payload = tree_add(root, range(tvb, PREFIX_LEN, plen), info.payload_labels[plen])
     end
     local whole = r.present == info.layout
     local relays = v.bu_state ~= nil
@@ -1435,8 +1446,8 @@ local function dissect(tvb, pinfo, tree)
     if r.crc_calc and not known and not (settings.analysis and not next(r.problems)) then
         memo_set(crc_memo, number, offset, r.crc_calc) -- (an analysed packet's is its stored CRC)
     end
+    if want.visible or want.columns then r.info_text = summary(r) end -- (the root item's label too)
     if want.columns then
-        r.info_text = summary(r)
         local cols = pinfo.cols
         cols.protocol = "VM110"
         cols.info = r.info_text
