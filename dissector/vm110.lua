@@ -251,9 +251,10 @@ local function u32(s, o)
 end
 local function s16(v) if v >= 0x8000 then return v - 0x10000 end return v end
 
--- A reader per layout for whole payloads: one string.byte call into locals and one table
--- constructor, no loop. Generated from the layout, so that the layout stays the only
--- description of each packet.
+-- A reader per layout for whole payloads: one string.byte call into locals, stored into the
+-- given table (a packet type's own, reused: a new table per packet is work for the collector),
+-- no loop. Generated from the layout, so that the layout stays the only description of each
+-- packet.
 local function compile_reader(layout)
     local parts, locals, off = {}, {}, PREFIX_LEN
     for _, f in ipairs(layout) do
@@ -267,12 +268,12 @@ local function compile_reader(layout)
         else
             expr = fmt("((b%d * 256 + b%d) * 256 + b%d) * 256 + b%d", off + 4, off + 3, off + 2, off + 1)
         end
-        parts[#parts + 1] = name .. " = " .. expr
+        parts[#parts + 1] = "v." .. name .. " = " .. expr
         off = off + width
     end
     for i = PREFIX_LEN + 1, off do locals[#locals + 1] = "b" .. i end
-    local code = fmt("local byte, sub, s16 = ...\nreturn function(s)\nlocal %s = byte(s, %d, %d)\n"
-        .. "return { %s }\nend", concat(locals, ", "), PREFIX_LEN + 1, off, concat(parts, ", "))
+    local code = fmt("local byte, sub, s16 = ...\nreturn function(s, v)\nlocal %s = byte(s, %d, %d)\n"
+        .. "%s\nreturn v\nend", concat(locals, ", "), PREFIX_LEN + 1, off, concat(parts, "\n"))
     return assert(load(code, "=vm110 reader", "t", {}))(byte, sub, s16)
 end
 
@@ -286,11 +287,25 @@ for _, f in ipairs(VRPI_LAYOUT) do
         range and range[2] or false, RU_FIELDS[f[1]] or false }
 end
 
+-- The problems, warnings or values of a packet that has none: shared, never written (most
+-- packets have no problem and no warning).
+local EMPTY = {}
+
+local function problem(r, code)
+    if r.problems == EMPTY then r.problems = {} end
+    r.problems[code] = true
+end
+
 local function warn(r, field, code)
-    local list = r.fieldwarn[field]
+    local fieldwarn = r.fieldwarn
+    if fieldwarn == EMPTY then
+        fieldwarn = {}
+        r.fieldwarn = fieldwarn
+    end
+    local list = fieldwarn[field]
     if not list then
         list = {}
-        r.fieldwarn[field] = list
+        fieldwarn[field] = list
     end
     list[#list + 1] = code
 end
@@ -353,10 +368,10 @@ local function decode_payload(r, s, info)
     local limit = r.pay_end
     local v
     if limit - PREFIX_LEN >= info.min then
-        v = info.read(s)
+        v = info.read(s, info.values)
         r.present, r.decoded_end = info.layout, PREFIX_LEN + info.min
     else
-        r.problems.truncated = true
+        problem(r, "truncated")
         v, r.present, r.decoded_end = read_partial(s, info.layout, limit)
     end
     r.values = v
@@ -371,9 +386,10 @@ local function decode_payload(r, s, info)
     end
 end
 
--- Each type gets its reader; layout entries get their offset in the packet (for the tree).
+-- Each type gets its reader and values table; layout entries get their offset in the packet
+-- (for the tree).
 for _, info in pairs(TYPES) do
-    info.read = compile_reader(info.layout)
+    info.read, info.values = compile_reader(info.layout), {}
     local off = PREFIX_LEN
     for _, f in ipairs(info.layout) do
         f.off = off
@@ -381,16 +397,15 @@ for _, info in pairs(TYPES) do
     end
 end
 
-local NO_VALUES = {} -- values of a packet whose payload is not decoded: shared, never written
-
 -- s: the UDP payload; variant: a CRC_VARIANTS entry, or nil when validation is off;
 -- big_endian: stored CRC byte order; known_crc: the calculated CRC when memoised, true when it
--- is known to match the stored one.
+-- is known to match the stored one. A whole payload's values are its type's table, valid until
+-- the next packet of that type is decoded: nothing reads them after a machine sub-dissector (which
+-- could dissect another packet) has run.
 local function decode(s, variant, big_endian, known_crc)
     local n = #s
-    local problems = {}
     -- Every key up front (false = absent): one allocation instead of a rehash per new key.
-    local r = { n = n, problems = problems, fieldwarn = {}, values = NO_VALUES, type = false, info = false,
+    local r = { n = n, problems = EMPTY, fieldwarn = EMPTY, values = EMPTY, type = false, info = false,
         revision = false, origin = false, serial = false, size = false, spare = false, crc_off = false,
         pay_end = false, crc = false, crc_calc = false, crc_status = false, payload = false, present = false,
         decoded_end = false, data_len = false, extra = false, es_relays_open = false, info_text = false }
@@ -399,14 +414,14 @@ local function decode(s, variant, big_endian, known_crc)
         r.type = sub(s, 1, ID_LEN)
         info = TYPES[r.type]
         r.info = info
-        if not info then problems.unknown_id = true end
+        if not info then problem(r, "unknown_id") end
     end
     if n < PREFIX_LEN then
         for _, h in ipairs(HEADER) do
             if h[2] + h[3] > n then break end
             r[h[1]] = h[3] == 2 and u16(s, h[2]) or u32(s, h[2])
         end
-        problems.truncated = true
+        problem(r, "truncated")
         return r
     end
     local r1, r2, o1, o2, s1, s2, z1, z2, p1, p2, p3, p4 = byte(s, 5, PREFIX_LEN)
@@ -430,19 +445,19 @@ local function decode(s, variant, big_endian, known_crc)
                 r.crc_status = CRC_GOOD
             else
                 r.crc_status = CRC_BAD
-                problems.bad_crc = true
+                problem(r, "bad_crc")
             end
         else
             r.crc_status = CRC_UNVERIFIED
         end
     end
-    if revision ~= SUPPORTED_REVISION then problems.revision = true end
-    if n ~= OVERHEAD + size then problems.size_mismatch = true end
-    if size > MAX_PAYLOAD then problems.size_too_large = true end
+    if revision ~= SUPPORTED_REVISION then problem(r, "revision") end
+    if n ~= OVERHEAD + size then problem(r, "size_mismatch") end
+    if size > MAX_PAYLOAD then problem(r, "size_too_large") end
     if spare ~= 0 then warn(r, "spare", "spare_nonzero") end
     if origin ~= 0 and info and info.direction == "Output" then warn(r, "origin", "origin_nonzero") end
     if n < OVERHEAD then
-        problems.truncated = true -- no room for a CRC: nothing after the header
+        problem(r, "truncated") -- no room for a CRC: nothing after the header
         return r
     end
     if not info or revision ~= SUPPORTED_REVISION then return r end -- header only
