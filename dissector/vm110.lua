@@ -291,17 +291,22 @@ end
 -- packets have no problem and no warning).
 local EMPTY = {}
 
+-- The record's own table at `key` (problems, fieldwarn), made on the first write.
+local function own(r, key)
+    local t = r[key]
+    if t == EMPTY then
+        t = {}
+        r[key] = t
+    end
+    return t
+end
+
 local function problem(r, code)
-    if r.problems == EMPTY then r.problems = {} end
-    r.problems[code] = true
+    own(r, "problems")[code] = true
 end
 
 local function warn(r, field, code)
-    local fieldwarn = r.fieldwarn
-    if fieldwarn == EMPTY then
-        fieldwarn = {}
-        r.fieldwarn = fieldwarn
-    end
+    local fieldwarn = own(r, "fieldwarn")
     local list = fieldwarn[field]
     if not list then
         list = {}
