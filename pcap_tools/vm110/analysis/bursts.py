@@ -18,48 +18,35 @@ from .. import constants as C
 DATA_OFFSET = C.VRPO_HEADER_SIZE
 
 
-def split(packets: Sequence[tuple[float, int, int]], gap_ms: float = C.VRPO_BURST_GAP_MS
-          ) -> list[list[tuple[float, int, int]]]:
-    """Group (ts, packet number, payload size) into bursts at gaps of at least `gap_ms`."""
-    bursts: list[list] = []
-    current: list = []
+def split(times: Sequence[float], gap_ms: float = C.VRPO_BURST_GAP_MS) -> list[range]:
+    """Positions of each burst: a new one begins at a gap of at least `gap_ms`."""
     gap = gap_ms / 1000.0
-    for pkt in packets:
-        if current and pkt[0] - current[-1][0] >= gap:
-            bursts.append(current)
-            current = []
-        current.append(pkt)
-    if current:
-        bursts.append(current)
-    return bursts
-
-
-def _numbered(burst: list, start: int) -> bool:
-    """Numbers start, start+1, ... each once (in any order: reordering inside a burst is harmless)."""
-    return sorted(number for _, number, _ in burst) == list(range(start, start + len(burst)))
-
-
-def _total(burst: list) -> int:
-    return sum(size - DATA_OFFSET for _, _, size in burst)
+    t = np.asarray(times, dtype=np.float64)
+    cuts = [0, *(np.flatnonzero(np.diff(t) >= gap) + 1).tolist(), len(t)]
+    return [range(a, b) for a, b in zip(cuts, cuts[1:]) if b > a]
 
 
 def count(times: Sequence[float], numbers: Sequence[int], sizes: Sequence[int],
-          gap_ms: float = C.VRPO_BURST_GAP_MS, start: int = 0, data_size: int = 0) -> tuple[int, int, list]:
-    """(complete, incomplete, burst start times) of one sender's VRPO packets."""
+          gap_ms: float = C.VRPO_BURST_GAP_MS, start: int = 0, data_size: int = 0) -> tuple[int, list, np.ndarray]:
+    """(complete, positions of the first packet of each incomplete burst, positions of the first
+    packet of every burst) of one sender's VRPO packets."""
     if not len(times):
-        return 0, 0, []
+        return 0, [], np.empty(0, dtype=np.int64)
+    number, size = np.asarray(numbers), np.asarray(sizes)
     spaced = len(times) < 2 or float(np.min(np.diff(np.asarray(times, dtype=np.float64)))) >= gap_ms / 1000.0
-    if not data_size and spaced and max(sizes) < DATA_OFFSET + C.VRPO_MAX_DATA:
+    if not data_size and spaced and int(size.max()) < DATA_OFFSET + C.VRPO_MAX_DATA:
         # Nothing split, nothing close together: every packet is a burst of one.
-        complete = int(np.count_nonzero(np.asarray(numbers) == start))
-        return complete, len(times) - complete, times
-    bursts = split(list(zip(np.asarray(times).tolist(), np.asarray(numbers).tolist(),
-                            np.asarray(sizes).tolist())), gap_ms)
-    complete = 0
-    for burst in bursts:
-        by_number = sorted(burst, key=lambda p: p[1])
-        full = all(p[2] - DATA_OFFSET == C.VRPO_MAX_DATA for p in by_number[:-1])
-        ends = (_total(burst) == data_size) if data_size else by_number[-1][2] - DATA_OFFSET < C.VRPO_MAX_DATA
-        if _numbered(burst, start) and full and ends:
+        return (int(np.count_nonzero(number == start)), np.flatnonzero(number != start).tolist(),
+                np.arange(len(times)))
+    complete, incomplete, firsts = 0, [], []
+    for burst in split(times, gap_ms):
+        firsts.append(burst.start)
+        parts = sorted((int(number[i]), int(size[i]) - DATA_OFFSET) for i in burst)
+        full = all(data == C.VRPO_MAX_DATA for _, data in parts[:-1])
+        ends = sum(data for _, data in parts) == data_size if data_size else parts[-1][1] < C.VRPO_MAX_DATA
+        # Numbers start, start+1, ... each once (in any order: reordering inside a burst is harmless).
+        if [n for n, _ in parts] == list(range(start, start + len(parts))) and full and ends:
             complete += 1
-    return complete, len(bursts) - complete, np.array([b[0][0] for b in bursts])
+        else:
+            incomplete.append(burst.start)
+    return complete, incomplete, np.array(firsts, dtype=np.int64)

@@ -1,8 +1,11 @@
-"""Command transmissions and acknowledgements (interpretation.md, "Commands").
+"""Command transmissions and acknowledgements (docs/rules.md, "Commands").
 
-A VRCI (VRCO) with the command ID of its sender's current command is a retransmission; a new ID
-supersedes the current command. VRAO acknowledges the latest not-superseded VRCI with its ID,
-VRAI the VRCO. Duplicated frames (a repeated serial) were removed before this point.
+A command is (kind, sender, command ID); a sender may have any number open. A VRCI (VRCO) is a
+retransmission of its sender's command with the same ID when that command's previous
+transmission was less than the reuse gap ago and the sender has not restarted since; otherwise
+it begins a new command. VRAO (VRAI) acknowledges the VRCI (VRCO) with its ID, from any sender,
+not interrupted, that began last. A sender's restart interrupts its commands that were neither
+acknowledged nor past their fail limit. Duplicates were removed before this point.
 """
 from __future__ import annotations
 
@@ -18,6 +21,8 @@ from .collect import CODE
 COMMAND_TYPES = (C.PacketType.VRCI, C.PacketType.VRCO)
 _ACK_OF_CODE = {CODE[ack]: CODE[cmd] for ack, cmd in C.ACK_OF.items()}
 _COMMAND_CODES = {CODE[t] for t in COMMAND_TYPES}
+RESTART = -1          # the type code of a restart marker in the event stream
+REUSE_GAP_MS = 2000.0
 
 
 @dataclass
@@ -29,7 +34,9 @@ class Command:
     ack_frame: Optional[int] = None
     ack_time: Optional[float] = None
     last_before_ack: Optional[float] = None
-    spurious: int = 0
+    spurious_frames: list = field(default_factory=list)
+    interrupted_frame: Optional[int] = None
+    interrupted_time: Optional[float] = None
 
     @property
     def latency_first_ms(self) -> Optional[float]:
@@ -39,58 +46,77 @@ class Command:
     def latency_last_ms(self) -> Optional[float]:
         return None if self.ack_time is None else (self.ack_time - self.last_before_ack) * timing.MS
 
+    def failed(self, fail_ms: float) -> bool:
+        if self.interrupted_frame is not None:
+            return False
+        return self.ack_time is None or self.latency_first_ms > fail_ms
+
 
 @dataclass
 class Tally:
     commands: list = field(default_factory=list)
-    acks_without_command: int = 0
-    duplicate_acks: int = 0
     id_wraps: int = 0
-    orphan_acks: list = field(default_factory=list)   # (frame, time, command_id)
+    orphan_acks: list = field(default_factory=list)       # (frame, time, command_id)
+    duplicate_acks: list = field(default_factory=list)    # (frame, time, command_id, command's first frame)
 
 
-def track(events: Iterable[tuple]) -> dict[int, Tally]:
-    """events: (frame, ts, type code, sender id, command ID) in capture order, commands and acks."""
+def track(events: Iterable[tuple], fail_ms: dict[int, float], reuse_gap_ms: float = REUSE_GAP_MS
+          ) -> dict[int, Tally]:
+    """events in capture order: (frame, ts, type code, sender id, command ID) for commands and acks,
+    and (frame, ts, RESTART, sender id, None) where a sender restarted (before that frame's own
+    packet). `fail_ms`: the fail limit per command type code."""
     tallies = {CODE[t]: Tally() for t in COMMAND_TYPES}
-    current: dict[tuple[int, str], Command] = {}          # (code, sender) -> current command
+    reuse = reuse_gap_ms / timing.MS
+    open_: dict[tuple[int, str, int], Command] = {}     # (code, sender, ID) -> its latest command
+    by_id: dict[tuple[int, int], list[Command]] = {}    # (code, ID) -> not interrupted, in order of start
+    last_id: dict[tuple[int, str], int] = {}            # (code, sender) -> ID of its latest new command
     for frame, ts, code, sender, cid in events:
-        if code in _COMMAND_CODES:
+        if code == RESTART:
+            for key in [k for k in open_ if k[1] == sender]:
+                cmd = open_.pop(key)
+                limit = fail_ms[key[0]] / timing.MS
+                if cmd.ack_frame is None and ts - cmd.times[0] <= limit:
+                    cmd.interrupted_frame, cmd.interrupted_time = frame, ts
+                    by_id[(key[0], key[2])].remove(cmd)
+            for code_ in _COMMAND_CODES:
+                last_id.pop((code_, sender), None)
+        elif code in _COMMAND_CODES:
             tally = tallies[code]
-            cmd = current.get((code, sender))
-            if cmd is not None and cmd.command_id == cid:
+            cmd = open_.get((code, sender, cid))
+            if cmd is not None and ts - cmd.times[-1] < reuse:
                 cmd.frames.append(frame)
                 cmd.times.append(ts)
                 if cmd.ack_frame is not None:
-                    cmd.spurious += 1
+                    cmd.spurious_frames.append(frame)
                 continue
-            if cmd is not None and cid < cmd.command_id:
+            previous = last_id.get((code, sender))
+            if previous is not None and cid < previous:
                 tally.id_wraps += 1
-            cmd = Command(sender, cid, [frame], [ts])     # supersedes the sender's previous one
-            current[(code, sender)] = cmd
+            last_id[(code, sender)] = cid
+            cmd = Command(sender, cid, [frame], [ts])
+            open_[(code, sender, cid)] = cmd
+            by_id.setdefault((code, cid), []).append(cmd)
             tally.commands.append(cmd)
         else:
             target = _ACK_OF_CODE[code]
             tally = tallies[target]
-            live = [c for (k, _), c in current.items() if k == target and c.command_id == cid]
-            cmd = max(live, key=lambda c: c.frames[0]) if live else None
+            live = by_id.get((target, cid))
+            cmd = live[-1] if live else None
             if cmd is None:
-                tally.acks_without_command += 1
                 tally.orphan_acks.append((frame, ts, cid))
             elif cmd.ack_frame is not None:
-                tally.duplicate_acks += 1
+                tally.duplicate_acks.append((frame, ts, cid, cmd.frames[0]))
             else:
                 cmd.ack_frame, cmd.ack_time, cmd.last_before_ack = frame, ts, cmd.times[-1]
     return tallies
 
 
-def report(tally: Tally, fail_ms: Optional[float], resend_ms: float) -> dict:
+def report(tally: Tally, fail_ms: float, resend_ms: float) -> dict:
     """The `commands.<TYPE>` section."""
     cmds = tally.commands
     transmissions = sum(len(c.frames) for c in cmds)
     acked = [c for c in cmds if c.ack_frame is not None]
-    failed = 0
-    if fail_ms is not None:
-        failed = sum(1 for c in cmds if c.ack_frame is None or c.latency_first_ms > fail_ms)
+    interrupted = [c for c in cmds if c.interrupted_frame is not None]
     resend = [(b - a) * timing.MS for c in cmds for a, b in zip(c.times, c.times[1:])]
     histogram = Counter(len(c.frames) - 1 for c in cmds)
     first = [c.latency_first_ms for c in acked]
@@ -101,11 +127,12 @@ def report(tally: Tally, fail_ms: Optional[float], resend_ms: float) -> dict:
         "transmissions": transmissions,
         "retransmissions": transmissions - len(cmds),
         "acked": len(acked),
-        "unacked": len(cmds) - len(acked),
-        "failed": failed,
-        "spurious_retransmissions": sum(c.spurious for c in cmds),
-        "acks_without_command": tally.acks_without_command,
-        "duplicate_acks": tally.duplicate_acks,
+        "unacked": len(cmds) - len(acked) - len(interrupted),
+        "interrupted": len(interrupted),
+        "failed": sum(1 for c in cmds if c.failed(fail_ms)),
+        "spurious_retransmissions": sum(len(c.spurious_frames) for c in cmds),
+        "acks_without_command": len(tally.orphan_acks),
+        "duplicate_acks": len(tally.duplicate_acks),
         "command_id_wraps": tally.id_wraps,
         "ack_latency_ms": timing.summary(first, keys),
         "ack_latency_last_ms": timing.summary(last, keys),
@@ -117,8 +144,11 @@ def report(tally: Tally, fail_ms: Optional[float], resend_ms: float) -> dict:
         "list": [{"sender": c.sender, "command_id": c.command_id, "frames": c.frames,
                   "ack_frame": c.ack_frame, "latency_first_ms": round_ms(c.latency_first_ms),
                   "latency_last_ms": round_ms(c.latency_last_ms), "time": round_s(c.times[0]),
-                  "retransmissions": len(c.frames) - 1, "spurious": c.spurious} for c in cmds],
+                  "retransmissions": len(c.frames) - 1, "spurious": len(c.spurious_frames),
+                  "spurious_frames": c.spurious_frames, "interrupted_frame": c.interrupted_frame}
+                 for c in cmds],
         "acks_without_command_list": [{"frame": f, "time": round_s(t), "command_id": i}
                                       for f, t, i in tally.orphan_acks],
+        "duplicate_acks_list": [{"frame": f, "time": round_s(t), "command_id": i, "command_frame": c}
+                                for f, t, i, c in tally.duplicate_acks],
     }
-

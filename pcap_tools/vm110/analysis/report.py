@@ -9,11 +9,12 @@ import numpy as np
 
 from .. import __version__
 from .. import constants as C
-from . import bursts, commands, serials, state, timing
+from . import bursts, commands, findings, serials, state, timing
 from .report_json import normalise
 from .collect import CODE, TYPES, VRPI_CODE, VRPO_CODE, Collected, Sender
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+NEW_PORT_SILENCE_MS = 250.0
 SCOPES = ("auto", "sender", "type")
 COMMAND_CODES = [CODE[t] for t in (*commands.COMMAND_TYPES, *C.ACK_OF)]
 TYPE_SCOPE_MARGIN = 4     # auto: type scope needs at most half the anomalies, and 4 fewer
@@ -32,6 +33,9 @@ class Options:
     vrpo_max_ms: float = C.VRPO_PERIOD_MAX_MS
     resend_ms: float = C.COMMAND_RESEND_MS
     vrci_fail_ms: float = C.VRCI_FAIL_MS
+    vrco_give_up_ms: float = C.VRCO_GIVE_UP_MS
+    reuse_gap_ms: float = commands.REUSE_GAP_MS
+    dup_window_ms: float = serials.DUP_WINDOW_MS
     burst_gap_ms: float = C.VRPO_BURST_GAP_MS
     vrpo_start: int = 0
     vrpo_data_size: int = 0
@@ -44,41 +48,97 @@ def build(got: Collected, opt: Options) -> dict:
         return _build(got, opt)
 
 
+@dataclass
+class _Judged:
+    """One sender with its serials judged: which of its packets were accepted (not duplicates)."""
+    snd: Sender
+    res: serials.SerialResult
+    scope: str
+    live: np.ndarray
+    predecessor: Optional["_Judged"] = None
+    successor: Optional["_Judged"] = None
+
+    def last_time(self, code: int) -> Optional[float]:
+        mask = self.live & (self.snd.code == code)
+        return float(self.snd.ts[mask][-1]) if mask.any() else None
+
+
+def _judge(got: Collected, opt: Options) -> list[_Judged]:
+    judged = []
+    for snd in got.take_senders():
+        res, scope = _serials(snd, opt)
+        live = np.ones(len(snd.code), dtype=bool)
+        live[res.duplicate_index] = False
+        judged.append(_Judged(snd, res, scope, live))
+    _link_new_ports(judged)
+    return judged
+
+
+def _link_new_ports(judged: list[_Judged]) -> None:
+    """A sender whose first packet comes from the address, direction and origin of an earlier
+    sender silent for at least NEW_PORT_SILENCE_MS restarted on a new port (the one heard last)."""
+    by_start = sorted(judged, key=lambda j: int(j.snd.frame[0]))
+    for k, new in enumerate(by_start):
+        snd, first = new.snd, float(new.snd.ts[0])
+        host = snd.src.rsplit(":", 1)[0]
+        earlier = [old for old in by_start[:k]
+                   if (old.snd.direction, old.snd.origin, old.snd.src.rsplit(":", 1)[0]) == (snd.direction, snd.origin, host)
+                   and old.snd.src != snd.src and first - float(old.snd.ts[-1]) >= NEW_PORT_SILENCE_MS / timing.MS]
+        if earlier:
+            new.predecessor = max(earlier, key=lambda o: (float(o.snd.ts[-1]), int(o.snd.frame[-1])))
+            new.predecessor.successor = new
+
+
+def _restart_events(j: _Judged) -> list[dict]:
+    snd = j.snd
+    events = [{"time": float(snd.ts[i]), "frame": int(snd.frame[i]), "from": a, "to": b} for i, a, b in j.res.restarts]
+    if j.predecessor is not None:
+        old = j.predecessor
+        last = old.res.last
+        before = last.get(int(snd.code[0]), last.get(None, max(last.values())))
+        events.insert(0, {"time": float(snd.ts[0]), "frame": int(snd.frame[0]), "from": before,
+                          "to": int(snd.serial[0]), "port_from": int(old.snd.src.rsplit(":", 1)[1]),
+                          "port_to": int(snd.src.rsplit(":", 1)[1])})
+    return events
+
+
 def _build(got: Collected, opt: Options) -> dict:
     sender_reports, periodic, events, burst_rows, states = [], [], [], [], []
+    located: dict[str, list[dict]] = {}
     backwards = 0
-    for snd in got.take_senders():
-        res, scope = _serials(snd, opt.serial_scope)
-        dup = res.duplicate_index
-        sender_reports.append(_sender_report(snd, res, scope))
+    judged = _judge(got, opt)
+    for j in judged:
+        snd, live = j.snd, j.live
+        restarts = _restart_events(j)
+        sender_reports.append(_sender_report(j, restarts, located))
         for code in (VRPI_CODE, VRPO_CODE):
-            mask = snd.code == code
+            mask = live & (snd.code == code)
             if not mask.any():
                 continue
-            times = snd.ts[mask]              # duplicates are legal packets too: they count here
-            row, back = _periodic(TYPES[code].value, snd, times, opt)
+            before = j.predecessor.last_time(code) if j.predecessor is not None else None
+            row, back = _periodic(TYPES[code].value, snd, snd.ts[mask], snd.frame[mask], before,
+                                  None if j.successor is not None else got.last_ts, opt, located)
             backwards += back
             periodic.append(row)
-        live = np.ones(len(snd.code), dtype=bool)     # duplicates are neither commands nor burst parts
-        if dup:
-            live[dup] = False
         rows = np.flatnonzero(live & np.isin(snd.code, COMMAND_CODES))
         name = snd.id
         events += zip(snd.frame[rows].tolist(), snd.ts[rows].tolist(), snd.code[rows].tolist(),
                       [name] * len(rows), snd.aux[rows].tolist())
+        for r in restarts:
+            gone = j.predecessor.snd.id if "port_from" in r else name
+            events.append((r["frame"], r["time"], commands.RESTART, gone, None))
         vrpo = live & (snd.code == VRPO_CODE)
         if vrpo.any():
-            burst_rows.append(_bursts(snd, snd.ts[vrpo], snd.aux[vrpo], snd.size[vrpo], opt, periodic))
-        vrpi = snd.code == VRPI_CODE
+            burst_rows.append(_bursts(snd, vrpo, opt, periodic, located))
+        vrpi = live & (snd.code == VRPI_CODE)
         if vrpi.any():
             states.append({"sender": snd.id, **state.timeline(snd.ts[vrpi], snd.state[vrpi], snd.frame[vrpi],
                                                               got.last_ts)})
     periodic.sort(key=lambda p: (p["type"], p["sender"]))
-    events.sort()
-    tallies = commands.track(events)
-    cmd = {t.value: commands.report(tallies[CODE[t]], opt.vrci_fail_ms if t is C.PacketType.VRCI else None,
-                                    opt.resend_ms)
-           for t in commands.COMMAND_TYPES}
+    events.sort(key=lambda e: (e[0], e[2]))
+    fail = {CODE[C.PacketType.VRCI]: opt.vrci_fail_ms, CODE[C.PacketType.VRCO]: opt.vrco_give_up_ms}
+    tallies = commands.track(events, fail, opt.reuse_gap_ms)
+    cmd = {t.value: commands.report(tallies[CODE[t]], fail[CODE[t]], opt.resend_ms) for t in commands.COMMAND_TYPES}
     invalid = got.illegal_reasons[C.Problem.BAD_CRC.value]
     report = {
         "schema_version": SCHEMA_VERSION,
@@ -106,63 +166,95 @@ def _build(got: Collected, opt: Options) -> dict:
         "state": states,
         "options": asdict(opt),
     }
+    findings.locate_report(report, tallies, located)
     report = normalise(report)
-    report["totals"] = totals(report)
-    report["verdict"] = verdict(report)
+    report["totals"] = findings.totals(report)
+    report["verdict"] = normalise(findings.verdict(report, located))
     return report
 
 
-def _serials(snd: Sender, scope: str) -> tuple[serials.SerialResult, str]:
-    codes = snd.code
-    by_sender = serials.classify_sender(snd.serial, snd.ts, codes, "sender")
+def _serials(snd: Sender, opt: Options) -> tuple[serials.SerialResult, str]:
+    codes, scope, window = snd.code, opt.serial_scope, opt.dup_window_ms
+    by_sender = serials.classify_sender(snd.serial, snd.ts, codes, "sender", dup_window_ms=window)
     if scope == "sender" or (scope == "auto" and (by_sender.anomalies == 0 or len(np.unique(codes)) < 2)):
         return by_sender, "sender"
     if scope == "type":
-        return serials.classify_sender(snd.serial, snd.ts, codes, "type"), "type"
+        return serials.classify_sender(snd.serial, snd.ts, codes, "type", dup_window_ms=window), "type"
     # Per-type numbering must explain the capture clearly better: with one counter per sender,
     # a type's stream can look clean only by accident (say, a loss just before its first packet).
-    by_type = serials.classify_sender(snd.serial, snd.ts, codes, "type", limit=by_sender.anomalies // 2)
+    by_type = serials.classify_sender(snd.serial, snd.ts, codes, "type", limit=by_sender.anomalies // 2,
+                                      dup_window_ms=window)
     if not by_type.aborted and 2 * by_type.anomalies + TYPE_SCOPE_MARGIN <= by_sender.anomalies:
         return by_type, "type"
     return by_sender, "sender"
 
 
-def _sender_report(snd: Sender, res: serials.SerialResult, scope: str) -> dict:
+def _sender_report(j: _Judged, restarts: list[dict], located: dict) -> dict:
+    snd, res = j.snd, j.res
     counts = dict(enumerate(np.bincount(snd.code, minlength=len(TYPES)).tolist()))
     counts = {c: n for c, n in counts.items() if n}
+    name = snd.id
+    gaps = [{"after": a, "count": n, "time": t, "frame": int(snd.frame[p])} for a, n, t, p in res.gaps]
+    where = findings.Where(located)
+    for g in gaps:
+        where.add("lost", g["frame"], g["time"], name, serial=(g["after"] + g["count"] + 1) % serials.MOD,
+                  after=g["after"], count=g["count"])
+    for rule, positions in (("duplicates", res.duplicate_index), ("out_of_order", res.out_of_order_index)):
+        for p in positions:
+            where.add(rule, int(snd.frame[p]), float(snd.ts[p]), name, serial=int(snd.serial[p]))
+    for r in restarts:
+        where.add("restarts", r["frame"], r["time"], name, **{k: v for k, v in r.items() if k not in ("frame", "time")})
     return {
-        "id": snd.id, "direction": snd.direction, "origin": snd.origin, "src": snd.src,
+        "id": name, "direction": snd.direction, "origin": snd.origin, "src": snd.src,
         "by_type": {TYPES[c].value: counts[c] for c in sorted(counts, key=lambda c: TYPES[c].value)},
         "serial": {
-            "scope": scope, "received": res.received, "lost": res.lost, "duplicates": res.duplicates,
-            "out_of_order": res.out_of_order, "wraps": res.wraps, "lost_serials": res.lost_serials,
-            "duplicate_serials": res.duplicate_serials, "out_of_order_serials": res.out_of_order_serials,
-            "gaps": [{"after": a, "count": n, "time": t} for a, n, t in res.gaps],
+            "scope": j.scope, "received": res.received, "lost": res.lost, "duplicates": res.duplicates,
+            "out_of_order": res.out_of_order, "wraps": res.wraps, "restarts": len(restarts),
+            "lost_serials": res.lost_serials, "duplicate_serials": res.duplicate_serials,
+            "out_of_order_serials": res.out_of_order_serials, "gaps": gaps, "restart_events": restarts,
         },
     }
 
 
-def _periodic(ptype: str, snd: Sender, times: list, opt: Options) -> tuple[dict, int]:
+def _periodic(ptype: str, snd: Sender, times: np.ndarray, frames: np.ndarray, before: Optional[float],
+              end: Optional[float], opt: Options, located: dict) -> tuple[dict, int]:
+    """One periodic stream: its accepted packets' `times`, with the predecessor's last packet
+    `before` them (a restart on a new port) and the capture's `end` (None: taken over)."""
     vrpi = ptype == C.PacketType.VRPI.value
-    gaps = timing.intervals_ms(times)
+    stream = times if before is None else np.concatenate(([before], times))
+    after = frames[1:] if before is None else frames      # the packet after each interval
+    gaps = timing.intervals_ms(stream)
     limit = opt.vrpi_watchdog_ms if vrpi else opt.vrpo_watchdog_ms
+    over = np.flatnonzero(gaps > limit)
+    violations = [{"start": float(stream[i]), "gap_ms": float(gaps[i]), "until_end": False, "frame": int(after[i])}
+                  for i in over]
+    if end is not None and (end - float(times[-1])) * timing.MS > limit:
+        violations.append({"start": float(times[-1]), "gap_ms": (end - float(times[-1])) * timing.MS,
+                           "until_end": True, "frame": int(frames[-1])})
+    where = findings.Where(located)
+    for v in violations:
+        where.add("watchdog", v["frame"], v["start"], snd.id, type=ptype, gap_ms=v["gap_ms"],
+                  until_end=v["until_end"])
+    for i in np.flatnonzero(gaps < 0).tolist():
+        where.add("time_backwards", int(after[i]), float(stream[i + 1]), snd.id, type=ptype)
     row = {
         "type": ptype, "sender": snd.id, "count": len(times),
         "interval_ms": timing.summary(gaps),
         "nominal_ms": opt.vrpi_period_ms if vrpi else None,
-        "jitter_ms": timing.jitter_ms(times, opt.vrpi_period_ms) if vrpi else None,
-        "watchdog": {"limit_ms": limit, "violations": timing.violations(times, gaps, limit)},
+        "jitter_ms": timing.jitter_ms(stream, opt.vrpi_period_ms) if vrpi else None,
+        "watchdog": {"limit_ms": limit, "violations": violations},
         "time_backwards": int(np.count_nonzero(gaps < 0)),
     }
-    row["plot"] = _plot(times, gaps)
+    row["plot"] = _plot(stream, gaps)
     return row, row["time_backwards"]
 
 
-def _bursts(snd: Sender, times: np.ndarray, numbers: np.ndarray, sizes: np.ndarray, opt: Options,
-            periodic: list) -> dict:
-    complete, incomplete, starts = bursts.count(times, numbers, sizes, opt.burst_gap_ms, opt.vrpo_start,
-                                                opt.vrpo_data_size)
+def _bursts(snd: Sender, vrpo: np.ndarray, opt: Options, periodic: list, located: dict) -> dict:
+    times, frames = snd.ts[vrpo], snd.frame[vrpo]
+    complete, incomplete, firsts = bursts.count(times, snd.aux[vrpo], snd.size[vrpo], opt.burst_gap_ms,
+                                                opt.vrpo_start, opt.vrpo_data_size)
     # Period, jitter and the 50-200 ms recommendation apply to bursts: split packets go back to back.
+    starts = times[firsts]
     between = timing.intervals_ms(starts)
     ordered = np.sort(between)
     period = opt.vrpo_period_ms or (round(timing.percentile(ordered, 50.0)) if len(ordered) else None)
@@ -171,9 +263,15 @@ def _bursts(snd: Sender, times: np.ndarray, numbers: np.ndarray, sizes: np.ndarr
     row["jitter_ms"] = timing.jitter_ms(starts, period) if period else timing.jitter_ms([], 1.0)
     row["bursts"] = len(starts)
     row["burst_interval_ms"] = timing.summary(between)
-    row["outside_recommended"] = {"low_ms": opt.vrpo_min_ms, "high_ms": opt.vrpo_max_ms,
-                                  "count": timing.outside(between, opt.vrpo_min_ms, opt.vrpo_max_ms)}
-    return {"sender": snd.id, "complete": complete, "incomplete": incomplete}
+    outside = np.flatnonzero((between < opt.vrpo_min_ms) | (between > opt.vrpo_max_ms))
+    row["outside_recommended"] = {"low_ms": opt.vrpo_min_ms, "high_ms": opt.vrpo_max_ms, "count": len(outside)}
+    where = findings.Where(located)
+    for i in incomplete:
+        where.add("vrpo_incomplete", int(frames[i]), float(times[i]), snd.id)
+    for k in outside.tolist():
+        i = int(firsts[k + 1])
+        where.add("vrpo_outside_recommended", int(frames[i]), float(times[i]), snd.id, interval_ms=float(between[k]))
+    return {"sender": snd.id, "complete": complete, "incomplete": len(incomplete)}
 
 
 def _plot(times: np.ndarray, gaps: np.ndarray) -> dict:
@@ -197,73 +295,3 @@ def _plot(times: np.ndarray, gaps: np.ndarray) -> dict:
     return {"histogram": hist, "bin_ms": width, "series": series}
 
 
-def totals(report: dict) -> dict:
-    """The numbers `--fail-on` rules refer to."""
-    senders, periodic, cmds = report["senders"], report["periodic"], report["commands"]
-    jitters = [p["jitter_ms"]["max"] for p in periodic if p["jitter_ms"] and p["jitter_ms"]["max"] is not None]
-    maxes = [p["interval_ms"]["max"] for p in periodic if p["interval_ms"]["max"] is not None]
-    lat = [c["ack_latency_ms"]["max"] for c in cmds.values() if c["ack_latency_ms"]["max"] is not None]
-    return {
-        "packets": report["capture"]["packets"],
-        "eglink_packets": report["capture"]["eglink_packets"],
-        "lost": sum(s["serial"]["lost"] for s in senders),
-        "duplicates": sum(s["serial"]["duplicates"] for s in senders),
-        "out_of_order": sum(s["serial"]["out_of_order"] for s in senders),
-        "illegal": report["illegal"]["total"],
-        "crc_invalid": report["crc"]["invalid"],
-        "watchdog": sum(len(p["watchdog"]["violations"]) for p in periodic),
-        "vrpo_outside_recommended": sum(p.get("outside_recommended", {}).get("count", 0) for p in periodic),
-        "commands": sum(c["commands"] for c in cmds.values()),
-        "retransmissions": sum(c["retransmissions"] for c in cmds.values()),
-        "unacked": sum(c["unacked"] for c in cmds.values()),
-        "failed": sum(c["failed"] for c in cmds.values()),
-        "spurious": sum(c["spurious_retransmissions"] for c in cmds.values()),
-        "acks_without_command": sum(c["acks_without_command"] for c in cmds.values()),
-        "duplicate_acks": sum(c["duplicate_acks"] for c in cmds.values()),
-        "relays_open": sum(len(s["episodes_relays_open"]) for s in report["state"]),
-        "vrpo_incomplete": report["vrpo_bursts"]["incomplete"],
-        "time_backwards": report["capture"]["time_backwards"],
-        "snaplen_truncated": report["capture"]["snaplen_truncated"],
-        "jitter_max_ms": max(jitters) if jitters else 0.0,
-        "interval_max_ms": max(maxes) if maxes else 0.0,
-        "ack_latency_max_ms": max(lat) if lat else 0.0,
-    }
-
-
-TOTAL_NAMES = ("packets", "eglink_packets", "lost", "duplicates", "out_of_order", "illegal", "crc_invalid",
-               "watchdog", "vrpo_outside_recommended", "commands", "retransmissions", "unacked", "failed",
-               "spurious", "acks_without_command", "duplicate_acks", "relays_open", "vrpo_incomplete",
-               "time_backwards", "snaplen_truncated", "jitter_max_ms", "interval_max_ms", "ack_latency_max_ms")
-MAX_TOTALS = frozenset({"jitter_max_ms", "interval_max_ms", "ack_latency_max_ms"})   # combined by max, not sum
-
-# (total, severity, message) for each finding the verdict reports when its total is above 0.
-FINDINGS = (
-    ("lost", "error", "packets lost (serial gaps)"),
-    ("illegal", "error", "illegal packets"),
-    ("watchdog", "error", "watchdog violations"),
-    ("failed", "error", "VRCI commands failed (no VRAO within the limit)"),
-    ("unacked", "error", "commands never acknowledged"),
-    ("relays_open", "warning", "episodes with the ES-Link relays open"),
-    ("duplicates", "warning", "duplicated packets"),
-    ("out_of_order", "warning", "packets out of order"),
-    ("spurious", "warning", "retransmissions after the acknowledgement"),
-    ("acks_without_command", "warning", "acknowledgements without a command"),
-    ("duplicate_acks", "warning", "duplicate acknowledgements"),
-    ("vrpo_incomplete", "warning", "incomplete VRPO bursts"),
-    ("vrpo_outside_recommended", "warning", "VRPO intervals outside the recommended range"),
-    ("time_backwards", "warning", "timestamps going backwards"),
-    ("snaplen_truncated", "warning", "datagrams cut short by the capture's snaplen"),
-)
-
-
-def verdict(report: dict) -> dict:
-    tot = report["totals"]
-    findings = [{"rule": key, "severity": sev, "count": tot[key], "message": f"{tot[key]} {msg}"}
-                for key, sev, msg in FINDINGS if tot[key] > 0]
-    if report["capture"]["problem"]:
-        findings.insert(0, {"rule": "capture", "severity": "error", "count": 1,
-                            "message": report["capture"]["problem"]})
-    if not report["capture"]["eglink_packets"]:
-        findings.insert(0, {"rule": "no_eglink", "severity": "warning", "count": 0,
-                            "message": "no EG-Link packets in the capture"})
-    return {"ok": not any(f["severity"] == "error" for f in findings), "findings": findings}

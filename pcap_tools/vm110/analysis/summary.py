@@ -14,7 +14,32 @@ def _table(rows: list[list[str]], indent: str = "  ") -> list[str]:
             for r in rows]
 
 
-def render(report: dict) -> str:
+SHOWN_ITEMS = 3           # located items printed per finding without --list
+_ITEM_KEYS = ("sender", "type", "command_id", "serial", "after", "count", "from", "to", "port_from", "port_to",
+              "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s")
+
+
+def _item(item: dict, t0: float) -> str:
+    frames = item.get("frames", [item["frame"]])
+    where = f"frame {frames[0]}" if len(frames) == 1 else f"frames {', '.join(map(str, frames[:8]))}" + (
+        ", ..." if len(frames) > 8 else "")
+    what = ", ".join(f"{k} {_f(item[k]) if isinstance(item[k], float) else item[k]}" for k in _ITEM_KEYS
+                     if k in item and item[k] not in (None, False))
+    return f"{where} at {item['time'] - t0:.6f} s: {what}  [{item['filter']}]"
+
+
+def _finding(f: dict, everything: bool, t0: float) -> list[str]:
+    items = f.get("items", [])
+    shown = items if everything else items[:SHOWN_ITEMS]
+    lines = [f"  {f['severity']:<7} {f['message']}"] + [f"            {_item(i, t0)}" for i in shown]
+    rest = len(items) - len(shown) + f.get("more", 0)
+    if rest:
+        lines.append(f"            ... {rest} more" + ("" if everything else " (--list, or the JSON report)"))
+    return lines
+
+
+def render(report: dict, everything: bool = False) -> str:
+    """The summary; `everything`: every located item of each finding, not just the first few."""
     cap, crc, verdict = report["capture"], report["crc"], report["verdict"]
     lines = [f"{cap['file']}: {cap['packets']} packets, {cap['eglink_packets']} EG-Link, "
              f"{_f(cap['duration_s'])} s; CRC {crc['variant']}/{crc['byte_order']}"
@@ -22,7 +47,8 @@ def render(report: dict) -> str:
     errors = sum(1 for f in verdict["findings"] if f["severity"] == "error")
     warnings = len(verdict["findings"]) - errors
     lines.append(f"VERDICT: {'OK' if verdict['ok'] else 'FAIL'} ({errors} errors, {warnings} warnings)")
-    lines += [f"  {f['severity']:<7} {f['message']}" for f in verdict["findings"]]
+    for f in verdict["findings"]:
+        lines += _finding(f, everything, cap["first_time"] or 0.0)
     if report["illegal"]["total"]:
         reasons = ", ".join(f"{k} {v}" for k, v in report["illegal"]["by_reason"].items())
         lines.append(f"Illegal packets: {report['illegal']['total']} ({reasons})")
@@ -34,7 +60,12 @@ def render(report: dict) -> str:
         types = ", ".join(f"{t} {n}" for t, n in snd["by_type"].items())
         lines.append(f"  packets: {types}")
         lines.append(f"  serials: received {ser['received']}, lost {ser['lost']} in {len(ser['gaps'])} gaps, "
-                     f"duplicates {ser['duplicates']}, out of order {ser['out_of_order']}, wraps {ser['wraps']}")
+                     f"duplicates {ser['duplicates']}, out of order {ser['out_of_order']}, wraps {ser['wraps']}, "
+                     f"restarts {ser['restarts']}")
+        for r in ser["restart_events"]:
+            port = f", port {r['port_from']} -> {r['port_to']}" if "port_from" in r else ""
+            lines.append(f"  restart at {r['time'] - (cap['first_time'] or 0.0):.6f} s (frame {r['frame']}): "
+                         f"serial {r['from']} -> {r['to']}{port}")
         rows = [["stream", "count", "min", "mean", "p50", "p95", "p99", "p99.9", "max", "jitter", "watchdog"]]
         for ptype in ("VRPI", "VRPO"):
             p = periodic.get((snd["id"], ptype))
@@ -46,12 +77,12 @@ def render(report: dict) -> str:
         if len(rows) > 1:
             lines += _table(rows)
     lines.append("")
-    rows = [["commands", "cmds", "tx", "retx", "acked", "unacked", "failed", "spurious", "orphan acks",
+    rows = [["commands", "cmds", "tx", "retx", "acked", "unacked", "interrupted", "failed", "spurious", "orphan acks",
              "dup acks", "lat p50", "lat p95", "lat max"]]
     for name, c in report["commands"].items():
         lat = c["ack_latency_ms"]
         rows.append([name, *(str(c[k]) for k in ("commands", "transmissions", "retransmissions", "acked", "unacked",
-                                                 "failed", "spurious_retransmissions", "acks_without_command",
+                                                 "interrupted", "failed", "spurious_retransmissions", "acks_without_command",
                                                  "duplicate_acks")), _f(lat["p50"]), _f(lat["p95"]), _f(lat["max"])])
     lines += _table(rows, "")
     b = report["vrpo_bursts"]

@@ -76,12 +76,3 @@ def jitter_ms(times: Sequence[float], period_ms: float) -> dict:
     if not len(series):
         return {"final": None, "mean": None, "max": None}
     return {"final": float(series[-1]), "mean": float(series.mean()), "max": float(series.max())}
-
-
-def violations(times: Sequence[float], gaps_ms: np.ndarray, limit_ms: float) -> list[dict]:
-    """Intervals above the limit: start (time of the packet before the gap) and gap."""
-    return [{"start": float(times[i]), "gap_ms": float(gaps_ms[i])} for i in np.flatnonzero(gaps_ms > limit_ms)]
-
-
-def outside(gaps_ms: np.ndarray, low: float, high: float) -> int:
-    return int(np.count_nonzero((gaps_ms < low) | (gaps_ms > high)))

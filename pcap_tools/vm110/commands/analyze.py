@@ -13,7 +13,10 @@ from typing import Optional
 
 from .. import constants as C
 from ..analysis import analyze, report_html, report_json, rules, summary
-from ..analysis.report import MAX_TOTALS, SCHEMA_VERSION, SCOPES, TOTAL_NAMES, Options
+from ..analysis.commands import REUSE_GAP_MS
+from ..analysis.findings import MAX_TOTALS, TOTAL_NAMES
+from ..analysis.serials import DUP_WINDOW_MS
+from ..analysis.report import SCHEMA_VERSION, SCOPES, Options
 from ..crc import BYTE_ORDERS, VARIANTS
 from ..errors import EXIT_FINDINGS, EXIT_OK, CliError
 
@@ -54,9 +57,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                      f"{C.VRPO_PERIOD_MAX_MS}")
     limits.add_argument("--vrci-fail", type=float, default=C.VRCI_FAIL_MS, metavar="MS",
                         help=f"VRCI not acknowledged within this has failed; default {C.VRCI_FAIL_MS}")
+    limits.add_argument("--vrco-give-up", type=float, default=C.VRCO_GIVE_UP_MS, metavar="MS",
+                        help=f"VRCO not acknowledged within this has failed; default {C.VRCO_GIVE_UP_MS}")
+    limits.add_argument("--reuse-gap", type=float, default=REUSE_GAP_MS, metavar="MS",
+                        help="the same command ID after a longer silence starts a new command; "
+                             f"default {REUSE_GAP_MS:g}")
+    limits.add_argument("--dup-window", type=float, default=DUP_WINDOW_MS, metavar="MS",
+                        help="a serial seen again within this is a duplicate, a gap filled within it a late "
+                             f"packet; default {DUP_WINDOW_MS:g}")
     limits.add_argument("--resend", type=float, default=C.COMMAND_RESEND_MS, metavar="MS",
                         help=f"nominal command resend interval; default {C.COMMAND_RESEND_MS}")
     parser.add_argument("--quiet", action="store_true", help="no summary on standard output")
+    parser.add_argument("--list", action="store_true",
+                        help="list every located item of each finding (default: the first few)")
 
 
 def _progress(path: str):
@@ -111,7 +124,8 @@ def run(args: argparse.Namespace) -> int:
     options = Options(serial_scope=args.serial_scope, vrpo_period_ms=args.vrpo_period,
                       vrpi_watchdog_ms=args.vrpi_watchdog, vrpo_watchdog_ms=args.vrpo_watchdog,
                       vrpo_min_ms=args.vrpo_range[0], vrpo_max_ms=args.vrpo_range[1], resend_ms=args.resend,
-                      vrci_fail_ms=args.vrci_fail, burst_gap_ms=args.burst_gap, vrpo_start=args.vrpo_start,
+                      vrci_fail_ms=args.vrci_fail, vrco_give_up_ms=args.vrco_give_up,
+                      reuse_gap_ms=args.reuse_gap, dup_window_ms=args.dup_window, burst_gap_ms=args.burst_gap, vrpo_start=args.vrpo_start,
                       vrpo_data_size=args.vrpo_data_size)
     jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1)
             for p in args.captures]
@@ -122,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
         reports = [_one(job) for job in jobs]
     combined: Optional[dict] = combine(reports) if len(reports) > 1 else None
     if not args.quiet:
-        print("\n\n".join(summary.render(r) for r in reports))
+        print("\n\n".join(summary.render(r, args.list) for r in reports))
         if combined:
             print()
             print(summary.render_combined(combined))

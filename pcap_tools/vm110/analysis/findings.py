@@ -1,0 +1,166 @@
+"""The verdict: totals, the findings they raise, and where each finding lies in the capture.
+
+Every finding lists `items[]` (at most MAX_ITEMS, `more` counting the rest): the frame(s), the
+time, the sender and what identifies it (serial, command ID, gap, ...), and a Wireshark display
+filter that selects its frames.
+"""
+from __future__ import annotations
+
+from typing import Any, Optional
+
+from .. import constants as C
+from .commands import Tally
+from .collect import CODE, TYPES
+
+MAX_ITEMS = 100
+MAX_FILTER_FRAMES = 64
+Located = dict[str, list[dict]]
+_ACK_CODE = {CODE[cmd]: CODE[ack] for ack, cmd in C.ACK_OF.items()}
+
+TOTAL_NAMES = ("packets", "eglink_packets", "lost", "duplicates", "out_of_order", "restarts", "illegal",
+               "crc_invalid", "watchdog", "vrpo_outside_recommended", "commands", "retransmissions", "unacked",
+               "failed", "interrupted", "spurious", "acks_without_command", "duplicate_acks", "relays_open",
+               "vrpo_incomplete", "time_backwards", "snaplen_truncated", "jitter_max_ms", "interval_max_ms",
+               "ack_latency_max_ms")
+MAX_TOTALS = frozenset({"jitter_max_ms", "interval_max_ms", "ack_latency_max_ms"})   # combined by max, not sum
+
+# (total, severity, message) for each finding the verdict reports when its total is above 0.
+FINDINGS = (
+    ("lost", "error", "packets lost (serial gaps)"),
+    ("illegal", "error", "illegal packets"),
+    ("watchdog", "error", "watchdog violations"),
+    ("failed", "error", "commands failed (no acknowledgement within the limit)"),
+    ("unacked", "error", "commands never acknowledged"),
+    ("restarts", "warning", "sender restarts (serial counter started afresh)"),
+    ("interrupted", "warning", "commands interrupted by their sender's restart"),
+    ("relays_open", "warning", "episodes with the ES-Link relays open"),
+    ("duplicates", "warning", "duplicated packets"),
+    ("out_of_order", "warning", "packets out of order"),
+    ("spurious", "warning", "retransmissions after the acknowledgement"),
+    ("acks_without_command", "warning", "acknowledgements without a command"),
+    ("duplicate_acks", "warning", "duplicate acknowledgements"),
+    ("vrpo_incomplete", "warning", "incomplete VRPO bursts"),
+    ("vrpo_outside_recommended", "warning", "VRPO intervals outside the recommended range"),
+    ("time_backwards", "warning", "timestamps going backwards"),
+    ("snaplen_truncated", "warning", "datagrams cut short by the capture's snaplen"),
+)
+
+
+def frame_filter(frames: list[int]) -> str:
+    """A display filter selecting these frames (a range beyond MAX_FILTER_FRAMES of them)."""
+    if len(frames) == 1:
+        return f"frame.number == {frames[0]}"
+    if len(frames) > MAX_FILTER_FRAMES:
+        return f"frame.number >= {min(frames)} && frame.number <= {max(frames)}"
+    return "frame.number in {" + " ".join(str(f) for f in frames) + "}"
+
+
+class Where:
+    """Adds located items to the findings of a report under construction."""
+
+    def __init__(self, located: Located) -> None:
+        self.located = located
+
+    def add(self, rule: str, frames: Any, time: float, sender: Optional[str], **what: Any) -> None:
+        frames = [int(f) for f in frames] if isinstance(frames, list) else [int(frames)]
+        item: dict = {"frame": frames[0]}
+        if len(frames) > 1:
+            item["frames"] = frames
+        item["time"] = time
+        if sender is not None:
+            item["sender"] = sender
+        item.update(what)
+        item["filter"] = frame_filter(frames)
+        self.located.setdefault(rule, []).append(item)
+
+
+def locate_report(report: dict, tallies: dict[int, Tally], located: Located) -> None:
+    """Items of the findings that the report's sections know of: commands, acks, illegal packets
+    and relay episodes (serials, streams and bursts are located as they are judged)."""
+    where = Where(located)
+    for code, tally in tallies.items():
+        kind = TYPES[code].value
+        fail_ms = report["commands"][kind]["fail_limit_ms"]
+        for c in tally.commands:
+            what = {"type": kind, "command_id": c.command_id}
+            if c.interrupted_frame is not None:
+                where.add("interrupted", c.frames, c.times[0], c.sender, interrupted_frame=c.interrupted_frame, **what)
+            elif c.ack_frame is None:
+                where.add("unacked", c.frames, c.times[0], c.sender, **what)
+            if c.failed(fail_ms):
+                where.add("failed", c.frames + ([c.ack_frame] if c.ack_frame else []), c.times[0], c.sender,
+                          latency_ms=c.latency_first_ms, **what)
+            for f, t in zip(c.frames, c.times):
+                if f in c.spurious_frames:
+                    where.add("spurious", f, t, c.sender, ack_frame=c.ack_frame, **what)
+        ack = TYPES[_ACK_CODE[code]].value
+        for f, t, cid in tally.orphan_acks:
+            where.add("acks_without_command", f, t, None, type=ack, command_id=cid)
+        for f, t, cid, first in tally.duplicate_acks:
+            where.add("duplicate_acks", f, t, None, type=ack, command_id=cid, command_frame=first)
+    for ex in report["illegal"]["examples"]:
+        where.add("illegal", ex["frame"], ex["time"], ex["src"], type=ex["type"], reasons=ex["reasons"])
+        if ex["reasons"] == ["truncated"]:
+            where.add("snaplen_truncated", ex["frame"], ex["time"], ex["src"], type=ex["type"])
+    for st in report["state"]:
+        for e in st["episodes_relays_open"]:
+            where.add("relays_open", e["frame"], e["start"], st["sender"], duration_s=e["duration_s"],
+                      states=e["states"])
+
+
+def totals(report: dict) -> dict:
+    """The numbers `--fail-on` rules refer to."""
+    senders, periodic, cmds = report["senders"], report["periodic"], report["commands"]
+    jitters = [p["jitter_ms"]["max"] for p in periodic if p["jitter_ms"] and p["jitter_ms"]["max"] is not None]
+    maxes = [p["interval_ms"]["max"] for p in periodic if p["interval_ms"]["max"] is not None]
+    lat = [c["ack_latency_ms"]["max"] for c in cmds.values() if c["ack_latency_ms"]["max"] is not None]
+    return {
+        "packets": report["capture"]["packets"],
+        "eglink_packets": report["capture"]["eglink_packets"],
+        "lost": sum(s["serial"]["lost"] for s in senders),
+        "duplicates": sum(s["serial"]["duplicates"] for s in senders),
+        "out_of_order": sum(s["serial"]["out_of_order"] for s in senders),
+        "restarts": sum(s["serial"]["restarts"] for s in senders),
+        "illegal": report["illegal"]["total"],
+        "crc_invalid": report["crc"]["invalid"],
+        "watchdog": sum(len(p["watchdog"]["violations"]) for p in periodic),
+        "vrpo_outside_recommended": sum(p.get("outside_recommended", {}).get("count", 0) for p in periodic),
+        "commands": sum(c["commands"] for c in cmds.values()),
+        "retransmissions": sum(c["retransmissions"] for c in cmds.values()),
+        "unacked": sum(c["unacked"] for c in cmds.values()),
+        "failed": sum(c["failed"] for c in cmds.values()),
+        "interrupted": sum(c["interrupted"] for c in cmds.values()),
+        "spurious": sum(c["spurious_retransmissions"] for c in cmds.values()),
+        "acks_without_command": sum(c["acks_without_command"] for c in cmds.values()),
+        "duplicate_acks": sum(c["duplicate_acks"] for c in cmds.values()),
+        "relays_open": sum(len(s["episodes_relays_open"]) for s in report["state"]),
+        "vrpo_incomplete": report["vrpo_bursts"]["incomplete"],
+        "time_backwards": report["capture"]["time_backwards"],
+        "snaplen_truncated": report["capture"]["snaplen_truncated"],
+        "jitter_max_ms": max(jitters) if jitters else 0.0,
+        "interval_max_ms": max(maxes) if maxes else 0.0,
+        "ack_latency_max_ms": max(lat) if lat else 0.0,
+    }
+
+
+def _items(found: list[dict]) -> dict:
+    found.sort(key=lambda item: (item["frame"], item.get("sender") or ""))
+    out: dict = {"items": found[:MAX_ITEMS]}
+    if len(found) > MAX_ITEMS:
+        out["more"] = len(found) - MAX_ITEMS
+    return out
+
+
+def verdict(report: dict, located: Located) -> dict:
+    tot = report["totals"]
+    findings = [{"rule": key, "severity": sev, "count": tot[key], "message": f"{tot[key]} {msg}",
+                 **_items(located.get(key, []))}
+                for key, sev, msg in FINDINGS if tot[key] > 0]
+    if report["capture"]["problem"]:
+        findings.insert(0, {"rule": "capture", "severity": "error", "count": 1,
+                            "message": report["capture"]["problem"], "items": []})
+    if not report["capture"]["eglink_packets"]:
+        findings.insert(0, {"rule": "no_eglink", "severity": "warning", "count": 0,
+                            "message": "no EG-Link packets in the capture", "items": []})
+    return {"ok": not any(f["severity"] == "error" for f in findings), "findings": findings}
+

@@ -1,0 +1,197 @@
+"""The revised serial, restart, periodic and command rules (docs/rules.md) through `analyze`, on
+crafted captures whose expected numbers are worked out by hand from the rules."""
+from __future__ import annotations
+
+from vm110 import constants as C
+from vm110.analysis import analyze
+from vm110.analysis.report import Options
+from vm110.layers import VRAI, VRAO, VRCI, VRCO, VRPO
+
+from test_analysis_craft import BU, BU_ORIGIN, CTRL, T0, Traffic, payload, vrpi
+
+OUT = C.OUTPUT_PORT
+
+
+def _report(tr: Traffic, tmp_path, **options) -> dict:
+    tr.write(tmp_path / "t.pcap")
+    return analyze(str(tmp_path / "t.pcap"), options=Options(serial_scope="sender", **options))
+
+
+def _sender(report: dict, src: str) -> dict:
+    return next(s for s in report["senders"] if s["src"] == src)
+
+
+def _stream(report: dict, ptype: str, src: str) -> dict:
+    return next(p for p in report["periodic"] if p["type"] == ptype and p["sender"].endswith(f"{src} origin 0x"
+                                                                                           + p["sender"][-4:]))
+
+
+def _finding(report: dict, rule: str) -> dict:
+    return next(f for f in report["verdict"]["findings"] if f["rule"] == rule)
+
+
+def test_two_overlapping_commands_acked_in_reverse_order(tmp_path):
+    tr = Traffic()
+    serial = 0
+    for k in range(8):                       # VRPI keeps the link alive
+        tr.add(k * 0.125, vrpi(serial))
+        serial += 1
+    # Commands 5 and 6 pressed 30 ms apart, each resent every 100 ms; 6 acked first.
+    for t, cid in ((0.01, 5), (0.04, 6), (0.11, 5), (0.14, 6), (0.21, 5)):
+        tr.add(t, payload(VRCI, serial, BU_ORIGIN, command_id=cid))
+        serial += 1
+    tr.add(0.16, payload(VRAO, 0, command_id=6), src=CTRL, sport=OUT)
+    tr.add(0.23, payload(VRAO, 1, command_id=5), src=CTRL, sport=OUT)
+    tr.frames.sort(key=lambda f: f[0])
+    cmd = _report(tr, tmp_path)["commands"]["VRCI"]
+    assert (cmd["commands"], cmd["transmissions"], cmd["retransmissions"], cmd["acked"], cmd["unacked"],
+            cmd["duplicate_acks"], cmd["acks_without_command"]) == (2, 5, 3, 2, 0, 0, 0)
+    assert sorted((c["command_id"], c["retransmissions"], c["latency_first_ms"]) for c in cmd["list"]) == [
+        (5, 2, 220.0), (6, 1, 120.0)]
+
+
+def test_the_same_id_after_the_reuse_gap_is_a_new_command(tmp_path):
+    tr = Traffic()
+    tr.add(0.0, payload(VRCO, 0, command_id=9), src=CTRL, sport=OUT)
+    tr.add(0.1, payload(VRCO, 1, command_id=9), src=CTRL, sport=OUT)        # retransmission
+    tr.add(0.105, payload(VRAI, 0, BU_ORIGIN, command_id=9))
+    tr.add(2.7, payload(VRCO, 2, command_id=9), src=CTRL, sport=OUT)        # 2.6 s later: a new command
+    tr.add(2.71, payload(VRAI, 1, BU_ORIGIN, command_id=9))
+    cmd = _report(tr, tmp_path)["commands"]["VRCO"]
+    assert (cmd["commands"], cmd["retransmissions"], cmd["acked"], cmd["spurious_retransmissions"],
+            cmd["duplicate_acks"]) == (2, 1, 2, 0, 0)
+    shorter = _report(tr, tmp_path, reuse_gap_ms=3000.0)["commands"]["VRCO"]
+    assert (shorter["commands"], shorter["spurious_retransmissions"], shorter["duplicate_acks"]) == (1, 1, 1)
+
+
+def test_a_mirror_copy_is_no_arrival(tmp_path):
+    tr = Traffic()
+    for k in range(10):
+        tr.add(k * 0.125, vrpi(k))
+        if k == 4:
+            tr.add(k * 0.125 + 0.001, vrpi(k))          # the mirror port's copy, 1 ms later
+    report = _report(tr, tmp_path)
+    p = report["periodic"][0]
+    assert _sender(report, f"{BU}:5825")["serial"]["duplicates"] == 1
+    assert (p["count"], p["interval_ms"]["min"], p["jitter_ms"]["max"]) == (10, 125.0, 0.0)
+    item = _finding(report, "duplicates")["items"][0]
+    assert (item["frame"], item["serial"], item["filter"]) == (6, 4, "frame.number == 6")
+
+
+def test_a_serial_seen_long_ago_is_no_duplicate(tmp_path):
+    tr = Traffic()
+    for k in range(5):
+        tr.add(k * 0.125, vrpi(k))
+    tr.add(2.0, vrpi(2))             # serial 2 last accepted 1.75 s ago: a restart candidate,
+    tr.add(2.125, vrpi(9))           # not confirmed by 9: out of order
+    ser = _sender(_report(tr, tmp_path), f"{BU}:5825")["serial"]
+    assert (ser["duplicates"], ser["out_of_order"], ser["restarts"], ser["lost"]) == (0, 1, 0, 4)
+
+
+def test_silence_to_the_end_is_a_watchdog_violation(tmp_path):
+    tr = Traffic()
+    for k in range(80):                                    # BU stops at 1.0 s
+        if k * 0.125 <= 1.0:
+            tr.add(k * 0.125, vrpi(k))
+        tr.add(k * 0.1 + 0.05, payload(VRPO, k, packet_number=0, periodic_data=b"d" * 8), src=CTRL, sport=OUT)
+    tr.frames.sort(key=lambda f: f[0])
+    report = _report(tr, tmp_path)
+    vrpi_stream = next(p for p in report["periodic"] if p["type"] == "VRPI")
+    vrpo_stream = next(p for p in report["periodic"] if p["type"] == "VRPO")
+    assert vrpi_stream["watchdog"]["violations"] == [
+        {"start": T0 + 1.0, "gap_ms": 6950.0, "until_end": True, "frame": 19}]
+    assert vrpo_stream["watchdog"]["violations"] == []
+    item = _finding(report, "watchdog")["items"][0]
+    assert (item["frame"], item["until_end"], item["type"]) == (19, True, "VRPI") and not report["verdict"]["ok"]
+
+
+def _counter(tr: Traffic, times, serials, **kw) -> None:
+    for t, s in zip(times, serials):
+        tr.add(t, vrpi(s), **kw)
+
+
+def test_a_confirmed_restart_starts_the_counter_afresh_and_interrupts_commands(tmp_path):
+    tr = Traffic()
+    _counter(tr, [k * 0.125 for k in range(20)], range(40000, 40020))       # above 32767
+    tr.add(2.4, payload(VRCI, 40020, BU_ORIGIN, command_id=77))             # outstanding at the reboot
+    _counter(tr, [3.5 + k * 0.125 for k in range(10)], [0, *range(2, 11)])  # rebooted: counter from 0
+    tr.add(3.6, payload(VRCI, 1, BU_ORIGIN, command_id=77))                 # a new command, same ID
+    tr.add(3.61, payload(VRAO, 0, command_id=77), src=CTRL, sport=OUT)
+    tr.frames.sort(key=lambda f: f[0])
+    report = _report(tr, tmp_path)
+    ser = _sender(report, f"{BU}:5825")["serial"]
+    assert (ser["restarts"], ser["duplicates"], ser["out_of_order"], ser["lost"]) == (1, 0, 0, 0)
+    assert ser["restart_events"] == [{"time": T0 + 3.5, "frame": 22, "from": 40020, "to": 0}]
+    cmd = report["commands"]["VRCI"]
+    assert (cmd["commands"], cmd["interrupted"], cmd["acked"], cmd["unacked"], cmd["failed"]) == (2, 1, 1, 0, 0)
+    assert [c["interrupted_frame"] for c in cmd["list"]] == [22, None]
+    vrpi_stream = report["periodic"][0]
+    assert [v["gap_ms"] for v in vrpi_stream["watchdog"]["violations"]] == [1125.0]   # the reboot's silence
+    rules = {f["rule"] for f in report["verdict"]["findings"]}
+    assert {"restarts", "interrupted"} <= rules and "unacked" not in rules
+
+
+def test_a_long_outage_with_real_loss_is_loss(tmp_path):
+    tr = Traffic()
+    _counter(tr, [k * 0.125 for k in range(80)], range(80))                 # 8 packets/s for 10 s
+    _counter(tr, [70.0 + k * 0.125 for k in range(5)], range(560, 565))     # 60 s later, 480 missed
+    ser = _sender(_report(tr, tmp_path), f"{BU}:5825")["serial"]
+    assert (ser["restarts"], ser["lost"], len(ser["gaps"])) == (0, 480, 1)
+
+
+def test_a_jump_the_silence_cannot_explain_is_a_restart_when_confirmed(tmp_path):
+    tr = Traffic()
+    _counter(tr, [k * 0.125 for k in range(80)], range(80))
+    _counter(tr, [13.0 + k * 0.125 for k in range(5)], range(25000, 25005))  # 3 s silent, 24,920 ahead
+    ser = _sender(_report(tr, tmp_path), f"{BU}:5825")["serial"]
+    assert (ser["restarts"], ser["lost"], ser["restart_events"][0]["from"], ser["restart_events"][0]["to"]) == (
+        1, 0, 79, 25000)
+
+
+def test_a_restart_on_a_new_port(tmp_path):
+    tr = Traffic()
+    for k in range(30):                                     # the BU's VRPI throughout
+        tr.add(k * 0.125, vrpi(k))
+    for k in range(8):                                      # controller on port 40001 until 0.75 s
+        tr.add(0.05 + k * 0.1, payload(VRPO, 100 + k, packet_number=0, periodic_data=b"a"), src=CTRL, sport=40001)
+    tr.add(0.7, payload(VRCO, 108, command_id=3), src=CTRL, sport=40001)     # never acked: interrupted
+    for k in range(10):                                     # the restarted program, new port, from 1.25 s
+        tr.add(1.25 + k * 0.1, payload(VRPO, k, packet_number=0, periodic_data=b"a"), src=CTRL, sport=40777)
+    tr.frames.sort(key=lambda f: f[0])
+    report = _report(tr, tmp_path)
+    new = _sender(report, f"{CTRL}:40777")["serial"]
+    first = next(i for i, f in enumerate(tr.frames, 1) if f[2] == 40777)
+    assert new["restart_events"] == [{"time": T0 + 1.25, "frame": first, "from": 108, "to": 0,
+                                      "port_from": 40001, "port_to": 40777}]
+    assert _sender(report, f"{CTRL}:40001")["serial"]["restarts"] == 0
+    old_stream = next(p for p in report["periodic"] if p["sender"].startswith(f"Output {CTRL}:40001"))
+    new_stream = next(p for p in report["periodic"] if p["sender"].startswith(f"Output {CTRL}:40777"))
+    assert old_stream["watchdog"]["violations"] == []                        # taken over: no silence to the end
+    assert (new_stream["count"], new_stream["interval_ms"]["max"]) == (10, 500.0)   # from 0.75 s to 1.25 s
+    cmd = report["commands"]["VRCO"]
+    assert (cmd["commands"], cmd["interrupted"], cmd["unacked"]) == (1, 1, 0)
+
+
+def test_a_new_sender_beside_a_live_one_is_no_restart(tmp_path):
+    tr = Traffic()
+    for k in range(10):
+        tr.add(k * 0.1, payload(VRPO, k, packet_number=0, periodic_data=b"a"), src=CTRL, sport=40001)
+        tr.add(0.5 + k * 0.1, payload(VRPO, k, packet_number=0, periodic_data=b"a"), src=CTRL, sport=40002)
+    tr.frames.sort(key=lambda f: f[0])
+    report = _report(tr, tmp_path)
+    assert [s["serial"]["restarts"] for s in report["senders"]] == [0, 0]
+
+
+def test_findings_are_located_and_capped(tmp_path):
+    tr = Traffic()
+    serial = 0
+    for k in range(300):
+        tr.add(k * 0.125, vrpi(serial))
+        serial += 2                                          # every other serial lost: 299 gaps
+    report = _report(tr, tmp_path)
+    lost = _finding(report, "lost")
+    assert (lost["count"], len(lost["items"]), lost["more"]) == (299, 100, 199)
+    first = lost["items"][0]
+    assert {k: first[k] for k in ("frame", "after", "count", "serial", "filter")} == {
+        "frame": 2, "after": 0, "count": 1, "serial": 2, "filter": "frame.number == 2"}
+    assert first["sender"] == report["senders"][0]["id"] and first["time"] == T0 + 0.125
