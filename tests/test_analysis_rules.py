@@ -2,6 +2,8 @@
 crafted captures whose expected numbers are worked out by hand from the rules."""
 from __future__ import annotations
 
+import re
+
 from vm110 import constants as C
 from vm110.analysis import analyze
 from vm110.analysis.report import Options
@@ -195,3 +197,17 @@ def test_findings_are_located_and_capped(tmp_path):
     assert {k: first[k] for k in ("frame", "after", "count", "serial", "filter")} == {
         "frame": 2, "after": 0, "count": 1, "serial": 2, "filter": "frame.number == 2"}
     assert first["sender"] == report["senders"][0]["id"] and first["time"] == T0 + 0.125
+
+
+def test_html_and_terminal_show_where_findings_lie(tmp_path):
+    from vm110.analysis import report_html, summary
+    tr = Traffic()
+    for k in range(20):
+        tr.add(k * 0.125, vrpi(k if k < 10 else k + 3))          # 3 lost before frame 11
+    report = _report(tr, tmp_path)
+    page = report_html.render([report])
+    row = re.search(r'<tr><td class="error">lost</td><td>11</td><td>1\.250000</td>.*?</tr>', page)
+    assert row and '<code class="filter">frame.number == 11</code>' in row.group(0) and "count 3" in row.group(0)
+    assert "restarts" in page and "interrupted" in page
+    text = summary.render(report)
+    assert "frame 11 at 1.250000 s:" in text and "count 3" in text and "[frame.number == 11]" in text

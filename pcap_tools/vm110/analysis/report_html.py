@@ -29,6 +29,7 @@ th{background:#f2f2f2}td:first-child,th:first-child{text-align:left}
 .error{color:#c62828}.warning{color:#a66a00}
 figure{display:inline-block;margin:8px 12px 8px 0;vertical-align:top}figcaption{font-weight:600}
 svg text{font:11px sans-serif}pre{background:#f6f6f6;padding:8px;overflow:auto}
+.findings td{text-align:left}code.filter{user-select:all;background:#f6f6f6;padding:0 4px}
 """
 
 
@@ -230,7 +231,8 @@ def _retransmission_plot(report: dict) -> str:
     return c.svg("retransmissions", "Retransmissions per command")
 
 
-def _state_plot(st: dict, t0: float, t1: float) -> str:
+def _state_plot(st: dict, t0: float, t1: float, restarts: list[tuple[float, str]]) -> str:
+    """The base unit's state over time, with every sender's restarts as vertical lines."""
     fields = list(st["segments"])
     c = Chart(t0, t1, 0, len(fields) + 1, "time since capture start (s)", "", xtime=True)
     c.axes(yticks=False)
@@ -243,6 +245,8 @@ def _state_plot(st: dict, t0: float, t1: float) -> str:
     for ep in st["episodes_relays_open"]:
         end = ep["end"] if ep["end"] is not None else t1
         c.rect(ep["start"], end, len(fields) + 0.1, 0.8, "#c62828", "ES-Link relays open")
+    for time, who in restarts:
+        c.vline(time, "#6a1b9a", f"restart {who.split(' origin')[0]}")
     for row, label in enumerate([*reversed(fields), "relays open"]):
         c.parts.append(f'<text x="{ML - 4}" y="{c.y(row + 0.5) + 4:.1f}" text-anchor="end">{_e(label)}</text>')
     return c.svg("state-timeline", f"State timeline — {st['sender']}")
@@ -252,6 +256,26 @@ def _table(header: list[str], rows: list[list[object]]) -> str:
     head = "".join(f"<th>{_e(h.replace('_', ' '))}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{_e(v)}</td>" for v in r) + "</tr>" for r in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _findings_table(findings: list[dict], t0: float) -> str:
+    """Every located item of every finding, with the display filter that shows it in Wireshark."""
+    rows = []
+    for f in findings:
+        for item in f.get("items", []):
+            what = ", ".join(f"{k} {v}" for k, v in item.items()
+                             if k not in ("frame", "frames", "time", "sender", "filter") and v not in (None, False))
+            frames = item.get("frames", [item["frame"]])
+            rows.append(f'<tr><td class="{_e(f["severity"])}">{_e(f["rule"])}</td>'
+                        f"<td>{_e(', '.join(map(str, frames[:10])) + (' …' if len(frames) > 10 else ''))}</td>"
+                        f"<td>{item['time'] - t0:.6f}</td><td>{_e(item.get('sender', ''))}</td><td>{_e(what)}</td>"
+                        f'<td><code class="filter">{_e(item["filter"])}</code></td></tr>')
+        if f.get("more"):
+            rows.append(f'<tr><td>{_e(f["rule"])}</td><td colspan="5">… {f["more"]} more in the JSON report</td></tr>')
+    if not rows:
+        return ""
+    head = "".join(f"<th>{h}</th>" for h in ("finding", "frames", "time (s)", "sender", "what", "display filter"))
+    return f'<h3>Findings</h3><table class="findings"><tr>{head}</tr>{"".join(rows)}</table>'
 
 
 def _section(report: dict) -> str:
@@ -265,14 +289,19 @@ def _section(report: dict) -> str:
     if verdict["findings"]:
         out.append("<ul>" + "".join(f'<li class="{_e(f["severity"])}">{_e(f["severity"])}: {_e(f["message"])}</li>'
                                     for f in verdict["findings"]) + "</ul>")
+        out.append(_findings_table(verdict["findings"], t0))
     if report["illegal"]["total"]:
         out.append("<h3>Illegal packets</h3>" + _table(["reason", "packets"], list(report["illegal"]["by_reason"].items())))
     out.append("<h3>Senders</h3>")
     out.append(_table(["sender", "packets by type", "scope", "received", "lost", "gaps", "duplicates",
-                       "out of order", "wraps"],
+                       "out of order", "wraps", "restarts"],
                       [[s["id"], ", ".join(f"{k} {v}" for k, v in s["by_type"].items()), s["serial"]["scope"],
                         s["serial"]["received"], s["serial"]["lost"], len(s["serial"]["gaps"]),
-                        s["serial"]["duplicates"], s["serial"]["out_of_order"], s["serial"]["wraps"]]
+                        s["serial"]["duplicates"], s["serial"]["out_of_order"], s["serial"]["wraps"],
+                        "; ".join([str(s["serial"]["restarts"])] + [
+                            f"{r['time'] - t0:.3f} s frame {r['frame']}: {r['from']} → {r['to']}"
+                            + (f" port {r['port_from']} → {r['port_to']}" if "port_from" in r else "")
+                            for r in s["serial"]["restart_events"]])]
                        for s in report["senders"]]))
     out.append("<h3>Periodic streams (ms)</h3>")
     out.append(_table(["stream", "sender", "count", "min", "mean", "p50", "p95", "p99", "p99.9", "max",
@@ -283,7 +312,7 @@ def _section(report: dict) -> str:
                         f"{len(p['watchdog']['violations'])} (> {p['watchdog']['limit_ms']:g})"]
                        for p in report["periodic"]]))
     out.append("<h3>Commands</h3>")
-    keys = ("commands", "transmissions", "retransmissions", "acked", "unacked", "failed",
+    keys = ("commands", "transmissions", "retransmissions", "acked", "unacked", "interrupted", "failed",
             "spurious_retransmissions", "acks_without_command", "duplicate_acks")
     out.append(_table(["type", *keys, "latency p50", "latency p95", "latency max"],
                       [[n, *(c[k] for k in keys), *(_num(c["ack_latency_ms"][k]) for k in ("p50", "p95", "max"))]
@@ -297,8 +326,9 @@ def _section(report: dict) -> str:
     out.append(_gap_plot(report, t0, t1))
     out.append(_latency_plot(report))
     out.append(_retransmission_plot(report))
+    restarts = [(r["time"], s["id"]) for s in report["senders"] for r in s["serial"]["restart_events"]]
     for st in report["state"]:
-        out.append(_state_plot(st, t0, t1))
+        out.append(_state_plot(st, t0, t1, restarts))
         if st["episodes_relays_open"]:
             out.append("<h3>ES-Link relays open</h3>" + _table(
                 ["start (s)", "duration (s)", "BU states", "still open at end"],
