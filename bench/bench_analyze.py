@@ -6,7 +6,7 @@ Prints, all measured in this run:
   (tshark with a Lua dissector needs minutes for the whole file);
 - peak memory (ru_maxrss) of a child process running `vm110 analyze` on the whole file
   (target <= 300 MiB).
-Each timing is the best of REPEAT runs, alternating, so that a busy machine hurts both sides alike.
+Each timing is the median of REPEAT runs, interleaved, so that a busy machine hurts both sides alike.
 The capture is cached in out/bench/ (synthesis is deterministic; delete it to rebuild).
 """
 from __future__ import annotations
@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import statistics
 import struct
 import subprocess
 import sys
@@ -120,9 +121,9 @@ def main() -> None:
             del os.environ[WORKERS_ENV]
     report = analyze(str(path))
     packets = report["capture"]["packets"]
-    scapy_s = min(scapy_times)
+    scapy_s = statistics.median(scapy_times)
     chosen = FastEngine().workers          # what `vm110 analyze` picks now: the idle cores
-    analysis_s = min(analysis_times[min(chosen, parallel)])
+    analysis_s = statistics.median(analysis_times[min(chosen, parallel)])
     print(f"capture: {packets} packets, {path.stat().st_size / 2**20:.1f} MiB ({path})")
     print(f"scapy RawPcapReader, iterate only: {scapy_s:.2f} s ({scapy_s / packets * 1e6:.2f} us/packet)")
     print(f"vm110 analyze, fast engine:        {analysis_s:.2f} s ({analysis_s / packets * 1e6:.2f} us/packet, "
@@ -130,7 +131,8 @@ def main() -> None:
           f"on {os.cpu_count()} cores)")
     print(f"RATIO analysis / scapy iterate = {analysis_s / scapy_s:.2f} (target <= 1.0)")
     for workers, times in sorted(analysis_times.items()):
-        print(f"  with {workers} reading process(es): {min(times):.2f} s, ratio {min(times) / scapy_s:.2f}")
+        print(f"  with {workers} reading process(es): {statistics.median(times):.2f} s, "
+              f"ratio {statistics.median(times) / scapy_s:.2f}")
     for workers, wall, peak, helper in peaks:
         extra = f"; each of the {workers - 1} helper process(es) at most {helper:.0f} MiB" if workers > 1 else ""
         print(f"PEAK MEMORY of `vm110 analyze --json` with {workers} reading process(es) = {peak:.0f} MiB "
