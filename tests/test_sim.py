@@ -55,7 +55,7 @@ def test_commands_are_acknowledged_and_executed_once_despite_loss():
              bu_imp=Impairment(loss=30.0, only=("VRCI", "VRAI"), seed=3),
              ctl_imp=Impairment(loss=30.0, only=("VRAO",), seed=4))
     sent, acked = ids(bu, "command_sent"), ids(bu, "command_acked")
-    assert len(sent) >= 6 and acked == sent                     # every operator command acknowledged
+    assert len(sent) >= 6 and sorted(acked) == sent             # every operator command acknowledged
     executed = ids(ctl, "executed")
     assert sorted(executed) == sorted(set(executed)) == sorted(sent)   # each executed exactly once
     repeats = ids(ctl, "repeat")
@@ -65,9 +65,9 @@ def test_commands_are_acknowledged_and_executed_once_despite_loss():
     assert bu.sent["VRCI"] > len(sent)                          # the BU did resend
     # The controller's own commands: resent until the VRAI, each delivered to the RU once.
     vrco = ids(ctl, "vrco_sent")
-    assert len(vrco) >= 4 and ids(ctl, "vrco_acked") == vrco
+    assert len(vrco) >= 4 and sorted(ids(ctl, "vrco_acked")) == vrco
     delivered = ids(bu, "vrco_delivered")
-    assert delivered == vrco
+    assert sorted(delivered) == vrco
     assert bu.sent["VRAI"] == bu.received["VRCO"] >= len(vrco)
     assert ctl.illegal_packets == bu.illegal_packets == 0
 

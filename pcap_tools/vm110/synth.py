@@ -18,7 +18,7 @@ from .capture.writer import Format, UdpFlow, open_writer
 from .sim.clock import seconds
 from .sim.scenario import EPOCH_US, SCENARIOS, Scenario
 from .sim.truth import GroundTruth
-from .sim.virtual import Arrival, VirtualNetwork
+from .sim.virtual import Arrival, VirtualNetwork, endpoints
 
 TRUTH_SUFFIX = ".truth.json"
 # Other traffic a tap also sees: an mDNS query for _vm110._udp.local (not EG-Link).
@@ -46,11 +46,13 @@ def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] =
     if duration <= 0:
         raise ValueError("duration must be positive")
     stations = sc.build(seed, duration)
-    # One flow per station, then the other traffic's: its arrivals carry that index.
-    flows = [UdpFlow(s.ip, s.port, C.MULTICAST_GROUP, s.port, ttl=C.MULTICAST_TTL) for s in stations]
-    flows.append(UdpFlow(OTHER_SOURCE, MDNS_PORT, OTHER_GROUP, MDNS_PORT, ttl=255))
-    others = [(t, 0, len(stations), OTHER_PAYLOAD, (), None)
+    # One flow per endpoint (a station's port, then its new ports after restarts; to the group on
+    # the station's own port), then the other traffic's: its arrivals carry that index.
+    flows = [UdpFlow(stations[i].ip, port, C.MULTICAST_GROUP, stations[i].port, ttl=C.MULTICAST_TTL)
+             for i, port in endpoints(stations)]
+    others = [(t, 0, len(flows), OTHER_PAYLOAD, (), None, False)
               for t in map(seconds, sc.other_traffic) if t < seconds(duration)]
+    flows.append(UdpFlow(OTHER_SOURCE, MDNS_PORT, OTHER_GROUP, MDNS_PORT, ttl=255))
     frame = [flow.frame for flow in flows]
     truth = GroundTruth(stations, EPOCH_US)
     collecting = gc.isenabled()
@@ -61,9 +63,9 @@ def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] =
             for batch in VirtualNetwork(stations).run(duration):
                 if others and others[0][0] <= batch[-1][0]:
                     batch = _interleave(batch, others)
-                writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _ in batch])
+                writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _, _ in batch])
                 truth.add(batch)
-            writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _ in others])   # after the end
+            writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _, _ in others])   # after the end
             truth.add(others)
             writer.close()
     finally:

@@ -61,7 +61,7 @@ class NoReack(Controller):
     ORACLE = "missing_ack"
 
     def on_vrci(self, rx: Rx, now: int) -> None:
-        if self.executed.get(rx.origin) == int.from_bytes(rx.payload[:2], "little"):
+        if self.handled.recent(rx.origin, int.from_bytes(rx.payload[:2], "little"), now):
             return
         super().on_vrci(rx, now)
 
@@ -93,7 +93,8 @@ class NoVrcoResend(Controller):
     ORACLE = "vrco_retransmit"
 
     def transmit(self, data: bytes, now: int, meta: Meta) -> None:
-        if meta.ptype is C.PacketType.VRCO and self.pending is not None and self.pending["count"] >= 1:   # counted after sending
+        command = self.in_flight.get(meta.key) if meta.ptype is C.PacketType.VRCO else None
+        if command is not None and command["count"] >= 1:     # counted after sending
             return
         super().transmit(data, now, meta)
 

@@ -18,6 +18,7 @@ from ..errors import CliError
 from ..sim.bu import DEFAULT_ORIGIN, BaseUnit, BaseUnitConfig
 from ..sim.controller import Controller, ControllerConfig
 from ..sim.impair import Impairer, Impairment
+from ..sim.lifecycle import DEFAULT_SILENCE_S, parse_restart
 from ..sim.realtime import RealtimeRunner
 from ..sim.remote import Remote
 from ..sim.transport import UdpConfig, UdpTransport, multicast_config, parse_address
@@ -32,6 +33,14 @@ def _window(text: str) -> tuple[float, float]:
     if not sep or window[1] <= window[0]:
         raise argparse.ArgumentTypeError(f"expected START:END in seconds with END > START, got {text!r}")
     return window
+
+
+def _restart(text: str) -> str:
+    try:
+        parse_restart(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected AT or AT:NEW_PORT (seconds, port 1-65535), got {text!r}") from None
+    return text
 
 
 def _int(text: str) -> int:
@@ -56,7 +65,10 @@ def add_impairment_arguments(parser: argparse.ArgumentParser) -> None:
     imp = parser.add_argument_group("impairments (of what this node sends; reproducible with --seed)")
     imp.add_argument("--seed", type=int, default=0)
     imp.add_argument("--loss", type=float, default=0.0, metavar="PCT")
-    imp.add_argument("--duplicate", type=float, default=0.0, metavar="PCT")
+    imp.add_argument("--duplicate", type=float, default=0.0, metavar="PCT", help="PCT %% delivered twice")
+    imp.add_argument("--mirror", type=float, default=0.0, metavar="PCT",
+                     help="PCT %% seen twice 0.05-3 ms apart, as a switch mirror port shows them to a capture "
+                          "(over sockets the peer gets the copy too)")
     imp.add_argument("--reorder", type=float, default=0.0, metavar="PCT")
     imp.add_argument("--delay", type=float, default=0.0, metavar="MS")
     imp.add_argument("--jitter", type=float, default=0.0, metavar="MS")
@@ -67,6 +79,16 @@ def add_impairment_arguments(parser: argparse.ArgumentParser) -> None:
                      help="the node hangs: neither sends nor receives; repeatable")
     imp.add_argument("--glink", type=_window, action="append", default=[], metavar="START:END",
                      help="G-Link fallback: slower VRPO (controller), later VRAI (BU); repeatable")
+    life = parser.add_argument_group("life of the node")
+    life.add_argument("--stop-at", type=float, metavar="S", help="send nothing from S seconds on, for good")
+    life.add_argument("--restart", type=_restart, action="append", default=[], metavar="AT[:NEW_PORT]",
+                      help="go down at AT s and come back after --restart-silence with serials and command IDs "
+                           "afresh, sending from NEW_PORT if given (0: a new ephemeral port); repeatable")
+    life.add_argument("--restart-silence", type=float, default=DEFAULT_SILENCE_S, metavar="S",
+                      help=f"seconds down at each restart (default {DEFAULT_SILENCE_S:g})")
+    life.add_argument("--restart-serial", type=_int, default=0, metavar="N", help="first serial after a restart")
+    life.add_argument("--serial-start", type=_int, default=0, metavar="N",
+                      help="first serial (e.g. above 32767, to reboot from there)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -110,8 +132,18 @@ def udp_config(args: argparse.Namespace) -> UdpConfig:
 
 
 def impairment(args: argparse.Namespace) -> Impairment:
-    return Impairment(loss=args.loss, duplicate=args.duplicate, reorder=args.reorder, delay_ms=args.delay,
+    return Impairment(loss=args.loss, duplicate=args.duplicate, mirror=args.mirror, reorder=args.reorder,
+                      delay_ms=args.delay,
                       jitter_ms=args.jitter, corrupt=args.corrupt, outages=tuple(args.outage), seed=args.seed)
+
+
+def life(args: argparse.Namespace) -> dict[str, Any]:
+    """The `Life` fields of the node's configuration from the options."""
+    if args.restart_silence <= 0 or args.stop_at is not None and args.stop_at < 0:
+        raise CliError("--restart-silence must be > 0 and --stop-at >= 0")
+    restarts = tuple(sorted((parse_restart(text, args.restart_silence, args.restart_serial) for text in args.restart),
+                            key=lambda r: r.at_s))
+    return {"stalls": tuple(args.stall), "restarts": restarts, "stop_at_s": args.stop_at}
 
 
 def build_node(args: argparse.Namespace, printer: Callable[[str], None]) -> Any:
@@ -120,15 +152,14 @@ def build_node(args: argparse.Namespace, printer: Callable[[str], None]) -> Any:
             armed=not args.disarmed, unarmed_rus=args.unarmed_rus, motion=not args.no_motion,
             command_every=args.command_every)
         cfg = BaseUnitConfig(origin=args.origin, command_id_start=args.command_id_start,
-                             glink=tuple(args.glink), stalls=tuple(args.stall), seed=args.seed)
-        return BaseUnit(remote, cfg, printer=printer)
+                             glink=tuple(args.glink), seed=args.seed, **life(args))
+        return BaseUnit(remote, cfg, printer=printer, serial_start=args.serial_start)
     if args.data_size < 0 or args.period <= 0:
         raise CliError("--data-size must be >= 0 and --period > 0")
     cfg = ControllerConfig(period_ms=args.period, data_size=args.data_size, vrco_timeout_ms=args.vrco_timeout,
                            vrpi_timeout_ms=args.vrpi_timeout, command_every_s=args.command_every,
-                           command_id_start=args.command_id_start, glink=tuple(args.glink),
-                           stalls=tuple(args.stall))
-    return Controller(cfg, printer=printer)
+                           command_id_start=args.command_id_start, glink=tuple(args.glink), **life(args))
+    return Controller(cfg, printer=printer, serial_start=args.serial_start)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,14 +1,15 @@
 """The simulated base unit (BU), TS-0006 section 5 as the BU sees it.
 
 - VRPI every 125 ms with the remote's state (`sim.remote`).
-- Operator commands as VRCI, one at a time: resent every 100 ms until the VRAO, failed (logged,
-  no more resends) after 2000 ms without one; the next command waits for the previous one.
+- Operator commands as VRCI, several in flight at once (two keys pressed within 100 ms): each
+  resent every 100 ms until its VRAO, failed (logged, no more resends) after 2000 ms without one.
 - Every VRCO is acknowledged with a VRAI (retransmissions too) and handed to the RU application
-  once per command ID.
+  once per command (a command ID heard again within the reuse gap is a retransmission).
 - VRPO watchdog: no VRPO for 2000 ms shows in VRPI as EG-Link "No link" and, with an RU armed,
   BU state "External link error" (ES-Link relays open) until VRPO comes back.
 - G-Link fallback windows: the RU application answers over the slower C-Link, so each VRAI leaves
   later (`glink_ack_delay_ms`), and the reported C-Link RSSI drops.
+- Restarts (`sim.lifecycle`): a reboot, back with VRPI, serials and command IDs afresh.
 One serial counter for everything it sends (interpretation.md).
 """
 from __future__ import annotations
@@ -22,6 +23,8 @@ from .. import constants as C
 from .. import encode
 from ..decode import VRPI_LAYOUT
 from .clock import ms, seconds
+from .ledger import CommandLedger
+from .lifecycle import Life, Restart
 from .node import Node, Rx
 from .outbox import CommandOutbox, OutboxEvents
 from .remote import VRPI_INDEX, VRPI_NAMES, Remote
@@ -35,7 +38,7 @@ DEFAULT_ORIGIN = 0x0101
 
 
 @dataclass
-class BaseUnitConfig:
+class BaseUnitConfig(Life):
     origin: int = DEFAULT_ORIGIN
     vrpi_period_ms: float = C.VRPI_PERIOD_MS
     vrci_resend_ms: float = C.COMMAND_RESEND_MS
@@ -45,7 +48,6 @@ class BaseUnitConfig:
     glink: tuple[tuple[float, float], ...] = ()          # G-Link fallback windows (s)
     glink_ack_delay_ms: tuple[float, float] = (250.0, 650.0)
     glink_rssi: int = 25
-    stalls: tuple[tuple[float, float], ...] = ()         # (start s, end s): the BU hangs
     seed: int = 0
 
 
@@ -54,13 +56,14 @@ class BaseUnit(CommandOutbox, Node):
 
     direction = C.Direction.INPUT
     command_type = C.PacketType.VRCI
-    command_events = OutboxEvents("command_sent", "command_acked", "command_failed", "vrao_ignored")
+    command_events = OutboxEvents("command_sent", "command_acked", "command_failed", "vrao_ignored",
+                                  "command_dropped")
     command_label = "OP CMD"
 
     def __init__(self, remote: Optional[Remote] = None, config: Optional[BaseUnitConfig] = None,
                  name: str = "bu", **node: Any) -> None:
         self.config = cfg = config or BaseUnitConfig()
-        node.setdefault("stalls", tuple((seconds(a), seconds(b)) for a, b in cfg.stalls))
+        node.setdefault("windows", cfg.windows())
         super().__init__(name, origin=cfg.origin, **node)
         self.remote = remote or Remote.simple()
         self._rng = random.Random(f"bu:{cfg.seed}")
@@ -72,13 +75,13 @@ class BaseUnit(CommandOutbox, Node):
         self.watchdog_tripped = False
         self._outbox_init(cfg.command_id_start, ms(cfg.vrci_resend_ms), ms(cfg.vrci_fail_ms))
         self._acks: list[tuple[int, int]] = []            # delayed VRAI: (due, command ID)
-        self.delivered: dict[int, int] = {}               # last VRCO command ID handed to the RU app
+        self.delivered = CommandLedger()                  # VRCO heard, to hand each to the RU app once
 
     def start(self, now: int) -> None:
         self._t0 = self._next_vrpi = now
         self.last_vrpo = now      # grace period from start-up
         every, until = self.remote.command_every, self.remote.command_until
-        self._outbox_start(((now + t, d) for t, d in self.remote.commands), now + every if every else None,
+        self._outbox_start(((now + t, d, i) for t, d, i in self.remote.commands), now + every if every else None,
                            every, now + until if until else None)
 
     def _due(self) -> Optional[int]:
@@ -140,14 +143,20 @@ class BaseUnit(CommandOutbox, Node):
     def on_resume(self, now: int) -> None:
         self.last_vrpo = now
 
+    def on_restart(self, now: int, restart: Restart) -> None:
+        self._next_vrpi = self.last_vrpo = now
+        self.watchdog_tripped = False
+        self._acks.clear()
+        self.delivered = CommandLedger()
+        self._outbox_restart(now, restart.command_id)
+
     # --- operator commands (VRCI): `CommandOutbox` ---------------------------------------------
     on_vrao = CommandOutbox.on_command_ack
 
     # --- controller commands (VRCO) -----------------------------------------------------------
     def on_vrco(self, rx: Rx, now: int) -> None:
         command_id = _CMD_ID.unpack_from(rx.payload)[0]
-        if self.delivered.get(rx.origin) != command_id:
-            self.delivered[rx.origin] = command_id
+        if self.delivered.hear(rx.origin, command_id, now):
             data = rx.payload[6:6 + C.COMMAND_DATA_LEN].rstrip(b"\0").decode("ascii", "replace")
             self.event(now, "vrco_delivered", command_id=command_id, data=data)
         if self.in_glink_fallback(now):

@@ -2,9 +2,12 @@
 
 - VRPO every `period_ms` (default 100 ms); periodic data above 488 bytes goes out as a burst of
   back-to-back packets numbered from 0 (section 4.2, 5.1.2).
-- Every VRCI is acknowledged with a VRAO, retransmissions too; each command ID is executed once,
+- Every VRCI is acknowledged with a VRAO, retransmissions too, in the order they arrive; each
+  command is executed once (a command ID heard again within the reuse gap is a retransmission),
   and only while the last VRPI showed an armed RU (section 4.3).
-- Own commands (VRCO) are resent every 100 ms until the VRAI, and given up after `vrco_timeout_ms`.
+- Own commands (VRCO), several in flight at once, are each resent every 100 ms until the VRAI, and
+  given up after `vrco_timeout_ms`.
+- Restarts (`sim.lifecycle`): back with VRPO from cycle 0, serials and command IDs afresh.
 - No VRPI for 500 ms is flagged (and logged) until VRPI comes back (section 5.1.1).
 - Illegal packets are ignored and counted by reason (section 5.1.5).
 
@@ -20,6 +23,8 @@ from typing import Any, Optional
 from .. import constants as C
 from .. import encode
 from .clock import ms, seconds
+from .ledger import CommandLedger
+from .lifecycle import Life, Restart
 from .node import Node, Rx
 from .outbox import CommandOutbox, OutboxEvents
 
@@ -34,7 +39,7 @@ _VRPO_HEADER_SIZE, _VRPO_MAX_DATA = C.VRPO_HEADER_SIZE, C.VRPO_MAX_DATA
 
 
 @dataclass
-class ControllerConfig:
+class ControllerConfig(Life):
     period_ms: float = 100.0
     data_size: int = 64                       # periodic data bytes per cycle (split above 488)
     first_packet_number: int = 0
@@ -42,13 +47,12 @@ class ControllerConfig:
     vrco_resend_ms: float = C.COMMAND_RESEND_MS
     vrco_timeout_ms: float = C.VRCO_GIVE_UP_MS
     command_id_start: int = 0
-    commands: tuple[tuple[float, bytes], ...] = ()   # VRCO to send: (time s, data)
+    commands: tuple[tuple[Any, ...], ...] = ()   # VRCO to send: (time s, data[, command ID])
     command_every_s: float = 0.0              # and one every N s (0: none)
     command_until_s: float = 0.0              # no periodic VRCO from then on (0: no end)
     require_armed: bool = True                # execute commands only for an armed RU (4.3)
     glink: tuple[tuple[float, float], ...] = ()      # G-Link fallback windows (s): slower VRPO
     glink_period_ms: float = 400.0
-    stalls: tuple[tuple[float, float], ...] = ()     # (start s, end s): the controller hangs
     extra: dict[str, Any] = field(default_factory=dict)  # free room for subclasses
 
 
@@ -57,12 +61,12 @@ class Controller(CommandOutbox, Node):
 
     direction = C.Direction.OUTPUT
     command_type = C.PacketType.VRCO
-    command_events = OutboxEvents("vrco_sent", "vrco_acked", "vrco_gave_up", "vrai_ignored")
+    command_events = OutboxEvents("vrco_sent", "vrco_acked", "vrco_gave_up", "vrai_ignored", "vrco_dropped")
     command_label = "ALARM"
 
     def __init__(self, config: Optional[ControllerConfig] = None, name: str = "controller", **node: Any) -> None:
         self.config = cfg = config or ControllerConfig()
-        node.setdefault("stalls", tuple((seconds(a), seconds(b)) for a, b in cfg.stalls))
+        node.setdefault("windows", cfg.windows())
         super().__init__(name, origin=0, **node)
         self._period, self._glink_period = ms(cfg.period_ms), ms(cfg.glink_period_ms)
         self._vrpi_timeout_us = ms(cfg.vrpi_timeout_ms)
@@ -73,9 +77,8 @@ class Controller(CommandOutbox, Node):
         self.last_vrpi: Optional[int] = None
         self.vrpi_alarm = False
         self.ru_armed = False
-        self.executed: dict[int, int] = {}        # origin -> last executed command ID
+        self.handled = CommandLedger()            # operator commands heard, to execute each once
         self._outbox_init(cfg.command_id_start, ms(cfg.vrco_resend_ms), ms(cfg.vrco_timeout_ms))
-        self._commands.extend(sorted((seconds(t), d) for t, d in cfg.commands))   # made absolute in `start`
         self._data_tail = bytes(i & 0xFF for i in range(4, cfg.data_size))
 
     # --- schedule -----------------------------------------------------------------------------
@@ -84,7 +87,7 @@ class Controller(CommandOutbox, Node):
         self.last_vrpi = now     # the watchdog runs from start-up: no VRPI at all is an error too
         cfg = self.config
         every = seconds(cfg.command_every_s)
-        self._outbox_start(((t + now, d) for t, d in self._commands),
+        self._outbox_start(((seconds(c[0]) + now, c[1], c[2] if len(c) > 2 else None) for c in cfg.commands),
                            every + now if cfg.command_every_s > 0 else None, every,
                            now + seconds(cfg.command_until_s) if cfg.command_until_s else None)
 
@@ -118,6 +121,12 @@ class Controller(CommandOutbox, Node):
     def on_resume(self, now: int) -> None:
         self.last_vrpi = now     # it was not listening: judge VRPI from here on
 
+    def on_restart(self, now: int, restart: Restart) -> None:
+        self._next_vrpo, self.cycle = now, 0
+        self.last_vrpi, self.vrpi_alarm, self.ru_armed = now, False, False
+        self.handled = CommandLedger()
+        self._outbox_restart(now, restart.command_id)
+
     # --- VRPO ---------------------------------------------------------------------------------
     def periodic_data(self, now: int) -> bytes:
         """This cycle's periodic data: the cycle counter, then a fixed pattern."""
@@ -144,8 +153,7 @@ class Controller(CommandOutbox, Node):
     def on_vrci(self, rx: Rx, now: int) -> None:
         command_id = _CMD_ID.unpack_from(rx.payload)[0]
         self.acknowledge(command_id, now)
-        if self.executed.get(rx.origin) != command_id:
-            self.executed[rx.origin] = command_id
+        if self.handled.hear(rx.origin, command_id, now):
             self.execute(rx.origin, command_id, rx.payload[6:6 + C.COMMAND_DATA_LEN], now)
         else:
             self.event(now, "repeat", command_id=command_id)
@@ -162,7 +170,7 @@ class Controller(CommandOutbox, Node):
             self.event(now, "executed", command_id=command_id, origin=f"0x{origin:04x}", data=text)
 
     # --- own commands (VRCO): `CommandOutbox` -------------------------------------------------
-    on_vrai = CommandOutbox.on_command_ack     # completes the VRCO in flight (`self.pending`)
+    on_vrai = CommandOutbox.on_command_ack     # completes the VRCO in flight with its ID
 
     def summary(self) -> dict[str, Any]:
         """Counters for logs and tests."""

@@ -1,10 +1,12 @@
 """Network impairments between a sender and its receivers, reproducible from a seed.
 
-Random loss, duplication, reordering, delay with jitter and CRC corruption; scheduled outages
+Random loss, duplication, reordering, delay with jitter and CRC corruption; mirror copies (a
+switch mirror port showing the capture a packet twice, 0.05-3 ms apart: only the tap sees the
+copy, the receivers get the packet once); scheduled outages
 (nothing gets through), type-selective drops (e.g. every VRAO for two seconds: a failed command)
 and scheduled manglings that turn the next packet illegal for a chosen reason of
-interpretation.md. `Impairer.apply` says what arrives, when, and why it is illegal: that is the
-event log the ground truth is made from.
+interpretation.md. `Impairer.apply` says what arrives, when, why it is illegal and whether the
+receivers get it: that is the event log the ground truth is made from.
 """
 from __future__ import annotations
 
@@ -21,12 +23,17 @@ from .clock import ms, seconds
 REASON_ORDER = tuple(p.value for p in C.Problem)
 OVERSIZE = C.MAX_PAYLOAD + 8
 _SIZE = struct.Struct("<H")
+MIRROR_DELAY_MS = (0.05, 3.0)
+# What arrives: (arrival time µs, bytes, illegal reasons, delivered to the receivers (False: a
+# mirror copy only the tap sees)).
+Copy = tuple[int, bytes, tuple[str, ...], bool]
 
 
 @dataclass
 class Impairment:
     loss: float = 0.0            # % of packets lost
     duplicate: float = 0.0       # % delivered twice
+    mirror: float = 0.0          # % seen twice by the tap (a mirror port), delivered once
     reorder: float = 0.0         # % held back by about `reorder_ms`, so later packets overtake them
     reorder_ms: float = 150.0
     delay_ms: float = 0.0
@@ -39,7 +46,7 @@ class Impairment:
     seed: int = 0
 
     def active(self) -> bool:
-        return any((self.loss, self.duplicate, self.reorder, self.delay_ms, self.jitter_ms, self.corrupt,
+        return any((self.loss, self.duplicate, self.mirror, self.reorder, self.delay_ms, self.jitter_ms, self.corrupt,
                     self.outages, self.drops, self.mangles))
 
 
@@ -78,7 +85,7 @@ class Impairer:
         self._rng = random.Random(f"{name}:{imp.seed}")
         self._variant, self._order = variant, order
         self._delay = ms(imp.delay_ms)
-        self._loss, self._duplicate, self._only = imp.loss, imp.duplicate, imp.only
+        self._loss, self._duplicate, self._mirror, self._only = imp.loss, imp.duplicate, imp.mirror, imp.only
         self._rare = bool(imp.corrupt or imp.jitter_ms or imp.reorder)   # checked in that order, after loss
         self.set_origin(t0)
 
@@ -89,8 +96,8 @@ class Impairer:
         self._mangles = sorted((t0 + seconds(at), reason, ptype) for at, reason, ptype in imp.mangles)
         self._scheduled = bool(self._outages or self._drops or self._mangles)
 
-    def apply(self, data: bytes, now: int, ptype: str) -> list[tuple[int, bytes, tuple[str, ...]]]:
-        """(arrival time, bytes, illegal reasons) for every copy that arrives; [] when lost."""
+    def apply(self, data: bytes, now: int, ptype: str) -> list[Copy]:
+        """Every copy that arrives (`Copy`); [] when lost."""
         problems: tuple[str, ...] = ()
         if self._scheduled:
             if self._outages and any(a <= now < b for a, b in self._outages):
@@ -99,8 +106,16 @@ class Impairer:
                 return []
             if self._mangles:
                 data, problems = self._scheduled_mangle(data, now, ptype)
+        copies = self._network(data, now, ptype, problems)
+        if copies and self._mirror and self._rng.random() * 100 < self._mirror:     # the tap's, any type
+            t, data, problems, _ = copies[0]
+            copies.append((t + ms(self._rng.uniform(*MIRROR_DELAY_MS)), data, problems, False))
+        return copies
+
+    def _network(self, data: bytes, now: int, ptype: str, problems: tuple[str, ...]) -> list[Copy]:
+        """The random impairments of the network (`only` selects the types they hit)."""
         if self._only and ptype not in self._only:
-            return [(now, data, problems)]
+            return [(now, data, problems, True)]
         rng, loss, duplicate = self._rng, self._loss, self._duplicate
         if loss and rng.random() * 100 < loss:
             return []
@@ -114,8 +129,8 @@ class Impairer:
             if imp.reorder and rng.random() * 100 < imp.reorder:
                 delay += ms(rng.uniform(0.5, 1.5) * imp.reorder_ms)
         if duplicate and rng.random() * 100 < duplicate:
-            return [(now + delay, data, problems), (now + delay + ms(rng.uniform(0.05, 2.0)), data, problems)]
-        return [(now + delay, data, problems)]
+            return [(now + delay, data, problems, True), (now + delay + ms(rng.uniform(0.05, 2.0)), data, problems, True)]
+        return [(now + delay, data, problems, True)]
 
     def _scheduled_mangle(self, data: bytes, now: int, ptype: str) -> tuple[bytes, tuple[str, ...]]:
         for i, (at, reason, only) in enumerate(self._mangles):

@@ -15,6 +15,7 @@ from .. import constants as C
 from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, check_byte_order, crc_function, trailer_function
 from ..decode import crc_span, decode
 from .clock import US_PER_S
+from .lifecycle import NEVER, Restart, Window
 
 _HEADER = struct.Struct("<4sHHHHI")
 _RX_HEADER = struct.Struct("<4s2xHHH4x")      # what a receiver needs: ID, origin, serial, size
@@ -91,12 +92,16 @@ class Node:
     direction: C.Direction = C.Direction.INPUT
 
     def __init__(self, name: str, *, origin: int = 0, serial_start: int = 0,
-                 stalls: tuple[tuple[int, int], ...] = (), crc: str = DEFAULT_VARIANT,
+                 windows: tuple[Window, ...] = (), crc: str = DEFAULT_VARIANT,
                  crc_order: str = DEFAULT_BYTE_ORDER, printer: Optional[Callable[[str], None]] = None) -> None:
         self.name = name
         self.origin = origin
         self.serial = serial_start & 0xFFFF
-        self.stalls = tuple(sorted(stalls))      # (start, end) in µs: neither sends nor receives
+        # (start, end, restart or None) in µs: neither sends nor receives (`sim.lifecycle`)
+        self.stalls = tuple(sorted(windows, key=lambda w: (w[0], w[1])))
+        self.restarts = tuple(r for _, _, r in self.stalls if r is not None)
+        # Told the new source port at a restart that changes it (the runner reopens the socket).
+        self.on_port_change: Optional[Callable[[int], None]] = None
         self.crc, self.crc_order = crc, check_byte_order(crc_order)
         self._crc_fn = crc_function(crc)
         self._trailer = trailer_function(crc, self.crc_order)
@@ -109,6 +114,7 @@ class Node:
         self.illegal: Counter[str] = Counter()      # by reason; each packet counts once per reason
         self.illegal_packets = 0
         self._stall_index = 0
+        self.stopped = False      # for good (a window without end)
         self._stalls_ahead = bool(self.stalls)
         if not self._stalls_ahead:
             self._bind_direct()
@@ -238,7 +244,7 @@ class Node:
         return [e for e in self.log if e["event"] == kind]
 
     def _stall_end(self, now: int) -> Optional[int]:
-        for start, end in self.stalls:
+        for start, end, _ in self.stalls:
             if start <= now < end:
                 return end
         return None
@@ -246,19 +252,36 @@ class Node:
     def _stall_check(self, now: int) -> bool:
         """True while stalled; logs each stall once and lets subclasses resynchronise after it."""
         while self._stall_index < len(self.stalls):
-            start, end = self.stalls[self._stall_index]
+            start, end, restart = self.stalls[self._stall_index]
             if now < start:
                 return False
             if now < end:
+                if end == NEVER and not self.stopped:
+                    self.stopped = True
+                    self.event(start, "stopped")
                 return True
-            self.event(start, "stall_start")
-            self.event(end, "stall_end")
+            self.event(start, "stall_start" if restart is None else "down")
             self._stall_index += 1
             self._stalls_ahead = self._stall_index < len(self.stalls)
             if not self._stalls_ahead:
                 self._bind_direct()
-            self.on_resume(end)
+            if restart is None:
+                self.event(end, "stall_end")
+                self.on_resume(end)
+            else:
+                self._restart(end, restart)
         return False
 
     def on_resume(self, now: int) -> None:
         """The node runs again after a stall."""
+
+    def _restart(self, now: int, restart: Restart) -> None:
+        """Back from a restart: the counter afresh, maybe a new source port, then the subclass's state."""
+        self.serial = restart.serial & 0xFFFF
+        self.event(now, "restart", serial=self.serial, port=restart.port)
+        if restart.port is not None and self.on_port_change is not None:
+            self.on_port_change(restart.port)
+        self.on_restart(now, restart)
+
+    def on_restart(self, now: int, restart: Restart) -> None:
+        """The node starts afresh after a restart (subclasses reset their state)."""

@@ -1,8 +1,11 @@
 """A node's own commands (BU: VRCI, controller: VRCO), which both ends handle alike (TS-0006 5.1.3-5.1.4).
 
-One command in flight at a time, each with the next sequential command ID: sent, resent every
-resend interval until its acknowledgement, given up after the give-up time. The next one comes
-from the queue of scripted commands (first) or the periodic generator, once the previous is done.
+Several commands may be in flight at once (an operator presses two keys within 100 ms; a
+controller raises an alarm while a setting is still being resent, interpretation.md "Commands").
+Each is sent when it is due, resent every resend interval until its acknowledgement, and given
+up after the give-up time, on its own. Command IDs count up from the configured start (wrapping
+65535 -> 0); a scripted command may carry its own ID (a device reusing an ID after a pause).
+A restart (`_outbox_restart`) drops every command in flight and starts the IDs afresh.
 """
 from __future__ import annotations
 
@@ -25,6 +28,11 @@ class OutboxEvents(NamedTuple):
     acked: str
     gave_up: str
     ignored: str        # an acknowledgement that matches no command in flight
+    dropped: str        # in flight when the node restarted
+
+
+# A scripted command: (due µs, data, its own command ID or None for the next one).
+Scheduled = tuple[int, bytes, Optional[int]]
 
 
 class CommandOutbox:
@@ -33,8 +41,7 @@ class CommandOutbox:
     in `__init__` and `_outbox_start` in `start`, wakes up by `_command_due` and then calls
     `_tick_commands`, and routes its acknowledgement packet to `on_command_ack`.
     `_command_due` is kept up to date here rather than worked out in `_due` (the runners ask
-    `next_due` after every packet): a subclass that sets `pending` or the queue itself calls
-    `_reschedule()`."""
+    `next_due` after every packet)."""
 
     command_type: C.PacketType
     command_events: OutboxEvents
@@ -44,82 +51,104 @@ class CommandOutbox:
 
     def _outbox_init(self, command_id_start: int, resend_us: int, give_up_us: int) -> None:
         self.next_command_id = command_id_start & 0xFFFF
-        self.pending: Optional[dict[str, Any]] = None      # the command in flight
-        self._commands: collections.deque[tuple[int, bytes]] = collections.deque()
+        self.in_flight: dict[int, dict[str, Any]] = {}     # command ID -> its state, oldest first
+        self._commands: collections.deque[Scheduled] = collections.deque()
         self._next_periodic_command: Optional[int] = None
         self._command_every = 0
         self._command_until: Optional[int] = None
         self._resend_us, self._give_up_us = resend_us, give_up_us
         self._command_due = NEVER           # when `_tick_commands` has something to do
 
-    def _outbox_start(self, commands: Iterable[tuple[int, bytes]], first: Optional[int], every: int,
+    def _outbox_start(self, commands: Iterable[Scheduled], first: Optional[int], every: int,
                       until: Optional[int]) -> None:
-        """Scripted commands (µs, data), the first periodic one, its interval and end (all µs, absolute)."""
-        self._commands = collections.deque(commands)
+        """Scripted commands, the first periodic one, its interval and end (all µs, absolute)."""
+        self._commands = collections.deque(sorted(commands, key=lambda c: c[0]))
         self._next_periodic_command, self._command_every, self._command_until = first, every, until
         self._reschedule()
 
-    def queue_command(self, data: bytes, at: int) -> None:
-        """Send a command with `data` at time `at` (µs) or as soon as the one in flight is done."""
-        self._commands.append((at, data))
+    def _outbox_restart(self, now: int, command_id_start: int) -> None:
+        """The node restarted at `now`: commands in flight are lost with its memory, the IDs start
+        afresh, and commands that fell due while it was down are not sent."""
+        for command in self.in_flight.values():
+            self.event(now, self.command_events.dropped, command_id=command["id"], transmissions=command["count"])
+        self.in_flight.clear()
+        self.next_command_id = command_id_start & 0xFFFF
+        while self._commands and self._commands[0][0] < now:
+            self._commands.popleft()
+        t = self._next_periodic_command
+        while t is not None and t < now:
+            t += self._command_every
+            if self._command_until is not None and t >= self._command_until:
+                t = None
+        self._next_periodic_command = t
+        self._reschedule()
+
+    def queue_command(self, data: bytes, at: int, command_id: Optional[int] = None) -> None:
+        """Send a command with `data` at time `at` (µs), with `command_id` or the next ID."""
+        self._commands.append((at, data, command_id))
+        self._commands = collections.deque(sorted(self._commands, key=lambda c: c[0]))
         self._reschedule()
 
     def _reschedule(self) -> None:
-        """Resend or give-up time of the command in flight, else the next queued or periodic one."""
-        p = self.pending
-        if p is not None:
-            self._command_due = min(p["next"], p["first"] + self._give_up_us)
-            return
+        """The earliest resend or give-up of a command in flight, or the next new command."""
         due = NEVER if self._next_periodic_command is None else self._next_periodic_command
         if self._commands and self._commands[0][0] < due:
             due = self._commands[0][0]
+        give_up = self._give_up_us
+        for command in self.in_flight.values():
+            t = min(command["next"], command["first"] + give_up)
+            if t < due:
+                due = t
         self._command_due = due
 
     def _tick_commands(self, now: int) -> None:
-        """Resend the command in flight when due; or give it up, and send the next one due if any."""
-        p = self.pending
-        if p is not None and now - p["first"] < self._give_up_us:
-            if now >= p["next"]:
-                self._send_command(now)
-        else:
-            if p is not None:
-                self.event(now, self.command_events.gave_up, command_id=p["id"], transmissions=p["count"])
-                self.pending = None
-            data = self._next_command_data(now)
-            if data is not None:
-                self.pending = {"id": self.next_command_id, "data": data, "first": now, "next": now, "count": 0}
-                self.next_command_id = (self.next_command_id + 1) & 0xFFFF
-                self._send_command(now)
+        """Give up expired commands, resend the due ones, then send every new command now due."""
+        events = self.command_events
+        for command in list(self.in_flight.values()):
+            if now - command["first"] >= self._give_up_us:
+                self.event(now, events.gave_up, command_id=command["id"], transmissions=command["count"])
+                del self.in_flight[command["id"]]
+            elif now >= command["next"]:
+                self._send_command(command, now)
+        for data, command_id in self._new_commands(now):
+            if command_id is None:
+                command_id = self.next_command_id
+                self.next_command_id = (command_id + 1) & 0xFFFF
+            if data is None:
+                data = f"{self.command_label} {command_id}".encode()
+            command = {"id": command_id, "data": data, "first": now, "next": now, "count": 0}
+            self.in_flight.pop(command_id, None)      # an ID reused while in flight: the old one is forgotten
+            self.in_flight[command_id] = command
+            self._send_command(command, now)
         self._reschedule()
 
-    def _next_command_data(self, now: int) -> Optional[bytes]:
-        """The first queued command if due, else a generated one if due."""
-        if self._commands and self._commands[0][0] <= now:
-            return self._commands.popleft()[1]
+    def _new_commands(self, now: int) -> list[tuple[Optional[bytes], Optional[int]]]:
+        """The queued commands due, then a generated one (data None) if due."""
+        new: list[tuple[Optional[bytes], Optional[int]]] = []
+        while self._commands and self._commands[0][0] <= now:
+            _, data, command_id = self._commands.popleft()
+            new.append((data, command_id))
         t = self._next_periodic_command
-        if t is None or t > now:
-            return None
-        t += self._command_every
-        self._next_periodic_command = None if self._command_until is not None and t >= self._command_until else t
-        return f"{self.command_label} {self.next_command_id}".encode()
+        if t is not None and t <= now:
+            t += self._command_every
+            self._next_periodic_command = None if self._command_until is not None and t >= self._command_until else t
+            new.append((None, None))
+        return new
 
-    def _send_command(self, now: int) -> None:
-        p = self.pending
-        assert p is not None
-        self.send(self.command_type, encode.command_payload(p["id"], p["data"]), now, key=p["id"])
-        p["count"] += 1          # after sending: `transmit` hooks see the count before this one
-        p["next"] = now + self._resend_us
-        if p["count"] == 1:
-            self.event(now, self.command_events.sent, command_id=p["id"])
+    def _send_command(self, command: dict[str, Any], now: int) -> None:
+        self.send(self.command_type, encode.command_payload(command["id"], command["data"]), now, key=command["id"])
+        command["count"] += 1          # after sending: `transmit` hooks see the count before this one
+        command["next"] = now + self._resend_us
+        if command["count"] == 1:
+            self.event(now, self.command_events.sent, command_id=command["id"])
 
     def on_command_ack(self, rx: Rx, now: int) -> None:
-        """An acknowledgement (BU: VRAO, controller: VRAI): completes the command in flight."""
+        """An acknowledgement (BU: VRAO, controller: VRAI): completes the command in flight with its ID."""
         command_id = _CMD_ID.unpack_from(rx.payload)[0]
-        p = self.pending
-        if p is not None and p["id"] == command_id:
+        command = self.in_flight.pop(command_id, None)
+        if command is not None:
             self.event(now, self.command_events.acked, command_id=command_id,
-                       latency_ms=(now - p["first"]) / 1000, transmissions=p["count"])
-            self.pending = None
+                       latency_ms=(now - command["first"]) / 1000, transmissions=command["count"])
             self._reschedule()
         else:
             self.event(now, self.command_events.ignored, command_id=command_id)

@@ -35,6 +35,7 @@ class RealtimeRunner:
             if transport.rx is None:
                 transport.open()
             node.attach(transport.send)
+            node.on_port_change = transport.move_source
             if transport.impairer is not None:
                 transport.impairer.set_origin(self.clock.now())
         now = self.clock.now()

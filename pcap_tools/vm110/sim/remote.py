@@ -5,12 +5,15 @@ A script is JSON (or the same dict in Python):
     {"steps": [{"at": 0, "state": "armed", "ru": 3079, "battery": 90, "motion": true},
                {"at": 12, "state": "disarmed", "unarmed_rus": 2},
                {"at": 20, "set": {"ru_state": 4, "ru_docked": 1}}],
-     "commands": [{"at": 1.5, "data": "START PUMP"}],
+     "commands": [{"at": 1.5, "data": "START PUMP"}, {"at": 1.55, "data": "HORN"},
+                  {"at": 30, "data": "STOP PUMP", "id": 0}],
      "command_every": 2.0, "command_until": 50}
 
 `state` is `armed` or `disarmed` (the VRPI fields that go with it), `set` overrides VRPI fields
 by their canonical names, `motion` moves joysticks, switches and the encoder in deterministic
-patterns, `battery` drains 1 % a minute from the given level. Times are seconds from start.
+patterns, `battery` drains 1 % a minute from the given level. Commands are sent at their time
+even while others are still in flight; `id` gives one its own command ID (a device reusing an
+ID after a pause) instead of the next. Times are seconds from start.
 """
 from __future__ import annotations
 
@@ -73,7 +76,7 @@ class Remote:
     """The RU and operator script. `fields(t)` gives the VRPI payload fields at time t (µs)."""
 
     steps: list[_Step] = field(default_factory=list)
-    commands: list[tuple[int, bytes]] = field(default_factory=list)
+    commands: list[tuple[int, bytes, Optional[int]]] = field(default_factory=list)   # (µs, data, ID)
     command_every: int = 0
     command_until: int = 0      # no periodic commands from then on (0: no end)
 
@@ -94,9 +97,11 @@ class Remote:
             battery = raw.get("battery") if state == "armed" or "battery" in raw.get("set", {}) else None
             steps.append(_Step(seconds(float(raw.get("at", 0))), values, raw.get("motion"),
                                None if battery is None else int(battery)))
-        commands = [(seconds(float(c["at"])), str(c.get("data", "CMD")).encode("ascii", "replace"))
+        commands = [(seconds(float(c["at"])), str(c.get("data", "CMD")).encode("ascii", "replace"),
+                     None if c.get("id") is None else int(c["id"]) & 0xFFFF)
                     for c in script.get("commands", [])]
-        return cls(sorted(steps, key=lambda s: s.at), sorted(commands), seconds(float(script.get("command_every", 0))),
+        return cls(sorted(steps, key=lambda s: s.at), sorted(commands, key=lambda c: c[0]),
+                   seconds(float(script.get("command_every", 0))),
                    seconds(float(script.get("command_until", 0))))
 
     @classmethod

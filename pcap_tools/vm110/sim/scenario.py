@@ -6,6 +6,7 @@ the end so that every command in a capture has had its chance to be acknowledged
 """
 from __future__ import annotations
 
+import random
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
@@ -13,6 +14,7 @@ from .. import constants as C
 from .bu import BaseUnit, BaseUnitConfig
 from .controller import Controller, ControllerConfig
 from .impair import Impairment
+from .lifecycle import Restart
 from .remote import Remote
 from .virtual import Station
 
@@ -127,6 +129,59 @@ def glink(seed: int, duration: float) -> list[Station]:
                  ctl=_vrco(duration, 1.0, glink=window))
 
 
+COMMAND_TYPES = ("VRCI", "VRAO", "VRCO", "VRAI")
+
+
+def overlap(seed: int, duration: float) -> list[Station]:
+    # The operator presses a key every 1.5 s, and every third time a second one 40-90 ms later,
+    # so two VRCI are in flight; after a pause from 50 s the BU's command IDs start again at 0
+    # (reused after more than the 2000 ms reuse gap). The controller sends a setting (VRCO) every
+    # 2 s and, with every fourth, an alarm 50 ms later. 15 % of the commands and acks are lost,
+    # every VRAO from 69.9 s to 72.2 s (the operator command of 70 s fails), and 5 % of all
+    # packets reach the tap twice, 0.05-3 ms apart (a mirror port).
+    rng = random.Random(f"overlap:{seed}")
+    until, presses, t = _until(duration), [], 1.0
+    while t < until:
+        presses.append(t)
+        if len(presses) % 4 == 3 and t + 0.1 < until:
+            presses.append(round(t + rng.uniform(0.04, 0.09), 3))
+        t += 6.0 if 48.0 < t < 50.0 else 1.5
+    before = sum(p < 50.0 for p in presses)
+    keys = [{"at": p, "data": f"KEY {i}", "id": None if i < before else i - before} for i, p in enumerate(presses)]
+    remote = Remote.from_script({"steps": [{"at": 0, "state": "armed", "motion": True}], "commands": keys})
+    alarms = tuple((t + 0.05, b"ALARM") for t in range(2, int(until), 8))
+    net = {"loss": 15.0, "only": COMMAND_TYPES, "mirror": 5.0, "seed": seed}
+    return _pair(seed, duration, remote, ctl=_vrco(duration, 2.0, commands=alarms),
+                 bu_imp=Impairment(**net), ctl_imp=Impairment(drops=((69.9, 72.2, ("VRAO",)),), **net))
+
+
+def bu_stops(seed: int, duration: float) -> list[Station]:
+    # The BU stops at 10 s for good; the controller goes on sending VRPO and VRCO (given up
+    # after 2000 ms without VRAI) until the end: the VRPI stream is silent until the end.
+    return _pair(seed, duration, _armed(duration, 2.0), bu=BaseUnitConfig(seed=seed, stop_at_s=10.0),
+                 ctl=_vrco(duration, 1.5))
+
+
+CONTROLLER_NEW_PORT = 50123
+
+
+def restart(seed: int, duration: float) -> list[Station]:
+    # The controller program is restarted at 8 s (back on the same port 1.5 s later, serials and
+    # command IDs from 0) and at 20 s (back 2.2 s later on a new source port); the BU, its counter
+    # started at 40000, reboots at 25 s (back at 26.5 s from 0). A VRCO of 7.8 s and a VRCI of
+    # 24.9 s are in flight at the restarts (their acks lost): interrupted. The VRCO of 19.9 s is
+    # past its 2000 ms limit when the controller is back on its new port: failed.
+    remote = Remote.from_script({"steps": [{"at": 0, "state": "armed", "motion": True}],
+                                 "commands": [{"at": 24.9, "data": "LAST KEY"}],
+                                 "command_every": 2.0, "command_until": _until(duration)})
+    ctl = _vrco(duration, 2.0, commands=((7.8, b"SETTING"), (19.9, b"SETTING")),
+                restarts=(Restart(8.0, 1.5), Restart(20.0, 2.2, port=CONTROLLER_NEW_PORT)))
+    bu = BaseUnitConfig(seed=seed, restarts=(Restart(25.0, 1.5),))
+    return _pair(seed, duration, remote, bu=bu, ctl=ctl, bu_serial=40000,
+                 bu_imp=Impairment(drops=((7.75, 8.0, ("VRAI",)), (19.85, 20.0, ("VRAI",))), seed=seed),
+                 ctl_imp=Impairment(drops=((24.85, 25.0, ("VRAO",)),), seed=seed))
+
+
 def day(seed: int, duration: float) -> list[Station]:
     # Long captures for benchmarks: normal operation with light loss and duplication.
     net = {"loss": 0.1, "duplicate": 0.05, "seed": seed}
@@ -150,5 +205,10 @@ SCENARIOS = {s.name: s for s in (
     Scenario("controller-watchdog", "VRPI gaps (BU stall, input outage): controller VRPI timeout",
              15.0, controller_watchdog),
     Scenario("glink", "G-Link fallback 6-16 s: VRPO every 400 ms, VRCO answered late", 25.0, glink),
+    Scenario("overlap", "several commands in flight on both sides, 15 % command loss, mirror duplicates, "
+             "command ID reuse after a pause", 90.0, overlap),
+    Scenario("bu-stops", "the BU stops at 10 s, the controller goes on: VRPI silent until the end", 15.0, bu_stops),
+    Scenario("restart", "controller restarted twice (same port, new port), BU reboots with its counter "
+             "above 32767", 40.0, restart),
     Scenario("day", "long normal operation with light loss (for benchmarks)", 3600.0, day),
 )}

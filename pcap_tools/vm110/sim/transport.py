@@ -3,7 +3,9 @@
 Each node has a receiving socket (bound to `listen`, joined to `group` when one is given) and a
 sending socket (bound to `source`, so that packets leave from the node's port, e.g. the BU's
 inputs from IP:5825) that sends to `dest`. Impairments are applied before sending; delayed
-copies wait in a queue that the runner flushes (`next_due`, `flush`).
+copies wait in a queue that the runner flushes (`next_due`, `flush`). A mirror copy (meant for the
+tap only) goes out like a duplicate: on a socket there is no way to show it to a capture alone.
+A node restarting on a new source port gets a new sending socket (`move_source`).
 """
 from __future__ import annotations
 
@@ -83,21 +85,41 @@ class UdpTransport:
             else:
                 self.rx.bind(cfg.listen)
             self.rx.setblocking(False)
-            self.tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            self.tx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            if ipaddress.IPv4Address(cfg.dest[0]).is_multicast:
-                self.tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, cfg.ttl)
-                self.tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
-                self.tx.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
-                if cfg.iface != "0.0.0.0":
-                    self.tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(cfg.iface))
-            self.tx.bind(cfg.source)
-            self.tx.setblocking(False)
+            self.tx = self._sending_socket()
         except OSError as exc:
             self.close()
             raise CliError(f"cannot open UDP sockets ({cfg.listen[0]}:{cfg.listen[1]} -> "
                            f"{cfg.dest[0]}:{cfg.dest[1]}): {exc.strerror or exc}") from None
         return self
+
+    def _sending_socket(self) -> socket.socket:
+        cfg = self.config
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            tx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if ipaddress.IPv4Address(cfg.dest[0]).is_multicast:
+                tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, cfg.ttl)
+                tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+                tx.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
+                if cfg.iface != "0.0.0.0":
+                    tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(cfg.iface))
+            tx.bind(cfg.source)
+            tx.setblocking(False)
+        except OSError:
+            tx.close()
+            raise
+        return tx
+
+    def move_source(self, port: int) -> None:
+        """Send from `port` from now on (0: a new ephemeral port), as a restarted program would."""
+        self.config.source = (self.config.source[0], port)
+        try:
+            tx = self._sending_socket()
+        except OSError as exc:
+            raise CliError(f"cannot send from {self.config.source[0]}:{port}: {exc.strerror or exc}") from None
+        if self.tx is not None:
+            self.tx.close()
+        self.tx = tx
 
     @property
     def rx_address(self) -> Address:
@@ -118,7 +140,7 @@ class UdpTransport:
         if self.impairer is None:
             self._sendto(data)
             return
-        for due, copy, _problems in self.impairer.apply(data, now, meta.ptype.value):
+        for due, copy, _problems, _delivered in self.impairer.apply(data, now, meta.ptype.value):
             if due <= now:
                 self._sendto(copy)
             else:

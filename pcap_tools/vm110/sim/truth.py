@@ -1,30 +1,38 @@
-"""Ground truth of a synthesised capture, from the tap's event log (/work/notes/truth-contract.md).
+"""Ground truth of a synthesised capture, from the tap's event log, by the rules of docs/rules.md.
 
 The input is what the tap saw (`sim.virtual.Arrival`): the sender's own record of each packet
 (type, serial, command ID, VRPO packet number and data length) and the illegal reasons the
-impairments put in by construction. No packet bytes are decoded here. The rules are those of
-interpretation.md; where it leaves a detail open the choice is written next to the code and in
-captures/README.md.
+impairments put in by construction. No packet bytes are decoded here. Where docs/rules.md leaves
+a detail open the choice is written next to the code and in captures/README.md.
 """
 from __future__ import annotations
 
+import collections
 from collections import Counter
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 from .. import constants as C
 from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT
-from .clock import US_PER_S
+from .clock import US_PER_S, ms
+from .ledger import REUSE_GAP_MS
 from .node import Meta
-from .virtual import Arrival, Station
+from .virtual import Arrival, Station, endpoints
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 _WATCHDOG_MS = {C.PacketType.VRPI: C.VRPI_WATCHDOG_MS, C.PacketType.VRPO: C.VRPO_WATCHDOG_MS}
-_WATCHDOG_US = {ptype: limit * 1000 for ptype, limit in _WATCHDOG_MS.items()}
+_WATCHDOG_US = {ptype: ms(limit) for ptype, limit in _WATCHDOG_MS.items()}
+_FAIL_US = {C.PacketType.VRCI: ms(C.VRCI_FAIL_MS), C.PacketType.VRCO: ms(C.VRCO_GIVE_UP_MS)}
 _COMMAND_TYPES = (C.PacketType.VRCI, C.PacketType.VRCO)
 _VRPO = C.PacketType.VRPO
 _BAD_CRC = C.Problem.BAD_CRC.value
 _NAMES = {t: t.value for t in C.PacketType}
 _MODULUS, _HALF, _VRPO_MAX_DATA = C.SERIAL_MODULUS, C.SERIAL_HALF, C.VRPO_MAX_DATA
+DUP_WINDOW_US = ms(1000)            # a serial accepted less than this ago is a duplicate
+REUSE_GAP_US = ms(REUSE_GAP_MS)     # a command ID within this of its previous transmission: a retransmission
+NEW_PORT_SILENCE_US = ms(250)       # an earlier sender silent this long may reappear on a new port
+RATE_WINDOW_US = 10 * US_PER_S
+PLAUSIBLE_BASE, PLAUSIBLE_FACTOR, MIN_RATE = 64, 4, 20     # plausible loss: d - 1 <= 64 + 4 max(r, 20) dt
+CONFIRM = 4                         # a restart candidate s is confirmed by s + 1 .. s + 4
 
 
 def _time(t_us: int) -> float:
@@ -35,77 +43,158 @@ def _ms(delta_us: int) -> float:
     return round(delta_us / 1000, 3)
 
 
-class _SerialTrack:
-    """Serial classification of one sender: interpretation.md, 'Serial numbers'.
+class _Candidate:
+    """A packet that may start a restart of its counter, until the counter's next other serial decides."""
 
-    Serials are unwrapped against the highest one seen (forward distance below 32768 is ahead),
-    so "already seen" means seen in this cycle of the counter. Between the first serial and the
-    highest one, a serial has been seen exactly when it is not lost (a gap puts it in `lost`, its
-    late arrival takes it out): no set of every serial is kept.
-    """
+    __slots__ = ("serial", "t", "frame", "restart")
 
-    __slots__ = ("epoch_us", "first", "high", "early", "lost", "wraps", "duplicates", "out_of_order", "gaps")
+    def __init__(self, serial: int, t: int, frame: int) -> None:
+        self.serial, self.t, self.frame = serial, t, frame
+        self.restart: Optional[bool] = None          # the decision, once made
+
+
+class _Counter:
+    """The serial counter of one sender (scope `sender`), by docs/rules.md "Serial numbers"."""
 
     def __init__(self, epoch_us: int) -> None:
-        self.epoch_us = epoch_us                 # added to times (µs) when reported
-        self.first = 0                           # unwrapped first serial
-        self.high: Optional[int] = None          # unwrapped highest serial
-        self.early: set[int] = set()             # seen late, from before the first serial
-        self.lost: set[int] = set()
+        self.epoch_us = epoch_us
+        self.h: Optional[int] = None
+        self.start = self.prev = 0                   # counter start (first packet, last restart); previous accepted
+        self.accepted: dict[int, int] = {}           # serial -> when last accepted
+        self.missing: dict[int, int] = {}            # serials in open gaps -> when the gap opened (in order)
+        self.recent: collections.deque[int] = collections.deque()    # accepted times, for the rate
+        self.lost_for_good: list[int] = []           # missing when the counter restarted or came round
         self.wraps = 0
         self.duplicates: list[int] = []
         self.out_of_order: list[int] = []
         self.gaps: list[dict[str, Any]] = []
+        self.restarts: list[dict[str, Any]] = []
+        self.candidate: Optional[_Candidate] = None
 
-    def add(self, serial: int, t: int) -> bool:
-        """Classify one received serial; False when it is a duplicate."""
-        high = self.high
-        if high is None:
-            self.first = self.high = serial
-            return True
-        d = (serial - high) % _MODULUS
-        if d == 1:                                 # the next one: most packets
-            self.high = high + 1
-            if not serial:
+    def add(self, s: int, t: int, frame: int) -> tuple[bool, Optional[_Candidate]]:
+        """Classify a legal packet: (accepted, the candidate it opened if any). A pending candidate
+        is decided first by any other serial."""
+        cand = self.candidate
+        if cand is not None:
+            if s == cand.serial:
+                self.duplicates.append(s)            # copies of the candidate confirm nothing
+                return False, None
+            self._decide(cand, s)
+        if self.h is None:
+            self._restart_state(s, t)
+            return True, None
+        last = self.accepted.get(s)
+        if last is not None and t - last < DUP_WINDOW_US:
+            self.duplicates.append(s)
+            return False, None
+        d = (s - self.h) % _MODULUS
+        if d == 1:
+            if not s:
                 self.wraps += 1
-        elif 0 < d < _HALF:
-            unwrapped = self.high = high + d
-            self.lost.update(range(high + 1, unwrapped))
-            self.gaps.append({"after": high % _MODULUS, "count": d - 1, "time": _time(self.epoch_us + t)})
-            self.wraps += unwrapped // _MODULUS - high // _MODULUS
+            self._came_round(s)
+            self.h = s
+        elif s in self.missing and t - self.missing[s] < DUP_WINDOW_US:
+            del self.missing[s]
+            self.out_of_order.append(s)              # late: fills its gap
+        elif 1 < d < _HALF and self._plausible(d - 1, t):
+            self.gaps.append({"after": self.h, "count": d - 1, "time": _time(self.epoch_us + t)})
+            for k in range(1, d):
+                lost = (self.h + k) % _MODULUS
+                self._came_round(lost)
+                self.missing[lost] = t
+            self._came_round(s)
+            if s < self.h:
+                self.wraps += 1
+            self.h = s
         else:
-            unwrapped = high - (_MODULUS - d) % _MODULUS
-            early = unwrapped < self.first
-            if d == 0 or (unwrapped in self.early if early else unwrapped not in self.lost):
-                self.duplicates.append(serial)
-                return False
-            self.out_of_order.append(serial)
-            if early:
-                self.early.add(unwrapped)
-            else:
-                self.lost.discard(unwrapped)
-        return True
+            cand = self.candidate = _Candidate(s, t, frame)
+            self._accept(s, t)
+            return True, cand
+        self._accept(s, t)
+        return True, None
+
+    def _accept(self, s: int, t: int) -> None:
+        self.accepted[s] = self.prev = t
+        recent = self.recent
+        recent.append(t)
+        if recent[0] < t - RATE_WINDOW_US:         # older than any rate window: one out per one in
+            recent.popleft()
+
+    def _came_round(self, s: int) -> None:
+        """A serial reached again while still missing: its number came round, it stays lost."""
+        if self.missing and s in self.missing:
+            del self.missing[s]
+            self.lost_for_good.append(s)
+
+    def _plausible(self, missing: int, t: int) -> bool:
+        dt = (t - self.prev) / US_PER_S
+        if missing <= PLAUSIBLE_BASE + PLAUSIBLE_FACTOR * MIN_RATE * dt:
+            return True
+        return missing <= PLAUSIBLE_BASE + PLAUSIBLE_FACTOR * max(self._rate(t), MIN_RATE) * dt
+
+    def _rate(self, t: int) -> float:
+        """Accepted packets in [t - W, t) per second, W = min(10 s, t - start)."""
+        window = min(RATE_WINDOW_US, t - self.start)
+        if window <= 0:
+            return 0.0
+        recent = self.recent
+        while recent and recent[0] < t - window:
+            recent.popleft()
+        count = len(recent)
+        for x in reversed(recent):
+            if x < t:
+                break
+            count -= 1
+        return count / (window / US_PER_S)
+
+    def _decide(self, cand: _Candidate, s: int) -> None:
+        self.candidate = None
+        cand.restart = 1 <= (s - cand.serial) % _MODULUS <= CONFIRM
+        if not cand.restart:
+            self.out_of_order.append(cand.serial)    # unconfirmed: accepted, moves nothing
+            return
+        self.restarts.append({"time": _time(self.epoch_us + cand.t), "frame": cand.frame,
+                              "from": self.h, "to": cand.serial})
+        self._restart_state(cand.serial, cand.t)
+
+    def _restart_state(self, s: int, t: int) -> None:
+        self.lost_for_good.extend(self.missing)      # serials lost before stay lost
+        self.missing = {}
+        self.accepted = {}
+        self.recent.clear()
+        self.h, self.start = s, t
+        self._accept(s, t)
+
+    def finish(self) -> None:
+        """The capture ended: a pending candidate stays unconfirmed."""
+        if self.candidate is not None:
+            self.candidate.restart = False
+            self.out_of_order.append(self.candidate.serial)
+            self.candidate = None
 
     def report(self, received: int) -> dict[str, Any]:
-        return {"scope": "sender", "received": received, "lost": len(self.lost),
+        lost = self.lost_for_good + list(self.missing)
+        return {"scope": "sender", "received": received, "lost": len(lost),
                 "duplicates": len(self.duplicates), "out_of_order": len(self.out_of_order), "wraps": self.wraps,
-                "lost_serials": [s % _MODULUS for s in sorted(self.lost)],
-                "duplicate_serials": self.duplicates, "out_of_order_serials": self.out_of_order,
-                "gaps": self.gaps}
+                "lost_serials": lost, "duplicate_serials": self.duplicates,
+                "out_of_order_serials": self.out_of_order, "gaps": self.gaps,
+                "restarts": len(self.restarts), "restart_events": self.restarts}
 
 
 class _Commands:
-    """Commands of one kind (VRCI or VRCO) and their acknowledgements, in capture order."""
+    """Commands of one kind (VRCI or VRCO) and their acknowledgements, in capture order
+    (docs/rules.md "Commands")."""
 
     def __init__(self, kind: C.PacketType) -> None:
-        self.kind = kind
-        self.current: dict[str, dict[str, Any]] = {}     # sender -> its latest (not superseded) command
+        self.kind, self.fail_us = kind, _FAIL_US[kind]
+        self.open: dict[tuple[str, int], dict[str, Any]] = {}    # (sender, ID) -> its latest command
+        self.by_id: dict[int, list[dict[str, Any]]] = {}         # ID -> commands not interrupted, by start
         self.list: list[dict[str, Any]] = []
-        self.spurious = self.acks_without_command = self.duplicate_acks = 0
+        self.spurious = self.acks_without_command = self.duplicate_acks = self.interrupted = 0
 
     def command(self, sender: str, command_id: int, frame: int, t: int) -> None:
-        cmd = self.current.get(sender)
-        if cmd is not None and cmd["command_id"] == command_id:
+        cmd = self.open.get((sender, command_id))
+        if cmd is not None and t - cmd["_times"][-1] < REUSE_GAP_US:
             cmd["frames"].append(frame)
             cmd["_times"].append(t)
             if cmd["ack_frame"] is not None:
@@ -113,15 +202,16 @@ class _Commands:
             return
         cmd = {"sender": sender, "command_id": command_id, "frames": [frame], "ack_frame": None,
                "latency_first_ms": None, "latency_last_ms": None, "_times": [t], "_ack_t": None}
-        self.current[sender] = cmd
+        self.open[(sender, command_id)] = cmd
+        self.by_id.setdefault(command_id, []).append(cmd)
         self.list.append(cmd)
 
     def ack(self, command_id: int, frame: int, t: int) -> None:
-        matches = [c for c in self.current.values() if c["command_id"] == command_id]
-        if not matches:
+        live = self.by_id.get(command_id)
+        if not live:
             self.acks_without_command += 1
             return
-        cmd = max(matches, key=lambda c: c["frames"][0])
+        cmd = live[-1]
         if cmd["ack_frame"] is not None:
             self.duplicate_acks += 1
             return
@@ -129,16 +219,25 @@ class _Commands:
         cmd["latency_first_ms"] = _ms(t - cmd["_times"][0])
         cmd["latency_last_ms"] = _ms(t - cmd["_times"][-1])
 
+    def restart(self, sender: str, t: int) -> None:
+        """The sender restarted at t: its commands neither acknowledged nor past their fail limit
+        end as interrupted; its IDs start new commands from here."""
+        for key in [k for k in self.open if k[0] == sender]:
+            cmd = self.open.pop(key)
+            if cmd["ack_frame"] is None and t - cmd["_times"][0] <= self.fail_us:
+                cmd["_interrupted"] = True
+                self.interrupted += 1
+                self.by_id[key[1]].remove(cmd)
+
     def report(self) -> dict[str, Any]:
         transmissions = sum(len(c["frames"]) for c in self.list)
         acked = sum(c["ack_frame"] is not None for c in self.list)
-        limit = C.VRCI_FAIL_MS * 1000
-        failed = 0
-        if self.kind is C.PacketType.VRCI:
-            failed = sum(c["_ack_t"] is None or c["_ack_t"] - c["_times"][0] > limit for c in self.list)
+        failed = sum(not c.get("_interrupted") and (c["_ack_t"] is None or c["_ack_t"] - c["_times"][0] > self.fail_us)
+                     for c in self.list)
         return {"commands": len(self.list), "transmissions": transmissions,
                 "retransmissions": transmissions - len(self.list), "acked": acked,
-                "unacked": len(self.list) - acked, "failed": failed, "spurious_retransmissions": self.spurious,
+                "unacked": len(self.list) - acked - self.interrupted, "interrupted": self.interrupted,
+                "failed": failed, "spurious_retransmissions": self.spurious,
                 "acks_without_command": self.acks_without_command, "duplicate_acks": self.duplicate_acks,
                 "list": [{k: v for k, v in c.items() if not k.startswith("_")} for c in self.list]}
 
@@ -146,7 +245,7 @@ class _Commands:
 def _complete_burst(burst: list[tuple[int, int]]) -> bool:
     """A VRPO burst of (packet number, data length): complete when the numbers are 0..n-1 each
     once, every packet but the last carries 488 data bytes and the last fewer (interpretation.md,
-    'VRPO split'). A burst: packets less than 20 ms apart."""
+    'VRPO split'). A burst: accepted packets less than 20 ms apart."""
     ordered = sorted(burst)
     numbers = [n for n, _ in ordered]
     return (numbers == list(range(len(numbers)))
@@ -154,20 +253,28 @@ def _complete_burst(burst: list[tuple[int, int]]) -> bool:
 
 
 class _Sender:
-    """What the truth keeps per sender, updated packet by packet."""
+    """What the truth keeps per sender (one endpoint of a station), updated packet by packet."""
 
-    __slots__ = ("id", "station", "by_type", "serial", "last", "violations", "burst", "burst_t", "complete",
-                 "incomplete")
-
-    def __init__(self, sid: str, station: Station, epoch_us: int) -> None:
-        self.id, self.station = sid, station
+    def __init__(self, sid: str, station: Station, port: int, epoch_us: int) -> None:
+        self.id, self.station, self.port = sid, station, port
         self.by_type: dict[C.PacketType, int] = {}     # legal packets (duplicates too), by type
-        self.serial = _SerialTrack(epoch_us)
-        self.last: dict[C.PacketType, int] = {}        # periodic type -> time of its latest packet
-        self.violations: dict[C.PacketType, list[tuple[int, int]]] = {}   # -> gaps over its limit
+        self.counter = _Counter(epoch_us)
+        self.last_legal = 0
+        self.streams: dict[C.PacketType, int] = {}     # periodic type -> accepted packets
+        self.last: dict[C.PacketType, int] = {}        # periodic type -> time of its latest accepted packet
+        self.inherited: dict[C.PacketType, int] = {}   # the same of the sender it took over (new port)
+        self.taken_over = False                        # a later sender on a new port took over
+        self.violations: dict[C.PacketType, list[tuple[int, int, bool]]] = {}   # (start, end, until end)
         self.burst: list[Meta] = []                    # the VRPO burst being received
         self.burst_t = 0
         self.complete = self.incomplete = 0
+
+    def periodic(self, ptype: C.PacketType, t: int) -> None:
+        self.streams[ptype] = self.streams.get(ptype, 0) + 1
+        last = self.last.get(ptype, self.inherited.get(ptype))
+        if last is not None and t - last > _WATCHDOG_US[ptype]:
+            self.violations.setdefault(ptype, []).append((last, t, False))
+        self.last[ptype] = t
 
     def close_burst(self) -> None:
         burst = self.burst
@@ -187,33 +294,76 @@ class _Sender:
     def report(self) -> dict[str, Any]:
         station = self.station
         return {"id": self.id, "direction": station.node.direction.value, "origin": station.node.origin,
-                "src": f"{station.ip}:{station.port}",
+                "src": f"{station.ip}:{self.port}",
                 "by_type": {_NAMES[t]: n for t, n in sorted(self.by_type.items())},
-                "serial": self.serial.report(sum(self.by_type.values()))}
+                "serial": self.counter.report(sum(self.by_type.values()))}
 
 
 class GroundTruth:
     """The truth of a capture, fed with the tap's arrivals in file order (`add`, batch by batch);
-    an arrival whose station index is past the last station is a frame that is not EG-Link."""
+    an arrival whose endpoint index is past the last endpoint is a frame that is not EG-Link."""
 
     def __init__(self, stations: Sequence[Station], epoch_us: int) -> None:
         self.stations, self.epoch_us = stations, epoch_us
-        self._ids = [s.sender_id for s in stations]
+        self._endpoints = endpoints(list(stations))
+        self._ids = [sid for s in stations for sid in s.sender_ids()]
         self._senders: dict[str, _Sender] = {}                   # by id, from the first legal packet
-        self._by_station: list[Optional[_Sender]] = [None] * len(stations)
+        self._by_endpoint: list[Optional[_Sender]] = [None] * len(self._ids)
         self.illegal: Counter[str] = Counter()
         self.frames = self.other = self.illegal_total = self.crc_bad = 0
         self.first_t: Optional[int] = None
         self.last_t = 0
         self.commands = {kind: _Commands(kind) for kind in _COMMAND_TYPES}
+        # Command events wait here while a restart candidate is undecided: its restart (if it is
+        # one) interrupts commands at the candidate's place in the capture.
+        self._held: list[tuple[Callable[..., None], tuple[Any, ...]]] = []
+        self._undecided: list[_Candidate] = []
 
-    def _sender(self, station: int) -> _Sender:
-        sid = self._ids[station]
-        sender = self._senders.get(sid)
-        if sender is None:
-            sender = self._senders[sid] = _Sender(sid, self.stations[station], self.epoch_us)
-        self._by_station[station] = sender
+    def _sender(self, endpoint: int, t: int, frame: int, serial: int) -> _Sender:
+        sid = self._ids[endpoint]
+        station, port = self._endpoints[endpoint]
+        sender = self._senders[sid] = _Sender(sid, self.stations[station], port, self.epoch_us)
+        self._by_endpoint[endpoint] = sender
+        self._new_port(sender, t, frame, serial)
         return sender
+
+    def _new_port(self, sender: _Sender, t: int, frame: int, serial: int) -> None:
+        """A sender's first legal packet: the restart of an earlier sender of the same direction,
+        origin and address on another port, silent at least 250 ms (the one heard last)."""
+        node, ip = sender.station.node, sender.station.ip
+        earlier = [s for s in self._senders.values() if s is not sender and s.station.ip == ip
+                   and s.station.node.direction is node.direction and s.station.node.origin == node.origin
+                   and s.port != sender.port and t - s.last_legal >= NEW_PORT_SILENCE_US]
+        if not earlier:
+            return
+        old = max(earlier, key=lambda s: s.last_legal)
+        old.taken_over = True
+        sender.inherited = dict(old.last)
+        sender.counter.restarts.append({"time": _time(self.epoch_us + t), "frame": frame, "from": old.counter.h,
+                                        "to": serial, "port_from": old.port, "port_to": sender.port})
+        self._command_event(self._restart, old.id, t)
+
+    def _restart(self, sender: str, t: int) -> None:
+        for commands in self.commands.values():
+            commands.restart(sender, t)
+
+    def _maybe_restart(self, cand: _Candidate, sender: str) -> None:
+        if cand.restart:
+            self._restart(sender, cand.t)
+
+    def _command_event(self, fn: Callable[..., None], *args: Any) -> None:
+        if self._undecided:
+            self._held.append((fn, args))
+        else:
+            fn(*args)
+
+    def _release(self) -> None:
+        """Run the held command events once every candidate is decided."""
+        self._undecided = [c for c in self._undecided if c.restart is None]
+        if not self._undecided and self._held:
+            held, self._held = self._held, []
+            for fn, args in held:
+                fn(*args)
 
     def add(self, arrivals: Sequence[Arrival]) -> None:
         if not arrivals:
@@ -221,13 +371,13 @@ class GroundTruth:
         if self.first_t is None:
             self.first_t = arrivals[0][0]
         self.last_t = arrivals[-1][0]
-        by_station, count = self._by_station, len(self._by_station)
+        by_endpoint, count = self._by_endpoint, len(self._by_endpoint)
         commands, watchdogs, acks = self.commands, _WATCHDOG_US, C.ACK_OF
         burst_gap = C.VRPO_BURST_GAP_MS * 1000
         frame = self.frames
-        for t, _, station, _, problems, meta in arrivals:
+        for t, _, endpoint, _, problems, meta, _ in arrivals:
             frame += 1
-            if station >= count:
+            if endpoint >= count:
                 self.other += 1
                 continue
             if problems:
@@ -235,24 +385,20 @@ class GroundTruth:
                 self.illegal.update(problems)
                 self.crc_bad += _BAD_CRC in problems
                 continue
-            sender = by_station[station] or self._sender(station)
+            sender = by_endpoint[endpoint] or self._sender(endpoint, t, frame, meta.serial)
+            sender.last_legal = t
             ptype = meta.ptype
-            try:
-                sender.by_type[ptype] += 1
-            except KeyError:
-                sender.by_type[ptype] = 1
-            limit = watchdogs.get(ptype)
-            if limit is not None:
-                last = sender.last.get(ptype)
-                if last is not None and t - last > limit:
-                    sender.violations.setdefault(ptype, []).append((last, t))
-                sender.last[ptype] = t
-            track, serial = sender.serial, meta.serial
-            high = track.high
-            if high is not None and serial and serial - high % _MODULUS == 1:    # next, no wrap: most packets
-                track.high = high + 1
-            elif not track.add(serial, t):
-                continue      # a repeated serial is a duplicate, not a transmission or an ack
+            sender.by_type[ptype] = sender.by_type.get(ptype, 0) + 1
+            accepted, cand = sender.counter.add(meta.serial, t, frame)
+            if self._undecided:
+                self._release()
+            if not accepted:
+                continue      # a duplicate: no arrival, no transmission, no ack, no burst part
+            if cand is not None:
+                self._undecided.append(cand)
+                self._held.append((self._maybe_restart, (cand, sender.id)))
+            if ptype in watchdogs:
+                sender.periodic(ptype, t)
             if ptype is _VRPO:
                 burst = sender.burst
                 if burst and t - sender.burst_t >= burst_gap:
@@ -261,16 +407,18 @@ class GroundTruth:
                 burst.append(meta)
                 sender.burst_t = t
             elif ptype in commands:
-                commands[ptype].command(sender.id, meta.key, frame, t)
+                self._command_event(commands[ptype].command, sender.id, meta.key, frame, t)
             elif ptype in acks:
-                commands[acks[ptype]].ack(meta.key, frame, t)
+                self._command_event(commands[acks[ptype]].ack, meta.key, frame, t)
         self.frames = frame
 
     def report(self) -> dict[str, Any]:
-        """The truth dict (truth-contract.md)."""
+        """The truth dict (docs/report.md, the keys marked ✓)."""
         senders = [self._senders[sid] for sid in sorted(self._senders)]
         for sender in senders:
+            sender.counter.finish()
             sender.close_burst()
+        self._release()
         periodic = sorted(((ptype, sender) for sender in senders for ptype in sender.last),
                           key=lambda item: (_NAMES[item[0]], item[1].id))
         eglink = self.frames - self.other
@@ -289,8 +437,11 @@ class GroundTruth:
         }
 
     def _periodic(self, ptype: C.PacketType, sender: _Sender) -> dict[str, Any]:
-        epoch = self.epoch_us
-        return {"type": ptype.value, "sender": sender.id, "count": sender.by_type[ptype],
+        epoch, last = self.epoch_us, sender.last[ptype]
+        violations = list(sender.violations.get(ptype, ()))
+        if not sender.taken_over and self.last_t - last > _WATCHDOG_US[ptype]:
+            violations.append((last, self.last_t, True))     # silent until the end of the capture
+        return {"type": ptype.value, "sender": sender.id, "count": sender.streams[ptype],
                 "watchdog": {"limit_ms": _WATCHDOG_MS[ptype],
-                             "violations": [{"start": _time(epoch + a), "gap_ms": _ms(b - a)}
-                                            for a, b in sender.violations.get(ptype, ())]}}
+                             "violations": [{"start": _time(epoch + a), "gap_ms": _ms(b - a), "until_end": end}
+                                            for a, b, end in violations]}}

@@ -2,9 +2,11 @@
 
 Each station is a node with the address it sends from; what it sends passes its impairments
 (`sim.impair`) and the 100 Mbit/s wire, then reaches every node of the other direction and the
-tap. The tap sits where the receivers are: it sees what they receive, in arrival order, and
-remembers for each packet the sender's own account of it (`Meta`) and why it is illegal, if it
-is. That record is the event log the ground truth is computed from (`sim.truth`).
+tap (a mirror copy reaches the tap only). The tap sits where the receivers are: it sees what they
+receive, in arrival order, and remembers for each packet the sender's own account of it (`Meta`)
+and why it is illegal, if it is. That record is the event log the ground truth is computed from
+(`sim.truth`). A station sends from one endpoint (address, port) at a time: its port, then the
+new port of each restart that changes it (`sim.lifecycle`).
 """
 from __future__ import annotations
 
@@ -31,15 +33,25 @@ class Station:
     impairment: Impairment = field(default_factory=Impairment)
 
     @property
-    def sender_id(self) -> str:
-        """The analysis' name of this sender (truth-contract.md)."""
-        return f"{self.node.direction.value} {self.ip}:{self.port} origin 0x{self.node.origin:04x}"
+    def ports(self) -> list[int]:
+        """The source ports it sends from, in turn."""
+        return [self.port] + [r.port for r in self.node.restarts if r.port is not None]
+
+    def sender_ids(self) -> list[str]:
+        """The analysis' name of this sender on each of its ports (docs/report.md)."""
+        return [f"{self.node.direction.value} {self.ip}:{port} origin 0x{self.node.origin:04x}" for port in self.ports]
+
+
+def endpoints(stations: list[Station]) -> list[tuple[int, int]]:
+    """(station index, port) of every endpoint, station by station: an arrival's index."""
+    return [(index, port) for index, s in enumerate(stations) for port in s.ports]
 
 
 # One packet as the tap saw it: (t µs on the virtual clock, sequence number of its sender, index
-# of the sending station, bytes, illegal reasons by construction (() for a legal packet), the
-# sender's `Meta`). It is the network's own queue entry, handed over as it is: no copy per packet.
-Arrival = tuple[int, int, int, bytes, tuple[str, ...], Meta]
+# of the sending endpoint (`endpoints`), bytes, illegal reasons by construction (() for a legal
+# packet), the sender's `Meta`, whether the receivers got it (False: a mirror copy)). It is the
+# network's own queue entry, handed over as it is: no copy per packet.
+Arrival = tuple[int, int, int, bytes, tuple[str, ...], Meta, bool]
 BATCH = 4096                 # arrivals handed to the tap at a time
 
 
@@ -51,19 +63,27 @@ class VirtualNetwork:
         self.clock = VirtualClock()
         self._heap: list[Arrival] = []
         self._wire_free = [0] * len(stations)
+        self._endpoints = endpoints(stations)
         self._receivers = [[other.node for other in stations if other.node.direction is not s.node.direction]
                            for s in stations]
+        first = 0
         for index, station in enumerate(stations):
             node = station.node
             imp = station.impairment
             impairer = Impairer(imp, f"{node.name}:{index}", node.crc, node.crc_order) if imp.active() else None
-            node.attach(self._sender(index, impairer))
+            node.attach(self._sender(index, first, impairer))
+            first += len(station.ports)
 
-    def _sender(self, index: int, impairer: Optional[Impairer]):
+    def _sender(self, index: int, endpoint: int, impairer: Optional[Impairer]):
         heap, push, seq = self._heap, heapq.heappush, itertools.count()
         wire_free = self._wire_free
         apply = impairer.apply if impairer is not None else None
         wire_us: dict[int, int] = {}     # by packet length: time on the wire (rounded up)
+        current = [endpoint]             # the endpoint it sends from, moved on by a new-port restart
+
+        def move(port: int) -> None:
+            current[0] += 1
+        self.stations[index].node.on_port_change = move
 
         def send(data: bytes, now: int, meta: Meta) -> None:
             start = wire_free[index]
@@ -76,10 +96,10 @@ class VirtualNetwork:
                 wire_us[size] = (WIRE_OVERHEAD + size) * WIRE_NS_PER_BYTE // 1000 + 1
                 wire_free[index] = start + wire_us[size]
             if apply is None:
-                push(heap, (start, next(seq), index, data, (), meta))
+                push(heap, (start, next(seq), current[0], data, (), meta, True))
                 return
-            for t, copy, problems in apply(data, start, meta.ptype):     # a str: the type's name
-                push(heap, (t, next(seq), index, copy, problems, meta))
+            for t, copy, problems, delivered in apply(data, start, meta.ptype):     # a str: the type's name
+                push(heap, (t, next(seq), current[0], copy, problems, meta, delivered))
         return send
 
     def run(self, duration_s: float) -> Iterator[list[Arrival]]:
@@ -91,13 +111,14 @@ class VirtualNetwork:
         heap, pop = self._heap, heapq.heappop
         # Methods bound once: the call sites below see both kinds of node, which defeats the
         # interpreter's attribute caches.
-        receivers = [[(nodes.index(n), n, n.receive, n.next_due) for n in group] for group in self._receivers]
+        by_station = [[(nodes.index(n), n, n.receive, n.next_due) for n in group] for group in self._receivers]
+        receivers = [by_station[station] for station, _ in self._endpoints]      # by endpoint
         ticks = [(node.tick, node.next_due) for node in nodes]
         never = end + 1
         # Each node's next deadline, recomputed only when that node has run.
         dues = [node.next_due() for node in nodes]
         dues = [never if d is None else d for d in dues]
-        ips = [s.ip for s in self.stations]
+        ips = [self.stations[station].ip for station, _ in self._endpoints]
         clock = self.clock
         batch: list[Arrival] = []
         append, room = batch.append, BATCH
@@ -127,7 +148,9 @@ class VirtualNetwork:
                     yield batch
                     batch = []
                     append, room = batch.append, BATCH
-                _, _, index, data, problems, _ = arrival
+                _, _, index, data, problems, _, delivered = arrival
+                if not delivered:
+                    continue
                 src = ips[index]
                 for r, node, receive, next_due in receivers[index]:
                     node.vouched = problems       # it built this packet: skip the legality check
