@@ -138,6 +138,7 @@ def scenarios(draw: Any) -> dict:
         "late": draw(st.sampled_from([0.0, 0.003, 0.01])),
         "corrupt": draw(st.sampled_from([0.0, 0.01, 0.03])),
         "ack_loss": draw(st.sampled_from([0.0, 0.1, 0.3])),
+        "slow_ack": draw(st.sampled_from([0.0, 0.0, 0.2])),     # the peer acks 1.5-2.6 s late
         "unrelated": draw(st.integers(0, 20)),
         "tail": draw(st.integers(0, 3000)),            # capture goes on this long after the last planned send
         "format": draw(st.sampled_from(["pcap", "pcap", "pcapng"])),
@@ -250,7 +251,7 @@ def build(sc: dict) -> tuple[list[tuple[int, bytes]], dict]:
                 sends[i].append({"t": t, "type": ctype, "payload": data, "net_ok": ok})
                 arrive = t + 0.3
                 if ok and peer.active(arrive):
-                    ta = arrive + rng.uniform(0.5, 40)
+                    ta = arrive + (rng.uniform(1500, 2600) if rng.random() < sc["slow_ack"] else rng.uniform(0.5, 40))
                     if peer.active(ta) and ta < duration:
                         back = delivered(peer, ta) and rng.random() >= sc["ack_loss"]
                         sends[j].append({"t": ta, "type": atype, "payload": ack_payload(cid), "net_ok": back})
