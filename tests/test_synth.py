@@ -16,10 +16,12 @@ from scapy.utils import RawPcapNgReader, RawPcapReader
 
 from vm110 import constants as C
 from vm110.decode import decode
-from vm110.sim.scenario import SCENARIOS
+from vm110.sim.clock import seconds
+from vm110.sim.scenario import CONTROLLER_NEW_PORT, EPOCH_US, SCENARIOS
+from vm110.sim.virtual import VirtualNetwork
 from vm110.synth import synthesize, truth_path
 
-LIBRARY = [name for name in SCENARIOS if name != "day"]
+LIBRARY = [name for name in SCENARIOS if name not in ("day", "restart")]     # restart: below, from the logs
 
 
 def read_capture(path: str, ng: bool = False) -> list[tuple[float, str, dict]]:
@@ -67,8 +69,10 @@ def unwrap(serials: list[int]) -> list[int]:
 
 
 def recount(rows: list[tuple[float, str, dict]]) -> dict:
-    """The truth's figures, counted again from decoded packets with plain set arithmetic."""
+    """The truth's figures, counted again from decoded packets with plain set arithmetic (for
+    senders that do not restart: one cycle of the counter, repeats within the 1 s window)."""
     frames = len(rows)
+    end = rows[-1][0] if rows else 0.0
     rows = [row for row in rows if row[2] is not None]
     legal = [(t, s, f) for t, s, f in rows if not f["problems"]]
     reasons = Counter(r for _, _, f in rows for r in f["problems"])
@@ -78,38 +82,49 @@ def recount(rows: list[tuple[float, str, dict]]) -> dict:
     senders, dup_frames = {}, set()
     for s, items in per_sender.items():
         unwrapped = unwrap([f["serial"] for _, f in items])
-        seen, dups, late, high = set(), 0, 0, None
+        seen, last_at, dups, late, high = set(), {}, 0, 0, None
         for (t, f), u in zip(items, unwrapped):
-            if u in seen:
+            if u in last_at and t - last_at[u] < 1.0:
                 dups += 1
                 dup_frames.add(id(f))
-            elif high is not None and u < high:
+                continue
+            if high is not None and u < high:
                 late += 1
             seen.add(u)
+            last_at[u] = t
             high = u if high is None else max(high, u)
         lost = set(range(unwrapped[0], max(unwrapped) + 1)) - seen
         senders[s] = {"by_type": dict(Counter(f["type"] for _, f in items)), "lost": len(lost),
                       "duplicates": dups, "out_of_order": late, "received": len(items)}
+    accepted = [(t, s, f) for t, s, f in legal if id(f) not in dup_frames]
     commands = {}
     for kind, ack in (("VRCI", "VRAO"), ("VRCO", "VRAI")):
-        sends = [(t, f["command_id"]) for t, s, f in legal if f["type"] == kind and id(f) not in dup_frames]
-        acks = [(t, f["command_id"]) for t, s, f in legal if f["type"] == ack and id(f) not in dup_frames]
-        first = {}
-        for t, cid in sends:
-            first.setdefault(cid, t)
-        first_ack = {cid: min(t for t, c in acks if c == cid and t >= first[cid]) for cid in first
-                     if any(c == cid and t >= first[cid] for t, c in acks)}
-        failed = sum(cid not in first_ack or first_ack[cid] - first[cid] > 2.0 for cid in first) if kind == "VRCI" else 0
-        commands[kind] = {"commands": len(first), "transmissions": len(sends), "acked": len(first_ack), "failed": failed}
-    violations = {}
+        cmds, last_tx = [], {}
+        for t, s, f in accepted:
+            if f["type"] == kind:
+                key = (s, f["command_id"])
+                if key not in last_tx or t - last_tx[key][0] >= 2.0:
+                    cmds.append({"id": f["command_id"], "first": t, "tx": 0, "ack": None})
+                    last_tx[key] = (t, cmds[-1])
+                last_tx[key] = (t, last_tx[key][1])
+                last_tx[key][1]["tx"] += 1
+            elif f["type"] == ack:
+                started = [c for c in cmds if c["id"] == f["command_id"]]
+                if started and started[-1]["ack"] is None:
+                    started[-1]["ack"] = t
+        commands[kind] = {"commands": len(cmds), "transmissions": sum(c["tx"] for c in cmds),
+                          "acked": sum(c["ack"] is not None for c in cmds),
+                          "failed": sum(c["ack"] is None or c["ack"] - c["first"] > 2.0 for c in cmds)}
+    periodic = {}
     for ptype, limit in (("VRPI", 0.5), ("VRPO", 2.0)):
-        for s, items in per_sender.items():
-            times = [t for t, f in items if f["type"] == ptype]
+        for s in per_sender:
+            times = [t for t, s2, f in accepted if s2 == s and f["type"] == ptype]
             if times:
-                violations[(ptype, s)] = sum(b - a > limit for a, b in zip(times, times[1:]))
-    return {"frames": frames, "packets": len(rows), "illegal": sum(bool(f["problems"]) for _, _, f in rows), "reasons": dict(reasons),
-            "crc_bad": sum(f.get("crc.status") == C.CRC_BAD for _, _, f in rows),
-            "senders": senders, "commands": commands, "violations": violations}
+                gaps = [b - a > limit for a, b in zip(times, times[1:])] + [end - times[-1] > limit]
+                periodic[(ptype, s)] = (len(times), sum(gaps))
+    return {"frames": frames, "packets": len(rows), "illegal": sum(bool(f["problems"]) for _, _, f in rows),
+            "reasons": dict(reasons), "crc_bad": sum(f.get("crc.status") == C.CRC_BAD for _, _, f in rows),
+            "senders": senders, "commands": commands, "periodic": periodic}
 
 
 def compare(truth: dict, counted: dict) -> None:
@@ -126,12 +141,14 @@ def compare(truth: dict, counted: dict) -> None:
         for key in ("received", "lost", "duplicates", "out_of_order"):
             assert s["serial"][key] == mine[key], (s["id"], key)
         assert len(s["serial"]["lost_serials"]) == s["serial"]["lost"]
+        assert s["serial"]["restarts"] == 0
     for kind, mine in counted["commands"].items():
         theirs = truth["commands"][kind]
         assert {k: theirs[k] for k in mine} == mine, kind
         assert theirs["retransmissions"] == theirs["transmissions"] - theirs["commands"]
+        assert theirs["unacked"] == theirs["commands"] - theirs["acked"] and theirs["interrupted"] == 0
     for p in truth["periodic"]:
-        assert len(p["watchdog"]["violations"]) == counted["violations"][(p["type"], p["sender"])]
+        assert (p["count"], len(p["watchdog"]["violations"])) == counted["periodic"][(p["type"], p["sender"])]
 
 
 @pytest.mark.parametrize("name", LIBRARY)
@@ -193,7 +210,7 @@ def test_cli_lists_writes_and_rejects(tmp_path):
     done = vm110("synth", "normal", "--out", str(out), "--duration", "3", "--seed", "2")
     assert done.returncode == 0, done.stderr
     assert out.read_bytes()[:4] == b"\x0a\x0d\x0d\x0a"            # pcapng from the extension
-    assert json.loads((tmp_path / "x.pcapng.truth.json").read_text())["schema_version"] == 1
+    assert json.loads((tmp_path / "x.pcapng.truth.json").read_text())["schema_version"] == 2
     bad = vm110("synth", "nonsense", "--out", str(tmp_path / "y.pcap"))
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "unknown scenario" in bad.stderr
     unwritable = vm110("synth", "normal", "--out", str(tmp_path / "missing" / "z.pcap"))
@@ -224,3 +241,103 @@ def test_library_is_what_make_captures_writes(path, tmp_path):
     assert out.read_bytes() == capture.read_bytes(), f"run `make captures`: {capture.name} is stale"
     assert (tmp_path / path.name).read_bytes() == path.read_bytes()
 
+
+
+# --- the new scenarios against what the simulators logged and sent ----------------------------
+def run_scenario(name: str, seed: int = 1) -> tuple[list, list]:
+    """The scenario's stations after a run on the virtual clock, and every arrival at the tap:
+    the same run `synthesize` writes (same seed, same events)."""
+    sc = SCENARIOS[name]
+    stations = sc.build(seed, sc.duration_s)
+    arrivals = [a for batch in VirtualNetwork(stations).run(sc.duration_s) for a in batch]
+    return stations, arrivals
+
+
+def by_node(truth: dict, station) -> list[dict]:
+    return [s for s in truth["senders"] if s["src"].split(":")[0] == station.ip]
+
+
+def test_outcome_of_every_command_is_the_senders_own(tmp_path):
+    """Commands, acks, failures and interruptions in the truth are what the nodes logged; serials
+    lost are what the nodes sent and the tap did not see; duplicates are the mirror copies."""
+    for name in ("overlap", "bu-stops", "restart"):
+        truth = synthesize(name, str(tmp_path / f"{name}.pcap"), seed=1)
+        stations, arrivals = run_scenario(name)
+        mirror = sum(not a[6] for a in arrivals)
+        assert sum(s["serial"]["duplicates"] for s in truth["senders"]) == mirror, name
+        for station in stations:
+            node, mine = station.node, by_node(truth, station)
+            seen = sum(s["serial"]["received"] - s["serial"]["duplicates"] for s in mine)
+            assert seen + sum(s["serial"]["lost"] for s in mine) == sum(node.sent.values()), (name, node.name)
+            kind = node.command_type.value
+            events = node.command_events
+            cmds = truth["commands"][kind]
+            assert cmds["commands"] == len(node.events(events.sent)), (name, kind)
+            assert cmds["acked"] == len(node.events(events.acked)), (name, kind)
+            # dropped at a restart: interrupted unless past the fail limit (then failed, as given up)
+            sent_at, dropped = {}, []          # ages of the dropped commands
+            for e in node.log:
+                if e["event"] == events.sent:
+                    sent_at[e["command_id"]] = e["t"]
+                elif e["event"] == events.dropped:
+                    dropped.append(e["t"] - sent_at[e["command_id"]])
+            assert cmds["interrupted"] == sum(age <= 2.0 for age in dropped), (name, kind)
+            assert cmds["failed"] == len(node.events(events.gave_up)) + sum(age > 2.0 for age in dropped)
+            assert cmds["unacked"] == cmds["commands"] - cmds["acked"] - cmds["interrupted"]
+
+
+def test_overlap_has_commands_in_flight_together_and_reused_ids(tmp_path):
+    truth = synthesize("overlap", str(tmp_path / "o.pcapng"), seed=1, fmt="pcapng")
+    compare(truth, recount(read_capture(str(tmp_path / "o.pcapng"), ng=True)))
+    for kind in ("VRCI", "VRCO"):
+        cmds = truth["commands"][kind]["list"]
+        spans = [(c["frames"][0], c["ack_frame"] or c["frames"][-1]) for c in cmds]
+        assert any(b[0] < a[1] for a, b in zip(spans, spans[1:])), f"no two {kind} in flight together"
+        assert truth["commands"][kind]["retransmissions"] > 10
+    ids = Counter(c["command_id"] for c in truth["commands"]["VRCI"]["list"])
+    assert sum(n > 1 for n in ids.values()) > 10                  # IDs used again after the pause
+    assert truth["commands"]["VRCI"]["failed"] == 1 and truth["commands"]["VRCI"]["acks_without_command"] == 0
+    assert all(s["serial"]["duplicates"] > 20 for s in truth["senders"])
+    assert all(not p["watchdog"]["violations"] for p in truth["periodic"])
+
+
+def test_bu_stops_leaves_vrpi_silent_until_the_end(tmp_path):
+    truth = synthesize("bu-stops", str(tmp_path / "b.pcap"), seed=1)
+    stations, arrivals = run_scenario("bu-stops")
+    bu = stations[0].node
+    assert [e["t"] for e in bu.events("stopped")] == [10.0]
+    last_vrpi = max(a[0] for a in arrivals if a[5].ptype is C.PacketType.VRPI)
+    periodic = {p["type"]: p for p in truth["periodic"]}
+    assert periodic["VRPI"]["watchdog"]["violations"] == [
+        {"start": round((EPOCH_US + last_vrpi) / 1e6, 6), "gap_ms": (arrivals[-1][0] - last_vrpi) / 1000,
+         "until_end": True}]
+    assert periodic["VRPO"]["watchdog"]["violations"] == []
+    assert truth["commands"]["VRCO"]["failed"] == 2 and truth["commands"]["VRCI"]["failed"] == 0
+
+
+def test_restarts_are_where_the_nodes_restarted(tmp_path):
+    truth = synthesize("restart", str(tmp_path / "r.pcap"), seed=1)
+    stations, arrivals = run_scenario("restart")
+    events = []
+    for s in truth["senders"]:
+        events += [(e["time"], s["src"], e) for e in s["serial"]["restart_events"]]
+    logged = []
+    for station in stations:
+        port = station.port
+        for e in station.node.events("restart"):
+            before = [a[5].serial for a in arrivals if a[5].sender == station.node.name and a[0] < seconds(e["t"])]
+            port = e["port"] or port
+            logged.append((round(EPOCH_US / 1e6 + e["t"], 6), f"{station.ip}:{port}", before[-1], e["serial"],
+                           e["port"] is not None))
+    assert sorted((t, src, e["from"], e["to"], "port_to" in e) for t, src, e in events) == sorted(logged)
+    assert [s["serial"]["restarts"] for s in truth["senders"]] == [1, 1, 1]
+    bu = next(s for s in truth["senders"] if s["direction"] == "Input")
+    assert bu["serial"]["restart_events"][0]["from"] > 32767 and bu["serial"]["lost"] < 5
+    new_port = next(e for _, _, e in events if "port_to" in e)
+    assert (new_port["port_from"], new_port["port_to"]) == (C.OUTPUT_PORT, CONTROLLER_NEW_PORT)
+    assert all(s["serial"]["duplicates"] == s["serial"]["out_of_order"] == 0 for s in truth["senders"])
+    assert truth["commands"]["VRCI"]["interrupted"] == truth["commands"]["VRCO"]["interrupted"] == 1
+    vrpo = [p for p in truth["periodic"] if p["type"] == "VRPO"]
+    # the old port's stream is taken over: no silence to the end; the 2.3 s to the new port is a violation
+    assert [len(p["watchdog"]["violations"]) for p in vrpo] == [1, 0]
+    assert vrpo[0]["sender"].endswith(f":{CONTROLLER_NEW_PORT} origin 0x0000")
