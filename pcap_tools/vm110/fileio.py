@@ -1,0 +1,106 @@
+"""Writing output files so that a failure never costs what was there before.
+
+A file is written to a temporary file of our own in the same folder, flushed to disk and renamed
+over the target only when complete: an error at any point leaves the old file exactly as it was,
+and the only file ever removed is that temporary one. A target that exists and is not a regular
+file (a device, a FIFO, a directory) is refused up front: renaming over it would replace the node.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+import stat
+from pathlib import Path
+from typing import IO, Iterator, Union
+
+from .errors import CliError
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+
+def check_target(path: PathLike) -> Path:
+    """The path written to (symbolic links followed, so that a link stays a link); CliError when
+    it exists and is not a regular file."""
+    real = Path(os.path.realpath(path))
+    try:
+        mode = real.stat().st_mode
+    except FileNotFoundError:
+        return real
+    except OSError as exc:
+        raise CliError(f"cannot write {os.fspath(path)}: {exc.strerror}") from None
+    if not stat.S_ISREG(mode):
+        raise CliError(f"refusing to write {os.fspath(path)}: it exists and is not a regular file")
+    return real
+
+
+@contextlib.contextmanager
+def atomic_writer(path: PathLike, binary: bool = True) -> Iterator[IO]:
+    """A file object to write `path` through; it replaces `path` when the block ends without an
+    exception. OSError becomes a CliError naming `path`; other exceptions pass through, and in
+    every failure the temporary file is removed and `path` is untouched."""
+    real = check_target(path)
+    try:
+        fd, temp = _create_temp(real)
+    except OSError as exc:
+        raise CliError(f"cannot write {os.fspath(path)}: {exc.strerror}") from None
+    try:
+        with os.fdopen(fd, "wb" if binary else "w", encoding=None if binary else "utf-8") as stream:
+            yield stream
+            stream.flush()
+            os.fsync(stream.fileno())
+        _keep_mode(real, temp)
+        check_target(real)    # again: it may have become a device or a directory meanwhile
+        os.replace(temp, real)
+        _sync_folder(real.parent)
+    except BaseException as exc:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temp)
+        if isinstance(exc, OSError):
+            raise CliError(f"cannot write {os.fspath(path)}: {exc.strerror or exc}") from None
+        raise
+
+
+def write_bytes(path: PathLike, data: bytes) -> None:
+    """`data` as the whole of `path`, atomically."""
+    with atomic_writer(path) as stream:
+        stream.write(data)
+
+
+def write_text(path: PathLike, text: str) -> None:
+    """`text` (UTF-8) as the whole of `path`, atomically."""
+    with atomic_writer(path, binary=False) as stream:
+        stream.write(text)
+
+
+def _create_temp(real: Path) -> tuple[int, str]:
+    """A new file of ours beside `real` (O_EXCL: never one that was there), mode 0666 less umask."""
+    while True:
+        temp = str(real.parent / f".{real.name}.{secrets.token_hex(4)}.tmp")
+        try:
+            return os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666), temp
+        except FileExistsError:
+            continue
+
+
+def _keep_mode(real: Path, temp: str) -> None:
+    """A replaced file keeps its permissions."""
+    try:
+        mode = real.stat().st_mode
+    except FileNotFoundError:
+        return
+    os.chmod(temp, stat.S_IMODE(mode))
+
+
+def _sync_folder(folder: Path) -> None:
+    """Make the rename itself durable."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass    # some file systems cannot sync a directory; the rename has happened all the same
+    finally:
+        os.close(fd)
