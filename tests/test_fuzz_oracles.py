@@ -167,3 +167,65 @@ def test_exit_is_a_crash_blaming_recent_cases(link):
     link.mon.note_case(T0 + 0.02, 3)
     link.mon.on_exit(T0 + 0.03, 3)
     assert link.oracles() == ["crash"] and link.mon.triggers[0].suspects == [3, 2]
+
+
+# --- several commands in flight (interpretation.md, "Commands") ---------------------------------
+@pytest.mark.parametrize("order", [(5, 6), (6, 5)])
+def test_two_outstanding_commands_acknowledged_in_either_order(link, order):
+    link.mon.on_tx(T0, vrci(5, 1), vrci(5, 1), index=1)
+    link.mon.on_tx(T0 + 0.05, vrci(6, 2), vrci(6, 2), index=2)        # a second key within 100 ms
+    link.mon.on_tx(T0 + 0.1, vrci(5, 3), vrci(5, 3), index=1)         # 5 resent while 6 is open
+    for n, cid in enumerate(order + (5,)):
+        link.rx(T0 + 0.12 + n * 0.01, "VRAO", encode.ack_payload(cid))
+    link.mon.tick(T0 + 5)
+    assert link.oracles() == []
+
+
+def test_missing_ack_names_the_command_left_out(link):
+    link.mon.on_tx(T0, vrci(5, 1), vrci(5, 1), index=1)
+    link.mon.on_tx(T0 + 0.05, vrci(6, 2), vrci(6, 2), index=2)
+    link.rx(T0 + 0.06, "VRAO", encode.ack_payload(6))                   # only the later one
+    link.mon.tick(T0 + 1.2)
+    assert link.oracles() == ["missing_ack"]
+    trigger = link.mon.triggers[0]
+    assert (trigger.command_id, trigger.case_index) == (5, 1)
+
+
+def test_an_illegal_and_a_legal_command_in_flight_together(link):
+    link.mon.on_tx(T0, bad_crc(vrci(7, 1)), vrci(7, 1), index=11)
+    link.mon.on_tx(T0 + 0.02, vrci(8, 2), vrci(8, 2), index=12)
+    link.rx(T0 + 0.03, "VRAO", encode.ack_payload(8))
+    link.mon.tick(T0 + 2)
+    assert link.oracles() == []
+    link.rx(T0 + 2.1, "VRAO", encode.ack_payload(7))
+    assert link.oracles() == ["illegal_acked"] and link.mon.triggers[0].case_index == 11
+
+
+def test_an_id_sent_legally_after_an_illegal_one_may_be_acked_again(link):
+    link.mon.on_tx(T0, bad_crc(vrci(7, 1)), vrci(7, 1), index=11)
+    link.mon.on_tx(T0 + 3, vrci(7, 2), vrci(7, 2), index=12)            # the ID reused, legally
+    link.mon.on_tx(T0 + 3.001, vrci(7, 2), vrci(7, 2), index=12, expect_ack=False)   # its duplicate frame
+    link.rx(T0 + 3.01, "VRAO", encode.ack_payload(7))
+    link.rx(T0 + 3.02, "VRAO", encode.ack_payload(7))                   # the duplicate acknowledged too
+    link.mon.tick(T0 + 5)
+    assert link.oracles() == []
+
+
+def test_ack_of_a_command_never_sent_while_others_are_open(link):
+    link.mon.on_tx(T0, vrci(5, 1), vrci(5, 1), index=1)
+    link.mon.on_tx(T0 + 0.05, vrci(6, 2), vrci(6, 2), index=2)
+    for cid in (6, 9, 5):
+        link.rx(T0 + 0.1, "VRAO", encode.ack_payload(cid))
+    link.mon.tick(T0 + 5)
+    assert link.oracles() == ["malformed_output"] and link.mon.triggers[0].command_id == 9
+
+
+def test_vrco_in_flight_together_and_an_id_reused_after_a_pause(link):
+    for n in range(3):                                                # 1 and 2 resent together
+        link.rx(T0 + n * 0.1, "VRCO", encode.command_payload(1))
+        link.rx(T0 + n * 0.1 + 0.05, "VRCO", encode.command_payload(2))
+    link.mon.on_vrai(T0 + 0.26, 2, b"")
+    link.mon.on_vrai(T0 + 0.27, 1, b"")
+    link.rx(T0 + 0.25 + 2.5, "VRCO", encode.command_payload(1))        # a new command with ID 1
+    link.mon.tick(T0 + 3)
+    assert link.oracles() == []

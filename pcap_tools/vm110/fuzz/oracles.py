@@ -3,7 +3,9 @@
 A `Monitor` sees every packet the base unit sends (`on_tx`) and every packet the controller
 sends (`on_rx`), the exit of a supervised controller (`on_exit`) and the passing of time
 (`tick`); it appends a `Trigger` for each oracle that fires. Tolerances (documented in the
-README) make the timing oracles robust on a loaded machine.
+README) make the timing oracles robust on a loaded machine. Commands are judged one by one: a
+controller may have several VRCO in flight and must acknowledge every VRCI, in any order
+(interpretation.md, "Commands").
 """
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from typing import Any, Optional
 
 from .. import constants as C
 from ..decode import decode
+from ..sim.ledger import REUSE_GAP_MS
 
 CRASH, STALL, MISSING_ACK, ILLEGAL_ACKED, MALFORMED_OUTPUT, VRCO_RETRANSMIT = ORACLES = (
     "crash", "stall", "missing_ack", "illegal_acked", "malformed_output", "vrco_retransmit")
@@ -31,6 +34,7 @@ class Limits:
     resend_max_ms: float = 250.0                  # "about 100 ms": a resend interval up to this is fine
     after_ack_grace_ms: float = 300.0             # a VRCO in flight when the VRAI went out is fine
     vrco_give_up_ms: float = C.VRCO_GIVE_UP_MS    # no resends are expected past this
+    reuse_gap_ms: float = REUSE_GAP_MS            # a VRCO ID again after this long is a new command
 
 
 @dataclass
@@ -63,7 +67,7 @@ class Monitor:
         self.triggers: list[Trigger] = []
         self.notes: collections.deque[tuple[float, int]] = collections.deque()   # (time, case index)
         self.pending: dict[int, collections.deque[tuple[float, int]]] = {}      # id -> (deadline, case)
-        self.illegal_ids: dict[int, tuple[float, int]] = {}
+        self.illegal_ids: dict[int, tuple[float, int]] = {}     # IDs whose latest VRCI was illegal
         self.sent_ids: set[int] = set()
         self.id_case: dict[int, int] = {}        # command ID -> last case that sent it
         self.withholding = False
@@ -125,6 +129,7 @@ class Monitor:
         if fields.get("type") != _VRCI:
             return
         if not fields["problems"]:
+            self.illegal_ids.pop(command_id, None)      # an ack of this ID is now this VRCI's
             if expect_ack:
                 deadline = t + self.limits.ack_timeout_ms / 1000
                 self.pending.setdefault(command_id, collections.deque()).append((deadline, index))
@@ -192,8 +197,7 @@ class Monitor:
     def _vrco(self, t: float, command_id: int) -> None:
         self.vrco_seen = True
         entry = self.vrco.get(command_id)
-        give_up = self.limits.vrco_give_up_ms / 1000
-        if entry is None or t - entry.last > 2 * give_up:
+        if entry is None or t - entry.last >= self.limits.reuse_gap_ms / 1000:
             self.vrco[command_id] = _Vrco(t, t, withheld=self.withholding)
             return
         entry.count += 1
