@@ -230,7 +230,7 @@ ANALYSIS_FIELDS = {
     "ack_without_command": "vm110.expert.ack_without_command",
 }
 ID_FIELDS = ("frame.number", "ip.src", "udp.srcport", "vm110.type", "vm110.origin", "vm110.serial")
-PRESENCE = ("serial_duplicate", "serial_out_of_order", "watchdog_vrpi", "watchdog_vrpo", "never_acked",
+PRESENCE = ("serial_duplicate", "serial_out_of_order", "watchdog_vrpi", "watchdog_vrpo",
             "duplicate_ack", "ack_without_command")
 
 
@@ -240,6 +240,8 @@ def expected_frames(ref: dict) -> dict[int, dict]:
     for fr, f in ref["frames"].items():
         e = {}
         for key, value in f.items():
+            if key == "never_acked":
+                continue                  # compared per command (compare_never_acked)
             if key == "watchdog":
                 e["watchdog_" + value.lower()] = True
             elif key in PRESENCE:
@@ -262,6 +264,9 @@ def run_dissector(ws: Any, path: Path) -> tuple[dict[int, dict], dict[int, str],
         proc = ws.run(args, check=False)
         if proc.returncode == 0:
             break
+        lua = [line for line in proc.stderr.splitlines() if "Lua" in line]
+        if lua:
+            raise AssertionError(f"the dissector did not load in tshark ({ws.tshark.name}): " + " | ".join(lua))
         if "aren't valid" not in proc.stderr:
             raise AssertionError(f"tshark ({ws.tshark.name}) exited {proc.returncode}: {proc.stderr[-2000:]}")
         bad = [line.strip() for line in proc.stderr.splitlines() if line.startswith("\t") or
@@ -285,9 +290,23 @@ def run_dissector(ws: Any, path: Path) -> tuple[dict[int, dict], dict[int, str],
     return per_frame, who, unknown
 
 
+def ack_of_transmissions(ref: dict) -> dict[int, int]:
+    """frame of every transmission of an acknowledged command -> its acknowledgement's frame."""
+    out = {}
+    for kind in ("VRCI", "VRCO"):
+        for c in ref["commands"][kind]["list"]:
+            if c["ack_frame"] is not None:
+                for fr in c["frames"]:
+                    out[fr] = c["ack_frame"]
+    return out
+
+
 def compare_frames(expected: dict[int, dict], got: dict[int, dict], who: dict[int, str],
-                   known: set[str]) -> list[str]:
+                   known: set[str], optional_ack_in: Optional[dict[int, int]] = None) -> list[str]:
+    """Field by field, frame by frame. vm110.analysis.ack_in is required on a command's first frame;
+    on its other transmissions it is optional (and then must name the same acknowledgement)."""
     lines = []
+    optional_ack_in = optional_ack_in or {}
     for fr in sorted(set(expected) | set(got)):
         e = {k: v for k, v in expected.get(fr, {}).items() if k in known}
         g = got.get(fr, {})
@@ -295,6 +314,8 @@ def compare_frames(expected: dict[int, dict], got: dict[int, dict], who: dict[in
             ev, gv = e.get(key), g.get(key)
             if key in PRESENCE:
                 ok = (ev is not None) == (gv is not None)
+            elif key == "ack_in" and ev is None and gv is not None and fr in optional_ack_in:
+                ok = int(gv) == optional_ack_in[fr]
             elif ev is None or gv is None:
                 ok = False
             elif key == "silent_until_end":
@@ -307,6 +328,35 @@ def compare_frames(expected: dict[int, dict], got: dict[int, dict], who: dict[in
                 lines.append(f"  frame {fr} ({who.get(fr, '?')}): {ANALYSIS_FIELDS[key]}: "
                              f"reference {ev if ev is not None else 'absent'}, "
                              f"dissector {gv if gv is not None else 'absent'}")
+    return lines
+
+
+def compare_never_acked(ref: dict, got: dict[int, dict], who: dict[int, str]) -> list[str]:
+    """vm110.expert.never_acked may sit on any transmission of the command: compare commands."""
+    owner: dict[int, tuple] = {}
+    expected = set()
+    for kind in ("VRCI", "VRCO"):
+        for c in ref["commands"][kind]["list"]:
+            key = (kind, c["command_id"], c["frames"][0])
+            for fr in c["frames"]:
+                owner[fr] = key
+            if c["ack_frame"] is None and c["interrupted_by"] is None:
+                expected.add(key)
+    flagged: dict[tuple, int] = {}
+    lines = []
+    for fr, values in sorted(got.items()):
+        if "never_acked" in values:
+            if fr not in owner:
+                lines.append(f"  frame {fr} ({who.get(fr, '?')}): vm110.expert.never_acked on a frame that is "
+                             "no command transmission in the reference")
+            else:
+                flagged.setdefault(owner[fr], fr)
+    for key in sorted(expected - set(flagged), key=lambda k: k[2]):
+        lines.append(f"  frame {key[2]} ({who.get(key[2], '?')}): {key[0]} command {key[1]} is never acknowledged "
+                     "(reference), the dissector has no vm110.expert.never_acked on any of its frames")
+    for key in sorted(set(flagged) - expected, key=lambda k: k[2]):
+        lines.append(f"  frame {flagged[key]} ({who.get(flagged[key], '?')}): vm110.expert.never_acked, but the "
+                     f"reference's {key[0]} command {key[1]} (first frame {key[2]}) is acked or interrupted")
     return lines
 
 
@@ -325,7 +375,11 @@ def check_dissector(runner: Tshark, sc: dict) -> None:
         finally:
             ctx.__exit__(None, None, None)
         known = {k for k, v in ANALYSIS_FIELDS.items() if v not in unknown}
-        lines = compare_frames(expected_frames(ref), got, who, known)
+        lines = compare_frames(expected_frames(ref), {fr: {k: v for k, v in f.items() if k != "never_acked"}
+                                                      for fr, f in got.items()}, who, known,
+                               ack_of_transmissions(ref))
+        if "never_acked" in known:
+            lines += compare_never_acked(ref, got, who)
         if unknown:
             lines.insert(0, f"  the dissector ({runner.name}) has no field(s): {', '.join(unknown)}")
         assert not lines, fail_report(path, ref, lines, f"the dissector's fields (tshark {runner.name}, -2)",

@@ -33,6 +33,15 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
      if it is a VRCI/VRCO, already belongs to the new life (a new command even within the reuse gap).
   R9 Silence to the end: a stream whose sender was taken over by a new-port sender has no
      silence to the end, whether or not the new sender sends that periodic type.
+ R11 A new-port restart also counts as a restart of the earlier sender for its own commands: a
+     late VRCI/VRCO of the earlier port arriving after the new sender's first packet begins a new
+     command (its outstanding ones were interrupted) rather than joining an interrupted one.
+ R12 "The earlier sender whose last legal packet lies at least 250 ms before it" is judged at the
+     new sender's first packet (interpretation.md: "an earlier sender that *has been* silent"):
+     packets of the earlier port that arrive later (late or reordered) do not undo the restart.
+     Likewise `from` is the earlier counter's highest serial at that moment, and the new stream's
+     first interval is from the earlier sender's last packet of the type before the new stream's
+     first one.
  R10 A sender exists (senders[], periodic[]) only with at least one legal packet; illegal packets
      are attributed to nobody.
 """
@@ -347,12 +356,14 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
         if s["pred"] is not None:
             p = senders[s["pred"]]
             restart_at[s["first_frame"]] = {"sender": p["id"], "t": s["first_t"]}
-            ev = {"time": _sec(s["first_t"]), "frame": s["first_frame"], "from": p["h_final"],
+            # R12: "from" is the earlier counter's highest serial when the new sender starts
+            h_then = [q["h_after"] for q in p["packets"] if q["frame"] < s["first_frame"]][-1]
+            ev = {"time": _sec(s["first_t"]), "frame": s["first_frame"], "from": h_then,
                   "to": s["packets"][0]["serial"], "port_from": p["port"], "port_to": s["port"]}
             s["restart_events"].append(ev)
             s["restart_events"].sort(key=lambda e: e["frame"])
             f = frames.setdefault(s["first_frame"], {})
-            f["restart"] = p["h_final"]
+            f["restart"] = h_then
             f["restart_port_from"] = p["port"]
 
     # 4. periodic streams
@@ -366,7 +377,9 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
             limit = watchdog[ptype]
             intervals: list[tuple[int, int, int]] = []        # (start t, interval, frame after)
             if s["pred"] is not None:
-                before = [p for p in senders[s["pred"]]["packets"] if p["type"] == ptype and p["accepted"]]
+                # R12: the earlier sender's last packet of the type before this stream's first
+                before = [p for p in senders[s["pred"]]["packets"]
+                          if p["type"] == ptype and p["accepted"] and p["frame"] < pk[0]["frame"]]
                 if before:
                     intervals.append((before[-1]["t"], pk[0]["t"] - before[-1]["t"], pk[0]["frame"]))
             for a, b in zip(pk, pk[1:]):
@@ -472,7 +485,11 @@ def _serials(s: dict, dup_w: int, flags: _Flags, frames: dict, restart_at: dict)
         pkt["accepted"] = True
         s["last_accepted_t"] = pkt["t"]
 
+    previous: Optional[dict] = None
     for pkt in s["packets"]:
+        if previous is not None:
+            previous["h_after"] = ctr["h"] if ctr is not None else None
+        previous = pkt
         received += 1
         sv, t, fr = pkt["serial"], pkt["t"], pkt["frame"]
         pkt["accepted"] = False
@@ -540,6 +557,8 @@ def _serials(s: dict, dup_w: int, flags: _Flags, frames: dict, restart_at: dict)
             continue
         pending = {"serial": sv, "t": t, "frame": fr}                          # 5. candidate
         accept(pkt)
+    if previous is not None:
+        previous["h_after"] = ctr["h"] if ctr is not None else None
     if pending is not None:
         out_of_order += 1
         frames.setdefault(pending["frame"], {})["serial_out_of_order"] = 1
