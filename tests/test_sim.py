@@ -16,21 +16,28 @@ from vm110.decode import decode
 from vm110.sim.bu import BaseUnit, BaseUnitConfig
 from vm110.sim.controller import Controller, ControllerConfig
 from vm110.sim.impair import Impairer, Impairment
+from vm110.sim.lifecycle import Restart
 from vm110.sim.realtime import RealtimeRunner
 from vm110.sim.remote import Remote
 from vm110.sim.transport import UdpConfig, UdpTransport
+from vm110.sim.virtual import Station, VirtualNetwork
 
 
 class RecordingBU(BaseUnit):
-    """Keeps what it sends, to look at its VRPI."""
+    """Keeps what it sends, to look at its VRPI, and where what it receives comes from."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.wire = []
+        self.heard = []
 
     def transmit(self, data, now, meta):
         self.wire.append((now, data))
         super().transmit(data, now, meta)
+
+    def receive(self, data, now, src=None):
+        self.heard.append((now, src, data))
+        super().receive(data, now, src)
 
 
 def run_pair(bu: BaseUnit, ctl: Controller, seconds: float, bu_imp: Impairment = None,
@@ -143,7 +150,95 @@ def test_cli_usage_errors_are_one_line_with_exit_code_2(tmp_path):
                  ["controller", "--port", "65535"],
                  ["bu", "--duration", "0"],
                  ["bu", "--script", str(tmp_path / "missing.json")],
+                 ["bu", "--restart", "soon"],
+                 ["controller", "--restart", "3:70000"],
+                 ["controller", "--restart", "3", "--restart-silence", "0", "--duration", "1"],
                  ["bu", "--script", str(bad_script), "--listen", f"{LOOPBACK}:0", "--peer", f"{LOOPBACK}:9"]):
         done = subprocess.run(vm110 + args, capture_output=True, text=True, timeout=20)
         assert done.returncode == 2, (args, done.stderr)
         assert "Traceback" not in done.stderr and done.stderr.strip(), args
+
+
+def virtual_pair(bu: BaseUnit, ctl: Controller, seconds: float, bu_imp: Impairment = None,
+                 ctl_imp: Impairment = None) -> list:
+    stations = [Station(bu, "10.0.0.10", C.INPUT_PORT, bu_imp or Impairment()),
+                Station(ctl, "10.0.0.20", C.OUTPUT_PORT, ctl_imp or Impairment())]
+    return [a for batch in VirtualNetwork(stations).run(seconds) for a in batch]
+
+
+def test_several_commands_in_flight_each_resent_acked_and_executed_once():
+    # Two keys 50 ms apart, and a third ID reused after a pause; every VRAO lost until 0.45 s.
+    script = {"steps": [{"at": 0, "state": "armed"}],
+              "commands": [{"at": 0.1, "data": "A"}, {"at": 0.15, "data": "B"}, {"at": 3.0, "data": "C", "id": 0}]}
+    bu = BaseUnit(Remote.from_script(script))
+    ctl = Controller(ControllerConfig(commands=((0.2, b"X"), (0.25, b"Y"))))
+    arrivals = virtual_pair(bu, ctl, 4.0, ctl_imp=Impairment(drops=((0.0, 0.45, ("VRAO",)),)))
+    assert ids(bu, "command_sent") == [0, 1, 0] and sorted(ids(bu, "command_acked")) == [0, 0, 1]
+    vrci = [(a[0], a[5].key) for a in arrivals if a[5].ptype is C.PacketType.VRCI]
+    first = [t for t, cid in vrci if cid == 0 and t < 1_000_000]
+    assert len(first) == 5 and all(b - a == 100_000 for a, b in zip(first, first[1:]))   # resent on its own
+    assert sorted(ids(ctl, "executed")) == [0, 0, 1]              # the reused ID is a new command
+    assert len(ids(ctl, "repeat")) == ctl.received["VRCI"] - 3
+    assert sorted(ids(ctl, "vrco_acked")) == [0, 1] and ids(bu, "vrco_delivered") == [0, 1]
+
+
+def test_mirror_copies_reach_the_tap_only():
+    bu, ctl = BaseUnit(Remote.simple(armed=True)), Controller()
+    arrivals = virtual_pair(bu, ctl, 5.0, bu_imp=Impairment(mirror=50.0, seed=2))
+    copies = [a for a in arrivals if not a[6]]
+    assert 10 < len(copies) and all(a[2] == 0 for a in copies)
+    originals = {(a[5].serial): a[0] for a in arrivals if a[6] and a[2] == 0}
+    assert all(50 <= a[0] - originals[a[5].serial] <= 3000 for a in copies)      # 0.05-3 ms later
+    assert ctl.received["VRPI"] == bu.sent["VRPI"]                                 # delivered once
+
+
+def test_restart_and_stop_on_the_virtual_clock():
+    bu = BaseUnit(Remote.simple(armed=True, command_every=0.5), BaseUnitConfig(stop_at_s=3.0),
+                  serial_start=40000)
+    ctl = Controller(ControllerConfig(restarts=(Restart(1.0, 0.5, serial=7, command_id=100),
+                                                Restart(2.0, 0.3, port=50000)), command_every_s=0.4,
+                                      commands=((0.93, b"LATE"),)))
+    arrivals = virtual_pair(bu, ctl, 4.0, bu_imp=Impairment(drops=((0.9, 1.0, ("VRAI",)),)))
+    mine = [(a[0], a[2], a[5]) for a in arrivals if a[5].sender == "controller"]
+    assert not [t for t, _, _ in mine if 1_000_000 <= t < 1_500_000 or 2_000_000 <= t < 2_300_000]
+    after = [m.serial for t, _, m in mine if t >= 1_500_000]
+    assert after[0] == 7 and {e for t, e, _ in mine} == {1, 2}    # endpoint 2: the new port
+    assert [meta.serial for _, e, meta in mine if e == 2][0] == 0
+    restarts = ctl.events("restart")
+    assert [(e["t"], e["serial"], e["port"]) for e in restarts] == [(1.5, 7, None), (2.3, 0, 50000)]
+    assert [e["command_id"] for e in ctl.events("vrco_dropped")] == [2]     # the VRCO of 0.93 s
+    assert ids(ctl, "vrco_sent")[3] == 100                        # IDs afresh from the restart's
+    assert max(a[0] for a in arrivals if a[5].sender == "bu") < 3_000_000 and bu.events("stopped")
+    assert [a[5].serial for a in arrivals if a[5].sender == "bu"][0] == 40000
+
+
+def test_restart_on_a_new_port_over_sockets():
+    bu = RecordingBU(Remote.simple(armed=True))
+    ctl = Controller(ControllerConfig(restarts=(Restart(0.6, 0.3, port=0),)))
+    run_pair(bu, ctl, 1.5)
+    ports = [src[1] for _, src, data in bu.heard if data[:4] == b"VRPO"]
+    switch = next(i for i, p in enumerate(ports) if p != ports[0])
+    assert len(set(ports)) == 2 and set(ports[switch:]) == {ports[switch]}
+    serials = [decode(data)["serial"] for _, _, data in bu.heard if data[:4] == b"VRPO"]
+    assert serials[switch] == 0 and serials[switch - 1] > 0
+    assert not bu.illegal_packets and len(ctl.events("restart")) == 1
+
+
+def test_cli_restart_stop_and_mirror_options():
+    ctl_rx, bu_rx = free_ports(2)
+    vm110 = [sys.executable, "-m", "vm110", "simulate"]
+    common = ["--source", f"{LOOPBACK}:0", "--duration", "2.0", "--json"]
+    ctl = subprocess.Popen(vm110 + ["controller", "--listen", f"{LOOPBACK}:{ctl_rx}", "--peer", f"{LOOPBACK}:{bu_rx}",
+                                    "--restart", "0.5:0", "--restart-silence", "0.3", "--restart-serial", "9",
+                                    "--mirror", "20", *common], stdout=subprocess.PIPE, text=True)
+    bu = subprocess.run(vm110 + ["bu", "--listen", f"{LOOPBACK}:{bu_rx}", "--peer", f"{LOOPBACK}:{ctl_rx}",
+                                 "--stop-at", "1.2", "--serial-start", "40000", *common],
+                        capture_output=True, text=True, timeout=20)
+    ctl_out, _ = ctl.communicate(timeout=20)
+    assert bu.returncode == 0 and ctl.returncode == 0, bu.stderr
+    ctl_log = [json.loads(line) for line in ctl_out.splitlines() if line.startswith("{")]
+    bu_log = [json.loads(line) for line in bu.stdout.splitlines() if line.startswith("{")]
+    assert [(e["serial"], e["port"]) for e in ctl_log if e.get("event") == "restart"] == [(9, 0)]
+    assert [round(e["t"], 1) for e in bu_log if e.get("event") == "stopped"] == [1.2]
+    assert ctl_log[-1]["summary"]["received"]["VRPI"] < 12           # nothing after 1.2 s
+    assert bu_log[-1]["summary"]["received"]["VRPO"] > ctl_log[-1]["summary"]["sent"]["VRPO"] * 0.9 * 0.6 / 1.7
