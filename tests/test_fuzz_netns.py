@@ -13,7 +13,7 @@ from vm110 import constants as C
 def test_fuzz_over_multicast_inside_a_namespace(netns, tmp_path):
     inside = ["ip", "netns", "exec", netns, sys.executable, "-m", "vm110"]
     controller = f"{sys.executable} -m vm110 simulate controller --iface 127.0.0.1 --command-every 0.5 --quiet"
-    result = subprocess.run(inside + ["fuzz", "--target", f"{C.MULTICAST_GROUP}:{C.INPUT_PORT}",
+    result = subprocess.run(inside + ["fuzz", "--target", f"{C.MULTICAST_GROUP}:{C.INPUT_PORT}", "--allow-remote",
                                       "--group", C.MULTICAST_GROUP, "--target-cmd", controller,
                                       "--duration", "4", "--out", str(tmp_path)],
                             capture_output=True, text=True, timeout=60)

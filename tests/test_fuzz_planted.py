@@ -90,9 +90,10 @@ def test_planted_bug_is_found_named_and_replayable(tmp_path, bug):
     if finding["case_index"] < len(cases.sweep(SEED)) and finding["family"] != "none":
         assert cases.generate(SEED, finding["case_index"]).description == finding["mutation"]
 
-    again = vm110("fuzz", "--replay", str(tmp_path / first["file"]))
-    assert again.returncode == 1 and "still triggers" in again.stdout, again.stdout + again.stderr
     rx, listen = (int(finding[k].rsplit(":", 1)[1]) for k in ("target", "listen"))
+    # The finding's stored command is never run: the controller is named on the command line.
+    again = vm110("fuzz", "--replay", str(tmp_path / first["file"]), "--target-cmd", controller_cmd(bug, rx, listen))
+    assert again.returncode == 1 and "still triggers" in again.stdout, again.stdout + again.stderr
     fixed = vm110("fuzz", "--replay", str(tmp_path / first["file"]),
                   "--target-cmd", controller_cmd("reference", rx, listen))
     assert fixed.returncode == 0 and "does not trigger" in fixed.stdout, fixed.stdout + fixed.stderr

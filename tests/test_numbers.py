@@ -14,7 +14,7 @@ COUNT = number(1, 1000, integer=True)
 @pytest.mark.parametrize("text", ["nan", "NaN", "inf", "-inf", "infinity", "1e999", "-1", "0", "0.0", "-0",
                                   "10000.5", "1e18", "", "abc", "0x10"])
 def test_refused(text):
-    with pytest.raises(argparse.ArgumentTypeError, match=r"0 to 10000 packets/s, not 0"):
+    with pytest.raises(argparse.ArgumentTypeError, match=r"above 0 and at most 10000 packets/s"):
         RATE(text)
 
 
@@ -32,6 +32,15 @@ def test_integers():
 
 def test_zero_allowed_by_default():
     assert number(0, 5, "s")("0") == 0.0
+
+
+def test_range_texts():
+    assert number(0, 2592000, "s", allow_zero=False).range_text == "above 0 and at most 2592000 s"
+    assert number(-10, 10, "mm", allow_zero=False).range_text == "-10 to 10 mm, not 0"
+    assert number(0.01, 1e4).range_text == "0.01 to 10000"
+    assert number(0, 2**64 - 1, integer=True).range_text == "0 to 18446744073709551615"
+    with pytest.raises(argparse.ArgumentTypeError):
+        number(-10, 10, allow_zero=False)("0")
 
 
 def test_message_names_the_option_through_argparse(capsys):

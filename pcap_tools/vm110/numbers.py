@@ -30,11 +30,12 @@ class NumberType:
 
     @property
     def range_text(self) -> str:
-        """E.g. "0 to 10000 packets/s, not 0"."""
+        """E.g. "1 to 1000", "above 0 and at most 3600 s", "-10 to 10 mm, not 0"."""
         unit = f" {self.unit}" if self.unit else ""
-        zero_inside = self.low <= 0 <= self.high
-        excluded = ", not 0" if zero_inside and not self.allow_zero else ""
-        return f"{self.low:g} to {self.high:g}{unit}{excluded}"
+        if self.low == 0 and not self.allow_zero:
+            return f"above 0 and at most {_show(self.high)}{unit}"
+        excluded = ", not 0" if self.low < 0 < self.high and not self.allow_zero else ""
+        return f"{_show(self.low)} to {_show(self.high)}{unit}{excluded}"
 
     def __call__(self, text: str) -> Number:
         value = self._parse(text)
@@ -56,3 +57,8 @@ def number(low: Number, high: Number, unit: str = "", integer: bool = False,
     """An argparse `type=` for a value in [low, high] (both included; 0 left out when not
     `allow_zero`), in `unit`; integers only when `integer`."""
     return NumberType(low, high, unit, integer, allow_zero)
+
+
+def _show(value: Number) -> str:
+    """Whole numbers in full (2592000, not 2.592e+06)."""
+    return str(int(value)) if value == int(value) else f"{value:g}"

@@ -5,8 +5,10 @@ answers its VRCO with VRAI, and sends cases (field boundary values, structural d
 random byte changes) reproducible from --seed and the case index. Oracles: crash, stall,
 missing_ack, illegal_acked, malformed_output, vrco_retransmit. Each confirmed finding is saved in
 --out as JSON (with the minimised packet) and a pcap; --out/findings.json summarises the run.
-Sends only to --target (multicast TTL 1). Exit code 1 when there are findings, 0 when none,
-2 on usage errors. `--replay FINDING` sends a finding again and says whether it still triggers.
+Sends only to --target (multicast TTL 1), and only on loopback unless --allow-remote; never to a
+broadcast address. Exit code 1 when there are findings, 0 when none, 2 on usage errors.
+`--replay FINDING` sends a finding again and says whether it still triggers; the finding is data:
+its stored command is never run and its stored target obeys the --target rules.
 """
 from __future__ import annotations
 
@@ -15,35 +17,37 @@ import ipaddress
 import signal
 import sys
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from .. import constants as C
 from ..errors import EXIT_FINDINGS, EXIT_OK, CliError
+from ..fileio import check_target
+from ..fuzz.destination import check
 from ..fuzz.findings import load_finding, write_summary
 from ..fuzz.link import parse_endpoint
 from ..fuzz.oracles import Limits
 from ..fuzz.runner import RunConfig, Runner, replay_finding
 from ..fuzz.session import Settings, TargetLost
+from ..numbers import number
 
 DEFAULT_RATE = 100.0
 DEFAULT_DURATION_S = 60.0
-
-
-def _positive(kind: type) -> Callable[[str], Any]:
-    def parse(text: str) -> Any:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
-        return value
-    return parse
+SEED = number(0, 2**64 - 1, integer=True)
+DURATION = number(0, 30 * 86400, "s", allow_zero=False)
+CASES = number(1, 10**9, integer=True)
+RATE = number(0.01, 10_000, "packets/s")
+MAX_FINDINGS = number(1, 1000, integer=True)
+MINIMIZE_BUDGET = number(0, 3600, "s", allow_zero=False)
+STARTUP = number(0, 600, "s", allow_zero=False)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--target", metavar="HOST:PORT",
-                        help="where the controller receives input packets (the only destination)")
+                        help="where the controller receives input packets (the only destination; a name "
+                             "is resolved once); loopback unless --allow-remote, never a broadcast address")
+    parser.add_argument("--allow-remote", action="store_true",
+                        help="allow a --target that is not loopback, a multicast group included (it reaches "
+                             "every node on the segment); the address is printed before the first packet")
     parser.add_argument("--listen", metavar="HOST:PORT",
                         help=f"where the controller's output arrives (default 0.0.0.0:<target port + "
                              f"{C.OUTPUT_PORT_OFFSET}>, as the specification has it)")
@@ -51,39 +55,55 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         f"for the output (the specification's is {C.MULTICAST_GROUP})")
     parser.add_argument("--target-cmd", metavar="CMD", help="command that starts the controller; "
                         "it is started, watched, restarted after a crash and stopped at the end")
-    parser.add_argument("--seed", type=int, default=0, help="case schedule seed (default 0)")
+    parser.add_argument("--seed", type=SEED, default=0, help=f"case schedule seed, {SEED.range_text} (default 0)")
     stop = parser.add_mutually_exclusive_group()
-    stop.add_argument("--duration", type=_positive(float), metavar="S",
-                      help=f"seconds to fuzz (default {DEFAULT_DURATION_S:.0f})")
-    stop.add_argument("--cases", type=_positive(int), metavar="N", help="number of cases to run")
-    parser.add_argument("--rate", type=_positive(float), default=DEFAULT_RATE, metavar="PPS",
-                        help=f"case packets per second at most (default {DEFAULT_RATE:.0f})")
+    stop.add_argument("--duration", type=DURATION, metavar="S",
+                      help=f"seconds to fuzz, {DURATION.range_text} (default {DEFAULT_DURATION_S:.0f})")
+    stop.add_argument("--cases", type=CASES, metavar="N", help=f"number of cases to run, {CASES.range_text}")
+    parser.add_argument("--rate", type=RATE, default=DEFAULT_RATE, metavar="PPS",
+                        help=f"case packets per second at most, {RATE.range_text} (default {DEFAULT_RATE:.0f})")
     parser.add_argument("--out", default="fuzz-out", metavar="DIR", help="findings directory (default fuzz-out)")
-    parser.add_argument("--max-findings", type=_positive(int), default=20, metavar="N",
-                        help="stop after N findings (default 20)")
-    parser.add_argument("--minimize-budget", type=_positive(float), default=30.0, metavar="S",
-                        help="seconds of replays spent minimising one finding (default 30)")
-    parser.add_argument("--startup", type=_positive(float), default=10.0, metavar="S",
-                        help="seconds allowed for the controller's first VRPO (default 10)")
-    parser.add_argument("--replay", metavar="FINDING", help="send a saved finding again; exit 1 if it still triggers")
+    parser.add_argument("--max-findings", type=MAX_FINDINGS, default=20, metavar="N",
+                        help=f"stop after N findings, {MAX_FINDINGS.range_text} (default 20)")
+    parser.add_argument("--minimize-budget", type=MINIMIZE_BUDGET, default=30.0, metavar="S",
+                        help=f"seconds of replays spent minimising one finding, {MINIMIZE_BUDGET.range_text} "
+                             "(default 30)")
+    parser.add_argument("--startup", type=STARTUP, default=10.0, metavar="S",
+                        help=f"seconds allowed for the controller's first VRPO, {STARTUP.range_text} (default 10)")
+    parser.add_argument("--replay", metavar="FINDING", help="send a saved finding again (its stored command is "
+                        "not run: give --target-cmd); exit 1 if it still triggers")
 
 
-def _settings(args: argparse.Namespace, target: str, listen: str | None, group: str | None) -> Settings:
-    host_port = parse_endpoint(target, "--target")
+def _settings(args: argparse.Namespace, target: str, listen: str | None, group: str | None,
+              stored_in: str | None = None) -> Settings:
+    """Settings from the options, or from a finding file (`stored_in`) where they are not given:
+    a stored target obeys the --target rules, and stored addresses are never names to look up."""
+    what = f"the target stored in {stored_in}" if stored_in else "--target"
+    host_port = parse_endpoint(target, what, numeric=bool(stored_in))
+    check(host_port[0], what, args.allow_remote)
+    if ":" in host_port[0]:
+        raise CliError(f"{what}: {host_port[0]} is IPv6; the fuzzer sends IPv4 only")
     if group is not None:
         try:
             if not ipaddress.IPv4Address(group).is_multicast:
                 raise ValueError
         except ValueError:
-            raise CliError(f"--group {group!r} is not an IPv4 multicast address") from None
+            raise CliError(f"--group {group[:80]!r} is not an IPv4 multicast address") from None
     if listen:
-        listen_at = parse_endpoint(listen, "--listen")
+        listen_at = parse_endpoint(listen, "--listen", numeric=bool(stored_in) and not args.listen)
     elif host_port[1] + C.OUTPUT_PORT_OFFSET <= 65535:
         listen_at = ("0.0.0.0", host_port[1] + C.OUTPUT_PORT_OFFSET)
     else:
         raise CliError("--listen is needed: target port + 2 is not a port")
+    if args.allow_remote:
+        _progress(f"sending to {host_port[0]}:{host_port[1]} only ({what} {_printable(target)})")
     return Settings(target=host_port, listen=listen_at, group=group, rate=args.rate, limits=Limits(),
-                    startup_s=args.startup)
+                    startup_s=args.startup, allow_remote=args.allow_remote)
+
+
+def _printable(text: str, limit: int = 200) -> str:
+    """Text from a file, safe to print: no control characters, bounded."""
+    return "".join(c if c.isprintable() else "?" for c in text[:limit])
 
 
 def _progress(text: str) -> None:
@@ -106,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CliError(f"cannot create {out}: {exc.strerror}") from None
+    check_target(out / "findings.json")    # refused now, not after the run
     duration = None if args.cases else (args.duration or DEFAULT_DURATION_S)
     cfg = RunConfig(settings=settings, seed=args.seed, duration_s=duration, cases=args.cases, out=out,
                     target_cmd=args.target_cmd, minimize_budget_s=args.minimize_budget,
@@ -124,13 +145,16 @@ def run(args: argparse.Namespace) -> int:
 
 def _replay(args: argparse.Namespace) -> int:
     finding = load_finding(args.replay)
+    stored_in = None if args.target else args.replay
     settings = _settings(args, args.target or finding.target, args.listen or finding.listen,
-                         args.group or finding.group)
-    target_cmd = args.target_cmd or finding.target_cmd
+                         args.group or finding.group, stored_in)
+    if finding.target_cmd and not args.target_cmd:
+        _progress(f"not running the command stored in {args.replay} (give --target-cmd to start a "
+                  f"controller): {_printable(finding.target_cmd)!r}")
     try:
-        triggered = replay_finding(finding, settings, target_cmd, Path(args.replay).parent)
+        triggered = replay_finding(finding, settings, args.target_cmd, Path(args.replay).parent)
     except TargetLost as exc:
         raise CliError(str(exc)) from None
     verdict = "still triggers" if triggered else "does not trigger any more"
-    print(f"{args.replay}: {finding.oracle} ({finding.mutation}): {verdict}")
+    print(f"{args.replay}: {finding.oracle} ({_printable(finding.mutation)}): {verdict}")
     return EXIT_FINDINGS if triggered else EXIT_OK

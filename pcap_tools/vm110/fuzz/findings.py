@@ -2,16 +2,29 @@
 from __future__ import annotations
 
 import json
+import math
+import struct
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Optional
 
+from .. import constants as C
 from ..capture.writer import PcapWriter, UdpFlow
 from ..errors import CliError
+from ..fileio import atomic_writer, write_text
+from ..layers import PAYLOAD_CLASSES
+from . import mutate as M
 from .oracles import ORACLES
 
 SCHEMA = 1
+# What a finding file may hold, beyond its types: it is data from anywhere, never trusted.
+_MAX_FILE = 16 << 20
+_MAX_STEPS = 64                  # the longest case has 20
+_MAX_PACKET = 65_507             # the largest UDP payload over IPv4
+_MAX_MS = 60_000.0               # delays, pauses and withholding
+_MAX_INT = 1 << 63
+_STREAM_FIELDS = frozenset(f.name for f in PAYLOAD_CLASSES[C.PacketType.VRPI].fields_desc)
 
 
 @dataclass
@@ -52,14 +65,14 @@ def write_finding(out: Path, number: int, finding: Finding,
     finding.pcap = f"{base}.pcap"
     write_pcap(out / finding.pcap, traffic, local)
     path = out / f"{base}.json"
-    path.write_text(json.dumps(asdict(finding), indent=2) + "\n")
+    write_text(path, json.dumps(asdict(finding), indent=2) + "\n")
     return path
 
 
 def write_pcap(path: Path, traffic: list[tuple[float, bool, bytes, tuple[str, int]]], local: tuple[str, int]) -> None:
     """The traffic as a tap on the fuzzer's host would see it (Ethernet/IPv4/UDP)."""
     flows: dict[tuple[Any, ...], UdpFlow] = {}
-    with path.open("wb") as stream, PcapWriter(stream) as writer:
+    with atomic_writer(path) as stream, PcapWriter(stream) as writer:
         for t, outbound, data, peer in traffic:
             src, dst = (local, peer) if outbound else (peer, local)
             key = (src, dst)
@@ -70,25 +83,99 @@ def write_pcap(path: Path, traffic: list[tuple[float, bool, bytes, tuple[str, in
 
 def write_summary(out: Path, summary: dict[str, Any]) -> Path:
     path = out / "findings.json"
-    path.write_text(json.dumps(summary, indent=2) + "\n")
+    write_text(path, json.dumps(summary, indent=2) + "\n")
     return path
 
 
 def load_finding(path: str) -> Finding:
-    """A finding JSON written by `write_finding`; CliError when it is not one."""
+    """A finding JSON written by `write_finding`, every value checked; CliError (one line) when it
+    is not one. Nothing in it is run: the stored command is only a hint."""
     try:
-        raw = json.loads(Path(path).read_text())
+        if Path(path).stat().st_size > _MAX_FILE:
+            raise CliError(f"{path} is not a vm110 fuzz finding: larger than {_MAX_FILE >> 20} MiB")
+        raw = json.loads(Path(path).read_bytes())
     except OSError as exc:
         raise CliError(f"cannot read {path}: {exc.strerror}") from None
-    except ValueError as exc:
-        raise CliError(f"{path} is not JSON: {exc}") from None
+    except ValueError as exc:    # also numbers of more digits than Python converts
+        raise CliError(f"{path} is not JSON: {str(exc)[:120]}") from None
     if not isinstance(raw, dict) or raw.get("oracle") not in ORACLES or not isinstance(raw.get("steps"), list):
         raise CliError(f"{path} is not a vm110 fuzz finding")
     try:
-        finding = Finding(**{k: v for k, v in raw.items() if k in Finding.__dataclass_fields__})
-        for step in finding.steps:
-            bytes.fromhex(step["hex"]), bytes.fromhex(step["valid_hex"]), float(step["delay_ms"])
-        bytes.fromhex(finding.packet_hex)
-    except (TypeError, KeyError, ValueError) as exc:
+        return _checked(raw)
+    except _Bad as exc:
         raise CliError(f"{path} is not a valid vm110 fuzz finding: {exc}") from None
+
+
+class _Bad(Exception):
+    pass
+
+
+# Finding's annotations -> the JSON types they allow (bool is an int to Python, not here).
+_KINDS: dict[str, tuple[type, ...]] = {
+    "str": (str,), "int": (int,), "float": (int, float), "bool": (bool,), "Optional[str]": (str, type(None)),
+    "list[dict[str, Any]]": (list,), "Optional[dict[str, Any]]": (dict, type(None)),
+}
+
+
+def _checked(raw: dict[str, Any]) -> Finding:
+    values = {}
+    for f in fields(Finding):
+        if f.name not in raw:
+            if f.default is MISSING and f.default_factory is MISSING:
+                raise _Bad(f"{f.name} is missing")
+            continue
+        value = values[f.name] = raw[f.name]
+        kinds = _KINDS[str(f.type)]
+        if isinstance(value, bool) and bool not in kinds or not isinstance(value, kinds):
+            raise _Bad(f"{f.name} is not of type {f.type}")
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and not _finite(value):
+            raise _Bad(f"{f.name} is not a finite number below 2**63")
+    finding = Finding(**values)
+    if finding.schema != SCHEMA:
+        raise _Bad(f"schema {finding.schema} (this version reads {SCHEMA})")
+    for name in ("pause_vrpi_ms", "withhold_vrai_ms", "settle_ms"):
+        _milliseconds(name, getattr(finding, name))
+    _packet("packet_hex", finding.packet_hex)
+    if len(finding.steps) > _MAX_STEPS:
+        raise _Bad(f"{len(finding.steps)} steps (at most {_MAX_STEPS})")
+    for n, step in enumerate(finding.steps):
+        if not isinstance(step, dict):
+            raise _Bad(f"steps[{n}] is not an object")
+        for key in ("hex", "valid_hex"):
+            _packet(f"steps[{n}].{key}", step.get(key))
+        _milliseconds(f"steps[{n}].delay_ms", step.get("delay_ms"))
+        if not isinstance(step.get("expect_ack"), bool):
+            raise _Bad(f"steps[{n}].expect_ack is not true or false")
+    if finding.stream is not None:
+        _stream(finding.stream)
     return finding
+
+
+def _finite(value: float) -> bool:
+    return math.isfinite(value) and abs(value) < _MAX_INT
+
+
+def _milliseconds(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= _MAX_MS:
+        raise _Bad(f"{name} is not a number of milliseconds from 0 to {_MAX_MS:.0f}")
+
+
+def _packet(name: str, value: Any) -> None:
+    if isinstance(value, str) and len(value) <= 2 * _MAX_PACKET:
+        try:
+            bytes.fromhex(value)
+            return
+        except ValueError:
+            pass
+    raise _Bad(f"{name} is not a packet in hex (at most {_MAX_PACKET} bytes)")
+
+
+def _stream(stream: dict[str, Any]) -> None:
+    """The VRPI fields the base unit streamed during the case: known names, values that fit."""
+    for key, value in stream.items():
+        if key not in _STREAM_FIELDS or isinstance(value, bool) or not isinstance(value, int):
+            raise _Bad(f"stream: {str(key)[:40]!r} is not a VRPI field with an integer value")
+    try:
+        M.build(C.PacketType.VRPI, 0, stream)
+    except (ValueError, struct.error):
+        raise _Bad("stream: a value does not fit its VRPI field") from None

@@ -12,6 +12,7 @@ from typing import Optional
 
 from .. import constants as C
 from ..errors import CliError
+from .destination import check, resolve
 
 _RCVBUF = 4 << 20
 _TIMESPEC = struct.Struct("@ll")
@@ -19,19 +20,22 @@ _MAX_DATAGRAM = 65535
 _IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)   # Linux
 
 
-def parse_endpoint(text: str, what: str) -> tuple[str, int]:
-    """HOST:PORT -> (host, port); CliError for anything else."""
+def parse_endpoint(text: str, what: str, numeric: bool = False) -> tuple[str, int]:
+    """HOST:PORT or [IPv6]:PORT -> (address, port), the host name resolved once (`numeric`: no
+    name accepted); CliError for anything else."""
     host, sep, port = text.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise CliError(f"{what} must be HOST:PORT, got {text!r}")
-    try:
-        return socket.gethostbyname(host), int(port)
-    except OSError:
-        raise CliError(f"{what}: cannot resolve {host!r}") from None
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    number = port.isascii() and port.isdigit() and len(port) <= 5
+    if not sep or not host or not number or not 0 < int(port) < 65536:
+        raise CliError(f"{what} must be HOST:PORT, got {text[:80]!r}")
+    return resolve(host, what, numeric), int(port)
 
 
 class Link:
-    def __init__(self, target: tuple[str, int], listen: tuple[str, int], group: Optional[str] = None) -> None:
+    def __init__(self, target: tuple[str, int], listen: tuple[str, int], group: Optional[str] = None,
+                 allow_remote: bool = False) -> None:
+        check(target[0], "the target", allow_remote)    # the last gate before a packet leaves
         self.target = target
         self.sock = sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:

@@ -11,9 +11,11 @@ import collections
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import IO, Any, Callable, Optional
 
 from .. import constants as C
+from ..errors import CliError
+from ..fileio import check_target
 from . import cases as K
 from . import findings as F
 from .minimize import ddmin, difference, minimize
@@ -111,7 +113,7 @@ class Runner:
         self.supervisor = Supervisor(cfg.target_cmd) if cfg.target_cmd else None
         self.session = Session(cfg.settings, self.supervisor)
         cfg.out.mkdir(parents=True, exist_ok=True)
-        self._log = (cfg.out / "target.log").open("ab") if cfg.target_cmd else None
+        self._log = _open_log(cfg.out) if cfg.target_cmd else None
         if self.supervisor is not None:
             self.supervisor.log = self._log
         self.records: collections.OrderedDict[int, tuple[K.Case, list[Sent]]] = collections.OrderedDict()
@@ -321,6 +323,15 @@ def _pick(sent: list[Sent], command_id: Optional[int]) -> Optional[Sent]:
     return sent[-1] if sent else None
 
 
+def _open_log(folder: Path) -> IO[bytes]:
+    """The controller's output, appended to `folder`/target.log (a regular file, never a FIFO or device)."""
+    path = check_target(folder / "target.log")
+    try:
+        return path.open("ab")
+    except OSError as exc:
+        raise CliError(f"cannot write {folder / 'target.log'}: {exc.strerror}") from None
+
+
 def _jsonable(stream: Optional[dict[str, Any]]) -> Optional[dict[str, Any]]:
     return None if stream is None else {k: int(v) for k, v in stream.items()}
 
@@ -328,7 +339,7 @@ def _jsonable(stream: Optional[dict[str, Any]]) -> Optional[dict[str, Any]]:
 def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[str],
                    out: Optional[Path] = None) -> bool:
     """Send the finding again (minimised packet when there is one); True when it still triggers."""
-    log = (out / "target.log").open("ab") if out is not None and target_cmd else None
+    log = _open_log(out) if out is not None and target_cmd else None
     supervisor = Supervisor(target_cmd, log) if target_cmd else None
     session = Session(settings, supervisor)
     try:

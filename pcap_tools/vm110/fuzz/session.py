@@ -31,6 +31,7 @@ class Settings:
     limits: Limits = field(default_factory=Limits)
     startup_s: float = 10.0                 # time allowed for the first VRPO
     vrco_wait_s: float = 3.0                # withhold cases wait this long for a fresh VRCO
+    allow_remote: bool = False              # a target other than loopback (never a broadcast address)
 
 
 @dataclass
@@ -52,7 +53,7 @@ class Session:
     def __init__(self, settings: Settings, supervisor: Optional[Supervisor] = None) -> None:
         self.settings = settings
         self.supervisor = supervisor
-        self.link = Link(settings.target, settings.listen, settings.group)
+        self.link = Link(settings.target, settings.listen, settings.group, settings.allow_remote)
         now = time.time()
         self.monitor = Monitor(settings.limits, now)
         self.serial = 0
