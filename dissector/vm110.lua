@@ -54,6 +54,11 @@ local DEFAULT_INPUT_PORT, OUTPUT_PORT_OFFSET = 5825, 2
 local VRPI_WATCHDOG_MS, VRPO_WATCHDOG_MS, VRPO_PERIOD_MIN_MS, VRPO_PERIOD_MAX_MS = 500, 2000, 50, 200
 local COMMAND_RESEND_MS, VRCI_FAIL_MS, VRCO_GIVE_UP_MS, VRPO_BURST_GAP_MS = 100, 2000, 2000, 20
 local SERIAL_MODULUS, SERIAL_HALF, VRPO_HEADER_SIZE = 65536, 32768, 2
+-- docs/rules.md: duplicate window, command ID reuse gap, restart on a new port after this silence,
+-- the rate window of the plausible-gap test and its constants (d - 1 <= 64 + 4 max(r, 20) dt), a
+-- restart confirmed by the next serial s + 1 ... s + 4.
+local RULES = { dup_window_ms = 1000, reuse_gap_ms = 2000, new_port_silence_ms = 250, rate_window_s = 10,
+    gap_slack = 64, gap_rate_factor = 4, gap_min_rate = 20, confirm_span = 4 }
 local ACK_OF = { VRAO = "VRCI", VRAI = "VRCO" }
 local ES_RELAYS_CLOSED_FROM = 0x10
 
@@ -535,6 +540,14 @@ F.ack_to = ProtoField.framenum("vm110.analysis.ack_to", "Acknowledges the comman
     frametypes.REQUEST)
 F.ack_time = ProtoField.double("vm110.analysis.ack_time", "Acknowledged after, from the first transmission (ms)")
 F.ack_time_last = ProtoField.double("vm110.analysis.ack_time_last", "Acknowledged after, from the last transmission (ms)")
+F.burst_interval = ProtoField.double("vm110.analysis.burst_interval",
+    "Interval since the first packet of the previous VRPO burst (ms)")
+F.restart = ProtoField.uint16("vm110.analysis.restart", "Sender restart: the highest serial before it", base.DEC)
+F.restart_port_from = ProtoField.uint16("vm110.analysis.restart_port_from",
+    "Sender restart: UDP source port before it", base.DEC)
+F.silent_until_end = ProtoField.double("vm110.analysis.silent_until_end",
+    "Stream silent from here to the end of the capture (ms)")
+F.interrupted_by = ProtoField.framenum("vm110.analysis.interrupted_by", "Interrupted by the sender's restart in frame")
 F.burst_packets = ProtoField.uint16("vm110.burst.packets", "VRPO packets in the burst", base.DEC)
 F.burst_size = ProtoField.uint32("vm110.burst.size", "Periodic data in the burst (bytes)", base.DEC)
 F.burst_frame = ProtoField.framenum("vm110.burst.frame", "VRPO packet in frame")
@@ -585,6 +598,9 @@ seq("ack_without_command", "Acknowledgement without a matching command")
 seq("duplicate_ack", "Duplicate acknowledgement", severity.NOTE)
 seq("ack_late", "Command not acknowledged in time")
 seq("never_acked", "Command never acknowledged in the capture")
+seq("restart", "Sender restarted: serial counter started afresh")
+seq("silent_until_end", "Periodic stream silent until the end of the capture (watchdog)")
+seq("command_interrupted", "Command interrupted by its sender's restart", severity.NOTE)
 seq("burst_missing", "VRPO burst: packet number missing", severity.WARN, group.REASSEMBLE)
 seq("burst_incomplete", "Incomplete VRPO burst", severity.WARN, group.REASSEMBLE)
 local expert_list = {}
@@ -604,6 +620,10 @@ vm110.prefs.analysis = Pref.bool("Analyse the streams", true,
     "Serial gaps, intervals and watchdogs, retransmissions and acknowledgements, VRPO reassembly")
 vm110.prefs.serial_scope = Pref.enum("Serial number scope", 1, "One counter per sender, or one per packet type per sender",
     { { "sender", "Per sender (all packet types)", 1 }, { "type", "Per packet type per sender", 2 } }, false)
+vm110.prefs.dup_window_ms = Pref.uint("Duplicate window (ms)", RULES.dup_window_ms,
+    "A serial received again within this is a duplicate; a late packet fills a gap opened within it")
+vm110.prefs.reuse_gap_ms = Pref.uint("Command ID reuse gap (ms)", RULES.reuse_gap_ms,
+    "The same command ID again after a longer silence starts a new command")
 vm110.prefs.vrpi_watchdog_ms = Pref.uint("VRPI watchdog (ms)", VRPI_WATCHDOG_MS, "Warn above this VRPI interval")
 vm110.prefs.vrpo_watchdog_ms = Pref.uint("VRPO watchdog (ms)", VRPO_WATCHDOG_MS, "Warn above this VRPO interval")
 vm110.prefs.vrpo_min_ms = Pref.uint("VRPO recommended minimum interval (ms)", VRPO_PERIOD_MIN_MS, "Note below this")
@@ -943,6 +963,7 @@ local function read_settings()
     settings.heuristic = prefs.heuristic
     settings.analysis = prefs.analysis
     settings.per_type = prefs.serial_scope == 2
+    settings.dup_window, settings.reuse_gap = prefs.dup_window_ms, prefs.reuse_gap_ms
     settings.vrpi_watchdog, settings.vrpo_watchdog = prefs.vrpi_watchdog_ms, prefs.vrpo_watchdog_ms
     settings.vrpo_min, settings.vrpo_max = prefs.vrpo_min_ms, prefs.vrpo_max_ms
     settings.resend, settings.resend_tolerance = prefs.resend_ms, prefs.resend_tolerance_ms
@@ -987,74 +1008,288 @@ end
 local crc_memo = new_memo()
 
 ---------------------------------------------------------------------------------------------
--- Stream analysis (interpretation.md: serial numbers, timing, commands, VRPO split)
+-- Stream analysis (docs/rules.md: the rules of interpretation.md, precisely)
 -- Computed once per packet, on the first pass in capture order (pinfo.visited false), into a
--- per-frame table of numbers plus references to shared command and burst records; every later
--- dissection (GUI clicks in any order, tshark -2) only reads them. What needs the whole capture
--- (never acknowledged, a burst left incomplete) is shown on visited passes only. Illegal packets
--- are not analysed (treated as not received). All state is rebuilt in init().
+-- per-frame result: a number for most packets (the interval, -1 for none), else a table of
+-- numbers plus references to shared command, burst and restart records. Every later dissection
+-- (GUI clicks in any order, tshark -2) only reads them. Facts that depend on later packets (a
+-- restart candidate confirmed or not by its counter's next packet, a command interrupted by a
+-- restart or never acknowledged, an incomplete burst, a stream silent until the end) are final
+-- once the whole capture has been seen: finalize() runs before the first visited dissection,
+-- and they are shown on visited passes only. Illegal packets are not analysed (not received).
+-- All state is rebuilt in init().
 ---------------------------------------------------------------------------------------------
 local results = new_memo() -- frame -> analysis of that packet (false: not analysed)
-local senders = {}     -- (origin, port, direction) -> source address -> per-sender state and statistics
-local sender_list = {} -- the same, in order of first appearance (statistics)
-local serial_states = {} -- sender -> serial state (per-type scope: sender -> type -> serial state)
-local current = {}     -- command type -> {sender -> the sender's current command}
+local senders = {}      -- (origin, port, direction) -> source address -> sender
+local sender_list = {}  -- the same, in order of first appearance (statistics, end of capture)
+local hosts = {}        -- "direction origin address" -> that host's senders on any port (new-port restarts)
+local counters = {}     -- sender -> serial counter (per-type scope: sender -> type -> counter)
+local by_id = {}        -- command kind -> command ID -> its commands (any sender), in the order they began
+-- Command events (and restarts) wait here, in capture order, while a restart candidate before
+-- them is undecided: a restart interrupts its sender's commands as of the candidate's time.
+local queue, qhead, qtail = {}, 1, 0
+local last_number, last_record = 0, false -- the capture's last record (any frame) so far
+local dirty = false     -- packets analysed since the last finalize()
+local silent_marks = {} -- results finalize() marked silent until the end
+
+local DUPLICATE, LATE, CANDIDATE = -1, -2, -3
+local DUP_RES = { serial = DUPLICATE } -- every duplicate's result: it takes no further part
 
 local function reset_analysis()
-    results, senders, sender_list, serial_states = new_memo(), {}, {}, {}
-    current = { VRCI = {}, VRCO = {} }
+    results, senders, sender_list, hosts, counters = new_memo(), {}, {}, {}, {}
+    by_id = { VRCI = {}, VRCO = {} }
+    queue, qhead, qtail = {}, 1, 0
+    last_number, last_record, dirty, silent_marks = 0, false, false, {}
 end
 reset_analysis()
 
+-- Seconds to milliseconds, rounded to the microsecond: capture times are doubles of the epoch,
+-- whose last bits are noise; pcap timestamps are (at most) microseconds in practice.
+local function ms(seconds)
+    local us = seconds * 1e6 + 0.5
+    return (us - us % 1) / 1000 -- (floor without a call)
+end
 
--- Serial classification of interpretation.md on unwrapped numbers. Open gaps are kept as ranges
--- {low, high}; a range more than half the number space behind the highest serial can no longer
--- be filled and is dropped (its packets stay counted in `lost`). Returns missing (>= 0) or
--- -1 duplicate, -2 late (out of order).
-local function classify_serial(st, s)
-    local h = st.h
-    if not h then
-        st.h, st.first = s, s
-        return 0
-    end
-    local d = (s - h) % SERIAL_MODULUS
-    if d == 0 then return -1 end
-    if d < SERIAL_HALF then
-        local top = h + d
-        if top - top % SERIAL_MODULUS > h - h % SERIAL_MODULUS then st.wraps = st.wraps + 1 end
-        st.h = top
-        if d == 1 then return 0 end
-        local gaps = st.gaps
-        while gaps[1] and gaps[1][2] < top - SERIAL_HALF do table.remove(gaps, 1) end
-        gaps[#gaps + 1] = { h + 1, top - 1 }
-        st.lost = st.lost + d - 1
-        return d - 1
-    end
-    local u = h - (SERIAL_MODULUS - d)
-    if u < st.first then
-        if st.early[u] then return -1 end
-        st.early[u] = true
-        return -2
-    end
-    local gaps = st.gaps
-    for i = #gaps, 1, -1 do
-        local g = gaps[i]
-        if u >= g[1] and u <= g[2] then
-            st.lost = st.lost - 1
-            if g[1] == g[2] then
-                table.remove(gaps, i)
-            elseif u == g[1] then
-                g[1] = u + 1
-            elseif u == g[2] then
-                g[2] = u - 1
-            else
-                table.insert(gaps, i + 1, { u + 1, g[2] })
-                g[2] = u - 1
-            end
-            return -2
+local function timeout_of(cmd)
+    return cmd.type == "VRCI" and settings.vrci_fail or settings.vrco_give_up
+end
+
+-- Commands (rules.md "Commands"): a command is (kind, sender, command ID); a sender may have any
+-- number open. `snd.open`: its commands that a restart could still interrupt; `snd.epoch` counts
+-- its restarts (a command ID after one starts a new command).
+local function interrupt(snd, t, frame)
+    local open = snd.open
+    for i = 1, #open do
+        local cmd = open[i]
+        if not cmd.ack and not cmd.interrupted and ms(t - cmd.t1) <= timeout_of(cmd) then
+            cmd.interrupted = frame
+            snd.interrupted = snd.interrupted + 1
         end
     end
-    return -1
+    snd.open = {}
+    snd.epoch = snd.epoch + 1
+end
+
+local function run_command(kind, cid, snd, t, frame, res)
+    local target = ACK_OF[kind]
+    if not target then
+        local mine = snd.cmds[kind]
+        local cmd = mine[cid]
+        if cmd and cmd.epoch == snd.epoch and ms(t - cmd.tlast) < settings.reuse_gap then
+            res.cmd, res.number = cmd, cmd.n -- a retransmission (duplicates never get here)
+            res.since, res.resend = ms(t - cmd.t1), ms(t - cmd.tlast)
+            res.spurious = cmd.ack and true or false
+            cmd.n, cmd.tlast = cmd.n + 1, t
+            snd.retransmissions = snd.retransmissions + 1
+            return
+        end
+        cmd = { id = cid, type = kind, sender = snd, frame = frame, t1 = t, tlast = t, n = 1, ack = false,
+            ack_ms = false, epoch = snd.epoch, interrupted = false }
+        mine[cid] = cmd -- (a new ID ends nothing)
+        local list = by_id[kind][cid]
+        if list then list[#list + 1] = cmd else by_id[kind][cid] = { cmd } end
+        local open = snd.open
+        if #open >= 64 then -- keep only those a restart could still interrupt
+            local keep = {}
+            for i = 1, #open do
+                local c = open[i]
+                if not c.ack and ms(t - c.t1) <= timeout_of(c) then keep[#keep + 1] = c end
+            end
+            open = keep
+            snd.open = keep
+        end
+        open[#open + 1] = cmd
+        snd.commands = snd.commands + 1
+        res.cmd, res.number = cmd, 0
+        return
+    end
+    -- An acknowledgement: of the command with this ID (any sender, not interrupted) that began last.
+    local best, list = false, by_id[target][cid]
+    if list then
+        for i = #list, 1, -1 do
+            if not list[i].interrupted then
+                best = list[i]
+                break
+            end
+        end
+    end
+    res.ack_of = best
+    if not best then return end
+    res.ack_ms = ms(t - best.t1)
+    if best.ack then
+        res.duplicate_ack = true
+    else
+        best.ack, best.ack_ms = frame, res.ack_ms
+        best.sender.acked = best.sender.acked + 1
+        res.ack_last_ms = ms(t - best.tlast)
+    end
+end
+
+-- Runs the queue up to the first undecided restart candidate.
+local function flush()
+    while qhead <= qtail do
+        local ev = queue[qhead]
+        local rec = ev.restart
+        if rec then
+            if not rec.decided then return end
+            if rec.confirmed then interrupt(rec.of, rec.t, rec.frame) end
+        else
+            run_command(ev.kind, ev.cid, ev.snd, ev.t, ev.frame, ev.res)
+        end
+        queue[qhead] = nil
+        qhead = qhead + 1
+    end
+    qhead, qtail = 1, 0
+end
+
+local function command_event(kind, cid, snd, t, frame, res)
+    if qtail < qhead then return run_command(kind, cid, snd, t, frame, res) end
+    qtail = qtail + 1
+    queue[qtail] = { kind = kind, cid = cid, snd = snd, t = t, frame = frame, res = res }
+end
+
+local function restart_event(rec)
+    if qtail < qhead and rec.decided then return interrupt(rec.of, rec.t, rec.frame) end
+    qtail = qtail + 1
+    queue[qtail] = { restart = rec }
+end
+
+-- Serial counters (rules.md "Serial numbers"): h, the start (first packet or last restart), the
+-- time each serial was last accepted (`acc`, by serial), the open gaps (ranges {first serial,
+-- count, time opened}, oldest first), the previous accepted packet's time (`prev`), and the
+-- accepted times of the last RATE_WINDOW_S seconds in a ring (the rate of the plausible-gap
+-- test, counted exactly: by binary search while the times are in order).
+local new_counter, classify, decide
+do
+    local RATE_WINDOW_S, CONFIRM_SPAN = RULES.rate_window_s, RULES.confirm_span
+    local GAP_SLACK, GAP_RATE_FACTOR, GAP_MIN_RATE = RULES.gap_slack, RULES.gap_rate_factor, RULES.gap_min_rate
+
+    function new_counter(snd, s, t)
+        return { snd = snd, h = s, start = t, prev = t, acc = { [s] = t }, gaps = {}, lost = 0, wraps = 0,
+            ring = { t }, rhead = 1, rtail = 1, sorted = true, cand = false }
+    end
+
+    local function accept(c, s, t)
+        c.acc[s], c.prev = t, t
+        local ring, tail = c.ring, c.rtail + 1
+        if t < ring[tail - 1] then c.sorted = false end
+        ring[tail], c.rtail = t, tail
+        local head, lo = c.rhead, t - RATE_WINDOW_S
+        if ring[head] < lo then
+            repeat
+                ring[head] = nil
+                head = head + 1
+            until ring[head] >= lo
+            if head > 32 and head + head > tail then -- (keeps the ring in the table's array part)
+                local n = tail - head + 1
+                for i = 1, n do ring[i] = ring[head + i - 1] end
+                for i = n + 1, tail do ring[i] = nil end
+                head, c.rtail = 1, n
+            end
+            c.rhead = head
+        end
+    end
+
+    -- First ring index from `a` with a time >= v (times in order).
+    local function lower_bound(ring, a, b, v)
+        while a < b do
+            local m = (a + b - (a + b) % 2) / 2
+            if ring[m] < v then a = m + 1 else b = m end
+        end
+        return a
+    end
+
+    -- d - 1 <= 64 + 4 max(r, 20) dt: r = accepted packets in [t - W, t) / W, W = min(10 s, t - start).
+    local function plausible(c, d, t)
+        local w, lo = t - c.start, c.start
+        if w > RATE_WINDOW_S then w, lo = RATE_WINDOW_S, t - RATE_WINDOW_S end
+        local rate = 0
+        if w > 0 then
+            local ring, head, tail, n = c.ring, c.rhead, c.rtail, 0
+            if c.sorted then
+                n = lower_bound(ring, head, tail + 1, t) - lower_bound(ring, head, tail + 1, lo)
+            else
+                for i = head, tail do
+                    local x = ring[i]
+                    if x >= lo and x < t then n = n + 1 end
+                end
+            end
+            rate = n / w
+        end
+        if rate < GAP_MIN_RATE then rate = GAP_MIN_RATE end
+        return d - 1 <= GAP_SLACK + GAP_RATE_FACTOR * rate * (t - c.prev)
+    end
+
+    -- A candidate decided: confirmed, the counter starts afresh at it; else it stays out of order.
+    function decide(c, confirmed)
+        local rec, snd = c.cand, c.snd
+        c.cand, rec.decided = false, true
+        if confirmed then
+            rec.confirmed = true
+            local s, t = rec.to, rec.t
+            c.h, c.start, c.prev, c.acc, c.gaps = s, t, t, { [s] = t }, {}
+            c.ring, c.rhead, c.rtail, c.sorted = { t }, 1, 1, true
+            snd.restarts[#snd.restarts + 1] = rec
+        else
+            snd.late = snd.late + 1
+        end
+        flush()
+    end
+
+    -- Rules 1-5 for serial s at time t: returns the serials missing before it (>= 0), DUPLICATE,
+    -- LATE or CANDIDATE. A candidate pending on the counter is decided first by the first packet
+    -- with another serial (copies of it are duplicates).
+    function classify(c, s, t)
+        local cand = c.cand
+        if cand then
+            if s == cand.to then return DUPLICATE end
+            decide(c, (s - cand.to) % SERIAL_MODULUS <= CONFIRM_SPAN)
+        end
+        local ta = c.acc[s]
+        if ta and ms(t - ta) < settings.dup_window then return DUPLICATE end
+        local h = c.h
+        local d = (s - h) % SERIAL_MODULUS
+        if d == 1 then
+            if s == 0 then c.wraps = c.wraps + 1 end
+            c.h = s
+            accept(c, s, t)
+            return 0
+        end
+        local gaps = c.gaps
+        if gaps[1] then
+            local window = settings.dup_window
+            while gaps[1] and ms(t - gaps[1][3]) >= window do table.remove(gaps, 1) end -- (lost for good)
+            for i = #gaps, 1, -1 do
+                local g = gaps[i]
+                local k = (s - g[1]) % SERIAL_MODULUS
+                if k < g[2] and ms(t - g[3]) < window then
+                    if g[2] == 1 then
+                        table.remove(gaps, i)
+                    elseif k == 0 then
+                        g[1], g[2] = (s + 1) % SERIAL_MODULUS, g[2] - 1
+                    elseif k == g[2] - 1 then
+                        g[2] = k
+                    else
+                        table.insert(gaps, i + 1, { (s + 1) % SERIAL_MODULUS, g[2] - k - 1, g[3] })
+                        g[2] = k
+                    end
+                    c.lost = c.lost - 1
+                    accept(c, s, t)
+                    return LATE
+                end
+            end
+        end
+        if d > 1 and d < SERIAL_HALF and plausible(c, d, t) then
+            gaps[#gaps + 1] = { (h + 1) % SERIAL_MODULUS, d - 1, t }
+            c.lost = c.lost + d - 1
+            if s < h then c.wraps = c.wraps + 1 end
+            c.h = s
+            accept(c, s, t)
+            return d - 1
+        end
+        accept(c, s, t) -- (moves nothing)
+        return CANDIDATE
+    end
 end
 
 -- Complete: numbers start, start+1, ... each once (in any order), every packet but the last by
@@ -1083,57 +1318,25 @@ local function burst_data(b)
     return concat(by_number)
 end
 
--- Seconds to milliseconds, rounded to the microsecond: capture times are doubles of the epoch,
--- whose last bits are noise; pcap timestamps are (at most) microseconds in practice.
-local function ms(seconds)
-    local us = seconds * 1e6 + 0.5
-    return (us - us % 1) / 1000 -- (floor without a call)
-end
-
-local function analyse_commands(r, res, snd, t, frame, cid)
-    local id = r.type
-    local target = ACK_OF[id]
-    if not target then
-        local cur = current[id]
-        local cmd = cur[snd]
-        if cmd and cmd.id == cid then -- a retransmission (serial-duplicated frames never get here)
-            res.cmd, res.number = cmd, cmd.n
-            res.since, res.resend = ms(t - cmd.t1), ms(t - cmd.tlast)
-            res.spurious = cmd.ack and true or false
-            cmd.n, cmd.tlast = cmd.n + 1, t
-            snd.retransmissions = snd.retransmissions + 1
-            return
-        end
-        cmd = { id = cid, type = id, sender = snd, frame = frame, t1 = t, tlast = t, n = 1, ack = false, ack_ms = false }
-        cur[snd] = cmd -- supersedes the sender's previous command (command IDs may wrap)
-        snd.commands = snd.commands + 1
-        res.cmd, res.number = cmd, 0
-        return
-    end
-    local best = false -- the latest current command with this ID, from any sender
-    for _, c in pairs(current[target]) do
-        if c.id == cid and (not best or c.frame > best.frame) then best = c end
-    end
-    res.ack_of = best
-    if not best then return end
-    res.ack_ms = ms(t - best.t1)
-    if best.ack then
-        res.duplicate_ack = true
-    else
-        best.ack, best.ack_ms = frame, res.ack_ms
-        best.sender.acked = best.sender.acked + 1
-        res.ack_last_ms = ms(t - best.tlast)
-    end
-end
-
-local function new_sender(name)
-    local snd = { name = name, count = {}, duplicates = 0, late = 0, retransmissions = 0, states = {},
-        commands = 0, acked = 0,
-        intervals = {}, -- type -> {last = time, n, min, max, sum}
+local function new_sender(name, port)
+    local snd = { name = name, port = port, count = {}, duplicates = 0, late = 0, retransmissions = 0,
+        states = {}, commands = 0, acked = 0, interrupted = 0, epoch = 0, open = {},
+        cmds = { VRCI = {}, VRCO = {} }, -- kind -> command ID -> the sender's latest command with it
+        restarts = {},  -- restart records, in order
+        last = false,   -- time of its last legal packet
+        pred = false, taken_over = false, -- new-port restarts: the sender it restarted, the one restarting it
+        intervals = {}, -- type -> {last = time, frame, offset, n, min, max, sum}
         -- the current VRPO burst while it has one packet: no table of its own (most bursts)
-        burst = { b = false, tlast = false, offset = false, frame = false, number = false, size = false, data = false } }
+        burst = { b = false, tlast = false, tstart = false, offset = false, frame = false, number = false,
+            size = false, data = false } }
     sender_list[#sender_list + 1] = snd
     return snd
+end
+
+-- A result as a table (a number is the interval, -1 for none).
+local function as_table(res)
+    if type(res) == "number" then return { serial = 0, interval = res >= 0 and res } end
+    return res
 end
 
 -- A burst table once a second VRPO packet joins: packet i at [3i - 2] frame, [3i - 1] packet
@@ -1144,14 +1347,13 @@ local function join_burst(cur, res, frame, number, data, size)
     if not b then
         b = { cur.frame, cur.number, cur.data, n = 1, size = cur.size, top = settings.number_start - 1 }
         cur.b = b
-        local first = memo_get(results, cur.frame, cur.offset)
-        if type(first) == "number" then first = { serial = 0, interval = first >= 0 and first } end
+        local first = as_table(memo_get(results, cur.frame, cur.offset))
         if cur.number > b.top + 1 then first.burst_missing = b.top + 1 end
         if cur.number > b.top then b.top = cur.number end
         first.burst, first.burst_index = b, 1
         memo_set(results, cur.frame, cur.offset, first)
     end
-    if type(res) == "number" then res = { serial = 0, interval = res >= 0 and res } end
+    res = as_table(res)
     local n = b.n + 1
     b.n, b.size = n, b.size + size
     b[3 * n - 2], b[3 * n - 1], b[3 * n] = frame, number, data
@@ -1161,10 +1363,25 @@ local function join_burst(cur, res, frame, number, data, size)
     return res
 end
 
--- Senders by (origin, port, direction) then source address: no string built per packet.
-local function sender_of(r, pinfo)
+-- The highest serial of a sender's counter (per-type scope: of this type's, else the last used).
+local function highest(snd, id)
+    local c = counters[snd]
+    if not c or not settings.per_type then return c and c.h end
+    if c[id] then return c[id].h end
+    local best = false
+    for _, x in pairs(c) do
+        if not best or x.prev > best.prev then best = x end
+    end
+    return best and best.h
+end
+
+-- Senders by (origin, port, direction) then source address: no string built per packet. A new
+-- sender from a host (direction, origin, address) heard before on another port restarts the
+-- sender of that host heard last among those silent for at least 250 ms: returned as a record.
+local function sender_of(r, pinfo, t, frame)
     local port = pinfo.src_port
-    local k = (r.origin * 65536 + port) * 2 + (r.info.direction == "Input" and 1 or 0)
+    local direction = r.info.direction
+    local k = (r.origin * 65536 + port) * 2 + (direction == "Input" and 1 or 0)
     local by_addr = senders[k]
     if not by_addr then
         by_addr = {}
@@ -1172,11 +1389,26 @@ local function sender_of(r, pinfo)
     end
     local addr = tostring(pinfo.src)
     local snd = by_addr[addr]
-    if not snd then
-        snd = new_sender(fmt("%s %s:%d origin 0x%04x", r.info.direction, addr, port, r.origin))
-        by_addr[addr] = snd
+    if snd then return snd end
+    snd = new_sender(fmt("%s %s:%d origin 0x%04x", direction, addr, port, r.origin), port)
+    by_addr[addr] = snd
+    local host = fmt("%s %d %s", direction, r.origin, addr)
+    local others = hosts[host]
+    if not others then
+        hosts[host] = { snd }
+        return snd
     end
-    return snd
+    local pred = false
+    for _, other in ipairs(others) do
+        if ms(t - other.last) >= RULES.new_port_silence_ms and (not pred or other.last > pred.last) then pred = other end
+    end
+    others[#others + 1] = snd
+    if not pred then return snd end
+    snd.pred, pred.taken_over = pred, snd
+    local rec = { of = pred, frame = frame, t = t, from = highest(pred, r.type) or 0, to = r.serial,
+        port_from = pred.port, port_to = port, decided = true, confirmed = true }
+    snd.restarts[1] = rec
+    return snd, rec
 end
 
 -- Returns the frame's result: a number for most packets (the interval, -1 for none: keeps the
@@ -1184,56 +1416,83 @@ end
 local function analyse(r, s, pinfo, frame, offset)
     local id = r.type
     local t = pinfo.abs_ts
-    local snd = sender_of(r, pinfo)
+    local snd, restart = sender_of(r, pinfo, t, frame)
     snd.count[id] = (snd.count[id] or 0) + 1
-    local st
+    snd.last, dirty = t, true
+    if frame > last_number then last_number, last_record = frame, t end
+    local serial = r.serial
+    local c, fresh
     if settings.per_type then
-        st = serial_states[snd]
-        if not st then
-            st = {}
-            serial_states[snd] = st
+        local by_type = counters[snd]
+        if not by_type then
+            by_type = {}
+            counters[snd] = by_type
         end
-        local by_type = st
-        st = by_type[id]
-        if not st then
-            st = { h = false, first = false, gaps = {}, early = {}, lost = 0, wraps = 0 }
-            by_type[id] = st
-            snd.states[#snd.states + 1] = st
+        c = by_type[id]
+        if not c then
+            c, fresh = new_counter(snd, serial, t), true
+            by_type[id] = c
+            snd.states[#snd.states + 1] = c
         end
     else
-        st = serial_states[snd]
-        if not st then
-            st = { h = false, first = false, gaps = {}, early = {}, lost = 0, wraps = 0 }
-            serial_states[snd] = st
-            snd.states[#snd.states + 1] = st
+        c = counters[snd]
+        if not c then
+            c, fresh = new_counter(snd, serial, t), true
+            counters[snd] = c
+            snd.states[1] = c
         end
     end
-    local missing = classify_serial(st, r.serial)
-    if missing == -1 then
-        snd.duplicates = snd.duplicates + 1
-    elseif missing == -2 then
-        snd.late = snd.late + 1
+    local res = false -- (a table only where a number cannot say it)
+    if not fresh then
+        local missing = classify(c, serial, t)
+        if missing == DUPLICATE then
+            snd.duplicates = snd.duplicates + 1
+            return DUP_RES
+        elseif missing ~= 0 then
+            res = { serial = missing }
+            if missing == LATE then
+                snd.late = snd.late + 1
+            elseif missing == CANDIDATE then
+                local rec = { of = snd, frame = frame, t = t, from = c.h, to = serial, decided = false,
+                    confirmed = false }
+                c.cand, res.cand = rec, rec
+                restart_event(rec)
+            end
+        end
+    end
+    if restart then
+        res = res or { serial = 0 }
+        res.restart = restart
+        restart_event(restart)
     end
     local iv = false
-    if id == "VRPI" or id == "VRPO" then -- intervals include serial duplicates
+    if id == "VRPI" or id == "VRPO" then -- accepted packets of a periodic stream
         local stats = snd.intervals[id]
         if stats then
             iv = ms(t - stats.last)
+        else
+            stats = { n = 0, min = false, max = false, sum = 0, silent = false }
+            snd.intervals[id] = stats
+            local before = snd.pred and snd.pred.intervals[id] -- (a new-port restart: from its last packet)
+            if before then iv = ms(t - before.last) end
+        end
+        if iv then
             if stats.n == 0 then stats.min, stats.max = iv, iv end
             if iv < stats.min then stats.min = iv end
             if iv > stats.max then stats.max = iv end
-            stats.sum, stats.n, stats.last = stats.sum + iv, stats.n + 1, t
-        else
-            snd.intervals[id] = { last = t, n = 0, min = false, max = false, sum = 0 }
+            stats.sum, stats.n = stats.sum + iv, stats.n + 1
         end
+        stats.last, stats.frame, stats.offset = t, frame, offset
     end
-    local res = missing == 0 and (iv or -1) or { serial = missing, interval = iv }
-    if missing == -1 then return res end -- a duplicated frame is neither a command nor a burst packet
     local v = r.values
     if v.command_id then
-        if type(res) == "number" then res = { serial = 0, interval = iv } end
-        analyse_commands(r, res, snd, t, frame, v.command_id)
-    elseif r.data_len then
+        res = res or { serial = 0 }
+        res.interval = iv
+        command_event(id, v.command_id, snd, t, frame, res)
+        return res
+    end
+    if res then res.interval = iv end
+    if r.data_len then
         local number, size, cur = v.packet_number, r.data_len, snd.burst
         -- The data are kept only where a reassembly may need them: a short first-numbered packet
         -- completes a burst only alone, and then its own packet shows them (most VRPO).
@@ -1243,13 +1502,54 @@ local function analyse(r, s, pinfo, frame, offset)
             data = sub(s, start + 1, start + size)
         end
         if cur.tlast and ms(t - cur.tlast) < settings.burst_gap then
-            res = join_burst(cur, res, frame, number, data, size)
+            res = join_burst(cur, res or iv or -1, frame, number, data, size)
         else
+            -- A new burst: its interval from the previous burst's first packet (equal to the
+            -- packet's interval, as a number result says, after a burst of one packet).
+            local bi = cur.tstart and ms(t - cur.tstart)
             cur.b, cur.offset, cur.frame, cur.number, cur.size, cur.data = false, offset, frame, number, size, data
+            cur.tstart = t
+            if bi ~= iv then
+                res = res or { serial = 0, interval = iv }
+                res.binterval = bi
+            end
         end
         cur.tlast = t
     end
-    return res
+    return res or iv or -1
+end
+
+-- Once the whole capture has been seen (before the first visited dissection, and for the
+-- statistics; again when a live capture has grown since): candidates still undecided are out of
+-- order, the commands behind them run, and each periodic stream whose last packet lies more than
+-- its watchdog before the capture's last record is marked silent until the end (unless a sender
+-- on a new port took over).
+local function finalize()
+    dirty = false
+    for _, snd in ipairs(sender_list) do
+        for _, c in ipairs(snd.states) do
+            if c.cand then decide(c, false) end
+        end
+    end
+    flush()
+    for _, res in ipairs(silent_marks) do res.silent = nil end
+    silent_marks = {}
+    if not last_record then return end
+    for _, snd in ipairs(sender_list) do
+        for _, stats in pairs(snd.intervals) do stats.silent = false end
+        if not snd.taken_over then
+            for id, stats in pairs(snd.intervals) do
+                local gap = ms(last_record - stats.last)
+                if gap > (id == "VRPI" and settings.vrpi_watchdog or settings.vrpo_watchdog) then
+                    local res = as_table(memo_get(results, stats.frame, stats.offset))
+                    memo_set(results, stats.frame, stats.offset, res)
+                    res.silent = gap
+                    silent_marks[#silent_marks + 1] = res
+                    stats.silent = gap
+                end
+            end
+        end
+    end
 end
 
 -- Machine-specific sub-dissectors, keyed by the "Machine" preference (see the README and
@@ -1268,43 +1568,45 @@ local function sub_dissect(table_, data_tvb, pinfo, tree)
     table_:try(settings.machine, data_tvb, pinfo, tree)
 end
 
+-- Expert summaries are constant (Wireshark's expert statistics group by them): the numbers are
+-- in the fields they sit on.
+local function add_restart(rec, tvb, root, pinfo)
+    add_expert(generated(root, "restart", tvb, 8, 2, rec.from), E.restart)
+    if rec.port_from then generated(root, "restart_port_from", tvb, 8, 2, rec.port_from) end
+    pinfo.cols.info:append(" [Restart]")
+end
+
 local function add_serial_analysis(res, tvb, root, r, pinfo)
     local missing = res.serial
-    if missing == 0 then return end
     if missing > 0 then
-        add_expert(generated(root, "serial_missing", tvb, 8, 2, missing), E.serial_gap,
-            fmt("%d packet(s) missing before serial %d", missing, r.serial))
+        add_expert(generated(root, "serial_missing", tvb, 8, 2, missing), E.serial_gap)
         pinfo.cols.info:append(fmt(" [%d lost]", missing))
-    elseif missing == -1 then
-        add_expert(generated(root, "serial_duplicate", tvb, 8, 2, 1), E.serial_duplicate,
-            fmt("Serial %d already received from this sender", r.serial))
+    elseif missing == DUPLICATE then
+        add_expert(generated(root, "serial_duplicate", tvb, 8, 2, 1), E.serial_duplicate)
         pinfo.cols.info:append(" [duplicate]")
-    else
-        add_expert(generated(root, "serial_out_of_order", tvb, 8, 2, 1), E.serial_out_of_order,
-            fmt("Serial %d arrived late (out of order)", r.serial))
+    elseif missing == LATE or missing == CANDIDATE and res.cand.decided and not res.cand.confirmed then
+        add_expert(generated(root, "serial_out_of_order", tvb, 8, 2, 1), E.serial_out_of_order)
         pinfo.cols.info:append(" [out of order]")
+    elseif missing == CANDIDATE and res.cand.confirmed then
+        add_restart(res.cand, tvb, root, pinfo)
     end
+    if res.restart then add_restart(res.restart, tvb, root, pinfo) end
 end
 
 local function add_interval(iv, tvb, root, r)
     local item = generated(root, "interval", tvb, 0, ID_LEN, iv)
     if r.type == "VRPI" then
-        if iv > settings.vrpi_watchdog then
-            add_expert(item, E.watchdog_vrpi, fmt("VRPI interval %.3f ms above the controller watchdog of %d ms",
-                iv, settings.vrpi_watchdog))
-        end
+        if iv > settings.vrpi_watchdog then add_expert(item, E.watchdog_vrpi) end
     elseif iv > settings.vrpo_watchdog then
-        add_expert(item, E.watchdog_vrpo, fmt("VRPO interval %.3f ms above the base unit watchdog of %d ms "
-            .. "(ES-Link relays open if an RU is armed)", iv, settings.vrpo_watchdog))
-    elseif (iv < settings.vrpo_min and iv >= settings.burst_gap) or iv > settings.vrpo_max then
-        -- (intervals below the burst gap are packets of one split burst, not the period)
-        add_expert(item, E.vrpo_interval, fmt("VRPO interval %.3f ms outside the recommended %d-%d ms",
-            iv, settings.vrpo_min, settings.vrpo_max))
+        add_expert(item, E.watchdog_vrpo)
     end
 end
 
-local function timeout_of(cmd)
-    return cmd.type == "VRCI" and settings.vrci_fail or settings.vrco_give_up
+-- On a VRPO that begins a burst: the interval between burst starts (the VRPO period, which the
+-- recommendation is about; the packets of a split burst go back to back).
+local function add_burst_interval(bi, tvb, root)
+    local item = generated(root, "burst_interval", tvb, 0, ID_LEN, bi)
+    if bi < settings.vrpo_min or bi > settings.vrpo_max then add_expert(item, E.vrpo_interval) end
 end
 
 local function add_command_analysis(res, tvb, root, pinfo, visited)
@@ -1313,49 +1615,43 @@ local function add_command_analysis(res, tvb, root, pinfo, visited)
     if cmd then
         if res.number > 0 then
             local item = generated(root, "retransmission_of", tvb, id, 2, cmd.frame)
-            add_expert(item, E.retransmission, fmt("Retransmission %d of the command in frame %d, %.3f ms after it",
-                res.number, cmd.frame, res.since))
+            add_expert(item, E.retransmission)
             generated(root, "retransmission_number", tvb, id, 2, res.number)
             generated(root, "since_first", tvb, id, 2, res.since)
             local resend = generated(root, "resend_interval", tvb, id, 2, res.resend)
             if math.abs(res.resend - settings.resend) > settings.resend_tolerance then
-                add_expert(resend, E.resend_interval, fmt("Resent after %.3f ms, nominal %d ms", res.resend, settings.resend))
+                add_expert(resend, E.resend_interval)
             end
-            if res.spurious then
-                add_expert(item, E.spurious_retransmission,
-                    fmt("Retransmission after the acknowledgement in frame %d", cmd.ack))
-            end
+            if res.spurious then add_expert(item, E.spurious_retransmission) end
             pinfo.cols.info:append(fmt(" [retransmission %d of frame %d]", res.number, cmd.frame))
         end
         if cmd.ack then
             local item = generated(root, "ack_in", tvb, id, 2, cmd.ack)
-            if res.number == 0 and cmd.ack_ms > timeout_of(cmd) then
-                add_expert(item, E.ack_late, fmt("Acknowledged after %.3f ms, later than %d ms%s", cmd.ack_ms,
-                    timeout_of(cmd), cmd.type == "VRCI" and ": the base unit reports failure" or ""))
+            if res.number == 0 and cmd.ack_ms > timeout_of(cmd) then add_expert(item, E.ack_late) end
+        elseif res.number == 0 then
+            if cmd.interrupted then
+                add_expert(generated(root, "interrupted_by", tvb, id, 2, cmd.interrupted), E.command_interrupted)
+            elseif visited then
+                add_expert(root, E.never_acked)
             end
-        elseif visited and res.number == 0 then
-            add_expert(root, E.never_acked, fmt("%s command %d is never acknowledged in the capture", cmd.type, cmd.id))
         end
         return
     end
     local target = res.ack_of
     if not target then
-        add_expert(root, E.ack_without_command, "No current command with this command ID")
+        add_expert(root, E.ack_without_command)
         pinfo.cols.info:append(" [no command]")
         return
     end
     generated(root, "ack_to", tvb, id, 2, target.frame)
     local item = generated(root, "ack_time", tvb, id, 2, res.ack_ms)
     if res.duplicate_ack then
-        add_expert(item, E.duplicate_ack, fmt("The command of frame %d was already acknowledged in frame %d",
-            target.frame, target.ack))
+        add_expert(item, E.duplicate_ack)
         pinfo.cols.info:append(" [duplicate ack]")
         return
     end
     generated(root, "ack_time_last", tvb, id, 2, res.ack_last_ms)
-    if res.ack_ms > timeout_of(target) then
-        add_expert(item, E.ack_late, fmt("Acknowledged after %.3f ms, later than %d ms", res.ack_ms, timeout_of(target)))
-    end
+    if res.ack_ms > timeout_of(target) then add_expert(item, E.ack_late) end
 end
 
 local BURST_FRAMES_SHOWN = 64
@@ -1377,7 +1673,7 @@ local function add_burst(res, tvb, root, pinfo, tree, visited)
         end
     end
     if res.burst_missing then
-        add_expert(bt, E.burst_missing, fmt("Packet number %d missing before this one", res.burst_missing))
+        add_expert(bt, E.burst_missing)
     end
     if b[3 * n - 2] ~= pinfo.number then return end -- the data are shown with the burst's last packet
     local data = b.reassembled
@@ -1387,8 +1683,7 @@ local function add_burst(res, tvb, root, pinfo, tree, visited)
     end
     if not data then
         if visited then
-            add_expert(generated(bt, "burst_complete", tvb, PREFIX_LEN, 2, false), E.burst_incomplete,
-                "Incomplete burst: its data are not reassembled")
+            add_expert(generated(bt, "burst_complete", tvb, PREFIX_LEN, 2, false), E.burst_incomplete)
         end
         return
     end
@@ -1416,22 +1711,37 @@ local function add_single_burst(r, tvb, root, pinfo, tree, visited)
         return
     end
     if number > start then
-        add_expert(root, E.burst_missing, fmt("Packet number %d missing before this one", start))
+        add_expert(root, E.burst_missing)
     end
     if visited then
-        add_expert(generated(root, "burst_complete", tvb, PREFIX_LEN, 2, false), E.burst_incomplete,
-            "Incomplete burst: its data are not reassembled")
+        add_expert(generated(root, "burst_complete", tvb, PREFIX_LEN, 2, false), E.burst_incomplete)
     end
+end
+
+local function add_silence(res, tvb, root)
+    add_expert(generated(root, "silent_until_end", tvb, 0, ID_LEN, res.silent), E.silent_until_end)
 end
 
 local function add_analysis(res, r, tvb, pinfo, tree, root)
     local visited = pinfo.visited
     add_serial_analysis(res, tvb, root, r, pinfo)
-    if res.interval then add_interval(res.interval, tvb, root, r) end
+    local iv = res.interval
+    if iv then add_interval(iv, tvb, root, r) end
+    if res.silent then add_silence(res, tvb, root) end
     if res.cmd or res.ack_of ~= nil then add_command_analysis(res, tvb, root, pinfo, visited) end
-    if res.burst then
+    if res.serial == DUPLICATE then
+        -- a duplicate is no burst part
+    elseif res.burst then
+        if res.burst_index == 1 then
+            local bi = res.binterval
+            if bi == nil then bi = iv end
+            if bi then add_burst_interval(bi, tvb, root) end
+        end
         add_burst(res, tvb, root, pinfo, tree, visited)
-    elseif r.data_len and res.serial ~= -1 then
+    elseif r.data_len then
+        local bi = res.binterval
+        if bi == nil then bi = iv end
+        if bi then add_burst_interval(bi, tvb, root) end
         add_single_burst(r, tvb, root, pinfo, tree, visited)
     end
     if r.values.command_data and settings.machine ~= "" then
@@ -1458,6 +1768,7 @@ local function dissect(tvb, pinfo, tree)
     if visited then
         known = memo_get(crc_memo, number, offset) or nil
         if settings.analysis then
+            if dirty then finalize() end
             res = memo_get(results, number, offset)
             if res and not known then known = true end -- (analysed: no problems, so the CRC matched)
         end
@@ -1479,7 +1790,10 @@ local function dissect(tvb, pinfo, tree)
             memo_set(results, number, offset, res)
         end
         if type(res) == "number" then
-            if res >= 0 then add_interval(res, tvb, root, r) end
+            if res >= 0 then
+                add_interval(res, tvb, root, r)
+                if r.data_len then add_burst_interval(res, tvb, root) end -- (a number: equal)
+            end
             if r.data_len then add_single_burst(r, tvb, root, pinfo, tree, visited) end
         elseif res then
             add_analysis(res, r, tvb, pinfo, tree, root)
@@ -1521,6 +1835,16 @@ function vm110.prefs_changed()
     register_ports()
 end
 
+-- The capture's last record, of any kind (a stream silent until the end is measured to it): a
+-- postdissector sees every frame.
+local capture_end = Proto("vm110_end", "VM-110 EG-Link stream analysis: the capture's last record")
+function capture_end.dissector(_, pinfo)
+    if not settings.analysis then return end
+    local n = pinfo.number
+    if n > last_number then last_number, last_record = n, pinfo.abs_ts end
+end
+register_postdissector(capture_end)
+
 read_settings()
 register_ports()
 udp_port:add_for_decode_as(vm110)
@@ -1535,6 +1859,7 @@ local STAT_TYPES = { "VRPI", "VRPO", "VRCI", "VRCO", "VRAI", "VRAO" }
 local function stats_text()
     local out = { "VM-110 EG-Link stream statistics" }
     if not settings.analysis then out[2] = "(stream analysis is off: preference vm110.analysis)" end
+    if dirty then finalize() end
     for _, snd in ipairs(sender_list) do
         local lost, wraps = 0, 0
         for _, st in ipairs(snd.states) do lost, wraps = lost + st.lost, wraps + st.wraps end
@@ -1544,15 +1869,22 @@ local function stats_text()
         end
         out[#out + 1] = "Sender " .. snd.name
         out[#out + 1] = "  Packets: " .. concat(types, ", ")
-        out[#out + 1] = fmt("  Serial: lost %d, duplicates %d, out of order %d, wraps %d", lost, snd.duplicates,
-            snd.late, wraps)
-        out[#out + 1] = fmt("  Commands: acked %d, unacknowledged %d, retransmissions %d", snd.acked,
-            snd.commands - snd.acked, snd.retransmissions)
+        out[#out + 1] = fmt("  Serial: lost %d, duplicates %d, out of order %d, wraps %d, restarts %d", lost,
+            snd.duplicates, snd.late, wraps, #snd.restarts)
+        for _, rec in ipairs(snd.restarts) do
+            local port = rec.port_from and fmt(", port %d -> %d", rec.port_from, rec.port_to) or ""
+            out[#out + 1] = fmt("  Restart in frame %d: serial %d -> %d%s", rec.frame, rec.from, rec.to, port)
+        end
+        out[#out + 1] = fmt("  Commands: %d, acked %d, unacknowledged %d, interrupted %d, retransmissions %d",
+            snd.commands, snd.acked, snd.commands - snd.acked - snd.interrupted, snd.interrupted, snd.retransmissions)
         for _, id in ipairs({ "VRPI", "VRPO" }) do
             local stats = snd.intervals[id]
             if stats and stats.n > 0 then
                 out[#out + 1] = fmt("  %s interval (ms): min %.3f, avg %.3f, max %.3f (%d intervals)", id,
                     stats.min, stats.sum / stats.n, stats.max, stats.n)
+            end
+            if stats and stats.silent then
+                out[#out + 1] = fmt("  %s silent until the end: %.3f ms after frame %d", id, stats.silent, stats.frame)
             end
         end
     end
