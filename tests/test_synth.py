@@ -166,13 +166,22 @@ def test_long_run_with_wraps_agrees_too(tmp_path):
     assert any(s["serial"]["wraps"] for s in truth["senders"])
 
 
-def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path):
+@pytest.mark.parametrize("name", ["loss", "overlap"])
+def test_same_seed_same_bytes_other_seed_other_bytes(name, tmp_path):
     paths = [str(tmp_path / f"{i}.pcapng") for i in range(3)]
     for path, seed in zip(paths, (5, 5, 6)):
-        synthesize("loss", path, seed=seed, duration_s=8.0, fmt="pcapng")
+        synthesize(name, path, seed=seed, duration_s=8.0, fmt="pcapng")
     read = [(open(p, "rb").read(), open(truth_path(p), "rb").read()) for p in paths]
     assert read[0] == read[1]
     assert read[0][0] != read[2][0] and read[0][1] != read[2][1]
+
+
+def test_restarts_on_a_new_port_are_reproducible(tmp_path):
+    paths = [str(tmp_path / f"{i}.pcap") for i in range(2)]
+    for path in paths:
+        synthesize("restart", path, seed=3, duration_s=30.0)
+    assert [open(p, "rb").read() for p in paths][0] == open(paths[1], "rb").read()
+    assert open(truth_path(paths[0]), "rb").read() == open(truth_path(paths[1]), "rb").read()
 
 
 def test_scenarios_show_what_they_promise(tmp_path):
