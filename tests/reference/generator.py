@@ -135,7 +135,7 @@ def scenarios(draw: Any) -> dict:
         "capture_loss": draw(st.sampled_from([0.0, 0.02, 0.05])),
         "dup": draw(st.sampled_from([0.0, 0.01, 0.05])),
         "reorder": draw(st.sampled_from([0.0, 0.01, 0.03])),
-        "late": draw(st.sampled_from([0.0, 0.003, 0.01])),
+        "late": draw(st.sampled_from([0.0, 0.003, 0.01, 0.03])),
         "corrupt": draw(st.sampled_from([0.0, 0.01, 0.03])),
         "ack_loss": draw(st.sampled_from([0.0, 0.1, 0.3])),
         "slow_ack": draw(st.sampled_from([0.0, 0.0, 0.2])),     # the peer acks 1.5-2.6 s late
