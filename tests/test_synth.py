@@ -16,9 +16,13 @@ from scapy.utils import RawPcapNgReader, RawPcapReader
 
 from vm110 import constants as C
 from vm110.decode import decode
+from vm110.sim.bu import BaseUnit
 from vm110.sim.clock import seconds
+from vm110.sim.controller import Controller
+from vm110.sim.node import Meta
 from vm110.sim.scenario import CONTROLLER_NEW_PORT, EPOCH_US, SCENARIOS
-from vm110.sim.virtual import VirtualNetwork
+from vm110.sim.truth import GroundTruth
+from vm110.sim.virtual import Station, VirtualNetwork
 from vm110.synth import synthesize, truth_path
 
 LIBRARY = [name for name in SCENARIOS if name not in ("day", "restart")]     # restart: below, from the logs
@@ -350,3 +354,25 @@ def test_restarts_are_where_the_nodes_restarted(tmp_path):
     # the old port's stream is taken over: no silence to the end; the 2.3 s to the new port is a violation
     assert [len(p["watchdog"]["violations"]) for p in vrpo] == [1, 0]
     assert vrpo[0]["sender"].endswith(f":{CONTROLLER_NEW_PORT} origin 0x0000")
+
+
+def test_truth_rules_at_a_restart_candidate():
+    """docs/rules.md by hand: an ack between a restart and the packet that confirms it finds its
+    command interrupted; an unconfirmed candidate is out of order; copies of it are duplicates."""
+    stations = [Station(BaseUnit(), "10.0.0.10", C.INPUT_PORT), Station(Controller(), "10.0.0.20", C.OUTPUT_PORT)]
+    P = C.PacketType
+    plan = [(0.0, 0, P.VRPI, 100, 0), (0.1, 0, P.VRCI, 101, 5), (0.2, 0, P.VRPI, 102, 0),
+            (1.5, 0, P.VRPI, 0, 0),                        # a restart candidate ...
+            (1.51, 1, P.VRAO, 0, 5),                       # ... an ack before it is confirmed ...
+            (1.6, 0, P.VRPI, 1, 0),                        # ... and its confirmation
+            (1.7, 0, P.VRPI, 2, 0), (1.8, 0, P.VRPI, 40000, 0), (1.8001, 0, P.VRPI, 40000, 0),
+            (1.9, 0, P.VRPI, 3, 0)]                        # 40000: a candidate left unconfirmed
+    truth = GroundTruth(stations, EPOCH_US)
+    truth.add([(seconds(t), n, endpoint, b"", (), Meta(stations[endpoint].node.name, ptype, serial, key, 0), True)
+               for n, (t, endpoint, ptype, serial, key) in enumerate(plan)])
+    report = truth.report()
+    bu = report["senders"][0]["serial"]
+    assert bu["restart_events"] == [{"time": round(EPOCH_US / 1e6 + 1.5, 6), "frame": 4, "from": 102, "to": 0}]
+    assert (bu["out_of_order_serials"], bu["duplicate_serials"], bu["lost"]) == ([40000], [40000], 0)
+    vrci = report["commands"]["VRCI"]
+    assert (vrci["interrupted"], vrci["acks_without_command"], vrci["unacked"], vrci["failed"]) == (1, 1, 0, 0)

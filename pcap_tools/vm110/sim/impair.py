@@ -129,7 +129,8 @@ class Impairer:
             if imp.reorder and rng.random() * 100 < imp.reorder:
                 delay += ms(rng.uniform(0.5, 1.5) * imp.reorder_ms)
         if duplicate and rng.random() * 100 < duplicate:
-            return [(now + delay, data, problems, True), (now + delay + ms(rng.uniform(0.05, 2.0)), data, problems, True)]
+            return [(now + delay, data, problems, True),
+                    (now + delay + ms(rng.uniform(0.05, 2.0)), data, problems, True)]
         return [(now + delay, data, problems, True)]
 
     def _scheduled_mangle(self, data: bytes, now: int, ptype: str) -> tuple[bytes, tuple[str, ...]]:
