@@ -58,9 +58,23 @@ class _Judged:
     predecessor: Optional["_Judged"] = None
     successor: Optional["_Judged"] = None
 
-    def last_time(self, code: int) -> Optional[float]:
-        mask = self.live & (self.snd.code == code)
-        return float(self.snd.ts[mask][-1]) if mask.any() else None
+    def before(self, frame: int) -> int:
+        """How many of its packets came before that frame."""
+        return int(np.searchsorted(self.snd.frame, frame))
+
+    def last_time(self, code: int, frame: int) -> Optional[float]:
+        """Time of its last accepted packet of that type before that frame."""
+        n = self.before(frame)
+        mask = self.live[:n] & (self.snd.code[:n] == code)
+        return float(self.snd.ts[:n][mask][-1]) if mask.any() else None
+
+    def highest_before(self, frame: int, code: int, opt: "Options") -> int:
+        """Its counter's highest serial before that frame (of the counter that frame's type
+        would use, with per-type counters)."""
+        n, snd = self.before(frame), self.snd
+        res = serials.classify_sender(snd.serial[:n], snd.ts[:n], snd.code[:n], self.scope,
+                                      dup_window_ms=opt.dup_window_ms)
+        return res.last.get(None, res.last.get(code, res.last.get(int(snd.code[n - 1]), 0)))
 
 
 def _judge(got: Collected, opt: Options) -> list[_Judged]:
@@ -76,27 +90,30 @@ def _judge(got: Collected, opt: Options) -> list[_Judged]:
 
 def _link_new_ports(judged: list[_Judged]) -> None:
     """A sender whose first packet comes from the address, direction and origin of an earlier
-    sender silent for at least NEW_PORT_SILENCE_MS restarted on a new port (the one heard last)."""
+    sender silent for at least NEW_PORT_SILENCE_MS at that moment restarted on a new port (the
+    one heard last before it). Late packets of the earlier one after it change nothing."""
     by_start = sorted(judged, key=lambda j: int(j.snd.frame[0]))
+    silence = NEW_PORT_SILENCE_MS / timing.MS
     for k, new in enumerate(by_start):
-        snd, first = new.snd, float(new.snd.ts[0])
+        snd, first, frame = new.snd, float(new.snd.ts[0]), int(new.snd.frame[0])
         host = snd.src.rsplit(":", 1)[0]
-        earlier = [old for old in by_start[:k]
-                   if (old.snd.direction, old.snd.origin, old.snd.src.rsplit(":", 1)[0]) == (snd.direction, snd.origin, host)
-                   and old.snd.src != snd.src and first - float(old.snd.ts[-1]) >= NEW_PORT_SILENCE_MS / timing.MS]
-        if earlier:
-            new.predecessor = max(earlier, key=lambda o: (float(o.snd.ts[-1]), int(o.snd.frame[-1])))
+        heard = [(float(old.snd.ts[old.before(frame) - 1]), int(old.snd.frame[old.before(frame) - 1]), i)
+                 for i, old in enumerate(by_start[:k])
+                 if (old.snd.direction, old.snd.origin, old.snd.src.rsplit(":", 1)[0]) == (snd.direction, snd.origin, host)
+                 and old.snd.src != snd.src]
+        quiet = [h for h in heard if first - h[0] >= silence]
+        if quiet:
+            new.predecessor = by_start[max(quiet)[2]]
             new.predecessor.successor = new
 
 
-def _restart_events(j: _Judged) -> list[dict]:
+def _restart_events(j: _Judged, opt: Options) -> list[dict]:
     snd = j.snd
     events = [{"time": float(snd.ts[i]), "frame": int(snd.frame[i]), "from": a, "to": b} for i, a, b in j.res.restarts]
     if j.predecessor is not None:
         old = j.predecessor
-        last = old.res.last
-        before = last.get(int(snd.code[0]), last.get(None, max(last.values())))
-        events.insert(0, {"time": float(snd.ts[0]), "frame": int(snd.frame[0]), "from": before,
+        events.insert(0, {"time": float(snd.ts[0]), "frame": int(snd.frame[0]),
+                          "from": old.highest_before(int(snd.frame[0]), int(snd.code[0]), opt),
                           "to": int(snd.serial[0]), "port_from": int(old.snd.src.rsplit(":", 1)[1]),
                           "port_to": int(snd.src.rsplit(":", 1)[1])})
     return events
@@ -109,13 +126,13 @@ def _build(got: Collected, opt: Options) -> dict:
     judged = _judge(got, opt)
     for j in judged:
         snd, live = j.snd, j.live
-        restarts = _restart_events(j)
+        restarts = _restart_events(j, opt)
         sender_reports.append(_sender_report(j, restarts, located))
         for code in (VRPI_CODE, VRPO_CODE):
             mask = live & (snd.code == code)
             if not mask.any():
                 continue
-            before = j.predecessor.last_time(code) if j.predecessor is not None else None
+            before = None if j.predecessor is None else j.predecessor.last_time(code, int(snd.frame[0]))
             row, back = _periodic(TYPES[code].value, snd, snd.ts[mask], snd.frame[mask], before,
                                   None if j.successor is not None else got.last_ts, opt, located)
             backwards += back
