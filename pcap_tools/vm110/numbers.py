@@ -49,7 +49,7 @@ class NumberType:
             return int(text) if self.integer else float(text)
         except ValueError:    # also integers of more digits than Python converts
             kind = "an integer" if self.integer else "a number"
-            raise argparse.ArgumentTypeError(f"{text[:40]!r} is not {kind} ({self.range_text})") from None
+            raise argparse.ArgumentTypeError(f"{text[:40]!r} is not {kind}: must be {self.range_text}") from None
 
 
 def number(low: Number, high: Number, unit: str = "", integer: bool = False,

@@ -1,0 +1,370 @@
+"""Issue 17 for `vm110 fuzz`: nothing run or sent that was not asked for, every bad number refused,
+findings and summaries never lost.
+
+Network safety: nothing here sends beyond loopback. Refusals are tested with `Link.send` and the
+controller's start replaced by a failing stand-in; the one test that sends to a non-loopback
+address does so inside a network namespace whose only interface is its own loopback.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import socket
+import stat
+import subprocess
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from loopback import free_ports
+from vm110 import cli
+from vm110 import constants as C
+from vm110.errors import CliError
+from vm110.fuzz import destination, findings, mutate
+from vm110.fuzz.link import Link
+from vm110.fuzz.supervisor import Supervisor
+
+NEVER = " (refused even with --allow-remote)"
+
+
+def vm110(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vm110", *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture
+def nothing_leaves(monkeypatch):
+    """Any packet sent or controller started fails the test."""
+    def send(self, data: bytes) -> float:
+        pytest.fail(f"a packet was sent to {self.target}")
+
+    def start(self) -> None:
+        pytest.fail(f"a command was run: {self.command}")
+    monkeypatch.setattr(Link, "send", send)
+    monkeypatch.setattr(Supervisor, "start", start)
+
+
+def fuzz_in_process(capsys, *args: str) -> tuple[int, str]:
+    code = cli.main(["fuzz", *args])
+    return code, capsys.readouterr().err
+
+
+def one_line(err: str) -> str:
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def local_broadcasts() -> list[str]:
+    """The broadcast addresses of this machine's subnets: loopback's always, others where iproute2 says."""
+    found = {"127.255.255.255"}
+    if shutil.which("ip"):
+        out = subprocess.run(["ip", "-j", "-4", "addr"], capture_output=True, text=True).stdout or "[]"
+        found |= {a["broadcast"] for link in json.loads(out) for a in link.get("addr_info", []) if "broadcast" in a}
+    return sorted(found)
+
+
+# --- where the fuzzer sends -------------------------------------------------------------------------
+@pytest.mark.parametrize("address, allow, refusal", [
+    ("255.255.255.255", True, "broadcast address"),
+    ("0.0.0.0", True, "unspecified address"),
+    ("::", True, "unspecified address"),
+    ("::ffff:255.255.255.255", True, "broadcast address"),
+    (C.MULTICAST_GROUP, False, "multicast group"),
+    ("224.0.0.1", False, "multicast group"),
+    ("ff02::1", False, "multicast group"),
+    ("192.0.2.7", False, "not a loopback address"),
+    ("2001:db8::1", False, "not a loopback address"),
+    ("::ffff:192.0.2.7", False, "not a loopback address"),
+    ("localhost", True, "not an IP address"),
+])
+def test_destination_refusals(address, allow, refusal):
+    with pytest.raises(CliError, match=refusal):
+        destination.check(address, "--target", allow)
+
+
+@pytest.mark.parametrize("address, allow", [("127.0.0.1", False), ("127.1.2.3", False), ("::1", False),
+                                            ("::ffff:127.0.0.1", False), (C.MULTICAST_GROUP, True),
+                                            ("192.0.2.7", True), ("2001:db8::1", True)])
+def test_destination_allowed(address, allow):
+    destination.check(address, "--target", allow)
+
+
+@pytest.mark.parametrize("address", local_broadcasts())
+def test_subnet_broadcasts_are_refused_even_with_allow_remote(address):
+    assert destination.is_local_broadcast(__import__("ipaddress").IPv4Address(address))
+    with pytest.raises(CliError, match="broadcast address"):
+        destination.check(address, "--target", True)
+
+
+def test_the_link_itself_refuses():
+    """The last gate: a Link is never made towards a refused address, whatever its caller checked."""
+    listen = ("127.0.0.1", free_ports(1)[0])
+    with pytest.raises(CliError, match="not a loopback"):
+        Link(("192.0.2.7", 5825), listen)
+    with pytest.raises(CliError, match="broadcast"):
+        Link(("255.255.255.255", 5825), listen, allow_remote=True)
+
+
+@pytest.mark.parametrize("target, allow, refusal", [
+    ("255.255.255.255", True, "broadcast address"),
+    ("0.0.0.0", True, "unspecified address"),
+    ("127.255.255.255", True, "broadcast address"),
+    (C.MULTICAST_GROUP, False, "multicast group"),
+    ("192.0.2.7", False, "not a loopback address"),
+    ("[ff02::1]", False, "multicast group"),
+])
+def test_fuzz_refuses_targets_without_sending(capsys, nothing_leaves, tmp_path, target, allow, refusal):
+    marker = tmp_path / "started"
+    code, err = fuzz_in_process(capsys, "--target", f"{target}:5825", *(["--allow-remote"] if allow else []),
+                                "--target-cmd", f"touch {marker}", "--cases", "1", "--out", str(tmp_path / "out"))
+    line = one_line(err)
+    assert code == 2 and refusal in line and "--target" in line, line
+    assert not marker.exists()
+    if allow:
+        assert line.endswith(NEVER)
+    else:
+        assert "--allow-remote" in line
+
+
+@pytest.mark.parametrize("address", [a for a in local_broadcasts() if a != "127.255.255.255"])
+def test_fuzz_refuses_this_machines_subnet_broadcast(capsys, nothing_leaves, tmp_path, address):
+    code, err = fuzz_in_process(capsys, "--target", f"{address}:5825", "--allow-remote", "--cases", "1",
+                                "--out", str(tmp_path))
+    assert code == 2 and "broadcast address" in one_line(err)
+
+
+def test_allow_remote_prints_the_resolved_address_before_the_first_packet(capsys, monkeypatch, tmp_path):
+    """A loopback name with --allow-remote: resolved once, printed before anything is sent."""
+    rx, listen = free_ports(2)
+    lookups = []
+    real_getaddrinfo = socket.getaddrinfo
+
+    def getaddrinfo(host, *args, **kwargs):
+        lookups.append(host)
+        return real_getaddrinfo(host, *args, **kwargs)
+    monkeypatch.setattr(socket, "getaddrinfo", getaddrinfo)
+    before_first: list[str] = []
+
+    def send(self, data: bytes) -> float:
+        if not before_first:
+            before_first.append(capsys.readouterr().err)
+        assert self.target == ("127.0.0.1", rx)
+        return 0.0
+    monkeypatch.setattr(Link, "send", send)
+    code, err = fuzz_in_process(capsys, "--target", f"localhost:{rx}", "--listen", f"127.0.0.1:{listen}",
+                                "--allow-remote", "--startup", "0.3", "--cases", "1", "--out", str(tmp_path))
+    assert code == 2 and "no VRPO" in err      # nobody answers: the run stops after its first VRPI
+    assert before_first and f"sending to 127.0.0.1:{rx} only (--target localhost:{rx})" in before_first[0]
+    assert lookups.count("localhost") == 1
+
+
+def test_allow_remote_sends_to_a_non_loopback_address_inside_a_namespace(netns, tmp_path):
+    """In a namespace whose only interface is its loopback: a remote-looking address is refused
+    without --allow-remote, printed and used with it; its subnet's broadcast is refused either way."""
+    def inside(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["ip", "netns", "exec", netns, sys.executable, "-m", "vm110", "fuzz", *args,
+                               "--startup", "0.5", "--cases", "1", "--out", str(tmp_path)],
+                              capture_output=True, text=True, timeout=60)
+    subprocess.run(["ip", "-n", netns, "addr", "add", "10.99.8.1/24", "broadcast", "10.99.8.255", "dev", "lo"],
+                   check=True)
+    refused = inside("--target", "10.99.8.7:5825", "--listen", "10.99.8.1:5827")
+    assert refused.returncode == 2 and "not a loopback address" in one_line(refused.stderr)
+    sent = inside("--target", "10.99.8.7:5825", "--listen", "10.99.8.1:5827", "--allow-remote")
+    assert sent.returncode == 2 and "no VRPO" in sent.stderr
+    assert sent.stderr.splitlines()[0] == "vm110 fuzz: sending to 10.99.8.7:5825 only (--target 10.99.8.7:5825)"
+    broadcast = inside("--target", "10.99.8.255:5825", "--listen", "10.99.8.1:5827", "--allow-remote")
+    assert broadcast.returncode == 2 and "broadcast address" in one_line(broadcast.stderr)
+
+
+# --- replay: the finding is data ---------------------------------------------------------------------
+def a_finding(**changes: Any) -> dict[str, Any]:
+    packet = mutate.build(C.PacketType.VRCI, 5, mutate.default_fields(C.PacketType.VRCI, 7))
+    finding = findings.Finding(
+        oracle="missing_ack", seed=1, case_index=3, family="sweep-vrci", mutation="a VRCI", detail="no VRAO",
+        packet_hex=packet.hex(), original_hex=packet.hex(), valid_hex=packet.hex(), differences=0, minimised=True,
+        steps=[{"hex": packet.hex(), "valid_hex": packet.hex(), "delay_ms": 0.0, "expect_ack": True}],
+        stream=dict(mutate.ARMED_VRPI), target="127.0.0.1:5825", listen="127.0.0.1:5827")
+    return {**json.loads(json.dumps(asdict(finding))), **changes}
+
+
+def save(tmp_path: Path, finding: dict[str, Any], name: str = "finding.json") -> Path:
+    path = tmp_path / name
+    path.write_text(json.dumps(finding))
+    return path
+
+
+def test_replay_never_runs_the_stored_command(tmp_path):
+    marker = tmp_path / "stored-command-ran"
+    rx, listen = free_ports(2)
+    path = save(tmp_path, a_finding(target=f"127.0.0.1:{rx}", listen=f"127.0.0.1:{listen}",
+                                    target_cmd=f"touch {marker}"))
+    result = vm110("fuzz", "--replay", str(path), "--startup", "0.5")
+    assert not marker.exists(), "the command stored in the finding ran"
+    assert result.returncode == 2 and "no VRPO" in result.stderr
+    assert "not running the command stored in" in result.stderr and "touch" in result.stderr
+
+
+def test_replay_runs_only_the_command_line_command(tmp_path):
+    stored, given = tmp_path / "stored-ran", tmp_path / "given-ran"
+    rx, listen = free_ports(2)
+    path = save(tmp_path, a_finding(target=f"127.0.0.1:{rx}", listen=f"127.0.0.1:{listen}",
+                                    target_cmd=f"touch {stored}"))
+    result = vm110("fuzz", "--replay", str(path), "--startup", "0.5", "--target-cmd", f"touch {given}")
+    assert given.exists() and not stored.exists()
+    assert result.returncode == 2 and "not running the command" not in result.stderr
+
+
+@pytest.mark.parametrize("target, allow, refusal", [
+    ("192.0.2.7:5825", False, "not a loopback address"),
+    (f"{C.MULTICAST_GROUP}:5825", False, "multicast group"),
+    ("255.255.255.255:5825", True, "broadcast address"),
+    ("0.0.0.0:5825", True, "unspecified address"),
+    ("127.255.255.255:5825", True, "broadcast address"),
+    ("crane.example:5825", True, "not an IP address"),     # a file never makes us look a name up
+])
+def test_replay_stored_target_obeys_the_target_rules(capsys, nothing_leaves, tmp_path, target, allow, refusal):
+    path = save(tmp_path, a_finding(target=target, target_cmd="touch never"))
+    code, err = fuzz_in_process(capsys, "--replay", str(path), *(["--allow-remote"] if allow else []))
+    line = one_line(err)
+    assert code == 2 and refusal in line and f"the target stored in {path}" in line, line
+
+
+def test_replay_target_on_the_command_line_overrides_the_stored_one(capsys, monkeypatch, tmp_path):
+    rx, listen = free_ports(2)
+    path = save(tmp_path, a_finding(target="192.0.2.7:5825", listen=f"127.0.0.1:{listen}"))
+    sent_to = set()
+    monkeypatch.setattr(Link, "send", lambda self, data: sent_to.add(self.target) or 0.0)
+    code, err = fuzz_in_process(capsys, "--replay", str(path), "--target", f"127.0.0.1:{rx}", "--startup", "0.3")
+    assert code == 2 and "no VRPO" in err and sent_to == {("127.0.0.1", rx)}
+
+
+HOSTILE: dict[str, Any] = {
+    "missing packet_hex": lambda f: f.pop("packet_hex"),
+    "missing steps": lambda f: f.pop("steps"),
+    "steps not a list": lambda f: f.update(steps={"hex": "00"}),
+    "step not an object": lambda f: f.update(steps=[7]),
+    "step without hex": lambda f: f["steps"][0].pop("hex"),
+    "hex not hex": lambda f: f["steps"][0].update(hex="zz"),
+    "hex a number": lambda f: f.update(packet_hex=12),
+    "huge packet": lambda f: f.update(packet_hex="00" * 70000),
+    "too many steps": lambda f: f.update(steps=f["steps"] * 1000),
+    "delay NaN": lambda f: f["steps"][0].update(delay_ms=math.nan),
+    "delay inf": lambda f: f["steps"][0].update(delay_ms=math.inf),
+    "delay huge": lambda f: f["steps"][0].update(delay_ms=1e308),
+    "delay negative": lambda f: f["steps"][0].update(delay_ms=-5),
+    "delay a string": lambda f: f["steps"][0].update(delay_ms="5"),
+    "expect_ack a number": lambda f: f["steps"][0].update(expect_ack=1),
+    "pause NaN": lambda f: f.update(pause_vrpi_ms=math.nan),
+    "withhold -inf": lambda f: f.update(withhold_vrai_ms=-math.inf),
+    "settle a list": lambda f: f.update(settle_ms=[1]),
+    "settle true": lambda f: f.update(settle_ms=True),
+    "seed huge": lambda f: f.update(seed=10**30),
+    "seed a float": lambda f: f.update(seed=1.5),
+    "oracle unknown": lambda f: f.update(oracle="rm -rf"),
+    "mutation a dict": lambda f: f.update(mutation={"a": 1}),
+    "target a number": lambda f: f.update(target=5825),
+    "target_cmd a list": lambda f: f.update(target_cmd=["sh"]),
+    "group a number": lambda f: f.update(group=3),
+    "stream a list": lambda f: f.update(stream=[1]),
+    "stream unknown field": lambda f: f["stream"].update(spare=1),
+    "stream value too big": lambda f: f["stream"].update(joystick1=10**30),
+    "stream value a string": lambda f: f["stream"].update(joystick1="1"),
+    "schema 99": lambda f: f.update(schema=99),
+    "a list": lambda f: f.clear(),
+}
+
+
+@pytest.mark.parametrize("name", sorted(HOSTILE))
+def test_hostile_finding_files_are_one_line_errors(capsys, nothing_leaves, tmp_path, name):
+    finding = a_finding()
+    HOSTILE[name](finding)
+    path = tmp_path / "finding.json"
+    path.write_text(json.dumps([] if name == "a list" else finding))
+    code, err = fuzz_in_process(capsys, "--replay", str(path))
+    line = one_line(err)
+    assert code == 2 and str(path) in line and "finding" in line, line
+
+
+@pytest.mark.parametrize("text", ["{", "", "NaN", '{"oracle": "crash", "steps": [], "seed": ' + "9" * 5000 + "}",
+                                  "\xff\xfe"])
+def test_unreadable_finding_files_are_one_line_errors(capsys, nothing_leaves, tmp_path, text):
+    path = tmp_path / "finding.json"
+    path.write_bytes(text.encode("latin-1"))
+    code, err = fuzz_in_process(capsys, "--replay", str(path))
+    assert code == 2 and str(path) in one_line(err)
+
+
+def test_a_hostile_finding_file_through_the_command(tmp_path):
+    path = save(tmp_path, a_finding(pause_vrpi_ms=math.nan, mutation="\x1b[2J"))
+    result = vm110("fuzz", "--replay", str(path))
+    assert result.returncode == 2 and result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+
+
+# --- number options ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("option, value", [
+    ("--rate", "nan"), ("--rate", "inf"), ("--rate", "-inf"), ("--rate", "0"), ("--rate", "-1"), ("--rate", "1e18"),
+    ("--duration", "nan"), ("--duration", "inf"), ("--duration", "0"), ("--duration", "-1"),
+    ("--cases", "0"), ("--cases", "-1"), ("--cases", "1.5"), ("--cases", "1e18"),
+    ("--max-findings", "0"), ("--max-findings", "nan"), ("--minimize-budget", "nan"), ("--minimize-budget", "-1"),
+    ("--startup", "nan"), ("--startup", "inf"), ("--startup", "0"), ("--seed", "-1"), ("--seed", "nan"),
+])
+def test_bad_numbers_are_refused(capsys, nothing_leaves, option, value):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["fuzz", "--target", "127.0.0.1:5825", f"{option}={value}"])   # = : "-inf" is not an option
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert info.value.code == 2 and "Traceback" not in err
+    assert f"argument {option}:" in last and repr(value) in last and "must be" in last, last
+
+
+def test_rate_nan_ends_at_once():
+    """It ran forever before: the rate limit waited for NaN seconds."""
+    result = vm110("fuzz", "--target", "127.0.0.1:9", "--rate", "nan", "--cases", "1", timeout=20)
+    assert result.returncode == 2 and "--rate" in result.stderr.strip().splitlines()[-1]
+
+
+def test_every_number_option_shows_its_range():
+    parser = cli.build_parser()
+    fuzz = next(a for a in parser._subparsers._group_actions[0].choices.items() if a[0] == "fuzz")[1]
+    numeric = [a for a in fuzz._actions if a.type is not None]
+    assert {o for a in numeric for o in a.option_strings} >= {"--rate", "--duration", "--cases", "--seed",
+                                                               "--max-findings", "--minimize-budget", "--startup"}
+    for action in numeric:
+        assert action.type.range_text in action.help, action.option_strings
+
+
+# --- the fuzzer's files -----------------------------------------------------------------------------
+def test_a_fifo_for_the_summary_is_refused_before_the_run(capsys, nothing_leaves, tmp_path):
+    """It blocked for ever before: the summary was written into the FIFO at the end of the run."""
+    os.mkfifo(tmp_path / "findings.json")
+    code, err = fuzz_in_process(capsys, "--target", "127.0.0.1:5825", "--cases", "1", "--out", str(tmp_path))
+    assert code == 2 and "findings.json" in one_line(err) and "not a regular file" in err
+    assert stat.S_ISFIFO((tmp_path / "findings.json").lstat().st_mode)
+
+
+def test_a_directory_for_the_target_log_is_refused(capsys, nothing_leaves, tmp_path):
+    (tmp_path / "target.log").mkdir()
+    code, err = fuzz_in_process(capsys, "--target", "127.0.0.1:5825", "--cases", "1", "--out", str(tmp_path),
+                                "--target-cmd", "true")
+    assert code == 2 and "target.log" in one_line(err)
+
+
+def test_a_failed_finding_write_keeps_the_previous_files(tmp_path):
+    finding = findings.Finding(**{k: v for k, v in a_finding().items() if k != "pcap"})
+    good = [(1.0, True, b"VRPI", ("127.0.0.1", 5825))]
+    path = findings.write_finding(tmp_path, 1, finding, good, ("127.0.0.1", 5827))
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    bad = good + [(2.0, True, b"VRPI", ("not an address", 5825))]
+    with pytest.raises(ValueError):
+        findings.write_finding(tmp_path, 1, finding, bad, ("127.0.0.1", 5827))
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    assert json.loads(path.read_text())["oracle"] == "missing_ack"
+    (tmp_path / "findings.json").mkdir()
+    with pytest.raises(CliError, match="not a regular file"):
+        findings.write_summary(tmp_path, {"findings": []})
