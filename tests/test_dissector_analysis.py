@@ -34,7 +34,8 @@ ANALYSIS_FIELDS = (
     "analysis.serial_missing", "analysis.serial_duplicate", "analysis.serial_out_of_order", "analysis.interval",
     "analysis.retransmission_of", "analysis.retransmission_number", "analysis.since_first",
     "analysis.ack_in", "analysis.ack_to", "analysis.ack_time", "analysis.ack_time_last",
-    "burst.packets", "burst.frame", "burst.complete", "reassembled")
+    "analysis.restart", "analysis.restart_port_from", "analysis.silent_until_end", "analysis.interrupted_by",
+    "analysis.burst_interval", "burst.packets", "burst.frame", "burst.complete", "reassembled")
 FIELDS = ("frame.number", "frame.time_epoch", "ip.src", "udp.srcport", "vm110.type", "vm110.origin",
           "vm110.serial", "vm110.command_id", "vm110.packet_number",
           *(f"vm110.{f}" for f in ANALYSIS_FIELDS), *(f"vm110.expert.{c}" for c in sorted(T.ANALYSIS_EXPERTS)),
@@ -120,10 +121,18 @@ def legal_rows(rows: list[Row]) -> list[Row]:
 def serial_view(rows: list[Row]) -> dict:
     """Per sender: gaps at detection, duplicates, late serials and the serials still lost, from the
     generated fields alone (a late packet removes its serial from the lost ones)."""
-    out = defaultdict(lambda: {"gaps": [], "duplicate_serials": [], "out_of_order_serials": [], "missing": Counter()})
+    out = defaultdict(lambda: {"gaps": [], "duplicate_serials": [], "out_of_order_serials": [], "missing": Counter(),
+                               "restart_events": []})
     for r in legal_rows(rows):
         missing = r.int("vm110.analysis.serial_missing")
         v, serial = out[r.sender], r.int("vm110.serial")
+        if r.get("vm110.analysis.restart"):
+            event = {"time": round(r.time, 6), "frame": r.number, "from": r.int("vm110.analysis.restart"),
+                     "to": serial}
+            if r.get("vm110.analysis.restart_port_from"):
+                event.update(port_from=r.int("vm110.analysis.restart_port_from"), port_to=int(r.get("udp.srcport")))
+            v["restart_events"].append(event)
+            assert r.has("restart")
         if missing:
             after = (serial - missing - 1) % C.SERIAL_MODULUS
             v["gaps"].append({"after": after, "count": missing, "time": round(r.time, 6)})
@@ -154,33 +163,51 @@ def test_serials(tshark, capture, tmp_path):
         assert got["out_of_order_serials"] == want["out_of_order_serials"], sender["id"]
         lost = sorted(got["missing"].elements())
         assert len(lost) == want["lost"], sender["id"]
-        assert lost == sorted(s % C.SERIAL_MODULUS for s in want["lost_serials"]), sender["id"]
+        if "lost_serials" in want:
+            assert lost == sorted(s % C.SERIAL_MODULUS for s in want["lost_serials"]), sender["id"]
+        events = [{**e, "time": round(e["time"], 6)} for e in want.get("restart_events", [])]
+        assert got["restart_events"] == events, sender["id"]
 
 
 # --- Timing -----------------------------------------------------------------------------------------
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 @pytest.mark.parametrize("capture", TRUTH_CAPTURES, ids=lambda p: p.name)
 def test_watchdog(tshark, capture, tmp_path):
+    """Intervals between accepted packets (a duplicate has none; only a stream's first packet has
+    none, unless a sender on a new port continues its predecessor's stream), the watchdog on the
+    packet after an over-limit interval, and the silence to the end on the stream's last packet."""
     truth = json.loads(Path(f"{capture}.truth.json").read_text())
     rows = dissected(tshark, capture, tmp_path)
     got = defaultdict(list)
-    counts = Counter()
+    counts, accepted = Counter(), Counter()
     for r in legal_rows(rows):
         kind = r.get("vm110.type")
         if kind not in ("VRPI", "VRPO"):
             continue
+        key = (kind, r.sender)
         interval = r.float("vm110.analysis.interval")
-        assert (interval is None) == (counts[(kind, r.sender)] == 0), r.number
-        counts[(kind, r.sender)] += 1
+        counts[key] += 1
+        if r.get("vm110.analysis.serial_duplicate"):
+            assert interval is None and not r.get("vm110.analysis.silent_until_end"), r.number
+            continue
+        assert interval is not None or accepted[key] == 0, r.number
+        accepted[key] += 1
         limit = C.VRPI_WATCHDOG_MS if kind == "VRPI" else C.VRPO_WATCHDOG_MS
         tripped = r.has(f"watchdog_{kind.lower()}")
         assert tripped == (interval is not None and interval > limit), r.number
         if tripped:
-            got[(kind, r.sender)].append({"start": round(r.time - interval / 1000, 6), "gap_ms": round(interval, 3)})
+            got[key].append({"start": round(r.time - interval / 1000, 6), "gap_ms": round(interval, 3),
+                             "until_end": False})
+        silent = r.float("vm110.analysis.silent_until_end")
+        assert r.has("silent_until_end") == (silent is not None), r.number
+        if silent is not None:
+            assert silent > limit
+            got[key].append({"start": round(r.time, 6), "gap_ms": round(silent, 3), "until_end": True})
     for p in truth["periodic"]:
         key = (p["type"], p["sender"])
-        assert got[key] == p["watchdog"]["violations"], key
-        assert counts[key] == p["count"], key
+        want = [{"until_end": False, **v} for v in p["watchdog"]["violations"]]
+        assert got[key] == [{**v, "start": round(v["start"], 6)} for v in want], key
+        assert p["count"] in (accepted[key], counts[key]), key
 
 
 # --- Commands and acknowledgements -------------------------------------------------------------------
@@ -192,7 +219,7 @@ def test_commands(tshark, capture, tmp_path):
     linked_retransmissions, linked_acks = set(), set()
     for kind, ack_kind in ((C.PacketType.VRCI.value, "VRAO"), (C.PacketType.VRCO.value, "VRAI")):
         want = truth["commands"][kind]
-        never = late = 0
+        never = late = interrupted = 0
         for cmd in want["list"]:
             first = rows[cmd["frames"][0]]
             assert first.get("vm110.type") == kind and first.int("vm110.command_id") == cmd["command_id"]
@@ -209,6 +236,10 @@ def test_commands(tshark, capture, tmp_path):
             for frame in cmd["frames"]:
                 assert rows[frame].int("vm110.analysis.ack_in") == cmd["ack_frame"], frame
             if cmd["ack_frame"] is None:
+                if first.get("vm110.analysis.interrupted_by"):
+                    assert first.has("command_interrupted") and not first.has("never_acked")
+                    interrupted += 1
+                    continue
                 assert first.has("never_acked")
                 never += 1
                 continue
@@ -222,7 +253,8 @@ def test_commands(tshark, capture, tmp_path):
             limit = C.VRCI_FAIL_MS if kind == "VRCI" else C.VRCO_GIVE_UP_MS
             assert first.has("ack_late") == (cmd["latency_first_ms"] > limit)
             late += cmd["latency_first_ms"] > limit
-        if kind == "VRCI":
+        assert interrupted == want.get("interrupted", 0)
+        if kind == "VRCI" or truth["schema_version"] >= 2:   # (schema 1: a VRCO never failed)
             assert never + late == want["failed"]
         kinds = [r for r in rows.values() if r.get("vm110.type") == kind]
         acks = [r for r in rows.values() if r.get("vm110.type") == ack_kind]
@@ -347,36 +379,52 @@ def test_readme_analysis_filters(tshark, tmp_path):
         pytest.fail(str(exc))
 
 
+def per_type_senders(source: Path, target: Path) -> None:
+    """The capture with each packet type of a host moved to an address of its own: per-sender
+    scope on it is per-type scope on the original (no two types share a host, so no new-port
+    restarts either)."""
+    from scapy.layers.inet import IP
+    from scapy.utils import wrpcap
+    kinds = [t.value.encode() for t in C.PacketType]
+    packets = rdpcap(str(source))
+    for pkt in packets:
+        if IP in pkt and UDP in pkt and bytes(pkt[UDP].payload)[:4] in kinds:
+            octets = pkt[IP].src.split(".")
+            pkt[IP].src = f"10.{200 + kinds.index(bytes(pkt[UDP].payload)[:4])}.{octets[2]}.{octets[3]}"
+            del pkt[IP].chksum
+    wrpcap(str(target), packets)
+
+
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 def test_preferences_type_scope_and_thresholds(tshark, tmp_path):
-    """Per-type serial scope equals vm110.analysis.serials (the Python analysis) run per sender and
-    type; a watchdog preference moves the threshold."""
-    from vm110.analysis.serials import classify
+    """Per-type serial scope equals the independent reference (tests/reference) run on the capture
+    with every type of a sender on its own address; a watchdog preference moves the threshold."""
+    from reference.analyser import analyse as reference
     capture = CAPTURES / "loss.pcapng"
+    split = tmp_path / "per-type.pcap"
+    per_type_senders(capture, split)
+    ref = reference(str(split))
     try:
-        with tshark.workspace(tmp_path) as ws:
+        with tshark.workspace(tmp_path / "ws") as ws:
             rows, _ = run_fields(ws, capture, ["-2"], prefs={**ON, "vm110.serial_scope": "type",
                                                             "vm110.vrpi_watchdog_ms": "100"})
             relaxed, _ = run_fields(ws, CAPTURES / "bu-watchdog.pcap", ["-2"],
                                     prefs={**ON, "vm110.vrpo_watchdog_ms": "3200"})
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
-    streams = defaultdict(list)
-    for r in legal_rows(rows):
-        streams[(r.sender, r.get("vm110.type"))].append(r)
-    assert len(streams) > 2
     seen = Counter()
-    for key, stream in streams.items():
-        want = classify([r.int("vm110.serial") for r in stream], [r.time for r in stream])
-        gaps = [(r.int("vm110.serial"), r.int("vm110.analysis.serial_missing")) for r in stream
-                if r.get("vm110.analysis.serial_missing")]
-        assert gaps == [((after + count + 1) % C.SERIAL_MODULUS, count) for after, count, _ in want.gaps], key
-        assert [r.int("vm110.serial") for r in stream if r.get("vm110.analysis.serial_duplicate")] \
-            == want.duplicate_serials, key
-        assert [r.int("vm110.serial") for r in stream if r.get("vm110.analysis.serial_out_of_order")] \
-            == want.out_of_order_serials, key
-        seen.update(gaps=len(want.gaps), duplicates=want.duplicates, late=want.out_of_order)
-    assert min(seen["gaps"], seen["duplicates"], seen["late"]) > 0
+    for r in legal_rows(rows):
+        want = ref["frames"].get(r.number, {})
+        got = {}
+        if r.get("vm110.analysis.serial_missing"):
+            got["serial_missing"] = r.int("vm110.analysis.serial_missing")
+        for key in ("serial_duplicate", "serial_out_of_order", "restart"):
+            if r.get(f"vm110.analysis.{key}"):
+                got[key] = r.int(f"vm110.analysis.{key}")
+        assert got == {k: v for k, v in want.items() if k in ("serial_missing", "serial_duplicate",
+                                                                 "serial_out_of_order", "restart")}, r.number
+        seen.update(got.keys())
+    assert min(seen["serial_missing"], seen["serial_duplicate"], seen["serial_out_of_order"]) > 0
     vrpi = [r for r in legal_rows(rows) if r.get("vm110.type") == "VRPI" and r.get("vm110.analysis.interval")]
     assert vrpi and all(r.has("watchdog_vrpi") == (r.float("vm110.analysis.interval") > 100) for r in vrpi)
     assert not any(r.has("watchdog_vrpo") for r in relaxed)

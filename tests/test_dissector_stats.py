@@ -1,6 +1,7 @@
 """`tshark -z vm110,stat` (dissector/vm110.lua) against the synthesizer's ground truth, per sender:
-packets by type, lost, duplicates, out of order, wraps, retransmissions, acked and unacknowledged
-commands; interval min/avg/max against the legal packets' timestamps read from the capture."""
+packets by type, lost, duplicates, out of order, wraps, restarts, commands acked, unacknowledged and
+interrupted, retransmissions; interval min/avg/max against the timestamps of the accepted packets
+(legal ones read from the capture, without the duplicates the independent reference finds)."""
 from __future__ import annotations
 
 import json
@@ -17,11 +18,15 @@ from vm110.decode import decode
 
 pytestmark = pytest.mark.tshark
 
-CAPTURES = [T.REPO / "captures" / name for name in ("loss.pcapng", "retransmit.pcap", "glink.pcapng")]
+CAPTURES = [T.REPO / "captures" / name for name in ("loss.pcapng", "retransmit.pcap", "glink.pcapng",
+                                                     "restart.pcapng", "overlap.pcapng")]
 _SENDER = re.compile(r"^Sender (.+)$")
 _PACKETS = re.compile(r"^  Packets: (.*)$")
-_SERIAL = re.compile(r"^  Serial: lost (\d+), duplicates (\d+), out of order (\d+), wraps (\d+)$")
-_COMMANDS = re.compile(r"^  Commands: acked (\d+), unacknowledged (\d+), retransmissions (\d+)$")
+_SERIAL = re.compile(r"^  Serial: lost (\d+), duplicates (\d+), out of order (\d+), wraps (\d+), restarts (\d+)$")
+_RESTART = re.compile(r"^  Restart in frame (\d+): serial (\d+) -> (\d+)(?:, port (\d+) -> (\d+))?$")
+_COMMANDS = re.compile(r"^  Commands: (\d+), acked (\d+), unacknowledged (\d+), interrupted (\d+), "
+                       r"retransmissions (\d+)$")
+_SILENT = re.compile(r"^  (VRPI|VRPO) silent until the end: ([\d.]+) ms after frame (\d+)$")
 _INTERVAL = re.compile(r"^  (VRPI|VRPO) interval \(ms\): min ([\d.]+), avg ([\d.]+), max ([\d.]+) \((\d+) intervals\)$")
 
 
@@ -29,32 +34,55 @@ def parse(text: str) -> dict:
     out, current = {}, None
     for line in text.splitlines():
         if m := _SENDER.match(line):
-            current = out[m.group(1)] = {"intervals": {}}
+            current = out[m.group(1)] = {"intervals": {}, "restart_events": [], "silent": {}}
         elif m := _PACKETS.match(line):
             current["by_type"] = {k: int(v) for k, v in (p.split() for p in m.group(1).split(", "))}
         elif m := _SERIAL.match(line):
-            current["serial"] = dict(zip(("lost", "duplicates", "out_of_order", "wraps"), map(int, m.groups())))
+            current["serial"] = dict(zip(("lost", "duplicates", "out_of_order", "wraps", "restarts"),
+                                         map(int, m.groups())))
+        elif m := _RESTART.match(line):
+            event = dict(zip(("frame", "from", "to"), map(int, m.groups()[:3])))
+            if m.group(4):
+                event.update(port_from=int(m.group(4)), port_to=int(m.group(5)))
+            current["restart_events"].append(event)
         elif m := _COMMANDS.match(line):
-            current["commands"] = dict(zip(("acked", "unacked", "retransmissions"), map(int, m.groups())))
+            current["commands"] = dict(zip(("commands", "acked", "unacked", "interrupted", "retransmissions"),
+                                           map(int, m.groups())))
+        elif m := _SILENT.match(line):
+            current["silent"][m.group(1)] = (float(m.group(2)), int(m.group(3)))
         elif m := _INTERVAL.match(line):
             current["intervals"][m.group(1)] = (*map(float, m.groups()[1:4]), int(m.group(5)))
     return out
 
 
 def expected_intervals(capture: Path) -> dict:
-    """(sender, type) -> (min, avg, max, count) in ms between legal periodic packets, by vm110.decode."""
+    """(sender, type) -> (min, avg, max, count) in ms between accepted periodic packets: legal ones
+    by vm110.decode, without the duplicates of the independent reference; a sender that restarted
+    on a new port continues its predecessor's stream (rules.md)."""
+    from reference.analyser import analyse as reference
+    ref = reference(str(capture))
+    duplicates = {fr for fr, f in ref["frames"].items() if "serial_duplicate" in f}
     times = defaultdict(list)
-    for pkt in rdpcap(str(capture)):
-        if UDP not in pkt:
+    for number, pkt in enumerate(rdpcap(str(capture)), start=1):
+        if UDP not in pkt or number in duplicates:
             continue
         d = decode(bytes(pkt[UDP].payload)[:pkt[UDP].len - 8])
         if d.get("type") in ("VRPI", "VRPO") and not d["problems"]:
             direction = "Input" if d["type"].endswith("I") else "Output"
             sender = f"{direction} {pkt[IP].src}:{pkt[UDP].sport} origin 0x{d['origin']:04x}"
-            times[(sender, d["type"])].append(int(round(float(pkt.time) * 1e6)))
+            times[(sender, d["type"])].append((int(round(float(pkt.time) * 1e6)), number))
+    for s in ref["senders"]:
+        for e in s["serial"]["restart_events"]:
+            if "port_from" not in e:
+                continue
+            before = s["id"].replace(f":{e['port_to']} ", f":{e['port_from']} ")
+            for kind in ("VRPI", "VRPO"):
+                earlier = [x for x in times.get((before, kind), []) if x[1] < e["frame"]]
+                if earlier and times.get((s["id"], kind)):
+                    times[(s["id"], kind)].insert(0, earlier[-1])
     out = {}
     for key, ts in times.items():
-        iv = [(b - a) / 1000 for a, b in zip(ts, ts[1:])]
+        iv = [(b[0] - a[0]) / 1000 for a, b in zip(ts, ts[1:])]
         if iv:
             out[key] = (min(iv), sum(iv) / len(iv), max(iv), len(iv))
     return out
@@ -79,10 +107,15 @@ def test_stat_matches_truth(tshark, capture, tmp_path):
     for sender in truth["senders"]:
         g, sid = got[sender["id"]], sender["id"]
         assert g["by_type"] == sender["by_type"], sid
-        assert g["serial"] == {k: sender["serial"][k] for k in ("lost", "duplicates", "out_of_order", "wraps")}, sid
+        want = {k: sender["serial"].get(k, 0) for k in ("lost", "duplicates", "out_of_order", "wraps", "restarts")}
+        assert g["serial"] == want, sid
+        assert g["restart_events"] == [{k: v for k, v in e.items() if k != "time"}
+                                       for e in sender["serial"].get("restart_events", [])], sid
         mine = [c for c in commands if c["sender"] == sid]
-        assert g["commands"] == {"acked": sum(c["ack_frame"] is not None for c in mine),
-                                 "unacked": sum(c["ack_frame"] is None for c in mine),
+        interrupted = interrupted_commands(capture).get(sid, 0)
+        assert g["commands"] == {"commands": len(mine), "acked": sum(c["ack_frame"] is not None for c in mine),
+                                 "unacked": sum(c["ack_frame"] is None for c in mine) - interrupted,
+                                 "interrupted": interrupted,
                                  "retransmissions": sum(len(c["frames"]) - 1 for c in mine)}, sid
         for kind in ("VRPI", "VRPO"):
             want = intervals.get((sid, kind))
@@ -91,6 +124,23 @@ def test_stat_matches_truth(tshark, capture, tmp_path):
                 continue
             assert g["intervals"][kind][3] == want[3]
             assert g["intervals"][kind][:3] == pytest.approx(want[:3], abs=1.5e-3)
+    until_end = {(p["sender"], p["type"]): v for p in truth["periodic"]
+                 for v in p["watchdog"]["violations"] if v.get("until_end")}
+    got_silent = {(sid, kind): v for sid, g in got.items() for kind, v in g["silent"].items()}
+    assert sorted(got_silent) == sorted(until_end)
+    for key, (gap, _frame) in got_silent.items():
+        assert gap == pytest.approx(until_end[key]["gap_ms"], abs=1.5e-3)
+
+
+def interrupted_commands(capture: Path) -> dict:
+    """sender -> its commands interrupted by a restart, by the independent reference."""
+    from reference.analyser import analyse as reference
+    out: dict = defaultdict(int)
+    for kind in ("VRCI", "VRCO"):
+        for c in reference(str(capture))["commands"][kind]["list"]:
+            if c["interrupted_by"] is not None:
+                out[c["sender"]] += 1
+    return out
 
 
 # Stands in for Wireshark's GUI inside tshark (loaded before the plugin; each script has an

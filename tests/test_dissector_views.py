@@ -159,13 +159,15 @@ def crafted(pcap: Path) -> None:
         (0, VM110(serial=1, **bu) / VRPI()), (0, VM110(serial=1) / vrpo),
         (10, VM110(serial=2, **bu) / VRCI(command_id=1)),
         (10 + C.COMMAND_RESEND_MS, VM110(serial=3, **bu) / VRCI(command_id=1)),
-        (C.VRPI_WATCHDOG_MS + 200, VM110(serial=4, **bu) / VRPI()),
+        (C.VRPI_WATCHDOG_MS + 200, VM110(serial=4, **bu) / VRPI()),       # VRPI watchdog
+        (1500, VM110(serial=5, **bu) / VRCI(command_id=1)),               # (within the reuse gap)
+        (late - 100, VM110(serial=6, **bu) / VRCI(command_id=1)),
         (late, VM110(serial=2) / vrpo),                                   # VRPO watchdog
         (late + 10, VM110(serial=3) / VRAO(command_id=1)),                # late
         (late + 20, VM110(serial=4) / VRAO(command_id=7)),                # no such command
         (late + 30, VM110(serial=5) / VRAO(command_id=1)),                # duplicate
-        (late + 40, VM110(serial=5, **bu) / VRCI(command_id=1)),          # after the ack
-        (late + 100, VM110(serial=6, **bu) / VRCI(command_id=2)),         # never acknowledged
+        (late + 40, VM110(serial=7, **bu) / VRCI(command_id=1)),          # after the ack
+        (late + 100, VM110(serial=8, **bu) / VRCI(command_id=2)),         # never acknowledged
     ]
     T.write_pcap(pcap, [bytes(p) for _, p in timeline], [ms * 1000 for ms, _ in timeline])
 

@@ -283,7 +283,8 @@ ANALYSIS_PREFIXES = ("analysis.", "burst.", "reassembled")
 ANALYSIS_EXPERTS = frozenset({
     "serial_gap", "serial_duplicate", "serial_out_of_order", "watchdog_vrpi", "watchdog_vrpo", "vrpo_interval",
     "retransmission", "resend_interval", "spurious_retransmission", "ack_without_command", "duplicate_ack",
-    "ack_late", "never_acked", "burst_missing", "burst_incomplete"})
+    "ack_late", "never_acked", "burst_missing", "burst_incomplete",
+    "restart", "silent_until_end", "command_interrupted"})
 _FIELD_IN_MESSAGE = re.compile(r"^vm110\.([a-z0-9_]+)")
 PROBLEM_CODES = frozenset(p.value for p in C.Problem)
 FIELD_WARNING_CODES = frozenset(w.value for w in C.WarningCode) - {C.WarningCode.EXTRA_PAYLOAD.value}
