@@ -454,3 +454,236 @@ def test_burst_preferences(tshark, tmp_path):
     assert rows[3].get("vm110.burst.complete") in ("0", "False") and rows[3].has("burst_incomplete")
     assert rows[3].has("burst_missing") and not rows[3].get("vm110.reassembled")
     assert [r.get("vm110.burst.frame") for r in rows] == ["1|2", "1|2", "3|4", "3|4"]
+
+
+# --- docs/rules.md on hand-crafted captures (expected values worked out by hand) ------------------------
+def _bu(serial: int, payload) -> bytes:
+    from vm110.layers import VM110
+    return bytes(VM110(origin=0x0101, serial=serial) / payload)
+
+
+def _ctl(serial: int, payload) -> bytes:
+    from vm110.layers import VM110
+    return bytes(VM110(serial=serial) / payload)
+
+
+def _crafted(tshark, tmp_path, timeline, passes=("-2",), extra=()) -> dict[int, Row]:
+    """Frames 1.. of the timeline [(ms, payload or Datagram)], dissected with the analysis on."""
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            pcap = ws.dir / "crafted.pcap"
+            T.write_pcap(pcap, [p for _, p in timeline], [round(ms * 1000) for ms, _ in timeline])
+            rows, text = run_fields(ws, pcap, [*passes, *extra])
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    return {r.number: r for r in rows}
+
+
+def _stat(tshark, tmp_path, timeline) -> str:
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            pcap = ws.dir / "crafted-stat.pcap"
+            T.write_pcap(pcap, [p for _, p in timeline], [round(ms * 1000) for ms, _ in timeline])
+            return ws.run(["-r", str(pcap), "-q", "-z", "vm110,stat", *T.pref_args(ON)]).stdout
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+
+
+def _vrpi():
+    from vm110.layers import VRPI
+    return VRPI()
+
+
+def _vrpo():
+    from vm110.layers import VRPO
+    return VRPO(packet_number=0, periodic_data=bytes(16))
+
+
+def _cmd(kind: str, cid: int):
+    from vm110 import layers
+    return getattr(layers, kind)(command_id=cid)
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_overlapping_commands_acked_in_reverse_order(tshark, tmp_path):
+    """Two commands of one sender open at once; a new ID ends nothing; each ack finds its own."""
+    rows = _crafted(tshark, tmp_path, [
+        (0, _bu(1, _vrpi())),
+        (10, _bu(2, _cmd("VRCI", 5))),
+        (20, _bu(3, _cmd("VRCI", 6))),
+        (110, _bu(4, _cmd("VRCI", 5))),            # retransmission of frame 2 (command 6 is open too)
+        (120, _ctl(1, _cmd("VRAO", 6))),           # acks frame 3
+        (130, _ctl(2, _cmd("VRAO", 5))),           # acks frame 2
+    ])
+    assert rows[2].int("vm110.analysis.ack_in") == 6 and rows[4].int("vm110.analysis.ack_in") == 6
+    assert rows[3].int("vm110.analysis.ack_in") == 5
+    assert rows[4].int("vm110.analysis.retransmission_of") == 2
+    assert rows[4].int("vm110.analysis.retransmission_number") == 1
+    assert rows[4].float("vm110.analysis.since_first") == 100.0
+    assert rows[5].int("vm110.analysis.ack_to") == 3 and rows[5].float("vm110.analysis.ack_time") == 100.0
+    assert rows[6].int("vm110.analysis.ack_to") == 2 and rows[6].float("vm110.analysis.ack_time") == 120.0
+    assert rows[6].float("vm110.analysis.ack_time_last") == 20.0
+    assert not any(r.has(e) for r in rows.values() for e in ("never_acked", "duplicate_ack", "ack_without_command"))
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_command_id_reused_after_the_reuse_gap(tshark, tmp_path):
+    """The same ID 2.5 s after its last transmission is a new command; within 2 s a retransmission
+    (here after the ack: spurious). A shorter reuse gap preference makes the second one new too."""
+    timeline = [
+        (0, _bu(1, _cmd("VRCI", 7))),
+        (5, _ctl(1, _cmd("VRAO", 7))),
+        (2505, _bu(2, _cmd("VRCI", 7))),           # new command
+        (2510, _ctl(2, _cmd("VRAO", 7))),          # acks frame 3, not a duplicate ack
+        (4005, _bu(3, _cmd("VRCI", 7))),           # 1500 ms later: retransmission of frame 3
+    ]
+    rows = _crafted(tshark, tmp_path / "a", timeline)
+    assert not rows[3].get("vm110.analysis.retransmission_of") and rows[3].int("vm110.analysis.ack_in") == 4
+    assert rows[4].int("vm110.analysis.ack_to") == 3 and not rows[4].has("duplicate_ack")
+    assert rows[5].int("vm110.analysis.retransmission_of") == 3 and rows[5].has("spurious_retransmission")
+    short = _crafted(tshark, tmp_path / "b", timeline, extra=["-o", "vm110.reuse_gap_ms:1000"])
+    assert not short[5].get("vm110.analysis.retransmission_of") and short[5].has("never_acked")
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_duplicates_take_no_part(tshark, tmp_path):
+    """A mirror copy 1 ms later and a copy 300 ms later: duplicates, no interval, and they do not
+    reset the watchdog; a copy of a command is no retransmission, a copy of an ack no duplicate ack."""
+    rows = _crafted(tshark, tmp_path, [
+        (0, _bu(1, _vrpi())),
+        (1, _bu(1, _vrpi())),                      # mirror copy
+        (125, _bu(2, _vrpi())),                    # interval 125 from frame 1
+        (130, _bu(3, _cmd("VRCI", 9))),
+        (131, _bu(3, _cmd("VRCI", 9))),            # copy of the command
+        (140, _ctl(1, _cmd("VRAO", 9))),
+        (141, _ctl(1, _cmd("VRAO", 9))),           # copy of the ack
+        (300, _bu(2, _vrpi())),                    # late copy, still within the window
+        (626, _bu(4, _vrpi())),                    # 501 ms after frame 3: watchdog
+    ])
+    for n in (2, 5, 7, 8):
+        assert rows[n].int("vm110.analysis.serial_duplicate") == 1 and rows[n].has("serial_duplicate"), n
+        assert not rows[n].get("vm110.analysis.interval") and not rows[n].get("vm110.analysis.retransmission_of")
+        assert not rows[n].get("vm110.analysis.ack_to") and not rows[n].has("duplicate_ack"), n
+    assert rows[3].float("vm110.analysis.interval") == 125.0
+    assert rows[9].float("vm110.analysis.interval") == 501.0 and rows[9].has("watchdog_vrpi")
+    assert rows[6].int("vm110.analysis.ack_to") == 4
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_silent_until_the_end(tshark, tmp_path):
+    """The base unit stops at 375 ms; the capture's last record (not EG-Link) is at 2000 ms: the
+    VRPI stream's last packet is silent until the end (1625 ms); the VRPO stream (last 1500 ms) is
+    not. Known on the second pass; the statistics say it too."""
+    timeline = [(125 * k, _bu(k + 1, _vrpi())) for k in range(4)]
+    timeline += [(100 * k + 50, _ctl(k + 1, _vrpo())) for k in range(15)]
+    timeline.sort(key=lambda e: e[0])
+    timeline.append((2000, T.Datagram(b"not EG-Link at all, just UDP", sport=9999, dport=9999)))
+    rows = _crafted(tshark, tmp_path / "two", timeline)
+    silent = {n: r.float("vm110.analysis.silent_until_end") for n, r in rows.items()
+              if r.get("vm110.analysis.silent_until_end")}
+    last_vrpi = max(n for n, r in rows.items() if r.get("vm110.type") == "VRPI")
+    assert silent == {last_vrpi: 1625.0} and rows[last_vrpi].has("silent_until_end")
+    single = _crafted(tshark, tmp_path / "one", timeline, passes=())
+    assert not any(r.get("vm110.analysis.silent_until_end") for r in single.values())
+    assert "VRPI silent until the end: 1625.000 ms" in _stat(tshark, tmp_path / "stat", timeline)
+
+
+def _restart_timeline():
+    return [
+        (0, _ctl(100, _vrpo())), (100, _ctl(101, _vrpo())), (200, _ctl(102, _vrpo())),
+        (250, _ctl(103, _cmd("VRCO", 9))),         # outstanding at the restart: interrupted
+        (300, _ctl(104, _vrpo())),
+        (1800, _ctl(0, _vrpo())),                  # candidate (d = 65432): confirmed by serial 1
+        (1900, _ctl(1, _vrpo())),
+        (1950, _ctl(2, _cmd("VRCO", 9))),          # 1700 ms after the last one: new (restart since)
+        (1960, _bu(1, _cmd("VRAI", 9))),           # acks frame 8, not the interrupted frame 4
+    ]
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_same_port_restart_confirmed(tshark, tmp_path):
+    rows = _crafted(tshark, tmp_path / "two", _restart_timeline())
+    assert rows[6].int("vm110.analysis.restart") == 104 and rows[6].has("restart")
+    assert not rows[6].get("vm110.analysis.restart_port_from")
+    assert not any(rows[6].get(f"vm110.analysis.serial_{k}") for k in ("missing", "duplicate", "out_of_order"))
+    assert rows[6].float("vm110.analysis.interval") == 1500.0 and not rows[6].has("watchdog_vrpo")
+    assert not rows[7].get("vm110.analysis.serial_missing")
+    assert rows[4].int("vm110.analysis.interrupted_by") == 6 and rows[4].has("command_interrupted")
+    assert not rows[4].has("never_acked") and not rows[4].get("vm110.analysis.ack_in")
+    assert not rows[8].get("vm110.analysis.retransmission_of") and rows[8].int("vm110.analysis.ack_in") == 9
+    assert rows[9].int("vm110.analysis.ack_to") == 8
+    stat = _stat(tshark, tmp_path / "stat", _restart_timeline())
+    assert "Restart in frame 6: serial 104 -> 0" in stat
+    assert "Commands: 2, acked 1, unacknowledged 0, interrupted 1, retransmissions 0" in stat
+    # One pass: the candidate is not decided when its frame is shown.
+    single = _crafted(tshark, tmp_path / "one", _restart_timeline(), passes=())
+    assert not single[6].get("vm110.analysis.restart") and not single[6].get("vm110.analysis.serial_out_of_order")
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_restart_info_marker(tshark, tmp_path):
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            pcap = ws.dir / "restart.pcap"
+            timeline = _restart_timeline()
+            T.write_pcap(pcap, [p for _, p in timeline], [ms * 1000 for ms, _ in timeline])
+            proc = ws.run(["-r", str(pcap), "-2", *T.pref_args(ON), "-T", "fields", "-e", "_ws.col.Info"])
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    info = proc.stdout.splitlines()
+    assert info[5].endswith("[Restart]") and sum("[Restart]" in line for line in info) == 1
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_unconfirmed_candidate_is_out_of_order(tshark, tmp_path):
+    """Serial 500 after 13 (8/s, 125 ms later: at most 74 lost is plausible) is a candidate; the next
+    serial 14 does not confirm it: out of order, nothing moved (14 is in order after 13)."""
+    timeline = [(125 * k, _bu(10 + k, _vrpi())) for k in range(4)]
+    timeline += [(500, _bu(500, _vrpi())), (625, _bu(14, _vrpi()))]
+    rows = _crafted(tshark, tmp_path, timeline)
+    assert rows[5].int("vm110.analysis.serial_out_of_order") == 1 and not rows[5].get("vm110.analysis.restart")
+    assert not rows[5].get("vm110.analysis.serial_missing")
+    assert not rows[6].get("vm110.analysis.serial_missing") and not rows[6].get("vm110.analysis.serial_out_of_order")
+    assert rows[6].float("vm110.analysis.interval") == 125.0
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_long_outage_is_loss_and_restart_from_above_32767(tshark, tmp_path):
+    """8/s for 10 s, then 60 s of silence and a jump of 481: 480 lost is plausible (up to
+    64 + 4 * 20 * 60). A counter at 40003 that restarts at 0 after 2 s (a forward jump of 25533,
+    at most 224 plausible) is a restart, not 25,532 lost."""
+    timeline = [(125 * k, _bu(k + 1, _vrpi())) for k in range(80)]
+    timeline.append((125 * 79 + 60_000, _bu(561, _vrpi())))
+    rows = _crafted(tshark, tmp_path / "outage", timeline)
+    assert rows[81].int("vm110.analysis.serial_missing") == 480 and rows[81].has("serial_gap")
+    assert rows[81].float("vm110.analysis.interval") == 60_000.0 and rows[81].has("watchdog_vrpi")
+    timeline = [(125 * k, _bu(40000 + k, _vrpi())) for k in range(4)]
+    timeline += [(2375, _bu(0, _vrpi())), (2500, _bu(1, _vrpi()))]
+    rows = _crafted(tshark, tmp_path / "restart", timeline)
+    assert rows[5].int("vm110.analysis.restart") == 40003
+    assert not any(r.get("vm110.analysis.serial_missing") for r in rows.values())
+    assert rows[5].float("vm110.analysis.interval") == 2000.0 and rows[5].has("watchdog_vrpi")
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_new_port_restart(tshark, tmp_path):
+    """The controller reappears on port 50000 after 1400 ms of silence: a restart of the sender on
+    5827 (from its highest serial 6), its open VRCO interrupted, the one past its give-up limit not;
+    the new VRPO stream begins with the interval from the old one's last VRPO (2300 ms: watchdog);
+    the old stream is not silent until the end."""
+    new = 50000
+    rows = _crafted(tshark, tmp_path, [
+        (0, _ctl(1, _vrpo())), (100, _ctl(2, _vrpo())), (200, _ctl(3, _vrpo())),
+        (250, _ctl(4, _cmd("VRCO", 4))),           # 2350 ms old at the restart: failed, not interrupted
+        (300, _ctl(5, _vrpo())),
+        (1200, _ctl(6, _cmd("VRCO", 5))),          # 1400 ms old: interrupted
+        (2600, T.Datagram(_ctl(0, _vrpo()), sport=new)),
+        (2700, T.Datagram(_ctl(1, _vrpo()), sport=new)),
+        (2800, T.Datagram(_ctl(2, _vrpo()), sport=new)),
+    ])
+    first = rows[7]
+    assert first.int("vm110.analysis.restart") == 6 and first.int("vm110.analysis.restart_port_from") == 5827
+    assert first.has("restart") and first.float("vm110.analysis.interval") == 2300.0 and first.has("watchdog_vrpo")
+    assert rows[6].int("vm110.analysis.interrupted_by") == 7 and not rows[6].has("never_acked")
+    assert rows[4].has("never_acked") and not rows[4].get("vm110.analysis.interrupted_by")
+    assert not any(r.get("vm110.analysis.silent_until_end") for r in rows.values())
