@@ -319,11 +319,11 @@ def test_bu_stops_leaves_vrpi_silent_until_the_end(tmp_path):
     stations, arrivals = run_scenario("bu-stops")
     bu = stations[0].node
     assert [e["t"] for e in bu.events("stopped")] == [10.0]
-    last_vrpi = max(a[0] for a in arrivals if a[5].ptype is C.PacketType.VRPI)
+    frame, last_vrpi = max((n, a[0]) for n, a in enumerate(arrivals, 1) if a[5].ptype is C.PacketType.VRPI)
     periodic = {p["type"]: p for p in truth["periodic"]}
     assert periodic["VRPI"]["watchdog"]["violations"] == [
         {"start": round((EPOCH_US + last_vrpi) / 1e6, 6), "gap_ms": (arrivals[-1][0] - last_vrpi) / 1000,
-         "until_end": True}]
+         "until_end": True, "frame": frame}]
     assert periodic["VRPO"]["watchdog"]["violations"] == []
     assert truth["commands"]["VRCO"]["failed"] == 2 and truth["commands"]["VRCI"]["failed"] == 0
 

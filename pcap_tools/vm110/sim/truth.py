@@ -97,7 +97,7 @@ class _Counter:
             del self.missing[s]
             self.out_of_order.append(s)              # late: fills its gap
         elif 1 < d < _HALF and self._plausible(d - 1, t):
-            self.gaps.append({"after": self.h, "count": d - 1, "time": _time(self.epoch_us + t)})
+            self.gaps.append({"after": self.h, "count": d - 1, "time": _time(self.epoch_us + t), "frame": frame})
             for k in range(1, d):
                 lost = (self.h + k) % _MODULUS
                 self._came_round(lost)
@@ -261,20 +261,20 @@ class _Sender:
         self.counter = _Counter(epoch_us)
         self.last_legal = 0
         self.streams: dict[C.PacketType, int] = {}     # periodic type -> accepted packets
-        self.last: dict[C.PacketType, int] = {}        # periodic type -> time of its latest accepted packet
-        self.inherited: dict[C.PacketType, int] = {}   # the same of the sender it took over (new port)
+        self.last: dict[C.PacketType, tuple[int, int]] = {}   # periodic type -> (time, frame) of its latest accepted packet
+        self.inherited: dict[C.PacketType, tuple[int, int]] = {}   # the same of the sender it took over (new port)
         self.taken_over = False                        # a later sender on a new port took over
-        self.violations: dict[C.PacketType, list[tuple[int, int, bool]]] = {}   # (start, end, until end)
+        self.violations: dict[C.PacketType, list[tuple[int, int, bool, int]]] = {}   # (start, end, until end, frame)
         self.burst: list[Meta] = []                    # the VRPO burst being received
         self.burst_t = 0
         self.complete = self.incomplete = 0
 
-    def periodic(self, ptype: C.PacketType, t: int) -> None:
+    def periodic(self, ptype: C.PacketType, t: int, frame: int) -> None:
         self.streams[ptype] = self.streams.get(ptype, 0) + 1
         last = self.last.get(ptype, self.inherited.get(ptype))
-        if last is not None and t - last > _WATCHDOG_US[ptype]:
-            self.violations.setdefault(ptype, []).append((last, t, False))
-        self.last[ptype] = t
+        if last is not None and t - last[0] > _WATCHDOG_US[ptype]:
+            self.violations.setdefault(ptype, []).append((last[0], t, False, frame))
+        self.last[ptype] = (t, frame)
 
     def close_burst(self) -> None:
         burst = self.burst
@@ -398,7 +398,7 @@ class GroundTruth:
                 self._undecided.append(cand)
                 self._held.append((self._maybe_restart, (cand, sender.id)))
             if ptype in watchdogs:
-                sender.periodic(ptype, t)
+                sender.periodic(ptype, t, frame)
             if ptype is _VRPO:
                 burst = sender.burst
                 if burst and t - sender.burst_t >= burst_gap:
@@ -437,11 +437,11 @@ class GroundTruth:
         }
 
     def _periodic(self, ptype: C.PacketType, sender: _Sender) -> dict[str, Any]:
-        epoch, last = self.epoch_us, sender.last[ptype]
+        epoch, (last, frame) = self.epoch_us, sender.last[ptype]
         violations = list(sender.violations.get(ptype, ()))
         if not sender.taken_over and self.last_t - last > _WATCHDOG_US[ptype]:
-            violations.append((last, self.last_t, True))     # silent until the end of the capture
+            violations.append((last, self.last_t, True, frame))     # silent until the end of the capture
         return {"type": ptype.value, "sender": sender.id, "count": sender.streams[ptype],
                 "watchdog": {"limit_ms": _WATCHDOG_MS[ptype],
-                             "violations": [{"start": _time(epoch + a), "gap_ms": _ms(b - a), "until_end": end}
-                                            for a, b, end in violations]}}
+                             "violations": [{"start": _time(epoch + a), "gap_ms": _ms(b - a), "until_end": end,
+                                             "frame": f} for a, b, end, f in violations]}}
