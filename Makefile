@@ -40,7 +40,7 @@ bench: setup
 
 # The synthesised part of captures/ (each with its .truth.json; see captures/README.md).
 CAPTURES := normal.pcap disarmed.pcap loss.pcapng retransmit.pcap vrco.pcap vrpo-split.pcapng illegal.pcap \
-	bu-watchdog.pcap controller-watchdog.pcap glink.pcapng
+	bu-watchdog.pcap controller-watchdog.pcap glink.pcapng overlap.pcapng bu-stops.pcap restart.pcapng
 captures: setup
 	@set -e; for c in $(CAPTURES); do $(VENV)/bin/vm110 synth "$${c%.*}" --seed 1 --out "captures/$$c"; done
 

@@ -159,7 +159,7 @@ def test_file_cut_in_a_record_is_reported_and_the_rest_analysed(tmp_path):
     report = analyze(str(path))
     assert report["capture"]["packets"] == 11 and report["senders"][0]["by_type"] == {"VRPI": 11}
     assert "cut in the middle" in report["capture"]["problem"]
-    assert report["verdict"]["findings"][0]["rule"] == "capture" and not report["verdict"]["ok"]
+    assert report["verdict"]["findings"][0]["rule"] == "damaged" and not report["verdict"]["ok"]
 
 
 def test_snaplen_truncated_eglink_packet_is_illegal_truncated(tmp_path):

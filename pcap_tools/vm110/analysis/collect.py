@@ -112,6 +112,7 @@ class Collected:
     other_udp: int = 0
     snap_truncated: int = 0
     problem: Optional[str] = None
+    damage: Optional[int] = None          # file offset where reading stopped for `problem`
     first_ts: Optional[float] = None
     last_ts: Optional[float] = None
     eglink: int = 0
@@ -202,7 +203,8 @@ class Collected:
         if later.frames:
             self.last_ts = later.last_ts
             self.first_ts = self.first_ts if self.first_ts is not None else later.first_ts
-        self.problem = self.problem or later.problem
+        if self.problem is None:
+            self.problem, self.damage = later.problem, later.damage
         self.link_types = sorted(set(self.link_types) | set(later.link_types))
 
     def take_senders(self) -> list[Sender]:

@@ -198,7 +198,7 @@ class FastEngine:
         got.crc_checked += valid
         got.crc_counts[(variant, order)] += valid
         got.frames, got.non_udp, got.fragments = reader.frames, reader.non_udp, reader.fragments
-        got.snap_truncated, got.problem = len(reader.snap_truncated), reader.problem
+        got.snap_truncated, got.problem, got.damage = len(reader.snap_truncated), reader.problem, reader.damage
         got.first_ts, got.last_ts = reader.first_ts, reader.last_ts
         got.link_types = sorted(reader.link_types)
         return got
@@ -341,7 +341,7 @@ class FastEngine:
                 if not little:
                     btype, blen = struct.unpack_from(">II", data, pos)
                     et = None
-                if reader.bad_block(pos, blen):
+                if reader.bad_block(pos, blen, btype):
                     chunks.close()
                     data = None
                     break

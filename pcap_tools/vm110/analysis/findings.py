@@ -17,7 +17,7 @@ MAX_FILTER_FRAMES = 64
 Located = dict[str, list[dict]]
 _ACK_CODE = {CODE[cmd]: CODE[ack] for ack, cmd in C.ACK_OF.items()}
 
-TOTAL_NAMES = ("packets", "eglink_packets", "lost", "duplicates", "out_of_order", "restarts", "illegal",
+TOTAL_NAMES = ("packets", "eglink_packets", "damaged", "lost", "duplicates", "out_of_order", "restarts", "illegal",
                "crc_invalid", "watchdog", "vrpo_outside_recommended", "commands", "retransmissions", "unacked",
                "failed", "interrupted", "spurious", "acks_without_command", "duplicate_acks", "relays_open",
                "vrpo_incomplete", "time_backwards", "snaplen_truncated", "jitter_max_ms", "interval_max_ms",
@@ -117,6 +117,7 @@ def totals(report: dict) -> dict:
     return {
         "packets": report["capture"]["packets"],
         "eglink_packets": report["capture"]["eglink_packets"],
+        "damaged": int(report["capture"]["problem"] is not None),
         "lost": sum(s["serial"]["lost"] for s in senders),
         "duplicates": sum(s["serial"]["duplicates"] for s in senders),
         "out_of_order": sum(s["serial"]["out_of_order"] for s in senders),
@@ -156,9 +157,13 @@ def verdict(report: dict, located: Located) -> dict:
     findings = [{"rule": key, "severity": sev, "count": tot[key], "message": f"{tot[key]} {msg}",
                  **_items(located.get(key, []))}
                 for key, sev, msg in FINDINGS if tot[key] > 0]
-    if report["capture"]["problem"]:
-        findings.insert(0, {"rule": "capture", "severity": "error", "count": 1,
-                            "message": report["capture"]["problem"], "items": []})
+    cap = report["capture"]
+    if cap["problem"]:
+        # Located by the last frame read before the damage (Wireshark stops there too).
+        where = [{"frame": cap["packets"], "time": cap["last_time"], "offset": (cap["damage"] or {}).get("offset"),
+                  "filter": frame_filter([cap["packets"]])}] if cap["packets"] else []
+        findings.insert(0, {"rule": "damaged", "severity": "error", "count": 1,
+                            "message": f"capture damaged: {cap['problem']}", "items": where})
     if not report["capture"]["eglink_packets"]:
         findings.insert(0, {"rule": "no_eglink", "severity": "warning", "count": 0,
                             "message": "no EG-Link packets in the capture", "items": []})

@@ -168,6 +168,7 @@ def _build(got: Collected, opt: Options) -> dict:
             "first_time": got.first_ts, "last_time": got.last_ts,
             "duration_s": (got.last_ts - got.first_ts) if got.first_ts is not None else 0.0,
             "time_backwards": backwards, "problem": got.problem, "ports": list(got.ports),
+            "damage": None if got.problem is None else {"offset": got.damage, "message": got.problem},
         },
         "crc": {"variant": got.crc_variant, "byte_order": got.crc_order, "auto": got.crc_auto,
                 "valid": got.eglink - invalid, "invalid": invalid, "unchecked": got.eglink - got.crc_checked,

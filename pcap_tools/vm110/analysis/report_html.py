@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import html
 import math
-from typing import Iterable, Optional
+from typing import Iterable, Optional, Sequence
 
 from .. import __version__
-from ..errors import CliError
+from ..fileio import write_text
 from . import summary
 
 W, H = 640, 220
@@ -338,13 +338,16 @@ def _section(report: dict) -> str:
     return "\n".join(out)
 
 
-def render(reports: list[dict], combined: Optional[dict] = None) -> str:
-    ok = all(r["verdict"]["ok"] for r in reports)
+def render(reports: list[dict], combined: Optional[dict] = None, errors: Sequence[dict] = ()) -> str:
+    ok = all(r["verdict"]["ok"] for r in reports) and not errors
     parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
              "<title>VM-110 EG-Link capture analysis</title>", f"<style>{CSS}</style></head><body>",
              f"<h1>VM-110 EG-Link capture analysis "
              f'<span class="{"ok" if ok else "fail"}">{"OK" if ok else "FAIL"}</span></h1>',
              f"<p>vm110 {_e(__version__)}, engine {_e(reports[0]['tool']['engine'])}</p>"]
+    if errors:
+        parts.append("<h2>Captures that could not be read</h2><ul>"
+                     + "".join(f'<li class="error">{_e(e["file"])}: {_e(e["error"])}</li>' for e in errors) + "</ul>")
     if combined:
         parts.append("<pre>" + _e(summary.render_combined(combined)) + "</pre>")
     parts += [_section(r) for r in reports]
@@ -352,9 +355,6 @@ def render(reports: list[dict], combined: Optional[dict] = None) -> str:
     return "\n".join(parts)
 
 
-def write(path: str, reports: list[dict], combined: Optional[dict] = None) -> None:
-    try:
-        with open(path, "w", encoding="utf-8") as out:
-            out.write(render(reports, combined))
-    except OSError as exc:
-        raise CliError(f"cannot write {path}: {exc.strerror}") from None
+def write(path: str, reports: list[dict], combined: Optional[dict] = None, errors: Sequence[dict] = ()) -> None:
+    """The HTML file, written atomically."""
+    write_text(path, render(reports, combined, errors))

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any, Optional
+from typing import Any, Optional, TextIO
 
-from ..errors import CliError
+from ..fileio import atomic_writer
 
 SECONDS_DECIMALS = 6   # times to the microsecond, the resolution of a capture's timestamps
 MS_DECIMALS = 3        # durations in ms (keys ending in _ms, and everything under them) likewise
@@ -47,10 +47,12 @@ def normalise(value: Any, ms: bool = False) -> Any:
     return value
 
 
+def dump(out: TextIO, document: dict) -> None:
+    json.dump(document, out, indent=1, allow_nan=False)    # streamed: no second copy in memory
+    out.write("\n")
+
+
 def write(path: str, document: dict) -> None:
-    try:
-        with open(path, "w", encoding="utf-8") as out:
-            json.dump(document, out, indent=1, allow_nan=False)    # streamed: no second copy in memory
-            out.write("\n")
-    except OSError as exc:
-        raise CliError(f"cannot write {path}: {exc.strerror}") from None
+    """The JSON file, written atomically (a failure leaves what was there)."""
+    with atomic_writer(path, binary=False) as out:
+        dump(out, document)

@@ -14,6 +14,7 @@ import os
 import shutil
 import struct
 import subprocess
+import tempfile
 from pathlib import Path
 from typing import Iterator, Optional
 
@@ -67,12 +68,16 @@ class TsharkEngine:
         import pyshark     # imported here: the fast engine and the CLI start without it
         cap = pyshark.FileCapture(path, keep_packets=False, display_filter=display_filter,
                                   custom_parameters=self._params(variant, order))
+        crash = pyshark.capture.capture.TSharkCrashException
         try:
             yield from cap
-        except pyshark.capture.capture.TSharkCrashException:
-            pass           # tshark stops at a record cut short; the reader reports the cut
+        except crash:
+            pass           # tshark stops at damage the reader has reported (collect gives it the intact part)
         finally:
-            cap.close()
+            try:
+                cap.close()
+            except crash:
+                pass
 
     def _count_good(self, path: str, variant: str, order: str) -> int:
         return sum(1 for _ in self._packets(path, variant, order, "vm110.crc.status == 1"))
@@ -82,12 +87,31 @@ class TsharkEngine:
         reader = CaptureReader(path)           # clean errors for unreadable files, and file facts
         for _ in reader.batches():
             pass
+        if reader.damage is None:
+            return self._collect(path, path, reader)
+        # tshark gets the intact part only: the same frames the reader took, and no crash.
+        with tempfile.TemporaryDirectory(prefix="vm110-") as tmp:
+            intact = os.path.join(tmp, "intact" + os.path.splitext(path)[1])
+            with open(path, "rb") as src, open(intact, "wb") as dst:
+                left = reader.damage
+                while left > 0:
+                    block = src.read(min(left, 1 << 20))
+                    if not block:
+                        break
+                    dst.write(block)
+                    left -= len(block)
+            got = self._collect(intact, path, reader)
+        got.problem, got.damage = reader.problem, reader.damage
+        return got
+
+    def _collect(self, path: str, name: str, reader: CaptureReader) -> Collected:
+        """Read `path` through tshark; report it as `name`."""
         variants = VARIANTS if self.crc == "auto" else (self.crc,)
         orders = BYTE_ORDERS if self.crc_order == "auto" else (self.crc_order,)
         candidates = [(v, o) for v in variants for o in orders]
         first = (DEFAULT_VARIANT, DEFAULT_BYTE_ORDER) if (DEFAULT_VARIANT, DEFAULT_BYTE_ORDER) in candidates \
             else candidates[0]
-        got = self._pass(path, reader, *first)
+        got = self._pass(path, name, reader, *first)
         counts = {first: got.crc_counts[first]}
         if len(candidates) > 1 and got.crc_checked > counts[first]:
             for combo in candidates:
@@ -95,12 +119,12 @@ class TsharkEngine:
                     counts[combo] = self._count_good(path, *combo)
             best = max(candidates, key=lambda c: (counts[c], -candidates.index(c)))
             if best != first:
-                got = self._pass(path, reader, *best)
+                got = self._pass(path, name, reader, *best)
             got.crc_counts.update(counts)
         return got
 
-    def _pass(self, path: str, reader: CaptureReader, variant: str, order: str) -> Collected:
-        got = Collected(path=path, engine="tshark", format=reader.format, link_types=sorted(reader.link_types),
+    def _pass(self, path: str, name: str, reader: CaptureReader, variant: str, order: str) -> Collected:
+        got = Collected(path=name, engine="tshark", format=reader.format, link_types=sorted(reader.link_types),
                         ports=(self.port, self.port + C.OUTPUT_PORT_OFFSET), crc_variant=variant,
                         crc_order=order, crc_auto=self.crc == "auto" or self.crc_order == "auto",
                         problem=reader.problem, first_ts=reader.first_ts, last_ts=reader.last_ts)

@@ -29,7 +29,9 @@ PCAPNG_IDB, PCAPNG_PB, PCAPNG_SPB, PCAPNG_EPB = 1, 2, 3, 6
 OPT_END, OPT_TSRESOL, OPT_TSOFFSET = 0, 9, 14
 PCAP_HEADER_LEN = 24
 PCAP_RECORD_LEN = 16
-MAX_RECORD = 1 << 18           # Wireshark's largest standard packet; a longer record is corruption
+MAX_RECORD = 1 << 18           # Wireshark's largest standard packet; a longer record is damage
+MAX_PACKET_BLOCK = MAX_RECORD + (1 << 12)   # a pcapng packet block: the record, its header and options
+MAX_BLOCK = 1 << 20            # any other pcapng block
 CHUNK = 1 << 22
 
 # Ethernet + IPv4 (no options) + UDP in one call: ethertype, version/IHL, fragment field,
@@ -88,6 +90,7 @@ class CaptureReader:
         self.unknown_link = 0      # frames of a link type the reader does not know (in non_udp)
         self.snap_truncated: set[int] = set()   # frames whose UDP payload the snaplen cut short
         self.problem: Optional[str] = None      # why reading stopped early, if it did
+        self.damage: Optional[int] = None       # and the file offset where it did
         self.link_types: set[str] = set()
         self.bytes_read = 0
         self.first_ts: Optional[float] = None   # of the first and last packet record
@@ -121,7 +124,8 @@ class CaptureReader:
         magic, _, _, _, _, snaplen, network = struct.unpack(e + "IHHiIII", head)
         link = network & 0x0FFFFFFF      # the top bits may carry FCS information
         self.link_types.add(L.NAMES.get(link, str(link)))
-        self._layout = PcapLayout(e, 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link, max(snaplen, MAX_RECORD))
+        # Never the snaplen: a file's own header must not let a record claim gigabytes.
+        self._layout = PcapLayout(e, 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link, MAX_RECORD)
         return self._layout
 
     def raw_chunks(self, start: int = PCAP_HEADER_LEN, stop: Optional[int] = None) -> Generator[bytes, int, None]:
@@ -148,12 +152,19 @@ class CaptureReader:
         finally:
             self._file.close()
         self.bytes_read = offset + len(leftover)
-        if leftover and self.problem is None:
-            self.problem = f"file cut in the middle of a record at byte {offset} ({len(leftover)} bytes ignored)"
+        if leftover:
+            self.damaged(offset, f"file cut in the middle of a record at byte {offset} ({len(leftover)} bytes ignored)")
+
+    def damaged(self, offset: int, message: str) -> None:
+        """Reading stops at `offset` for this reason (the first one counts)."""
+        if self.damage is None:
+            self.damage, self.problem = offset, message
 
     def corrupt(self, pos: int, length: int) -> None:
         """Record that the record header at `pos` of the current chunk is corrupt."""
-        self.problem = f"corrupt record header at byte {self.bytes_read + pos} (length {length})"
+        at = self.bytes_read + pos
+        over = f": over the {MAX_RECORD}-byte limit" if length > MAX_RECORD else ""
+        self.damaged(at, f"corrupt record header at byte {at} (length {length}{over})")
 
     def _pcap(self) -> Iterator[list[Datagram]]:
         e, scale, link, limit = self.pcap_layout()
@@ -250,13 +261,22 @@ class CaptureReader:
         elif struct.unpack_from(">I", data, pos + 8)[0] == PCAPNG_BOM:
             self.endian = ">"
         else:
-            raise CaptureError(f"{self.path}: bad pcapng byte-order magic at byte {self.bytes_read + pos}")
+            at = self.bytes_read + pos
+            if not at:
+                raise CaptureError(f"{self.path}: bad pcapng byte-order magic at byte 0")
+            # A later section: what came before it is kept (bad_block stops the walk here).
+            self.damaged(at, f"bad pcapng byte-order magic in the section at byte {at}")
         self.interfaces = []
 
-    def bad_block(self, pos: int, blen: int) -> bool:
-        """Whether a block length is corrupt (and if so, say where)."""
-        if blen < 12 or blen % 4 or blen > MAX_RECORD * 4:
-            self.problem = f"corrupt pcapng block at byte {self.bytes_read + pos} (length {blen})"
+    def bad_block(self, pos: int, blen: int, btype: int) -> bool:
+        """Whether the walk must stop at this block: damage found before, or a corrupt or
+        oversized block length (and if so, say where)."""
+        if self.damage is not None:
+            return True
+        limit = MAX_PACKET_BLOCK if btype in (PCAPNG_EPB, PCAPNG_PB, PCAPNG_SPB) else MAX_BLOCK
+        if blen < 12 or blen % 4 or blen > limit:
+            at = self.bytes_read + pos
+            self.damaged(at, f"corrupt pcapng block at byte {at} (type {btype}, length {blen})")
             return True
         return False
 
@@ -277,7 +297,7 @@ class CaptureReader:
                 if struct.unpack_from("<I", data, pos)[0] == PCAPNG_SHB:
                     self.pcapng_section(data, pos)
                 btype, blen = struct.unpack_from(self.endian + "II", data, pos)
-                if self.bad_block(pos, blen):
+                if self.bad_block(pos, blen, btype):
                     chunks.close()
                     self.frames = frame
                     yield out

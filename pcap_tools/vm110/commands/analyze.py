@@ -7,9 +7,10 @@ is violated, 2 for unreadable input or bad arguments.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import multiprocessing
 import sys
-from typing import Optional
+from typing import Optional, Union
 
 from .. import constants as C
 from ..analysis import analyze, report_html, report_json, rules, summary
@@ -18,14 +19,16 @@ from ..analysis.findings import MAX_TOTALS, TOTAL_NAMES
 from ..analysis.serials import DUP_WINDOW_MS
 from ..analysis.report import SCHEMA_VERSION, SCOPES, Options
 from ..crc import BYTE_ORDERS, VARIANTS
-from ..errors import EXIT_FINDINGS, EXIT_OK, CliError
+from ..capture.spool import stdin_spool
+from ..fileio import check_target
+from ..errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE, CliError
 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("captures", nargs="+", metavar="CAPTURE", help="pcap or pcapng files")
-    parser.add_argument("--json", metavar="FILE", help="write the JSON report (docs/report.md)")
-    parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report")
+    parser.add_argument("captures", nargs="+", metavar="CAPTURE", help="pcap or pcapng files; - reads standard input")
+    parser.add_argument("--json", metavar="FILE", help="write the JSON report (docs/report.md); - for standard output")
+    parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report; - for standard output")
     parser.add_argument("--engine", choices=("fast", "tshark"), default="fast",
                         help="fast (default, streams the file) or tshark (the Lua dissector through pyshark)")
     parser.add_argument("--crc", choices=("auto", *VARIANTS), default="auto",
@@ -85,17 +88,18 @@ def _progress(path: str):
     return show
 
 
-def _one(job: tuple) -> dict:
+def _one(job: tuple) -> Union[dict, str]:
+    """The report of one capture, or the one-line reason it cannot be read."""
     path, engine, port, crc, crc_order, options, show_progress = job
     progress = _progress(path) if show_progress else None
     try:
         return analyze(path, engine, port, crc, crc_order, options, progress)
-    except CliError:
-        raise
+    except CliError as exc:
+        return str(exc)
     except MemoryError:
-        raise CliError(f"{path}: out of memory") from None
+        return f"{path}: out of memory"
     except Exception as exc:     # a broken file must give one line, never a traceback
-        raise CliError(f"cannot analyse {path}: {type(exc).__name__}: {exc}") from None
+        return f"cannot analyse {path}: {type(exc).__name__}: {exc}"
     finally:
         if progress is not None:
             sys.stderr.write("\r\033[K")
@@ -118,6 +122,9 @@ def run(args: argparse.Namespace) -> int:
     if not 0 < args.port < 65535 - C.OUTPUT_PORT_OFFSET:
         raise CliError(f"--port {args.port} is not a usable UDP port")
     fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on else []
+    for target in (args.json, args.html):
+        if target not in (None, "-"):
+            check_target(target)      # up front: not after minutes of analysis
     if args.engine == "tshark":
         from ..analysis.tshark_engine import check_available
         check_available()
@@ -127,14 +134,25 @@ def run(args: argparse.Namespace) -> int:
                       vrci_fail_ms=args.vrci_fail, vrco_give_up_ms=args.vrco_give_up,
                       reuse_gap_ms=args.reuse_gap, dup_window_ms=args.dup_window, burst_gap_ms=args.burst_gap, vrpo_start=args.vrpo_start,
                       vrpo_data_size=args.vrpo_data_size)
-    jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1)
-            for p in args.captures]
-    if args.jobs > 1 and len(jobs) > 1:
-        with multiprocessing.Pool(min(args.jobs, len(jobs))) as pool:
-            reports = pool.map(_one, jobs)
-    else:
-        reports = [_one(job) for job in jobs]
-    combined: Optional[dict] = combine(reports) if len(reports) > 1 else None
+    with contextlib.ExitStack() as stack:
+        paths = [stdin_spool(stack) if p == "-" else p for p in args.captures]
+        jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1) for p in paths]
+        if args.jobs > 1 and len(jobs) > 1:
+            with multiprocessing.Pool(min(args.jobs, len(jobs))) as pool:
+                results = pool.map(_one, jobs)
+        else:
+            results = [_one(job) for job in jobs]
+    for name, result in zip(args.captures, results):
+        if name == "-" and isinstance(result, dict):
+            result["capture"]["file"] = "-"
+    # Every readable capture is reported; an unreadable one is an error entry beside them (exit 2).
+    reports = [r for r in results if isinstance(r, dict)]
+    errors = [{"file": name, "error": r} for name, r in zip(args.captures, results) if isinstance(r, str)]
+    for e in errors:
+        print(f"vm110 analyze: {e['error']}", file=sys.stderr)
+    if not reports:
+        return EXIT_USAGE
+    combined: Optional[dict] = combine(reports) if len(args.captures) > 1 else None
     if not args.quiet:
         print("\n\n".join(summary.render(r, args.list) for r in reports))
         if combined:
@@ -142,14 +160,22 @@ def run(args: argparse.Namespace) -> int:
             print(summary.render_combined(combined))
     if args.json:
         document = reports[0] if combined is None else {
-            "schema_version": SCHEMA_VERSION, "reports": reports, "combined": combined}
-        report_json.write(args.json, document)
+            "schema_version": SCHEMA_VERSION, "reports": reports, "errors": errors, "combined": combined}
+        if args.json == "-":
+            report_json.dump(sys.stdout, document)
+        else:
+            report_json.write(args.json, document)
     if args.html:
-        report_html.write(args.html, reports, combined)
+        if args.html == "-":
+            sys.stdout.write(report_html.render(reports, combined, errors))
+        else:
+            report_html.write(args.html, reports, combined, errors)
     broken = []
     for r in reports:
         for v in rules.violations(fail_rules, r["totals"]):
             broken.append(f"{r['capture']['file']}: {v}")
     for line in broken:
         print(f"fail-on: {line}", file=sys.stderr)
+    if errors:
+        return EXIT_USAGE
     return EXIT_FINDINGS if broken else EXIT_OK

@@ -7,13 +7,16 @@ Other traffic is skipped.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 from typing import Any, Iterator
 
 from .. import constants as C
 from ..capture.reader import CaptureReader, address
+from ..capture.spool import stdin_spool
 from ..crc import BYTE_ORDERS, VARIANTS
 from ..decode import decode
+from ..errors import CliError
 
 _IDS = frozenset(t.value.encode() for t in C.PacketType)
 _SUMMARY_FIELDS = {
@@ -25,7 +28,7 @@ _SUMMARY_FIELDS = {
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("capture", help="pcap or pcapng file")
+    parser.add_argument("capture", help="pcap or pcapng file; - reads standard input")
     parser.add_argument("--port", type=int, default=C.INPUT_PORT,
                         help=f"input port (output port is +{C.OUTPUT_PORT_OFFSET}); default {C.INPUT_PORT}")
     parser.add_argument("--crc", choices=VARIANTS, default=VARIANTS[0], help="CRC variant")
@@ -34,10 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="one JSON object per packet")
 
 
-def eglink_datagrams(path: str, port: int) -> Iterator[tuple[int, float, str, bytes]]:
+def eglink_datagrams(reader: CaptureReader, port: int) -> Iterator[tuple[int, float, str, bytes]]:
     """(frame number, time, source "ip:port", UDP payload) of each EG-Link datagram."""
     ports = {port, port + C.OUTPUT_PORT_OFFSET}
-    for ts, src, sport, dport, payload, frame in CaptureReader(path):
+    for ts, src, sport, dport, payload, frame in reader:
         if sport in ports or dport in ports or payload[:C.ID_LEN] in _IDS:
             yield frame, ts, address(src, sport), payload
 
@@ -59,14 +62,19 @@ def _jsonable(value: Any) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     count = 0
-    for number, when, src, data in eglink_datagrams(args.capture, args.port):
-        fields = decode(data, args.crc, args.crc_order)
-        count += 1
-        if args.json:
-            print(json.dumps({"frame": number, "time": when, "src": src,
-                              **{k: _jsonable(v) for k, v in fields.items()}}))
-        else:
-            print(_line(number, when, src, fields))
+    with contextlib.ExitStack() as stack:
+        reader = CaptureReader(stdin_spool(stack) if args.capture == "-" else args.capture)
+        for number, when, src, data in eglink_datagrams(reader, args.port):
+            fields = decode(data, args.crc, args.crc_order)
+            count += 1
+            if args.json:
+                print(json.dumps({"frame": number, "time": when, "src": src,
+                                  **{k: _jsonable(v) for k, v in fields.items()}}))
+            else:
+                print(_line(number, when, src, fields))
     if not args.json:
         print(f"{count} EG-Link packets")
+    if reader.problem is not None:
+        # Everything before the damage was printed; the damage is never passed over in silence.
+        raise CliError(f"{args.capture}: damaged, read up to byte {reader.damage}: {reader.problem}")
     return 0

@@ -1,0 +1,139 @@
+"""Damaged and hostile input for `decode` and `analyze` (issue 17, parts 1 and 4): what comes
+before the damage is analysed and reported, the damage is named with its byte offset, several
+captures are each reported, pipes read as files, and output files are never lost."""
+from __future__ import annotations
+
+import json
+import os
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from test_analysis_craft import Traffic, vrpi
+from vm110.analysis import analyze, report_json
+
+CAPTURES = Path(__file__).resolve().parent.parent / "captures"
+
+
+def vm110(*args: str, stdin: bytes = b"") -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vm110", *args], input=stdin, capture_output=True, timeout=300)
+
+
+def _traffic(path: Path, n: int = 12, fmt: str = "pcap") -> None:
+    tr = Traffic()
+    for k in range(n):
+        tr.add(k * 0.125, vrpi(k))
+    tr.write(path, fmt)
+
+
+def _record_starts(data: bytes) -> list[int]:
+    pos, out = 24, []
+    while pos + 16 <= len(data):
+        out.append(pos)
+        pos += 16 + struct.unpack_from("<I", data, pos + 8)[0]
+    return out
+
+
+def test_several_captures_each_reported_and_the_unreadable_one_named(tmp_path):
+    junk = tmp_path / "junk.pcap"
+    junk.write_bytes(os.urandom(3000))
+    out = tmp_path / "r.json"
+    done = vm110("analyze", str(CAPTURES / "normal.pcap"), str(junk), "--json", str(out), "--quiet")
+    assert done.returncode == 2 and b"junk.pcap: not a pcap or pcapng capture" in done.stderr
+    assert b"Traceback" not in done.stderr
+    doc = json.loads(out.read_text())
+    assert [r["capture"]["file"] for r in doc["reports"]] == [str(CAPTURES / "normal.pcap")]
+    assert doc["errors"] == [{"file": str(junk), "error": f"{junk}: not a pcap or pcapng capture (magic "
+                              + doc["errors"][0]["error"].split("(magic ")[1]}]
+    assert doc["reports"][0]["totals"]["eglink_packets"] == 382
+
+
+def test_a_damaged_later_pcapng_section_keeps_what_came_before(tmp_path):
+    first, second = tmp_path / "a.pcapng", tmp_path / "b.pcapng"
+    _traffic(first, 10, "pcapng")
+    _traffic(second, 10, "pcapng")
+    bad = bytearray(second.read_bytes())
+    struct.pack_into("<I", bad, 8, 0xDEADBEEF)          # the second section's byte-order magic
+    joined = tmp_path / "joined.pcapng"
+    joined.write_bytes(first.read_bytes() + bytes(bad))
+    for engine in ("fast", "tshark"):
+        report = analyze(str(joined), engine)
+        assert report["capture"]["packets"] == 10, engine
+        assert report["capture"]["damage"] == {"offset": first.stat().st_size, "message":
+                                               f"bad pcapng byte-order magic in the section at byte {first.stat().st_size}"}
+        assert report["totals"]["damaged"] == 1 and report["verdict"]["findings"][0]["rule"] == "damaged"
+
+
+@pytest.mark.tshark
+def test_the_tshark_engine_keeps_what_comes_before_a_cut(tmp_path):
+    path = tmp_path / "cut.pcap"
+    _traffic(path)
+    data = path.read_bytes()
+    path.write_bytes(data[:-20])
+    fast, slow = analyze(str(path)), analyze(str(path), "tshark")
+    assert slow["capture"]["packets"] == fast["capture"]["packets"] == 11
+    assert slow["capture"]["damage"] == fast["capture"]["damage"] == {
+        "offset": _record_starts(data)[-1], "message": fast["capture"]["problem"]}
+    assert slow["senders"][0]["serial"]["received"] == 11
+    done = vm110("analyze", str(path), "--engine", "tshark", "--quiet", "--fail-on", "damaged")
+    assert done.returncode == 1 and b"damaged=1" in done.stderr and b"Traceback" not in done.stderr
+
+
+def test_decode_and_analyze_read_a_pipe():
+    data = (CAPTURES / "normal.pcap").read_bytes()
+    done = vm110("decode", "-", stdin=data)
+    assert done.returncode == 0 and done.stdout.decode().splitlines()[-1] == "382 EG-Link packets"
+    done = vm110("analyze", "-", "--quiet", "--json", "-", stdin=data)
+    report = json.loads(done.stdout)
+    assert done.returncode == 0 and report["capture"]["file"] == "-" and report["totals"]["eglink_packets"] == 382
+
+
+def test_a_record_claiming_gigabytes_is_damage_never_silence(tmp_path):
+    path = tmp_path / "big.pcap"
+    _traffic(path)
+    data = bytearray(path.read_bytes())
+    third = _record_starts(bytes(data))[2]
+    struct.pack_into("<II", data, third + 8, 1 << 31, 1 << 31)
+    path.write_bytes(bytes(data))
+    done = vm110("decode", str(path))
+    lines = done.stdout.decode().splitlines()
+    assert done.returncode == 2 and lines[-1] == "2 EG-Link packets"
+    assert f"damaged, read up to byte {third}".encode() in done.stderr
+
+
+def test_one_record_over_the_limit_costs_no_more_than_its_bytes(tmp_path):
+    """A 64 MiB record (real bytes, not a lying header) ends the read at once: damage, not a
+    minute of rescanning, and nothing of it loaded."""
+    path = tmp_path / "huge.pcap"
+    _traffic(path, 10)
+    data = path.read_bytes()
+    huge = 64 << 20
+    with open(path, "ab") as out:
+        out.write(struct.pack("<IIII", 1_700_000_002, 0, huge, huge))
+        out.write(bytes(huge))
+    start = time.perf_counter()
+    report = analyze(str(path))
+    assert time.perf_counter() - start < 5.0
+    assert report["capture"]["packets"] == 10 and report["capture"]["damage"]["offset"] == len(data)
+    assert "over the 262144-byte limit" in report["capture"]["problem"]
+
+
+def test_reports_are_written_whole_or_not_at_all(tmp_path):
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    done = vm110("analyze", str(CAPTURES / "normal.pcap"), "--json", str(fifo), "--quiet")
+    assert done.returncode == 2 and b"is not a regular file" in done.stderr and fifo.exists()
+    folder = tmp_path / "dir.json"
+    folder.mkdir()
+    done = vm110("analyze", str(CAPTURES / "normal.pcap"), "--json", str(folder), "--quiet")
+    assert done.returncode == 2 and b"is not a regular file" in done.stderr and folder.is_dir()
+    old = tmp_path / "r.json"
+    old.write_text("the previous report")
+    with pytest.raises(ValueError):        # fails half-way through writing: NaN is not JSON
+        report_json.write(str(old), {"a": list(range(100000)), "b": float("nan")})
+    assert old.read_text() == "the previous report"
+    assert sorted(os.listdir(tmp_path)) == ["dir.json", "fifo", "r.json"]
