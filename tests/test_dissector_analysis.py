@@ -135,7 +135,7 @@ def serial_view(rows: list[Row]) -> dict:
             assert r.has("restart")
         if missing:
             after = (serial - missing - 1) % C.SERIAL_MODULUS
-            v["gaps"].append({"after": after, "count": missing, "time": round(r.time, 6)})
+            v["gaps"].append({"after": after, "count": missing, "time": round(r.time, 6), "frame": r.number})
             for k in range(1, missing + 1):
                 v["missing"][(after + k) % C.SERIAL_MODULUS] += 1
             assert r.has("serial_gap")
@@ -158,7 +158,7 @@ def test_serials(tshark, capture, tmp_path):
     assert sorted(view) == sorted(s["id"] for s in truth["senders"])
     for sender in truth["senders"]:
         want, got = sender["serial"], view[sender["id"]]
-        assert got["gaps"] == want["gaps"], sender["id"]
+        assert like(got["gaps"], want["gaps"]), sender["id"]
         assert got["duplicate_serials"] == want["duplicate_serials"], sender["id"]
         assert got["out_of_order_serials"] == want["out_of_order_serials"], sender["id"]
         lost = sorted(got["missing"].elements())
@@ -166,7 +166,12 @@ def test_serials(tshark, capture, tmp_path):
         if "lost_serials" in want:
             assert lost == sorted(s % C.SERIAL_MODULUS for s in want["lost_serials"]), sender["id"]
         events = [{**e, "time": round(e["time"], 6)} for e in want.get("restart_events", [])]
-        assert got["restart_events"] == events, sender["id"]
+        assert like(got["restart_events"], events), sender["id"]
+
+
+def like(got: list[dict], want: list[dict]) -> bool:
+    """The same entries, compared on the keys the truth has (its schema grows: a frame, say)."""
+    return [{k: g.get(k) for k in w} for g, w in zip(got, want)] == want and len(got) == len(want)
 
 
 # --- Timing -----------------------------------------------------------------------------------------
@@ -197,16 +202,17 @@ def test_watchdog(tshark, capture, tmp_path):
         assert tripped == (interval is not None and interval > limit), r.number
         if tripped:
             got[key].append({"start": round(r.time - interval / 1000, 6), "gap_ms": round(interval, 3),
-                             "until_end": False})
+                             "until_end": False, "frame": r.number})
         silent = r.float("vm110.analysis.silent_until_end")
         assert r.has("silent_until_end") == (silent is not None), r.number
         if silent is not None:
             assert silent > limit
-            got[key].append({"start": round(r.time, 6), "gap_ms": round(silent, 3), "until_end": True})
+            got[key].append({"start": round(r.time, 6), "gap_ms": round(silent, 3), "until_end": True,
+                             "frame": r.number})
     for p in truth["periodic"]:
         key = (p["type"], p["sender"])
         want = [{"until_end": False, **v} for v in p["watchdog"]["violations"]]
-        assert got[key] == [{**v, "start": round(v["start"], 6)} for v in want], key
+        assert like(got[key], [{**v, "start": round(v["start"], 6)} for v in want]), key
         assert p["count"] in (accepted[key], counts[key]), key
 
 
@@ -687,3 +693,106 @@ def test_rules_new_port_restart(tshark, tmp_path):
     assert rows[6].int("vm110.analysis.interrupted_by") == 7 and not rows[6].has("never_acked")
     assert rows[4].has("never_acked") and not rows[4].get("vm110.analysis.interrupted_by")
     assert not any(r.get("vm110.analysis.silent_until_end") for r in rows.values())
+
+
+# --- The dissector and `vm110 analyze --json` count the same things -----------------------------------
+ALL_CAPTURES = sorted(p for p in CAPTURES.iterdir() if p.suffix in (".pcap", ".pcapng"))
+
+
+def analyze_json(capture: Path, tmp_path: Path) -> dict:
+    import subprocess
+    import sys
+    out = tmp_path / f"{capture.name}.json"
+    proc = subprocess.run([sys.executable, "-m", "vm110", "analyze", str(capture), "--json", str(out), "--quiet",
+                           "--serial-scope", "sender"], capture_output=True, text=True)
+    assert proc.returncode == 0 and out.exists(), proc.stderr[-2000:]
+    return json.loads(out.read_text())
+
+
+def dissector_counts(rows: list[Row]) -> dict:
+    """Per sender and per (type, sender) / (kind, sender): what `vm110 analyze` counts, from the
+    dissector's fields and experts alone."""
+    c: Counter = Counter()
+    for r in legal_rows(rows):
+        s, kind = r.sender, r.get("vm110.type")
+        missing = r.int("vm110.analysis.serial_missing")
+        if missing:
+            c[("gaps", s)] += 1
+            c[("lost_at_detection", s)] += missing
+        for key in ("duplicate", "out_of_order"):
+            if r.get(f"vm110.analysis.serial_{key}"):
+                c[(key, s)] += 1
+        if r.get("vm110.analysis.restart"):
+            c[("restarts", s)] += 1
+        if kind in ("VRPI", "VRPO"):
+            c[("watchdog", kind, s)] += r.has(f"watchdog_{kind.lower()}") + r.has("silent_until_end")
+            c[("outside", kind, s)] += r.has("vrpo_interval")
+        if kind in ("VRCI", "VRCO") and not r.get("vm110.analysis.serial_duplicate"):
+            if r.get("vm110.analysis.retransmission_of"):
+                c[("retransmissions", kind)] += 1
+            else:
+                c[("commands", kind)] += 1
+            c[("unacked", kind)] += r.has("never_acked")
+            c[("interrupted", kind)] += bool(r.get("vm110.analysis.interrupted_by"))
+    return c
+
+
+def report_counts(report: dict) -> dict:
+    c: Counter = Counter()
+    for sender in report["senders"]:
+        s, serial = sender["id"], sender["serial"]
+        c[("gaps", s)] += len(serial["gaps"])
+        c[("lost_at_detection", s)] += sum(g["count"] for g in serial["gaps"])
+        c[("duplicate", s)] += serial["duplicates"]
+        c[("out_of_order", s)] += serial["out_of_order"]
+        c[("restarts", s)] += serial["restarts"]
+    for p in report["periodic"]:
+        c[("watchdog", p["type"], p["sender"])] += len(p["watchdog"]["violations"])
+        c[("outside", p["type"], p["sender"])] += (p.get("outside_recommended") or {}).get("count", 0)
+    for kind in ("VRCI", "VRCO"):
+        for key in ("commands", "retransmissions", "unacked", "interrupted"):
+            c[(key, kind)] += report["commands"][kind][key]
+    return c
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+@pytest.mark.parametrize("capture", ALL_CAPTURES, ids=lambda p: p.name)
+def test_counts_equal_vm110_analyze(tshark, capture, tmp_path):
+    """Issue 12, point 5: wherever the dissector (tshark -2) and `vm110 analyze --json` count the same
+    thing they give the same number: serial gaps (events and serials), duplicates, out of order,
+    restarts, watchdog violations (with the silences to the end), commands, retransmissions,
+    unacknowledged and interrupted commands, VRPO burst intervals outside the recommended range."""
+    rows = dissected(tshark, capture, tmp_path)
+    got, want = dissector_counts(rows), report_counts(analyze_json(capture, tmp_path))
+    keys = sorted(set(got) | set(want), key=str)
+    differ = [k for k in keys if got[k] != want[k]]
+    if differ and all(k[0] == "outside" for k in differ) and burst_interval_on_a_limit(rows):
+        pytest.xfail("vm110 analyze compares float64 differences of epoch seconds with the 50-200 ms range: "
+                     "a burst interval of exactly 200.000 ms reads 200.00005 and counts as outside "
+                     "(the dissector and tests/reference measure in whole microseconds / nanoseconds)")
+    assert {k: got[k] for k in differ} == {k: want[k] for k in differ}
+    assert sum(want.values()) > 0
+
+
+def burst_interval_on_a_limit(rows: list[Row]) -> bool:
+    return any(r.float("vm110.analysis.burst_interval") in (float(C.VRPO_PERIOD_MIN_MS), float(C.VRPO_PERIOD_MAX_MS))
+               for r in legal_rows(rows) if r.get("vm110.analysis.burst_interval"))
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_expert_summaries_are_constant(tshark, tmp_path):
+    """Wireshark's expert statistics group by summary: one line per analysis expert, so its counts
+    are the dissector's (on loss.pcapng 62 serial gaps, not the 58 distinct texts of old)."""
+    capture = CAPTURES / "loss.pcapng"
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            (ws.dir / capture.name).write_bytes(capture.read_bytes())
+            text = ws.run(["-r", str(ws.dir / capture.name), "-2", *T.pref_args(ON), "-q", "-z", "expert"]).stdout
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    lines = [line for line in text.splitlines() if "VM110" in line]
+    summaries = [line.split("VM110", 1)[1].strip() for line in lines]
+    assert len(summaries) == len(set(summaries)), lines
+    rows = dissected(tshark, capture, tmp_path)
+    gaps = sum(bool(r.get("vm110.analysis.serial_missing")) for r in rows)
+    assert any(line.split()[0] == str(gaps) and "Serial gap" in line for line in lines), lines
