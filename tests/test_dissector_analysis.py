@@ -361,6 +361,9 @@ def test_analysis_off_and_illegal_packets(tshark, tmp_path):
             assert not any(r.get(f"vm110.{f}") for f in ANALYSIS_FIELDS), r.number
 
 
+README_CAPTURES = ("loss.pcapng", "bu-watchdog.pcap", "vrpo-split.pcapng", "restart.pcapng", "bu-stops.pcap")
+
+
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 def test_readme_analysis_filters(tshark, tmp_path):
     """The stream analysis filters the README shows compile and match frames of the captures."""
@@ -370,11 +373,11 @@ def test_readme_analysis_filters(tshark, tmp_path):
     assert len(filters) >= 5
     try:
         with tshark.workspace(tmp_path) as ws:
-            for capture in ("loss.pcapng", "bu-watchdog.pcap", "vrpo-split.pcapng"):
+            for capture in README_CAPTURES:
                 (ws.dir / capture).write_bytes((CAPTURES / capture).read_bytes())
             for expression in filters:
                 matched = 0
-                for capture in ("loss.pcapng", "bu-watchdog.pcap", "vrpo-split.pcapng"):
+                for capture in README_CAPTURES:
                     proc = ws.run(["-r", str(ws.dir / capture), "-2", "-Y", expression], check=False)
                     assert proc.returncode == 0, f"{expression!r}: {proc.stderr.strip()}"
                     matched += len(proc.stdout.splitlines())
