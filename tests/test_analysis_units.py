@@ -79,7 +79,7 @@ def test_a_gap_left_behind_a_whole_cycle_stays_lost():
 def reference_jitter(times: list, period: float) -> list:
     j, out = 0.0, []
     for a, b in zip(times, times[1:]):
-        delta = (b - a) * 1000.0
+        delta = round((b - a) * 1e6) / 1000.0           # intervals to the microsecond
         k = max(1, math.floor(delta / period + 0.5))
         j = j + (abs(delta - k * period) - j) / 16
         out.append(j)
@@ -90,7 +90,7 @@ def test_jitter_block_recurrence_equals_the_plain_loop():
     rng = random.Random(5)
     times, t = [], 1.7e9
     for _ in range(5000):
-        t += rng.choice([0.125, 0.125, 0.25, 0.6]) + rng.gauss(0, 0.004)
+        t = round(t + rng.choice([0.125, 0.125, 0.25, 0.6]) + rng.gauss(0, 0.004), 6)   # captures: us
         times.append(t)
     want = reference_jitter(times, 125.0)
     got = timing.jitter_series(times, 125.0)

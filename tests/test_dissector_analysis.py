@@ -769,17 +769,8 @@ def test_counts_equal_vm110_analyze(tshark, capture, tmp_path):
     got, want = dissector_counts(rows), report_counts(analyze_json(capture, tmp_path))
     keys = sorted(set(got) | set(want), key=str)
     differ = [k for k in keys if got[k] != want[k]]
-    if differ and all(k[0] == "outside" for k in differ) and burst_interval_on_a_limit(rows):
-        pytest.xfail("vm110 analyze compares float64 differences of epoch seconds with the 50-200 ms range: "
-                     "a burst interval of exactly 200.000 ms reads 200.00005 and counts as outside "
-                     "(the dissector and tests/reference measure in whole microseconds / nanoseconds)")
     assert {k: got[k] for k in differ} == {k: want[k] for k in differ}
     assert sum(want.values()) > 0
-
-
-def burst_interval_on_a_limit(rows: list[Row]) -> bool:
-    return any(r.float("vm110.analysis.burst_interval") in (float(C.VRPO_PERIOD_MIN_MS), float(C.VRPO_PERIOD_MAX_MS))
-               for r in legal_rows(rows) if r.get("vm110.analysis.burst_interval"))
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
