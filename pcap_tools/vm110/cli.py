@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from typing import Optional, Sequence
+from typing import NoReturn, Optional, Sequence
 
 from . import __version__
 from .errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, CliError
@@ -25,8 +25,17 @@ COMMANDS = {
 }
 
 
+class Parser(argparse.ArgumentParser):
+    """Usage errors as one line, `vm110 <cmd>: <message>`, exit 2: the message names the option,
+    and the usage lines argparse prints first would bury it (`--help` gives them)."""
+
+    def error(self, message: str) -> NoReturn:
+        command = " ".join(self.prog.split()[:2])     # a role (simulate bu) is not part of the name
+        self.exit(EXIT_USAGE, f"{command}: {' '.join(message.splitlines())}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="vm110", description="Tools for the VM-110 EG-Link (TS-0006).")
+    parser = Parser(prog="vm110", description="Tools for the VM-110 EG-Link (TS-0006).")
     parser.add_argument("--version", action="version", version=f"vm110 {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, module_name in COMMANDS.items():

@@ -10,17 +10,19 @@ from __future__ import annotations
 
 import gc
 import json
-import os
-from typing import Any, Optional
+import math
+from typing import Any, BinaryIO, Optional
 
 from . import constants as C
 from .capture.writer import Format, UdpFlow, open_writer
+from .fileio import atomic_writer, check_target, write_text
 from .sim.clock import seconds
 from .sim.scenario import EPOCH_US, SCENARIOS, Scenario
 from .sim.truth import GroundTruth
 from .sim.virtual import Arrival, VirtualNetwork, endpoints
 
 TRUTH_SUFFIX = ".truth.json"
+RATE_SAMPLE_S = 10.0      # traffic run to measure a scenario's output rate
 # Other traffic a tap also sees: an mDNS query for _vm110._udp.local (not EG-Link).
 OTHER_SOURCE, OTHER_GROUP, MDNS_PORT = "10.0.0.30", "224.0.0.251", 5353
 OTHER_PAYLOAD = bytes.fromhex("000000000001000000000000") + b"\x06_vm110\x04_udp\x05local\x00" + bytes.fromhex("000c0001")
@@ -40,11 +42,30 @@ def scenario(name: str) -> Scenario:
 
 def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] = None,
                fmt: Format = "pcap") -> dict[str, Any]:
-    """Write capture `out` and its truth next to it; returns the truth."""
+    """Write capture `out` and its truth next to it; returns the truth.
+
+    Each file goes through a temporary file renamed into place when complete, the truth before the
+    capture: a failure at any point leaves the files that were there as they were (CliError)."""
     sc = scenario(name)
     duration = sc.duration_s if duration_s is None else duration_s
-    if duration <= 0:
-        raise ValueError("duration must be positive")
+    if not 0 < duration < math.inf:
+        raise ValueError("duration must be positive and finite")
+    check_target(truth_path(out))      # up front: not after the whole run
+    with atomic_writer(out) as stream:
+        result = write_capture(stream, sc, seed, duration, fmt)
+        write_text(truth_path(out), _truth_text(result))
+    return result
+
+
+def output_rate(name: str, seed: int = 1, fmt: Format = "pcap") -> float:
+    """Bytes per second of traffic that `synthesize` writes (capture and truth), from a short run."""
+    sink = _Counter()
+    result = write_capture(sink, scenario(name), seed, RATE_SAMPLE_S, fmt)
+    return (sink.size + len(_truth_text(result))) / RATE_SAMPLE_S
+
+
+def write_capture(stream: BinaryIO, sc: Scenario, seed: int, duration: float, fmt: Format) -> dict[str, Any]:
+    """Run `sc` and write its capture to `stream`; returns the truth."""
     stations = sc.build(seed, duration)
     # One flow per endpoint (a station's port, then its new ports after restarts; to the group on
     # the station's own port), then the other traffic's: its arrivals carry that index.
@@ -58,24 +79,37 @@ def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] =
     collecting = gc.isenabled()
     gc.disable()      # millions of short-lived tuples and no cycles: the collector would only cost time
     try:
-        with open(out, "wb") as stream:
-            writer = open_writer(stream, fmt)
-            for batch in VirtualNetwork(stations).run(duration):
-                if others and others[0][0] <= batch[-1][0]:
-                    batch = _interleave(batch, others)
-                writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _, _ in batch])
-                truth.add(batch)
-            writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _, _ in others])   # after the end
-            truth.add(others)
-            writer.close()
+        writer = open_writer(stream, fmt)
+        for batch in VirtualNetwork(stations).run(duration):
+            if others and others[0][0] <= batch[-1][0]:
+                batch = _interleave(batch, others)
+            writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _, _ in batch])
+            truth.add(batch)
+        writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _, _ in others])   # after the end
+        truth.add(others)
+        writer.close()
     finally:
         if collecting:
             gc.enable()
-    result = truth.report()
-    with open(truth_path(out), "w", encoding="utf-8") as fh:
-        json.dump(result, fh, indent=1)
-        fh.write("\n")
-    return result
+    return truth.report()
+
+
+def _truth_text(truth: dict[str, Any]) -> str:
+    return json.dumps(truth, indent=1) + "\n"
+
+
+class _Counter:
+    """A binary stream that only counts what is written to it."""
+
+    def __init__(self) -> None:
+        self.size = 0
+
+    def write(self, data: bytes) -> int:
+        self.size += len(data)
+        return len(data)
+
+    def flush(self) -> None:
+        pass
 
 
 def _interleave(batch: list[Arrival], others: list[Arrival]) -> list[Arrival]:
@@ -87,10 +121,3 @@ def _interleave(batch: list[Arrival], others: list[Arrival]) -> list[Arrival]:
             merged.append(others.pop(0))
         merged.append(arrival)
     return merged
-
-
-def remove_outputs(out: str) -> None:
-    """Remove a half-written capture and its truth (after an error)."""
-    for path in (out, truth_path(out)):
-        if os.path.exists(path):
-            os.remove(path)

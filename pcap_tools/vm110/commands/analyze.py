@@ -22,7 +22,14 @@ from ..crc import BYTE_ORDERS, VARIANTS
 from ..capture.spool import stdin_spool
 from ..fileio import check_target
 from ..errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE, CliError
+from ..numbers import number
+from .options import INPUT_PORT, INPUT_PORT_HELP
 
+# Times in ms: above 0 (a zero watchdog or period flags everything) and at most an hour.
+MS = number(0, 3_600_000, "ms", allow_zero=False)
+JOBS = number(1, 256, integer=True)
+VRPO_START = number(0, 1, integer=True)
+DATA_SIZE = number(0, 0xFFFF, "bytes", integer=True)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,39 +44,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="byte order of the stored CRC; default auto")
     parser.add_argument("--serial-scope", choices=SCOPES, default="auto",
                         help="one serial counter per sender or per packet type; auto picks per sender")
-    parser.add_argument("--port", type=int, default=C.INPUT_PORT,
-                        help=f"input port (output port is +{C.OUTPUT_PORT_OFFSET}); default {C.INPUT_PORT}")
+    parser.add_argument("--port", type=INPUT_PORT, default=C.INPUT_PORT, help=INPUT_PORT_HELP)
     parser.add_argument("--fail-on", metavar="RULES", default="",
                         help="exit 1 when a rule holds, e.g. lost>0,watchdog>0,unacked>0,illegal>0; "
                              f"names: {', '.join(TOTAL_NAMES)}")
-    parser.add_argument("--jobs", type=int, default=1, help="captures analysed in parallel")
-    parser.add_argument("--vrpo-period", type=float, metavar="MS",
-                        help="nominal VRPO period for jitter (default: median interval between bursts)")
-    parser.add_argument("--burst-gap", type=float, default=C.VRPO_BURST_GAP_MS, metavar="MS",
-                        help=f"largest gap inside a VRPO burst; default {C.VRPO_BURST_GAP_MS}")
-    parser.add_argument("--vrpo-start", type=int, choices=(0, 1), default=0, help="first VRPO packet number")
-    parser.add_argument("--vrpo-data-size", type=int, default=0, metavar="BYTES",
-                        help="configured periodic data size; 0: a burst ends with a packet under 488 data bytes")
+    parser.add_argument("--jobs", type=JOBS, default=1, metavar="N",
+                        help=f"captures analysed in parallel, {JOBS.range_text}; default 1")
+    parser.add_argument("--vrpo-period", type=MS, metavar="MS",
+                        help=f"nominal VRPO period for jitter, {MS.range_text} (default: median interval "
+                             "between bursts)")
+    parser.add_argument("--burst-gap", type=MS, default=C.VRPO_BURST_GAP_MS, metavar="MS",
+                        help=f"largest gap inside a VRPO burst, {MS.range_text}; default {C.VRPO_BURST_GAP_MS}")
+    parser.add_argument("--vrpo-start", type=VRPO_START, default=0, metavar="N",
+                        help=f"first VRPO packet number, {VRPO_START.range_text}; default 0")
+    parser.add_argument("--vrpo-data-size", type=DATA_SIZE, default=0, metavar="BYTES",
+                        help=f"configured periodic data size, {DATA_SIZE.range_text}; 0 (default): a burst ends "
+                             "with a packet under 488 data bytes")
     limits = parser.add_argument_group("thresholds (interpretation.md, 'Timing')")
-    limits.add_argument("--vrpi-watchdog", type=float, default=C.VRPI_WATCHDOG_MS, metavar="MS",
-                        help=f"controller watchdog on VRPI; default {C.VRPI_WATCHDOG_MS}")
-    limits.add_argument("--vrpo-watchdog", type=float, default=C.VRPO_WATCHDOG_MS, metavar="MS",
-                        help=f"base-unit watchdog on VRPO; default {C.VRPO_WATCHDOG_MS}")
-    limits.add_argument("--vrpo-range", type=float, nargs=2, default=(C.VRPO_PERIOD_MIN_MS, C.VRPO_PERIOD_MAX_MS),
-                        metavar=("MIN", "MAX"), help=f"recommended VRPO interval; default {C.VRPO_PERIOD_MIN_MS} "
-                                                     f"{C.VRPO_PERIOD_MAX_MS}")
-    limits.add_argument("--vrci-fail", type=float, default=C.VRCI_FAIL_MS, metavar="MS",
-                        help=f"VRCI not acknowledged within this has failed; default {C.VRCI_FAIL_MS}")
-    limits.add_argument("--vrco-give-up", type=float, default=C.VRCO_GIVE_UP_MS, metavar="MS",
-                        help=f"VRCO not acknowledged within this has failed; default {C.VRCO_GIVE_UP_MS}")
-    limits.add_argument("--reuse-gap", type=float, default=REUSE_GAP_MS, metavar="MS",
-                        help="the same command ID after a longer silence starts a new command; "
-                             f"default {REUSE_GAP_MS:g}")
-    limits.add_argument("--dup-window", type=float, default=DUP_WINDOW_MS, metavar="MS",
+    limits.add_argument("--vrpi-watchdog", type=MS, default=C.VRPI_WATCHDOG_MS, metavar="MS",
+                        help=f"controller watchdog on VRPI, {MS.range_text}; default {C.VRPI_WATCHDOG_MS}")
+    limits.add_argument("--vrpo-watchdog", type=MS, default=C.VRPO_WATCHDOG_MS, metavar="MS",
+                        help=f"base-unit watchdog on VRPO, {MS.range_text}; default {C.VRPO_WATCHDOG_MS}")
+    limits.add_argument("--vrpo-range", type=MS, nargs=2, default=(C.VRPO_PERIOD_MIN_MS, C.VRPO_PERIOD_MAX_MS),
+                        metavar=("MIN", "MAX"), help=f"recommended VRPO interval, each {MS.range_text}, MIN at most "
+                                                     f"MAX; default {C.VRPO_PERIOD_MIN_MS} {C.VRPO_PERIOD_MAX_MS}")
+    limits.add_argument("--vrci-fail", type=MS, default=C.VRCI_FAIL_MS, metavar="MS",
+                        help=f"VRCI not acknowledged within this has failed, {MS.range_text}; "
+                             f"default {C.VRCI_FAIL_MS}")
+    limits.add_argument("--vrco-give-up", type=MS, default=C.VRCO_GIVE_UP_MS, metavar="MS",
+                        help=f"VRCO not acknowledged within this has failed, {MS.range_text}; "
+                             f"default {C.VRCO_GIVE_UP_MS}")
+    limits.add_argument("--reuse-gap", type=MS, default=REUSE_GAP_MS, metavar="MS",
+                        help="the same command ID after a longer silence starts a new command, "
+                             f"{MS.range_text}; default {REUSE_GAP_MS:g}")
+    limits.add_argument("--dup-window", type=MS, default=DUP_WINDOW_MS, metavar="MS",
                         help="a serial seen again within this is a duplicate, a gap filled within it a late "
-                             f"packet; default {DUP_WINDOW_MS:g}")
-    limits.add_argument("--resend", type=float, default=C.COMMAND_RESEND_MS, metavar="MS",
-                        help=f"nominal command resend interval; default {C.COMMAND_RESEND_MS}")
+                             f"packet, {MS.range_text}; default {DUP_WINDOW_MS:g}")
+    limits.add_argument("--resend", type=MS, default=C.COMMAND_RESEND_MS, metavar="MS",
+                        help=f"nominal command resend interval, {MS.range_text}; default {C.COMMAND_RESEND_MS}")
     parser.add_argument("--quiet", action="store_true", help="no summary on standard output")
     parser.add_argument("--list", action="store_true",
                         help="list every located item of each finding (default: the first few)")
@@ -117,10 +129,9 @@ def combine(reports: list[dict]) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.jobs < 1:
-        raise CliError("--jobs must be at least 1")
-    if not 0 < args.port < 65535 - C.OUTPUT_PORT_OFFSET:
-        raise CliError(f"--port {args.port} is not a usable UDP port")
+    low, high = args.vrpo_range
+    if low > high:
+        raise CliError(f"--vrpo-range: MIN {low:g} ms is above MAX {high:g} ms")
     fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on else []
     for target in (args.json, args.html):
         if target not in (None, "-"):

@@ -9,10 +9,10 @@ import argparse
 
 from scapy.layers.inet import IP, UDP
 from scapy.layers.l2 import Ether
-from scapy.utils import wrpcap
 
 from .. import constants as C
-from ..errors import CliError
+from ..capture.writer import PcapWriter
+from ..fileio import atomic_writer
 from ..layers import VM110, VRAI, VRAO, VRCI, VRCO, VRPI, VRPO
 
 BU_ADDR, CONTROLLER_ADDR = "10.0.0.10", "10.0.0.20"
@@ -49,14 +49,13 @@ def _frame(src: str, port: int, packet):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", required=True, help="capture file to write (pcap)")
+    parser.add_argument("--out", required=True,
+                        help="capture file to write (pcap), through a temporary file renamed into place")
 
 
 def run(args: argparse.Namespace) -> int:
     frames = sample_packets()
-    try:
-        wrpcap(args.out, frames)
-    except OSError as exc:
-        raise CliError(f"cannot write {args.out}: {exc.strerror}") from None
+    with atomic_writer(args.out) as stream, PcapWriter(stream) as writer:
+        writer.write_many((round(frame.time * 1_000_000), bytes(frame)) for frame in frames)
     print(f"wrote {len(frames)} packets to {args.out}")
     return 0

@@ -17,6 +17,7 @@ from ..capture.spool import stdin_spool
 from ..crc import BYTE_ORDERS, VARIANTS
 from ..decode import decode
 from ..errors import CliError
+from .options import INPUT_PORT, INPUT_PORT_HELP
 
 _IDS = frozenset(t.value.encode() for t in C.PacketType)
 _SUMMARY_FIELDS = {
@@ -29,8 +30,7 @@ _SUMMARY_FIELDS = {
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", help="pcap or pcapng file; - reads standard input")
-    parser.add_argument("--port", type=int, default=C.INPUT_PORT,
-                        help=f"input port (output port is +{C.OUTPUT_PORT_OFFSET}); default {C.INPUT_PORT}")
+    parser.add_argument("--port", type=INPUT_PORT, default=C.INPUT_PORT, help=INPUT_PORT_HELP)
     parser.add_argument("--crc", choices=VARIANTS, default=VARIANTS[0], help="CRC variant")
     parser.add_argument("--crc-order", choices=BYTE_ORDERS, default=BYTE_ORDERS[0],
                         help="byte order of the stored CRC")

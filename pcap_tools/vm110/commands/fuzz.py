@@ -29,10 +29,10 @@ from ..fuzz.oracles import Limits
 from ..fuzz.runner import RunConfig, Runner, replay_finding
 from ..fuzz.session import Settings, TargetLost
 from ..numbers import number
+from .options import SEED
 
 DEFAULT_RATE = 100.0
 DEFAULT_DURATION_S = 60.0
-SEED = number(0, 2**64 - 1, integer=True)
 DURATION = number(0, 30 * 86400, "s", allow_zero=False)
 CASES = number(1, 10**9, integer=True)
 RATE = number(0.01, 10_000, "packets/s")

@@ -14,47 +14,37 @@ import sys
 from typing import Any, Callable
 
 from .. import constants as C
-from ..errors import CliError
+from ..numbers import fields, number, span
 from ..sim.bu import DEFAULT_ORIGIN, BaseUnit, BaseUnitConfig
 from ..sim.controller import Controller, ControllerConfig
 from ..sim.impair import Impairer, Impairment
-from ..sim.lifecycle import DEFAULT_SILENCE_S, parse_restart
+from ..sim.lifecycle import DEFAULT_SILENCE_S, Restart
 from ..sim.realtime import RealtimeRunner
 from ..sim.remote import Remote
 from ..sim.transport import UdpConfig, UdpTransport, multicast_config, parse_address
+from .options import INPUT_PORT, INPUT_PORT_HELP, SEED
 
 
-def _window(text: str) -> tuple[float, float]:
-    start, sep, end = text.partition(":")
-    try:
-        window = (float(start), float(end))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected START:END in seconds, got {text!r}") from None
-    if not sep or window[1] <= window[0]:
-        raise argparse.ArgumentTypeError(f"expected START:END in seconds with END > START, got {text!r}")
-    return window
-
-
-def _restart(text: str) -> str:
-    try:
-        parse_restart(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected AT or AT:NEW_PORT (seconds, port 1-65535), got {text!r}") from None
-    return text
-
-
-def _int(text: str) -> int:
-    try:
-        return int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+# A run is at most 30 days (as the fuzzer's); every time in it (windows, stop, restarts) too.
+MAX_S = 30 * 86400
+TIME = number(0, MAX_S, "s")
+DURATION = number(0, MAX_S, "s", allow_zero=False)
+EVERY = number(0, MAX_S, "s")                       # 0: never
+WINDOW = span(TIME)
+RESTART = fields(("AT", "NEW_PORT"), (TIME, number(0, 0xFFFF, integer=True)), required=1)
+PCT = number(0, 100, "percent")
+DELAY = number(0, 60_000, "ms")
+PERIOD = number(0, 60_000, "ms", allow_zero=False)
+TIMEOUT = number(0, 3_600_000, "ms", allow_zero=False)
+WORD = number(0, 0xFFFF, integer=True)             # serials, command IDs, origins: 16 bits (0x.. too)
+UNARMED_RUS = number(0, 0xFF, integer=True)        # a byte of VRPI
+DATA_SIZE = number(0, 0xFFFF, "bytes", integer=True)
 
 
 def add_network_arguments(parser: argparse.ArgumentParser) -> None:
     net = parser.add_argument_group("network")
     net.add_argument("--group", default=C.MULTICAST_GROUP, help=f"multicast group (default {C.MULTICAST_GROUP})")
-    net.add_argument("--port", type=int, default=C.INPUT_PORT,
-                     help=f"input port; outputs use port + {C.OUTPUT_PORT_OFFSET} (default {C.INPUT_PORT})")
+    net.add_argument("--port", type=INPUT_PORT, default=C.INPUT_PORT, help=INPUT_PORT_HELP)
     net.add_argument("--iface", default="0.0.0.0", help="IPv4 address of the interface for multicast")
     net.add_argument("--peer", help="unicast HOST:PORT to send to instead of the group")
     net.add_argument("--listen", help="unicast HOST:PORT to receive on instead of joining the group")
@@ -63,32 +53,39 @@ def add_network_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_impairment_arguments(parser: argparse.ArgumentParser) -> None:
     imp = parser.add_argument_group("impairments (of what this node sends; reproducible with --seed)")
-    imp.add_argument("--seed", type=int, default=0)
-    imp.add_argument("--loss", type=float, default=0.0, metavar="PCT")
-    imp.add_argument("--duplicate", type=float, default=0.0, metavar="PCT", help="PCT %% delivered twice")
-    imp.add_argument("--mirror", type=float, default=0.0, metavar="PCT",
-                     help="PCT %% seen twice 0.05-3 ms apart, as a switch mirror port shows them to a capture "
-                          "(over sockets the peer gets the copy too)")
-    imp.add_argument("--reorder", type=float, default=0.0, metavar="PCT")
-    imp.add_argument("--delay", type=float, default=0.0, metavar="MS")
-    imp.add_argument("--jitter", type=float, default=0.0, metavar="MS")
-    imp.add_argument("--corrupt", type=float, default=0.0, metavar="PCT", help="corrupt the CRC of PCT %%")
-    imp.add_argument("--outage", type=_window, action="append", default=[], metavar="START:END",
-                     help="send nothing between these times (s); repeatable")
-    imp.add_argument("--stall", type=_window, action="append", default=[], metavar="START:END",
-                     help="the node hangs: neither sends nor receives; repeatable")
-    imp.add_argument("--glink", type=_window, action="append", default=[], metavar="START:END",
-                     help="G-Link fallback: slower VRPO (controller), later VRAI (BU); repeatable")
+    imp.add_argument("--seed", type=SEED, default=0, help=f"{SEED.range_text} (default 0)")
+    imp.add_argument("--loss", type=PCT, default=0.0, metavar="PCT", help=f"PCT lost, {PCT.range_text}")
+    imp.add_argument("--duplicate", type=PCT, default=0.0, metavar="PCT",
+                     help=f"PCT delivered twice, {PCT.range_text}")
+    imp.add_argument("--mirror", type=PCT, default=0.0, metavar="PCT",
+                     help="PCT seen twice 0.05-3 ms apart, as a switch mirror port shows them to a capture "
+                          f"(over sockets the peer gets the copy too), {PCT.range_text}")
+    imp.add_argument("--reorder", type=PCT, default=0.0, metavar="PCT", help=f"PCT held back, {PCT.range_text}")
+    imp.add_argument("--delay", type=DELAY, default=0.0, metavar="MS", help=DELAY.range_text)
+    imp.add_argument("--jitter", type=DELAY, default=0.0, metavar="MS",
+                     help=f"extra delay up to MS, {DELAY.range_text}")
+    imp.add_argument("--corrupt", type=PCT, default=0.0, metavar="PCT",
+                     help=f"corrupt the CRC of PCT, {PCT.range_text}")
+    imp.add_argument("--outage", type=WINDOW, action="append", default=[], metavar="START:END",
+                     help=f"send nothing between these times, {WINDOW.range_text}; repeatable")
+    imp.add_argument("--stall", type=WINDOW, action="append", default=[], metavar="START:END",
+                     help=f"the node hangs: neither sends nor receives, {WINDOW.range_text}; repeatable")
+    imp.add_argument("--glink", type=WINDOW, action="append", default=[], metavar="START:END",
+                     help="G-Link fallback: slower VRPO (controller), later VRAI (BU), "
+                          f"{WINDOW.range_text}; repeatable")
     life = parser.add_argument_group("life of the node")
-    life.add_argument("--stop-at", type=float, metavar="S", help="send nothing from S seconds on, for good")
-    life.add_argument("--restart", type=_restart, action="append", default=[], metavar="AT[:NEW_PORT]",
+    life.add_argument("--stop-at", type=TIME, metavar="S",
+                      help=f"send nothing from S seconds on, for good, {TIME.range_text}")
+    life.add_argument("--restart", type=RESTART, action="append", default=[], metavar="AT[:NEW_PORT]",
                       help="go down at AT s and come back after --restart-silence with serials and command IDs "
-                           "afresh, sending from NEW_PORT if given (0: a new ephemeral port); repeatable")
-    life.add_argument("--restart-silence", type=float, default=DEFAULT_SILENCE_S, metavar="S",
-                      help=f"seconds down at each restart (default {DEFAULT_SILENCE_S:g})")
-    life.add_argument("--restart-serial", type=_int, default=0, metavar="N", help="first serial after a restart")
-    life.add_argument("--serial-start", type=_int, default=0, metavar="N",
-                      help="first serial (e.g. above 32767, to reboot from there)")
+                           "afresh, sending from NEW_PORT if given (0: a new ephemeral port), "
+                           f"{RESTART.range_text}; repeatable")
+    life.add_argument("--restart-silence", type=DURATION, default=DEFAULT_SILENCE_S, metavar="S",
+                      help=f"seconds down at each restart, {DURATION.range_text} (default {DEFAULT_SILENCE_S:g})")
+    life.add_argument("--restart-serial", type=WORD, default=0, metavar="N",
+                      help=f"first serial after a restart, {WORD.range_text}")
+    life.add_argument("--serial-start", type=WORD, default=0, metavar="N",
+                      help=f"first serial (e.g. above 32767, to reboot from there), {WORD.range_text}")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -96,31 +93,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bu = sub.add_parser("bu", help="simulated base unit", description="Simulated base unit (VRPI, VRCI, VRAI).")
     bu.add_argument("--script", help="remote/operator script (JSON, see vm110.sim.remote)")
     bu.add_argument("--disarmed", action="store_true", help="no RU armed (default: one RU armed)")
-    bu.add_argument("--unarmed-rus", type=int, default=0, help="unarmed RUs reported when disarmed")
+    bu.add_argument("--unarmed-rus", type=UNARMED_RUS, default=0, metavar="N",
+                    help=f"unarmed RUs reported when disarmed, {UNARMED_RUS.range_text}")
     bu.add_argument("--no-motion", action="store_true", help="joysticks and switches stay at rest")
-    bu.add_argument("--command-every", type=float, default=0.0, metavar="S", help="an operator command every S s")
-    bu.add_argument("--origin", type=_int, default=DEFAULT_ORIGIN, help=f"BU origin (default 0x{DEFAULT_ORIGIN:04x})")
-    bu.add_argument("--command-id-start", type=_int, default=0)
+    bu.add_argument("--command-every", type=EVERY, default=0.0, metavar="S",
+                    help=f"an operator command every S s, {EVERY.range_text} (0, the default: none)")
+    bu.add_argument("--origin", type=WORD, default=DEFAULT_ORIGIN, metavar="N",
+                    help=f"BU origin, {WORD.range_text} (default 0x{DEFAULT_ORIGIN:04x})")
+    bu.add_argument("--command-id-start", type=WORD, default=0, metavar="N",
+                    help=f"first command ID, {WORD.range_text}")
     ctl = sub.add_parser("controller", help="reference machine controller",
                          description="Reference machine controller (VRPO, VRAO, VRCO).")
-    ctl.add_argument("--period", type=float, default=100.0, metavar="MS", help="VRPO period (default 100)")
-    ctl.add_argument("--data-size", type=int, default=64, help="periodic data bytes (>488: bursts)")
-    ctl.add_argument("--vrco-timeout", type=float, default=float(C.VRCO_GIVE_UP_MS), metavar="MS")
-    ctl.add_argument("--vrpi-timeout", type=float, default=float(C.VRPI_WATCHDOG_MS), metavar="MS")
-    ctl.add_argument("--command-every", type=float, default=0.0, metavar="S", help="a VRCO every S s")
-    ctl.add_argument("--command-id-start", type=_int, default=0)
+    ctl.add_argument("--period", type=PERIOD, default=100.0, metavar="MS",
+                     help=f"VRPO period, {PERIOD.range_text} (default 100)")
+    ctl.add_argument("--data-size", type=DATA_SIZE, default=64, metavar="BYTES",
+                     help=f"periodic data bytes (>488: bursts), {DATA_SIZE.range_text} (default 64)")
+    ctl.add_argument("--vrco-timeout", type=TIMEOUT, default=float(C.VRCO_GIVE_UP_MS), metavar="MS",
+                     help=f"{TIMEOUT.range_text} (default {C.VRCO_GIVE_UP_MS})")
+    ctl.add_argument("--vrpi-timeout", type=TIMEOUT, default=float(C.VRPI_WATCHDOG_MS), metavar="MS",
+                     help=f"{TIMEOUT.range_text} (default {C.VRPI_WATCHDOG_MS})")
+    ctl.add_argument("--command-every", type=EVERY, default=0.0, metavar="S",
+                     help=f"a VRCO every S s, {EVERY.range_text} (0, the default: none)")
+    ctl.add_argument("--command-id-start", type=WORD, default=0, metavar="N",
+                     help=f"first command ID, {WORD.range_text}")
     for p in (bu, ctl):
         add_network_arguments(p)
         add_impairment_arguments(p)
-        p.add_argument("--duration", type=float, help="seconds to run (default: until interrupted)")
+        p.add_argument("--duration", type=DURATION, metavar="S",
+                       help=f"seconds to run, {DURATION.range_text} (default: until interrupted)")
         p.add_argument("--json", action="store_true", help="log events as JSON lines")
         p.add_argument("--quiet", action="store_true", help="only the summary at the end")
 
 
 def udp_config(args: argparse.Namespace) -> UdpConfig:
     """The sockets for the role from the network options."""
-    if not 0 < args.port <= 0xFFFF - C.OUTPUT_PORT_OFFSET:
-        raise CliError(f"--port must be 1..{0xFFFF - C.OUTPUT_PORT_OFFSET} (the output port is port + 2)")
     cfg = multicast_config(args.role, args.group, args.port, args.iface)
     if args.peer:
         cfg.dest = parse_address(args.peer)
@@ -139,10 +145,8 @@ def impairment(args: argparse.Namespace) -> Impairment:
 
 def life(args: argparse.Namespace) -> dict[str, Any]:
     """The `Life` fields of the node's configuration from the options."""
-    if args.restart_silence <= 0 or args.stop_at is not None and args.stop_at < 0:
-        raise CliError("--restart-silence must be > 0 and --stop-at >= 0")
-    restarts = tuple(sorted((parse_restart(text, args.restart_silence, args.restart_serial) for text in args.restart),
-                            key=lambda r: r.at_s))
+    restarts = tuple(sorted((Restart(at, args.restart_silence, args.restart_serial, 0, port)
+                             for at, port in args.restart), key=lambda r: r.at_s))
     return {"stalls": tuple(args.stall), "restarts": restarts, "stop_at_s": args.stop_at}
 
 
@@ -154,8 +158,6 @@ def build_node(args: argparse.Namespace, printer: Callable[[str], None]) -> Any:
         cfg = BaseUnitConfig(origin=args.origin, command_id_start=args.command_id_start,
                              glink=tuple(args.glink), seed=args.seed, **life(args))
         return BaseUnit(remote, cfg, printer=printer, serial_start=args.serial_start)
-    if args.data_size < 0 or args.period <= 0:
-        raise CliError("--data-size must be >= 0 and --period > 0")
     cfg = ControllerConfig(period_ms=args.period, data_size=args.data_size, vrco_timeout_ms=args.vrco_timeout,
                            vrpi_timeout_ms=args.vrpi_timeout, command_every_s=args.command_every,
                            command_id_start=args.command_id_start, glink=tuple(args.glink), **life(args))
@@ -163,9 +165,6 @@ def build_node(args: argparse.Namespace, printer: Callable[[str], None]) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.duration is not None and args.duration <= 0:
-        raise CliError("--duration must be positive")
-
     def printer(line: str) -> None:
         if not args.quiet and not args.json:
             print(line, flush=True)

@@ -3,6 +3,8 @@
 Runs the simulators on a virtual clock (no sleeping) and writes FILE (pcap or pcapng, as a network
 tap on the multicast group sees it) and FILE.truth.json (exact figures: loss, duplicates, order,
 commands, watchdogs, illegal packets, VRPO bursts). The same seed gives byte-identical files.
+Each file is written to a temporary file beside it and renamed into place when complete: a failure
+leaves what was there before. A target that is not a regular file is refused.
 """
 from __future__ import annotations
 
@@ -10,17 +12,39 @@ import argparse
 
 from ..capture.writer import FORMATS
 from ..errors import CliError
+from ..numbers import number
 from ..sim.scenario import SCENARIOS
-from ..synth import remove_outputs, synthesize, truth_path
+from ..synth import output_rate, synthesize, truth_path
+from .options import SEED
+
+GIB = 1 << 30
+MAX_OUTPUT_BYTES = 4 * GIB
+# Finite and positive; how long is too long depends on the scenario's rate (MAX_OUTPUT_BYTES).
+DURATION = number(0, 1e9, "s", allow_zero=False)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scenario", nargs="?", help="scenario name (see --list)")
     parser.add_argument("--out", help="capture file to write; the truth goes to OUT.truth.json")
-    parser.add_argument("--seed", type=int, default=1, help="seed of every random choice (default 1)")
-    parser.add_argument("--duration", type=float, help="seconds of traffic (default: the scenario's)")
+    parser.add_argument("--seed", type=SEED, default=1,
+                        help=f"seed of every random choice, {SEED.range_text} (default 1)")
+    parser.add_argument("--duration", type=DURATION, metavar="S",
+                        help=f"seconds of traffic, {DURATION.range_text}, and at most "
+                             f"{MAX_OUTPUT_BYTES // GIB} GiB of output (default: the scenario's)")
     parser.add_argument("--format", choices=FORMATS, help="capture format (default: from the extension, else pcap)")
     parser.add_argument("--list", action="store_true", help="list the scenarios and exit")
+
+
+def check_size(name: str, duration: float, seed: int, fmt: str) -> None:
+    """CliError, with the projected size, when `duration` s of `name` would write more than
+    MAX_OUTPUT_BYTES."""
+    if duration <= SCENARIOS[name].duration_s:
+        return      # the scenarios' own durations are small: no need to measure
+    rate = output_rate(name, seed, fmt)
+    if rate * duration > MAX_OUTPUT_BYTES:
+        raise CliError(f"--duration {duration:g} s would write about {rate * duration / GIB:,.0f} GiB; "
+                       f"at most {MAX_OUTPUT_BYTES / rate:.0f} s for {name} "
+                       f"({MAX_OUTPUT_BYTES // GIB} GiB at {rate / 1024:.0f} KiB/s)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -32,14 +56,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("give a SCENARIO and --out FILE (or --list)")
     if args.scenario not in SCENARIOS:
         raise CliError(f"unknown scenario {args.scenario!r}; choose from {', '.join(SCENARIOS)}")
-    if args.duration is not None and args.duration <= 0:
-        raise CliError("--duration must be positive")
     fmt = args.format or ("pcapng" if args.out.endswith(".pcapng") else "pcap")
-    try:
-        truth = synthesize(args.scenario, args.out, args.seed, args.duration, fmt)
-    except OSError as exc:
-        remove_outputs(args.out)
-        raise CliError(f"cannot write {exc.filename or args.out}: {exc.strerror}") from None
+    if args.duration is not None:
+        check_size(args.scenario, args.duration, args.seed, fmt)
+    truth = synthesize(args.scenario, args.out, args.seed, args.duration, fmt)
     print(f"wrote {truth['capture']['packets']} packets ({truth['capture']['duration_s']:.3f} s) to {args.out}, "
           f"ground truth to {truth_path(args.out)}")
     return 0

@@ -49,12 +49,3 @@ class Life:
         if self.stop_at_s is not None:
             out.append((seconds(self.stop_at_s), NEVER, None))
         return tuple(sorted(out, key=lambda w: (w[0], w[1])))
-
-
-def parse_restart(text: str, silence_s: float = DEFAULT_SILENCE_S, serial: int = 0) -> Restart:
-    """"AT" or "AT:NEW_PORT" (seconds, port) to a `Restart`; ValueError when malformed."""
-    at, sep, port = text.partition(":")
-    restart = Restart(float(at), silence_s, serial, 0, int(port) if sep else None)
-    if restart.at_s < 0 or restart.port is not None and not 0 <= restart.port <= 0xFFFF:
-        raise ValueError(text)
-    return restart
