@@ -1,0 +1,66 @@
+"""What makes a run a failure: no exit within the timeout, a time over the budget, an exit code
+outside the documented ones (a signal included), a Python traceback or an exception's name in an
+error message (a crash turned into one line is still a crash), a Lua error (on stderr, or in the
+packet details as tshark_runner and test_dissector_robustness detect it), a dissector bug, and a
+report that exit 0 or 1 promised but is missing or unreadable."""
+from __future__ import annotations
+
+import json
+import re
+
+from .tools import Run
+
+TRACEBACK = "Traceback (most recent call last)"
+# "cannot analyse x: AttributeError: ..." is a crash the CLI caught; CliError messages name no class.
+EXCEPTION_NAME = re.compile(r"\b[A-Z][A-Za-z]*(?:Error|Exception)\b(?=:|$)", re.M)
+LUA_ON_STDERR = re.compile(r"lua", re.I)
+GLIB_ALARM = re.compile(r"\*\* \(tshark:\d+\): (?:CRITICAL|ERROR)")
+IN_DETAILS = ("Lua Error", "[Dissector bug", "Malformed Packet: VM110")
+
+
+def judge(run: Run, budget: float) -> list[str]:
+    """The problems of one run, each a short sentence; [] when it is fine."""
+    if run.returncode is None:
+        return [f"no exit within {run.seconds:.0f} s (hang)"]
+    problems = []
+    if run.seconds > budget:
+        problems.append(f"took {run.seconds:.1f} s, over the {budget:.0f} s budget")
+    if run.returncode not in run.tool.exits:
+        problems.append(f"exit {run.returncode}" + (" (killed by a signal)" if run.returncode < 0 else ""))
+    if TRACEBACK in run.stderr:
+        problems.append("Python traceback: " + run.stderr.strip().splitlines()[-1][:200])
+    else:
+        problems += [f"exception in the message: {line.strip()[:200]}" for line in run.stderr.splitlines()
+                     if EXCEPTION_NAME.search(line)][:1]
+    if run.tool.kind == "tshark":
+        problems += [f"stderr: {line.strip()[:200]}" for line in run.stderr.splitlines()
+                     if LUA_ON_STDERR.search(line) or GLIB_ALARM.search(line)][:3]
+        problems += [f"packet details: {_line_with(run.stdout, marker)}" for marker in IN_DETAILS
+                     if marker in run.stdout]
+    elif run.returncode in (0, 1):
+        problems += _reports(run)
+    return problems
+
+
+def _line_with(text: str, marker: str) -> str:
+    at = text.index(marker)
+    start = text.rfind("\n", 0, at) + 1
+    end = text.find("\n", at)
+    return text[start:end if end >= 0 else None].strip()[:200]
+
+
+def _reports(run: Run) -> list[str]:
+    """The reports asked for exist and the JSON one parses."""
+    problems = []
+    for name in ("report.json", "report.html"):
+        if f"{run.scratch}/{name}" not in run.command:
+            continue
+        path = run.scratch / name
+        if not path.is_file():
+            problems.append(f"exit {run.returncode} but no {name}")
+        elif name.endswith(".json"):
+            try:
+                json.loads(path.read_text())
+            except ValueError as exc:
+                problems.append(f"{name} is not JSON: {exc}")
+    return problems

@@ -1,0 +1,120 @@
+"""The tools under test and where they run: `vm110 decode` and `vm110 analyze` (fast engine) once,
+`vm110 analyze --engine tshark` and the dissector (`tshark -V`, `tshark -2 -V -z vm110,stat`) on
+every tshark of tshark_runner.RUNNERS. A run is one process group, killed whole on a timeout
+(pyshark's tshark and the chroot's children included)."""
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator, Optional, Sequence
+
+import tshark_runner as T
+
+PYTHON_EXITS = frozenset({0, 1, 2})       # ok, a --fail-on rule held, unreadable input or bad arguments
+TSHARK_EXITS = frozenset({0, 2})          # ok, a damaged or cut file
+VM110 = [sys.executable, "-m", "vm110"]
+
+
+@dataclass(frozen=True)
+class Site:
+    """One tshark installation with a workspace it can see (tshark_runner.Workspace)."""
+
+    ws: T.Workspace
+    version: str
+
+    def place(self, name: str, data: bytes) -> Path:
+        path = self.ws.dir / name
+        path.write_bytes(data)
+        return path
+
+
+@dataclass(frozen=True)
+class Tool:
+    name: str
+    site: Site
+    kind: str                                              # "python" or "tshark": which oracles apply
+    argv: Callable[[Path, Path], list[str]]                # (capture, scratch dir) -> command
+    env: dict[str, str] = field(default_factory=dict)
+    versioned: bool = True                                 # runs on each tshark (else once, on the host)
+
+    @property
+    def label(self) -> str:
+        return f"{self.name} (tshark {self.site.version})" if self.versioned else self.name
+
+    @property
+    def exits(self) -> frozenset[int]:
+        return TSHARK_EXITS if self.kind == "tshark" else PYTHON_EXITS
+
+
+@dataclass
+class Run:
+    tool: Tool
+    command: list[str]
+    returncode: Optional[int]          # None: killed at the timeout
+    stdout: str
+    stderr: str
+    seconds: float
+    scratch: Path
+
+
+@contextlib.contextmanager
+def sites(base: Path) -> Iterator[list[Site]]:
+    """A site per tshark runner; TsharkUnavailable when one cannot be used."""
+    with contextlib.ExitStack() as stack:
+        out = []
+        for runner in T.RUNNERS:
+            ws = stack.enter_context(runner.workspace(base / runner.name))
+            ws.plugin_file()
+            ws.pyshark_tshark_path()
+            banner = subprocess.run(runner.command(["-v"]), capture_output=True, text=True).stdout
+            out.append(Site(ws, re.search(r"\d+\.\d+\.\d+", banner).group()))
+        yield out
+
+
+def tools(all_sites: Sequence[Site]) -> list[Tool]:
+    """Every tool on every site; the version-independent ones on the first (the host)."""
+    host = all_sites[0]
+    out = [Tool("decode", host, "python", lambda f, s: [*VM110, "decode", str(f)], versioned=False),
+           Tool("analyze", host, "python", lambda f, s: [*VM110, "analyze", "--json", str(s / "report.json"),
+                                                         "--html", str(s / "report.html"), str(f)],
+                versioned=False)]
+    for site in all_sites:
+        ws = site.ws
+        env = {} if ws.tshark.root is None else {
+            "PATH": f"{Path(ws.pyshark_tshark_path()).parent}{os.pathsep}{os.environ.get('PATH', '')}",
+            "VM110_DISSECTOR": str(ws.plugin_file()), "TMPDIR": str(ws.dir)}
+        out.append(Tool("analyze --engine tshark", site, "python",
+                        lambda f, s: [*VM110, "analyze", "--engine", "tshark", "--json", str(s / "report.json"),
+                                      str(f)], env))
+        out.append(Tool("tshark -V", site, "tshark", _dissect(ws, ["-V"])))
+        out.append(Tool("tshark -2 -V -z vm110,stat", site, "tshark", _dissect(ws, ["-2", "-V", "-z", "vm110,stat"])))
+    return out
+
+
+def _dissect(ws: T.Workspace, extra: list[str]) -> Callable[[Path, Path], list[str]]:
+    return lambda f, s: ws.tshark.command(["-X", f"lua_script:{ws.plugin()}", "-r", ws.tshark.inner(f), *extra])
+
+
+def run(tool: Tool, capture: Path, scratch: Path, timeout: float) -> Run:
+    """Run one tool on one capture; the whole process group is killed after `timeout` seconds."""
+    scratch.mkdir(parents=True, exist_ok=True)
+    command = tool.argv(capture, scratch)
+    start = time.monotonic()
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                            env={**os.environ, **tool.env})
+    try:
+        out, err = proc.communicate(timeout=timeout)
+        code: Optional[int] = proc.returncode
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        code = None
+    return Run(tool, command, code, out.decode(errors="replace"), err.decode(errors="replace"),
+               time.monotonic() - start, scratch)
