@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 PLUGIN_DIR ?= $(HOME)/.local/lib/wireshark/plugins
 DEMO_DIR := out/demo
 
-.PHONY: setup system-deps demo test test-long bench install-wireshark clean tshark44 golden captures
+.PHONY: setup system-deps demo test test-long bench install-wireshark clean tshark44 tshark46 golden captures
 
 setup: system-deps $(STAMP)
 
@@ -28,7 +28,7 @@ demo: setup
 	$(VENV)/bin/vm110 analyze captures/loss.pcapng --json $(DEMO_DIR)/report.json --html $(DEMO_DIR)/report.html
 	@echo "reports: $(DEMO_DIR)/report.json $(DEMO_DIR)/report.html"
 
-test: setup tshark44
+test: setup tshark44 tshark46
 	$(PY) -m pytest -n 2 -q
 
 # Long runs kept out of `make test` (e.g. the fuzzer against the reference controller for 60 s).
@@ -44,12 +44,16 @@ CAPTURES := normal.pcap disarmed.pcap loss.pcapng retransmit.pcap vrco.pcap vrpo
 captures: setup
 	@set -e; for c in $(CAPTURES); do $(VENV)/bin/vm110 synth "$${c%.*}" --seed 1 --out "captures/$$c"; done
 
-# Debian 13 chroot with tshark 4.4 (Lua 5.4): the dissector tests run on it as well as on the host's tshark.
+# Debian 13 chroot with tshark 4.4 and Debian testing chroot with tshark 4.6 (both Lua 5.4): the
+# dissector tests run on them as well as on the host's tshark 4.0 (Lua 5.2).
 tshark44:
 	@bash scripts/setup-tshark44.sh >/dev/null
 
+tshark46:
+	@bash scripts/setup-tshark46.sh >/dev/null
+
 # Regenerate the dissector's `tshark -V -O vm110` goldens (tests/golden/), one per tshark version.
-golden: setup tshark44
+golden: setup tshark44 tshark46
 	$(PY) tests/test_dissector_golden.py
 
 install-wireshark:

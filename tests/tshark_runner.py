@@ -1,5 +1,6 @@
-"""Runs dissector/vm110.lua through real tshark: the host's (Debian 12: 4.0, Lua 5.2) and Debian 13's
-(4.4, Lua 5.4) inside the chroot that scripts/setup-tshark44.sh builds and caches.
+"""Runs dissector/vm110.lua through real tshark: the host's (Debian 12: 4.0, Lua 5.2), Debian 13's
+(4.4, Lua 5.4) and Debian testing's (4.6, Lua 5.4), the last two inside the chroots that
+scripts/setup-tshark44.sh and scripts/setup-tshark46.sh build and cache.
 
 Also writes EG-Link payloads into a pcap (Ethernet/IPv4/UDP, padded to 60 bytes like a real wire) and
 reads tshark's PDML back into plain Python objects, with the field an expert is attached to.
@@ -23,8 +24,9 @@ from vm110 import constants as C
 
 REPO = Path(__file__).resolve().parents[1]
 PLUGIN = REPO / "dissector" / "vm110.lua"
-TRIXIE_ROOT = Path(os.environ.get("VM110_TRIXIE_ROOT") or
-                   Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "vm110" / "trixie")
+CACHE = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "vm110"
+TRIXIE_ROOT = Path(os.environ.get("VM110_TRIXIE_ROOT") or CACHE / "trixie")
+FORKY_ROOT = Path(os.environ.get("VM110_FORKY_ROOT") or CACHE / "forky")
 LUA_ERROR = "Lua Error"
 BU_ADDR, CONTROLLER_ADDR = "10.0.0.10", "10.0.0.20"
 GROUP_ADDR = C.MULTICAST_GROUP
@@ -40,6 +42,8 @@ class Tshark:
 
     name: str
     root: Optional[Path] = None
+    version: str = "4.0"
+    make: str = ""                 # the make target that builds its chroot
 
     def check(self) -> None:
         if self.root is None:
@@ -47,10 +51,10 @@ class Tshark:
                 raise TsharkUnavailable("tshark is not installed: run `make setup`")
             return
         if not (self.root / ".vm110-ready").exists():
-            raise TsharkUnavailable(f"no tshark 4.4 chroot at {self.root}: run `make tshark44` "
-                                    "(scripts/setup-tshark44.sh, needs root)")
+            raise TsharkUnavailable(f"no tshark {self.version} chroot at {self.root}: run `make {self.make}` "
+                                    "(needs root)")
         if os.geteuid() != 0:
-            raise TsharkUnavailable("running tshark inside the 4.4 chroot needs root")
+            raise TsharkUnavailable(f"running tshark inside the {self.version} chroot needs root")
 
     @contextlib.contextmanager
     def workspace(self, base: Path) -> Iterator["Workspace"]:
@@ -78,8 +82,9 @@ class Tshark:
 
 
 HOST = Tshark("host")
-TRIXIE = Tshark("trixie", TRIXIE_ROOT)
-RUNNERS = (HOST, TRIXIE)
+TRIXIE = Tshark("trixie", TRIXIE_ROOT, "4.4", "tshark44")
+FORKY = Tshark("forky", FORKY_ROOT, "4.6", "tshark46")
+RUNNERS = (HOST, TRIXIE, FORKY)
 
 
 @dataclass
