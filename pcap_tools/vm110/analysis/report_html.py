@@ -264,7 +264,7 @@ def _findings_table(findings: list[dict], t0: float) -> str:
     for f in findings:
         for item in f.get("items", []):
             what = ", ".join(f"{k} {v}" for k, v in item.items()
-                             if k not in ("frame", "frames", "time", "sender", "filter") and v not in (None, False))
+                             if k not in ("frame", "frames", "time", "sender", "filter") and v is not None and v is not False)
             frames = item.get("frames", [item["frame"]])
             rows.append(f'<tr><td class="{_e(f["severity"])}">{_e(f["rule"])}</td>'
                         f"<td>{_e(', '.join(map(str, frames[:10])) + (' …' if len(frames) > 10 else ''))}</td>"

@@ -24,7 +24,7 @@ def _item(item: dict, t0: float) -> str:
     where = f"frame {frames[0]}" if len(frames) == 1 else f"frames {', '.join(map(str, frames[:8]))}" + (
         ", ..." if len(frames) > 8 else "")
     what = ", ".join(f"{k} {_f(item[k]) if isinstance(item[k], float) else item[k]}" for k in _ITEM_KEYS
-                     if k in item and item[k] not in (None, False))
+                     if k in item and item[k] is not None and item[k] is not False)
     return f"{where} at {item['time'] - t0:.6f} s: {what}  [{item['filter']}]"
 
 
