@@ -23,7 +23,7 @@ from test_analysis_html import chromium
 from vm110 import constants as C
 from vm110 import encode
 
-CHUNKS, CASES_PER_CHUNK = 3, 2          # measured: see the closing note of issue 17's part 6
+CHUNKS, CASES_PER_CHUNK = 2, 2          # 4 files: about 30 s with the rest on 2 cores (measured)
 CI_SEED = 17
 
 
@@ -38,7 +38,7 @@ def seed(testrun_uid: str) -> int:
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     try:
-        with runner.session(tmp_path_factory.mktemp("selffuzz")) as sess:
+        with runner.session(tmp_path_factory.mktemp("selffuzz"), crc_auto=False) as sess:
             yield sess
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
@@ -50,8 +50,8 @@ def _report(failures: list[tuple[tools.Run, list[str]]]) -> str:
 
 
 def test_same_seed_same_mutations():
-    first = [runner.make_case(5, i, runner.SMALL) for i in range(8)]
-    again = [runner.make_case(5, i, runner.SMALL) for i in range(8)]
+    first = [runner.make_case(5, i, small=True) for i in range(8)]
+    again = [runner.make_case(5, i, small=True) for i in range(8)]
     assert [(c.base, c.steps, c.data) for c in first] == [(c.base, c.steps, c.data) for c in again]
     assert len({c.data for c in first}) == 8
 
@@ -99,7 +99,7 @@ def test_tools_read_an_unmutated_capture(session):
 
 @pytest.mark.parametrize("chunk", range(CHUNKS))
 def test_mutated_captures(session, seed, chunk):
-    outcomes = [session.run(runner.make_case(seed, i, runner.SMALL))
+    outcomes = [session.run(runner.make_case(seed, i, small=True))
                 for i in range(chunk * CASES_PER_CHUNK, (chunk + 1) * CASES_PER_CHUNK)]
     failed = [o for o in outcomes if o.failures]
     kept = [runner.keep(o) for o in failed]
@@ -110,7 +110,7 @@ def test_mutated_captures(session, seed, chunk):
 # --- The HTML report escapes what comes from the input ---------------------------------------------
 HOSTILE_NAME = "<img src=x onerror=alert(1)>.pcap"
 SCRIPT_DATA = b"<script>alert(1)"            # exactly the 16 bytes of VRCI command data
-MARKUP = ("<img", "<script>alert", "onerror=")
+MARKUP = ("<img", "<script>alert")
 
 
 class Tags(HTMLParser):

@@ -40,23 +40,19 @@ class Case:
     base: Path
     steps: tuple[str, ...]
     data: bytes
+    small: bool = False          # drawn from the bounded run's bases (SMALL), not all (BUNDLED)
 
     @property
     def name(self) -> str:
         return f"{self.base.stem}-s{self.seed}-c{self.index}{self.base.suffix}"
 
-    @property
-    def recreate(self) -> str:
-        return f"scripts/fuzz-self --seed {self.seed} --case {self.index}" + \
-            (" --small" if self.base in SMALL else "")
 
-
-def make_case(seed: int, index: int, bases: Sequence[Path] = BUNDLED) -> Case:
-    """The same seed, index and bases give the same bytes."""
+def make_case(seed: int, index: int, small: bool = False) -> Case:
+    """The same seed, index and choice of bases give the same bytes."""
     rng = random.Random(f"{seed}/{index}")
-    base = rng.choice(list(bases))
+    base = rng.choice(SMALL if small else BUNDLED)
     data, steps = mutators.mutate(base.read_bytes(), rng)
-    return Case(seed, index, base, tuple(steps), data)
+    return Case(seed, index, base, tuple(steps), data, small)
 
 
 @dataclass
@@ -64,24 +60,31 @@ class Outcome:
     case: Case
     runs: list[tools.Run] = field(default_factory=list)
     failures: list[tuple[tools.Run, list[str]]] = field(default_factory=list)
+    crc_auto: bool = True
+
+    @property
+    def recreate(self) -> str:
+        c = self.case
+        return f"scripts/fuzz-self --seed {c.seed} --case {c.index}" + (" --small" if c.small else "") + \
+            ("" if self.crc_auto else " --fixed-crc")
 
     def describe(self) -> str:
         """One line: what failed, how the input was made, how to make it again."""
         failed = " / ".join(f"{r.tool.label}: {'; '.join(p)}" for r, p in self.failures)
-        return f"{failed} | {self.case.base.name}: {', '.join(self.case.steps)} | recreate: {self.case.recreate}"
+        return f"{failed} | {self.case.base.name}: {', '.join(self.case.steps)} | recreate: {self.recreate}"
 
 
 class Session:
     """The sites and tools of one run; cases are run in scratch directories of their own."""
 
-    def __init__(self, all_sites: Sequence[tools.Site]) -> None:
-        self.tools = tools.tools(all_sites)
+    def __init__(self, all_sites: Sequence[tools.Site], crc_auto: bool = True) -> None:
+        self.tools, self.crc_auto = tools.tools(all_sites, crc_auto), crc_auto
 
-    def run(self, case: Case, only: Optional[Sequence[tools.Tool]] = None) -> Outcome:
-        outcome, limit = Outcome(case), budget(case.base)
+    def run(self, case: Case) -> Outcome:
+        outcome, limit = Outcome(case, crc_auto=self.crc_auto), budget(case.base)
         placed: dict[int, Path] = {}
         try:
-            for tool in only or self.tools:
+            for tool in self.tools:
                 site = tool.site
                 if id(site) not in placed:
                     (site.ws.dir / f"case-{case.seed}-{case.index}").mkdir(parents=True, exist_ok=True)
@@ -99,10 +102,10 @@ class Session:
 
 
 @contextlib.contextmanager
-def session(base: Optional[Path] = None) -> Iterator[Session]:
+def session(base: Optional[Path] = None, crc_auto: bool = True) -> Iterator[Session]:
     with contextlib.ExitStack() as stack:
         root = base or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="selffuzz-")))
-        yield Session(stack.enter_context(tools.sites(root)))
+        yield Session(stack.enter_context(tools.sites(root)), crc_auto)
 
 
 def keep(outcome: Outcome, out_dir: Path = OUT) -> Path:
@@ -138,7 +141,7 @@ def summary(outcomes: Sequence[Outcome], seconds: float, kept: Sequence[Path] = 
         for r, problems in o.failures:
             kinds[(r.tool.label, _kind(problems[0]))].append(o)
     for (label, kind), hit in sorted(kinds.items()):
-        lines.append(f"  failure: {label}: {kind} ({len(hit)}x), e.g. {hit[0].case.recreate}")
+        lines.append(f"  failure: {label}: {kind} ({len(hit)}x), e.g. {hit[0].recreate}")
     if kept:
         lines.append(f"  failing inputs: {len(kept)} under {kept[0].parent} (each with a .txt description)")
     return "\n".join(lines)
@@ -158,7 +161,7 @@ def control(sess: Session, base: Path) -> list[tuple[tools.Run, list[str]]]:
     return outcome.failures + bad
 
 
-def soak(sess: Session, seed: int, seconds: float, jobs: int, bases: Sequence[Path],
+def soak(sess: Session, seed: int, seconds: float, jobs: int, small: bool = False,
          cases: Optional[Sequence[int]] = None) -> list[Outcome]:
     """Cases `seed`/0, 1, ... until `seconds` have passed (or exactly `cases`), `jobs` at a time."""
     deadline, outcomes = time.monotonic() + seconds, []
@@ -170,7 +173,7 @@ def soak(sess: Session, seed: int, seconds: float, jobs: int, bases: Sequence[Pa
                 index = next(indices, None)
                 if index is None:
                     break
-                pending.add(pool.submit(lambda i: sess.run(make_case(seed, i, bases)), index))
+                pending.add(pool.submit(lambda i: sess.run(make_case(seed, i, small)), index))
             if not pending:
                 return outcomes
             done, pending = concurrent.futures.wait(pending, return_when=concurrent.futures.FIRST_COMPLETED)
@@ -185,6 +188,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                         help="default: $FUZZ_SELF_SEED, else one from the clock (printed)")
     parser.add_argument("--case", type=int, action="append", help="run only these case indices (repeatable)")
     parser.add_argument("--small", action="store_true", help="mutate only the small captures (as make test does)")
+    parser.add_argument("--fixed-crc", action="store_true",
+                        help="tshark engine with --crc mpeg2 --crc-order little (as make test does)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--out", type=Path, default=OUT, help="where failing inputs are kept")
     args = parser.parse_args(argv)
@@ -192,11 +197,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     print(f"fuzz-self: seed {seed}, {args.jobs} jobs, " +
           (f"cases {args.case}" if args.case else f"{args.seconds:.0f} s"), flush=True)
     start = time.monotonic()
-    with session() as sess:
+    with session(crc_auto=not args.fixed_crc) as sess:
         broken = control(sess, SMALL[0])
         for run, problems in broken:
             print(f"  BROKEN on the unmutated {SMALL[0].name}: {run.tool.label}: {'; '.join(problems)}")
-        outcomes = soak(sess, seed, args.seconds, args.jobs, SMALL if args.small else BUNDLED, args.case)
+        outcomes = soak(sess, seed, args.seconds, args.jobs, args.small, args.case)
     kept = [keep(o, args.out) for o in outcomes if o.failures]
     print(summary(outcomes, time.monotonic() - start, kept))
     for o in [o for o in outcomes if o.failures][:5]:
