@@ -10,6 +10,7 @@ import contextlib
 import hashlib
 import os
 import random
+import re
 import shutil
 import sys
 import tempfile
@@ -149,7 +150,7 @@ def summary(outcomes: Sequence[Outcome], seconds: float, kept: Sequence[Path] = 
 
 def _kind(problem: str) -> str:
     """A problem without its numbers: failures of one kind are counted together."""
-    return "".join("#" if ch.isdigit() else ch for ch in problem)[:120]
+    return "".join("#" if ch.isdigit() else ch for ch in re.sub(r"\S*/\S*", "FILE", problem))[:120]
 
 
 def control(sess: Session, base: Path) -> list[tuple[tools.Run, list[str]]]:
