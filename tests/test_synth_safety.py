@@ -1,0 +1,165 @@
+"""Issue 17, "nothing lost", for `vm110 synth` and `vm110 craft`: files go through a temporary file
+renamed into place when complete, a failure leaves what was there, nothing the tool did not create
+is ever deleted, and a target that is not a regular file (capture or OUT.truth.json) is refused up
+front.
+
+Failures are provoked without real devices: a directory, a FIFO or a device node of our own in
+tmp_path (as root), or a capture writer that fails half-way. Commands that could block on a FIFO
+run in a subprocess with a timeout.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from vm110 import cli, synth
+from vm110.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, CliError
+
+OLD_CAPTURE, OLD_TRUTH = b"old capture, not to be lost", '{"old": "truth"}\n'
+
+
+def vm110(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vm110", *args], capture_output=True, text=True, timeout=60)
+
+
+def one_line(err: str) -> str:
+    assert "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def old_files(folder: Path) -> Path:
+    """OUT and OUT.truth.json with content that must survive."""
+    out = folder / "run.pcap"
+    out.write_bytes(OLD_CAPTURE)
+    Path(synth.truth_path(str(out))).write_text(OLD_TRUTH)
+    return out
+
+
+def leftovers(folder: Path) -> list[str]:
+    """Temporary files of the atomic writer left in `folder`."""
+    return [p.name for p in folder.iterdir() if p.name.endswith(".tmp")]
+
+
+def make_node(path: Path, kind: str) -> None:
+    if kind == "directory":
+        path.mkdir()
+        (path / "inside").write_text("kept")
+    elif kind == "fifo":
+        os.mkfifo(path)
+    else:       # a node like /dev/full (writes fail), made here: no real device is touched
+        try:
+            os.mknod(path, stat.S_IFCHR | 0o600, os.makedev(1, 7))
+        except OSError as exc:
+            pytest.skip(f"cannot make a device node here: {exc.strerror}")
+
+
+def unchanged_node(path: Path, kind: str) -> bool:
+    mode = path.lstat().st_mode
+    if kind == "directory":
+        return stat.S_ISDIR(mode) and (path / "inside").read_text() == "kept"
+    return stat.S_ISFIFO(mode) if kind == "fifo" else stat.S_ISCHR(mode)
+
+
+@pytest.mark.parametrize("kind", ["directory", "fifo", "device"])
+@pytest.mark.parametrize("where", ["capture", "truth"])
+def test_a_target_that_is_not_a_regular_file_is_refused_up_front(tmp_path, kind, where):
+    """Before: a failed write removed a device node given as --out; a FIFO blocked for ever; a
+    directory at OUT.truth.json deleted the existing OUT and ended in a traceback."""
+    out = old_files(tmp_path)
+    node = out if where == "capture" else Path(synth.truth_path(str(out)))
+    node.unlink()
+    make_node(node, kind)
+    result = vm110("synth", "normal", "--duration", "1", "--out", str(out))
+    assert result.returncode == EXIT_USAGE
+    assert str(node) in one_line(result.stderr) and "not a regular file" in result.stderr
+    assert unchanged_node(node, kind)
+    if where == "truth":
+        assert out.read_bytes() == OLD_CAPTURE
+    else:
+        assert Path(synth.truth_path(str(out))).read_text() == OLD_TRUTH
+    assert leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("kind", ["directory", "fifo", "device"])
+def test_craft_refuses_a_target_that_is_not_a_regular_file(tmp_path, kind):
+    node = tmp_path / "crafted.pcap"
+    make_node(node, kind)
+    result = vm110("craft", "--out", str(node))
+    assert result.returncode == EXIT_USAGE and "not a regular file" in one_line(result.stderr)
+    assert unchanged_node(node, kind) and leftovers(tmp_path) == []
+
+
+def failing_writer(monkeypatch, error: BaseException) -> None:
+    """The capture writer writes its first batch, then raises `error`."""
+    real = synth.open_writer
+
+    def open_writer(stream, fmt="pcap"):
+        writer = real(stream, fmt)
+        written = []
+
+        def write_many(frames):
+            if written:
+                raise error
+            written.append(type(writer).write_many(writer, frames))
+            writer.flush()
+        writer.write_many = write_many
+        return writer
+    monkeypatch.setattr(synth, "open_writer", open_writer)
+
+
+@pytest.mark.parametrize("error, code", [(OSError(errno.ENOSPC, "No space left on device"), EXIT_USAGE),
+                                         (KeyboardInterrupt(), EXIT_INTERRUPTED)])
+def test_a_failure_half_way_leaves_the_old_files(capsys, monkeypatch, tmp_path, error, code):
+    """Before: a failed write deleted OUT and its truth; an interrupt left OUT cut short."""
+    out = old_files(tmp_path)
+    failing_writer(monkeypatch, error)
+    assert cli.main(["synth", "normal", "--duration", "5", "--out", str(out)]) == code
+    err = capsys.readouterr().err
+    if code == EXIT_USAGE:
+        assert str(out) in one_line(err) and "No space left on device" in err
+    assert out.read_bytes() == OLD_CAPTURE
+    assert Path(synth.truth_path(str(out))).read_text() == OLD_TRUTH
+    assert leftovers(tmp_path) == []
+
+
+def test_a_failed_truth_write_keeps_the_old_capture(capsys, monkeypatch, tmp_path):
+    """The truth is written before the capture is renamed: no new capture beside an old truth."""
+    out = old_files(tmp_path)
+
+    def fail(path, text):
+        raise OSError(errno.EIO, "Input/output error", path)
+    monkeypatch.setattr(synth, "write_text", fail)
+    with pytest.raises(CliError, match="Input/output error"):
+        synth.synthesize("normal", str(out), duration_s=3)
+    assert out.read_bytes() == OLD_CAPTURE and leftovers(tmp_path) == []
+
+
+def test_success_replaces_the_files_and_keeps_their_permissions(capsys, tmp_path):
+    out = old_files(tmp_path)
+    out.chmod(0o640)
+    assert cli.main(["synth", "normal", "--duration", "3", "--out", str(out)]) == EXIT_OK
+    assert out.read_bytes()[:4] == bytes.fromhex("d4c3b2a1") and stat.S_IMODE(out.stat().st_mode) == 0o640
+    assert '"capture"' in Path(synth.truth_path(str(out))).read_text()
+    assert leftovers(tmp_path) == []
+
+
+def test_an_unwritable_folder_fails_before_the_run(capsys, monkeypatch, tmp_path):
+    out = tmp_path / "no" / "such" / "run.pcap"
+    monkeypatch.setattr(synth, "write_capture", lambda *args: pytest.fail("the scenario was run"))
+    assert cli.main(["synth", "day", "--out", str(out)]) == EXIT_USAGE
+    assert str(out) in one_line(capsys.readouterr().err)
+
+
+def test_the_library_refuses_durations_that_are_not_finite(tmp_path):
+    for duration in (float("nan"), float("inf"), 0.0, -1.0):
+        with pytest.raises(ValueError):
+            synth.synthesize("normal", str(tmp_path / "x.pcap"), duration_s=duration)
+    assert list(tmp_path.iterdir()) == []
