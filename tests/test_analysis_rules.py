@@ -221,3 +221,14 @@ def test_a_restart_to_serial_0_shows_its_to(tmp_path):
     report = _report(tr, tmp_path)
     assert "serial 507 -> 0" in summary.render(report)
     assert "from 507, to 0" in summary.render(report) and "from 507, to 0" in report_html.render([report])
+
+
+def test_findings_with_a_damaged_timestamp_still_render(tmp_path):
+    """A non-finite time is null in the report (self-fuzz found the summary failing on it)."""
+    from vm110.analysis import report_html, summary
+    tr = Traffic()
+    _counter(tr, [0.0, 0.125, 0.25], [0, 5, 6])
+    report = _report(tr, tmp_path)
+    _finding(report, "lost")["items"][0]["time"] = None
+    assert "frame 2 at - s:" in summary.render(report)
+    assert "<td>-</td>" in report_html.render([report])

@@ -268,7 +268,7 @@ def _findings_table(findings: list[dict], t0: float) -> str:
             frames = item.get("frames", [item["frame"]])
             rows.append(f'<tr><td class="{_e(f["severity"])}">{_e(f["rule"])}</td>'
                         f"<td>{_e(', '.join(map(str, frames[:10])) + (' …' if len(frames) > 10 else ''))}</td>"
-                        f"<td>{item['time'] - t0:.6f}</td><td>{_e(item.get('sender', ''))}</td><td>{_e(what)}</td>"
+                        f"<td>{summary.since(item['time'], t0)}</td><td>{_e(item.get('sender', ''))}</td><td>{_e(what)}</td>"
                         f'<td><code class="filter">{_e(item["filter"])}</code></td></tr>')
         if f.get("more"):
             rows.append(f'<tr><td>{_e(f["rule"])}</td><td colspan="5">… {f["more"]} more in the JSON report</td></tr>')
@@ -299,7 +299,7 @@ def _section(report: dict) -> str:
                         s["serial"]["received"], s["serial"]["lost"], len(s["serial"]["gaps"]),
                         s["serial"]["duplicates"], s["serial"]["out_of_order"], s["serial"]["wraps"],
                         "; ".join([str(s["serial"]["restarts"])] + [
-                            f"{r['time'] - t0:.3f} s frame {r['frame']}: {r['from']} → {r['to']}"
+                            f"{summary.since(r['time'], t0)} s frame {r['frame']}: {r['from']} → {r['to']}"
                             + (f" port {r['port_from']} → {r['port_to']}" if "port_from" in r else "")
                             for r in s["serial"]["restart_events"]])]
                        for s in report["senders"]]))
@@ -326,7 +326,8 @@ def _section(report: dict) -> str:
     out.append(_gap_plot(report, t0, t1))
     out.append(_latency_plot(report))
     out.append(_retransmission_plot(report))
-    restarts = [(r["time"], s["id"]) for s in report["senders"] for r in s["serial"]["restart_events"]]
+    restarts = [(r["time"], s["id"]) for s in report["senders"] for r in s["serial"]["restart_events"]
+                if r["time"] is not None]
     for st in report["state"]:
         out.append(_state_plot(st, t0, t1, restarts))
         if st["episodes_relays_open"]:

@@ -19,13 +19,18 @@ _ITEM_KEYS = ("sender", "type", "command_id", "serial", "after", "count", "from"
               "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s")
 
 
+def since(time: Optional[float], t0: float) -> str:
+    """Seconds from the capture's start; '-' for a damaged timestamp (null in the report)."""
+    return "-" if time is None else f"{time - t0:.6f}"
+
+
 def _item(item: dict, t0: float) -> str:
     frames = item.get("frames", [item["frame"]])
     where = f"frame {frames[0]}" if len(frames) == 1 else f"frames {', '.join(map(str, frames[:8]))}" + (
         ", ..." if len(frames) > 8 else "")
     what = ", ".join(f"{k} {_f(item[k]) if isinstance(item[k], float) else item[k]}" for k in _ITEM_KEYS
                      if k in item and item[k] is not None and item[k] is not False)
-    return f"{where} at {item['time'] - t0:.6f} s: {what}  [{item['filter']}]"
+    return f"{where} at {since(item['time'], t0)} s: {what}  [{item['filter']}]"
 
 
 def _finding(f: dict, everything: bool, t0: float) -> list[str]:
@@ -64,7 +69,7 @@ def render(report: dict, everything: bool = False) -> str:
                      f"restarts {ser['restarts']}")
         for r in ser["restart_events"]:
             port = f", port {r['port_from']} -> {r['port_to']}" if "port_from" in r else ""
-            lines.append(f"  restart at {r['time'] - (cap['first_time'] or 0.0):.6f} s (frame {r['frame']}): "
+            lines.append(f"  restart at {since(r['time'], cap['first_time'] or 0.0)} s (frame {r['frame']}): "
                          f"serial {r['from']} -> {r['to']}{port}")
         rows = [["stream", "count", "min", "mean", "p50", "p95", "p99", "p99.9", "max", "jitter", "watchdog"]]
         for ptype in ("VRPI", "VRPO"):
