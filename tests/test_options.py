@@ -15,7 +15,9 @@ from typing import Iterator, Optional
 import pytest
 
 from vm110 import cli
-from vm110.numbers import FieldsType, NumberType
+from vm110.commands import simulate
+from vm110.errors import CliError
+from vm110.numbers import FieldsType, NumberType, fields, number, port, span
 
 BAD = ("nan", "inf", "-inf", "-1", "0", "1e18")
 MISSING = "/nonexistent/vm110-missing.pcap"
@@ -191,3 +193,44 @@ def test_the_analyze_options_of_the_issue(capsys):
     for args in tried:
         code, err, _ = outcome(capsys, ("analyze",), args)
         refused_in_one_line(code, err, ("analyze",), args[0].split("=")[0])
+
+
+@pytest.mark.parametrize("option, address, message", [
+    ("--peer", "127.0.0.1:0", "not one to send to"), ("--peer", "127.0.0.1:70000", "bad address"),
+    ("--listen", "127.0.0.1:-1", "bad address"), ("--source", "nohost:5825", "bad address"),
+])
+def test_simulate_addresses_name_their_option(option, address, message):
+    """Checked before a socket is opened (here: the sockets' set-up alone, nothing is opened)."""
+    args = cli.build_parser().parse_args(["simulate", "bu", option, address])
+    with pytest.raises(CliError, match=f"^{option}: .*{message}"):
+        simulate.udp_config(args)
+
+
+# --- the types behind the options ----------------------------------------------------------------
+def test_ports_leave_room_above():
+    assert port()("65535") == 65535 and port(room_above=2)("65533") == 65533
+    for text in ("0", "65534", "70000", "-1", "nan", "1.5"):
+        with pytest.raises(argparse.ArgumentTypeError, match="1 to 65533"):
+            port(room_above=2)(text)
+
+
+def test_integers_in_hex():
+    assert number(0, 0xFFFF, integer=True)("0x0101") == 0x101
+    assert number(0, 0xFFFF, integer=True)("010") == 10        # decimal, as before
+    with pytest.raises(argparse.ArgumentTypeError):
+        number(0, 0xFFFF, integer=True)("0x10000")
+
+
+def test_fields():
+    window = span(number(0, 60, "s"))
+    assert window("1:2.5") == (1.0, 2.5) and window.range_text == "START:END, each 0 to 60 s, END after START"
+    for text, message in (("2:1", "END must be after START"), ("1:1", "END must be after START"),
+                          ("1", "is not START:END"), ("1:2:3", "is not START:END"), ("nan:1", "START 'nan'"),
+                          ("0:61", "END '61' is out of range")):
+        with pytest.raises(argparse.ArgumentTypeError, match=message):
+            window(text)
+    restart = fields(("AT", "PORT"), (number(0, 60, "s"), port()), required=1)
+    assert restart("5") == (5.0, None) and restart("5:7000") == (5.0, 7000)
+    assert restart.range_text == "AT[:PORT]: AT 0 to 60 s, PORT 1 to 65535"
+    with pytest.raises(argparse.ArgumentTypeError, match="PORT '0' is out of range"):
+        restart("5:0")

@@ -14,6 +14,7 @@ import sys
 from typing import Any, Callable
 
 from .. import constants as C
+from ..errors import CliError
 from ..numbers import fields, number, span
 from ..sim.bu import DEFAULT_ORIGIN, BaseUnit, BaseUnitConfig
 from ..sim.controller import Controller, ControllerConfig
@@ -21,7 +22,7 @@ from ..sim.impair import Impairer, Impairment
 from ..sim.lifecycle import DEFAULT_SILENCE_S, Restart
 from ..sim.realtime import RealtimeRunner
 from ..sim.remote import Remote
-from ..sim.transport import UdpConfig, UdpTransport, multicast_config, parse_address
+from ..sim.transport import Address, UdpConfig, UdpTransport, multicast_config, parse_address
 from .options import INPUT_PORT, INPUT_PORT_HELP, SEED
 
 
@@ -129,12 +130,23 @@ def udp_config(args: argparse.Namespace) -> UdpConfig:
     """The sockets for the role from the network options."""
     cfg = multicast_config(args.role, args.group, args.port, args.iface)
     if args.peer:
-        cfg.dest = parse_address(args.peer)
+        cfg.dest = _address("--peer", args.peer, lowest_port=1)
     if args.listen:
-        cfg.listen, cfg.group = parse_address(args.listen), None
+        cfg.listen, cfg.group = _address("--listen", args.listen), None
     if args.source:
-        cfg.source = parse_address(args.source)
+        cfg.source = _address("--source", args.source)
     return cfg
+
+
+def _address(option: str, text: str, lowest_port: int = 0) -> Address:
+    """IPv4:PORT given to `option`; port 0 (any free one) only where a socket is bound to it."""
+    try:
+        host, port = parse_address(text)
+    except CliError as exc:
+        raise CliError(f"{option}: {exc}") from None
+    if port < lowest_port:
+        raise CliError(f"{option}: port {port} is not one to send to (1 to 65535)")
+    return host, port
 
 
 def impairment(args: argparse.Namespace) -> Impairment:
@@ -169,11 +181,12 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet and not args.json:
             print(line, flush=True)
 
+    sockets = udp_config(args)      # its errors before anything starts
     node = build_node(args, printer)
     if args.json and not args.quiet:
         node.listeners.append(lambda entry: print(json.dumps(entry), flush=True))
     imp = impairment(args)
-    transport = UdpTransport(udp_config(args), Impairer(imp, args.role) if imp.active() else None).open()
+    transport = UdpTransport(sockets, Impairer(imp, args.role) if imp.active() else None).open()
     runner = RealtimeRunner([(node, transport)])
     rx, tx = transport.rx_address, transport.tx_address
     print(f"{args.role}: receiving on {rx[0]}:{rx[1]}"
