@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 PLUGIN_DIR ?= $(HOME)/.local/lib/wireshark/plugins
 DEMO_DIR := out/demo
 
-.PHONY: setup system-deps demo test test-long bench install-wireshark clean tshark44 tshark46 golden captures
+.PHONY: setup system-deps demo test test-long bench install-wireshark clean tshark44 tshark46 golden captures fuzz-self
 
 setup: system-deps $(STAMP)
 
@@ -34,6 +34,12 @@ test: setup tshark44 tshark46
 # Long runs kept out of `make test` (e.g. the fuzzer against the reference controller for 60 s).
 test-long: setup
 	VM110_LONG_TESTS=1 $(PY) -m pytest -n 2 -q -m slow
+
+# Soak run of the self-fuzzer (tests/selffuzz): mutated bundled captures through decode, analyze (both
+# engines) and the dissector on every tshark; failing inputs kept in out/fuzz-self/ with a .txt each.
+FUZZ_SELF_SECONDS ?= 600
+fuzz-self: setup tshark44 tshark46
+	FUZZ_SELF_SECONDS=$(FUZZ_SELF_SECONDS) $(PY) scripts/fuzz-self
 
 bench: setup
 	@set -e; for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b; done

@@ -137,3 +137,21 @@ def test_reports_are_written_whole_or_not_at_all(tmp_path):
         report_json.write(str(old), {"a": list(range(100000)), "b": float("nan")})
     assert old.read_text() == "the previous report"
     assert sorted(os.listdir(tmp_path)) == ["dir.json", "fifo", "r.json"]
+
+
+def test_pcapng_block_lengths_that_disagree_are_damage(tmp_path):
+    path = tmp_path / "t.pcapng"
+    _traffic(path, 6, "pcapng")
+    data = bytearray(path.read_bytes())
+    pos, blocks = 0, []
+    while pos < len(data):
+        blocks.append(pos)
+        pos += struct.unpack_from("<I", data, pos + 4)[0]
+    fifth = blocks[-2]                                   # the fifth packet's block
+    end = fifth + struct.unpack_from("<I", data, fifth + 4)[0]
+    struct.pack_into("<I", data, end - 4, 4236)          # its trailing length lies
+    path.write_bytes(bytes(data))
+    from vm110.capture.reader import CaptureReader
+    reader = CaptureReader(str(path))
+    assert len(list(reader)) == 4 and reader.damage == fifth
+    assert reader.problem == f"corrupt pcapng block at byte {fifth} (leading length {end - fifth}, trailing 4236)"

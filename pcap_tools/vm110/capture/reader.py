@@ -268,6 +268,15 @@ class CaptureReader:
             self.damaged(at, f"bad pcapng byte-order magic in the section at byte {at}")
         self.interfaces = []
 
+    def bad_trailer(self, data: bytes, pos: int, blen: int) -> bool:
+        """Whether a whole block's trailing length differs from its leading one (damage)."""
+        last = struct.unpack_from(self.endian + "I", data, pos + blen - 4)[0]
+        if last == blen:
+            return False
+        at = self.bytes_read + pos
+        self.damaged(at, f"corrupt pcapng block at byte {at} (leading length {blen}, trailing {last})")
+        return True
+
     def bad_block(self, pos: int, blen: int, btype: int) -> bool:
         """Whether the walk must stop at this block: damage found before, or a corrupt or
         oversized block length (and if so, say where)."""
@@ -304,6 +313,11 @@ class CaptureReader:
                     return
                 if pos + blen > end:
                     break
+                if self.bad_trailer(data, pos, blen):
+                    chunks.close()
+                    self.frames = frame
+                    yield out
+                    return
                 p = pos
                 pos += blen
                 found = self.pcapng_block(data, p, btype, blen)
