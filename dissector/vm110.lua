@@ -25,18 +25,6 @@ if set_plugin_info then
     })
 end
 
--- Every tree item is a userdata (TvbRange, TreeItem) that the collector must finalise: most of
--- this dissector's cost. Measured in `make bench`: on Lua 5.4 (Wireshark 4.4) the generational
--- collector takes about 40% less CPU; on Lua 5.2 (Wireshark 4.0) collecting continuously
--- (pause 100) with larger steps about 20% less (a small heap stays in the CPU cache).
--- These settings apply to Wireshark's whole Lua state (every Lua plugin).
-if _VERSION == "Lua 5.4" then
-    collectgarbage("generational")
-else
-    collectgarbage("setpause", 100)
-    collectgarbage("setstepmul", 800)
-end
-
 local byte, sub, fmt, concat = string.byte, string.sub, string.format, table.concat
 local floor = math.floor
 
@@ -136,92 +124,23 @@ for i = 1, 8 do RU_FIELDS["switch" .. i] = true end
 
 ---------------------------------------------------------------------------------------------
 -- 2. CRC engine
--- Slicing by 16 with the `bit` library (LuaBitOp, which Wireshark ships with Lua 5.2 and 5.4
--- alike). C calls, not arithmetic, are what costs in Lua: a block of up to 16 bytes takes one
--- string.byte call, two bit calls and one lookup per byte in 256-entry tables, and the
--- remainder of a packet (4 to 15 bytes) is one such block too. The code per block length is
--- generated, like the payload readers. (A 64K-entry XOR table with no calls at all measured
--- slower inside tshark: cache misses.) Registers are LuaBitOp's signed 32 bits.
+-- Slicing by 16: a block of up to 16 bytes takes one string.byte call and one lookup per byte
+-- in 256-entry tables (S[j][v]: the register after the rest of a 16-byte block when byte j of
+-- the block, j = 0 first, is v and everything else is zero; S[15] is the byte-at-a-time table;
+-- by linearity the register after a block is the XOR of S[j][x_j], x = the block with the
+-- register XORed into its first four bytes; a block of n bytes uses S[16 - n .. 15]). The
+-- remainder of a packet (4 to 15 bytes) is one such block too, and the code per block length
+-- is generated, like the payload readers.
+-- Lua 5.3 and later (Wireshark 4.4, 4.6): native integer operators (~, >>, &), compiled with
+-- load() so that this file still parses on Lua 5.2: no C call but string.byte.
+-- Lua 5.2 (Wireshark 4.0): no such operators, and C calls, not arithmetic, are what costs
+-- there: the XOR of a block's 16 lookups is one call of the `bit` library (LuaBitOp, shipped
+-- with Wireshark), so a block costs three C calls in all, never one per byte. (Byte-at-a-time
+-- XOR by table lookup, a 64K-entry table, measured slower inside tshark: cache misses.)
+-- Each variant gets `calc(s, len)`: the CRC of the first len bytes of s, unsigned, the final XOR
+-- included. All state of this section stays in one block (the main chunk may have at most 200
+-- locals).
 ---------------------------------------------------------------------------------------------
-local bit = bit or require("bit")
-local bxor, band, lshift, rshift = bit.bxor, bit.band, bit.lshift, bit.rshift
-local TWO32 = 4294967296
-local SLICES = 16
-
-local function zero_byte(r, reflected, T)
-    if reflected then return bxor(rshift(r, 8), T[band(r, 255)]) end
-    return bxor(lshift(r, 8), T[rshift(r, 24)])
-end
-
--- S[j][v]: the register after the rest of a 16-byte block when byte j of the block (j = 0
--- first) is v and everything else is zero; S[15] is the byte-at-a-time table. By linearity the
--- register after a block is the XOR of S[j][x_j], x = the block with the register XORed into
--- its first four bytes; a block of n bytes uses S[16 - n .. 15].
-local function build_tables(reflected)
-    local T = {}
-    for v = 0, 255 do
-        local r = reflected and v or lshift(v, 24)
-        for _ = 1, 8 do
-            if reflected then
-                local low = band(r, 1)
-                r = rshift(r, 1)
-                if low ~= 0 then r = bxor(r, 0xEDB88320) end
-            else
-                local high = band(r, 0x80000000)
-                r = lshift(r, 1)
-                if high ~= 0 then r = bxor(r, 0x04C11DB7) end
-            end
-        end
-        T[v] = r
-    end
-    local S = { [SLICES - 1] = T }
-    for j = SLICES - 2, 0, -1 do
-        local next_, this = S[j + 1], {}
-        for v = 0, 255 do this[v] = zero_byte(next_[v], reflected, T) end
-        S[j] = this
-    end
-    return S
-end
-
--- Lua source of one block of n (4..16) bytes at s[i]: updates r. The register's byte consumed
--- first is its low byte when reflected, its high byte otherwise.
-local function block_source(n, reflected)
-    local b, lookups = {}, {}
-    for j = 1, n do b[j] = "b" .. j end
-    local word = reflected and "((b4 * 256 + b3) * 256 + b2) * 256 + b1" or "((b1 * 256 + b2) * 256 + b3) * 256 + b4"
-    local order = reflected and { "x0", "x1", "x2", "x3" } or { "x3", "x2", "x1", "x0" }
-    for j = 1, n do
-        lookups[j] = fmt("S%d[%s]", SLICES - n + j - 1, j <= 4 and order[j] or b[j])
-    end
-    return fmt("local %s = byte(s, i, i + %d)\n", concat(b, ", "), n - 1)
-        .. fmt("local x = bxor(r, %s)\nif x < 0 then x = x + 4294967296 end\n", word)
-        .. "local x0 = x % 256\nx = (x - x0) / 256\nlocal x1 = x % 256\nx = (x - x1) / 256\n"
-        .. "local x2 = x % 256\nlocal x3 = (x - x2) / 256\n"
-        .. fmt("r = bxor(%s)\n", concat(lookups, ", "))
-end
-
--- crc(s, len): the register after the first len bytes of s, from 0xFFFFFFFF, unsigned.
-local function build_crc(reflected)
-    local S, tables = build_tables(reflected), {}
-    for j = 0, SLICES - 1 do tables[j + 1] = "S" .. j end
-    local tails = {}
-    for n = SLICES - 1, 4, -1 do
-        tails[#tails + 1] = fmt("%s t == %d then\n%s", n == SLICES - 1 and "if" or "elseif", n, block_source(n, reflected))
-    end
-    local byte_step = reflected and "r = bxor(rshift(r, 8), S15[bxor(band(r, 255), byte(s, j))])"
-        or "r = bxor(lshift(r, 8), S15[bxor(rshift(r, 24), byte(s, j))])"
-    local code = fmt("local byte, bxor, band, lshift, rshift, %s = ...\n", concat(tables, ", "))
-        .. "return function(s, len)\nlocal r, i = -1, 1\nwhile i + 15 <= len do\n"
-        .. block_source(SLICES, reflected) .. "i = i + 16\nend\nlocal t = len - i + 1\n"
-        .. concat(tails) .. fmt("else\nfor j = i, len do %s end\nend\n", byte_step)
-        .. "if r < 0 then r = r + 4294967296 end\nreturn r\nend\n"
-    local args = { byte, bxor, band, lshift, rshift }
-    for j = 0, SLICES - 1 do args[#args + 1] = S[j] end
-    return assert(load(code, "=vm110 crc", "t", {}))(table.unpack(args))
-end
-
-local CRC_REGISTER = { [false] = build_crc(false), [true] = build_crc(true) }
-
 -- CRC variants of interpretation.md: all with init 0xFFFFFFFF and polynomial 0x04C11DB7.
 local CRC_VARIANTS = {
     { name = "mpeg2", label = "CRC-32/MPEG-2 (default)", reflected = false, xorout = false },
@@ -229,12 +148,126 @@ local CRC_VARIANTS = {
     { name = "bzip2", label = "CRC-32/BZIP2", reflected = false, xorout = true },
     { name = "jamcrc", label = "CRC-32/JAMCRC", reflected = true, xorout = false },
 }
+local NATIVE_INTEGERS = _VERSION >= "Lua 5.3" -- ("Lua 5.2" < "Lua 5.3" < "Lua 5.4")
+do
+    local SLICES = 16
 
--- CRC of the first len bytes of s, as an unsigned number.
-local function crc_of(s, len, variant)
-    local r = CRC_REGISTER[variant.reflected](s, len)
-    if variant.xorout then r = TWO32 - 1 - r end
-    return r
+    -- The tables, in plain arithmetic (once, at load): S[j][v] as unsigned numbers.
+    local function xor32(a, b) -- (load time only)
+        local r, p = 0, 1
+        for _ = 1, 32 do
+            local x, y = a % 2, b % 2
+            if x ~= y then r = r + p end
+            a, b, p = (a - x) / 2, (b - y) / 2, p * 2
+        end
+        return r
+    end
+    local function build_tables(reflected)
+        local T = {}
+        for v = 0, 255 do
+            local r = reflected and v or v * 16777216
+            for _ = 1, 8 do
+                if reflected then
+                    local low = r % 2
+                    r = (r - low) / 2
+                    if low ~= 0 then r = xor32(r, 0xEDB88320) end
+                else
+                    local high = r >= 0x80000000
+                    r = (r % 0x80000000) * 2
+                    if high then r = xor32(r, 0x04C11DB7) end
+                end
+            end
+            T[v] = floor(r)
+        end
+        local S = { [SLICES - 1] = T }
+        for j = SLICES - 2, 0, -1 do
+            local next_, this = S[j + 1], {}
+            for v = 0, 255 do -- one zero byte more through the register
+                local r = next_[v]
+                if reflected then
+                    local low = r % 256
+                    this[v] = floor(xor32((r - low) / 256, T[low]))
+                else
+                    local high = (r - r % 16777216) / 16777216
+                    this[v] = floor(xor32((r % 16777216) * 256, T[high]))
+                end
+            end
+            S[j] = this
+        end
+        return S
+    end
+
+    -- Lua source of one block of n (4..16) bytes at s[i]: updates r. The register's byte consumed
+    -- first is its low byte when reflected, its high byte otherwise.
+    local function block_source(n, reflected)
+        local b, lookups = {}, {}
+        for j = 1, n do b[j] = "b" .. j end
+        local word, order
+        if NATIVE_INTEGERS then
+            word = reflected and "b1 | b2 << 8 | b3 << 16 | b4 << 24" or "b1 << 24 | b2 << 16 | b3 << 8 | b4"
+            order = reflected and { "x & 255", "x >> 8 & 255", "x >> 16 & 255", "x >> 24" }
+                or { "x >> 24", "x >> 16 & 255", "x >> 8 & 255", "x & 255" }
+        else
+            word = reflected and "((b4 * 256 + b3) * 256 + b2) * 256 + b1" or "((b1 * 256 + b2) * 256 + b3) * 256 + b4"
+            order = reflected and { "x0", "x1", "x2", "x3" } or { "x3", "x2", "x1", "x0" }
+        end
+        for j = 1, n do
+            lookups[j] = fmt("S%d[%s]", SLICES - n + j - 1, j <= 4 and order[j] or b[j])
+        end
+        local code = fmt("local %s = byte(s, i, i + %d)\n", concat(b, ", "), n - 1)
+        if NATIVE_INTEGERS then
+            return code .. fmt("local x = r ~ (%s)\nr = %s\n", word, concat(lookups, " ~ "))
+        end
+        return code .. fmt("local x = bxor(r, %s)\nif x < 0 then x = x + 4294967296 end\n", word)
+            .. "local x0 = x % 256\nx = (x - x0) / 256\nlocal x1 = x % 256\nx = (x - x1) / 256\n"
+            .. "local x2 = x % 256\nlocal x3 = (x - x2) / 256\n"
+            .. fmt("r = bxor(%s)\n", concat(lookups, ", "))
+    end
+
+    -- calc(s, len) of one variant.
+    local function build_crc(reflected, xorout, S)
+        local tables = {}
+        for j = 0, SLICES - 1 do tables[j + 1] = "S" .. j end
+        local tails = {}
+        for n = SLICES - 1, 4, -1 do
+            tails[#tails + 1] = fmt("%s t == %d then\n%s", n == SLICES - 1 and "if" or "elseif", n,
+                block_source(n, reflected))
+        end
+        local byte_step, finish
+        if NATIVE_INTEGERS then
+            byte_step = reflected and "r = r >> 8 ~ S15[(r ~ byte(s, j)) & 255]"
+                or "r = (r << 8 & 0xFFFFFFFF) ~ S15[r >> 24 ~ byte(s, j)]"
+            finish = xorout and "return r ~ 0xFFFFFFFF\n" or "return r\n"
+        else
+            byte_step = reflected and "r = bxor(rshift(r, 8), S15[bxor(band(r, 255), byte(s, j))])"
+                or "r = bxor(lshift(r, 8), S15[bxor(rshift(r, 24), byte(s, j))])"
+            finish = "if r < 0 then r = r + 4294967296 end\n"
+                .. (xorout and "return 4294967295 - r\n" or "return r\n")
+        end
+        local code = fmt("local byte, bxor, band, lshift, rshift, %s = ...\n", concat(tables, ", "))
+            .. fmt("return function(s, len)\nlocal r, i = %s, 1\nwhile i + 15 <= len do\n",
+                NATIVE_INTEGERS and "0xFFFFFFFF" or "-1")
+            .. block_source(SLICES, reflected) .. "i = i + 16\nend\nlocal t = len - i + 1\n"
+            .. concat(tails) .. fmt("else\nfor j = i, len do %s end\nend\n", byte_step)
+            .. finish .. "end\n"
+        local args = { byte, false, false, false, false }
+        if not NATIVE_INTEGERS then
+            local bit = bit or require("bit")
+            args[2], args[3], args[4], args[5] = bit.bxor, bit.band, bit.lshift, bit.rshift
+        end
+        for j = 0, SLICES - 1 do
+            local t = S[j]
+            if not NATIVE_INTEGERS then -- (LuaBitOp's registers are signed 32 bits)
+                t = {}
+                for v = 0, 255 do t[v] = S[j][v] >= 0x80000000 and S[j][v] - 4294967296 or S[j][v] end
+            end
+            args[#args + 1] = t
+        end
+        return assert(load(code, "=vm110 crc", "t", {}))(table.unpack(args, 1, 5 + SLICES))
+    end
+
+    local tables = { [false] = build_tables(false), [true] = build_tables(true) }
+    for _, v in ipairs(CRC_VARIANTS) do v.calc = build_crc(v.reflected, v.xorout, tables[v.reflected]) end
 end
 
 ---------------------------------------------------------------------------------------------
@@ -449,7 +482,7 @@ local function decode(s, variant, big_endian, known_crc)
             r.crc = u32(s, off)
         end
         if variant then
-            local calc = known_crc == true and r.crc or known_crc or crc_of(s, off, variant)
+            local calc = known_crc == true and r.crc or known_crc or variant.calc(s, off)
             r.crc_calc = calc
             if calc == r.crc then
                 r.crc_status = CRC_GOOD
@@ -639,6 +672,9 @@ vm110.prefs.vrpo_number_start = Pref.uint("First VRPO packet number", 0, "Packet
 vm110.prefs.burst_gap_ms = Pref.uint("VRPO burst gap (ms)", VRPO_BURST_GAP_MS, "A new burst starts after this gap")
 vm110.prefs.machine = Pref.string("Machine", "",
     "Key of the machine-specific sub-dissectors in the vm110.periodic_data and vm110.command_data tables")
+vm110.prefs.tune_gc = Pref.bool("Tune Lua's garbage collector", false,
+    "Collector settings that make this dissector faster (Lua 5.4: generational; Lua 5.2: pause 100, "
+    .. "step multiplier 800). They apply to every Lua plugin of this Wireshark, so they are off by default")
 
 ---------------------------------------------------------------------------------------------
 -- 5. Tree and Info column
@@ -954,6 +990,32 @@ end
 ---------------------------------------------------------------------------------------------
 -- 6. Dissector, registration
 ---------------------------------------------------------------------------------------------
+-- The collector of Wireshark's Lua state is every Lua plugin's: left as Wireshark sets it, unless
+-- the preference vm110.tune_gc (off by default) asks for the settings `make bench` can measure
+-- (generational on Lua 5.4; on 5.2 collecting continuously, pause 100, with larger steps);
+-- turning it off again restores what was there before.
+local tune_collector
+do
+    local saved = false -- what was there before: {mode} on Lua 5.4, {pause, stepmul} on 5.2
+    function tune_collector(on)
+        if on and not saved then
+            if _VERSION >= "Lua 5.4" then
+                saved = { collectgarbage("generational") }
+            else
+                saved = { collectgarbage("setpause", 100), collectgarbage("setstepmul", 800) }
+            end
+        elseif not on and saved then
+            if _VERSION >= "Lua 5.4" then
+                collectgarbage(saved[1])
+            else
+                collectgarbage("setpause", saved[1])
+                collectgarbage("setstepmul", saved[2])
+            end
+            saved = false
+        end
+    end
+end
+
 -- Preferences as plain values: reading vm110.prefs costs C calls on every packet.
 local settings = {}
 local function read_settings()
@@ -970,6 +1032,7 @@ local function read_settings()
     settings.vrci_fail, settings.vrco_give_up = prefs.vrci_fail_ms, prefs.vrco_give_up_ms
     settings.data_size, settings.number_start = prefs.vrpo_data_size, prefs.vrpo_number_start
     settings.burst_gap, settings.machine = prefs.burst_gap_ms, prefs.machine
+    tune_collector(prefs.tune_gc)
 end
 
 -- Per-frame memos, by frame number and offset (a frame may carry more than one EG-Link packet:
@@ -1294,28 +1357,35 @@ end
 
 -- Complete: numbers start, start+1, ... each once (in any order), every packet but the last by
 -- number carries 488 bytes, the last fewer (or the data add up to the configured size).
--- Returns the data in number order when complete, else false.
--- A burst packet's data, or just their length where they were not kept (see analyse()).
-local function data_length(data)
-    return type(data) == "string" and #data or data
+-- Kept as the burst grows, in constant time per packet (a burst may be endless): `bad` (a number
+-- below the start or seen before), `top` (the highest number), `top_size` (its data length),
+-- `short` (packets with fewer than 488 bytes). The numbers n distinct ones from `start` with the
+-- highest start + n - 1 are exactly start ... start + n - 1.
+local burst = {} -- (functions in a table: the main chunk's locals are limited to 200)
+function burst.part(b, number, size)
+    local seen = b.seen
+    if number < settings.number_start or seen[number] then b.bad = true end
+    seen[number] = true
+    if number > b.top then b.top, b.top_size = number, size end
+    if size ~= VRPO_MAX_DATA then b.short = b.short + 1 end
 end
 
-local function burst_data(b)
+function burst.complete(b)
+    if b.bad or b.top - settings.number_start ~= b.n - 1 then return false end
+    local top_short = b.top_size ~= VRPO_MAX_DATA and 1 or 0
+    if b.short ~= top_short then return false end -- a packet other than the last is short
+    if settings.data_size > 0 then return b.size == settings.data_size end
+    return top_short == 1
+end
+
+-- The data of a complete burst in number order (built once per burst length: O(n) per burst).
+function burst.data(b)
+    if b.data_n == b.n then return b.data end
     local n, start, by_number = b.n, settings.number_start, {}
-    for i = 1, n do
-        local k = b[3 * i - 1] - start
-        if k < 0 or k >= n or by_number[k + 1] then return false end
-        by_number[k + 1] = b[3 * i]
-    end
-    for k = 1, n - 1 do
-        if data_length(by_number[k]) ~= VRPO_MAX_DATA then return false end
-    end
-    if settings.data_size > 0 then
-        if b.size ~= settings.data_size then return false end
-    elseif data_length(by_number[n]) >= VRPO_MAX_DATA then
-        return false
-    end
-    return concat(by_number)
+    for i = 1, n do by_number[b[3 * i - 1] - start + 1] = b[3 * i] end
+    local data = concat(by_number)
+    b.data, b.data_n = data, n
+    return data
 end
 
 local function new_sender(name, port)
@@ -1345,11 +1415,12 @@ end
 local function join_burst(cur, res, frame, number, data, size)
     local b = cur.b
     if not b then
-        b = { cur.frame, cur.number, cur.data, n = 1, size = cur.size, top = settings.number_start - 1 }
+        b = { cur.frame, cur.number, cur.data, n = 1, size = cur.size, top = settings.number_start - 1,
+            top_size = 0, short = 0, bad = false, seen = {}, complete = nil, data = false, data_n = false }
         cur.b = b
         local first = as_table(memo_get(results, cur.frame, cur.offset))
         if cur.number > b.top + 1 then first.burst_missing = b.top + 1 end
-        if cur.number > b.top then b.top = cur.number end
+        burst.part(b, cur.number, cur.size)
         first.burst, first.burst_index = b, 1
         memo_set(results, cur.frame, cur.offset, first)
     end
@@ -1358,7 +1429,7 @@ local function join_burst(cur, res, frame, number, data, size)
     b.n, b.size = n, b.size + size
     b[3 * n - 2], b[3 * n - 1], b[3 * n] = frame, number, data
     if number > b.top + 1 then res.burst_missing = b.top + 1 end
-    if number > b.top then b.top = number end
+    burst.part(b, number, size)
     res.burst, res.burst_index = b, n
     return res
 end
@@ -1676,21 +1747,22 @@ local function add_burst(res, tvb, root, pinfo, tree, visited)
         add_expert(bt, E.burst_missing)
     end
     if b[3 * n - 2] ~= pinfo.number then return end -- the data are shown with the burst's last packet
-    local data = b.reassembled
-    if data == nil then
-        data = burst_data(b)
-        if visited then b.reassembled = data end -- final once every frame has been seen
+    local complete = b.complete
+    if complete == nil then
+        complete = burst.complete(b) -- (constant time: on the first pass every packet is the last so far)
+        if visited then b.complete = complete end -- final once every frame has been seen
     end
-    if not data then
+    if not complete then
         if visited then
             add_expert(generated(bt, "burst_complete", tvb, PREFIX_LEN, 2, false), E.burst_incomplete)
         end
         return
     end
     generated(bt, "burst_complete", tvb, PREFIX_LEN, 2, true)
-    pinfo.cols.info:append(fmt(" [reassembled %d bytes]", #data))
+    pinfo.cols.info:append(fmt(" [reassembled %d bytes]", b.size))
     local machine = settings.machine ~= ""
     if want.visible or want.reassembled or machine then -- (a new data source: only when shown or used)
+        local data = burst.data(b)
         local data_tvb = ByteArray.new(data, true):tvb("Reassembled periodic data")
         if want.reassembled then tree_add(bt, F.reassembled, tvb_range(data_tvb, 0, #data)) end
         if machine then sub_dissect(periodic_table, data_tvb, pinfo, tree) end
