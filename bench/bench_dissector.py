@@ -1,31 +1,34 @@
-"""Lua dissector speed: `tshark -T fields` over a 100,000-packet EG-Link capture, with the plugin
-(CRC validation on) against tshark without it (the packets then decode as plain UDP data), with
-the stream analysis of issue 4 off (target: at most 1.3 x the plain-UDP time) and on (target: at
-most 1.5 x).
+"""Lua dissector speed, measured the way a user runs it (issue 13): `tshark -T fields` over a
+100,000-packet EG-Link capture with the plugin at its default preferences (CRC validation and
+stream analysis on) and vm110 fields referenced, against tshark without the plugin (the packets
+then decode as plain UDP data) printing as many columns.
 
 The capture is `vm110 synth day` (normal operation with light loss, the simulators' timing of
 TS-0006: VRPI every 125 ms, VRPO every 100 ms, an operator command every few seconds) cut to
-about 100,000 packets. The headline runs extract the same frame/IP/UDP fields with and without
-the plugin: the figure is what decoding EG-Link costs. The runs marked "+ vm110 fields" also extract vm110 (and analysis)
-fields, so the dissector builds those items too; tshark then also prints twice as many columns.
-Each command runs REPEAT times, interleaved; the best time of each is compared (wall time, the
-figure of the issues; and CPU time, which other load disturbs less). Measured on the host's
-tshark (4.0, Lua 5.2) and, when scripts/setup-tshark44.sh has built it, on tshark 4.4 (Lua 5.4)
-in its chroot. Wireshark 4.0's tshark builds the full, visible tree for -T fields (4.4 builds it
-invisible and only the referenced fields), so there every field of every packet is built.
+about 100,000 packets. Every run prints the same four frame/IP/UDP fields, and then:
+- "vm110": 4 vm110 fields (type, serial, CRC status, command ID), against "plain 8": 4 more
+  frame/IP/UDP fields;
+- "vm110 + analysis": those and 4 stream-analysis fields (serial_missing, interval,
+  retransmission_of, ack_to), against "plain 12": 8 more frame/IP/UDP fields.
+A field referenced is what any column, display filter or -T fields -e vm110.* does; with none,
+Wireshark may skip building the tree, which is not how the plugin is used.
 
-Two references measured in the same run put the ratios in context:
-- "plain, 8 / 12 columns": plain UDP printing four / eight more frame/Ethernet/IP/UDP fields, so
-  that the "+ vm110 fields" runs are also compared with a run that writes as many columns;
-- "Lua tree floor": a Lua dissector that adds, per packet, as many tree items as vm110's visible
-  tree has for that packet type (counted from vm110's own PDML of the capture), each over its own
-  TvbRange, and does nothing else: no CRC, no checks, no labels. It is what any Lua dissector
-  that shows every field pays for its items where the tree is visible (all of tshark 4.0's
-  -T fields); vm110 / floor is then the cost of everything vm110 does besides its items.
+Each command runs REPEAT times, interleaved over the commands and the tshark versions (the host's
+4.0 with Lua 5.2; Debian 13's 4.4 and Debian testing's 4.6 with Lua 5.4, in the chroots of
+`make tshark44` / `make tshark46`); the best time of each is compared: wall time, the figure of
+the issue, and CPU time (user + system), which other load on the machine disturbs less.
+
+Options: --baseline FILE also times another copy of the plugin (say, the previous commit's) in the
+same interleaved runs, so that before and after come from one measurement; --tune-gc also times
+the plugin with the preference vm110.tune_gc on (the collector settings it offers, off by
+default); --repeat N; --packets-duration S (seconds of 'day', 5400 = about 100,000 packets).
 """
 from __future__ import annotations
 
+import argparse
+import contextlib
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -35,71 +38,17 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import tshark_runner as T  # noqa: E402
-from lxml import etree  # noqa: E402
-from vm110 import constants as C  # noqa: E402
 from vm110.synth import synthesize  # noqa: E402
 
 DURATION_S = 5400     # about 100,000 packets of 'day'
 REPEAT = 3
-TARGET = 1.3
-ANALYSIS_TARGET = 1.5
+TARGETS = {"4.0": 2.0, "4.4": 1.25, "4.6": 1.25}
 COMMON = ["-e", "frame.number", "-e", "ip.src", "-e", "udp.srcport", "-e", "udp.length"]
 VM110_FIELDS = ["-e", "vm110.type", "-e", "vm110.serial", "-e", "vm110.crc.status", "-e", "vm110.command_id"]
 ANALYSIS_FIELDS = ["-e", "vm110.analysis.serial_missing", "-e", "vm110.analysis.interval",
                    "-e", "vm110.analysis.retransmission_of", "-e", "vm110.analysis.ack_to"]
-# Plain fields printed instead of the vm110 ones: the first four for VM110_FIELDS, all for both lists.
 PLAIN_EXTRA = ["-e", "ip.dst", "-e", "udp.dstport", "-e", "ip.ttl", "-e", "udp.checksum",
                "-e", "frame.len", "-e", "eth.src", "-e", "eth.dst", "-e", "ip.id"]
-COUNT_PACKETS = 2000  # packets whose visible vm110 tree is counted for the floor
-
-FLOOR_LUA = """-- Written by bench/bench_dissector.py: items only, as many per packet type as vm110's visible tree.
-{gc}
-local p = Proto("vm110floor", "Lua tree floor")
-local f = ProtoField.uint8("vm110floor.byte", "Byte", base.DEC)
-p.fields = {{ f }}
-local ITEMS = {{ {items} }}
-function p.dissector(tvb, pinfo, tree)
-    local n = tvb:len()
-    local root = tree:add(p, tvb(0, n))
-    for i = 2, ITEMS[tvb:raw(0, 4)] or 1 do root:add(f, tvb(i % n, 1)) end
-    return n
-end
-local udp = DissectorTable.get("udp.port")
-udp:add({input}, p)
-udp:add({output}, p)
-"""
-
-
-def visible_items(ws: T.Workspace, capture: str) -> dict[str, int]:
-    """Packet type -> the most tree items vm110's visible tree has for it (its protocol item,
-    fields, text items and subtrees; expert items not counted), from its PDML."""
-    proc = ws.run(["-n", "-r", capture, "-c", str(COUNT_PACKETS), "-T", "pdml", "-o", "vm110.analysis:FALSE"])
-    items: dict[str, int] = {}
-    for proto in etree.fromstring(proc.stdout.encode(), parser=etree.XMLParser(huge_tree=True)).iter("proto"):
-        if proto.get("name") != "vm110":
-            continue
-        kind = next((f.get("show") for f in proto.iter("field") if f.get("name") == "vm110.type"), None)
-        count = 1 + sum(1 for f in proto.iter("field") if not (f.get("name") or "").startswith("_ws.expert"))
-        if kind:
-            items[kind] = max(items.get(kind, 0), count)
-    return items
-
-
-def collector_settings() -> str:
-    """vm110.lua's tuning of the Lua collector (it applies to every Lua plugin): the floor runs with it too."""
-    text = T.PLUGIN.read_text()
-    start = text.index('if _VERSION == "Lua 5.4" then')
-    return text[start:text.index("\nend\n", start) + 4]
-
-
-def floor_plugin(ws: T.Workspace, capture: str) -> tuple[str, str]:
-    """The floor dissector, written where tshark sees it: its path as tshark sees it, and its
-    items per packet type."""
-    counts = sorted(visible_items(ws, capture).items())
-    path = ws.dir / "floor.lua"
-    path.write_text(FLOOR_LUA.format(gc=collector_settings(), items=", ".join(f"{k} = {n}" for k, n in counts),
-                                     input=C.INPUT_PORT, output=C.OUTPUT_PORT))
-    return ws.tshark.inner(path), ", ".join(f"{k} {n}" for k, n in counts)
 
 
 def timed(command: list[str]) -> tuple[float, float]:
@@ -112,71 +61,83 @@ def timed(command: list[str]) -> tuple[float, float]:
     return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
-def measure(ws: T.Workspace, pcap: Path) -> tuple[dict[str, tuple[float, float]], str]:
-    """Best (wall, CPU) of REPEAT interleaved runs of each command; the floor's items per type."""
+def commands(ws: T.Workspace, pcap: Path, baseline: Path | None, tune_gc: bool) -> dict[str, list[str]]:
     capture = ws.tshark.inner(pcap)
-    floor, floor_items = floor_plugin(ws, capture)
-    plugin = ["-n", "-X", f"lua_script:{ws.plugin()}", "-r", capture, "-T", "fields", *COMMON]
-    off, on = ["-o", "vm110.analysis:FALSE"], ["-o", "vm110.analysis:TRUE"]
-    commands = {
-        "plain": ws.tshark.command(["-n", "-r", capture, "-T", "fields", *COMMON]),
-        "plain_8": ws.tshark.command(["-n", "-r", capture, "-T", "fields", *COMMON, *PLAIN_EXTRA[:8]]),
-        "plain_12": ws.tshark.command(["-n", "-r", capture, "-T", "fields", *COMMON, *PLAIN_EXTRA]),
-        "floor": ws.tshark.command(["-n", "-X", f"lua_script:{floor}", "-r", capture, "-T", "fields", *COMMON]),
-        "decode": ws.tshark.command([*plugin, *off]),
-        "decode_fields": ws.tshark.command([*plugin, *VM110_FIELDS, *off]),
-        "analysis": ws.tshark.command([*plugin, *on]),
-        "analysis_fields": ws.tshark.command([*plugin, *VM110_FIELDS, *ANALYSIS_FIELDS, *on]),
+    plugins = {"": ws.plugin()}
+    if baseline:
+        copy = ws.dir / "baseline.lua"
+        shutil.copyfile(baseline, copy)
+        plugins["before: "] = ws.tshark.inner(copy)
+    out = {
+        "plain 8": ws.tshark.command(["-n", "-r", capture, "-T", "fields", *COMMON, *PLAIN_EXTRA[:8]]),
+        "plain 12": ws.tshark.command(["-n", "-r", capture, "-T", "fields", *COMMON, *PLAIN_EXTRA]),
     }
-    # The timed settings validate CRCs and analyse the streams.
-    check = ws.run(["-n", "-r", str(pcap), "-c", "20", "-T", "fields", "-e", "vm110.crc.status", *on])
-    if set(check.stdout.split()) != {"1"}:
-        raise RuntimeError(f"the plugin did not find the first CRCs good: {check.stdout!r}")
-    check = ws.run(["-n", "-r", str(pcap), "-c", "20", "-T", "fields", "-e", "vm110.analysis.interval", *on])
-    if not check.stdout.strip():
+    for label, plugin in plugins.items():
+        base = ["-n", "-X", f"lua_script:{plugin}", "-r", capture, "-T", "fields", *COMMON, *VM110_FIELDS]
+        out[f"{label}vm110"] = ws.tshark.command(base)
+        out[f"{label}vm110 + analysis"] = ws.tshark.command([*base, *ANALYSIS_FIELDS])
+    if tune_gc:
+        base = ["-n", "-X", f"lua_script:{ws.plugin()}", "-r", capture, "-o", "vm110.tune_gc:TRUE",
+                "-T", "fields", *COMMON, *VM110_FIELDS]
+        out["vm110, tune_gc on"] = ws.tshark.command(base)
+    return out
+
+
+def check(ws: T.Workspace, pcap: Path) -> None:
+    """The timed settings (the defaults) validate CRCs and analyse the streams."""
+    proc = ws.run(["-n", "-r", str(pcap), "-c", "20", "-T", "fields", "-e", "vm110.crc.status"])
+    if set(proc.stdout.split()) != {"1"}:
+        raise RuntimeError(f"the plugin did not find the first CRCs good: {proc.stdout!r}")
+    proc = ws.run(["-n", "-r", str(pcap), "-c", "20", "-T", "fields", "-e", "vm110.analysis.interval"])
+    if not proc.stdout.strip():
         raise RuntimeError("the stream analysis produced no interval")
-    runs: dict[str, list] = {name: [] for name in commands}
-    for _ in range(REPEAT):
-        for name, command in commands.items():
-            runs[name].append(timed(command))
-    return {name: tuple(map(min, zip(*values))) for name, values in runs.items()}, floor_items
-
-
-def ratio_line(label: str, run: tuple[float, float], plain: tuple[float, float], target: str = "") -> str:
-    return (f"  {label}: {run[0]:.2f} s, wall-time ratio {run[0] / plain[0]:.2f}{target}; "
-            f"CPU {run[1]:.2f} s, ratio {run[1] / plain[1]:.2f}")
 
 
 def main() -> int:
-    with tempfile.TemporaryDirectory() as tmp:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--baseline", type=Path, help="another copy of vm110.lua to time alongside")
+    parser.add_argument("--tune-gc", action="store_true", help="also time with vm110.tune_gc on")
+    parser.add_argument("--repeat", type=int, default=REPEAT)
+    parser.add_argument("--duration", type=int, default=DURATION_S, help="seconds of 'day' (5400: ~100k packets)")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+        setups = []
         for runner in T.RUNNERS:
             try:
-                with runner.workspace(Path(tmp) / runner.name) as ws:
-                    pcap = ws.dir / "day.pcap"
-                    packets = synthesize("day", str(pcap), seed=1, duration_s=DURATION_S)["capture"]["packets"]
-                    version = subprocess.run(runner.command(["--version"]), capture_output=True,
-                                             text=True).stdout.split("\n")[0]
-                    t, floor_items = measure(ws, pcap)
+                ws = stack.enter_context(runner.workspace(Path(tmp) / runner.name))
             except T.TsharkUnavailable as exc:
                 print(f"{runner.name}: not measured ({exc})")
                 continue
-            plain, floor = t["plain"], t["floor"]
-            print(f"{version}: tshark -T fields, {packets} EG-Link packets ('day', {DURATION_S} s); "
-                  f"plain UDP {plain[0]:.2f} s (CPU {plain[1]:.2f} s)")
-            print(ratio_line("vm110 plugin, CRC on, analysis off", t["decode"], plain, f" (target <= {TARGET})"))
-            print(ratio_line("  + vm110 fields", t["decode_fields"], plain)
-                  + f"; against plain with as many columns {t['decode_fields'][0] / t['plain_8'][0]:.2f}")
-            print(ratio_line("vm110 plugin, CRC on, analysis on", t["analysis"], plain,
-                             f" (target <= {ANALYSIS_TARGET})"))
-            print(ratio_line("  + vm110 and analysis fields", t["analysis_fields"], plain)
-                  + f"; against plain with as many columns {t['analysis_fields'][0] / t['plain_12'][0]:.2f}")
-            print(f"  analysis cost on/off: wall {t['analysis'][0] / t['decode'][0]:.2f}, "
-                  f"CPU {t['analysis'][1] / t['decode'][1]:.2f}")
-            print(ratio_line("reference: plain, 8 columns", t["plain_8"], plain))
-            print(ratio_line("reference: plain, 12 columns", t["plain_12"], plain))
-            print(ratio_line("reference: Lua tree floor (items only)", floor, plain)
-                  + f"; vm110 (analysis off) / floor {t['decode'][0] / floor[0]:.2f}")
-            print(f"    (floor items per packet, as vm110's visible tree: {floor_items})")
+            pcap = ws.dir / "day.pcap"
+            packets = synthesize("day", str(pcap), seed=1, duration_s=args.duration)["capture"]["packets"]
+            version = subprocess.run(runner.command(["--version"]), capture_output=True,
+                                     text=True).stdout.split("\n")[0]
+            check(ws, pcap)
+            setups.append((runner, version, packets, commands(ws, pcap, args.baseline, args.tune_gc)))
+        runs: dict[tuple[str, str], list] = {}
+        for _ in range(args.repeat):  # interleaved: every command of every version, then again
+            for runner, _, _, cmds in setups:
+                for name, command in cmds.items():
+                    runs.setdefault((runner.name, name), []).append(timed(command))
+        best = {key: tuple(map(min, zip(*values))) for key, values in runs.items()}
+        headline = []
+        for runner, version, packets, cmds in setups:
+            t = {name: best[(runner.name, name)] for name in cmds}
+            print(f"{version}: tshark -T fields, {packets} EG-Link packets ('day', {args.duration} s), default "
+                  f"preferences (CRC validation and stream analysis on), best of {args.repeat} interleaved")
+            for name in cmds:
+                if name.startswith("plain"):
+                    continue
+                plain = t["plain 12"] if name.endswith("analysis") else t["plain 8"]
+                print(f"  {name:26s} {t[name][0]:6.2f} s  ratio {t[name][0] / plain[0]:.2f}   "
+                      f"CPU {t[name][1]:6.2f} s  ratio {t[name][1] / plain[1]:.2f}")
+            print(f"  {'plain 8 / 12 columns':26s} {t['plain 8'][0]:6.2f} / {t['plain 12'][0]:.2f} s   "
+                  f"CPU {t['plain 8'][1]:.2f} / {t['plain 12'][1]:.2f} s")
+            ratio = t["vm110"][0] / t["plain 8"][0]
+            ratio_a = t["vm110 + analysis"][0] / t["plain 12"][0]
+            headline.append(f"{runner.version} {ratio:.2f}x ({ratio_a:.2f}x with analysis fields; "
+                            f"target <= {TARGETS.get(runner.version, '?')})")
+        print("vm110 / plain UDP, wall time: " + "; ".join(headline))
     return 0
 
 
