@@ -517,78 +517,139 @@ end
 ---------------------------------------------------------------------------------------------
 local vm110 = Proto("vm110", "VM-110 EG-Link")
 
+-- Every field has a description (blurb): the status bar shows it, and `tshark -G fields` lists it.
 local F = {
-    type = ProtoField.string("vm110.type", "Packet ID"),
-    direction = ProtoField.string("vm110.direction", "Direction"),
-    revision = ProtoField.uint16("vm110.revision", "Revision", base.DEC),
-    origin = ProtoField.uint16("vm110.origin", "Origin", base.HEX),
-    serial = ProtoField.uint16("vm110.serial", "Serial", base.DEC),
-    size = ProtoField.uint16("vm110.size", "Payload size", base.DEC),
-    spare = ProtoField.uint32("vm110.spare", "Spare", base.HEX),
-    crc = ProtoField.uint32("vm110.crc", "CRC", base.HEX),
-    crc_calculated = ProtoField.uint32("vm110.crc.calculated", "Calculated CRC", base.HEX),
-    crc_status = ProtoField.uint8("vm110.crc.status", "CRC status", base.DEC, CRC_STATUS),
-    undecoded = ProtoField.bytes("vm110.undecoded", "Undecoded bytes"),
+    type = ProtoField.string("vm110.type", "Packet ID", base.NONE,
+        "The 4-character packet ID: VRPI, VRPO, VRCI, VRCO, VRAI or VRAO (TS-0006 3)"),
+    direction = ProtoField.string("vm110.direction", "Direction", base.NONE,
+        "Input (BU to controller) or Output (controller to BU), from the packet ID's 4th character"),
+    revision = ProtoField.uint16("vm110.revision", "Revision", base.DEC, nil, nil,
+        "Header revision; only 0 is defined (any other: illegal, only the header is decoded)"),
+    origin = ProtoField.uint16("vm110.origin", "Origin", base.HEX, nil, nil,
+        "Identifies the sending base unit on input packets; 0 on output packets"),
+    serial = ProtoField.uint16("vm110.serial", "Serial", base.DEC, nil, nil,
+        "The sender's 16-bit serial counter, one step per packet it sends (wraps 65535 to 0)"),
+    size = ProtoField.uint16("vm110.size", "Payload size", base.DEC, nil, nil,
+        "Payload bytes after the 16-byte packet ID and header; the UDP payload is 20 + size (at most 492)"),
+    spare = ProtoField.uint32("vm110.spare", "Spare", base.HEX, nil, nil, "Header spare bytes; should be 0"),
+    crc = ProtoField.uint32("vm110.crc", "CRC", base.HEX, nil, nil,
+        "CRC-32 trailer over packet ID, header and payload, as stored (preferences: variant, byte order)"),
+    crc_calculated = ProtoField.uint32("vm110.crc.calculated", "Calculated CRC", base.HEX, nil, nil,
+        "The CRC-32 calculated over packet ID, header and payload"),
+    crc_status = ProtoField.uint8("vm110.crc.status", "CRC status", base.DEC, CRC_STATUS, nil,
+        "0 Bad, 1 Good, 2 Unverified (CRC validation off)"),
+    undecoded = ProtoField.bytes("vm110.undecoded", "Undecoded bytes", base.NONE,
+        "Bytes no field owns: a payload not decoded, a field cut short, bytes beyond the layout or after the CRC"),
     -- VRPI
-    bu_state = ProtoField.uint8("vm110.bu_state", "BU state", base.HEX, BU_STATE),
-    es_relays_open = ProtoField.bool("vm110.es_relays_open", "ES-Link relays open"),
-    vlaps = ProtoField.uint8("vm110.vlaps", "VLAPs", base.DEC),
-    unarmed_rus = ProtoField.uint8("vm110.unarmed_rus", "Unarmed RUs", base.DEC),
-    eg_link = ProtoField.uint8("vm110.eg_link", "EG-Link status", base.HEX, LINK_STATUS),
-    ec_link = ProtoField.uint8("vm110.ec_link", "EC-Link status", base.HEX, LINK_STATUS),
-    c_link = ProtoField.uint8("vm110.c_link", "C-Link status", base.HEX, LINK_STATUS),
-    armed_ru = ProtoField.uint16("vm110.armed_ru", "Armed RU", base.HEX),
-    ru_state = ProtoField.uint8("vm110.ru_state", "RU state", base.HEX, RU_STATE),
-    ru_battery = ProtoField.uint8("vm110.ru_battery", "RU battery (%)", base.DEC),
-    ru_rssi = ProtoField.uint8("vm110.ru_rssi", "RU C-Link RSSI (%)", base.DEC),
-    ru_cable = ProtoField.uint8("vm110.ru_cable", "RU cable", base.HEX, RU_CABLE),
-    ru_docked = ProtoField.uint8("vm110.ru_docked", "RU docked", base.HEX, RU_DOCKED),
-    ru_disabled = ProtoField.uint8("vm110.ru_disabled", "RU disabled", base.HEX, RU_DISABLED),
-    encoder = ProtoField.uint8("vm110.encoder", "Encoder value", base.DEC),
-    encoder_switch = ProtoField.uint8("vm110.encoder_switch", "Encoder switch", base.HEX, ENCODER_SWITCH),
-    vrpi_spare = ProtoField.bytes("vm110.vrpi_spare", "Spare"),
+    bu_state = ProtoField.uint8("vm110.bu_state", "BU state", base.HEX, BU_STATE, nil, "Base unit state"),
+    es_relays_open = ProtoField.bool("vm110.es_relays_open", "ES-Link relays open", base.NONE, nil, nil,
+        "True when the BU state is below Disarmed: the emergency-stop relays are open"),
+    vlaps = ProtoField.uint8("vm110.vlaps", "VLAPs", base.DEC, nil, nil, "Number of VLAPs (0 to 3)"),
+    unarmed_rus = ProtoField.uint8("vm110.unarmed_rus", "Unarmed RUs", base.DEC, nil, nil,
+        "Remote units paired but not armed"),
+    eg_link = ProtoField.uint8("vm110.eg_link", "EG-Link status", base.HEX, LINK_STATUS, nil,
+        "State of the EG-Link (this Ethernet link) as the BU sees it"),
+    ec_link = ProtoField.uint8("vm110.ec_link", "EC-Link status", base.HEX, LINK_STATUS, nil, "State of the EC-Link"),
+    c_link = ProtoField.uint8("vm110.c_link", "C-Link status", base.HEX, LINK_STATUS, nil,
+        "State of the C-Link (radio link to the remote unit)"),
+    armed_ru = ProtoField.uint16("vm110.armed_ru", "Armed RU", base.HEX, nil, nil,
+        "ID of the armed remote unit; 0 when none is armed (the RU fields are then 0)"),
+    ru_state = ProtoField.uint8("vm110.ru_state", "RU state", base.HEX, RU_STATE, nil, "State of the armed remote unit"),
+    ru_battery = ProtoField.uint8("vm110.ru_battery", "RU battery (%)", base.DEC, nil, nil,
+        "Battery charge of the armed remote unit, 0 to 100 %"),
+    ru_rssi = ProtoField.uint8("vm110.ru_rssi", "RU C-Link RSSI (%)", base.DEC, nil, nil,
+        "Radio signal strength of the armed remote unit, 0 to 100 %"),
+    ru_cable = ProtoField.uint8("vm110.ru_cable", "RU cable", base.HEX, RU_CABLE, nil,
+        "Whether the armed remote unit is connected by cable"),
+    ru_docked = ProtoField.uint8("vm110.ru_docked", "RU docked", base.HEX, RU_DOCKED, nil,
+        "Whether the armed remote unit is docked"),
+    ru_disabled = ProtoField.uint8("vm110.ru_disabled", "RU disabled", base.HEX, RU_DISABLED, nil,
+        "Whether the armed remote unit is disabled"),
+    encoder = ProtoField.uint8("vm110.encoder", "Encoder value", base.DEC, nil, nil, "Encoder position of the remote unit"),
+    encoder_switch = ProtoField.uint8("vm110.encoder_switch", "Encoder switch", base.HEX, ENCODER_SWITCH, nil,
+        "Encoder push switch of the remote unit"),
+    vrpi_spare = ProtoField.bytes("vm110.vrpi_spare", "Spare", base.NONE, "VRPI spare bytes; should be 0"),
     -- VRPO
-    packet_number = ProtoField.uint16("vm110.packet_number", "Packet number", base.DEC),
-    periodic_data = ProtoField.bytes("vm110.periodic_data", "Periodic data"),
+    packet_number = ProtoField.uint16("vm110.packet_number", "Packet number", base.DEC, nil, nil,
+        "Number of this packet within its VRPO burst (the first is 0, preference vm110.vrpo_number_start)"),
+    periodic_data = ProtoField.bytes("vm110.periodic_data", "Periodic data", base.NONE,
+        "Machine-specific display data (up to 488 bytes per packet; split bursts are reassembled)"),
     -- VRCI / VRCO / VRAI / VRAO: one command_id field, so a filter shows a command with its acks
-    command_id = ProtoField.uint16("vm110.command_id", "Command ID", base.DEC),
-    command_spare = ProtoField.uint32("vm110.command_spare", "Spare", base.HEX),
-    command_data = ProtoField.bytes("vm110.command_data", "Command data"),
+    command_id = ProtoField.uint16("vm110.command_id", "Command ID", base.DEC, nil, nil,
+        "Pairs a command (VRCI, VRCO) with its acknowledgement (VRAO, VRAI); the same ID again is a resend"),
+    command_spare = ProtoField.uint32("vm110.command_spare", "Spare", base.HEX, nil, nil,
+        "Command spare bytes; should be 0"),
+    command_data = ProtoField.bytes("vm110.command_data", "Command data", base.NONE,
+        "16 bytes of machine-specific command data"),
 }
-for i = 1, 4 do F["joystick" .. i] = ProtoField.int16("vm110.joystick" .. i, "Joystick " .. i, base.DEC) end
-for i = 1, 8 do F["switch" .. i] = ProtoField.int16("vm110.switch" .. i, "Switch " .. i, base.DEC) end
+for i = 1, 4 do
+    F["joystick" .. i] = ProtoField.int16("vm110.joystick" .. i, "Joystick " .. i, base.DEC, nil, nil,
+        "Joystick axis " .. i .. " of the remote unit, -1000 to 1000")
+end
+for i = 1, 8 do
+    F["switch" .. i] = ProtoField.int16("vm110.switch" .. i, "Switch " .. i, base.DEC, nil, nil,
+        "Switch " .. i .. " of the remote unit, -1 to 1000")
+end
 -- Stream analysis (section 7): generated fields, all computed from earlier frames of the capture.
 local frametypes = frametype or {} -- framenum types (arrows in the GUI) where this Wireshark has them
-F.serial_missing = ProtoField.uint32("vm110.analysis.serial_missing", "Packets missing before this one", base.DEC)
-F.serial_duplicate = ProtoField.uint8("vm110.analysis.serial_duplicate", "Duplicate serial", base.DEC)
-F.serial_out_of_order = ProtoField.uint8("vm110.analysis.serial_out_of_order", "Out-of-order (late) serial", base.DEC)
-F.interval = ProtoField.double("vm110.analysis.interval", "Interval since the previous packet of this type (ms)")
+F.analysis_flags = ProtoField.string("vm110.analysis.flags", "VM-110 analysis flags", base.NONE,
+    "The stream analysis's findings on this packet, comma-separated (present on every packet with one)")
+F.serial_missing = ProtoField.uint32("vm110.analysis.serial_missing", "Packets missing before this one", base.DEC,
+    nil, nil, "Serials this packet jumped over (lost, at detection; a late packet may fill the gap later)")
+F.serial_duplicate = ProtoField.uint8("vm110.analysis.serial_duplicate", "Duplicate serial", base.DEC, nil, nil,
+    "1: a serial the counter accepted less than the duplicate window ago (a copy: takes no part in the analysis)")
+F.serial_out_of_order = ProtoField.uint8("vm110.analysis.serial_out_of_order", "Out-of-order (late) serial",
+    base.DEC, nil, nil, "1: late (fills a gap opened within the duplicate window) or an unconfirmed restart candidate")
+F.interval = ProtoField.double("vm110.analysis.interval", "Interval since the previous packet of this type (ms)",
+    "ms since the sender's previous accepted VRPI (VRPO); above the watchdog limit a watchdog violation")
 F.retransmission_of = ProtoField.framenum("vm110.analysis.retransmission_of", "Retransmission of frame",
-    base.NONE, frametypes.RETRANS_PREV)
-F.retransmission_number = ProtoField.uint16("vm110.analysis.retransmission_number", "Retransmission number", base.DEC)
-F.since_first = ProtoField.double("vm110.analysis.since_first", "Time since the first transmission (ms)")
-F.resend_interval = ProtoField.double("vm110.analysis.resend_interval", "Time since the previous transmission (ms)")
-F.ack_in = ProtoField.framenum("vm110.analysis.ack_in", "Acknowledged in frame", base.NONE, frametypes.ACK)
+    base.NONE, frametypes.RETRANS_PREV, nil, "Frame of this command's first transmission")
+F.retransmission_number = ProtoField.uint16("vm110.analysis.retransmission_number", "Retransmission number", base.DEC,
+    nil, nil, "1 for the first resend of a command, 2 for the second, ...")
+F.since_first = ProtoField.double("vm110.analysis.since_first", "Time since the first transmission (ms)",
+    "ms since this command's first transmission")
+F.resend_interval = ProtoField.double("vm110.analysis.resend_interval", "Time since the previous transmission (ms)",
+    "ms since this command's previous transmission (nominal 100 ms)")
+F.ack_in = ProtoField.framenum("vm110.analysis.ack_in", "Acknowledged in frame", base.NONE, frametypes.ACK, nil,
+    "Frame of the command's first acknowledgement")
 F.ack_to = ProtoField.framenum("vm110.analysis.ack_to", "Acknowledges the command of frame", base.NONE,
-    frametypes.REQUEST)
-F.ack_time = ProtoField.double("vm110.analysis.ack_time", "Acknowledged after, from the first transmission (ms)")
-F.ack_time_last = ProtoField.double("vm110.analysis.ack_time_last", "Acknowledged after, from the last transmission (ms)")
+    frametypes.REQUEST, nil, "Frame of the first transmission of the command this acknowledges")
+F.ack_time = ProtoField.double("vm110.analysis.ack_time", "Acknowledged after, from the first transmission (ms)",
+    "ms from the command's first transmission to this acknowledgement")
+F.ack_time_last = ProtoField.double("vm110.analysis.ack_time_last", "Acknowledged after, from the last transmission (ms)",
+    "ms from the command's last transmission before this acknowledgement")
 F.burst_interval = ProtoField.double("vm110.analysis.burst_interval",
-    "Interval since the first packet of the previous VRPO burst (ms)")
-F.restart = ProtoField.uint16("vm110.analysis.restart", "Sender restart: the highest serial before it", base.DEC)
+    "Interval since the first packet of the previous VRPO burst (ms)",
+    "The VRPO period: ms between the first packets of consecutive bursts (recommended 50 to 200 ms)")
+F.restart = ProtoField.uint16("vm110.analysis.restart", "Sender restart: the highest serial before it", base.DEC,
+    nil, nil, "Where a sender restarted (its serial counter started afresh): the highest serial before")
 F.restart_port_from = ProtoField.uint16("vm110.analysis.restart_port_from",
-    "Sender restart: UDP source port before it", base.DEC)
+    "Sender restart: UDP source port before it", base.DEC, nil, nil,
+    "A sender that came back on a new UDP source port: the port it used before")
 F.silent_until_end = ProtoField.double("vm110.analysis.silent_until_end",
-    "Stream silent from here to the end of the capture (ms)")
-F.interrupted_by = ProtoField.framenum("vm110.analysis.interrupted_by", "Interrupted by the sender's restart in frame")
-F.burst_packets = ProtoField.uint16("vm110.burst.packets", "VRPO packets in the burst", base.DEC)
-F.burst_size = ProtoField.uint32("vm110.burst.size", "Periodic data in the burst (bytes)", base.DEC)
-F.burst_frame = ProtoField.framenum("vm110.burst.frame", "VRPO packet in frame")
-F.burst_complete = ProtoField.bool("vm110.burst.complete", "Burst complete")
-F.reassembled = ProtoField.bytes("vm110.reassembled", "Reassembled periodic data")
-local field_list = {}
-for _, f in pairs(F) do field_list[#field_list + 1] = f end
-vm110.fields = field_list
+    "Stream silent from here to the end of the capture (ms)",
+    "On a periodic stream's last packet: ms to the capture's last record, when above the watchdog limit")
+F.interrupted_by = ProtoField.framenum("vm110.analysis.interrupted_by", "Interrupted by the sender's restart in frame",
+    base.NONE, nil, nil, "Frame of the sender's restart that ended this unacknowledged command")
+F.burst_packets = ProtoField.uint16("vm110.burst.packets", "VRPO packets in the burst", base.DEC, nil, nil,
+    "VRPO packets of this burst so far (packets less than the burst gap apart)")
+F.burst_size = ProtoField.uint32("vm110.burst.size", "Periodic data in the burst (bytes)", base.DEC, nil, nil,
+    "Periodic data bytes of this burst so far")
+F.burst_frame = ProtoField.framenum("vm110.burst.frame", "VRPO packet in frame", base.NONE, nil, nil,
+    "A frame holding a packet of this burst (up to 64 listed)")
+F.burst_complete = ProtoField.bool("vm110.burst.complete", "Burst complete", base.NONE, nil, nil,
+    "On a burst's last packet: every packet number present, all but the last carrying 488 bytes")
+F.reassembled = ProtoField.bytes("vm110.reassembled", "Reassembled periodic data", base.NONE,
+    "The periodic data of a complete burst in packet-number order")
+-- In name order: `tshark -G fields` then lists them the same way on every run (pairs() order
+-- changes from run to run on Lua 5.4).
+do
+    local field_list, field_names = {}, {}
+    for name in pairs(F) do field_names[#field_names + 1] = name end
+    table.sort(field_names)
+    for i, name in ipairs(field_names) do field_list[i] = F[name] end
+    vm110.fields = field_list
+end
 
 -- One expert per problem and warning code of vm110.decode(): abbrev "vm110.expert.<code>".
 local group, severity = expert.group, expert.severity
@@ -636,9 +697,27 @@ seq("silent_until_end", "Periodic stream silent until the end of the capture (wa
 seq("command_interrupted", "Command interrupted by its sender's restart", severity.NOTE)
 seq("burst_missing", "VRPO burst: packet number missing", severity.WARN, group.REASSEMBLE)
 seq("burst_incomplete", "Incomplete VRPO burst", severity.WARN, group.REASSEMBLE)
-local expert_list = {}
-for _, e in pairs(E) do expert_list[#expert_list + 1] = e end
-vm110.experts = expert_list
+do
+    local expert_list, expert_codes = {}, {}
+    for code in pairs(E) do expert_codes[#expert_codes + 1] = code end
+    table.sort(expert_codes) -- (a fixed order, as the fields)
+    for i, code in ipairs(expert_codes) do expert_list[i] = E[code] end
+    vm110.experts = expert_list
+end
+
+-- The stream analysis's findings, as Wireshark's TCP analysis shows its own: each in the Info
+-- column in front ("[Serial Gap] VRPI ..."), all of a packet in vm110.analysis.flags (one filter
+-- or colouring rule finds every packet with a finding), and its expert with a constant summary.
+-- `false`: the marker depends on the packet type (retransmissions).
+local FINDING = {
+    serial_gap = "Serial Gap", serial_duplicate = "Duplicate", serial_out_of_order = "Out-Of-Order",
+    restart = "Restart", watchdog_vrpi = "Watchdog", watchdog_vrpo = "Watchdog",
+    silent_until_end = "Silent Until End", vrpo_interval = "VRPO Interval",
+    retransmission = false, spurious_retransmission = false, resend_interval = "Resend Interval",
+    ack_without_command = "Ack Without Command", duplicate_ack = "Duplicate Ack", ack_late = "Late Ack",
+    never_acked = "Unacknowledged", command_interrupted = "Interrupted",
+    burst_missing = "Burst Packet Missing", burst_incomplete = "Incomplete Burst",
+}
 
 local variant_enum, order_enum = {}, { { "little", "Little-endian (TS-0006 2.1)", 1 }, { "big", "Big-endian", 2 } }
 for i, v in ipairs(CRC_VARIANTS) do variant_enum[i] = { v.name, v.label, i } end
@@ -808,25 +887,26 @@ local function summary(r)
     return text
 end
 
-local function field_message(code, name, value)
-    local shown = type(value) == "string" and "bytes not zero" or fmt("%d", value)
+-- A field warning's summary names the field first and no value (Wireshark's expert statistics
+-- group by summary: one line per field and code; the value is the field's).
+local function field_message(code, name)
     if code == "out_of_range" then
         local range = RANGES[name]
-        return fmt("vm110.%s = %s is outside %d..%d", name, shown, range[1], range[2])
+        return fmt("vm110.%s is outside %d..%d", name, range[1], range[2])
     elseif code == "unknown_enum" then
-        return fmt("vm110.%s = 0x%02x is not a defined value", name, value)
+        return fmt("vm110.%s is not a defined value", name)
     elseif code == "disarmed_ru_data" then
-        return fmt("vm110.%s = %s while vm110.armed_ru = 0", name, shown)
+        return fmt("vm110.%s is not zero while vm110.armed_ru = 0", name)
     elseif code == "origin_nonzero" then
-        return fmt("vm110.%s = 0x%04x: should be 0 on output packets", name, value)
+        return fmt("vm110.%s should be 0 on output packets", name)
     end
-    return fmt("vm110.%s: %s", name, type(value) == "string" and "bytes not zero" or fmt("0x%x, should be 0", value))
+    return fmt("vm110.%s should be 0", name)
 end
 
 local function field_experts(r, item, name, value)
     local codes = r.fieldwarn[name]
     if codes then
-        for _, code in ipairs(codes) do add_expert(item, E[code], field_message(code, name, value)) end
+        for _, code in ipairs(codes) do add_expert(item, E[code], field_message(code, name)) end
     end
 end
 
@@ -860,7 +940,7 @@ local function add_header(r, tvb, root)
         if info then
             generated(item, "direction", tvb, 0, ID_LEN, info.direction)
         else
-            add_expert(item, E.unknown_id, fmt('Unknown packet ID "%s": the payload is not decoded', printable(r.type)))
+            add_expert(item, E.unknown_id, "Unknown packet ID: the payload is not decoded")
         end
     else
         add_undecoded(root, tvb, 0, n, "shorter than a packet ID")
@@ -876,14 +956,13 @@ local function add_header(r, tvb, root)
         local item = want[name] and tree_add_le(header, F[name], tvb_range(tvb, h[2], h[3])) or header
         field_experts(r, item, name, value)
         if name == "revision" and r.problems.revision then
-            add_expert(item, E.revision, fmt("Revision %d is not supported: only the header is decoded", value))
+            add_expert(item, E.revision, "Unsupported revision: only the header is decoded")
         elseif name == "size" then
             if r.problems.size_mismatch then
-                add_expert(item, E.size_mismatch,
-                    fmt("Size %d needs a UDP payload of %d bytes, got %d", value, OVERHEAD + value, n))
+                add_expert(item, E.size_mismatch) -- (the numbers: vm110.size, udp.length)
             end
             if r.problems.size_too_large then
-                add_expert(item, E.size_too_large, fmt("Size %d is above the maximum of %d", value, MAX_PAYLOAD))
+                add_expert(item, E.size_too_large)
             end
         end
         off = h[2] + h[3]
@@ -894,8 +973,7 @@ end
 local function add_relays(r, tvb, parent)
     local item = generated(parent, "es_relays_open", tvb, PREFIX_LEN, 1, r.es_relays_open)
     if r.es_relays_open then
-        add_expert(item, E.es_relays_open,
-            fmt("ES-Link relays open: BU state %s is below Disarmed", enum_text(BU_STATE, r.values.bu_state)))
+        add_expert(item, E.es_relays_open, "ES-Link relays open: BU state below Disarmed")
     end
 end
 
@@ -931,11 +1009,11 @@ local function add_payload(r, tvb, root)
         tree_add(payload, F.periodic_data, range(tvb, off - r.data_len, r.data_len))
     end
     if r.problems.truncated then
-        add_expert(payload, E.truncated, fmt("%s payload is %d bytes, its layout needs %d", r.type, plen, info.min))
+        add_expert(payload, E.truncated, "Truncated: payload shorter than the packet type's layout")
         add_undecoded(payload, tvb, off, r.pay_end - off, "part of a field")
     elseif r.extra then
         local item = add_undecoded(payload, tvb, off, r.pay_end - off, "beyond the layout") or payload
-        add_expert(item, E.extra_payload, fmt("%d bytes beyond the %s layout of %d bytes", r.pay_end - off, r.type, info.max))
+        add_expert(item, E.extra_payload) -- (the bytes: vm110.undecoded)
     end
 end
 
@@ -952,7 +1030,7 @@ local function add_crc(r, tvb, root)
     if r.crc_calc then generated(item, "crc_calculated", tvb, r.crc_off, CRC_LEN, r.crc_calc) end
     generated(item, "crc_status", tvb, r.crc_off, CRC_LEN, r.crc_status)
     if r.crc_status == CRC_BAD then
-        add_expert(item, E.bad_crc, fmt("Bad CRC: stored 0x%08x, calculated 0x%08x", r.crc, r.crc_calc))
+        add_expert(item, E.bad_crc) -- (the numbers: vm110.crc, vm110.crc.calculated)
     end
 end
 
@@ -969,12 +1047,12 @@ local function add_tree(r, tvb, tree)
     add_header(r, tvb, root)
     local n = r.n
     if n < PREFIX_LEN then
-        add_expert(root, E.truncated, fmt("%d bytes, shorter than the %d-byte packet ID and header", n, PREFIX_LEN))
+        add_expert(root, E.truncated, "Truncated: shorter than the 16-byte packet ID and header")
         return root
     end
     if not r.crc_off then
         local item = add_undecoded(root, tvb, PREFIX_LEN, n - PREFIX_LEN, "no room for a CRC") or root
-        add_expert(item, E.truncated, fmt("%d bytes, too short for a CRC", n))
+        add_expert(item, E.truncated, "Truncated: no room for a CRC")
         return root
     end
     if r.payload then
@@ -1640,24 +1718,63 @@ local function sub_dissect(table_, data_tvb, pinfo, tree)
 end
 
 -- Expert summaries are constant (Wireshark's expert statistics group by them): the numbers are
--- in the fields they sit on.
+-- in the fields they sit on. Every finding goes through finding(): its expert, and its name for
+-- the Info column and vm110.analysis.flags, which show_findings() writes once the packet's
+-- analysis is complete.
+-- The packet being dissected: its findings' names in order (found[1 .. found.n]) and its
+-- "[VM-110 analysis]" subtree (`at`; the protocol item when the tree is invisible).
+local found = { n = 0, at = false }
+
+local function finding(item, code, name)
+    add_expert(item, E[code])
+    name = name or FINDING[code]
+    local n = found.n
+    for i = 1, n do
+        if found[i] == name then return end
+    end
+    found.n = n + 1
+    found[n + 1] = name
+end
+
+-- The subtree that holds every analysis item of a packet, as TCP's "[SEQ/ACK analysis]".
+local function analysis_tree(tvb, root, r)
+    local at = root
+    if want.visible then
+        at = tree_add(root, range(tvb, 0, r.n), "VM-110 analysis")
+        set_generated(at) -- (shown in brackets: "[VM-110 analysis]")
+    end
+    found.n, found.at = 0, at
+    return at
+end
+
+-- The findings in front of the Info column ("[Serial Gap] [Watchdog] VRPI ...", as
+-- "[TCP Retransmission]"), in the protocol item's label, and in vm110.analysis.flags.
+local function show_findings(r, tvb, root, pinfo)
+    local n = found.n
+    if want.analysis_flags then
+        set_generated(tree_add(found.at or root, F.analysis_flags, range(tvb, 0, r.n), concat(found, ", ", 1, n)))
+    end
+    if want.columns or want.visible then
+        local markers = "[" .. concat(found, "] [", 1, n) .. "] "
+        if want.columns then pinfo.cols.info:prepend(markers) end
+        if want.visible then root:set_text("VM-110 EG-Link, " .. markers .. r.info_text) end
+    end
+    found.n, found.at = 0, false
+end
+
 local function add_restart(rec, tvb, root, pinfo)
-    add_expert(generated(root, "restart", tvb, 8, 2, rec.from), E.restart)
+    finding(generated(root, "restart", tvb, 8, 2, rec.from), "restart")
     if rec.port_from then generated(root, "restart_port_from", tvb, 8, 2, rec.port_from) end
-    pinfo.cols.info:append(" [Restart]")
 end
 
 local function add_serial_analysis(res, tvb, root, r, pinfo)
     local missing = res.serial
     if missing > 0 then
-        add_expert(generated(root, "serial_missing", tvb, 8, 2, missing), E.serial_gap)
-        pinfo.cols.info:append(fmt(" [%d lost]", missing))
+        finding(generated(root, "serial_missing", tvb, 8, 2, missing), "serial_gap")
     elseif missing == DUPLICATE then
-        add_expert(generated(root, "serial_duplicate", tvb, 8, 2, 1), E.serial_duplicate)
-        pinfo.cols.info:append(" [duplicate]")
+        finding(generated(root, "serial_duplicate", tvb, 8, 2, 1), "serial_duplicate")
     elseif missing == LATE or missing == CANDIDATE and res.cand.decided and not res.cand.confirmed then
-        add_expert(generated(root, "serial_out_of_order", tvb, 8, 2, 1), E.serial_out_of_order)
-        pinfo.cols.info:append(" [out of order]")
+        finding(generated(root, "serial_out_of_order", tvb, 8, 2, 1), "serial_out_of_order")
     elseif missing == CANDIDATE and res.cand.confirmed then
         add_restart(res.cand, tvb, root, pinfo)
     end
@@ -1667,9 +1784,9 @@ end
 local function add_interval(iv, tvb, root, r)
     local item = generated(root, "interval", tvb, 0, ID_LEN, iv)
     if r.type == "VRPI" then
-        if iv > settings.vrpi_watchdog then add_expert(item, E.watchdog_vrpi) end
+        if iv > settings.vrpi_watchdog then finding(item, "watchdog_vrpi") end
     elseif iv > settings.vrpo_watchdog then
-        add_expert(item, E.watchdog_vrpo)
+        finding(item, "watchdog_vrpo")
     end
 end
 
@@ -1677,7 +1794,7 @@ end
 -- recommendation is about; the packets of a split burst go back to back).
 local function add_burst_interval(bi, tvb, root)
     local item = generated(root, "burst_interval", tvb, 0, ID_LEN, bi)
-    if bi < settings.vrpo_min or bi > settings.vrpo_max then add_expert(item, E.vrpo_interval) end
+    if bi < settings.vrpo_min or bi > settings.vrpo_max then finding(item, "vrpo_interval") end
 end
 
 local function add_command_analysis(res, tvb, root, pinfo, visited)
@@ -1686,43 +1803,44 @@ local function add_command_analysis(res, tvb, root, pinfo, visited)
     if cmd then
         if res.number > 0 then
             local item = generated(root, "retransmission_of", tvb, id, 2, cmd.frame)
-            add_expert(item, E.retransmission)
+            if res.spurious then -- ("[VRCI Spurious Retransmission]", as TCP's)
+                add_expert(item, E.retransmission)
+                finding(item, "spurious_retransmission", cmd.type .. " Spurious Retransmission")
+            else
+                finding(item, "retransmission", cmd.type .. " Retransmission")
+            end
             generated(root, "retransmission_number", tvb, id, 2, res.number)
             generated(root, "since_first", tvb, id, 2, res.since)
             local resend = generated(root, "resend_interval", tvb, id, 2, res.resend)
             if math.abs(res.resend - settings.resend) > settings.resend_tolerance then
-                add_expert(resend, E.resend_interval)
+                finding(resend, "resend_interval")
             end
-            if res.spurious then add_expert(item, E.spurious_retransmission) end
-            pinfo.cols.info:append(fmt(" [retransmission %d of frame %d]", res.number, cmd.frame))
         end
         if cmd.ack then
             local item = generated(root, "ack_in", tvb, id, 2, cmd.ack)
-            if res.number == 0 and cmd.ack_ms > timeout_of(cmd) then add_expert(item, E.ack_late) end
+            if res.number == 0 and cmd.ack_ms > timeout_of(cmd) then finding(item, "ack_late") end
         elseif res.number == 0 then
             if cmd.interrupted then
-                add_expert(generated(root, "interrupted_by", tvb, id, 2, cmd.interrupted), E.command_interrupted)
+                finding(generated(root, "interrupted_by", tvb, id, 2, cmd.interrupted), "command_interrupted")
             elseif visited then
-                add_expert(root, E.never_acked)
+                finding(root, "never_acked")
             end
         end
         return
     end
     local target = res.ack_of
     if not target then
-        add_expert(root, E.ack_without_command)
-        pinfo.cols.info:append(" [no command]")
+        finding(root, "ack_without_command")
         return
     end
     generated(root, "ack_to", tvb, id, 2, target.frame)
     local item = generated(root, "ack_time", tvb, id, 2, res.ack_ms)
     if res.duplicate_ack then
-        add_expert(item, E.duplicate_ack)
-        pinfo.cols.info:append(" [duplicate ack]")
+        finding(item, "duplicate_ack")
         return
     end
     generated(root, "ack_time_last", tvb, id, 2, res.ack_last_ms)
-    if res.ack_ms > timeout_of(target) then add_expert(item, E.ack_late) end
+    if res.ack_ms > timeout_of(target) then finding(item, "ack_late") end
 end
 
 local BURST_FRAMES_SHOWN = 64
@@ -1744,7 +1862,7 @@ local function add_burst(res, tvb, root, pinfo, tree, visited)
         end
     end
     if res.burst_missing then
-        add_expert(bt, E.burst_missing)
+        finding(bt, "burst_missing")
     end
     if b[3 * n - 2] ~= pinfo.number then return end -- the data are shown with the burst's last packet
     local complete = b.complete
@@ -1754,7 +1872,7 @@ local function add_burst(res, tvb, root, pinfo, tree, visited)
     end
     if not complete then
         if visited then
-            add_expert(generated(bt, "burst_complete", tvb, PREFIX_LEN, 2, false), E.burst_incomplete)
+            finding(generated(bt, "burst_complete", tvb, PREFIX_LEN, 2, false), "burst_incomplete")
         end
         return
     end
@@ -1783,15 +1901,15 @@ local function add_single_burst(r, tvb, root, pinfo, tree, visited)
         return
     end
     if number > start then
-        add_expert(root, E.burst_missing)
+        finding(root, "burst_missing")
     end
     if visited then
-        add_expert(generated(root, "burst_complete", tvb, PREFIX_LEN, 2, false), E.burst_incomplete)
+        finding(generated(root, "burst_complete", tvb, PREFIX_LEN, 2, false), "burst_incomplete")
     end
 end
 
 local function add_silence(res, tvb, root)
-    add_expert(generated(root, "silent_until_end", tvb, 0, ID_LEN, res.silent), E.silent_until_end)
+    finding(generated(root, "silent_until_end", tvb, 0, ID_LEN, res.silent), "silent_until_end")
 end
 
 local function add_analysis(res, r, tvb, pinfo, tree, root)
@@ -1862,14 +1980,18 @@ local function dissect(tvb, pinfo, tree)
             memo_set(results, number, offset, res)
         end
         if type(res) == "number" then
-            if res >= 0 then
-                add_interval(res, tvb, root, r)
-                if r.data_len then add_burst_interval(res, tvb, root) end -- (a number: equal)
+            if res >= 0 or r.data_len then
+                local at = analysis_tree(tvb, root, r)
+                if res >= 0 then
+                    add_interval(res, tvb, at, r)
+                    if r.data_len then add_burst_interval(res, tvb, at) end -- (a number: equal)
+                end
+                if r.data_len then add_single_burst(r, tvb, at, pinfo, tree, visited) end
             end
-            if r.data_len then add_single_burst(r, tvb, root, pinfo, tree, visited) end
         elseif res then
-            add_analysis(res, r, tvb, pinfo, tree, root)
+            add_analysis(res, r, tvb, pinfo, tree, analysis_tree(tvb, root, r))
         end
+        if found.n > 0 then show_findings(r, tvb, root, pinfo) end
     end
     return r.n
 end

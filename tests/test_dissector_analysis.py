@@ -640,7 +640,7 @@ def test_rules_restart_info_marker(tshark, tmp_path):
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
     info = proc.stdout.splitlines()
-    assert info[5].endswith("[Restart]") and sum("[Restart]" in line for line in info) == 1
+    assert info[5].startswith("[Restart] ") and sum("[Restart]" in line for line in info) == 1
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
