@@ -445,13 +445,25 @@ end
 -- is known to match the stored one. A whole payload's values are its type's table, valid until
 -- the next packet of that type is decoded: nothing reads them after a machine sub-dissector (which
 -- could dissect another packet) has run.
-local function decode(s, variant, big_endian, known_crc)
-    local n = #s
-    -- Every key up front (false = absent): one allocation instead of a rehash per new key.
-    local r = { n = n, problems = EMPTY, fieldwarn = EMPTY, values = EMPTY, type = false, info = false,
+-- The record is one table, reused (a table of 24 keys per packet was garbage that the collector
+-- had to sweep: the largest allocation per packet): valid until the next packet is decoded.
+-- sub_dissect() puts a new one in place before a machine sub-dissector runs (which could
+-- dissect another packet while the caller still reads its own).
+local function new_record()
+    return { n = 0, problems = EMPTY, fieldwarn = EMPTY, values = EMPTY, type = false, info = false,
         revision = false, origin = false, serial = false, size = false, spare = false, crc_off = false,
         pay_end = false, crc = false, crc_calc = false, crc_status = false, payload = false, present = false,
         decoded_end = false, data_len = false, extra = false, es_relays_open = false, info_text = false }
+end
+local record = new_record()
+
+local function decode(s, variant, big_endian, known_crc)
+    local n = #s
+    local r = record
+    r.n, r.problems, r.fieldwarn, r.values, r.type, r.info = n, EMPTY, EMPTY, EMPTY, false, false
+    r.revision, r.origin, r.serial, r.size, r.spare, r.crc_off = false, false, false, false, false, false
+    r.pay_end, r.crc, r.crc_calc, r.crc_status, r.payload, r.present = false, false, false, false, false, false
+    r.decoded_end, r.data_len, r.extra, r.es_relays_open, r.info_text = false, false, false, false, false
     local info
     if n >= ID_LEN then
         r.type = sub(s, 1, ID_LEN)
@@ -1714,6 +1726,7 @@ local periodic_table = table_named("vm110.periodic_data", "VM-110 periodic data 
 local command_table = table_named("vm110.command_data", "VM-110 command data (machine-specific)")
 
 local function sub_dissect(table_, data_tvb, pinfo, tree)
+    record = new_record() -- (the caller's record stays its own: see decode())
     table_:try(settings.machine, data_tvb, pinfo, tree)
 end
 
