@@ -1,11 +1,12 @@
-"""Benchmark of `vm110 analyze` (fast engine) on a synthesised capture of 1,000,000 packets.
+"""Benchmark of `vm110 analyze` (fast engine) on synthesised captures of 1,000,000 and 2,000,000 packets.
 
 Prints, all measured in this run:
 - analysis time / time scapy's RawPcapReader needs merely to iterate the same file (target <= 1.0);
 - analysis time / `tshark -T fields` with the Lua dissector, both on the first 100,000 packets
   (tshark with a Lua dissector needs minutes for the whole file);
-- peak memory (ru_maxrss) of a child process running `vm110 analyze` on the whole file
-  (target <= 300 MiB).
+- peak memory of a child process running `vm110 analyze --json` on 1 M packets (target <= 300 MiB)
+  and on 2 M, and their difference (target: about 24 MiB at most; the analysis keeps per packet
+  only the time of a periodic packet, everything else is bounded by senders, commands and findings).
 Each timing is the median of REPEAT runs, interleaved, so that a busy machine hurts both sides alike.
 The capture is cached in out/bench/ (synthesis is deterministic; delete it to rebuild).
 """
@@ -24,7 +25,6 @@ from pathlib import Path
 from scapy.utils import RawPcapReader
 
 from vm110.analysis import analyze
-from vm110.analysis.engine import MAX_WORKERS, WORKERS_ENV, FastEngine
 from vm110.analysis.tshark_engine import plugin_path
 from vm110.synth import synthesize
 
@@ -72,29 +72,26 @@ def scapy_iterate(path: Path) -> None:
 
 
 # Runs the CLI in a fresh process and prints its VmHWM (peak RSS of this process's own memory map:
-# unlike ru_maxrss it does not inherit the RSS of the parent that spawned it) and the largest
-# ru_maxrss of its children (the processes reading parts of the file).
+# unlike ru_maxrss it does not inherit the RSS of the parent that spawned it).
 _CHILD = """
-import resource, sys
+import sys
 from vm110.cli import main
 code = main(sys.argv[1:])
 hwm = next(int(l.split()[1]) for l in open('/proc/self/status') if l.startswith('VmHWM:'))
-kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-print('PEAK', hwm, kids, code, file=sys.stderr)
+print('PEAK', hwm, code, file=sys.stderr)
 """
 
 
-def child_peak(path: Path, workers: int) -> tuple[float, float, float]:
-    """(wall seconds, peak RSS MiB of the main process, of the largest helper) of `vm110 analyze`."""
+def child_peak(path: Path) -> tuple[float, float]:
+    """(wall seconds, peak RSS MiB) of `vm110 analyze --json` in a fresh process."""
     start = time.perf_counter()
     done = subprocess.run([sys.executable, "-c", _CHILD, "analyze", str(path), "--quiet", "--json", os.devnull],
-                          env={**os.environ, WORKERS_ENV: str(workers)}, capture_output=True, text=True)
+                          capture_output=True, text=True)
     wall = time.perf_counter() - start
     line = next((ln for ln in done.stderr.splitlines() if ln.startswith("PEAK ")), None)
     if line is None:
         raise SystemExit(f"vm110 analyze failed: {done.stderr[-500:]}")
-    _, hwm, kids, _ = line.split()
-    return wall, int(hwm) / 1024.0, int(kids) / 1024.0
+    return wall, int(line.split()[1]) / 1024.0
 
 
 def tshark_fields(path: Path) -> None:
@@ -108,35 +105,25 @@ def main() -> None:
     parser.add_argument("--packets", type=int, default=1_000_000)
     args = parser.parse_args()
     path = capture(args.packets)
-    peaks = []
-    for workers in sorted({1, min(os.cpu_count() or 1, MAX_WORKERS)}):
-        peaks.append((workers, *child_peak(path, workers)))
-    parallel = min(os.cpu_count() or 1, MAX_WORKERS)
-    scapy_times, analysis_times = [], {}
+    double = capture(2 * args.packets)
+    peaks = [(n, *child_peak(p)) for n, p in ((args.packets, path), (2 * args.packets, double))]
+    scapy_times, analysis_times = [], []
     for _ in range(REPEAT):
         scapy_times.append(best(lambda: scapy_iterate(path), 1))
-        for workers in sorted({1, parallel}):
-            os.environ[WORKERS_ENV] = str(workers)
-            analysis_times.setdefault(workers, []).append(best(lambda: analyze(str(path)), 1))
-            del os.environ[WORKERS_ENV]
+        analysis_times.append(best(lambda: analyze(str(path)), 1))
     report = analyze(str(path))
     packets = report["capture"]["packets"]
     scapy_s = statistics.median(scapy_times)
-    chosen = FastEngine().workers          # what `vm110 analyze` picks now: the idle cores
-    analysis_s = statistics.median(analysis_times[min(chosen, parallel)])
+    analysis_s = statistics.median(analysis_times)
     print(f"capture: {packets} packets, {path.stat().st_size / 2**20:.1f} MiB ({path})")
     print(f"scapy RawPcapReader, iterate only: {scapy_s:.2f} s ({scapy_s / packets * 1e6:.2f} us/packet)")
     print(f"vm110 analyze, fast engine:        {analysis_s:.2f} s ({analysis_s / packets * 1e6:.2f} us/packet, "
-          f"{chosen} reading process(es), as chosen at a load average of {os.getloadavg()[0]:.1f} "
-          f"on {os.cpu_count()} cores)")
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
     print(f"RATIO analysis / scapy iterate = {analysis_s / scapy_s:.2f} (target <= 1.0)")
-    for workers, times in sorted(analysis_times.items()):
-        print(f"  with {workers} reading process(es): {statistics.median(times):.2f} s, "
-              f"ratio {statistics.median(times) / scapy_s:.2f}")
-    for workers, wall, peak, helper in peaks:
-        extra = f"; each of the {workers - 1} helper process(es) at most {helper:.0f} MiB" if workers > 1 else ""
-        print(f"PEAK MEMORY of `vm110 analyze --json` with {workers} reading process(es) = {peak:.0f} MiB "
-              f"(target <= 300; {wall:.2f} s wall{extra})")
+    for n, wall, peak in peaks:
+        print(f"PEAK MEMORY of `vm110 analyze --json` on {n} packets = {peak:.0f} MiB ({wall:.2f} s wall)")
+    print(f"PEAK MEMORY {2 * args.packets} - {args.packets} packets = {peaks[1][2] - peaks[0][2]:.0f} MiB "
+          f"(target: about 24 at most; {peaks[0][2]:.0f} MiB for {args.packets}: target <= 300)")
     if shutil.which("tshark") and plugin_path().is_file():
         small = prefix(path, min(TSHARK_PACKETS, packets))
         tshark_s = best(lambda: tshark_fields(small), 1)

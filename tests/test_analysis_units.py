@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import random
 import struct
-from pathlib import Path
 
 import pytest
 from hypothesis import given, strategies as st
@@ -221,40 +220,6 @@ def test_vrpo_on_another_port_found_by_its_header(tmp_path):
     report = analyze(str(tmp_path / "port.pcap"))
     assert report["capture"]["eglink_packets"] == 5 and report["capture"]["other_udp_packets"] == 1
     assert report["senders"][0]["src"] == "10.9.9.9:7000" and report["vrpo_bursts"]["complete"] == 5
-
-
-@pytest.fixture
-def synthesised(tmp_path):
-    from vm110.synth import synthesize
-    path = tmp_path / "loss.pcap"
-    synthesize("loss", str(path), 5, 20.0, "pcap")
-    return str(path)
-
-
-def _report(path, workers):
-    from vm110.analysis.engine import FastEngine
-    from vm110.analysis.report import build
-    return build(FastEngine(workers=workers).collect(path), Options())
-
-
-def test_parallel_parts_give_the_same_report(synthesised, monkeypatch):
-    from vm110.analysis import engine
-    one = _report(synthesised, 1)
-    monkeypatch.setattr(engine, "PARALLEL_MIN_BYTES", 0)
-    seen = []
-    real = engine.split_points
-    monkeypatch.setattr(engine, "split_points", lambda *a: seen.append(real(*a)) or seen[-1])
-    assert _report(synthesised, 3) == one
-    assert len(seen) == 1 and len(seen[0]) == 4           # really split in three
-
-
-def test_a_wrong_split_point_is_caught(synthesised, monkeypatch):
-    from vm110.analysis import engine
-    one = _report(synthesised, 1)
-    monkeypatch.setattr(engine, "PARALLEL_MIN_BYTES", 0)
-    size = Path(synthesised).stat().st_size
-    monkeypatch.setattr(engine, "split_points", lambda *a: [24, size // 2 + 3, size])   # not a record start
-    assert _report(synthesised, 2) == one
 
 
 @pytest.mark.parametrize("few", [1, 2, 32])

@@ -1,4 +1,5 @@
-"""Capture analysis: engines that read a capture into `Collected`, and the report built from it."""
+"""Capture analysis: engines read a capture into `Collected` and feed its legal packets to an
+`Analysis` as they go; the report is built from both."""
 from __future__ import annotations
 
 from typing import Optional
@@ -12,9 +13,10 @@ def analyze(path: str, engine: str = "fast", port: int = C.INPUT_PORT, crc: str 
             crc_order: str = "auto", options: Optional[Options] = None,
             progress: Optional[Progress] = None) -> dict:
     """The report (a JSON-ready dict) of one capture file."""
+    opt = options or Options()
     if engine == "tshark":
         from .tshark_engine import TsharkEngine
-        got = TsharkEngine(port, crc, crc_order).collect(path)
+        got = TsharkEngine(port, crc, crc_order).collect(path, opt)
     else:
-        got = FastEngine(port, crc, crc_order, progress).collect(path)
-    return build(got, options or Options())
+        got = FastEngine(port, crc, crc_order, progress).collect(path, opt)
+    return build(got)

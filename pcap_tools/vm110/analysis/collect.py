@@ -1,8 +1,10 @@
-"""What an engine extracts from a capture: compact per-sender arrays, tallies and examples.
+"""What an engine extracts from a capture: the file-level facts (frames, traffic around EG-Link,
+CRC counts, illegal packets, damage) and, for each legal packet, one RECORD.
 
-Both engines (fast and tshark) fill a `Collected`; everything after that (serials, timing,
-commands, bursts, state, verdict) is computed from it by the same code, so the two engines can
-only differ in what they read, never in how it is judged.
+Both engines (fast and tshark) fill a `Collected`, which hands the records a batch at a time to
+its `Analysis` (`flush`); everything after that (serials, timing, commands, bursts, state,
+verdict) is computed by the same code, so the two engines can only differ in what they read,
+never in how it is judged. Records are not kept: memory does not grow with the packets.
 """
 from __future__ import annotations
 
@@ -10,13 +12,13 @@ import struct
 from collections import Counter
 from array import array
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
 from .. import constants as C
 from ..capture import linktypes as L
-from ..capture.reader import PCAP_RECORD_LEN, address
+from ..capture.reader import PCAP_RECORD_LEN
 
 TYPES = tuple(C.PacketType)
 CODE = {t: i for i, t in enumerate(TYPES)}               # packet type -> small integer code
@@ -46,28 +48,16 @@ RECORD_DTYPE = np.dtype({
 })
 
 
-@dataclass
-class Sender:
-    """Legal packets of one sender in arrival order (numpy arrays, one entry per packet)."""
-
-    direction: str
-    origin: int
-    src: str
-    ts: np.ndarray
-    serial: np.ndarray
-    code: np.ndarray
-    frame: np.ndarray
-    aux: np.ndarray       # command ID or VRPO packet number
-    size: np.ndarray      # payload size
-    state: np.ndarray     # VRPI: the state bytes (STATE)
-
-    @property
-    def id(self) -> str:
-        return sender_id(self.direction, self.origin, self.src)
+_PIDS = np.array(sorted(int.from_bytes(t.value.encode(), "little") for t in TYPES), dtype=np.uint32)
+_CODE_OF_PID = np.array([CODE_OF_ID[int(p).to_bytes(4, "little")] for p in _PIDS], dtype=np.uint8)
 
 
-_CODE_TABLE = {t.value.encode(): i for i, t in enumerate(TYPES)}
-# The bytes _gather_pcap picks, relative to a located EG-Link packet: the pcap record header's
+def code_of(pid) -> np.ndarray:
+    """Type codes of legal packets from their packet IDs (RECORD `pid`)."""
+    return _CODE_OF_PID[np.searchsorted(_PIDS, pid)]
+
+
+# The bytes `located_rows` picks, relative to a located EG-Link packet: the pcap record header's
 # time (it starts _BEFORE bytes earlier: record header, Ethernet, IPv4, UDP), the IPv4 source,
 # the UDP source port, and the first PREFIX bytes of the packet.
 _IP = PCAP_RECORD_LEN + L.ETH_HEADER_LEN          # where IPv4 starts, from the record start
@@ -76,7 +66,6 @@ _PICK = np.concatenate([np.arange(0, 8), np.arange(_IP + L.IPV4_SRC, _IP + L.IPV
                         np.arange(_IP + L.IPV4_MIN_HEADER, _IP + L.IPV4_MIN_HEADER + 2),
                         np.arange(_BEFORE, _BEFORE + PREFIX)]) - _BEFORE
 _PICKED = np.dtype([("sec", "<u4"), ("frac", "<u4"), ("src", "<u4"), ("sport", ">u2"), ("packet", f"V{PREFIX}")])
-_WINDOW = 1 << 22
 FEW_SENDERS = 32       # up to this many, one comparison per sender beats sorting the key
 
 
@@ -99,10 +88,23 @@ def _groups(key: np.ndarray):
 _INPUT = np.array([t.direction is C.Direction.INPUT for t in TYPES])
 
 
+def sender_keys(rec: np.ndarray, codes: np.ndarray) -> np.ndarray:
+    """One integer per record naming its sender: direction, source index, port, origin."""
+    return ((_INPUT[codes].astype(np.int64) << 48) | (rec["src"].astype(np.int64) << 32)
+            | (rec["sport"].astype(np.int64) << 16) | rec["origin"].astype(np.int64))
+
+
+def key_sender(key: int) -> tuple[str, int, int, int]:
+    """(direction, origin, source index, port) of a sender key."""
+    direction = (C.Direction.INPUT if key >> 48 else C.Direction.OUTPUT).value
+    return direction, key & 0xFFFF, (key >> 32) & 0xFFFF, (key >> 16) & 0xFFFF
+
+
 @dataclass
 class Collected:
     path: str
     engine: str
+    analysis: Any = None                  # the Analysis the records are fed to
     format: str = ""
     link_types: list = field(default_factory=list)
     frames: int = 0
@@ -125,12 +127,7 @@ class Collected:
     illegal: int = 0
     illegal_reasons: Counter = field(default_factory=Counter)
     illegal_examples: list = field(default_factory=list)   # (frame, ts, src, type, reasons)
-    records: bytearray = field(default_factory=bytearray)  # RECORD per legal packet, but:
-    # legal packets found by the fused pcap loop are only located (file offset of the EG-Link
-    # packet, frame) and gathered from the file afterwards, all at once (`_gather_pcap`).
-    offsets: array = field(default_factory=lambda: array("Q"))
-    offset_frames: array = field(default_factory=lambda: array("I"))
-    pcap_scale: float = 1e-6
+    records: bytearray = field(default_factory=bytearray)  # RECORD per legal packet not yet fed
     sources: dict = field(default_factory=dict)            # packed source address -> index
 
     def add_illegal(self, frame: int, ts: float, src: str, ptype: str, reasons: list) -> None:
@@ -148,88 +145,30 @@ class Collected:
     def add_legal(self, ts: float, frame: int, src: bytes, sport: int, packet: bytes) -> None:
         self.records += RECORD.pack(ts, frame, self.source(src), sport, packet)
 
-    def _gather_pcap(self) -> np.ndarray:
-        """RECORDs of the located packets, read back from the pcap a window at a time. Before
-        each EG-Link packet lie its pcap record header (time) and the Ethernet/IPv4/UDP headers
-        (source address and port) at fixed distances: the common frame of the fused loop."""
-        offsets = np.frombuffer(self.offsets, dtype=np.uint64).astype(np.int64)
-        frames = np.frombuffer(self.offset_frames, dtype=np.uint32)
-        self.offsets, self.offset_frames = array("Q"), array("I")
+    def located_rows(self, data: bytes, offsets: array, frames: array, scale: float) -> np.ndarray:
+        """RECORDs of EG-Link packets located in a chunk of a little-endian Ethernet pcap (offsets
+        into `data`, which runs at least PREFIX bytes past the last). Before each lie its pcap
+        record header (time) and the Ethernet/IPv4/UDP headers (source address and port) at fixed
+        distances: the common frame of the fused loop. One numpy gather for the whole chunk."""
         out = np.zeros(len(offsets), dtype=RECORD_DTYPE)
-        out["frame"] = frames
-        src = np.zeros(len(out), dtype=np.uint32)
-        with open(self.path, "rb") as f:
-            i = 0
-            while i < len(offsets):
-                first = int(offsets[i]) - _BEFORE
-                j = max(int(np.searchsorted(offsets, first + _WINDOW - PREFIX, side="right")), i + 1)
-                f.seek(first)
-                want = int(offsets[j - 1]) + PREFIX - first
-                window = np.frombuffer(f.read(want).ljust(want, b"\0"), dtype=np.uint8)
-                rows = window[(offsets[i:j] - first)[:, None] + _PICK].view(_PICKED).ravel()
-                out["ts"][i:j] = rows["sec"] + rows["frac"] * self.pcap_scale
-                src[i:j] = rows["src"]
-                out["sport"][i:j] = rows["sport"]
-                out["packet"][i:j] = rows["packet"]
-                i = j
-        values, which = np.unique(src, return_inverse=True)
+        if not len(out):
+            return out
+        at = np.frombuffer(offsets, dtype=np.int64)
+        rows = np.frombuffer(data, dtype=np.uint8)[at[:, None] + _PICK].view(_PICKED).ravel()
+        out["frame"] = np.frombuffer(frames, dtype=np.uint32)
+        out["ts"] = rows["sec"] + rows["frac"] * scale
+        out["sport"] = rows["sport"]
+        out["packet"] = rows["packet"]
+        values, which = np.unique(rows["src"], return_inverse=True)
         index = np.array([self.source(int(v).to_bytes(4, "little")) for v in values.tolist()], dtype=np.uint16)
         out["src"] = index[which.ravel()]
         return out
 
-    def merge(self, later: "Collected") -> None:
-        """Append what another engine read from the part of the file that follows this one."""
-        rec = np.frombuffer(later.records, dtype=RECORD_DTYPE)     # a bytearray: changed in place
-        if len(rec):
-            remap = np.zeros(len(later.sources), dtype=np.uint16)
-            for src, index in later.sources.items():
-                remap[index] = self.source(src)
-            rec["src"] = remap[rec["src"]]
-            rec["frame"] += self.frames
-        self.records += later.records
-        later.records = bytearray()
-        self.offsets += later.offsets
-        frames = np.frombuffer(later.offset_frames, dtype=np.uint32)     # an array: changed in place
-        frames += self.frames
-        self.offset_frames += later.offset_frames
-        for f, t, s, p, r in later.illegal_examples[:max(0, MAX_EXAMPLES - len(self.illegal_examples))]:
-            self.illegal_examples.append((f + self.frames, t, s, p, r))
-        for name in ("udp", "non_udp", "fragments", "other_udp", "snap_truncated", "eglink", "crc_checked",
-                     "illegal"):
-            setattr(self, name, getattr(self, name) + getattr(later, name))
-        self.crc_counts.update(later.crc_counts)
-        self.illegal_reasons.update(later.illegal_reasons)
-        self.frames += later.frames
-        if later.frames:
-            self.last_ts = later.last_ts
-            self.first_ts = self.first_ts if self.first_ts is not None else later.first_ts
-        if self.problem is None:
-            self.problem, self.damage = later.problem, later.damage
-        self.link_types = sorted(set(self.link_types) | set(later.link_types))
-
-    def take_senders(self) -> list[Sender]:
-        """The legal packets grouped by sender (direction, origin, source, port), sorted by id.
-        Takes the records (they are regrouped, not kept twice). Senders are few: each is picked
-        out with one vectorised comparison, which keeps the arrival order and needs no sort."""
-        rec = np.frombuffer(self.records, dtype=RECORD_DTYPE)
-        self.records = bytearray()
-        if len(self.offsets):
-            located = self._gather_pcap()
+    def flush(self, located: Optional[np.ndarray] = None) -> None:
+        """Feed the records gathered so far (and `located` ones) to the analysis, in frame order."""
+        rec = np.frombuffer(bytes(self.records), dtype=RECORD_DTYPE)
+        self.records.clear()          # in place: the engines' loops hold it
+        if located is not None and len(located):
             rec = np.insert(located, np.searchsorted(located["frame"], rec["frame"]), rec) if len(rec) else located
-        if not len(rec):
-            return []
-        pid = rec["pid"]
-        code = np.zeros(len(rec), dtype=np.uint8)
-        for raw, value in _CODE_TABLE.items():
-            code[pid == int.from_bytes(raw, "little")] = value
-        key = ((_INPUT[code].astype(np.int64) << 48) | (rec["src"].astype(np.int64) << 32)
-               | (rec["sport"].astype(np.int64) << 16) | rec["origin"].astype(np.int64))
-        sources = {i: s for s, i in self.sources.items()}
-        out = []
-        for value, rows in _groups(key):
-            part = rec[rows]
-            direction = (C.Direction.INPUT if value >> 48 else C.Direction.OUTPUT).value
-            src = address(sources[(value >> 32) & 0xFFFF], (value >> 16) & 0xFFFF)
-            out.append(Sender(direction, value & 0xFFFF, src, part["ts"], part["serial"], code[rows],
-                              part["frame"], part["aux"], part["size"], part["state"]))
-        return sorted(out, key=lambda s: s.id)
+        if len(rec):
+            self.analysis.feed(rec, self.sources)

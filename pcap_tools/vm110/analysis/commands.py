@@ -25,7 +25,7 @@ RESTART = -1          # the type code of a restart marker in the event stream
 REUSE_GAP_MS = 2000.0
 
 
-@dataclass
+@dataclass(slots=True)         # one per command, all kept: no __dict__ each
 class Command:
     sender: str
     command_id: int
@@ -60,55 +60,61 @@ class Tally:
     duplicate_acks: list = field(default_factory=list)    # (frame, time, command_id, command's first frame)
 
 
-def track(events: Iterable[tuple], fail_ms: dict[int, float], reuse_gap_ms: float = REUSE_GAP_MS
-          ) -> dict[int, Tally]:
-    """events in capture order: (frame, ts, type code, sender id, command ID) for commands and acks,
-    and (frame, ts, RESTART, sender id, None) where a sender restarted (before that frame's own
-    packet). `fail_ms`: the fail limit per command type code."""
-    tallies = {CODE[t]: Tally() for t in COMMAND_TYPES}
-    reuse = reuse_gap_ms / timing.MS
-    open_: dict[tuple[int, str, int], Command] = {}     # (code, sender, ID) -> its latest command
-    by_id: dict[tuple[int, int], list[Command]] = {}    # (code, ID) -> not interrupted, in order of start
-    last_id: dict[tuple[int, str], int] = {}            # (code, sender) -> ID of its latest new command
-    for frame, ts, code, sender, cid in events:
-        if code == RESTART:
-            for key in [k for k in open_ if k[1] == sender]:
-                cmd = open_.pop(key)
-                limit = fail_ms[key[0]] / timing.MS
-                if cmd.ack_frame is None and ts - cmd.times[0] <= limit:
-                    cmd.interrupted_frame, cmd.interrupted_time = frame, ts
-                    by_id[(key[0], key[2])].remove(cmd)
-            for code_ in _COMMAND_CODES:
-                last_id.pop((code_, sender), None)
-        elif code in _COMMAND_CODES:
-            tally = tallies[code]
-            cmd = open_.get((code, sender, cid))
-            if cmd is not None and ts - cmd.times[-1] < reuse:
-                cmd.frames.append(frame)
-                cmd.times.append(ts)
-                if cmd.ack_frame is not None:
-                    cmd.spurious_frames.append(frame)
-                continue
-            previous = last_id.get((code, sender))
-            if previous is not None and cid < previous:
-                tally.id_wraps += 1
-            last_id[(code, sender)] = cid
-            cmd = Command(sender, cid, [frame], [ts])
-            open_[(code, sender, cid)] = cmd
-            by_id.setdefault((code, cid), []).append(cmd)
-            tally.commands.append(cmd)
-        else:
-            target = _ACK_OF_CODE[code]
-            tally = tallies[target]
-            live = by_id.get((target, cid))
-            cmd = live[-1] if live else None
-            if cmd is None:
-                tally.orphan_acks.append((frame, ts, cid))
-            elif cmd.ack_frame is not None:
-                tally.duplicate_acks.append((frame, ts, cid, cmd.frames[0]))
+class Tracker:
+    """Commands and acknowledgements, applied as a stream of events in capture order:
+    (frame, ts, type code, sender id, command ID) for commands and acks, and (frame, ts, RESTART,
+    sender id, None) where a sender restarted (before that frame's own packet). `fail_ms`: the
+    fail limit per command type code. The state is the commands (they are the report) and the
+    latest command per (sender, ID) and per ID."""
+
+    def __init__(self, fail_ms: dict[int, float], reuse_gap_ms: float = REUSE_GAP_MS) -> None:
+        self.tallies = {CODE[t]: Tally() for t in COMMAND_TYPES}
+        self.fail_ms = fail_ms
+        self.reuse = reuse_gap_ms / timing.MS
+        self.open: dict[tuple[int, str, int], Command] = {}      # (code, sender, ID) -> its latest command
+        self.by_id: dict[tuple[int, int], list[Command]] = {}    # (code, ID) -> not interrupted, in order of start
+        self.last_id: dict[tuple[int, str], int] = {}            # (code, sender) -> ID of its latest new command
+
+    def apply(self, events: Iterable[tuple]) -> None:
+        tallies, open_, by_id, last_id, reuse = self.tallies, self.open, self.by_id, self.last_id, self.reuse
+        for frame, ts, code, sender, cid in events:
+            if code == RESTART:
+                for key in [k for k in open_ if k[1] == sender]:
+                    cmd = open_.pop(key)
+                    limit = self.fail_ms[key[0]] / timing.MS
+                    if cmd.ack_frame is None and ts - cmd.times[0] <= limit:
+                        cmd.interrupted_frame, cmd.interrupted_time = frame, ts
+                        by_id[(key[0], key[2])].remove(cmd)
+                for code_ in _COMMAND_CODES:
+                    last_id.pop((code_, sender), None)
+            elif code in _COMMAND_CODES:
+                tally = tallies[code]
+                cmd = open_.get((code, sender, cid))
+                if cmd is not None and ts - cmd.times[-1] < reuse:
+                    cmd.frames.append(frame)
+                    cmd.times.append(ts)
+                    if cmd.ack_frame is not None:
+                        cmd.spurious_frames.append(frame)
+                    continue
+                previous = last_id.get((code, sender))
+                if previous is not None and cid < previous:
+                    tally.id_wraps += 1
+                last_id[(code, sender)] = cid
+                cmd = Command(sender, cid, [frame], [ts])
+                open_[(code, sender, cid)] = cmd
+                by_id.setdefault((code, cid), []).append(cmd)
+                tally.commands.append(cmd)
             else:
-                cmd.ack_frame, cmd.ack_time, cmd.last_before_ack = frame, ts, cmd.times[-1]
-    return tallies
+                target = _ACK_OF_CODE[code]
+                tally = tallies[target]
+                live = by_id.get((target, cid))
+                cmd = live[-1] if live else None
+                if cmd is None:
+                    tally.orphan_acks.append((frame, ts, cid))
+                elif cmd.ack_frame is not None:
+                    tally.duplicate_acks.append((frame, ts, cid, cmd.frames[0]))
+                else:
+                    cmd.ack_frame, cmd.ack_time, cmd.last_before_ack = frame, ts, cmd.times[-1]
 
 
 def report(tally: Tally, fail_ms: float, resend_ms: float) -> dict:

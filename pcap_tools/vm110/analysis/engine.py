@@ -1,20 +1,24 @@
-"""The fast engine: one streaming pass over the file into compact records (`Collected`).
+"""The fast engine: one streaming pass over the file, feeding the analysis a chunk at a time.
 
 The budget is a few C-level operations per packet. For the common frame (Ethernet, IPv4 without
 options, UDP) in a little-endian pcap or pcapng, one `struct` call reads the record or block
 header, the frame headers and the EG-Link header together (`_FUSED`, `_FUSED_NG`); other frames
 go through the reader's general decoder, other files through its datagrams. Then a structural
-test, the CRC (one zlib call, see `vm110.crc.zlib_form`), and for a legal packet two array appends (pcap: where it is,
-read back later in bulk by `Collected`) or one packed record (pcapng). Large pcaps are read in
-parts by several processes (`_parallel`).
+test, the CRC (one zlib call, see `vm110.crc.zlib_form`), and for a legal packet two array
+appends (pcap: where it is in the chunk; its record is gathered with numpy for the whole chunk,
+`Collected.located_rows`) or one packed record (pcapng). At the end of each chunk the records go
+to the analysis (`Collected.flush`), so memory does not grow with the file.
 Anything unusual (illegal, other ports, odd frames) takes `_slow`, which decodes with
 `vm110.decode` and so applies exactly its rules.
+
+Large pcaps were once read in parts by several processes; the parts' records then had to be
+kept until the parts before them were analysed, which is what bounded memory forbids, and the
+whole-chunk gathers made one process about as fast.
 """
 from __future__ import annotations
 
-import multiprocessing
-import os
 import struct
+from array import array
 import zlib
 from typing import Callable, Optional
 
@@ -24,6 +28,7 @@ from ..capture.reader import PCAP_HEADER_LEN, PCAPNG_EPB, PCAPNG_SHB, CaptureRea
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, VARIANTS, crc32, zlib_form
 from ..decode import decode
 from .collect import CODE_OF_ID, RECORD, Collected
+from .incremental import Analysis
 
 _HDR = struct.Struct("<4sH6xH")                    # packet ID, revision, size
 # One little-endian read of a record of the common frame: pcap record header (sec, frac, incl,
@@ -46,13 +51,6 @@ _SWAP = [((x & 0xFF) << 8) | (x >> 8) for x in range(1 << 16)]   # big-endian u1
 _LOW = {raw: C.PAYLOAD_BOUNDS[C.PacketType(raw.decode())][0] for raw in CODE_OF_ID}
 _SNIFF = 256                                       # EG-Link packets looked at to guess the CRC variant
 _SNIFF_CHUNK = 1 << 16
-PARALLEL_MIN_BYTES = 32 << 20                      # smaller files: one process is quicker
-MAX_WORKERS = 4
-IDLE_FRACTION = 0.9                                # share of a core's idleness that counts it as free
-WORKERS_ENV = "VM110_ANALYZE_WORKERS"              # processes reading one large pcap (1: no split)
-SPLIT_WINDOW = 1 << 20
-CHAIN = 16                                         # record headers that must look right in a row
-PLAUSIBLE_SPAN_S = 10 * 365 * 86400
 TRUNCATED = C.Problem.TRUNCATED.value
 Progress = Callable[[int, int], None]
 
@@ -69,77 +67,27 @@ def crc_matches(data: bytes, end: int) -> set[tuple[str, str]]:
     return got
 
 
-def idle_cores() -> int:
-    """Cores not busy with other work (by the load average), at least 1, at most MAX_WORKERS:
-    reading parts in parallel only pays when the cores are free. A core counts as idle when at
-    least a tenth of it is: the 1-minute average still carries the work that just led up to this
-    run (often this very process), so rounding to the nearest core would keep one process on a
-    machine that has just become idle."""
-    cores = os.cpu_count() or 1
-    return max(1, min(MAX_WORKERS, cores, int(cores - os.getloadavg()[0] + IDLE_FRACTION)))
-
-
-def _read_part(job: tuple) -> Collected:
-    port, crc, crc_order, path, variant, order, start, stop = job
-    return FastEngine(port, crc, crc_order, workers=1)._part(path, variant, order, start, stop)
-
-
-def split_points(path: str, reader: CaptureReader, layout, parts: int) -> Optional[list[int]]:
-    """File offsets [24, b1, ..., size] cutting a pcap into `parts` at plausible record starts:
-    a chain of CHAIN headers with sane lengths and times near the first packet's. The readers
-    of the parts then prove each boundary (see FastEngine._parallel)."""
-    rec = struct.Struct(layout.endian + "IIII")
-    bounds = [PCAP_HEADER_LEN]
-    with open(path, "rb") as f:
-        first = f.read(PCAP_HEADER_LEN + rec.size)[PCAP_HEADER_LEN:]
-        if len(first) < rec.size:
-            return None
-        first_sec = rec.unpack(first)[0]
-        for k in range(1, parts):
-            target = PCAP_HEADER_LEN + (reader.size - PCAP_HEADER_LEN) * k // parts
-            f.seek(target)
-            window = f.read(SPLIT_WINDOW)
-            found = next((target + off for off in range(len(window) - CHAIN * rec.size)
-                          if _plausible_chain(window, off, rec, first_sec, layout.limit)), None)
-            if found is None or found <= bounds[-1]:
-                return None
-            bounds.append(found)
-    return bounds + [reader.size]
-
-
-def _plausible_chain(window: bytes, pos: int, rec: struct.Struct, first_sec: int, limit: int) -> bool:
-    for _ in range(CHAIN):
-        if pos + rec.size > len(window):
-            return False
-        sec, frac, incl, orig = rec.unpack_from(window, pos)
-        if not (abs(sec - first_sec) < PLAUSIBLE_SPAN_S and frac < 1_000_000_000 and 0 < incl <= limit
-                and incl <= orig):
-            return False
-        pos += rec.size + incl
-    return True
-
-
 class FastEngine:
     """Analyse one capture file with the streaming reader."""
 
     def __init__(self, port: int = C.INPUT_PORT, crc: str = "auto", crc_order: str = "auto",
-                 progress: Optional[Progress] = None, workers: Optional[int] = None) -> None:
+                 progress: Optional[Progress] = None) -> None:
         self.port = port
         self.ports = frozenset((port, port + C.OUTPUT_PORT_OFFSET))
         self.crc, self.crc_order = crc, crc_order
         self.progress = progress
-        self.workers = workers or int(os.environ.get(WORKERS_ENV, 0)) or idle_cores()
 
-    def collect(self, path: str) -> Collected:
+    def collect(self, path: str, opt) -> Collected:
+        """Read the capture, feeding its legal packets to an `Analysis` with options `opt`."""
         variant = DEFAULT_VARIANT if self.crc == "auto" else self.crc
         order = DEFAULT_BYTE_ORDER if self.crc_order == "auto" else self.crc_order
         sniffed = self._sniff(path) if "auto" in (self.crc, self.crc_order) else None
         if sniffed:
             variant, order = sniffed
-        got = self._pass(path, variant, order)
+        got = self._pass(path, variant, order, opt)
         best = self._best(got)
         if best != (variant, order) and got.crc_counts[best] > got.crc_counts[(variant, order)]:
-            got = self._pass(path, *best)     # the sniffed guess was wrong: judge again with the best
+            got = self._pass(path, *best, opt)     # the sniffed guess was wrong: judge again with the best
         return got
 
     def _candidates(self) -> list[tuple[str, str]]:
@@ -169,27 +117,14 @@ class FastEngine:
             return None
         return max(candidates, key=lambda c: (counts.get(c, 0), -candidates.index(c)))
 
-    def _pass(self, path: str, variant: str, order: str) -> Collected:
+    def _pass(self, path: str, variant: str, order: str, opt) -> Collected:
         reader = CaptureReader(path)
-        layout = reader.pcap_layout() if reader.format == "pcap" else None
-        fused = layout is not None and layout.endian == "<" and layout.link == L.LINKTYPE_ETHERNET
-        if (fused and self.workers > 1 and reader.size >= PARALLEL_MIN_BYTES
-                and not multiprocessing.current_process().daemon):
-            got = self._parallel(path, reader, layout, variant, order)
-            if got is not None:
-                return got
-        return self._part(path, variant, order)
-
-    def _part(self, path: str, variant: str, order: str, start: Optional[int] = None,
-              stop: Optional[int] = None) -> Collected:
-        """Read the whole file, or the records between two record boundaries of a pcap."""
-        reader = CaptureReader(path)
-        got = Collected(path=path, engine="fast", format=reader.format, ports=tuple(sorted(self.ports)),
-                        crc_variant=variant, crc_order=order,
+        got = Collected(path=path, engine="fast", analysis=Analysis(opt), format=reader.format,
+                        ports=tuple(sorted(self.ports)), crc_variant=variant, crc_order=order,
                         crc_auto=self.crc == "auto" or self.crc_order == "auto")
         layout = reader.pcap_layout() if reader.format == "pcap" else None
         if layout is not None and layout.endian == "<" and layout.link == L.LINKTYPE_ETHERNET:
-            valid = self._fused_pcap(got, reader, layout, variant, order, start, stop)
+            valid = self._fused_pcap(got, reader, layout, variant, order)
         elif layout is None:
             valid = self._fused_pcapng(got, reader, variant, order)
         else:
@@ -203,35 +138,14 @@ class FastEngine:
         got.link_types = sorted(reader.link_types)
         return got
 
-    def _parallel(self, path: str, reader: CaptureReader, layout, variant: str, order: str) -> Optional[Collected]:
-        """Split a large pcap at record boundaries and read the parts in parallel processes.
-        None when no boundary can be proven (the caller then reads the file in one go): a part's
-        walk must end exactly where the next begins, which only a true boundary gives."""
-        bounds = split_points(path, reader, layout, self.workers)
-        if bounds is None:
-            return None
-        jobs = [(self.port, self.crc, self.crc_order, path, variant, order, a, b) for a, b in zip(bounds, bounds[1:])]
-        with multiprocessing.get_context("fork").Pool(len(jobs) - 1) as pool:
-            others = pool.map_async(_read_part, jobs[1:])     # the later parts in children,
-            got = _read_part(jobs[0])                           # the first one here meanwhile
-            if got.problem is not None:
-                return None
-            for later in others.get():
-                if got.problem is not None:
-                    return None
-                got.merge(later)
-        return got
-
     def _advance(self, reader: CaptureReader, chunks, pos: int) -> Optional[bytes]:
         """Report progress and move the fused loops on to the next chunk (None at the end)."""
         if self.progress is not None:
             self.progress(reader.bytes_read + pos, reader.size)
         return reader.next_chunk(chunks, pos)
 
-    def _fused_pcap(self, got: Collected, reader: CaptureReader, layout, variant: str, order: str,
-                    start: Optional[int] = None, stop: Optional[int] = None) -> int:
-        """Walk the records of a little-endian Ethernet pcap (from `start` to `stop`, offsets of
-        record boundaries, when given); returns the legal packets recorded."""
+    def _fused_pcap(self, got: Collected, reader: CaptureReader, layout, variant: str, order: str) -> int:
+        """Walk the records of a little-endian Ethernet pcap; returns the legal packets recorded."""
         scale, link, limit = layout.scale, layout.link, layout.limit
         fused, rec = _FUSED.unpack_from, struct.Struct("<IIII").unpack_from
         slack = bytes(_FUSED.size)
@@ -240,8 +154,8 @@ class FastEngine:
         reversed_bytes, xor, stored_order = zlib_form(variant, order)
         rev_table, crc = REVERSE_BITS, zlib.crc32
         stored = _U32[stored_order].unpack_from
-        locate, add_frame = got.offsets.append, got.offset_frames.append
-        got.pcap_scale = scale
+        offsets, frames = array("q"), array("I")
+        locate, add_frame = offsets.append, frames.append
         slow, udp_of = self._slow, reader.udp_of
         min_frame, max_payload = _FUSED_MIN_FRAME, C.MAX_PAYLOAD
         ipv4_plain, udp, frag_le = _IPV4_PLAIN, L.IPPROTO_UDP, _FRAG_LE
@@ -249,16 +163,16 @@ class FastEngine:
         udp_data, udp_over, frame_over = _IP_END + L.UDP_HEADER_LEN, L.UDP_HEADER_LEN + C.OVERHEAD, _FRAME_OVER
         valid = frame = 0
         ts = 0.0
-        chunks = reader.raw_chunks(start or PCAP_HEADER_LEN, stop)
+        chunks = reader.raw_chunks(PCAP_HEADER_LEN)
         data = next(chunks, None)
         while data is not None:
             end = len(data)
             pos = 0
+            damaged = False
             # The CRC runs on the bytes as they are, or bit-reversed: reverse the chunk in one go.
             if not frame and end >= 16:
                 sec, frac = rec(data, 0)[:2]
                 reader.first_ts = sec + frac * scale
-            base = reader.bytes_read            # file offset of data[0]
             data += slack               # so that the fused read never runs off the end of a chunk
             cdata = data.translate(rev_table) if reversed_bytes else data
             while pos + 16 <= end:
@@ -267,7 +181,7 @@ class FastEngine:
                 if incl > limit:
                     reader.corrupt(pos, incl)
                     chunks.close()
-                    data = None
+                    damaged = True
                     break
                 p = pos + 16
                 if p + incl > end:
@@ -283,7 +197,7 @@ class FastEngine:
                         q = p + udp_data            # the EG-Link packet: q .. e, then the CRC
                         e = q + prefix + size
                         if crc(cdata[q:e]) ^ xor == stored(cdata, e)[0]:
-                            locate(base + q)
+                            locate(q)
                             add_frame(frame)
                             valid += 1
                             continue
@@ -299,7 +213,9 @@ class FastEngine:
                 reader.first_ts = None
             reader.last_ts = ts if frame else None
             reader.frames = frame
-            if data is None:
+            got.flush(got.located_rows(data, offsets, frames, scale))
+            del offsets[:], frames[:]
+            if damaged:
                 break
             data = self._advance(reader, chunks, pos)
         got.udp = frame - reader.non_udp        # every frame the reader did not count as other
@@ -330,6 +246,7 @@ class FastEngine:
         while data is not None:
             end = len(data)
             pos = 0
+            damaged = False
             data += slack               # so that the fused read never runs off the end of a chunk
             cdata = data.translate(rev_table) if reversed_bytes else data
             while pos + 12 <= end:
@@ -343,7 +260,7 @@ class FastEngine:
                     et = None
                 if reader.bad_block(pos, blen, btype):
                     chunks.close()
-                    data = None
+                    damaged = True
                     break
                 p = pos
                 if p + blen > end:
@@ -397,7 +314,8 @@ class FastEngine:
                     slow(got, reader, variant, order, ts, *found, frame)
             reader.frames = frame
             reader.first_ts, reader.last_ts = first, (ts if frame else None)
-            if data is None:
+            got.flush()
+            if damaged:
                 break
             data = self._advance(reader, chunks, pos)
         got.udp = frame - reader.non_udp
@@ -438,6 +356,7 @@ class FastEngine:
                     index = got.source(src)
                 records += pack(ts, frame, index, sport, payload)
                 valid += 1
+            got.flush()
             if self.progress is not None:
                 self.progress(reader.bytes_read, reader.size)
         got.udp = udp

@@ -2,7 +2,8 @@
 
 Every finding lists `items[]` (at most MAX_ITEMS, `more` counting the rest): the frame(s), the
 time, the sender and what identifies it (serial, command ID, gap, ...), and a Wireshark display
-filter that selects its frames.
+filter that selects its frames. Only the first MAX_ITEMS items of a rule (by frame) are kept,
+and a count of all: never one item per packet.
 """
 from __future__ import annotations
 
@@ -14,7 +15,35 @@ from .collect import CODE, TYPES
 
 MAX_ITEMS = 100
 MAX_FILTER_FRAMES = 64
-Located = dict[str, list[dict]]
+
+def _order(item: dict) -> tuple:
+    return item["frame"], item.get("sender") or ""
+
+
+class Kept:
+    """The first MAX_ITEMS items of one rule in (frame, sender) order, ties in the order added,
+    and how many were added."""
+
+    def __init__(self) -> None:
+        self.items: list[dict] = []
+        self.total = 0
+
+    def add(self, item: dict) -> None:
+        self.items.append(item)
+        self.total += 1
+        if len(self.items) >= 2 * MAX_ITEMS:
+            self._trim()
+
+    def _trim(self) -> None:
+        self.items.sort(key=_order)              # stable: earlier ones first among equals
+        del self.items[MAX_ITEMS:]
+
+    def first(self) -> list[dict]:
+        self._trim()
+        return self.items
+
+
+Located = dict[str, Kept]
 _ACK_CODE = {CODE[cmd]: CODE[ack] for ack, cmd in C.ACK_OF.items()}
 
 TOTAL_NAMES = ("packets", "eglink_packets", "damaged", "lost", "duplicates", "out_of_order", "restarts", "illegal",
@@ -71,7 +100,17 @@ class Where:
             item["sender"] = sender
         item.update(what)
         item["filter"] = frame_filter(frames)
-        self.located.setdefault(rule, []).append(item)
+        self._kept(rule).add(item)
+
+    def skip(self, rule: str, count: int) -> None:
+        """Count items that lie beyond the first MAX_ITEMS of their rule without making them."""
+        self._kept(rule).total += count
+
+    def _kept(self, rule: str) -> Kept:
+        kept = self.located.get(rule)
+        if kept is None:
+            kept = self.located[rule] = Kept()
+        return kept
 
 
 def locate_report(report: dict, tallies: dict[int, Tally], located: Located) -> None:
@@ -144,18 +183,17 @@ def totals(report: dict) -> dict:
     }
 
 
-def _items(found: list[dict]) -> dict:
-    found.sort(key=lambda item: (item["frame"], item.get("sender") or ""))
-    out: dict = {"items": found[:MAX_ITEMS]}
-    if len(found) > MAX_ITEMS:
-        out["more"] = len(found) - MAX_ITEMS
+def _items(kept: Kept) -> dict:
+    out: dict = {"items": kept.first()}
+    if kept.total > MAX_ITEMS:
+        out["more"] = kept.total - MAX_ITEMS
     return out
 
 
 def verdict(report: dict, located: Located) -> dict:
     tot = report["totals"]
     findings = [{"rule": key, "severity": sev, "count": tot[key], "message": f"{tot[key]} {msg}",
-                 **_items(located.get(key, []))}
+                 **_items(located.get(key, Kept()))}
                 for key, sev, msg in FINDINGS if tot[key] > 0]
     cap = report["capture"]
     if cap["problem"]:

@@ -7,6 +7,13 @@ late (s missing in a gap opened within the window: it fills it); a gap (a forwar
 counter's rate can explain in the time since its previous packet); otherwise a restart
 candidate, a restart when the counter's next packet that is not a copy of it follows it
 (s + 1 .. s + 4), out of order when not.
+
+`Counter` is fed a counter's packets a batch at a time and carries everything rules.md says a
+counter keeps from batch to batch; for the rate it keeps the times of its packets of the last
+RATE_WINDOW_S only. A restart candidate whose deciding packet has not arrived yet stays
+undecided: `feed` returns how many of the given packets it decided, and the caller hands the
+rest in again with the next batch (or with `final=True` at the end of the capture, where an
+undecided candidate is out of order).
 """
 from __future__ import annotations
 
@@ -27,10 +34,13 @@ PLAUSIBLE_FACTOR = 4
 MIN_RATE = 20.0
 CONFIRM = 4                    # a restart's next packet is s + 1 .. s + CONFIRM
 NEVER = -np.inf
+LOCATED = 100                  # duplicates and out-of-order packets located (findings.MAX_ITEMS)
 
 
 @dataclass
 class SerialResult:
+    """What a counter found. Packets are named by the caller's `where` (a frame number, or a
+    position) and located by their time (`*_at`)."""
     received: int = 0
     duplicates: int = 0
     out_of_order: int = 0
@@ -38,10 +48,11 @@ class SerialResult:
     lost_serials: list = field(default_factory=list)
     duplicate_serials: list = field(default_factory=list)
     out_of_order_serials: list = field(default_factory=list)
-    gaps: list = field(default_factory=list)              # (after, count, time, position)
-    duplicate_index: list = field(default_factory=list)   # positions in the input of duplicates
-    out_of_order_index: list = field(default_factory=list)
-    restarts: list = field(default_factory=list)          # (position, from, to)
+    gaps: list = field(default_factory=list)              # (after, count, time, where)
+    # The first LOCATED duplicates and out-of-order packets: (where, time, serial).
+    duplicates_located: list = field(default_factory=list)
+    out_of_order_located: list = field(default_factory=list)
+    restarts: list = field(default_factory=list)          # (where, from, to, time)
     last: dict = field(default_factory=dict)              # counter key -> its highest serial at the end
     aborted: bool = False
 
@@ -56,23 +67,36 @@ class SerialResult:
     def merge(self, other: "SerialResult") -> None:
         for name in ("received", "duplicates", "out_of_order", "wraps"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
-        for name in ("lost_serials", "duplicate_serials", "out_of_order_serials", "gaps", "duplicate_index",
-                     "out_of_order_index", "restarts"):
+        for name in ("lost_serials", "duplicate_serials", "out_of_order_serials", "gaps", "duplicates_located",
+                     "out_of_order_located", "restarts"):
             getattr(self, name).extend(getattr(other, name))
         self.last.update(other.last)
         self.aborted = self.aborted or other.aborted
 
 
-class _Counter:
-    """The state of one counter between packets: everything rules.md says it keeps."""
+class Counter:
+    """One counter, fed its packets in arrival order a batch at a time (see the module doc)."""
 
-    def __init__(self, s: int, t: float, pos: int) -> None:
+    def __init__(self, dup_window_ms: float = DUP_WINDOW_MS, key=None) -> None:
+        self.window = dup_window_ms / 1000.0
+        self.key = key
+        self.res = SerialResult()
+        self.started = False
         self.accepted_at = np.full(MOD, NEVER)     # time each serial was last accepted
         self.gap_at = np.full(MOD, NEVER)          # time the gap a missing serial lies in opened
         self.missing: dict[int, None] = {}         # insertion-ordered set of serials in open gaps
-        self.restart(s, t, pos)
+        self.lost_for_good: list[int] = []
+        self.h = 0
+        self.start = self.prev = 0.0
+        # Packets of the last RATE_WINDOW_S (all, duplicates too) for the rate: their times, the
+        # number of the first among every packet of the counter, and the numbers of duplicates.
+        self.recent = np.empty(0)
+        self.recent_base = 0
+        self.start_pos = 0
+        self.dup_pos: list[int] = []
+        self.fed_duplicates: list = []             # where of the duplicates of the last feed
 
-    def restart(self, s: int, t: float, pos: int) -> None:
+    def _restart(self, s: int, t: float, pos: int) -> None:
         if self.missing:
             self.gap_at[list(self.missing)] = NEVER
             self.missing.clear()
@@ -80,123 +104,157 @@ class _Counter:
         self.h, self.start, self.start_pos, self.prev = s, t, pos, t
         self.accepted_at[s] = t
 
+    def feed(self, serials: Sequence[int], times: Sequence[float], where: Sequence[int], final: bool = False,
+             limit: Optional[int] = None) -> int:
+        """Judge packets in arrival order; returns how many were decided (all when `final`).
+        `where` names each packet in the results; `limit` stops once the anomalies exceed it."""
+        n = len(serials)
+        if not n:
+            return 0
+        res = self.res
+        fed = self.fed_duplicates = []
+        arr = np.asarray(serials, dtype=np.int64)
+        ts = np.asarray(times, dtype=np.float64)
+        base = self.recent_base
+        off = base + len(self.recent)               # number of the first packet given here
+        all_ts = np.concatenate((self.recent, ts)) if len(self.recent) else ts
+        window = self.window
+        breaks = (np.flatnonzero((np.diff(arr) & MASK) != 1) + 1).tolist()   # where s[i] != s[i-1] + 1
+        dup, ooo, gaps = res.duplicate_serials, res.out_of_order_serials, res.gaps
+        dup_pos, lost_for_good = self.dup_pos, self.lost_for_good
+        accepted_at, gap_at, missing = self.accepted_at, self.gap_at, self.missing
+        i, b = 0, 0                           # position, and index of the next break at or after it
+        if not self.started:
+            self.started = True
+            self._restart(int(arr[0]), float(ts[0]), off)
+            i = 1
+
+        def rate(t: float) -> float:
+            """Accepted packets of the counter in [t - W, t), per second (W: 10 s or its life)."""
+            span = min(RATE_WINDOW_S, t - self.start)
+            if span <= 0:
+                return 0.0
+            lo = max(int(np.searchsorted(all_ts, t - span, "left")) + base, self.start_pos)
+            hi = int(np.searchsorted(all_ts, t, "left")) + base
+            if hi <= lo:
+                return 0.0
+            return (hi - lo - (bisect_left(dup_pos, hi) - bisect_left(dup_pos, lo))) / span
+
+        def plausible(missing_: int, t: float) -> bool:
+            """Loss the counter's rate explains in its silence (the rate only counts when the floor
+            of MIN_RATE does not explain it already)."""
+            dt = t - self.prev
+            if missing_ <= PLAUSIBLE_BASE + PLAUSIBLE_FACTOR * MIN_RATE * dt:
+                return True
+            return missing_ <= PLAUSIBLE_BASE + PLAUSIBLE_FACTOR * max(rate(t), MIN_RATE) * dt
+
+        def fill(serials_now: np.ndarray) -> None:
+            """Serials the counter reaches again while still missing: their number came round, so
+            the old gap can never be filled and stays lost."""
+            hits = serials_now[gap_at[serials_now] > NEVER]
+            if len(hits):
+                gap_at[hits] = NEVER
+                for x in hits.tolist():
+                    del missing[x]
+                    lost_for_good.append(x)
+
+        while i < n:
+            s, t = int(arr[i]), float(ts[i])
+            d = (s - self.h) & MASK
+            if d == 1 and t - accepted_at[s] >= window:
+                while b < len(breaks) and breaks[b] <= i:
+                    b += 1
+                j = breaks[b] if b < len(breaks) else n
+                run = arr[i:j]                # s[i] = h + 1 and every later one follows its predecessor
+                # A serial accepted within the window is a duplicate even in sequence (rule 1
+                # first): the run stops before it.
+                recent = np.flatnonzero(ts[i:j] - accepted_at[run] < window)
+                if len(recent):
+                    j = i + int(recent[0])
+                    run = arr[i:j]
+                accepted_at[run] = ts[i:j]
+                if missing:
+                    fill(run)
+                res.wraps += int(np.count_nonzero(run == 0))
+                self.h, self.prev = int(arr[j - 1]), float(ts[j - 1])
+                i = j
+                continue
+            if t - accepted_at[s] < window:
+                dup.append(s)
+                dup_pos.append(off + i)
+                fed.append(where[i])
+                if len(res.duplicates_located) < LOCATED:
+                    res.duplicates_located.append((where[i], t, s))
+            elif gap_at[s] > NEVER and t - gap_at[s] < window:
+                ooo.append(s)                 # late: fills its gap
+                self._locate(where[i], t, s)
+                gap_at[s] = NEVER
+                del missing[s]
+                accepted_at[s], self.prev = t, t
+            elif 1 < d < HALF and plausible(d - 1, t):
+                gaps.append((self.h, d - 1, t, where[i]))
+                new = np.arange(self.h + 1, self.h + d + 1) & MASK
+                if missing:
+                    fill(new)
+                hole = new[:-1]
+                gap_at[hole] = t
+                missing.update(dict.fromkeys(hole.tolist()))
+                if s < self.h:
+                    res.wraps += 1
+                self.h, self.prev = s, t
+                accepted_at[s] = t
+            else:
+                nxt = i + 1
+                while nxt < n and arr[nxt] == s:          # copies of the candidate confirm nothing
+                    nxt += 1
+                if nxt == n and not final:
+                    break                                 # undecided until its next packet comes
+                if nxt < n and 1 <= (int(arr[nxt]) - s) & MASK <= CONFIRM:
+                    res.restarts.append((where[i], self.h, s, t))
+                    lost_for_good.extend(missing)         # serials lost before stay lost
+                    self._restart(s, t, off + i)
+                else:
+                    ooo.append(s)                         # unconfirmed: moves nothing
+                    self._locate(where[i], t, s)
+                    accepted_at[s], self.prev = t, t
+            i += 1
+            if limit is not None and len(dup) + len(ooo) + len(missing) + len(lost_for_good) > limit:
+                res.aborted = True
+                break
+        res.received += i
+        self._keep_recent(all_ts[:len(all_ts) - n + i])
+        return i
+
+    def _locate(self, where, t: float, s: int) -> None:
+        if len(self.res.out_of_order_located) < LOCATED:
+            self.res.out_of_order_located.append((where, t, s))
+
+    def _keep_recent(self, done: np.ndarray) -> None:
+        """Keep the times the rate can still ask for: those of the last RATE_WINDOW_S."""
+        if not len(done):
+            return
+        cut = int(np.searchsorted(done, float(done[-1]) - RATE_WINDOW_S, "left"))
+        self.recent = done[cut:].copy()
+        self.recent_base += cut
+        if self.dup_pos and self.dup_pos[0] < self.recent_base:
+            del self.dup_pos[:bisect_left(self.dup_pos, self.recent_base)]
+
+    def result(self) -> SerialResult:
+        """The results so far, as if the capture ended here (decided packets only)."""
+        res = self.res
+        res.duplicates, res.out_of_order = len(res.duplicate_serials), len(res.out_of_order_serials)
+        res.lost_serials = self.lost_for_good + list(self.missing)
+        res.last = {self.key: self.h}
+        return res
+
 
 def classify(serials: Sequence[int], times: Sequence[float], index: Optional[Sequence[int]] = None,
              limit: Optional[int] = None, dup_window_ms: float = DUP_WINDOW_MS) -> SerialResult:
-    """Classify one counter's serials in arrival order. `index` maps positions back to the caller's
-    arrays (for the `*_index` lists and `gaps`); `limit` stops early once the anomalies exceed it.
-
-    Runs of consecutive serials continuing the highest one are handled a run at a time with
-    numpy; only the packets around anomalies go through the per-packet rules."""
-    res = SerialResult(received=len(serials))
-    n = len(serials)
-    if not n:
-        return res
-    arr = np.asarray(serials, dtype=np.int64)
-    ts = np.asarray(times, dtype=np.float64)
-    window = dup_window_ms / 1000.0
-    breaks = (np.flatnonzero((np.diff(arr) & MASK) != 1) + 1).tolist()   # where s[i] != s[i-1] + 1
-    where = (lambda i: index[i]) if index is not None else (lambda i: i)
-    dup, ooo, gaps = res.duplicate_serials, res.out_of_order_serials, res.gaps
-    dup_pos: list[int] = []               # positions of duplicates, for the rate (sorted)
-    lost_for_good: list[int] = []
-    ctr = _Counter(int(arr[0]), float(ts[0]), 0)
-    wraps = 0
-    i, b = 1, 0                           # position, and index of the next break at or after it
-
-    def rate(t: float) -> float:
-        """Accepted packets of the counter in [t - W, t), per second (W: 10 s or its life)."""
-        span = min(RATE_WINDOW_S, t - ctr.start)
-        if span <= 0:
-            return 0.0
-        lo = max(int(np.searchsorted(ts, t - span, "left")), ctr.start_pos)
-        hi = int(np.searchsorted(ts, t, "left"))
-        if hi <= lo:
-            return 0.0
-        return (hi - lo - (bisect_left(dup_pos, hi) - bisect_left(dup_pos, lo))) / span
-
-    def plausible(missing: int, t: float) -> bool:
-        """Loss the counter's rate explains in its silence (the rate only counts when the floor
-        of MIN_RATE does not explain it already)."""
-        dt = t - ctr.prev
-        if missing <= PLAUSIBLE_BASE + PLAUSIBLE_FACTOR * MIN_RATE * dt:
-            return True
-        return missing <= PLAUSIBLE_BASE + PLAUSIBLE_FACTOR * max(rate(t), MIN_RATE) * dt
-
-    def fill(serials_now: np.ndarray) -> None:
-        """Serials the counter reaches again while still missing: their number came round, so the
-        old gap can never be filled and stays lost."""
-        hits = serials_now[ctr.gap_at[serials_now] > NEVER]
-        if len(hits):
-            ctr.gap_at[hits] = NEVER
-            for x in hits.tolist():
-                del ctr.missing[x]
-                lost_for_good.append(x)
-
-    while i < n:
-        s, t = int(arr[i]), float(ts[i])
-        d = (s - ctr.h) & MASK
-        if d == 1 and t - ctr.accepted_at[s] >= window:
-            while b < len(breaks) and breaks[b] <= i:
-                b += 1
-            j = breaks[b] if b < len(breaks) else n
-            run = arr[i:j]                # s[i] = h + 1 and every later one follows its predecessor
-            # A serial accepted within the window is a duplicate even in sequence (rule 1 first):
-            # the run stops before it.
-            recent = np.flatnonzero(ts[i:j] - ctr.accepted_at[run] < window)
-            if len(recent):
-                j = i + int(recent[0])
-                run = arr[i:j]
-            ctr.accepted_at[run] = ts[i:j]
-            if ctr.missing:
-                fill(run)
-            wraps += int(np.count_nonzero(run == 0))
-            ctr.h, ctr.prev = int(arr[j - 1]), float(ts[j - 1])
-            i = j
-            continue
-        if t - ctr.accepted_at[s] < window:
-            dup.append(s)
-            dup_pos.append(i)
-            res.duplicate_index.append(where(i))
-        elif ctr.gap_at[s] > NEVER and t - ctr.gap_at[s] < window:
-            ooo.append(s)                 # late: fills its gap
-            res.out_of_order_index.append(where(i))
-            ctr.gap_at[s] = NEVER
-            del ctr.missing[s]
-            ctr.accepted_at[s], ctr.prev = t, t
-        elif 1 < d < HALF and plausible(d - 1, t):
-            gaps.append((ctr.h, d - 1, t, where(i)))
-            new = np.arange(ctr.h + 1, ctr.h + d + 1) & MASK
-            if ctr.missing:
-                fill(new)
-            hole = new[:-1]
-            ctr.gap_at[hole] = t
-            ctr.missing.update(dict.fromkeys(hole.tolist()))
-            if s < ctr.h:
-                wraps += 1
-            ctr.h, ctr.prev = s, t
-            ctr.accepted_at[s] = t
-        else:
-            nxt = i + 1
-            while nxt < n and arr[nxt] == s:          # copies of the candidate confirm nothing
-                nxt += 1
-            if nxt < n and 1 <= (int(arr[nxt]) - s) & MASK <= CONFIRM:
-                res.restarts.append((where(i), ctr.h, s))
-                lost_for_good.extend(ctr.missing)     # serials lost before stay lost
-                ctr.restart(s, t, i)
-            else:
-                ooo.append(s)                         # unconfirmed: moves nothing
-                res.out_of_order_index.append(where(i))
-                ctr.accepted_at[s], ctr.prev = t, t
-        i += 1
-        if limit is not None and len(dup) + len(ooo) + len(ctr.missing) + len(lost_for_good) > limit:
-            res.aborted = True
-            break
-    res.wraps = wraps
-    res.duplicates, res.out_of_order = len(dup), len(ooo)
-    res.lost_serials = lost_for_good + list(ctr.missing)
-    res.last[None] = ctr.h
-    return res
+    """Classify one counter's serials in arrival order, all at once. `index` names the positions
+    in the results (default: the positions); `limit` stops early once the anomalies exceed it."""
+    counter = Counter(dup_window_ms)
+    counter.feed(serials, times, range(len(serials)) if index is None else index, final=True, limit=limit)
+    return counter.result()
 
 
 def classify_sender(serials: np.ndarray, times: np.ndarray, codes: np.ndarray, scope: str,
@@ -214,7 +272,5 @@ def classify_sender(serials: np.ndarray, times: np.ndarray, codes: np.ndarray, s
         if part.aborted:
             break
     total.gaps.sort(key=lambda g: g[3])
-    total.duplicate_index.sort()
-    total.out_of_order_index.sort()
     total.restarts.sort()
     return total

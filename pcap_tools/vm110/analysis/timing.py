@@ -13,6 +13,7 @@ SUMMARY_KEYS = ("min", "mean", *(k for k, _ in PERCENTILES), "max")
 MS = 1000.0
 JITTER_GAIN = 1.0 / 16.0
 _BLOCK = 256          # (16/15)**256 ~ 1.5e7: the block recurrence stays well inside float64
+_CHUNK = _BLOCK * 256
 
 
 def intervals_ms(times: Sequence[float]) -> np.ndarray:
@@ -35,7 +36,11 @@ def percentile(ordered: Sequence[float], q: float) -> Optional[float]:
 
 def summary(values: Sequence[float], keys: tuple = SUMMARY_KEYS) -> dict:
     """min, mean, percentiles and max of values (None each when there are none)."""
-    ordered = np.sort(np.asarray(values, dtype=np.float64))
+    return summary_sorted(np.sort(np.asarray(values, dtype=np.float64)), keys)
+
+
+def summary_sorted(ordered: np.ndarray, keys: tuple = SUMMARY_KEYS) -> dict:
+    """`summary` of values already sorted."""
     out: dict = {}
     pct = dict(PERCENTILES)
     for key in keys:
@@ -53,28 +58,40 @@ def summary(values: Sequence[float], keys: tuple = SUMMARY_KEYS) -> dict:
 
 
 def jitter_series(times: Sequence[float], period_ms: float) -> np.ndarray:
-    """J after each interval: J += (|D| - J)/16, D = (R_j - R_i) - k*T, k = max(1, round(dR/T)),
-    round half up. The recurrence J_i = a*J_(i-1) + x_i (a = 15/16, x = |D|/16) is evaluated a
-    block at a time in closed form: J_i = a^(i+1) * (J_0 + cumsum(x_m / a^(m+1)))."""
-    delta = intervals_ms(times)
-    k = np.maximum(1.0, np.floor(delta / period_ms + 0.5))
-    x = np.abs(delta - k * period_ms) * JITTER_GAIN
-    out = np.empty_like(x)
+    """J after each interval of `times` (see `jitter_of_intervals`)."""
+    return jitter_of_intervals(intervals_ms(times), period_ms)
+
+
+def jitter_of_intervals(delta: np.ndarray, period_ms: float) -> np.ndarray:
+    """J after each interval (ms): J += (|D| - J)/16, D = (R_j - R_i) - k*T, k = max(1,
+    round(dR/T)), round half up. The recurrence J_i = a*J_(i-1) + x_i (a = 15/16, x = |D|/16) is
+    evaluated a block at a time in closed form: J_i = a^(i+1) * (J_0 + cumsum(x_m / a^(m+1)))."""
+    out = np.empty(len(delta))
     a = 1.0 - JITTER_GAIN
     powers = a ** np.arange(1, _BLOCK + 1)
     j = 0.0
-    for start in range(0, len(x), _BLOCK):
-        block = x[start:start + _BLOCK]
-        pw = powers[:len(block)]
-        values = pw * (j + np.cumsum(block / pw))
-        out[start:start + len(block)] = values
-        j = float(values[-1])
+    # A chunk of intervals at a time (whole blocks): the values are the same, the temporaries small.
+    for chunk in range(0, len(out), _CHUNK):
+        part = delta[chunk:chunk + _CHUNK]
+        k = np.maximum(1.0, np.floor(part / period_ms + 0.5))
+        x = np.abs(part - k * period_ms) * JITTER_GAIN
+        for start in range(0, len(x), _BLOCK):
+            block = x[start:start + _BLOCK]
+            pw = powers[:len(block)]
+            values = pw * (j + np.cumsum(block / pw))
+            out[chunk + start:chunk + start + len(block)] = values
+            j = float(values[-1])
     return out
 
 
 def jitter_ms(times: Sequence[float], period_ms: float) -> dict:
-    """Final, mean (over every update) and maximum jitter."""
-    series = jitter_series(times, period_ms) if period_ms else np.empty(0)
+    """Final, mean (over every update) and maximum jitter of `times`."""
+    return jitter_summary(intervals_ms(times), period_ms)
+
+
+def jitter_summary(delta: np.ndarray, period_ms: Optional[float]) -> dict:
+    """Final, mean (over every update) and maximum jitter of the intervals `delta` (ms)."""
+    series = jitter_of_intervals(delta, period_ms) if period_ms else np.empty(0)
     if not len(series):
         return {"final": None, "mean": None, "max": None}
     return {"final": float(series[-1]), "mean": float(series.mean()), "max": float(series.max())}

@@ -22,13 +22,15 @@ from .. import constants as C
 from ..capture.reader import CaptureReader, address
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS
 from ..errors import CliError
-from .collect import STATE, STATE_FIELDS, Collected
+from .collect import RECORD, STATE, STATE_FIELDS, Collected
+from .incremental import Analysis
 
 PLUGIN_ENV = "VM110_DISSECTOR"
 REASONS = frozenset(p.value for p in C.Problem)
 _EXPERT = "vm110.expert."
 _HEADER = struct.Struct("<4sHHHHI")      # what the fast engine records: packet ID and header ...
 _AUX = struct.Struct("<H")                 # ... then the command ID or VRPO packet number
+_BATCH = 4096 * RECORD.size                # bytes of records fed to the analysis at a time
 
 
 def plugin_path() -> Path:
@@ -82,13 +84,14 @@ class TsharkEngine:
     def _count_good(self, path: str, variant: str, order: str) -> int:
         return sum(1 for _ in self._packets(path, variant, order, "vm110.crc.status == 1"))
 
-    def collect(self, path: str) -> Collected:
+    def collect(self, path: str, opt) -> Collected:
+        """Read the capture through tshark, feeding its legal packets to an `Analysis` with `opt`."""
         check_available()
         reader = CaptureReader(path)           # clean errors for unreadable files, and file facts
         for _ in reader.batches():
             pass
         if reader.damage is None:
-            return self._collect(path, path, reader)
+            return self._collect(path, path, reader, opt)
         # tshark gets the intact part only: the same frames the reader took, and no crash.
         with tempfile.TemporaryDirectory(prefix="vm110-") as tmp:
             intact = os.path.join(tmp, "intact" + os.path.splitext(path)[1])
@@ -100,18 +103,18 @@ class TsharkEngine:
                         break
                     dst.write(block)
                     left -= len(block)
-            got = self._collect(intact, path, reader)
+            got = self._collect(intact, path, reader, opt)
         got.problem, got.damage = reader.problem, reader.damage
         return got
 
-    def _collect(self, path: str, name: str, reader: CaptureReader) -> Collected:
+    def _collect(self, path: str, name: str, reader: CaptureReader, opt) -> Collected:
         """Read `path` through tshark; report it as `name`."""
         variants = VARIANTS if self.crc == "auto" else (self.crc,)
         orders = BYTE_ORDERS if self.crc_order == "auto" else (self.crc_order,)
         candidates = [(v, o) for v in variants for o in orders]
         first = (DEFAULT_VARIANT, DEFAULT_BYTE_ORDER) if (DEFAULT_VARIANT, DEFAULT_BYTE_ORDER) in candidates \
             else candidates[0]
-        got = self._pass(path, name, reader, *first)
+        got = self._pass(path, name, reader, opt, *first)
         counts = {first: got.crc_counts[first]}
         if len(candidates) > 1 and got.crc_checked > counts[first]:
             for combo in candidates:
@@ -119,12 +122,12 @@ class TsharkEngine:
                     counts[combo] = self._count_good(path, *combo)
             best = max(candidates, key=lambda c: (counts[c], -candidates.index(c)))
             if best != first:
-                got = self._pass(path, name, reader, *best)
+                got = self._pass(path, name, reader, opt, *best)
             got.crc_counts.update(counts)
         return got
 
-    def _pass(self, path: str, name: str, reader: CaptureReader, variant: str, order: str) -> Collected:
-        got = Collected(path=name, engine="tshark", format=reader.format, link_types=sorted(reader.link_types),
+    def _pass(self, path: str, name: str, reader: CaptureReader, opt, variant: str, order: str) -> Collected:
+        got = Collected(path=name, engine="tshark", analysis=Analysis(opt), format=reader.format, link_types=sorted(reader.link_types),
                         ports=(self.port, self.port + C.OUTPUT_PORT_OFFSET), crc_variant=variant,
                         crc_order=order, crc_auto=self.crc == "auto" or self.crc_order == "auto",
                         problem=reader.problem, first_ts=reader.first_ts, last_ts=reader.last_ts)
@@ -142,6 +145,9 @@ class TsharkEngine:
                 got.other_udp += 1
                 continue
             self._eglink(got, pkt, layers)
+            if len(got.records) >= _BATCH:
+                got.flush()
+        got.flush()
         got.frames = frames
         got.crc_counts[(variant, order)] = got.crc_checked - got.illegal_reasons[C.Problem.BAD_CRC.value]
         return got

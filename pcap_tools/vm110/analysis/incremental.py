@@ -1,0 +1,108 @@
+"""The one analysis every front-end shares: `feed(batch)` with legal packets in arrival order,
+then `finish()`; `report.build` turns the state into the report.
+
+The state is bounded by the senders, the open commands and the findings, not by the packets:
+per sender its counters and streams (`sender.Sender`), the commands (`commands.Tracker`), and
+the command events not yet applied. Per periodic packet one float64 time is kept for the exact
+interval statistics (`periodic`).
+
+Order across senders matters twice:
+- A sender on a new port is a restart of an earlier one silent for NEW_PORT_SILENCE_MS, judged
+  at its first packet by what was heard before it. A batch is therefore split at the first
+  packet of each new sender, so that the earlier senders have been fed exactly the packets
+  before it when it is linked.
+- Commands are applied in capture order, a restart's marker before the packet of its frame. A
+  sender may not have decided its latest packets yet (a restart candidate, the scope warm-up);
+  the events at or after the first undecided frame of any sender wait until it is decided.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .. import constants as C
+from ..capture.reader import address
+from . import commands
+from .collect import CODE, _groups, code_of, key_sender, sender_keys
+from .sender import Sender
+
+NEW_PORT_SILENCE_MS = 250.0
+
+
+class Analysis:
+    def __init__(self, opt) -> None:
+        self.opt = opt
+        self.senders: dict[int, Sender] = {}          # sender key -> its state, in order of appearance
+        self.names: list[bytes] = []                  # source index -> packed address
+        fail = {CODE[C.PacketType.VRCI]: opt.vrci_fail_ms, CODE[C.PacketType.VRCO]: opt.vrco_give_up_ms}
+        self.tracker = commands.Tracker(fail, opt.reuse_gap_ms)
+        self.events: list[tuple] = []                 # command events not applied yet
+        self.finished = False
+
+    def feed(self, rec: np.ndarray, sources: dict[bytes, int]) -> None:
+        """Legal packets (collect.RECORD_DTYPE) in arrival order; `sources`: packed source
+        address -> the index the records' `src` holds."""
+        if len(sources) > len(self.names):
+            self.names = [b""] * len(sources)
+            for src, index in sources.items():
+                self.names[index] = src
+        key = sender_keys(rec, code_of(rec["pid"]))
+        values, firsts = np.unique(key, return_index=True)
+        new = sorted((f, k) for k, f in zip(values.tolist(), firsts.tolist()) if k not in self.senders)
+        cuts = [f for f, _ in new]
+        starts = ([0] if not cuts or cuts[0] else []) + cuts
+        for a, b in zip(starts, [*starts[1:], len(rec)]):
+            if new and new[0][0] == a:
+                self._join(new.pop(0)[1], rec[a])
+            part = rec[a:b]
+            if len(self.senders) == 1 or (b - a) == 1:
+                self.senders[int(key[a])].feed(part, self.events)
+                continue
+            for value, rows in _groups(key[a:b]):
+                self.senders[value].feed(part[rows], self.events)
+        self._apply(self._horizon())
+
+    def finish(self) -> None:
+        """The capture ended: decide everything left and apply every command event."""
+        if self.finished:
+            return
+        self.finished = True
+        for snd in self.senders.values():
+            snd.finish(self.events)
+        self._apply(None)
+
+    def _join(self, key: int, first: np.void) -> None:
+        """A new sender: a restart on a new port of the earlier sender of its address, direction
+        and origin heard last, when that one has been silent for NEW_PORT_SILENCE_MS."""
+        direction, origin, src, port = key_sender(key)
+        new = self.senders[key] = Sender(direction, origin, address(self.names[src], port), first, self.opt)
+        silence = NEW_PORT_SILENCE_MS / 1000.0
+        quiet = [(old.last_ts, old.last_frame, i, old) for i, old in enumerate(self.senders.values())
+                 if old is not new and (old.direction, old.origin, old.host) == (direction, origin, new.host)
+                 and old.src != new.src and new.first_ts - old.last_ts >= silence]
+        if not quiet:
+            return
+        old = max(quiet, key=lambda q: q[:3])[3]
+        new.link = {"time": new.first_ts, "frame": new.first_frame, "from": 0, "to": new.first_serial,
+                    "port_from": old.port, "port_to": new.port}
+        old.probe(new)
+        self.events.append((new.first_frame, new.first_ts, commands.RESTART, old.id, None))
+
+    def _horizon(self) -> Optional[int]:
+        frames = [f for f in (s.undecided() for s in self.senders.values()) if f is not None]
+        return min(frames) if frames else None
+
+    def _apply(self, horizon: Optional[int]) -> None:
+        """Apply the command events before `horizon` (all when None), in capture order."""
+        if not self.events:
+            return
+        if horizon is None:
+            ready, self.events = self.events, []
+        else:
+            ready = [e for e in self.events if e[0] < horizon]
+            if not ready:
+                return
+            self.events = [e for e in self.events if e[0] >= horizon]
+        ready.sort(key=lambda e: (e[0], e[2]))
+        self.tracker.apply(ready)

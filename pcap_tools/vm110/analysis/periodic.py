@@ -1,0 +1,158 @@
+"""A periodic stream (one sender's accepted VRPI, or its accepted VRPO), fed a batch at a time.
+
+Watchdog violations and timestamps going backwards are found as the packets come (they are
+findings: a list, not a packet array). The interval statistics must be exact (percentiles of
+every interval, RFC 3550 jitter from the first interval, a histogram up to p99.9), so the stream
+keeps the time of each packet: 8 bytes per packet, as float64, since a float32 interval would
+change the microseconds the report shows. Everything else is computed from these times at the
+end, one stream at a time, by the same functions (`timing`) as always.
+
+The times are kept in fixed-size blocks (`Floats`): an array grown by reallocation leaves holes
+in the heap as large as itself, which the process keeps.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+
+from . import timing
+
+HISTOGRAM_BINS = 60
+SERIES_POINTS = 600
+_CHUNK = 1 << 16
+
+
+class Floats:
+    """float64 values appended a batch at a time, in blocks of BLOCK values."""
+
+    BLOCK = 1 << 16
+
+    def __init__(self) -> None:
+        self.blocks: list[np.ndarray] = []
+        self.used = 0                     # values in the last block
+        self.size = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    def extend(self, values: np.ndarray) -> None:
+        while len(values):
+            if not self.blocks or self.used == len(self.blocks[-1]):
+                self.blocks.append(np.empty(self.BLOCK))
+                self.used = 0
+            take = min(len(self.blocks[-1]) - self.used, len(values))
+            self.blocks[-1][self.used:self.used + take] = values[:take]
+            self.used += take
+            self.size += take
+            values = values[take:]
+
+    def last(self) -> float:
+        return float(self.blocks[-1][self.used - 1])
+
+    def __getitem__(self, i: int) -> float:
+        return float(self.blocks[i // self.BLOCK][i % self.BLOCK])
+
+    def intervals_ms(self, before: Optional[float] = None) -> np.ndarray:
+        """`timing.intervals_ms` of the values (after `before`, when given), a block at a time."""
+        out = np.empty(max(self.size - (before is None), 0))
+        at, prev = 0, ([] if before is None else [before])
+        for k, block in enumerate(self.blocks):
+            part = block[:self.used] if k == len(self.blocks) - 1 else block
+            gaps = timing.intervals_ms(np.concatenate((prev, part)))
+            out[at:at + len(gaps)] = gaps
+            at += len(gaps)
+            prev = part[-1:]
+        return out
+
+
+class Stream:
+    """One periodic stream: `ptype` of `sender`, watchdog `limit_ms`."""
+
+    def __init__(self, ptype: str, sender: str, limit_ms: float) -> None:
+        self.ptype, self.sender, self.limit = ptype, sender, limit_ms
+        self.times = Floats()
+        self.first_frame = self.last_frame = 0
+        self.violations: list[dict] = []
+        self.backwards: list[tuple[int, float]] = []     # (frame, time) of the packet after each
+
+    def feed(self, times: np.ndarray, frames: Sequence[int]) -> None:
+        if not len(times):
+            return
+        times = np.asarray(times, dtype=np.float64)
+        if len(self.times):
+            stream, after = np.concatenate(([self.times.last()], times)), frames
+        else:
+            stream, after = times, frames[1:]
+            self.first_frame = int(frames[0])
+        violations, backwards = self._judge(stream, after)
+        self.violations += violations
+        self.backwards += backwards
+        self.times.extend(times)
+        self.last_frame = int(frames[-1])
+
+    def _judge(self, stream: np.ndarray, after: Sequence[int]) -> tuple[list, list]:
+        """Watchdog violations and backward steps of the intervals of `stream` (`after`: the
+        frame of the packet after each interval)."""
+        gaps = timing.intervals_ms(stream)
+        violations = [{"start": float(stream[i]), "gap_ms": float(gaps[i]), "until_end": False, "frame": int(after[i])}
+                      for i in np.flatnonzero(gaps > self.limit).tolist()]
+        backwards = [(int(after[i]), float(stream[i + 1])) for i in np.flatnonzero(gaps < 0).tolist()]
+        return violations, backwards
+
+    def row(self, before: Optional[float], end: Optional[float], period_ms: Optional[float]) -> tuple[dict, list]:
+        """The `periodic[]` row and the (frame, time) of each step back in time: `before`, the
+        predecessor's last packet (a restart on a new port), is the stream's first arrival;
+        `end`, the capture's last record (None: taken over)."""
+        times = self.times
+        violations, backwards = list(self.violations), list(self.backwards)
+        if before is not None:
+            # The interval from the predecessor's last packet comes first.
+            first_v, first_b = self._judge(np.array([before, times[0]]), [self.first_frame])
+            violations, backwards = first_v + violations, first_b + backwards
+        last = times.last()
+        if end is not None and (end - last) * timing.MS > self.limit:
+            violations.append({"start": last, "gap_ms": (end - last) * timing.MS, "until_end": True,
+                               "frame": self.last_frame})
+        gaps = times.intervals_ms(before)
+        jitter = timing.jitter_summary(gaps, period_ms) if period_ms else None
+        # The arrival after each interval, for the plot: the stream's packets from the first
+        # (from the second without a predecessor).
+        shown = plot(lambda i: times[i if before is not None else i + 1], gaps)   # sorts gaps
+        return {
+            "type": self.ptype, "sender": self.sender, "count": len(times),
+            "interval_ms": timing.summary_sorted(gaps),
+            "nominal_ms": period_ms,
+            "jitter_ms": jitter,
+            "watchdog": {"limit_ms": self.limit, "violations": violations},
+            "time_backwards": len(backwards),
+            "plot": shown,
+        }, backwards
+
+
+def plot(after: Callable[[int], float], gaps: np.ndarray) -> dict:
+    """Histogram of intervals (the last bin holds everything above p99.9) and a down-sampled
+    interval-over-time series (the largest interval of each bucket, so no watchdog gap hides);
+    `after(i)`: the time of the arrival that ends interval i. Sorts `gaps` in place once the
+    series is taken."""
+    finite = np.isfinite(gaps)
+    if not finite.all():                       # damaged timestamps: plot what can be plotted
+        kept = np.flatnonzero(finite)
+        out = plot(lambda i: after(int(kept[i])), gaps[finite])
+        gaps.sort()
+        return out
+    if not len(gaps):
+        return {"histogram": [], "bin_ms": None, "series": []}
+    step = max(1, math.ceil(len(gaps) / SERIES_POINTS))
+    series = [[after(i), float(gaps[i:i + step].max())] for i in range(0, len(gaps), step)]
+    gaps.sort()
+    low, high = float(gaps[0]), timing.percentile(gaps, 99.9)
+    high = max(high, low + 1e-3)
+    width = (high - low) / HISTOGRAM_BINS
+    counts = np.zeros(HISTOGRAM_BINS + 1, dtype=np.int64)
+    for a in range(0, len(gaps), _CHUNK):      # a chunk at a time: no per-interval temporaries
+        bins = np.clip(np.nan_to_num((gaps[a:a + _CHUNK] - low) / width), 0, HISTOGRAM_BINS).astype(np.int64)
+        counts += np.bincount(bins, minlength=HISTOGRAM_BINS + 1)
+    hist = [[low + i * width, int(c)] for i, c in enumerate(counts)]
+    return {"histogram": hist, "bin_ms": width, "series": series}

@@ -1,0 +1,232 @@
+"""One sender's analysis state between batches (docs/rules.md): its serial counter(s), the rows
+they have not decided yet, its periodic streams, VRPO bursts and state timeline.
+
+A counter may leave packets undecided at the end of a batch (a restart candidate waits for its
+next packet); they are kept here and handed in again with the sender's next rows. With
+`--serial-scope auto` the sender's first WARMUP_PACKETS packets (or WARMUP_S seconds) are kept
+as they came, the scope is chosen on them as `choose_scope` says, and they are then judged as
+every later packet is: a stream cannot wait for the end of the capture to choose.
+
+A sender that restarts on a new port asks its predecessor (`probe`) for the predecessor's state
+just before the new sender's first frame: its counter's highest serial and its last accepted
+packet of each periodic type. Every packet of the predecessor before that frame has been handed
+to it by then; a candidate still undecided is out of order as far as that moment can tell (as
+it would be in a capture that ended there), and whether it or a copy of it was accepted does not
+depend on its decision.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .. import constants as C
+from . import serials
+from .bursts import Bursts
+from .collect import CODE, RECORD_DTYPE, TYPES, VRPI_CODE, VRPO_CODE, code_of, sender_id
+from .commands import RESTART
+from .periodic import Stream
+from .state import Timeline
+
+WARMUP_PACKETS = 4096
+WARMUP_S = 10.0
+TYPE_SCOPE_MARGIN = 4     # auto: type scope needs at most half the anomalies, and 4 fewer
+COMMAND_CODES = np.array(sorted(CODE[t] for t in (C.PacketType.VRCI, C.PacketType.VRCO, *C.ACK_OF)))
+
+
+def choose_scope(rows: np.ndarray, opt) -> str:
+    """`auto`: per-type counters only when they explain the packets clearly better: with one
+    counter per sender, a type's stream can look clean only by accident (say, a loss just before
+    its first packet)."""
+    codes, window = code_of(rows["pid"]), opt.dup_window_ms
+    by_sender = serials.classify(rows["serial"], rows["ts"], dup_window_ms=window)
+    if by_sender.anomalies == 0 or len(np.unique(codes)) < 2:
+        return "sender"
+    by_type = serials.classify_sender(rows["serial"], rows["ts"], codes, "type", limit=by_sender.anomalies // 2,
+                                      dup_window_ms=window)
+    if not by_type.aborted and 2 * by_type.anomalies + TYPE_SCOPE_MARGIN <= by_sender.anomalies:
+        return "type"
+    return "sender"
+
+
+@dataclass
+class Probe:
+    frame: int             # the successor's first frame
+    successor: "Sender"
+    last_code: int         # this sender's last packet type before that frame
+
+
+class Sender:
+    """(direction, origin, source address, source port) and everything judged of it so far."""
+
+    def __init__(self, direction: str, origin: int, src: str, first: np.void, opt) -> None:
+        self.direction, self.origin, self.src = direction, origin, src
+        self.id = sender_id(direction, origin, src)
+        self.host, port = src.rsplit(":", 1)
+        self.port = int(port)
+        self.opt = opt
+        self.first_frame, self.first_ts = int(first["frame"]), float(first["ts"])
+        self.first_serial, self.first_code = int(first["serial"]), int(code_of(first["pid"]))
+        self.last_ts, self.last_frame, self.last_code = self.first_ts, self.first_frame, self.first_code
+        self.counts = np.zeros(len(TYPES), dtype=np.int64)
+        self.scope: Optional[str] = None if opt.serial_scope == "auto" else opt.serial_scope
+        self.warm: list[np.ndarray] = []
+        self.warm_count = 0
+        self.counters: dict = {}                 # None (scope sender) or type code -> serials.Counter
+        self.pending: dict = {}                  # counter key -> its undecided rows
+        self.streams: dict[int, Stream] = {}
+        self.bursts: Optional[Bursts] = None
+        self.timeline: Optional[Timeline] = None
+        self.probes: list[Probe] = []
+        self.taken_over = False                  # a later sender on a new port followed it
+        self.link: Optional[dict] = None         # the restart on a new port that began it
+        self.before: dict[int, Optional[float]] = {}   # the predecessor's last packet per periodic type
+
+    def feed(self, rows: np.ndarray, events: list) -> None:
+        """The sender's next legal packets, in arrival order; command events go to `events`."""
+        last = rows[-1]
+        self.last_ts, self.last_frame, self.last_code = float(last["ts"]), int(last["frame"]), int(code_of(last["pid"]))
+        self.counts += np.bincount(code_of(rows["pid"]), minlength=len(TYPES))
+        if self.scope is not None:
+            self._dispatch(rows, events, False)
+            return
+        self.warm.append(rows.copy())         # not a view: the batch itself is not kept
+        self.warm_count += len(rows)
+        if self.warm_count >= WARMUP_PACKETS or self.last_ts - self.first_ts >= WARMUP_S:
+            self._decide(events, False)
+
+    def finish(self, events: list) -> None:
+        """The capture ended: decide what is left."""
+        if self.scope is None:
+            self._decide(events, True)
+        else:
+            self._dispatch(np.empty(0, dtype=RECORD_DTYPE), events, True)
+        for probe in self.probes:
+            self._resolve(probe)
+        self.probes = []
+        if self.bursts is not None:
+            self.bursts.finish()
+
+    def undecided(self) -> Optional[int]:
+        """The first frame not decided yet (its events and any restart before them wait)."""
+        frames = [int(r["frame"][0]) for r in self.pending.values() if len(r)]
+        if self.warm:
+            frames.append(int(self.warm[0]["frame"][0]))
+        return min(frames) if frames else None
+
+    def _decide(self, events: list, final: bool) -> None:
+        rows = np.concatenate(self.warm)
+        self.warm, self.warm_count = [], 0
+        self.scope = choose_scope(rows, self.opt)
+        # Probes that came while warming up: their moment lies inside these rows.
+        for probe in sorted(self.probes, key=lambda p: p.frame):
+            cut = int(np.searchsorted(rows["frame"], probe.frame))
+            self._dispatch(rows[:cut], events, False)
+            rows = rows[cut:]
+            self._resolve(probe)
+        self.probes = []
+        self._dispatch(rows, events, final)
+
+    def probe(self, successor: "Sender") -> None:
+        """`successor` restarted this sender on a new port at its first frame (see the module doc)."""
+        self.taken_over = True
+        probe = Probe(successor.first_frame, successor, self.last_code)
+        if self.scope is None:
+            self.probes.append(probe)
+        else:
+            self._resolve(probe)
+
+    def _resolve(self, probe: Probe) -> None:
+        key = None if self.scope == "sender" else (
+            probe.successor.first_code if probe.successor.first_code in self.counters else probe.last_code)
+        counter = self.counters.get(key)
+        probe.successor.link["from"] = counter.h if counter is not None else 0
+        probe.successor.before = {code: self._last_accepted(code) for code in (VRPI_CODE, VRPO_CODE)}
+
+    def _last_accepted(self, code: int) -> Optional[float]:
+        """Time of the last accepted packet of that type so far, undecided ones included."""
+        window = self.opt.dup_window_ms / 1000.0
+        for rows in self.pending.values():
+            if not len(rows):
+                continue
+            # A candidate and copies of it: the candidate is accepted, a copy when the one
+            # accepted before it lies at least the duplicate window back.
+            accepted, at = np.zeros(len(rows), dtype=bool), float(rows["ts"][0])
+            accepted[0] = True
+            for i, t in enumerate(rows["ts"][1:].tolist(), 1):
+                if t - at >= window:
+                    accepted[i], at = True, t
+            mine = rows[accepted & (code_of(rows["pid"]) == code)]
+            if len(mine):
+                return float(mine["ts"][-1])
+        stream = self.streams.get(code)
+        return stream.times.last() if stream is not None and len(stream.times) else None
+
+    def _dispatch(self, rows: np.ndarray, events: list, final: bool) -> None:
+        """Judge rows (and the undecided ones before them) by the counter(s) of the scope."""
+        if self.scope == "sender":
+            parts = {None: rows}
+        else:
+            codes = code_of(rows["pid"])
+            parts = {c: rows[codes == c] for c in np.unique(codes).tolist()}
+        if final:
+            parts.update({k: rows[:0] for k in self.pending if k not in parts})
+        for key, new in parts.items():
+            held = self.pending.get(key)
+            todo = np.concatenate((held, new)) if held is not None and len(held) else new
+            if not len(todo):
+                continue
+            counter = self.counters.get(key)
+            if counter is None:
+                counter = self.counters[key] = serials.Counter(self.opt.dup_window_ms, key)
+            restarts = len(counter.res.restarts)
+            done = counter.feed(todo["serial"], todo["ts"], todo["frame"].tolist(), final)
+            decided, self.pending[key] = todo[:done], todo[done:].copy()   # a copy: not the batch
+            for frame, _, _, t in counter.res.restarts[restarts:]:
+                events.append((frame, t, RESTART, self.id, None))
+            if counter.fed_duplicates:
+                decided = decided[~np.isin(decided["frame"], counter.fed_duplicates)]
+            self._accept(decided, events)
+
+    def _accept(self, rows: np.ndarray, events: list) -> None:
+        """Accepted packets (not duplicates) of one counter, in arrival order."""
+        if not len(rows):
+            return
+        codes = code_of(rows["pid"])
+        for code in (VRPI_CODE, VRPO_CODE):
+            mine = rows[codes == code]
+            if not len(mine):
+                continue
+            frames = mine["frame"]
+            stream = self.streams.get(code)
+            if stream is None:
+                limit = self.opt.vrpi_watchdog_ms if code == VRPI_CODE else self.opt.vrpo_watchdog_ms
+                stream = self.streams[code] = Stream(TYPES[code].value, self.id, limit)
+            stream.feed(mine["ts"], frames)
+            if code == VRPI_CODE:
+                if self.timeline is None:
+                    self.timeline = Timeline()
+                self.timeline.feed(mine["ts"], mine["state"], frames)
+            else:
+                if self.bursts is None:
+                    opt = self.opt
+                    self.bursts = Bursts(stream.times, opt.burst_gap_ms, opt.vrpo_start, opt.vrpo_data_size, opt.vrpo_min_ms,
+                                         opt.vrpo_max_ms)
+                self.bursts.feed(mine["ts"], mine["aux"], mine["size"], frames)
+        command = np.isin(codes, COMMAND_CODES)
+        if command.any():
+            picked = rows[command]
+            events += zip(picked["frame"].tolist(), picked["ts"].tolist(), codes[command].tolist(),
+                          [self.id] * len(picked), picked["aux"].tolist())
+
+    def serial_result(self) -> serials.SerialResult:
+        """The counters' results together, as one counter (scope sender) or per type."""
+        if self.scope == "sender":
+            return self.counters[None].result()
+        total = serials.SerialResult()
+        for code in sorted(self.counters):
+            total.merge(self.counters[code].result())
+        total.gaps.sort(key=lambda g: g[3])
+        total.restarts.sort()
+        return total

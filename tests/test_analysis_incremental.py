@@ -1,0 +1,102 @@
+"""The incremental analysis: however the packets are cut into batches, the report is the same
+(restart candidates, scope warm-up, new-port restarts and command events cross batch borders)."""
+from __future__ import annotations
+
+import json
+import random
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from vm110.analysis import engine, serials, timing
+from vm110.analysis.incremental import Analysis
+from vm110.analysis.periodic import Floats
+from vm110.analysis.report import Options, build
+
+CAPTURES = sorted(p for p in (Path(__file__).resolve().parent.parent / "captures").iterdir()
+                  if p.suffix in (".pcap", ".pcapng"))
+
+
+class _Recorder:
+    """Stands in for the Analysis: keeps what the engine feeds it."""
+
+    def __init__(self, opt) -> None:
+        self.opt, self.batches, self.sources = opt, [], {}
+
+    def feed(self, rec, sources) -> None:
+        self.batches.append(rec.copy())
+        self.sources = sources
+
+
+def _records(path, monkeypatch):
+    monkeypatch.setattr(engine, "Analysis", _Recorder)
+    got = engine.FastEngine().collect(str(path), Options())
+    rec = got.analysis
+    return got, np.concatenate(rec.batches) if rec.batches else None, rec.sources
+
+
+def _report(got, rec, sources, cuts) -> str:
+    analysis = Analysis(Options())
+    for a, b in zip(cuts, cuts[1:]):
+        analysis.feed(rec[a:b], sources)
+    got.analysis = analysis
+    return json.dumps(build(got), sort_keys=True)
+
+
+@pytest.mark.parametrize("path", CAPTURES, ids=lambda p: p.name)
+def test_batches_of_any_size_give_the_same_report(path, monkeypatch):
+    got, rec, sources = _records(path, monkeypatch)
+    if rec is None:
+        pytest.skip("no legal packets")
+    whole = _report(got, rec, sources, [0, len(rec)])
+    rng = random.Random(len(rec))
+    for size in (1, 7, 500):
+        if size == 1 and len(rec) > 5000:
+            continue
+        assert _report(got, rec, sources, list(range(0, len(rec), size)) + [len(rec)]) == whole, size
+    cuts = sorted({0, len(rec), *(rng.randrange(len(rec)) for _ in range(40))})
+    assert _report(got, rec, sources, cuts) == whole
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(-3, 40), min_size=1, max_size=200), st.integers(0, 2**32))
+def test_a_counter_fed_in_pieces_equals_one_pass(steps, seed):
+    rng = random.Random(seed)
+    seq, times, s, t = [], [], rng.randrange(serials.MOD), 0.0
+    for step in steps:
+        t += rng.choice([0.001, 0.01, 0.5, 1.5])
+        if step < 0 and seq:
+            seq.append(seq[rng.randrange(len(seq))])
+        elif step > 30:
+            s = rng.randrange(serials.MOD)                  # a jump: a restart candidate
+            seq.append(s)
+        else:
+            s = (s + max(step, 1)) % serials.MOD
+            seq.append(s)
+        times.append(t)
+    want = serials.classify(seq, times)
+    counter = serials.Counter()
+    cuts = sorted({0, len(seq), *(rng.randrange(len(seq)) for _ in range(5))})
+    held = 0
+    for a, b in zip(cuts, cuts[1:]):
+        done = counter.feed(seq[held:b], times[held:b], list(range(held, b)), final=b == len(seq))
+        held += done
+    got = counter.result()
+    assert held == len(seq)
+    for name in ("received", "duplicates", "out_of_order", "wraps", "lost_serials", "duplicate_serials",
+                 "out_of_order_serials", "gaps", "duplicates_located", "out_of_order_located", "restarts", "last"):
+        assert getattr(got, name) == getattr(want, name), name
+
+
+@pytest.mark.parametrize("before", [None, 0.5])
+def test_floats_intervals_across_blocks(monkeypatch, before):
+    monkeypatch.setattr(Floats, "BLOCK", 4)
+    times = np.cumsum(np.random.default_rng(1).random(23)) + 1.7e9
+    f = Floats()
+    for a in range(0, len(times), 5):
+        f.extend(times[a:a + 5])
+    full = times if before is None else np.concatenate(([1.7e9 + before], times))
+    assert np.array_equal(f.intervals_ms(None if before is None else 1.7e9 + before), timing.intervals_ms(full))
+    assert f.last() == times[-1] and f[9] == times[9] and len(f) == len(times)
