@@ -98,8 +98,7 @@ def build_mixed(path) -> dict:
             tr.add(t, data)
             facts["vrpi_times"].append(T0 + t)
             if i == 20:
-                tr.add(t + 0.0002, data)              # the network duplicated it
-                facts["vrpi_times"].append(T0 + t + 0.0002)
+                tr.add(t + 0.0002, data)              # the network duplicated it: no arrival
         elif kind == "vrci":
             tr.add(t, payload(VRCI, bu_next(), BU_ORIGIN, command_id=arg))
         elif kind == "vrai":
@@ -180,9 +179,10 @@ def test_other_senders(mixed):
 def test_periodic_streams(mixed):
     report, facts = mixed
     p = _periodic(report, "VRPI", BU_ID)
-    assert p["count"] == 74                           # the duplicate is a legal packet too
-    assert p["watchdog"] == {"limit_ms": 500, "violations": [{"start": T0 + 4.875, "gap_ms": 750.0}]}
-    assert p["interval_ms"]["max"] == 750.0 and p["interval_ms"]["min"] == 0.2
+    assert p["count"] == 73                           # the duplicate is no arrival (docs/rules.md)
+    assert [{k: v[k] for k in ("start", "gap_ms", "until_end")} for v in p["watchdog"]["violations"]] == [
+        {"start": T0 + 4.875, "gap_ms": 750.0, "until_end": False}]
+    assert p["interval_ms"]["max"] == 750.0 and p["interval_ms"]["min"] == 125.0
     final, mean, peak = jitter_reference(facts["vrpi_times"], C.VRPI_PERIOD_MS)
     assert p["jitter_ms"]["final"] == pytest.approx(final, abs=1e-3)
     assert p["jitter_ms"]["mean"] == pytest.approx(mean, abs=1e-3)
@@ -221,7 +221,10 @@ def test_state_timeline_and_verdict(mixed):
     rules = {f["rule"] for f in report["verdict"]["findings"]}
     assert {"lost", "illegal", "watchdog", "failed", "unacked", "relays_open", "duplicates"} <= rules
     assert report["verdict"]["ok"] is False
-    assert report["totals"]["watchdog"] == 1 and report["totals"]["lost"] == 3
+    # The base unit's stall, and the other base unit silent from 1.145 s to the end of the capture.
+    assert report["totals"]["watchdog"] == 2 and report["totals"]["lost"] == 3
+    other = next(p for p in report["periodic"] if p["sender"].startswith(f"Input {OTHER_BU}"))
+    assert [v["until_end"] for v in other["watchdog"]["violations"]] == [True]
 
 
 def test_pcapng_gives_the_same_report(mixed, tmp_path):

@@ -1,0 +1,223 @@
+"""What the Wireshark GUI shows of the dissector, checked through tshark on every version: a
+description (blurb) for every field, a glossary (`tshark -G fields`) in the same order on every
+run, expert summaries that group (constant text: few distinct ones per capture), the analysis
+findings in front of the Info column and in `vm110.analysis.flags`, the configuration profile
+`dissector/profile/VM-110` (its colouring rules' and filter buttons' filters compile, its columns
+load), and every Wireshark name the documentation mentions exists."""
+from __future__ import annotations
+
+import importlib
+import os
+import re
+import shutil
+import subprocess
+
+import pytest
+
+import tshark_runner as T
+
+pytestmark = pytest.mark.tshark
+
+CAPTURES = T.REPO / "captures"
+PROFILE = T.REPO / "dissector" / "profile" / "VM-110"
+DOCS = [T.REPO / "README.md", CAPTURES / "README.md", *sorted((T.REPO / "docs").glob("*.md"))]
+ON = {"vm110.analysis": "TRUE"}
+# The analysis findings' Info markers (FINDING in the dissector) and the experts they stand for.
+MARKERS = {"Serial Gap", "Duplicate", "Out-Of-Order", "Restart", "Watchdog", "Silent Until End", "VRPO Interval",
+           "VRCI Retransmission", "VRCO Retransmission", "VRCI Spurious Retransmission",
+           "VRCO Spurious Retransmission", "Resend Interval", "Ack Without Command", "Duplicate Ack", "Late Ack",
+           "Unacknowledged", "Interrupted", "Burst Packet Missing", "Incomplete Burst"}
+
+
+@pytest.fixture(params=T.RUNNERS, ids=lambda r: r.name)
+def ws(request, tmp_path):
+    try:
+        with request.param.workspace(tmp_path) as workspace:
+            yield workspace
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+
+
+def glossary(ws: T.Workspace) -> list[list[str]]:
+    """The vm110 rows of `tshark -G fields` (-G must come first, so no ws.run prefix)."""
+    proc = ws.run(["-G", "fields", "-X", f"lua_script:{ws.plugin()}"], plugin=False)
+    assert T.LUA_ERROR not in proc.stderr   # (stdout lists the field "Lua Error", _ws.lua.error)
+    rows = [line.split("\t") for line in proc.stdout.splitlines()]
+    return [r for r in rows if (r[0] == "F" and r[2].startswith("vm110")) or (r[0] == "P" and r[2] == "vm110")]
+
+
+def copy_in(ws: T.Workspace, capture: str):
+    local = ws.dir / capture
+    local.write_bytes((CAPTURES / capture).read_bytes())
+    return local
+
+
+def test_every_field_has_a_description(ws):
+    """The status bar shows a field's blurb; `tshark -G fields` lists it in the 8th column."""
+    fields = [r for r in glossary(ws) if r[0] == "F" and not r[2].startswith("vm110.expert.")]
+    assert len(fields) > 60 and "vm110.analysis.flags" in {r[2] for r in fields}
+    missing = [r[2] for r in fields if len(r) < 8 or not r[7].strip()]
+    assert not missing, f"fields without a description: {missing}"
+
+
+def test_glossary_order_is_deterministic(ws):
+    """Fields and experts are registered in a fixed order (Lua 5.4's pairs() order changes from run to
+    run), so `tshark -G fields` is the same every time."""
+    first, second = glossary(ws), glossary(ws)
+    assert first == second
+    names = [r[2] for r in first if r[0] == "F"]
+    assert names.index("vm110.analysis.ack_in") < names.index("vm110.type")  # (sorted by key)
+
+
+def doc_names() -> dict[str, list[str]]:
+    """Wireshark names (`vm110.x.y`) the documentation mentions -> the files mentioning them. Left
+    out: `vm110.lua`, placeholders (`vm110.<name>`, `vm110.expert.<code>`) and Python names
+    (`vm110.layers.bind_ports`), which must import."""
+    out: dict[str, list[str]] = {}
+    for doc in DOCS:
+        text = doc.read_text()
+        for m in re.finditer(r"vm110(?:\.[a-z0-9_]+)+", text):
+            name = m.group(0)
+            if name.endswith(".lua") or text[m.end():m.end() + 2] == ".<" or _python_name(name):
+                continue
+            out.setdefault(name, []).append(doc.name)
+    return out
+
+
+def _python_name(name: str) -> bool:
+    parts = name.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        try:
+            for attr in parts[i:]:
+                obj = getattr(obj, attr)
+        except AttributeError:
+            return False
+        return i > 1 or len(parts) == 1
+    return False
+
+
+def test_names_in_the_docs_exist(ws):
+    """Every field, expert and preference name in README.md, captures/README.md and docs/*.md is
+    one the dissector registers."""
+    fields = {r[2] for r in glossary(ws) if r[0] == "F"}
+    proc = ws.run(["-G", "defaultprefs", "-X", f"lua_script:{ws.plugin()}"], plugin=False)
+    prefs = set(re.findall(r"^#?(vm110\.[a-z0-9_]+):", proc.stdout, re.M))
+    assert "vm110.analysis" in prefs and "vm110.crc_variant" in prefs
+    names = doc_names()
+    assert len(names) > 40 and "vm110.analysis.flags" in names
+    unknown = {n: docs for n, docs in names.items() if n not in fields and n not in prefs}
+    assert not unknown, f"names in the docs that tshark does not know: {unknown}"
+    experts = {n for n in names if n.startswith("vm110.expert.")}
+    assert experts and experts <= fields
+
+
+@pytest.mark.parametrize("capture", ["loss.pcapng", "overlap.pcapng", "restart.pcapng"])
+def test_expert_summaries_group(ws, capture):
+    """`tshark -z expert` groups by summary: a handful of constant lines (no numbers), not one per
+    packet (255 on loss.pcapng when the numbers were in the text)."""
+    proc = ws.run(["-r", str(copy_in(ws, capture)), "-2", "-q", "-z", "expert", *T.pref_args(ON)])
+    rows = [line.split(None, 3) for line in proc.stdout.splitlines()]
+    summaries = [r[3] for r in rows if len(r) == 4 and r[0].isdigit() and r[2] == "VM110"]
+    assert summaries and len(summaries) == len(set(summaries)) <= 12, summaries
+    assert not [s for s in summaries if re.search(r"\d", s)], summaries
+
+
+def _fields(ws, capture, *names, extra=()):
+    proc = ws.run(["-r", str(copy_in(ws, capture)), "-2", *T.pref_args(ON), *extra, "-T", "fields",
+                   "-E", "occurrence=a", *(a for n in names for a in ("-e", n))])
+    assert T.LUA_ERROR not in proc.stdout + proc.stderr
+    return [line.split("\t") for line in proc.stdout.splitlines()]
+
+
+@pytest.mark.parametrize("capture", ["overlap.pcapng", "restart.pcapng", "retransmit.pcap"])
+def test_findings_flags_and_info_markers(ws, capture):
+    """vm110.analysis.flags is on exactly the packets with an analysis expert, lists the same
+    findings the Info column shows in front ("[Serial Gap] [VRCI Retransmission] VRCI cmd 3, ...")."""
+    codes = sorted(T.ANALYSIS_EXPERTS)
+    rows = _fields(ws, capture, "frame.number", "vm110.analysis.flags", "_ws.col.Info",
+                   *(f"vm110.expert.{c}" for c in codes))
+    seen = set()
+    for row in rows:
+        number, flags, info, experts = row[0], row[1], row[2], row[3:]
+        has_expert = any(experts)
+        assert bool(flags) == has_expert, (number, flags, info)
+        if not flags:
+            assert not info.startswith("["), (number, info)
+            continue
+        names = flags.split(", ")
+        assert set(names) <= MARKERS, (number, names)
+        assert info.startswith("".join(f"[{n}] " for n in names)), (number, flags, info)
+        seen.update(names)
+    assert seen
+
+
+def test_analysis_items_sit_in_one_subtree(ws):
+    """Every analysis item is under "[VM-110 analysis]" (as TCP's "[SEQ/ACK analysis]") with the
+    flags last."""
+    out = ws.run(["-r", str(copy_in(ws, "overlap.pcapng")), "-2", *T.pref_args(ON), "-V", "-O", "vm110",
+                  "-Y", "vm110.analysis.flags && vm110.analysis.retransmission_of"]).stdout
+    block = out.split("    [VM-110 analysis]\n", 1)[1].split("\n\n", 1)[0]
+    lines = [line for line in block.splitlines() if line.startswith("        [") and "Expert Info" not in line]
+    assert any("Retransmission of frame" in line for line in lines)
+    assert lines[-1].startswith("        [VM-110 analysis flags: ")
+
+
+def profile_filters() -> list[tuple[str, str]]:
+    """(source, filter) of every colouring rule and filter button of the profile."""
+    out = []
+    for line in (PROFILE / "colorfilters").read_text().splitlines():
+        if line.startswith("@"):
+            out.append(("colorfilters " + line.split("@")[1], line.split("@")[2]))
+    for line in (PROFILE / "dfilter_buttons").read_text().splitlines():
+        if line.startswith('"'):
+            cells = re.findall(r'"((?:[^"\\]|\\.)*)"', line)
+            assert len(cells) == 4 and cells[0] == "TRUE", line
+            out.append(("button " + cells[1], cells[2].replace('\\"', '"')))
+    return out
+
+
+def test_profile_filters_compile(ws):
+    """Every colouring rule and filter button compiles in this tshark (with the dissector), and the
+    VM-110 ones each find something in a bundled capture."""
+    filters = profile_filters()
+    assert len(filters) >= 15
+    pcaps = {c: copy_in(ws, c) for c in ("overlap.pcapng", "restart.pcapng", "illegal.pcap", "disarmed.pcap",
+                                         "controller-watchdog.pcap")}
+    for source, expression in filters:
+        matched = False
+        for pcap in pcaps.values():
+            proc = ws.run(["-r", str(pcap), "-2", *T.pref_args(ON), "-Y", expression], check=False)
+            assert proc.returncode == 0 and T.LUA_ERROR not in proc.stdout + proc.stderr, \
+                f"{source}: {expression!r}: {proc.stderr.strip()[-500:]}"
+            matched = matched or bool(proc.stdout.strip())
+            if matched:
+                break
+        if "vm110" in expression:
+            assert matched, f"{source}: {expression!r} matches nothing in {sorted(pcaps)}"
+
+
+def test_profile_loads(ws):
+    """`-C VM-110` with the profile in the personal configuration folder: the packet list has its
+    columns (type, serial, command ID, interval) and the Info column its markers."""
+    config = ws.dir / "config"
+    shutil.copytree(PROFILE, config / "profiles" / "VM-110")
+    pcap = copy_in(ws, "retransmit.pcap")
+    env = dict(os.environ, WIRESHARK_CONFIG_DIR=ws.tshark.inner(config))
+    args = ["-X", f"lua_script:{ws.plugin()}", "-C", "VM-110", "-r", ws.tshark.inner(pcap), "-2", "-T", "tabs"]
+    proc = subprocess.run(ws.tshark.command(args), capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0 and T.LUA_ERROR not in proc.stdout + proc.stderr, proc.stderr[-1000:]
+    # (tshark puts an arrow between consecutive source and destination columns)
+    rows = [[c for c in line.split("\t") if c != "\u2192"] for line in proc.stdout.splitlines()]
+    assert rows and all(len(r) == 11 for r in rows), rows[:3]
+    by_type = {}
+    for r in rows:
+        by_type.setdefault(r[6].strip(), r)
+    assert {"VRPI", "VRPO", "VRCI", "VRAO"} <= set(by_type)
+    vrci = by_type["VRCI"]
+    assert vrci[7].strip().isdigit() and vrci[8].strip().isdigit() and f"cmd {vrci[8].strip()}" in vrci[10]
+    assert float(by_type["VRPI"][9] or "0") >= 0
+    assert any(r[10].startswith("[VRCI Retransmission] ") for r in rows)
