@@ -48,7 +48,7 @@ def check_available() -> None:
         raise CliError(f"--engine tshark needs the Lua dissector; not found at {plugin} (set {PLUGIN_ENV})")
     done = subprocess.run(["tshark", "-G", "protocols", "-X", f"lua_script:{plugin}"],
                           capture_output=True, text=True, check=False)
-    if not any(line.split("\t")[-1:] == ["vm110"] for line in done.stdout.splitlines()):
+    if not any(line.split("\t")[2:3] == ["vm110"] for line in done.stdout.splitlines()):
         lines = [ln for ln in done.stderr.splitlines() if "dangerous" not in ln]
         raise CliError(f"the Lua dissector {plugin} did not load in tshark: {(lines or ['no vm110 protocol'])[0]}")
 
@@ -135,7 +135,9 @@ class TsharkEngine:
         for pkt in self._packets(path, variant, order):
             frames += 1
             layers = {layer.layer_name for layer in pkt.layers}
-            fragment = "ip" in layers and (pkt.ip.flags_mf == "1" or pkt.ip.frag_offset != "0")
+            # get_field: a damaged IP header may lack either field (self-fuzz found the AttributeError).
+            fragment = "ip" in layers and (pkt.ip.get_field("flags_mf") in ("1", "True")
+                                           or pkt.ip.get_field("frag_offset") not in (None, "0"))
             if fragment or "udp" not in layers:
                 got.non_udp += 1
                 got.fragments += fragment
