@@ -2005,6 +2005,7 @@ local function dissect(tvb, pinfo, tree)
             add_analysis(res, r, tvb, pinfo, tree, analysis_tree(tvb, root, r))
         end
         if found.n > 0 then show_findings(r, tvb, root, pinfo) end
+        found.r, found.number, found.offset = r, number, offset -- (for the statistics with a filter)
     end
     return r.n
 end
@@ -2098,15 +2099,169 @@ local function stats_text()
     return concat(out, "\n") .. "\n"
 end
 
+-- With a display filter (`-z vm110,stat,FILTER`, or the GUI's display filter): the same figures,
+-- of the packets the filter matches. A tap with the filter notes each matching analysed packet
+-- (its sender, type, frame and offset: dissect() leaves them in `found`); the figures are read
+-- from the packets' final analysis once every frame has been seen, so they are complete on a
+-- single pass too (as far as the filter itself can match there). Per sender: packets by type;
+-- lost (serials missing before the matching packets), duplicates, out of order and restarts at
+-- them; commands first sent in them, with those acknowledged, interrupted and unacknowledged;
+-- retransmissions among them; their intervals; a silence until the end after one of them.
+local filtered_stats = {}
+
+function filtered_stats.tap_filter(filter)
+    return "vm110 && (" .. filter .. ")"
+end
+
+function filtered_stats.new(filter)
+    local acc = { filter = filter, list = {} }
+    local tap = Listener.new("frame", filtered_stats.tap_filter(filter))
+    function tap.packet(pinfo)
+        local r = found.r
+        if not r or found.number ~= pinfo.number or not r.info or next(r.problems) then return end
+        local list = acc.list
+        list[#list + 1] = { fmt("%s %s:%d origin 0x%04x", r.info.direction, tostring(pinfo.src), pinfo.src_port,
+            r.origin), r.type, found.number, found.offset }
+    end
+    function tap.reset() acc.list = {} end
+    acc.tap = tap
+    return acc
+end
+
+function filtered_stats.text(acc)
+    local out = { "VM-110 EG-Link stream statistics", "Display filter: " .. acc.filter }
+    if not settings.analysis then out[3] = "(stream analysis is off: preference vm110.analysis)" end
+    if dirty then finalize() end
+    local by_name, order = {}, {}
+    for _, p in ipairs(acc.list) do
+        local name, id = p[1], p[2]
+        local s = by_name[name]
+        if not s then
+            s = { count = {}, lost = 0, duplicates = 0, late = 0, restarts = {}, commands = 0, acked = 0,
+                interrupted = 0, retransmissions = 0, intervals = {}, silent = {} }
+            by_name[name] = s
+            order[#order + 1] = name
+        end
+        s.count[id] = (s.count[id] or 0) + 1
+        local res = memo_get(results, p[3], p[4])
+        local iv = res
+        if type(res) == "table" then
+            iv = res.interval
+            local missing = res.serial
+            if missing > 0 then
+                s.lost = s.lost + missing
+            elseif missing == DUPLICATE then
+                s.duplicates = s.duplicates + 1
+            elseif missing == LATE or missing == CANDIDATE and res.cand.decided and not res.cand.confirmed then
+                s.late = s.late + 1
+            elseif missing == CANDIDATE and res.cand.confirmed then
+                s.restarts[#s.restarts + 1] = res.cand
+            end
+            if res.restart then s.restarts[#s.restarts + 1] = res.restart end
+            local cmd = res.cmd
+            if cmd and res.number == 0 then
+                s.commands = s.commands + 1
+                if cmd.ack then
+                    s.acked = s.acked + 1
+                elseif cmd.interrupted then
+                    s.interrupted = s.interrupted + 1
+                end
+            elseif cmd then
+                s.retransmissions = s.retransmissions + 1
+            end
+            if res.silent then s.silent[id] = { res.silent, p[3] } end
+        end
+        if type(iv) == "number" and iv >= 0 and (id == "VRPI" or id == "VRPO") then
+            local st = s.intervals[id]
+            if not st then
+                st = { n = 0, sum = 0, min = iv, max = iv }
+                s.intervals[id] = st
+            end
+            st.n, st.sum = st.n + 1, st.sum + iv
+            if iv < st.min then st.min = iv end
+            if iv > st.max then st.max = iv end
+        end
+    end
+    for _, name in ipairs(order) do
+        local s = by_name[name]
+        local types = {}
+        for _, id in ipairs(STAT_TYPES) do
+            if s.count[id] then types[#types + 1] = fmt("%s %d", id, s.count[id]) end
+        end
+        out[#out + 1] = "Sender " .. name
+        out[#out + 1] = "  Packets: " .. concat(types, ", ")
+        out[#out + 1] = fmt("  Serial: lost %d, duplicates %d, out of order %d, restarts %d", s.lost, s.duplicates,
+            s.late, #s.restarts)
+        for _, rec in ipairs(s.restarts) do
+            local port = rec.port_from and fmt(", port %d -> %d", rec.port_from, rec.port_to) or ""
+            out[#out + 1] = fmt("  Restart in frame %d: serial %d -> %d%s", rec.frame, rec.from, rec.to, port)
+        end
+        out[#out + 1] = fmt("  Commands: %d, acked %d, unacknowledged %d, interrupted %d, retransmissions %d",
+            s.commands, s.acked, s.commands - s.acked - s.interrupted, s.interrupted, s.retransmissions)
+        for _, id in ipairs({ "VRPI", "VRPO" }) do
+            local st = s.intervals[id]
+            if st then
+                out[#out + 1] = fmt("  %s interval (ms): min %.3f, avg %.3f, max %.3f (%d intervals)", id,
+                    st.min, st.sum / st.n, st.max, st.n)
+            end
+            local silent = s.silent[id]
+            if silent then
+                out[#out + 1] = fmt("  %s silent until the end: %.3f ms after frame %d", id, silent[1], silent[2])
+            end
+        end
+    end
+    if #order == 0 then out[#out + 1] = "(no EG-Link packet matches the filter)" end
+    return concat(out, "\n") .. "\n"
+end
+
+-- `-z vm110,stat` (the whole capture) or `-z vm110,stat,FILTER` (the packets FILTER matches), as
+-- Wireshark's own statistics take a filter.
 if register_stat_cmd_arg then
-    register_stat_cmd_arg("vm110,stat", function()
+    register_stat_cmd_arg("vm110,stat", function(arg)
+        local filter = type(arg) == "string" and arg:match("^vm110,stat,(.+)$") or nil
+        if filter and filter:match("%S") then
+            local ok, acc = pcall(filtered_stats.new, filter)
+            if not ok then
+                io.stderr:write(fmt("vm110,stat: the display filter %q does not compile: %s\n", filter, tostring(acc)))
+                error(acc)
+            end
+            function acc.tap.draw() io.write(filtered_stats.text(acc)) end
+            return
+        end
         local tap = Listener.new("frame", "vm110")
         function tap.draw() io.write(stats_text()) end
     end)
 end
 -- GUI only: these functions exist when Wireshark runs with a GUI. The Qt GUI shows a Lua menu of
 -- MENU_STAT_UNSORTED in Statistics (not one of MENU_STAT_GENERIC), and a "/" in its name as is.
+-- The window takes the display filter applied at the time (like Wireshark's statistics with
+-- "Limit to display filter"); its "Display filter..." button asks for another one.
 local MENU_NAME = "VM-110 EG-Link Stream Statistics"
+local function stats_window(filter)
+    local title = MENU_NAME
+    if filter and filter:match("%S") then title = MENU_NAME .. " (" .. filter .. ")" end
+    local win = TextWindow.new(title)
+    if win.add_button and new_dialog then
+        win:add_button("Display filter...", function()
+            new_dialog(MENU_NAME, function(text) stats_window(text) end, "Display filter (empty: every packet)")
+        end)
+    end
+    if not (filter and filter:match("%S")) then
+        win:set(stats_text())
+        return
+    end
+    local ok, acc = pcall(filtered_stats.new, filter)
+    if not ok then
+        win:set("Display filter: " .. filter .. "\n" .. tostring(acc) .. "\n")
+        return
+    end
+    function acc.tap.draw() win:set(filtered_stats.text(acc)) end
+    if win.set_atclose then win:set_atclose(function() acc.tap:remove() end) end
+    if retap_packets then retap_packets() end
+end
 if gui_enabled and gui_enabled() and register_menu then
-    register_menu(MENU_NAME, function() TextWindow.new(MENU_NAME):set(stats_text()) end, MENU_STAT_UNSORTED)
+    register_menu(MENU_NAME, function()
+        local ok, filter = pcall(get_filter) -- (raises when there is no main window)
+        stats_window(ok and filter or "")
+    end, MENU_STAT_UNSORTED)
 end

@@ -185,3 +185,86 @@ def test_gui_menu_shows_the_statistics(tshark, tmp_path):
     assert menu == "MENU VM-110 EG-Link Stream Statistics MENU_STAT_UNSORTED"
     assert window == "WINDOW VM-110 EG-Link Stream Statistics"
     assert text == stat and "Sender Input 10.0.0.10:5825 origin 0x0101" in text
+
+
+def _sections(text: str) -> dict[str, list[str]]:
+    """Sender -> its lines, with the wraps (not counted with a filter) taken out of the serial line."""
+    out, current = {}, None
+    for line in text.splitlines():
+        if line.startswith("Sender "):
+            current = out[line] = []
+        elif current is not None:
+            current.append(re.sub(r", wraps \d+", "", line))
+    return out
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_stat_honours_a_display_filter(tshark, tmp_path):
+    """`-z vm110,stat,FILTER` (as Wireshark's own statistics take one): a filter that matches every
+    EG-Link packet gives the figures of the whole capture; one sender's address gives that sender's
+    section alone, unchanged; a time window counts exactly the packets `-Y` keeps; single pass and
+    -2 agree (the figures come from the final analysis)."""
+    capture = T.REPO / "captures" / "restart.pcapng"
+    window = "frame.time_relative >= 5 && frame.time_relative < 15"
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            local = ws.dir / capture.name
+            local.write_bytes(capture.read_bytes())
+            def stat(arg, *extra):
+                proc = ws.run(["-r", str(local), "-q", *extra, "-z", arg])
+                assert T.LUA_ERROR not in proc.stdout + proc.stderr, proc.stderr
+                return proc.stdout
+            whole = stat("vm110,stat")
+            every = stat("vm110,stat,vm110")
+            bu = stat("vm110,stat,ip.src == 10.0.0.10")
+            timed, timed2 = stat(f"vm110,stat,{window}"), stat(f"vm110,stat,{window}", "-2")
+            nothing = stat("vm110,stat,vm110.type == \"VRXX\"")
+            kept = ws.run(["-r", str(local), "-Y", f"vm110 && !vm110.expert.bad_crc && ({window})", "-T", "fields",
+                           "-e", "vm110.type"]).stdout.split()
+            bad = ws.run(["-r", str(local), "-q", "-z", "vm110,stat,vm110.nonsense == 1"], check=False)
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert every.splitlines()[1] == "Display filter: vm110"
+    assert _sections(every) == _sections(whole) and len(_sections(whole)) >= 2
+    sections = _sections(bu)
+    assert list(sections) == [s for s in _sections(whole) if "10.0.0.10:" in s]
+    assert all(sections[s] == _sections(whole)[s] for s in sections)
+    assert timed == timed2
+    counted = sum(int(n) for line in timed.splitlines() if line.startswith("  Packets: ")
+                  for n in re.findall(r"\d+", line))
+    assert counted == len(kept) > 0
+    assert "(no EG-Link packet matches the filter)" in nothing
+    assert 'vm110,stat: the display filter "vm110.nonsense == 1" does not compile' in bad.stderr
+
+
+GUI_STUB_FILTERED = GUI_STUB + """
+_G.get_filter = function() return 'ip.src == 10.0.0.10' end
+_G.retap_packets = function() io.write("RETAP\\n") end
+_G.TextWindow = { new = function(title)
+    io.write("WINDOW ", title, "\\n")
+    return { set = function(_, text) io.write(text) end,
+             add_button = function(_, label) io.write("BUTTON ", label, "\\n") end,
+             set_atclose = function() io.write("ATCLOSE\\n") end }
+end }
+"""
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_gui_window_takes_the_display_filter(tshark, tmp_path):
+    """The Statistics menu's window takes the display filter applied in the GUI (get_filter()),
+    names it in its title, offers a button to ask for another, and retaps the packets through it."""
+    capture = CAPTURES[1]
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            local = ws.dir / capture.name
+            local.write_bytes(capture.read_bytes())
+            stub = ws.dir / "gui_stub.lua"
+            stub.write_text(GUI_STUB_FILTERED)
+            gui = ws.run(["-X", f"lua_script:{stub}", "-X", f"lua_script:{ws.plugin()}", "-r", str(local), "-q",
+                          "-z", "vm110gui"], plugin=False)
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert T.LUA_ERROR not in gui.stdout + gui.stderr, gui.stderr
+    assert gui.stdout.splitlines() == ["MENU VM-110 EG-Link Stream Statistics MENU_STAT_UNSORTED",
+                                       "WINDOW VM-110 EG-Link Stream Statistics (ip.src == 10.0.0.10)",
+                                       "BUTTON Display filter...", "ATCLOSE", "RETAP"]
