@@ -66,6 +66,7 @@ _PICK = np.concatenate([np.arange(0, 8), np.arange(_IP + L.IPV4_SRC, _IP + L.IPV
                         np.arange(_IP + L.IPV4_MIN_HEADER, _IP + L.IPV4_MIN_HEADER + 2),
                         np.arange(_BEFORE, _BEFORE + PREFIX)]) - _BEFORE
 _PICKED = np.dtype([("sec", "<u4"), ("frac", "<u4"), ("src", "<u4"), ("sport", ">u2"), ("packet", f"V{PREFIX}")])
+_ROWS = 4096           # records gathered at a time
 FEW_SENDERS = 32       # up to this many, one comparison per sender beats sorting the key
 
 
@@ -154,7 +155,9 @@ class Collected:
         if not len(out):
             return out
         at = np.frombuffer(offsets, dtype=np.int64)
-        rows = np.frombuffer(data, dtype=np.uint8)[at[:, None] + _PICK].view(_PICKED).ravel()
+        raw = np.frombuffer(data, dtype=np.uint8)
+        rows = np.concatenate([raw[at[k:k + _ROWS, None] + _PICK].view(_PICKED).ravel()     # small index arrays
+                               for k in range(0, len(at), _ROWS)])
         out["frame"] = np.frombuffer(frames, dtype=np.uint32)
         out["ts"] = rows["sec"] + rows["frac"] * scale
         out["sport"] = rows["sport"]
