@@ -19,6 +19,7 @@ import statistics
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -84,12 +85,13 @@ print('PEAK', hwm, code, file=sys.stderr)
 
 def child_peak(path: Path) -> tuple[float, float]:
     """(wall seconds, peak RSS MiB) of `vm110 analyze --json` in a fresh process."""
-    start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", _CHILD, "analyze", str(path), "--quiet", "--json", os.devnull],
-                          capture_output=True, text=True)
-    wall = time.perf_counter() - start
+    with tempfile.TemporaryDirectory(prefix="vm110-bench-") as tmp:   # a regular file: --json refuses devices
+        start = time.perf_counter()
+        done = subprocess.run([sys.executable, "-c", _CHILD, "analyze", str(path), "--quiet",
+                               "--json", os.path.join(tmp, "report.json")], capture_output=True, text=True)
+        wall = time.perf_counter() - start
     line = next((ln for ln in done.stderr.splitlines() if ln.startswith("PEAK ")), None)
-    if line is None:
+    if line is None or line.split()[2] not in ("0", "1"):
         raise SystemExit(f"vm110 analyze failed: {done.stderr[-500:]}")
     return wall, int(line.split()[1]) / 1024.0
 
