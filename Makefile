@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 PLUGIN_DIR ?= $(HOME)/.local/lib/wireshark/plugins
 DEMO_DIR := out/demo
 
-.PHONY: setup system-deps demo test test-long bench install-wireshark clean tshark44 tshark46 golden captures fuzz-self
+.PHONY: setup system-deps demo test test-long bench install-wireshark clean tshark44 tshark46 golden captures fuzz-self install-profile
 
 setup: system-deps $(STAMP)
 
@@ -66,6 +66,14 @@ install-wireshark:
 	mkdir -p $(PLUGIN_DIR)
 	cp dissector/vm110.lua $(PLUGIN_DIR)/
 	@echo "installed $(PLUGIN_DIR)/vm110.lua (check: Help > About Wireshark > Plugins)"
+
+# The VM-110 configuration profile (columns, filter buttons, colouring rules) for this user's Wireshark;
+# files are copied over, so the user's own files in the profile (e.g. recent) survive.
+PROFILE_DIR ?= $(or $(XDG_CONFIG_HOME),$(HOME)/.config)/wireshark/profiles
+install-profile:
+	mkdir -p $(PROFILE_DIR)/VM-110
+	cp dissector/profile/VM-110/* $(PROFILE_DIR)/VM-110/
+	@echo "installed $(PROFILE_DIR)/VM-110 (pick it in the status bar's profile menu, or tshark -C VM-110)"
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .hypothesis
