@@ -100,3 +100,25 @@ def test_floats_intervals_across_blocks(monkeypatch, before):
     full = times if before is None else np.concatenate(([1.7e9 + before], times))
     assert np.array_equal(f.intervals_ms(None if before is None else 1.7e9 + before), timing.intervals_ms(full))
     assert f.last() == times[-1] and f[9] == times[9] and len(f) == len(times)
+
+
+def test_copies_of_an_undecided_candidate_across_many_batches(tmp_path, monkeypatch):
+    """A restart candidate repeated for thousands of packets stays undecided over many batches;
+    it is decided once (not re-judged per batch), as in one pass."""
+    import time
+    from test_analysis_craft import Traffic, vrpi
+    tr = Traffic()
+    for i in range(20):
+        tr.add(i * 0.125, vrpi(100 + i))
+    copy = vrpi(40000)
+    for k in range(6000):
+        tr.add(2.5 + k * 0.3, copy)                     # a copy every 300 ms: duplicates and candidates
+    tr.add(2.5 + 6000 * 0.3, vrpi(40001))             # confirms the first: a restart
+    tr.write(tmp_path / "copies.pcap")
+    got, rec, sources = _records(tmp_path / "copies.pcap", monkeypatch)
+    whole = _report(got, rec, sources, [0, len(rec)])
+    start = time.process_time()
+    assert _report(got, rec, sources, list(range(0, len(rec), 20)) + [len(rec)]) == whole
+    assert time.process_time() - start < 20
+    serial = json.loads(whole)["senders"][0]["serial"]
+    assert serial["restart_events"][0]["to"] == 40000 and serial["duplicates"] > 4000

@@ -74,7 +74,7 @@ class Sender:
         self.warm: list[np.ndarray] = []
         self.warm_count = 0
         self.counters: dict = {}                 # None (scope sender) or type code -> serials.Counter
-        self.pending: dict = {}                  # counter key -> its undecided rows
+        self.pending: dict = {}                  # counter key -> its undecided rows (arrays)
         self.streams: dict[int, Stream] = {}
         self.bursts: Optional[Bursts] = None
         self.timeline: Optional[Timeline] = None
@@ -110,7 +110,7 @@ class Sender:
 
     def undecided(self) -> Optional[int]:
         """The first frame not decided yet (its events and any restart before them wait)."""
-        frames = [int(r["frame"][0]) for r in self.pending.values() if len(r)]
+        frames = [int(r[0]["frame"][0]) for r in self.pending.values() if r]
         if self.warm:
             frames.append(int(self.warm[0]["frame"][0]))
         return min(frames) if frames else None
@@ -147,9 +147,10 @@ class Sender:
     def _last_accepted(self, code: int) -> Optional[float]:
         """Time of the last accepted packet of that type so far, undecided ones included."""
         window = self.opt.dup_window_ms / 1000.0
-        for rows in self.pending.values():
-            if not len(rows):
+        for held in self.pending.values():
+            if not held:
                 continue
+            rows = np.concatenate(held)
             # A candidate and copies of it: the candidate is accepted, a copy when the one
             # accepted before it lies at least the duplicate window back.
             accepted, at = np.zeros(len(rows), dtype=bool), float(rows["ts"][0])
@@ -173,8 +174,11 @@ class Sender:
         if final:
             parts.update({k: rows[:0] for k in self.pending if k not in parts})
         for key, new in parts.items():
-            held = self.pending.get(key)
-            todo = np.concatenate((held, new)) if held is not None and len(held) else new
+            held = self.pending.get(key, [])
+            if held and not final and len(new) and (new["serial"] == held[0]["serial"][0]).all():
+                held.append(new)           # more copies of an undecided candidate: still undecided
+                continue
+            todo = np.concatenate((*held, new)) if held else new
             if not len(todo):
                 continue
             counter = self.counters.get(key)
@@ -182,7 +186,8 @@ class Sender:
                 counter = self.counters[key] = serials.Counter(self.opt.dup_window_ms, key)
             restarts = len(counter.res.restarts)
             done = counter.feed(todo["serial"], todo["ts"], todo["frame"].tolist(), final)
-            decided, self.pending[key] = todo[:done], todo[done:].copy()   # a copy: not the batch
+            decided = todo[:done]
+            self.pending[key] = [todo[done:].copy()] if done < len(todo) else []   # a copy: not the batch
             for frame, _, _, t in counter.res.restarts[restarts:]:
                 events.append((frame, t, RESTART, self.id, None))
             if counter.fed_duplicates:

@@ -124,6 +124,7 @@ class Counter:
         dup_pos, lost_for_good = self.dup_pos, self.lost_for_good
         accepted_at, gap_at, missing = self.accepted_at, self.gap_at, self.missing
         i, b = 0, 0                           # position, and index of the next break at or after it
+        changes = None                        # where the serial differs from the one before
         if not self.started:
             self.started = True
             self._restart(int(arr[0]), float(ts[0]), off)
@@ -204,9 +205,11 @@ class Counter:
                 self.h, self.prev = s, t
                 accepted_at[s] = t
             else:
-                nxt = i + 1
-                while nxt < n and arr[nxt] == s:          # copies of the candidate confirm nothing
-                    nxt += 1
+                # The next packet that is not a copy of the candidate (copies confirm nothing).
+                if changes is None:
+                    changes = np.flatnonzero(arr[1:] != arr[:-1]) + 1
+                k = int(np.searchsorted(changes, i, "right"))
+                nxt = int(changes[k]) if k < len(changes) else n
                 if nxt == n and not final:
                     break                                 # undecided until its next packet comes
                 if nxt < n and 1 <= (int(arr[nxt]) - s) & MASK <= CONFIRM:
