@@ -102,9 +102,6 @@ class Sender:
             self._decide(events, True)
         else:
             self._dispatch(np.empty(0, dtype=RECORD_DTYPE), events, True)
-        for probe in self.probes:
-            self._resolve(probe)
-        self.probes = []
         if self.bursts is not None:
             self.bursts.finish()
 
