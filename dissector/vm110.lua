@@ -1,8 +1,9 @@
 -- Wireshark dissector for the VM-110 UDP EG-Link (TS-0006), following shared/spec/interpretation.md.
 --
 -- One file on purpose: Wireshark 4.4 loads every .lua in a plugin folder as a plugin.
--- Runs unchanged on Lua 5.2 (Wireshark 4.0) and Lua 5.4 (Wireshark 4.4): no bit32, no 5.3
--- operators; bit operations come from the `bit` library (LuaBitOp) that Wireshark ships with both.
+-- Runs unchanged on Lua 5.2 (Wireshark 4.0) and Lua 5.4 (Wireshark 4.4, 4.6): no bit32, and no
+-- 5.3 operators in the source; the CRC's are compiled with load() on Lua 5.3+ only, and on 5.2
+-- it uses the `bit` library (LuaBitOp) that Wireshark ships.
 --
 -- Layout of this file, top to bottom:
 --   1. protocol constants (the values and display names of vm110/constants.py)
