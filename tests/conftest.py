@@ -10,6 +10,8 @@ from typing import Iterator
 import pytest
 from hypothesis import settings
 
+import tshark_runner as T
+
 # CI runs the same examples every time, so that a red run is reproducible; locally they vary.
 settings.register_profile("ci", derandomize=True, deadline=None)
 settings.register_profile("dev", deadline=None)
@@ -32,3 +34,13 @@ def netns() -> Iterator[str]:
         yield name
     finally:
         subprocess.run(["ip", "netns", "del", name], capture_output=True)
+
+
+@pytest.fixture(params=T.RUNNERS, ids=lambda r: r.name)
+def ws(request, tmp_path) -> Iterator[T.Workspace]:
+    """A workspace of each tshark the dissector is tested on; a missing one fails the test."""
+    try:
+        with request.param.workspace(tmp_path) as workspace:
+            yield workspace
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))

@@ -29,15 +29,6 @@ MARKERS = {"Serial Gap", "Duplicate", "Out-Of-Order", "Restart", "Watchdog", "Si
            "Unacknowledged", "Interrupted", "Burst Packet Missing", "Incomplete Burst"}
 
 
-@pytest.fixture(params=T.RUNNERS, ids=lambda r: r.name)
-def ws(request, tmp_path):
-    try:
-        with request.param.workspace(tmp_path) as workspace:
-            yield workspace
-    except T.TsharkUnavailable as exc:
-        pytest.fail(str(exc))
-
-
 def glossary(ws: T.Workspace) -> list[list[str]]:
     """The vm110 rows of `tshark -G fields` (-G must come first, so no ws.run prefix)."""
     proc = ws.run(["-G", "fields", "-X", f"lua_script:{ws.plugin()}"], plugin=False)

@@ -24,15 +24,6 @@ VRPO_0 = bytes(VM110(serial=4) / VRPO(packet_number=0, periodic_data=bytes(64)))
 OTHER_PORT = 40000
 
 
-@pytest.fixture(params=T.RUNNERS, ids=lambda r: r.name)
-def ws(request, tmp_path):
-    try:
-        with request.param.workspace(tmp_path) as workspace:
-            yield workspace
-    except T.TsharkUnavailable as exc:
-        pytest.fail(str(exc))
-
-
 def _fields(ws: T.Workspace, datagrams, *fields: str, prefs=None, extra=()) -> list[list[str]]:
     pcap = ws.dir / "capture.pcap"
     T.write_pcap(pcap, datagrams)
