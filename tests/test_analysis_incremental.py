@@ -122,3 +122,19 @@ def test_copies_of_an_undecided_candidate_across_many_batches(tmp_path, monkeypa
     assert time.process_time() - start < 20
     serial = json.loads(whole)["senders"][0]["serial"]
     assert serial["restart_events"][0]["to"] == 40000 and serial["duplicates"] > 4000
+
+
+def test_many_senders_cost_little_each(tmp_path, monkeypatch):
+    """Every source port is a sender: a capture of one packet per port keeps a few entries per
+    counter, not the 65536 times of a full one."""
+    from test_analysis_craft import Traffic, vrpi
+    tr = Traffic()
+    for k in range(3000):
+        tr.add(k * 0.001, vrpi(k % 7), sport=10000 + k)
+    tr.write(tmp_path / "ports.pcap")
+    got, rec, sources = _records(tmp_path / "ports.pcap", monkeypatch)
+    analysis = Analysis(Options())
+    analysis.feed(rec, sources)
+    analysis.finish()
+    counters = [c for s in analysis.senders.values() for c in s.counters.values()]
+    assert len(counters) == 3000 and all(c.accepted_at.all is None and c.gap_at.all is None for c in counters)

@@ -74,6 +74,55 @@ class SerialResult:
         self.aborted = self.aborted or other.aborted
 
 
+class SerialTimes:
+    """A time per serial number (NEVER when none): a dict while few are set, then the full array
+    of 65536. A sender that sends a few packets, or a capture full of senders (every source port
+    is one), costs a few entries each, not half a megabyte."""
+
+    SMALL = 2048
+
+    def __init__(self) -> None:
+        self.few: Optional[dict] = {}
+        self.all: Optional[np.ndarray] = None
+
+    def __getitem__(self, key):
+        if self.all is not None:
+            return self.all[key]
+        if isinstance(key, (int, np.integer)):
+            return self.few.get(int(key), NEVER)
+        key = np.asarray(key)
+        out = np.full(len(key), NEVER)
+        if self.few:
+            serials = np.fromiter(self.few, dtype=np.int64, count=len(self.few))
+            times = np.fromiter(self.few.values(), dtype=np.float64, count=len(self.few))
+            order = np.argsort(serials)
+            serials, times = serials[order], times[order]
+            at = np.searchsorted(serials, key).clip(0, len(serials) - 1)
+            hit = serials[at] == key
+            out[hit] = times[at[hit]]
+        return out
+
+    def __setitem__(self, key, value) -> None:
+        if self.all is not None:
+            self.all[key] = value
+            return
+        if isinstance(key, (int, np.integer)):
+            self.few[int(key)] = float(value)
+        else:
+            keys = np.asarray(key).tolist()
+            self.few.update(zip(keys, np.broadcast_to(np.asarray(value, dtype=np.float64), (len(keys),)).tolist()))
+        if len(self.few) > self.SMALL:
+            self.all = np.full(MOD, NEVER)
+            self.all[list(self.few)] = list(self.few.values())
+            self.few = None
+
+    def clear(self) -> None:
+        if self.all is not None:
+            self.all.fill(NEVER)
+        else:
+            self.few.clear()
+
+
 class Counter:
     """One counter, fed its packets in arrival order a batch at a time (see the module doc)."""
 
@@ -82,8 +131,8 @@ class Counter:
         self.key = key
         self.res = SerialResult()
         self.started = False
-        self.accepted_at = np.full(MOD, NEVER)     # time each serial was last accepted
-        self.gap_at = np.full(MOD, NEVER)          # time the gap a missing serial lies in opened
+        self.accepted_at = SerialTimes()           # time each serial was last accepted
+        self.gap_at = SerialTimes()                # time the gap a missing serial lies in opened
         self.missing: dict[int, None] = {}         # insertion-ordered set of serials in open gaps
         self.lost_for_good: list[int] = []
         self.h = 0
@@ -100,7 +149,7 @@ class Counter:
         if self.missing:
             self.gap_at[list(self.missing)] = NEVER
             self.missing.clear()
-        self.accepted_at.fill(NEVER)
+        self.accepted_at.clear()
         self.h, self.start, self.start_pos, self.prev = s, t, pos, t
         self.accepted_at[s] = t
 
