@@ -84,6 +84,7 @@ class SerialTimes:
     def __init__(self) -> None:
         self.few: Optional[dict] = {}
         self.all: Optional[np.ndarray] = None
+        self.sorted: Optional[tuple] = None          # `few` as sorted arrays, until it changes
 
     def __getitem__(self, key):
         if self.all is not None:
@@ -93,10 +94,12 @@ class SerialTimes:
         key = np.asarray(key)
         out = np.full(len(key), NEVER)
         if self.few:
-            serials = np.fromiter(self.few, dtype=np.int64, count=len(self.few))
-            times = np.fromiter(self.few.values(), dtype=np.float64, count=len(self.few))
-            order = np.argsort(serials)
-            serials, times = serials[order], times[order]
+            if self.sorted is None:
+                serials = np.fromiter(self.few, dtype=np.int64, count=len(self.few))
+                times = np.fromiter(self.few.values(), dtype=np.float64, count=len(self.few))
+                order = np.argsort(serials)
+                self.sorted = serials[order], times[order]
+            serials, times = self.sorted
             at = np.searchsorted(serials, key).clip(0, len(serials) - 1)
             hit = serials[at] == key
             out[hit] = times[at[hit]]
@@ -106,6 +109,7 @@ class SerialTimes:
         if self.all is not None:
             self.all[key] = value
             return
+        self.sorted = None
         if isinstance(key, (int, np.integer)):
             self.few[int(key)] = float(value)
         else:
@@ -121,6 +125,7 @@ class SerialTimes:
             self.all.fill(NEVER)
         else:
             self.few.clear()
+            self.sorted = None
 
 
 class Counter:
