@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import random
 import struct
+from pathlib import Path
 
 import pytest
 from hypothesis import given, strategies as st
@@ -346,3 +347,32 @@ def test_damaged_files_never_raise(tmp_path, fmt):
         assert report["capture"]["packets"] >= 0 and isinstance(report["verdict"]["ok"], bool)
         report_json.write(str(tmp_path / "r.json"), report)
         assert "<svg" in report_html.render([report]) and "VERDICT" in summary.render(report)
+
+
+@pytest.mark.parametrize("name", ["loss.pcapng", "restart.pcapng", "illegal.pcap"])
+def test_reading_in_a_second_process_gives_the_same_report(name, monkeypatch):
+    """Large files are read by a child process that sends its batches to the analysing parent
+    (engine.pipelined): the report is the one of a single process, damage and all."""
+    from vm110.analysis import engine
+    path = str(Path(__file__).resolve().parent.parent / "captures" / name)
+    monkeypatch.setenv(engine.WORKERS_ENV, "1")
+    alone = analyze(path)
+    monkeypatch.setenv(engine.WORKERS_ENV, "2")
+    monkeypatch.setattr(engine, "PIPELINE_MIN_BYTES", 0)
+    assert engine.pipelined(path)
+    together = analyze(path)
+    assert {**together, "tool": None} == {**alone, "tool": None}
+
+
+def test_a_damaged_file_read_in_a_second_process(tmp_path, monkeypatch):
+    from vm110.analysis import engine
+    path = tmp_path / "cut.pcap"
+    _vrpi_traffic().write(path)
+    path.write_bytes(path.read_bytes()[:-30])
+    monkeypatch.setattr(engine, "PIPELINE_MIN_BYTES", 0)
+    monkeypatch.setenv(engine.WORKERS_ENV, "2")
+    report = analyze(str(path))
+    assert report["capture"]["packets"] == 11 and report["totals"]["damaged"] == 1
+    (tmp_path / "junk.pcap").write_bytes(b"\xd4\xc3\xb2\xa1" + bytes(10))
+    with pytest.raises(Exception, match="pcap file header cut short"):
+        analyze(str(tmp_path / "junk.pcap"))

@@ -18,6 +18,8 @@ whole-chunk numpy reads made one process faster than that.
 """
 from __future__ import annotations
 
+import multiprocessing
+import os
 import struct
 from array import array
 import zlib
@@ -30,7 +32,8 @@ from ..capture import linktypes as L
 from ..capture.reader import PCAP_HEADER_LEN, PCAPNG_EPB, PCAPNG_SHB, CaptureReader, address
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, VARIANTS, crc32, zlib_form
 from ..decode import decode
-from .collect import CODE_OF_ID, RECORD, Collected
+from ..errors import CliError
+from .collect import CODE_OF_ID, RECORD, RECORD_DTYPE, Collected
 from .incremental import Analysis
 
 _HDR = struct.Struct("<4sH6xH")                    # packet ID, revision, size
@@ -63,6 +66,8 @@ _LOW = {raw: C.PAYLOAD_BOUNDS[C.PacketType(raw.decode())][0] for raw in CODE_OF_
 _PID_LE = np.array(sorted(int.from_bytes(raw, "little") for raw in _LOW), dtype=np.uint32)
 _LOW_LE = np.array([_LOW[int(p).to_bytes(4, "little")] for p in _PID_LE], dtype=np.int64)
 _ETH_IPV4_LE = int.from_bytes(L.ETHERTYPE_IPV4.to_bytes(2, "big"), "little")
+PIPELINE_MIN_BYTES = 4 << 20                       # smaller files: one process is quicker
+WORKERS_ENV = "VM110_ANALYZE_WORKERS"              # 1: read and analyse in one process
 _SNIFF = 256                                       # EG-Link packets looked at to guess the CRC variant
 _SNIFF_CHUNK = 1 << 16
 TRUNCATED = C.Problem.TRUNCATED.value
@@ -79,6 +84,32 @@ def crc_matches(data: bytes, end: int) -> set[tuple[str, str]]:
             if value == int.from_bytes(stored, order):
                 got.add((variant, order))
     return got
+
+
+def pipelined(path: str) -> bool:
+    """Whether to read in a second process: on a machine with a second core, for files large
+    enough to repay the fork, not inside a worker of `--jobs`, unless VM110_ANALYZE_WORKERS=1."""
+    if os.environ.get(WORKERS_ENV) == "1" or (os.cpu_count() or 1) < 2:
+        return False
+    if multiprocessing.current_process().daemon:
+        return False
+    try:
+        return os.path.getsize(path) >= PIPELINE_MIN_BYTES
+    except OSError:
+        return False
+
+
+class _Forward:
+    """Stands in for the Analysis in the reading child: sends each batch (and the sources new
+    since the last one) to the analysing parent."""
+
+    def __init__(self, conn) -> None:
+        self.conn, self.sent = conn, 0
+
+    def feed(self, rec: np.ndarray, sources: dict[bytes, int]) -> None:
+        new = dict(list(sources.items())[self.sent:]) if len(sources) > self.sent else {}
+        self.sent = len(sources)
+        self.conn.send(("batch", rec.tobytes(), new))
 
 
 class FastEngine:
@@ -132,8 +163,53 @@ class FastEngine:
         return max(candidates, key=lambda c: (counts.get(c, 0), -candidates.index(c)))
 
     def _pass(self, path: str, variant: str, order: str, opt) -> Collected:
+        if pipelined(path):
+            return self._pipelined(path, variant, order, opt)
+        return self._read(path, variant, order, Analysis(opt))
+
+    def _pipelined(self, path: str, variant: str, order: str, opt) -> Collected:
+        """Read in a child process while this one analyses: the child's batches come through a
+        pipe as they are read, so memory stays bounded and both cores work."""
+        ctx = multiprocessing.get_context("fork")
+        recv, send = ctx.Pipe(duplex=False)
+        child = ctx.Process(target=self._produce, args=(path, variant, order, send), daemon=True)
+        child.start()
+        send.close()
+        analysis = Analysis(opt)
+        sources: dict[bytes, int] = {}
+        try:
+            while True:
+                try:
+                    kind, body, more = recv.recv()
+                except EOFError:
+                    raise CliError(f"cannot analyse {path}: the reading process ended unexpectedly") from None
+                if kind == "error":
+                    raise body
+                if kind == "done":
+                    body.analysis, body.sources = analysis, sources
+                    return body
+                sources.update(more)
+                analysis.feed(np.frombuffer(bytearray(body), dtype=RECORD_DTYPE), sources)
+        finally:
+            recv.close()
+            child.join()
+
+    def _produce(self, path: str, variant: str, order: str, conn) -> None:
+        """The child of `_pipelined`: read, send the batches, then the file's facts."""
+        try:
+            got = self._read(path, variant, order, _Forward(conn))
+            got.analysis, got.sources = None, {}
+            conn.send(("done", got, None))
+        except CliError as exc:
+            conn.send(("error", exc, None))
+        except Exception as exc:           # one line in the parent, never a traceback
+            conn.send(("error", CliError(f"cannot analyse {path}: {type(exc).__name__}: {exc}"), None))
+        finally:
+            conn.close()
+
+    def _read(self, path: str, variant: str, order: str, analysis) -> Collected:
         reader = CaptureReader(path)
-        got = Collected(path=path, engine="fast", analysis=Analysis(opt), format=reader.format,
+        got = Collected(path=path, engine="fast", analysis=analysis, format=reader.format,
                         ports=tuple(sorted(self.ports)), crc_variant=variant, crc_order=order,
                         crc_auto=self.crc == "auto" or self.crc_order == "auto")
         layout = reader.pcap_layout() if reader.format == "pcap" else None
