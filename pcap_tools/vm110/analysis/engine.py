@@ -257,17 +257,18 @@ class FastEngine:
             damaged = False
             starts = array("q")
             mark = starts.append
-            while pos + 16 <= end:
+            last = end - 16
+            while pos <= last:
                 incl = length(data, pos + 8)[0]
-                if incl > limit:
-                    reader.corrupt(pos, incl)
-                    chunks.close()
-                    damaged = True
-                    break
-                if pos + 16 + incl > end:
+                nxt = pos + 16 + incl
+                if nxt > end or incl > limit:       # one test on the hot path: the record's end
+                    if incl > limit:
+                        reader.corrupt(pos, incl)
+                        chunks.close()
+                        damaged = True
                     break
                 mark(pos)
-                pos += 16 + incl
+                pos = nxt
             data += slack               # so that the header reads never run off the end of a chunk
             # The CRC runs on the bytes as they are, or bit-reversed: reverse the chunk in one go.
             cdata = data.translate(rev_table) if reversed_bytes else data
