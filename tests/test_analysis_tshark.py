@@ -7,7 +7,7 @@ import json
 import pytest
 
 from test_analysis_engine import build_mixed
-from test_analysis_truth import ALL_CAPTURES
+from test_analysis_truth import ALL_CAPTURES, CAPTURES
 from vm110.analysis import analyze
 from vm110.synth import synthesize
 
@@ -79,3 +79,20 @@ def test_engines_agree_on_mixed_traffic(tmp_path):
                 *((1_700_000_002.2 + i / 100, Ether() / f) for i, f in enumerate(frags))]
     (tmp_path / "mixed.pcap").write_bytes(pcap(records))
     assert_same(str(tmp_path / "mixed.pcap"))
+
+
+def test_auto_crc_needs_no_tshark_run_per_candidate(monkeypatch):
+    """A capture with bad CRCs once took a tshark run per CRC candidate (8; the self-fuzzer saw
+    26 s on overlap.pcapng): the candidates are counted in one Python pass instead."""
+    from vm110.analysis import tshark_engine
+    runs = []
+    real = tshark_engine.TsharkEngine._packets
+
+    def counted(self, path, variant, order):
+        runs.append((variant, order))
+        return real(self, path, variant, order)
+
+    monkeypatch.setattr(tshark_engine.TsharkEngine, "_packets", counted)
+    report = analyze(str(CAPTURES / "illegal.pcap"), "tshark")
+    assert runs == [("mpeg2", "little")] and report["crc"]["invalid"] > 0
+    assert report["crc"]["candidates"]["mpeg2/little"] == report["crc"]["valid"]
