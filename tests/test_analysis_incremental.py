@@ -138,3 +138,29 @@ def test_many_senders_cost_little_each(tmp_path, monkeypatch):
     analysis.finish()
     counters = [c for s in analysis.senders.values() for c in s.counters.values()]
     assert len(counters) == 3000 and all(c.accepted_at.all is None and c.gap_at.all is None for c in counters)
+
+
+def test_copies_within_the_window_are_not_held(tmp_path, monkeypatch):
+    """Copies of an undecided candidate within its duplicate window are judged at once in a
+    stream too: the same report as one pass, and nothing of them waits with the candidate."""
+    from test_analysis_craft import Traffic, vrpi
+    from vm110.analysis import sender
+    tr = Traffic()
+    for i in range(96):                                  # 12 s: past the scope's warm-up
+        tr.add(i * 0.125, vrpi(500 + i))
+    for k in range(3001):
+        tr.add(15.0 + k * 0.0002, vrpi(0))               # the candidate and 3000 copies, 0.6 s
+    tr.add(15.7, vrpi(1))                                # confirms it
+    tr.write(tmp_path / "flood.pcap")
+    got, rec, sources = _records(tmp_path / "flood.pcap", monkeypatch)
+    whole = _report(got, rec, sources, [0, len(rec)])
+    held = []
+    real = sender.Sender._dispatch
+
+    def watch(self, rows, events, final):
+        real(self, rows, events, final)
+        held.append(sum(len(h) for rows_ in self.pending.values() for h in rows_))
+    monkeypatch.setattr(sender.Sender, "_dispatch", watch)
+    assert _report(got, rec, sources, list(range(0, len(rec), 50)) + [len(rec)]) == whole
+    assert max(held) == 1                                # the candidate alone
+    assert json.loads(whole)["senders"][0]["serial"]["duplicates"] == 3000

@@ -232,3 +232,18 @@ def test_findings_with_a_damaged_timestamp_still_render(tmp_path):
     _finding(report, "lost")["items"][0]["time"] = None
     assert "frame 2 at - s:" in summary.render(report)
     assert "<td>-</td>" in report_html.render([report])
+
+
+def test_copies_of_an_undecided_candidate_cost_no_memory(tmp_path):
+    """A restart candidate waits for its next packet; copies of it within its duplicate window
+    are duplicates whatever it turns out to be: judged at once, not held, so a flood of them
+    stays cheap and flat."""
+    tr = Traffic()
+    _counter(tr, [k * 0.125 for k in range(8)], range(500, 508))
+    copies = 30_000
+    _counter(tr, [3.0 + k * 0.00002 for k in range(copies + 1)], [0] * (copies + 1))    # 0.6 s of copies
+    _counter(tr, [3.7, 3.8], [1, 2])                                                    # confirmed
+    report = _report(tr, tmp_path)
+    ser = _sender(report, f"{BU}:5825")["serial"]
+    assert (ser["restarts"], ser["duplicates"], ser["out_of_order"]) == (1, copies, 0)
+    assert ser["restart_events"][0]["frame"] == 9 and report["periodic"][0]["count"] == 11

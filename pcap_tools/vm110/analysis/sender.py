@@ -173,7 +173,7 @@ class Sender:
         for key, new in parts.items():
             held = self.pending.get(key, [])
             if held and not final and len(new) and (new["serial"] == held[0]["serial"][0]).all():
-                held.append(new)           # more copies of an undecided candidate: still undecided
+                self._hold(key, held, new)    # more copies of the undecided candidate
                 continue
             todo = np.concatenate((*held, new)) if held else new
             if not len(todo):
@@ -184,12 +184,27 @@ class Sender:
             restarts = len(counter.res.restarts)
             done = counter.feed(todo["serial"], todo["ts"], todo["frame"].tolist(), final)
             decided = todo[:done]
-            self.pending[key] = [todo[done:].copy()] if done < len(todo) else []   # a copy: not the batch
+            self.pending[key] = []
+            if done < len(todo):                   # an undecided candidate, then copies of it only
+                self.pending[key] = [todo[done:done + 1].copy()]          # a copy: not the batch
+                self._hold(key, self.pending[key], todo[done + 1:])
             for frame, _, _, t in counter.res.restarts[restarts:]:
                 events.append((frame, t, RESTART, self.id, None))
             if counter.fed_duplicates:
                 decided = decided[~np.isin(decided["frame"], counter.fed_duplicates)]
             self._accept(decided, events)
+
+    def _hold(self, key, held: list, copies: np.ndarray) -> None:
+        """Copies of the undecided candidate held[0][0]: those within its duplicate window are
+        duplicates whatever it turns out to be, judged now (a flood of them costs nothing kept);
+        later ones wait with it."""
+        if not len(copies):
+            return
+        inside = copies["ts"] - held[0]["ts"][0] < self.opt.dup_window_ms / 1000.0
+        if inside.any():
+            self.counters[key].copies(int(copies["serial"][0]), copies["ts"][inside], copies["frame"][inside].tolist())
+        if not inside.all():
+            held.append(copies[~inside].copy())
 
     def _accept(self, rows: np.ndarray, events: list) -> None:
         """Accepted packets (not duplicates) of one counter, in arrival order."""

@@ -282,6 +282,18 @@ class Counter:
         self._keep_recent(all_ts[:len(all_ts) - n + i])
         return i
 
+    def copies(self, serial: int, times: Sequence[float], where: Sequence) -> None:
+        """Copies of the undecided candidate `serial` within the duplicate window of it: duplicates
+        whatever the candidate turns out to be (it is accepted at its own time either way), so
+        they are judged at once instead of waiting with it. They take no part in the rate."""
+        res = self.res
+        res.received += len(times)
+        res.duplicate_serials.extend([serial] * len(times))
+        for t, w in zip(times, where):
+            if len(res.duplicates_located) >= LOCATED:
+                break
+            res.duplicates_located.append((w, float(t), serial))
+
     def _locate(self, where, t: float, s: int) -> None:
         if len(self.res.out_of_order_located) < LOCATED:
             self.res.out_of_order_located.append((where, t, s))
