@@ -155,3 +155,27 @@ def test_pcapng_block_lengths_that_disagree_are_damage(tmp_path):
     reader = CaptureReader(str(path))
     assert len(list(reader)) == 4 and reader.damage == fifth
     assert reader.problem == f"corrupt pcapng block at byte {fifth} (leading length {end - fifth}, trailing 4236)"
+
+
+@pytest.mark.tshark
+def test_damage_only_tshark_sees_ends_the_tshark_engine_with_a_problem_not_a_traceback(tmp_path):
+    """A pcapng option longer than its block: the reader passes over options, tshark stops
+    there (the self-fuzzer found pyshark's exception escaping as a traceback)."""
+    path = tmp_path / "opt.pcapng"
+    _traffic(path, 6, "pcapng")
+    data = bytearray(path.read_bytes())
+    pos, blocks = 0, []
+    while pos < len(data):
+        blocks.append(pos)
+        pos += struct.unpack_from("<I", data, pos + 4)[0]
+    third = blocks[-3]
+    blen = struct.unpack_from("<I", data, third + 4)[0]
+    option = struct.pack("<HH", 1, 7966) + bytes(4)         # a comment claiming 7966 bytes
+    patched = data[:third + blen - 4] + option + struct.pack("<I", blen + 8) + data[third + blen:]
+    struct.pack_into("<I", patched, third + 4, blen + 8)
+    path.write_bytes(bytes(patched))
+    done = vm110("analyze", str(path), "--engine", "tshark", "--quiet", "--json", "-")
+    assert done.returncode == 0 and b"Traceback" not in done.stderr and b"Exception" not in done.stderr
+    report = json.loads(done.stdout)
+    assert report["capture"]["problem"].startswith("tshark stopped reading after frame ")
+    assert report["totals"]["damaged"] == 1

@@ -17,7 +17,7 @@ import subprocess
 import tempfile
 from collections import Counter
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Optional
 
 from .. import constants as C
 from ..capture.reader import CaptureReader, address
@@ -62,6 +62,7 @@ def _int(value: str) -> int:
 class TsharkEngine:
     def __init__(self, port: int = C.INPUT_PORT, crc: str = "auto", crc_order: str = "auto") -> None:
         self.port, self.crc, self.crc_order = port, crc, crc_order
+        self.stopped: Optional[str] = None     # tshark's last error line when it stopped early
 
     def _params(self, variant: str, order: str) -> list[str]:
         # IP fragments stay fragments, as the fast engine counts them (no reassembly).
@@ -76,12 +77,15 @@ class TsharkEngine:
         try:
             yield from cap
         except crash:
-            pass           # tshark stops at damage the reader has reported (collect gives it the intact part)
+            self.stopped = cap._last_error_line or "tshark stopped"
         finally:
             try:
                 cap.close()
             except crash:
-                pass
+                # Damage the reader does not see (a pcapng option, say): keep what was read, say
+                # why it ended, and leave pyshark nothing to raise again when it is collected.
+                self.stopped = cap._last_error_line or "tshark stopped"
+                cap._running_processes.clear()
 
     def _count_good(self, path: str) -> Counter:
         """EG-Link datagrams (on the ports) whose CRC each (variant, byte order) validates."""
@@ -160,6 +164,9 @@ class TsharkEngine:
                 got.flush()
         got.flush()
         got.frames = frames
+        if self.stopped is not None and got.problem is None:
+            got.problem = f"tshark stopped reading after frame {frames}: {self.stopped}"
+        self.stopped = None
         got.crc_counts[(variant, order)] = got.crc_checked - got.illegal_reasons[C.Problem.BAD_CRC.value]
         return got
 
