@@ -139,14 +139,20 @@ def test_reports_are_written_whole_or_not_at_all(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["dir.json", "fifo", "r.json"]
 
 
+def _block_starts(data: bytes) -> list[int]:
+    """Where each block of a little-endian pcapng file starts."""
+    pos, out = 0, []
+    while pos < len(data):
+        out.append(pos)
+        pos += struct.unpack_from("<I", data, pos + 4)[0]
+    return out
+
+
 def test_pcapng_block_lengths_that_disagree_are_damage(tmp_path):
     path = tmp_path / "t.pcapng"
     _traffic(path, 6, "pcapng")
     data = bytearray(path.read_bytes())
-    pos, blocks = 0, []
-    while pos < len(data):
-        blocks.append(pos)
-        pos += struct.unpack_from("<I", data, pos + 4)[0]
+    blocks = _block_starts(data)
     fifth = blocks[-2]                                   # the fifth packet's block
     end = fifth + struct.unpack_from("<I", data, fifth + 4)[0]
     struct.pack_into("<I", data, end - 4, 4236)          # its trailing length lies
@@ -164,10 +170,7 @@ def test_damage_only_tshark_sees_ends_the_tshark_engine_with_a_problem_not_a_tra
     path = tmp_path / "opt.pcapng"
     _traffic(path, 6, "pcapng")
     data = bytearray(path.read_bytes())
-    pos, blocks = 0, []
-    while pos < len(data):
-        blocks.append(pos)
-        pos += struct.unpack_from("<I", data, pos + 4)[0]
+    blocks = _block_starts(data)
     third = blocks[-3]
     blen = struct.unpack_from("<I", data, third + 4)[0]
     option = struct.pack("<HH", 1, 7966) + bytes(4)         # a comment claiming 7966 bytes
