@@ -7,6 +7,7 @@ import random
 import struct
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given, strategies as st
 
@@ -93,9 +94,9 @@ def test_jitter_block_recurrence_equals_the_plain_loop():
         t = round(t + rng.choice([0.125, 0.125, 0.25, 0.6]) + rng.gauss(0, 0.004), 6)   # captures: us
         times.append(t)
     want = reference_jitter(times, 125.0)
-    got = timing.jitter_series(times, 125.0)
+    got = timing.jitter_of_intervals(timing.intervals_ms(times), 125.0)
     assert max(abs(a - b) for a, b in zip(got, want)) < 1e-6
-    assert timing.jitter_ms(times, 125.0)["final"] == pytest.approx(want[-1], abs=1e-9)
+    assert timing.jitter_summary(timing.intervals_ms(times), 125.0)["final"] == pytest.approx(want[-1], abs=1e-9)
 
 
 def test_percentiles_are_linear_between_ranks():
@@ -104,16 +105,28 @@ def test_percentiles_are_linear_between_ranks():
                                                     "max": 4.0}
 
 
+def burst_count(times: list, numbers: list, sizes: list, data_size: int = 0) -> tuple:
+    """(complete, positions of the first packet of each incomplete burst, of every burst) of one
+    sender's VRPO packets, fed to the incremental burst assembly at once."""
+    from vm110.analysis.periodic import Floats
+    packets = Floats()
+    packets.extend(np.asarray(times, dtype=np.float64))
+    b = bursts.Bursts(packets, C.VRPO_BURST_GAP_MS, 0, data_size)
+    b.feed(np.asarray(times, dtype=np.float64), np.asarray(numbers), np.asarray(sizes), range(len(times)), True)
+    b.finish()
+    return b.complete, sorted(w for w, _ in b.incomplete), np.array(b.firsts, dtype=np.int64)
+
+
 def test_bursts():
     full, tail = 2 + C.VRPO_MAX_DATA, 2 + 100
     times = [0.0, 0.001, 0.002, 0.1, 0.101, 0.2, 0.201, 0.202, 0.3]
     numbers = [0, 1, 2, 0, 2, 1, 0, 2, 0]
     sizes = [full, full, tail, full, tail, full, full, tail, tail]
-    complete, incomplete, starts = bursts.count(times, numbers, sizes)
+    complete, incomplete, starts = burst_count(times, numbers, sizes)
     assert (complete, incomplete, list(starts)) == (3, [3], [0, 3, 5, 8])   # 0.2: reordered, still whole
-    assert bursts.count([0.0, 0.1], [0, 1], [tail, tail])[:2] == (1, [1])
-    assert bursts.count([0.0, 0.01], [0, 0], [tail, tail])[:2] == (0, [0])        # closer than the burst gap
-    assert bursts.count([0.0, 0.001], [0, 1], [full, full], data_size=2 * C.VRPO_MAX_DATA)[:2] == (1, [])
+    assert burst_count([0.0, 0.1], [0, 1], [tail, tail])[:2] == (1, [1])
+    assert burst_count([0.0, 0.01], [0, 0], [tail, tail])[:2] == (0, [0])        # closer than the burst gap
+    assert burst_count([0.0, 0.001], [0, 1], [full, full], data_size=2 * C.VRPO_MAX_DATA)[:2] == (1, [])
 
 
 def test_crc_auto_finds_another_variant_and_byte_order(tmp_path):

@@ -124,14 +124,3 @@ class Bursts:
         """The capture ended: the open burst is closed."""
         self._close()
 
-
-def count(times: Sequence[float], numbers: Sequence[int], sizes: Sequence[int],
-          gap_ms: float = C.VRPO_BURST_GAP_MS, start: int = 0, data_size: int = 0) -> tuple[int, list, np.ndarray]:
-    """(complete, positions of the first packet of each incomplete burst, positions of the first
-    packet of every burst) of one sender's VRPO packets, all at once."""
-    packets = Floats()
-    packets.extend(np.asarray(times, dtype=np.float64))
-    b = Bursts(packets, gap_ms, start, data_size)
-    b.feed(np.asarray(times, dtype=np.float64), np.asarray(numbers), np.asarray(sizes), range(len(times)), True)
-    b.finish()
-    return b.complete, sorted(w for w, _ in b.incomplete), np.array(b.firsts, dtype=np.int64)

@@ -57,11 +57,6 @@ def summary_sorted(ordered: np.ndarray, keys: tuple = SUMMARY_KEYS) -> dict:
     return out
 
 
-def jitter_series(times: Sequence[float], period_ms: float) -> np.ndarray:
-    """J after each interval of `times` (see `jitter_of_intervals`)."""
-    return jitter_of_intervals(intervals_ms(times), period_ms)
-
-
 def jitter_of_intervals(delta: np.ndarray, period_ms: float) -> np.ndarray:
     """J after each interval (ms): J += (|D| - J)/16, D = (R_j - R_i) - k*T, k = max(1,
     round(dR/T)), round half up. The recurrence J_i = a*J_(i-1) + x_i (a = 15/16, x = |D|/16) is
@@ -82,11 +77,6 @@ def jitter_of_intervals(delta: np.ndarray, period_ms: float) -> np.ndarray:
             out[chunk + start:chunk + start + len(block)] = values
             j = float(values[-1])
     return out
-
-
-def jitter_ms(times: Sequence[float], period_ms: float) -> dict:
-    """Final, mean (over every update) and maximum jitter of `times`."""
-    return jitter_summary(intervals_ms(times), period_ms)
 
 
 def jitter_summary(delta: np.ndarray, period_ms: Optional[float]) -> dict:
