@@ -163,24 +163,31 @@ end)
 """
 
 
-@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
-def test_gui_menu_shows_the_statistics(tshark, tmp_path):
-    """Statistics menu entry: the Qt GUI shows a Lua menu of group MENU_STAT_UNSORTED in Statistics
-    (one of MENU_STAT_GENERIC not at all, seen in Wireshark 4.0), and its window has the text of
-    `-z vm110,stat`."""
+def _through_gui_stub(tshark: T.Tshark, tmp_path, stub_text: str) -> tuple:
+    """(`-z vm110,stat` text, the run with the GUI stand-in `stub_text` loaded before the plugin)
+    on a bundled capture; no Lua error in the latter."""
     capture = CAPTURES[1]
     try:
         with tshark.workspace(tmp_path) as ws:
             local = ws.dir / capture.name
             local.write_bytes(capture.read_bytes())
             stub = ws.dir / "gui_stub.lua"
-            stub.write_text(GUI_STUB)
+            stub.write_text(stub_text)
             stat = ws.run(["-r", str(local), "-q", "-z", "vm110,stat"]).stdout
             gui = ws.run(["-X", f"lua_script:{stub}", "-X", f"lua_script:{ws.plugin()}", "-r", str(local), "-q",
                           "-z", "vm110gui"], plugin=False)
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
     assert T.LUA_ERROR not in gui.stdout + gui.stderr, gui.stderr
+    return stat, gui
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_gui_menu_shows_the_statistics(tshark, tmp_path):
+    """Statistics menu entry: the Qt GUI shows a Lua menu of group MENU_STAT_UNSORTED in Statistics
+    (one of MENU_STAT_GENERIC not at all, seen in Wireshark 4.0), and its window has the text of
+    `-z vm110,stat`."""
+    stat, gui = _through_gui_stub(tshark, tmp_path, GUI_STUB)
     menu, window, text = gui.stdout.split("\n", 2)
     assert menu == "MENU VM-110 EG-Link Stream Statistics MENU_STAT_UNSORTED"
     assert window == "WINDOW VM-110 EG-Link Stream Statistics"
@@ -253,18 +260,7 @@ end }
 def test_gui_window_takes_the_display_filter(tshark, tmp_path):
     """The Statistics menu's window takes the display filter applied in the GUI (get_filter()),
     names it in its title, offers a button to ask for another, and retaps the packets through it."""
-    capture = CAPTURES[1]
-    try:
-        with tshark.workspace(tmp_path) as ws:
-            local = ws.dir / capture.name
-            local.write_bytes(capture.read_bytes())
-            stub = ws.dir / "gui_stub.lua"
-            stub.write_text(GUI_STUB_FILTERED)
-            gui = ws.run(["-X", f"lua_script:{stub}", "-X", f"lua_script:{ws.plugin()}", "-r", str(local), "-q",
-                          "-z", "vm110gui"], plugin=False)
-    except T.TsharkUnavailable as exc:
-        pytest.fail(str(exc))
-    assert T.LUA_ERROR not in gui.stdout + gui.stderr, gui.stderr
+    _, gui = _through_gui_stub(tshark, tmp_path, GUI_STUB_FILTERED)
     assert gui.stdout.splitlines() == ["MENU VM-110 EG-Link Stream Statistics MENU_STAT_UNSORTED",
                                        "WINDOW VM-110 EG-Link Stream Statistics (ip.src == 10.0.0.10)",
                                        "BUTTON Display filter...", "ATCLOSE", "RETAP"]

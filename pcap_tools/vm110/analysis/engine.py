@@ -23,13 +23,14 @@ import os
 import struct
 from array import array
 import zlib
-from typing import Callable, Optional
+from collections import Counter
+from typing import Callable, Collection, Optional
 
 import numpy as np
 
 from .. import constants as C
 from ..capture import linktypes as L
-from ..capture.reader import PCAP_HEADER_LEN, PCAPNG_EPB, PCAPNG_SHB, CaptureReader, address
+from ..capture.reader import CHUNK, PCAP_HEADER_LEN, PCAPNG_EPB, PCAPNG_SHB, CaptureReader, address
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, VARIANTS, crc32, zlib_form
 from ..decode import decode
 from ..errors import CliError
@@ -84,6 +85,22 @@ def crc_matches(data: bytes, end: int) -> set[tuple[str, str]]:
             if value == int.from_bytes(stored, order):
                 got.add((variant, order))
     return got
+
+
+def crc_candidates(path: str, ports: Collection[int], limit: Optional[int] = None,
+                   chunk_size: int = CHUNK) -> Counter:
+    """How many EG-Link datagrams on `ports` (the first `limit` of them) each (variant, byte
+    order) validates."""
+    counts: Counter = Counter()
+    seen = 0
+    for _, _, sport, dport, payload, _ in CaptureReader(path, chunk_size=chunk_size):
+        if (sport in ports or dport in ports) and len(payload) >= C.OVERHEAD:
+            size = struct.unpack_from("<H", payload, C.ID_LEN + 6)[0]
+            counts.update(crc_matches(payload, min(C.PREFIX_LEN + size, len(payload) - C.CRC_LEN)))
+            seen += 1
+            if seen == limit:
+                break
+    return counts
 
 
 def pipelined(path: str) -> bool:
@@ -146,21 +163,11 @@ class FastEngine:
         return max(candidates, key=lambda c: (got.crc_counts[c], -candidates.index(c)))
 
     def _sniff(self, path: str) -> Optional[tuple[str, str]]:
-        counts: dict[tuple[str, str], int] = {}
-        seen = 0
-        for ts, src, sport, dport, payload, frame in CaptureReader(path, chunk_size=_SNIFF_CHUNK):
-            if (sport in self.ports or dport in self.ports) and len(payload) >= C.OVERHEAD:
-                size = struct.unpack_from("<H", payload, 10)[0]
-                end = min(C.PREFIX_LEN + size, len(payload) - C.CRC_LEN)
-                for combo in crc_matches(payload, end):
-                    counts[combo] = counts.get(combo, 0) + 1
-                seen += 1
-                if seen >= _SNIFF:
-                    break
+        counts = crc_candidates(path, self.ports, _SNIFF, _SNIFF_CHUNK)
         candidates = self._candidates()
         if not counts:
             return None
-        return max(candidates, key=lambda c: (counts.get(c, 0), -candidates.index(c)))
+        return max(candidates, key=lambda c: (counts[c], -candidates.index(c)))
 
     def _pass(self, path: str, variant: str, order: str, opt) -> Collected:
         if pipelined(path):

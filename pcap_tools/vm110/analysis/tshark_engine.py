@@ -15,7 +15,6 @@ import shutil
 import struct
 import subprocess
 import tempfile
-from collections import Counter
 from pathlib import Path
 from typing import Iterator, Optional
 
@@ -24,7 +23,7 @@ from ..capture.reader import CaptureReader, address
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS
 from ..errors import CliError
 from .collect import RECORD, STATE, STATE_FIELDS, Collected
-from .engine import crc_matches
+from .engine import crc_candidates
 from .incremental import Analysis
 
 PLUGIN_ENV = "VM110_DISSECTOR"
@@ -87,16 +86,6 @@ class TsharkEngine:
                 self.stopped = cap._last_error_line or "tshark stopped"
                 cap._running_processes.clear()
 
-    def _count_good(self, path: str) -> Counter:
-        """EG-Link datagrams (on the ports) whose CRC each (variant, byte order) validates."""
-        ports = (self.port, self.port + C.OUTPUT_PORT_OFFSET)
-        counts: Counter = Counter()
-        for _, _, sport, dport, payload, _ in CaptureReader(path):
-            if (sport in ports or dport in ports) and len(payload) >= C.OVERHEAD:
-                size = struct.unpack_from("<H", payload, C.ID_LEN + 6)[0]
-                counts.update(crc_matches(payload, min(C.PREFIX_LEN + size, len(payload) - C.CRC_LEN)))
-        return counts
-
     def collect(self, path: str, opt) -> Collected:
         """Read the capture through tshark, feeding its legal packets to an `Analysis` with `opt`."""
         check_available()
@@ -131,7 +120,7 @@ class TsharkEngine:
         if len(candidates) > 1 and got.crc_checked > got.crc_counts[first]:
             # Some packet failed the default: count what each candidate validates in one Python
             # pass over the datagrams (not one tshark run per candidate: the self-fuzzer saw 8).
-            counts = self._count_good(path)
+            counts = crc_candidates(path, (self.port, self.port + C.OUTPUT_PORT_OFFSET))
             best = max(candidates, key=lambda c: (counts[c], -candidates.index(c)))
             if best != first:
                 got = self._pass(path, name, reader, opt, *best)
