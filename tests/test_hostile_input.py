@@ -161,6 +161,9 @@ def test_pcapng_block_lengths_that_disagree_are_damage(tmp_path):
     reader = CaptureReader(str(path))
     assert len(list(reader)) == 4 and reader.damage == fifth
     assert reader.problem == f"corrupt pcapng block at byte {fifth} (leading length {end - fifth}, trailing 4236)"
+    report = analyze(str(path))                          # the fast engine walks pcapng itself
+    assert report["capture"]["packets"] == 4 and report["capture"]["damage"] == {
+        "offset": fifth, "message": reader.problem}
 
 
 @pytest.mark.tshark

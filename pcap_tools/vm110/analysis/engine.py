@@ -336,6 +336,7 @@ class FastEngine:
         """Walk the blocks of a pcapng file: enhanced packet blocks of little-endian sections go
         the way of `_fused_pcap` (`_FUSED_NG`), every other block through the reader."""
         fused, slack = _FUSED_NG.unpack_from, bytes(_FUSED_NG.size)
+        u32_at = _U32["little"].unpack_from
         ports_le = frozenset(_SWAP[p] for p in self.ports)
         swap, low_of, eth_ipv4 = _SWAP, _LOW, _ETH_IPV4
         reversed_bytes, xor, stored_order = zlib_form(variant, order)
@@ -375,6 +376,10 @@ class FastEngine:
                     break
                 p = pos
                 if p + blen > end:
+                    break
+                if u32_at(data, p + blen - 4)[0] != blen and reader.bad_trailer(data, p, blen):
+                    chunks.close()                  # (the quick test reads little-endian: the
+                    damaged = True                  # reader judges big-endian sections itself)
                     break
                 pos = p + blen
                 if btype == epb and et is not None and iface < len(ifaces) and incl <= blen - epb_head:
