@@ -8,6 +8,7 @@ import time
 import zlib
 
 from vm110 import constants as C
+from vm110 import protocol as P
 from vm110.crc import VARIANTS, crc_bytes, crc_function
 from vm110.decode import decode
 
@@ -39,7 +40,7 @@ def best_of(runs: int, fn) -> float:
 
 def main() -> None:
     packets = make_packets(N)
-    end = C.PREFIX_LEN + C.VRPI_SIZE
+    end = C.PREFIX_LEN + P.PAYLOAD_BOUNDS[C.PacketType.VRPI][0]
     baseline = best_of(3, lambda: [zlib.crc32(p[:end]) for p in packets])
     print(f"baseline zlib.crc32 (iso-hdlc, no compare): {N / baseline:,.0f} packets/s")
     for variant in VARIANTS:

@@ -8,6 +8,7 @@ from hypothesis import given, settings, strategies as st
 from scapy.fields import StrFixedLenField
 
 from vm110 import constants as C
+from vm110 import protocol as P
 from vm110 import decode
 from vm110.crc import BYTE_ORDERS, VARIANTS
 from vm110.layers import PAYLOAD_CLASSES, VM110, VRPO, crc_settings
@@ -70,5 +71,5 @@ def test_random_bytes_after_a_valid_id_never_raise(packet_id, rest):
     legal = not got["problems"]
     assert legal == (len(rest) >= C.OVERHEAD - C.ID_LEN and got.get("crc.status") == C.CRC_GOOD
                      and got["revision"] == 0 and got["size"] + C.OVERHEAD == len(rest) + C.ID_LEN
-                     and got["size"] >= C.PAYLOAD_BOUNDS[C.PacketType(packet_id.decode())][0]
+                     and got["size"] >= P.PAYLOAD_BOUNDS[C.PacketType(packet_id.decode())][0]
                      and got["size"] <= C.MAX_PAYLOAD)

@@ -46,26 +46,13 @@ PACKET_DESCRIPTIONS = {
     PacketType.VRAO: "VisionRemote Acknowledge Output",
 }
 
-# Payload layout bounds per type: (minimum, maximum) size in bytes.
-VRPI_SIZE = 46
-COMMAND_SIZE = 22
-ACK_SIZE = 2
-VRPO_HEADER_SIZE = 2
+# Field sizes the declaration in vm110.protocol uses (payload layouts and their bounds are derived there).
 VRPO_MAX_DATA = 488
 COMMAND_DATA_LEN = 16
 VRPI_SPARE_LEN = 6
-PAYLOAD_BOUNDS = {
-    PacketType.VRPI: (VRPI_SIZE, VRPI_SIZE),
-    PacketType.VRPO: (VRPO_HEADER_SIZE, VRPO_HEADER_SIZE + VRPO_MAX_DATA),
-    PacketType.VRCI: (COMMAND_SIZE, COMMAND_SIZE),
-    PacketType.VRCO: (COMMAND_SIZE, COMMAND_SIZE),
-    PacketType.VRAI: (ACK_SIZE, ACK_SIZE),
-    PacketType.VRAO: (ACK_SIZE, ACK_SIZE),
-}
 
 # Which acknowledgement answers which command (the spec's "VRPO" in 4.6 is a typo for VRCO).
 ACK_OF = {PacketType.VRAO: PacketType.VRCI, PacketType.VRAI: PacketType.VRCO}
-ACK_FOR = {cmd: ack for ack, cmd in ACK_OF.items()}
 
 
 # --- Enums (TS-0006 section 4.1) -------------------------------------------------------------
@@ -153,19 +140,6 @@ RU_CABLE_NAMES = {RuCable.WIRELESS: "Wireless", RuCable.CABLE: "Cable"}
 RU_DOCKED_NAMES = {RuDocked.NOT_DOCKED: "Not docked", RuDocked.DOCKED: "Docked"}
 ENCODER_SWITCH_NAMES = {EncoderSwitch.RELEASED: "Released", EncoderSwitch.PUSHED: "Pushed"}
 
-# Field name -> value names, for every enumerated field.
-ENUM_FIELDS = {
-    "bu_state": BU_STATE_NAMES,
-    "eg_link": LINK_STATUS_NAMES,
-    "ec_link": LINK_STATUS_NAMES,
-    "c_link": LINK_STATUS_NAMES,
-    "ru_state": RU_STATE_NAMES,
-    "ru_disabled": RU_DISABLED_NAMES,
-    "ru_cable": RU_CABLE_NAMES,
-    "ru_docked": RU_DOCKED_NAMES,
-    "encoder_switch": ENCODER_SWITCH_NAMES,
-}
-
 # ES-Link relays are open while the BU state is below Disarmed (section 4.1.1).
 ES_RELAYS_CLOSED_FROM = BuState.DISARMED
 
@@ -177,20 +151,6 @@ SWITCH_MIN = -1
 SWITCH_MAX = 1000
 JOYSTICKS = 4
 SWITCHES = 8
-RANGES = {
-    "vlaps": (0, VLAPS_MAX),
-    "ru_battery": (0, PERCENT_MAX),
-    "ru_rssi": (0, PERCENT_MAX),
-    **{f"joystick{i}": (-JOYSTICK_LIMIT, JOYSTICK_LIMIT) for i in range(1, JOYSTICKS + 1)},
-    **{f"switch{i}": (SWITCH_MIN, SWITCH_MAX) for i in range(1, SWITCHES + 1)},
-}
-# Fields that must be zero while armed_ru is 0 (section 4.1: "all the following fields").
-RU_FIELDS = (
-    "ru_state", "ru_battery", "ru_rssi", "ru_cable", "ru_docked", "ru_disabled",
-    *(f"joystick{i}" for i in range(1, JOYSTICKS + 1)),
-    *(f"switch{i}" for i in range(1, SWITCHES + 1)),
-    "encoder", "encoder_switch",
-)
 
 
 # --- Problems (illegal, section 5.1.5) and warnings: the names are shared with the dissector --

@@ -6,36 +6,17 @@ are the contract that the Lua dissector is held to through tests/vectors.
 from __future__ import annotations
 
 import struct
-from typing import Any
+from typing import Any, NamedTuple, Optional
 
 from . import constants as C
+from . import protocol as P
 from .crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, check_byte_order, crc_function
 
-_HEADER = struct.Struct("<4sHHHHI")
-_HEADER_FIELDS = (("revision", "H"), ("origin", "H"), ("serial", "H"), ("size", "H"), ("spare", "I"))
-
-# Payload layouts as (field, struct code); "Ns" fields are bytes.
-VRPI_LAYOUT: tuple[tuple[str, str], ...] = (
-    ("bu_state", "B"), ("vlaps", "B"), ("unarmed_rus", "B"),
-    ("eg_link", "B"), ("ec_link", "B"), ("c_link", "B"),
-    ("armed_ru", "H"), ("ru_state", "B"), ("ru_battery", "B"), ("ru_rssi", "B"),
-    ("ru_cable", "B"), ("ru_docked", "B"), ("ru_disabled", "B"),
-    *((f"joystick{i}", "h") for i in range(1, C.JOYSTICKS + 1)),
-    *((f"switch{i}", "h") for i in range(1, C.SWITCHES + 1)),
-    ("encoder", "B"), ("encoder_switch", "B"), ("vrpi_spare", f"{C.VRPI_SPARE_LEN}s"),
-)
-COMMAND_LAYOUT = (("command_id", "H"), ("command_spare", "I"), ("command_data", f"{C.COMMAND_DATA_LEN}s"))
-ACK_LAYOUT = (("command_id", "H"),)
-VRPO_LAYOUT = (("packet_number", "H"),)  # periodic_data is the rest of the payload
-
-LAYOUTS = {
-    C.PacketType.VRPI: VRPI_LAYOUT,
-    C.PacketType.VRPO: VRPO_LAYOUT,
-    C.PacketType.VRCI: COMMAND_LAYOUT,
-    C.PacketType.VRCO: COMMAND_LAYOUT,
-    C.PacketType.VRAI: ACK_LAYOUT,
-    C.PacketType.VRAO: ACK_LAYOUT,
-}
+_HEADER = P.HEADER
+_HEADER_FIELDS = tuple((f.name, f.code) for f in P.HEADER_FIELDS)
+# Payload layouts as (field, struct code), derived from vm110.protocol; "Ns" fields are bytes.
+LAYOUTS = P.LAYOUTS
+VRPI_LAYOUT = LAYOUTS[C.PacketType.VRPI]
 
 
 def _compile(layout: tuple[tuple[str, str], ...]) -> tuple[struct.Struct, tuple[str, ...], tuple[tuple[str, struct.Struct, int], ...]]:
@@ -62,13 +43,32 @@ W = C.WarningCode
 _HEADER_SPARE = f"{W.SPARE_NONZERO.value}:spare"
 _ORIGIN = f"{W.ORIGIN_NONZERO.value}:origin"
 _EXTRA = W.EXTRA_PAYLOAD.value
-_SPARE_CHECKS = tuple((name, f"{W.SPARE_NONZERO.value}:{name}") for name in ("vrpi_spare", "command_spare"))
-_ENUM_CHECKS = tuple((name, frozenset(int(v) for v in names), f"{W.UNKNOWN_ENUM.value}:{name}")
-                     for name, names in C.ENUM_FIELDS.items())
-_RANGE_CHECKS = tuple((name, low, high, f"{W.OUT_OF_RANGE.value}:{name}")
-                      for name, (low, high) in C.RANGES.items())
-_DISARMED_CHECKS = tuple((name, f"{W.DISARMED_RU_DATA.value}:{name}") for name in C.RU_FIELDS)
 _VRPI, _VRPO = C.PacketType.VRPI, C.PacketType.VRPO
+_TAIL = P.VRPO_TAIL
+
+
+class _Checks(NamedTuple):
+    """The value checks of one packet type, from the flags of its fields (vm110.protocol)."""
+
+    spare: tuple[tuple[str, str], ...]                        # (field, warning)
+    enum: tuple[tuple[str, frozenset[int], str], ...]         # (field, values, warning)
+    range: tuple[tuple[str, int, int, str], ...]              # (field, low, high, warning)
+    gate: Optional[str]                                       # 0 here: no RU armed
+    disarmed: tuple[tuple[str, str], ...]                     # (field, warning)
+
+
+def _checks(packet: P.Packet) -> _Checks:
+    fields = packet.fields
+    return _Checks(
+        tuple((f.name, f"{W.SPARE_NONZERO.value}:{f.name}") for f in fields if f.spare),
+        tuple((f.name, frozenset(int(v) for v in f.enum.values), f"{W.UNKNOWN_ENUM.value}:{f.name}")
+              for f in fields if f.enum),
+        tuple((f.name, f.range[0], f.range[1], f"{W.OUT_OF_RANGE.value}:{f.name}") for f in fields if f.range),
+        packet.ru_gate,
+        tuple((f.name, f"{W.DISARMED_RU_DATA.value}:{f.name}") for f in fields if f.ru and packet.ru_gate))
+
+
+_CHECKS = {ptype: _checks(packet) for ptype, packet in P.PACKETS.items()}
 
 
 def crc_span(data: bytes, size: int) -> int:
@@ -133,7 +133,7 @@ def decode(data: bytes, crc: str = DEFAULT_VARIANT, crc_order: str = DEFAULT_BYT
         return out  # unknown layout: the header is all there is to decode
 
     payload = data[C.PREFIX_LEN:end]
-    low, high = C.PAYLOAD_BOUNDS[ptype]
+    low, high = P.PAYLOAD_BOUNDS[ptype]
     if len(payload) < low:
         problems.append(_TRUNCATED)
     _decode_payload(ptype, payload, out)
@@ -168,28 +168,27 @@ def _decode_payload(ptype: C.PacketType, payload: bytes, out: dict[str, Any]) ->
                 break
             out[name] = part.unpack_from(payload, offset)[0]
     if ptype is _VRPO and len(payload) >= whole.size:
-        out["periodic_data"] = payload[whole.size:whole.size + C.VRPO_MAX_DATA]
+        out[_TAIL.name] = payload[whole.size:whole.size + _TAIL.size]
     if ptype is _VRPI and "bu_state" in out:
         out["es_relays_open"] = out["bu_state"] < C.ES_RELAYS_CLOSED_FROM
 
 
 def _check_values(ptype: C.PacketType, out: dict[str, Any], warnings: list[str]) -> None:
-    for name, warning in _SPARE_CHECKS:
-        value = out.get(name)
+    checks = _CHECKS[ptype]
+    get = out.get
+    for name, warning in checks.spare:
+        value = get(name)
         if value and (not isinstance(value, bytes) or any(value)):
             warnings.append(warning)
-    if ptype is not _VRPI:
-        return
-    get = out.get
-    for name, allowed, warning in _ENUM_CHECKS:
+    for name, allowed, warning in checks.enum:
         value = get(name)
         if value is not None and value not in allowed:
             warnings.append(warning)
-    for name, low, high, warning in _RANGE_CHECKS:
+    for name, low, high, warning in checks.range:
         value = get(name)
         if value is not None and not low <= value <= high:
             warnings.append(warning)
-    if get("armed_ru") == 0:
-        for name, warning in _DISARMED_CHECKS:
+    if checks.gate is not None and get(checks.gate) == 0:
+        for name, warning in checks.disarmed:
             if get(name):
                 warnings.append(warning)

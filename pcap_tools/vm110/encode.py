@@ -11,17 +11,13 @@ from typing import Any, Mapping, Optional, Union
 
 from . import constants as C
 from .crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, check_byte_order, crc_function
-from .decode import LAYOUTS
+from . import protocol as P
 
-_HEADER = struct.Struct("<4sHHHHI")
-_PAYLOAD_STRUCTS = {
-    ptype: struct.Struct("<" + "".join(code for _, code in layout)) for ptype, layout in LAYOUTS.items()
-}
-_PAYLOAD_FIELDS = {ptype: tuple(name for name, _ in layout) for ptype, layout in LAYOUTS.items()}
-_BYTES_DEFAULTS = {"vrpi_spare": bytes(C.VRPI_SPARE_LEN), "command_data": bytes(C.COMMAND_DATA_LEN)}
-_VRPO_NUMBER = struct.Struct("<H")
-_ACK = struct.Struct("<H")
-_COMMAND = _PAYLOAD_STRUCTS[C.PacketType.VRCI]
+_HEADER = P.HEADER
+_PAYLOAD_STRUCTS = {ptype: packet.struct for ptype, packet in P.PACKETS.items()}
+# (name, value when missing) per field, in wire order.
+_PAYLOAD_FIELDS = {ptype: tuple((f.name, f.default) for f in packet.fields) for ptype, packet in P.PACKETS.items()}
+_TAILS = {ptype: packet.tail.name for ptype, packet in P.PACKETS.items() if packet.tail}
 
 PacketId = Union[C.PacketType, str, bytes]
 
@@ -46,10 +42,11 @@ def packet(ptype: PacketId, payload: bytes = b"", *, origin: int = 0, serial: in
 def payload(ptype: Union[C.PacketType, str], fields: Mapping[str, Any]) -> bytes:
     """The payload of a known type from canonical field names; missing fields are zero."""
     ptype = C.PacketType(ptype)
-    values = [fields.get(name, _BYTES_DEFAULTS.get(name, 0)) for name in _PAYLOAD_FIELDS[ptype]]
+    values = [fields.get(name, default) for name, default in _PAYLOAD_FIELDS[ptype]]
     body = _PAYLOAD_STRUCTS[ptype].pack(*values)
-    if ptype is C.PacketType.VRPO:
-        body += bytes(fields.get("periodic_data", b""))
+    tail = _TAILS.get(ptype)
+    if tail is not None:
+        body += bytes(fields.get(tail, b""))
     return body
 
 
@@ -65,7 +62,13 @@ def encode(fields: Mapping[str, Any], variant: str = DEFAULT_VARIANT, order: str
                   variant=variant, order=order)
 
 
-# The hot paths of the simulators: one struct call for the payload.
+# The hot paths of the simulators: one struct call for the payload. Their argument lists name
+# the fields; tests/test_encode.py holds them to `payload` (the declaration) byte for byte.
+_VRPO_NUMBER = struct.Struct("<H")
+_ACK = P.PACKETS[C.PacketType.VRAO].struct
+_COMMAND = P.PACKETS[C.PacketType.VRCI].struct
+
+
 def vrpo_payload(packet_number: int, data: bytes) -> bytes:
     return _VRPO_NUMBER.pack(packet_number) + data
 

@@ -15,13 +15,15 @@ from typing import Iterator, Optional
 
 from scapy.config import conf
 from scapy.fields import (
-    ByteEnumField, ByteField, Field, LEIntField, LEShortField, LESignedShortField,
-    StrFixedLenEnumField, XLEShortField, XStrFixedLenField, XStrLenField,
+    ByteEnumField, ByteField, Field, LEIntEnumField, LEIntField, LEShortEnumField, LEShortField,
+    LESignedShortField, StrFixedLenEnumField, XByteField, XLEIntField, XLEShortField, XStrFixedLenField,
+    XStrLenField,
 )
 from scapy.layers.inet import UDP
 from scapy.packet import Packet, bind_layers, split_layers
 
 from . import constants as C
+from . import protocol as P
 from .crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, check_byte_order, crc_bytes, crc_function
 from .decode import crc_span
 
@@ -69,28 +71,57 @@ class CRCField(Field[Optional[int], bytes]):
 
 PACKET_IDS = {t.value.encode(): C.PACKET_DESCRIPTIONS[t] for t in C.PacketType}
 
+# scapy field classes per wire kind: (plain, hexadecimal, with value names).
+_SCAPY_FIELDS: dict[str, tuple[type, type, Optional[type]]] = {
+    "u8": (ByteField, XByteField, ByteEnumField),
+    "u16": (LEShortField, XLEShortField, LEShortEnumField),
+    "u32": (LEIntField, XLEIntField, LEIntEnumField),
+    "s16": (LESignedShortField, LESignedShortField, None),
+}
 
-def _names(table: dict) -> dict[int, str]:
-    return {int(k): v for k, v in table.items()}
+
+_UNSET = object()
+
+
+def scapy_field(f: P.Field, default: object = _UNSET) -> Field:
+    """The scapy field of a declared field (vm110.protocol), shown as Wireshark shows it."""
+    value = f.default if default is _UNSET else default
+    if f.kind == "bytes":
+        return XStrFixedLenField(f.name, value, f.size)
+    plain, hexa, named = _SCAPY_FIELDS[f.kind]
+    if f.enum is not None and named is not None:
+        return named(f.name, value, {int(k): v for k, v in f.enum.values.items()})
+    return (hexa if f.base == "HEX" else plain)(f.name, value)
+
+
+def fields_of(ptype: C.PacketType) -> list[Field]:
+    """`fields_desc` of a payload layer, from the declaration."""
+    packet = P.PACKETS[ptype]
+    out = [scapy_field(f) for f in packet.fields]
+    if packet.tail is not None:
+        # Bytes beyond the layout's maximum are not part of the tail: they dissect as a Raw payload.
+        out.append(XStrLenField(packet.tail.name, b"", length_from=lambda _, n=packet.tail.size: n))
+    return out
+
+
+def _header_fields() -> list[Field]:
+    # size is computed when left unset (None), like the CRC
+    defaults: dict[str, object] = {"revision": C.SUPPORTED_REVISION, "size": None}
+    return [scapy_field(f, defaults.get(f.name, _UNSET)) for f in P.HEADER_FIELDS]
 
 
 class VM110(Packet):
     name = "VM-110 EG-Link"
     fields_desc = [
         StrFixedLenEnumField("type", b"VRPI", PACKET_IDS, length=C.ID_LEN),
-        LEShortField("revision", C.SUPPORTED_REVISION),
-        LEShortField("origin", 0),
-        LEShortField("serial", 0),
-        LEShortField("size", None),
-        LEIntField("spare", 0),
+        *_header_fields(),
         CRCField("crc", None),  # the trailer, dissected and built out of wire order
     ]
 
     def pre_dissect(self, s: bytes) -> bytes:
         if len(s) < C.OVERHEAD:
             return s
-        size = struct.unpack_from("<H", s, 10)[0]
-        end = crc_span(s, size)
+        end = crc_span(s, P.SIZE.unpack_from(s, P.SIZE_OFFSET)[0])
         return s[:C.PREFIX_LEN] + s[end:end + C.CRC_LEN] + s[C.PREFIX_LEN:end] + s[end + C.CRC_LEN:]
 
     def post_dissect(self, s: bytes) -> bytes:
@@ -103,7 +134,7 @@ class VM110(Packet):
 
     def post_build(self, p: bytes, pay: bytes) -> bytes:
         if self.size is None:
-            p = p[:10] + struct.pack("<H", len(pay) & 0xFFFF) + p[12:]
+            p = p[:P.SIZE_OFFSET] + P.SIZE.pack(len(pay) & 0xFFFF) + p[P.SIZE_OFFSET + P.SIZE.size:]
         body = p[:C.PREFIX_LEN] + pay
         trailer = p[C.PREFIX_LEN:C.PREFIX_LEN + C.CRC_LEN]
         if self.crc is None:
@@ -113,7 +144,7 @@ class VM110(Packet):
     def crc_ok(self) -> bool:
         """Whether the stored CRC matches the packet under the configured variant."""
         raw = bytes(self)
-        end = crc_span(raw, struct.unpack_from("<H", raw, 10)[0])
+        end = crc_span(raw, P.SIZE.unpack_from(raw, P.SIZE_OFFSET)[0])
         variant, order = _settings()
         return int.from_bytes(raw[end:end + C.CRC_LEN], order) == crc_function(variant)(raw[:end])
 
@@ -125,14 +156,6 @@ class VM110(Packet):
 
     def mysummary(self) -> str:
         return self.sprintf("VM110 %type% serial=%serial%")
-
-
-def _command_fields() -> list[Field]:
-    return [
-        LEShortField("command_id", 0),
-        LEIntField("command_spare", 0),
-        XStrFixedLenField("command_data", b"\x00" * C.COMMAND_DATA_LEN, C.COMMAND_DATA_LEN),
-    ]
 
 
 class _CommandPair(Packet):
@@ -149,26 +172,7 @@ class _CommandPair(Packet):
 
 class VRPI(Packet):
     name = "VRPI (VisionRemote Periodic Input)"
-    fields_desc = [
-        ByteEnumField("bu_state", C.BuState.INITIAL, _names(C.BU_STATE_NAMES)),
-        ByteField("vlaps", 0),
-        ByteField("unarmed_rus", 0),
-        ByteEnumField("eg_link", C.LinkStatus.UNUSED, _names(C.LINK_STATUS_NAMES)),
-        ByteEnumField("ec_link", C.LinkStatus.UNUSED, _names(C.LINK_STATUS_NAMES)),
-        ByteEnumField("c_link", C.LinkStatus.UNUSED, _names(C.LINK_STATUS_NAMES)),
-        XLEShortField("armed_ru", 0),
-        ByteEnumField("ru_state", C.RuState.INITIAL, _names(C.RU_STATE_NAMES)),
-        ByteField("ru_battery", 0),
-        ByteField("ru_rssi", 0),
-        ByteEnumField("ru_cable", C.RuCable.WIRELESS, _names(C.RU_CABLE_NAMES)),
-        ByteEnumField("ru_docked", C.RuDocked.NOT_DOCKED, _names(C.RU_DOCKED_NAMES)),
-        ByteEnumField("ru_disabled", C.RuDisabled.ENABLED, _names(C.RU_DISABLED_NAMES)),
-        *(LESignedShortField(f"joystick{i}", 0) for i in range(1, C.JOYSTICKS + 1)),
-        *(LESignedShortField(f"switch{i}", 0) for i in range(1, C.SWITCHES + 1)),
-        ByteField("encoder", 0),
-        ByteEnumField("encoder_switch", C.EncoderSwitch.RELEASED, _names(C.ENCODER_SWITCH_NAMES)),
-        XStrFixedLenField("vrpi_spare", b"\x00" * C.VRPI_SPARE_LEN, C.VRPI_SPARE_LEN),
-    ]
+    fields_desc = fields_of(C.PacketType.VRPI)
 
     def mysummary(self) -> str:
         return self.sprintf("VRPI %bu_state% armed_ru=%armed_ru% %ru_state%")
@@ -176,11 +180,7 @@ class VRPI(Packet):
 
 class VRPO(Packet):
     name = "VRPO (VisionRemote Periodic Output)"
-    fields_desc = [
-        LEShortField("packet_number", 0),
-        # Bytes beyond the layout's 488 are not periodic data: they dissect as a Raw payload.
-        XStrLenField("periodic_data", b"", length_from=lambda _: C.VRPO_MAX_DATA),
-    ]
+    fields_desc = fields_of(C.PacketType.VRPO)
 
     def mysummary(self) -> str:
         return self.sprintf("VRPO #%packet_number%") + f" {len(self.periodic_data)} bytes"
@@ -189,19 +189,19 @@ class VRPO(Packet):
 class VRCI(_CommandPair):
     name = "VRCI (VisionRemote Command Input)"
     pair = b"CI"
-    fields_desc = _command_fields()
+    fields_desc = fields_of(C.PacketType.VRCI)
 
 
 class VRCO(_CommandPair):
     name = "VRCO (VisionRemote Command Output)"
     pair = b"CO"
-    fields_desc = _command_fields()
+    fields_desc = fields_of(C.PacketType.VRCO)
 
 
 class VRAO(_CommandPair):
     name = "VRAO (VisionRemote Acknowledge Output)"
     pair = VRCI.pair
-    fields_desc = [LEShortField("command_id", 0)]
+    fields_desc = fields_of(C.PacketType.VRAO)
 
     def answers(self, other: Packet) -> int:
         return isinstance(other, VRCI) and other.command_id == self.command_id
@@ -210,7 +210,7 @@ class VRAO(_CommandPair):
 class VRAI(_CommandPair):
     name = "VRAI (VisionRemote Acknowledge Input)"
     pair = VRCO.pair
-    fields_desc = [LEShortField("command_id", 0)]
+    fields_desc = fields_of(C.PacketType.VRAI)
 
     def answers(self, other: Packet) -> int:
         return isinstance(other, VRCO) and other.command_id == self.command_id

@@ -21,10 +21,11 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .. import constants as C
+from .. import protocol as P
 from . import timing
 from .periodic import Floats
 
-DATA_OFFSET = C.VRPO_HEADER_SIZE
+DATA_OFFSET = P.PAYLOAD_BOUNDS[C.PacketType.VRPO][0]
 MAX_PARTS = 1 << 16          # packet numbers are 16 bits: a longer burst is incomplete
 
 

@@ -17,6 +17,7 @@ from typing import Any, Optional
 import numpy as np
 
 from .. import constants as C
+from .. import protocol as P
 from ..capture import linktypes as L
 from ..capture.reader import PCAP_RECORD_LEN
 
@@ -24,11 +25,10 @@ TYPES = tuple(C.PacketType)
 CODE = {t: i for i, t in enumerate(TYPES)}               # packet type -> small integer code
 CODE_OF_ID = {t.value.encode(): i for i, t in enumerate(TYPES)}
 VRPI_CODE, VRPO_CODE = CODE[C.PacketType.VRPI], CODE[C.PacketType.VRPO]
-# VRPI bytes that make up the state timeline: bu_state .. ru_disabled.
-STATE_LEN = 14
-STATE = struct.Struct("<BBBBBBHBBBBBB")
-STATE_FIELDS = ("bu_state", "vlaps", "unarmed_rus", "eg_link", "ec_link", "c_link", "armed_ru",
-                "ru_state", "ru_battery", "ru_rssi", "ru_cable", "ru_docked", "ru_disabled")
+# The leading VRPI bytes that make up the state timeline (fields declared `state` in vm110.protocol).
+STATE_FIELDS = tuple(f.name for f in P.state_fields())
+STATE = struct.Struct("<" + "".join(f.code for f in P.state_fields()))
+STATE_LEN = STATE.size
 MAX_EXAMPLES = 1000                                       # illegal packets listed in a report
 
 
@@ -37,15 +37,24 @@ def sender_id(direction: str, origin: int, src: str) -> str:
 
 
 # One legal packet: time, frame, source (index into `Collected.sources`), source port, and the
-# first PREFIX bytes of the EG-Link packet (ID, header, first payload bytes), zero-padded.
+# first PREFIX bytes of the EG-Link packet (ID, header, first payload bytes), zero-padded. The
+# numpy view names the header fields at their declared offsets; `aux` is the first payload field of
+# the other types (packet number, command ID), `state` the VRPI state bytes.
 PREFIX = C.PREFIX_LEN + STATE_LEN
 RECORD = struct.Struct(f"<dIHH{PREFIX}s")
+_AT = struct.calcsize("<dIHH")                            # where the packet starts in a RECORD
+_KEYS = [f for f in P.HEADER_FIELDS if f.name in ("origin", "serial", "size")]   # what the analysis reads
+_NUMPY = {"H": "<u2", "I": "<u4"}
 RECORD_DTYPE = np.dtype({
-    "names": ["ts", "frame", "src", "sport", "packet", "pid", "origin", "serial", "size", "aux", "state"],
-    "formats": ["<f8", "<u4", "<u2", "<u2", f"V{PREFIX}", "<u4", "<u2", "<u2", "<u2", "<u2", f"V{STATE_LEN}"],
-    "offsets": [0, 8, 12, 14, 16, 16, 22, 24, 26, 16 + C.PREFIX_LEN, 16 + C.PREFIX_LEN],
+    "names": ["ts", "frame", "src", "sport", "packet", "pid", *(f.name for f in _KEYS), "aux", "state"],
+    "formats": ["<f8", "<u4", "<u2", "<u2", f"V{PREFIX}", "<u4", *(_NUMPY[f.code] for f in _KEYS),
+                "<u2", f"V{STATE_LEN}"],
+    "offsets": [0, 8, 12, 14, _AT, _AT, *(_AT + P.HEADER_OFFSETS[f.name] for f in _KEYS),
+                _AT + C.PREFIX_LEN, _AT + C.PREFIX_LEN],
     "itemsize": RECORD.size,
 })
+if any(p.fields[0].code != "H" for t, p in P.PACKETS.items() if t is not C.PacketType.VRPI):
+    raise AssertionError("RECORD `aux` reads a 16-bit first payload field (packet number, command ID)")
 
 
 _PIDS = np.array(sorted(int.from_bytes(t.value.encode(), "little") for t in TYPES), dtype=np.uint32)

@@ -29,6 +29,7 @@ from typing import Callable, Collection, Optional
 import numpy as np
 
 from .. import constants as C
+from .. import protocol as P
 from ..capture import linktypes as L
 from ..capture.reader import CHUNK, PCAP_HEADER_LEN, PCAPNG_EPB, PCAPNG_SHB, CaptureReader, address
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, VARIANTS, crc32, zlib_form
@@ -63,7 +64,7 @@ _FRAME_OVER = _IP_END + L.UDP_HEADER_LEN + C.OVERHEAD   # frame length = this + 
 _FRAG_LE = 0xFF3F                                  # MF + fragment offset, read little-endian
 _U32 = {"little": struct.Struct("<I"), "big": struct.Struct(">I")}
 _SWAP = [((x & 0xFF) << 8) | (x >> 8) for x in range(1 << 16)]   # big-endian u16 read little-endian
-_LOW = {raw: C.PAYLOAD_BOUNDS[C.PacketType(raw.decode())][0] for raw in CODE_OF_ID}
+_LOW = {raw: P.PAYLOAD_BOUNDS[C.PacketType(raw.decode())][0] for raw in CODE_OF_ID}
 _PID_LE = np.array(sorted(int.from_bytes(raw, "little") for raw in _LOW), dtype=np.uint32)
 _LOW_LE = np.array([_LOW[int(p).to_bytes(4, "little")] for p in _PID_LE], dtype=np.int64)
 _ETH_IPV4_LE = int.from_bytes(L.ETHERTYPE_IPV4.to_bytes(2, "big"), "little")

@@ -7,12 +7,13 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .. import constants as C
+from .. import protocol as P
 from .collect import STATE, STATE_FIELDS
 
 SEGMENT_FIELDS = ("bu_state", "eg_link", "ec_link", "c_link", "armed_ru", "ru_state")
 LEVEL_FIELDS = ("ru_battery", "ru_rssi")
 MAX_POINTS = 500          # battery/RSSI samples kept for plotting
-_NAMES = {name: C.ENUM_FIELDS.get(name, {}) for name in SEGMENT_FIELDS}
+_NAMES = {name: P.ENUM_FIELDS.get(name, {}) for name in SEGMENT_FIELDS}
 
 
 def _name(field: str, value: int) -> str:

@@ -13,6 +13,7 @@ from typing import Any, Iterator
 from scapy.fields import Field, StrField
 
 from .. import constants as C
+from .. import protocol as P
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS, crc_bytes
 from ..decode import crc_span
 from ..layers import PAYLOAD_CLASSES, VM110, crc_settings
@@ -70,11 +71,11 @@ def _width(field: Field) -> tuple[int, bool]:
 def _int_values(name: str, bits: int, signed: bool, base: int) -> list[int]:
     low, high = (-(1 << bits - 1), (1 << bits - 1) - 1) if signed else (0, (1 << bits) - 1)
     values = [low, high]
-    if name in C.RANGES:   # documented range: just outside first, then its edges
-        r_low, r_high = C.RANGES[name]
+    if name in P.RANGES:   # documented range: just outside first, then its edges
+        r_low, r_high = P.RANGES[name]
         values += [r_low - 1, r_high + 1, r_low, r_high]
-    if name in C.ENUM_FIELDS:   # values outside the set, then the edges of the set
-        known = sorted(int(v) for v in C.ENUM_FIELDS[name])
+    if name in P.ENUM_FIELDS:   # values outside the set, then the edges of the set
+        known = sorted(int(v) for v in P.ENUM_FIELDS[name])
         values += [known[-1] + 1] + [v + 1 for v in known if v + 1 not in known] + [known[0], known[-1]]
     values += [0, 1, -1, low + 1, high - 1, -base, base + 1, base - 1]
     if not signed:
@@ -132,7 +133,7 @@ def set_u16(data: bytes, offset: int, value: int) -> bytes:
     return data[:offset] + struct.pack("<H", value & 0xFFFF) + data[offset + 2:]
 
 
-SIZE_OFFSET = C.ID_LEN + 6      # revision, origin, serial come first
+SIZE_OFFSET = P.SIZE_OFFSET
 
 
 def structural(valid: bytes, rng: random.Random) -> Iterator[tuple[str, bytes]]:

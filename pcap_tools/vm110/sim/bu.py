@@ -21,17 +21,18 @@ from typing import Any, Optional
 
 from .. import constants as C
 from .. import encode
-from ..decode import VRPI_LAYOUT
+from .. import protocol as P
 from .clock import ms, seconds
 from .ledger import CommandLedger
 from .lifecycle import Life, Restart
 from .node import Node, Rx
 from .outbox import CommandOutbox, OutboxEvents
-from .remote import VRPI_INDEX, VRPI_NAMES, Remote
+from .remote import VRPI_INDEX, Remote
 
-_CMD_ID = struct.Struct("<H")
+_CMD_ID = struct.Struct("<" + P.FIELDS["command_id"].code)
+_DATA = P.PACKETS[C.PacketType.VRCO].span("command_data")
 _VRPI = C.PacketType.VRPI
-_VRPI_STRUCT = struct.Struct("<" + "".join(code for _, code in VRPI_LAYOUT))
+_VRPI_STRUCT = P.PACKETS[_VRPI].struct
 _ARMED_RU, _BU_STATE = VRPI_INDEX["armed_ru"], VRPI_INDEX["bu_state"]
 _EG_LINK, _RSSI = VRPI_INDEX["eg_link"], VRPI_INDEX["ru_rssi"]
 DEFAULT_ORIGIN = 0x0101
@@ -122,10 +123,6 @@ class BaseUnit(CommandOutbox, Node):
             values[_RSSI] = self.config.glink_rssi
         return values
 
-    def vrpi_fields(self, now: int) -> dict[str, Any]:
-        """`vrpi_values` by canonical field name."""
-        return dict(zip(VRPI_NAMES, self.vrpi_values(now)))
-
     def _check_watchdog(self, now: int, armed: bool) -> None:
         if not self.watchdog_tripped and self.last_vrpo is not None and now - self.last_vrpo > self._watchdog_us:
             self.watchdog_tripped = True
@@ -157,7 +154,7 @@ class BaseUnit(CommandOutbox, Node):
     def on_vrco(self, rx: Rx, now: int) -> None:
         command_id = _CMD_ID.unpack_from(rx.payload)[0]
         if self.delivered.hear(rx.origin, command_id, now):
-            data = rx.payload[6:6 + C.COMMAND_DATA_LEN].rstrip(b"\0").decode("ascii", "replace")
+            data = rx.payload[_DATA].rstrip(b"\0").decode("ascii", "replace")
             self.event(now, "vrco_delivered", command_id=command_id, data=data)
         if self.in_glink_fallback(now):
             low, high = self.config.glink_ack_delay_ms

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from .. import constants as C
+from .. import protocol as P
 from .. import encode
 from .clock import ms, seconds
 from .ledger import CommandLedger
@@ -28,14 +29,15 @@ from .lifecycle import Life, Restart
 from .node import Node, Rx
 from .outbox import CommandOutbox, OutboxEvents
 
-_CMD_ID = struct.Struct("<H")
+_CMD_ID = struct.Struct("<" + P.FIELDS["command_id"].code)
+_DATA = P.PACKETS[C.PacketType.VRCI].span("command_data")
 _VRPO = C.PacketType.VRPO
 _CYCLE = struct.Struct("<I")
 _VRPO_NUMBER = struct.Struct("<H")
 _BU_ARMED = int(C.BuState.ARMED)
 _RU_ARMED = frozenset((int(C.RuState.ARMED), int(C.RuState.ENABLED)))
 _VRPI_STATE = struct.Struct("<B5xHB")  # bu_state, (vlaps..c_link), armed_ru, ru_state
-_VRPO_HEADER_SIZE, _VRPO_MAX_DATA = C.VRPO_HEADER_SIZE, C.VRPO_MAX_DATA
+_VRPO_HEADER_SIZE, _VRPO_MAX_DATA = P.PAYLOAD_BOUNDS[C.PacketType.VRPO][0], C.VRPO_MAX_DATA
 
 
 @dataclass
@@ -154,7 +156,7 @@ class Controller(CommandOutbox, Node):
         command_id = _CMD_ID.unpack_from(rx.payload)[0]
         self.acknowledge(command_id, now)
         if self.handled.hear(rx.origin, command_id, now):
-            self.execute(rx.origin, command_id, rx.payload[6:6 + C.COMMAND_DATA_LEN], now)
+            self.execute(rx.origin, command_id, rx.payload[_DATA], now)
         else:
             self.event(now, "repeat", command_id=command_id)
 

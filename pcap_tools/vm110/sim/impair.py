@@ -11,22 +11,28 @@ receivers get it: that is the event log the ground truth is made from.
 from __future__ import annotations
 
 import random
-import struct
 from dataclasses import dataclass
 from typing import Optional
 
 from .. import constants as C
+from .. import protocol as P
 from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, crc_bytes
 from .clock import ms, seconds
 
 # Order in which `vm110.decode` lists the reasons.
 REASON_ORDER = tuple(p.value for p in C.Problem)
 OVERSIZE = C.MAX_PAYLOAD + 8
-_SIZE = struct.Struct("<H")
 MIRROR_DELAY_MS = (0.05, 3.0)
 # What arrives: (arrival time µs, bytes, illegal reasons, delivered to the receivers (False: a
 # mirror copy only the tap sees)).
 Copy = tuple[int, bytes, tuple[str, ...], bool]
+
+
+def _set_header(body: bytes, name: str, value: int) -> bytes:
+    """`body` with one header field replaced."""
+    fields = list(P.HEADER.unpack_from(body))
+    fields[1 + [f.name for f in P.HEADER_FIELDS].index(name)] = value
+    return P.HEADER.pack(*fields) + body[P.HEADER.size:]
 
 
 @dataclass
@@ -60,14 +66,14 @@ def mangle(data: bytes, reasons: str, variant: str = DEFAULT_VARIANT, order: str
     if C.Problem.UNKNOWN_ID.value in wanted:
         body = b"VRX" + body[3:]                        # keeps the direction letter, no known type
     if C.Problem.REVISION.value in wanted:
-        body = body[:4] + _SIZE.pack(1) + body[6:]
+        body = _set_header(body, "revision", 1)
     if C.Problem.SIZE_TOO_LARGE.value in wanted:
         payload = body[C.PREFIX_LEN:].ljust(OVERSIZE, b"\0")
-        body = body[:10] + _SIZE.pack(len(payload)) + body[12:C.PREFIX_LEN] + payload
+        body = _set_header(body, "size", len(payload))[:C.PREFIX_LEN] + payload
     if C.Problem.TRUNCATED.value in wanted:
-        low = C.PAYLOAD_BOUNDS[C.PacketType(data[:C.ID_LEN].decode("latin-1"))][0]
+        low = P.PAYLOAD_BOUNDS[C.PacketType(data[:C.ID_LEN].decode("latin-1"))][0]
         payload = body[C.PREFIX_LEN:C.PREFIX_LEN + max(1, low // 2)]      # shorter than the type's layout
-        body = body[:10] + _SIZE.pack(len(payload)) + body[12:C.PREFIX_LEN] + payload
+        body = _set_header(body, "size", len(payload))[:C.PREFIX_LEN] + payload
     if C.Problem.SIZE_MISMATCH.value in wanted:
         trailer = b"\xde\xad\xbe\xef"                   # bytes beyond 20 + size: the CRC stays valid
     crc = crc_bytes(body, variant, order)

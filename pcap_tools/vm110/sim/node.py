@@ -12,12 +12,13 @@ from collections import Counter
 from typing import Any, Callable, NamedTuple, Optional
 
 from .. import constants as C
+from .. import protocol as P
 from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, check_byte_order, crc_function, trailer_function
 from ..decode import crc_span, decode
 from .clock import US_PER_S
 from .lifecycle import NEVER, Restart, Window
 
-_HEADER = struct.Struct("<4sHHHHI")
+_HEADER = P.HEADER
 _RX_HEADER = struct.Struct("<4s2xHHH4x")      # what a receiver needs: ID, origin, serial, size
 _TYPES = {t.value.encode(): t for t in C.PacketType}
 _RAW_IDS = {t: t.value.encode() for t in C.PacketType}
@@ -69,7 +70,7 @@ def inspect(data: bytes, crc_fn: Callable[[bytes], int], order: str) -> tuple[li
         problems.append(C.Problem.SIZE_MISMATCH.value)
     if size > C.MAX_PAYLOAD:
         problems.append(C.Problem.SIZE_TOO_LARGE.value)
-    if ptype and revision == C.SUPPORTED_REVISION and end - C.PREFIX_LEN < C.PAYLOAD_BOUNDS[ptype][0]:
+    if ptype and revision == C.SUPPORTED_REVISION and end - C.PREFIX_LEN < P.PAYLOAD_BOUNDS[ptype][0]:
         problems.append(C.Problem.TRUNCATED.value)
     return problems, ptype
 

@@ -15,9 +15,10 @@ from typing import Any, Callable, Iterable, NamedTuple, Optional
 
 from .. import constants as C
 from .. import encode
+from .. import protocol as P
 from .node import Rx
 
-_CMD_ID = struct.Struct("<H")
+_CMD_ID = struct.Struct("<" + P.FIELDS["command_id"].code)
 NEVER = 1 << 62      # a due time later than any run (µs)
 
 
@@ -81,12 +82,6 @@ class CommandOutbox:
             if self._command_until is not None and t >= self._command_until:
                 t = None
         self._next_periodic_command = t
-        self._reschedule()
-
-    def queue_command(self, data: bytes, at: int, command_id: Optional[int] = None) -> None:
-        """Send a command with `data` at time `at` (µs), with `command_id` or the next ID."""
-        self._commands.append((at, data, command_id))
-        self._commands = collections.deque(sorted(self._commands, key=lambda c: c[0]))
         self._reschedule()
 
     def _reschedule(self) -> None:

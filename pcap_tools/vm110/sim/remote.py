@@ -24,14 +24,15 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Optional
 
 from .. import constants as C
-from ..decode import VRPI_LAYOUT
+from .. import protocol as P
 from ..errors import CliError
 from .clock import US_PER_S, seconds
 
 DEFAULT_RU = 0x0C07
 _BATTERY_DRAIN_US = 60 * US_PER_S          # 1 % per minute
 _JOYSTICK_PERIODS_US = (4_000_000, 6_000_000, 5_000_000, 7_000_000)
-VRPI_NAMES = tuple(name for name, _ in VRPI_LAYOUT)
+VRPI_NAMES = tuple(f.name for f in P.PACKETS[C.PacketType.VRPI].fields)
+_VRPI_DEFAULTS = tuple(f.default for f in P.PACKETS[C.PacketType.VRPI].fields)
 VRPI_INDEX = {name: i for i, name in enumerate(VRPI_NAMES)}
 _ARMED_RU, _BATTERY, _RU_STATE = VRPI_INDEX["armed_ru"], VRPI_INDEX["ru_battery"], VRPI_INDEX["ru_state"]
 _JOYSTICKS = tuple(VRPI_INDEX[f"joystick{i}"] for i in range(1, C.JOYSTICKS + 1))
@@ -149,7 +150,7 @@ class Remote:
 
 
 def _values(fields: Mapping[str, Any]) -> list[Any]:
-    return [fields.get(name, bytes(C.VRPI_SPARE_LEN) if name == "vrpi_spare" else 0) for name in VRPI_NAMES]
+    return [fields.get(name, default) for name, default in zip(VRPI_NAMES, _VRPI_DEFAULTS)]
 
 
 def _sweep(phase: int, quarter: int, limit: int = C.JOYSTICK_LIMIT) -> int:
