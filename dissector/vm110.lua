@@ -32,12 +32,128 @@ local floor = math.floor
 ---------------------------------------------------------------------------------------------
 -- 1. Protocol constants
 ---------------------------------------------------------------------------------------------
+-- The fields, enums and layouts come from the Python declaration (pcap_tools/vm110/protocol.py),
+-- generated into the marked section below; the rest of this file is written by hand.
+-- BEGIN GENERATED TABLES: scripts/lua-tables from pcap_tools/vm110/protocol.py (make lua-tables)
+-- Do not edit by hand: change the declaration and run `make lua-tables`.
 local ID_LEN, HEADER_LEN, CRC_LEN = 4, 12, 4
-local PREFIX_LEN = ID_LEN + HEADER_LEN
-local OVERHEAD = PREFIX_LEN + CRC_LEN
 local MAX_PAYLOAD = 492
 local SUPPORTED_REVISION = 0
-local VRPO_MAX_DATA = 488
+-- Value names of the enumerated fields.
+local BU_STATE = { [0] = "Initial", [1] = "Stopped", [2] = "External link error", [3] = "Blocked", [4] = "Failed",
+    [16] = "Disarmed", [17] = "Armed" }
+local LINK_STATUS = { [0] = "Unused", [1] = "Operational", [2] = "No link", [3] = "Link error", [4] = "Interface error",
+    [5] = "Data error", [6] = "Passive" }
+local RU_STATE = { [0] = "Initial", [1] = "Disarmed", [2] = "Armed", [3] = "Enabled", [4] = "Stopped" }
+local RU_CABLE = { [0] = "Wireless", [1] = "Cable" }
+local RU_DOCKED = { [0] = "Not docked", [1] = "Docked" }
+local RU_DISABLED = { [0] = "Enabled", [1] = "Disabled (tilt)", [2] = "Disabled (inactivity)" }
+local ENCODER_SWITCH = { [0] = "Released", [1] = "Pushed" }
+-- One table per field: { name, width, kind ("u" unsigned LE, "s" signed LE, "b" bytes), value
+-- names or false, off = offset in the packet, pf = ProtoField type, base, label, blurb, range =
+-- { low, high } (out_of_range), ru = must be 0 while no RU is armed, spare = should be 0 }.
+local FIELDS = {
+    revision = { "revision", 2, "u", false, off = 4, pf = "uint16", base = "DEC", label = "Revision",
+        blurb = "Header revision; only 0 is defined (any other: illegal, only the header is decoded)" },
+    origin = { "origin", 2, "u", false, off = 6, pf = "uint16", base = "HEX", label = "Origin",
+        blurb = "Identifies the sending base unit on input packets; 0 on output packets" },
+    serial = { "serial", 2, "u", false, off = 8, pf = "uint16", base = "DEC", label = "Serial",
+        blurb = "The sender's 16-bit serial counter, one step per packet it sends (wraps 65535 to 0)" },
+    size = { "size", 2, "u", false, off = 10, pf = "uint16", base = "DEC", label = "Payload size",
+        blurb = "Payload bytes after the 16-byte packet ID and header; the UDP payload is 20 + size (at most 492)" },
+    spare = { "spare", 4, "u", false, off = 12, pf = "uint32", base = "HEX", label = "Spare",
+        blurb = "Header spare bytes; should be 0", spare = true },
+    bu_state = { "bu_state", 1, "u", BU_STATE, off = 16, pf = "uint8", base = "HEX", label = "BU state",
+        blurb = "Base unit state" },
+    vlaps = { "vlaps", 1, "u", false, off = 17, pf = "uint8", base = "DEC", label = "VLAPs",
+        blurb = "Number of VLAPs (0 to 3)", range = { 0, 3 } },
+    unarmed_rus = { "unarmed_rus", 1, "u", false, off = 18, pf = "uint8", base = "DEC", label = "Unarmed RUs",
+        blurb = "Remote units paired but not armed" },
+    eg_link = { "eg_link", 1, "u", LINK_STATUS, off = 19, pf = "uint8", base = "HEX", label = "EG-Link status",
+        blurb = "State of the EG-Link (this Ethernet link) as the BU sees it" },
+    ec_link = { "ec_link", 1, "u", LINK_STATUS, off = 20, pf = "uint8", base = "HEX", label = "EC-Link status",
+        blurb = "State of the EC-Link" },
+    c_link = { "c_link", 1, "u", LINK_STATUS, off = 21, pf = "uint8", base = "HEX", label = "C-Link status",
+        blurb = "State of the C-Link (radio link to the remote unit)" },
+    armed_ru = { "armed_ru", 2, "u", false, off = 22, pf = "uint16", base = "HEX", label = "Armed RU",
+        blurb = "ID of the armed remote unit; 0 when none is armed (the RU fields are then 0)" },
+    ru_state = { "ru_state", 1, "u", RU_STATE, off = 24, pf = "uint8", base = "HEX", label = "RU state",
+        blurb = "State of the armed remote unit", ru = true },
+    ru_battery = { "ru_battery", 1, "u", false, off = 25, pf = "uint8", base = "DEC", label = "RU battery (%)",
+        blurb = "Battery charge of the armed remote unit, 0 to 100 %", range = { 0, 100 }, ru = true },
+    ru_rssi = { "ru_rssi", 1, "u", false, off = 26, pf = "uint8", base = "DEC", label = "RU C-Link RSSI (%)",
+        blurb = "Radio signal strength of the armed remote unit, 0 to 100 %", range = { 0, 100 }, ru = true },
+    ru_cable = { "ru_cable", 1, "u", RU_CABLE, off = 27, pf = "uint8", base = "HEX", label = "RU cable",
+        blurb = "Whether the armed remote unit is connected by cable", ru = true },
+    ru_docked = { "ru_docked", 1, "u", RU_DOCKED, off = 28, pf = "uint8", base = "HEX", label = "RU docked",
+        blurb = "Whether the armed remote unit is docked", ru = true },
+    ru_disabled = { "ru_disabled", 1, "u", RU_DISABLED, off = 29, pf = "uint8", base = "HEX", label = "RU disabled",
+        blurb = "Whether the armed remote unit is disabled", ru = true },
+    joystick1 = { "joystick1", 2, "s", false, off = 30, pf = "int16", base = "DEC", label = "Joystick 1",
+        blurb = "Joystick axis 1 of the remote unit, -1000 to 1000", range = { -1000, 1000 }, ru = true },
+    joystick2 = { "joystick2", 2, "s", false, off = 32, pf = "int16", base = "DEC", label = "Joystick 2",
+        blurb = "Joystick axis 2 of the remote unit, -1000 to 1000", range = { -1000, 1000 }, ru = true },
+    joystick3 = { "joystick3", 2, "s", false, off = 34, pf = "int16", base = "DEC", label = "Joystick 3",
+        blurb = "Joystick axis 3 of the remote unit, -1000 to 1000", range = { -1000, 1000 }, ru = true },
+    joystick4 = { "joystick4", 2, "s", false, off = 36, pf = "int16", base = "DEC", label = "Joystick 4",
+        blurb = "Joystick axis 4 of the remote unit, -1000 to 1000", range = { -1000, 1000 }, ru = true },
+    switch1 = { "switch1", 2, "s", false, off = 38, pf = "int16", base = "DEC", label = "Switch 1",
+        blurb = "Switch 1 of the remote unit, -1 to 1000", range = { -1, 1000 }, ru = true },
+    switch2 = { "switch2", 2, "s", false, off = 40, pf = "int16", base = "DEC", label = "Switch 2",
+        blurb = "Switch 2 of the remote unit, -1 to 1000", range = { -1, 1000 }, ru = true },
+    switch3 = { "switch3", 2, "s", false, off = 42, pf = "int16", base = "DEC", label = "Switch 3",
+        blurb = "Switch 3 of the remote unit, -1 to 1000", range = { -1, 1000 }, ru = true },
+    switch4 = { "switch4", 2, "s", false, off = 44, pf = "int16", base = "DEC", label = "Switch 4",
+        blurb = "Switch 4 of the remote unit, -1 to 1000", range = { -1, 1000 }, ru = true },
+    switch5 = { "switch5", 2, "s", false, off = 46, pf = "int16", base = "DEC", label = "Switch 5",
+        blurb = "Switch 5 of the remote unit, -1 to 1000", range = { -1, 1000 }, ru = true },
+    switch6 = { "switch6", 2, "s", false, off = 48, pf = "int16", base = "DEC", label = "Switch 6",
+        blurb = "Switch 6 of the remote unit, -1 to 1000", range = { -1, 1000 }, ru = true },
+    switch7 = { "switch7", 2, "s", false, off = 50, pf = "int16", base = "DEC", label = "Switch 7",
+        blurb = "Switch 7 of the remote unit, -1 to 1000", range = { -1, 1000 }, ru = true },
+    switch8 = { "switch8", 2, "s", false, off = 52, pf = "int16", base = "DEC", label = "Switch 8",
+        blurb = "Switch 8 of the remote unit, -1 to 1000", range = { -1, 1000 }, ru = true },
+    encoder = { "encoder", 1, "u", false, off = 54, pf = "uint8", base = "DEC", label = "Encoder value",
+        blurb = "Encoder position of the remote unit", ru = true },
+    encoder_switch = { "encoder_switch", 1, "u", ENCODER_SWITCH, off = 55, pf = "uint8", base = "HEX",
+        label = "Encoder switch", blurb = "Encoder push switch of the remote unit", ru = true },
+    vrpi_spare = { "vrpi_spare", 6, "b", false, off = 56, pf = "bytes", base = "NONE", label = "Spare",
+        blurb = "VRPI spare bytes; should be 0", spare = true },
+    packet_number = { "packet_number", 2, "u", false, off = 16, pf = "uint16", base = "DEC", label = "Packet number",
+        blurb = "Number of this packet within its VRPO burst (the first is 0, preference vm110.vrpo_number_start)" },
+    periodic_data = { "periodic_data", 488, "b", false, off = 18, pf = "bytes", base = "NONE", label = "Periodic data",
+        blurb = "Machine-specific display data (up to 488 bytes per packet; split bursts are reassembled)" },
+    command_id = { "command_id", 2, "u", false, off = 16, pf = "uint16", base = "DEC", label = "Command ID",
+        blurb = "Pairs a command (VRCI, VRCO) with its acknowledgement (VRAO, VRAI); the same ID again is a resend" },
+    command_spare = { "command_spare", 4, "u", false, off = 18, pf = "uint32", base = "HEX", label = "Spare",
+        blurb = "Command spare bytes; should be 0", spare = true },
+    command_data = { "command_data", 16, "b", false, off = 22, pf = "bytes", base = "NONE", label = "Command data",
+        blurb = "16 bytes of machine-specific command data" },
+}
+local HEADER = { FIELDS.revision, FIELDS.origin, FIELDS.serial, FIELDS.size, FIELDS.spare }
+-- Payload layouts: the fields in wire order.
+local VRPI_LAYOUT = { FIELDS.bu_state, FIELDS.vlaps, FIELDS.unarmed_rus, FIELDS.eg_link, FIELDS.ec_link, FIELDS.c_link,
+    FIELDS.armed_ru, FIELDS.ru_state, FIELDS.ru_battery, FIELDS.ru_rssi, FIELDS.ru_cable, FIELDS.ru_docked,
+    FIELDS.ru_disabled, FIELDS.joystick1, FIELDS.joystick2, FIELDS.joystick3, FIELDS.joystick4, FIELDS.switch1,
+    FIELDS.switch2, FIELDS.switch3, FIELDS.switch4, FIELDS.switch5, FIELDS.switch6, FIELDS.switch7, FIELDS.switch8,
+    FIELDS.encoder, FIELDS.encoder_switch, FIELDS.vrpi_spare }
+local VRPO_LAYOUT = { FIELDS.packet_number }
+local COMMAND_LAYOUT = { FIELDS.command_id, FIELDS.command_spare, FIELDS.command_data }
+local ACK_LAYOUT = { FIELDS.command_id }
+-- Packet types: { ID, description, layout, tail (up to its width of bytes after the layout) or false,
+-- the field whose 0 means no RU is armed or false }.
+local PACKET_TYPES = {
+    { "VRPI", "VisionRemote Periodic Input", VRPI_LAYOUT, false, "armed_ru" },
+    { "VRPO", "VisionRemote Periodic Output", VRPO_LAYOUT, FIELDS.periodic_data, false },
+    { "VRCI", "VisionRemote Command Input", COMMAND_LAYOUT, false, false },
+    { "VRCO", "VisionRemote Command Output", COMMAND_LAYOUT, false, false },
+    { "VRAI", "VisionRemote Acknowledge Input", ACK_LAYOUT, false, false },
+    { "VRAO", "VisionRemote Acknowledge Output", ACK_LAYOUT, false, false },
+}
+-- END GENERATED TABLES
+local PREFIX_LEN = ID_LEN + HEADER_LEN
+local OVERHEAD = PREFIX_LEN + CRC_LEN
+local VRPO_MAX_DATA = FIELDS.periodic_data[2]
 local DEFAULT_INPUT_PORT, OUTPUT_PORT_OFFSET = 5825, 2
 -- Timing and numbering of section 5.1 (interpretation.md "Timing", "Serial numbers", "VRPO split").
 local VRPI_WATCHDOG_MS, VRPO_WATCHDOG_MS, VRPO_PERIOD_MIN_MS, VRPO_PERIOD_MAX_MS = 500, 2000, 50, 200
@@ -51,39 +167,8 @@ local RULES = { dup_window_ms = 1000, reuse_gap_ms = 2000, new_port_silence_ms =
 local ACK_OF = { VRAO = "VRCI", VRAI = "VRCO" }
 local ES_RELAYS_CLOSED_FROM = 0x10
 
-local BU_STATE = {
-    [0x00] = "Initial", [0x01] = "Stopped", [0x02] = "External link error", [0x03] = "Blocked",
-    [0x04] = "Failed", [0x10] = "Disarmed", [0x11] = "Armed",
-}
-local LINK_STATUS = {
-    [0] = "Unused", [1] = "Operational", [2] = "No link", [3] = "Link error",
-    [4] = "Interface error", [5] = "Data error", [6] = "Passive",
-}
-local RU_STATE = { [0] = "Initial", [1] = "Disarmed", [2] = "Armed", [3] = "Enabled", [4] = "Stopped" }
-local RU_DISABLED = { [0] = "Enabled", [1] = "Disabled (tilt)", [2] = "Disabled (inactivity)" }
-local RU_CABLE = { [0] = "Wireless", [1] = "Cable" }
-local RU_DOCKED = { [0] = "Not docked", [1] = "Docked" }
-local ENCODER_SWITCH = { [0] = "Released", [1] = "Pushed" }
 local CRC_STATUS = { [0] = "Bad", [1] = "Good", [2] = "Unverified" }
 local CRC_BAD, CRC_GOOD, CRC_UNVERIFIED = 0, 1, 2
-
--- Payload layouts: {name, width, kind, names}; kind "u" unsigned LE, "s" signed LE, "b" bytes.
-local VRPI_LAYOUT = {
-    { "bu_state", 1, "u", BU_STATE }, { "vlaps", 1, "u" }, { "unarmed_rus", 1, "u" },
-    { "eg_link", 1, "u", LINK_STATUS }, { "ec_link", 1, "u", LINK_STATUS },
-    { "c_link", 1, "u", LINK_STATUS }, { "armed_ru", 2, "u" },
-    { "ru_state", 1, "u", RU_STATE }, { "ru_battery", 1, "u" }, { "ru_rssi", 1, "u" },
-    { "ru_cable", 1, "u", RU_CABLE }, { "ru_docked", 1, "u", RU_DOCKED },
-    { "ru_disabled", 1, "u", RU_DISABLED },
-    { "joystick1", 2, "s" }, { "joystick2", 2, "s" }, { "joystick3", 2, "s" }, { "joystick4", 2, "s" },
-    { "switch1", 2, "s" }, { "switch2", 2, "s" }, { "switch3", 2, "s" }, { "switch4", 2, "s" },
-    { "switch5", 2, "s" }, { "switch6", 2, "s" }, { "switch7", 2, "s" }, { "switch8", 2, "s" },
-    { "encoder", 1, "u" }, { "encoder_switch", 1, "u", ENCODER_SWITCH }, { "vrpi_spare", 6, "b" },
-}
-local COMMAND_LAYOUT = { { "command_id", 2, "u" }, { "command_spare", 4, "u" }, { "command_data", 16, "b" } }
-local ACK_LAYOUT = { { "command_id", 2, "u" } }
--- periodic_data (the rest, up to 488 bytes) follows the packet number.
-local VRPO_LAYOUT = { { "packet_number", 2, "u" } }
 
 local function layout_size(layout)
     local size = 0
@@ -93,17 +178,10 @@ end
 
 -- Packet types by ID. min/max: payload sizes; the 4th ID character gives the direction.
 local TYPES = {}
-for _, t in ipairs({
-    { "VRPI", "VisionRemote Periodic Input", VRPI_LAYOUT },
-    { "VRPO", "VisionRemote Periodic Output", VRPO_LAYOUT, VRPO_MAX_DATA },
-    { "VRCI", "VisionRemote Command Input", COMMAND_LAYOUT },
-    { "VRCO", "VisionRemote Command Output", COMMAND_LAYOUT },
-    { "VRAI", "VisionRemote Acknowledge Input", ACK_LAYOUT },
-    { "VRAO", "VisionRemote Acknowledge Output", ACK_LAYOUT },
-}) do
+for _, t in ipairs(PACKET_TYPES) do
     local min = layout_size(t[3])
     TYPES[t[1]] = {
-        id = t[1], layout = t[3], min = min, max = min + (t[4] or 0),
+        id = t[1], layout = t[3], min = min, max = min + (t[4] and t[4][2] or 0), ru_gate = t[5],
         direction = sub(t[1], 4, 4) == "I" and "Input" or "Output",
         label = fmt("Packet ID: %s (%s)", t[1], t[2]), -- (tree labels made once, not per packet)
         payload_labels = setmetatable({}, { __index = function(labels, len)
@@ -112,16 +190,6 @@ for _, t in ipairs({
         end }),
     }
 end
-
--- Documented ranges (warnings): VRPI fields only.
-local RANGES = { vlaps = { 0, 3 }, ru_battery = { 0, 100 }, ru_rssi = { 0, 100 } }
-for i = 1, 4 do RANGES["joystick" .. i] = { -1000, 1000 } end
-for i = 1, 8 do RANGES["switch" .. i] = { -1, 1000 } end
--- Fields that must be zero while armed_ru is 0 (TS-0006 4.1).
-local RU_FIELDS = { ru_state = true, ru_battery = true, ru_rssi = true, ru_cable = true,
-    ru_docked = true, ru_disabled = true, encoder = true, encoder_switch = true }
-for i = 1, 4 do RU_FIELDS["joystick" .. i] = true end
-for i = 1, 8 do RU_FIELDS["switch" .. i] = true end
 
 ---------------------------------------------------------------------------------------------
 -- 2. CRC engine
@@ -316,16 +384,6 @@ local function compile_reader(layout)
     return assert(load(code, "=vm110 reader", "t", {}))(byte, sub, s16)
 end
 
-local HEADER = { { "revision", 4, 2 }, { "origin", 6, 2 }, { "serial", 8, 2 }, { "size", 10, 2 }, { "spare", 12, 4 } }
-
--- VRPI value checks, one entry per field: {name, value names, low, high, is an RU field}.
-local VRPI_CHECKS = {}
-for _, f in ipairs(VRPI_LAYOUT) do
-    local range = RANGES[f[1]]
-    VRPI_CHECKS[#VRPI_CHECKS + 1] = { f[1], f[4] or false, range and range[1] or false,
-        range and range[2] or false, RU_FIELDS[f[1]] or false }
-end
-
 -- The problems, warnings or values of a packet that has none: shared, never written (most
 -- packets have no problem and no warning).
 local EMPTY = {}
@@ -354,34 +412,42 @@ local function warn(r, field, code)
     list[#list + 1] = code
 end
 
--- The VRPI checks as straight-line code (generated from VRPI_CHECKS, like the readers): a
--- loop over the table costs several lookups per field on every packet.
-local function compile_vrpi_checks()
-    local lines, names = { "local warn, names = ...", "return function(r, v)", "local disarmed = v.armed_ru == 0" }, {}
-    for i, c in ipairs(VRPI_CHECKS) do
-        local name, tests = c[1], {}
-        names[i] = c[2]
-        if c[2] then tests[#tests + 1] = fmt('if names[%d][x] == nil then warn(r, "%s", "unknown_enum") end', i, name) end
-        if c[3] then
-            tests[#tests + 1] = fmt('if x < %d or x > %d then warn(r, "%s", "out_of_range") end', c[3], c[4], name)
+-- The value checks of a layout as straight-line code, generated from its field tables (like the
+-- readers): spare fields not 0, values outside the value names or the documented range, RU
+-- fields set while the gate field (armed_ru) is 0. A loop over the fields would cost several
+-- lookups per field on every packet. False when the layout has nothing to check.
+local function compile_checks(layout, gate)
+    local lines, consts = { "local warn, consts = ...", "return function(r, v)" }, {}
+    if gate then lines[#lines + 1] = fmt("local disarmed = v.%s == 0", gate) end
+    local any = false
+    for i, f in ipairs(layout) do
+        local name, tests = f[1], {}
+        if f.spare then
+            consts[i] = f[3] == "b" and string.rep("\0", f[2]) or 0
+            tests[#tests + 1] = fmt('if x ~= consts[%d] then warn(r, "%s", "spare_nonzero") end', i, name)
         end
-        if c[5] then tests[#tests + 1] = fmt('if disarmed and x ~= 0 then warn(r, "%s", "disarmed_ru_data") end', name) end
+        if f[4] then
+            consts[i] = f[4]
+            tests[#tests + 1] = fmt('if consts[%d][x] == nil then warn(r, "%s", "unknown_enum") end', i, name)
+        end
+        if f.range then
+            tests[#tests + 1] = fmt('if x < %d or x > %d then warn(r, "%s", "out_of_range") end',
+                f.range[1], f.range[2], name)
+        end
+        if f.ru and gate then
+            tests[#tests + 1] = fmt('if disarmed and x ~= 0 then warn(r, "%s", "disarmed_ru_data") end', name)
+        end
         if #tests > 0 then
+            any = true
             lines[#lines + 1] = fmt("do local x = v.%s if x ~= nil then %s end end", name, concat(tests, " "))
         end
     end
     lines[#lines + 1] = "end"
-    return assert(load(concat(lines, "\n"), "=vm110 checks", "t", {}))(warn, names)
+    return any and assert(load(concat(lines, "\n"), "=vm110 checks", "t", {}))(warn, consts)
 end
-local check_vrpi = compile_vrpi_checks()
-
-local VRPI_SPARE_ZERO = string.rep("\0", 6)
 
 local function check_values(r, info)
-    local v = r.values
-    if v.vrpi_spare and v.vrpi_spare ~= VRPI_SPARE_ZERO then warn(r, "vrpi_spare", "spare_nonzero") end
-    if v.command_spare and v.command_spare ~= 0 then warn(r, "command_spare", "spare_nonzero") end
-    if info.id == "VRPI" then check_vrpi(r, v) end
+    if info.check then info.check(r, r.values) end
 end
 
 -- The fields that fit whole in a payload cut short.
@@ -434,11 +500,7 @@ end
 -- (for the tree).
 for _, info in pairs(TYPES) do
     info.read, info.values = compile_reader(info.layout), {}
-    local off = PREFIX_LEN
-    for _, f in ipairs(info.layout) do
-        f.off = off
-        off = off + f[2]
-    end
+    info.check = compile_checks(info.layout, info.ru_gate)
 end
 
 -- s: the UDP payload; variant: a CRC_VARIANTS entry, or nil when validation is off;
@@ -474,8 +536,8 @@ local function decode(s, variant, big_endian, known_crc)
     end
     if n < PREFIX_LEN then
         for _, h in ipairs(HEADER) do
-            if h[2] + h[3] > n then break end
-            r[h[1]] = h[3] == 2 and u16(s, h[2]) or u32(s, h[2])
+            if h.off + h[2] > n then break end
+            r[h[1]] = h[2] == 2 and u16(s, h.off) or u32(s, h.off)
         end
         problem(r, "truncated")
         return r
@@ -536,15 +598,6 @@ local F = {
         "The 4-character packet ID: VRPI, VRPO, VRCI, VRCO, VRAI or VRAO (TS-0006 3)"),
     direction = ProtoField.string("vm110.direction", "Direction", base.NONE,
         "Input (BU to controller) or Output (controller to BU), from the packet ID's 4th character"),
-    revision = ProtoField.uint16("vm110.revision", "Revision", base.DEC, nil, nil,
-        "Header revision; only 0 is defined (any other: illegal, only the header is decoded)"),
-    origin = ProtoField.uint16("vm110.origin", "Origin", base.HEX, nil, nil,
-        "Identifies the sending base unit on input packets; 0 on output packets"),
-    serial = ProtoField.uint16("vm110.serial", "Serial", base.DEC, nil, nil,
-        "The sender's 16-bit serial counter, one step per packet it sends (wraps 65535 to 0)"),
-    size = ProtoField.uint16("vm110.size", "Payload size", base.DEC, nil, nil,
-        "Payload bytes after the 16-byte packet ID and header; the UDP payload is 20 + size (at most 492)"),
-    spare = ProtoField.uint32("vm110.spare", "Spare", base.HEX, nil, nil, "Header spare bytes; should be 0"),
     crc = ProtoField.uint32("vm110.crc", "CRC", base.HEX, nil, nil,
         "CRC-32 trailer over packet ID, header and payload, as stored (preferences: variant, byte order)"),
     crc_calculated = ProtoField.uint32("vm110.crc.calculated", "Calculated CRC", base.HEX, nil, nil,
@@ -553,55 +606,18 @@ local F = {
         "0 Bad, 1 Good, 2 Unverified (CRC validation off)"),
     undecoded = ProtoField.bytes("vm110.undecoded", "Undecoded bytes", base.NONE,
         "Bytes no field owns: a payload not decoded, a field cut short, bytes beyond the layout or after the CRC"),
-    -- VRPI
-    bu_state = ProtoField.uint8("vm110.bu_state", "BU state", base.HEX, BU_STATE, nil, "Base unit state"),
+    -- VRPI, derived from bu_state
     es_relays_open = ProtoField.bool("vm110.es_relays_open", "ES-Link relays open", base.NONE, nil, nil,
         "True when the BU state is below Disarmed: the emergency-stop relays are open"),
-    vlaps = ProtoField.uint8("vm110.vlaps", "VLAPs", base.DEC, nil, nil, "Number of VLAPs (0 to 3)"),
-    unarmed_rus = ProtoField.uint8("vm110.unarmed_rus", "Unarmed RUs", base.DEC, nil, nil,
-        "Remote units paired but not armed"),
-    eg_link = ProtoField.uint8("vm110.eg_link", "EG-Link status", base.HEX, LINK_STATUS, nil,
-        "State of the EG-Link (this Ethernet link) as the BU sees it"),
-    ec_link = ProtoField.uint8("vm110.ec_link", "EC-Link status", base.HEX, LINK_STATUS, nil, "State of the EC-Link"),
-    c_link = ProtoField.uint8("vm110.c_link", "C-Link status", base.HEX, LINK_STATUS, nil,
-        "State of the C-Link (radio link to the remote unit)"),
-    armed_ru = ProtoField.uint16("vm110.armed_ru", "Armed RU", base.HEX, nil, nil,
-        "ID of the armed remote unit; 0 when none is armed (the RU fields are then 0)"),
-    ru_state = ProtoField.uint8("vm110.ru_state", "RU state", base.HEX, RU_STATE, nil, "State of the armed remote unit"),
-    ru_battery = ProtoField.uint8("vm110.ru_battery", "RU battery (%)", base.DEC, nil, nil,
-        "Battery charge of the armed remote unit, 0 to 100 %"),
-    ru_rssi = ProtoField.uint8("vm110.ru_rssi", "RU C-Link RSSI (%)", base.DEC, nil, nil,
-        "Radio signal strength of the armed remote unit, 0 to 100 %"),
-    ru_cable = ProtoField.uint8("vm110.ru_cable", "RU cable", base.HEX, RU_CABLE, nil,
-        "Whether the armed remote unit is connected by cable"),
-    ru_docked = ProtoField.uint8("vm110.ru_docked", "RU docked", base.HEX, RU_DOCKED, nil,
-        "Whether the armed remote unit is docked"),
-    ru_disabled = ProtoField.uint8("vm110.ru_disabled", "RU disabled", base.HEX, RU_DISABLED, nil,
-        "Whether the armed remote unit is disabled"),
-    encoder = ProtoField.uint8("vm110.encoder", "Encoder value", base.DEC, nil, nil, "Encoder position of the remote unit"),
-    encoder_switch = ProtoField.uint8("vm110.encoder_switch", "Encoder switch", base.HEX, ENCODER_SWITCH, nil,
-        "Encoder push switch of the remote unit"),
-    vrpi_spare = ProtoField.bytes("vm110.vrpi_spare", "Spare", base.NONE, "VRPI spare bytes; should be 0"),
-    -- VRPO
-    packet_number = ProtoField.uint16("vm110.packet_number", "Packet number", base.DEC, nil, nil,
-        "Number of this packet within its VRPO burst (the first is 0, preference vm110.vrpo_number_start)"),
-    periodic_data = ProtoField.bytes("vm110.periodic_data", "Periodic data", base.NONE,
-        "Machine-specific display data (up to 488 bytes per packet; split bursts are reassembled)"),
-    -- VRCI / VRCO / VRAI / VRAO: one command_id field, so a filter shows a command with its acks
-    command_id = ProtoField.uint16("vm110.command_id", "Command ID", base.DEC, nil, nil,
-        "Pairs a command (VRCI, VRCO) with its acknowledgement (VRAO, VRAI); the same ID again is a resend"),
-    command_spare = ProtoField.uint32("vm110.command_spare", "Spare", base.HEX, nil, nil,
-        "Command spare bytes; should be 0"),
-    command_data = ProtoField.bytes("vm110.command_data", "Command data", base.NONE,
-        "16 bytes of machine-specific command data"),
 }
-for i = 1, 4 do
-    F["joystick" .. i] = ProtoField.int16("vm110.joystick" .. i, "Joystick " .. i, base.DEC, nil, nil,
-        "Joystick axis " .. i .. " of the remote unit, -1000 to 1000")
-end
-for i = 1, 8 do
-    F["switch" .. i] = ProtoField.int16("vm110.switch" .. i, "Switch " .. i, base.DEC, nil, nil,
-        "Switch " .. i .. " of the remote unit, -1 to 1000")
+-- The header and payload fields, one per field table of section 1.
+for name, f in pairs(FIELDS) do
+    local abbr = "vm110." .. name
+    if f[3] == "b" then
+        F[name] = ProtoField.bytes(abbr, f.label, base[f.base], f.blurb)
+    else
+        F[name] = ProtoField[f.pf](abbr, f.label, base[f.base], f[4] or nil, nil, f.blurb)
+    end
 end
 -- Stream analysis (section 7): generated fields, all computed from earlier frames of the capture.
 local frametypes = frametype or {} -- framenum types (arrows in the GUI) where this Wireshark has them
@@ -904,7 +920,7 @@ end
 -- group by summary: one line per field and code; the value is the field's).
 local function field_message(code, name)
     if code == "out_of_range" then
-        local range = RANGES[name]
+        local range = FIELDS[name].range
         return fmt("vm110.%s is outside %d..%d", name, range[1], range[2])
     elseif code == "unknown_enum" then
         return fmt("vm110.%s is not a defined value", name)
@@ -966,7 +982,7 @@ local function add_header(r, tvb, root)
         local name = h[1]
         local value = r[name]
         if not value then break end
-        local item = want[name] and tree_add_le(header, F[name], tvb_range(tvb, h[2], h[3])) or header
+        local item = want[name] and tree_add_le(header, F[name], tvb_range(tvb, h.off, h[2])) or header
         field_experts(r, item, name, value)
         if name == "revision" and r.problems.revision then
             add_expert(item, E.revision, "Unsupported revision: only the header is decoded")
@@ -978,7 +994,7 @@ local function add_header(r, tvb, root)
                 add_expert(item, E.size_too_large)
             end
         end
-        off = h[2] + h[3]
+        off = h.off + h[2]
     end
     add_undecoded(header, tvb, off, ID_LEN + hlen - off, "header cut short")
 end

@@ -8,7 +8,7 @@ import pytest
 
 import dissector_packets as P
 import tshark_runner as T
-from vm110 import protocol as P
+from vm110.protocol import ENUM_FIELDS
 from vm110 import decode
 
 pytestmark = pytest.mark.tshark
@@ -35,7 +35,7 @@ def _check_frame(frame: T.Frame, data: bytes, variant: str, order: str) -> list[
     if problems != sorted(expected["problems"]) or warnings != sorted(expected["warnings"]):
         errors.append(f"experts: tshark {problems} {warnings}, python {expected['problems']} {expected['warnings']}")
     errors += odd
-    for name, names in P.ENUM_FIELDS.items():
+    for name, names in ENUM_FIELDS.items():
         item = frame.first(f"vm110.{name}")
         if item is not None:
             value = want[name]

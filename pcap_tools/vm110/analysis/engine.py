@@ -38,6 +38,9 @@ from ..errors import CliError
 from .collect import CODE_OF_ID, RECORD, RECORD_DTYPE, Collected
 from .incremental import Analysis
 
+# The fused reads below are the header of vm110.protocol and the legality rules of vm110.decode
+# written out by hand for speed: tests/test_protocol.py checks them against the declaration and
+# holds each walk's legal/illegal verdicts to decode()'s, packet by packet.
 _HDR = struct.Struct("<4sH6xH")                    # packet ID, revision, size
 # One little-endian read of a record of the common frame: pcap record header (sec, frac, incl,
 # orig); Ethernet type (raw bytes); IPv4 version/IHL, fragment field, protocol, source; UDP ports
@@ -96,7 +99,7 @@ def crc_candidates(path: str, ports: Collection[int], limit: Optional[int] = Non
     seen = 0
     for _, _, sport, dport, payload, _ in CaptureReader(path, chunk_size=chunk_size):
         if (sport in ports or dport in ports) and len(payload) >= C.OVERHEAD:
-            size = struct.unpack_from("<H", payload, C.ID_LEN + 6)[0]
+            size = P.SIZE.unpack_from(payload, P.SIZE_OFFSET)[0]
             counts.update(crc_matches(payload, min(C.PREFIX_LEN + size, len(payload) - C.CRC_LEN)))
             seen += 1
             if seen == limit:
@@ -485,7 +488,7 @@ class FastEngine:
         if sport not in self.ports and dport not in self.ports:
             # Heuristic for other ports: a known packet ID and a size consistent with the length.
             if not C.OVERHEAD <= n <= C.MAX_PACKET or payload[:C.ID_LEN] not in CODE_OF_ID \
-                    or n != C.OVERHEAD + struct.unpack_from("<H", payload, 10)[0]:
+                    or n != C.OVERHEAD + P.SIZE.unpack_from(payload, P.SIZE_OFFSET)[0]:
                 got.other_udp += 1
                 return
         got.eglink += 1
