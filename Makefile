@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 PLUGIN_DIR ?= $(HOME)/.local/lib/wireshark/plugins
 DEMO_DIR := out/demo
 
-.PHONY: setup system-deps demo test test-long bench install-wireshark clean tshark44 tshark46 golden captures fuzz-self install-profile
+.PHONY: setup system-deps demo test test-long bench install-wireshark clean tshark44 tshark46 golden captures fuzz-self install-profile lua-tables
 
 setup: system-deps $(STAMP)
 
@@ -61,6 +61,10 @@ tshark46:
 # Regenerate the dissector's `tshark -V -O vm110` goldens (tests/golden/), one per tshark version.
 golden: setup tshark44 tshark46
 	$(PY) tests/test_dissector_golden.py
+
+# The dissector's field, enum and layout tables from the Python declaration (vm110/protocol.py).
+lua-tables: setup
+	$(PY) scripts/lua-tables
 
 install-wireshark:
 	mkdir -p $(PLUGIN_DIR)

@@ -41,7 +41,7 @@ from .incremental import Analysis
 # The fused reads below are the header of vm110.protocol and the legality rules of vm110.decode
 # written out by hand for speed: tests/test_protocol.py checks them against the declaration and
 # holds each walk's legal/illegal verdicts to decode()'s, packet by packet.
-_HDR = struct.Struct("<4sH6xH")                    # packet ID, revision, size
+_HDR = struct.Struct("<4sH4xH")                    # packet ID, revision, size (it once read the spare as size)
 # One little-endian read of a record of the common frame: pcap record header (sec, frac, incl,
 # orig); Ethernet type (raw bytes); IPv4 version/IHL, fragment field, protocol, source; UDP ports
 # and length (big-endian fields read little-endian: compared through _SWAP); EG-Link packet ID,
