@@ -120,3 +120,52 @@ def test_ack_answers_command_with_same_id():
 def test_vrpo_data_fills_the_rest_of_the_payload():
     pkt = VM110(bytes(VM110() / VRPO(packet_number=2, periodic_data=b"abc")))
     assert pkt.size == 5 and pkt[VRPO].periodic_data == b"abc"
+
+
+# --- scapy's contrib conventions: a user's scapy session ---------------------------------------
+SESSION = r"""
+import io, contextlib, sys
+from scapy.all import IP, UDP, Ether, ls, sniff, wrpcap
+from vm110.layers import *
+names = sorted(k for k in dir() if not k.startswith("_"))
+print("names", " ".join(n for n in names if n not in ("IP", "UDP", "Ether", "ls", "sniff", "wrpcap", "io",
+                                                      "contextlib", "sys")))
+out = io.StringIO()
+with contextlib.redirect_stdout(out):
+    ls(VRPI)
+print("ls", out.getvalue().count("\n"), "joystick1" in out.getvalue(), "bu_state" in out.getvalue())
+frames = [Ether() / IP(src="10.0.0.10", dst="239.255.42.20") / UDP(sport=5825, dport=5825) /
+          VM110(origin=0x0101, serial=7) / VRPI(bu_state="Armed", armed_ru=0x0C07, ru_state="Enabled"),
+          Ether() / IP(src="10.0.0.20", dst="239.255.42.20") / UDP(sport=40000, dport=5827) /
+          VM110(serial=1) / VRAO(command_id=17)]
+wrpcap(sys.argv[1], frames)
+seen = []
+sniff(offline=sys.argv[1], prn=lambda p: seen.append(p[VM110].summary()), store=False)
+print("sniffed", "|".join(seen))
+"""
+
+
+def test_a_scapy_session_imports_lists_and_sniffs(tmp_path):
+    import subprocess
+    import sys
+    run = subprocess.run([sys.executable, "-c", SESSION, str(tmp_path / "s.pcap")], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr
+    lines = dict(line.split(" ", 1) for line in run.stdout.splitlines())
+    # `import *` gives the layers and helpers of __all__, nothing of the module's own imports
+    assert lines["names"].split() == sorted(
+        ["VM110", "VRPI", "VRPO", "VRCI", "VRCO", "VRAI", "VRAO", "PAYLOAD_CLASSES", "bind_ports", "unbind_ports",
+         "crc_settings"])
+    count, joystick, state = lines["ls"].split()
+    assert int(count) == len(VRPI.fields_desc) and joystick == state == "True"
+    # sniff() on a capture dissects EG-Link by port (the binding the import made), with summaries
+    assert lines["sniffed"] == "VM110 / VRPI Armed armed_ru=0xc07 Enabled|VM110 / VRAO command_id=17"
+
+
+def test_vm110_fills_in_size_and_crc():
+    from vm110.decode import decode
+    for payload in (VRPI(bu_state=0x11), VRPO(periodic_data=b"x" * 30), VRCI(command_id=3), VRAI(command_id=3)):
+        data = bytes(VM110(serial=5) / payload)
+        fields = decode(data)
+        assert fields["problems"] == [] and fields["size"] == len(data) - C.OVERHEAD
+        assert VM110(data).crc_ok()

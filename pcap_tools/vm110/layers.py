@@ -1,3 +1,5 @@
+# scapy.contrib.description = VM-110 EG-Link (TS-0006)
+# scapy.contrib.status = loads
 """scapy layers for the EG-Link: `VM110` (packet ID, header, CRC trailer) and one class per payload.
 
 The CRC trails the payload on the wire. scapy dissects fields front to back, so `pre_dissect`
@@ -6,6 +8,10 @@ computed only when left unset, so that wrong values can be crafted on purpose.
 
 CRC variant and stored byte order come from `conf.contribs["VM110"]` (as scapy's CAN layer does
 with its settings), or temporarily from `crc_settings()`.
+
+As scapy's contrib layers do, importing the module binds the layers to their UDP ports (5825 and
+5827, either direction), and `from vm110.layers import *` gives the layers and the helpers of
+`__all__`; `ls(VRPI)`, `sniff(offline=..., prn=...)` and `answers()` work as for any layer.
 """
 from __future__ import annotations
 
@@ -26,6 +32,9 @@ from . import constants as C
 from . import protocol as P
 from .crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, check_byte_order, crc_bytes, crc_function
 from .decode import crc_span
+
+__all__ = ["VM110", "VRPI", "VRPO", "VRCI", "VRCO", "VRAI", "VRAO", "PAYLOAD_CLASSES", "bind_ports",
+           "unbind_ports", "crc_settings"]
 
 conf.contribs.setdefault("VM110", {"crc_variant": DEFAULT_VARIANT, "crc_order": DEFAULT_BYTE_ORDER})
 
