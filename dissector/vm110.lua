@@ -154,11 +154,14 @@ local PACKET_TYPES = {
 local PREFIX_LEN = ID_LEN + HEADER_LEN
 local OVERHEAD = PREFIX_LEN + CRC_LEN
 local VRPO_MAX_DATA = FIELDS.periodic_data[2]
+local VRPO_HEADER_SIZE = FIELDS.periodic_data.off - PREFIX_LEN
+-- Where generated fields point: the serial (serial analysis), the packet number (VRPO bursts).
+local SERIAL, NUMBER = FIELDS.serial, FIELDS.packet_number
 local DEFAULT_INPUT_PORT, OUTPUT_PORT_OFFSET = 5825, 2
 -- Timing and numbering of section 5.1 (interpretation.md "Timing", "Serial numbers", "VRPO split").
 local VRPI_WATCHDOG_MS, VRPO_WATCHDOG_MS, VRPO_PERIOD_MIN_MS, VRPO_PERIOD_MAX_MS = 500, 2000, 50, 200
 local COMMAND_RESEND_MS, VRCI_FAIL_MS, VRCO_GIVE_UP_MS, VRPO_BURST_GAP_MS = 100, 2000, 2000, 20
-local SERIAL_MODULUS, SERIAL_HALF, VRPO_HEADER_SIZE = 65536, 32768, 2
+local SERIAL_MODULUS, SERIAL_HALF = 65536, 32768
 -- docs/rules.md: duplicate window, command ID reuse gap, restart on a new port after this silence,
 -- the rate window of the plausible-gap test and its constants (d - 1 <= 64 + 4 max(r, 20) dt), a
 -- restart confirmed by the next serial s + 1 ... s + 4.
@@ -365,7 +368,8 @@ local function s16(v) if v >= 0x8000 then return v - 0x10000 end return v end
 local function compile_reader(layout)
     local parts, locals, off = {}, {}, PREFIX_LEN
     for _, f in ipairs(layout) do
-        local name, width, kind, expr = f[1], f[2], f[3], nil
+        local name, width, kind = f[1], f[2], f[3]
+        local expr
         if kind == "b" then
             expr = fmt("sub(s, %d, %d)", off + 1, off + width)
         elseif width == 1 then
@@ -645,7 +649,8 @@ F.ack_to = ProtoField.framenum("vm110.analysis.ack_to", "Acknowledges the comman
     frametypes.REQUEST, nil, "Frame of the first transmission of the command this acknowledges")
 F.ack_time = ProtoField.double("vm110.analysis.ack_time", "Acknowledged after, from the first transmission (ms)",
     "ms from the command's first transmission to this acknowledgement")
-F.ack_time_last = ProtoField.double("vm110.analysis.ack_time_last", "Acknowledged after, from the last transmission (ms)",
+F.ack_time_last = ProtoField.double("vm110.analysis.ack_time_last",
+    "Acknowledged after, from the last transmission (ms)",
     "ms from the command's last transmission before this acknowledgement")
 F.burst_interval = ProtoField.double("vm110.analysis.burst_interval",
     "Interval since the first packet of the previous VRPO burst (ms)",
@@ -750,7 +755,8 @@ local FINDING = {
 
 local variant_enum, order_enum = {}, { { "little", "Little-endian (TS-0006 2.1)", 1 }, { "big", "Big-endian", 2 } }
 for i, v in ipairs(CRC_VARIANTS) do variant_enum[i] = { v.name, v.label, i } end
-vm110.prefs.crc_variant = Pref.enum("CRC variant", 1, "CRC-32 variant the packets are checked with", variant_enum, false)
+vm110.prefs.crc_variant = Pref.enum("CRC variant", 1, "CRC-32 variant the packets are checked with", variant_enum,
+    false)
 vm110.prefs.crc_byte_order = Pref.enum("Stored CRC byte order", 1, "Byte order of the CRC trailer", order_enum, false)
 vm110.prefs.check_crc = Pref.bool("Validate the CRC", true, "Calculate the CRC of each packet and flag bad ones")
 vm110.prefs.input_port = Pref.uint("Input UDP port", DEFAULT_INPUT_PORT,
@@ -759,7 +765,8 @@ vm110.prefs.heuristic = Pref.bool("Find EG-Link on other UDP ports", true,
     "Heuristic: a known packet ID with a size that matches the UDP length")
 vm110.prefs.analysis = Pref.bool("Analyse the streams", true,
     "Serial gaps, intervals and watchdogs, retransmissions and acknowledgements, VRPO reassembly")
-vm110.prefs.serial_scope = Pref.enum("Serial number scope", 1, "One counter per sender, or one per packet type per sender",
+vm110.prefs.serial_scope = Pref.enum("Serial number scope", 1,
+    "One counter per sender, or one per packet type per sender",
     { { "sender", "Per sender (all packet types)", 1 }, { "type", "Per packet type per sender", 2 } }, false)
 vm110.prefs.dup_window_ms = Pref.uint("Duplicate window (ms)", RULES.dup_window_ms,
     "A serial received again within this is a duplicate; a late packet fills a gap opened within it")
@@ -772,11 +779,14 @@ vm110.prefs.vrpo_max_ms = Pref.uint("VRPO recommended maximum interval (ms)", VR
 vm110.prefs.resend_ms = Pref.uint("Command resend interval (ms)", COMMAND_RESEND_MS, "Nominal resend interval")
 vm110.prefs.resend_tolerance_ms = Pref.uint("Resend interval tolerance (ms)", COMMAND_RESEND_MS / 2,
     "Note when a resend interval differs from the nominal one by more than this")
-vm110.prefs.vrci_fail_ms = Pref.uint("VRCI failure timeout (ms)", VRCI_FAIL_MS, "Acknowledgement later than this: failed")
-vm110.prefs.vrco_give_up_ms = Pref.uint("VRCO give-up timeout (ms)", VRCO_GIVE_UP_MS, "Acknowledgement later than this: late")
+vm110.prefs.vrci_fail_ms = Pref.uint("VRCI failure timeout (ms)", VRCI_FAIL_MS,
+    "Acknowledgement later than this: failed")
+vm110.prefs.vrco_give_up_ms = Pref.uint("VRCO give-up timeout (ms)", VRCO_GIVE_UP_MS,
+    "Acknowledgement later than this: late")
 vm110.prefs.vrpo_data_size = Pref.uint("Configured periodic data size (bytes)", 0,
     "Total VRPO periodic data of a burst; 0 = infer (a burst ends with a packet of fewer than 488 bytes)")
-vm110.prefs.vrpo_number_start = Pref.uint("First VRPO packet number", 0, "Packet number of a burst's first packet (0 or 1)")
+vm110.prefs.vrpo_number_start = Pref.uint("First VRPO packet number", 0,
+    "Packet number of a burst's first packet (0 or 1)")
 vm110.prefs.burst_gap_ms = Pref.uint("VRPO burst gap (ms)", VRPO_BURST_GAP_MS, "A new burst starts after this gap")
 vm110.prefs.machine = Pref.string("Machine", "",
     "Key of the machine-specific sub-dissectors in the vm110.periodic_data and vm110.command_data tables")
@@ -886,7 +896,8 @@ local PROBLEM_TEXT = {
 local PROBLEM_ORDER = { "unknown_id", "bad_crc", "revision", "size_mismatch", "size_too_large", "truncated" }
 
 local function summary(r)
-    local v, id, text = r.values, r.type, nil
+    local v, id = r.values, r.type
+    local text
     if not r.info then
         text = id and fmt('Unknown packet ID "%s"', printable(id)) or "EG-Link fragment"
     elseif id == "VRPI" and v.bu_state then
@@ -920,8 +931,8 @@ end
 -- group by summary: one line per field and code; the value is the field's).
 local function field_message(code, name)
     if code == "out_of_range" then
-        local range = FIELDS[name].range
-        return fmt("vm110.%s is outside %d..%d", name, range[1], range[2])
+        local low_high = FIELDS[name].range
+        return fmt("vm110.%s is outside %d..%d", name, low_high[1], low_high[2])
     elseif code == "unknown_enum" then
         return fmt("vm110.%s is not a defined value", name)
     elseif code == "disarmed_ru_data" then
@@ -932,7 +943,7 @@ local function field_message(code, name)
     return fmt("vm110.%s should be 0", name)
 end
 
-local function field_experts(r, item, name, value)
+local function field_experts(r, item, name)
     local codes = r.fieldwarn[name]
     if codes then
         for _, code in ipairs(codes) do add_expert(item, E[code], field_message(code, name)) end
@@ -983,7 +994,7 @@ local function add_header(r, tvb, root)
         local value = r[name]
         if not value then break end
         local item = want[name] and tree_add_le(header, F[name], tvb_range(tvb, h.off, h[2])) or header
-        field_experts(r, item, name, value)
+        field_experts(r, item, name)
         if name == "revision" and r.problems.revision then
             add_expert(item, E.revision, "Unsupported revision: only the header is decoded")
         elseif name == "size" then
@@ -1020,7 +1031,7 @@ local function add_payload(r, tvb, root)
         if whole or want[name] then
             local item = tree_add_le(payload, F[name], tvb_range(tvb, f.off, f[2]))
             if fieldwarn[name] then
-                field_experts(r, item, name, v[name])
+                field_experts(r, item, name)
                 fieldwarn[name] = nil -- shown
             end
             if name == "bu_state" then -- (es_relays_open right below the state it is derived from)
@@ -1030,7 +1041,7 @@ local function add_payload(r, tvb, root)
         end
     end
     for name in pairs(fieldwarn) do -- warnings of fields not built (header fields: shown already)
-        if v[name] ~= nil then field_experts(r, payload, name, v[name]) end
+        if v[name] ~= nil then field_experts(r, payload, name) end
     end
     if relays then add_relays(r, tvb, payload) end
     local off = r.decoded_end
@@ -1578,7 +1589,9 @@ local function sender_of(r, pinfo, t, frame)
     end
     local pred = false
     for _, other in ipairs(others) do
-        if ms(t - other.last) >= RULES.new_port_silence_ms and (not pred or other.last > pred.last) then pred = other end
+        if ms(t - other.last) >= RULES.new_port_silence_ms and (not pred or other.last > pred.last) then
+            pred = other
+        end
     end
     others[#others + 1] = snd
     if not pred then return snd end
@@ -1792,23 +1805,23 @@ local function show_findings(r, tvb, root, pinfo)
     found.n, found.at = 0, false
 end
 
-local function add_restart(rec, tvb, root, pinfo)
-    finding(generated(root, "restart", tvb, 8, 2, rec.from), "restart")
-    if rec.port_from then generated(root, "restart_port_from", tvb, 8, 2, rec.port_from) end
+local function add_restart(rec, tvb, root)
+    finding(generated(root, "restart", tvb, SERIAL.off, SERIAL[2], rec.from), "restart")
+    if rec.port_from then generated(root, "restart_port_from", tvb, SERIAL.off, SERIAL[2], rec.port_from) end
 end
 
-local function add_serial_analysis(res, tvb, root, r, pinfo)
+local function add_serial_analysis(res, tvb, root)
     local missing = res.serial
     if missing > 0 then
-        finding(generated(root, "serial_missing", tvb, 8, 2, missing), "serial_gap")
+        finding(generated(root, "serial_missing", tvb, SERIAL.off, SERIAL[2], missing), "serial_gap")
     elseif missing == DUPLICATE then
-        finding(generated(root, "serial_duplicate", tvb, 8, 2, 1), "serial_duplicate")
+        finding(generated(root, "serial_duplicate", tvb, SERIAL.off, SERIAL[2], 1), "serial_duplicate")
     elseif missing == LATE or missing == CANDIDATE and res.cand.decided and not res.cand.confirmed then
-        finding(generated(root, "serial_out_of_order", tvb, 8, 2, 1), "serial_out_of_order")
+        finding(generated(root, "serial_out_of_order", tvb, SERIAL.off, SERIAL[2], 1), "serial_out_of_order")
     elseif missing == CANDIDATE and res.cand.confirmed then
-        add_restart(res.cand, tvb, root, pinfo)
+        add_restart(res.cand, tvb, root)
     end
-    if res.restart then add_restart(res.restart, tvb, root, pinfo) end
+    if res.restart then add_restart(res.restart, tvb, root) end
 end
 
 local function add_interval(iv, tvb, root, r)
@@ -1827,7 +1840,7 @@ local function add_burst_interval(bi, tvb, root)
     if bi < settings.vrpo_min or bi > settings.vrpo_max then finding(item, "vrpo_interval") end
 end
 
-local function add_command_analysis(res, tvb, root, pinfo, visited)
+local function add_command_analysis(res, tvb, root, visited)
     local id = PREFIX_LEN -- generated fields point at the command ID
     local cmd = res.cmd
     if cmd then
@@ -1880,15 +1893,15 @@ local function add_burst(res, tvb, root, pinfo, tree, visited)
     local n = b.n
     local bt = root
     if want.visible then
-        bt = tree_add(root, range(tvb, PREFIX_LEN, 2), fmt("VRPO burst: %d packet(s), %d bytes", n, b.size))
+        bt = tree_add(root, range(tvb, NUMBER.off, NUMBER[2]), fmt("VRPO burst: %d packet(s), %d bytes", n, b.size))
         set_generated(bt)
     end
-    generated(bt, "burst_packets", tvb, PREFIX_LEN, 2, n)
-    generated(bt, "burst_size", tvb, PREFIX_LEN, 2, b.size)
+    generated(bt, "burst_packets", tvb, NUMBER.off, NUMBER[2], n)
+    generated(bt, "burst_size", tvb, NUMBER.off, NUMBER[2], b.size)
     if want.burst_frame then
         -- (VRPO packets closer than the burst gap that never end a burst would make this list long)
         for i = 1, n < BURST_FRAMES_SHOWN and n or BURST_FRAMES_SHOWN do
-            generated(bt, "burst_frame", tvb, PREFIX_LEN, 2, b[3 * i - 2])
+            generated(bt, "burst_frame", tvb, NUMBER.off, NUMBER[2], b[3 * i - 2])
         end
     end
     if res.burst_missing then
@@ -1902,11 +1915,11 @@ local function add_burst(res, tvb, root, pinfo, tree, visited)
     end
     if not complete then
         if visited then
-            finding(generated(bt, "burst_complete", tvb, PREFIX_LEN, 2, false), "burst_incomplete")
+            finding(generated(bt, "burst_complete", tvb, NUMBER.off, NUMBER[2], false), "burst_incomplete")
         end
         return
     end
-    generated(bt, "burst_complete", tvb, PREFIX_LEN, 2, true)
+    generated(bt, "burst_complete", tvb, NUMBER.off, NUMBER[2], true)
     pinfo.cols.info:append(fmt(" [reassembled %d bytes]", b.size))
     local machine = settings.machine ~= ""
     if want.visible or want.reassembled or machine then -- (a new data source: only when shown or used)
@@ -1924,7 +1937,7 @@ local function add_single_burst(r, tvb, root, pinfo, tree, visited)
     local full = settings.data_size > 0 and size == settings.data_size
         or settings.data_size == 0 and size < VRPO_MAX_DATA
     if number == start and full then
-        generated(root, "burst_complete", tvb, PREFIX_LEN, 2, true)
+        generated(root, "burst_complete", tvb, NUMBER.off, NUMBER[2], true)
         if size > 0 and settings.machine ~= "" then
             sub_dissect(periodic_table, range(tvb, PREFIX_LEN + VRPO_HEADER_SIZE, size):tvb(), pinfo, tree)
         end
@@ -1934,7 +1947,7 @@ local function add_single_burst(r, tvb, root, pinfo, tree, visited)
         finding(root, "burst_missing")
     end
     if visited then
-        finding(generated(root, "burst_complete", tvb, PREFIX_LEN, 2, false), "burst_incomplete")
+        finding(generated(root, "burst_complete", tvb, NUMBER.off, NUMBER[2], false), "burst_incomplete")
     end
 end
 
@@ -1944,21 +1957,20 @@ end
 
 local function add_analysis(res, r, tvb, pinfo, tree, root)
     local visited = pinfo.visited
-    add_serial_analysis(res, tvb, root, r, pinfo)
+    add_serial_analysis(res, tvb, root)
     local iv = res.interval
     if iv then add_interval(iv, tvb, root, r) end
     if res.silent then add_silence(res, tvb, root) end
-    if res.cmd or res.ack_of ~= nil then add_command_analysis(res, tvb, root, pinfo, visited) end
-    if res.serial == DUPLICATE then
-        -- a duplicate is no burst part
-    elseif res.burst then
+    if res.cmd or res.ack_of ~= nil then add_command_analysis(res, tvb, root, visited) end
+    local duplicate = res.serial == DUPLICATE -- (a duplicate is no burst part)
+    if res.burst and not duplicate then
         if res.burst_index == 1 then
             local bi = res.binterval
             if bi == nil then bi = iv end
             if bi then add_burst_interval(bi, tvb, root) end
         end
         add_burst(res, tvb, root, pinfo, tree, visited)
-    elseif r.data_len then
+    elseif r.data_len and not duplicate then
         local bi = res.binterval
         if bi == nil then bi = iv end
         if bi then add_burst_interval(bi, tvb, root) end
@@ -1966,7 +1978,8 @@ local function add_analysis(res, r, tvb, pinfo, tree, root)
     end
     if r.values.command_data and settings.machine ~= "" then
         pinfo.private.vm110_type = r.type
-        sub_dissect(command_table, range(tvb, PREFIX_LEN + 6, 16):tvb(), pinfo, tree)
+        local data = FIELDS.command_data
+        sub_dissect(command_table, range(tvb, data.off, data[2]):tvb(), pinfo, tree)
     end
 end
 

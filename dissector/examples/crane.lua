@@ -62,7 +62,7 @@ local bad_length = ProtoExpert.new("crane.bad_length", "Crane data shorter than 
     expert.severity.ERROR)
 crane.experts = { bad_length }
 
-function crane.dissector(tvb, pinfo, tree)
+function crane.dissector(tvb, _pinfo, tree)
     local root = tree:add(crane, tvb())
     if tvb:len() < 8 then
         root:add_proto_expert_info(bad_length)
