@@ -19,7 +19,10 @@ LAYOUTS = P.LAYOUTS
 VRPI_LAYOUT = LAYOUTS[C.PacketType.VRPI]
 
 
-def _compile(layout: tuple[tuple[str, str], ...]) -> tuple[struct.Struct, tuple[str, ...], tuple[tuple[str, struct.Struct, int], ...]]:
+_Parts = tuple[tuple[str, struct.Struct, int], ...]
+
+
+def _compile(layout: tuple[tuple[str, str], ...]) -> tuple[struct.Struct, tuple[str, ...], _Parts]:
     """One Struct and the names for the whole layout, plus (name, struct, offset) for partial decoding."""
     parts, offset = [], 0
     for name, code in layout:

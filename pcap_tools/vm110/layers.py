@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import struct
-from typing import Iterator, Optional
+from typing import Any, Callable, Iterator, Optional
 
 from scapy.config import conf
 from scapy.fields import (
@@ -96,24 +96,28 @@ def scapy_field(f: P.Field, default: object = _UNSET) -> Field:
     """The scapy field of a declared field (vm110.protocol), shown as Wireshark shows it."""
     value = f.default if default is _UNSET else default
     if f.kind == "bytes":
-        return XStrFixedLenField(f.name, value, f.size)
+        return XStrFixedLenField(f.name, bytes(value) if isinstance(value, bytes) else None, f.size)
     plain, hexa, named = _SCAPY_FIELDS[f.kind]
     if f.enum is not None and named is not None:
         return named(f.name, value, {int(k): v for k, v in f.enum.values.items()})
     return (hexa if f.base == "HEX" else plain)(f.name, value)
 
 
-def fields_of(ptype: C.PacketType) -> list[Field]:
+def _length(n: int) -> Callable[[Packet], int]:
+    return lambda _pkt: n
+
+
+def fields_of(ptype: C.PacketType) -> list[Any]:
     """`fields_desc` of a payload layer, from the declaration."""
     packet = P.PACKETS[ptype]
-    out = [scapy_field(f) for f in packet.fields]
+    out: list[Any] = [scapy_field(f) for f in packet.fields]
     if packet.tail is not None:
         # Bytes beyond the layout's maximum are not part of the tail: they dissect as a Raw payload.
-        out.append(XStrLenField(packet.tail.name, b"", length_from=lambda _, n=packet.tail.size: n))
+        out.append(XStrLenField(packet.tail.name, b"", length_from=_length(packet.tail.size)))
     return out
 
 
-def _header_fields() -> list[Field]:
+def _header_fields() -> list[Any]:
     # size is computed when left unset (None), like the CRC
     defaults: dict[str, object] = {"revision": C.SUPPORTED_REVISION, "size": None}
     return [scapy_field(f, defaults.get(f.name, _UNSET)) for f in P.HEADER_FIELDS]
@@ -122,7 +126,8 @@ def _header_fields() -> list[Field]:
 class VM110(Packet):
     name = "VM-110 EG-Link"
     fields_desc = [
-        StrFixedLenEnumField("type", b"VRPI", PACKET_IDS, length=C.ID_LEN),
+        # (scapy's stubs say str keys; its code compares the raw bytes, which the keys are)
+        StrFixedLenEnumField("type", b"VRPI", PACKET_IDS, length=C.ID_LEN),  # type: ignore[arg-type]
         *_header_fields(),
         CRCField("crc", None),  # the trailer, dissected and built out of wire order
     ]
@@ -155,7 +160,8 @@ class VM110(Packet):
         raw = bytes(self)
         end = crc_span(raw, P.SIZE.unpack_from(raw, P.SIZE_OFFSET)[0])
         variant, order = _settings()
-        return int.from_bytes(raw[end:end + C.CRC_LEN], order) == crc_function(variant)(raw[:end])
+        stored = int.from_bytes(raw[end:end + C.CRC_LEN], check_byte_order(order))
+        return stored == crc_function(variant)(raw[:end])
 
     def hashret(self) -> bytes:
         return self.payload.hashret()

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from typing import Mapping, Optional, Union
+from typing import Any, Mapping, Optional, Union
 
 from . import constants as C
 
@@ -36,6 +36,11 @@ class Enum:
 
     name: str
     values: Mapping[int, str]
+
+    @classmethod
+    def of(cls, name: str, names: Mapping[Any, str]) -> "Enum":
+        """From a table keyed by IntEnum members (vm110.constants)."""
+        return cls(name, {int(k): v for k, v in names.items()})
 
 
 @dataclass(frozen=True)
@@ -119,13 +124,13 @@ class Packet:
 
 
 # --- Enums (TS-0006 4.1) ------------------------------------------------------------------------
-BU_STATE = Enum("BU_STATE", C.BU_STATE_NAMES)
-LINK_STATUS = Enum("LINK_STATUS", C.LINK_STATUS_NAMES)
-RU_STATE = Enum("RU_STATE", C.RU_STATE_NAMES)
-RU_DISABLED = Enum("RU_DISABLED", C.RU_DISABLED_NAMES)
-RU_CABLE = Enum("RU_CABLE", C.RU_CABLE_NAMES)
-RU_DOCKED = Enum("RU_DOCKED", C.RU_DOCKED_NAMES)
-ENCODER_SWITCH = Enum("ENCODER_SWITCH", C.ENCODER_SWITCH_NAMES)
+BU_STATE = Enum.of("BU_STATE", C.BU_STATE_NAMES)
+LINK_STATUS = Enum.of("LINK_STATUS", C.LINK_STATUS_NAMES)
+RU_STATE = Enum.of("RU_STATE", C.RU_STATE_NAMES)
+RU_DISABLED = Enum.of("RU_DISABLED", C.RU_DISABLED_NAMES)
+RU_CABLE = Enum.of("RU_CABLE", C.RU_CABLE_NAMES)
+RU_DOCKED = Enum.of("RU_DOCKED", C.RU_DOCKED_NAMES)
+ENCODER_SWITCH = Enum.of("ENCODER_SWITCH", C.ENCODER_SWITCH_NAMES)
 
 # --- Header (TS-0006 3): after the 4-character packet ID ---------------------------------------
 HEADER_FIELDS = (
@@ -219,8 +224,6 @@ for _f in (*HEADER_FIELDS, *(f for p in PACKETS.values() for f in (*p.fields, *(
         raise AssertionError(f"two different fields named {_f.name}")
 ENUM_FIELDS = {f.name: f.enum.values for f in FIELDS.values() if f.enum}
 RANGES = {f.name: f.range for f in FIELDS.values() if f.range}
-RU_FIELDS = tuple(f.name for f in FIELDS.values() if f.ru)
-SPARE_FIELDS = tuple(f.name for p in PACKETS.values() for f in p.fields if f.spare)
 
 
 def state_fields() -> tuple[Field, ...]:

@@ -56,7 +56,8 @@ class Impairment:
                     self.outages, self.drops, self.mangles))
 
 
-def mangle(data: bytes, reasons: str, variant: str = DEFAULT_VARIANT, order: str = DEFAULT_BYTE_ORDER) -> tuple[bytes, tuple[str, ...]]:
+def mangle(data: bytes, reasons: str, variant: str = DEFAULT_VARIANT,
+           order: str = DEFAULT_BYTE_ORDER) -> tuple[bytes, tuple[str, ...]]:
     """Turn a legal packet illegal for exactly the given reasons ("revision", "revision+bad_crc")."""
     wanted = reasons.split("+")
     unknown = set(wanted) - set(REASON_ORDER)

@@ -69,8 +69,6 @@ class UdpTransport:
         self.tx: Optional[socket.socket] = None
         self._queue: list[tuple[int, int, bytes]] = []
         self._seq = 0
-        self.sent = 0
-        self.send_errors = 0
 
     def open(self) -> "UdpTransport":
         cfg = self.config
@@ -158,12 +156,10 @@ class UdpTransport:
         assert self.tx is not None, "open() first"
         try:
             self.tx.sendto(data, self.config.dest)
-            self.sent += 1
         except OSError as exc:   # a full buffer or an unreachable peer loses the packet, like UDP does
             if exc.errno not in (errno.EAGAIN, errno.ECONNREFUSED, errno.ENOBUFS, errno.EHOSTUNREACH,
                                  errno.ENETUNREACH):
                 raise
-            self.send_errors += 1
 
     # --- receiving ----------------------------------------------------------------------------
     def recv_all(self) -> list[tuple[bytes, Address]]:

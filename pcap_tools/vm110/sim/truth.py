@@ -261,7 +261,8 @@ class _Sender:
         self.counter = _Counter(epoch_us)
         self.last_legal = 0
         self.streams: dict[C.PacketType, int] = {}     # periodic type -> accepted packets
-        self.last: dict[C.PacketType, tuple[int, int]] = {}   # periodic type -> (time, frame) of its latest accepted packet
+        # periodic type -> (time, frame) of its latest accepted packet
+        self.last: dict[C.PacketType, tuple[int, int]] = {}
         self.inherited: dict[C.PacketType, tuple[int, int]] = {}   # the same of the sender it took over (new port)
         self.taken_over = False                        # a later sender on a new port took over
         self.violations: dict[C.PacketType, list[tuple[int, int, bool, int]]] = {}   # (start, end, until end, frame)
