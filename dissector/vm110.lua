@@ -156,7 +156,8 @@ local OVERHEAD = PREFIX_LEN + CRC_LEN
 local VRPO_MAX_DATA = FIELDS.periodic_data[2]
 local VRPO_HEADER_SIZE = FIELDS.periodic_data.off - PREFIX_LEN
 -- Where generated fields point: the serial (serial analysis), the packet number (VRPO bursts).
-local SERIAL, NUMBER = FIELDS.serial, FIELDS.packet_number
+local SERIAL_OFF, SERIAL_LEN = FIELDS.serial.off, FIELDS.serial[2]
+local NUMBER_OFF, NUMBER_LEN = FIELDS.packet_number.off, FIELDS.packet_number[2]
 local DEFAULT_INPUT_PORT, OUTPUT_PORT_OFFSET = 5825, 2
 -- Timing and numbering of section 5.1 (interpretation.md "Timing", "Serial numbers", "VRPO split").
 local VRPI_WATCHDOG_MS, VRPO_WATCHDOG_MS, VRPO_PERIOD_MIN_MS, VRPO_PERIOD_MAX_MS = 500, 2000, 50, 200
@@ -1806,18 +1807,18 @@ local function show_findings(r, tvb, root, pinfo)
 end
 
 local function add_restart(rec, tvb, root)
-    finding(generated(root, "restart", tvb, SERIAL.off, SERIAL[2], rec.from), "restart")
-    if rec.port_from then generated(root, "restart_port_from", tvb, SERIAL.off, SERIAL[2], rec.port_from) end
+    finding(generated(root, "restart", tvb, SERIAL_OFF, SERIAL_LEN, rec.from), "restart")
+    if rec.port_from then generated(root, "restart_port_from", tvb, SERIAL_OFF, SERIAL_LEN, rec.port_from) end
 end
 
 local function add_serial_analysis(res, tvb, root)
     local missing = res.serial
     if missing > 0 then
-        finding(generated(root, "serial_missing", tvb, SERIAL.off, SERIAL[2], missing), "serial_gap")
+        finding(generated(root, "serial_missing", tvb, SERIAL_OFF, SERIAL_LEN, missing), "serial_gap")
     elseif missing == DUPLICATE then
-        finding(generated(root, "serial_duplicate", tvb, SERIAL.off, SERIAL[2], 1), "serial_duplicate")
+        finding(generated(root, "serial_duplicate", tvb, SERIAL_OFF, SERIAL_LEN, 1), "serial_duplicate")
     elseif missing == LATE or missing == CANDIDATE and res.cand.decided and not res.cand.confirmed then
-        finding(generated(root, "serial_out_of_order", tvb, SERIAL.off, SERIAL[2], 1), "serial_out_of_order")
+        finding(generated(root, "serial_out_of_order", tvb, SERIAL_OFF, SERIAL_LEN, 1), "serial_out_of_order")
     elseif missing == CANDIDATE and res.cand.confirmed then
         add_restart(res.cand, tvb, root)
     end
@@ -1893,15 +1894,15 @@ local function add_burst(res, tvb, root, pinfo, tree, visited)
     local n = b.n
     local bt = root
     if want.visible then
-        bt = tree_add(root, range(tvb, NUMBER.off, NUMBER[2]), fmt("VRPO burst: %d packet(s), %d bytes", n, b.size))
+        bt = tree_add(root, range(tvb, NUMBER_OFF, NUMBER_LEN), fmt("VRPO burst: %d packet(s), %d bytes", n, b.size))
         set_generated(bt)
     end
-    generated(bt, "burst_packets", tvb, NUMBER.off, NUMBER[2], n)
-    generated(bt, "burst_size", tvb, NUMBER.off, NUMBER[2], b.size)
+    generated(bt, "burst_packets", tvb, NUMBER_OFF, NUMBER_LEN, n)
+    generated(bt, "burst_size", tvb, NUMBER_OFF, NUMBER_LEN, b.size)
     if want.burst_frame then
         -- (VRPO packets closer than the burst gap that never end a burst would make this list long)
         for i = 1, n < BURST_FRAMES_SHOWN and n or BURST_FRAMES_SHOWN do
-            generated(bt, "burst_frame", tvb, NUMBER.off, NUMBER[2], b[3 * i - 2])
+            generated(bt, "burst_frame", tvb, NUMBER_OFF, NUMBER_LEN, b[3 * i - 2])
         end
     end
     if res.burst_missing then
@@ -1915,11 +1916,11 @@ local function add_burst(res, tvb, root, pinfo, tree, visited)
     end
     if not complete then
         if visited then
-            finding(generated(bt, "burst_complete", tvb, NUMBER.off, NUMBER[2], false), "burst_incomplete")
+            finding(generated(bt, "burst_complete", tvb, NUMBER_OFF, NUMBER_LEN, false), "burst_incomplete")
         end
         return
     end
-    generated(bt, "burst_complete", tvb, NUMBER.off, NUMBER[2], true)
+    generated(bt, "burst_complete", tvb, NUMBER_OFF, NUMBER_LEN, true)
     pinfo.cols.info:append(fmt(" [reassembled %d bytes]", b.size))
     local machine = settings.machine ~= ""
     if want.visible or want.reassembled or machine then -- (a new data source: only when shown or used)
@@ -1937,7 +1938,7 @@ local function add_single_burst(r, tvb, root, pinfo, tree, visited)
     local full = settings.data_size > 0 and size == settings.data_size
         or settings.data_size == 0 and size < VRPO_MAX_DATA
     if number == start and full then
-        generated(root, "burst_complete", tvb, NUMBER.off, NUMBER[2], true)
+        generated(root, "burst_complete", tvb, NUMBER_OFF, NUMBER_LEN, true)
         if size > 0 and settings.machine ~= "" then
             sub_dissect(periodic_table, range(tvb, PREFIX_LEN + VRPO_HEADER_SIZE, size):tvb(), pinfo, tree)
         end
@@ -1947,7 +1948,7 @@ local function add_single_burst(r, tvb, root, pinfo, tree, visited)
         finding(root, "burst_missing")
     end
     if visited then
-        finding(generated(root, "burst_complete", tvb, NUMBER.off, NUMBER[2], false), "burst_incomplete")
+        finding(generated(root, "burst_complete", tvb, NUMBER_OFF, NUMBER_LEN, false), "burst_incomplete")
     end
 end
 
