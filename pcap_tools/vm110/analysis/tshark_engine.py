@@ -89,9 +89,9 @@ class TsharkEngine:
     def collect(self, path: str, opt) -> Collected:
         """Read the capture through tshark, feeding its legal packets to an `Analysis` with `opt`."""
         check_available()
-        reader = CaptureReader(path)           # clean errors for unreadable files, and file facts
-        for _ in reader.batches():
-            pass
+        with CaptureReader(path) as reader:    # clean errors for unreadable files, and file facts
+            for _ in reader.batches():
+                pass
         if reader.damage is None:
             return self._collect(path, path, reader, opt)
         # tshark gets the intact part only: the same frames the reader took, and no crash.
