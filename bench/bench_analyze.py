@@ -68,8 +68,9 @@ def best(fn, repeat: int = REPEAT) -> float:
 
 
 def scapy_iterate(path: Path) -> None:
-    for _ in RawPcapReader(str(path)):
-        pass
+    with RawPcapReader(str(path)) as reader:
+        for _ in reader:
+            pass
 
 
 # Runs the CLI in a fresh process and prints its VmHWM (peak RSS of this process's own memory map:

@@ -40,7 +40,8 @@ def main() -> int:
         runs = [timed(lambda: synthesize("day", out, seed=1, duration_s=HOURS * 3600)) for _ in range(REPEAT)]
         packets = runs[0][0]["capture"]["packets"]
         wall, cpu = min(run[1] for run in runs), min(run[2] for run in runs)
-        frames = [(raw, meta.sec * 1_000_000 + meta.usec) for raw, meta in RawPcapReader(out)]
+        with RawPcapReader(out) as reader:
+            frames = [(raw, meta.sec * 1_000_000 + meta.usec) for raw, meta in reader]
 
         def write_all() -> None:
             writer = PcapWriter(io.BytesIO())
