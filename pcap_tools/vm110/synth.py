@@ -11,10 +11,10 @@ from __future__ import annotations
 import gc
 import json
 import math
-from typing import Any, BinaryIO, Optional
+from typing import Any, Optional
 
 from . import constants as C
-from .capture.writer import Format, UdpFlow, open_writer
+from .capture.writer import ByteSink, Format, UdpFlow, open_writer
 from .fileio import atomic_writer, check_target, write_text
 from .sim.clock import seconds
 from .sim.scenario import EPOCH_US, SCENARIOS, Scenario
@@ -64,7 +64,7 @@ def output_rate(name: str, seed: int = 1, fmt: Format = "pcap") -> float:
     return (sink.size + len(_truth_text(result))) / RATE_SAMPLE_S
 
 
-def write_capture(stream: BinaryIO, sc: Scenario, seed: int, duration: float, fmt: Format) -> dict[str, Any]:
+def write_capture(stream: ByteSink, sc: Scenario, seed: int, duration: float, fmt: Format) -> dict[str, Any]:
     """Run `sc` and write its capture to `stream`; returns the truth."""
     stations = sc.build(seed, duration)
     # One flow per endpoint (a station's port, then its new ports after restarts; to the group on

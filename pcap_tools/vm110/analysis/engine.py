@@ -78,7 +78,7 @@ Progress = Callable[[int, int], None]
 def crc_matches(data: bytes, end: int) -> set[tuple[str, str]]:
     """Every (variant, byte order) under which the CRC at `end` validates `data[:end]`."""
     stored = data[end:end + C.CRC_LEN]
-    got = set()
+    got: set[tuple[str, str]] = set()
     for variant in VARIANTS:
         value = crc32(data[:end], variant)
         for order in BYTE_ORDERS:

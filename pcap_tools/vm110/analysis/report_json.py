@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any, Optional, TextIO
+from typing import IO, Any, Optional
 
 from ..fileio import atomic_writer
 
@@ -47,7 +47,7 @@ def normalise(value: Any, ms: bool = False) -> Any:
     return value
 
 
-def dump(out: TextIO, document: dict) -> None:
+def dump(out: IO[str], document: dict) -> None:
     json.dump(document, out, indent=1, allow_nan=False)    # streamed: no second copy in memory
     out.write("\n")
 
