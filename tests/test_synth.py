@@ -2,6 +2,7 @@
 written capture (scapy for the frames, vm110.decode for the EG-Link payloads) agrees with."""
 from __future__ import annotations
 
+import itertools
 import json
 import pathlib
 import struct
@@ -124,7 +125,7 @@ def recount(rows: list[tuple[float, str, dict]]) -> dict:
         for s in per_sender:
             times = [t for t, s2, f in accepted if s2 == s and f["type"] == ptype]
             if times:
-                gaps = [b - a > limit for a, b in zip(times, times[1:])] + [end - times[-1] > limit]
+                gaps = [b - a > limit for a, b in itertools.pairwise(times)] + [end - times[-1] > limit]
                 periodic[(ptype, s)] = (len(times), sum(gaps))
     return {"frames": frames, "packets": len(rows), "illegal": sum(bool(f["problems"]) for _, _, f in rows),
             "reasons": dict(reasons), "crc_bad": sum(f.get("crc.status") == C.CRC_BAD for _, _, f in rows),
@@ -305,7 +306,7 @@ def test_overlap_has_commands_in_flight_together_and_reused_ids(tmp_path):
     for kind in ("VRCI", "VRCO"):
         cmds = truth["commands"][kind]["list"]
         spans = [(c["frames"][0], c["ack_frame"] or c["frames"][-1]) for c in cmds]
-        assert any(b[0] < a[1] for a, b in zip(spans, spans[1:])), f"no two {kind} in flight together"
+        assert any(b[0] < a[1] for a, b in itertools.pairwise(spans)), f"no two {kind} in flight together"
         assert truth["commands"][kind]["retransmissions"] > 10
     ids = Counter(c["command_id"] for c in truth["commands"]["VRCI"]["list"])
     assert sum(n > 1 for n in ids.values()) > 10                  # IDs used again after the pause

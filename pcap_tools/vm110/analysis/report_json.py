@@ -11,7 +11,8 @@ SECONDS_DECIMALS = 6   # times to the microsecond, the resolution of a capture's
 MS_DECIMALS = 3        # durations in ms (keys ending in _ms, and everything under them) likewise
 
 
-PRE_ROUNDED = frozenset({"list", "acks_without_command_list", "duplicate_acks_list"})   # commands.report rounds these itself
+# commands.report rounds these itself
+PRE_ROUNDED = frozenset({"list", "acks_without_command_list", "duplicate_acks_list"})
 
 
 def round_s(value: Optional[float]) -> Optional[float]:

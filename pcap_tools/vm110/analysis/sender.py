@@ -230,8 +230,8 @@ class Sender:
             else:
                 if self.bursts is None:
                     opt = self.opt
-                    self.bursts = Bursts(stream.times, opt.burst_gap_ms, opt.vrpo_start, opt.vrpo_data_size, opt.vrpo_min_ms,
-                                         opt.vrpo_max_ms)
+                    self.bursts = Bursts(stream.times, opt.burst_gap_ms, opt.vrpo_start, opt.vrpo_data_size,
+                                         opt.vrpo_min_ms, opt.vrpo_max_ms)
                 self.bursts.feed(mine["ts"], mine["aux"], mine["size"], frames)
         command = np.isin(codes, COMMAND_CODES)
         if command.any():

@@ -129,7 +129,8 @@ class TsharkEngine:
         return got
 
     def _pass(self, path: str, name: str, reader: CaptureReader, opt, variant: str, order: str) -> Collected:
-        got = Collected(path=name, engine="tshark", analysis=Analysis(opt), format=reader.format, link_types=sorted(reader.link_types),
+        got = Collected(path=name, engine="tshark", analysis=Analysis(opt), format=reader.format,
+                        link_types=sorted(reader.link_types),
                         ports=(self.port, self.port + C.OUTPUT_PORT_OFFSET), crc_variant=variant,
                         crc_order=order, crc_auto=self.crc == "auto" or self.crc_order == "auto",
                         problem=reader.problem, first_ts=reader.first_ts, last_ts=reader.last_ts)

@@ -68,7 +68,7 @@ class CaptureReader:
         self.path = path
         self.chunk_size = chunk_size
         try:
-            self._file: BinaryIO = open(path, "rb")
+            self._file: BinaryIO = open(path, "rb")   # noqa: SIM115 -- the reader owns it; close()/with
         except OSError as exc:
             raise CaptureError(f"cannot read {path}: {exc.strerror}") from None
         try:
@@ -143,7 +143,7 @@ class CaptureReader:
         if len(head) < PCAP_HEADER_LEN:
             raise CaptureError(f"{self.path}: pcap file header cut short")
         e = "<" if struct.unpack("<I", head[:4])[0] in (PCAP_MAGIC_US, PCAP_MAGIC_NS) else ">"
-        magic, _, _, _, _, snaplen, network = struct.unpack(e + "IHHiIII", head)
+        magic, _, _, _, _, _snaplen, network = struct.unpack(e + "IHHiIII", head)
         link = network & 0x0FFFFFFF      # the top bits may carry FCS information
         self.link_types.add(L.NAMES.get(link, str(link)))
         # Never the snaplen: a file's own header must not let a record claim gigabytes.
@@ -248,7 +248,7 @@ class CaptureReader:
         blocks update the reader; a packet block returns (ts, link, start of frame, captured
         length, original length); anything else None. A bad byte-order magic raises CaptureError."""
         e = self.endian
-        if btype == PCAPNG_EPB or btype == PCAPNG_PB:
+        if btype in (PCAPNG_EPB, PCAPNG_PB):
             if btype == PCAPNG_EPB:
                 iface, tsh, tsl, incl, orig = struct.unpack_from(e + "IIIII", data, pos + 8)
             else:
