@@ -124,12 +124,12 @@ def test_cli_simulators_talk_over_loopback():
     ctl_rx, bu_rx = free_ports(2)
     common = ["--source", f"{LOOPBACK}:0", "--duration", "2.5", "--json"]
     vm110 = [sys.executable, "-m", "vm110", "simulate"]
-    ctl = subprocess.Popen(vm110 + ["controller", "--listen", f"{LOOPBACK}:{ctl_rx}", "--peer", f"{LOOPBACK}:{bu_rx}",
-                                    "--command-every", "0.5", *common], stdout=subprocess.PIPE, text=True)
-    bu = subprocess.run(vm110 + ["bu", "--listen", f"{LOOPBACK}:{bu_rx}", "--peer", f"{LOOPBACK}:{ctl_rx}",
-                                 "--command-every", "0.3", "--loss", "10", "--seed", "5", *common],
-                        capture_output=True, text=True, timeout=20)
-    ctl_out, _ = ctl.communicate(timeout=20)
+    with subprocess.Popen(vm110 + ["controller", "--listen", f"{LOOPBACK}:{ctl_rx}", "--peer", f"{LOOPBACK}:{bu_rx}",
+                                   "--command-every", "0.5", *common], stdout=subprocess.PIPE, text=True) as ctl:
+        bu = subprocess.run(vm110 + ["bu", "--listen", f"{LOOPBACK}:{bu_rx}", "--peer", f"{LOOPBACK}:{ctl_rx}",
+                                     "--command-every", "0.3", "--loss", "10", "--seed", "5", *common],
+                            capture_output=True, text=True, timeout=20)
+        ctl_out, _ = ctl.communicate(timeout=20)
     assert bu.returncode == 0 and ctl.returncode == 0, bu.stderr
     bu_log = [json.loads(line) for line in bu.stdout.splitlines() if line.startswith("{")]
     ctl_log = [json.loads(line) for line in ctl_out.splitlines() if line.startswith("{")]
@@ -229,13 +229,13 @@ def test_cli_restart_stop_and_mirror_options():
     ctl_rx, bu_rx = free_ports(2)
     vm110 = [sys.executable, "-m", "vm110", "simulate"]
     common = ["--source", f"{LOOPBACK}:0", "--duration", "2.0", "--json"]
-    ctl = subprocess.Popen(vm110 + ["controller", "--listen", f"{LOOPBACK}:{ctl_rx}", "--peer", f"{LOOPBACK}:{bu_rx}",
-                                    "--restart", "0.5:0", "--restart-silence", "0.3", "--restart-serial", "9",
-                                    "--mirror", "20", *common], stdout=subprocess.PIPE, text=True)
-    bu = subprocess.run(vm110 + ["bu", "--listen", f"{LOOPBACK}:{bu_rx}", "--peer", f"{LOOPBACK}:{ctl_rx}",
-                                 "--stop-at", "1.2", "--serial-start", "40000", *common],
-                        capture_output=True, text=True, timeout=20)
-    ctl_out, _ = ctl.communicate(timeout=20)
+    with subprocess.Popen(vm110 + ["controller", "--listen", f"{LOOPBACK}:{ctl_rx}", "--peer", f"{LOOPBACK}:{bu_rx}",
+                                   "--restart", "0.5:0", "--restart-silence", "0.3", "--restart-serial", "9",
+                                   "--mirror", "20", *common], stdout=subprocess.PIPE, text=True) as ctl:
+        bu = subprocess.run(vm110 + ["bu", "--listen", f"{LOOPBACK}:{bu_rx}", "--peer", f"{LOOPBACK}:{ctl_rx}",
+                                     "--stop-at", "1.2", "--serial-start", "40000", *common],
+                            capture_output=True, text=True, timeout=20)
+        ctl_out, _ = ctl.communicate(timeout=20)
     assert bu.returncode == 0 and ctl.returncode == 0, bu.stderr
     ctl_log = [json.loads(line) for line in ctl_out.splitlines() if line.startswith("{")]
     bu_log = [json.loads(line) for line in bu.stdout.splitlines() if line.startswith("{")]
