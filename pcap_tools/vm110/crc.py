@@ -56,7 +56,7 @@ def crc_function(variant: str = DEFAULT_VARIANT) -> Callable[[bytes], int]:
 def check_byte_order(order: str) -> ByteOrder:
     if order not in BYTE_ORDERS:
         raise ValueError(f"unknown CRC byte order {order!r}; choose from {', '.join(BYTE_ORDERS)}")
-    return order  # type: ignore[return-value]
+    return order
 
 
 def crc32(data: bytes, variant: str = DEFAULT_VARIANT) -> int:

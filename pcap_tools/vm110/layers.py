@@ -33,8 +33,8 @@ from . import protocol as P
 from .crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, check_byte_order, crc_bytes, crc_function
 from .decode import crc_span
 
-__all__ = ["VM110", "VRPI", "VRPO", "VRCI", "VRCO", "VRAI", "VRAO", "PAYLOAD_CLASSES", "bind_ports",
-           "unbind_ports", "crc_settings"]
+__all__ = ["PAYLOAD_CLASSES", "VM110", "VRAI", "VRAO", "VRCI", "VRCO", "VRPI", "VRPO", "bind_ports",
+           "crc_settings", "unbind_ports"]
 
 conf.contribs.setdefault("VM110", {"crc_variant": DEFAULT_VARIANT, "crc_order": DEFAULT_BYTE_ORDER})
 
@@ -118,19 +118,20 @@ def fields_of(ptype: C.PacketType) -> list[Any]:
 
 
 def _header_fields() -> list[Any]:
+    """Packet ID, the declared header, and the CRC trailer (dissected and built out of wire order)."""
     # size is computed when left unset (None), like the CRC
     defaults: dict[str, object] = {"revision": C.SUPPORTED_REVISION, "size": None}
-    return [scapy_field(f, defaults.get(f.name, _UNSET)) for f in P.HEADER_FIELDS]
+    return [
+        # (scapy's stubs say str keys; its code compares the raw bytes, which the keys are)
+        StrFixedLenEnumField("type", b"VRPI", PACKET_IDS, length=C.ID_LEN),  # type: ignore[arg-type]
+        *(scapy_field(f, defaults.get(f.name, _UNSET)) for f in P.HEADER_FIELDS),
+        CRCField("crc", None),
+    ]
 
 
 class VM110(Packet):
     name = "VM-110 EG-Link"
-    fields_desc = [
-        # (scapy's stubs say str keys; its code compares the raw bytes, which the keys are)
-        StrFixedLenEnumField("type", b"VRPI", PACKET_IDS, length=C.ID_LEN),  # type: ignore[arg-type]
-        *_header_fields(),
-        CRCField("crc", None),  # the trailer, dissected and built out of wire order
-    ]
+    fields_desc = _header_fields()
 
     def pre_dissect(self, s: bytes) -> bytes:
         if len(s) < C.OVERHEAD:

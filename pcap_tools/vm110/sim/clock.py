@@ -9,12 +9,12 @@ US_PER_S = 1_000_000
 
 def ms(value: float) -> int:
     """Milliseconds to microseconds."""
-    return int(round(value * US_PER_MS))
+    return round(value * US_PER_MS)
 
 
 def seconds(value: float) -> int:
     """Seconds to microseconds."""
-    return int(round(value * US_PER_S))
+    return round(value * US_PER_S)
 
 
 class WallClock:

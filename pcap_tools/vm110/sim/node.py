@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import struct
 from collections import Counter
-from typing import Any, Callable, NamedTuple, Optional
+from typing import Any, Callable, NamedTuple, Optional, Sequence
 
 from .. import constants as C
 from .. import protocol as P
-from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, check_byte_order, crc_function, trailer_function
+from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, ByteOrder, check_byte_order, crc_function, trailer_function
 from ..decode import crc_span, decode
 from .clock import US_PER_S
 from .lifecycle import NEVER, Restart, Window
@@ -53,7 +53,8 @@ class Meta(NamedTuple):
 Send = Callable[[bytes, int, Meta], None]
 
 
-def inspect(data: bytes, crc_fn: Callable[[bytes], int], order: str) -> tuple[list[str], Optional[C.PacketType]]:
+def inspect(data: bytes, crc_fn: Callable[[bytes], int],
+            order: ByteOrder) -> tuple[list[str], Optional[C.PacketType]]:
     """Illegal reasons (as `vm110.decode` gives them) and the type, without decoding the fields."""
     n = len(data)
     if n < C.OVERHEAD:
@@ -78,7 +79,7 @@ def inspect(data: bytes, crc_fn: Callable[[bytes], int], order: str) -> tuple[li
 _TABLES: dict[type, Optional[dict[C.PacketType, Optional[Callable[..., None]]]]] = {}
 
 
-def _handler_table(cls: type) -> Optional[dict[C.PacketType, Optional[Callable[..., None]]]]:
+def _handler_table(cls: type["Node"]) -> Optional[dict[C.PacketType, Optional[Callable[..., None]]]]:
     """The `on_<type>` function of `cls` for each type, or None when `cls` overrides `on_packet`
     (then every packet goes through it). Hooks are looked up on the class, once."""
     if cls not in _TABLES:
@@ -139,7 +140,7 @@ class Node:
         """The runner's send function: takes (bytes, now µs, Meta)."""
         self._send = send
         if type(self).transmit is Node.transmit:
-            self.transmit = send      # type: ignore[method-assign]  # no hook overridden: straight to the runner
+            self.transmit = send      # type: ignore[method-assign,assignment]  # no hook overridden: to the runner
 
     def _bind_direct(self) -> None:
         """Without stalls ahead, `tick` and `next_due` are `_tick` and `_due` themselves, bound on
@@ -170,7 +171,7 @@ class Node:
         """A datagram arrived. Illegal packets are counted and otherwise ignored (TS-0006 5.1.5)."""
         if self._stalls_ahead and self._stall_check(now):
             return
-        problems = self.vouched
+        problems: Sequence[str] | None = self.vouched
         if problems is None:
             problems = inspect(data, self._crc_fn, self.crc_order)[0]
         else:

@@ -92,7 +92,7 @@ class CommandOutbox:
         give_up = self._give_up_us
         for command in self.in_flight.values():
             t = min(command["next"], command["first"] + give_up)
-            if t < due:
+            if t < due:  # noqa: PLR1730 (per transmission: an if is cheaper than min())
                 due = t
         self._command_due = due
 
@@ -105,12 +105,12 @@ class CommandOutbox:
                 del self.in_flight[command["id"]]
             elif now >= command["next"]:
                 self._send_command(command, now)
-        for data, command_id in self._new_commands(now):
+        for given_data, given_id in self._new_commands(now):
+            command_id = given_id
             if command_id is None:
                 command_id = self.next_command_id
                 self.next_command_id = (command_id + 1) & 0xFFFF
-            if data is None:
-                data = f"{self.command_label} {command_id}".encode()
+            data = f"{self.command_label} {command_id}".encode() if given_data is None else given_data
             command = {"id": command_id, "data": data, "first": now, "next": now, "count": 0}
             self.in_flight.pop(command_id, None)      # an ID reused while in flight: the old one is forgotten
             self.in_flight[command_id] = command

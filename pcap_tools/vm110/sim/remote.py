@@ -40,7 +40,8 @@ _SWITCHES = tuple(VRPI_INDEX[f"switch{i}"] for i in range(1, C.SWITCHES + 1))
 _ENCODER, _ENCODER_SWITCH = VRPI_INDEX["encoder"], VRPI_INDEX["encoder_switch"]
 # (payload index, period, quarter period, sweep value by phase): a VRPI every 125 ms meets few
 # phases, so the values are remembered (up to _KNOWN_PHASES of them).
-_SWEEPS = tuple((index, period, period // 4, {}) for index, period in zip(_JOYSTICKS, _JOYSTICK_PERIODS_US))
+_SWEEPS: tuple[tuple[int, int, int, dict[int, int]], ...] = tuple(
+    (index, period, period // 4, {}) for index, period in zip(_JOYSTICKS, _JOYSTICK_PERIODS_US))
 _KNOWN_PHASES = 4096
 _SWEEP_CYCLE_US = math.lcm(*_JOYSTICK_PERIODS_US)         # every sweep's period divides it
 _STEP_US = 10_000           # switches and encoder move in steps of 10 ms
@@ -122,7 +123,8 @@ class Remote:
 
     def __post_init__(self) -> None:
         # The VRPI values of each step, cumulated, in payload order: one list copy per VRPI.
-        current, motion, battery, battery_at = disarmed_fields(), False, None, 0
+        current, motion, battery_at = disarmed_fields(), False, 0
+        battery: Optional[int] = None
         self._ats = [-1]
         self._states = [(_values(current), motion, battery, battery_at)]
         for step in self.steps:

@@ -64,7 +64,7 @@ def disarmed(seed: int, duration: float) -> list[Station]:
 
 
 def loss(seed: int, duration: float) -> list[Station]:
-    net = {"loss": 5.0, "duplicate": 3.0, "reorder": 1.0, "jitter_ms": 2.0, "seed": seed}
+    net: dict[str, Any] = {"loss": 5.0, "duplicate": 3.0, "reorder": 1.0, "jitter_ms": 2.0, "seed": seed}
     return _pair(seed, duration, _armed(duration, 1.0), ctl=_vrco(duration, 2.0),
                  bu_imp=Impairment(**net), ctl_imp=Impairment(**net))
 
@@ -150,7 +150,7 @@ def overlap(seed: int, duration: float) -> list[Station]:
     keys = [{"at": p, "data": f"KEY {i}", "id": None if i < before else i - before} for i, p in enumerate(presses)]
     remote = Remote.from_script({"steps": [{"at": 0, "state": "armed", "motion": True}], "commands": keys})
     alarms = tuple((t + 0.05, b"ALARM") for t in range(2, int(until), 8))
-    net = {"loss": 15.0, "only": COMMAND_TYPES, "mirror": 5.0, "seed": seed}
+    net: dict[str, Any] = {"loss": 15.0, "only": COMMAND_TYPES, "mirror": 5.0, "seed": seed}
     return _pair(seed, duration, remote, ctl=_vrco(duration, 2.0, commands=alarms),
                  bu_imp=Impairment(**net), ctl_imp=Impairment(drops=((69.9, 72.2, ("VRAO",)),), **net))
 
@@ -184,7 +184,7 @@ def restart(seed: int, duration: float) -> list[Station]:
 
 def day(seed: int, duration: float) -> list[Station]:
     # Long captures for benchmarks: normal operation with light loss and duplication.
-    net = {"loss": 0.1, "duplicate": 0.05, "seed": seed}
+    net: dict[str, Any] = {"loss": 0.1, "duplicate": 0.05, "seed": seed}
     return _pair(seed, duration, _armed(duration, 5.0), ctl=_vrco(duration, 10.0),
                  bu_imp=Impairment(**net), ctl_imp=Impairment(**net), bu_serial=seed & 0xFFFF)
 

@@ -46,7 +46,7 @@ def _ms(delta_us: int) -> float:
 class _Candidate:
     """A packet that may start a restart of its counter, until the counter's next other serial decides."""
 
-    __slots__ = ("serial", "t", "frame", "restart")
+    __slots__ = ("frame", "restart", "serial", "t")
 
     def __init__(self, serial: int, t: int, frame: int) -> None:
         self.serial, self.t, self.frame = serial, t, frame

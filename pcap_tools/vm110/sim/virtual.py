@@ -87,7 +87,7 @@ class VirtualNetwork:
 
         def send(data: bytes, now: int, meta: Meta) -> None:
             start = wire_free[index]
-            if now > start:
+            if now > start:  # noqa: PLR1730 (per packet: an if is cheaper than max())
                 start = now
             size = len(data)
             try:
@@ -116,8 +116,7 @@ class VirtualNetwork:
         ticks = [(node.tick, node.next_due) for node in nodes]
         never = end + 1
         # Each node's next deadline, recomputed only when that node has run.
-        dues = [node.next_due() for node in nodes]
-        dues = [never if d is None else d for d in dues]
+        dues: list[int] = [never if d is None else d for d in (node.next_due() for node in nodes)]
         ips = [self.stations[station].ip for station, _ in self._endpoints]
         clock = self.clock
         batch: list[Arrival] = []
@@ -134,7 +133,7 @@ class VirtualNetwork:
             else:
                 low = min(dues)
                 first = dues.index(low)
-            if low < now:             # overdue: e.g. a command waiting for the previous one
+            if low < now:  # noqa: PLR1730 (overdue, e.g. a command waiting for the previous one; per event)
                 low = now
             if heap and heap[0][0] <= low:
                 arrival = pop(heap)
