@@ -12,19 +12,17 @@ import shutil
 import subprocess
 from pathlib import Path
 
+from .. import resources
 from ..errors import CliError
 
 PLUGIN_ENV = "VM110_DISSECTOR"
 
 
 def plugin_path() -> Path:
-    """$VM110_DISSECTOR, else dissector/vm110.lua of the source tree this package runs from.
-
-    The project installs the package in editable mode (`make setup`), so the plugin is found
-    beside the package's source directory: pcap_tools/vm110 -> ../../dissector/vm110.lua.
-    """
+    """$VM110_DISSECTOR, else dissector/vm110.lua as this installation ships it (the wheel's
+    package data, or beside the package's source in an editable install: vm110.resources)."""
     env = os.environ.get(PLUGIN_ENV)
-    return Path(env) if env else Path(__file__).resolve().parents[3] / "dissector" / "vm110.lua"
+    return Path(env) if env else resources.plugin()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
