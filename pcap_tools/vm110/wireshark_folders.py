@@ -20,10 +20,10 @@ PLUGINS_KEY = "Personal Lua Plugins"
 CONFIG_KEY = "Personal configuration"
 TSHARK_TIMEOUT_S = 60
 
-# Where installers put tshark when it is not on the PATH.
+# Where installers put tshark when it is not on the PATH: (environment variable or "", path parts).
 KNOWN_TSHARKS = {
-    "Darwin": ("/Applications/Wireshark.app/Contents/MacOS/tshark",),
-    "Windows": (r"{ProgramFiles}\Wireshark\tshark.exe", r"{ProgramFiles(x86)}\Wireshark\tshark.exe"),
+    "Darwin": (("", "/Applications/Wireshark.app/Contents/MacOS/tshark"),),
+    "Windows": (("ProgramFiles", "Wireshark", "tshark.exe"), ("ProgramFiles(x86)", "Wireshark", "tshark.exe")),
 }
 
 
@@ -77,11 +77,10 @@ def find_tshark(explicit: Optional[str] = None, system: Optional[str] = None,
     if found:
         return found
     env = os.environ if env is None else env
-    for pattern in KNOWN_TSHARKS.get(system or platform.system(), ()):
-        try:
-            path = pattern.format_map(env)
-        except KeyError:
+    for variable, *parts in KNOWN_TSHARKS.get(system or platform.system(), ()):
+        if variable and not env.get(variable):
             continue
+        path = os.path.join(env[variable] if variable else "", *parts)
         if os.path.isfile(path):
             return path
     return None

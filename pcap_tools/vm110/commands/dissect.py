@@ -35,7 +35,8 @@ def _check_loads(tshark: str, plugin: Path) -> None:
     """Wireshark 4.4 silently skips Lua plugins when run as root: say so instead of decoding nothing."""
     done = subprocess.run([tshark, "-G", "protocols", "-X", f"lua_script:{plugin}"],
                           capture_output=True, text=True, check=False)
-    if not any(line.split("\t")[-1:] == ["vm110"] for line in done.stdout.splitlines()):
+    # name, short name, filter name (4.6 adds flag columns after them)
+    if not any(line.split("\t")[2:3] == ["vm110"] for line in done.stdout.splitlines()):
         hint = " (Wireshark 4.4 loads no Lua plugin as root: run as a normal user)" if os.geteuid() == 0 else ""
         raise CliError(f"tshark did not load the dissector {plugin}{hint}")
 

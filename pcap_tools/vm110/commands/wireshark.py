@@ -113,26 +113,31 @@ def check(explicit: Optional[str]) -> int:
         raise CliError(f"cannot run {tshark}: {exc}") from None
     print(f"tshark: {tshark}: {version[0] if version else 'no version'}")
     listed = [line.split("\t") for line in plugins.stdout.splitlines() if line.startswith(resources.PLUGIN_NAME + "\t")]
-    registered = any(line.split("\t")[-1:] == ["vm110"] for line in protocols.stdout.splitlines())
+    registered = any(registers_vm110(line) for line in protocols.stdout.splitlines())
     errors = lua_errors(protocols.stderr)
+    folders = locate(tshark)
     broken = []
     if listed:
-        path = Path(listed[0][-1])
-        print(f"plugin: {path} (version {listed[0][1]}; {_compare(path)})")
+        print(f"plugin: {listed[0][-1]} (version {listed[0][1]}; {_compare(Path(listed[0][-1]))})")
     else:
-        broken.append("tshark lists no vm110.lua plugin: run `vm110 wireshark install`")
+        expected = Path(folders.plugins) / resources.PLUGIN_NAME
+        if expected.is_file():
+            print(f"plugin: {expected} (not loaded; {_compare(expected)})")
+            broken.append(f"tshark did not load {expected}")
+        else:
+            print(f"plugin: none in {folders.plugins}")
+            broken.append("tshark lists no vm110.lua plugin: run `vm110 wireshark install`")
     print(f"registered: {'yes, protocol vm110' if registered else 'no'}")
-    if listed and not registered:
-        broken.append("vm110.lua is listed but registered no vm110 protocol")
     if registered:
         decoded = _decode_samples(tshark)
         print(f"decode: {decoded or 'ok, one packet of each type'}")
         if decoded:
             broken.append(decoded)
+    elif listed:
+        broken.append("vm110.lua is listed but registered no vm110 protocol")
     print("Lua errors: " + ("none" if not errors else "\n  " + "\n  ".join(errors)))
     if any(resources.PLUGIN_NAME in e for e in errors):
         broken.append("Lua errors in vm110.lua")
-    folders = locate(tshark)
     profile = Path(folders.profiles) / resources.PROFILE_NAME
     print(f"profile: {profile} ({'installed' if profile.is_dir() else 'not installed: vm110 wireshark install --profile'})")
     if broken and not registered and _skips_lua_as_root(version[0] if version else ""):
@@ -147,6 +152,12 @@ def _skips_lua_as_root(version: str) -> bool:
     found = re.search(r"\(Wireshark\) (\d+)\.(\d+)", version)
     newer = found is not None and (int(found[1]), int(found[2])) >= (4, 4)
     return newer and hasattr(os, "geteuid") and os.geteuid() == 0
+
+
+def registers_vm110(line: str) -> bool:
+    """Whether a line of `tshark -G protocols` is vm110's (name, short name, filter name, then
+    flags on 4.6)."""
+    return line.split("\t")[2:3] == ["vm110"]
 
 
 def lua_errors(stderr: str) -> list[str]:
