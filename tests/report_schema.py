@@ -29,7 +29,8 @@ def problems(document: Any) -> list[str]:
 
 def check(document: Any, what: str = "report") -> None:
     found = problems(document)
-    assert not found, f"{what} does not match {SCHEMA_PATH.name} ({len(found)} errors):\n  " + "\n  ".join(found[:SHOWN])
+    shown = "\n  ".join(found[:SHOWN])
+    assert not found, f"{what} does not match {SCHEMA_PATH.name} ({len(found)} errors):\n  {shown}"
 
 
 def validating(analyze: Callable[..., dict]) -> Callable[..., dict]:

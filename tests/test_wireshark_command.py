@@ -44,7 +44,8 @@ def test_parse_reads_posix_and_windows_paths():
     ("Linux", {"WIRESHARK_CONFIG_DIR": "/etc/ws"}, "/home/ann/.local/lib/wireshark/plugins", "/etc/ws"),
     ("Windows", {"APPDATA": "C:\\Users\\ann\\AppData\\Roaming"},
      "C:\\Users\\ann\\AppData\\Roaming\\Wireshark\\plugins", "C:\\Users\\ann\\AppData\\Roaming\\Wireshark"),
-    ("Windows", {}, "C:\\Users\\ann\\AppData\\Roaming\\Wireshark\\plugins", "C:\\Users\\ann\\AppData\\Roaming\\Wireshark"),
+    ("Windows", {},
+     "C:\\Users\\ann\\AppData\\Roaming\\Wireshark\\plugins", "C:\\Users\\ann\\AppData\\Roaming\\Wireshark"),
     ("Windows", {"APPDATA": "C:\\R", "WIRESHARK_CONFIG_DIR": "D:\\ws"}, "D:\\ws\\plugins", "D:\\ws"),
 ])
 def test_documented_defaults_per_system(system, env, plugins, config):
@@ -67,8 +68,8 @@ def test_the_linux_default_is_what_every_tshark_reports(ws):
     """The fallback agrees with tshark 4.0, 4.4 and 4.6 themselves, with and without XDG_CONFIG_HOME."""
     home = ws.dir / "ann"
     for extra in ({}, {"XDG_CONFIG_HOME": ws.tshark.inner(home / "xdg")}):
-        env = {**os.environ, "HOME": ws.tshark.inner(home), **extra}
-        env.pop("XDG_CONFIG_HOME", None) if not extra else None
+        env = {k: v for k, v in os.environ.items() if k not in ("XDG_CONFIG_HOME", "WIRESHARK_CONFIG_DIR")}
+        env.update(HOME=ws.tshark.inner(home), **extra)
         said = parse(subprocess.run(ws.tshark.command(["-G", "folders"]), capture_output=True, text=True, env=env,
                                     timeout=120).stdout)
         ours = default("Linux", extra, ws.tshark.inner(home))
@@ -99,7 +100,8 @@ def user(tmp_path, monkeypatch) -> Path:
 def test_path_names_the_folders_and_where_they_come_from(user, capsys):
     assert cli.main(["wireshark", "path"]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert out[:2] == [f"plugins: {user}/.local/lib/wireshark/plugins", f"profile: {user}/cfg/wireshark/profiles/VM-110"]
+    assert out[:2] == [f"plugins: {user}/.local/lib/wireshark/plugins",
+                       f"profile: {user}/cfg/wireshark/profiles/VM-110"]
     assert out[2].endswith("tshark -G folders)")
 
 

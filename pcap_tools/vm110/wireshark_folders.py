@@ -51,9 +51,12 @@ def parse(text: str) -> dict[str, str]:
 
 def default(system: str, env: Mapping[str, str], home: str) -> Folders:
     """The documented defaults for `system` (platform.system(): Linux, Darwin, Windows, ...)."""
+    config: PurePath
+    plugins: PurePath
     if system == "Windows":
         appdata = PureWindowsPath(env.get("APPDATA") or PureWindowsPath(home, "AppData", "Roaming"))
-        config = PureWindowsPath(env["WIRESHARK_CONFIG_DIR"]) if env.get("WIRESHARK_CONFIG_DIR") else appdata / "Wireshark"
+        override = env.get("WIRESHARK_CONFIG_DIR")
+        config = PureWindowsPath(override) if override else appdata / "Wireshark"
         plugins = config / "plugins"           # on Windows the plugins live in the configuration folder
     else:
         base = PurePosixPath(home)

@@ -32,7 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     install = actions.add_parser("install", help="copy the plugin (and the profile) where this user's Wireshark looks")
     install.add_argument("--profile", action="store_true",
-                         help="also install the VM-110 configuration profile (columns, colouring rules, filter buttons)")
+                         help="also install the VM-110 configuration profile (columns, colouring rules, filter "
+                              "buttons)")
     install.add_argument("--examples", action="store_true",
                          help="also install the example machine plugins (dissector/examples, e.g. crane.lua)")
     actions.add_parser("path", help="print the personal Lua plugins folder and the profile folder")
@@ -139,7 +140,8 @@ def check(explicit: Optional[str]) -> int:
     if any(resources.PLUGIN_NAME in e for e in errors):
         broken.append("Lua errors in vm110.lua")
     profile = Path(folders.profiles) / resources.PROFILE_NAME
-    print(f"profile: {profile} ({'installed' if profile.is_dir() else 'not installed: vm110 wireshark install --profile'})")
+    state = "installed" if profile.is_dir() else "not installed: vm110 wireshark install --profile"
+    print(f"profile: {profile} ({state})")
     if broken and not registered and _skips_lua_as_root(version[0] if version else ""):
         broken.append(ROOT_HINT)
     for line in broken:
