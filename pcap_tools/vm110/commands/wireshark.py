@@ -65,7 +65,7 @@ def install(tshark: Optional[str], profile: bool, examples: bool) -> int:
     if profile:
         target = Path(folders.profiles) / resources.PROFILE_NAME
         plan += [(p, target) for p in resources.profile_files()]
-    # Every target is checked before anything is written: a refusal leaves all as it was.
+    # Every target is checked before anything is written: a refused one (a link, not a file) changes nothing.
     for source, folder in plan:
         _check_target(folder / source.name)
     print(f"folders from {folders.source}")
