@@ -156,3 +156,12 @@ def test_install_into_a_folder_that_is_a_file_is_one_line(user, capsys):
     err = capsys.readouterr().err
     assert err.startswith(f"vm110 wireshark: cannot write {user}/.local/lib/wireshark/plugins/vm110.lua: ")
     assert err.count("\n") == 1
+
+
+def test_check_reads_the_protocol_list_of_every_version():
+    """`tshark -G protocols`: name, short name, filter name; 4.6 adds flag columns after them."""
+    from vm110.commands.wireshark import registers_vm110
+    assert registers_vm110("VM-110 EG-Link\tVM110\tvm110")                              # 4.0, 4.4
+    assert registers_vm110("VM-110 EG-Link\tVM110\tvm110\tT\tT\tT")                    # 4.6
+    assert not registers_vm110("VM-110 EG-Link stream analysis\tVM110_END\tvm110_end\tT\tT\tT")
+    assert not registers_vm110("vm110")
