@@ -80,8 +80,8 @@ def test_the_wheel_carries_the_repository_files(wheel):
 
 
 def test_the_installed_package_uses_its_own_copies(venv):
-    where = run([venv / "bin" / "python", "-c", "import vm110, vm110.resources as r; "
-                 "print(vm110.__file__); print(r.plugin()); print(r.report_schema())"])
+    script = "import vm110, vm110.resources as r; print(vm110.__file__); print(r.plugin()); print(r.report_schema())"
+    where = run([venv / "bin" / "python", "-c", script])
     for line in where.stdout.splitlines():
         assert Path(line).is_relative_to(venv), where.stdout         # not the source tree's
     schema = run([venv / "bin" / "vm110", "analyze", "--schema"]).stdout
