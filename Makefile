@@ -4,10 +4,9 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-PLUGIN_DIR ?= $(HOME)/.local/lib/wireshark/plugins
 DEMO_DIR := out/demo
 
-.PHONY: setup system-deps demo lint test test-long bench install-wireshark clean tshark44 tshark46 golden captures fuzz-self install-profile lua-tables
+.PHONY: setup system-deps demo lint test test-long bench install-wireshark clean tshark44 tshark46 golden captures fuzz-self install-profile lua-tables wheel
 
 setup: system-deps $(STAMP)
 
@@ -77,18 +76,19 @@ golden: setup tshark44 tshark46
 lua-tables: setup
 	$(PY) scripts/lua-tables
 
-install-wireshark:
-	mkdir -p $(PLUGIN_DIR)
-	cp dissector/vm110.lua $(PLUGIN_DIR)/
-	@echo "installed $(PLUGIN_DIR)/vm110.lua (check: Help > About Wireshark > Plugins)"
+# The plugin (and the VM-110 profile: columns, filter buttons, colouring rules) where this user's
+# Wireshark looks, as `tshark -G folders` reports it: `vm110 wireshark install` (README, "Installing").
+# Files are replaced atomically; the user's own files in those folders are left alone.
+install-wireshark: setup
+	$(VENV)/bin/vm110 wireshark install
 
-# The VM-110 configuration profile (columns, filter buttons, colouring rules) for this user's Wireshark;
-# files are copied over, so the user's own files in the profile (e.g. recent) survive.
-PROFILE_DIR ?= $(or $(XDG_CONFIG_HOME),$(HOME)/.config)/wireshark/profiles
-install-profile:
-	mkdir -p $(PROFILE_DIR)/VM-110
-	cp dissector/profile/VM-110/* $(PROFILE_DIR)/VM-110/
-	@echo "installed $(PROFILE_DIR)/VM-110 (pick it in the status bar's profile menu, or tshark -C VM-110)"
+install-profile: setup
+	$(VENV)/bin/vm110 wireshark install --profile
+
+# dist/vm110-<version>-py3-none-any.whl: the package with the plugin, the profile, the examples and the
+# report schema inside (setup.py), built offline with the pinned setuptools; `pipx install` takes it.
+wheel: setup
+	$(PY) -m pip wheel --no-deps --no-build-isolation -w dist .
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .hypothesis

@@ -10,12 +10,27 @@ from typing import Iterator
 import pytest
 from hypothesis import settings
 
+import report_schema
 import tshark_runner as T
+import vm110.analysis
+
+# Every report a test makes must match docs/report.schema.json: those analyze() returns (wrapped
+# here, before any test module imports it) and those `vm110 analyze --json` writes (below).
+vm110.analysis.analyze = report_schema.validating(vm110.analysis.analyze)
 
 # CI runs the same examples every time, so that a red run is reproducible; locally they vary.
 settings.register_profile("ci", derandomize=True, deadline=None)
 settings.register_profile("dev", deadline=None)
 settings.load_profile("ci" if os.environ.get("CI") else "dev")
+
+
+@pytest.fixture(autouse=True)
+def _written_reports_match_the_schema(request) -> Iterator[None]:
+    """After each test, every JSON report written under its tmp_path matches the schema."""
+    folder = request.getfixturevalue("tmp_path") if "tmp_path" in request.fixturenames else None
+    yield
+    if folder is not None:
+        report_schema.check_written(folder)
 
 
 @pytest.fixture

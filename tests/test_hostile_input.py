@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+import report_schema
 from test_analysis_craft import Traffic, vrpi
 from vm110.analysis import analyze, report_json
 
@@ -89,6 +90,7 @@ def test_decode_and_analyze_read_a_pipe():
     assert done.returncode == 0 and done.stdout.decode().splitlines()[-1] == "382 EG-Link packets"
     done = vm110("analyze", "-", "--quiet", "--json", "-", stdin=data)
     report = json.loads(done.stdout)
+    report_schema.check(report)
     assert done.returncode == 0 and report["capture"]["file"] == "-" and report["totals"]["eglink_packets"] == 382
 
 
@@ -183,5 +185,6 @@ def test_damage_only_tshark_sees_ends_the_tshark_engine_with_a_problem_not_a_tra
     done = vm110("analyze", str(path), "--engine", "tshark", "--quiet", "--json", "-")
     assert done.returncode == 0 and b"Traceback" not in done.stderr and b"Exception" not in done.stderr
     report = json.loads(done.stdout)
+    report_schema.check(report)
     assert report["capture"]["problem"].startswith("tshark stopped reading after frame ")
     assert report["totals"]["damaged"] == 1

@@ -22,6 +22,7 @@ COMMANDS = {
     "fuzz": "fuzz",
     "simulate": "simulate",
     "synth": "synth",
+    "wireshark": "wireshark",
 }
 
 

@@ -2,11 +2,13 @@
 outside the documented ones (a signal included), a Python traceback or an exception's name in an
 error message (a crash turned into one line is still a crash), a Lua error (on stderr, or in the
 packet details as tshark_runner and test_dissector_robustness detect it), a dissector bug, and a
-report that exit 0 or 1 promised but is missing or unreadable."""
+report that exit 0 or 1 promised but is missing, unreadable or not as docs/report.schema.json says."""
 from __future__ import annotations
 
 import json
 import re
+
+import report_schema
 
 from .tools import Run
 
@@ -50,7 +52,7 @@ def _line_with(text: str, marker: str) -> str:
 
 
 def _reports(run: Run) -> list[str]:
-    """The reports asked for exist and the JSON one parses."""
+    """The reports asked for exist and the JSON one parses and matches the schema."""
     problems = []
     for name in ("report.json", "report.html"):
         if f"{run.scratch}/{name}" not in run.command:
@@ -60,7 +62,7 @@ def _reports(run: Run) -> list[str]:
             problems.append(f"exit {run.returncode} but no {name}")
         elif name.endswith(".json"):
             try:
-                json.loads(path.read_text())
+                problems += [f"{name}: {p}" for p in report_schema.problems(json.loads(path.read_text()))[:3]]
             except ValueError as exc:
                 problems.append(f"{name} is not JSON: {exc}")
     return problems

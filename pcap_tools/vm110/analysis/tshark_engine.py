@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Iterator, Optional
 
 from .. import constants as C
+from .. import resources
 from ..capture.reader import CaptureReader, address
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS
 from ..errors import CliError
@@ -36,9 +37,9 @@ _BATCH = 4096 * RECORD.size                # bytes of records fed to the analysi
 
 
 def plugin_path() -> Path:
-    """The Lua dissector: $VM110_DISSECTOR, else dissector/vm110.lua of this source tree."""
+    """The Lua dissector: $VM110_DISSECTOR, else dissector/vm110.lua as this installation ships it."""
     env = os.environ.get(PLUGIN_ENV)
-    return Path(env) if env else Path(__file__).resolve().parents[3] / "dissector" / "vm110.lua"
+    return Path(env) if env else resources.plugin()
 
 
 def check_available() -> None:

@@ -13,6 +13,7 @@ import sys
 from typing import Optional, Union
 
 from .. import constants as C
+from .. import resources
 from ..analysis import analyze, report_html, report_json, rules, summary
 from ..analysis.commands import REUSE_GAP_MS
 from ..analysis.findings import MAX_TOTALS, TOTAL_NAMES
@@ -33,7 +34,7 @@ DATA_SIZE = number(0, 0xFFFF, "bytes", integer=True)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("captures", nargs="+", metavar="CAPTURE", help="pcap or pcapng files; - reads standard input")
+    parser.add_argument("captures", nargs="*", metavar="CAPTURE", help="pcap or pcapng files; - reads standard input")
     parser.add_argument("--json", metavar="FILE", help="write the JSON report (docs/report.md); - for standard output")
     parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report; - for standard output")
     parser.add_argument("--engine", choices=("fast", "tshark"), default="fast",
@@ -82,6 +83,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"packet, {MS.range_text}; default {DUP_WINDOW_MS:g}")
     limits.add_argument("--resend", type=MS, default=C.COMMAND_RESEND_MS, metavar="MS",
                         help=f"nominal command resend interval, {MS.range_text}; default {C.COMMAND_RESEND_MS}")
+    parser.add_argument("--schema", action="store_true",
+                        help="print the JSON Schema of the --json report (docs/report.schema.json) and exit")
     parser.add_argument("--quiet", action="store_true", help="no summary on standard output")
     parser.add_argument("--list", action="store_true",
                         help="list every located item of each finding (default: the first few)")
@@ -129,6 +132,11 @@ def combine(reports: list[dict]) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.schema:
+        sys.stdout.write(resources.report_schema().read_text(encoding="utf-8"))
+        return EXIT_OK
+    if not args.captures:
+        raise CliError("give at least one CAPTURE (or --schema)")
     low, high = args.vrpo_range
     if low > high:
         raise CliError(f"--vrpo-range: MIN {low:g} ms is above MAX {high:g} ms")

@@ -1,0 +1,65 @@
+"""The analysis report's JSON Schema (docs/report.schema.json) as the tests apply it.
+
+tests/conftest.py holds every report the suite makes to it: those `vm110.analysis.analyze` returns
+in-process, and every JSON report `vm110 analyze --json` writes under a test's tmp_path. A test
+that reads a report from standard output calls `check` itself.
+"""
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+from typing import Any, Callable
+
+from jsonschema import Draft202012Validator
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA_PATH = REPO / "docs" / "report.schema.json"
+SCHEMA = json.loads(SCHEMA_PATH.read_text())
+VALIDATOR = Draft202012Validator(SCHEMA)
+SHOWN = 10
+
+
+def problems(document: Any) -> list[str]:
+    """Where `document` breaks the schema, as it would be written (tuples as lists; NaN refused)."""
+    as_json = json.loads(json.dumps(document, allow_nan=False))
+    errors = sorted(VALIDATOR.iter_errors(as_json), key=lambda e: list(map(str, e.absolute_path)))
+    return [f"{e.json_path}: {e.message[:300]}" for e in errors]
+
+
+def check(document: Any, what: str = "report") -> None:
+    found = problems(document)
+    shown = "\n  ".join(found[:SHOWN])
+    assert not found, f"{what} does not match {SCHEMA_PATH.name} ({len(found)} errors):\n  {shown}"
+
+
+def validating(analyze: Callable[..., dict]) -> Callable[..., dict]:
+    """`analyze` whose every report is checked against the schema."""
+    @functools.wraps(analyze)
+    def checked(*args: Any, **kwargs: Any) -> dict:
+        report = analyze(*args, **kwargs)
+        check(report)
+        return report
+    return checked
+
+
+def is_report(document: Any) -> bool:
+    """A report of `vm110 analyze --json` (one capture's, or several), not other JSON (ground truth,
+    decode output, fuzz cases)."""
+    return isinstance(document, dict) and "schema_version" in document and ("tool" in document or "reports" in document)
+
+
+def check_written(folder: Path) -> int:
+    """Check every JSON report under `folder`; returns how many there were."""
+    seen = 0
+    for path in sorted(folder.rglob("*.json")):
+        if not path.is_file():
+            continue                          # a FIFO or a folder a test made on purpose: never opened
+        try:
+            document = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue                          # not JSON (or half a file a test made on purpose)
+        if is_report(document):
+            check(document, str(path))
+            seen += 1
+    return seen
