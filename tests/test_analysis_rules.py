@@ -210,7 +210,7 @@ def test_html_and_terminal_show_where_findings_lie(tmp_path):
     assert row and '<code class="filter">frame.number == 11</code>' in row.group(0) and "count 3" in row.group(0)
     assert "restarts" in page and "interrupted" in page
     text = summary.render(report)
-    assert "frame 11 at 1.250000 s:" in text and "count 3" in text and "[frame.number == 11]" in text
+    assert "frame 11 at +1.250000 s:" in text and "count 3" in text and "[frame.number == 11]" in text
 
 
 def test_a_restart_to_serial_0_shows_its_to(tmp_path):
