@@ -11,6 +11,7 @@ import argparse
 import json
 import signal
 import sys
+import time
 from typing import Any, Callable
 
 from .. import constants as C
@@ -23,6 +24,7 @@ from ..sim.lifecycle import DEFAULT_SILENCE_S, Restart
 from ..sim.realtime import RealtimeRunner
 from ..sim.remote import Remote
 from ..sim.transport import Address, UdpConfig, UdpTransport, multicast_config, parse_address
+from ..timefmt import utc_iso
 from .options import INPUT_PORT, INPUT_PORT_HELP, SEED
 
 
@@ -177,14 +179,15 @@ def build_node(args: argparse.Namespace, printer: Callable[[str], None]) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
+    # Each log line: the wall-clock time in ISO 8601 UTC, then the node's own seconds from its start.
     def printer(line: str) -> None:
         if not args.quiet and not args.json:
-            print(line, flush=True)
+            print(f"{utc_iso(time.time())} {line}", flush=True)
 
     sockets = udp_config(args)      # its errors before anything starts
     node = build_node(args, printer)
     if args.json and not args.quiet:
-        node.listeners.append(lambda entry: print(json.dumps(entry), flush=True))
+        node.listeners.append(lambda entry: print(json.dumps({"time_utc": utc_iso(time.time()), **entry}), flush=True))
     imp = impairment(args)
     transport = UdpTransport(sockets, Impairer(imp, args.role) if imp.active() else None).open()
     runner = RealtimeRunner([(node, transport)])
