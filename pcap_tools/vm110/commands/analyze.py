@@ -12,6 +12,7 @@ import multiprocessing
 import sys
 from typing import Optional, Union
 
+from .. import closedpipe
 from .. import constants as C
 from ..analysis import analyze, report_html, report_json, rules, summary
 from ..analysis.commands import REUSE_GAP_MS
@@ -164,23 +165,24 @@ def run(args: argparse.Namespace) -> int:
     if not reports:
         return EXIT_USAGE
     combined: Optional[dict] = combine(reports) if len(args.captures) > 1 else None
-    if not args.quiet:
-        print("\n\n".join(summary.render(r, args.list) for r in reports))
-        if combined:
-            print()
-            print(summary.render_combined(combined))
-    if args.json:
-        document = reports[0] if combined is None else {
-            "schema_version": SCHEMA_VERSION, "reports": reports, "errors": errors, "combined": combined}
+    document = reports[0] if combined is None else {
+        "schema_version": SCHEMA_VERSION, "reports": reports, "errors": errors, "combined": combined}
+    # A reader that stops early (`| head`) cuts standard output short; the report files and the
+    # verdict below still follow.
+    with closedpipe.tolerated():
+        if not args.quiet:
+            print("\n\n".join(summary.render(r, args.list) for r in reports))
+            if combined:
+                print()
+                print(summary.render_combined(combined))
         if args.json == "-":
             report_json.dump(sys.stdout, document)
-        else:
-            report_json.write(args.json, document)
-    if args.html:
         if args.html == "-":
             sys.stdout.write(report_html.render(reports, combined, errors))
-        else:
-            report_html.write(args.html, reports, combined, errors)
+    if args.json not in (None, "-"):
+        report_json.write(args.json, document)
+    if args.html not in (None, "-"):
+        report_html.write(args.html, reports, combined, errors)
     broken = []
     for r in reports:
         for v in rules.violations(fail_rules, r["totals"]):
