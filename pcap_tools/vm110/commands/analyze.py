@@ -133,6 +133,11 @@ def run(args: argparse.Namespace) -> int:
     low, high = args.vrpo_range
     if low > high:
         raise CliError(f"--vrpo-range: MIN {low:g} ms is above MAX {high:g} ms")
+    # A gap as long as a VRPO interval would join consecutive cycles into one burst.
+    shortest = min(low, args.vrpo_period or low)
+    if args.burst_gap >= shortest:
+        raise CliError(f"--burst-gap: {args.burst_gap:g} ms must be below the shortest VRPO interval "
+                       f"({shortest:g} ms, --vrpo-range MIN or --vrpo-period)")
     fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on else []
     for target in (args.json, args.html):
         if target not in (None, "-"):
