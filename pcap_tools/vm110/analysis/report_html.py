@@ -90,8 +90,9 @@ class Chart:
             p.append(f'<text x="{ML - 4}" y="{self.y(t) + 4:.1f}" text-anchor="end">{t:g}</text>')
             p.append(f'<line x1="{ML}" x2="{W - MR}" y1="{self.y(t):.1f}" y2="{self.y(t):.1f}" stroke="#eee"/>')
         p.append(f'<text x="{(ML + W - MR) / 2}" y="{H - 4}" text-anchor="middle">{_e(self.xlabel)}</text>')
-        p.append(f'<text x="12" y="{(MT + H - MB) / 2}" text-anchor="middle" '
-                 f'transform="rotate(-90 12 {(MT + H - MB) / 2})">{_e(self.ylabel)}</text>')
+        if self.ylabel:
+            p.append(f'<text x="12" y="{(MT + H - MB) / 2}" text-anchor="middle" '
+                     f'transform="rotate(-90 12 {(MT + H - MB) / 2})">{_e(self.ylabel)}</text>')
 
     def vline(self, v: float, color: str, label: str, title: str = "") -> None:
         if self.x0 <= v <= self.x1:
@@ -177,7 +178,7 @@ class Chart:
 
 def _empty(name: str, caption: str, why: str) -> str:
     c = Chart(0, 1, 0, 1, "", "")
-    c.parts.append(f'<text x="{W / 2}" y="{H / 2}" text-anchor="middle">{_e(why)}</text>')
+    c.parts.append(f'<text class="empty" x="{W / 2}" y="{H / 2}" text-anchor="middle">{_e(why)}</text>')
     return c.svg(name, caption)
 
 
