@@ -95,9 +95,10 @@ def build(seed: int, duration: float) -> list[Station]:
 def machine_truth(stations: list[Station], duration: float) -> dict[str, Any]:
     """What the crane's data say, in the order they were sent."""
     controller = stations[1].node
-    commands = [{"type": "VRCI", "opcode": op, **({0x01: {"set_speed_limit": arg}, 0x02: {"reset_alarms": arg},
-                                                    0x03: {"horn": bool(arg)}}[op])}
-                for t, op, arg in OPERATOR if t < duration - QUIET_TAIL_S]
+    argument = {0x01: "set_speed_limit", 0x02: "reset_alarms", 0x03: "horn"}
+    commands: list[dict[str, Any]] = [
+        {"type": "VRCI", "opcode": op, argument[op]: bool(arg) if op == 0x03 else arg}
+        for t, op, arg in OPERATOR if t < duration - QUIET_TAIL_S]
     commands += [{"type": "VRCO", "opcode": 0x81, "alarm_text": text} for t, text in MESSAGES
                  if t < duration - QUIET_TAIL_S]
     return {"periodic": controller.sent_data, "commands": commands}

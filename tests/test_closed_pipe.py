@@ -11,7 +11,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from vm110.errors import EXIT_FINDINGS, EXIT_OK
 
 CAPTURES = Path(__file__).resolve().parent.parent / "captures"
@@ -34,7 +33,7 @@ def closed_from_the_start(*args: str, cwd: Path) -> tuple[int, str]:
     os.close(read_end)
     try:
         done = subprocess.run([sys.executable, "-m", "vm110", *args], stdout=write_end, stderr=subprocess.PIPE,
-                              cwd=cwd, timeout=120)
+                              cwd=cwd, timeout=120, check=False)
     finally:
         os.close(write_end)
     return done.returncode, done.stderr.decode()

@@ -11,7 +11,6 @@ import importlib.util
 import json
 
 import pytest
-
 import tshark_runner as T
 
 CAPTURES = T.REPO / "captures"

@@ -16,14 +16,14 @@ from pathlib import Path
 
 import png
 import pytest
-
 import tshark_runner as T
 from test_analysis_html import CONSOLE, FLAGS
-from vm110.analysis import analyze, report_html as R
+from vm110.analysis import analyze
+from vm110.analysis import report_html as R
 from vm110.layers import VM110, VRPI
 
 CAPTURES = Path(__file__).resolve().parent.parent / "captures"
-FIGURE = re.compile(r'<figure data-plot="([^"]+)">.*?</figure>', re.S)
+FIGURE = re.compile(r'<figure data-plot="([^"]+)">.*?</figure>', re.DOTALL)
 SVG_HEIGHT = re.compile(r'<svg [^>]*height="(\d+)"')
 TICK = re.compile(r'<text x="([\d.]+)" y="(\d+)" text-anchor="middle">([^<]*)</text>')
 AXIS_LABEL = re.compile(r'<text x="[\d.]+" y="[\d.]+" text-anchor="middle"(?: transform="[^"]*")?>([^<]*)</text>')
@@ -59,7 +59,7 @@ def screenshot(figures: list[str], tmp_path: Path) -> tuple[list[list[tuple[int,
     shot = tmp_path / "plots.png"
     done = subprocess.run(["chromium", *FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars",
                            "--force-device-scale-factor=1", f"--window-size={R.W},{y}", f"--screenshot={shot}",
-                           page.as_uri()], capture_output=True, text=True, timeout=120)
+                           page.as_uri()], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0 and shot.exists(), done.stderr[-2000:]
     assert not [line for line in done.stderr.splitlines() if CONSOLE.search(line)]
     width, height, rows, _ = png.Reader(filename=str(shot)).asRGB8()

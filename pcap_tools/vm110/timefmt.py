@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import datetime
 import math
-from typing import Optional
 
 _EPOCH = datetime.datetime(1970, 1, 1, tzinfo=datetime.timezone.utc)
 
@@ -24,14 +23,14 @@ def utc_iso(seconds: float) -> str:
     return when.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
-def since(seconds: Optional[float], start: float) -> str:
+def since(seconds: float | None, start: float) -> str:
     """Seconds from `start`, e.g. "+12.345678"; "-" for an unknown (damaged) time."""
     if seconds is None or not math.isfinite(seconds):
         return "-"
     return f"{seconds - start:+.6f}"
 
 
-def stamp(seconds: Optional[float], start: float) -> str:
+def stamp(seconds: float | None, start: float) -> str:
     """Both forms: "2025-06-15T15:06:40.125000Z (+0.125000 s)"; "-" for an unknown time."""
     if seconds is None:
         return "-"

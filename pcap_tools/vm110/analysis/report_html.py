@@ -158,7 +158,7 @@ class Chart:
         for i, (label, entries) in enumerate(rows):
             y = H + 4 + KEY_ROW * i
             self.parts.append(f'<text x="{ML - 4}" y="{y + 10}" text-anchor="end">{_e(label)}</text>')
-            x = ML
+            x: float = ML
             for k, (name, color) in enumerate(entries):
                 width = 14 + 6.5 * len(name) + 10
                 if x + width > W - MR and k < len(entries):
@@ -319,7 +319,7 @@ def _state_plot(st: dict, t0: float, t1: float, restarts: list[tuple[float, str]
     fields = list(st["segments"])
     c = Chart(t0, t1, 0, len(fields) + 1, "time since capture start (s)", "", xtime=True)
     c.axes(yticks=False)
-    key = []
+    key: list[tuple[str, list[tuple[str, str]]]] = []
     for row, f in enumerate(reversed(fields)):
         values = sorted({s["value"] for s in st["segments"][f]})
         colors = {v: COLORS[i % len(COLORS)] for i, v in enumerate(values)}

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-from typing import Any, Iterator, Optional
+from typing import Any, Iterator, Mapping, Optional, cast
 
 from .. import constants as C
 from ..capture.reader import CaptureReader, address
@@ -47,9 +47,15 @@ def eglink_datagrams(reader: CaptureReader, port: int) -> Iterator[tuple[int, fl
             yield frame, ts, address(src, sport), payload
 
 
+def enum_name(name: str, value: int) -> str:
+    """The name of an enumerated field's value, "Unknown" beyond the enumeration (as the dissector)."""
+    names = cast(Mapping[int, str], C.ENUM_FIELDS[name])
+    return names.get(value, "Unknown")
+
+
 def enum_text(name: str, value: int) -> str:
     """The dissector's form of an enumerated value: "Armed (0x11)", "Unknown (0x07)"."""
-    return f"{C.ENUM_FIELDS[name].get(value, 'Unknown')} (0x{value:02X})"
+    return f"{enum_name(name, value)} (0x{value:02X})"
 
 
 def _value(name: str, value: Any) -> str:
@@ -60,8 +66,8 @@ def _value(name: str, value: Any) -> str:
 
 def _line(number: int, when: float, start: float, src: str, fields: dict[str, Any]) -> str:
     names = _SUMMARY_FIELDS.get(fields.get("type", ""), ())
-    parts = [f"{number:>6} {utc_iso(when)} {since(when, start):>12} {src:<21} {fields.get('type', '?'):<4} "
-             f"serial={fields.get('serial', '?')}"]
+    parts = [(f"{number:>6} {utc_iso(when)} {since(when, start):>12} {src:<21} {fields.get('type', '?'):<4} "
+              f"serial={fields.get('serial', '?')}")]
     parts += [f"{name}={_value(name, fields[name])}" for name in names if name in fields]
     if fields["problems"]:
         parts.append("ILLEGAL(" + ",".join(fields["problems"]) + ")")
@@ -76,7 +82,7 @@ def _jsonable(value: Any) -> Any:
 
 def _json(number: int, when: float, start: float, src: str, fields: dict[str, Any]) -> str:
     """The decoded fields, plus the time in both readable forms and each enum's name (`names`)."""
-    names = {k: C.ENUM_FIELDS[k].get(v, "Unknown") for k, v in fields.items() if k in C.ENUM_FIELDS}
+    names = {k: enum_name(k, v) for k, v in fields.items() if k in C.ENUM_FIELDS}
     return json.dumps({"frame": number, "time": when, "time_utc": utc_iso(when),
                        "time_relative": round(when - start, 6), "src": src,
                        **{k: _jsonable(v) for k, v in fields.items()}, "names": names})
