@@ -4,6 +4,7 @@ do the same. The expectations come from tshark (the dissector's value strings, i
 relative time columns) and from fixed dates, not from the code under test."""
 from __future__ import annotations
 
+import datetime
 import json
 import subprocess
 import sys
@@ -11,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import tshark_runner as T
+from vm110 import cli
 from vm110.layers import VM110, VRPI
 from vm110.timefmt import since, stamp, utc_iso
 
@@ -19,8 +21,10 @@ ENUMS = ("bu_state", "eg_link", "ec_link", "c_link", "ru_state", "ru_cable", "ru
          "encoder_switch")
 
 
-def vm110(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "vm110", *args], capture_output=True, text=True, timeout=120, check=False)
+def vm110(capsys, *args: str) -> str:
+    """Standard output of `vm110 ARGS`, run in-process (exit code 0 required)."""
+    assert cli.main(list(args)) == 0
+    return capsys.readouterr().out
 
 
 @pytest.mark.parametrize("seconds, text", [
@@ -67,14 +71,14 @@ def iso_of_tshark(text: str) -> str:
 
 
 @pytest.mark.tshark
-def test_decode_shows_the_dissector_s_names_and_tshark_s_times(tmp_path):
+def test_decode_shows_the_dissector_s_names_and_tshark_s_times(capsys, tmp_path):
     odd = tmp_path / "odd.pcap"       # values beyond the enumerations: "Unknown (0x..)" in both
     T.write_pcap(odd, [bytes(VM110(serial=1) / VRPI(bu_state=0x07, ru_cable=5, eg_link=9, armed_ru=0x0C07)),
                        bytes(VM110(serial=2) / VRPI(bu_state=0x11, ru_state=3, armed_ru=0x0C07))], [0, 1_250_000])
     for pcap in (CAPTURES / "bu-watchdog.pcap", odd):
         times, enums = tshark_view(pcap)
-        lines = vm110("decode", str(pcap)).stdout.splitlines()[:-1]
-        records = [json.loads(line) for line in vm110("decode", str(pcap), "--json").stdout.splitlines()]
+        lines = vm110(capsys, "decode", str(pcap)).splitlines()[:-1]
+        records = [json.loads(line) for line in vm110(capsys, "decode", str(pcap), "--json").splitlines()]
         assert len(lines) == len(records) == len(times)
         states = set()
         for line, record in zip(lines, records):
@@ -91,8 +95,8 @@ def test_decode_shows_the_dissector_s_names_and_tshark_s_times(tmp_path):
         assert len(states) >= 2                               # the capture changes state: not one name twice
 
 
-def test_the_summary_shows_start_and_end_in_utc_and_relays_relative():
-    out = vm110("analyze", str(CAPTURES / "bu-watchdog.pcap")).stdout
+def test_the_summary_shows_start_and_end_in_utc_and_relays_relative(capsys):
+    out = vm110(capsys, "analyze", str(CAPTURES / "bu-watchdog.pcap"))
     # README (captures): from 2025-06-15 15:06:40 UTC, 15 s; the relays open at 7.0 s for 1.125 s.
     assert "Time: 2025-06-15T15:06:40.000000Z to 2025-06-15T15:06:54.900000Z (UTC)" in out
     relays = next(line for line in out.splitlines() if line.startswith("ES-Link relays open"))
@@ -100,6 +104,22 @@ def test_the_summary_shows_start_and_end_in_utc_and_relays_relative():
     assert "1750000" not in out                               # no raw epoch seconds anywhere
 
 
-def test_synth_says_when_its_capture_lies(tmp_path):
-    out = vm110("synth", "normal", "--duration", "1", "--out", str(tmp_path / "n.pcap")).stdout
+def test_synth_says_when_its_capture_lies(capsys, tmp_path):
+    out = vm110(capsys, "synth", "normal", "--duration", "1", "--out", str(tmp_path / "n.pcap"))
     assert "from 2025-06-15T15:06:40.000000Z to 2025-06-15T15:06:40.9" in out
+
+
+def test_simulate_logs_wall_clock_utc_beside_the_node_s_seconds():
+    """Over loopback only (unicast to the discard port): each event line starts with the UTC time,
+    then the node's seconds from its start; the two clocks advance alike."""
+    run = [sys.executable, "-m", "vm110", "simulate", "bu", "--peer", "127.0.0.1:9", "--listen", "127.0.0.1:0",
+           "--source", "127.0.0.1:0", "--duration", "1.3", "--command-every", "0.5"]
+    before = datetime.datetime.now(datetime.timezone.utc)
+    lines = subprocess.run(run, capture_output=True, text=True, timeout=60, check=True).stdout.splitlines()
+    events = [line.split() for line in lines if line[:1].isdigit()]
+    assert [e[2:4] for e in events] == [["bu", "command_sent"]] * 2
+    stamps = [datetime.datetime.strptime(e[0], "%Y-%m-%dT%H:%M:%S.%fZ").replace(tzinfo=datetime.timezone.utc)
+              for e in events]
+    assert before <= stamps[0] <= datetime.datetime.now(datetime.timezone.utc)
+    wall, node = (stamps[1] - stamps[0]).total_seconds(), float(events[1][1]) - float(events[0][1])
+    assert node == pytest.approx(0.5, abs=0.01) and wall == pytest.approx(node, abs=0.2)
