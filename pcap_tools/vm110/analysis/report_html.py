@@ -21,7 +21,7 @@ MAX_POINTS = 2000                          # gap markers per sender
 MIN_BAR = 3                                # px: the narrowest and lowest bar drawn
 HIST_BAR_PX = 6                            # px: the narrowest histogram bin (narrower ones are merged)
 KEY_ROW = 15                               # px per legend row below a plot
-OVERFLOW = "#7f7f7f"                       # the histogram's bar of intervals beyond p99.9
+OVERFLOW = "#7f7f7f"                       # the histogram's bar of the intervals beyond its bins
 RELAYS, RESTART = "#c62828", "#6a1b9a"     # the state timeline's relays-open row and restart lines
 COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
           "#bcbd22", "#17becf")
@@ -183,9 +183,10 @@ def _empty(name: str, caption: str, why: str) -> str:
 
 
 def _histogram_plot(p: dict) -> str:
-    """Intervals between the data's smallest and p99.9, scaled to the data (not stretched to a
-    far watchdog: a line out of range is named at the edge instead), and a separate grey bar for
-    the intervals beyond p99.9 (one 3 s watchdog gap among 100 ms intervals) right of a break."""
+    """The report's bins (the bulk of the intervals: up to p99.9, at most 4 × the median) scaled
+    to the data, not stretched to a far watchdog (a line out of range is named at the edge
+    instead), and a separate grey bar right of a break for the intervals beyond them (one 3 s
+    watchdog gap among 100 ms intervals)."""
     name = f"{p['type']} interval histogram — {p['sender']}"
     hist = p.get("plot", {}).get("histogram", [])
     if len(hist) < 2:
@@ -206,7 +207,7 @@ def _histogram_plot(p: dict) -> str:
         elif v > x1 and v - x0 <= 2 * (x1 - x0):
             x1 = v + 0.04 * (v - x0)
     # Bins narrower than a few pixels are merged for display, so that a bar is wide enough to see;
-    # the intervals beyond p99.9 join them when they all lie within one bin width of it.
+    # the intervals of the last bin join them when they all lie within one bin width of its start.
     maximum = p["interval_ms"]["max"]
     beyond = bool(over) and maximum is not None and maximum > over_at + width
     shown = _merge(body if beyond else hist, width, x0, (x1 - x0) * HIST_BAR_PX / (W - ML - MR))
@@ -220,7 +221,7 @@ def _histogram_plot(p: dict) -> str:
         c.parts.append(f'<line x1="{c.x(x1):.1f}" x2="{c.x(x1):.1f}" y1="{MT}" y2="{H - MB}" stroke="#999" '
                        'stroke-dasharray="2 2"/>')
         c.parts.append(f'<text x="{c.x(x1 + slot / 2):.1f}" y="{H - MB + 14}" text-anchor="middle">'
-                       f'&gt;p99.9</text>')
+                       f'≥{over_at:.0f}</text>')
         c.bars([(x1 + slot * 0.2, slot * 0.6, over)], OVERFLOW, "bar overflow",
                f"{over} intervals of {over_at:g} ms or more (max {maximum:g} ms)")
         c.parts.append(f'<text x="{c.x(x1 + slot / 2):.1f}" y="{min(c.y(over), H - MB - MIN_BAR) - 3:.1f}" '
