@@ -161,7 +161,7 @@ class Chart:
             x: float = ML
             for k, (name, color) in enumerate(entries):
                 width = 14 + 6.5 * len(name) + 10
-                if x + width > W - MR and k < len(entries):
+                if x + width > W - MR:
                     self.parts.append(f'<text x="{x}" y="{y + 10}">+{len(entries) - k} more</text>')
                     break
                 self.parts.append(f'<rect class="swatch" x="{x}" y="{y + 1}" width="10" height="10" fill="{color}"/>'
