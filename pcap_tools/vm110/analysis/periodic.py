@@ -57,7 +57,8 @@ class Floats:
     def intervals_ms(self, before: Optional[float] = None) -> np.ndarray:
         """`timing.intervals_ms` of the values (after `before`, when given), a block at a time."""
         out = np.empty(max(self.size - (before is None), 0))
-        at, prev = 0, ([] if before is None else [before])
+        prev: timing.FloatSeq = [] if before is None else [before]
+        at = 0
         for k, block in enumerate(self.blocks):
             part = block[:self.used] if k == len(self.blocks) - 1 else block
             gaps = timing.intervals_ms(np.concatenate((prev, part)))
@@ -151,8 +152,9 @@ def plot(after: Callable[[int], float], gaps: np.ndarray) -> dict:
     # min). Among a few hundred intervals, p99.9 is the longest one: a single watchdog gap would
     # make the bins so wide that every other interval fell into the first (the HTML plot showed an
     # empty, stretched histogram). Everything above goes to the last bin.
-    low, p50, p95 = float(gaps[0]), timing.percentile(gaps, 50), timing.percentile(gaps, 95)
-    high = min(timing.percentile(gaps, 99.9), max(4 * p50, p95 + 3 * (p95 - low)))
+    low = float(gaps[0])
+    p50, p95, top = (low if v is None else v for v in (timing.percentile(gaps, q) for q in (50, 95, 99.9)))
+    high = min(top, max(4 * p50, p95 + 3 * (p95 - low)))
     high = max(high, low + 1e-3)
     width = (high - low) / HISTOGRAM_BINS
     counts = np.zeros(HISTOGRAM_BINS + 1, dtype=np.int64)

@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     count = 0
     start: Optional[float] = None
     with contextlib.ExitStack() as stack:
-        reader = CaptureReader(stdin_spool(stack) if args.capture == "-" else args.capture)
+        reader = stack.enter_context(CaptureReader(stdin_spool(stack) if args.capture == "-" else args.capture))
         for number, when, src, data in eglink_datagrams(reader, args.port):
             if start is None:     # the capture's first packet, EG-Link or not
                 start = reader.first_ts if reader.first_ts is not None else when
