@@ -1,7 +1,7 @@
 """The HTML report's plots as a reader sees them: headless Chromium draws every plot of the report
 (the report's own markup and CSS, each figure at a known place on one page), takes a screenshot,
 and the test reads the pixels (pypng). Each interval histogram has bars of the bar colour inside its
-plot area, at least a few pixels wide, the tallest as high as the y axis says (max count × 1.1 on
+plot area, at least a few pixels wide, the tallest as high as the y axis says (max count x 1.1 on
 top), standing where the axis puts the stream's median interval (tick labels read from the SVG), and
 an interval far longer than the rest in a grey bar of its own right of them; the
 state timeline's legend shows a swatch of every colour its rows use; every axis label has a unit.

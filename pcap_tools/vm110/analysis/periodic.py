@@ -148,7 +148,7 @@ def plot(after: Callable[[int], float], gaps: np.ndarray) -> dict:
     step = max(1, math.ceil(len(gaps) / SERIES_POINTS))
     series = [[after(i), float(gaps[i:i + step].max())] for i in range(0, len(gaps), step)]
     gaps.sort()
-    # The bins cover the bulk: up to p99.9, but no further than 4 × the median or p95 + 3 × (p95 −
+    # The bins cover the bulk: up to p99.9, but no further than 4 x the median or p95 + 3 x (p95 -
     # min). Among a few hundred intervals, p99.9 is the longest one: a single watchdog gap would
     # make the bins so wide that every other interval fell into the first (the HTML plot showed an
     # empty, stretched histogram). Everything above goes to the last bin.

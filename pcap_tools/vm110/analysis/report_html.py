@@ -183,7 +183,7 @@ def _empty(name: str, caption: str, why: str) -> str:
 
 
 def _histogram_plot(p: dict) -> str:
-    """The report's bins (the bulk of the intervals: up to p99.9, at most 4 × the median) scaled
+    """The report's bins (the bulk of the intervals: up to p99.9, at most 4 x the median) scaled
     to the data, not stretched to a far watchdog (a line out of range is named at the edge
     instead), and a separate grey bar right of a break for the intervals beyond them (one 3 s
     watchdog gap among 100 ms intervals)."""

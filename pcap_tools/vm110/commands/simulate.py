@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
+import itertools
 import json
 import signal
 import sys
@@ -172,7 +173,7 @@ def life(args: argparse.Namespace) -> dict[str, Any]:
     """The `Life` fields of the node's configuration from the options."""
     restarts = tuple(sorted((Restart(at, args.restart_silence, args.restart_serial, 0, port)
                              for at, port in args.restart), key=lambda r: r.at_s))
-    for before, after in zip(restarts, restarts[1:]):
+    for before, after in itertools.pairwise(restarts):
         # A node that is down cannot go down again: the second restart would be lost in the first.
         if after.at_s < before.at_s + args.restart_silence:
             raise CliError(f"--restart: {after.at_s:g} s is within the restart at {before.at_s:g} s "
