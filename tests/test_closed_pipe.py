@@ -19,12 +19,13 @@ PIPE_BUFFER = 1 << 16      # Linux: a pipe holds 64 KiB; more output than that m
 
 def after_first_line(*args: str) -> tuple[int, str, bytes]:
     """Exit code, standard error and the first line of `vm110 ARGS | head -n 1`."""
-    proc = subprocess.Popen([sys.executable, "-m", "vm110", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    assert proc.stdout is not None and proc.stderr is not None
-    first = proc.stdout.readline()
-    proc.stdout.close()
-    err = proc.stderr.read().decode()
-    return proc.wait(timeout=120), err, first
+    with subprocess.Popen([sys.executable, "-m", "vm110", *args], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE) as proc:
+        assert proc.stdout is not None and proc.stderr is not None
+        first = proc.stdout.readline()
+        proc.stdout.close()
+        err = proc.stderr.read().decode()
+        return proc.wait(timeout=120), err, first
 
 
 def closed_from_the_start(*args: str, cwd: Path) -> tuple[int, str]:

@@ -67,7 +67,7 @@ def screenshot(figures: list[str], tmp_path: Path) -> tuple[list[list[tuple[int,
                            page.as_uri()], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0 and shot.exists(), done.stderr[-2000:]
     assert not [line for line in done.stderr.splitlines() if CONSOLE.search(line)]
-    width, height, rows, _ = png.Reader(filename=str(shot)).asRGB8()
+    width, height, rows, _ = png.Reader(bytes=shot.read_bytes()).asRGB8()
     assert (width, height) == (R.W, y)
     return [[tuple(r[i:i + 3]) for i in range(0, 3 * width, 3)] for r in rows], tops
 
