@@ -59,6 +59,7 @@ CAPTURES := normal.pcap disarmed.pcap loss.pcapng retransmit.pcap vrco.pcap vrpo
 	bu-watchdog.pcap controller-watchdog.pcap glink.pcapng overlap.pcapng bu-stops.pcap restart.pcapng
 captures: setup
 	@set -e; for c in $(CAPTURES); do $(VENV)/bin/vm110 synth "$${c%.*}" --seed 1 --out "captures/$$c"; done
+	$(PY) captures/crane.py captures/crane.pcapng
 
 # Debian 13 chroot with tshark 4.4 and Debian testing chroot with tshark 4.6 (both Lua 5.4): the
 # dissector tests run on them as well as on the host's tshark 4.0 (Lua 5.2).

@@ -206,11 +206,11 @@ def test_html_and_terminal_show_where_findings_lie(tmp_path):
         tr.add(k * 0.125, vrpi(k if k < 10 else k + 3))          # 3 lost before frame 11
     report = _report(tr, tmp_path)
     page = report_html.render([report])
-    row = re.search(r'<tr><td class="error">lost</td><td>11</td><td>1\.250000</td>.*?</tr>', page)
+    row = re.search(r'<tr><td class="error">lost</td><td>11</td><td>\+1\.250000</td>.*?</tr>', page)
     assert row and '<code class="filter">frame.number == 11</code>' in row.group(0) and "count 3" in row.group(0)
     assert "restarts" in page and "interrupted" in page
     text = summary.render(report)
-    assert "frame 11 at 1.250000 s:" in text and "count 3" in text and "[frame.number == 11]" in text
+    assert "frame 11 at +1.250000 s:" in text and "count 3" in text and "[frame.number == 11]" in text
 
 
 def test_a_restart_to_serial_0_shows_its_to(tmp_path):

@@ -234,3 +234,60 @@ def test_fields():
     assert restart.range_text == "AT[:PORT]: AT 0 to 60 s, PORT 1 to 65535"
     with pytest.raises(argparse.ArgumentTypeError, match="PORT '0' is out of range"):
         restart("5:0")
+
+
+# --- issue 15: the issue's examples, and the gaps the audit found ---------------------------------
+@pytest.mark.parametrize("path, args, option", [
+    (("simulate", "bu"), ["--loss", "150"], "--loss"),
+    (("simulate", "controller"), ["--period=-100"], "--period"),
+    (("simulate", "controller"), ["--period", "nan"], "--period"),
+    (("analyze",), ["--vrpo-range", "200", "50"], "--vrpo-range"),
+    (("analyze",), ["--vrpo-period=-100"], "--vrpo-period"),
+    (("analyze",), ["--burst-gap", "50"], "--burst-gap"),                    # = the default MIN: cycles join
+    (("analyze",), ["--burst-gap", "30", "--vrpo-range", "25", "200"], "--burst-gap"),
+    (("analyze",), ["--burst-gap", "15", "--vrpo-period", "10"], "--burst-gap"),
+    (("synth",), ["--duration=-1"], "--duration"),
+    (("fuzz",), ["--rate", "inf"], "--rate"),
+])
+def test_the_issue_s_examples_and_cross_option_checks(capsys, path, args, option):
+    code, err, _ = outcome(capsys, path, args)
+    refused_in_one_line(code, err, path, option)
+
+
+@pytest.mark.parametrize("path, args", [
+    (("analyze",), ["--burst-gap", "49.9"]), (("analyze",), ["--burst-gap", "5", "--vrpo-range", "10", "20"]),
+    (("analyze",), ["--vrpo-period", "21"]),
+])
+def test_burst_gaps_below_the_vrpo_interval_are_accepted(capsys, path, args):
+    code, err, sentinel = outcome(capsys, path, args)
+    assert code == 2 and sentinel in err and "--burst-gap" not in err, err
+
+
+@pytest.mark.parametrize("args, option, message", [
+    (["--group", "10.0.0.1"], "--group", "not a multicast address"),
+    (["--group", "239.255.42"], "--group", "not an IPv4 address"),
+    (["--group", "ff02::1"], "--group", "not an IPv4 address"),
+    (["--iface", "eth0"], "--iface", "not an IPv4 address"),
+    (["--iface", "1.2.3.4.5"], "--iface", "not an IPv4 address"),
+])
+def test_simulate_group_and_interface_are_checked_before_a_socket_opens(args, option, message):
+    parsed = cli.build_parser().parse_args(["simulate", "bu", *args])
+    with pytest.raises(CliError, match=f"^{option}: .*{message}"):
+        simulate.udp_config(parsed)
+
+
+@pytest.mark.parametrize("args, refused", [
+    (["--restart", "3", "--restart", "4"], True),                      # inside the first's 1.5 s silence
+    (["--restart", "4", "--restart", "3"], True),                      # in any order
+    (["--restart", "3", "--restart", "3:5000"], True),
+    (["--restart", "3", "--restart", "10", "--restart-silence", "8"], True),
+    (["--restart", "3", "--restart", "4.5"], False),                   # back at 4.5 s, down again at once
+    (["--restart", "3", "--restart", "10"], False),
+])
+def test_restarts_do_not_overlap(args, refused):
+    parsed = cli.build_parser().parse_args(["simulate", "controller", *args])
+    if refused:
+        with pytest.raises(CliError, match=r"^--restart: .* is within the restart at"):
+            simulate.life(parsed)
+    else:
+        assert [r.at_s for r in simulate.life(parsed)["restarts"]] == sorted(float(a) for a in args[1::2])

@@ -246,7 +246,8 @@ def test_tshark_reads_the_synthesised_captures(tmp_path):
 LIBRARY_DIR = pathlib.Path(__file__).resolve().parent.parent / "captures"
 
 
-@pytest.mark.parametrize("path", sorted(LIBRARY_DIR.glob("*.truth.json")), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", sorted(p for p in LIBRARY_DIR.glob("*.truth.json") if p.name.split(".")[0] in SCENARIOS),
+                         ids=lambda p: p.name)     # crane.pcapng: captures/crane.py (test_crane_capture)
 def test_library_is_what_make_captures_writes(path, tmp_path):
     capture = path.with_name(path.name[:-len(".truth.json")])
     name = capture.name.split(".")[0]

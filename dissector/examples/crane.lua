@@ -10,7 +10,8 @@
 -- Not loaded by vm110.lua. Use it with:
 --   tshark -X lua_script:vm110.lua -X lua_script:examples/crane.lua -o vm110.machine:crane -r FILE
 -- or copy it next to vm110.lua in the personal Lua plugin folder (either may load first: both
--- get the tables with table_named() below).
+-- get the tables with table_named() below). A sample capture: captures/crane.pcapng (made by
+-- captures/crane.py; captures/README.md describes it).
 --
 -- Crane periodic data (little-endian):
 --   0  u16 hoist height (cm)      2  u16 load (kg)      4  u8 alarm bits      5  u8 speed limit (%)

@@ -10,7 +10,7 @@ import importlib
 import sys
 from typing import NoReturn, Optional, Sequence
 
-from . import __version__
+from . import __version__, closedpipe
 from .errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, CliError
 
 # Subcommand name -> module under vm110.commands with `add_arguments(parser)` and `run(args)`.
@@ -50,15 +50,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return int(args.run(args) or EXIT_OK)
-    except CliError as exc:
-        print(f"vm110 {args.command}: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
-    except BrokenPipeError:
-        return EXIT_OK
+    # A closed pipe ends the output quietly, and the final flush is made here, not at exit. It
+    # keeps the command's code; one that escapes the command keeps 0: commands with a verdict
+    # (analyze) catch it around their output and go on to the verdict.
+    code = EXIT_OK
+    with closedpipe.tolerated():
+        try:
+            code = int(args.run(args) or EXIT_OK)
+        except CliError as exc:
+            print(f"vm110 {args.command}: {exc}", file=sys.stderr)
+            code = EXIT_USAGE
+        except KeyboardInterrupt:
+            code = EXIT_INTERRUPTED
+    return code
 
 
 if __name__ == "__main__":

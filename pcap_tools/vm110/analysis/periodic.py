@@ -133,7 +133,7 @@ class Stream:
 
 
 def plot(after: Callable[[int], float], gaps: np.ndarray) -> dict:
-    """Histogram of intervals (the last bin holds everything above p99.9) and a down-sampled
+    """Histogram of intervals (the last bin holds everything above the bins' range) and a down-sampled
     interval-over-time series (the largest interval of each bucket, so no watchdog gap hides);
     `after(i)`: the time of the arrival that ends interval i. Sorts `gaps` in place once the
     series is taken."""
@@ -148,8 +148,14 @@ def plot(after: Callable[[int], float], gaps: np.ndarray) -> dict:
     step = max(1, math.ceil(len(gaps) / SERIES_POINTS))
     series = [[after(i), float(gaps[i:i + step].max())] for i in range(0, len(gaps), step)]
     gaps.sort()
-    low, top = float(gaps[0]), timing.percentile(gaps, 99.9)
-    high = max(low if top is None else top, low + 1e-3)
+    # The bins cover the bulk: up to p99.9, but no further than 4 x the median or p95 + 3 x (p95 -
+    # min). Among a few hundred intervals, p99.9 is the longest one: a single watchdog gap would
+    # make the bins so wide that every other interval fell into the first (the HTML plot showed an
+    # empty, stretched histogram). Everything above goes to the last bin.
+    low = float(gaps[0])
+    p50, p95, top = (low if v is None else v for v in (timing.percentile(gaps, q) for q in (50, 95, 99.9)))
+    high = min(top, max(4 * p50, p95 + 3 * (p95 - low)))
+    high = max(high, low + 1e-3)
     width = (high - low) / HISTOGRAM_BINS
     counts = np.zeros(HISTOGRAM_BINS + 1, dtype=np.int64)
     for a in range(0, len(gaps), _CHUNK):      # a chunk at a time: no per-interval temporaries

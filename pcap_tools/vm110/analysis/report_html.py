@@ -12,11 +12,17 @@ from typing import Iterable, Optional, Sequence
 
 from .. import __version__
 from ..fileio import write_text
+from ..timefmt import since, utc_iso
 from . import summary
 
 W, H = 640, 220
 ML, MR, MT, MB = 72, 16, 14, 34           # plot margins
 MAX_POINTS = 2000                          # gap markers per sender
+MIN_BAR = 3                                # px: the narrowest and lowest bar drawn
+HIST_BAR_PX = 6                            # px: the narrowest histogram bin (narrower ones are merged)
+KEY_ROW = 15                               # px per legend row below a plot
+OVERFLOW = "#7f7f7f"                       # the histogram's bar of the intervals beyond its bins
+RELAYS, RESTART = "#c62828", "#6a1b9a"     # the state timeline's relays-open row and restart lines
 COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
           "#bcbd22", "#17becf")
 CSS = """
@@ -62,6 +68,8 @@ class Chart:
         self.y0, self.y1 = y0, y1 if y1 > y0 else y0 + 1
         self.parts: list[str] = []
         self.xlabel, self.ylabel, self.xtime, self.xint = xlabel, ylabel, xtime, xint
+        self.xtick_max = self.x1          # no x ticks right of this (the histogram's overflow slot)
+        self.extra = 0                    # px below the plot (a legend)
 
     def x(self, v: float) -> float:
         return ML + (v - self.x0) / (self.x1 - self.x0) * (W - ML - MR)
@@ -74,7 +82,7 @@ class Chart:
         p.append(f'<rect x="{ML}" y="{MT}" width="{W - ML - MR}" height="{H - MT - MB}" fill="none" stroke="#999"/>')
         # Time axes count seconds from the start of the capture, so their ticks are placed on that.
         base = self.x0 if self.xtime else 0.0
-        for t in _ticks(self.x0 - base, self.x1 - base):
+        for t in _ticks(self.x0 - base, self.xtick_max - base):
             if self.xint and t != int(t):
                 continue
             p.append(f'<text x="{self.x(t + base):.1f}" y="{H - MB + 14}" text-anchor="middle">{t:g}</text>')
@@ -82,14 +90,16 @@ class Chart:
             p.append(f'<text x="{ML - 4}" y="{self.y(t) + 4:.1f}" text-anchor="end">{t:g}</text>')
             p.append(f'<line x1="{ML}" x2="{W - MR}" y1="{self.y(t):.1f}" y2="{self.y(t):.1f}" stroke="#eee"/>')
         p.append(f'<text x="{(ML + W - MR) / 2}" y="{H - 4}" text-anchor="middle">{_e(self.xlabel)}</text>')
-        p.append(f'<text x="12" y="{(MT + H - MB) / 2}" text-anchor="middle" '
-                 f'transform="rotate(-90 12 {(MT + H - MB) / 2})">{_e(self.ylabel)}</text>')
+        if self.ylabel:
+            p.append(f'<text x="12" y="{(MT + H - MB) / 2}" text-anchor="middle" '
+                     f'transform="rotate(-90 12 {(MT + H - MB) / 2})">{_e(self.ylabel)}</text>')
 
-    def vline(self, v: float, color: str, label: str) -> None:
+    def vline(self, v: float, color: str, label: str, title: str = "") -> None:
         if self.x0 <= v <= self.x1:
+            hover = f"<title>{_e(title)}</title>" if title else ""
             self.parts.append(f'<line class="marker" x1="{self.x(v):.1f}" x2="{self.x(v):.1f}" y1="{MT}" '
-                              f'y2="{H - MB}" stroke="{color}" stroke-dasharray="4 3"/>'
-                              + self._vlabel(self.x(v), color, label))
+                              f'y2="{H - MB}" stroke="{color}" stroke-dasharray="4 3">{hover}</line>'
+                              + (self._vlabel(self.x(v), color, label) if label else ""))
 
     @staticmethod
     def _vlabel(x: float, color: str, label: str) -> str:
@@ -106,12 +116,17 @@ class Chart:
                               f'<text x="{W - MR - 3}" y="{self.y(v) - 3:.1f}" text-anchor="end" fill="{color}">'
                               f'{_e(label)}</text>')
 
-    def bars(self, items: Iterable[tuple[float, float, float]], color: str) -> None:
+    def bars(self, items: Iterable[tuple[float, float, float]], color: str, cls: str = "bar", title: str = "") -> None:
+        """Bars at least MIN_BAR px wide (centred on their bin) and MIN_BAR px high: a bin far
+        narrower than a pixel, or a count of 1 beside thousands, still shows."""
         for left, width, height in items:
             x, x2 = self.x(left), self.x(left + width)
-            self.parts.append(f'<rect class="bar" x="{x:.1f}" y="{self.y(height):.1f}" '
-                              f'width="{max(x2 - x - 1, 1):.1f}" height="{self.y(self.y0) - self.y(height):.1f}" '
-                              f'fill="{color}"/>')
+            if x2 - x - 1 < MIN_BAR:
+                x, x2 = (x + x2 - MIN_BAR) / 2, (x + x2 + MIN_BAR) / 2 + 1
+            top = min(self.y(height), self.y(self.y0) - MIN_BAR)
+            self.parts.append(f'<rect class="{cls}" x="{x:.1f}" y="{top:.1f}" width="{x2 - x - 1:.1f}" '
+                              f'height="{self.y(self.y0) - top:.1f}" fill="{color}">'
+                              + (f"<title>{_e(title)}</title>" if title else "") + "</rect>")
 
     def polyline(self, points: Iterable[tuple[float, float]], color: str) -> None:
         pts = " ".join(f"{self.x(a):.1f},{self.y(b):.1f}" for a, b in points)
@@ -137,34 +152,102 @@ class Chart:
                           f'width="{max(x2 - x, 1):.1f}" height="{self.y(row) - self.y(row + height):.1f}" '
                           f'fill="{color}"><title>{_e(title)}</title></rect>')
 
+    def key(self, rows: list[tuple[str, list[tuple[str, str]]]]) -> None:
+        """A legend below the plot: per row a label, then a swatch and a name per entry; what does
+        not fit the width is counted ("+3 more")."""
+        for i, (label, entries) in enumerate(rows):
+            y = H + 4 + KEY_ROW * i
+            self.parts.append(f'<text x="{ML - 4}" y="{y + 10}" text-anchor="end">{_e(label)}</text>')
+            x: float = ML
+            for k, (name, color) in enumerate(entries):
+                width = 14 + 6.5 * len(name) + 10
+                if x + width > W - MR:
+                    self.parts.append(f'<text x="{x}" y="{y + 10}">+{len(entries) - k} more</text>')
+                    break
+                self.parts.append(f'<rect class="swatch" x="{x}" y="{y + 1}" width="10" height="10" fill="{color}"/>'
+                                  f'<text x="{x + 14}" y="{y + 10}">{_e(name)}</text>')
+                x += width
+        self.extra = KEY_ROW * len(rows) + 8
+
     def svg(self, name: str, caption: str) -> str:
+        height = H + self.extra
         return (f'<figure data-plot="{_e(name)}"><figcaption>{_e(caption)}</figcaption>'
-                f'<svg xmlns="http://www.w3.org/2000/svg" width="{W}" height="{H}" viewBox="0 0 {W} {H}">'
+                f'<svg xmlns="http://www.w3.org/2000/svg" width="{W}" height="{height}" viewBox="0 0 {W} {height}">'
                 + "".join(self.parts) + "</svg></figure>")
 
 
 def _empty(name: str, caption: str, why: str) -> str:
     c = Chart(0, 1, 0, 1, "", "")
-    c.parts.append(f'<text x="{W / 2}" y="{H / 2}" text-anchor="middle">{_e(why)}</text>')
+    c.parts.append(f'<text class="empty" x="{W / 2}" y="{H / 2}" text-anchor="middle">{_e(why)}</text>')
     return c.svg(name, caption)
 
 
 def _histogram_plot(p: dict) -> str:
+    """The report's bins (the bulk of the intervals: up to p99.9, at most 4 x the median) scaled
+    to the data, not stretched to a far watchdog (a line out of range is named at the edge
+    instead), and a separate grey bar right of a break for the intervals beyond them (one 3 s
+    watchdog gap among 100 ms intervals)."""
     name = f"{p['type']} interval histogram — {p['sender']}"
     hist = p.get("plot", {}).get("histogram", [])
-    if not hist:
+    if len(hist) < 2:
         return _empty("interval-histogram", name, "fewer than two packets")
-    width = p["plot"]["bin_ms"]
+    # The bin width from the bins themselves: the report's rounded bin_ms is 0 for tiny bins.
+    body, (over_at, over) = hist[:-1], hist[-1]
+    width = (over_at - hist[0][0]) / len(body)
+    low, high = hist[0][0], over_at
+    mid, span = (low + high) / 2, high - low
+    span = max(span, 1.0, 0.04 * abs(mid))           # all intervals alike: a readable span around them
+    x0, x1 = mid - span / 2 - 0.04 * span, mid + span / 2 + 0.04 * span
     limit, nominal = p["watchdog"]["limit_ms"], p.get("nominal_ms")
-    x1 = max(hist[-1][0] + width, (nominal or 0) * 1.2, limit * 1.05)
-    c = Chart(min(hist[0][0], nominal or hist[0][0]), x1, 0, max(n for _, n in hist) * 1.1,
-              "interval (ms; last bar: beyond p99.9)", "packets")
+    lines = [(v, color, label) for v, color, label in ((nominal, "#2a8a2a", f"nominal {nominal:g} ms"),
+                                                       (limit, "#c62828", f"watchdog {limit:g} ms")) if v]
+    for v, _, _ in lines:              # a line close to the data widens the axis to it, a far one not
+        if v < x0 and x1 - v <= 2 * (x1 - x0):
+            x0 = v - 0.04 * (x1 - v)
+        elif v > x1 and v - x0 <= 2 * (x1 - x0):
+            x1 = v + 0.04 * (v - x0)
+    # Bins narrower than a few pixels are merged for display, so that a bar is wide enough to see;
+    # the intervals of the last bin join them when they all lie within one bin width of its start.
+    maximum = p["interval_ms"]["max"]
+    beyond = bool(over) and maximum is not None and maximum > over_at + width
+    shown = _merge(body if beyond else hist, width, x0, (x1 - x0) * HIST_BAR_PX / (W - ML - MR))
+    slot = 0.12 * (x1 - x0) if beyond else 0.0
+    top = max([n for _, _, n in shown] + ([over] if beyond else [])) * 1.1
+    c = Chart(x0, x1 + slot, 0, top, "interval (ms)", "intervals (count)")
+    c.xtick_max = x1
     c.axes()
-    c.bars(((a, width, n) for a, n in hist if n), COLORS[0])
-    if nominal:
-        c.vline(nominal, "#2a8a2a", f"nominal {nominal:g}")
-    c.vline(limit, "#c62828", f"watchdog {limit:g}")
+    c.bars(shown, COLORS[0])
+    if beyond:
+        c.parts.append(f'<line x1="{c.x(x1):.1f}" x2="{c.x(x1):.1f}" y1="{MT}" y2="{H - MB}" stroke="#999" '
+                       'stroke-dasharray="2 2"/>')
+        c.parts.append(f'<text x="{c.x(x1 + slot / 2):.1f}" y="{H - MB + 14}" text-anchor="middle">'
+                       f'≥{over_at:.0f}</text>')
+        c.bars([(x1 + slot * 0.2, slot * 0.6, over)], OVERFLOW, "bar overflow",
+               f"{over} intervals of {over_at:g} ms or more (max {maximum:g} ms)")
+        c.parts.append(f'<text x="{c.x(x1 + slot / 2):.1f}" y="{min(c.y(over), H - MB - MIN_BAR) - 3:.1f}" '
+                       f'text-anchor="middle" fill="{OVERFLOW}">max {maximum:.0f}</text>')
+    for i, (v, color, label) in enumerate(lines):
+        if x0 <= v <= x1:
+            c.vline(v, color, label)
+        else:     # off the scale: named at that edge, below the other labels
+            right = v > x1
+            c.parts.append(f'<text class="offscale" x="{W - MR - 3 if right else ML + 3}" y="{MT + 24 + 12 * i}" '
+                           f'text-anchor="{"end" if right else "start"}" fill="{color}">'
+                           f'{"" if right else "← "}{_e(label)}{" →" if right else ""}</text>')
     return c.svg("interval-histogram", name)
+
+
+def _merge(hist: list, width: float, origin: float, least: float) -> list[tuple[float, float, float]]:
+    """(left, width, count) of the non-empty bins, merged into bins of at least `least` (aligned
+    on `origin`) where the given ones are narrower."""
+    if width >= least:
+        return [(a, width, n) for a, n in hist if n]
+    merged: dict[int, int] = {}
+    for a, n in hist:
+        if n:
+            k = math.floor((a + width / 2 - origin) / least)
+            merged[k] = merged.get(k, 0) + n
+    return [(origin + k * least, least, n) for k, n in sorted(merged.items())]
 
 
 def _series_plot(p: dict, t0: float) -> str:
@@ -186,7 +269,7 @@ def _gap_plot(report: dict, t0: float, t1: float) -> str:
     if not senders:
         return _empty("serial-gaps", "Serial gaps", "no serial gaps")
     top = max(g["count"] for s in senders for g in s["serial"]["gaps"])
-    c = Chart(t0, t1, 0, top * 1.2, "time since capture start (s)", "packets missing", xtime=True)
+    c = Chart(t0, t1, 0, top * 1.2, "time since capture start (s)", "packets missing (count)", xtime=True)
     c.axes()
     for i, s in enumerate(senders):
         gaps = s["serial"]["gaps"]
@@ -210,7 +293,7 @@ def _latency_plot(report: dict) -> str:
         for v in vs:
             counts[n][min(int((v - low) / width), bins)] += 1
     c = Chart(low, low + width * (bins + 1), 0, max(max(v) for v in counts.values()) * 1.1,
-              "ack latency from the first transmission (ms)", "commands")
+              "ack latency from the first transmission (ms)", "commands (count)")
     c.axes()
     for i, cs in enumerate(counts.values()):
         c.bars(((low + k * width + i * width / 2, width / 2, m) for k, m in enumerate(cs) if m), COLORS[i])
@@ -225,7 +308,7 @@ def _retransmission_plot(report: dict) -> str:
     if not keys:
         return _empty("retransmissions", "Retransmissions per command", "no commands")
     c = Chart(-0.5, keys[-1] + 0.5, 0, max(v for h in hists.values() for v in h.values()) * 1.1,
-              "retransmissions of a command", "commands", xint=True)
+              "retransmissions of a command (count)", "commands (count)", xint=True)
     c.axes()
     for i, h in enumerate(hists.values()):
         c.bars(((k - 0.4 + i * 0.4, 0.4, v) for k, v in h.items()), COLORS[i])
@@ -238,19 +321,25 @@ def _state_plot(st: dict, t0: float, t1: float, restarts: list[tuple[float, str]
     fields = list(st["segments"])
     c = Chart(t0, t1, 0, len(fields) + 1, "time since capture start (s)", "", xtime=True)
     c.axes(yticks=False)
+    key: list[tuple[str, list[tuple[str, str]]]] = []
     for row, f in enumerate(reversed(fields)):
         values = sorted({s["value"] for s in st["segments"][f]})
+        colors = {v: COLORS[i % len(COLORS)] for i, v in enumerate(values)}
+        names = {s["value"]: s["name"] for s in st["segments"][f]}
+        key.insert(0, (f, [(str(names[v]), colors[v]) for v in values]))
         for s in st["segments"][f]:
-            color = COLORS[values.index(s["value"]) % len(COLORS)]
+            color = colors[s["value"]]
             end = s["end"] if s["end"] is not None else t1
             c.rect(s["start"], end, row + 0.1, 0.8, color, f"{f}: {s['name']} from {s['start'] - t0:.3f} s")
     for ep in st["episodes_relays_open"]:
         end = ep["end"] if ep["end"] is not None else t1
-        c.rect(ep["start"], end, len(fields) + 0.1, 0.8, "#c62828", "ES-Link relays open")
-    for time, who in restarts:
-        c.vline(time, "#6a1b9a", f"restart {who.split(' origin')[0]}")
+        c.rect(ep["start"], end, len(fields) + 0.1, 0.8, RELAYS, "ES-Link relays open")
+    for time, who in restarts:      # named in the legend and on hover: labels of close restarts would overlap
+        c.vline(time, RESTART, "", title=f"restart of {who} at {time - t0:.3f} s")
     for row, label in enumerate([*reversed(fields), "relays open"]):
         c.parts.append(f'<text x="{ML - 4}" y="{c.y(row + 0.5) + 4:.1f}" text-anchor="end">{_e(label)}</text>')
+    marks = [("ES-Link relays open", RELAYS)] + ([("restart (dashed line)", RESTART)] if restarts else [])
+    c.key([*key, ("marks", marks)])
     return c.svg("state-timeline", f"State timeline — {st['sender']}")
 
 
@@ -271,7 +360,7 @@ def _findings_table(findings: list[dict], t0: float) -> str:
             frames = item.get("frames", [item["frame"]])
             rows.append(f'<tr><td class="{_e(f["severity"])}">{_e(f["rule"])}</td>'
                         f"<td>{_e(', '.join(map(str, frames[:10])) + (' …' if len(frames) > 10 else ''))}</td>"
-                        f"<td>{summary.since(item['time'], t0)}</td><td>{_e(item.get('sender', ''))}</td>"
+                        f"<td>{since(item['time'], t0)}</td><td>{_e(item.get('sender', ''))}</td>"
                         f"<td>{_e(what)}</td>"
                         f'<td><code class="filter">{_e(item["filter"])}</code></td></tr>')
         if f.get("more"):
@@ -289,7 +378,9 @@ def _section(report: dict) -> str:
     out = [f"<h2>{_e(cap['file'])}</h2>",
            (f'<p><span class="{"ok" if verdict["ok"] else "fail"}">{"OK" if verdict["ok"] else "FAIL"}</span> '
             f"{cap['packets']} packets, {cap['eglink_packets']} EG-Link, {_num(cap['duration_s'], 1)} s; "
-            f"CRC {_e(crc['variant'])}/{_e(crc['byte_order'])}: {crc['valid']} valid, {crc['invalid']} invalid</p>")]
+            f"CRC {_e(crc['variant'])}/{_e(crc['byte_order'])}: {crc['valid']} valid, {crc['invalid']} invalid"
+            + (f"; from {utc_iso(cap['first_time'])} to {utc_iso(t1)} (UTC), times below in s from the start"
+               if cap["first_time"] is not None and cap["last_time"] is not None else "") + "</p>")]
     if verdict["findings"]:
         out.append("<ul>" + "".join(f'<li class="{_e(f["severity"])}">{_e(f["severity"])}: {_e(f["message"])}</li>'
                                     for f in verdict["findings"]) + "</ul>")
@@ -304,7 +395,7 @@ def _section(report: dict) -> str:
                         s["serial"]["received"], s["serial"]["lost"], len(s["serial"]["gaps"]),
                         s["serial"]["duplicates"], s["serial"]["out_of_order"], s["serial"]["wraps"],
                         "; ".join([str(s["serial"]["restarts"])] + [
-                            f"{summary.since(r['time'], t0)} s frame {r['frame']}: {r['from']} → {r['to']}"
+                            f"{since(r['time'], t0)} s frame {r['frame']}: {r['from']} → {r['to']}"
                             + (f" port {r['port_from']} → {r['port_to']}" if "port_from" in r else "")
                             for r in s["serial"]["restart_events"]])]
                        for s in report["senders"]]))

@@ -1,7 +1,12 @@
-"""The terminal summary: verdict, then one table per sender, commands, bursts and relays."""
+"""The terminal summary: verdict, then one table per sender, commands, bursts and relays.
+
+Times: the capture's start and end in ISO 8601 UTC, everything else in seconds from its start
+(the HTML report's tables use the same `since`)."""
 from __future__ import annotations
 
 from typing import Optional
+
+from ..timefmt import since, stamp, utc_iso
 
 
 def _f(value: Optional[float], digits: int = 1) -> str:
@@ -17,11 +22,6 @@ def _table(rows: list[list[str]], indent: str = "  ") -> list[str]:
 SHOWN_ITEMS = 3           # located items printed per finding without --list
 _ITEM_KEYS = ("sender", "type", "command_id", "serial", "after", "count", "from", "to", "port_from", "port_to",
               "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s")
-
-
-def since(time: Optional[float], t0: float) -> str:
-    """Seconds from the capture's start; '-' for a damaged timestamp (null in the report)."""
-    return "-" if time is None else f"{time - t0:.6f}"
 
 
 def _item(item: dict, t0: float) -> str:
@@ -49,11 +49,15 @@ def render(report: dict, everything: bool = False) -> str:
     lines = [(f"{cap['file']}: {cap['packets']} packets, {cap['eglink_packets']} EG-Link, "
               f"{_f(cap['duration_s'])} s; CRC {crc['variant']}/{crc['byte_order']}"
               f"{' (auto)' if crc['auto'] else ''}: {crc['valid']} valid, {crc['invalid']} invalid")]
+    t0 = cap["first_time"] or 0.0
+    if cap["first_time"] is not None:
+        end = f" to {utc_iso(cap['last_time'])}" if cap["last_time"] is not None else ""
+        lines.append(f"Time: {utc_iso(cap['first_time'])}{end} (UTC); times below in s from the start")
     errors = sum(1 for f in verdict["findings"] if f["severity"] == "error")
     warnings = len(verdict["findings"]) - errors
     lines.append(f"VERDICT: {'OK' if verdict['ok'] else 'FAIL'} ({errors} errors, {warnings} warnings)")
     for f in verdict["findings"]:
-        lines += _finding(f, everything, cap["first_time"] or 0.0)
+        lines += _finding(f, everything, t0)
     if report["illegal"]["total"]:
         reasons = ", ".join(f"{k} {v}" for k, v in report["illegal"]["by_reason"].items())
         lines.append(f"Illegal packets: {report['illegal']['total']} ({reasons})")
@@ -69,7 +73,7 @@ def render(report: dict, everything: bool = False) -> str:
                      f"restarts {ser['restarts']}")
         for r in ser["restart_events"]:
             port = f", port {r['port_from']} -> {r['port_to']}" if "port_from" in r else ""
-            lines.append(f"  restart at {since(r['time'], cap['first_time'] or 0.0)} s (frame {r['frame']}): "
+            lines.append(f"  restart at {since(r['time'], t0)} s (frame {r['frame']}): "
                          f"serial {r['from']} -> {r['to']}{port}")
         rows = [["stream", "count", "min", "mean", "p50", "p95", "p99", "p99.9", "max", "jitter", "watchdog"]]
         for ptype in ("VRPI", "VRPO"):
@@ -98,7 +102,7 @@ def render(report: dict, everything: bool = False) -> str:
         eps = st["episodes_relays_open"]
         if eps:
             lines.append(f"ES-Link relays open ({st['sender']}): " + "; ".join(
-                f"{e['start']:.3f}+{_f(e['duration_s'], 3)} s {'/'.join(e['states'])}" for e in eps[:5])
+                f"{stamp(e['start'], t0)} for {_f(e['duration_s'], 3)} s {'/'.join(e['states'])}" for e in eps[:5])
                 + (f" ... {len(eps)} in all" if len(eps) > 5 else ""))
     return "\n".join(lines)
 

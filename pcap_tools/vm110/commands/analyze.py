@@ -12,6 +12,7 @@ import multiprocessing
 import sys
 from typing import Optional, Union
 
+from .. import closedpipe
 from .. import constants as C
 from .. import resources
 from ..analysis import analyze, report_html, report_json, rules, summary
@@ -140,6 +141,11 @@ def run(args: argparse.Namespace) -> int:
     low, high = args.vrpo_range
     if low > high:
         raise CliError(f"--vrpo-range: MIN {low:g} ms is above MAX {high:g} ms")
+    # A gap as long as a VRPO interval would join consecutive cycles into one burst.
+    shortest = min(low, args.vrpo_period or low)
+    if args.burst_gap >= shortest:
+        raise CliError(f"--burst-gap: {args.burst_gap:g} ms must be below the shortest VRPO interval "
+                       f"({shortest:g} ms, --vrpo-range MIN or --vrpo-period)")
     fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on else []
     for target in (args.json, args.html):
         if target not in (None, "-"):
@@ -172,23 +178,24 @@ def run(args: argparse.Namespace) -> int:
     if not reports:
         return EXIT_USAGE
     combined: Optional[dict] = combine(reports) if len(args.captures) > 1 else None
-    if not args.quiet:
-        print("\n\n".join(summary.render(r, args.list) for r in reports))
-        if combined:
-            print()
-            print(summary.render_combined(combined))
-    if args.json:
-        document = reports[0] if combined is None else {
-            "schema_version": SCHEMA_VERSION, "reports": reports, "errors": errors, "combined": combined}
+    document = reports[0] if combined is None else {
+        "schema_version": SCHEMA_VERSION, "reports": reports, "errors": errors, "combined": combined}
+    # A reader that stops early (`| head`) cuts standard output short; the report files and the
+    # verdict below still follow.
+    with closedpipe.tolerated():
+        if not args.quiet:
+            print("\n\n".join(summary.render(r, args.list) for r in reports))
+            if combined:
+                print()
+                print(summary.render_combined(combined))
         if args.json == "-":
             report_json.dump(sys.stdout, document)
-        else:
-            report_json.write(args.json, document)
-    if args.html:
         if args.html == "-":
             sys.stdout.write(report_html.render(reports, combined, errors))
-        else:
-            report_html.write(args.html, reports, combined, errors)
+    if args.json not in (None, "-"):
+        report_json.write(args.json, document)
+    if args.html not in (None, "-"):
+        report_html.write(args.html, reports, combined, errors)
     broken = [f"{r['capture']['file']}: {v}" for r in reports for v in rules.violations(fail_rules, r["totals"])]
     for line in broken:
         print(f"fail-on: {line}", file=sys.stderr)

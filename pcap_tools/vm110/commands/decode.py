@@ -2,14 +2,15 @@
 
 Datagrams on the configured ports, and on any UDP port when they start with a known packet ID,
 are decoded with the fast path (`vm110.decode`); illegal ones are shown with their reasons.
-Other traffic is skipped.
+Other traffic is skipped. Enumerations show their names beside the numbers, as in the dissector
+("Armed (0x11)"); times are ISO 8601 UTC and seconds from the capture's first packet.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
 import json
-from typing import Any, Iterator
+from typing import Any, Iterator, Mapping, Optional, cast
 
 from .. import constants as C
 from ..capture.reader import CaptureReader, address
@@ -17,6 +18,7 @@ from ..capture.spool import stdin_spool
 from ..crc import BYTE_ORDERS, VARIANTS
 from ..decode import decode
 from ..errors import CliError
+from ..timefmt import since, utc_iso
 from .options import INPUT_PORT, INPUT_PORT_HELP
 
 _IDS = frozenset(t.value.encode() for t in C.PacketType)
@@ -45,10 +47,28 @@ def eglink_datagrams(reader: CaptureReader, port: int) -> Iterator[tuple[int, fl
             yield frame, ts, address(src, sport), payload
 
 
-def _line(number: int, when: float, src: str, fields: dict[str, Any]) -> str:
+def enum_name(name: str, value: int) -> str:
+    """The name of an enumerated field's value, "Unknown" beyond the enumeration (as the dissector)."""
+    names = cast(Mapping[int, str], C.ENUM_FIELDS[name])
+    return names.get(value, "Unknown")
+
+
+def enum_text(name: str, value: int) -> str:
+    """The dissector's form of an enumerated value: "Armed (0x11)", "Unknown (0x07)"."""
+    return f"{enum_name(name, value)} (0x{value:02X})"
+
+
+def _value(name: str, value: Any) -> str:
+    if name in C.ENUM_FIELDS:
+        return enum_text(name, value)
+    return f"0x{value:04X}" if name == "armed_ru" else str(value)
+
+
+def _line(number: int, when: float, start: float, src: str, fields: dict[str, Any]) -> str:
     names = _SUMMARY_FIELDS.get(fields.get("type", ""), ())
-    parts = [f"{number:>6} {when:.6f} {src:<21} {fields.get('type', '?'):<4} serial={fields.get('serial', '?')}"]
-    parts += [f"{name}={fields[name]}" for name in names if name in fields]
+    parts = [(f"{number:>6} {utc_iso(when)} {since(when, start):>12} {src:<21} {fields.get('type', '?'):<4} "
+              f"serial={fields.get('serial', '?')}")]
+    parts += [f"{name}={_value(name, fields[name])}" for name in names if name in fields]
     if fields["problems"]:
         parts.append("ILLEGAL(" + ",".join(fields["problems"]) + ")")
     if fields["warnings"]:
@@ -60,18 +80,25 @@ def _jsonable(value: Any) -> Any:
     return value.hex() if isinstance(value, bytes) else value
 
 
+def _json(number: int, when: float, start: float, src: str, fields: dict[str, Any]) -> str:
+    """The decoded fields, plus the time in both readable forms and each enum's name (`names`)."""
+    names = {k: enum_name(k, v) for k, v in fields.items() if k in C.ENUM_FIELDS}
+    return json.dumps({"frame": number, "time": when, "time_utc": utc_iso(when),
+                       "time_relative": round(when - start, 6), "src": src,
+                       **{k: _jsonable(v) for k, v in fields.items()}, "names": names})
+
+
 def run(args: argparse.Namespace) -> int:
     count = 0
+    start: Optional[float] = None
     with contextlib.ExitStack() as stack:
         reader = stack.enter_context(CaptureReader(stdin_spool(stack) if args.capture == "-" else args.capture))
         for number, when, src, data in eglink_datagrams(reader, args.port):
+            if start is None:     # the capture's first packet, EG-Link or not
+                start = reader.first_ts if reader.first_ts is not None else when
             fields = decode(data, args.crc, args.crc_order)
             count += 1
-            if args.json:
-                print(json.dumps({"frame": number, "time": when, "src": src,
-                                  **{k: _jsonable(v) for k, v in fields.items()}}))
-            else:
-                print(_line(number, when, src, fields))
+            print((_json if args.json else _line)(number, when, start, src, fields))
     if not args.json:
         print(f"{count} EG-Link packets")
     if reader.problem is not None:

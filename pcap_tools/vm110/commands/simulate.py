@@ -8,9 +8,12 @@ and a summary line at the end. Stops after `--duration` seconds, on Ctrl-C or on
 from __future__ import annotations
 
 import argparse
+import ipaddress
+import itertools
 import json
 import signal
 import sys
+import time
 from typing import Any, Callable
 
 from .. import constants as C
@@ -23,6 +26,7 @@ from ..sim.lifecycle import DEFAULT_SILENCE_S, Restart
 from ..sim.realtime import RealtimeRunner
 from ..sim.remote import Remote
 from ..sim.transport import Address, UdpConfig, UdpTransport, multicast_config, parse_address
+from ..timefmt import utc_iso
 from .options import INPUT_PORT, INPUT_PORT_HELP, SEED
 
 
@@ -128,6 +132,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def udp_config(args: argparse.Namespace) -> UdpConfig:
     """The sockets for the role from the network options."""
+    _ipv4("--iface", args.iface)
+    if not _ipv4("--group", args.group).is_multicast:
+        raise CliError(f"--group: {args.group[:40]!r} is not a multicast address (224.0.0.0 to 239.255.255.255)")
     cfg = multicast_config(args.role, args.group, args.port, args.iface)
     if args.peer:
         cfg.dest = _address("--peer", args.peer, lowest_port=1)
@@ -136,6 +143,13 @@ def udp_config(args: argparse.Namespace) -> UdpConfig:
     if args.source:
         cfg.source = _address("--source", args.source)
     return cfg
+
+
+def _ipv4(option: str, text: str) -> ipaddress.IPv4Address:
+    try:
+        return ipaddress.IPv4Address(text)
+    except ValueError:
+        raise CliError(f"{option}: {text[:40]!r} is not an IPv4 address") from None
 
 
 def _address(option: str, text: str, lowest_port: int = 0) -> Address:
@@ -159,6 +173,11 @@ def life(args: argparse.Namespace) -> dict[str, Any]:
     """The `Life` fields of the node's configuration from the options."""
     restarts = tuple(sorted((Restart(at, args.restart_silence, args.restart_serial, 0, port)
                              for at, port in args.restart), key=lambda r: r.at_s))
+    for before, after in itertools.pairwise(restarts):
+        # A node that is down cannot go down again: the second restart would be lost in the first.
+        if after.at_s < before.at_s + args.restart_silence:
+            raise CliError(f"--restart: {after.at_s:g} s is within the restart at {before.at_s:g} s "
+                           f"(down for --restart-silence {args.restart_silence:g} s)")
     return {"stalls": tuple(args.stall), "restarts": restarts, "stop_at_s": args.stop_at}
 
 
@@ -177,14 +196,15 @@ def build_node(args: argparse.Namespace, printer: Callable[[str], None]) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
+    # Each log line: the wall-clock time in ISO 8601 UTC, then the node's own seconds from its start.
     def printer(line: str) -> None:
         if not args.quiet and not args.json:
-            print(line, flush=True)
+            print(f"{utc_iso(time.time())} {line}", flush=True)
 
     sockets = udp_config(args)      # its errors before anything starts
     node = build_node(args, printer)
     if args.json and not args.quiet:
-        node.listeners.append(lambda entry: print(json.dumps(entry), flush=True))
+        node.listeners.append(lambda entry: print(json.dumps({"time_utc": utc_iso(time.time()), **entry}), flush=True))
     imp = impairment(args)
     transport = UdpTransport(sockets, Impairer(imp, args.role) if imp.active() else None).open()
     runner = RealtimeRunner([(node, transport)])

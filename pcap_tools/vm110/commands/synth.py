@@ -13,8 +13,9 @@ import argparse
 from ..capture.writer import FORMATS, Format
 from ..errors import CliError
 from ..numbers import number
-from ..sim.scenario import SCENARIOS
+from ..sim.scenario import EPOCH_US, SCENARIOS
 from ..synth import output_rate, synthesize, truth_path
+from ..timefmt import utc_iso
 from .options import SEED
 
 GIB = 1 << 30
@@ -60,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None:
         check_size(args.scenario, args.duration, args.seed, fmt)
     truth = synthesize(args.scenario, args.out, args.seed, args.duration, fmt)
-    print(f"wrote {truth['capture']['packets']} packets ({truth['capture']['duration_s']:.3f} s) to {args.out}, "
+    start = EPOCH_US / 1e6
+    print(f"wrote {truth['capture']['packets']} packets ({truth['capture']['duration_s']:.3f} s from "
+          f"{utc_iso(start)} to {utc_iso(start + truth['capture']['duration_s'])}) to {args.out}, "
           f"ground truth to {truth_path(args.out)}")
     return 0

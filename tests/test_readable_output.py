@@ -1,0 +1,125 @@
+"""Readable output (issue 15): `vm110 decode` names enumerated values as the dissector does and
+shows times as ISO 8601 UTC and seconds from the capture's start; the analysis summary and synth
+do the same. The expectations come from tshark (the dissector's value strings, its own UTC and
+relative time columns) and from fixed dates, not from the code under test."""
+from __future__ import annotations
+
+import datetime
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import tshark_runner as T
+from vm110 import cli
+from vm110.layers import VM110, VRPI
+from vm110.timefmt import since, stamp, utc_iso
+
+CAPTURES = Path(__file__).resolve().parent.parent / "captures"
+ENUMS = ("bu_state", "eg_link", "ec_link", "c_link", "ru_state", "ru_cable", "ru_docked", "ru_disabled",
+         "encoder_switch")
+
+
+def vm110(capsys, *args: str) -> str:
+    """Standard output of `vm110 ARGS`, run in-process (exit code 0 required)."""
+    assert cli.main(list(args)) == 0
+    return capsys.readouterr().out
+
+
+@pytest.mark.parametrize("seconds, text", [
+    (0, "1970-01-01T00:00:00.000000Z"),
+    (1_750_000_000, "2025-06-15T15:06:40.000000Z"),          # the synthesised captures' start (README)
+    (1_750_000_000.125, "2025-06-15T15:06:40.125000Z"),
+    (1_750_000_000.9999996, "2025-06-15T15:06:41.000000Z"),   # rounded to the µs, carried into the second
+    (951_782_400.5, "2000-02-29T00:00:00.500000Z"),
+    (-1.5, "1969-12-31T23:59:58.500000Z"),
+    (1e300, "1e+300 s"), (float("nan"), "nan s"), (float("inf"), "inf s"),   # no date: the raw value
+])
+def test_utc_iso(seconds, text):
+    assert utc_iso(seconds) == text
+
+
+@pytest.mark.parametrize("seconds, start, text", [
+    (12.5, 2.25, "+10.250000"), (1.0, 1.0, "+0.000000"), (0.5, 1.0, "-0.500000"), (None, 0.0, "-"),
+    (float("nan"), 0.0, "-"),
+])
+def test_since(seconds, start, text):
+    assert since(seconds, start) == text
+
+
+def test_stamp():
+    assert stamp(1_750_000_001.5, 1_750_000_000) == "2025-06-15T15:06:41.500000Z (+1.500000 s)"
+    assert stamp(None, 0) == "-"
+
+
+def tshark_view(pcap: Path) -> tuple[dict[int, tuple[str, str]], dict[int, dict[str, str]]]:
+    """Per frame: tshark's UTC and relative time, and the dissector's text of each enum field."""
+    with T.HOST.workspace(pcap.parent) as ws:
+        cols = ws.run(["-r", str(pcap), "-t", "ud", "-T", "fields", "-e", "frame.number", "-e", "_ws.col.Time",
+                       "-e", "frame.time_relative"]).stdout
+        frames, _ = T.dissect_pdml(ws, pcap)
+    times = {int(n): (t, r) for n, t, r in (line.split("\t") for line in cols.splitlines())}
+    enums = {f.number: {i.name[len("vm110."):]: T.showname_value(i) for i in f.items if i.name[6:] in ENUMS}
+             for f in frames}
+    return times, enums
+
+
+def iso_of_tshark(text: str) -> str:
+    """tshark's "2025-06-15 15:06:40.000000" (-t ud) as ISO 8601 UTC."""
+    return text.replace(" ", "T") + "Z"
+
+
+@pytest.mark.tshark
+def test_decode_shows_the_dissector_s_names_and_tshark_s_times(capsys, tmp_path):
+    odd = tmp_path / "odd.pcap"       # values beyond the enumerations: "Unknown (0x..)" in both
+    T.write_pcap(odd, [bytes(VM110(serial=1) / VRPI(bu_state=0x07, ru_cable=5, eg_link=9, armed_ru=0x0C07)),
+                       bytes(VM110(serial=2) / VRPI(bu_state=0x11, ru_state=3, armed_ru=0x0C07))], [0, 1_250_000])
+    for pcap in (CAPTURES / "bu-watchdog.pcap", odd):
+        times, enums = tshark_view(pcap)
+        lines = vm110(capsys, "decode", str(pcap)).splitlines()[:-1]
+        records = [json.loads(line) for line in vm110(capsys, "decode", str(pcap), "--json").splitlines()]
+        assert len(lines) == len(records) == len(times)
+        states = set()
+        for line, record in zip(lines, records):
+            frame = record["frame"]
+            utc, relative = times[frame]
+            words = line.split()
+            assert words[:3] == [str(frame), iso_of_tshark(utc), f"+{float(relative):.6f}"]
+            assert record["time_utc"] == iso_of_tshark(utc) and record["time_relative"] == pytest.approx(float(relative))
+            for name, shown in enums[frame].items():          # "Armed (0x11)", "Unknown (0x07)"
+                assert record["names"][name] == shown.rsplit(" (", 1)[0]
+                if name in ("bu_state", "ru_state"):
+                    assert f"{name}={shown}" in line
+                    states.add(shown)
+        assert len(states) >= 2                               # the capture changes state: not one name twice
+
+
+def test_the_summary_shows_start_and_end_in_utc_and_relays_relative(capsys):
+    out = vm110(capsys, "analyze", str(CAPTURES / "bu-watchdog.pcap"))
+    # README (captures): from 2025-06-15 15:06:40 UTC, 15 s; the relays open at 7.0 s for 1.125 s.
+    assert "Time: 2025-06-15T15:06:40.000000Z to 2025-06-15T15:06:54.900000Z (UTC)" in out
+    relays = next(line for line in out.splitlines() if line.startswith("ES-Link relays open"))
+    assert "2025-06-15T15:06:47.0000" in relays and "(+7.0000" in relays and "for 1.125 s" in relays
+    assert "1750000" not in out                               # no raw epoch seconds anywhere
+
+
+def test_synth_says_when_its_capture_lies(capsys, tmp_path):
+    out = vm110(capsys, "synth", "normal", "--duration", "1", "--out", str(tmp_path / "n.pcap"))
+    assert "from 2025-06-15T15:06:40.000000Z to 2025-06-15T15:06:40.9" in out
+
+
+def test_simulate_logs_wall_clock_utc_beside_the_node_s_seconds():
+    """Over loopback only (unicast to the discard port): each event line starts with the UTC time,
+    then the node's seconds from its start; the two clocks advance alike."""
+    run = [sys.executable, "-m", "vm110", "simulate", "bu", "--peer", "127.0.0.1:9", "--listen", "127.0.0.1:0",
+           "--source", "127.0.0.1:0", "--duration", "1.8", "--command-every", "0.5"]
+    before = datetime.datetime.now(datetime.timezone.utc)
+    lines = subprocess.run(run, capture_output=True, text=True, timeout=60, check=True).stdout.splitlines()
+    events = [line.split() for line in lines if line[:1].isdigit()]
+    assert len(events) >= 2 and all(e[2:4] == ["bu", "command_sent"] for e in events), lines
+    stamps = [datetime.datetime.strptime(e[0], "%Y-%m-%dT%H:%M:%S.%fZ").replace(tzinfo=datetime.timezone.utc)
+              for e in events]
+    assert before <= stamps[0] <= datetime.datetime.now(datetime.timezone.utc)
+    wall, node = (stamps[1] - stamps[0]).total_seconds(), float(events[1][1]) - float(events[0][1])
+    assert node == pytest.approx(0.5, abs=0.01) and wall == pytest.approx(node, abs=0.4), lines   # a busy machine
