@@ -13,7 +13,7 @@ in the heap as large as itself, which the process keeps.
 from __future__ import annotations
 
 import math
-from typing import Callable, Optional, Sequence
+from typing import BinaryIO, Callable, Optional, Sequence
 
 import numpy as np
 
@@ -67,12 +67,38 @@ class Floats:
         return out
 
 
-class Stream:
-    """One periodic stream: `ptype` of `sender`, watchdog `limit_ms`."""
+class SpilledFloats(Floats):
+    """Floats whose full blocks live in `spool`, an anonymous file of the caller's, mapped back
+    read-only: memory holds the block being filled, the values stay exact, the disk takes 8
+    bytes per value (`vm110 monitor` for runs of days; the pages of a mapped block are read in
+    only when the report is built)."""
 
-    def __init__(self, ptype: str, sender: str, limit_ms: float) -> None:
+    def __init__(self, spool: BinaryIO) -> None:
+        super().__init__()
+        self.spool = spool
+        self.spilled = 0                  # blocks[:spilled] are mapped from the spool
+
+    def extend(self, values: np.ndarray) -> None:
+        super().extend(values)
+        while self.spilled < len(self.blocks) and (self.spilled < len(self.blocks) - 1 or self.used == self.BLOCK):
+            block = self.blocks[self.spilled]
+            at = self.spool.seek(0, 2)
+            self.spool.write(np.ascontiguousarray(block, dtype="<f8").tobytes())
+            self.spool.flush()
+            self.blocks[self.spilled] = np.memmap(self.spool, dtype="<f8", mode="r", offset=at, shape=(len(block),))
+            self.spilled += 1
+
+
+FloatsFactory = Callable[[], Floats]
+
+
+class Stream:
+    """One periodic stream: `ptype` of `sender`, watchdog `limit_ms`; `floats` makes the store
+    of its times (default in memory)."""
+
+    def __init__(self, ptype: str, sender: str, limit_ms: float, floats: FloatsFactory = Floats) -> None:
         self.ptype, self.sender, self.limit = ptype, sender, limit_ms
-        self.times = Floats()
+        self.times = floats()
         self.first_frame = self.last_frame = 0
         self.violations: list[dict] = []
         self.backwards: list[tuple[int, float]] = []     # (frame, time) of the packet after each

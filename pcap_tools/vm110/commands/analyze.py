@@ -34,10 +34,17 @@ DATA_SIZE = number(0, 0xFFFF, "bytes", integer=True)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("captures", nargs="+", metavar="CAPTURE", help="pcap or pcapng files; - reads standard input")
-    parser.add_argument("--json", metavar="FILE", help="write the JSON report (docs/report.md); - for standard output")
-    parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report; - for standard output")
+    add_analysis_arguments(parser)
     parser.add_argument("--engine", choices=("fast", "tshark"), default="fast",
                         help="fast (default, streams the file) or tshark (the Lua dissector through pyshark)")
+    parser.add_argument("--jobs", type=JOBS, default=1, metavar="N",
+                        help=f"captures analysed in parallel, {JOBS.range_text}; default 1")
+
+
+def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the analysis and its reports, shared with `vm110 monitor`."""
+    parser.add_argument("--json", metavar="FILE", help="write the JSON report (docs/report.md); - for standard output")
+    parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report; - for standard output")
     parser.add_argument("--crc", choices=("auto", *VARIANTS), default="auto",
                         help="CRC variant; auto picks the one that validates most packets")
     parser.add_argument("--crc-order", choices=("auto", *BYTE_ORDERS), default="auto",
@@ -48,8 +55,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fail-on", metavar="RULES", default="",
                         help="exit 1 when a rule holds, e.g. lost>0,watchdog>0,unacked>0,illegal>0; "
                              f"names: {', '.join(TOTAL_NAMES)}")
-    parser.add_argument("--jobs", type=JOBS, default=1, metavar="N",
-                        help=f"captures analysed in parallel, {JOBS.range_text}; default 1")
     parser.add_argument("--vrpo-period", type=MS, metavar="MS",
                         help=f"nominal VRPO period for jitter, {MS.range_text} (default: median interval "
                              "between bursts)")
@@ -128,23 +133,30 @@ def combine(reports: list[dict]) -> dict:
                          for r in reports]}
 
 
-def run(args: argparse.Namespace) -> int:
+def analysis_options(args: argparse.Namespace) -> tuple[Options, list]:
+    """The analysis Options and the --fail-on rules of parsed arguments (add_analysis_arguments);
+    the report targets checked up front: not after minutes of analysis."""
     low, high = args.vrpo_range
     if low > high:
         raise CliError(f"--vrpo-range: MIN {low:g} ms is above MAX {high:g} ms")
     fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on else []
     for target in (args.json, args.html):
         if target not in (None, "-"):
-            check_target(target)      # up front: not after minutes of analysis
-    if args.engine == "tshark":
-        from ..analysis.tshark_engine import check_available
-        check_available()
+            check_target(target)
     options = Options(serial_scope=args.serial_scope, vrpo_period_ms=args.vrpo_period,
                       vrpi_watchdog_ms=args.vrpi_watchdog, vrpo_watchdog_ms=args.vrpo_watchdog,
                       vrpo_min_ms=args.vrpo_range[0], vrpo_max_ms=args.vrpo_range[1], resend_ms=args.resend,
                       vrci_fail_ms=args.vrci_fail, vrco_give_up_ms=args.vrco_give_up,
                       reuse_gap_ms=args.reuse_gap, dup_window_ms=args.dup_window, burst_gap_ms=args.burst_gap, vrpo_start=args.vrpo_start,
                       vrpo_data_size=args.vrpo_data_size)
+    return options, fail_rules
+
+
+def run(args: argparse.Namespace) -> int:
+    options, fail_rules = analysis_options(args)
+    if args.engine == "tshark":
+        from ..analysis.tshark_engine import check_available
+        check_available()
     with contextlib.ExitStack() as stack:
         paths = [stdin_spool(stack) if p == "-" else p for p in args.captures]
         jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1) for p in paths]
@@ -156,14 +168,20 @@ def run(args: argparse.Namespace) -> int:
     for name, result in zip(args.captures, results):
         if name == "-" and isinstance(result, dict):
             result["capture"]["file"] = "-"
+    return deliver(args, list(args.captures), results, fail_rules, "analyze")
+
+
+def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rules: list, command: str) -> int:
+    """Print and write the reports (`results`: a report, or the one-line reason a capture could
+    not be read, per name) as the options say; the exit code."""
     # Every readable capture is reported; an unreadable one is an error entry beside them (exit 2).
     reports = [r for r in results if isinstance(r, dict)]
-    errors = [{"file": name, "error": r} for name, r in zip(args.captures, results) if isinstance(r, str)]
+    errors = [{"file": name, "error": r} for name, r in zip(names, results) if isinstance(r, str)]
     for e in errors:
-        print(f"vm110 analyze: {e['error']}", file=sys.stderr)
+        print(f"vm110 {command}: {e['error']}", file=sys.stderr)
     if not reports:
         return EXIT_USAGE
-    combined: Optional[dict] = combine(reports) if len(args.captures) > 1 else None
+    combined: Optional[dict] = combine(reports) if len(names) > 1 else None
     if not args.quiet:
         print("\n\n".join(summary.render(r, args.list) for r in reports))
         if combined:
