@@ -37,7 +37,7 @@ from ..errors import CliError
 from .collect import CODE_OF_ID, RECORD, RECORD_DTYPE, Collected
 from .incremental import Analysis
 
-_HDR = struct.Struct("<4sH6xH")                    # packet ID, revision, size
+_HDR = struct.Struct("<4sH4xH")                    # packet ID, revision, (origin, serial), size
 # One little-endian read of a record of the common frame: pcap record header (sec, frac, incl,
 # orig); Ethernet type (raw bytes); IPv4 version/IHL, fragment field, protocol, source; UDP ports
 # and length (big-endian fields read little-endian: compared through _SWAP); EG-Link packet ID,

@@ -21,10 +21,9 @@ from typing import Callable, Optional
 
 from .. import constants as C
 from ..analysis.collect import Collected
-from ..analysis.engine import _LOW, _SNIFF, FastEngine, crc_matches
+from ..analysis.engine import _HDR, _LOW, _SNIFF, FastEngine, crc_matches
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, VARIANTS, zlib_form
 
-_HDR = struct.Struct("<4sH6xH")                    # packet ID, revision, size
 _U32 = {"little": struct.Struct("<I"), "big": struct.Struct(">I")}
 HOLD_MAX = 1 << 16                                 # datagrams held at most while choosing the CRC
 Illegal = Callable[[int, float, str, str, list], None]

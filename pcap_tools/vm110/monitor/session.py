@@ -207,6 +207,7 @@ class Session:
 
     def emit(self, f: dict) -> None:
         rule, sender = f["rule"], f.get("sender")
+        f["at"] = self.now()                 # the capture time it was told at
         self.counts[rule] += 1
         if rule == "watchdog":
             if f["event"] == "raised":
@@ -270,6 +271,8 @@ class Session:
         if self.reader.problem and not self.failure:
             self.failure = f"{self.cfg.name}: {self.reader.problem}"
         self._flush()
+        if self.last_ts is not None:
+            self.live.tick(self.last_ts)           # what the end of the input can tell
         self.intake.sync(self.reader)
         self.intake.got.analysis = self.analysis     # the report is built from it (report.build)
         if self.cfg.evidence is not None:
