@@ -76,6 +76,7 @@ class Session:
         self.first_ts: Optional[float] = None
         self.second: Optional[int] = None   # the capture second being counted
         self.frames_at_second = 0
+        self.done = 0                       # frames processed (a paced replay parses ahead)
         self.rate = 0.0
         self.next_draw = 0.0
         self.stop = False
@@ -145,6 +146,7 @@ class Session:
             if self.last_ts is None or ts > self.last_ts:
                 self.last_ts = ts
             self.last_mono = time.monotonic()
+            self.done = frame
             if evidence is not None:
                 evidence.frame(ts, frame, link, data)
             if dgram is not None:
@@ -173,7 +175,7 @@ class Session:
         self._flush()
         self.live.tick(ts)
         self.live.close_second()
-        frames = self.reader.frames
+        frames = self.done
         self.rate = float(frames - self.frames_at_second) / max(1, second - (self.second or second))
         self.frames_at_second = frames
         self.second = second
@@ -245,7 +247,7 @@ class Session:
     def snapshot(self, now: Optional[float]) -> dict:
         got = self.intake.got
         view = self.live.view(now if now is not None else 0.0)
-        return {"type": "snapshot", "time": now, "packets": self.reader.frames, "rate_pps": self.rate,
+        return {"type": "snapshot", "time": now, "packets": self.done, "rate_pps": self.rate,
                 "eglink_packets": got.eglink, "illegal": got.illegal,
                 "alarms": [a["item"] | {"rule": a["rule"]} for a in self.active.values()],
                 "findings": dict(sorted(self.counts.items())), **view, "memory_kb": rss_kb(),
@@ -255,7 +257,7 @@ class Session:
         assert self.board is not None
         now = self.now()
         got = self.intake.got
-        header = {"source": self.cfg.name, "now": now, "status": status, "packets": self.reader.frames,
+        header = {"source": self.cfg.name, "now": now, "status": status, "packets": self.done,
                   "rate": self.rate, "eglink": got.eglink, "illegal": got.illegal,
                   "alarms": [a["item"] | {"rule": a["rule"]} for a in self.active.values()]}
         width, height = self.board.size()
