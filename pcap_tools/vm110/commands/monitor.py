@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         on_terminal = sys.stdout.isatty() and not args.no_dashboard and args.json_lines != "-"
         cfg = Settings(name=name, port=args.port, crc=args.crc, crc_order=args.crc_order, realtime=args.realtime,
                        live=args.read is None or args.read == "-", duration=args.duration, dashboard=on_terminal,
-                       lines=args.json_lines != "-", json_lines=json_lines, evidence=evidence)
+                       lines=args.json_lines != "-" and not args.quiet, json_lines=json_lines, evidence=evidence)
         session = Session(source, options, cfg)
         stack.callback(session.close)
         session.run()

@@ -30,9 +30,17 @@ Illegal = Callable[[int, float, str, str, list], None]
 
 
 class Watched(Collected):
-    """A Collected that tells `on_illegal` of each illegal packet as it is found."""
+    """A Collected that tells `on_illegal` of each illegal packet as it is found, and keeps its
+    legal packets for the live view too (`live`: (ts, frame, src, sport, packet), taken away
+    by the caller)."""
 
     on_illegal: Optional[Illegal] = None
+    live: Optional[list] = None
+
+    def add_legal(self, ts: float, frame: int, src: bytes, sport: int, packet: bytes) -> None:
+        super().add_legal(ts, frame, src, sport, packet)
+        if self.live is not None:
+            self.live.append((ts, frame, src, sport, packet))
 
     def add_illegal(self, frame: int, ts: float, src: str, ptype: str, reasons: list) -> None:
         super().add_illegal(frame, ts, src, ptype, reasons)
@@ -49,6 +57,7 @@ class Intake:
         self.auto = crc == "auto" or crc_order == "auto"
         self.got = Watched(path=name, engine="fast", analysis=analysis, format=fmt, ports=tuple(sorted(self.ports)),
                            crc_auto=self.auto)
+        self.got.live = []
         self.variant: Optional[str] = None if self.auto else crc
         self.order: Optional[str] = None if self.auto else crc_order
         self.candidates = [(v, o) for v in (VARIANTS if crc == "auto" else (crc,))

@@ -17,13 +17,15 @@ Where the numbers come from:
 from __future__ import annotations
 
 import collections
+import math
 from typing import Callable, Optional
 
 import numpy as np
 
 from .. import constants as C
 from ..analysis import serials
-from ..analysis.collect import CODE, STATE, STATE_FIELDS, TYPES, VRPI_CODE, VRPO_CODE, code_of, sender_keys
+from ..analysis.collect import CODE, CODE_OF_ID, STATE, STATE_FIELDS, TYPES, VRPI_CODE, VRPO_CODE, sender_id
+from ..capture.reader import address
 from ..analysis.findings import frame_filter
 from ..analysis.state import _name as state_name
 from ..analysis.timing import JITTER_GAIN
@@ -31,7 +33,7 @@ from ..analysis.timing import JITTER_GAIN
 SILENT_S = 10.0            # a watchdog lasting longer than this shows as "silent"
 WINDOW_S = 60              # "last minute" numbers
 Emit = Callable[[dict], None]
-_FAIL_CODE = {CODE[C.PacketType.VRCI]: "vrci_fail_ms", CODE[C.PacketType.VRCO]: "vrco_give_up_ms"}
+_INPUT = [t.direction is C.Direction.INPUT for t in TYPES]
 
 
 def item(frames, time: float, sender: Optional[str], **what) -> dict:
@@ -51,7 +53,7 @@ def item(frames, time: float, sender: Optional[str], **what) -> dict:
 class LiveSender:
     """The live numbers of one sender."""
 
-    def __init__(self, key: int, sid: str, direction: str, opt) -> None:
+    def __init__(self, key: tuple, sid: str, direction: str, opt) -> None:
         self.key, self.id, self.direction = key, sid, direction
         self.code = VRPI_CODE if direction == C.Direction.INPUT.value else VRPO_CODE
         self.ptype = TYPES[self.code].value
@@ -75,6 +77,7 @@ class LiveSender:
         self.window: collections.deque = collections.deque(maxlen=WINDOW_S)   # per second: min, max
         self.marks: collections.deque = collections.deque(maxlen=WINDOW_S + 1)   # per second: totals
         self.state: Optional[dict] = None
+        self.nominal: Optional[float] = None          # VRPO without --vrpo-period: median of the recent intervals
 
     def periodic(self, ts: float, frame: int, emit: Emit) -> None:
         if self.code == VRPO_CODE:
@@ -109,9 +112,9 @@ class LiveSender:
             self.recent.append(ms)
             if not self.low <= ms <= self.high:
                 self.outside += 1
-        period = self.period or (float(np.median(self.recent)) if self.recent else None)
+        period = self.period or self.nominal or ms
         if period:
-            k = max(1.0, np.floor(ms / period + 0.5))
+            k = max(1.0, math.floor(ms / period + 0.5))
             d = abs(ms - k * period)
             self.jitter = d if self.jitter is None else self.jitter + (d - self.jitter) * JITTER_GAIN
 
@@ -136,6 +139,8 @@ class LiveSender:
 
     def close_second(self, totals: dict) -> None:
         """A second of capture time ended: push its window entries."""
+        if self.recent:
+            self.nominal = float(np.median(self.recent))
         self.window.append(tuple(self.second))
         self.second = [None, None]
         self.marks.append((totals.get("lost", 0), totals.get("duplicates", 0), self.outside))
@@ -177,7 +182,8 @@ class Live:
 
     def __init__(self, analysis, opt, emit: Emit) -> None:
         self.analysis, self.opt, self.emit = analysis, opt, emit
-        self.senders: dict[int, LiveSender] = {}
+        self.senders: dict[tuple, LiveSender] = {}
+        self.ids: dict = {}                    # sender id -> the analysis' Sender
         self.gaps_seen: dict = {}              # (sender key, counter key) -> gaps and restarts reported
         self.links_seen: set = set()
         self.cmd_seen = {code: 0 for code in analysis.tracker.tallies}
@@ -190,35 +196,41 @@ class Live:
         self.active: dict = {}                 # rule, sender -> raised item
 
     # -- packets -------------------------------------------------------------------------------
-    def feed(self, rec: np.ndarray, sources: dict) -> None:
-        """The legal packets the analysis was just fed."""
-        codes = code_of(rec["pid"])
-        keys = sender_keys(rec, codes).tolist()
+    def feed(self, rows: list) -> None:
+        """Legal packets in arrival order: (ts, frame, packed source, source port, EG-Link packet)."""
         senders, emit = self.senders, self.emit
         last_vrpi: dict = {}
-        for i, (key, code, ts, frame) in enumerate(zip(keys, codes.tolist(), rec["ts"].tolist(),
-                                                       rec["frame"].tolist())):
+        for ts, frame, src, sport, packet in rows:
+            code = CODE_OF_ID[packet[:4]]
+            key = (_INPUT[code], src, sport, packet[6] | packet[7] << 8)
             snd = senders.get(key)
             if snd is None:
-                a = self.analysis.senders[key]
-                snd = senders[key] = LiveSender(key, a.id, a.direction, self.opt)
+                direction = C.Direction.INPUT.value if key[0] else C.Direction.OUTPUT.value
+                snd = senders[key] = LiveSender(key, sender_id(direction, key[3], address(src, sport)), direction,
+                                                self.opt)
             snd.packets += 1
             if code == snd.code:
                 snd.periodic(ts, frame, emit)
                 if code == VRPI_CODE:
-                    last_vrpi[key] = i
-        for key, i in last_vrpi.items():
-            st = dict(zip(STATE_FIELDS, STATE.unpack(rec["state"][i].tobytes())))
+                    last_vrpi[key] = packet
+        for key, packet in last_vrpi.items():
+            st = dict(zip(STATE_FIELDS, STATE.unpack_from(packet, C.PREFIX_LEN)))
             senders[key].state = {
                 "bu_state": state_name("bu_state", st["bu_state"]), "armed_ru": state_name("armed_ru", st["armed_ru"]),
                 "ru_state": state_name("ru_state", st["ru_state"]), "ru_battery": st["ru_battery"],
                 "ru_rssi": st["ru_rssi"], "relays_open": st["bu_state"] < C.ES_RELAYS_CLOSED_FROM}
 
+    def _by_id(self) -> dict:
+        if len(self.ids) != len(self.analysis.senders):
+            self.ids = {a.id: a for a in self.analysis.senders.values()}
+        return self.ids
+
     # -- the current time ----------------------------------------------------------------------
     def tick(self, now: float) -> None:
         """Judge what needs the time `now` (capture time) and what the analysis decided since."""
-        for key, snd in self.senders.items():
-            a = self.analysis.senders.get(key)
+        ids = self._by_id()
+        for snd in self.senders.values():
+            a = ids.get(snd.id)
             if a is not None and a.taken_over and not snd.replaced:
                 snd.replaced = True
                 if snd.alarm is not None:
@@ -289,16 +301,16 @@ class Live:
         self.watch = keep
 
     def close_second(self) -> None:
-        totals = {s["key"]: s for s in self.analysis.snapshot()}
-        for key, snd in self.senders.items():
-            snd.close_second(totals.get(key, {}))
+        totals = {s["id"]: s for s in self.analysis.snapshot()}
+        for snd in self.senders.values():
+            snd.close_second(totals.get(snd.id, {}))
         self.latencies.append(self.latency_second)
         self.latency_second = None
 
     def view(self, now: float) -> dict:
         """The dashboard's numbers at `now`."""
-        totals = {s["key"]: s for s in self.analysis.snapshot()}
-        senders = [snd.view(now, totals.get(key, {})) for key, snd in self.senders.items()]
+        totals = {s["id"]: s for s in self.analysis.snapshot()}
+        senders = [snd.view(now, totals.get(snd.id, {})) for snd in self.senders.values()]
         senders.sort(key=lambda s: (s["role"] != "BU", s["sender"]))
         window = [x for x in self.latencies if x is not None]
         in_flight = sum(1 for _, c, flagged in self.watch if not flagged)

@@ -85,7 +85,6 @@ class Session:
     # -- the analysis sees the intake's records through here -------------------------------------
     def feed(self, rec, sources) -> None:
         self.analysis.feed(rec, sources)
-        self.live.feed(rec, sources)
 
     # -- time ----------------------------------------------------------------------------------
     def now(self) -> Optional[float]:
@@ -167,12 +166,21 @@ class Session:
                 raise Stop
 
     def _flush(self) -> None:
+        """The analysis gets the records gathered (a chunk's worth: its cost is per batch)."""
         if not self.intake.deciding:
             self.intake.got.flush()
+            self._live()
+
+    def _live(self) -> None:
+        """The live view gets the legal packets so far (it is cheap per packet)."""
+        rows = self.intake.got.live
+        if rows and not self.intake.deciding:
+            self.live.feed(rows)
+            rows.clear()
 
     def _second(self, ts: float, second: int) -> None:
         """Capture second `self.second` ended (the packet at `ts` begins a later one)."""
-        self._flush()
+        self._live()
         self.live.tick(ts)
         self.live.close_second()
         frames = self.done
