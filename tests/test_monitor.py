@@ -5,12 +5,17 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from vm110.analysis.periodic import Floats, SpilledFloats
 from vm110.capture.reader import CaptureReader
 from vm110.cli import main
 from vm110.synth import synthesize
@@ -150,3 +155,57 @@ def test_options_are_validated():
                  ["--read", "-", "--idle", "1"], ["--read", "x", "--evidence", "/nonexistent/dir"]):
         out = _run(["monitor", *args])
         assert out.returncode == 2 and len(out.stderr.decode().strip().splitlines()) == 1, args
+
+
+def test_follows_a_growing_file(tmp_path):
+    """--read FILE reads on as the file grows (tail -f): the report is that of the whole file."""
+    data = (ROOT / "captures" / "loss.pcapng").read_bytes()
+    growing = tmp_path / "growing.pcapng"
+    growing.write_bytes(data[:7001])                     # in the middle of a block
+    proc = subprocess.Popen(VM110 + ["monitor", "--read", str(growing), "--idle", "2", "--no-dashboard", "--quiet",
+                                     "--json", str(tmp_path / "m.json")], stderr=subprocess.PIPE)
+    for cut in (7001, 30000, len(data)):
+        time.sleep(0.4)
+        with open(growing, "ab") as f:
+            f.write(data[growing.stat().st_size:cut])
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert main(["analyze", str(growing), "--quiet", "--json", str(tmp_path / "a.json")]) == 0
+    assert (tmp_path / "a.json").read_bytes() == (tmp_path / "m.json").read_bytes()
+
+
+def test_sigterm_ends_with_the_report_of_what_was_seen(tmp_path):
+    data = (ROOT / "captures" / "normal.pcap").read_bytes()
+    lines = tmp_path / "live.jsonl"
+    proc = subprocess.Popen(VM110 + ["monitor", "--read", "-", "--no-dashboard", "--quiet", "--fail-on", "packets>0",
+                                     "--json", str(tmp_path / "r.json"), "--json-lines", str(lines)],
+                            stdin=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdin is not None
+    proc.stdin.write(data[:12000])          # the pipe stays open: only the signal ends the run
+    proc.stdin.flush()
+    for _ in range(200):                    # running (and its handlers in place) once it logs
+        time.sleep(0.1)
+        if lines.exists() and lines.stat().st_size:
+            break
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(timeout=30)                   # before the pipe closes
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 1, err        # --fail-on holds for what was seen
+    report = json.loads((tmp_path / "r.json").read_text())
+    seen = report["capture"]["packets"]
+    assert 0 < seen < sum(1 for _ in CaptureReader(str(ROOT / "captures" / "normal.pcap")))
+    assert report["capture"]["problem"] is None      # a stream stopped between records is not damage
+
+
+def test_spilled_times_stay_exact_and_out_of_memory():
+    values = np.cumsum(np.random.default_rng(1).uniform(0.05, 0.2, 3 * Floats.BLOCK + 123)) + 1.75e9
+    with tempfile.TemporaryFile() as spool:
+        spilled, plain = SpilledFloats(spool), Floats()
+        for part in np.array_split(values, 7):
+            spilled.extend(part)
+            plain.extend(part)
+        assert spilled.spilled == 3 and all(isinstance(b, np.memmap) for b in spilled.blocks[:3])
+        assert not isinstance(spilled.blocks[3], np.memmap)
+        assert np.array_equal(spilled.intervals_ms(), plain.intervals_ms())
+        assert np.array_equal(spilled.intervals_ms(1.7e9), plain.intervals_ms(1.7e9))
+        assert spilled.last() == plain.last() and spilled[Floats.BLOCK + 5] == values[Floats.BLOCK + 5]

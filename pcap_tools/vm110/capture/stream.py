@@ -38,7 +38,7 @@ class StreamReader(CaptureReader):
         self.last_ts: Optional[float] = None
         self.endian = "<"
         self.interfaces: list[tuple] = []
-        self._layout: Optional[tuple] = None   # pcap: (record struct, scale, link)
+        self._record: Optional[tuple] = None   # pcap: (record struct, scale, link)
         self.buf = b""
         self.stopped = False                   # damage seen: the rest is not read
 
@@ -53,7 +53,7 @@ class StreamReader(CaptureReader):
                 return []
             self._sniff()
         out: list[Packet] = []
-        used = self._pcap(out) if self.format == "pcap" else self._pcapng(out)
+        used = self._walk_pcap(out) if self.format == "pcap" else self._walk_pcapng(out)
         self.buf = self.buf[used:]
         self.bytes_read += used
         if not self.stopped and len(self.buf) > _MAX_BUFFER:
@@ -81,18 +81,18 @@ class StreamReader(CaptureReader):
         else:
             raise CaptureError(f"{self.path}: not a pcap or pcapng capture (magic 0x{magic_be:08x})")
 
-    def _pcap(self, out: list[Packet]) -> int:
+    def _walk_pcap(self, out: list[Packet]) -> int:
         data, pos = self.buf, 0
-        if self._layout is None:
+        if self._record is None:
             if len(data) < PCAP_HEADER_LEN:
                 return 0
             e = "<" if struct.unpack_from("<I", data)[0] in (PCAP_MAGIC_US, PCAP_MAGIC_NS) else ">"
             magic, _, _, _, _, _, network = struct.unpack_from(e + "IHHiIII", data)
             link = network & 0x0FFFFFFF
             self.link_types.add(L.NAMES.get(link, str(link)))
-            self._layout = (struct.Struct(e + "IIII"), 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link)
+            self._record = (struct.Struct(e + "IIII"), 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link)
             pos = PCAP_HEADER_LEN
-        rec, scale, link = self._layout
+        rec, scale, link = self._record
         end = len(data)
         while pos + 16 <= end:
             sec, frac, incl, orig = rec.unpack_from(data, pos)
@@ -107,7 +107,7 @@ class StreamReader(CaptureReader):
             pos += 16 + incl
         return pos
 
-    def _pcapng(self, out: list[Packet]) -> int:
+    def _walk_pcapng(self, out: list[Packet]) -> int:
         data, pos, end = self.buf, 0, len(self.buf)
         while pos + 12 <= end:
             if struct.unpack_from("<I", data, pos)[0] == PCAPNG_SHB:

@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..monitor.evidence import Evidence
     from ..monitor.session import Session, Settings
-    from ..monitor.sources import Dumpcap, FollowFile, PipeSource
+    from ..monitor.sources import Dumpcap, FollowFile, PipeSource, Source
     options, fail_rules = analysis_options(args)
     if args.realtime and args.read is None:
         raise CliError("--realtime replays --read FILE|-; a live interface is real time already")
@@ -71,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
             evidence = Evidence(args.evidence, args.before, args.after,
                                 {"before_s": args.before, "after_s": args.after, "port": args.port,
                                  "source": name, "analysis": vars(options)})
+        source: Source
         if args.read == "-":
             source = PipeSource(sys.stdin.fileno(), "standard input")
         elif args.read is not None:

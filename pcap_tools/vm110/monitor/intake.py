@@ -130,7 +130,8 @@ class Intake:
                     got.crc_counts[(self.variant, self.order)] += 1
                     got.add_legal(ts, frame, src, sport, payload)
                     return
-        self.engine._slow(got, reader, self.variant, self.order, ts, src, sport, dport, payload, frame)  # noqa: SLF001
+        assert self.variant is not None and self.order is not None
+        self.engine._slow(got, reader, self.variant, self.order, ts, src, sport, dport, payload, frame)
 
     def sync(self, reader) -> None:
         """The file-level facts of the reader so far, as the engine sets them at the end."""

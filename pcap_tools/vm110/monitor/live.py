@@ -24,7 +24,7 @@ import numpy as np
 
 from .. import constants as C
 from ..analysis import serials
-from ..analysis.collect import CODE, CODE_OF_ID, STATE, STATE_FIELDS, TYPES, VRPI_CODE, VRPO_CODE, sender_id
+from ..analysis.collect import CODE_OF_ID, STATE, STATE_FIELDS, TYPES, VRPI_CODE, VRPO_CODE, sender_id
 from ..capture.reader import address
 from ..analysis.findings import frame_filter
 from ..analysis.state import _name as state_name
@@ -214,7 +214,7 @@ class Live:
                 if code == VRPI_CODE:
                     last_vrpi[key] = packet
         for key, packet in last_vrpi.items():
-            st = dict(zip(STATE_FIELDS, STATE.unpack_from(packet, C.PREFIX_LEN)))
+            st = dict(zip(STATE_FIELDS, STATE.unpack_from(packet, C.PREFIX_LEN), strict=True))
             senders[key].state = {
                 "bu_state": state_name("bu_state", st["bu_state"]), "armed_ru": state_name("armed_ru", st["armed_ru"]),
                 "ru_state": state_name("ru_state", st["ru_state"]), "ru_battery": st["ru_battery"],
@@ -233,7 +233,7 @@ class Live:
             a = ids.get(snd.id)
             if a is not None and a.taken_over and not snd.replaced:
                 snd.replaced = True
-                if snd.alarm is not None:
+                if snd.alarm is not None and snd.last_ts is not None:
                     cleared = item(snd.last_frame, snd.last_ts, snd.id, type=snd.ptype, restarted=True)
                     self.emit(finding("watchdog", "cleared", cleared, f"{snd.ptype}: sender restarted on a new port"))
                     snd.alarm = None

@@ -80,6 +80,7 @@ class Session:
         self.rate = 0.0
         self.next_draw = 0.0
         self.stop = False
+        self.input_ended = False
         self.failure: Optional[str] = None
 
     # -- the analysis sees the intake's records through here -------------------------------------
@@ -107,6 +108,7 @@ class Session:
             while not self.stop:
                 data = self.source.read(TICK_S)
                 if data is None:
+                    self.input_ended = not self.stop
                     self.failure = self.source.failure()
                     break
                 if data:
@@ -149,7 +151,8 @@ class Session:
             if evidence is not None:
                 evidence.frame(ts, frame, link, data)
             if dgram is not None:
-                intake.datagram(reader, ts, *dgram, frame)
+                src, sport, dport, payload = dgram
+                intake.datagram(reader, ts, src, sport, dport, payload, frame)
         self._flush()
 
     def _pace(self, ts: float) -> None:
@@ -275,7 +278,10 @@ class Session:
     def _end(self) -> None:
         self.intake.decide()
         try:
-            self.reader.close()
+            if self.input_ended:
+                self.reader.close()
+            else:                              # stopped by us: a record still arriving is not damage
+                self.reader.buf = b""
         except CliError as exc:            # not a capture at all: said at the end
             self.failure = self.failure or str(exc)
         if self.reader.problem and not self.failure:
