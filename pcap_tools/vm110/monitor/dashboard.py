@@ -72,8 +72,13 @@ def render(header: dict, view: dict, findings: list[dict], width: int, height: i
     for a in header["alarms"][:3]:
         lines.append(f"  ALARM {a['rule']} {_short(a.get('sender') or '')} since {clock(a['time'])} #{a['frame']}")
     lines.append("")
-    for s in view["senders"]:
+    senders = view["senders"]
+    # Room for every sender while the commands and two findings still fit; then a count.
+    fit = max(0, (height - len(lines) - 4) // 3)
+    for s in senders[:fit]:
         lines += sender_lines(s)
+    if len(senders) > fit:
+        lines.append(f"... {len(senders) - fit} more sender(s): see --json-lines")
     lines.append(f"commands {c['commands']}: in flight {c['in_flight']}  unacked {c['unacked']}  failed {c['failed']}"
                  f"  ack {_ms(lat['last'])} (1m max {_ms(lat['max_1m'])})")
     room = height - len(lines) - 1

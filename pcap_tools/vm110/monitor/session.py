@@ -113,6 +113,9 @@ class Session:
                     break
                 if data:
                     self._packets(self.reader.feed(data))
+                elif self.intake.deciding and self.first_mono is not None:
+                    self.intake.decide()           # the input is idle: choose from what came
+                    self._flush()
                 if self.reader.stopped:
                     break
                 self._periodic()
@@ -122,6 +125,10 @@ class Session:
             pass
         except CliError as exc:          # unreadable input (not a capture, a read error): said at the end
             self.failure = str(exc)
+        except KeyboardInterrupt:         # a second Ctrl-C: leave the terminal as it was
+            if self.board is not None:
+                self.board.close()
+            raise
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
