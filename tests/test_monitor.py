@@ -150,11 +150,15 @@ def test_no_permission_to_capture():
     assert len(err) == 1 and "permission" in err[0] and "dumpcap" in err[0]
 
 
-def test_options_are_validated():
+def test_options_are_validated(capsys):
     for args in (["--read", "x", "--before", "nan"], ["--read", "x", "--duration", "0"], ["-i", "lo", "--realtime"],
-                 ["--read", "-", "--idle", "1"], ["--read", "x", "--evidence", "/nonexistent/dir"]):
-        out = _run(["monitor", *args])
-        assert out.returncode == 2 and len(out.stderr.decode().strip().splitlines()) == 1, args
+                 ["--read", "-", "--idle", "1"], ["--read", "x", "--evidence", "/nonexistent/dir"], []):
+        try:
+            code = main(["monitor", *args])
+        except SystemExit as exc:              # argparse's own refusals
+            code = exc.code
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and err[0].startswith("vm110 monitor: "), args
 
 
 def test_follows_a_growing_file(tmp_path):

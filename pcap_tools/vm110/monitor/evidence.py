@@ -5,7 +5,7 @@ item, the options, which frames of the capture the file holds).
 Memory is a ring of the recent frames, bounded by time (`before`) and by RING_BYTES, and the
 windows still collecting (at most MAX_OPEN, each bounded by WINDOW_BYTES); an alarm while a
 window of the same rule and sender is still collecting joins that window instead of opening
-another. Files are written atomically (vm110.fileio) and never over an existing file.
+another, extending it up to MAX_SPAN_S in all. Files are written atomically (vm110.fileio) and never over an existing file.
 """
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from ..fileio import write_bytes, write_text
 RING_BYTES = 64 << 20
 WINDOW_BYTES = 64 << 20
 MAX_OPEN = 64
+MAX_SPAN_S = 120.0              # a window that alarms keep extending stops growing at this length
 MAX_NUMBERS = 10_000           # frame numbers listed in the JSON (else first and last only)
 _SHB = struct.pack("<IIIHHq", 0x0A0D0D0A, 28, 0x1A2B3C4D, 1, 0, -1) + struct.pack("<I", 28)
 
@@ -95,7 +96,8 @@ class Evidence:
         for w in self.open:
             if w.rule == finding["rule"] and w.sender == finding.get("sender"):
                 w.findings.append(finding)
-                w.end = max(w.end, now + self.after)
+                span = max(MAX_SPAN_S, self.before + self.after)
+                w.end = min(max(w.end, now + self.after), w.start + span)
                 return
         if len(self.open) >= MAX_OPEN:
             self.skipped += 1
