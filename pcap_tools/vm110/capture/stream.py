@@ -14,8 +14,8 @@ import struct
 from typing import Optional
 
 from . import linktypes as L
-from .reader import (MAX_RECORD, PCAP_HEADER_LEN, PCAP_MAGIC_NS, PCAP_MAGIC_US, PCAPNG_SHB, CaptureError,
-                     CaptureReader)
+from .reader import (_FAST, _FAST_HEAD, _FAST_VI, MAX_RECORD, PCAP_HEADER_LEN, PCAP_MAGIC_NS, PCAP_MAGIC_US,
+                     PCAPNG_SHB, CaptureError, CaptureReader)
 
 Packet = tuple   # (ts, frame, link, frame bytes, (src, sport, dport, payload) or None)
 _MAX_BUFFER = 1 << 21          # more waiting than any legal record or block: the stream is not a capture
@@ -141,4 +141,12 @@ class StreamReader(CaptureReader):
         self.last_ts = ts
         if self.first_ts is None:
             self.first_ts = ts
+        if link == L.LINKTYPE_ETHERNET and incl >= _FAST_HEAD:
+            # The common frame (Ethernet, IPv4 without options, UDP) in one call, as the reader does.
+            et, vi, frag, proto, src, sport, dport, ulen = _FAST.unpack_from(data, start)
+            if (et == L.ETHERTYPE_IPV4 and vi == _FAST_VI and proto == L.IPPROTO_UDP
+                    and not frag & L.IPV4_FRAGMENT_MASK and 34 + ulen <= incl and ulen >= 8):
+                out.append((ts, frame, link, data[start:start + incl],
+                            (src, sport, dport, data[start + 42:start + 34 + ulen])))
+                return
         out.append((ts, frame, link, data[start:start + incl], self.udp_of(link, data, start, incl, orig, frame)))

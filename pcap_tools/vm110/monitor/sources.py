@@ -13,7 +13,8 @@ from typing import Optional
 
 from ..errors import CliError
 
-READ_SIZE = 1 << 16
+READ_SIZE = 1 << 16            # a pipe's worth
+FILE_READ_SIZE = 1 << 20       # a file: larger batches for the analysis
 DUMPCAP_HINT = ("capturing needs rights: run as root, or let dumpcap capture (Debian: dpkg-reconfigure "
                 "wireshark-common, then join the wireshark group; elsewhere: setcap cap_net_raw,cap_net_admin=ep dumpcap)")
 
@@ -66,7 +67,7 @@ class FollowFile(Source):
 
     def read(self, timeout: float) -> Optional[bytes]:
         try:
-            data = self.file.read(READ_SIZE)
+            data = self.file.read(FILE_READ_SIZE)
         except OSError as exc:
             raise CliError(f"cannot read {self.name}: {exc.strerror or exc}") from None
         if data:
