@@ -119,7 +119,8 @@ class Intake:
 
     def _judge(self, reader, ts: float, src: bytes, sport: int, dport: int, payload: bytes, frame: int) -> None:
         got, ports, n = self.got, self.ports, len(payload)
-        if (sport in ports or dport in ports) and n >= C.OVERHEAD:
+        # A datagram the snaplen cut short is judged by the slow path (truncated), as the engine's do.
+        if (sport in ports or dport in ports) and n >= C.OVERHEAD and frame not in reader.snap_truncated:
             pid, rev, size = _HDR.unpack_from(payload)
             low = _LOW.get(pid)
             if low is not None and not rev and n == size + C.OVERHEAD and low <= size <= C.MAX_PAYLOAD:
