@@ -202,14 +202,17 @@ def test_sigterm_ends_with_the_report_of_what_was_seen(tmp_path):
 
 
 def test_spilled_times_stay_exact_and_out_of_memory():
-    values = np.cumsum(np.random.default_rng(1).uniform(0.05, 0.2, 3 * Floats.BLOCK + 123)) + 1.75e9
+    block = SpilledFloats.BLOCK
+    values = np.cumsum(np.random.default_rng(1).uniform(0.05, 0.2, 3 * block + 123)) + 1.75e9
     with tempfile.TemporaryFile() as spool:
         spilled, plain = SpilledFloats(spool), Floats()
         for part in np.array_split(values, 7):
             spilled.extend(part)
             plain.extend(part)
-        assert spilled.spilled == 3 and all(isinstance(b, np.memmap) for b in spilled.blocks[:3])
-        assert not isinstance(spilled.blocks[3], np.memmap)
+        assert len(spilled.blocks.where) == 3 and os.fstat(spool.fileno()).st_size == 3 * block * 8
+        assert len(spilled.blocks.tail) == block and spilled.used == 123
         assert np.array_equal(spilled.intervals_ms(), plain.intervals_ms())
         assert np.array_equal(spilled.intervals_ms(1.7e9), plain.intervals_ms(1.7e9))
-        assert spilled.last() == plain.last() and spilled[Floats.BLOCK + 5] == values[Floats.BLOCK + 5]
+        assert spilled.last() == plain.last() == values[-1]
+        assert [spilled[i] for i in (0, block - 1, block + 5, 3 * block)] == [values[i] for i in (0, block - 1, block + 5,
+                                                                                               3 * block)]
