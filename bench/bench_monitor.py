@@ -7,7 +7,8 @@ Prints, all measured in this run:
   datagrams (`CaptureReader`);
 - the monitor's resident memory at 15, 30 and 60 minutes of capture time of the 1-hour `day`
   capture (from its --json-lines snapshots, taken as the capture time passes) and the growth
-  from 15 to 60 minutes (target: flat, a few MiB of noise at most).
+  from 15 to 60 minutes (target: flat), with the commands seen meanwhile: the report lists every
+  command, so that is what still grows (a few hundred bytes each).
 Each timing is the best of REPEAT runs, interleaved. Captures are cached in out/bench/.
 """
 from __future__ import annotations
@@ -116,13 +117,17 @@ def main_bench() -> None:
                         "--json-lines", str(lines), *quiet], check=False, stdout=subprocess.DEVNULL)
         snaps = [o for o in map(json.loads, lines.read_text().splitlines()) if o["type"] == "snapshot"]
     start = snaps[0]["time"]
-    at = {}
+    at, commands = {}, {}
     for minute in (15, 30, 60):
         near = [s for s in snaps if s["time"] - start <= minute * 60]
         at[minute] = near[-1]["memory_kb"] / 1024
+        commands[minute] = near[-1]["commands"]["commands"]
+    grew, more = at[60] - at[15], commands[60] - commands[15]
     print(f"monitor memory over a 1-hour capture of the {PAIRS}-pair mirror port (RSS, MiB): "
           + ", ".join(f"{m} min {v:.1f}" for m, v in at.items())
-          + f"; growth 15 -> 60 min: {at[60] - at[15]:+.1f} MiB")
+          + f"; growth 15 -> 60 min: {grew:+.1f} MiB")
+    # What the report keeps per command (its `commands.*.list`) is the one thing that grows.
+    print(f"  commands 15 -> 60 min: {more} more, {grew * 2**20 / max(more, 1):.0f} bytes of growth per command")
 
 
 if __name__ == "__main__":
