@@ -4,10 +4,14 @@ and with bytes flipped."""
 from __future__ import annotations
 
 import random
+import tempfile
 from pathlib import Path
 
 import pytest
 
+from vm110.analysis import analyze, engine
+from vm110.analysis.commands import Retiring
+from vm110.analysis.incremental import Analysis
 from vm110.capture.reader import CaptureError, CaptureReader
 from vm110.capture.stream import StreamReader
 from vm110.cli import main
@@ -87,3 +91,40 @@ def test_monitor_reports_damaged_captures_as_analyze_does(seed, capture, tmp_pat
             continue
         main(["monitor", "--read", str(path), "--idle", "0", "--quiet", "--no-dashboard", "--json", str(m)])
         assert a.read_bytes() == m.read_bytes(), name
+
+
+class _RetiringAnalysis(Analysis):
+    """The analysis fed a few packets at a time, retiring finished commands after each batch as
+    eagerly as `vm110 monitor` may (when every event is applied)."""
+
+    def __init__(self, opt) -> None:
+        super().__init__(opt)
+        self.spool = tempfile.TemporaryFile()
+        self.retiring = Retiring(self.tracker, self.spool)
+
+    def feed(self, rec, sources) -> None:
+        for a in range(0, len(rec), 16):
+            super().feed(rec[a:a + 16], sources)
+            if self.settled():
+                self.retiring.retire(float(rec["ts"][min(a + 16, len(rec)) - 1]))
+
+    def finish(self) -> None:
+        if not self.finished:
+            self.retiring.restore()
+        super().finish()
+
+
+@pytest.mark.parametrize("capture", ["overlap.pcapng", "retransmit.pcap", "restart.pcapng", "vrco.pcap", "glink.pcapng"])
+def test_retired_commands_give_the_same_report(capture, monkeypatch):
+    path = str(ROOT / "captures" / capture)
+    expected = analyze(path, crc="mpeg2", crc_order="little")
+    made: list = []
+
+    def factory(opt):
+        made.append(_RetiringAnalysis(opt))
+        return made[-1]
+    monkeypatch.setattr(engine, "Analysis", factory)
+    monkeypatch.setenv(engine.WORKERS_ENV, "1")
+    got = analyze(path, crc="mpeg2", crc_order="little")
+    assert made and made[-1].retiring.retired > 0          # it did retire commands
+    assert got == expected

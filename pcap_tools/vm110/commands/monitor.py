@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
                   f"{session.intake.variant}/{session.intake.order}, chosen from the first ones; "
                   "`vm110 analyze` would judge them with it", file=sys.stderr)
         from ..analysis.report import build
-        report = build(session.intake.got)
+        report = build(session.report_state())
         if evidence is not None and evidence.written and not args.quiet:
             print(f"evidence: {len(evidence.written)} file(s) in {args.evidence}", file=sys.stderr)
         code = deliver(args, [name], [report], fail_rules, "monitor")

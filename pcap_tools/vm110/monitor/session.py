@@ -19,6 +19,7 @@ import time
 from dataclasses import dataclass
 from typing import IO, Optional
 
+from ..analysis.commands import Retiring
 from ..analysis.incremental import Analysis
 from ..errors import CliError
 from ..analysis.periodic import SpilledFloats
@@ -61,6 +62,9 @@ class Session:
         self.spool = tempfile.TemporaryFile(prefix="vm110-monitor-")
         spool = self.spool
         self.analysis = Analysis(opt, floats=lambda: SpilledFloats(spool))
+        self.command_spool = tempfile.TemporaryFile(prefix="vm110-monitor-")
+        self.retiring = Retiring(self.analysis.tracker, self.command_spool)
+        self.fed_until = -math.inf            # the latest time the analysis has been fed
         self.reader = StreamReader(cfg.name)
         self.intake = Intake(cfg.name, cfg.port, cfg.crc, cfg.crc_order, self)
         self.intake.got.on_illegal = self._illegal
@@ -86,6 +90,13 @@ class Session:
     # -- the analysis sees the intake's records through here -------------------------------------
     def feed(self, rec, sources) -> None:
         self.analysis.feed(rec, sources)
+        if len(rec):
+            self.fed_until = max(self.fed_until, float(rec["ts"].max()))
+
+    def report_state(self):
+        """The Collected to build the report from (retired commands back in place)."""
+        self.retiring.restore()
+        return self.intake.got
 
     # -- time ----------------------------------------------------------------------------------
     def now(self) -> Optional[float]:
@@ -193,6 +204,8 @@ class Session:
         self._live()
         self.live.tick(ts)
         self.live.close_second()
+        if self.analysis.settled():       # every event applied: what is finished stays finished
+            self.retiring.retire(self.fed_until, self.live.cmd_seen)
         frames = self.done
         self.rate = float(frames - self.frames_at_second) / max(1, second - (self.second or second))
         self.frames_at_second = frames
@@ -305,6 +318,7 @@ class Session:
 
     def close(self) -> None:
         self.spool.close()
+        self.command_spool.close()
 
 
 def rss_kb() -> Optional[int]:
