@@ -7,8 +7,8 @@ Prints, all measured in this run:
   datagrams (`CaptureReader`);
 - the monitor's resident memory at 15, 30 and 60 minutes of capture time of the 1-hour `day`
   capture (from its --json-lines snapshots, taken as the capture time passes) and the growth
-  from 15 to 60 minutes (target: flat), with the commands seen meanwhile: the report lists every
-  command, so that is what still grows (a few hundred bytes each).
+  from 15 to 60 minutes (target: flat), with the commands seen meanwhile and the growth per
+  command (the report lists every command; the monitor keeps finished ones in a file).
 Each timing is the best of REPEAT runs, interleaved. Captures are cached in out/bench/.
 """
 from __future__ import annotations
@@ -126,7 +126,7 @@ def main_bench() -> None:
     print(f"monitor memory over a 1-hour capture of the {PAIRS}-pair mirror port (RSS, MiB): "
           + ", ".join(f"{m} min {v:.1f}" for m, v in at.items())
           + f"; growth 15 -> 60 min: {grew:+.1f} MiB")
-    # What the report keeps per command (its `commands.*.list`) is the one thing that grows.
+    # The report lists every command: finished ones go to a file, so this should be about 8 bytes.
     print(f"  commands 15 -> 60 min: {more} more, {grew * 2**20 / max(more, 1):.0f} bytes of growth per command")
 
 
