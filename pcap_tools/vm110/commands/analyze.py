@@ -147,8 +147,8 @@ def analysis_options(args: argparse.Namespace) -> tuple[Options, list]:
                       vrpi_watchdog_ms=args.vrpi_watchdog, vrpo_watchdog_ms=args.vrpo_watchdog,
                       vrpo_min_ms=args.vrpo_range[0], vrpo_max_ms=args.vrpo_range[1], resend_ms=args.resend,
                       vrci_fail_ms=args.vrci_fail, vrco_give_up_ms=args.vrco_give_up,
-                      reuse_gap_ms=args.reuse_gap, dup_window_ms=args.dup_window, burst_gap_ms=args.burst_gap, vrpo_start=args.vrpo_start,
-                      vrpo_data_size=args.vrpo_data_size)
+                      reuse_gap_ms=args.reuse_gap, dup_window_ms=args.dup_window, burst_gap_ms=args.burst_gap,
+                      vrpo_start=args.vrpo_start, vrpo_data_size=args.vrpo_data_size)
     return options, fail_rules
 
 
@@ -199,10 +199,7 @@ def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rule
             sys.stdout.write(report_html.render(reports, combined, errors))
         else:
             report_html.write(args.html, reports, combined, errors)
-    broken = []
-    for r in reports:
-        for v in rules.violations(fail_rules, r["totals"]):
-            broken.append(f"{r['capture']['file']}: {v}")
+    broken = [f"{r['capture']['file']}: {v}" for r in reports for v in rules.violations(fail_rules, r["totals"])]
     for line in broken:
         print(f"fail-on: {line}", file=sys.stderr)
     if errors:
