@@ -232,13 +232,8 @@ class Sender:
             else:
                 if self.bursts is None:
                     opt = self.opt
-<<<<<<< HEAD
-                    self.bursts = Bursts(stream.times, opt.burst_gap_ms, opt.vrpo_start, opt.vrpo_data_size, opt.vrpo_min_ms,
-                                         opt.vrpo_max_ms, self.floats)
-=======
                     self.bursts = Bursts(stream.times, opt.burst_gap_ms, opt.vrpo_start, opt.vrpo_data_size,
-                                         opt.vrpo_min_ms, opt.vrpo_max_ms)
->>>>>>> main
+                                         opt.vrpo_min_ms, opt.vrpo_max_ms, self.floats)
                 self.bursts.feed(mine["ts"], mine["aux"], mine["size"], frames)
         command = np.isin(codes, COMMAND_CODES)
         if command.any():
