@@ -104,7 +104,8 @@ def main_bench() -> None:
             runs[name].append(timed(fn))
     best = {k: min(v) for k, v in runs.items()}
     pps = packets / best["monitor"]
-    print(f"monitor --read, mirror port of {PAIRS} BUs and {PAIRS} controllers: {packets} packets in {best['monitor']:.2f} s = {pps:,.0f} packets/s "
+    print(f"monitor --read, mirror port of {PAIRS} BUs and {PAIRS} controllers: {packets} packets in "
+          f"{best['monitor']:.2f} s = {pps:,.0f} packets/s "
           f"(target >= {TARGET_PPS:,}: {'ok' if pps >= TARGET_PPS else 'MISSED'})")
     print(f"  monitor / analyze (same file): {best['monitor'] / best['analyze']:.2f}  "
           f"(analyze {best['analyze']:.2f} s)")

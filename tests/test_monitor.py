@@ -68,8 +68,8 @@ def test_findings_json_lines_and_evidence_of_a_silent_base_unit(tmp_path, capsys
     silent_from = alarm[0]["item"]["time"]
     assert 0.5 < alarm[0]["at"] - silent_from <= 1.5
     assert not [f for f in findings if f["rule"] == "watchdog" and f["event"] == "cleared"]
-    bu = [s for s in snapshots[-1]["senders"] if s["role"] == "BU"][0]
-    ctl = [s for s in snapshots[-1]["senders"] if s["role"] == "controller"][0]
+    bu = next(s for s in snapshots[-1]["senders"] if s["role"] == "BU")
+    ctl = next(s for s in snapshots[-1]["senders"] if s["role"] == "controller")
     assert bu["state"] == "watchdog" and bu["age_ms"] > 4000 and ctl["state"] == "alive"
     assert snapshots[-1]["alarms"][0]["rule"] == "watchdog" and bu["bu_state"] == "Armed"
     # The evidence: the frames of [alarm - 2 s, alarm + 1 s], named by time and rule, JSON beside.

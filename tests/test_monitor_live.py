@@ -31,8 +31,8 @@ def test_watchdog_alarm_evidence_and_recovery_on_a_live_link(netns, tmp_path):
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     time.sleep(1.5)                     # dumpcap running before the traffic starts
     if monitor.poll() is not None:
-        err = monitor.stderr.read().decode()
-        pytest.skip(f"dumpcap cannot capture here: {err.strip()}")
+        _, early = monitor.communicate()
+        pytest.skip(f"dumpcap cannot capture here: {early.decode().strip()}")
     sim = VM110 + ["simulate"]
     ctl = subprocess.Popen(ns + sim + ["controller", "--listen", f"{CTL}:5825", "--peer", f"{BU}:5827", "--source",
                                        f"{CTL}:5827", "--duration", "6.5", "--quiet"], stdout=subprocess.DEVNULL)
@@ -40,7 +40,7 @@ def test_watchdog_alarm_evidence_and_recovery_on_a_live_link(netns, tmp_path):
                                     "--duration", "6.5", "--quiet", "--stall", f"{STALL[0]}:{STALL[1]}"],
                         stdout=subprocess.DEVNULL, timeout=30)
     ctl.wait(timeout=30)
-    out, err = monitor.communicate(timeout=60)
+    _, err = monitor.communicate(timeout=60)
     assert bu.returncode == 0 and monitor.returncode in (0, 1), err.decode()
     objects = [json.loads(line) for line in lines.read_text().splitlines()]
     findings = [o for o in objects if o["type"] == "finding" and o["rule"] == "watchdog"

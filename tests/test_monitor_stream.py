@@ -100,7 +100,7 @@ class _RetiringAnalysis(Analysis):
 
     def __init__(self, opt) -> None:
         super().__init__(opt)
-        self.spool = tempfile.TemporaryFile()
+        self.spool = tempfile.TemporaryFile()   # noqa: SIM115 -- closed in finish()
         self.retiring = Retiring(self.tracker, self.spool)
 
     def feed(self, rec, sources) -> None:
@@ -112,6 +112,7 @@ class _RetiringAnalysis(Analysis):
     def finish(self) -> None:
         if not self.finished:
             self.retiring.restore()
+            self.spool.close()
         super().finish()
 
 

@@ -138,7 +138,7 @@ class Retiring:
 
     def __init__(self, tracker: Tracker, spool) -> None:
         self.tracker, self.spool = tracker, spool
-        self.seen = {code: 0 for code in tracker.tallies}
+        self.seen = dict.fromkeys(tracker.tallies, 0)
         self.pending: dict[int, list[int]] = {code: [] for code in tracker.tallies}
         self.retired = 0
 
@@ -169,7 +169,8 @@ class Retiring:
             live = t.by_id.get((code, cmd.command_id), [])
             for k, other in enumerate(live):
                 if other is cmd:
-                    live[k] = Command(cmd.sender, cmd.command_id, cmd.frames[:1], cmd.times[:1], ack_frame=cmd.ack_frame)
+                    live[k] = Command(cmd.sender, cmd.command_id, cmd.frames[:1], cmd.times[:1],
+                                      ack_frame=cmd.ack_frame)
                     del live[:k]
                     break
         pickle.dump((code, i, cmd), self.spool, protocol=pickle.HIGHEST_PROTOCOL)

@@ -67,10 +67,10 @@ def render(header: dict, view: dict, findings: list[dict], width: int, height: i
     c = view["commands"]
     lat = c["ack_latency_ms"]
     lines = [f"vm110 monitor  {header['source']}  {clock(header['now'])}  {header['status']}",
-             f"packets {header['packets']} ({header['rate']:.0f}/s)  EG-Link {header['eglink']}  "
-             f"illegal {header['illegal']}  alarms {len(header['alarms'])}"]
-    for a in header["alarms"][:3]:
-        lines.append(f"  ALARM {a['rule']} {_short(a.get('sender') or '')} since {clock(a['time'])} #{a['frame']}")
+             (f"packets {header['packets']} ({header['rate']:.0f}/s)  EG-Link {header['eglink']}  "
+              f"illegal {header['illegal']}  alarms {len(header['alarms'])}")]
+    lines += [f"  ALARM {a['rule']} {_short(a.get('sender') or '')} since {clock(a['time'])} #{a['frame']}"
+              for a in header["alarms"][:3]]
     lines.append("")
     senders = view["senders"]
     # Room for every sender while the commands and two findings still fit; then a count.

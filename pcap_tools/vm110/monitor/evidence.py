@@ -5,7 +5,8 @@ item, the options, which frames of the capture the file holds).
 Memory is a ring of the recent frames, bounded by time (`before`) and by RING_BYTES, and the
 windows still collecting (at most MAX_OPEN, each bounded by WINDOW_BYTES); an alarm while a
 window of the same rule and sender is still collecting joins that window instead of opening
-another, extending it up to MAX_SPAN_S in all. Files are written atomically (vm110.fileio) and never over an existing file.
+another, extending it up to MAX_SPAN_S in all. Files are written atomically (vm110.fileio) and
+never over an existing file.
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ def _idb(link: int) -> bytes:
 
 
 def _epb(iface: int, ts: float, frame: bytes) -> bytes:
-    ns = int(round(ts * 1e9))
+    ns = round(ts * 1e9)
     pad = (-len(frame)) % 4
     size = 32 + len(frame) + pad
     return (struct.pack("<IIIIIII", 6, size, iface, (ns >> 32) & 0xFFFFFFFF, ns & 0xFFFFFFFF, len(frame), len(frame))

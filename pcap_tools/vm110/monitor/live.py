@@ -186,7 +186,7 @@ class Live:
         self.ids: dict = {}                    # sender id -> the analysis' Sender
         self.gaps_seen: dict = {}              # (sender key, counter key) -> gaps and restarts reported
         self.links_seen: set = set()
-        self.cmd_seen = {code: 0 for code in analysis.tracker.tallies}
+        self.cmd_seen = dict.fromkeys(analysis.tracker.tallies, 0)
         self.watch: list = []                  # (code, command) not acknowledged yet
         self.cmd = {"commands": 0, "acked": 0, "failed": 0, "interrupted": 0}
         self.latency_last: Optional[float] = None
@@ -269,7 +269,8 @@ class Live:
             self.watch += [(code, c, False) for c in new]
         settled = self.analysis.settled()          # every event up to now applied: silence is known
         keep = []
-        for code, cmd, flagged in self.watch:
+        for code, cmd, was_flagged in self.watch:
+            flagged = was_flagged
             limit = tracker.fail_ms[code]
             kind = TYPES[code].value
             if cmd.interrupted_frame is not None:

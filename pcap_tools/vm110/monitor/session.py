@@ -59,10 +59,10 @@ class Settings:
 class Session:
     def __init__(self, source: Source, opt, cfg: Settings) -> None:
         self.source, self.opt, self.cfg = source, opt, cfg
-        self.spool = tempfile.TemporaryFile(prefix="vm110-monitor-")
+        self.spool = tempfile.TemporaryFile(prefix="vm110-monitor-")   # noqa: SIM115 -- the session owns it; close()
         spool = self.spool
         self.analysis = Analysis(opt, floats=lambda: SpilledFloats(spool))
-        self.command_spool = tempfile.TemporaryFile(prefix="vm110-monitor-")
+        self.command_spool = tempfile.TemporaryFile(prefix="vm110-monitor-")   # noqa: SIM115 -- as the spool
         self.retiring = Retiring(self.analysis.tracker, self.command_spool)
         self.fed_until = -math.inf            # the latest time the analysis has been fed
         self.reader = StreamReader(cfg.name)

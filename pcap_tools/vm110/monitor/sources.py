@@ -16,7 +16,8 @@ from ..errors import CliError
 READ_SIZE = 1 << 16            # a pipe's worth
 FILE_READ_SIZE = 1 << 20       # a file: larger batches for the analysis
 DUMPCAP_HINT = ("capturing needs rights: run as root, or let dumpcap capture (Debian: dpkg-reconfigure "
-                "wireshark-common, then join the wireshark group; elsewhere: setcap cap_net_raw,cap_net_admin=ep dumpcap)")
+                "wireshark-common, then join the wireshark group; elsewhere: "
+                "setcap cap_net_raw,cap_net_admin=ep dumpcap)")
 
 
 class Source:
@@ -60,7 +61,7 @@ class FollowFile(Source):
     def __init__(self, path: str, idle: Optional[float]) -> None:
         self.name, self.idle = path, idle
         try:
-            self.file = open(path, "rb")
+            self.file = open(path, "rb")   # noqa: SIM115 -- the source owns it; close()
         except OSError as exc:
             raise CliError(f"cannot read {path}: {exc.strerror}") from None
         self.grew = time.monotonic()
@@ -92,7 +93,7 @@ class Dumpcap(Source):
         if exe is None:
             raise CliError("dumpcap not found: install Wireshark's capture engine (Debian: tshark or wireshark-common)")
         flt = "udp and (" + " or ".join(f"port {p}" for p in ports) + ")"
-        self.errors = tempfile.TemporaryFile()
+        self.errors = tempfile.TemporaryFile()   # noqa: SIM115 -- dumpcap's stderr while it runs; close()
         # -q: no packet counts on stderr; -w -: pcapng to the pipe, a block per packet as it comes.
         self.proc = subprocess.Popen([exe, "-q", "-i", iface, "-f", flt, "-w", "-"], stdout=subprocess.PIPE,
                                      stderr=self.errors, stdin=subprocess.DEVNULL)
