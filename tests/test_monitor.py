@@ -216,3 +216,23 @@ def test_spilled_times_stay_exact_and_out_of_memory():
         assert spilled.last() == plain.last() == values[-1]
         assert [spilled[i] for i in (0, block - 1, block + 5, 3 * block)] == [values[i] for i in (0, block - 1, block + 5,
                                                                                                3 * block)]
+
+
+def test_a_replay_stopped_by_duration_reports_exactly_what_it_judged(tmp_path):
+    capture = ROOT / "captures" / "normal.pcap"            # 20 s of traffic
+    out = _run(["monitor", "--read", str(capture), "--realtime", "--duration", "3", "--no-dashboard", "--quiet",
+                "--json", str(tmp_path / "m.json")])
+    assert out.returncode == 0, out.stderr
+    report = json.loads((tmp_path / "m.json").read_text())
+    seen = report["capture"]["packets"]
+    assert 0 < seen < 300
+    # The same packets as a file: the same report.
+    data, pos = capture.read_bytes(), 24
+    for _ in range(seen):
+        pos += 16 + int.from_bytes(data[pos + 8:pos + 12], "little")
+    prefix = tmp_path / "prefix.pcap"
+    prefix.write_bytes(data[:pos])
+    assert main(["analyze", str(prefix), "--quiet", "--json", str(tmp_path / "a.json")]) in (0, 1)
+    expected = json.loads((tmp_path / "a.json").read_text())
+    expected["capture"]["file"] = str(capture)
+    assert report == expected

@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..monitor.evidence import Evidence
     from ..monitor.session import Session, Settings
-    from ..monitor.sources import Dumpcap, FollowFile, PipeSource, Source
+    from ..monitor.sources import FILE_READ_SIZE, PACED_READ_SIZE, READ_SIZE, Dumpcap, FollowFile, PipeSource, Source
     options, fail_rules = analysis_options(args)
     if args.realtime and args.read is None:
         raise CliError("--realtime replays --read FILE|-; a live interface is real time already")
@@ -73,9 +73,9 @@ def run(args: argparse.Namespace) -> int:
                                  "source": name, "analysis": vars(options)})
         source: Source
         if args.read == "-":
-            source = PipeSource(sys.stdin.fileno(), "standard input")
+            source = PipeSource(sys.stdin.fileno(), "standard input", PACED_READ_SIZE if args.realtime else READ_SIZE)
         elif args.read is not None:
-            source = FollowFile(args.read, args.idle)
+            source = FollowFile(args.read, args.idle, PACED_READ_SIZE if args.realtime else FILE_READ_SIZE)
         else:
             source = Dumpcap(args.interface, (args.port, args.port + 2))
         stack.callback(source.close)

@@ -37,10 +37,6 @@ FINDINGS_SHOWN = 200
 RATE_LIMITED = {"lost", "illegal", "restarts", "failed"}   # at most one line per second per sender
 
 
-class Stop(Exception):
-    """The run ends (signal, --duration)."""
-
-
 @dataclass
 class Settings:
     name: str                           # the capture's name in the report
@@ -132,8 +128,6 @@ class Session:
                 self._periodic()
                 if deadline is not None and time.monotonic() >= deadline:
                     break
-        except Stop:
-            pass
         except CliError as exc:          # unreadable input (not a capture, a read error): said at the end
             self.failure = str(exc)
         except KeyboardInterrupt:         # a second Ctrl-C: leave the terminal as it was
@@ -174,17 +168,19 @@ class Session:
         self._flush()
 
     def _pace(self, ts: float) -> None:
-        """--realtime: wait until the packet is due on the capture's timeline laid on the clock."""
+        """--realtime: wait until the packet is due on the capture's timeline laid on the clock.
+        Once the run is to end, the packets already read (a small read's worth) go on unpaced, so
+        that the report counts exactly what was judged."""
         assert self.first_mono is not None and self.first_ts is not None
-        while True:
+        while not self.stop:
             wait = self.first_mono + (ts - self.first_ts) - time.monotonic()
             if wait <= 0:
                 return
             time.sleep(min(wait, TICK_S))
             self._flush()
             self._periodic()
-            if self.stop or (self.deadline is not None and time.monotonic() >= self.deadline):
-                raise Stop
+            if self.deadline is not None and time.monotonic() >= self.deadline:
+                self.stop = True
 
     def _flush(self) -> None:
         """The analysis gets the records gathered (a chunk's worth: its cost is per batch)."""

@@ -15,6 +15,7 @@ from ..errors import CliError
 
 READ_SIZE = 1 << 16            # a pipe's worth
 FILE_READ_SIZE = 1 << 20       # a file: larger batches for the analysis
+PACED_READ_SIZE = 1 << 12      # --realtime: read little ahead of the pace
 DUMPCAP_HINT = ("capturing needs rights: run as root, or let dumpcap capture (Debian: dpkg-reconfigure "
                 "wireshark-common, then join the wireshark group; elsewhere: "
                 "setcap cap_net_raw,cap_net_admin=ep dumpcap)")
@@ -37,8 +38,8 @@ class Source:
 class PipeSource(Source):
     """A pipe or standard input (file descriptor `fd`, not closed here)."""
 
-    def __init__(self, fd: int, name: str) -> None:
-        self.fd, self.name = fd, name
+    def __init__(self, fd: int, name: str, size: int = READ_SIZE) -> None:
+        self.fd, self.name, self.size = fd, name, size
 
     def read(self, timeout: float) -> Optional[bytes]:
         try:
@@ -48,7 +49,7 @@ class PipeSource(Source):
         if not ready:
             return b""
         try:
-            data = os.read(self.fd, READ_SIZE)
+            data = os.read(self.fd, self.size)
         except OSError as exc:
             raise CliError(f"cannot read {self.name}: {exc.strerror or exc}") from None
         return data or None
@@ -58,8 +59,8 @@ class FollowFile(Source):
     """A capture file read as it grows (tail -f); the input ends when it has not grown for `idle`
     seconds (None: never, until interrupted)."""
 
-    def __init__(self, path: str, idle: Optional[float]) -> None:
-        self.name, self.idle = path, idle
+    def __init__(self, path: str, idle: Optional[float], size: int = FILE_READ_SIZE) -> None:
+        self.name, self.idle, self.size = path, idle, size
         try:
             self.file = open(path, "rb")   # noqa: SIM115 -- the source owns it; close()
         except OSError as exc:
@@ -68,7 +69,7 @@ class FollowFile(Source):
 
     def read(self, timeout: float) -> Optional[bytes]:
         try:
-            data = self.file.read(FILE_READ_SIZE)
+            data = self.file.read(self.size)
         except OSError as exc:
             raise CliError(f"cannot read {self.name}: {exc.strerror or exc}") from None
         if data:
