@@ -25,6 +25,7 @@ MISSING = "/nonexistent/vm110-missing.pcap"
 RUN_UNTIL = {
     "analyze": ([MISSING], MISSING),
     "decode": ([MISSING], MISSING),
+    "monitor": (["--read", MISSING], MISSING),
     "synth": (["no-such-scenario", "--out", "/nonexistent/out.pcap"], "unknown scenario"),
 }
 _SIMULATE = {"--seed": {"0", "1e18"}, "--stop-at": {"0"}, "--restart": {"0", "0:0"}, "--restart-serial": {"0"},
@@ -35,6 +36,9 @@ _SIMULATE = {"--seed": {"0", "1e18"}, "--stop-at": {"0"}, "--restart": {"0", "0:
 ACCEPTED: dict[tuple[str, str], set[str]] = {
     ("analyze", "--vrpo-start"): {"0"},
     ("analyze", "--vrpo-data-size"): {"0"},
+    ("monitor", "--vrpo-start"): {"0"},
+    ("monitor", "--vrpo-data-size"): {"0"},
+    **{("monitor", option): {"0"} for option in ("--before", "--after", "--idle")},
     ("synth", "--seed"): {"0", "1e18"},
     ("fuzz", "--seed"): {"0", "1e18"},
     **{("simulate bu", option): values for option, values in {

@@ -20,6 +20,7 @@ COMMANDS = {
     "decode": "decode",
     "dissect": "dissect",
     "fuzz": "fuzz",
+    "monitor": "monitor",
     "simulate": "simulate",
     "synth": "synth",
     "wireshark": "wireshark",

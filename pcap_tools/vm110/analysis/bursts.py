@@ -16,7 +16,7 @@ bursts; as long as every burst is a single packet these are the times of the VRP
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -36,7 +36,9 @@ class Bursts:
     interval)."""
 
     def __init__(self, packets: Floats, gap_ms: float = C.VRPO_BURST_GAP_MS, start: int = 0, data_size: int = 0,
-                 low_ms: float = C.VRPO_PERIOD_MIN_MS, high_ms: float = C.VRPO_PERIOD_MAX_MS) -> None:
+                 low_ms: float = C.VRPO_PERIOD_MIN_MS, high_ms: float = C.VRPO_PERIOD_MAX_MS,
+                 floats: Callable[[], Floats] = Floats) -> None:
+        self.floats = floats                         # makes the store of `own` (periodic.Stream)
         self.gap, self.start, self.data_size = gap_ms / 1000.0, start, data_size
         self.low_ms, self.high_ms = low_ms, high_ms
         self.complete = 0
@@ -80,7 +82,7 @@ class Bursts:
         firsts = np.flatnonzero(begins)
         new = times[firsts]
         if self.own is None and len(new) < n:
-            self.own = Floats()
+            self.own = self.floats()
             for block in self.packets.blocks:        # every packet before these began a burst
                 self.own.extend(block[:max(0, min(len(block), len(self.packets) - n - len(self.own)))])
         if self.own is not None:

@@ -9,6 +9,7 @@ acknowledged nor past their fail limit. Duplicates were removed before this poin
 """
 from __future__ import annotations
 
+import pickle
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Iterable, Optional
@@ -119,6 +120,75 @@ class Tracker:
                     tally.duplicate_acks.append((frame, ts, cid, cmd.frames[0]))
                 else:
                     cmd.ack_frame, cmd.ack_time, cmd.last_before_ack = frame, ts, cmd.times[-1]
+
+
+class Retiring:
+    """For a run of days (`vm110 monitor`): takes out of the Tracker's memory the commands that
+    can no longer change, and hands them back for the report.
+
+    A command can no longer change once it is acknowledged or interrupted and its last
+    transmission lies more than the reuse gap before the current time: no retransmission can
+    join it, no restart can interrupt it, and an acknowledgement of its ID either goes to a later
+    command or is a duplicate of its own. Its place in `Tally.commands` becomes None (8 bytes) and
+    the command goes to `spool`; what an acknowledgement still needs of it (its first frame, that
+    it is acknowledged) stays as a stub in `by_id`, and the commands before it there, which no
+    acknowledgement can reach any more, go. `restore()` puts every command back in its place.
+    The caller retires only when every event so far has been applied (`Analysis.settled`), with
+    the time of the latest packet applied."""
+
+    def __init__(self, tracker: Tracker, spool) -> None:
+        self.tracker, self.spool = tracker, spool
+        self.seen = dict.fromkeys(tracker.tallies, 0)
+        self.pending: dict[int, list[int]] = {code: [] for code in tracker.tallies}
+        self.retired = 0
+
+    def retire(self, now: float, upto: Optional[dict[int, int]] = None) -> None:
+        """Retire what can be at time `now` (among the first `upto[code]` commands of each kind)."""
+        t = self.tracker
+        for code, tally in t.tallies.items():
+            cmds = tally.commands
+            end = len(cmds) if upto is None else min(upto[code], len(cmds))
+            self.pending[code] += range(self.seen[code], end)
+            self.seen[code] = max(self.seen[code], end)
+            keep = []
+            for i in self.pending[code]:
+                cmd = cmds[i]
+                done = cmd.interrupted_frame is not None or cmd.ack_frame is not None
+                if not done or now - max(cmd.times) <= t.reuse:
+                    keep.append(i)
+                    continue
+                self._retire(code, i, cmd)
+            self.pending[code] = keep
+
+    def _retire(self, code: int, i: int, cmd: Command) -> None:
+        t = self.tracker
+        key = (code, cmd.sender, cmd.command_id)
+        if t.open.get(key) is cmd:
+            del t.open[key]
+        if cmd.ack_frame is not None:
+            live = t.by_id.get((code, cmd.command_id), [])
+            for k, other in enumerate(live):
+                if other is cmd:
+                    live[k] = Command(cmd.sender, cmd.command_id, cmd.frames[:1], cmd.times[:1],
+                                      ack_frame=cmd.ack_frame)
+                    del live[:k]
+                    break
+        pickle.dump((code, i, cmd), self.spool, protocol=pickle.HIGHEST_PROTOCOL)
+        t.tallies[code].commands[i] = None
+        self.retired += 1
+
+    def restore(self) -> None:
+        """Every retired command back in its place (before the report)."""
+        self.spool.flush()
+        self.spool.seek(0)
+        while True:
+            try:
+                code, i, cmd = pickle.load(self.spool)
+            except EOFError:
+                break
+            self.tracker.tallies[code].commands[i] = cmd
+        self.spool.seek(0)
+        self.spool.truncate()
 
 
 def report(tally: Tally, fail_ms: float, resend_ms: float) -> dict:

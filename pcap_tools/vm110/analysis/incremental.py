@@ -4,7 +4,9 @@ then `finish()`; `report.build` turns the state into the report.
 The state is bounded by the senders, the open commands and the findings, not by the packets:
 per sender its counters and streams (`sender.Sender`), the commands (`commands.Tracker`), and
 the command events not yet applied. Per periodic packet one float64 time is kept for the exact
-interval statistics (`periodic`).
+interval statistics (`periodic`); `floats` chooses where (in memory by default; `vm110 monitor`
+spills them to a file, `periodic.SpilledFloats`, so that its memory stays flat for days).
+`snapshot()` gives the verdicts so far at any moment, without disturbing the state.
 
 Order across senders matters twice:
 - A sender on a new port is a restart of an earlier one silent for NEW_PORT_SILENCE_MS, judged
@@ -25,14 +27,16 @@ from .. import constants as C
 from ..capture.reader import address
 from . import commands
 from .collect import CODE, _groups, code_of, key_sender, sender_keys
+from .periodic import Floats, FloatsFactory
 from .sender import Sender
 
 NEW_PORT_SILENCE_MS = 250.0
 
 
 class Analysis:
-    def __init__(self, opt) -> None:
+    def __init__(self, opt, floats: FloatsFactory = Floats) -> None:
         self.opt = opt
+        self.floats = floats
         self.senders: dict[int, Sender] = {}          # sender key -> its state, in order of appearance
         self.names: list[bytes] = []                  # source index -> packed address
         fail = {CODE[C.PacketType.VRCI]: opt.vrci_fail_ms, CODE[C.PacketType.VRCO]: opt.vrco_give_up_ms}
@@ -72,11 +76,23 @@ class Analysis:
             snd.finish(self.events)
         self._apply(None)
 
+    def snapshot(self) -> list[dict]:
+        """Per sender, in order of appearance: its key, id, direction, packets and serial verdicts
+        so far (decided packets; a sender still choosing its serial scope has none yet)."""
+        return [{"key": key, "id": snd.id, "direction": snd.direction, "packets": int(snd.counts.sum()),
+                 "scope": snd.scope, "taken_over": snd.taken_over, **snd.serial_counts()}
+                for key, snd in self.senders.items()]
+
+    def settled(self) -> bool:
+        """Whether every packet fed so far is decided (and so every command event applied)."""
+        return not self.events and self._horizon() is None
+
     def _join(self, key: int, first: np.void) -> None:
         """A new sender: a restart on a new port of the earlier sender of its address, direction
         and origin heard last, when that one has been silent for NEW_PORT_SILENCE_MS."""
         direction, origin, src, port = key_sender(key)
-        new = self.senders[key] = Sender(direction, origin, address(self.names[src], port), first, self.opt)
+        new = self.senders[key] = Sender(direction, origin, address(self.names[src], port), first, self.opt,
+                                         self.floats)
         silence = NEW_PORT_SILENCE_MS / 1000.0
         quiet = [(old.last_ts, old.last_frame, i, old) for i, old in enumerate(self.senders.values())
                  if old is not new and (old.direction, old.origin, old.host) == (direction, origin, new.host)

@@ -13,7 +13,8 @@ in the heap as large as itself, which the process keeps.
 from __future__ import annotations
 
 import math
-from typing import Callable, Optional, Sequence
+import os
+from typing import BinaryIO, Callable, Iterator, Optional, Sequence
 
 import numpy as np
 
@@ -68,12 +69,62 @@ class Floats:
         return out
 
 
-class Stream:
-    """One periodic stream: `ptype` of `sender`, watchdog `limit_ms`."""
+class SpooledBlocks:
+    """The blocks of a SpilledFloats, as a sequence: the full ones in `spool` (an anonymous file
+    of the caller's; where each lies is kept), the last one in memory. A spilled block is read
+    back when asked for (the report, a burst array's first copy, a point of a plot)."""
 
-    def __init__(self, ptype: str, sender: str, limit_ms: float) -> None:
+    def __init__(self, spool: BinaryIO) -> None:
+        self.fd = spool.fileno()
+        self.where: list[tuple[int, int]] = []       # (offset, values) of each spilled block
+        self.tail: Optional[np.ndarray] = None
+
+    def __len__(self) -> int:
+        return len(self.where) + (self.tail is not None)
+
+    def append(self, block: np.ndarray) -> None:
+        if self.tail is not None:                    # full: to the spool
+            data = np.ascontiguousarray(self.tail, dtype="<f8").tobytes()
+            at = os.lseek(self.fd, 0, os.SEEK_END)
+            done = 0
+            while done < len(data):
+                done += os.pwrite(self.fd, data[done:], at + done)
+            self.where.append((at, len(self.tail)))
+        self.tail = block
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        k = k + len(self) if k < 0 else k
+        if k == len(self.where) and self.tail is not None:
+            return self.tail
+        at, count = self.where[k]
+        return np.frombuffer(os.pread(self.fd, count * 8, at), dtype="<f8")
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        return (self[k] for k in range(len(self)))
+
+
+class SpilledFloats(Floats):
+    """Floats whose full blocks live in a file (SpooledBlocks): memory holds one small block per
+    stream, the values stay exact, the disk takes 8 bytes per value (`vm110 monitor`, for runs
+    of days)."""
+
+    BLOCK = 1 << 12
+
+    def __init__(self, spool: BinaryIO) -> None:
+        super().__init__()
+        self.blocks = SpooledBlocks(spool)      # type: ignore[assignment]
+
+
+FloatsFactory = Callable[[], Floats]
+
+
+class Stream:
+    """One periodic stream: `ptype` of `sender`, watchdog `limit_ms`; `floats` makes the store
+    of its times (default in memory)."""
+
+    def __init__(self, ptype: str, sender: str, limit_ms: float, floats: FloatsFactory = Floats) -> None:
         self.ptype, self.sender, self.limit = ptype, sender, limit_ms
-        self.times = Floats()
+        self.times = floats()
         self.first_frame = self.last_frame = 0
         self.violations: list[dict] = []
         self.backwards: list[tuple[int, float]] = []     # (frame, time) of the packet after each

@@ -26,7 +26,7 @@ from . import serials
 from .bursts import Bursts
 from .collect import CODE, RECORD_DTYPE, TYPES, VRPI_CODE, VRPO_CODE, code_of, sender_id
 from .commands import RESTART
-from .periodic import Stream
+from .periodic import Floats, FloatsFactory, Stream
 from .state import Timeline
 
 WARMUP_PACKETS = 4096
@@ -60,8 +60,10 @@ class Probe:
 class Sender:
     """(direction, origin, source address, source port) and everything judged of it so far."""
 
-    def __init__(self, direction: str, origin: int, src: str, first: np.void, opt) -> None:
+    def __init__(self, direction: str, origin: int, src: str, first: np.void, opt,
+                 floats: FloatsFactory = Floats) -> None:
         self.direction, self.origin, self.src = direction, origin, src
+        self.floats = floats                     # the store of periodic times (periodic.Stream)
         self.id = sender_id(direction, origin, src)
         self.host, port = src.rsplit(":", 1)
         self.port = int(port)
@@ -221,7 +223,7 @@ class Sender:
             stream = self.streams.get(code)
             if stream is None:
                 limit = self.opt.vrpi_watchdog_ms if code == VRPI_CODE else self.opt.vrpo_watchdog_ms
-                stream = self.streams[code] = Stream(TYPES[code].value, self.id, limit)
+                stream = self.streams[code] = Stream(TYPES[code].value, self.id, limit, self.floats)
             stream.feed(mine["ts"], frames)
             if code == VRPI_CODE:
                 if self.timeline is None:
@@ -231,13 +233,22 @@ class Sender:
                 if self.bursts is None:
                     opt = self.opt
                     self.bursts = Bursts(stream.times, opt.burst_gap_ms, opt.vrpo_start, opt.vrpo_data_size,
-                                         opt.vrpo_min_ms, opt.vrpo_max_ms)
+                                         opt.vrpo_min_ms, opt.vrpo_max_ms, self.floats)
                 self.bursts.feed(mine["ts"], mine["aux"], mine["size"], frames)
         command = np.isin(codes, COMMAND_CODES)
         if command.any():
             picked = rows[command]
             events += zip(picked["frame"].tolist(), picked["ts"].tolist(), codes[command].tolist(),
                           [self.id] * len(picked), picked["aux"].tolist())
+
+    def serial_counts(self) -> dict:
+        """The serial verdicts so far (decided packets only), cheaply: for a live view."""
+        counters = self.counters.values()
+        return {"received": sum(c.res.received for c in counters),
+                "lost": sum(len(c.lost_for_good) + len(c.missing) for c in counters),
+                "duplicates": sum(len(c.res.duplicate_serials) for c in counters),
+                "out_of_order": sum(len(c.res.out_of_order_serials) for c in counters),
+                "restarts": sum(len(c.res.restarts) for c in counters) + (self.link is not None)}
 
     def serial_result(self) -> serials.SerialResult:
         """The counters' results together, as one counter (scope sender) or per type."""

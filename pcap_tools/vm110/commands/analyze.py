@@ -36,10 +36,35 @@ DATA_SIZE = number(0, 0xFFFF, "bytes", integer=True)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("captures", nargs="*", metavar="CAPTURE", help="pcap or pcapng files; - reads standard input")
-    parser.add_argument("--json", metavar="FILE", help="write the JSON report (docs/report.md); - for standard output")
-    parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report; - for standard output")
     parser.add_argument("--engine", choices=("fast", "tshark"), default="fast",
                         help="fast (default, streams the file) or tshark (the Lua dissector through pyshark)")
+    parser.add_argument("--jobs", type=JOBS, default=1, metavar="N",
+                        help=f"captures analysed in parallel, {JOBS.range_text}; default 1")
+    parser.add_argument("--schema", action="store_true",
+                        help="print the JSON Schema of the --json report (docs/report.schema.json) and exit")
+    add_analysis_arguments(parser)
+
+
+def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
+    """The analysis and its reports (shared with `vm110 monitor`)."""
+    add_report_options(parser)
+    add_analysis_options(parser)
+
+
+def add_report_options(parser: argparse.ArgumentParser) -> None:
+    """Where the reports go and what makes the exit code."""
+    parser.add_argument("--json", metavar="FILE", help="write the JSON report (docs/report.md); - for standard output")
+    parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report; - for standard output")
+    parser.add_argument("--fail-on", metavar="RULES", default="",
+                        help="exit 1 when a rule holds, e.g. lost>0,watchdog>0,unacked>0,illegal>0; "
+                             f"names: {', '.join(TOTAL_NAMES)}")
+    parser.add_argument("--quiet", action="store_true", help="no summary on standard output")
+    parser.add_argument("--list", action="store_true",
+                        help="list every located item of each finding (default: the first few)")
+
+
+def add_analysis_options(parser: argparse.ArgumentParser) -> None:
+    """The options that decide what the analysis says (shared with `vm110 monitor` and `vm110 fleet build`)."""
     parser.add_argument("--crc", choices=("auto", *VARIANTS), default="auto",
                         help="CRC variant; auto picks the one that validates most packets")
     parser.add_argument("--crc-order", choices=("auto", *BYTE_ORDERS), default="auto",
@@ -47,11 +72,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--serial-scope", choices=SCOPES, default="auto",
                         help="one serial counter per sender or per packet type; auto picks per sender")
     parser.add_argument("--port", type=INPUT_PORT, default=C.INPUT_PORT, help=INPUT_PORT_HELP)
-    parser.add_argument("--fail-on", metavar="RULES", default="",
-                        help="exit 1 when a rule holds, e.g. lost>0,watchdog>0,unacked>0,illegal>0; "
-                             f"names: {', '.join(TOTAL_NAMES)}")
-    parser.add_argument("--jobs", type=JOBS, default=1, metavar="N",
-                        help=f"captures analysed in parallel, {JOBS.range_text}; default 1")
     parser.add_argument("--vrpo-period", type=MS, metavar="MS",
                         help=f"nominal VRPO period for jitter, {MS.range_text} (default: median interval "
                              "between bursts)")
@@ -84,11 +104,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"packet, {MS.range_text}; default {DUP_WINDOW_MS:g}")
     limits.add_argument("--resend", type=MS, default=C.COMMAND_RESEND_MS, metavar="MS",
                         help=f"nominal command resend interval, {MS.range_text}; default {C.COMMAND_RESEND_MS}")
-    parser.add_argument("--schema", action="store_true",
-                        help="print the JSON Schema of the --json report (docs/report.schema.json) and exit")
-    parser.add_argument("--quiet", action="store_true", help="no summary on standard output")
-    parser.add_argument("--list", action="store_true",
-                        help="list every located item of each finding (default: the first few)")
 
 
 def _progress(path: str):
@@ -132,12 +147,8 @@ def combine(reports: list[dict]) -> dict:
                          for r in reports]}
 
 
-def run(args: argparse.Namespace) -> int:
-    if args.schema:
-        sys.stdout.write(resources.report_schema().read_text(encoding="utf-8"))
-        return EXIT_OK
-    if not args.captures:
-        raise CliError("give at least one CAPTURE (or --schema)")
+def analysis_options(args: argparse.Namespace) -> Options:
+    """The analysis `Options` of parsed `add_analysis_options` arguments, checked together."""
     low, high = args.vrpo_range
     if low > high:
         raise CliError(f"--vrpo-range: MIN {low:g} ms is above MAX {high:g} ms")
@@ -146,19 +157,35 @@ def run(args: argparse.Namespace) -> int:
     if args.burst_gap >= shortest:
         raise CliError(f"--burst-gap: {args.burst_gap:g} ms must be below the shortest VRPO interval "
                        f"({shortest:g} ms, --vrpo-range MIN or --vrpo-period)")
+    return Options(serial_scope=args.serial_scope, vrpo_period_ms=args.vrpo_period,
+                   vrpi_watchdog_ms=args.vrpi_watchdog, vrpo_watchdog_ms=args.vrpo_watchdog,
+                   vrpo_min_ms=low, vrpo_max_ms=high, resend_ms=args.resend,
+                   vrci_fail_ms=args.vrci_fail, vrco_give_up_ms=args.vrco_give_up,
+                   reuse_gap_ms=args.reuse_gap, dup_window_ms=args.dup_window, burst_gap_ms=args.burst_gap,
+                   vrpo_start=args.vrpo_start, vrpo_data_size=args.vrpo_data_size)
+
+
+def report_rules(args: argparse.Namespace) -> list:
+    """The --fail-on rules of `add_report_options` arguments; the report files checked up front,
+    not after minutes of analysis."""
     fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on else []
     for target in (args.json, args.html):
         if target not in (None, "-"):
-            check_target(target)      # up front: not after minutes of analysis
+            check_target(target)
+    return fail_rules
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.schema:
+        sys.stdout.write(resources.report_schema().read_text(encoding="utf-8"))
+        return EXIT_OK
+    if not args.captures:
+        raise CliError("give at least one CAPTURE (or --schema)")
+    options = analysis_options(args)
+    fail_rules = report_rules(args)
     if args.engine == "tshark":
         from ..analysis.tshark_engine import check_available
         check_available()
-    options = Options(serial_scope=args.serial_scope, vrpo_period_ms=args.vrpo_period,
-                      vrpi_watchdog_ms=args.vrpi_watchdog, vrpo_watchdog_ms=args.vrpo_watchdog,
-                      vrpo_min_ms=args.vrpo_range[0], vrpo_max_ms=args.vrpo_range[1], resend_ms=args.resend,
-                      vrci_fail_ms=args.vrci_fail, vrco_give_up_ms=args.vrco_give_up,
-                      reuse_gap_ms=args.reuse_gap, dup_window_ms=args.dup_window, burst_gap_ms=args.burst_gap,
-                      vrpo_start=args.vrpo_start, vrpo_data_size=args.vrpo_data_size)
     with contextlib.ExitStack() as stack:
         paths = [stdin_spool(stack) if p == "-" else p for p in args.captures]
         jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1) for p in paths]
@@ -170,14 +197,20 @@ def run(args: argparse.Namespace) -> int:
     for name, result in zip(args.captures, results):
         if name == "-" and isinstance(result, dict):
             result["capture"]["file"] = "-"
+    return deliver(args, list(args.captures), results, fail_rules, "analyze")
+
+
+def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rules: list, command: str) -> int:
+    """Print and write the reports (`results`: a report, or the one-line reason a capture could
+    not be read, per name) as the options say; the exit code."""
     # Every readable capture is reported; an unreadable one is an error entry beside them (exit 2).
     reports = [r for r in results if isinstance(r, dict)]
-    errors = [{"file": name, "error": r} for name, r in zip(args.captures, results) if isinstance(r, str)]
+    errors = [{"file": name, "error": r} for name, r in zip(names, results) if isinstance(r, str)]
     for e in errors:
-        print(f"vm110 analyze: {e['error']}", file=sys.stderr)
+        print(f"vm110 {command}: {e['error']}", file=sys.stderr)
     if not reports:
         return EXIT_USAGE
-    combined: Optional[dict] = combine(reports) if len(args.captures) > 1 else None
+    combined: Optional[dict] = combine(reports) if len(names) > 1 else None
     document = reports[0] if combined is None else {
         "schema_version": SCHEMA_VERSION, "reports": reports, "errors": errors, "combined": combined}
     # A reader that stops early (`| head`) cuts standard output short; the report files and the

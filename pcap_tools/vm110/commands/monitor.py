@@ -1,0 +1,105 @@
+"""Watch a live EG-Link: dashboard, alarms as they happen, evidence around each alarm, and at the
+end the report of `vm110 analyze` for everything seen.
+
+Input: an interface through dumpcap (-i), a capture file followed as it grows (--read FILE), or
+pcap/pcapng on standard input (--read -). The dashboard is drawn on a terminal about once a
+second (--no-dashboard, or no terminal: one line per finding). Ends at Ctrl-C, SIGTERM,
+--duration or the end of the input; exit code 0, 1 when a --fail-on rule holds, 2 when the input
+could not be read to its end (the report of what was seen is still given), docs/monitor.md.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import sys
+
+from ..errors import EXIT_USAGE, CliError
+from ..fileio import check_target
+from ..numbers import number
+from .analyze import add_analysis_arguments, analysis_options, deliver, report_rules
+
+SECONDS = number(0, 30 * 86400, "s", allow_zero=False)
+WINDOW = number(0, 3600, "s")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("-i", "--interface", metavar="IFACE", help="capture on this interface with dumpcap")
+    source.add_argument("--read", metavar="FILE", help="a pcap/pcapng file, followed as it grows; - for standard input")
+    parser.add_argument("--realtime", action="store_true", help="replay --read at the pace of its timestamps")
+    parser.add_argument("--idle", type=WINDOW, metavar="S",
+                        help=f"--read FILE: end when the file has not grown for S seconds, {WINDOW.range_text} "
+                             "(default: follow until interrupted)")
+    parser.add_argument("--duration", type=SECONDS, metavar="S", help=f"stop after S seconds, {SECONDS.range_text}")
+    parser.add_argument("--json-lines", metavar="FILE",
+                        help="append one JSON object per second (the dashboard's numbers) and one per finding; "
+                             "- for standard output")
+    parser.add_argument("--evidence", metavar="DIR", help="write a pcapng and a JSON around every alarm into DIR")
+    parser.add_argument("--before", type=WINDOW, default=10.0, metavar="S",
+                        help=f"evidence: seconds before the alarm, {WINDOW.range_text}; default 10")
+    parser.add_argument("--after", type=WINDOW, default=5.0, metavar="S",
+                        help=f"evidence: seconds after the alarm, {WINDOW.range_text}; default 5")
+    parser.add_argument("--no-dashboard", action="store_true", help="one line per finding instead of the dashboard")
+    add_analysis_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..monitor.evidence import Evidence
+    from ..monitor.session import Session, Settings
+    from ..monitor.sources import FILE_READ_SIZE, PACED_READ_SIZE, READ_SIZE, Dumpcap, FollowFile, PipeSource, Source
+    options = analysis_options(args)
+    fail_rules = report_rules(args)
+    if args.realtime and args.read is None:
+        raise CliError("--realtime replays --read FILE|-; a live interface is real time already")
+    if args.idle is not None and args.read in (None, "-"):
+        raise CliError("--idle applies to --read FILE")
+    if args.evidence is not None and not os.path.isdir(args.evidence):
+        raise CliError(f"--evidence {args.evidence}: no such directory")
+    name = args.read if args.read is not None else f"interface {args.interface}"
+    with contextlib.ExitStack() as stack:
+        json_lines = None
+        if args.json_lines == "-":
+            json_lines = sys.stdout
+        elif args.json_lines is not None:
+            check_target(args.json_lines)
+            try:
+                json_lines = stack.enter_context(open(args.json_lines, "a", encoding="utf-8"))
+            except OSError as exc:
+                raise CliError(f"cannot write {args.json_lines}: {exc.strerror}") from None
+        evidence = None
+        if args.evidence is not None:
+            evidence = Evidence(args.evidence, args.before, args.after,
+                                {"before_s": args.before, "after_s": args.after, "port": args.port,
+                                 "source": name, "analysis": vars(options)})
+        source: Source
+        if args.read == "-":
+            source = PipeSource(sys.stdin.fileno(), "standard input", PACED_READ_SIZE if args.realtime else READ_SIZE)
+        elif args.read is not None:
+            source = FollowFile(args.read, args.idle, PACED_READ_SIZE if args.realtime else FILE_READ_SIZE)
+        else:
+            source = Dumpcap(args.interface, (args.port, args.port + 2))
+        stack.callback(source.close)
+        on_terminal = sys.stdout.isatty() and not args.no_dashboard and args.json_lines != "-"
+        cfg = Settings(name=name, port=args.port, crc=args.crc, crc_order=args.crc_order, realtime=args.realtime,
+                       live=args.read is None or args.read == "-", duration=args.duration, dashboard=on_terminal,
+                       lines=args.json_lines != "-" and not args.quiet, json_lines=json_lines, evidence=evidence)
+        session = Session(source, options, cfg)
+        stack.callback(session.close)
+        session.run()
+        if session.board is None and cfg.lines and not args.quiet:
+            print()
+        regret = session.intake.regret()
+        if regret is not None:
+            print(f"vm110 monitor: CRC {regret[0]}/{regret[1]} validates more packets than "
+                  f"{session.intake.variant}/{session.intake.order}, chosen from the first ones; "
+                  "`vm110 analyze` would judge them with it", file=sys.stderr)
+        from ..analysis.report import build
+        report = build(session.report_state())
+        if evidence is not None and evidence.written and not args.quiet:
+            print(f"evidence: {len(evidence.written)} file(s) in {args.evidence}", file=sys.stderr)
+        code = deliver(args, [name], [report], fail_rules, "monitor")
+        if session.failure:
+            print(f"vm110 monitor: {session.failure}", file=sys.stderr)
+            return EXIT_USAGE
+        return code

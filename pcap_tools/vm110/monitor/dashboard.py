@@ -1,0 +1,115 @@
+"""The terminal dashboard: plain ANSI (home, clear to end of line), so that it works in any
+terminal of 80x24 or more and over SSH; redrawn about once a second. `render` is pure: the
+lines for a view, a width and a height."""
+from __future__ import annotations
+
+import datetime
+import shutil
+import sys
+from typing import IO, Optional
+
+_ENTER, _LEAVE = "\033[?1049h\033[?25l", "\033[?25h\033[?1049l"
+
+
+def clock(t: Optional[float]) -> str:
+    if t is None:
+        return "--:--:--.---"
+    try:
+        return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).strftime("%H:%M:%S.%f")[:-3]
+    except (OverflowError, OSError, ValueError):
+        return f"{t:.3f}"
+
+
+def _ms(v: Optional[float]) -> str:
+    if v is None:
+        return "-"
+    return f"{v / 1000:.1f} s" if v >= 10_000 else f"{v:.0f} ms"
+
+
+def _short(sid: str) -> str:
+    # "input 127.0.0.10:5825 origin 0x0101" -> "127.0.0.10:5825 0x0101"
+    parts = sid.split()
+    return f"{parts[1]} {parts[3]}" if len(parts) == 4 else sid
+
+
+def sender_lines(s: dict) -> list[str]:
+    role = "BU " if s["role"] == "BU" else "CTL"
+    head = (f"{role} {_short(s['sender']):<28} {s['state'].upper():<8} {s['type']} {_ms(s['age_ms'])} ago  "
+            f"jitter {'-' if s['jitter_ms'] is None else format(s['jitter_ms'], '.1f') + ' ms'}")
+    loss = (f"    loss {s['lost_1m']}/{s['lost']}  dup {s['duplicates_1m']}/{s['duplicates']} (1m/all)"
+            f"  restarts {s['restarts']}")
+    if s["role"] == "BU":
+        if "bu_state" in s:
+            relays = "OPEN" if s["relays_open"] else "closed"
+            second = (f"    {s['bu_state']} RU {s['armed_ru']} {s['ru_state']} bat {s['ru_battery']}% "
+                      f"rssi {s['ru_rssi']}%  relays {relays}")
+        else:
+            second = "    no VRPI yet"
+    else:
+        span = s["interval_1m_ms"]
+        low, high = s["recommended_ms"]
+        second = (f"    VRPO interval {_ms(s['interval_ms'])}"
+                  + (f" (1m {span[0]:.0f}-{span[1]:.0f})" if span else "")
+                  + f", outside {low:g}-{high:g}: {s['outside_recommended_1m']}/{s['outside_recommended']}")
+    return [head, loss, second]
+
+
+def finding_line(f: dict) -> str:
+    sev = "ERROR" if f["severity"] == "error" else "warn "
+    event = {"raised": "!", "cleared": "ok", "found": ""}.get(f["event"], "")
+    who = f" {_short(f['sender'])}" if f.get("sender") else ""
+    return f"{clock(f['time'])} #{f['frame']} {sev} {f['rule']}{(' ' + event) if event else ''}{who}: {f['message']}"
+
+
+def render(header: dict, view: dict, findings: list[dict], width: int, height: int) -> list[str]:
+    """The dashboard's lines (at most `height`, each at most `width` characters)."""
+    width, height = max(width, 20), max(height, 5)
+    c = view["commands"]
+    lat = c["ack_latency_ms"]
+    lines = [f"vm110 monitor  {header['source']}  {clock(header['now'])}  {header['status']}",
+             (f"packets {header['packets']} ({header['rate']:.0f}/s)  EG-Link {header['eglink']}  "
+              f"illegal {header['illegal']}  alarms {len(header['alarms'])}")]
+    lines += [f"  ALARM {a['rule']} {_short(a.get('sender') or '')} since {clock(a['time'])} #{a['frame']}"
+              for a in header["alarms"][:3]]
+    lines.append("")
+    senders = view["senders"]
+    # Room for every sender while the commands and two findings still fit; then a count.
+    fit = max(0, (height - len(lines) - 4) // 3)
+    for s in senders[:fit]:
+        lines += sender_lines(s)
+    if len(senders) > fit:
+        lines.append(f"... {len(senders) - fit} more sender(s): see --json-lines")
+    lines.append(f"commands {c['commands']}: in flight {c['in_flight']}  unacked {c['unacked']}  failed {c['failed']}"
+                 f"  ack {_ms(lat['last'])} (1m max {_ms(lat['max_1m'])})")
+    room = height - len(lines) - 1
+    if room > 0:
+        lines.append("findings (latest last):")
+        lines += [finding_line(f) for f in findings[-room:]] if findings else ["  none"]
+    return [ln[:width] for ln in lines[:height]]
+
+
+class Dashboard:
+    """Draws on `out` (a terminal)."""
+
+    def __init__(self, out: IO[str] = sys.stdout) -> None:
+        self.out = out
+        self.on = False
+
+    def draw(self, lines: list[str]) -> None:
+        if not self.on:
+            self.out.write(_ENTER)
+            self.on = True
+        # No newline after the last line: a full screen must not scroll.
+        self.out.write("\033[H" + "\033[K\r\n".join(lines) + "\033[K\033[J")
+        self.out.flush()
+
+    @staticmethod
+    def size() -> tuple[int, int]:
+        size = shutil.get_terminal_size((80, 24))
+        return size.columns, size.lines
+
+    def close(self) -> None:
+        if self.on:
+            self.out.write(_LEAVE)
+            self.out.flush()
+            self.on = False

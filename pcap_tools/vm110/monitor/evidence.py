@@ -1,0 +1,136 @@
+"""Evidence around each alarm: the frames from `before` seconds before it to `after` seconds
+after, as a pcapng named by the alarm's time and rule, with a JSON beside it (the finding, its
+item, the options, which frames of the capture the file holds).
+
+Memory is a ring of the recent frames, bounded by time (`before`) and by RING_BYTES, and the
+windows still collecting (at most MAX_OPEN, each bounded by WINDOW_BYTES); an alarm while a
+window of the same rule and sender is still collecting joins that window instead of opening
+another, extending it up to MAX_SPAN_S in all. Files are written atomically (vm110.fileio) and
+never over an existing file.
+"""
+from __future__ import annotations
+
+import collections
+import datetime
+import json
+import os
+import struct
+from dataclasses import dataclass, field
+from typing import Optional
+
+from ..fileio import write_bytes, write_text
+
+RING_BYTES = 64 << 20
+WINDOW_BYTES = 64 << 20
+MAX_OPEN = 64
+MAX_SPAN_S = 120.0              # a window that alarms keep extending stops growing at this length
+MAX_NUMBERS = 10_000           # frame numbers listed in the JSON (else first and last only)
+_SHB = struct.pack("<IIIHHq", 0x0A0D0D0A, 28, 0x1A2B3C4D, 1, 0, -1) + struct.pack("<I", 28)
+
+
+def _idb(link: int) -> bytes:
+    # Link type, snaplen 0 (no limit), option if_tsresol = 9 (nanoseconds), end of options.
+    body = struct.pack("<HHI", link, 0, 0) + struct.pack("<HHB3x", 9, 1, 9) + struct.pack("<HH", 0, 0)
+    size = 12 + len(body)
+    return struct.pack("<II", 1, size) + body + struct.pack("<I", size)
+
+
+def _epb(iface: int, ts: float, frame: bytes) -> bytes:
+    ns = round(ts * 1e9)
+    pad = (-len(frame)) % 4
+    size = 32 + len(frame) + pad
+    return (struct.pack("<IIIIIII", 6, size, iface, (ns >> 32) & 0xFFFFFFFF, ns & 0xFFFFFFFF, len(frame), len(frame))
+            + frame + bytes(pad) + struct.pack("<I", size))
+
+
+def pcapng(frames: list[tuple]) -> bytes:
+    """A pcapng file of (ts, frame number, link type, frame bytes)."""
+    links: dict[int, int] = {}
+    for _, _, link, _ in frames:
+        links.setdefault(link, len(links))
+    parts = [_SHB, *(_idb(link) for link in links)]
+    parts += [_epb(links[link], ts, data) for ts, _, link, data in frames]
+    return b"".join(parts)
+
+
+@dataclass
+class Window:
+    rule: str
+    sender: Optional[str]
+    time: float                     # the alarm's capture time
+    start: float
+    end: float
+    findings: list = field(default_factory=list)
+    frames: list = field(default_factory=list)
+    size: int = 0
+    cut: bool = False               # WINDOW_BYTES reached: later frames left out
+
+
+class Evidence:
+    """Writes evidence files into `folder` (an existing directory)."""
+
+    def __init__(self, folder: str, before: float, after: float, options: dict) -> None:
+        self.folder, self.before, self.after, self.options = folder, before, after, options
+        self.ring: collections.deque = collections.deque()
+        self.ring_bytes = 0
+        self.open: list[Window] = []
+        self.written: list[str] = []
+        self.skipped = 0                # alarms beyond MAX_OPEN windows
+
+    def frame(self, ts: float, number: int, link: int, data: bytes) -> None:
+        """Every frame of the capture, in order."""
+        entry = (ts, number, link, data)
+        self.ring.append(entry)
+        self.ring_bytes += len(data)
+        horizon = ts - self.before
+        ring = self.ring
+        while ring and (ring[0][0] < horizon or self.ring_bytes > RING_BYTES):
+            self.ring_bytes -= len(ring.popleft()[3])
+        for w in self.open:
+            if w.start <= ts <= w.end and not w.cut:
+                w.frames.append(entry)
+                w.size += len(data)
+                w.cut = w.size > WINDOW_BYTES
+
+    def alarm(self, finding: dict, now: float) -> None:
+        """An alarm raised at capture time `now`: open a window (or join the open one)."""
+        for w in self.open:
+            if w.rule == finding["rule"] and w.sender == finding.get("sender"):
+                w.findings.append(finding)
+                span = max(MAX_SPAN_S, self.before + self.after)
+                w.end = min(max(w.end, now + self.after), w.start + span)
+                return
+        if len(self.open) >= MAX_OPEN:
+            self.skipped += 1
+            return
+        w = Window(finding["rule"], finding.get("sender"), now, now - self.before, now + self.after, [finding])
+        w.frames = [e for e in self.ring if e[0] >= w.start]
+        w.size = sum(len(e[3]) for e in w.frames)
+        self.open.append(w)
+
+    def tick(self, now: Optional[float]) -> None:
+        """Write the windows complete at `now` (all of them when None: the input ended)."""
+        done = [w for w in self.open if now is None or now > w.end]
+        if not done:
+            return
+        self.open = [w for w in self.open if w not in done]
+        for w in done:
+            self._write(w)
+
+    def _write(self, w: Window) -> None:
+        stamp = datetime.datetime.fromtimestamp(w.time, datetime.timezone.utc).strftime("%Y%m%dT%H%M%S.%f")[:-3]
+        base = os.path.join(self.folder, f"{stamp}Z-{w.rule}")
+        name, n = base, 1
+        while os.path.exists(name + ".pcapng") or os.path.exists(name + ".json"):
+            n += 1
+            name = f"{base}-{n}"
+        frames = [f[1] for f in w.frames]
+        meta = {"rule": w.rule, "sender": w.sender, "time": w.time, "window": {"start": w.start, "end": w.end},
+                "findings": w.findings, "frames": {"count": len(frames), "first": frames[0] if frames else None,
+                                                   "last": frames[-1] if frames else None,
+                                                   "numbers": frames if len(frames) <= MAX_NUMBERS else None,
+                                                   "cut_at_bytes": WINDOW_BYTES if w.cut else None},
+                "options": self.options}
+        write_bytes(name + ".pcapng", pcapng(w.frames))
+        write_text(name + ".json", json.dumps(meta, indent=1, default=str) + "\n")
+        self.written.append(name + ".pcapng")

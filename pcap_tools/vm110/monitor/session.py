@@ -1,0 +1,348 @@
+"""One monitoring run: bytes from a source, through the stream reader and the intake into the
+analysis; each second of capture time the live view (dashboard, --json-lines), findings as they
+come, evidence around alarms; at the end the report of `analyze`.
+
+The time is the capture's: the timestamps of the packets, and between packets the last one's
+plus the time waited since it arrived (so that a silent link is seen to be silent while it is);
+with `--realtime` the capture's timeline is laid on the wall clock.
+"""
+from __future__ import annotations
+
+import collections
+import json
+import math
+import os
+import signal
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from typing import IO, Optional
+
+from ..analysis.commands import Retiring
+from ..analysis.incremental import Analysis
+from ..errors import CliError
+from ..analysis.periodic import SpilledFloats
+from ..capture.stream import StreamReader
+from . import dashboard as dash
+from .evidence import Evidence
+from .intake import Intake
+from .live import Live, finding, item
+from .sources import Source
+
+TICK_S = 0.1                 # the loop looks at the time at least this often
+DRAW_S = 1.0
+DECIDE_WAIT_S = 1.0          # a live link: the CRC variant is chosen after this at the latest
+FINDINGS_SHOWN = 200
+RATE_LIMITED = {"lost", "illegal", "restarts", "failed"}   # at most one line per second per sender
+
+
+@dataclass
+class Settings:
+    name: str                           # the capture's name in the report
+    port: int
+    crc: str
+    crc_order: str
+    realtime: bool = False
+    live: bool = False                  # a live link (dumpcap, stdin): wall clock matters
+    duration: Optional[float] = None
+    dashboard: bool = False
+    lines: bool = True                  # one line per finding on stdout (no dashboard)
+    json_lines: Optional[IO[str]] = None
+    evidence: Optional[Evidence] = None
+
+
+class Session:
+    def __init__(self, source: Source, opt, cfg: Settings) -> None:
+        self.source, self.opt, self.cfg = source, opt, cfg
+        self.spool = tempfile.TemporaryFile(prefix="vm110-monitor-")   # noqa: SIM115 -- the session owns it; close()
+        spool = self.spool
+        self.analysis = Analysis(opt, floats=lambda: SpilledFloats(spool))
+        self.command_spool = tempfile.TemporaryFile(prefix="vm110-monitor-")   # noqa: SIM115 -- as the spool
+        self.retiring = Retiring(self.analysis.tracker, self.command_spool)
+        self.fed_until = -math.inf            # the latest time the analysis has been fed
+        self.reader = StreamReader(cfg.name)
+        self.intake = Intake(cfg.name, cfg.port, cfg.crc, cfg.crc_order, self)
+        self.intake.got.on_illegal = self._illegal
+        self.live = Live(self.analysis, opt, self.emit)
+        self.findings: collections.deque = collections.deque(maxlen=FINDINGS_SHOWN)
+        self.active: dict = {}
+        self.limited: dict = {}             # (rule, sender) -> (time of last line, suppressed since)
+        self.counts: collections.Counter = collections.Counter()
+        self.board = dash.Dashboard() if cfg.dashboard else None
+        self.last_ts: Optional[float] = None
+        self.last_mono = 0.0
+        self.first_mono: Optional[float] = None
+        self.first_ts: Optional[float] = None
+        self.second: Optional[int] = None   # the capture second being counted
+        self.frames_at_second = 0
+        self.done = 0                       # frames processed (a paced replay parses ahead)
+        self.rate = 0.0
+        self.next_draw = 0.0
+        self.stop = False
+        self.input_ended = False
+        self.failure: Optional[str] = None
+
+    # -- the analysis sees the intake's records through here -------------------------------------
+    def feed(self, rec, sources) -> None:
+        self.analysis.feed(rec, sources)
+        if len(rec):
+            self.fed_until = max(self.fed_until, float(rec["ts"].max()))
+
+    def report_state(self):
+        """The Collected to build the report from (retired commands back in place)."""
+        self.retiring.restore()
+        return self.intake.got
+
+    # -- time ----------------------------------------------------------------------------------
+    def now(self) -> Optional[float]:
+        if self.last_ts is None:
+            return None
+        mono = time.monotonic()
+        if self.cfg.realtime and self.first_mono is not None and self.first_ts is not None:
+            return max(self.last_ts, self.first_ts + (mono - self.first_mono))
+        return self.last_ts + (mono - self.last_mono)
+
+    # -- the loop ------------------------------------------------------------------------------
+    def run(self) -> None:
+        started = time.monotonic()
+        deadline = None if self.cfg.duration is None else started + self.cfg.duration
+        self.deadline = deadline
+        previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+        signal.signal(signal.SIGINT, self._signal)
+        signal.signal(signal.SIGTERM, self._signal)
+        try:
+            while not self.stop:
+                data = self.source.read(TICK_S)
+                if data is None:
+                    self.input_ended = not self.stop
+                    self.failure = self.source.failure()
+                    break
+                if data:
+                    self._packets(self.reader.feed(data))
+                elif self.intake.deciding and self.first_mono is not None:
+                    self.intake.decide()           # the input is idle: choose from what came
+                    self._flush()
+                if self.reader.stopped:
+                    break
+                self._periodic()
+                if deadline is not None and time.monotonic() >= deadline:
+                    break
+        except CliError as exc:          # unreadable input (not a capture, a read error): said at the end
+            self.failure = str(exc)
+        except KeyboardInterrupt:         # a second Ctrl-C: leave the terminal as it was
+            if self.board is not None:
+                self.board.close()
+            raise
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        self._end()
+
+    def _signal(self, signum, frame) -> None:
+        if self.stop and signum == signal.SIGINT:
+            raise KeyboardInterrupt      # a second Ctrl-C: give up at once
+        self.stop = True
+
+    def _packets(self, packets: list) -> None:
+        intake, evidence, reader = self.intake, self.cfg.evidence, self.reader
+        for ts, frame, link, data, dgram in packets:
+            if self.first_mono is None:
+                self.first_mono, self.first_ts = time.monotonic(), ts
+            if self.cfg.realtime:
+                self._pace(ts)
+            second = math.floor(ts) if math.isfinite(ts) else None
+            if self.second is None:
+                self.second = second
+            elif second is not None and second > self.second:
+                self._second(ts, second)
+            if self.last_ts is None or ts > self.last_ts:
+                self.last_ts = ts
+            self.last_mono = time.monotonic()
+            self.done = frame
+            if evidence is not None:
+                evidence.frame(ts, frame, link, data)
+            if dgram is not None:
+                src, sport, dport, payload = dgram
+                intake.datagram(reader, ts, src, sport, dport, payload, frame)
+        self._flush()
+
+    def _pace(self, ts: float) -> None:
+        """--realtime: wait until the packet is due on the capture's timeline laid on the clock.
+        Once the run is to end, the packets already read (a small read's worth) go on unpaced, so
+        that the report counts exactly what was judged."""
+        assert self.first_mono is not None and self.first_ts is not None
+        while not self.stop:
+            wait = self.first_mono + (ts - self.first_ts) - time.monotonic()
+            if wait <= 0:
+                return
+            time.sleep(min(wait, TICK_S))
+            self._flush()
+            self._periodic()
+            if self.deadline is not None and time.monotonic() >= self.deadline:
+                self.stop = True
+
+    def _flush(self) -> None:
+        """The analysis gets the records gathered (a chunk's worth: its cost is per batch)."""
+        if not self.intake.deciding:
+            self.intake.got.flush()
+            self._live()
+
+    def _live(self) -> None:
+        """The live view gets the legal packets so far (it is cheap per packet)."""
+        rows = self.intake.got.live
+        if rows and not self.intake.deciding:
+            self.live.feed(rows)
+            rows.clear()
+
+    def _second(self, ts: float, second: int) -> None:
+        """Capture second `self.second` ended (the packet at `ts` begins a later one)."""
+        self._live()
+        self.live.tick(ts)
+        self.live.close_second()
+        if self.analysis.settled():       # every event applied: what is finished stays finished
+            self.retiring.retire(self.fed_until, self.live.cmd_seen)
+        frames = self.done
+        self.rate = float(frames - self.frames_at_second) / max(1, second - (self.second or second))
+        self.frames_at_second = frames
+        self.second = second
+        if self.cfg.json_lines is not None:
+            self._write_line(self.snapshot(float(second)))
+        if self.cfg.evidence is not None:
+            self.cfg.evidence.tick(ts)
+
+    def _periodic(self) -> None:
+        mono = time.monotonic()
+        if self.intake.deciding and self.first_mono is not None and (self.cfg.live or self.cfg.realtime) \
+                and mono - self.first_mono >= DECIDE_WAIT_S:
+            self.intake.decide()
+            self._flush()
+        now = self.now()
+        if now is not None and not self.intake.deciding:
+            self.live.tick(now)
+            second = math.floor(now) if math.isfinite(now) else None
+            if second is not None and self.second is not None and second > self.second:
+                self._second(now, second)
+            if self.cfg.evidence is not None:
+                self.cfg.evidence.tick(now)
+        if self.board is not None and mono >= self.next_draw:
+            self.next_draw = mono + DRAW_S
+            self.draw("running")
+
+    # -- findings ------------------------------------------------------------------------------
+    def _illegal(self, frame: int, ts: float, src: str, ptype: str, reasons: list) -> None:
+        self.emit(finding("illegal", "found", item(frame, ts, src, type=ptype, reasons=list(reasons)),
+                          f"illegal {ptype or 'packet'}: {', '.join(reasons)}"))
+
+    def emit(self, f: dict) -> None:
+        rule, sender = f["rule"], f.get("sender")
+        f["at"] = self.now()                 # the capture time it was told at
+        self.counts[rule] += 1
+        if rule == "watchdog":
+            if f["event"] == "raised":
+                self.active[(rule, sender, f["item"].get("type"))] = f
+            else:
+                self.active.pop((rule, sender, f["item"].get("type")), None)
+        if rule in RATE_LIMITED:
+            last, suppressed = self.limited.get((rule, sender), (None, 0))
+            if last is not None and 0 <= f["time"] - last < 1.0:
+                self.limited[(rule, sender)] = (last, suppressed + 1)
+                return
+            if suppressed:
+                f["suppressed_before"] = suppressed
+            self.limited[(rule, sender)] = (f["time"], 0)
+        self.findings.append(f)
+        if self.cfg.json_lines is not None:
+            self._write_line(f)
+        if self.cfg.lines and self.board is None:
+            print(dash.finding_line(f) + f"  [{f['item']['filter']}]", flush=True)
+        if self.cfg.evidence is not None and f["severity"] == "error" and f["event"] in ("raised", "found"):
+            now = self.now()
+            self.cfg.evidence.alarm(f, f["time"] if now is None else max(now, f["time"]))
+
+    def _write_line(self, obj: dict) -> None:
+        out = self.cfg.json_lines
+        assert out is not None
+        try:
+            out.write(json.dumps(obj, allow_nan=False, default=_plain) + "\n")
+            out.flush()
+        except ValueError:                 # inf/nan from damaged timestamps: as null
+            out.write(json.dumps(_finite(obj), default=_plain) + "\n")
+            out.flush()
+
+    # -- views ---------------------------------------------------------------------------------
+    def snapshot(self, now: Optional[float]) -> dict:
+        got = self.intake.got
+        view = self.live.view(now if now is not None else 0.0)
+        return {"type": "snapshot", "time": now, "packets": self.done, "rate_pps": self.rate,
+                "eglink_packets": got.eglink, "illegal": got.illegal,
+                "alarms": [a["item"] | {"rule": a["rule"]} for a in self.active.values()],
+                "findings": dict(sorted(self.counts.items())), **view, "memory_kb": rss_kb(),
+                "evidence_files": len(self.cfg.evidence.written) if self.cfg.evidence else None}
+
+    def draw(self, status: str) -> None:
+        assert self.board is not None
+        now = self.now()
+        got = self.intake.got
+        header = {"source": self.cfg.name, "now": now, "status": status, "packets": self.done,
+                  "rate": self.rate, "eglink": got.eglink, "illegal": got.illegal,
+                  "alarms": [a["item"] | {"rule": a["rule"]} for a in self.active.values()]}
+        width, height = self.board.size()
+        self.board.draw(dash.render(header, self.live.view(now or 0.0), list(self.findings), width, height))
+
+    # -- the end -------------------------------------------------------------------------------
+    def _end(self) -> None:
+        self.intake.decide()
+        try:
+            if self.input_ended:
+                self.reader.close()
+            else:                              # stopped by us: a record still arriving is not damage
+                self.reader.buf = b""
+        except CliError as exc:            # not a capture at all: said at the end
+            self.failure = self.failure or str(exc)
+        if self.reader.problem and not self.failure:
+            self.failure = f"{self.cfg.name}: {self.reader.problem}"
+        self._flush()
+        if self.last_ts is not None:
+            self.live.tick(self.last_ts)           # what the end of the input can tell
+        self.intake.sync(self.reader)
+        self.intake.got.analysis = self.analysis     # the report is built from it (report.build)
+        if self.cfg.evidence is not None:
+            self.cfg.evidence.tick(None)
+        if self.board is not None:
+            self.board.close()
+
+    def close(self) -> None:
+        self.spool.close()
+        self.command_spool.close()
+
+
+def rss_kb() -> Optional[int]:
+    """Resident memory of this process (Linux), in KiB."""
+    try:
+        with open("/proc/self/statm", "rb") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") // 1024
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _plain(obj):
+    if hasattr(obj, "item"):
+        return obj.item()
+    if isinstance(obj, (set, tuple)):
+        return list(obj)
+    return str(obj)
+
+
+def _finite(obj):
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def stdout_is_terminal() -> bool:
+    return sys.stdout.isatty()

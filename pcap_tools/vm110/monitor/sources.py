@@ -1,0 +1,140 @@
+"""Where the capture bytes come from: dumpcap on an interface, a file followed as it grows, or
+standard input. `read(timeout)` returns the next bytes, b"" when none came within `timeout`
+seconds, None at the end of the input."""
+from __future__ import annotations
+
+import os
+import select
+import shutil
+import subprocess
+import tempfile
+import time
+from typing import Optional
+
+from ..errors import CliError
+
+READ_SIZE = 1 << 16            # a pipe's worth
+FILE_READ_SIZE = 1 << 20       # a file: larger batches for the analysis
+PACED_READ_SIZE = 1 << 12      # --realtime: read little ahead of the pace
+DUMPCAP_HINT = ("capturing needs rights: run as root, or let dumpcap capture (Debian: dpkg-reconfigure "
+                "wireshark-common, then join the wireshark group; elsewhere: "
+                "setcap cap_net_raw,cap_net_admin=ep dumpcap)")
+
+
+class Source:
+    name = ""
+
+    def read(self, timeout: float) -> Optional[bytes]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Stop reading (the process or file of the source is let go)."""
+
+    def failure(self) -> Optional[str]:
+        """Why the input ended, when it was not the end of the data."""
+        return None
+
+
+class PipeSource(Source):
+    """A pipe or standard input (file descriptor `fd`, not closed here)."""
+
+    def __init__(self, fd: int, name: str, size: int = READ_SIZE) -> None:
+        self.fd, self.name, self.size = fd, name, size
+
+    def read(self, timeout: float) -> Optional[bytes]:
+        try:
+            ready, _, _ = select.select([self.fd], [], [], timeout)
+        except (OSError, ValueError) as exc:
+            raise CliError(f"cannot read {self.name}: {exc}") from None
+        if not ready:
+            return b""
+        try:
+            data = os.read(self.fd, self.size)
+        except OSError as exc:
+            raise CliError(f"cannot read {self.name}: {exc.strerror or exc}") from None
+        return data or None
+
+
+class FollowFile(Source):
+    """A capture file read as it grows (tail -f); the input ends when it has not grown for `idle`
+    seconds (None: never, until interrupted)."""
+
+    def __init__(self, path: str, idle: Optional[float], size: int = FILE_READ_SIZE) -> None:
+        self.name, self.idle, self.size = path, idle, size
+        try:
+            self.file = open(path, "rb")   # noqa: SIM115 -- the source owns it; close()
+        except OSError as exc:
+            raise CliError(f"cannot read {path}: {exc.strerror}") from None
+        self.grew = time.monotonic()
+
+    def read(self, timeout: float) -> Optional[bytes]:
+        try:
+            data = self.file.read(self.size)
+        except OSError as exc:
+            raise CliError(f"cannot read {self.name}: {exc.strerror or exc}") from None
+        if data:
+            self.grew = time.monotonic()
+            return data
+        if self.idle is not None and time.monotonic() - self.grew >= self.idle:
+            return None
+        time.sleep(timeout if self.idle is None else min(timeout, max(0.0, self.idle)))
+        return b""
+
+    def close(self) -> None:
+        self.file.close()
+
+
+class Dumpcap(Source):
+    """Wireshark's capture engine on interface `iface`, filtered to the EG-Link ports, its pcapng
+    read from a pipe as it arrives."""
+
+    def __init__(self, iface: str, ports: tuple[int, ...]) -> None:
+        self.name = iface
+        exe = shutil.which("dumpcap")
+        if exe is None:
+            raise CliError("dumpcap not found: install Wireshark's capture engine (Debian: tshark or wireshark-common)")
+        flt = "udp and (" + " or ".join(f"port {p}" for p in ports) + ")"
+        self.errors = tempfile.TemporaryFile()   # noqa: SIM115 -- dumpcap's stderr while it runs; close()
+        # -q: no packet counts on stderr; -w -: pcapng to the pipe, a block per packet as it comes.
+        self.proc = subprocess.Popen([exe, "-q", "-i", iface, "-f", flt, "-w", "-"], stdout=subprocess.PIPE,
+                                     stderr=self.errors, stdin=subprocess.DEVNULL)
+        assert self.proc.stdout is not None
+        self.pipe = PipeSource(self.proc.stdout.fileno(), f"dumpcap on {iface}")
+        self.got_data = False
+
+    def read(self, timeout: float) -> Optional[bytes]:
+        data = self.pipe.read(timeout)
+        if data:
+            self.got_data = True
+        return data
+
+    def failure(self) -> Optional[str]:
+        try:
+            code = self.proc.wait(timeout=2)
+        except subprocess.TimeoutExpired:
+            return None
+        self.errors.seek(0)
+        text = self.errors.read().decode("utf-8", "replace")
+        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        said = [ln for ln in lines if ln.startswith("dumpcap:")]
+        if code == 0 and not said:
+            return None
+        message = said[0] if said else (lines[-1] if lines else f"dumpcap exited with status {code}")
+        after = lines[lines.index(message) + 1] if message in lines and lines.index(message) + 1 < len(lines) else ""
+        if after.startswith("("):
+            message = f"{message} {after}"
+        if "permission" in message.lower():
+            message = f"{message}; {DUMPCAP_HINT}"
+        return f"{message} (interface {self.name})"
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+        self.errors.close()

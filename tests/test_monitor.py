@@ -1,0 +1,238 @@
+"""`vm110 monitor` on files and pipes: the same report as `analyze`, findings and evidence as
+they come, and bad input (one line, exit 2, the report of what was seen)."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vm110.analysis.periodic import Floats, SpilledFloats
+from vm110.capture.reader import CaptureReader
+from vm110.cli import main
+from vm110.synth import synthesize
+
+ROOT = Path(__file__).resolve().parent.parent
+CAPTURES = sorted(p for p in (ROOT / "captures").iterdir() if p.suffix in (".pcap", ".pcapng"))
+VM110 = [sys.executable, "-m", "vm110"]
+
+
+def _reports(capture: str, tmp_path: Path, *extra: str) -> tuple[bytes, bytes]:
+    a, m = tmp_path / "analyze.json", tmp_path / "monitor.json"
+    assert main(["analyze", capture, "--quiet", "--json", str(a), *extra]) in (0, 1)
+    assert main(["monitor", "--read", capture, "--idle", "0", "--quiet", "--no-dashboard", "--json", str(m),
+                 *extra]) in (0, 1)
+    return a.read_bytes(), m.read_bytes()
+
+
+@pytest.mark.parametrize("capture", CAPTURES, ids=lambda p: p.name)
+def test_monitor_ends_with_the_report_of_analyze(capture, tmp_path, capsys):
+    a, m = _reports(str(capture), tmp_path)
+    assert a == m
+
+
+@pytest.mark.parametrize("scenario,fmt,extra", [("day", "pcap", ()), ("restart", "pcapng", ("--serial-scope", "type")),
+                                                ("overlap", "pcap", ("--crc", "mpeg2", "--vrpi-watchdog", "200"))])
+def test_monitor_matches_analyze_on_generated_captures(scenario, fmt, extra, tmp_path, capsys):
+    capture = tmp_path / f"{scenario}.{fmt}"
+    synthesize(scenario, str(capture), seed=7, duration_s=40.0, fmt=fmt)
+    a, m = _reports(str(capture), tmp_path, *extra)
+    assert a == m
+
+
+def test_findings_json_lines_and_evidence_of_a_silent_base_unit(tmp_path, capsys):
+    capture = str(ROOT / "captures" / "bu-stops.pcap")
+    lines, evidence = tmp_path / "live.jsonl", tmp_path / "evidence"
+    evidence.mkdir()
+    # A given CRC variant: nothing is held back while it is chosen from the first 256 packets.
+    code = main(["monitor", "--read", capture, "--idle", "0", "--no-dashboard", "--quiet", "--json-lines", str(lines),
+                 "--evidence", str(evidence), "--before", "2", "--after", "1", "--crc", "mpeg2", "--crc-order", "little"])
+    assert code == 0
+    objects = [json.loads(line) for line in lines.read_text().splitlines()]
+    snapshots = [o for o in objects if o["type"] == "snapshot"]
+    findings = [o for o in objects if o["type"] == "finding"]
+    # One snapshot per second of capture time.
+    times = [s["time"] for s in snapshots]
+    assert times == [times[0] + i for i in range(len(times))] and len(times) >= 13
+    alarm = [f for f in findings if f["rule"] == "watchdog" and f["event"] == "raised"]
+    assert len(alarm) == 1 and alarm[0]["item"]["type"] == "VRPI" and alarm[0]["severity"] == "error"
+    # Raised while the BU is still silent: within a second of the 500 ms limit, never cleared.
+    silent_from = alarm[0]["item"]["time"]
+    assert 0.5 < alarm[0]["at"] - silent_from <= 1.5
+    assert not [f for f in findings if f["rule"] == "watchdog" and f["event"] == "cleared"]
+    bu = next(s for s in snapshots[-1]["senders"] if s["role"] == "BU")
+    ctl = next(s for s in snapshots[-1]["senders"] if s["role"] == "controller")
+    assert bu["state"] == "watchdog" and bu["age_ms"] > 4000 and ctl["state"] == "alive"
+    assert snapshots[-1]["alarms"][0]["rule"] == "watchdog" and bu["bu_state"] == "Armed"
+    # The evidence: the frames of [alarm - 2 s, alarm + 1 s], named by time and rule, JSON beside.
+    files = sorted(evidence.iterdir())
+    assert [f.suffix for f in files] == [".json", ".pcapng"] and "-watchdog" in files[0].name
+    meta = json.loads(files[0].read_text())
+    frames = list(CaptureReader(str(files[1])))
+    assert meta["frames"]["count"] == len(frames) > 0 and meta["findings"][0]["rule"] == "watchdog"
+    everything = {f[5]: f for f in CaptureReader(capture)}
+    start, end = meta["window"]["start"], meta["window"]["end"]
+    expected = [n for n, f in everything.items() if start <= f[0] <= end]
+    assert meta["frames"]["numbers"] == expected
+    assert [f[4] for f in frames] == [everything[n][4] for n in expected]     # the very payloads
+
+
+def _run(args: list[str], stdin: bytes = b"", timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run(VM110 + args, input=stdin, capture_output=True, timeout=timeout)
+
+
+def test_garbage_on_stdin_is_one_line_and_exit_2(tmp_path):
+    out = _run(["monitor", "--read", "-", "--no-dashboard", "--json", str(tmp_path / "r.json")], b"this is no capture\n")
+    assert out.returncode == 2
+    err = out.stderr.decode().strip().splitlines()
+    assert err == ["vm110 monitor: -: not a pcap or pcapng capture (magic 0x74686973)"]
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["capture"]["packets"] == 0
+
+
+def test_a_pipe_that_closes_mid_record_keeps_what_was_seen(tmp_path):
+    data = (ROOT / "captures" / "normal.pcap").read_bytes()
+    cut = data[:5000]
+    out = _run(["monitor", "--read", "-", "--no-dashboard", "--json", str(tmp_path / "r.json")], cut)
+    assert out.returncode == 2
+    err = out.stderr.decode().strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("vm110 monitor: -: file cut in the middle of a record at byte")
+    report = json.loads((tmp_path / "r.json").read_text())
+    whole = sum(1 for _ in CaptureReader(str(ROOT / "captures" / "normal.pcap")))
+    assert 0 < report["capture"]["packets"] < whole
+    assert "VERDICT" in out.stdout.decode()              # the summary of what was seen
+    # The same bytes as a file give the same report (but for its name).
+    part = tmp_path / "part.pcap"
+    part.write_bytes(cut)
+    assert main(["analyze", str(part), "--quiet", "--json", str(tmp_path / "a.json")]) == 0
+    a = json.loads((tmp_path / "a.json").read_text())
+    a["capture"]["file"] = "-"
+    assert a == report
+
+
+def test_garbage_after_a_good_start_is_damage(tmp_path):
+    data = (ROOT / "captures" / "loss.pcapng").read_bytes()[:20000] + b"\xff" * 64
+    out = _run(["monitor", "--read", "-", "--no-dashboard", "--quiet", "--json", str(tmp_path / "r.json")], data)
+    assert out.returncode == 2
+    err = out.stderr.decode().strip().splitlines()
+    assert len(err) == 1 and "corrupt pcapng block" in err[0]
+    assert json.loads((tmp_path / "r.json").read_text())["capture"]["packets"] > 0
+
+
+@pytest.mark.skipif(shutil.which("dumpcap") is None, reason="dumpcap not installed")
+def test_no_such_interface():
+    out = _run(["monitor", "-i", "vm110-nosuch0", "--no-dashboard", "--quiet", "--duration", "5"])
+    assert out.returncode == 2
+    err = out.stderr.decode().strip().splitlines()
+    assert len(err) == 1 and "no device named" in err[0] and "vm110-nosuch0" in err[0]
+
+
+@pytest.mark.skipif(shutil.which("dumpcap") is None or shutil.which("setpriv") is None or os.geteuid() != 0,
+                    reason="needs root (to drop to nobody), setpriv and dumpcap")
+def test_no_permission_to_capture():
+    if subprocess.run(["getcap", shutil.which("dumpcap")], capture_output=True, text=True).stdout.strip():
+        pytest.skip("dumpcap has capture capabilities: everyone may capture here")
+    drop = ["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups"]
+    out = subprocess.run(drop + VM110 + ["monitor", "-i", "lo", "--no-dashboard", "--quiet", "--duration", "5"],
+                         capture_output=True, timeout=60, cwd="/")
+    if b"No module named" in out.stderr:
+        pytest.skip("nobody cannot read this checkout")
+    assert out.returncode == 2
+    err = out.stderr.decode().strip().splitlines()
+    assert len(err) == 1 and "permission" in err[0] and "dumpcap" in err[0]
+
+
+def test_options_are_validated(capsys):
+    for args in (["--read", "x", "--before", "nan"], ["--read", "x", "--duration", "0"], ["-i", "lo", "--realtime"],
+                 ["--read", "-", "--idle", "1"], ["--read", "x", "--evidence", "/nonexistent/dir"], []):
+        try:
+            code = main(["monitor", *args])
+        except SystemExit as exc:              # argparse's own refusals
+            code = exc.code
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and err[0].startswith("vm110 monitor: "), args
+
+
+def test_follows_a_growing_file(tmp_path):
+    """--read FILE reads on as the file grows (tail -f): the report is that of the whole file."""
+    data = (ROOT / "captures" / "loss.pcapng").read_bytes()
+    growing = tmp_path / "growing.pcapng"
+    growing.write_bytes(data[:7001])                     # in the middle of a block
+    proc = subprocess.Popen(VM110 + ["monitor", "--read", str(growing), "--idle", "2", "--no-dashboard", "--quiet",
+                                     "--json", str(tmp_path / "m.json")], stderr=subprocess.PIPE)
+    for cut in (7001, 30000, len(data)):
+        time.sleep(0.4)
+        with open(growing, "ab") as f:
+            f.write(data[growing.stat().st_size:cut])
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert main(["analyze", str(growing), "--quiet", "--json", str(tmp_path / "a.json")]) == 0
+    assert (tmp_path / "a.json").read_bytes() == (tmp_path / "m.json").read_bytes()
+
+
+def test_sigterm_ends_with_the_report_of_what_was_seen(tmp_path):
+    data = (ROOT / "captures" / "normal.pcap").read_bytes()
+    lines = tmp_path / "live.jsonl"
+    proc = subprocess.Popen(VM110 + ["monitor", "--read", "-", "--no-dashboard", "--quiet", "--fail-on", "packets>0",
+                                     "--json", str(tmp_path / "r.json"), "--json-lines", str(lines)],
+                            stdin=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdin is not None
+    proc.stdin.write(data[:12000])          # the pipe stays open: only the signal ends the run
+    proc.stdin.flush()
+    for _ in range(200):                    # running (and its handlers in place) once it logs
+        time.sleep(0.1)
+        if lines.exists() and lines.stat().st_size:
+            break
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(timeout=30)                   # before the pipe closes
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 1, err        # --fail-on holds for what was seen
+    report = json.loads((tmp_path / "r.json").read_text())
+    seen = report["capture"]["packets"]
+    assert 0 < seen < sum(1 for _ in CaptureReader(str(ROOT / "captures" / "normal.pcap")))
+    assert report["capture"]["problem"] is None      # a stream stopped between records is not damage
+
+
+def test_spilled_times_stay_exact_and_out_of_memory():
+    block = SpilledFloats.BLOCK
+    values = np.cumsum(np.random.default_rng(1).uniform(0.05, 0.2, 3 * block + 123)) + 1.75e9
+    with tempfile.TemporaryFile() as spool:
+        spilled, plain = SpilledFloats(spool), Floats()
+        for part in np.array_split(values, 7):
+            spilled.extend(part)
+            plain.extend(part)
+        assert len(spilled.blocks.where) == 3 and os.fstat(spool.fileno()).st_size == 3 * block * 8
+        assert len(spilled.blocks.tail) == block and spilled.used == 123
+        assert np.array_equal(spilled.intervals_ms(), plain.intervals_ms())
+        assert np.array_equal(spilled.intervals_ms(1.7e9), plain.intervals_ms(1.7e9))
+        assert spilled.last() == plain.last() == values[-1]
+        assert [spilled[i] for i in (0, block - 1, block + 5, 3 * block)] == [values[i] for i in (0, block - 1, block + 5,
+                                                                                               3 * block)]
+
+
+def test_a_replay_stopped_by_duration_reports_exactly_what_it_judged(tmp_path):
+    capture = ROOT / "captures" / "normal.pcap"            # 20 s of traffic
+    out = _run(["monitor", "--read", str(capture), "--realtime", "--duration", "3", "--no-dashboard", "--quiet",
+                "--json", str(tmp_path / "m.json")])
+    assert out.returncode == 0, out.stderr
+    report = json.loads((tmp_path / "m.json").read_text())
+    seen = report["capture"]["packets"]
+    assert 0 < seen < 300
+    # The same packets as a file: the same report.
+    data, pos = capture.read_bytes(), 24
+    for _ in range(seen):
+        pos += 16 + int.from_bytes(data[pos + 8:pos + 12], "little")
+    prefix = tmp_path / "prefix.pcap"
+    prefix.write_bytes(data[:pos])
+    assert main(["analyze", str(prefix), "--quiet", "--json", str(tmp_path / "a.json")]) in (0, 1)
+    expected = json.loads((tmp_path / "a.json").read_text())
+    expected["capture"]["file"] = str(capture)
+    assert report == expected

@@ -1,0 +1,108 @@
+"""`vm110 monitor` live: dumpcap on the loopback of a network namespace this test creates, the
+simulated base unit and the reference controller talking unicast over it (nothing leaves the
+namespace); and the dashboard in tmux on a capture replayed at the pace of its timestamps."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from vm110.capture.reader import CaptureReader
+
+ROOT = Path(__file__).resolve().parent.parent
+VM110 = [sys.executable, "-m", "vm110"]
+BU, CTL = "127.0.0.10", "127.0.0.20"
+STALL = (3.0, 5.0)              # the BU hangs: sends nothing from 3 s to 5 s of its run
+
+
+@pytest.mark.skipif(shutil.which("dumpcap") is None, reason="dumpcap not installed")
+def test_watchdog_alarm_evidence_and_recovery_on_a_live_link(netns, tmp_path):
+    ns = ["ip", "netns", "exec", netns]
+    lines, evidence, report = tmp_path / "live.jsonl", tmp_path / "evidence", tmp_path / "report.json"
+    evidence.mkdir()
+    monitor = subprocess.Popen(ns + VM110 + ["monitor", "-i", "lo", "--no-dashboard", "--quiet", "--duration", "9",
+                                             "--json-lines", str(lines), "--evidence", str(evidence), "--before", "2",
+                                             "--after", "1", "--json", str(report)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    time.sleep(1.5)                     # dumpcap running before the traffic starts
+    if monitor.poll() is not None:
+        _, early = monitor.communicate()
+        pytest.skip(f"dumpcap cannot capture here: {early.decode().strip()}")
+    sim = VM110 + ["simulate"]
+    ctl = subprocess.Popen(ns + sim + ["controller", "--listen", f"{CTL}:5825", "--peer", f"{BU}:5827", "--source",
+                                       f"{CTL}:5827", "--duration", "6.5", "--quiet"], stdout=subprocess.DEVNULL)
+    bu = subprocess.run(ns + sim + ["bu", "--listen", f"{BU}:5827", "--peer", f"{CTL}:5825", "--source", f"{BU}:5825",
+                                    "--duration", "6.5", "--quiet", "--stall", f"{STALL[0]}:{STALL[1]}"],
+                        stdout=subprocess.DEVNULL, timeout=30)
+    ctl.wait(timeout=30)
+    _, err = monitor.communicate(timeout=60)
+    assert bu.returncode == 0 and monitor.returncode in (0, 1), err.decode()
+    objects = [json.loads(line) for line in lines.read_text().splitlines()]
+    findings = [o for o in objects if o["type"] == "finding" and o["rule"] == "watchdog"
+                and o["item"].get("type") == "VRPI"]
+    raised = [f for f in findings if f["event"] == "raised"]
+    cleared = [f for f in findings if f["event"] == "cleared"]
+    assert raised and cleared, findings
+    first = raised[0]
+    # Raised while the BU was still silent, within a second of the 500 ms limit ...
+    assert 0.5 < first["at"] - first["item"]["time"] <= 1.5
+    assert first["item"].get("until_end") is True
+    # ... and cleared by the BU's return, after the stall (about 2 s of silence).
+    back = cleared[0]
+    assert back["time"] > first["at"] and 1.5 < back["item"]["gap_ms"] / 1000 < 3.0
+    # While silent, the dashboard's numbers said so.
+    during = [o for o in objects if o["type"] == "snapshot" and first["at"] < o["time"] < back["time"]]
+    assert during and all(any(a["rule"] == "watchdog" for a in s["alarms"]) for s in during)
+    # The evidence: the packets of [alarm - 2 s, alarm + 1 s]: BU status before the silence, the
+    # controller's outputs during it, nothing of the BU in it.
+    files = sorted(p for p in evidence.iterdir() if p.suffix == ".pcapng" and "watchdog" in p.name)
+    assert files
+    meta = json.loads(files[0].with_suffix(".json").read_text())
+    frames = list(CaptureReader(str(files[0])))
+    assert len(frames) == meta["frames"]["count"] > 10
+    start, end = meta["window"]["start"], meta["window"]["end"]
+    assert all(start <= f[0] <= end for f in frames)
+    silent_from = first["item"]["time"]
+    bu_times = [f[0] for f in frames if f[2] == 5825]
+    ctl_times = [f[0] for f in frames if f[2] == 5827]
+    assert bu_times and max(t for t in bu_times if t <= silent_from + 0.001) == pytest.approx(silent_from)
+    assert not [t for t in bu_times if silent_from + 0.001 < t <= meta["time"]]
+    assert [t for t in ctl_times if t > silent_from]
+    # The report at the end has the same violation.
+    rep = json.loads(report.read_text())
+    violations = [v for p in rep["periodic"] if p["type"] == "VRPI" for v in p["watchdog"]["violations"]]
+    assert any(1.5 < v["gap_ms"] / 1000 < 3.0 for v in violations)
+
+
+@pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux not installed")
+def test_dashboard_in_tmux(tmp_path):
+    capture = ROOT / "captures" / "bu-watchdog.pcap"     # controller silent 3.1 s from 4.9 s on
+    session = f"vm110-dash-{tmp_path.name[-12:]}"
+    cmd = " ".join([*VM110, "monitor", "--read", str(capture), "--realtime", "--idle", "0", "--duration", "20",
+                    "--quiet"])
+    subprocess.run(["tmux", "new-session", "-d", "-s", session, "-x", "80", "-y", "24", cmd], check=True,
+                   cwd=str(ROOT))
+    try:
+        # The alarm comes 4.9 s + 2 s into the capture; the silence ends at 8 s: look until then.
+        for _ in range(60):
+            time.sleep(0.25)
+            pane = subprocess.run(["tmux", "capture-pane", "-p", "-t", session], capture_output=True, text=True,
+                                  check=True).stdout
+            if "WATCHDOG" in pane:
+                break
+    finally:
+        subprocess.run(["tmux", "kill-session", "-t", session], capture_output=True)
+    rows = pane.splitlines()
+    assert len(rows) <= 24 and all(len(r) <= 80 for r in rows)
+    assert rows[0].startswith("vm110 monitor") and "running" in rows[0]
+    text = "\n".join(rows)
+    assert "CTL 10.0.0.20:5827 0x0000" in text and "WATCHDOG" in text
+    assert "BU  10.0.0.10:5825 0x0101" in text and "ALIVE" in text
+    assert "ALARM watchdog 10.0.0.20:5827" in text
+    assert "watchdog ! 10.0.0.20:5827 0x0000: VRPO watchdog" in text
+    assert "relays OPEN" in text      # the BU opened the ES-Link relays: its own watchdog on VRPO
