@@ -38,6 +38,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report; - for standard output")
     parser.add_argument("--engine", choices=("fast", "tshark"), default="fast",
                         help="fast (default, streams the file) or tshark (the Lua dissector through pyshark)")
+    add_analysis_options(parser)
+    parser.add_argument("--fail-on", metavar="RULES", default="",
+                        help="exit 1 when a rule holds, e.g. lost>0,watchdog>0,unacked>0,illegal>0; "
+                             f"names: {', '.join(TOTAL_NAMES)}")
+    parser.add_argument("--jobs", type=JOBS, default=1, metavar="N",
+                        help=f"captures analysed in parallel, {JOBS.range_text}; default 1")
+    parser.add_argument("--quiet", action="store_true", help="no summary on standard output")
+    parser.add_argument("--list", action="store_true",
+                        help="list every located item of each finding (default: the first few)")
+
+
+def add_analysis_options(parser: argparse.ArgumentParser) -> None:
+    """The options that decide what the analysis says (shared with `vm110 fleet build`)."""
     parser.add_argument("--crc", choices=("auto", *VARIANTS), default="auto",
                         help="CRC variant; auto picks the one that validates most packets")
     parser.add_argument("--crc-order", choices=("auto", *BYTE_ORDERS), default="auto",
@@ -45,11 +58,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--serial-scope", choices=SCOPES, default="auto",
                         help="one serial counter per sender or per packet type; auto picks per sender")
     parser.add_argument("--port", type=INPUT_PORT, default=C.INPUT_PORT, help=INPUT_PORT_HELP)
-    parser.add_argument("--fail-on", metavar="RULES", default="",
-                        help="exit 1 when a rule holds, e.g. lost>0,watchdog>0,unacked>0,illegal>0; "
-                             f"names: {', '.join(TOTAL_NAMES)}")
-    parser.add_argument("--jobs", type=JOBS, default=1, metavar="N",
-                        help=f"captures analysed in parallel, {JOBS.range_text}; default 1")
     parser.add_argument("--vrpo-period", type=MS, metavar="MS",
                         help=f"nominal VRPO period for jitter, {MS.range_text} (default: median interval "
                              "between bursts)")
@@ -82,9 +90,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"packet, {MS.range_text}; default {DUP_WINDOW_MS:g}")
     limits.add_argument("--resend", type=MS, default=C.COMMAND_RESEND_MS, metavar="MS",
                         help=f"nominal command resend interval, {MS.range_text}; default {C.COMMAND_RESEND_MS}")
-    parser.add_argument("--quiet", action="store_true", help="no summary on standard output")
-    parser.add_argument("--list", action="store_true",
-                        help="list every located item of each finding (default: the first few)")
 
 
 def _progress(path: str):
@@ -128,10 +133,21 @@ def combine(reports: list[dict]) -> dict:
                          for r in reports]}
 
 
-def run(args: argparse.Namespace) -> int:
+def analysis_options(args: argparse.Namespace) -> Options:
+    """The analysis `Options` of parsed `add_analysis_options` arguments."""
     low, high = args.vrpo_range
     if low > high:
         raise CliError(f"--vrpo-range: MIN {low:g} ms is above MAX {high:g} ms")
+    return Options(serial_scope=args.serial_scope, vrpo_period_ms=args.vrpo_period,
+                   vrpi_watchdog_ms=args.vrpi_watchdog, vrpo_watchdog_ms=args.vrpo_watchdog,
+                   vrpo_min_ms=low, vrpo_max_ms=high, resend_ms=args.resend,
+                   vrci_fail_ms=args.vrci_fail, vrco_give_up_ms=args.vrco_give_up,
+                   reuse_gap_ms=args.reuse_gap, dup_window_ms=args.dup_window, burst_gap_ms=args.burst_gap,
+                   vrpo_start=args.vrpo_start, vrpo_data_size=args.vrpo_data_size)
+
+
+def run(args: argparse.Namespace) -> int:
+    options = analysis_options(args)
     fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on else []
     for target in (args.json, args.html):
         if target not in (None, "-"):
@@ -139,12 +155,6 @@ def run(args: argparse.Namespace) -> int:
     if args.engine == "tshark":
         from ..analysis.tshark_engine import check_available
         check_available()
-    options = Options(serial_scope=args.serial_scope, vrpo_period_ms=args.vrpo_period,
-                      vrpi_watchdog_ms=args.vrpi_watchdog, vrpo_watchdog_ms=args.vrpo_watchdog,
-                      vrpo_min_ms=args.vrpo_range[0], vrpo_max_ms=args.vrpo_range[1], resend_ms=args.resend,
-                      vrci_fail_ms=args.vrci_fail, vrco_give_up_ms=args.vrco_give_up,
-                      reuse_gap_ms=args.reuse_gap, dup_window_ms=args.dup_window, burst_gap_ms=args.burst_gap, vrpo_start=args.vrpo_start,
-                      vrpo_data_size=args.vrpo_data_size)
     with contextlib.ExitStack() as stack:
         paths = [stdin_spool(stack) if p == "-" else p for p in args.captures]
         jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1) for p in paths]
