@@ -19,6 +19,7 @@ COMMANDS = {
     "craft": "craft",
     "decode": "decode",
     "dissect": "dissect",
+    "fleet": "fleet",
     "fuzz": "fuzz",
     "simulate": "simulate",
     "synth": "synth",
