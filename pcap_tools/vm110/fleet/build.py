@@ -67,6 +67,8 @@ def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern
     else:
         dataset.check_new()
         manifest = Dataset.new_manifest(options)
+        dataset.write_manifest(manifest)        # first: a build stopped at once is still ours to resume
+    dataset.remove_temporaries()
     listed = manifest["captures"]
     for cid, row in dataset.complete_captures().items():       # a stopped build's finished work
         if cid not in listed:

@@ -133,6 +133,18 @@ class Dataset:
             except FileNotFoundError:
                 pass
 
+    def remove_temporaries(self) -> None:
+        """Temporary files of part writes that a stopped build left (named by us: `.part-*.tmp`
+        from fileio, `part-*.tmp` from the fsspec path)."""
+        for table in TABLES:
+            folder = self.path(table)
+            if not self.fs.exists(folder):
+                continue
+            for name in self.fs.ls(folder, detail=False):
+                base = posixpath.basename(name)
+                if base.endswith(".tmp") and base.lstrip(".").startswith("part-") and ".parquet." in base:
+                    self.fs.rm(name)
+
     def _write_bytes(self, relative: str, data: bytes) -> None:
         target = self.path(relative)
         try:

@@ -132,14 +132,15 @@ LIMIT {a.limit}"""
 
 
 def _failing_commands(f: Fleet, a: Args) -> str:
-    w = ", ".join(f.who("commands"))
+    who = f.who("commands")
+    w = ", ".join(who)
     return f"""
-SELECT type, command_id, count(*) AS commands, count(*) FILTER (WHERE failed) AS failed,
+SELECT {w}, type, command_id, count(*) AS commands, count(*) FILTER (WHERE failed) AS failed,
        count(*) FILTER (WHERE NOT acked AND interrupted_frame IS NULL) AS unacked,
        round(100.0 * count(*) FILTER (WHERE failed) / count(*), 1) AS failed_pct,
-       round(quantile_cont(latency_first_ms, 0.95), 3) AS ack_p95_ms, count(DISTINCT ({w})) AS machines
-FROM commands GROUP BY type, command_id HAVING count(*) FILTER (WHERE failed) > 0
-ORDER BY failed DESC, failed_pct DESC, type, command_id
+       round(quantile_cont(latency_first_ms, 0.95), 3) AS ack_p95_ms, count(DISTINCT capture_id) AS captures
+FROM commands GROUP BY ALL HAVING count(*) FILTER (WHERE failed) > 0
+ORDER BY failed DESC, failed_pct DESC, {w}, type, command_id
 LIMIT {a.limit}"""
 
 
@@ -216,7 +217,7 @@ NAMED = {n.name: n for n in (
     Named("worst-links", "machines by lost packets (share), watchdog violations, then jitter (--worst links)", _worst_links),
     Named("worst-machines", "machines ranked by findings: error findings, failing captures, others (--worst machines)",
           _worst_machines),
-    Named("failing-commands", "command IDs that fail most, with unacked, failure share and ack latency (--worst commands)",
+    Named("failing-commands", "commands that fail most, per machine and command ID, with failure share and ack latency (--worst commands)",
           _failing_commands),
     Named("watchdog", "machines with watchdog violations in a month (--month YYYY-MM; default the latest in the data)",
           _watchdog),
