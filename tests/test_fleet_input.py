@@ -1,0 +1,182 @@
+"""vm110 fleet on bad input (one line, exit 2, nothing in the dataset lost) and rebuilding
+(skipped when unchanged, replaced when changed, continued after a kill)."""
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from vm110.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+BUNDLED = ROOT / "captures"
+NAMES = ("normal.pcap", "disarmed.pcap", "retransmit.pcap", "vrco.pcap", "bu-stops.pcap", "controller-watchdog.pcap")
+
+
+def vm110(*args: str) -> subprocess.CompletedProcess:
+    """The command run in this process (quicker than a new interpreter), as a CompletedProcess."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main(list(args))
+        except SystemExit as exc:          # argparse's usage errors
+            code = int(exc.code or 0)
+    return subprocess.CompletedProcess(args, code, out.getvalue(), err.getvalue())
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def rows(dataset: Path, table: str = "captures") -> list[dict]:
+    manifest = json.loads((dataset / "manifest.json").read_text())
+    out = []
+    for entry in manifest["captures"].values():
+        out += [r for part in entry["parts"] if part.startswith(table + "/")
+                for r in pq.read_table(dataset / part).to_pylist()]
+    return sorted(out, key=lambda r: r["file"])
+
+
+def one_line_error(result: subprocess.CompletedProcess, *words: str) -> None:
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("vm110 fleet"), result.stderr
+    for word in words:
+        assert word in lines[0], lines[0]
+
+
+@pytest.fixture
+def src(tmp_path) -> Path:
+    folder = tmp_path / "src"
+    folder.mkdir()
+    for name in NAMES:
+        shutil.copy(BUNDLED / name, folder / name)
+    return folder
+
+
+@pytest.fixture
+def built(src, tmp_path) -> Path:
+    dataset = tmp_path / "ds"
+    result = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "1")
+    assert result.returncode == 0, result.stderr
+    return dataset
+
+
+def test_rebuild_skips_unchanged_and_replaces_changed(src, built, tmp_path):
+    before = snapshot(built)
+    again = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert again.returncode == 0 and "0 analysed" in again.stdout and f"{len(NAMES)} already" in again.stdout
+    assert snapshot(built) == before                          # not a byte rewritten
+    old = {r["file"]: r for r in rows(built)}
+    shutil.copy(BUNDLED / "loss.pcapng", src / "normal.pcap")   # the file changes
+    changed = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert changed.returncode == 0 and "1 analysed" in changed.stdout and "1 replaced" in changed.stdout
+    new = {r["file"]: r for r in rows(built)}
+    path = str(src / "normal.pcap")
+    assert new[path]["sha256"] != old[path]["sha256"] and new[path]["format"] == "pcapng"
+    assert {k: v for k, v in new.items() if k != path} == {k: v for k, v in old.items() if k != path}
+    manifest = json.loads((built / "manifest.json").read_text())
+    listed = {p for e in manifest["captures"].values() for p in e["parts"]}
+    on_disk = {str(p.relative_to(built)) for p in built.rglob("*.parquet")}
+    assert on_disk == listed                                   # the replaced capture's parts are gone
+    assert len(rows(built)) == len(NAMES)
+
+
+def test_killed_build_continues_where_it_stopped(src, built, tmp_path):
+    for n in range(3):                                          # a bigger job: copies under other names
+        for name in NAMES:
+            shutil.copy(src / name, src / f"copy{n}-{name}")
+    total = 4 * len(NAMES)
+    dataset = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-m", "vm110", "fleet", "build", str(src), "--out", str(dataset), "-j", "1"],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and proc.poll() is None:
+        if len(list((dataset / "captures").glob("part-*.parquet"))) >= 3 if (dataset / "captures").exists() else False:
+            break
+        time.sleep(0.02)
+    assert proc.poll() is None, "the build ended before it could be killed"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    done_before = len(list((dataset / "captures").glob("part-*.parquet")))
+    assert 3 <= done_before < total
+    resumed = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "1")
+    assert resumed.returncode == 0, resumed.stderr
+    analysed = int(resumed.stdout.split(": ")[1].split()[0])
+    assert analysed <= total - done_before + 1                 # finished work is kept (one may be mid-write)
+    assert not [p for p in dataset.rglob("*") if p.name.endswith(".tmp")]
+    clean = tmp_path / "clean"
+    assert vm110("fleet", "build", str(src), "--out", str(clean), "-j", "1").returncode == 0
+    for table in ("captures", "senders", "streams", "commands", "findings"):
+        assert rows(dataset, table) == rows(clean, table), table
+
+
+def test_unreadable_capture_is_an_error_row(src, built):
+    (src / "broken.pcap").write_bytes(b"\xd4\xc3\xb2\xa1" + b"\x00" * 3)       # a pcap magic, then nothing
+    before = rows(built)
+    result = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "broken.pcap" in lines[0]
+    after = rows(built)
+    assert [r for r in after if r["file"] != str(src / "broken.pcap")] == before
+    errors = rows(built, "errors")
+    assert [(r["file"], r["kind"]) for r in errors] == [(str(src / "broken.pcap"), "unreadable")]
+
+
+def test_folder_without_captures(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("no captures here")
+    one_line_error(vm110("fleet", "build", str(empty), "--out", str(tmp_path / "ds")), "no captures")
+    assert not (tmp_path / "ds").exists()
+    one_line_error(vm110("fleet", "build", str(tmp_path / "missing"), "--out", str(tmp_path / "ds")), "no such")
+
+
+def test_dataset_of_another_version(src, built, tmp_path):
+    manifest = built / "manifest.json"
+    doc = json.loads(manifest.read_text())
+    doc["format_version"] = 99
+    manifest.write_text(json.dumps(doc))
+    before = snapshot(built)
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(built)), "version 99")
+    one_line_error(vm110("fleet", "query", str(built), "SELECT 1"), "version 99")
+    one_line_error(vm110("fleet", "report", str(built), "--html", str(tmp_path / "r.html")), "version 99")
+    assert snapshot(built) == before and not (tmp_path / "r.html").exists()
+
+
+def test_foreign_folder_and_other_options(src, built, tmp_path):
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "mine.txt").write_text("keep me")
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(foreign)), "not empty")
+    assert snapshot(foreign) == {"mine.txt": b"keep me"}
+    before = snapshot(built)
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(built), "--vrpi-watchdog", "400"),
+                   "other analysis options", "vrpi_watchdog_ms")
+    assert snapshot(built) == before
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(tmp_path / "x"), "--meta", "{site"), "names no field")
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(tmp_path / "x"), "-j", "nan"), "-j")
+
+
+def test_failing_sql_changes_nothing(built, tmp_path):
+    before = snapshot(built)
+    one_line_error(vm110("fleet", "query", str(built), "SELEC nothing"), "query failed")
+    one_line_error(vm110("fleet", "query", str(built), "SELECT nope FROM captures"), "query failed", "nope")
+    part = next((built / "captures").glob("*.parquet"))
+    one_line_error(vm110("fleet", "query", str(built), f"COPY captures TO '{part}' (FORMAT parquet)"), "query failed")
+    one_line_error(vm110("fleet", "query", str(built), "SELECT * FROM read_csv('/etc/passwd')"), "query failed")
+    one_line_error(vm110("fleet", "query", str(built), "--trend", "colour"), "--trend")
+    one_line_error(vm110("fleet", "query", str(tmp_path / "nothing")), "not a vm110 fleet dataset")
+    assert snapshot(built) == before
+    good = vm110("fleet", "query", str(built), "SELECT count(*) AS n FROM captures", "--format", "json")
+    assert json.loads(good.stdout) == [{"n": len(NAMES)}]
