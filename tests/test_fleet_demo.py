@@ -9,9 +9,9 @@ import re
 from pathlib import Path
 
 import pytest
-
 from vm110.cli import main
 from vm110.fleet import demo
+
 
 def vm110(*args: str) -> str:
     """The command's standard output; in this process (queries are quick, a new interpreter is not)."""

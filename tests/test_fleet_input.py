@@ -14,7 +14,6 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
-
 from vm110.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -97,8 +96,8 @@ def test_killed_build_continues_where_it_stopped(src, built, tmp_path):
             shutil.copy(src / name, src / f"copy{n}-{name}")
     total = 4 * len(NAMES)
     dataset = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, "-m", "vm110", "fleet", "build", str(src), "--out", str(dataset), "-j", "1"],
-                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    command = [sys.executable, "-m", "vm110", "fleet", "build", str(src), "--out", str(dataset), "-j", "1"]
+    proc = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and proc.poll() is None:
         if len(list((dataset / "captures").glob("part-*.parquet"))) >= 3 if (dataset / "captures").exists() else False:

@@ -62,7 +62,8 @@ def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern
     if dataset.exists():
         manifest = dataset.read_manifest()
         if manifest.get("options") != options:
-            raise CliError(f"{dataset.url}: built with other analysis options ({_difference(manifest.get('options'), options)}); "
+            differ = _difference(manifest.get("options"), options)
+            raise CliError(f"{dataset.url}: built with other analysis options ({differ}); "
                            "build into a new folder, or give the same options")
     else:
         dataset.check_new()

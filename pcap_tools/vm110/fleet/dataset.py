@@ -61,7 +61,8 @@ class Dataset:
             with self.fs.open(where, "rb") as f:
                 raw = f.read(MAX_MANIFEST_BYTES + 1)
         except FileNotFoundError:
-            raise CliError(f"{self.url}: not a vm110 fleet dataset (no {MANIFEST}); build one with vm110 fleet build") from None
+            raise CliError(f"{self.url}: not a vm110 fleet dataset (no {MANIFEST}); "
+                           "build one with vm110 fleet build") from None
         except OSError as exc:
             raise CliError(f"{self.url}: cannot read {MANIFEST}: {exc}") from None
         try:

@@ -109,7 +109,8 @@ t AS (SELECT {w}, sum(watchdog_violations) AS watchdog,
              max(jitter_max_ms) FILTER (WHERE type = 'VRPO') AS vrpo_jitter_max_ms FROM streams GROUP BY ALL)
 SELECT {_cols('c', who)}, c.captures, coalesce(s.lost, 0) AS lost,
        round(100.0 * coalesce(s.lost, 0) / nullif(s.received + s.lost, 0), 3) AS loss_pct,
-       coalesce(t.watchdog, 0) AS watchdog, t.vrpi_jitter_max_ms, t.vrpo_jitter_max_ms, coalesce(s.restarts, 0) AS restarts
+       coalesce(t.watchdog, 0) AS watchdog, t.vrpi_jitter_max_ms, t.vrpo_jitter_max_ms,
+       coalesce(s.restarts, 0) AS restarts
 FROM c LEFT JOIN s USING ({w}) LEFT JOIN t USING ({w})
 ORDER BY loss_pct DESC NULLS LAST, watchdog DESC, greatest(t.vrpi_jitter_max_ms, t.vrpo_jitter_max_ms) DESC NULLS LAST
 LIMIT {a.limit}"""
@@ -119,7 +120,8 @@ def _worst_machines(f: Fleet, a: Args) -> str:
     who = f.who()
     w = ", ".join(who)
     return f"""
-WITH c AS (SELECT {w}, count(*) AS captures, count(*) FILTER (WHERE status <> 'ok' OR NOT verdict_ok) AS failing_captures
+WITH c AS (SELECT {w}, count(*) AS captures,
+                  count(*) FILTER (WHERE status <> 'ok' OR NOT verdict_ok) AS failing_captures
            FROM captures GROUP BY ALL),
 r AS (SELECT {w}, capture_id, rule, any_value(severity) AS severity, any_value(count) AS n FROM findings GROUP BY ALL),
 f AS (SELECT {w}, count(*) FILTER (WHERE severity = 'error') AS error_findings,
@@ -175,8 +177,10 @@ _TREND = {   # metric -> (table, aggregates over it as t)
     "latency": ("commands", "count(*) AS commands, round(quantile_cont(t.latency_first_ms, 0.5), 3) AS ack_p50_ms, "
                             "round(quantile_cont(t.latency_first_ms, 0.95), 3) AS ack_p95_ms, "
                             "max(t.latency_first_ms) AS ack_max_ms, count(*) FILTER (WHERE t.failed) AS failed"),
-    "watchdog": ("captures", "sum(t.watchdog) AS watchdog, count(*) FILTER (WHERE t.watchdog > 0) AS captures_with_watchdog"),
-    "findings": ("captures", "sum(t.findings) AS findings, count(*) FILTER (WHERE NOT t.verdict_ok) AS failing_captures"),
+    "watchdog": ("captures", "sum(t.watchdog) AS watchdog, "
+                             "count(*) FILTER (WHERE t.watchdog > 0) AS captures_with_watchdog"),
+    "findings": ("captures", "sum(t.findings) AS findings, "
+                             "count(*) FILTER (WHERE NOT t.verdict_ok) AS failing_captures"),
 }
 
 
@@ -199,8 +203,9 @@ GROUP BY 1 ORDER BY 1 NULLS LAST"""
 
 
 def _errors(f: Fleet, a: Args) -> str:
-    return f"SELECT {', '.join(f.who('errors'))}{', file' if 'file' not in f.who('errors') else ''}, kind, message, file_offset " \
-           "FROM errors ORDER BY file"
+    who = f.who("errors")
+    columns = who + ([] if "file" in who else ["file"])
+    return f"SELECT {', '.join(columns)}, kind, message, file_offset FROM errors ORDER BY file"
 
 
 def _findings(f: Fleet, a: Args) -> str:
@@ -214,10 +219,12 @@ LIMIT {a.limit}"""
 
 
 NAMED = {n.name: n for n in (
-    Named("worst-links", "machines by lost packets (share), watchdog violations, then jitter (--worst links)", _worst_links),
+    Named("worst-links", "machines by lost packets (share), watchdog violations, then jitter (--worst links)",
+          _worst_links),
     Named("worst-machines", "machines ranked by findings: error findings, failing captures, others (--worst machines)",
           _worst_machines),
-    Named("failing-commands", "commands that fail most, per machine and command ID, with failure share and ack latency (--worst commands)",
+    Named("failing-commands", "commands that fail most, per machine and command ID, with failure share and ack "
+                              "latency (--worst commands)",
           _failing_commands),
     Named("watchdog", "machines with watchdog violations in a month (--month YYYY-MM; default the latest in the data)",
           _watchdog),
@@ -273,8 +280,8 @@ def render(result: Result, fmt: str) -> str:
     widths = [max([len(c)] + [len(r[i]) for r in cells]) for i, c in enumerate(result.columns)]
     lines = ["  ".join(c.ljust(w) for c, w in zip(result.columns, widths)).rstrip(),
              "  ".join("-" * w for w in widths)]
-    for row, raw in zip(cells, result.rows):
+    for shown, raw in zip(cells, result.rows):
         lines.append("  ".join(c.rjust(w) if isinstance(v, (int, float)) and not isinstance(v, bool) else c.ljust(w)
-                               for c, w, v in zip(row, widths, raw)).rstrip())
+                               for c, w, v in zip(shown, widths, raw)).rstrip())
     lines.append(f"({len(result.rows)} row{'s' if len(result.rows) != 1 else ''})")
     return "\n".join(lines) + "\n"

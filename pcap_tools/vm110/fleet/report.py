@@ -86,13 +86,15 @@ def _spread(fleet: Fleet, sql: str, caption: str, unit: str, name: str) -> str:
         def x(v: float) -> float:
             return LABEL_W + v / top * PLOT_W
         parts.append(f'<text x="{LABEL_W - 6}" y="{y + 4}" text-anchor="end">{_e(_name(row, width))}</text>'
-                     f'<line x1="{x(low):.1f}" x2="{x(high):.1f}" y1="{y}" y2="{y}" stroke="{COLORS[0]}" stroke-width="4">'
+                     f'<line x1="{x(low):.1f}" x2="{x(high):.1f}" y1="{y}" y2="{y}" stroke="{COLORS[0]}" '
+                     'stroke-width="4">'
                      f"<title>{_e(f'min {low:g}, median {mid:g}, max {high:g} {unit}')}</title></line>"
                      f'<circle class="point" cx="{x(mid):.1f}" cy="{y}" r="4" fill="{COLORS[3]}"/>')
     axis_y = 14 + len(rows) * ROW_H
     for k in range(5):
         v = top * k / 4
-        parts.append(f'<text x="{LABEL_W + v / top * PLOT_W:.1f}" y="{axis_y + 12}" text-anchor="middle">{v:.3g}</text>')
+        parts.append(f'<text x="{LABEL_W + v / top * PLOT_W:.1f}" y="{axis_y + 12}" '
+                     f'text-anchor="middle">{v:.3g}</text>')
     parts.append(f'<text x="{LABEL_W + PLOT_W / 2}" y="{axis_y + 28}" text-anchor="middle">'
                  f"{_e(unit)} (line: min to max over its captures; dot: median)</text>")
     w = LABEL_W + PLOT_W + 30
@@ -114,7 +116,8 @@ def _findings(fleet: Fleet) -> str:
         command = f"wireshark -r {shlex.quote(file)} -Y {shlex.quote(flt)}" if flt else ""
         rows.append(f"<tr><td>{_e(_name(row, n))}</td><td>{_e(file)}</td>"
                     f'<td class="{_e(severity)}">{_e(rule)}</td><td>{_e(message)}</td><td>{_e(frame)}</td>'
-                    f'<td><code class="filter">{_e(flt)}</code></td><td><code class="filter">{_e(command)}</code></td></tr>')
+                    f'<td><code class="filter">{_e(flt)}</code></td>'
+                    f'<td><code class="filter">{_e(command)}</code></td></tr>')
     head = "".join(f"<th>{h}</th>" for h in ("machine", "capture", "finding", "message", "frame", "display filter",
                                              "open it"))
     more = f"<p>{total - MAX_FINDINGS} more in the dataset (table findings).</p>" if total > MAX_FINDINGS else ""

@@ -95,7 +95,7 @@ class MetaPattern:
         return None if m is None else dict(m.groupdict())
 
 
-def sidecar(path: str) -> dict[str, str]:
+def sidecar(path: str) -> dict[str, Optional[str]]:
     """The metadata in `CAPTURE.meta.json` (a flat object; values are kept as text), if there is
     one. CliError when it is not such an object."""
     side = path + SIDECAR_SUFFIX
@@ -111,7 +111,7 @@ def sidecar(path: str) -> dict[str, str]:
         raise CliError(f"{side}: not a metadata file: {exc}") from None
     if not isinstance(data, dict):
         raise CliError(f"{side}: not a metadata file: a JSON object is expected")
-    out = {}
+    out: dict[str, Optional[str]] = {}
     for key, value in data.items():
         if not KEY.match(key):
             raise CliError(f"{side}: {key[:40]!r} is not a column name (letters, digits, _)")

@@ -64,7 +64,7 @@ def _time(seconds: Optional[float]) -> Optional[int]:
     return None if seconds is None else round(seconds * 1_000_000)
 
 
-def capture_rows(report: dict, capture_id: str, size: int, sha256: str) -> dict[str, list[dict]]:
+def capture_rows(report: dict, capture_id: str, size: Optional[int], sha256: Optional[str]) -> dict[str, list[dict]]:
     """Every table's rows for one analysed capture."""
     cap, totals = report["capture"], report["totals"]
     key = {"capture_id": capture_id, "file": cap["file"]}
@@ -102,7 +102,8 @@ def capture_rows(report: dict, capture_id: str, size: int, sha256: str) -> dict[
             findings.append({**head, **_item_columns(item), "item": None if item is None else n})
     errors = []
     if cap["problem"] is not None:
-        errors.append({**key, "kind": "damaged", "message": cap["problem"], "file_offset": (cap["damage"] or {}).get("offset")})
+        errors.append({**key, "kind": "damaged", "message": cap["problem"],
+                       "file_offset": (cap["damage"] or {}).get("offset")})
     return {"captures": captures, "senders": senders, "streams": streams, "commands": commands,
             "findings": findings, "errors": errors}
 

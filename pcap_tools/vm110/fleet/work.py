@@ -5,8 +5,8 @@ worker) and returns a small summary; the driver only records it in the manifest.
 """
 from __future__ import annotations
 
-import struct
 import math
+import struct
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -93,7 +93,8 @@ def packet_rows(path: str, cid: str, port: int, variant: str, order: str) -> lis
                     or n != C.OVERHEAD + struct.unpack_from("<H", payload, 10)[0]:
                 continue
         f = decode(payload, variant, order)
-        rows.append({"capture_id": cid, "file": path, "frame": frame, "time": round(ts * 1_000_000) if math.isfinite(ts) else None,
+        time = round(ts * 1_000_000) if math.isfinite(ts) else None
+        rows.append({"capture_id": cid, "file": path, "frame": frame, "time": time,
                      "src": address(src, sport), "sport": sport, "dport": dport, "type": f.get("type") or None,
                      "origin": f.get("origin"), "serial": f.get("serial"), "size": f.get("size"),
                      "command_id": f.get("command_id"), "legal": not f["problems"],
