@@ -179,3 +179,20 @@ def test_failing_sql_changes_nothing(built, tmp_path):
     assert snapshot(built) == before
     good = vm110("fleet", "query", str(built), "SELECT count(*) AS n FROM captures", "--format", "json")
     assert json.loads(good.stdout) == [{"n": len(NAMES)}]
+
+
+def test_fsspec_url_dataset():
+    """Any fsspec URL holds a dataset: here memory://, built, queried and rebuilt in this process."""
+    from vm110.fleet.build import build
+    from vm110.fleet.query import Fleet
+    from vm110.fleet.work import Settings
+    settings = Settings(dataset="memory://vm110-fleet-test")
+    paths = [str(BUNDLED / "normal.pcap"), str(BUNDLED / "retransmit.pcap")]
+    first = build(paths, settings, jobs=1)
+    assert (first.analysed, first.skipped) == (2, 0)
+    fleet = Fleet(settings.dataset)
+    got = dict(fleet.run("SELECT file, lost FROM captures").rows)
+    reports = {p: json.loads(vm110("analyze", p, "--json", "-", "--quiet").stdout) for p in paths}
+    assert got == {p: r["totals"]["lost"] for p, r in reports.items()}
+    again = build(paths, settings, jobs=1)
+    assert (again.analysed, again.skipped) == (0, 2)
