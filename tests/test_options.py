@@ -26,6 +26,7 @@ RUN_UNTIL = {
     "analyze": ([MISSING], MISSING),
     "decode": ([MISSING], MISSING),
     "synth": (["no-such-scenario", "--out", "/nonexistent/out.pcap"], "unknown scenario"),
+    "fleet": ([MISSING, "--out", "/nonexistent/vm110-fleet"], MISSING),
 }
 _SIMULATE = {"--seed": {"0", "1e18"}, "--stop-at": {"0"}, "--restart": {"0", "0:0"}, "--restart-serial": {"0"},
              "--serial-start": {"0"}, "--command-id-start": {"0"}, "--command-every": {"0"},
@@ -35,6 +36,8 @@ _SIMULATE = {"--seed": {"0", "1e18"}, "--stop-at": {"0"}, "--restart": {"0", "0:
 ACCEPTED: dict[tuple[str, str], set[str]] = {
     ("analyze", "--vrpo-start"): {"0"},
     ("analyze", "--vrpo-data-size"): {"0"},
+    ("fleet build", "--vrpo-start"): {"0"},
+    ("fleet build", "--vrpo-data-size"): {"0"},
     ("synth", "--seed"): {"0", "1e18"},
     ("fuzz", "--seed"): {"0", "1e18"},
     **{("simulate bu", option): values for option, values in {
