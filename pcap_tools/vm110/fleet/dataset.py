@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import posixpath
 import secrets
-from typing import Any, Optional
+from typing import Any, Iterable
 
 import fsspec
 import pyarrow as pa
@@ -23,7 +23,7 @@ import pyarrow.parquet as pq
 from .. import __version__
 from ..errors import CliError
 from ..fileio import atomic_writer
-from .tables import SCHEMAS, TABLES
+from .tables import TABLES
 
 FORMAT = "vm110-fleet"
 FORMAT_VERSION = 1
@@ -96,11 +96,23 @@ class Dataset:
                                "give a new or empty folder")
 
     # -- parts --------------------------------------------------------------------------------------
-    def write_part(self, table: str, capture_id: str, data: pa.Table) -> str:
+    def write_part(self, table: str, capture_id: str, schema: pa.Schema, batches: Iterable[pa.Table]) -> str:
+        """One part from `batches` (tables of `schema`), written as they come: memory holds one
+        batch, whatever the number of rows."""
         relative = part_name(table, capture_id)
-        sink = pa.BufferOutputStream()
-        pq.write_table(data, sink, compression="zstd")
-        self._write_bytes(relative, sink.getvalue().to_pybytes())
+        target = self.path(relative)
+        try:
+            self.fs.makedirs(posixpath.dirname(target), exist_ok=True)
+            if self.local:
+                with atomic_writer(target) as stream:
+                    _write_parquet(stream, schema, batches)
+                return relative
+            temp = f"{target}.{secrets.token_hex(4)}.tmp"
+            with self.fs.open(temp, "wb") as f:
+                _write_parquet(f, schema, batches)
+            self.fs.mv(temp, target)
+        except OSError as exc:
+            raise CliError(f"cannot write {self.url}/{relative}: {exc}") from None
         return relative
 
     def complete_captures(self) -> dict[str, dict]:
@@ -162,6 +174,12 @@ class Dataset:
             raise CliError(f"cannot write {self.url}/{relative}: {exc}") from None
 
 
+def _write_parquet(stream: Any, schema: pa.Schema, batches: Iterable[pa.Table]) -> None:
+    with pq.ParquetWriter(stream, schema, compression="zstd") as writer:
+        for batch in batches:
+            writer.write_table(batch)
+
+
 def _protocols(fs: Any) -> set[str]:
     protocol = fs.protocol
     return {protocol} if isinstance(protocol, str) else set(protocol)
@@ -177,10 +195,3 @@ def view_files(manifest: dict, dataset: Dataset) -> dict[str, list[str]]:
                 files[table].append(dataset.path(relative) if dataset.local else dataset.fs.unstrip_protocol(
                     dataset.path(relative)))
     return files
-
-
-def empty_schema(table: str, meta_keys: Optional[list[str]] = None) -> pa.Schema:
-    schema = SCHEMAS[table]
-    for key in meta_keys or []:
-        schema = schema.append(pa.field(key, pa.string()))
-    return schema

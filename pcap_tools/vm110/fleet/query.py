@@ -19,8 +19,8 @@ from typing import Any, Callable, Optional, Sequence
 import pyarrow as pa
 
 from ..errors import CliError
-from .dataset import Dataset, empty_schema, view_files
-from .tables import TABLES
+from .dataset import Dataset, view_files
+from .tables import TABLES, table_schema
 
 FORMATS = ("table", "csv", "json")
 PERIODS = ("day", "week", "month")
@@ -53,7 +53,7 @@ class Fleet:
                 listed = ", ".join(_quote(f) for f in files[table])
                 sql = f"SELECT * FROM read_parquet([{listed}], union_by_name = true)"
             else:
-                empty = pa.Table.from_pylist([], schema=empty_schema(table, self.meta_keys))
+                empty = pa.Table.from_pylist([], schema=table_schema(table, self.meta_keys))
                 self.con.register(f"_empty_{table}", empty)
                 sql = f"SELECT * FROM _empty_{table}"
             self.con.execute(f"CREATE VIEW {table} AS {sql}")

@@ -7,7 +7,7 @@ uses, so that a total added to the report is a column here too.
 from __future__ import annotations
 
 import json
-from typing import Any, Optional
+from typing import Any, Iterable, Optional
 
 import pyarrow as pa
 
@@ -145,13 +145,17 @@ def _item_columns(item: Optional[dict]) -> dict[str, Any]:
     return row
 
 
-def arrow_table(name: str, rows: list[dict], meta: dict[str, Optional[str]]) -> pa.Table:
-    """The rows of `name` with the metadata columns (text) appended, as an Arrow table."""
+def table_schema(name: str, meta: Iterable[str]) -> pa.Schema:
+    """The schema of table `name` with the metadata columns (text) appended."""
     schema = SCHEMAS[name]
     for key in meta:
         schema = schema.append(pa.field(key, pa.string()))
-    full = [{**row, **meta} for row in rows]
-    return pa.Table.from_pylist(full, schema=schema)
+    return schema
+
+
+def arrow_table(name: str, rows: list[dict], meta: dict[str, Optional[str]]) -> pa.Table:
+    """The rows of `name` with the metadata columns appended, as an Arrow table."""
+    return pa.Table.from_pylist([{**row, **meta} for row in rows], schema=table_schema(name, meta))
 
 
 def check_meta_keys(keys: set[str]) -> None:

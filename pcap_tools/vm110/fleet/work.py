@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Iterator, Optional
 
 from .. import constants as C
 from ..analysis import Options, analyze
@@ -17,7 +17,7 @@ from ..decode import decode
 from ..errors import CliError
 from .dataset import COMMIT_TABLE, Dataset
 from .sources import Source
-from .tables import arrow_table, capture_rows, error_rows
+from .tables import arrow_table, capture_rows, error_rows, table_schema
 
 PACKET_BATCH = 65536        # rows of the packets table converted at a time
 
@@ -69,23 +69,41 @@ def build_one(source: Source, settings: Settings) -> Done:
         message, status = f"cannot analyse {source.path}: {type(exc).__name__}: {exc}", "unreadable"
     if status == "unreadable":
         tables = error_rows(source.path, cid, source.size, source.sha256, message or "")
-    elif settings.packets:
-        tables["packets"] = packet_rows(source.path, cid, settings.port, report["crc"]["variant"],
-                                        report["crc"]["byte_order"])
     dataset = Dataset(settings.dataset)
     parts = []
+    if settings.packets and status != "unreadable":
+        packets = packet_rows(source.path, cid, settings.port, report["crc"]["variant"], report["crc"]["byte_order"])
+        try:
+            parts.append(dataset.write_part("packets", cid, table_schema("packets", meta),
+                                            (arrow_table("packets", batch, meta) for batch in _batches(packets))))
+        except CliError:
+            raise                       # the dataset cannot be written: that ends the build
+        except Exception as exc:        # the capture changed or broke since its analysis
+            tables["errors"].append({"capture_id": cid, "file": source.path, "kind": "packets",
+                                     "message": f"packets of {source.path}: {type(exc).__name__}: {exc}",
+                                     "file_offset": None})
     for table in sorted(tables, key=lambda t: t == COMMIT_TABLE):       # the commit part last
-        rows = tables[table]
-        if rows or table == COMMIT_TABLE:
-            parts.append(dataset.write_part(table, cid, arrow_table(table, rows, meta)))
+        if tables[table] or table == COMMIT_TABLE:
+            parts.append(dataset.write_part(table, cid, table_schema(table, meta),
+                                            [arrow_table(table, tables[table], meta)]))
     return Done(cid, source.path, source.size, source.sha256, status, tuple(parts), message, source.meta)
 
 
-def packet_rows(path: str, cid: str, port: int, variant: str, order: str) -> list[dict]:
+def _batches(rows: Iterator[dict]) -> Iterator[list[dict]]:
+    batch = []
+    for row in rows:
+        batch.append(row)
+        if len(batch) == PACKET_BATCH:
+            yield batch
+            batch = []
+    if batch:
+        yield batch
+
+
+def packet_rows(path: str, cid: str, port: int, variant: str, order: str) -> Iterator[dict]:
     """One compact row per EG-Link datagram (on the two ports, or recognised by its header on
     another), decoded with the CRC the analysis used: for drill-down next to the findings."""
     ports = (port, port + C.OUTPUT_PORT_OFFSET)
-    rows = []
     for ts, src, sport, dport, payload, frame in CaptureReader(path):
         if sport not in ports and dport not in ports:
             n = len(payload)
@@ -94,12 +112,11 @@ def packet_rows(path: str, cid: str, port: int, variant: str, order: str) -> lis
                 continue
         f = decode(payload, variant, order)
         time = round(ts * 1_000_000) if math.isfinite(ts) else None
-        rows.append({"capture_id": cid, "file": path, "frame": frame, "time": time,
-                     "src": address(src, sport), "sport": sport, "dport": dport, "type": f.get("type") or None,
-                     "origin": f.get("origin"), "serial": f.get("serial"), "size": f.get("size"),
-                     "command_id": f.get("command_id"), "legal": not f["problems"],
-                     "problems": ",".join(f["problems"]) or None})
-    return rows
+        yield {"capture_id": cid, "file": path, "frame": frame, "time": time,
+               "src": address(src, sport), "sport": sport, "dport": dport, "type": f.get("type") or None,
+               "origin": f.get("origin"), "serial": f.get("serial"), "size": f.get("size"),
+               "command_id": f.get("command_id"), "legal": not f["problems"],
+               "problems": ",".join(f["problems"]) or None}
 
 
 _IDS = frozenset(t.value.encode() for t in C.PacketType)
