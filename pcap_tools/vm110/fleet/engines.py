@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import signal
+import threading
 from contextlib import ExitStack
 from typing import Iterator, Optional, Sequence
 
@@ -21,6 +23,12 @@ def _call(job: tuple[Source, Settings]) -> Done:
     return build_one(*job)
 
 
+def _ignore_interrupt() -> None:
+    """Ctrl-C goes to the whole process group: the driver stops the pool and keeps what is done;
+    a worker that handled it too would print its own traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def run_local(todo: Sequence[Source], settings: Settings, jobs: int) -> Iterator[Done]:
     """In this process for one job (as `vm110 analyze --jobs 1`), else a pool of `jobs` processes
     (as `vm110 analyze --jobs N`)."""
@@ -28,7 +36,7 @@ def run_local(todo: Sequence[Source], settings: Settings, jobs: int) -> Iterator
         for source in todo:
             yield build_one(source, settings)
         return
-    with multiprocessing.Pool(min(jobs, len(todo))) as pool:
+    with multiprocessing.Pool(min(jobs, len(todo)), initializer=_ignore_interrupt) as pool:
         yield from pool.imap_unordered(_call, [(s, settings) for s in todo])
 
 
@@ -46,9 +54,17 @@ def run_dask(todo: Sequence[Source], settings: Settings, jobs: int, scheduler: O
             except (OSError, TimeoutError, ValueError) as exc:
                 raise CliError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
         else:
-            cluster = stack.enter_context(LocalCluster(
-                n_workers=jobs, threads_per_worker=1, processes=True, host="127.0.0.1",
-                dashboard_address=None, silence_logs=logging.ERROR))
+            # Its worker processes start with Ctrl-C ignored (as the pool's): this process stops
+            # the cluster and keeps what is done.
+            main = threading.current_thread() is threading.main_thread()
+            previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+            try:
+                cluster = stack.enter_context(LocalCluster(
+                    n_workers=jobs, threads_per_worker=1, processes=True, host="127.0.0.1",
+                    dashboard_address=None, silence_logs=logging.ERROR))
+            finally:
+                if main:
+                    signal.signal(signal.SIGINT, previous)
             client = stack.enter_context(Client(cluster))
         if not todo:
             return
