@@ -216,3 +216,41 @@ def test_fsspec_url_dataset():
     assert got == {p: r["totals"]["lost"] for p, r in reports.items()}
     again = build(paths, settings, jobs=1)
     assert (again.analysed, again.skipped) == (0, 2)
+
+
+def test_metadata_from_path_and_sidecar(tmp_path):
+    from vm110.errors import CliError
+    from vm110.fleet.sources import MetaPattern, metadata
+    pattern = MetaPattern("sites/{site}/**/{machine}-*.pcap")
+    capture = tmp_path / "sites" / "north" / "hall 2" / "crane-7-w1.pcap"
+    capture.parent.mkdir(parents=True)
+    capture.write_bytes(b"")
+    assert metadata(str(capture), pattern) == {"site": "north", "machine": "crane-7"}     # greedy, as a glob
+    assert metadata(str(tmp_path / "elsewhere.pcap"), pattern) == {"site": None, "machine": None}
+    side = Path(str(capture) + ".meta.json")
+    side.write_text(json.dumps({"bu_firmware": 3.4, "commissioned": True, "note": None}))
+    assert metadata(str(capture), pattern) == {"site": "north", "machine": "crane-7", "bu_firmware": "3.4",
+                                               "commissioned": "true", "note": None}
+    for bad, words in (({"machine": "other"}, "by --meta"), ({"a b": 1}, "not a column name"),
+                       ({"x": [1]}, "only text"), ([1, 2], "JSON object"), ("NaN", "not a metadata file")):
+        side.write_text(bad if isinstance(bad, str) else json.dumps(bad))
+        with pytest.raises(CliError, match=words):
+            metadata(str(capture), pattern)
+    for bad_pattern in ("{site", "sites/*.pcap", "{a}/{a}"):
+        with pytest.raises(CliError):
+            MetaPattern(bad_pattern)
+
+
+def test_metadata_may_not_shadow_a_column(src, tmp_path):
+    (src / "normal.pcap.meta.json").write_text(json.dumps({"lost": "none"}))
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(tmp_path / "x")), "'lost'", "column")
+    assert not (tmp_path / "x").exists()
+
+
+def test_progress_bar(src, tmp_path, capsys):
+    from vm110.fleet.build import build
+    from vm110.fleet.work import Settings
+    build([str(src)], Settings(dataset=str(tmp_path / "p")), jobs=1, progress=True)
+    err = capsys.readouterr().err
+    assert f"] {len(NAMES)}/{len(NAMES)} captures" in err and "\r" in err
+    assert err.endswith("\r\033[K")                       # the line is cleared at the end
