@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
+from fleetlib import once
 
 ROOT = Path(__file__).resolve().parent.parent
 BUNDLED = ROOT / "captures"
@@ -61,19 +62,27 @@ def read_table(dataset: Path, table: str) -> list[dict]:
     return rows
 
 
-@pytest.fixture(scope="module")
-def fleet(tmp_path_factory):
-    root = tmp_path_factory.mktemp("fleet")
+def make(root: Path) -> None:
     files = make_fleet(root)
-    dataset = root / "dataset"
-    built = vm110("fleet", "build", str(root / "sites"), "--out", str(dataset), "--packets", "-j", "2",
+    built = vm110("fleet", "build", str(root / "sites"), "--out", str(root / "dataset"), "--packets", "-j", "2",
                   "--meta", "sites/{site}/{machine}/*", check=False)
     readable = [str(p) for k, p in files.items() if k != "junk"]
-    analysed = vm110("analyze", *readable, "--json", str(root / "reports.json"), "--quiet", check=False)
-    reports = json.loads((root / "reports.json").read_text())["reports"]
+    vm110("analyze", *readable, "--json", str(root / "reports.json"), "--quiet", check=False)
     junk = vm110("analyze", str(files["junk"]), "--quiet", check=False)
-    return {"root": root, "files": files, "dataset": dataset, "built": built, "analysed": analysed,
-            "reports": {r["capture"]["file"]: r for r in reports}, "junk_error": junk.stderr.strip()}
+    (root / "results.json").write_text(json.dumps({
+        "files": {k: str(v) for k, v in files.items()}, "built": [built.returncode, built.stdout, built.stderr],
+        "junk_error": junk.stderr.strip()}))
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    """A small fleet built once (with --packets), and `vm110 analyze --json` of the same captures."""
+    root = once(tmp_path_factory, "rows", make)
+    results = json.loads((root / "results.json").read_text())
+    reports = json.loads((root / "reports.json").read_text())["reports"]
+    return {"root": root, "files": {k: Path(v) for k, v in results["files"].items()}, "dataset": root / "dataset",
+            "built": subprocess.CompletedProcess([], *results["built"]),
+            "reports": {r["capture"]["file"]: r for r in reports}, "junk_error": results["junk_error"]}
 
 
 def by_file(rows: list[dict]) -> dict[str, list[dict]]:

@@ -9,6 +9,7 @@ import re
 from pathlib import Path
 
 import pytest
+from fleetlib import once
 from vm110.cli import main
 from vm110.fleet import demo
 
@@ -22,15 +23,17 @@ def vm110(*args: str) -> str:
     return out.getvalue()
 
 
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("demo")
+def make(root: Path) -> None:
     paths = demo.captures(str(root))
     assert len(paths) == 40
     out = vm110("fleet", "build", str(root / "sites"), "--out", str(root / "ds"), "-j", "1",
                 "--meta", "sites/{site}/{machine}/*.pcap")
     assert "40 analysed (1 damaged, 0 unreadable)" in out
-    return root / "ds"
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return once(tmp_path_factory, "demo", make) / "ds"
 
 
 def query(dataset: Path, *args: str) -> list[dict]:
