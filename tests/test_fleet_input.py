@@ -254,3 +254,12 @@ def test_progress_bar(src, tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"] {len(NAMES)}/{len(NAMES)} captures" in err and "\r" in err
     assert err.endswith("\r\033[K")                       # the line is cleared at the end
+
+
+def test_one_build_at_a_time(src, built):
+    from vm110.fleet.dataset import Dataset
+    before = snapshot(built)
+    with Dataset(str(built)).lock():                      # as a build that is running holds it
+        one_line_error(vm110("fleet", "build", str(src), "--out", str(built)), "another build")
+    assert snapshot(built) == before
+    assert vm110("fleet", "build", str(src), "--out", str(built)).returncode == 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from typing import Iterator, Optional, Sequence
 
@@ -19,6 +20,7 @@ from .sources import MetaPattern, Source, content_hash, find, metadata
 from .tables import SCHEMAS, check_meta_keys
 from .work import Done, Settings
 
+HASH_THREADS = 8             # files hashed at once (reading is the limit, not the CPU)
 CHECKPOINT_S = 2.0           # the manifest is rewritten at most this often while a build runs
 
 
@@ -37,27 +39,41 @@ def fingerprint(settings: Settings) -> dict:
             "crc_order": settings.crc_order, "packets": settings.packets}
 
 
-def sources(srcs: Sequence[str], pattern: Optional[MetaPattern]) -> list[Source]:
-    """The captures SRC names, each hashed, with its metadata. A capture that cannot be hashed
-    still becomes a Source (its analysis then fails into an error row)."""
-    out = []
-    for path in find(srcs):
+def _hash(path: str) -> tuple[Optional[int], Optional[str]]:
+    try:
+        return content_hash(path)
+    except OSError:
+        return None, None
+
+
+def sources(srcs: Sequence[str], pattern: Optional[MetaPattern], threads: int = 1) -> list[Source]:
+    """The captures SRC names, each hashed (`threads` at a time: hashlib lets go of the GIL), with
+    its metadata. A capture that cannot be hashed still becomes a Source (its analysis then fails
+    into an error row)."""
+    paths = find(srcs)
+    metas = []
+    for path in paths:
         meta = tuple(sorted(metadata(path, pattern).items()))
         check_meta_keys({k for k, _ in meta})
-        try:
-            size, digest = content_hash(path)
-        except OSError:
-            out.append(Source(path, None, None, meta))
-            continue
-        out.append(Source(path, size, digest, meta))
-    return out
+        metas.append(meta)
+    with ThreadPoolExecutor(max(1, min(threads, HASH_THREADS))) as pool:
+        hashes = list(pool.map(_hash, paths))
+    return [Source(path, size, digest, meta) for path, (size, digest), meta in zip(paths, hashes, metas)]
 
 
 def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern] = None,
           engine: str = "local", jobs: int = 1, scheduler: Optional[str] = None,
           progress: bool = False) -> Outcome:
     dataset = Dataset(settings.dataset)
-    wanted = sources(srcs, pattern)
+    wanted = sources(srcs, pattern, jobs)
+    if not dataset.exists():
+        dataset.check_new()
+    with dataset.lock():
+        return _build(dataset, wanted, settings, engine, jobs, scheduler, progress)
+
+
+def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: str, jobs: int,
+           scheduler: Optional[str], progress: bool) -> Outcome:
     options = fingerprint(settings)
     if dataset.exists():
         manifest = dataset.read_manifest()
@@ -66,15 +82,13 @@ def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern
             raise CliError(f"{dataset.url}: built with other analysis options ({differ}); "
                            "build into a new folder, or give the same options")
     else:
-        dataset.check_new()
         manifest = Dataset.new_manifest(options)
         dataset.write_manifest(manifest)        # first: a build stopped at once is still ours to resume
     dataset.remove_temporaries()
     listed = manifest["captures"]
-    for cid, row in dataset.complete_captures().items():       # a stopped build's finished work
-        if cid not in listed:
-            listed[cid] = _entry(row["file"], row["size"], row["sha256"], row["status"], dataset.parts_on_disk(cid),
-                                 None, {k: v for k, v in row.items() if k not in _CAPTURE_COLUMNS})
+    for cid, row in dataset.complete_captures(skip=set(listed)).items():     # a stopped build's finished work
+        listed[cid] = _entry(row["file"], row["size"], row["sha256"], row["status"], dataset.parts_on_disk(cid),
+                             None, {k: v for k, v in row.items() if k not in _CAPTURE_COLUMNS})
     outcome = Outcome()
     todo = [s for s in wanted if s.capture_id not in listed]
     outcome.skipped = len(wanted) - len(todo)

@@ -11,10 +11,13 @@ Readers see only the parts of the captures the manifest lists.
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
+import os
 import posixpath
 import secrets
-from typing import Any, Iterable
+from typing import Any, Collection, Iterable, Iterator
 
 import fsspec
 import pyarrow as pa
@@ -29,6 +32,7 @@ FORMAT = "vm110-fleet"
 FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 MAX_MANIFEST_BYTES = 256 << 20
+LOCK = ".vm110-fleet.lock"         # held by a build (local datasets): one writer at a time
 COMMIT_TABLE = "captures"          # written last: its part marks a capture complete
 
 
@@ -91,9 +95,28 @@ class Dataset:
         if self.fs.exists(self.root):
             if not self.fs.isdir(self.root):
                 raise CliError(f"{self.url}: exists and is not a folder")
-            if self.fs.ls(self.root, detail=False):
+            if [n for n in self.fs.ls(self.root, detail=False) if posixpath.basename(n) != LOCK]:
                 raise CliError(f"{self.url}: not a vm110 fleet dataset (no {MANIFEST}) and not empty; "
                                "give a new or empty folder")
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Held while a build writes: a second build of a local dataset is refused, not mixed in.
+        (The operating system lets go of it when the process ends, however it ends.)"""
+        if not self.local:
+            yield
+            return
+        try:
+            os.makedirs(self.root, exist_ok=True)
+            handle = open(posixpath.join(self.root, LOCK), "a")
+        except OSError as exc:
+            raise CliError(f"cannot write {self.url}: {exc.strerror}") from None
+        with handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                raise CliError(f"{self.url}: another build is writing this dataset") from None
+            yield
 
     # -- parts --------------------------------------------------------------------------------------
     def write_part(self, table: str, capture_id: str, schema: pa.Schema, batches: Iterable[pa.Table]) -> str:
@@ -115,8 +138,9 @@ class Dataset:
             raise CliError(f"cannot write {self.url}/{relative}: {exc}") from None
         return relative
 
-    def complete_captures(self) -> dict[str, dict]:
-        """capture_id -> its `captures` row, for every complete capture on disk."""
+    def complete_captures(self, skip: Collection[str] = ()) -> dict[str, dict]:
+        """capture_id -> its `captures` row, for every complete capture on disk but those in
+        `skip` (only their names are listed: the manifest knows them)."""
         folder = self.path(COMMIT_TABLE)
         if not self.fs.exists(folder):
             return {}
@@ -124,6 +148,8 @@ class Dataset:
         for name in self.fs.ls(folder, detail=False):
             base = posixpath.basename(name)
             if not (base.startswith("part-") and base.endswith(".parquet")):
+                continue
+            if base[len("part-"):-len(".parquet")] in skip:
                 continue
             try:
                 with self.fs.open(name, "rb") as f:
