@@ -112,6 +112,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args()
     paths = captures(args.captures, args.seconds)
+    print(f"load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (wall times suffer when it is high)")
     work = Path(tempfile.mkdtemp(prefix="vm110-bench-fleet-"))
     try:
         throughput(paths, args.jobs, work)
