@@ -92,8 +92,8 @@ def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: s
     outcome = Outcome()
     todo = [s for s in wanted if s.capture_id not in listed]
     outcome.skipped = len(wanted) - len(todo)
-    current = {s.path: s.capture_id for s in wanted}
-    stale = _stale(listed, current)
+    versions = Versions(listed, {s.path: s.capture_id for s in wanted})
+    stale = versions.stale()
     bar = Progress(len(todo), outcome.skipped) if progress else None
     last = time.monotonic()
     try:
@@ -105,7 +105,7 @@ def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: s
                 outcome.unreadable.append(done.message or done.path)
             elif done.status == "damaged":
                 outcome.damaged.append(f"{done.path}: {done.message}")
-            stale |= _stale(listed, current)
+            stale |= versions.add(done.path, done.capture_id)
             if bar:
                 bar.step(outcome)
             if time.monotonic() - last > CHECKPOINT_S:
@@ -115,7 +115,6 @@ def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: s
     finally:
         if bar:
             bar.close()
-        stale |= _stale(listed, current)
         _commit(dataset, manifest, stale)
     return outcome
 
@@ -135,10 +134,29 @@ def _entry(path: str, size: Optional[int], sha256: Optional[str], status: str, p
             "message": message, "meta": meta}
 
 
-def _stale(listed: dict, current: dict[str, str]) -> set[str]:
-    """Entries for a path of this build whose capture id is no longer the file's (it changed)."""
-    return {cid for cid, e in listed.items() if e["file"] in current and current[e["file"]] != cid
-            and current[e["file"]] in listed}
+class Versions:
+    """The captures listed per path, to find those a changed file's new capture replaces: an
+    entry for a path of this build whose capture id is no longer the file's, once the file's
+    current capture is complete (never before: a stop in between keeps the old rows)."""
+
+    def __init__(self, listed: dict, current: dict[str, str]) -> None:
+        self.current = current
+        self.by_path: dict[str, set[str]] = {}
+        for cid, entry in listed.items():
+            self.by_path.setdefault(entry["file"], set()).add(cid)
+
+    def stale(self) -> set[str]:
+        return {cid for path in self.current for cid in self._stale(path)}
+
+    def add(self, path: str, cid: str) -> set[str]:
+        """Record a completed capture; the entries it makes stale."""
+        self.by_path.setdefault(path, set()).add(cid)
+        return self._stale(path)
+
+    def _stale(self, path: str) -> set[str]:
+        cids = self.by_path.get(path, set())
+        now = self.current.get(path)
+        return {c for c in cids if c != now} if now in cids else set()
 
 
 def _commit(dataset: Dataset, manifest: dict, stale: set[str]) -> None:
