@@ -156,7 +156,10 @@ def test_senders_and_streams_equal_the_json_reports(fleet):
             assert row["watchdog_violations"] == len(violations)
             assert row["watchdog_until_end"] == sum(v["until_end"] for v in violations)
             assert row["watchdog_max_gap_ms"] == (max(v["gap_ms"] for v in violations) if violations else None)
-            assert row["bursts"] == p.get("bursts")
+            assert row["bursts"] == p.get("bursts") and row["time_backwards"] == p["time_backwards"]
+            assert row["outside_recommended"] == (p["outside_recommended"]["count"] if "outside_recommended" in p
+                                                  else None)
+            assert row["watchdog_limit_ms"] == p["watchdog"]["limit_ms"]
 
 
 def test_commands_equal_the_json_reports(fleet):
@@ -177,7 +180,8 @@ def test_commands_equal_the_json_reports(fleet):
                 row = keyed[(c["sender"], c["command_id"], c["frames"][0])]
                 assert (row["ack_frame"], row["latency_first_ms"], row["latency_last_ms"], row["spurious"]) == \
                        (c["ack_frame"], c["latency_first_ms"], c["latency_last_ms"], c["spurious"])
-                assert row["time"] == us(c["time"])
+                assert row["time"] == us(c["time"]) and row["fail_limit_ms"] == block["fail_limit_ms"]
+                assert row["transmissions"] == len(c["frames"]) and row["interrupted_frame"] == c["interrupted_frame"]
                 checked += 1
     assert checked > 50
 
