@@ -229,3 +229,21 @@ def test_dask_local_cluster_builds_the_same_rows(fleet, tmp_path):
         assert local == remote, table
         if table != "errors":
             assert local
+
+
+def test_dask_on_a_given_scheduler(fleet, tmp_path):
+    """--scheduler: the build goes to a cluster that is already running (here one started by the test)."""
+    from distributed import LocalCluster
+    from vm110.fleet.build import build
+    from vm110.fleet.sources import MetaPattern
+    from vm110.fleet.work import Settings
+    paths = [str(fleet["files"][name]) for name in ("normal.pcap", "retransmit.pcap", "cut")]
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        outcome = build(paths, Settings(dataset=str(tmp_path / "s"), packets=True),
+                        MetaPattern("sites/{site}/{machine}/*"), engine="dask", jobs=1,
+                        scheduler=cluster.scheduler_address)
+    assert outcome.analysed == 3 and len(outcome.damaged) == 1
+    for table in TABLES:
+        expected = sorted((r for r in read_table(fleet["dataset"], table) if r["file"] in paths), key=repr)
+        assert sorted(read_table(tmp_path / "s", table), key=repr) == expected, table

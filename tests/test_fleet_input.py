@@ -150,6 +150,9 @@ def test_unreadable_capture_is_an_error_row(src, built):
     assert [r for r in after if r["file"] != str(src / "broken.pcap")] == before
     errors = rows(built, "errors")
     assert [(r["file"], r["kind"]) for r in errors] == [(str(src / "broken.pcap"), "unreadable")]
+    again = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")      # tried again, every time
+    assert again.returncode == 2 and "1 analysed" in again.stdout and f"{len(NAMES)} already" in again.stdout
+    assert rows(built, "errors") == errors and len(rows(built)) == len(NAMES) + 1
 
 
 def test_folder_without_captures(tmp_path):

@@ -90,7 +90,9 @@ def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: s
         listed[cid] = _entry(row["file"], row["size"], row["sha256"], row["status"], dataset.parts_on_disk(cid),
                              None, {k: v for k, v in row.items() if k not in _CAPTURE_COLUMNS})
     outcome = Outcome()
-    todo = [s for s in wanted if s.capture_id not in listed]
+    # An unreadable capture is tried again every time: what failed may have been passing (a file
+    # still being copied, a worker that could not see the share).
+    todo = [s for s in wanted if s.capture_id not in listed or listed[s.capture_id]["status"] == "unreadable"]
     outcome.skipped = len(wanted) - len(todo)
     versions = Versions(listed, {s.path: s.capture_id for s in wanted})
     stale = versions.stale()
