@@ -21,11 +21,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from loopback import free_ports  # noqa: E402
-from vm110.fuzz import cases  # noqa: E402
-from vm110.fuzz.oracles import Limits  # noqa: E402
-from vm110.fuzz.runner import start_target  # noqa: E402
-from vm110.fuzz.session import Session, Settings  # noqa: E402
+from loopback import free_ports
+from vm110.fuzz import cases
+from vm110.fuzz.oracles import Limits
+from vm110.fuzz.runner import start_target
+from vm110.fuzz.session import Session, Settings
 
 SEED = 1
 

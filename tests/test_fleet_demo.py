@@ -68,7 +68,7 @@ def test_trend_errors_and_sql(dataset):
     by_firmware = query(dataset, "--trend", "loss", "--by", "bu_firmware")
     assert {r["bu_firmware"] for r in by_firmware} == {"3.2", "3.4"}
     errors = query(dataset, "--named", "errors")
-    site, machine, week = demo.DAMAGED
+    _, machine, week = demo.DAMAGED
     assert [(r["machine"], r["kind"]) for r in errors] == [(machine, "damaged")]
     assert errors[0]["file"].endswith(f"{machine}-w{week + 1}.pcap")
     rows = query(dataset, "SELECT site, count(DISTINCT machine) AS machines FROM captures GROUP BY site ORDER BY site")

@@ -191,10 +191,7 @@ def run(args: argparse.Namespace) -> int:
             sys.stdout.write(report_html.render(reports, combined, errors))
         else:
             report_html.write(args.html, reports, combined, errors)
-    broken = []
-    for r in reports:
-        for v in rules.violations(fail_rules, r["totals"]):
-            broken.append(f"{r['capture']['file']}: {v}")
+    broken = [f"{r['capture']['file']}: {v}" for r in reports for v in rules.violations(fail_rules, r["totals"])]
     for line in broken:
         print(f"fail-on: {line}", file=sys.stderr)
     if errors:

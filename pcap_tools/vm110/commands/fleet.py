@@ -52,7 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     query.add_argument("--trend", metavar="METRIC", help="jitter, loss, latency, watchdog or findings over time")
     query.add_argument("--by", default="week", help="for --trend: day, week, month or a metadata column; default week")
     query.add_argument("--month", metavar="YYYY-MM", help="for watchdog: the month; default the latest in the data")
-    query.add_argument("--limit", type=LIMIT, default=20, metavar="N", help=f"rows of a ranked query, {LIMIT.range_text}; default 20")
+    query.add_argument("--limit", type=LIMIT, default=20, metavar="N",
+                       help=f"rows of a ranked query, {LIMIT.range_text}; default 20")
 
     report = sub.add_parser("report", help="one self-contained HTML page over a dataset")
     report.add_argument("dataset", metavar="DATASET")

@@ -106,12 +106,12 @@ class Dataset:
         if not self.local:
             yield
             return
-        try:
-            os.makedirs(self.root, exist_ok=True)
-            handle = open(posixpath.join(self.root, LOCK), "a")
-        except OSError as exc:
-            raise CliError(f"cannot write {self.url}: {exc.strerror}") from None
-        with handle:
+        with contextlib.ExitStack() as stack:
+            try:
+                os.makedirs(self.root, exist_ok=True)
+                handle = stack.enter_context(open(posixpath.join(self.root, LOCK), "a"))
+            except OSError as exc:
+                raise CliError(f"cannot write {self.url}: {exc.strerror}") from None
             try:
                 fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:

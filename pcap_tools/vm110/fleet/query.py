@@ -168,19 +168,19 @@ LIMIT {a.limit}"""
 
 
 _TREND = {   # metric -> (table, aggregates over it as t)
-    "jitter": ("streams", "round(avg(t.jitter_mean_ms) FILTER (WHERE t.type = 'VRPI'), 3) AS vrpi_jitter_mean_ms, "
-                          "max(t.jitter_max_ms) FILTER (WHERE t.type = 'VRPI') AS vrpi_jitter_max_ms, "
-                          "round(avg(t.jitter_mean_ms) FILTER (WHERE t.type = 'VRPO'), 3) AS vrpo_jitter_mean_ms, "
-                          "max(t.jitter_max_ms) FILTER (WHERE t.type = 'VRPO') AS vrpo_jitter_max_ms"),
-    "loss": ("senders", "sum(t.lost) AS lost, sum(t.received) AS received, "
-                        "round(100.0 * sum(t.lost) / nullif(sum(t.received) + sum(t.lost), 0), 3) AS loss_pct"),
-    "latency": ("commands", "count(*) AS commands, round(quantile_cont(t.latency_first_ms, 0.5), 3) AS ack_p50_ms, "
-                            "round(quantile_cont(t.latency_first_ms, 0.95), 3) AS ack_p95_ms, "
-                            "max(t.latency_first_ms) AS ack_max_ms, count(*) FILTER (WHERE t.failed) AS failed"),
-    "watchdog": ("captures", "sum(t.watchdog) AS watchdog, "
-                             "count(*) FILTER (WHERE t.watchdog > 0) AS captures_with_watchdog"),
-    "findings": ("captures", "sum(t.findings) AS findings, "
-                             "count(*) FILTER (WHERE NOT t.verdict_ok) AS failing_captures"),
+    "jitter": ("streams", ("round(avg(t.jitter_mean_ms) FILTER (WHERE t.type = 'VRPI'), 3) AS vrpi_jitter_mean_ms, "
+                           "max(t.jitter_max_ms) FILTER (WHERE t.type = 'VRPI') AS vrpi_jitter_max_ms, "
+                           "round(avg(t.jitter_mean_ms) FILTER (WHERE t.type = 'VRPO'), 3) AS vrpo_jitter_mean_ms, "
+                           "max(t.jitter_max_ms) FILTER (WHERE t.type = 'VRPO') AS vrpo_jitter_max_ms")),
+    "loss": ("senders", ("sum(t.lost) AS lost, sum(t.received) AS received, "
+                         "round(100.0 * sum(t.lost) / nullif(sum(t.received) + sum(t.lost), 0), 3) AS loss_pct")),
+    "latency": ("commands", ("count(*) AS commands, round(quantile_cont(t.latency_first_ms, 0.5), 3) AS ack_p50_ms, "
+                             "round(quantile_cont(t.latency_first_ms, 0.95), 3) AS ack_p95_ms, "
+                             "max(t.latency_first_ms) AS ack_max_ms, count(*) FILTER (WHERE t.failed) AS failed")),
+    "watchdog": ("captures", ("sum(t.watchdog) AS watchdog, "
+                              "count(*) FILTER (WHERE t.watchdog > 0) AS captures_with_watchdog")),
+    "findings": ("captures", ("sum(t.findings) AS findings, "
+                              "count(*) FILTER (WHERE NOT t.verdict_ok) AS failing_captures")),
 }
 
 

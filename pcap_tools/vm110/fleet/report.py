@@ -140,8 +140,8 @@ def render(fleet: Fleet) -> str:
     out = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
            "<title>VM-110 EG-Link fleet report</title>", f"<style>{CSS}</style></head><body>",
            "<h1>VM-110 EG-Link fleet report</h1>",
-           f"<p>{captures} captures of {machines} machines, {_e(span)} (capture time, UTC); "
-           f"{bad} damaged or unreadable. Dataset {_e(fleet.dataset.url)}, vm110 {_e(__version__)}.</p>",
+           (f"<p>{captures} captures of {machines} machines, {_e(span)} (capture time, UTC); "
+            f"{bad} damaged or unreadable. Dataset {_e(fleet.dataset.url)}, vm110 {_e(__version__)}.</p>"),
            "<h2>Machines ranked by findings</h2>",
            _table(fleet.run(NAMED["worst-machines"].sql(fleet, Args(limit=1_000_000)))),
            "<h2>Links</h2>",

@@ -82,10 +82,9 @@ def build_one(source: Source, settings: Settings) -> Done:
             tables["errors"].append({"capture_id": cid, "file": source.path, "kind": "packets",
                                      "message": f"packets of {source.path}: {type(exc).__name__}: {exc}",
                                      "file_offset": None})
-    for table in sorted(tables, key=lambda t: t == COMMIT_TABLE):       # the commit part last
-        if tables[table] or table == COMMIT_TABLE:
-            parts.append(dataset.write_part(table, cid, table_schema(table, meta),
-                                            [arrow_table(table, tables[table], meta)]))
+    parts += [dataset.write_part(table, cid, table_schema(table, meta), [arrow_table(table, tables[table], meta)])
+              for table in sorted(tables, key=lambda t: t == COMMIT_TABLE)      # the commit part last
+              if tables[table] or table == COMMIT_TABLE]
     return Done(cid, source.path, source.size, source.sha256, status, tuple(parts), message, source.meta)
 
 
