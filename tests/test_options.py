@@ -27,6 +27,7 @@ RUN_UNTIL = {
     "decode": ([MISSING], MISSING),
     "monitor": (["--read", MISSING], MISSING),
     "synth": (["no-such-scenario", "--out", "/nonexistent/out.pcap"], "unknown scenario"),
+    "fleet": ([MISSING, "--out", "/nonexistent/vm110-fleet"], MISSING),
 }
 _SIMULATE = {"--seed": {"0", "1e18"}, "--stop-at": {"0"}, "--restart": {"0", "0:0"}, "--restart-serial": {"0"},
              "--serial-start": {"0"}, "--command-id-start": {"0"}, "--command-every": {"0"},
@@ -39,6 +40,8 @@ ACCEPTED: dict[tuple[str, str], set[str]] = {
     ("monitor", "--vrpo-start"): {"0"},
     ("monitor", "--vrpo-data-size"): {"0"},
     **{("monitor", option): {"0"} for option in ("--before", "--after", "--idle")},
+    ("fleet build", "--vrpo-start"): {"0"},
+    ("fleet build", "--vrpo-data-size"): {"0"},
     ("synth", "--seed"): {"0", "1e18"},
     ("fuzz", "--seed"): {"0", "1e18"},
     **{("simulate bu", option): values for option, values in {

@@ -19,6 +19,7 @@ COMMANDS = {
     "craft": "craft",
     "decode": "decode",
     "dissect": "dissect",
+    "fleet": "fleet",
     "fuzz": "fuzz",
     "monitor": "monitor",
     "simulate": "simulate",

@@ -1,0 +1,123 @@
+"""Fleet analysis: captures from many machines in one Parquet dataset, queried with DuckDB.
+
+`build SRC... --out DATASET` analyses every capture as `vm110 analyze` does (same options) into
+the tables captures, senders, streams, commands, findings, errors (and packets); incremental.
+`query DATASET "SQL"` or a named query (--list); `report DATASET --html FILE` writes one
+self-contained page. docs/fleet.md describes the dataset. Exit code 2 for unreadable input (the
+other captures are built all the same) or bad arguments.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from ..errors import EXIT_OK, EXIT_USAGE, CliError
+from ..fileio import check_target, write_text
+from ..numbers import number
+from .analyze import add_analysis_options, analysis_options
+
+JOBS = number(1, 256, integer=True)
+LIMIT = number(1, 1_000_000, integer=True)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="fleet_command", metavar="ACTION", required=True)
+    build = sub.add_parser("build", help="analyse captures into a dataset (incremental)",
+                           description="Analyse captures (files, folders, globs) into a Parquet dataset.")
+    build.add_argument("sources", nargs="+", metavar="SRC", help="capture files, folders (recursive) or glob patterns")
+    build.add_argument("--out", required=True, metavar="DATASET", help="dataset folder or fsspec URL (created if new)")
+    build.add_argument("--meta", metavar="PATTERN",
+                       help="fields from the path, e.g. 'sites/{site}/{machine}/*.pcapng'; a sidecar CAPTURE.meta.json "
+                            "adds more")
+    build.add_argument("--packets", action="store_true", help="also a per-packet table (packets) for drill-down")
+    build.add_argument("--engine", choices=("local", "dask"), default="local",
+                       help="local (default): processes on this machine; dask: dask.distributed workers")
+    build.add_argument("--scheduler", metavar="ADDRESS",
+                       help="Dask scheduler (e.g. tcp://host:8786); default: a LocalCluster of --jobs workers")
+    build.add_argument("-j", "--jobs", type=JOBS, default=os.cpu_count() or 1, metavar="N",
+                       help=f"processes (local) or LocalCluster workers (dask), {JOBS.range_text}; "
+                            "default: the number of CPUs")
+    add_analysis_options(build)
+
+    query = sub.add_parser("query", help="SQL or a named query over a dataset",
+                           description="DuckDB over the dataset: tables captures, senders, streams, commands, "
+                                       "findings, errors, packets as views.")
+    query.add_argument("dataset", metavar="DATASET")
+    query.add_argument("sql", nargs="?", metavar="SQL", help="a query over the views")
+    query.add_argument("--format", choices=("table", "csv", "json"), default="table")
+    query.add_argument("--list", action="store_true", help="list the named queries and the tables' columns")
+    query.add_argument("--named", metavar="NAME", help="a named query (see --list)")
+    query.add_argument("--worst", choices=("links", "machines", "commands"), help="worst links, machines or commands")
+    query.add_argument("--trend", metavar="METRIC", help="jitter, loss, latency, watchdog or findings over time")
+    query.add_argument("--by", default="week", help="for --trend: day, week, month or a metadata column; default week")
+    query.add_argument("--month", metavar="YYYY-MM", help="for watchdog: the month; default the latest in the data")
+    query.add_argument("--limit", type=LIMIT, default=20, metavar="N",
+                       help=f"rows of a ranked query, {LIMIT.range_text}; default 20")
+
+    report = sub.add_parser("report", help="one self-contained HTML page over a dataset")
+    report.add_argument("dataset", metavar="DATASET")
+    report.add_argument("--html", required=True, metavar="FILE", help="the page to write; - for standard output")
+
+
+def run(args: argparse.Namespace) -> int:
+    return {"build": _build, "query": _query, "report": _report}[args.fleet_command](args)
+
+
+def _build(args: argparse.Namespace) -> int:
+    from ..fleet.build import absolute, build
+    from ..fleet.sources import MetaPattern
+    from ..fleet.work import Settings
+    if args.scheduler and args.engine != "dask":
+        raise CliError("--scheduler goes with --engine dask")
+    settings = Settings(dataset=absolute(args.out), port=args.port, crc=args.crc, crc_order=args.crc_order,
+                        options=analysis_options(args), packets=args.packets)
+    pattern = MetaPattern(args.meta) if args.meta else None
+    outcome = build(args.sources, settings, pattern, args.engine, args.jobs, args.scheduler, sys.stderr.isatty())
+    for line in outcome.unreadable:
+        print(f"vm110 fleet: {line}", file=sys.stderr)
+    for line in outcome.damaged:
+        print(f"vm110 fleet: damaged: {line}", file=sys.stderr)
+    print(f"{args.out}: {outcome.analysed} analysed ({len(outcome.damaged)} damaged, {len(outcome.unreadable)} "
+          f"unreadable), {outcome.skipped} already in the dataset, {outcome.replaced} replaced")
+    return EXIT_USAGE if outcome.unreadable else EXIT_OK
+
+
+def _query(args: argparse.Namespace) -> int:
+    from ..fleet.query import NAMED, WORST, Args, Fleet, render
+    chosen = [x for x in (args.sql, args.named, args.worst, args.trend) if x]
+    if len(chosen) > 1:
+        raise CliError("give one of SQL, --named, --worst, --trend")
+    fleet = Fleet(args.dataset)
+    if args.list:
+        for named in NAMED.values():
+            print(f"{named.name:<18} {named.help}")
+        print()
+        for table, columns in fleet.columns.items():
+            print(f"{table}: {', '.join(columns)}")
+        return EXIT_OK
+    if not chosen:
+        raise CliError("give SQL, --named NAME, --worst WHAT or --trend METRIC (--list shows them)")
+    if args.sql:
+        sql = args.sql
+    else:
+        name = args.named or (WORST[args.worst] if args.worst else "trend")
+        if name not in NAMED:
+            raise CliError(f"--named {name[:30]!r}: choose from {', '.join(NAMED)}")
+        sql = NAMED[name].sql(fleet, Args(limit=args.limit, metric=args.trend or "jitter", by=args.by,
+                                          month=args.month))
+    sys.stdout.write(render(fleet.run(sql), args.format))
+    return EXIT_OK
+
+
+def _report(args: argparse.Namespace) -> int:
+    from ..fleet.query import Fleet
+    from ..fleet.report import render
+    if args.html != "-":
+        check_target(args.html)
+    page = render(Fleet(args.dataset))
+    if args.html == "-":
+        sys.stdout.write(page)
+    else:
+        write_text(args.html, page)
+    return EXIT_OK

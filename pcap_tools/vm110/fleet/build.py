@@ -1,0 +1,208 @@
+"""`vm110 fleet build`: decide what to analyse, run the engine, keep the manifest.
+
+Incremental and idempotent: a capture whose path, size, content hash and metadata are already in
+the dataset is skipped; a changed one is analysed again and its old parts removed once the
+manifest no longer lists them; complete captures of a build that was stopped are adopted.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from typing import Iterator, Optional, Sequence
+
+from ..errors import CliError
+from .dataset import Dataset
+from .engines import run_dask, run_local
+from .sources import MetaPattern, Source, content_hash, find, metadata
+from .tables import SCHEMAS, check_meta_keys
+from .work import Done, Settings
+
+HASH_THREADS = 8             # files hashed at once (reading is the limit, not the CPU)
+CHECKPOINT_S = 2.0           # the manifest is rewritten at most this often while a build runs
+
+
+@dataclass
+class Outcome:
+    analysed: int = 0
+    skipped: int = 0
+    replaced: int = 0
+    damaged: list[str] = field(default_factory=list)
+    unreadable: list[str] = field(default_factory=list)
+
+
+def fingerprint(settings: Settings) -> dict:
+    """The options every capture of one dataset must share (so that its rows compare)."""
+    return {"analysis": asdict(settings.options), "port": settings.port, "crc": settings.crc,
+            "crc_order": settings.crc_order, "packets": settings.packets}
+
+
+def _hash(path: str) -> tuple[Optional[int], Optional[str]]:
+    try:
+        return content_hash(path)
+    except OSError:
+        return None, None
+
+
+def sources(srcs: Sequence[str], pattern: Optional[MetaPattern], threads: int = 1) -> list[Source]:
+    """The captures SRC names, each hashed (`threads` at a time: hashlib lets go of the GIL), with
+    its metadata. A capture that cannot be hashed still becomes a Source (its analysis then fails
+    into an error row)."""
+    paths = find(srcs)
+    metas = []
+    for path in paths:
+        meta = tuple(sorted(metadata(path, pattern).items()))
+        check_meta_keys({k for k, _ in meta})
+        metas.append(meta)
+    with ThreadPoolExecutor(max(1, min(threads, HASH_THREADS))) as pool:
+        hashes = list(pool.map(_hash, paths))
+    return [Source(path, size, digest, meta) for path, (size, digest), meta in zip(paths, hashes, metas)]
+
+
+def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern] = None,
+          engine: str = "local", jobs: int = 1, scheduler: Optional[str] = None,
+          progress: bool = False) -> Outcome:
+    dataset = Dataset(settings.dataset)
+    wanted = sources(srcs, pattern, jobs)
+    if not dataset.exists():
+        dataset.check_new()
+    with dataset.lock():
+        return _build(dataset, wanted, settings, engine, jobs, scheduler, progress)
+
+
+def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: str, jobs: int,
+           scheduler: Optional[str], progress: bool) -> Outcome:
+    options = fingerprint(settings)
+    if dataset.exists():
+        manifest = dataset.read_manifest()
+        if manifest.get("options") != options:
+            differ = _difference(manifest.get("options"), options)
+            raise CliError(f"{dataset.url}: built with other analysis options ({differ}); "
+                           "build into a new folder, or give the same options")
+    else:
+        manifest = Dataset.new_manifest(options)
+        dataset.write_manifest(manifest)        # first: a build stopped at once is still ours to resume
+    dataset.remove_temporaries()
+    listed = manifest["captures"]
+    for cid, row in dataset.complete_captures(skip=set(listed)).items():     # a stopped build's finished work
+        listed[cid] = _entry(row["file"], row["size"], row["sha256"], row["status"], dataset.parts_on_disk(cid),
+                             None, {k: v for k, v in row.items() if k not in _CAPTURE_COLUMNS})
+    outcome = Outcome()
+    # An unreadable capture is tried again every time: what failed may have been passing (a file
+    # still being copied, a worker that could not see the share).
+    todo = [s for s in wanted if s.capture_id not in listed or listed[s.capture_id]["status"] == "unreadable"]
+    outcome.skipped = len(wanted) - len(todo)
+    versions = Versions(listed, {s.path: s.capture_id for s in wanted})
+    stale = versions.stale()
+    bar = Progress(len(todo), outcome.skipped) if progress else None
+    last = time.monotonic()
+    try:
+        for done in _engine(engine, todo, settings, jobs, scheduler):
+            listed[done.capture_id] = _entry(done.path, done.size, done.sha256, done.status, list(done.parts),
+                                             done.message, dict(done.meta))
+            outcome.analysed += 1
+            if done.status == "unreadable":
+                outcome.unreadable.append(done.message or done.path)
+            elif done.status == "damaged":
+                outcome.damaged.append(f"{done.path}: {done.message}")
+            stale |= versions.add(done.path, done.capture_id)
+            if bar:
+                bar.step(outcome)
+            if time.monotonic() - last > CHECKPOINT_S:
+                _commit(dataset, manifest, stale)
+                last = time.monotonic()
+        outcome.replaced = len(stale)
+    finally:
+        if bar:
+            bar.close()
+        _commit(dataset, manifest, stale)
+    return outcome
+
+
+_CAPTURE_COLUMNS = frozenset(SCHEMAS["captures"].names)
+
+
+def _engine(engine: str, todo: list[Source], settings: Settings, jobs: int, scheduler: Optional[str]) -> Iterator[Done]:
+    if engine == "dask":
+        return run_dask(todo, settings, jobs, scheduler)
+    return run_local(todo, settings, jobs)
+
+
+def _entry(path: str, size: Optional[int], sha256: Optional[str], status: str, parts: list[str],
+           message: Optional[str], meta: dict) -> dict:
+    return {"file": path, "size": size, "sha256": sha256, "status": status, "parts": sorted(parts),
+            "message": message, "meta": meta}
+
+
+class Versions:
+    """The captures listed per path, to find those a changed file's new capture replaces: an
+    entry for a path of this build whose capture id is no longer the file's, once the file's
+    current capture is complete (never before: a stop in between keeps the old rows)."""
+
+    def __init__(self, listed: dict, current: dict[str, str]) -> None:
+        self.current = current
+        self.by_path: dict[str, set[str]] = {}
+        for cid, entry in listed.items():
+            self.by_path.setdefault(entry["file"], set()).add(cid)
+
+    def stale(self) -> set[str]:
+        return {cid for path in self.current for cid in self._stale(path)}
+
+    def add(self, path: str, cid: str) -> set[str]:
+        """Record a completed capture; the entries it makes stale."""
+        self.by_path.setdefault(path, set()).add(cid)
+        return self._stale(path)
+
+    def _stale(self, path: str) -> set[str]:
+        cids = self.by_path.get(path, set())
+        now = self.current.get(path)
+        return {c for c in cids if c != now} if now in cids else set()
+
+
+def _commit(dataset: Dataset, manifest: dict, stale: set[str]) -> None:
+    """Write the manifest without the stale entries, then remove their parts (after: a stop in
+    between leaves unlisted parts, never listed parts missing)."""
+    gone = [manifest["captures"].pop(cid) for cid in sorted(stale) if cid in manifest["captures"]]
+    dataset.write_manifest(manifest)
+    for entry in gone:
+        dataset.remove_parts(entry["parts"])
+
+
+def _difference(old: Optional[dict], new: dict) -> str:
+    old = old or {}
+    flat_old = {**(old.get("analysis") or {}), **{k: v for k, v in old.items() if k != "analysis"}}
+    flat_new = {**new["analysis"], **{k: v for k, v in new.items() if k != "analysis"}}
+    diff = [f"{k} {flat_old.get(k)!r}, now {flat_new.get(k)!r}" for k in sorted(set(flat_old) | set(flat_new))
+            if flat_old.get(k) != flat_new.get(k)]
+    return "; ".join(diff[:3]) or "unknown"
+
+
+class Progress:
+    """A one-line bar on standard error (only on a terminal)."""
+
+    def __init__(self, total: int, skipped: int) -> None:
+        self.total, self.skipped, self.start = total, skipped, time.monotonic()
+        self.width = 30
+        self.show(0, Outcome(skipped=skipped))
+
+    def step(self, outcome: Outcome) -> None:
+        self.show(outcome.analysed, outcome)
+
+    def show(self, done: int, outcome: Outcome) -> None:
+        frac = done / self.total if self.total else 1.0
+        rate = done / max(time.monotonic() - self.start, 1e-9)
+        bad = len(outcome.unreadable) + len(outcome.damaged)
+        sys.stderr.write(f"\r[{'#' * int(frac * self.width):<{self.width}}] {done}/{self.total} captures"
+                         f" ({outcome.skipped} already in, {bad} with errors, {rate:.1f}/s)\033[K")
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        sys.stderr.write("\r\033[K")
+        sys.stderr.flush()
+
+
+def absolute(url: str) -> str:
+    """A local dataset path made absolute, so that worker processes find it wherever they run."""
+    return url if "://" in url else os.path.abspath(url)

@@ -1,0 +1,223 @@
+"""The dataset on disk (a local folder or any fsspec URL):
+
+    DATASET/manifest.json                      format, version, options, the captures it holds
+    DATASET/<table>/part-<capture_id>.parquet  one part per capture and table (when it has rows)
+
+A capture's parts are written one by one, each to a temporary name and renamed when complete,
+its `captures` part last: a `captures` part on disk means the capture is complete. The manifest
+is rewritten (atomically) as captures complete and at the end; a build that was stopped adopts the
+complete captures it finds that the manifest does not list yet, so no finished work is lost.
+Readers see only the parts of the captures the manifest lists.
+"""
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import posixpath
+import secrets
+from typing import Any, Collection, Iterable, Iterator
+
+import fsspec
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from .. import __version__
+from ..errors import CliError
+from ..fileio import atomic_writer
+from .tables import TABLES
+
+FORMAT = "vm110-fleet"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+MAX_MANIFEST_BYTES = 256 << 20
+LOCK = ".vm110-fleet.lock"         # held by a build (local datasets): one writer at a time
+COMMIT_TABLE = "captures"          # written last: its part marks a capture complete
+
+
+def part_name(table: str, capture_id: str) -> str:
+    return f"{table}/part-{capture_id}.parquet"
+
+
+class Dataset:
+    """A dataset at `url` (a path or an fsspec URL)."""
+
+    def __init__(self, url: str) -> None:
+        self.url = url
+        try:
+            self.fs, self.root = fsspec.core.url_to_fs(url)
+        except (ValueError, ImportError) as exc:
+            raise CliError(f"{url}: cannot open this location: {exc}") from None
+        self.local = "file" in _protocols(self.fs)
+
+    def path(self, relative: str) -> str:
+        return posixpath.join(self.root, relative)
+
+    def exists(self) -> bool:
+        return self.fs.exists(self.path(MANIFEST))
+
+    # -- the manifest -------------------------------------------------------------------------------
+    def read_manifest(self) -> dict:
+        """The manifest; CliError when there is none or it is of another format or version."""
+        where = self.path(MANIFEST)
+        try:
+            with self.fs.open(where, "rb") as f:
+                raw = f.read(MAX_MANIFEST_BYTES + 1)
+        except FileNotFoundError:
+            raise CliError(f"{self.url}: not a vm110 fleet dataset (no {MANIFEST}); "
+                           "build one with vm110 fleet build") from None
+        except OSError as exc:
+            raise CliError(f"{self.url}: cannot read {MANIFEST}: {exc}") from None
+        try:
+            doc = json.loads(raw)
+        except ValueError:
+            doc = None
+        if not isinstance(doc, dict) or doc.get("format") != FORMAT or not isinstance(doc.get("captures"), dict):
+            raise CliError(f"{self.url}: {MANIFEST} is not a vm110 fleet manifest")
+        if doc.get("format_version") != FORMAT_VERSION:
+            raise CliError(f"{self.url}: dataset format version {doc.get('format_version')!r} "
+                           f"(written by vm110 {doc.get('tool_version', '?')}); this vm110 {__version__} reads "
+                           f"version {FORMAT_VERSION}: rebuild it into a new folder")
+        return doc
+
+    def write_manifest(self, doc: dict) -> None:
+        self._write_bytes(MANIFEST, (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode())
+
+    @staticmethod
+    def new_manifest(options: dict) -> dict:
+        return {"format": FORMAT, "format_version": FORMAT_VERSION, "tool_version": __version__,
+                "options": options, "captures": {}}
+
+    def check_new(self) -> None:
+        """A folder to build a new dataset in must be empty or absent: never write into (and
+        later delete from) someone else's files."""
+        if self.fs.exists(self.root):
+            if not self.fs.isdir(self.root):
+                raise CliError(f"{self.url}: exists and is not a folder")
+            if [n for n in self.fs.ls(self.root, detail=False) if posixpath.basename(n) != LOCK]:
+                raise CliError(f"{self.url}: not a vm110 fleet dataset (no {MANIFEST}) and not empty; "
+                               "give a new or empty folder")
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Held while a build writes: a second build of a local dataset is refused, not mixed in.
+        (The operating system lets go of it when the process ends, however it ends.)"""
+        if not self.local:
+            yield
+            return
+        with contextlib.ExitStack() as stack:
+            try:
+                os.makedirs(self.root, exist_ok=True)
+                handle = stack.enter_context(open(posixpath.join(self.root, LOCK), "a"))
+            except OSError as exc:
+                raise CliError(f"cannot write {self.url}: {exc.strerror}") from None
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                raise CliError(f"{self.url}: another build is writing this dataset") from None
+            yield
+
+    # -- parts --------------------------------------------------------------------------------------
+    def write_part(self, table: str, capture_id: str, schema: pa.Schema, batches: Iterable[pa.Table]) -> str:
+        """One part from `batches` (tables of `schema`), written as they come: memory holds one
+        batch, whatever the number of rows."""
+        relative = part_name(table, capture_id)
+        target = self.path(relative)
+        try:
+            self.fs.makedirs(posixpath.dirname(target), exist_ok=True)
+            if self.local:
+                with atomic_writer(target) as stream:
+                    _write_parquet(stream, schema, batches)
+                return relative
+            temp = f"{target}.{secrets.token_hex(4)}.tmp"
+            with self.fs.open(temp, "wb") as f:
+                _write_parquet(f, schema, batches)
+            self.fs.mv(temp, target)
+        except OSError as exc:
+            raise CliError(f"cannot write {self.url}/{relative}: {exc}") from None
+        return relative
+
+    def complete_captures(self, skip: Collection[str] = ()) -> dict[str, dict]:
+        """capture_id -> its `captures` row, for every complete capture on disk but those in
+        `skip` (only their names are listed: the manifest knows them)."""
+        folder = self.path(COMMIT_TABLE)
+        if not self.fs.exists(folder):
+            return {}
+        found = {}
+        for name in self.fs.ls(folder, detail=False):
+            base = posixpath.basename(name)
+            if not (base.startswith("part-") and base.endswith(".parquet")):
+                continue
+            if base[len("part-"):-len(".parquet")] in skip:
+                continue
+            try:
+                with self.fs.open(name, "rb") as f:
+                    rows = pq.read_table(f).to_pylist()
+            except (OSError, pa.ArrowException):
+                continue                         # a part cut short: the capture is redone
+            if len(rows) == 1:
+                found[base[len("part-"):-len(".parquet")]] = rows[0]
+        return found
+
+    def parts_on_disk(self, capture_id: str) -> list[str]:
+        return [part_name(t, capture_id) for t in TABLES if self.fs.exists(self.path(part_name(t, capture_id)))]
+
+    def remove_parts(self, relatives: list[str]) -> None:
+        """Remove parts of ours (a replaced capture's); the commit part last, so that a stop
+        midway leaves it marked complete and adoptable rather than half there."""
+        for relative in sorted(relatives, key=lambda r: r.startswith(COMMIT_TABLE + "/")):
+            try:
+                self.fs.rm(self.path(relative))
+            except FileNotFoundError:
+                pass
+
+    def remove_temporaries(self) -> None:
+        """Temporary files of part writes that a stopped build left (named by us: `.part-*.tmp`
+        from fileio, `part-*.tmp` from the fsspec path)."""
+        for table in TABLES:
+            folder = self.path(table)
+            if not self.fs.exists(folder):
+                continue
+            for name in self.fs.ls(folder, detail=False):
+                base = posixpath.basename(name)
+                if base.endswith(".tmp") and base.lstrip(".").startswith("part-") and ".parquet." in base:
+                    self.fs.rm(name)
+
+    def _write_bytes(self, relative: str, data: bytes) -> None:
+        target = self.path(relative)
+        try:
+            self.fs.makedirs(posixpath.dirname(target), exist_ok=True)
+            if self.local:
+                with atomic_writer(target) as stream:
+                    stream.write(data)
+                return
+            temp = f"{target}.{secrets.token_hex(4)}.tmp"
+            with self.fs.open(temp, "wb") as f:
+                f.write(data)
+            self.fs.mv(temp, target)
+        except OSError as exc:
+            raise CliError(f"cannot write {self.url}/{relative}: {exc}") from None
+
+
+def _write_parquet(stream: Any, schema: pa.Schema, batches: Iterable[pa.Table]) -> None:
+    with pq.ParquetWriter(stream, schema, compression="zstd") as writer:
+        for batch in batches:
+            writer.write_table(batch)
+
+
+def _protocols(fs: Any) -> set[str]:
+    protocol = fs.protocol
+    return {protocol} if isinstance(protocol, str) else set(protocol)
+
+
+def view_files(manifest: dict, dataset: Dataset) -> dict[str, list[str]]:
+    """Table -> the part files (full paths or URLs) of the captures the manifest lists."""
+    files: dict[str, list[str]] = {t: [] for t in TABLES}
+    for entry in manifest["captures"].values():
+        for relative in entry.get("parts", []):
+            table = relative.split("/", 1)[0]
+            if table in files:
+                files[table].append(dataset.path(relative) if dataset.local else dataset.fs.unstrip_protocol(
+                    dataset.path(relative)))
+    return files

@@ -1,0 +1,287 @@
+"""`vm110 fleet query`: DuckDB over a dataset, one view per table, and the named queries.
+
+The views read exactly the parts the manifest lists. After they are made, DuckDB may read those
+files and nothing else, and write nothing (`allowed_paths`, no external access, configuration
+locked): a query cannot change the dataset or reach other files.
+"""
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import decimal
+import io
+import json
+import math
+import re
+from dataclasses import dataclass
+from typing import Any, Callable, Optional, Sequence
+
+import pyarrow as pa
+
+from ..errors import CliError
+from .dataset import Dataset, view_files
+from .tables import TABLES, table_schema
+
+FORMATS = ("table", "csv", "json")
+PERIODS = ("day", "week", "month")
+METRICS = ("jitter", "loss", "latency", "watchdog", "findings")
+WHO = ("site", "machine")               # metadata that names a machine, when the dataset has it
+COLUMN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+
+
+@dataclass
+class Result:
+    columns: list[str]
+    rows: list[tuple]
+
+
+class Fleet:
+    """A DuckDB connection with the dataset's tables as views."""
+
+    def __init__(self, url: str) -> None:
+        import duckdb
+        self.duckdb = duckdb
+        self.dataset = Dataset(url)
+        self.manifest = self.dataset.read_manifest()
+        self.meta_keys = sorted({k for e in self.manifest["captures"].values() for k in (e.get("meta") or {})})
+        self.con = duckdb.connect(":memory:")
+        if not self.dataset.local:
+            self.con.register_filesystem(self.dataset.fs)
+        files = view_files(self.manifest, self.dataset)
+        for table in TABLES:
+            if files[table]:
+                listed = ", ".join(_quote(f) for f in files[table])
+                sql = f"SELECT * FROM read_parquet([{listed}], union_by_name = true)"
+            else:
+                empty = pa.Table.from_pylist([], schema=table_schema(table, self.meta_keys))
+                self.con.register(f"_empty_{table}", empty)
+                sql = f"SELECT * FROM _empty_{table}"
+            self.con.execute(f"CREATE VIEW {table} AS {sql}")
+        every = [f for t in TABLES for f in files[t]]
+        self.con.execute(f"SET allowed_paths = [{', '.join(_quote(f) for f in every)}]")
+        self.con.execute("SET enable_external_access = false")
+        self.con.execute("SET lock_configuration = true")
+        self.columns = {t: [r[0] for r in self.con.execute(f"DESCRIBE {t}").fetchall()] for t in TABLES}
+
+    def run(self, sql: str) -> Result:
+        """The result of `sql`; CliError (one line) when DuckDB refuses it."""
+        try:
+            cursor = self.con.execute(sql)
+            columns = [d[0] for d in cursor.description] if cursor.description else []
+            return Result(columns, cursor.fetchall() if columns else [])
+        except self.duckdb.Error as exc:
+            first = " ".join(str(exc).split("\n")[0].split())
+            raise CliError(f"query failed: {first}") from None
+
+    def who(self, table: str = "captures") -> list[str]:
+        """The columns that name a machine: site and machine when the metadata has them, else the file."""
+        got = [c for c in WHO if c in self.columns[table]]
+        return got or ["file"]
+
+
+@dataclass(frozen=True)
+class Named:
+    name: str
+    help: str
+    sql: Callable[[Fleet, "Args"], str]
+
+
+@dataclass
+class Args:
+    limit: int = 20
+    metric: str = "jitter"
+    by: str = "week"
+    month: Optional[str] = None
+
+
+def _cols(prefix: str, cols: Sequence[str]) -> str:
+    return ", ".join(f"{prefix}.{c}" for c in cols)
+
+
+def _worst_links(f: Fleet, a: Args) -> str:
+    who = f.who()
+    w = ", ".join(who)
+    return f"""
+WITH c AS (SELECT {w}, count(*) AS captures FROM captures WHERE status <> 'unreadable' GROUP BY ALL),
+s AS (SELECT {w}, sum(lost) AS lost, sum(received) AS received, sum(restarts) AS restarts FROM senders GROUP BY ALL),
+t AS (SELECT {w}, sum(watchdog_violations) AS watchdog,
+             max(jitter_max_ms) FILTER (WHERE type = 'VRPI') AS vrpi_jitter_max_ms,
+             max(jitter_max_ms) FILTER (WHERE type = 'VRPO') AS vrpo_jitter_max_ms FROM streams GROUP BY ALL)
+SELECT {_cols('c', who)}, c.captures, coalesce(s.lost, 0) AS lost,
+       round(100.0 * coalesce(s.lost, 0) / nullif(s.received + s.lost, 0), 3) AS loss_pct,
+       coalesce(t.watchdog, 0) AS watchdog, t.vrpi_jitter_max_ms, t.vrpo_jitter_max_ms,
+       coalesce(s.restarts, 0) AS restarts
+FROM c LEFT JOIN s USING ({w}) LEFT JOIN t USING ({w})
+ORDER BY loss_pct DESC NULLS LAST, watchdog DESC, greatest(t.vrpi_jitter_max_ms, t.vrpo_jitter_max_ms) DESC NULLS LAST
+LIMIT {a.limit}"""
+
+
+def _worst_machines(f: Fleet, a: Args) -> str:
+    who = f.who()
+    w = ", ".join(who)
+    return f"""
+WITH c AS (SELECT {w}, count(*) AS captures,
+                  count(*) FILTER (WHERE status <> 'ok' OR NOT verdict_ok) AS failing_captures
+           FROM captures GROUP BY ALL),
+r AS (SELECT {w}, capture_id, rule, any_value(severity) AS severity, any_value(count) AS n FROM findings GROUP BY ALL),
+f AS (SELECT {w}, count(*) FILTER (WHERE severity = 'error') AS error_findings,
+             count(*) FILTER (WHERE severity <> 'error') AS other_findings, sum(n) AS items FROM r GROUP BY ALL)
+SELECT {_cols('c', who)}, c.captures, c.failing_captures, coalesce(f.error_findings, 0) AS error_findings,
+       coalesce(f.other_findings, 0) AS other_findings, coalesce(f.items, 0) AS counted
+FROM c LEFT JOIN f USING ({w})
+ORDER BY error_findings DESC, failing_captures DESC, other_findings DESC, counted DESC
+LIMIT {a.limit}"""
+
+
+def _failing_commands(f: Fleet, a: Args) -> str:
+    who = f.who("commands")
+    w = ", ".join(who)
+    return f"""
+SELECT {w}, type, command_id, count(*) AS commands, count(*) FILTER (WHERE failed) AS failed,
+       count(*) FILTER (WHERE NOT acked AND interrupted_frame IS NULL) AS unacked,
+       round(100.0 * count(*) FILTER (WHERE failed) / count(*), 1) AS failed_pct,
+       round(quantile_cont(latency_first_ms, 0.95), 3) AS ack_p95_ms, count(DISTINCT capture_id) AS captures
+FROM commands GROUP BY ALL HAVING count(*) FILTER (WHERE failed) > 0
+ORDER BY failed DESC, failed_pct DESC, {w}, type, command_id
+LIMIT {a.limit}"""
+
+
+def _month(f: Fleet, a: Args) -> str:
+    if a.month is None:
+        return "(SELECT date_trunc('month', max(first_time)) FROM captures)"
+    if not re.fullmatch(r"\d{4}-(0[1-9]|1[0-2])", a.month):
+        raise CliError(f"--month {a.month[:20]!r}: give YYYY-MM")
+    return f"TIMESTAMP '{a.month}-01'"
+
+
+def _watchdog(f: Fleet, a: Args) -> str:
+    who = f.who()
+    return f"""
+WITH m AS (SELECT {_month(f, a)} AS start)
+SELECT strftime(m.start, '%Y-%m') AS month, {_cols('c', who)}, count(DISTINCT c.capture_id) AS captures,
+       sum(s.watchdog_violations) AS violations, sum(s.watchdog_until_end) AS until_end,
+       max(s.watchdog_max_gap_ms) AS max_gap_ms, string_agg(DISTINCT s.type, ',' ORDER BY s.type) AS types
+FROM streams s JOIN captures c USING (capture_id), m
+WHERE s.watchdog_violations > 0 AND c.first_time >= m.start AND c.first_time < m.start + INTERVAL 1 MONTH
+GROUP BY ALL ORDER BY violations DESC, max_gap_ms DESC
+LIMIT {a.limit}"""
+
+
+_TREND = {   # metric -> (table, aggregates over it as t)
+    "jitter": ("streams", ("round(avg(t.jitter_mean_ms) FILTER (WHERE t.type = 'VRPI'), 3) AS vrpi_jitter_mean_ms, "
+                           "max(t.jitter_max_ms) FILTER (WHERE t.type = 'VRPI') AS vrpi_jitter_max_ms, "
+                           "round(avg(t.jitter_mean_ms) FILTER (WHERE t.type = 'VRPO'), 3) AS vrpo_jitter_mean_ms, "
+                           "max(t.jitter_max_ms) FILTER (WHERE t.type = 'VRPO') AS vrpo_jitter_max_ms")),
+    "loss": ("senders", ("sum(t.lost) AS lost, sum(t.received) AS received, "
+                         "round(100.0 * sum(t.lost) / nullif(sum(t.received) + sum(t.lost), 0), 3) AS loss_pct")),
+    "latency": ("commands", ("count(*) AS commands, round(quantile_cont(t.latency_first_ms, 0.5), 3) AS ack_p50_ms, "
+                             "round(quantile_cont(t.latency_first_ms, 0.95), 3) AS ack_p95_ms, "
+                             "max(t.latency_first_ms) AS ack_max_ms, count(*) FILTER (WHERE t.failed) AS failed")),
+    "watchdog": ("captures", ("sum(t.watchdog) AS watchdog, "
+                              "count(*) FILTER (WHERE t.watchdog > 0) AS captures_with_watchdog")),
+    "findings": ("captures", ("sum(t.findings) AS findings, "
+                              "count(*) FILTER (WHERE NOT t.verdict_ok) AS failing_captures")),
+}
+
+
+def _trend(f: Fleet, a: Args) -> str:
+    if a.metric not in _TREND:
+        raise CliError(f"--trend {a.metric[:20]!r}: choose from {', '.join(METRICS)}")
+    table, aggregates = _TREND[a.metric]
+    if a.by in PERIODS:
+        key = f"CAST(date_trunc('{a.by}', c.first_time) AS DATE)"
+    elif COLUMN.match(a.by) and a.by in f.columns["captures"]:
+        key = f"c.{a.by}"
+    else:
+        raise CliError(f"--by {a.by[:30]!r}: choose from {', '.join(PERIODS)} or a column of captures "
+                       f"({', '.join(f.meta_keys) or 'the dataset has no metadata'})")
+    return f"""
+SELECT {key} AS {a.by}, count(DISTINCT c.capture_id) AS captures, {aggregates}
+FROM {table} t JOIN captures c USING (capture_id)
+WHERE c.status <> 'unreadable'
+GROUP BY 1 ORDER BY 1 NULLS LAST"""
+
+
+def _errors(f: Fleet, a: Args) -> str:
+    who = f.who("errors")
+    columns = who + ([] if "file" in who else ["file"])
+    return f"SELECT {', '.join(columns)}, kind, message, file_offset FROM errors ORDER BY file"
+
+
+def _findings(f: Fleet, a: Args) -> str:
+    who = [c for c in f.who("findings") if c != "file"]
+    lead = ", ".join(who) + ", " if who else ""
+    return f"""
+SELECT {lead}file, rule, severity, frame, sender, filter
+FROM findings WHERE item IS NOT NULL
+ORDER BY severity = 'error' DESC, rule, file, item
+LIMIT {a.limit}"""
+
+
+NAMED = {n.name: n for n in (
+    Named("worst-links", "machines by lost packets (share), watchdog violations, then jitter (--worst links)",
+          _worst_links),
+    Named("worst-machines", "machines ranked by findings: error findings, failing captures, others (--worst machines)",
+          _worst_machines),
+    Named("failing-commands", "commands that fail most, per machine and command ID, with failure share and ack "
+                              "latency (--worst commands)",
+          _failing_commands),
+    Named("watchdog", "machines with watchdog violations in a month (--month YYYY-MM; default the latest in the data)",
+          _watchdog),
+    Named("trend", f"--trend METRIC ({', '.join(METRICS)}) --by {'|'.join(PERIODS)}|COLUMN", _trend),
+    Named("errors", "captures that could not be read, or only in part, and why", _errors),
+    Named("findings", "findings to open in Wireshark: file, frame and display filter", _findings),
+)}
+WORST = {"links": "worst-links", "machines": "worst-machines", "commands": "failing-commands"}
+
+
+def _quote(text: str) -> str:
+    return "'" + text.replace("'", "''") + "'"
+
+
+# -- output -------------------------------------------------------------------------------------------
+def _plain(value: Any) -> Any:
+    """A JSON / CSV friendly value."""
+    if isinstance(value, (dt.datetime, dt.date)):
+        return value.isoformat()
+    if isinstance(value, decimal.Decimal):
+        return float(value)
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (bytes, bytearray)):
+        return value.hex()
+    return value
+
+
+def _cell(value: Any) -> str:
+    value = _plain(value)
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.3f}".rstrip("0").rstrip(".") if value != int(value) or abs(value) < 1e15 else f"{value:g}"
+    return str(value)
+
+
+def render(result: Result, fmt: str) -> str:
+    if fmt == "json":
+        return json.dumps([dict(zip(result.columns, map(_plain, row))) for row in result.rows], indent=1) + "\n"
+    if fmt == "csv":
+        out = io.StringIO()
+        writer = csv.writer(out, lineterminator="\n")
+        writer.writerow(result.columns)
+        for row in result.rows:
+            writer.writerow(["" if v is None else _plain(v) for v in row])
+        return out.getvalue()
+    cells = [[_cell(v) for v in row] for row in result.rows]
+    widths = [max([len(c)] + [len(r[i]) for r in cells]) for i, c in enumerate(result.columns)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(result.columns, widths)).rstrip(),
+             "  ".join("-" * w for w in widths)]
+    for shown, raw in zip(cells, result.rows):
+        lines.append("  ".join(c.rjust(w) if isinstance(v, (int, float)) and not isinstance(v, bool) else c.ljust(w)
+                               for c, w, v in zip(shown, widths, raw)).rstrip())
+    lines.append(f"({len(result.rows)} row{'s' if len(result.rows) != 1 else ''})")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,121 @@
+"""The per-capture function every engine maps over the captures: analyse one capture with the
+code and options of `vm110 analyze`, turn its report into rows and write them as the capture's
+Parquet parts. It runs wherever the engine puts it (this process, a worker process, a Dask
+worker) and returns a small summary; the driver only records it in the manifest.
+"""
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass, field
+from typing import Iterator, Optional
+
+from .. import constants as C
+from ..analysis import Options, analyze
+from ..capture.reader import CaptureReader, address
+from ..decode import decode
+from ..errors import CliError
+from .dataset import COMMIT_TABLE, Dataset
+from .sources import Source
+from .tables import arrow_table, capture_rows, error_rows, table_schema
+
+PACKET_BATCH = 65536        # rows of the packets table converted at a time
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What every capture of a build is analysed with (the options of `vm110 analyze`)."""
+
+    dataset: str
+    port: int = C.INPUT_PORT
+    crc: str = "auto"
+    crc_order: str = "auto"
+    options: Options = field(default_factory=Options)
+    packets: bool = False
+
+
+@dataclass(frozen=True)
+class Done:
+    """What the driver records of one capture."""
+
+    capture_id: str
+    path: str
+    size: Optional[int]
+    sha256: Optional[str]
+    status: str                  # ok, damaged, unreadable
+    parts: tuple[str, ...]
+    message: Optional[str] = None
+    meta: tuple = ()
+
+
+def build_one(source: Source, settings: Settings) -> Done:
+    """Analyse `source` and write its parts; a capture that cannot be read gives error rows (and
+    parts) like any other, never an exception."""
+    meta = dict(source.meta)
+    cid = source.capture_id
+    message: Optional[str] = None
+    try:
+        report = analyze(source.path, "fast", settings.port, settings.crc, settings.crc_order, settings.options)
+        report["capture"]["file"] = source.path
+        tables = capture_rows(report, cid, source.size, source.sha256)
+        status = tables["captures"][0]["status"]
+        if status == "damaged":
+            message = report["capture"]["problem"]
+    except CliError as exc:
+        message, status = str(exc), "unreadable"
+    except MemoryError:
+        message, status = f"{source.path}: out of memory", "unreadable"
+    except Exception as exc:     # a broken file must give a row and one line, never end the build
+        message, status = f"cannot analyse {source.path}: {type(exc).__name__}: {exc}", "unreadable"
+    if status == "unreadable":
+        tables = error_rows(source.path, cid, source.size, source.sha256, message or "")
+    dataset = Dataset(settings.dataset)
+    parts = []
+    if settings.packets and status != "unreadable":
+        packets = packet_rows(source.path, cid, settings.port, report["crc"]["variant"], report["crc"]["byte_order"])
+        try:
+            parts.append(dataset.write_part("packets", cid, table_schema("packets", meta),
+                                            (arrow_table("packets", batch, meta) for batch in _batches(packets))))
+        except CliError:
+            raise                       # the dataset cannot be written: that ends the build
+        except Exception as exc:        # the capture changed or broke since its analysis
+            tables["errors"].append({"capture_id": cid, "file": source.path, "kind": "packets",
+                                     "message": f"packets of {source.path}: {type(exc).__name__}: {exc}",
+                                     "file_offset": None})
+    parts += [dataset.write_part(table, cid, table_schema(table, meta), [arrow_table(table, tables[table], meta)])
+              for table in sorted(tables, key=lambda t: t == COMMIT_TABLE)      # the commit part last
+              if tables[table] or table == COMMIT_TABLE]
+    return Done(cid, source.path, source.size, source.sha256, status, tuple(parts), message, source.meta)
+
+
+def _batches(rows: Iterator[dict]) -> Iterator[list[dict]]:
+    batch = []
+    for row in rows:
+        batch.append(row)
+        if len(batch) == PACKET_BATCH:
+            yield batch
+            batch = []
+    if batch:
+        yield batch
+
+
+def packet_rows(path: str, cid: str, port: int, variant: str, order: str) -> Iterator[dict]:
+    """One compact row per EG-Link datagram (on the two ports, or recognised by its header on
+    another), decoded with the CRC the analysis used: for drill-down next to the findings."""
+    ports = (port, port + C.OUTPUT_PORT_OFFSET)
+    for ts, src, sport, dport, payload, frame in CaptureReader(path):
+        if sport not in ports and dport not in ports:
+            n = len(payload)
+            if not C.OVERHEAD <= n <= C.MAX_PACKET or payload[:C.ID_LEN] not in _IDS \
+                    or n != C.OVERHEAD + struct.unpack_from("<H", payload, 10)[0]:
+                continue
+        f = decode(payload, variant, order)
+        time = round(ts * 1_000_000) if math.isfinite(ts) else None
+        yield {"capture_id": cid, "file": path, "frame": frame, "time": time,
+               "src": address(src, sport), "sport": sport, "dport": dport, "type": f.get("type") or None,
+               "origin": f.get("origin"), "serial": f.get("serial"), "size": f.get("size"),
+               "command_id": f.get("command_id"), "legal": not f["problems"],
+               "problems": ",".join(f["problems"]) or None}
+
+
+_IDS = frozenset(t.value.encode() for t in C.PacketType)

@@ -1,0 +1,268 @@
+"""vm110 fleet on bad input (one line, exit 2, nothing in the dataset lost) and rebuilding
+(skipped when unchanged, replaced when changed, continued after a kill)."""
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+from vm110.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+BUNDLED = ROOT / "captures"
+NAMES = ("normal.pcap", "disarmed.pcap", "retransmit.pcap", "vrco.pcap", "bu-stops.pcap", "controller-watchdog.pcap")
+
+
+def vm110(*args: str) -> subprocess.CompletedProcess:
+    """The command run in this process (quicker than a new interpreter), as a CompletedProcess."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main(list(args))
+        except SystemExit as exc:          # argparse's usage errors
+            code = int(exc.code or 0)
+    return subprocess.CompletedProcess(args, code, out.getvalue(), err.getvalue())
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def rows(dataset: Path, table: str = "captures") -> list[dict]:
+    manifest = json.loads((dataset / "manifest.json").read_text())
+    out = []
+    for entry in manifest["captures"].values():
+        out += [r for part in entry["parts"] if part.startswith(table + "/")
+                for r in pq.read_table(dataset / part).to_pylist()]
+    return sorted(out, key=lambda r: r["file"])
+
+
+def by_name(table_rows: list[dict]) -> dict[str, list[dict]]:
+    """Rows by capture file name, without the columns that name the file."""
+    out: dict[str, list[dict]] = {}
+    for r in table_rows:
+        out.setdefault(Path(r["file"]).name, []).append(
+            {k: v for k, v in r.items() if k not in ("file", "capture_id")})
+    return {k: sorted(v, key=repr) for k, v in out.items()}
+
+
+def one_line_error(result: subprocess.CompletedProcess, *words: str) -> None:
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("vm110 fleet"), result.stderr
+    for word in words:
+        assert word in lines[0], lines[0]
+
+
+@pytest.fixture
+def src(tmp_path) -> Path:
+    folder = tmp_path / "src"
+    folder.mkdir()
+    for name in NAMES:
+        shutil.copy(BUNDLED / name, folder / name)
+    return folder
+
+
+@pytest.fixture
+def built(src, tmp_path) -> Path:
+    dataset = tmp_path / "ds"
+    result = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "1")
+    assert result.returncode == 0, result.stderr
+    return dataset
+
+
+def test_rebuild_skips_unchanged_and_replaces_changed(src, built, tmp_path):
+    before = snapshot(built)
+    again = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert again.returncode == 0 and "0 analysed" in again.stdout and f"{len(NAMES)} already" in again.stdout
+    assert snapshot(built) == before                          # not a byte rewritten
+    old = {r["file"]: r for r in rows(built)}
+    shutil.copy(BUNDLED / "loss.pcapng", src / "normal.pcap")   # the file changes
+    changed = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert changed.returncode == 0 and "1 analysed" in changed.stdout and "1 replaced" in changed.stdout
+    new = {r["file"]: r for r in rows(built)}
+    path = str(src / "normal.pcap")
+    assert new[path]["sha256"] != old[path]["sha256"] and new[path]["format"] == "pcapng"
+    assert {k: v for k, v in new.items() if k != path} == {k: v for k, v in old.items() if k != path}
+    manifest = json.loads((built / "manifest.json").read_text())
+    listed = {p for e in manifest["captures"].values() for p in e["parts"]}
+    on_disk = {str(p.relative_to(built)) for p in built.rglob("*.parquet")}
+    assert on_disk == listed                                   # the replaced capture's parts are gone
+    assert len(rows(built)) == len(NAMES)
+
+
+@pytest.mark.parametrize("stop, jobs", [(signal.SIGKILL, "1"), (signal.SIGINT, "2")], ids=["kill", "ctrl-c"])
+def test_stopped_build_continues_where_it_stopped(src, built, tmp_path, stop, jobs):
+    """A kill (nothing runs after it) and Ctrl-C to the whole process group (pool workers too)."""
+    for n in range(3):                                          # a bigger job: copies under other names
+        for name in NAMES:
+            shutil.copy(src / name, src / f"copy{n}-{name}")
+    total = 4 * len(NAMES)
+    dataset = tmp_path / "killed"
+    command = [sys.executable, "-m", "vm110", "fleet", "build", str(src), "--out", str(dataset), "-j", jobs]
+    proc = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and proc.poll() is None:
+        if len(list((dataset / "captures").glob("part-*.parquet"))) >= 3 if (dataset / "captures").exists() else False:
+            break
+        time.sleep(0.02)
+    assert proc.poll() is None, "the build ended before it could be killed"
+    os.killpg(proc.pid, stop)
+    _, err = proc.communicate(timeout=60)
+    if stop == signal.SIGINT:
+        assert proc.returncode == 130 and err == "", err           # stopped quietly, no traceback
+    done_before = len(list((dataset / "captures").glob("part-*.parquet")))
+    assert 3 <= done_before < total
+    resumed = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "1")
+    assert resumed.returncode == 0, resumed.stderr
+    analysed = int(resumed.stdout.split(": ")[1].split()[0])
+    assert analysed <= total - done_before + 1                 # finished work is kept (one may be mid-write)
+    assert not [p for p in dataset.rglob("*") if p.name.endswith(".tmp")]
+    # Every capture as a build without a stop has it: a copy's rows are its original's (in `built`).
+    for table in ("captures", "senders", "streams", "commands", "findings"):
+        expected = by_name(rows(built, table))
+        got = by_name(rows(dataset, table))
+        if table == "captures":
+            assert len(got) == total
+        assert {n.split("-", 1)[1] if n.startswith("copy") else n for n in got} == set(expected), table
+        for name, got_rows in got.items():
+            assert got_rows == expected[name.split("-", 1)[1] if name.startswith("copy") else name], (table, name)
+
+
+def test_unreadable_capture_is_an_error_row(src, built):
+    (src / "broken.pcap").write_bytes(b"\xd4\xc3\xb2\xa1" + b"\x00" * 3)       # a pcap magic, then nothing
+    before = rows(built)
+    result = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "broken.pcap" in lines[0]
+    after = rows(built)
+    assert [r for r in after if r["file"] != str(src / "broken.pcap")] == before
+    errors = rows(built, "errors")
+    assert [(r["file"], r["kind"]) for r in errors] == [(str(src / "broken.pcap"), "unreadable")]
+    again = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")      # tried again, every time
+    assert again.returncode == 2 and "1 analysed" in again.stdout and f"{len(NAMES)} already" in again.stdout
+    assert rows(built, "errors") == errors and len(rows(built)) == len(NAMES) + 1
+
+
+def test_folder_without_captures(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("no captures here")
+    one_line_error(vm110("fleet", "build", str(empty), "--out", str(tmp_path / "ds")), "no captures")
+    assert not (tmp_path / "ds").exists()
+    one_line_error(vm110("fleet", "build", str(tmp_path / "missing"), "--out", str(tmp_path / "ds")), "no such")
+
+
+def test_dataset_of_another_version(src, built, tmp_path):
+    manifest = built / "manifest.json"
+    doc = json.loads(manifest.read_text())
+    doc["format_version"] = 99
+    manifest.write_text(json.dumps(doc))
+    before = snapshot(built)
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(built)), "version 99")
+    one_line_error(vm110("fleet", "query", str(built), "SELECT 1"), "version 99")
+    one_line_error(vm110("fleet", "report", str(built), "--html", str(tmp_path / "r.html")), "version 99")
+    assert snapshot(built) == before and not (tmp_path / "r.html").exists()
+
+
+def test_foreign_folder_and_other_options(src, built, tmp_path):
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "mine.txt").write_text("keep me")
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(foreign)), "not empty")
+    assert snapshot(foreign) == {"mine.txt": b"keep me"}
+    before = snapshot(built)
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(built), "--vrpi-watchdog", "400"),
+                   "other analysis options", "vrpi_watchdog_ms")
+    assert snapshot(built) == before
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(tmp_path / "x"), "--meta", "{site"), "names no field")
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(tmp_path / "x"), "-j", "nan"), "-j")
+
+
+def test_failing_sql_changes_nothing(built, tmp_path):
+    before = snapshot(built)
+    one_line_error(vm110("fleet", "query", str(built), "SELEC nothing"), "query failed")
+    one_line_error(vm110("fleet", "query", str(built), "SELECT nope FROM captures"), "query failed", "nope")
+    part = next((built / "captures").glob("*.parquet"))
+    one_line_error(vm110("fleet", "query", str(built), f"COPY captures TO '{part}' (FORMAT parquet)"), "query failed")
+    one_line_error(vm110("fleet", "query", str(built), "SELECT * FROM read_csv('/etc/passwd')"), "query failed")
+    one_line_error(vm110("fleet", "query", str(built), "--trend", "colour"), "--trend")
+    one_line_error(vm110("fleet", "query", str(tmp_path / "nothing")), "not a vm110 fleet dataset")
+    assert snapshot(built) == before
+    good = vm110("fleet", "query", str(built), "SELECT count(*) AS n FROM captures", "--format", "json")
+    assert json.loads(good.stdout) == [{"n": len(NAMES)}]
+
+
+def test_fsspec_url_dataset():
+    """Any fsspec URL holds a dataset: here memory://, built, queried and rebuilt in this process."""
+    from vm110.fleet.build import build
+    from vm110.fleet.query import Fleet
+    from vm110.fleet.work import Settings
+    settings = Settings(dataset="memory://vm110-fleet-test")
+    paths = [str(BUNDLED / "normal.pcap"), str(BUNDLED / "retransmit.pcap")]
+    first = build(paths, settings, jobs=1)
+    assert (first.analysed, first.skipped) == (2, 0)
+    fleet = Fleet(settings.dataset)
+    got = dict(fleet.run("SELECT file, lost FROM captures").rows)
+    reports = {p: json.loads(vm110("analyze", p, "--json", "-", "--quiet").stdout) for p in paths}
+    assert got == {p: r["totals"]["lost"] for p, r in reports.items()}
+    again = build(paths, settings, jobs=1)
+    assert (again.analysed, again.skipped) == (0, 2)
+
+
+def test_metadata_from_path_and_sidecar(tmp_path):
+    from vm110.errors import CliError
+    from vm110.fleet.sources import MetaPattern, metadata
+    pattern = MetaPattern("sites/{site}/**/{machine}-*.pcap")
+    capture = tmp_path / "sites" / "north" / "hall 2" / "crane-7-w1.pcap"
+    capture.parent.mkdir(parents=True)
+    capture.write_bytes(b"")
+    assert metadata(str(capture), pattern) == {"site": "north", "machine": "crane-7"}     # greedy, as a glob
+    assert metadata(str(tmp_path / "elsewhere.pcap"), pattern) == {"site": None, "machine": None}
+    side = Path(str(capture) + ".meta.json")
+    side.write_text(json.dumps({"bu_firmware": 3.4, "commissioned": True, "note": None}))
+    assert metadata(str(capture), pattern) == {"site": "north", "machine": "crane-7", "bu_firmware": "3.4",
+                                               "commissioned": "true", "note": None}
+    for bad, words in (({"machine": "other"}, "by --meta"), ({"a b": 1}, "not a column name"),
+                       ({"x": [1]}, "only text"), ([1, 2], "JSON object"), ("NaN", "not a metadata file")):
+        side.write_text(bad if isinstance(bad, str) else json.dumps(bad))
+        with pytest.raises(CliError, match=words):
+            metadata(str(capture), pattern)
+    for bad_pattern in ("{site", "sites/*.pcap", "{a}/{a}"):
+        with pytest.raises(CliError):
+            MetaPattern(bad_pattern)
+
+
+def test_metadata_may_not_shadow_a_column(src, tmp_path):
+    (src / "normal.pcap.meta.json").write_text(json.dumps({"lost": "none"}))
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(tmp_path / "x")), "'lost'", "column")
+    assert not (tmp_path / "x").exists()
+
+
+def test_progress_bar(src, tmp_path, capsys):
+    from vm110.fleet.build import build
+    from vm110.fleet.work import Settings
+    build([str(src)], Settings(dataset=str(tmp_path / "p")), jobs=1, progress=True)
+    err = capsys.readouterr().err
+    assert f"] {len(NAMES)}/{len(NAMES)} captures" in err and "\r" in err
+    assert err.endswith("\r\033[K")                       # the line is cleared at the end
+
+
+def test_one_build_at_a_time(src, built):
+    from vm110.fleet.dataset import Dataset
+    before = snapshot(built)
+    with Dataset(str(built)).lock():                      # as a build that is running holds it
+        one_line_error(vm110("fleet", "build", str(src), "--out", str(built)), "another build")
+    assert snapshot(built) == before
+    assert vm110("fleet", "build", str(src), "--out", str(built)).returncode == 0
