@@ -17,12 +17,14 @@ from typing import Any, Optional
 from .. import constants as C
 from ..decode import decode
 from ..sim.ledger import REUSE_GAP_MS
+from .evidence import Crash
 
 CRASH, STALL, MISSING_ACK, ILLEGAL_ACKED, MALFORMED_OUTPUT, VRCO_RETRANSMIT = ORACLES = (
     "crash", "stall", "missing_ack", "illegal_acked", "malformed_output", "vrco_retransmit")
 _CMD_ID_AT = slice(C.PREFIX_LEN, C.PREFIX_LEN + 2)
 _VRCI = C.PacketType.VRCI.value
 _HISTORY_S = 10.0
+_MAX_CRASH_SUSPECTS = 400
 
 
 @dataclass
@@ -48,6 +50,7 @@ class Trigger:
     kind: str = ""                                # what went wrong, for de-duplication
     command_id: Optional[int] = None              # the command concerned, if any
     packet: Optional[bytes] = None                # a base-unit packet that is not a case's (a VRAI)
+    crash: Optional[Crash] = None                 # the evidence of a crash
 
 
 @dataclass
@@ -210,11 +213,13 @@ class Monitor:
                               None, [], None, "resent after VRAI", command_id, entry.vrai))
         entry.last = t
 
-    def on_exit(self, t: float, returncode: int) -> None:
+    def on_exit(self, t: float, returncode: int, crash: Optional[Crash] = None) -> None:
+        """The controller died: every case since it last spoke is a suspect, oldest first (a
+        sanitizer's report takes a while: the cases sent while it was written are innocent)."""
         start = (self.last_rx or t) - 0.05
-        suspects = list(reversed(self._between(start, t)))[:40]
-        self.fire(Trigger(CRASH, t, f"controller exited with code {returncode}", None, suspects, None,
-                          f"exit {returncode}"))
+        suspects = self._between(start, t)[:_MAX_CRASH_SUSPECTS]
+        crash = crash or Crash(returncode)
+        self.fire(Trigger(CRASH, t, crash.headline(), None, suspects, None, crash.signature(), crash=crash))
 
     # --- time ------------------------------------------------------------------------------------
     def tick(self, now: float) -> None:

@@ -10,6 +10,7 @@ import collections
 import select
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Optional
 
 from .. import constants as C
@@ -50,7 +51,8 @@ class TargetLost(Exception):
 
 
 class Session:
-    def __init__(self, settings: Settings, supervisor: Optional[Supervisor] = None) -> None:
+    def __init__(self, settings: Settings, supervisor: Optional[Supervisor] = None,
+                 evidence_dir: Path = Path(".")) -> None:
         self.settings = settings
         self.supervisor = supervisor
         self.link = Link(settings.target, settings.listen, settings.group, settings.allow_remote)
@@ -64,6 +66,8 @@ class Session:
         self.traffic: collections.deque[tuple[float, bool, bytes, tuple[str, int]]] = collections.deque()
         self.last_case_send = 0.0
         self.exit_reported = False
+        self.crashes = 0
+        self.evidence_dir = evidence_dir
 
     # --- the loop ---------------------------------------------------------------------------------
     def pump(self, until: float) -> None:
@@ -81,7 +85,10 @@ class Session:
                 code = self.supervisor.poll()
                 if code is not None:
                     self.exit_reported = True
-                    self.monitor.on_exit(time.time(), code)
+                    t = time.time()
+                    self.crashes += 1
+                    crash = self.supervisor.evidence(self.evidence_dir, f".crash-{self.crashes}")
+                    self.monitor.on_exit(t, code, crash)
             self.monitor.tick(time.time())
             now = time.time()
             if now >= until:
