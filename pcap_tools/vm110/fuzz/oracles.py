@@ -218,6 +218,7 @@ class Monitor:
         sanitizer's report takes a while: the cases sent while it was written are innocent)."""
         start = (self.last_rx or t) - 0.05
         suspects = self._between(start, t)[:_MAX_CRASH_SUSPECTS]
+        self.pending.clear()      # a dead controller's missing acks are the crash's, not findings of their own
         crash = crash or Crash(returncode)
         self.fire(Trigger(CRASH, t, crash.headline(), None, suspects, None, crash.signature(), crash=crash))
 

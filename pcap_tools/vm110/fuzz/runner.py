@@ -30,6 +30,7 @@ TRIAL = -1               # the case index of replayed packets
 _MAX_SUSPECTS = 12
 _RECORDS_KEPT = 2000
 _STATUS_EVERY_S = 0.5
+_DYING_WAIT_S = 10.0      # for a sanitizer's report to be written
 
 
 @dataclass
@@ -107,6 +108,10 @@ def _observe(session: Session, mon: Monitor, oracle: str, t_end: float) -> None:
     deadline = t_end + window
     while time.time() < deadline and not fired():
         session.pump(min(deadline, time.time() + 0.02))
+    dying_until = time.time() + _DYING_WAIT_S
+    while oracle == CRASH and not fired() and session.supervisor is not None and session.supervisor.dying() \
+            and time.time() < dying_until:
+        session.pump(time.time() + 0.02)
 
 
 def start_target(s: Session) -> None:

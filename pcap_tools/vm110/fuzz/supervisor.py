@@ -21,6 +21,7 @@ from .evidence import Crash, parse_sanitizer
 
 _STOP_WAIT_S = 2.0
 RING_BYTES = 256 * 1024
+_REPORT_TAIL = 64 * 1024
 _READ_WAIT_S = 3.0           # for the rest of a dying controller's report to arrive
 
 # As AFL++ and libFuzzer start their targets: an error ends the process with a signal and a
@@ -123,6 +124,12 @@ class Supervisor:
                     pass
         stream.close()
 
+    def dying(self) -> bool:
+        """A sanitizer has begun its report: the process ends once it is written (symbolising
+        takes a while on a loaded machine)."""
+        tail = self.ring.value()[-_REPORT_TAIL:]
+        return b"==ERROR: " in tail or b"DEADLYSIGNAL" in tail or b"runtime error: " in tail
+
     def poll(self) -> Optional[int]:
         """The exit code once the controller has exited (negative: the signal that ended it), else None."""
         return None if self.proc is None else self.proc.poll()
@@ -146,6 +153,10 @@ class Supervisor:
             return crash
         if self.no_core_reason:
             crash.core_missing = self.no_core_reason
+            return crash
+        if crash.sanitizer is not None and crash.sanitizer.tool == "asan" \
+                and "disable_coredump=0" not in self.environment().get("ASAN_OPTIONS", ""):
+            crash.core_missing = self._why_missing(crash)
             return crash
         dest = folder / f"{name}.core"
         core = self._core(proc.pid, dest)
@@ -176,7 +187,8 @@ class Supervisor:
     def _why_missing(self, crash: Crash) -> str:
         how = crash.how
         if crash.sanitizer is not None and crash.sanitizer.tool == "asan":
-            return "AddressSanitizer turns core files off (disable_coredump=1 on 64-bit); its report has the stack"
+            return ("AddressSanitizer turns core files off (its disable_coredump=1 on 64-bit, against a core of its "
+                    "whole shadow memory); its report has the stack")
         if how.get("signal") in (signal.SIGKILL, signal.SIGTERM, signal.SIGINT):
             return f"{how['signal_name']} does not dump core"
         return f"no core file found by core_pattern {self.core_pattern!r} in {self.cwd}"
