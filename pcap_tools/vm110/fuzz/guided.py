@@ -8,6 +8,7 @@ then each case is a mutation of a corpus case, cheap cases (no waits) and recent
 """
 from __future__ import annotations
 
+import os
 import random
 import shlex
 import shutil
@@ -25,8 +26,7 @@ from .fields import SERIAL_AT
 from .havoc import Mutator, fix
 from .session import Sent, Session
 
-_SETTLE_MIN_S = 0.0001        # the controller reads its socket within about this on loopback ...
-_SETTLE_STEP_S = 0.0002       # ... and the map is read until it has hits and two reads agree
+_SETTLE_STEP_S = 0.0001       # the map is read until it has hits and two reads this far apart agree
 _SETTLE_MAX_S = 0.03
 _EMPTY_AFTER = 30             # cases: a map still empty then is not instrumented
 _SERIES_POINTS = 2000
@@ -158,17 +158,22 @@ class Guided:
 
     def settle(self, session: Session) -> bytes:
         """The map once the case has settled: it has hits (every datagram the controller reads
-        makes some) and two reads in a row agree."""
-        session.pump(time.time() + _SETTLE_MIN_S)
+        makes some) and two reads `_SETTLE_STEP_S` apart agree. Between reads the fuzzer yields
+        the processor (the controller may need it) and keeps the base unit's side going."""
         deadline = time.time() + _SETTLE_MAX_S
-        last = self.map.read()
-        while time.time() < deadline:
-            session.pump(time.time() + _SETTLE_STEP_S)
-            now = self.map.read()
-            if now == last and now != self.empty:
-                return now
-            last = now
-        return last
+        last, last_at = self.map.read(), time.time()
+        while True:
+            now = time.time()
+            if now >= deadline:
+                return last
+            session.pump(now)
+            os.sched_yield()
+            if time.time() - last_at < _SETTLE_STEP_S:
+                continue
+            raw, last_at = self.map.read(), time.time()
+            if raw == last and raw != self.empty:
+                return raw
+            last = raw
 
     def after_case(self, session: Session, case: K.Case, sent: list[Sent]) -> None:
         raw = self.settle(session)

@@ -25,8 +25,9 @@ _DELAY_SHARE = 0.05
 _BREAK = 0.08                  # share of byte mutations that keep a broken size or CRC on purpose
 
 
-def _vrci(fields: dict[str, object]) -> bytes:
-    return M.build(C.PacketType.VRCI, 0, fields)
+_VRCI_TEMPLATE = M.build(C.PacketType.VRCI, 0, M.default_fields(C.PacketType.VRCI))
+_COMMAND_ID = next(s.offset for s in spots(b"VRCI") if s.name == "command_id")
+_COMMAND_DATA = next(s.offset for s in spots(b"VRCI") if s.name == "command_data")
 
 
 def fix(data: bytes) -> bytes:
@@ -108,13 +109,11 @@ class Mutator:
     def command(self, entry: Entry, other: Entry) -> None:
         """A new VRCI whose command data starts with a dictionary token, anywhere in the sequence:
         commands are where a controller compares strings, and some take a state earlier ones made."""
-        data = b""
-        if self.tokens:
-            data = self._token()[:C.COMMAND_DATA_LEN]
-        fields = dict(M.default_fields(C.PacketType.VRCI, self.rng.randrange(1 << 16)),
-                      command_data=data.ljust(C.COMMAND_DATA_LEN, b"\0"))
-        packet = Packet(_vrci(fields))
-        entry.packets.insert(self.rng.randrange(len(entry.packets) + 1), packet)
+        data = self._token()[:C.COMMAND_DATA_LEN] if self.tokens else b""
+        body = bytearray(_VRCI_TEMPLATE)
+        body[_COMMAND_ID:_COMMAND_ID + 2] = self.rng.randrange(1 << 16).to_bytes(2, "little")
+        body[_COMMAND_DATA:_COMMAND_DATA + C.COMMAND_DATA_LEN] = data.ljust(C.COMMAND_DATA_LEN, b"\0")
+        entry.packets.insert(self.rng.randrange(len(entry.packets) + 1), Packet(fix(bytes(body))))
 
     def _put(self, p: Packet, at: int, value: bytes) -> None:
         data = bytearray(p.data)

@@ -75,6 +75,7 @@ class Monitor:
         self.id_case: dict[int, int] = {}        # command ID -> last case that sent it
         self.withholding = False
         self.vrco_seen = False                    # has this controller ever sent a VRCO?
+        self._next_purge = 0.0
         self.reset_controller(now)
 
     # --- state ----------------------------------------------------------------------------------
@@ -242,8 +243,10 @@ class Monitor:
             self.fire(Trigger(STALL, now, f"no VRPO for {(now - self.last_vrpo) * 1000:.0f} ms",
                               None, after + [i for i in before if i not in after], None, "no VRPO"))
         self._check_resends(now)
-        for command_id in [c for c, (t, _) in self.illegal_ids.items() if now - t > _HISTORY_S]:
-            del self.illegal_ids[command_id]
+        if now >= self._next_purge:      # once a second: thousands of IDs at a high case rate
+            self._next_purge = now + 1.0
+            for command_id in [c for c, (t, _) in self.illegal_ids.items() if now - t > _HISTORY_S]:
+                del self.illegal_ids[command_id]
 
     def _check_resends(self, now: float) -> None:
         limit = self.limits.resend_max_ms / 1000
