@@ -159,3 +159,35 @@ def test_coverage_finds_deep_bug_from_scratch(tmp_path, programs):
                            timeout=600)
     assert result.returncode == 1, result.stdout + result.stderr
     assert summary["buckets"][0]["headline"].startswith("crash SIGSEGV in maintenance_engage")
+
+
+def test_progress_line_on_a_terminal(tmp_path, programs):
+    """On a terminal (stderr a pty) a status line is rewritten in place; a file gets none."""
+    import pty
+    exe = programs("afl-correct")
+    rx, listen = free_ports(2)
+    master, slave = pty.openpty()
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "vm110", "fuzz", "--coverage", "--target", f"127.0.0.1:{rx}",
+                             "--listen", f"127.0.0.1:{listen}", "--target-cmd", f"{exe} {rx} {listen}",
+                             "--duration", "4", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=slave, cwd=tmp_path)
+    os.close(slave)
+    seen = b""
+    while True:
+        try:
+            chunk = os.read(master, 65536)
+        except OSError:
+            break
+        if not chunk:
+            break
+        seen += chunk
+    proc.wait(60)
+    os.close(master)
+    text = seen.decode("utf-8", "replace")
+    lines = [part for part in text.split("\r") if "vm110 fuzz:" in part and "cases" in part]
+    assert len(lines) >= 2, text
+    last = lines[-1]
+    for piece in ("cases", "/s", "bugs", "edges", "corpus", "s left"):
+        assert piece in last, last
+    assert proc.returncode == 0

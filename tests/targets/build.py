@@ -24,6 +24,7 @@ VARIANTS: dict[str, list[str]] = {
     "afl-correct": _AFL,
     "afl-deep": _AFL + ["-DBUG_DEEP"],
     "afl-null-call": _AFL + ["-DBUG_NULL_CALL"],
+    "afl-heap-overflow": _AFL + ["-DBUG_HEAP_OVERFLOW"],
 }
 
 

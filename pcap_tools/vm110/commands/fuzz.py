@@ -7,8 +7,11 @@ missing_ack, illegal_acked, malformed_output, vrco_retransmit. Each confirmed fi
 --out as JSON (with the minimised packet) and a pcap; --out/findings.json summarises the run.
 Sends only to --target (multicast TTL 1), and only on loopback unless --allow-remote; never to a
 broadcast address. Exit code 1 when there are findings, 0 when none, 2 on usage errors.
-`--replay FINDING` sends a finding again and says whether it still triggers; the finding is data:
-its stored command is never run and its stored target obeys the --target rules.
+`--replay FINDING` sends a finding again and says whether it still triggers (a crash: with the same
+signature or another); the finding is data: its stored command is never run and its stored target
+obeys the --target rules. A crash finding keeps the controller's output, signal, sanitizer report,
+core and gdb backtrace; triggers of one signature are one finding (a bucket with a count).
+`--coverage` is coverage-guided fuzzing of a controller built with AFL++ (see fuzz/guided.py).
 """
 from __future__ import annotations
 
@@ -152,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
         guided = GuidedConfig(map_size(), Path(args.corpus) if args.corpus else None, args.dict)
     elif args.corpus or args.dict:
         raise CliError("--corpus and --dict go with --coverage")
-    status = _StatusLine(duration, args.cases) if sys.stderr.isatty() else None
+    status = _StatusLine() if sys.stderr.isatty() else None
     cfg = RunConfig(settings=settings, seed=args.seed, duration_s=duration, cases=args.cases, out=out,
                     target_cmd=args.target_cmd, minimize_budget_s=args.minimize_budget,
                     max_findings=args.max_findings, progress=status.message if status else _progress,
@@ -188,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
 class _StatusLine:
     """One line on the terminal, rewritten in place: cases, rate, findings, coverage, time left."""
 
-    def __init__(self, duration: float | None, cases: int | None) -> None:
+    def __init__(self) -> None:
         self.shown = False
 
     def __call__(self, line: dict[str, Any]) -> None:

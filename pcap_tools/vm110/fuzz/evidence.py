@@ -109,11 +109,8 @@ def parse_sanitizer(text: str) -> Optional[SanitizerReport]:
         return None
     summary = ""
     for line in lines[start:]:
-        s = _SUMMARY.match(line)
-        if s:
+        if _SUMMARY.match(line):
             summary = line.strip()[:500]
-            if tool == "ubsan" and s.group(2).startswith("undefined-behavior") is False and not error_type:
-                error_type = s.group(2).split()[0]
             break
     if tool == "lsan" and error_type == "detected":
         error_type = "memory-leak"

@@ -238,7 +238,8 @@ class Runner:
         investigated = False
         for trig in queue:
             if len(self.findings) >= self.cfg.max_findings:
-                break
+                F.discard_core(self.cfg.out, trig.crash)      # not investigated: not kept
+                continue
             investigated = self._investigate(trig) or investigated
         if investigated or not s.healthy():
             self._recover()
