@@ -32,7 +32,8 @@ from ..fuzz.oracles import Limits
 from ..fuzz.coverage import map_size
 from ..fuzz.guided import GuidedConfig
 from ..fuzz.report_html import write_coverage_html
-from ..fuzz.runner import RunConfig, Runner, replay_finding
+from ..fuzz.corpus import is_entry_file, load_entry
+from ..fuzz.runner import RunConfig, Runner, replay_corpus_case, replay_finding
 from ..fuzz.session import Settings, TargetLost
 from ..numbers import number
 from .options import SEED
@@ -89,7 +90,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "case) and resume from what is there")
     parser.add_argument("--dict", metavar="FILE", help="with --coverage: tokens in AFL's dictionary format "
                         "(name=\"value\" lines), besides the strings found in the target program")
-    parser.add_argument("--replay", metavar="FINDING", help="send a saved finding again (its stored command is "
+    parser.add_argument("--replay", metavar="FINDING", help="send a saved finding (or a --corpus case) again (its stored command is "
                         "not run: give --target-cmd); exit 1 if it still triggers")
 
 
@@ -216,6 +217,8 @@ class _StatusLine:
 
 
 def _replay(args: argparse.Namespace) -> int:
+    if is_entry_file(args.replay):
+        return _replay_corpus(args)
     finding = load_finding(args.replay)
     stored_in = None if args.target else args.replay
     settings = _settings(args, args.target or finding.target, args.listen or finding.listen,
@@ -234,3 +237,19 @@ def _replay(args: argparse.Namespace) -> int:
                     f": another signature ({_printable(trig.detail)}; the finding's: {_printable(finding.signature)})")
     print(f"{args.replay}: {finding.oracle} ({_printable(finding.mutation)}): {verdict}")
     return EXIT_FINDINGS if trig else EXIT_OK
+
+
+def _replay_corpus(args: argparse.Namespace) -> int:
+    """A `--corpus` case: it stores no target (give --target), and says what the oracles saw."""
+    entry = load_entry(args.replay)
+    if not args.target:
+        raise CliError(f"--target HOST:PORT is needed to replay {args.replay} (a corpus case stores none)")
+    settings = _settings(args, args.target, args.listen, args.group)
+    try:
+        triggers = replay_corpus_case(entry, settings, args.target_cmd)
+    except TargetLost as exc:
+        raise CliError(str(exc)) from None
+    for trig in triggers:
+        print(f"{args.replay}: {trig.oracle}: {_printable(trig.detail)}")
+    print(f"{args.replay}: {len(entry.packets)} packet(s), " + (f"{len(triggers)} trigger(s)" if triggers else "no trigger"))
+    return EXIT_FINDINGS if triggers else EXIT_OK

@@ -104,6 +104,29 @@ def entry_from_json(raw: Any) -> Entry:
                  str(raw.get("origin", ""))[:200], 0)
 
 
+def is_entry_file(path: str) -> bool:
+    """Whether `path` looks like a corpus case (not a finding): a cheap look at its start."""
+    try:
+        with open(path, "rb") as f:
+            return b'"vm110_corpus_entry"' in f.read(64)
+    except OSError:
+        return False
+
+
+def load_entry(path: str) -> Entry:
+    """One corpus file, checked; CliError (one line) when it is not a valid corpus case."""
+    try:
+        if Path(path).stat().st_size > _MAX_ENTRY_FILE:
+            raise CliError(f"{path} is not a vm110 corpus case: larger than {_MAX_ENTRY_FILE >> 20} MiB")
+        return entry_from_json(json.loads(Path(path).read_bytes()))
+    except OSError as exc:
+        raise CliError(f"cannot read {path}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise CliError(f"{path} is not JSON: {str(exc)[:120]}") from None
+    except _Bad as exc:
+        raise CliError(f"{path} is not a valid vm110 corpus case: {exc}") from None
+
+
 class CorpusDir:
     """`--corpus DIR`: one `id-NNNNNN.json` per entry; entries already there are resumed."""
 

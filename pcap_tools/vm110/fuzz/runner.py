@@ -490,3 +490,22 @@ def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[
         if log is not None:
             log.close()
         shutil.rmtree(scratch, ignore_errors=True)    # our own folder: cores of the replay, if any
+
+
+def replay_corpus_case(entry: Any, settings: Settings, target_cmd: Optional[str]) -> list[Trigger]:
+    """Play one corpus case (`--corpus` file) and wait out the oracles' windows: what fired."""
+    from .guided import case_of
+    supervisor = Supervisor(target_cmd) if target_cmd else None
+    scratch = Path(tempfile.mkdtemp(prefix="vm110-replay-"))
+    session = Session(settings, supervisor, scratch)
+    try:
+        start_target(session)
+        case = case_of(entry, 0, "corpus", "corpus case")
+        session.run_steps(TRIAL, [(st.build, st.delay_ms, st.expect_ack) for st in case.steps], case.pause_vrpi_ms,
+                          case.withhold_vrai_ms, case.stream, case.settle_ms)
+        limits = settings.limits
+        session.pump(time.time() + limits.ack_timeout_ms / 1000 + 0.3)
+        return list(session.monitor.triggers)
+    finally:
+        session.close()
+        shutil.rmtree(scratch, ignore_errors=True)
