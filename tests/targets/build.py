@@ -25,7 +25,9 @@ VARIANTS: dict[str, list[str]] = {
     "afl-deep": _AFL + ["-DBUG_DEEP"],
     "afl-null-call": _AFL + ["-DBUG_NULL_CALL"],
     "afl-heap-overflow": _AFL + ["-DBUG_HEAP_OVERFLOW"],
+    "afl-asan-heap-overflow": _AFL + ["-fno-omit-frame-pointer", "-DBUG_HEAP_OVERFLOW"],
 }
+_ENV = {"afl-asan-heap-overflow": {"AFL_USE_ASAN": "1"}}     # AFL++ adds -fsanitize=address
 
 
 def missing_tools(variant: str) -> list[str]:
@@ -38,7 +40,7 @@ def build(variant: str, out: Path) -> Path:
     if exe.exists() and exe.stat().st_mtime >= SOURCE.stat().st_mtime:
         return exe
     out.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, AFL_QUIET="1")
+    env = dict(os.environ, AFL_QUIET="1", **_ENV.get(variant, {}))
     temp = out / f".{exe.name}.{os.getpid()}"
     cmd = VARIANTS[variant] + ["-Wall", "-Wextra", "-Werror", str(SOURCE), "-o", str(temp)]
     subprocess.run(cmd, check=True, env=env, capture_output=True)
