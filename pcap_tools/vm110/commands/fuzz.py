@@ -181,8 +181,11 @@ def run(args: argparse.Namespace) -> int:
           + (f"; stopped early: {summary['stopped_early']}" if summary["stopped_early"] else ""))
     if "coverage" in summary:
         cov = summary["coverage"]
-        print(f"coverage: {cov['edges']} edges, corpus {cov['corpus']} cases; edges over time in "
-              f"{out / 'findings.json'} and {out / 'coverage.html'}")
+        series = cov["edges_over_time"]
+        shown = series[::max(1, len(series) // 6)][:6] + series[-1:]
+        over_time = ", ".join(f"{p['s']:.0f} s: {p['edges']}" for p in shown)
+        print(f"coverage: {cov['edges']} edges, corpus {cov['corpus']} cases; edges over time {over_time} "
+              f"(all in {out / 'findings.json'}, plotted in {out / 'coverage.html'})")
     if args.target_cmd:
         options = ", ".join(f"{k}={'(yours)' if v == 'user' else v}" for k, v in summary["sanitizer_options"].items())
         print(f"sanitizer options: {options}; core files: {summary['core_files']}")

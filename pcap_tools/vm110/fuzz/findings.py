@@ -117,6 +117,10 @@ class Bucket:
     last: float
     count: int = 1
     headline: str = ""
+    number: int = 0               # of the finding file
+    size: int = 0                 # of its reproducer (see runner._size)
+    tries: int = 0                # replays of smaller cases tried
+    replaced: int = 0             # times a smaller case became the reproducer
 
     def hit(self, t: float) -> None:
         self.count += 1
@@ -124,7 +128,7 @@ class Bucket:
 
     def to_json(self) -> dict[str, Any]:
         return {"signature": self.signature, "oracle": self.oracle, "count": self.count, "first": self.first,
-                "last": self.last, "file": self.file, "headline": self.headline}
+                "last": self.last, "file": self.file, "headline": self.headline, "reproducer_replaced": self.replaced}
 
 
 def write_pcap(path: Path, traffic: list[tuple[float, bool, bytes, tuple[str, int]]], local: tuple[str, int]) -> None:

@@ -30,7 +30,8 @@ TRIAL = -1               # the case index of replayed packets
 _MAX_SUSPECTS = 12
 _RECORDS_KEPT = 2000
 _STATUS_EVERY_S = 0.5
-_DYING_WAIT_S = 10.0      # for a sanitizer's report to be written
+_DYING_WAIT_S = 10.0
+_SMALLER_TRIES = 3        # replays per bug of smaller cases that hit it again      # for a sanitizer's report to be written
 
 
 @dataclass
@@ -275,7 +276,8 @@ class Runner:
                 bucket.hit(trig.time)
                 self.repeats[trig.oracle] += 1
                 F.discard_core(self.cfg.out, trig.crash)
-                return False
+                culprit = i if i is not None else (suspects[0] if len(suspects) == 1 else None)
+                return self._smaller(trig, bucket, culprit)
         what = "observing the controller again" if spontaneous else f"replaying {len(suspects)} suspect case(s)"
         self.cfg.progress(f"{trig.oracle}: {trig.detail}; {what}")
         traffic = [p for p in self.session.traffic if p[0] >= trig.time - 4.0]
@@ -298,6 +300,34 @@ class Runner:
                             traffic)
                 return True
         self._unreproduced(trig, suspects[:_MAX_SUSPECTS])
+        return True
+
+    def _smaller(self, trig: Trigger, bucket: F.Bucket, index: Optional[int]) -> bool:
+        """A known bug hit by a smaller case than its reproducer: when a replay confirms it, that
+        case becomes the reproducer. True if a replay was run."""
+        if index not in self.records or bucket.tries >= _SMALLER_TRIES:
+            return False
+        case, sent = self.records[index]
+        if _size(sent) >= bucket.size:
+            return False
+        bucket.tries += 1
+        if self._trial(Replay.of(case, sent), trig) is None:
+            return True
+        finding = self.findings[bucket.number - 1]
+        shown = _pick(sent, trig.command_id)
+        finding.case_index, finding.family, finding.mutation = index, case.family, case.description
+        finding.packet_hex = finding.original_hex = shown.data.hex() if shown else ""
+        finding.valid_hex = shown.twin.hex() if shown else ""
+        finding.differences = difference(shown.data, shown.twin) if shown else 0
+        finding.minimised = False
+        finding.steps = [{"hex": p.data.hex(), "valid_hex": p.twin.hex(), "delay_ms": p.delay_ms if len(sent) > 1 else 0.0,
+                          "expect_ack": p.expect_ack} for p in sent]
+        finding.pause_vrpi_ms, finding.withhold_vrai_ms = case.pause_vrpi_ms, case.withhold_vrai_ms
+        finding.stream, finding.settle_ms = _jsonable(case.stream), case.settle_ms
+        traffic = [p for p in self.session.traffic if p[0] >= trig.time - 4.0]
+        F.write_finding(self.cfg.out, bucket.number, finding, traffic, self.session.link.local)
+        bucket.size, bucket.replaced = _size(sent), bucket.replaced + 1
+        self.cfg.progress(f"{bucket.file}: smaller reproducer, case {index} ({case.description})")
         return True
 
     def _investigate_crash(self, trig: Trigger, suspects: list[int], traffic: list[Any]) -> bool:
@@ -416,13 +446,19 @@ class Runner:
         path = F.write_finding(self.cfg.out, number, finding, traffic, self.session.link.local)
         self.files.append(path.name)
         self.buckets[signature] = F.Bucket(signature, trig.oracle, path.name, trig.time, trig.time,
-                                           headline=trig.detail if trig.oracle == CRASH else f"{trig.oracle}: {trig.detail}")
+                                           headline=trig.detail if trig.oracle == CRASH else f"{trig.oracle}: {trig.detail}",
+                                           number=number, size=_size([small] if small is not None else sent))
         self.cfg.progress(f"finding {path.name}: {trig.detail if trig.oracle == CRASH else trig.oracle} "
                           f"at case {index} ({description})")
 
 
 class _Budget(Exception):
     pass
+
+
+def _size(sent: list[Sent]) -> int:
+    """A reproducer's size: packets and bytes (fewer packets first)."""
+    return 100_000 * len(sent) + sum(len(p.data) for p in sent)
 
 
 def _culprits(suspects: list[object], crashes: Callable[[list[object]], bool]) -> Optional[list[object]]:

@@ -21,6 +21,7 @@ from .supervisor import Supervisor
 
 _TICK_S = 0.005
 _RATE_CREDIT_S = 0.01
+_AVERAGE_FROM = 1000.0
 _TRAFFIC_S = 12.0     # traffic kept for the pcap of a finding
 
 
@@ -136,9 +137,12 @@ class Session:
         data, twin = build(self._take_serial())
         t = self._send(data)
         self.last_case_send = t
-        # The rate holds on average: time lost to a late wake-up (a loaded machine) may be made up
-        # within a short window, so that a high --rate is reached and never exceeded for longer.
-        self.next_case_send = max(self.next_case_send, t - _RATE_CREDIT_S) + 1.0 / self.settings.rate
+        # Packets at least 1/rate apart; above _AVERAGE_FROM packets/s (intervals shorter than a
+        # sleep can time on a loaded machine) the rate holds on average instead: time lost to a late
+        # wake-up may be made up within _RATE_CREDIT_S, so that a high --rate is reached, never exceeded.
+        interval = 1.0 / self.settings.rate
+        credit = _RATE_CREDIT_S if self.settings.rate >= _AVERAGE_FROM else 0.0
+        self.next_case_send = max(self.next_case_send, t - credit) + interval
         self.monitor.on_tx(t, data, twin, index, expect_ack)
         return Sent(t, data, twin, delay_ms, expect_ack)
 
