@@ -24,15 +24,18 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from loopback import free_ports  # noqa: E402
-from vm110.fuzz import cases  # noqa: E402
-from vm110.fuzz.oracles import Limits  # noqa: E402
-from vm110.fuzz.runner import start_target  # noqa: E402
-from vm110.fuzz.session import Session, Settings  # noqa: E402
 from vm110 import constants as C  # noqa: E402
+from vm110.fuzz import cases  # noqa: E402
 from vm110.fuzz import mutate as M  # noqa: E402
 from vm110.fuzz.corpus import Entry, Packet  # noqa: E402
 from vm110.fuzz.guided import GuidedConfig  # noqa: E402
-from vm110.fuzz.runner import RunConfig, Runner  # noqa: E402
+from vm110.fuzz.oracles import Limits  # noqa: E402
+from vm110.fuzz.runner import (  # noqa: E402
+    RunConfig,
+    Runner,
+    start_target,  # noqa: E402
+)
+from vm110.fuzz.session import Session, Settings  # noqa: E402
 
 SEED = 1
 
@@ -133,7 +136,7 @@ def c_target(seconds: float) -> None:
             count, start = 2000, time.perf_counter()
             vrpi = M.build(C.PacketType.VRPI, 0, M.ARMED_VRPI)
             for _ in range(count):
-                session.send_case_packet(0, lambda serial: (vrpi, vrpi), 0.0, False)
+                session.send_case_packet(0, lambda serial, p=vrpi: (p, p), 0.0, False)
             print(f"--rate 5000: {count} packets at {count / (time.perf_counter() - start):,.0f} packets/s")
         session.close()
         if guided:

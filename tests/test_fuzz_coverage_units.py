@@ -7,7 +7,6 @@ import json
 import random
 
 import pytest
-
 from vm110 import constants as C
 from vm110.decode import decode
 from vm110.errors import CliError

@@ -7,7 +7,13 @@ import sys
 import time
 
 from vm110.fuzz import cores
-from vm110.fuzz.evidence import Crash, Frame, ended, parse_gdb_backtrace, parse_sanitizer
+from vm110.fuzz.evidence import (
+    Crash,
+    Frame,
+    ended,
+    parse_gdb_backtrace,
+    parse_sanitizer,
+)
 from vm110.fuzz.supervisor import RING_BYTES, Supervisor
 
 # Reports as the sanitizers print them (abridged addresses; the structure is the runtime's).

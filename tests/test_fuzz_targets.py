@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-
 from loopback import free_ports
 from vm110 import constants as C
 from vm110.fuzz import mutate as M

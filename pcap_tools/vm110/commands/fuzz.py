@@ -25,14 +25,14 @@ from typing import Any
 from .. import constants as C
 from ..errors import EXIT_FINDINGS, EXIT_OK, CliError
 from ..fileio import check_target
+from ..fuzz.corpus import is_entry_file, load_entry
+from ..fuzz.coverage import map_size
 from ..fuzz.destination import check
 from ..fuzz.findings import load_finding, write_summary
+from ..fuzz.guided import GuidedConfig
 from ..fuzz.link import parse_endpoint
 from ..fuzz.oracles import Limits
-from ..fuzz.coverage import map_size
-from ..fuzz.guided import GuidedConfig
 from ..fuzz.report_html import write_coverage_html
-from ..fuzz.corpus import is_entry_file, load_entry
 from ..fuzz.runner import RunConfig, Runner, replay_corpus_case, replay_finding
 from ..fuzz.session import Settings, TargetLost
 from ..numbers import number

@@ -13,13 +13,14 @@ import json
 import os
 import re
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
 from .. import constants as C
 from ..errors import CliError
 from ..fileio import write_text
+from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
 
 _MAX_PACKETS = 16
@@ -30,6 +31,7 @@ _MAX_TOKENS = 512
 _MAX_TOKEN = 64
 _MAX_DICT_FILE = 1 << 20
 _MAX_BINARY = 256 << 20
+_STREAM_FIELDS = frozenset(f.name for f in PAYLOAD_CLASSES[C.PacketType.VRPI].fields_desc)
 
 
 @dataclass
@@ -93,12 +95,13 @@ def entry_from_json(raw: Any) -> Entry:
         out.append(Packet(data, _ms(p.get("delay_ms"), f"packets[{n}].delay_ms"), p["raw"], p["expect_ack"]))
     stream = raw.get("stream")
     if stream is not None:
-        if not isinstance(stream, dict):
-            raise _Bad("stream is not an object")
+        if not isinstance(stream, dict) or any(
+                key not in _STREAM_FIELDS or isinstance(v, bool) or not isinstance(v, int) for key, v in stream.items()):
+            raise _Bad("stream is not a set of VRPI fields with integer values")
         try:
             M.build(C.PacketType.VRPI, 0, stream)
-        except Exception:     # scapy's errors on bad values are of many types
-            raise _Bad("stream is not a set of VRPI fields") from None
+        except (ValueError, struct.error, OverflowError):
+            raise _Bad("stream: a value does not fit its VRPI field") from None
     return Entry(out, stream, _ms(raw.get("pause_vrpi_ms", 0), "pause_vrpi_ms"),
                  _ms(raw.get("withhold_vrai_ms", 0), "withhold_vrai_ms"), _ms(raw.get("settle_ms", 0), "settle_ms"),
                  str(raw.get("origin", ""))[:200], 0)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import functools
 import struct
 from dataclasses import dataclass
-from typing import Optional
+from typing import Any, Optional
 
 from .. import constants as C
 from ..layers import PAYLOAD_CLASSES
@@ -54,7 +54,8 @@ def _declared(ptype: C.PacketType) -> list[FieldSpot]:
             out.append(FieldSpot(field.name, offset, width, text=True))
         else:
             width = struct.calcsize(fmt)
-            enum = tuple(sorted(int(v) for v in C.ENUM_FIELDS.get(field.name, {})))
+            names: Any = C.ENUM_FIELDS.get(field.name, {})
+            enum = tuple(sorted(int(v) for v in names))
             out.append(FieldSpot(field.name, offset, width, fmt[-1].islower(), enum=enum,
                                  limits=C.RANGES.get(field.name)))
         offset += width

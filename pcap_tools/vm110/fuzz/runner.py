@@ -260,7 +260,7 @@ class Runner:
         the oracle, what it judged and the packet type of the case."""
         if trig.oracle == CRASH:
             return f"crash {trig.kind}"
-        family = self.records[index][0].family if index in self.records else "none"
+        family = self.records[index][0].family if index is not None and index in self.records else "none"
         return f"{trig.oracle} {trig.kind} ({family.split('-', 1)[-1]})"
 
     def _investigate(self, trig: Trigger) -> bool:
@@ -269,7 +269,7 @@ class Runner:
                     if i in self.records]
         spontaneous = not trig.suspects and trig.case_index is None
         # A trigger whose signature has a bucket is that bug again: counted, not replayed.
-        candidates = suspects if trig.oracle != CRASH and suspects else [None]
+        candidates: list[Optional[int]] = list(suspects) if trig.oracle != CRASH and suspects else [None]
         for i in candidates:
             bucket = self.buckets.get(self._signature(trig, i))
             if bucket is not None:
@@ -305,7 +305,7 @@ class Runner:
     def _smaller(self, trig: Trigger, bucket: F.Bucket, index: Optional[int]) -> bool:
         """A known bug hit by a smaller case than its reproducer: when a replay confirms it, that
         case becomes the reproducer. True if a replay was run."""
-        if index not in self.records or bucket.tries >= _SMALLER_TRIES:
+        if index is None or index not in self.records or bucket.tries >= _SMALLER_TRIES:
             return False
         case, sent = self.records[index]
         if _size(sent) >= bucket.size:

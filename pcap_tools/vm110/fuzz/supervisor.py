@@ -76,8 +76,8 @@ class Supervisor:
         self.reader: Optional[threading.Thread] = None
         self.sanitizer_options = {name: ("user" if name in os.environ else value)
                                   for name, value in SANITIZER_DEFAULTS.items()}
-        hard = resource.getrlimit(resource.RLIMIT_CORE)[1]
-        self.core_limit = hard if core else 0
+        self.core_hard = resource.getrlimit(resource.RLIMIT_CORE)[1]
+        self.core_limit = self.core_hard if core else 0
         self.core_pattern = cores.read_pattern()
         self.no_core_reason = cores.why_no_core(self.core_pattern, self.core_limit)
         self.exe = shutil.which(self.argv[0], path=os.environ.get("PATH")) or str(self.cwd / self.argv[0])
@@ -89,17 +89,19 @@ class Supervisor:
         env.update(self.extra_env)
         return env
 
-    def _limits(self) -> None:   # runs in the child between fork and exec
-        resource.setrlimit(resource.RLIMIT_CORE, (self.core_limit, resource.getrlimit(resource.RLIMIT_CORE)[1]))
-
     def start(self) -> None:
         self.ring = _Ring()
         try:
             self.proc = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                          stderr=subprocess.STDOUT, start_new_session=True, env=self.environment(),
-                                         cwd=self.cwd, preexec_fn=self._limits)
+                                         cwd=self.cwd)
         except OSError as exc:
             raise CliError(f"cannot start --target-cmd {self.argv[0]!r}: {exc.strerror}") from None
+        # The core size limit, set from outside (no code between fork and exec: the reader threads).
+        try:
+            resource.prlimit(self.proc.pid, resource.RLIMIT_CORE, (self.core_limit, self.core_hard))
+        except OSError:
+            pass     # it has exited already
         self.started_at = time.time()
         self.starts += 1
         assert self.proc.stdout is not None
