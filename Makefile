@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 PLUGIN_DIR ?= $(HOME)/.local/lib/wireshark/plugins
 DEMO_DIR := out/demo
 
-.PHONY: setup system-deps demo test test-long bench install-wireshark clean tshark44 tshark46 golden captures fuzz-self install-profile
+.PHONY: setup system-deps demo lint test test-long bench install-wireshark clean tshark44 tshark46 golden captures fuzz-self install-profile
 
 setup: system-deps $(STAMP)
 
@@ -28,7 +28,18 @@ demo: setup
 	$(VENV)/bin/vm110 analyze captures/loss.pcapng --json $(DEMO_DIR)/report.json --html $(DEMO_DIR)/report.html
 	@echo "reports: $(DEMO_DIR)/report.json $(DEMO_DIR)/report.html"
 
-test: setup tshark44 tshark46
+# Code health: ruff (rules in pyproject.toml), mypy on the package (its [tool.mypy]), luacheck on the
+# dissector (with the repo's .luacheckrc when there is one, never a config found above the repo).
+LINT_PY := pcap_tools tests scripts/fuzz-self bench
+LUACHECK_CONFIG := $(if $(wildcard .luacheckrc),--config .luacheckrc,--no-config)
+lint: setup
+	@status=0; \
+	$(VENV)/bin/ruff check --no-cache $(LINT_PY) || status=1; \
+	$(PY) -m mypy || status=1; \
+	luacheck --no-color $(LUACHECK_CONFIG) dissector || status=1; \
+	exit $$status
+
+test: setup tshark44 tshark46 lint
 	$(PY) -m pytest -n 2 -q
 
 # Long runs kept out of `make test` (e.g. the fuzzer against the reference controller for 60 s).

@@ -68,8 +68,9 @@ def best(fn, repeat: int = REPEAT) -> float:
 
 
 def scapy_iterate(path: Path) -> None:
-    for _ in RawPcapReader(str(path)):
-        pass
+    with RawPcapReader(str(path)) as reader:
+        for _ in reader:
+            pass
 
 
 # Runs the CLI in a fresh process and prints its VmHWM (peak RSS of this process's own memory map:
@@ -136,7 +137,8 @@ def main() -> None:
         small = prefix(path, min(TSHARK_PACKETS, packets))
         tshark_s = best(lambda: tshark_fields(small), 1)
         ours = best(lambda: analyze(str(small)))
-        print(f"tshark -T fields with the Lua dissector, first {min(TSHARK_PACKETS, packets)} packets: {tshark_s:.2f} s; "
+        print(f"tshark -T fields with the Lua dissector, first {min(TSHARK_PACKETS, packets)} packets: "
+              f"{tshark_s:.2f} s; "
               f"vm110 analyze: {ours:.2f} s")
         print(f"RATIO analysis / tshark -T fields = {ours / tshark_s:.3f}")
     else:

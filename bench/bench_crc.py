@@ -45,7 +45,7 @@ def main() -> None:
     for variant in VARIANTS:
         fn = crc_function(variant)
         order = "little"
-        t = best_of(3, lambda: [fn(p[:end]) == int.from_bytes(p[end:], order) for p in packets])
+        t = best_of(3, lambda fn=fn, order=order: [fn(p[:end]) == int.from_bytes(p[end:], order) for p in packets])
         verdict = "ok" if N / t >= TARGET_PPS else "BELOW TARGET"
         print(f"validate {variant:<8}: {N / t:>12,.0f} packets/s  ratio to baseline {t / baseline:.2f}x  "
               f"(target >= {TARGET_PPS:,}: {verdict})")

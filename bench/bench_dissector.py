@@ -37,8 +37,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-import tshark_runner as T  # noqa: E402
-from vm110.synth import synthesize  # noqa: E402
+import tshark_runner as T
+from vm110.synth import synthesize
 
 DURATION_S = 5400     # about 100,000 packets of 'day'
 REPEAT = 3

@@ -23,19 +23,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from loopback import free_ports  # noqa: E402
-from vm110 import constants as C  # noqa: E402
-from vm110.fuzz import cases  # noqa: E402
-from vm110.fuzz import mutate as M  # noqa: E402
-from vm110.fuzz.corpus import Entry, Packet  # noqa: E402
-from vm110.fuzz.guided import GuidedConfig  # noqa: E402
-from vm110.fuzz.oracles import Limits  # noqa: E402
-from vm110.fuzz.runner import (  # noqa: E402
-    RunConfig,
-    Runner,
-    start_target,  # noqa: E402
-)
-from vm110.fuzz.session import Session, Settings  # noqa: E402
+from loopback import free_ports
+from vm110 import constants as C
+from vm110.fuzz import cases
+from vm110.fuzz import mutate as M
+from vm110.fuzz.corpus import Entry, Packet
+from vm110.fuzz.guided import GuidedConfig
+from vm110.fuzz.oracles import Limits
+from vm110.fuzz.runner import RunConfig, Runner, start_target
+from vm110.fuzz.session import Session, Settings
 
 SEED = 1
 

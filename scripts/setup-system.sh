@@ -3,8 +3,8 @@
 # Non-interactive (the wireshark-common debconf question is pre-answered), root without sudo.
 set -euo pipefail
 
-packages=(tshark lua5.2 lua5.4 python3-venv iproute2 debootstrap chromium gcc afl++ clang gdb)
-commands=(tshark lua5.2 lua5.4 ip debootstrap chromium gcc afl-clang-fast clang gdb)
+packages=(tshark lua5.2 lua5.4 python3-venv iproute2 debootstrap chromium lua-check gcc afl++ clang gdb)
+commands=(tshark lua5.2 lua5.4 ip debootstrap chromium luacheck gcc afl-clang-fast clang gdb)
 
 missing=0
 for c in "${commands[@]}"; do command -v "$c" >/dev/null 2>&1 || missing=1; done

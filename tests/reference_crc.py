@@ -26,9 +26,7 @@ def reference_crc(data: bytes, variant: str = "mpeg2") -> int:
     refin, refout, xorout = MODELS[variant]
     crc = INIT
     for byte in data:
-        if refin:
-            byte = _reflect(byte, 8)
-        crc ^= byte << 24
+        crc ^= (_reflect(byte, 8) if refin else byte) << 24
         for _ in range(8):
             crc = ((crc << 1) ^ POLY) if crc & 0x80000000 else (crc << 1)
             crc &= 0xFFFFFFFF

@@ -11,7 +11,7 @@ from test_analysis_craft import Traffic, vrpi
 from vm110.errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE
 
 
-def vm110(*args: str, env: dict = None) -> subprocess.CompletedProcess:
+def vm110(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "vm110", "analyze", *args], capture_output=True, text=True,
                           env=env)
 

@@ -39,7 +39,7 @@ class Traffic:
         self.frames: list[tuple[float, str, int, int, bytes]] = []
 
     def add(self, t: float, data: bytes, src: str = BU, sport: int = C.INPUT_PORT,
-            dport: int = None) -> int:
+            dport: int | None = None) -> int:
         """Add one datagram; returns its frame number (1-based, after sorting by time)."""
         self.frames.append((T0 + t, src, sport, sport if dport is None else dport, data))
         return len(self.frames)

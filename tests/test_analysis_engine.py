@@ -1,6 +1,7 @@
 """The fast engine on a crafted capture whose every impairment the test put there itself."""
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -19,9 +20,9 @@ OTHER_BU, OTHER_PORT, OTHER_ORIGIN = "10.0.0.11", 6000, 0x0202
 def jitter_reference(times: list, period_ms: float) -> tuple:
     """RFC 3550 form, written out plainly: J += (|D| - J)/16 per pair of consecutive packets."""
     j, history = 0.0, []
-    for a, b in zip(times, times[1:]):
+    for a, b in itertools.pairwise(times):
         delta = (b - a) * 1000.0
-        k = max(1, int(math.floor(delta / period_ms + 0.5)))
+        k = max(1, math.floor(delta / period_ms + 0.5))
         j += (abs(delta - k * period_ms) - j) / 16.0
         history.append(j)
     return j, sum(history) / len(history), max(history)

@@ -2,6 +2,7 @@
 (restart candidates, scope warm-up, new-port restarts and command events cross batch borders)."""
 from __future__ import annotations
 
+import itertools
 import json
 import random
 from pathlib import Path
@@ -39,7 +40,7 @@ def _records(path, monkeypatch):
 
 def _report(got, rec, sources, cuts) -> str:
     analysis = Analysis(Options())
-    for a, b in zip(cuts, cuts[1:]):
+    for a, b in itertools.pairwise(cuts):
         analysis.feed(rec[a:b], sources)
     got.analysis = analysis
     return json.dumps(build(got), sort_keys=True)
@@ -80,7 +81,7 @@ def test_a_counter_fed_in_pieces_equals_one_pass(steps, seed):
     counter = serials.Counter()
     cuts = sorted({0, len(seq), *(rng.randrange(len(seq)) for _ in range(5))})
     held = 0
-    for a, b in zip(cuts, cuts[1:]):
+    for _a, b in itertools.pairwise(cuts):
         done = counter.feed(seq[held:b], times[held:b], list(range(held, b)), final=b == len(seq))
         held += done
     got = counter.result()
@@ -132,7 +133,7 @@ def test_many_senders_cost_little_each(tmp_path, monkeypatch):
     for k in range(3000):
         tr.add(k * 0.001, vrpi(k % 7), sport=10000 + k)
     tr.write(tmp_path / "ports.pcap")
-    got, rec, sources = _records(tmp_path / "ports.pcap", monkeypatch)
+    _got, rec, sources = _records(tmp_path / "ports.pcap", monkeypatch)
     analysis = Analysis(Options())
     analysis.feed(rec, sources)
     analysis.finish()

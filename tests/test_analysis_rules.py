@@ -217,7 +217,7 @@ def test_a_restart_to_serial_0_shows_its_to(tmp_path):
     from vm110.analysis import report_html, summary
     tr = Traffic()
     _counter(tr, [k * 0.125 for k in range(8)], range(500, 508))
-    _counter(tr, [3.0 + k * 0.125 for k in range(4)], range(0, 4))
+    _counter(tr, [3.0 + k * 0.125 for k in range(4)], range(4))
     report = _report(tr, tmp_path)
     assert "serial 507 -> 0" in summary.render(report)
     assert "from 507, to 0" in summary.render(report) and "from 507, to 0" in report_html.render([report])

@@ -34,7 +34,7 @@ def contract_diff(truth, report, path: str = "") -> list[str]:
         if not isinstance(report, list) or len(report) != len(truth):
             return [f"{path}: {len(truth)} items in the truth, report has {report!r:.200}"]
         return [d for i, (a, b) in enumerate(zip(truth, report)) for d in contract_diff(a, b, f"{path}[{i}]")]
-    if truth != report or type(truth) is bool and type(report) is not bool:
+    if truth != report or (type(truth) is bool and type(report) is not bool):
         return [f"{path}: truth {truth!r}, report {report!r}"]
     return []
 

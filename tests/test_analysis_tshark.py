@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 
 import pytest
 
@@ -96,3 +97,11 @@ def test_auto_crc_needs_no_tshark_run_per_candidate(monkeypatch):
     report = analyze(str(CAPTURES / "illegal.pcap"), "tshark")
     assert runs == [("mpeg2", "little")] and report["crc"]["invalid"] > 0
     assert report["crc"]["candidates"]["mpeg2/little"] == report["crc"]["valid"]
+
+
+def test_the_tshark_engine_hands_sigchld_back():
+    """pyshark leaves SIGCHLD routed to its idle event loop; later child processes of the same
+    process then fill that loop's wakeup pipe (Python reports every failed write)."""
+    analyze(str(CAPTURES / "normal.pcap"), engine="tshark")
+    assert signal.getsignal(signal.SIGCHLD) == signal.SIG_DFL
+    assert signal.set_wakeup_fd(-1) == -1                 # no wakeup fd was left installed

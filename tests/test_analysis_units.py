@@ -2,6 +2,7 @@
 serial-scope auto-detection, wraps, and the robustness cases of issue 6 through `analyze`."""
 from __future__ import annotations
 
+import itertools
 import math
 import random
 import struct
@@ -79,7 +80,7 @@ def test_a_gap_left_behind_a_whole_cycle_stays_lost():
 
 def reference_jitter(times: list, period: float) -> list:
     j, out = 0.0, []
-    for a, b in zip(times, times[1:]):
+    for a, b in itertools.pairwise(times):
         delta = round((b - a) * 1e6) / 1000.0           # intervals to the microsecond
         k = max(1, math.floor(delta / period + 0.5))
         j = j + (abs(delta - k * period) - j) / 16
@@ -214,11 +215,9 @@ def test_empty_capture(tmp_path):
 
 def test_command_id_wrap_and_ack_matching(tmp_path):
     tr = Traffic()
-    s = 0
-    for cid in (65534, 65535, 0, 1):
+    for s, cid in enumerate((65534, 65535, 0, 1)):
         tr.add(s * 0.2, payload(VRCI, s, BU_ORIGIN, command_id=cid))
         tr.add(s * 0.2 + 0.05, payload(VRAO, s, command_id=cid), src="10.0.0.20", sport=C.OUTPUT_PORT)
-        s += 1
     tr.write(tmp_path / "wrap.pcap")
     vrci = analyze(str(tmp_path / "wrap.pcap"))["commands"]["VRCI"]
     assert (vrci["commands"], vrci["acked"], vrci["command_id_wraps"], vrci["acks_without_command"]) == (4, 4, 1, 0)

@@ -324,7 +324,7 @@ def test_redissection_reads_stored_results(tshark, tmp_path):
     capture = CAPTURES / "loss.pcapng"
     try:
         with tshark.workspace(tmp_path) as ws:
-            full, full_text = run_fields(ws, capture, ["-2"])
+            full, _full_text = run_fields(ws, capture, ["-2"])
             chosen = sorted(random.Random(4).sample(range(1, len(full) + 1), 150), reverse=True)
             subset, _ = run_fields(ws, capture, ["-2", "-Y", " || ".join(f"frame.number == {n}" for n in chosen)])
             single, _ = run_fields(ws, capture)
@@ -482,7 +482,7 @@ def _crafted(tshark, tmp_path, timeline, passes=("-2",), extra=()) -> dict[int, 
         with tshark.workspace(tmp_path) as ws:
             pcap = ws.dir / "crafted.pcap"
             T.write_pcap(pcap, [p for _, p in timeline], [round(ms * 1000) for ms, _ in timeline])
-            rows, text = run_fields(ws, pcap, [*passes, *extra])
+            rows, _text = run_fields(ws, pcap, [*passes, *extra])
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
     return {r.number: r for r in rows}

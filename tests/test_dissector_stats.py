@@ -4,6 +4,7 @@ interrupted, retransmissions; interval min/avg/max against the timestamps of the
 (legal ones read from the capture, without the duplicates the independent reference finds)."""
 from __future__ import annotations
 
+import itertools
 import json
 import re
 from collections import defaultdict
@@ -70,7 +71,7 @@ def expected_intervals(capture: Path) -> dict:
         if d.get("type") in ("VRPI", "VRPO") and not d["problems"]:
             direction = "Input" if d["type"].endswith("I") else "Output"
             sender = f"{direction} {pkt[IP].src}:{pkt[UDP].sport} origin 0x{d['origin']:04x}"
-            times[(sender, d["type"])].append((int(round(float(pkt.time) * 1e6)), number))
+            times[(sender, d["type"])].append((round(float(pkt.time) * 1e6), number))
     for s in ref["senders"]:
         for e in s["serial"]["restart_events"]:
             if "port_from" not in e:
@@ -82,7 +83,7 @@ def expected_intervals(capture: Path) -> dict:
                     times[(s["id"], kind)].insert(0, earlier[-1])
     out = {}
     for key, ts in times.items():
-        iv = [(b[0] - a[0]) / 1000 for a, b in zip(ts, ts[1:])]
+        iv = [(b[0] - a[0]) / 1000 for a, b in itertools.pairwise(ts)]
         if iv:
             out[key] = (min(iv), sum(iv) / len(iv), max(iv), len(iv))
     return out

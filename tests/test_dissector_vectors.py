@@ -14,6 +14,7 @@ import pyshark
 import pytest
 
 import tshark_runner as T
+from vm110.analysis.tshark_engine import release_sigchld
 from vectorlib import load_vectors, packet_bytes
 
 pytestmark = pytest.mark.tshark
@@ -41,6 +42,7 @@ def _pyshark_read(ws: T.Workspace, pcap, prefs: dict) -> list:
         return [pkt.vm110 if "vm110" in pkt else None for pkt in capture]
     finally:
         capture.close()
+        release_sigchld(capture)
 
 
 def _from_layer(layer) -> tuple[dict, list]:

@@ -40,10 +40,9 @@ def test_new_file_mode_follows_umask_and_a_replaced_file_keeps_its_mode(tmp_path
 def test_failure_in_the_middle_leaves_the_old_file(tmp_path):
     target = tmp_path / "capture.pcap"
     target.write_bytes(b"precious")
-    with pytest.raises(RuntimeError):
-        with atomic_writer(target) as stream:
-            stream.write(b"half")
-            raise RuntimeError("writer failed")
+    with pytest.raises(RuntimeError), atomic_writer(target) as stream:
+        stream.write(b"half")
+        raise RuntimeError("writer failed")
     assert target.read_bytes() == b"precious"
     assert leftovers(tmp_path) == []
 
@@ -51,9 +50,8 @@ def test_failure_in_the_middle_leaves_the_old_file(tmp_path):
 def test_os_error_becomes_a_cli_error_naming_the_file(tmp_path):
     target = tmp_path / "x.json"
     target.write_text("old")
-    with pytest.raises(CliError, match="x.json"):
-        with atomic_writer(target) as stream:
-            raise OSError(28, "No space left on device")
+    with pytest.raises(CliError, match=r"x\.json"), atomic_writer(target):
+        raise OSError(28, "No space left on device")
     assert target.read_text() == "old" and leftovers(tmp_path) == []
 
 

@@ -3,6 +3,7 @@ keeps the controller in normal operation, one serial counter, only the target as
 multicast TTL 1 and the rate limit."""
 from __future__ import annotations
 
+import itertools
 import socket
 import struct
 import time
@@ -73,11 +74,11 @@ def test_base_unit_role(reference):
     assert serials == list(range(serials[0], serials[0] + len(serials))), "one counter for all it sends"
     stream = [t for t, data, _ in recorder.sent if data not in case_packets and data[:4] == b"VRPI"]
     assert len(stream) >= elapsed * 1000 / C.VRPI_PERIOD_MS - 2
-    gaps = [b - a for a, b in zip(stream, stream[1:])]
+    gaps = [b - a for a, b in itertools.pairwise(stream)]
     assert max(gaps) < C.VRPI_WATCHDOG_MS / 1000, "no VRPI gap reaches the controller's watchdog"
     case_sends = [t for t, data, _ in recorder.sent if data in case_packets]
     assert len(case_sends) >= 12
-    assert min(b - a for a, b in zip(case_sends, case_sends[1:])) >= 1 / RATE - 0.002, "rate limit"
+    assert min(b - a for a, b in itertools.pairwise(case_sends)) >= 1 / RATE - 0.002, "rate limit"
     assert not ctl.events("vrpi_timeout"), "the stream kept the controller in normal operation"
     assert ctl.events("vrco_acked"), "VRCO answered with VRAI"
     legal_vrci = {struct.unpack_from("<H", d, C.PREFIX_LEN)[0] for d in case_packets

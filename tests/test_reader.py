@@ -4,6 +4,7 @@ Frames are built with scapy and written with struct here, so the expectations do
 the reader's own code."""
 from __future__ import annotations
 
+import os
 import struct
 
 import pytest
@@ -186,3 +187,40 @@ def test_chunk_boundaries_do_not_matter(tmp_path):
     for size in (17, 64, 100):
         _, chunked = read(tmp_path, data, chunk_size=size)
         assert chunked == whole
+
+
+def _open_fds() -> set[str]:
+    return set(os.listdir("/proc/self/fd"))
+
+
+@pytest.mark.parametrize("content", [b"", b"hello, this is text\n"])
+def test_a_file_that_is_not_a_capture_is_closed_at_once(tmp_path, content):
+    path = tmp_path / "x.pcap"
+    path.write_bytes(content)
+    before = _open_fds()
+    with pytest.raises(CaptureError):
+        CaptureReader(str(path))
+    assert _open_fds() == before
+
+
+def test_a_walk_stopped_early_or_never_started_closes_the_file_on_leaving_the_with(tmp_path):
+    path = tmp_path / "c.pcap"
+    path.write_bytes(pcap([(1.0 + i, Ether() / udp_ip()) for i in range(5)]))
+    before = _open_fds()
+    with CaptureReader(str(path), chunk_size=64) as reader:
+        assert len(_open_fds() - before) == 1
+        walk = iter(reader)
+        assert next(walk)[5] == 1                  # stopped after the first datagram, walk still held
+    assert _open_fds() == before
+    with CaptureReader(str(path)):
+        pass
+    assert _open_fds() == before
+
+
+def test_crc_sniffing_that_stops_at_its_limit_leaves_no_file_open(tmp_path):
+    from vm110.analysis.engine import crc_candidates
+    path = tmp_path / "c.pcap"
+    path.write_bytes(pcap([(1.0 + i, Ether() / udp_ip()) for i in range(5)]))
+    before = _open_fds()
+    crc_candidates(str(path), (5825,), limit=1, chunk_size=64)
+    assert _open_fds() == before

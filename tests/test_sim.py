@@ -5,6 +5,7 @@ few seconds of wall-clock time.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -123,12 +124,12 @@ def test_cli_simulators_talk_over_loopback():
     ctl_rx, bu_rx = free_ports(2)
     common = ["--source", f"{LOOPBACK}:0", "--duration", "2.5", "--json"]
     vm110 = [sys.executable, "-m", "vm110", "simulate"]
-    ctl = subprocess.Popen(vm110 + ["controller", "--listen", f"{LOOPBACK}:{ctl_rx}", "--peer", f"{LOOPBACK}:{bu_rx}",
-                                    "--command-every", "0.5", *common], stdout=subprocess.PIPE, text=True)
-    bu = subprocess.run(vm110 + ["bu", "--listen", f"{LOOPBACK}:{bu_rx}", "--peer", f"{LOOPBACK}:{ctl_rx}",
-                                 "--command-every", "0.3", "--loss", "10", "--seed", "5", *common],
-                        capture_output=True, text=True, timeout=20)
-    ctl_out, _ = ctl.communicate(timeout=20)
+    with subprocess.Popen(vm110 + ["controller", "--listen", f"{LOOPBACK}:{ctl_rx}", "--peer", f"{LOOPBACK}:{bu_rx}",
+                                   "--command-every", "0.5", *common], stdout=subprocess.PIPE, text=True) as ctl:
+        bu = subprocess.run(vm110 + ["bu", "--listen", f"{LOOPBACK}:{bu_rx}", "--peer", f"{LOOPBACK}:{ctl_rx}",
+                                     "--command-every", "0.3", "--loss", "10", "--seed", "5", *common],
+                            capture_output=True, text=True, timeout=20)
+        ctl_out, _ = ctl.communicate(timeout=20)
     assert bu.returncode == 0 and ctl.returncode == 0, bu.stderr
     bu_log = [json.loads(line) for line in bu.stdout.splitlines() if line.startswith("{")]
     ctl_log = [json.loads(line) for line in ctl_out.splitlines() if line.startswith("{")]
@@ -176,7 +177,7 @@ def test_several_commands_in_flight_each_resent_acked_and_executed_once():
     assert ids(bu, "command_sent") == [0, 1, 0] and sorted(ids(bu, "command_acked")) == [0, 0, 1]
     vrci = [(a[0], a[5].key) for a in arrivals if a[5].ptype is C.PacketType.VRCI]
     first = [t for t, cid in vrci if cid == 0 and t < 1_000_000]
-    assert len(first) == 5 and all(b - a == 100_000 for a, b in zip(first, first[1:]))   # resent on its own
+    assert len(first) == 5 and all(b - a == 100_000 for a, b in itertools.pairwise(first))   # resent on its own
     assert sorted(ids(ctl, "executed")) == [0, 0, 1]              # the reused ID is a new command
     assert len(ids(ctl, "repeat")) == ctl.received["VRCI"] - 3
     assert sorted(ids(ctl, "vrco_acked")) == [0, 1] and ids(bu, "vrco_delivered") == [0, 1]
@@ -203,13 +204,13 @@ def test_restart_and_stop_on_the_virtual_clock():
     assert not [t for t, _, _ in mine if 1_000_000 <= t < 1_500_000 or 2_000_000 <= t < 2_300_000]
     after = [m.serial for t, _, m in mine if t >= 1_500_000]
     assert after[0] == 7 and {e for t, e, _ in mine} == {1, 2}    # endpoint 2: the new port
-    assert [meta.serial for _, e, meta in mine if e == 2][0] == 0
+    assert next(meta.serial for _, e, meta in mine if e == 2) == 0
     restarts = ctl.events("restart")
     assert [(e["t"], e["serial"], e["port"]) for e in restarts] == [(1.5, 7, None), (2.3, 0, 50000)]
     assert [e["command_id"] for e in ctl.events("vrco_dropped")] == [2]     # the VRCO of 0.93 s
     assert ids(ctl, "vrco_sent")[3] == 100                        # IDs afresh from the restart's
     assert max(a[0] for a in arrivals if a[5].sender == "bu") < 3_000_000 and bu.events("stopped")
-    assert [a[5].serial for a in arrivals if a[5].sender == "bu"][0] == 40000
+    assert next(a[5].serial for a in arrivals if a[5].sender == "bu") == 40000
 
 
 def test_restart_on_a_new_port_over_sockets():
@@ -228,13 +229,13 @@ def test_cli_restart_stop_and_mirror_options():
     ctl_rx, bu_rx = free_ports(2)
     vm110 = [sys.executable, "-m", "vm110", "simulate"]
     common = ["--source", f"{LOOPBACK}:0", "--duration", "2.0", "--json"]
-    ctl = subprocess.Popen(vm110 + ["controller", "--listen", f"{LOOPBACK}:{ctl_rx}", "--peer", f"{LOOPBACK}:{bu_rx}",
-                                    "--restart", "0.5:0", "--restart-silence", "0.3", "--restart-serial", "9",
-                                    "--mirror", "20", *common], stdout=subprocess.PIPE, text=True)
-    bu = subprocess.run(vm110 + ["bu", "--listen", f"{LOOPBACK}:{bu_rx}", "--peer", f"{LOOPBACK}:{ctl_rx}",
-                                 "--stop-at", "1.2", "--serial-start", "40000", *common],
-                        capture_output=True, text=True, timeout=20)
-    ctl_out, _ = ctl.communicate(timeout=20)
+    with subprocess.Popen(vm110 + ["controller", "--listen", f"{LOOPBACK}:{ctl_rx}", "--peer", f"{LOOPBACK}:{bu_rx}",
+                                   "--restart", "0.5:0", "--restart-silence", "0.3", "--restart-serial", "9",
+                                   "--mirror", "20", *common], stdout=subprocess.PIPE, text=True) as ctl:
+        bu = subprocess.run(vm110 + ["bu", "--listen", f"{LOOPBACK}:{bu_rx}", "--peer", f"{LOOPBACK}:{ctl_rx}",
+                                     "--stop-at", "1.2", "--serial-start", "40000", *common],
+                            capture_output=True, text=True, timeout=20)
+        ctl_out, _ = ctl.communicate(timeout=20)
     assert bu.returncode == 0 and ctl.returncode == 0, bu.stderr
     ctl_log = [json.loads(line) for line in ctl_out.splitlines() if line.startswith("{")]
     bu_log = [json.loads(line) for line in bu.stdout.splitlines() if line.startswith("{")]

@@ -11,9 +11,9 @@ import sys
 def test_multicast_defaults_inside_a_namespace(netns):
     run = ["ip", "netns", "exec", netns, sys.executable, "-m", "vm110", "simulate"]
     common = ["--iface", "127.0.0.1", "--duration", "2.5", "--json"]
-    ctl = subprocess.Popen(run + ["controller", *common], stdout=subprocess.PIPE, text=True)
-    bu = subprocess.run(run + ["bu", "--command-every", "0.5", *common], capture_output=True, text=True, timeout=30)
-    ctl_out, _ = ctl.communicate(timeout=30)
+    with subprocess.Popen(run + ["controller", *common], stdout=subprocess.PIPE, text=True) as ctl:
+        bu = subprocess.run(run + ["bu", "--command-every", "0.5", *common], capture_output=True, text=True, timeout=30)
+        ctl_out, _ = ctl.communicate(timeout=30)
     assert bu.returncode == 0 and ctl.returncode == 0, bu.stderr
     assert "group 239.255.42.20" in bu.stdout and "to 239.255.42.20:5825" in bu.stdout
     assert "to 239.255.42.20:5827" in ctl_out

@@ -2,6 +2,7 @@
 written capture (scapy for the frames, vm110.decode for the EG-Link payloads) agrees with."""
 from __future__ import annotations
 
+import itertools
 import json
 import pathlib
 import struct
@@ -124,7 +125,7 @@ def recount(rows: list[tuple[float, str, dict]]) -> dict:
         for s in per_sender:
             times = [t for t, s2, f in accepted if s2 == s and f["type"] == ptype]
             if times:
-                gaps = [b - a > limit for a, b in zip(times, times[1:])] + [end - times[-1] > limit]
+                gaps = [b - a > limit for a, b in itertools.pairwise(times)] + [end - times[-1] > limit]
                 periodic[(ptype, s)] = (len(times), sum(gaps))
     return {"frames": frames, "packets": len(rows), "illegal": sum(bool(f["problems"]) for _, _, f in rows),
             "reasons": dict(reasons), "crc_bad": sum(f.get("crc.status") == C.CRC_BAD for _, _, f in rows),
@@ -159,7 +160,7 @@ def compare(truth: dict, counted: dict) -> None:
 def test_truth_agrees_with_an_independent_decode(name, tmp_path):
     out = str(tmp_path / f"{name}.pcap")
     truth = synthesize(name, out, seed=11)
-    assert json.loads(open(truth_path(out)).read()) == truth
+    assert json.loads(pathlib.Path(truth_path(out)).read_text()) == truth
     compare(truth, recount(read_capture(out)))
 
 
@@ -175,7 +176,7 @@ def test_same_seed_same_bytes_other_seed_other_bytes(name, tmp_path):
     paths = [str(tmp_path / f"{i}.pcapng") for i in range(3)]
     for path, seed in zip(paths, (5, 5, 6)):
         synthesize(name, path, seed=seed, duration_s=8.0, fmt="pcapng")
-    read = [(open(p, "rb").read(), open(truth_path(p), "rb").read()) for p in paths]
+    read = [(pathlib.Path(p).read_bytes(), pathlib.Path(truth_path(p)).read_bytes()) for p in paths]
     assert read[0] == read[1]
     assert read[0][0] != read[2][0] and read[0][1] != read[2][1]
 
@@ -184,8 +185,8 @@ def test_restarts_on_a_new_port_are_reproducible(tmp_path):
     paths = [str(tmp_path / f"{i}.pcap") for i in range(2)]
     for path in paths:
         synthesize("restart", path, seed=3, duration_s=30.0)
-    assert [open(p, "rb").read() for p in paths][0] == open(paths[1], "rb").read()
-    assert open(truth_path(paths[0]), "rb").read() == open(truth_path(paths[1]), "rb").read()
+    assert pathlib.Path(paths[0]).read_bytes() == pathlib.Path(paths[1]).read_bytes()
+    assert pathlib.Path(truth_path(paths[0])).read_bytes() == pathlib.Path(truth_path(paths[1])).read_bytes()
 
 
 def test_scenarios_show_what_they_promise(tmp_path):
@@ -305,7 +306,7 @@ def test_overlap_has_commands_in_flight_together_and_reused_ids(tmp_path):
     for kind in ("VRCI", "VRCO"):
         cmds = truth["commands"][kind]["list"]
         spans = [(c["frames"][0], c["ack_frame"] or c["frames"][-1]) for c in cmds]
-        assert any(b[0] < a[1] for a, b in zip(spans, spans[1:])), f"no two {kind} in flight together"
+        assert any(b[0] < a[1] for a, b in itertools.pairwise(spans)), f"no two {kind} in flight together"
         assert truth["commands"][kind]["retransmissions"] > 10
     ids = Counter(c["command_id"] for c in truth["commands"]["VRCI"]["list"])
     assert sum(n > 1 for n in ids.values()) > 10                  # IDs used again after the pause

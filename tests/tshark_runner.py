@@ -173,7 +173,7 @@ def frame(d: Datagram) -> bytes:
     ip = struct.pack("!BBHHHBBH4s4s", 0x45, 0, 20 + len(udp), 0, 0, C.MULTICAST_TTL, 17, 0,
                      _addr(src), _addr(GROUP_ADDR))
     ip = ip[:10] + struct.pack("!H", _ip_checksum(ip)) + ip[12:]
-    eth = bytes.fromhex("01005e7f2a14" "02fc00000001" "0800")
+    eth = bytes.fromhex("01005e7f2a14 02fc00000001 0800")   # destination, source, IPv4
     return (eth + ip + udp + d.trailer).ljust(60, b"\0")
 
 

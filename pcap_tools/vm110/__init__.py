@@ -4,5 +4,5 @@ from __future__ import annotations
 from .crc import crc32, crc_bytes
 from .decode import decode
 
-__all__ = ["crc32", "crc_bytes", "decode", "__version__"]
+__all__ = ["__version__", "crc32", "crc_bytes", "decode"]
 __version__ = "0.1.0"

@@ -11,10 +11,10 @@ from __future__ import annotations
 import gc
 import json
 import math
-from typing import Any, BinaryIO, Optional
+from typing import Any, Optional
 
 from . import constants as C
-from .capture.writer import Format, UdpFlow, open_writer
+from .capture.writer import ByteSink, Format, UdpFlow, open_writer
 from .fileio import atomic_writer, check_target, write_text
 from .sim.clock import seconds
 from .sim.scenario import EPOCH_US, SCENARIOS, Scenario
@@ -25,7 +25,8 @@ TRUTH_SUFFIX = ".truth.json"
 RATE_SAMPLE_S = 10.0      # traffic run to measure a scenario's output rate
 # Other traffic a tap also sees: an mDNS query for _vm110._udp.local (not EG-Link).
 OTHER_SOURCE, OTHER_GROUP, MDNS_PORT = "10.0.0.30", "224.0.0.251", 5353
-OTHER_PAYLOAD = bytes.fromhex("000000000001000000000000") + b"\x06_vm110\x04_udp\x05local\x00" + bytes.fromhex("000c0001")
+OTHER_PAYLOAD = (bytes.fromhex("000000000001000000000000") + b"\x06_vm110\x04_udp\x05local\x00"
+                 + bytes.fromhex("000c0001"))
 
 
 def truth_path(out: str) -> str:
@@ -64,7 +65,7 @@ def output_rate(name: str, seed: int = 1, fmt: Format = "pcap") -> float:
     return (sink.size + len(_truth_text(result))) / RATE_SAMPLE_S
 
 
-def write_capture(stream: BinaryIO, sc: Scenario, seed: int, duration: float, fmt: Format) -> dict[str, Any]:
+def write_capture(stream: ByteSink, sc: Scenario, seed: int, duration: float, fmt: Format) -> dict[str, Any]:
     """Run `sc` and write its capture to `stream`; returns the truth."""
     stations = sc.build(seed, duration)
     # One flow per endpoint (a station's port, then its new ports after restarts; to the group on
@@ -80,9 +81,8 @@ def write_capture(stream: BinaryIO, sc: Scenario, seed: int, duration: float, fm
     gc.disable()      # millions of short-lived tuples and no cycles: the collector would only cost time
     try:
         writer = open_writer(stream, fmt)
-        for batch in VirtualNetwork(stations).run(duration):
-            if others and others[0][0] <= batch[-1][0]:
-                batch = _interleave(batch, others)
+        for arrivals in VirtualNetwork(stations).run(duration):
+            batch = _interleave(arrivals, others) if others and others[0][0] <= arrivals[-1][0] else arrivals
             writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _, _ in batch])
             truth.add(batch)
         writer.write_many([(EPOCH_US + t, frame[i](data)) for t, _, i, data, _, _, _ in others])   # after the end

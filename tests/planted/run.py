@@ -11,10 +11,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bugs import BUGS  # noqa: E402
-from vm110.sim.controller import ControllerConfig  # noqa: E402
-from vm110.sim.realtime import RealtimeRunner  # noqa: E402
-from vm110.sim.transport import UdpConfig, UdpTransport, parse_address  # noqa: E402
+from bugs import BUGS
+from vm110.sim.controller import ControllerConfig
+from vm110.sim.realtime import RealtimeRunner
+from vm110.sim.transport import UdpConfig, UdpTransport, parse_address
 
 
 def main() -> int:

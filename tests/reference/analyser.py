@@ -47,6 +47,7 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
 """
 from __future__ import annotations
 
+import itertools
 import struct
 from typing import Any, Optional
 
@@ -307,7 +308,7 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
                 by_reason[reason] = by_reason.get(reason, 0) + 1
             continue
         ptype = p[:4].decode()
-        _rev, origin, serial, size, _spare = struct.unpack("<HHHHI", p[4:16])
+        _rev, origin, serial, _size, _spare = struct.unpack("<HHHHI", p[4:16])
         pkt = {"frame": rec["frame"], "t": rec["t"], "type": ptype, "direction": DIRECTIONS[p[:4]],
                "origin": origin, "serial": serial, "src": dg["src"], "sport": dg["sport"],
                "cid": None}
@@ -382,7 +383,7 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
                           if p["type"] == ptype and p["accepted"] and p["frame"] < pk[0]["frame"]]
                 if before:
                     intervals.append((before[-1]["t"], pk[0]["t"] - before[-1]["t"], pk[0]["frame"]))
-            for a, b in zip(pk, pk[1:]):
+            for a, b in itertools.pairwise(pk):
                 intervals.append((a["t"], b["t"] - a["t"], b["frame"]))
             violations = []
             for start, gap, after in intervals:

@@ -5,6 +5,7 @@ plus the EG-Link-aware ones of `eglink`. Everything is drawn from one `random.Ra
 is the same bytes for the same seed."""
 from __future__ import annotations
 
+import itertools
 import random
 import struct
 import subprocess
@@ -96,7 +97,7 @@ def reorder(data: bytes, layout: Optional[containers.Layout], rng: random.Random
         out = data[:a.start] + data[b.start:b.end] + data[a.end:b.start] + data[a.start:a.end] + data[b.end:]
         return out, f"records at {a.start} and {b.start} swapped"
     run = recs[i:j + 1]
-    if any(x.end != y.start for x, y in zip(run, run[1:])):
+    if any(x.end != y.start for x, y in itertools.pairwise(run)):
         return data, "records not contiguous: left in order"
     body = b"".join(data[r.start:r.end] for r in reversed(run))
     return data[:run[0].start] + body + data[run[-1].end:], f"{len(run)} records from {run[0].start} reversed"

@@ -12,7 +12,6 @@ import os
 import random
 import re
 import shutil
-import sys
 import tempfile
 import time
 from collections import Counter, defaultdict
@@ -116,9 +115,8 @@ def keep(outcome: Outcome, out_dir: Path = OUT) -> Path:
     path = out_dir / f"{Path(outcome.case.name).stem}-{digest}{outcome.case.base.suffix}"
     for target, content in ((path, outcome.case.data), (path.with_name(path.name + ".txt"),
                                                          (outcome.describe() + "\n").encode())):
-        with contextlib.suppress(FileExistsError):
-            with open(target, "xb") as f:
-                f.write(content)
+        with contextlib.suppress(FileExistsError), open(target, "xb") as f:
+            f.write(content)
     return path
 
 
@@ -132,8 +130,8 @@ def summary(outcomes: Sequence[Outcome], seconds: float, kept: Sequence[Path] = 
                 slowest[r.tool.label] = (r.seconds, o.case.name)
         for r, _ in o.failures:
             failed[r.tool.label] += 1
-    lines = [f"fuzz-self: {len(outcomes)} mutated files in {seconds:.0f} s, "
-             f"{sum(1 for o in outcomes if o.failures)} with failures"]
+    lines = [(f"fuzz-self: {len(outcomes)} mutated files in {seconds:.0f} s, "
+              f"{sum(1 for o in outcomes if o.failures)} with failures")]
     for label in runs:
         lines.append(f"  {label:<48} runs {runs[label]:>5}  failures {failed[label]:>4}  "
                      f"slowest {slowest[label][0]:5.1f} s ({slowest[label][1]})")
@@ -183,9 +181,9 @@ def soak(sess: Session, seed: int, seconds: float, jobs: int, small: bool = Fals
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="fuzz-self", description=__doc__)
-    parser.add_argument("--seconds", type=float, default=float(os.environ.get("FUZZ_SELF_SECONDS", 600)),
+    parser.add_argument("--seconds", type=float, default=float(os.environ.get("FUZZ_SELF_SECONDS", "600")),
                         help="how long to start new cases (default: $FUZZ_SELF_SECONDS or 600)")
-    parser.add_argument("--seed", type=int, default=int(os.environ.get("FUZZ_SELF_SEED", 0)) or None,
+    parser.add_argument("--seed", type=int, default=int(os.environ.get("FUZZ_SELF_SEED", "0")) or None,
                         help="default: $FUZZ_SELF_SEED, else one from the clock (printed)")
     parser.add_argument("--case", type=int, action="append", help="run only these case indices (repeatable)")
     parser.add_argument("--small", action="store_true", help="mutate only the small captures (as make test does)")

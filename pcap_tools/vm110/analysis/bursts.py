@@ -48,7 +48,7 @@ class Bursts:
         self.first: tuple[int, float] = (0, 0.0)    # the open burst's first packet
         self.parts: list[tuple[int, int]] = []       # its (packet number, data bytes)
         self.overflow = False                        # more parts than MAX_PARTS
-        self.last_time = None
+        self.last_time: Optional[float] = None
 
     def _whole(self, parts: list[tuple[int, int]]) -> bool:
         parts = sorted(parts)

@@ -44,12 +44,15 @@ class Command:
 
     @property
     def latency_last_ms(self) -> Optional[float]:
-        return None if self.ack_time is None else (self.ack_time - self.last_before_ack) * timing.MS
+        if self.ack_time is None or self.last_before_ack is None:
+            return None
+        return (self.ack_time - self.last_before_ack) * timing.MS
 
     def failed(self, fail_ms: float) -> bool:
         if self.interrupted_frame is not None:
             return False
-        return self.ack_time is None or self.latency_first_ms > fail_ms
+        latency = self.latency_first_ms
+        return latency is None or latency > fail_ms
 
 
 @dataclass
@@ -77,6 +80,7 @@ class Tracker:
 
     def apply(self, events: Iterable[tuple]) -> None:
         tallies, open_, by_id, last_id, reuse = self.tallies, self.open, self.by_id, self.last_id, self.reuse
+        cmd: Optional[Command]
         for frame, ts, code, sender, cid in events:
             if code == RESTART:
                 for key in [k for k in open_ if k[1] == sender]:

@@ -78,7 +78,7 @@ Progress = Callable[[int, int], None]
 def crc_matches(data: bytes, end: int) -> set[tuple[str, str]]:
     """Every (variant, byte order) under which the CRC at `end` validates `data[:end]`."""
     stored = data[end:end + C.CRC_LEN]
-    got = set()
+    got: set[tuple[str, str]] = set()
     for variant in VARIANTS:
         value = crc32(data[:end], variant)
         for order in BYTE_ORDERS:
@@ -93,13 +93,14 @@ def crc_candidates(path: str, ports: Collection[int], limit: Optional[int] = Non
     order) validates."""
     counts: Counter = Counter()
     seen = 0
-    for _, _, sport, dport, payload, _ in CaptureReader(path, chunk_size=chunk_size):
-        if (sport in ports or dport in ports) and len(payload) >= C.OVERHEAD:
-            size = struct.unpack_from("<H", payload, C.ID_LEN + 6)[0]
-            counts.update(crc_matches(payload, min(C.PREFIX_LEN + size, len(payload) - C.CRC_LEN)))
-            seen += 1
-            if seen == limit:
-                break
+    with CaptureReader(path, chunk_size=chunk_size) as reader:
+        for _, _, sport, dport, payload, _ in reader:
+            if (sport in ports or dport in ports) and len(payload) >= C.OVERHEAD:
+                size = struct.unpack_from("<H", payload, C.ID_LEN + 6)[0]
+                counts.update(crc_matches(payload, min(C.PREFIX_LEN + size, len(payload) - C.CRC_LEN)))
+                seen += 1
+                if seen == limit:
+                    break
     return counts
 
 
@@ -215,7 +216,11 @@ class FastEngine:
             conn.close()
 
     def _read(self, path: str, variant: str, order: str, analysis) -> Collected:
-        reader = CaptureReader(path)
+        with CaptureReader(path) as reader:
+            return self._read_from(reader, variant, order, analysis)
+
+    def _read_from(self, reader: CaptureReader, variant: str, order: str, analysis) -> Collected:
+        path = reader.path
         got = Collected(path=path, engine="fast", analysis=analysis, format=reader.format,
                         ports=tuple(sorted(self.ports)), crc_variant=variant, crc_order=order,
                         crc_auto=self.crc == "auto" or self.crc_order == "auto")

@@ -57,7 +57,8 @@ class Floats:
     def intervals_ms(self, before: Optional[float] = None) -> np.ndarray:
         """`timing.intervals_ms` of the values (after `before`, when given), a block at a time."""
         out = np.empty(max(self.size - (before is None), 0))
-        at, prev = 0, ([] if before is None else [before])
+        prev: timing.FloatSeq = [] if before is None else [before]
+        at = 0
         for k, block in enumerate(self.blocks):
             part = block[:self.used] if k == len(self.blocks) - 1 else block
             gaps = timing.intervals_ms(np.concatenate((prev, part)))
@@ -147,8 +148,8 @@ def plot(after: Callable[[int], float], gaps: np.ndarray) -> dict:
     step = max(1, math.ceil(len(gaps) / SERIES_POINTS))
     series = [[after(i), float(gaps[i:i + step].max())] for i in range(0, len(gaps), step)]
     gaps.sort()
-    low, high = float(gaps[0]), timing.percentile(gaps, 99.9)
-    high = max(high, low + 1e-3)
+    low, top = float(gaps[0]), timing.percentile(gaps, 99.9)
+    high = max(low if top is None else top, low + 1e-3)
     width = (high - low) / HISTOGRAM_BINS
     counts = np.zeros(HISTOGRAM_BINS + 1, dtype=np.int64)
     for a in range(0, len(gaps), _CHUNK):      # a chunk at a time: no per-interval temporaries

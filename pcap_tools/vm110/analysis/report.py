@@ -12,6 +12,7 @@ from .. import constants as C
 from . import commands, findings, serials, timing
 from .collect import CODE, TYPES, VRPO_CODE, Collected
 from .report_json import normalise
+from .bursts import Bursts
 from .sender import Sender
 
 SCHEMA_VERSION = 2
@@ -62,8 +63,8 @@ def _build(got: Collected) -> dict:
                           until_end=v["until_end"])
             for frame, t in backwards:
                 where.add("time_backwards", frame, t, snd.id, type=stream.ptype)
-            if code == VRPO_CODE:
-                burst_rows.append(_bursts(snd, row, opt, where))
+            if code == VRPO_CODE and snd.bursts is not None:     # always: the VRPO stream comes with them
+                burst_rows.append(_bursts(snd, snd.bursts, row, opt, where))
             periodic.append(row)
         if snd.timeline is not None:
             states.append({"sender": snd.id, **snd.timeline.report(got.last_ts)})
@@ -82,7 +83,8 @@ def _build(got: Collected) -> dict:
             "other_udp_packets": got.other_udp, "non_udp_packets": got.non_udp,
             "fragments": got.fragments, "snaplen_truncated": got.snap_truncated,
             "first_time": got.first_ts, "last_time": got.last_ts,
-            "duration_s": (got.last_ts - got.first_ts) if got.first_ts is not None else 0.0,
+            "duration_s": (got.last_ts - got.first_ts) if got.first_ts is not None and got.last_ts is not None
+            else 0.0,
             "time_backwards": stepped_back, "problem": got.problem, "ports": list(got.ports),
             "damage": None if got.problem is None else {"offset": got.damage, "message": got.problem},
         },
@@ -137,14 +139,14 @@ def _sender_report(snd: Sender, where: findings.Where) -> dict:
     }
 
 
-def _bursts(snd: Sender, row: dict, opt: Options, where: findings.Where) -> dict:
+def _bursts(snd: Sender, b: Bursts, row: dict, opt: Options, where: findings.Where) -> dict:
     """Period, jitter and the 50-200 ms recommendation of VRPO apply to bursts: split packets go
     back to back. Completes the sender's VRPO `row`; returns its `vrpo_bursts.per_sender` row."""
-    b = snd.bursts
     starts = b.starts
     between = starts.intervals_ms()
     ordered = np.sort(between)
-    period = opt.vrpo_period_ms or (round(timing.percentile(ordered, 50.0)) if len(ordered) else None)
+    median = timing.percentile(ordered, 50.0)      # None when there are no intervals
+    period = opt.vrpo_period_ms or (round(median) if median is not None else None)
     spread = timing.summary_sorted(ordered)
     del ordered                              # before the jitter's series: one copy at a time
     row["nominal_ms"] = period

@@ -109,8 +109,9 @@ class Chart:
     def bars(self, items: Iterable[tuple[float, float, float]], color: str) -> None:
         for left, width, height in items:
             x, x2 = self.x(left), self.x(left + width)
-            self.parts.append(f'<rect class="bar" x="{x:.1f}" y="{self.y(height):.1f}" width="{max(x2 - x - 1, 1):.1f}" '
-                              f'height="{self.y(self.y0) - self.y(height):.1f}" fill="{color}"/>')
+            self.parts.append(f'<rect class="bar" x="{x:.1f}" y="{self.y(height):.1f}" '
+                              f'width="{max(x2 - x - 1, 1):.1f}" height="{self.y(self.y0) - self.y(height):.1f}" '
+                              f'fill="{color}"/>')
 
     def polyline(self, points: Iterable[tuple[float, float]], color: str) -> None:
         pts = " ".join(f"{self.x(a):.1f},{self.y(b):.1f}" for a, b in points)
@@ -172,7 +173,7 @@ def _series_plot(p: dict, t0: float) -> str:
     if not series:
         return _empty("interval-time", name, "fewer than two packets")
     limit = p["watchdog"]["limit_ms"]
-    c = Chart(t0, max(t for t, _ in series), 0, max(max(v for _, v in series), limit) * 1.1,
+    c = Chart(t0, max(t for t, _ in series), 0, max(*(v for _, v in series), limit) * 1.1,
               "time since capture start (s)", "interval (ms, max per bucket)", xtime=True)
     c.axes()
     c.steps(series, COLORS[0])
@@ -211,21 +212,22 @@ def _latency_plot(report: dict) -> str:
     c = Chart(low, low + width * (bins + 1), 0, max(max(v) for v in counts.values()) * 1.1,
               "ack latency from the first transmission (ms)", "commands")
     c.axes()
-    for i, (n, cs) in enumerate(counts.items()):
+    for i, cs in enumerate(counts.values()):
         c.bars(((low + k * width + i * width / 2, width / 2, m) for k, m in enumerate(cs) if m), COLORS[i])
     c.legend([(n, COLORS[i]) for i, n in enumerate(counts)])
     return c.svg("ack-latency", "Ack latency distribution")
 
 
 def _retransmission_plot(report: dict) -> str:
-    hists = {n: {int(k): v for k, v in cmd["retransmission_histogram"].items()} for n, cmd in report["commands"].items()}
+    hists = {n: {int(k): v for k, v in cmd["retransmission_histogram"].items()}
+             for n, cmd in report["commands"].items()}
     keys = sorted({k for h in hists.values() for k in h})
     if not keys:
         return _empty("retransmissions", "Retransmissions per command", "no commands")
     c = Chart(-0.5, keys[-1] + 0.5, 0, max(v for h in hists.values() for v in h.values()) * 1.1,
               "retransmissions of a command", "commands", xint=True)
     c.axes()
-    for i, (n, h) in enumerate(hists.items()):
+    for i, h in enumerate(hists.values()):
         c.bars(((k - 0.4 + i * 0.4, 0.4, v) for k, v in h.items()), COLORS[i])
     c.legend([(n, COLORS[i]) for i, n in enumerate(hists)])
     return c.svg("retransmissions", "Retransmissions per command")
@@ -264,11 +266,13 @@ def _findings_table(findings: list[dict], t0: float) -> str:
     for f in findings:
         for item in f.get("items", []):
             what = ", ".join(f"{k} {v}" for k, v in item.items()
-                             if k not in ("frame", "frames", "time", "sender", "filter") and v is not None and v is not False)
+                             if k not in ("frame", "frames", "time", "sender", "filter")
+                             and v is not None and v is not False)
             frames = item.get("frames", [item["frame"]])
             rows.append(f'<tr><td class="{_e(f["severity"])}">{_e(f["rule"])}</td>'
                         f"<td>{_e(', '.join(map(str, frames[:10])) + (' …' if len(frames) > 10 else ''))}</td>"
-                        f"<td>{summary.since(item['time'], t0)}</td><td>{_e(item.get('sender', ''))}</td><td>{_e(what)}</td>"
+                        f"<td>{summary.since(item['time'], t0)}</td><td>{_e(item.get('sender', ''))}</td>"
+                        f"<td>{_e(what)}</td>"
                         f'<td><code class="filter">{_e(item["filter"])}</code></td></tr>')
         if f.get("more"):
             rows.append(f'<tr><td>{_e(f["rule"])}</td><td colspan="5">… {f["more"]} more in the JSON report</td></tr>')
@@ -283,15 +287,16 @@ def _section(report: dict) -> str:
     t0 = cap["first_time"] or 0.0
     t1 = cap["last_time"] or t0 + 1
     out = [f"<h2>{_e(cap['file'])}</h2>",
-           f'<p><span class="{"ok" if verdict["ok"] else "fail"}">{"OK" if verdict["ok"] else "FAIL"}</span> '
-           f"{cap['packets']} packets, {cap['eglink_packets']} EG-Link, {_num(cap['duration_s'], 1)} s; "
-           f"CRC {_e(crc['variant'])}/{_e(crc['byte_order'])}: {crc['valid']} valid, {crc['invalid']} invalid</p>"]
+           (f'<p><span class="{"ok" if verdict["ok"] else "fail"}">{"OK" if verdict["ok"] else "FAIL"}</span> '
+            f"{cap['packets']} packets, {cap['eglink_packets']} EG-Link, {_num(cap['duration_s'], 1)} s; "
+            f"CRC {_e(crc['variant'])}/{_e(crc['byte_order'])}: {crc['valid']} valid, {crc['invalid']} invalid</p>")]
     if verdict["findings"]:
         out.append("<ul>" + "".join(f'<li class="{_e(f["severity"])}">{_e(f["severity"])}: {_e(f["message"])}</li>'
                                     for f in verdict["findings"]) + "</ul>")
         out.append(_findings_table(verdict["findings"], t0))
     if report["illegal"]["total"]:
-        out.append("<h3>Illegal packets</h3>" + _table(["reason", "packets"], list(report["illegal"]["by_reason"].items())))
+        out.append("<h3>Illegal packets</h3>"
+                   + _table(["reason", "packets"], list(report["illegal"]["by_reason"].items())))
     out.append("<h3>Senders</h3>")
     out.append(_table(["sender", "packets by type", "scope", "received", "lost", "gaps", "duplicates",
                        "out of order", "wraps", "restarts"],
@@ -343,8 +348,8 @@ def render(reports: list[dict], combined: Optional[dict] = None, errors: Sequenc
     ok = all(r["verdict"]["ok"] for r in reports) and not errors
     parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
              "<title>VM-110 EG-Link capture analysis</title>", f"<style>{CSS}</style></head><body>",
-             f"<h1>VM-110 EG-Link capture analysis "
-             f'<span class="{"ok" if ok else "fail"}">{"OK" if ok else "FAIL"}</span></h1>',
+             ("<h1>VM-110 EG-Link capture analysis "
+              f'<span class="{"ok" if ok else "fail"}">{"OK" if ok else "FAIL"}</span></h1>'),
              f"<p>vm110 {_e(__version__)}, engine {_e(reports[0]['tool']['engine'])}</p>"]
     if errors:
         parts.append("<h2>Captures that could not be read</h2><ul>"

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any, Optional, TextIO
+from typing import IO, Any, Optional
 
 from ..fileio import atomic_writer
 
@@ -11,7 +11,8 @@ SECONDS_DECIMALS = 6   # times to the microsecond, the resolution of a capture's
 MS_DECIMALS = 3        # durations in ms (keys ending in _ms, and everything under them) likewise
 
 
-PRE_ROUNDED = frozenset({"list", "acks_without_command_list", "duplicate_acks_list"})   # commands.report rounds these itself
+# commands.report rounds these itself
+PRE_ROUNDED = frozenset({"list", "acks_without_command_list", "duplicate_acks_list"})
 
 
 def round_s(value: Optional[float]) -> Optional[float]:
@@ -47,7 +48,7 @@ def normalise(value: Any, ms: bool = False) -> Any:
     return value
 
 
-def dump(out: TextIO, document: dict) -> None:
+def dump(out: IO[str], document: dict) -> None:
     json.dump(document, out, indent=1, allow_nan=False)    # streamed: no second copy in memory
     out.write("\n")
 

@@ -138,7 +138,9 @@ class Sender:
         key = None if self.scope == "sender" else (
             probe.successor.first_code if probe.successor.first_code in self.counters else probe.last_code)
         counter = self.counters.get(key)
-        probe.successor.link["from"] = counter.h if counter is not None else 0
+        link = probe.successor.link
+        assert link is not None, "a successor is probed once its restart link is set"
+        link["from"] = counter.h if counter is not None else 0
         probe.successor.before = {code: self._last_accepted(code) for code in (VRPI_CODE, VRPO_CODE)}
 
     def _last_accepted(self, code: int) -> Optional[float]:
@@ -228,8 +230,8 @@ class Sender:
             else:
                 if self.bursts is None:
                     opt = self.opt
-                    self.bursts = Bursts(stream.times, opt.burst_gap_ms, opt.vrpo_start, opt.vrpo_data_size, opt.vrpo_min_ms,
-                                         opt.vrpo_max_ms)
+                    self.bursts = Bursts(stream.times, opt.burst_gap_ms, opt.vrpo_start, opt.vrpo_data_size,
+                                         opt.vrpo_min_ms, opt.vrpo_max_ms)
                 self.bursts.feed(mine["ts"], mine["aux"], mine["size"], frames)
         command = np.isin(codes, COMMAND_CODES)
         if command.any():

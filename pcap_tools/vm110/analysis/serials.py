@@ -24,6 +24,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .. import constants as C
+from .timing import FloatSeq, IntSeq
 
 MOD, HALF = C.SERIAL_MODULUS, C.SERIAL_HALF
 MASK = MOD - 1
@@ -82,7 +83,7 @@ class SerialTimes:
     SMALL = 2048
 
     def __init__(self) -> None:
-        self.few: Optional[dict] = {}
+        self.few: dict[int, float] = {}              # unused (empty) once `all` exists
         self.all: Optional[np.ndarray] = None
         self.sorted: Optional[tuple] = None          # `few` as sorted arrays, until it changes
 
@@ -118,7 +119,7 @@ class SerialTimes:
         if len(self.few) > self.SMALL:
             self.all = np.full(MOD, NEVER)
             self.all[list(self.few)] = list(self.few.values())
-            self.few = None
+            self.few = {}
 
     def clear(self) -> None:
         if self.all is not None:
@@ -144,7 +145,7 @@ class Counter:
         self.start = self.prev = 0.0
         # Packets of the last RATE_WINDOW_S (all, duplicates too) for the rate: their times, the
         # number of the first among every packet of the counter, and the numbers of duplicates.
-        self.recent = np.empty(0)
+        self.recent: np.ndarray = np.empty(0)
         self.recent_base = 0
         self.start_pos = 0
         self.dup_pos: list[int] = []
@@ -158,7 +159,7 @@ class Counter:
         self.h, self.start, self.start_pos, self.prev = s, t, pos, t
         self.accepted_at[s] = t
 
-    def feed(self, serials: Sequence[int], times: Sequence[float], where: Sequence[int], final: bool = False,
+    def feed(self, serials: IntSeq, times: FloatSeq, where: IntSeq, final: bool = False,
              limit: Optional[int] = None) -> int:
         """Judge packets in arrival order; returns how many were decided (all when `final`).
         `where` names each packet in the results; `limit` stops once the anomalies exceed it."""
@@ -317,7 +318,7 @@ class Counter:
         return res
 
 
-def classify(serials: Sequence[int], times: Sequence[float], index: Optional[Sequence[int]] = None,
+def classify(serials: IntSeq, times: FloatSeq, index: Optional[IntSeq] = None,
              limit: Optional[int] = None, dup_window_ms: float = DUP_WINDOW_MS) -> SerialResult:
     """Classify one counter's serials in arrival order, all at once. `index` names the positions
     in the results (default: the positions); `limit` stops early once the anomalies exceed it."""

@@ -46,9 +46,9 @@ def _finding(f: dict, everything: bool, t0: float) -> list[str]:
 def render(report: dict, everything: bool = False) -> str:
     """The summary; `everything`: every located item of each finding, not just the first few."""
     cap, crc, verdict = report["capture"], report["crc"], report["verdict"]
-    lines = [f"{cap['file']}: {cap['packets']} packets, {cap['eglink_packets']} EG-Link, "
-             f"{_f(cap['duration_s'])} s; CRC {crc['variant']}/{crc['byte_order']}"
-             f"{' (auto)' if crc['auto'] else ''}: {crc['valid']} valid, {crc['invalid']} invalid"]
+    lines = [(f"{cap['file']}: {cap['packets']} packets, {cap['eglink_packets']} EG-Link, "
+              f"{_f(cap['duration_s'])} s; CRC {crc['variant']}/{crc['byte_order']}"
+              f"{' (auto)' if crc['auto'] else ''}: {crc['valid']} valid, {crc['invalid']} invalid")]
     errors = sum(1 for f in verdict["findings"] if f["severity"] == "error")
     warnings = len(verdict["findings"]) - errors
     lines.append(f"VERDICT: {'OK' if verdict['ok'] else 'FAIL'} ({errors} errors, {warnings} warnings)")
@@ -77,7 +77,8 @@ def render(report: dict, everything: bool = False) -> str:
             if not p:
                 continue
             iv, jit = p["interval_ms"], p["jitter_ms"] or {}
-            rows.append([f"{ptype} ms", str(p["count"]), *(_f(iv[k]) for k in ("min", "mean", "p50", "p95", "p99", "p999", "max")),
+            rows.append([f"{ptype} ms", str(p["count"]),
+                         *(_f(iv[k]) for k in ("min", "mean", "p50", "p95", "p99", "p999", "max")),
                          _f(jit.get("max"), 2), f"{len(p['watchdog']['violations'])} > {p['watchdog']['limit_ms']:g}"])
         if len(rows) > 1:
             lines += _table(rows)
@@ -87,8 +88,9 @@ def render(report: dict, everything: bool = False) -> str:
     for name, c in report["commands"].items():
         lat = c["ack_latency_ms"]
         rows.append([name, *(str(c[k]) for k in ("commands", "transmissions", "retransmissions", "acked", "unacked",
-                                                 "interrupted", "failed", "spurious_retransmissions", "acks_without_command",
-                                                 "duplicate_acks")), _f(lat["p50"]), _f(lat["p95"]), _f(lat["max"])])
+                                                 "interrupted", "failed", "spurious_retransmissions",
+                                                 "acks_without_command", "duplicate_acks")),
+                     _f(lat["p50"]), _f(lat["p95"]), _f(lat["max"])])
     lines += _table(rows, "")
     b = report["vrpo_bursts"]
     lines.append(f"VRPO bursts: {b['complete']} complete, {b['incomplete']} incomplete")
@@ -107,5 +109,5 @@ def render_combined(combined: dict) -> str:
         t = c["totals"]
         rows.append([c["file"], "OK" if c["ok"] else "FAIL", *(str(t[k]) for k in ("packets", "lost", "illegal",
                                                                                    "watchdog", "unacked", "failed"))])
-    return "\n".join([f"Combined: {len(combined['captures'])} captures, "
-                      f"{'all OK' if combined['ok'] else 'FAIL'}", *_table(rows)])
+    return "\n".join([(f"Combined: {len(combined['captures'])} captures, "
+                       f"{'all OK' if combined['ok'] else 'FAIL'}"), *_table(rows)])

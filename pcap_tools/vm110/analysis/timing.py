@@ -4,9 +4,13 @@ Times come in as numpy float64 arrays of seconds; results go out as plain floats
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Union
 
 import numpy as np
+
+# A column of numbers: a list or a numpy array (an ndarray is no typing.Sequence).
+FloatSeq = Union[Sequence[float], np.ndarray]
+IntSeq = Union[Sequence[int], np.ndarray]
 
 PERCENTILES = (("p50", 50.0), ("p95", 95.0), ("p99", 99.0), ("p999", 99.9))
 SUMMARY_KEYS = ("min", "mean", *(k for k, _ in PERCENTILES), "max")
@@ -16,14 +20,14 @@ _BLOCK = 256          # (16/15)**256 ~ 1.5e7: the block recurrence stays well in
 _CHUNK = _BLOCK * 256
 
 
-def intervals_ms(times: Sequence[float]) -> np.ndarray:
+def intervals_ms(times: FloatSeq) -> np.ndarray:
     """Differences of consecutive times, in milliseconds to the microsecond: an epoch time in a
     float64 carries about 0.24 us of noise, which would put an interval of exactly 200 ms above
     a 200 ms limit (the dissector rounds to the microsecond as well)."""
     return np.round(np.diff(np.asarray(times, dtype=np.float64)) * 1e6) / MS
 
 
-def percentile(ordered: Sequence[float], q: float) -> Optional[float]:
+def percentile(ordered: FloatSeq, q: float) -> Optional[float]:
     """The q-th percentile of sorted values, linear between closest ranks (numpy's default)."""
     n = len(ordered)
     if not n:
@@ -34,7 +38,7 @@ def percentile(ordered: Sequence[float], q: float) -> Optional[float]:
     return float(ordered[low] + (ordered[high] - ordered[low]) * (pos - low))
 
 
-def summary(values: Sequence[float], keys: tuple = SUMMARY_KEYS) -> dict:
+def summary(values: FloatSeq, keys: tuple = SUMMARY_KEYS) -> dict:
     """min, mean, percentiles and max of values (None each when there are none)."""
     return summary_sorted(np.sort(np.asarray(values, dtype=np.float64)), keys)
 

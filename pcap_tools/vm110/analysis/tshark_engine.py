@@ -12,6 +12,7 @@ from __future__ import annotations
 import ipaddress
 import os
 import shutil
+import signal
 import struct
 import subprocess
 import tempfile
@@ -58,6 +59,14 @@ def _int(value: str) -> int:
     return int(value, 0)
 
 
+def release_sigchld(cap) -> None:
+    """Give SIGCHLD back after a pyshark capture is closed. pyshark routes it to its event loop,
+    through the loop's signal wakeup pipe, and leaves it so: every later child process of ours
+    would write to a pipe nobody reads, until it is full and Python reports each failed write."""
+    if os.name == "posix":
+        cap.eventloop.remove_signal_handler(signal.SIGCHLD)
+
+
 class TsharkEngine:
     def __init__(self, port: int = C.INPUT_PORT, crc: str = "auto", crc_order: str = "auto") -> None:
         self.port, self.crc, self.crc_order = port, crc, crc_order
@@ -85,13 +94,15 @@ class TsharkEngine:
                 # why it ended, and leave pyshark nothing to raise again when it is collected.
                 self.stopped = cap._last_error_line or "tshark stopped"
                 cap._running_processes.clear()
+            finally:
+                release_sigchld(cap)
 
     def collect(self, path: str, opt) -> Collected:
         """Read the capture through tshark, feeding its legal packets to an `Analysis` with `opt`."""
         check_available()
-        reader = CaptureReader(path)           # clean errors for unreadable files, and file facts
-        for _ in reader.batches():
-            pass
+        with CaptureReader(path) as reader:    # clean errors for unreadable files, and file facts
+            for _ in reader.batches():
+                pass
         if reader.damage is None:
             return self._collect(path, path, reader, opt)
         # tshark gets the intact part only: the same frames the reader took, and no crash.
@@ -129,7 +140,8 @@ class TsharkEngine:
         return got
 
     def _pass(self, path: str, name: str, reader: CaptureReader, opt, variant: str, order: str) -> Collected:
-        got = Collected(path=name, engine="tshark", analysis=Analysis(opt), format=reader.format, link_types=sorted(reader.link_types),
+        got = Collected(path=name, engine="tshark", analysis=Analysis(opt), format=reader.format,
+                        link_types=sorted(reader.link_types),
                         ports=(self.port, self.port + C.OUTPUT_PORT_OFFSET), crc_variant=variant,
                         crc_order=order, crc_auto=self.crc == "auto" or self.crc_order == "auto",
                         problem=reader.problem, first_ts=reader.first_ts, last_ts=reader.last_ts)

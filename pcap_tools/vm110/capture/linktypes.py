@@ -15,7 +15,7 @@ NAMES = {
     LINKTYPE_NULL: "null", LINKTYPE_ETHERNET: "ethernet", LINKTYPE_RAW: "raw",
     LINKTYPE_LOOP: "loop", LINKTYPE_LINUX_SLL: "linux-sll", LINKTYPE_IPV4: "ipv4",
     LINKTYPE_IPV6: "ipv6", LINKTYPE_LINUX_SLL2: "linux-sll2",
-    **{n: "raw" for n in DLT_RAW_ALIASES},
+    **dict.fromkeys(DLT_RAW_ALIASES, "raw"),
 }
 
 ETHERTYPE_IPV4 = 0x0800

@@ -60,30 +60,22 @@ class CaptureError(CliError):
 
 
 class CaptureReader:
-    """One capture file; iterate it (or its `batches()`) once."""
+    """One capture file; iterate it (or its `batches()`) once. A walk closes the file when it
+    ends; use the reader as a context manager (`with CaptureReader(path) as reader:`) so that the
+    file is closed also when a walk stops early or never starts."""
 
     def __init__(self, path: str, chunk_size: int = CHUNK) -> None:
         self.path = path
         self.chunk_size = chunk_size
         try:
-            self._file: BinaryIO = open(path, "rb")
-            self.size = os.fstat(self._file.fileno()).st_size
+            self._file: BinaryIO = open(path, "rb")   # noqa: SIM115 -- the reader owns it; close()/with
         except OSError as exc:
             raise CaptureError(f"cannot read {path}: {exc.strerror}") from None
-        head = self._file.read(4)
-        if not head:
-            raise CaptureError(f"{path}: empty file, not a pcap or pcapng capture")
-        if len(head) < 4:
-            raise CaptureError(f"{path}: not a pcap or pcapng capture (too short)")
-        magic_le = struct.unpack("<I", head)[0]
-        magic_be = struct.unpack(">I", head)[0]
-        if magic_le == PCAPNG_SHB:
-            self.format = "pcapng"
-        elif PCAP_MAGIC_US in (magic_le, magic_be) or PCAP_MAGIC_NS in (magic_le, magic_be):
-            self.format = "pcap"
-        else:
-            raise CaptureError(f"{path}: not a pcap or pcapng capture (magic 0x{magic_be:08x})")
-        self._file.seek(0)
+        try:
+            self.size, self.format = self._identify(path)
+        except BaseException:
+            self._file.close()
+            raise
         self.frames = 0            # every packet record
         self.non_udp = 0           # frames that carry no (whole) UDP datagram
         self.fragments = 0         # IP fragments (counted in non_udp)
@@ -98,6 +90,36 @@ class CaptureReader:
         self._layout: Optional[PcapLayout] = None
         self.endian = "<"                       # pcapng: of the current section
         self.interfaces: list[tuple] = []       # pcapng: (link, ticks/s or 0, s/tick, offset, Ethernet?)
+
+    def _identify(self, path: str) -> tuple[int, str]:
+        """The file's size and format ("pcap" or "pcapng") from its magic, or CaptureError."""
+        try:
+            size = os.fstat(self._file.fileno()).st_size
+            head = self._file.read(4)
+            self._file.seek(0)
+        except OSError as exc:
+            raise CaptureError(f"cannot read {path}: {exc.strerror}") from None
+        if not head:
+            raise CaptureError(f"{path}: empty file, not a pcap or pcapng capture")
+        if len(head) < 4:
+            raise CaptureError(f"{path}: not a pcap or pcapng capture (too short)")
+        magic_le = struct.unpack("<I", head)[0]
+        magic_be = struct.unpack(">I", head)[0]
+        if magic_le == PCAPNG_SHB:
+            return size, "pcapng"
+        if PCAP_MAGIC_US in (magic_le, magic_be) or PCAP_MAGIC_NS in (magic_le, magic_be):
+            return size, "pcap"
+        raise CaptureError(f"{path}: not a pcap or pcapng capture (magic 0x{magic_be:08x})")
+
+    def close(self) -> None:
+        """Close the file; safe to repeat."""
+        self._file.close()
+
+    def __enter__(self) -> CaptureReader:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
 
     # -- public --------------------------------------------------------------------------------
     def batches(self) -> Iterator[list[Datagram]]:
@@ -121,7 +143,7 @@ class CaptureReader:
         if len(head) < PCAP_HEADER_LEN:
             raise CaptureError(f"{self.path}: pcap file header cut short")
         e = "<" if struct.unpack("<I", head[:4])[0] in (PCAP_MAGIC_US, PCAP_MAGIC_NS) else ">"
-        magic, _, _, _, _, snaplen, network = struct.unpack(e + "IHHiIII", head)
+        magic, _, _, _, _, _snaplen, network = struct.unpack(e + "IHHiIII", head)
         link = network & 0x0FFFFFFF      # the top bits may carry FCS information
         self.link_types.add(L.NAMES.get(link, str(link)))
         # Never the snaplen: a file's own header must not let a record claim gigabytes.
@@ -226,7 +248,7 @@ class CaptureReader:
         blocks update the reader; a packet block returns (ts, link, start of frame, captured
         length, original length); anything else None. A bad byte-order magic raises CaptureError."""
         e = self.endian
-        if btype == PCAPNG_EPB or btype == PCAPNG_PB:
+        if btype in (PCAPNG_EPB, PCAPNG_PB):
             if btype == PCAPNG_EPB:
                 iface, tsh, tsl, incl, orig = struct.unpack_from(e + "IIIII", data, pos + 8)
             else:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import ipaddress
 import struct
-from typing import BinaryIO, Iterable, Literal, Optional
+from typing import Iterable, Literal, Optional, Protocol
 
 LINKTYPE_ETHERNET = 1
 SNAPLEN = 65535
@@ -97,10 +97,18 @@ class UdpFlow:
         return shape
 
 
+class ByteSink(Protocol):
+    """Where a writer puts its bytes: a binary file, or anything with the same two methods."""
+
+    def write(self, data: bytes, /) -> object: ...
+
+    def flush(self) -> object: ...
+
+
 class _Writer:
     _FLUSH_EVERY = 4096
 
-    def __init__(self, stream: BinaryIO) -> None:
+    def __init__(self, stream: ByteSink) -> None:
         self._stream = stream
         self._parts: list[bytes] = []
         self.count = 0
@@ -138,7 +146,7 @@ class _Writer:
 class PcapWriter(_Writer):
     """Classic pcap, microsecond timestamps, little-endian."""
 
-    def __init__(self, stream: BinaryIO, linktype: int = LINKTYPE_ETHERNET, snaplen: int = SNAPLEN) -> None:
+    def __init__(self, stream: ByteSink, linktype: int = LINKTYPE_ETHERNET, snaplen: int = SNAPLEN) -> None:
         super().__init__(stream)
         stream.write(_PCAP_GLOBAL.pack(_PCAP_MAGIC_US, 2, 4, 0, 0, snaplen, linktype))
 
@@ -167,7 +175,7 @@ class PcapngWriter(_Writer):
     _EPB_OVERHEAD = _EPB_HEAD.size + _EPB_TAIL.size
     _PADS = tuple(bytes(-n % 4) for n in range(4))
 
-    def __init__(self, stream: BinaryIO, linktype: int = LINKTYPE_ETHERNET, snaplen: int = SNAPLEN,
+    def __init__(self, stream: ByteSink, linktype: int = LINKTYPE_ETHERNET, snaplen: int = SNAPLEN,
                  application: str = "vm110") -> None:
         super().__init__(stream)
         shb = struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1) + _option(4, application.encode()) + self._END_OF_OPTIONS
@@ -186,7 +194,7 @@ class PcapngWriter(_Writer):
         return records
 
 
-def open_writer(stream: BinaryIO, fmt: Format = "pcap") -> _Writer:
+def open_writer(stream: ByteSink, fmt: Format = "pcap") -> _Writer:
     """A writer of the given format on an open binary stream."""
     if fmt == "pcap":
         return PcapWriter(stream)

@@ -143,8 +143,8 @@ def run(args: argparse.Namespace) -> int:
                       vrpi_watchdog_ms=args.vrpi_watchdog, vrpo_watchdog_ms=args.vrpo_watchdog,
                       vrpo_min_ms=args.vrpo_range[0], vrpo_max_ms=args.vrpo_range[1], resend_ms=args.resend,
                       vrci_fail_ms=args.vrci_fail, vrco_give_up_ms=args.vrco_give_up,
-                      reuse_gap_ms=args.reuse_gap, dup_window_ms=args.dup_window, burst_gap_ms=args.burst_gap, vrpo_start=args.vrpo_start,
-                      vrpo_data_size=args.vrpo_data_size)
+                      reuse_gap_ms=args.reuse_gap, dup_window_ms=args.dup_window, burst_gap_ms=args.burst_gap,
+                      vrpo_start=args.vrpo_start, vrpo_data_size=args.vrpo_data_size)
     with contextlib.ExitStack() as stack:
         paths = [stdin_spool(stack) if p == "-" else p for p in args.captures]
         jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1) for p in paths]
@@ -181,10 +181,7 @@ def run(args: argparse.Namespace) -> int:
             sys.stdout.write(report_html.render(reports, combined, errors))
         else:
             report_html.write(args.html, reports, combined, errors)
-    broken = []
-    for r in reports:
-        for v in rules.violations(fail_rules, r["totals"]):
-            broken.append(f"{r['capture']['file']}: {v}")
+    broken = [f"{r['capture']['file']}: {v}" for r in reports for v in rules.violations(fail_rules, r["totals"])]
     for line in broken:
         print(f"fail-on: {line}", file=sys.stderr)
     if errors:

@@ -63,7 +63,7 @@ def _jsonable(value: Any) -> Any:
 def run(args: argparse.Namespace) -> int:
     count = 0
     with contextlib.ExitStack() as stack:
-        reader = CaptureReader(stdin_spool(stack) if args.capture == "-" else args.capture)
+        reader = stack.enter_context(CaptureReader(stdin_spool(stack) if args.capture == "-" else args.capture))
         for number, when, src, data in eglink_datagrams(reader, args.port):
             fields = decode(data, args.crc, args.crc_order)
             count += 1

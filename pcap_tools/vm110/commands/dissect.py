@@ -45,7 +45,8 @@ def _check_loads(tshark: str, plugin: Path) -> None:
 def run(args: argparse.Namespace) -> int:
     tshark = shutil.which("tshark")
     if tshark is None:
-        raise CliError("tshark not found on the PATH: install Wireshark's tshark (Debian/Ubuntu: apt-get install tshark)")
+        raise CliError("tshark not found on the PATH: install Wireshark's tshark "
+                       "(Debian/Ubuntu: apt-get install tshark)")
     plugin = plugin_path()
     if not plugin.is_file():
         raise CliError(f"the dissector is not at {plugin} (set {PLUGIN_ENV} to its path)")

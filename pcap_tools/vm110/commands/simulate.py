@@ -167,9 +167,9 @@ def build_node(args: argparse.Namespace, printer: Callable[[str], None]) -> Any:
         remote = Remote.load(args.script) if args.script else Remote.simple(
             armed=not args.disarmed, unarmed_rus=args.unarmed_rus, motion=not args.no_motion,
             command_every=args.command_every)
-        cfg = BaseUnitConfig(origin=args.origin, command_id_start=args.command_id_start,
-                             glink=tuple(args.glink), seed=args.seed, **life(args))
-        return BaseUnit(remote, cfg, printer=printer, serial_start=args.serial_start)
+        bu_cfg = BaseUnitConfig(origin=args.origin, command_id_start=args.command_id_start,
+                                glink=tuple(args.glink), seed=args.seed, **life(args))
+        return BaseUnit(remote, bu_cfg, printer=printer, serial_start=args.serial_start)
     cfg = ControllerConfig(period_ms=args.period, data_size=args.data_size, vrco_timeout_ms=args.vrco_timeout,
                            vrpi_timeout_ms=args.vrpi_timeout, command_every_s=args.command_every,
                            command_id_start=args.command_id_start, glink=tuple(args.glink), **life(args))

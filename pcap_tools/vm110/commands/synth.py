@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..capture.writer import FORMATS
+from ..capture.writer import FORMATS, Format
 from ..errors import CliError
 from ..numbers import number
 from ..sim.scenario import SCENARIOS
@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--list", action="store_true", help="list the scenarios and exit")
 
 
-def check_size(name: str, duration: float, seed: int, fmt: str) -> None:
+def check_size(name: str, duration: float, seed: int, fmt: Format) -> None:
     """CliError, with the projected size, when `duration` s of `name` would write more than
     MAX_OUTPUT_BYTES."""
     if duration <= SCENARIOS[name].duration_s:
@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("give a SCENARIO and --out FILE (or --list)")
     if args.scenario not in SCENARIOS:
         raise CliError(f"unknown scenario {args.scenario!r}; choose from {', '.join(SCENARIOS)}")
-    fmt = args.format or ("pcapng" if args.out.endswith(".pcapng") else "pcap")
+    fmt: Format = args.format or ("pcapng" if args.out.endswith(".pcapng") else "pcap")
     if args.duration is not None:
         check_size(args.scenario, args.duration, args.seed, fmt)
     truth = synthesize(args.scenario, args.out, args.seed, args.duration, fmt)
