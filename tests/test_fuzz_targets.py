@@ -18,7 +18,7 @@ from vm110 import constants as C
 from vm110.fuzz import mutate as M
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "targets"))
-import build as targets  # noqa: E402
+import build as targets
 
 
 @pytest.fixture(scope="session")

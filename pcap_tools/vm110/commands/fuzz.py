@@ -90,7 +90,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "case) and resume from what is there")
     parser.add_argument("--dict", metavar="FILE", help="with --coverage: tokens in AFL's dictionary format "
                         "(name=\"value\" lines), besides the strings found in the target program")
-    parser.add_argument("--replay", metavar="FINDING", help="send a saved finding (or a --corpus case) again (its stored command is "
+    parser.add_argument("--replay", metavar="FINDING", help="send a saved finding (or a --corpus case) again "
+                        "(its stored command is "
                         "not run: give --target-cmd); exit 1 if it still triggers")
 
 
@@ -254,5 +255,6 @@ def _replay_corpus(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     for trig in triggers:
         print(f"{args.replay}: {trig.oracle}: {_printable(trig.detail)}")
-    print(f"{args.replay}: {len(entry.packets)} packet(s), " + (f"{len(triggers)} trigger(s)" if triggers else "no trigger"))
+    outcome = f"{len(triggers)} trigger(s)" if triggers else "no trigger"
+    print(f"{args.replay}: {len(entry.packets)} packet(s), {outcome}")
     return EXIT_FINDINGS if triggers else EXIT_OK

@@ -35,8 +35,9 @@ def why_no_core(pattern: Optional[str], core_limit: int) -> Optional[str]:
     if pattern.startswith("|"):
         if "systemd-coredump" in pattern and shutil.which("coredumpctl"):
             return None
-        return f"core_pattern is a pipe to {pattern[1:].split()[0] if pattern[1:].split() else '?'} " \
-               "(not systemd-coredump with coredumpctl): the core goes to that program"
+        program = pattern[1:].split()[0] if pattern[1:].split() else "?"
+        return (f"core_pattern is a pipe to {program} (not systemd-coredump with coredumpctl): "
+                "the core goes to that program")
     return None
 
 

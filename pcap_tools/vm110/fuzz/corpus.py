@@ -95,8 +95,8 @@ def entry_from_json(raw: Any) -> Entry:
         out.append(Packet(data, _ms(p.get("delay_ms"), f"packets[{n}].delay_ms"), p["raw"], p["expect_ack"]))
     stream = raw.get("stream")
     if stream is not None:
-        if not isinstance(stream, dict) or any(
-                key not in _STREAM_FIELDS or isinstance(v, bool) or not isinstance(v, int) for key, v in stream.items()):
+        if not isinstance(stream, dict) or not all(
+                key in _STREAM_FIELDS and isinstance(v, int) and not isinstance(v, bool) for key, v in stream.items()):
             raise _Bad("stream is not a set of VRPI fields with integer values")
         try:
             M.build(C.PacketType.VRPI, 0, stream)

@@ -81,18 +81,21 @@ class Mutator:
         p = self._packet(entry)
         spot = self._spot(p)
         if spot is None:
-            return self.havoc(entry, other)
+            self.havoc(entry, other)
+            return
         if spot.text:
             value = self.rng.choice((b"\xff", b"\x00", b"A", bytes([self.rng.randrange(256)]))) * spot.width
         else:
-            v = self.rng.choice(spot.interesting()) if self.rng.random() < 0.8 else self.rng.randrange(1 << 8 * spot.width)
-            value = spot.pack(v)
+            boundary = self.rng.random() < 0.8
+            number = self.rng.choice(spot.interesting()) if boundary else self.rng.randrange(1 << 8 * spot.width)
+            value = spot.pack(number)
         self._put(p, spot.offset, value[:spot.width])
 
     def token(self, entry: Entry, other: Entry) -> None:
         """A dictionary token at the start of a text field (where commands are), or anywhere."""
         if not self.tokens:
-            return self.field(entry, other)
+            self.field(entry, other)
+            return
         p = self._packet(entry)
         token = self._token()
         spot = self._spot(p)
@@ -156,7 +159,8 @@ class Mutator:
         """Packets of a second case after (or instead of the tail of) this one's: state reached by
         one case, explored by another's packets."""
         if not other.packets:
-            return self.sequence(entry, other)
+            self.sequence(entry, other)
+            return
         cut = self.rng.randrange(len(entry.packets) + 1)
         start = self.rng.randrange(len(other.packets))
         entry.packets[cut:] = [Packet(p.data, p.delay_ms, p.raw, p.expect_ack) for p in other.packets[start:]]

@@ -35,8 +35,8 @@ def render(summary: dict[str, Any]) -> str:
     return "".join([
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>VM-110 fuzz coverage</title>",
         f"<style>{CSS}</style></head><body><h1>vm110 fuzz --coverage: {_e(summary.get('target', ''))}</h1>",
-        f"<p>{summary.get('cases_run', 0)} cases in {summary.get('duration_s', 0):.1f} s; {cov.get('edges', 0)} edges "
-        f"of a {cov.get('map_size', 0)}-byte map; corpus {cov.get('corpus', 0)} cases.</p>",
+        (f"<p>{summary.get('cases_run', 0)} cases in {summary.get('duration_s', 0):.1f} s; {cov.get('edges', 0)} "
+         f"edges of a {cov.get('map_size', 0)}-byte map; corpus {cov.get('corpus', 0)} cases.</p>"),
         _edges_plot(cov.get("edges_over_time", [])),
         "<h2>Bugs (one row per signature)</h2>",
         f"<table class='findings'><tr><th>bug</th><th>hits</th><th>finding</th></tr>{rows}</table>" if rows

@@ -30,8 +30,8 @@ TRIAL = -1               # the case index of replayed packets
 _MAX_SUSPECTS = 12
 _RECORDS_KEPT = 2000
 _STATUS_EVERY_S = 0.5
-_DYING_WAIT_S = 10.0
-_SMALLER_TRIES = 3        # replays per bug of smaller cases that hit it again      # for a sanitizer's report to be written
+_DYING_WAIT_S = 10.0      # for a sanitizer's report to be written
+_SMALLER_TRIES = 3        # replays per bug of smaller cases that hit it again
 
 
 @dataclass
@@ -320,8 +320,8 @@ class Runner:
         finding.valid_hex = shown.twin.hex() if shown else ""
         finding.differences = difference(shown.data, shown.twin) if shown else 0
         finding.minimised = False
-        finding.steps = [{"hex": p.data.hex(), "valid_hex": p.twin.hex(), "delay_ms": p.delay_ms if len(sent) > 1 else 0.0,
-                          "expect_ack": p.expect_ack} for p in sent]
+        finding.steps = [{"hex": p.data.hex(), "valid_hex": p.twin.hex(),
+                          "delay_ms": p.delay_ms if len(sent) > 1 else 0.0, "expect_ack": p.expect_ack} for p in sent]
         finding.pause_vrpi_ms, finding.withhold_vrai_ms = case.pause_vrpi_ms, case.withhold_vrai_ms
         finding.stream, finding.settle_ms = _jsonable(case.stream), case.settle_ms
         traffic = [p for p in self.session.traffic if p[0] >= trig.time - 4.0]
@@ -445,8 +445,8 @@ class Runner:
             finding.crash = F.write_crash(self.cfg.out, finding.name(number), trig.crash)
         path = F.write_finding(self.cfg.out, number, finding, traffic, self.session.link.local)
         self.files.append(path.name)
-        self.buckets[signature] = F.Bucket(signature, trig.oracle, path.name, trig.time, trig.time,
-                                           headline=trig.detail if trig.oracle == CRASH else f"{trig.oracle}: {trig.detail}",
+        headline = trig.detail if trig.oracle == CRASH else f"{trig.oracle}: {trig.detail}"
+        self.buckets[signature] = F.Bucket(signature, trig.oracle, path.name, trig.time, trig.time, headline=headline,
                                            number=number, size=_size([small] if small is not None else sent))
         self.cfg.progress(f"finding {path.name}: {trig.detail if trig.oracle == CRASH else trig.oracle} "
                           f"at case {index} ({description})")
