@@ -188,7 +188,7 @@ def _checked(raw: dict[str, Any]) -> Finding:
             continue
         value = values[f.name] = raw[f.name]
         kinds = _KINDS[str(f.type)]
-        if isinstance(value, bool) and bool not in kinds or not isinstance(value, kinds):
+        if (isinstance(value, bool) and bool not in kinds) or not isinstance(value, kinds):
             raise _Bad(f"{f.name} is not of type {f.type}")
         if isinstance(value, (int, float)) and not isinstance(value, bool) and not _finite(value):
             raise _Bad(f"{f.name} is not a finite number below 2**63")

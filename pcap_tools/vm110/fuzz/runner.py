@@ -131,14 +131,22 @@ def start_target(s: Session) -> None:
 class Runner:
     def __init__(self, cfg: RunConfig) -> None:
         self.cfg = cfg
-        self.guided = Guided(cfg.coverage, cfg.seed) if cfg.coverage else None
-        env = self.guided.environment() if self.guided else {}
-        self.supervisor = Supervisor(cfg.target_cmd, env=env, core=cfg.core) if cfg.target_cmd else None
-        self.session = Session(cfg.settings, self.supervisor, cfg.out)
         cfg.out.mkdir(parents=True, exist_ok=True)
+        # What can be refused (the log's path, the command, the map) before the socket is opened.
         self._log = _open_log(cfg.out) if cfg.target_cmd else None
-        if self.supervisor is not None:
-            self.supervisor.log = self._log
+        self.guided: Optional[Guided] = None
+        try:
+            self.supervisor = Supervisor(cfg.target_cmd, self._log, core=cfg.core) if cfg.target_cmd else None
+            self.guided = Guided(cfg.coverage, cfg.seed) if cfg.coverage else None
+            if self.guided is not None and self.supervisor is not None:
+                self.supervisor.extra_env.update(self.guided.environment())
+            self.session = Session(cfg.settings, self.supervisor, cfg.out)
+        except BaseException:
+            if self._log is not None:
+                self._log.close()
+            if self.guided is not None:
+                self.guided.close()
+            raise
         self.records: collections.OrderedDict[int, tuple[K.Case, list[Sent]]] = collections.OrderedDict()
         self.findings: list[F.Finding] = []
         self.files: list[str] = []
