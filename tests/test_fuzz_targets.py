@@ -170,7 +170,7 @@ def test_progress_line_on_a_terminal(tmp_path, programs):
     proc = subprocess.Popen([sys.executable, "-m", "vm110", "fuzz", "--coverage", "--target", f"127.0.0.1:{rx}",
                              "--listen", f"127.0.0.1:{listen}", "--target-cmd", f"{exe} {rx} {listen}",
                              "--duration", "4", "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=slave, cwd=tmp_path)
+                            stdout=subprocess.DEVNULL, stderr=slave, cwd=tmp_path)
     os.close(slave)
     seen = b""
     while True:
