@@ -4,6 +4,12 @@ A trigger is a finding only when replaying its case (against a freshly restarted
 `--target-cmd` is given) triggers the same oracle again; triggers that do not reproduce are listed
 in `findings.json` as unreproduced, so that a hiccup of a loaded machine is visible but not
 reported as a bug.
+
+One finding per bug: each trigger has a signature (a crash's: signal, sanitizer error type, top
+frames; other oracles': oracle, kind, packet type). A trigger whose signature has a bucket only
+counts there (no replays, no minimising; a smaller case may replace the reproducer). A crash is
+pinned on the cases sent since the controller last spoke by bisecting their prefixes. Cases come
+from the schedule (blind) or from `guided.Guided` (`--coverage`).
 """
 from __future__ import annotations
 
