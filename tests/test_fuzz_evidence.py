@@ -145,3 +145,21 @@ def test_sanitizer_defaults_unless_the_user_set_them(monkeypatch, tmp_path):
     env = sup.environment()
     assert env["ASAN_OPTIONS"] == "detect_leaks=1" and sup.sanitizer_options["ASAN_OPTIONS"] == "user"
     assert "abort_on_error=1" in env["UBSAN_OPTIONS"] and "halt_on_error=1" in env["UBSAN_OPTIONS"]
+
+
+def test_no_core_turns_core_files_off_and_says_so(tmp_path):
+    """--no-core: the controller starts with a core size limit of 0, and a crash finding says why
+    it has no core."""
+    script = ("import resource, os, signal; print(resource.getrlimit(resource.RLIMIT_CORE)[0], flush=True); "
+              "os.kill(os.getpid(), signal.SIGSEGV)")
+    for core, expect in ((False, b"0\n"), (True, None)):
+        sup = Supervisor(f"{sys.executable} -c '{script}'", cwd=tmp_path, core=core)
+        sup.start()
+        sup.proc.wait(10)
+        crash = sup.evidence(tmp_path, ".crash-1")
+        assert crash.how == {"signal": 11, "signal_name": "SIGSEGV"}
+        if expect is not None:
+            assert crash.output.startswith(expect) and "turned off" in crash.core_missing and crash.core is None
+        else:
+            assert crash.output.split()[0] != b"0" or sup.core_hard == 0
+        sup.stop()
