@@ -9,6 +9,7 @@ Prints, measured in this run:
 - for information, the whole random phase including its timing sequences (VRPI gaps, withheld
   VRAI, retransmissions), whose waiting is part of the case, not overhead.
 The real run is rate-limited (default 100 case packets/s).
+Then, against the C controller of tests/targets: cases/s blind and with --coverage, and --rate 5000.
 """
 from __future__ import annotations
 
@@ -16,15 +17,20 @@ import argparse
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from loopback import free_ports
+from vm110 import constants as C
 from vm110.fuzz import cases
+from vm110.fuzz import mutate as M
+from vm110.fuzz.corpus import Entry, Packet
+from vm110.fuzz.guided import GuidedConfig
 from vm110.fuzz.oracles import Limits
-from vm110.fuzz.runner import start_target
+from vm110.fuzz.runner import RunConfig, Runner, start_target
 from vm110.fuzz.session import Session, Settings
 
 SEED = 1
@@ -78,5 +84,62 @@ def main() -> None:
           f"{len(schedule) / schedule_s:,.0f} cases/s")
 
 
+def c_target(seconds: float) -> None:
+    """Blind and --coverage on the same C controller (tests/targets, built with afl-clang-fast and
+    not crashing): cases/s of the random phase (blind) and of the guided loop (clear the map, send,
+    wait until the map settles, read and classify it), rate limit lifted; then whether --rate 5000
+    is honoured (packets/s reached, never above)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "targets"))
+    import build as targets
+    if targets.missing_tools("afl-correct"):
+        print("C target: afl-clang-fast or gdb missing (make setup installs them): skipped")
+        return
+    exe = targets.build("afl-correct", Path(tempfile.gettempdir()) / "vm110-bench-targets")
+    rx, listen = free_ports(2)
+    settings = Settings(target=("127.0.0.1", rx), listen=("127.0.0.1", listen), rate=1e9, limits=Limits())
+    results = {}
+    for mode in ("blind", "coverage"):
+        cfg = RunConfig(settings=settings, duration_s=seconds, out=Path(tempfile.mkdtemp(prefix="vm110-bench-")),
+                        target_cmd=f"{exe} {rx} {listen}", coverage=GuidedConfig(65536) if mode == "coverage" else None)
+        runner = Runner(cfg)
+        guided, session = runner.guided, runner.session
+        if guided is not None:
+            guided.open(cfg.target_cmd)
+            guided.sweep = 0
+            guided.corpus.append(Entry([Packet(M.build(C.PacketType.VRCI, 0, M.default_fields(C.PacketType.VRCI)))]))
+        start_target(session)
+        first = len(cases.sweep(SEED))
+        n, end = 0, time.time() + seconds
+        while time.time() < end:
+            index = first + n
+            case = guided.next_case(index) if guided else cases.generate(SEED, index)
+            if case.family == "random-sequence":
+                n += 1
+                continue
+            if guided:
+                guided.before_case()
+            sent = session.run_steps(index, [(st.build, st.delay_ms, st.expect_ack) for st in case.steps],
+                                     case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream, case.settle_ms)
+            if guided:
+                guided.after_case(session, case, sent)
+            session.monitor.triggers.clear()
+            n += 1
+        results[mode] = n / seconds
+        extra = f", {guided.edges()} edges, corpus {len(guided.corpus)}" if guided else ""
+        print(f"C target {mode:8s}: {n} cases in {seconds:.0f} s = {n / seconds:,.0f} cases/s{extra}")
+        if mode == "blind":
+            session.settings.rate = 5000.0
+            count, start = 2000, time.perf_counter()
+            vrpi = M.build(C.PacketType.VRPI, 0, M.ARMED_VRPI)
+            for _ in range(count):
+                session.send_case_packet(0, lambda serial, p=vrpi: (p, p), 0.0, False)
+            print(f"--rate 5000: {count} packets at {count / (time.perf_counter() - start):,.0f} packets/s")
+        session.close()
+        if guided:
+            guided.close()
+    print(f"coverage/blind cases/s: {results['coverage'] / results['blind']:.2f}")
+
+
 if __name__ == "__main__":
     main()
+    c_target(5.0)

@@ -166,7 +166,9 @@ def test_exit_is_a_crash_blaming_recent_cases(link):
     link.mon.note_case(T0 + 0.01, 2)
     link.mon.note_case(T0 + 0.02, 3)
     link.mon.on_exit(T0 + 0.03, 3)
-    assert link.oracles() == ["crash"] and link.mon.triggers[0].suspects == [3, 2]
+    # In the order sent: the runner bisects prefixes of them (the crash comes at the culprit).
+    assert link.oracles() == ["crash"] and link.mon.triggers[0].suspects == [2, 3]
+    assert link.mon.triggers[0].detail == "crash exit 3"
 
 
 # --- several commands in flight (interpretation.md, "Commands") ---------------------------------

@@ -7,8 +7,11 @@ missing_ack, illegal_acked, malformed_output, vrco_retransmit. Each confirmed fi
 --out as JSON (with the minimised packet) and a pcap; --out/findings.json summarises the run.
 Sends only to --target (multicast TTL 1), and only on loopback unless --allow-remote; never to a
 broadcast address. Exit code 1 when there are findings, 0 when none, 2 on usage errors.
-`--replay FINDING` sends a finding again and says whether it still triggers; the finding is data:
-its stored command is never run and its stored target obeys the --target rules.
+`--replay FINDING` sends a finding again and says whether it still triggers (a crash: with the same
+signature or another); the finding is data: its stored command is never run and its stored target
+obeys the --target rules. A crash finding keeps the controller's output, signal, sanitizer report,
+core and gdb backtrace; triggers of one signature are one finding (a bucket with a count).
+`--coverage` is coverage-guided fuzzing of a controller built with AFL++ (see fuzz/guided.py).
 """
 from __future__ import annotations
 
@@ -22,16 +25,21 @@ from typing import Any
 from .. import constants as C
 from ..errors import EXIT_FINDINGS, EXIT_OK, CliError
 from ..fileio import check_target
+from ..fuzz.corpus import is_entry_file, load_entry
+from ..fuzz.coverage import map_size
 from ..fuzz.destination import check
 from ..fuzz.findings import load_finding, write_summary
+from ..fuzz.guided import GuidedConfig
 from ..fuzz.link import parse_endpoint
 from ..fuzz.oracles import Limits
-from ..fuzz.runner import RunConfig, Runner, replay_finding
+from ..fuzz.report_html import write_coverage_html
+from ..fuzz.runner import RunConfig, Runner, replay_corpus_case, replay_finding
 from ..fuzz.session import Settings, TargetLost
 from ..numbers import number
 from .options import SEED
 
 DEFAULT_RATE = 100.0
+COVERAGE_RATE = 5000.0
 DEFAULT_DURATION_S = 60.0
 DURATION = number(0, 30 * 86400, "s", allow_zero=False)
 CASES = number(1, 10**9, integer=True)
@@ -60,8 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     stop.add_argument("--duration", type=DURATION, metavar="S",
                       help=f"seconds to fuzz, {DURATION.range_text} (default {DEFAULT_DURATION_S:.0f})")
     stop.add_argument("--cases", type=CASES, metavar="N", help=f"number of cases to run, {CASES.range_text}")
-    parser.add_argument("--rate", type=RATE, default=DEFAULT_RATE, metavar="PPS",
-                        help=f"case packets per second at most, {RATE.range_text} (default {DEFAULT_RATE:.0f})")
+    parser.add_argument("--rate", type=RATE, metavar="PPS",
+                        help=f"case packets per second at most, {RATE.range_text} (default {DEFAULT_RATE:.0f}, "
+                             f"{COVERAGE_RATE:.0f} with --coverage)")
     parser.add_argument("--out", default="fuzz-out", metavar="DIR", help="findings directory (default fuzz-out)")
     parser.add_argument("--max-findings", type=MAX_FINDINGS, default=20, metavar="N",
                         help=f"stop after N findings, {MAX_FINDINGS.range_text} (default 20)")
@@ -70,7 +79,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default 30)")
     parser.add_argument("--startup", type=STARTUP, default=10.0, metavar="S",
                         help=f"seconds allowed for the controller's first VRPO, {STARTUP.range_text} (default 10)")
-    parser.add_argument("--replay", metavar="FINDING", help="send a saved finding again (its stored command is "
+    parser.add_argument("--no-core", action="store_true",
+                        help="start the controller with core files off (default: allowed, kept with a crash "
+                             "finding, with a gdb backtrace when gdb is installed)")
+    parser.add_argument("--coverage", action="store_true",
+                        help="coverage-guided: the controller is built with AFL++ (afl-clang-fast / afl-cc) and "
+                             "gets its coverage map through __AFL_SHM_ID (size AFL_MAP_SIZE, default 65536); "
+                             f"--rate defaults to {COVERAGE_RATE:.0f}")
+    parser.add_argument("--corpus", metavar="DIR", help="with --coverage: keep the corpus here (one JSON per "
+                        "case) and resume from what is there")
+    parser.add_argument("--dict", metavar="FILE", help="with --coverage: tokens in AFL's dictionary format "
+                        "(name=\"value\" lines), besides the strings found in the target program")
+    parser.add_argument("--replay", metavar="FINDING", help="send a saved finding (or a --corpus case) again "
+                        "(its stored command is "
                         "not run: give --target-cmd); exit 1 if it still triggers")
 
 
@@ -97,7 +118,8 @@ def _settings(args: argparse.Namespace, target: str, listen: str | None, group: 
         raise CliError("--listen is needed: target port + 2 is not a port")
     if args.allow_remote:
         _progress(f"sending to {host_port[0]}:{host_port[1]} only ({what} {_printable(target)})")
-    return Settings(target=host_port, listen=listen_at, group=group, rate=args.rate, limits=Limits(),
+    rate = args.rate or (COVERAGE_RATE if getattr(args, "coverage", False) else DEFAULT_RATE)
+    return Settings(target=host_port, listen=listen_at, group=group, rate=rate, limits=Limits(),
                     startup_s=args.startup, allow_remote=args.allow_remote)
 
 
@@ -128,22 +150,79 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"cannot create {out}: {exc.strerror}") from None
     check_target(out / "findings.json")    # refused now, not after the run
     duration = None if args.cases else (args.duration or DEFAULT_DURATION_S)
+    guided = None
+    if args.coverage:
+        if not args.target_cmd:
+            raise CliError("--coverage needs --target-cmd (the fuzzer starts the controller with its coverage map)")
+        guided = GuidedConfig(map_size(), Path(args.corpus) if args.corpus else None, args.dict)
+    elif args.corpus or args.dict:
+        raise CliError("--corpus and --dict go with --coverage")
+    status = _StatusLine() if sys.stderr.isatty() else None
     cfg = RunConfig(settings=settings, seed=args.seed, duration_s=duration, cases=args.cases, out=out,
                     target_cmd=args.target_cmd, minimize_budget_s=args.minimize_budget,
-                    max_findings=args.max_findings, progress=_progress)
-    summary = Runner(cfg).run()
+                    max_findings=args.max_findings, progress=status.message if status else _progress,
+                    status=status, core=not args.no_core, coverage=guided)
+    try:
+        summary = Runner(cfg).run()
+    finally:
+        if status is not None:
+            status.done()
     write_summary(out, summary)
+    if guided is not None:
+        write_coverage_html(out / "coverage.html", summary)
     if summary["stopped_early"] and not summary["findings"] and summary["cases_run"] == 0:
         raise CliError(summary["stopped_early"])
-    for item in summary["findings"]:
-        print(f"{item['oracle']}: case {item['case_index']} ({item['mutation']}): {item['detail']} -> {out / item['file']}")
-    print(f"{summary['cases_run']} cases in {summary['duration_s']:.1f} s, {len(summary['findings'])} findings, "
+    for bucket in summary["buckets"]:
+        seen = f"{bucket['count']} time{'s' if bucket['count'] != 1 else ''}"
+        print(f"{_printable(bucket['headline'])} [{seen}] -> {out / bucket['file']}")
+    rate = summary["cases_run"] / max(summary["duration_s"], 1e-6)
+    print(f"{summary['cases_run']} cases in {summary['duration_s']:.1f} s ({rate:.0f}/s), {len(summary['findings'])} "
+          f"findings ({sum(b['count'] for b in summary['buckets'])} triggers), "
           f"{len(summary['unreproduced'])} unreproduced triggers, {summary['restarts']} restarts"
           + (f"; stopped early: {summary['stopped_early']}" if summary["stopped_early"] else ""))
+    if "coverage" in summary:
+        cov = summary["coverage"]
+        series = cov["edges_over_time"]
+        shown = series[::max(1, len(series) // 6)][:6] + series[-1:]
+        over_time = ", ".join(f"{p['s']:.0f} s: {p['edges']}" for p in shown)
+        print(f"coverage: {cov['edges']} edges, corpus {cov['corpus']} cases; edges over time {over_time} "
+              f"(all in {out / 'findings.json'}, plotted in {out / 'coverage.html'})")
+    if args.target_cmd:
+        options = ", ".join(f"{k}={'(yours)' if v == 'user' else v}" for k, v in summary["sanitizer_options"].items())
+        print(f"sanitizer options: {options}; core files: {summary['core_files']}")
     return EXIT_FINDINGS if summary["findings"] else EXIT_OK
 
 
+class _StatusLine:
+    """One line on the terminal, rewritten in place: cases, rate, findings, coverage, time left."""
+
+    def __init__(self) -> None:
+        self.shown = False
+
+    def __call__(self, line: dict[str, Any]) -> None:
+        parts = [f"{line['cases']} cases", f"{line['rate']:.0f}/s", f"{line['buckets']} bugs ({line['hits']} hits)"]
+        if "edges" in line:
+            parts += [f"{line['edges']} edges", f"corpus {line['corpus']}"]
+        if line["left_s"] is not None:
+            parts.append(f"{line['left_s']:.0f} s left")
+        sys.stderr.write("\r\x1b[Kvm110 fuzz: " + ", ".join(parts))
+        sys.stderr.flush()
+        self.shown = True
+
+    def message(self, text: str) -> None:
+        self.done()
+        _progress(text)
+
+    def done(self) -> None:
+        if self.shown:
+            sys.stderr.write("\r\x1b[K")
+            sys.stderr.flush()
+            self.shown = False
+
+
 def _replay(args: argparse.Namespace) -> int:
+    if is_entry_file(args.replay):
+        return _replay_corpus(args)
     finding = load_finding(args.replay)
     stored_in = None if args.target else args.replay
     settings = _settings(args, args.target or finding.target, args.listen or finding.listen,
@@ -152,9 +231,30 @@ def _replay(args: argparse.Namespace) -> int:
         _progress(f"not running the command stored in {args.replay} (give --target-cmd to start a "
                   f"controller): {_printable(finding.target_cmd)!r}")
     try:
-        triggered = replay_finding(finding, settings, args.target_cmd, Path(args.replay).parent)
+        trig = replay_finding(finding, settings, args.target_cmd, Path(args.replay).parent)
     except TargetLost as exc:
         raise CliError(str(exc)) from None
-    verdict = "still triggers" if triggered else "does not trigger any more"
+    verdict = "still triggers" if trig else "does not trigger any more"
+    if trig is not None and trig.oracle == "crash" and finding.signature:
+        same = f"crash {trig.kind}" == finding.signature
+        verdict += (": the same signature" if same else
+                    f": another signature ({_printable(trig.detail)}; the finding's: {_printable(finding.signature)})")
     print(f"{args.replay}: {finding.oracle} ({_printable(finding.mutation)}): {verdict}")
-    return EXIT_FINDINGS if triggered else EXIT_OK
+    return EXIT_FINDINGS if trig else EXIT_OK
+
+
+def _replay_corpus(args: argparse.Namespace) -> int:
+    """A `--corpus` case: it stores no target (give --target), and says what the oracles saw."""
+    entry = load_entry(args.replay)
+    if not args.target:
+        raise CliError(f"--target HOST:PORT is needed to replay {args.replay} (a corpus case stores none)")
+    settings = _settings(args, args.target, args.listen, args.group)
+    try:
+        triggers = replay_corpus_case(entry, settings, args.target_cmd)
+    except TargetLost as exc:
+        raise CliError(str(exc)) from None
+    for trig in triggers:
+        print(f"{args.replay}: {trig.oracle}: {_printable(trig.detail)}")
+    outcome = f"{len(triggers)} trigger(s)" if triggers else "no trigger"
+    print(f"{args.replay}: {len(entry.packets)} packet(s), {outcome}")
+    return EXIT_FINDINGS if triggers else EXIT_OK

@@ -82,7 +82,7 @@ def _nth_structural(valid: bytes, seed: int, position: int) -> bytes:
 # --- sweep families ---------------------------------------------------------------------------
 def _structural_family(ptype: C.PacketType, rng: random.Random) -> list[Callable[[int], Case]]:
     family = f"{ptype.value.lower()}-structure"
-    out = []
+    out: list[Callable[[int], Case]] = []
     for position, name in enumerate(_structural_names(ptype)):
         seed = rng.randrange(1 << 32)
 
@@ -94,15 +94,16 @@ def _structural_family(ptype: C.PacketType, rng: random.Random) -> list[Callable
         out.append(make)
     for name, value, legal in M.header_mutations():
         if not legal:
-            out.insert(min(len(out), 2), lambda index, n=name, v=value: Case(
-                index, family, f"{ptype.value} header {n}={v:#x}",
-                [Step(_valid(ptype, _fields_for(ptype, index), {n: v}))]))
+            def header(index: int, n: str = name, v: int = value) -> Case:
+                return Case(index, family, f"{ptype.value} header {n}={v:#x}",
+                            [Step(_valid(ptype, _fields_for(ptype, index), {n: v}))])
+            out.insert(min(len(out), 2), header)
     return out
 
 
 def _field_family(ptype: C.PacketType, rng: random.Random) -> list[Callable[[int], Case]]:
     family = f"{ptype.value.lower()}-fields"
-    out = []
+    out: list[Callable[[int], Case]] = []
     skip = ("command_id",)   # command IDs are the session's bookkeeping; sequences cover their edges
     for name, value in M.field_mutations(ptype, _fields_for(ptype, 0, sweep=True), rng, skip):
         def make(index: int, name: str = name, value: Any = value) -> Case:
@@ -113,9 +114,10 @@ def _field_family(ptype: C.PacketType, rng: random.Random) -> list[Callable[[int
         out.append(make)
     for name, value, legal in M.header_mutations():
         if legal:
-            out.insert(min(len(out), 3), lambda index, n=name, v=value: Case(
-                index, family, f"{ptype.value} header {n}={v:#x}",
-                [Step(_valid(ptype, _fields_for(ptype, index, sweep=True), {n: v}))]))
+            def header(index: int, n: str = name, v: int = value) -> Case:
+                return Case(index, family, f"{ptype.value} header {n}={v:#x}",
+                            [Step(_valid(ptype, _fields_for(ptype, index, sweep=True), {n: v}))])
+            out.insert(min(len(out), 3), header)
     return out
 
 
@@ -144,7 +146,7 @@ def _vrpi_serial(offset: int, absolute: Optional[int] = None) -> Builder:
 
 def _sequence_family() -> list[Callable[[int], Case]]:
     F = "sequence"
-    VRCI, VRAI = C.PacketType.VRCI, C.PacketType.VRAI
+    VRAI = C.PacketType.VRAI
     resend = C.COMMAND_RESEND_MS
     wd = C.VRPI_WATCHDOG_MS
     return [
@@ -184,11 +186,14 @@ def _sequence_family() -> list[Callable[[int], Case]]:
 
 def _direction_family() -> list[Callable[[int], Case]]:
     """Output packets sent to the controller: legal packets it must not choke on."""
-    out = []
-    for ptype in M.OUTPUT_TYPES:
-        out.append(lambda i, p=ptype: Case(i, "wrong-direction", f"{p.value} sent to the controller",
-                                           [Step(_valid(p, M.default_fields(p, command_ids(i)[0])))]))
-    return out
+    def make(i: int, p: C.PacketType) -> Case:
+        return Case(i, "wrong-direction", f"{p.value} sent to the controller",
+                    [Step(_valid(p, M.default_fields(p, command_ids(i)[0])))])
+    return [functools.partial(_index_first, make, ptype) for ptype in M.OUTPUT_TYPES]
+
+
+def _index_first(make: Callable[[int, Any], Case], arg: Any, index: int) -> Case:
+    return make(index, arg)
 
 
 @functools.lru_cache(maxsize=4)

@@ -26,7 +26,7 @@ def resolve(host: str, what: str, numeric: bool = False) -> str:
         except (OSError, UnicodeError):
             continue
         if infos:
-            return str(ipaddress.ip_address(infos[0][4][0].split("%", 1)[0]))
+            return str(ipaddress.ip_address(str(infos[0][4][0]).split("%", 1)[0]))
     raise CliError(f"{what}: {'not an IP address' if numeric else 'cannot resolve'}: {host[:80]!r}")
 
 

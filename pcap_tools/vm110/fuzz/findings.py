@@ -12,9 +12,10 @@ from typing import Any, Optional
 from .. import constants as C
 from ..capture.writer import PcapWriter, UdpFlow
 from ..errors import CliError
-from ..fileio import atomic_writer, write_text
+from ..fileio import atomic_writer, write_bytes, write_text
 from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
+from .evidence import Crash
 from .oracles import ORACLES
 
 SCHEMA = 1
@@ -53,6 +54,8 @@ class Finding:
     time: float = field(default_factory=time.time)
     pcap: str = ""
     schema: int = SCHEMA
+    signature: str = ""                  # the bug's: findings with one signature are one bucket
+    crash: Optional[dict[str, Any]] = None   # a crash's evidence; its files are named in it
 
     def name(self, number: int) -> str:
         return f"finding-{number:03d}-{self.oracle}"
@@ -67,6 +70,65 @@ def write_finding(out: Path, number: int, finding: Finding,
     path = out / f"{base}.json"
     write_text(path, json.dumps(asdict(finding), indent=2) + "\n")
     return path
+
+
+def write_crash(out: Path, base: str, crash: Crash) -> dict[str, Any]:
+    """The evidence files of a crash finding (`base`.output.txt, .core, .backtrace.txt) and what
+    the finding's JSON says of them."""
+    info: dict[str, Any] = {"headline": crash.headline(), **crash.how, "signature": crash.signature()}
+    info["sanitizer"] = crash.sanitizer.to_json() if crash.sanitizer else None
+    info["top_frames"] = [{"function": f.function, "location": f.location} for f in crash.own_frames()]
+    info["output"] = f"{base}.output.txt"
+    write_bytes(out / info["output"], crash.output)
+    info["core"] = None
+    if crash.core is not None:
+        try:
+            (out / crash.core).rename(out / f"{base}.core")     # the core we moved here for this crash
+            info["core"] = f"{base}.core"
+        except OSError as exc:
+            crash.core_missing = f"cannot keep the core: {exc.strerror}"
+    info["core_missing"] = None if info["core"] else crash.core_missing
+    info["backtrace"] = None
+    if crash.backtrace_text:
+        info["backtrace"] = f"{base}.backtrace.txt"
+        write_text(out / info["backtrace"], crash.backtrace_text)
+    return info
+
+
+def discard_core(out: Path, crash: Optional[Crash]) -> None:
+    """Remove the core of a crash that is not kept (a repeat of a known bug, a replay): the
+    fuzzer moved it into `out` itself."""
+    if crash is not None and crash.core is not None:
+        try:
+            (out / crash.core).unlink()
+        except OSError:
+            pass
+        crash.core = None
+
+
+@dataclass
+class Bucket:
+    """One bug: every trigger with its signature."""
+
+    signature: str
+    oracle: str
+    file: str
+    first: float
+    last: float
+    count: int = 1
+    headline: str = ""
+    number: int = 0               # of the finding file
+    size: int = 0                 # of its reproducer (see runner._size)
+    tries: int = 0                # replays of smaller cases tried
+    replaced: int = 0             # times a smaller case became the reproducer
+
+    def hit(self, t: float) -> None:
+        self.count += 1
+        self.last = max(self.last, t)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"signature": self.signature, "oracle": self.oracle, "count": self.count, "first": self.first,
+                "last": self.last, "file": self.file, "headline": self.headline, "reproducer_replaced": self.replaced}
 
 
 def write_pcap(path: Path, traffic: list[tuple[float, bool, bytes, tuple[str, int]]], local: tuple[str, int]) -> None:
@@ -126,7 +188,7 @@ def _checked(raw: dict[str, Any]) -> Finding:
             continue
         value = values[f.name] = raw[f.name]
         kinds = _KINDS[str(f.type)]
-        if isinstance(value, bool) and bool not in kinds or not isinstance(value, kinds):
+        if (isinstance(value, bool) and bool not in kinds) or not isinstance(value, kinds):
             raise _Bad(f"{f.name} is not of type {f.type}")
         if isinstance(value, (int, float)) and not isinstance(value, bool) and not _finite(value):
             raise _Bad(f"{f.name} is not a finite number below 2**63")

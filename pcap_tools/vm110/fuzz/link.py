@@ -71,7 +71,7 @@ class Link:
 
     def receive(self) -> list[tuple[float, bytes, tuple[str, int]]]:
         """Every datagram waiting: (arrival time, bytes, source)."""
-        out = []
+        out: list[tuple[float, bytes, tuple[str, int]]] = []
         while True:
             try:
                 data, ancdata, _flags, src = self.sock.recvmsg(_MAX_DATAGRAM, 64)

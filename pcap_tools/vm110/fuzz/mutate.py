@@ -44,7 +44,8 @@ def build(ptype: C.PacketType | str, serial: int, fields: dict[str, Any] | None 
           order: str = DEFAULT_BYTE_ORDER) -> bytes:
     """A packet of a known type with the given payload and header fields, as the wire carries it."""
     ptype = C.PacketType(ptype)
-    head = dict(origin=0 if ptype.direction is C.Direction.OUTPUT else BU_ORIGIN, serial=serial % C.SERIAL_MODULUS)
+    head: dict[str, Any] = dict(origin=0 if ptype.direction is C.Direction.OUTPUT else BU_ORIGIN,
+                                serial=serial % C.SERIAL_MODULUS)
     head.update(header or {})
     pkt = VM110(type=ptype.value.encode(), **head) / PAYLOAD_CLASSES[ptype](**(fields or {}))
     with crc_settings(variant, order):
@@ -75,7 +76,8 @@ def _int_values(name: str, bits: int, signed: bool, base: int) -> list[int]:
         r_low, r_high = P.RANGES[name]
         values += [r_low - 1, r_high + 1, r_low, r_high]
     if name in P.ENUM_FIELDS:   # values outside the set, then the edges of the set
-        known = sorted(int(v) for v in P.ENUM_FIELDS[name])
+        names: Any = P.ENUM_FIELDS[name]
+        known = sorted(int(v) for v in names)
         values += [known[-1] + 1] + [v + 1 for v in known if v + 1 not in known] + [known[0], known[-1]]
     values += [0, 1, -1, low + 1, high - 1, -base, base + 1, base - 1]
     if not signed:
@@ -108,7 +110,7 @@ def field_mutations(ptype: C.PacketType, fields: dict[str, Any], rng: random.Ran
             length = len(base) if base else 16
             values: list[Any] = _bytes_values(length, rng)
         else:
-            bits, signed = _width(field)
+            bits, signed = _width(field)  # type: ignore[arg-type]  # payload fields are plain fields
             values = _int_values(field.name, bits, signed, int(base))
         columns.append([(field.name, v) for v in values])
     return [col[i] for i in range(max(map(len, columns), default=0)) for col in columns if i < len(col)]
@@ -141,7 +143,8 @@ def structural(valid: bytes, rng: random.Random) -> Iterator[tuple[str, bytes]]:
     body, size = valid[:-C.CRC_LEN], len(valid) - C.OVERHEAD
     crc = valid[-C.CRC_LEN:]
     yield "crc xor 0x00000001", body + bytes([crc[0] ^ 1]) + crc[1:]
-    yield f"oversize {C.MAX_PACKET + 1} bytes (trailing bytes after the CRC)", valid + bytes(C.MAX_PACKET + 1 - len(valid))
+    yield (f"oversize {C.MAX_PACKET + 1} bytes (trailing bytes after the CRC)",
+           valid + bytes(C.MAX_PACKET + 1 - len(valid)))
     yield "size field + 1", recrc(set_u16(body, SIZE_OFFSET, size + 1))
     yield "truncated: CRC missing", body
     yield "unknown packet ID VRXI", recrc(b"VRXI" + body[C.ID_LEN:])
@@ -157,7 +160,8 @@ def structural(valid: bytes, rng: random.Random) -> Iterator[tuple[str, bytes]]:
     yield f"size field {C.MAX_PAYLOAD + 1}", recrc(set_u16(body, SIZE_OFFSET, C.MAX_PAYLOAD + 1))
     yield "size field 0xFFFF", recrc(set_u16(body, SIZE_OFFSET, 0xFFFF))
     grown = body + bytes(C.MAX_PAYLOAD + 1 - size)
-    yield f"oversize: payload {C.MAX_PAYLOAD + 1} bytes, size field and CRC matching", recrc(set_u16(grown, SIZE_OFFSET, C.MAX_PAYLOAD + 1))
+    yield (f"oversize: payload {C.MAX_PAYLOAD + 1} bytes, size field and CRC matching",
+           recrc(set_u16(grown, SIZE_OFFSET, C.MAX_PAYLOAD + 1)))
     for total in (1472, 9000, LARGE_DATAGRAM):
         yield f"oversize {total} bytes (random trailing bytes)", valid + rng.randbytes(total - len(valid))
     for cut in (0, 1, C.ID_LEN, C.PREFIX_LEN - 1, C.PREFIX_LEN, C.OVERHEAD - 1, len(valid) - 1, len(valid) // 2):

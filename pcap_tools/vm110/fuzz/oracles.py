@@ -17,12 +17,14 @@ from typing import Any, Optional
 from .. import constants as C
 from ..decode import decode
 from ..sim.ledger import REUSE_GAP_MS
+from .evidence import Crash
 
 CRASH, STALL, MISSING_ACK, ILLEGAL_ACKED, MALFORMED_OUTPUT, VRCO_RETRANSMIT = ORACLES = (
     "crash", "stall", "missing_ack", "illegal_acked", "malformed_output", "vrco_retransmit")
 _CMD_ID_AT = slice(C.PREFIX_LEN, C.PREFIX_LEN + 2)
 _VRCI = C.PacketType.VRCI.value
 _HISTORY_S = 10.0
+_MAX_CRASH_SUSPECTS = 400
 
 
 @dataclass
@@ -48,6 +50,7 @@ class Trigger:
     kind: str = ""                                # what went wrong, for de-duplication
     command_id: Optional[int] = None              # the command concerned, if any
     packet: Optional[bytes] = None                # a base-unit packet that is not a case's (a VRAI)
+    crash: Optional[Crash] = None                 # the evidence of a crash
 
 
 @dataclass
@@ -72,6 +75,7 @@ class Monitor:
         self.id_case: dict[int, int] = {}        # command ID -> last case that sent it
         self.withholding = False
         self.vrco_seen = False                    # has this controller ever sent a VRCO?
+        self._next_purge = 0.0
         self.reset_controller(now)
 
     # --- state ----------------------------------------------------------------------------------
@@ -210,11 +214,14 @@ class Monitor:
                               None, [], None, "resent after VRAI", command_id, entry.vrai))
         entry.last = t
 
-    def on_exit(self, t: float, returncode: int) -> None:
+    def on_exit(self, t: float, returncode: int, crash: Optional[Crash] = None) -> None:
+        """The controller died: every case since it last spoke is a suspect, oldest first (a
+        sanitizer's report takes a while: the cases sent while it was written are innocent)."""
         start = (self.last_rx or t) - 0.05
-        suspects = list(reversed(self._between(start, t)))[:40]
-        self.fire(Trigger(CRASH, t, f"controller exited with code {returncode}", None, suspects, None,
-                          f"exit {returncode}"))
+        suspects = self._between(start, t)[:_MAX_CRASH_SUSPECTS]
+        self.pending.clear()      # a dead controller's missing acks are the crash's, not findings of their own
+        crash = crash or Crash(returncode)
+        self.fire(Trigger(CRASH, t, crash.headline(), None, suspects, None, crash.signature(), crash=crash))
 
     # --- time ------------------------------------------------------------------------------------
     def tick(self, now: float) -> None:
@@ -236,8 +243,10 @@ class Monitor:
             self.fire(Trigger(STALL, now, f"no VRPO for {(now - self.last_vrpo) * 1000:.0f} ms",
                               None, after + [i for i in before if i not in after], None, "no VRPO"))
         self._check_resends(now)
-        for command_id in [c for c, (t, _) in self.illegal_ids.items() if now - t > _HISTORY_S]:
-            del self.illegal_ids[command_id]
+        if now >= self._next_purge:      # once a second: thousands of IDs at a high case rate
+            self._next_purge = now + 1.0
+            for command_id in [c for c, (t, _) in self.illegal_ids.items() if now - t > _HISTORY_S]:
+                del self.illegal_ids[command_id]
 
     def _check_resends(self, now: float) -> None:
         limit = self.limits.resend_max_ms / 1000

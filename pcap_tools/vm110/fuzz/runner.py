@@ -4,10 +4,18 @@ A trigger is a finding only when replaying its case (against a freshly restarted
 `--target-cmd` is given) triggers the same oracle again; triggers that do not reproduce are listed
 in `findings.json` as unreproduced, so that a hiccup of a loaded machine is visible but not
 reported as a bug.
+
+One finding per bug: each trigger has a signature (a crash's: signal, sanitizer error type, top
+frames; other oracles': oracle, kind, packet type). A trigger whose signature has a bucket only
+counts there (no replays, no minimising; a smaller case may replace the reproducer). A crash is
+pinned on the cases sent since the controller last spoke by bisecting their prefixes. Cases come
+from the schedule (blind) or from `guided.Guided` (`--coverage`).
 """
 from __future__ import annotations
 
 import collections
+import shutil
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +26,7 @@ from ..errors import CliError
 from ..fileio import check_target
 from . import cases as K
 from . import findings as F
+from .guided import Guided, GuidedConfig
 from .minimize import ddmin, difference, minimize
 from .oracles import CRASH, STALL, VRCO_RETRANSMIT, Monitor, Trigger
 from .session import Sent, Session, Settings, TargetLost
@@ -26,6 +35,9 @@ from .supervisor import Supervisor
 TRIAL = -1               # the case index of replayed packets
 _MAX_SUSPECTS = 12
 _RECORDS_KEPT = 2000
+_STATUS_EVERY_S = 0.5
+_DYING_WAIT_S = 10.0      # for a sanitizer's report to be written
+_SMALLER_TRIES = 3        # replays per bug of smaller cases that hit it again
 
 
 @dataclass
@@ -54,23 +66,34 @@ class RunConfig:
     minimize_budget_s: float = 30.0
     max_findings: int = 20
     progress: Callable[[str], None] = field(default=lambda text: None)
+    status: Optional[Callable[[dict[str, Any]], None]] = None    # the progress line on a terminal
+    core: bool = True
+    coverage: Optional[GuidedConfig] = None
 
 
 def _const(data: bytes, twin: bytes) -> K.Builder:
     return lambda serial: (data, twin)
 
 
-def trial(session: Session, replay: Replay, oracle: str) -> bool:
-    """Play `replay` once and say whether `oracle` fires for it."""
+def trial(session: Session, replay: Replay, oracle: str, signature: Optional[str] = None) -> Optional[Trigger]:
+    """Play `replay` once: the trigger of `oracle` it caused (with `signature`, for a crash, when
+    given: a crash with another stack is another bug), else None."""
     main = session.monitor
     mon = session.monitor = main.fork()
     try:
         steps = [(_const(p.data, p.twin), p.delay_ms, p.expect_ack) for p in replay.packets]
         session.run_steps(TRIAL, steps, replay.pause_vrpi_ms, replay.withhold_vrai_ms, replay.stream, replay.settle_ms)
         _observe(session, mon, oracle, time.time())
-        return any(t.oracle == oracle for t in mon.triggers)
+        if oracle != CRASH and any(t.oracle == CRASH for t in mon.triggers):
+            return None      # it crashed: that is the crash oracle's finding, not this one's
+        for t in mon.triggers:
+            if t.oracle == oracle and (signature is None or oracle != CRASH or t.kind == signature):
+                return t
+        return None
     finally:
         session.monitor = main
+        for t in mon.triggers:
+            F.discard_core(session.evidence_dir, t.crash)
         main.adopt(mon)
 
 
@@ -92,6 +115,10 @@ def _observe(session: Session, mon: Monitor, oracle: str, t_end: float) -> None:
     deadline = t_end + window
     while time.time() < deadline and not fired():
         session.pump(min(deadline, time.time() + 0.02))
+    dying_until = time.time() + _DYING_WAIT_S
+    while oracle == CRASH and not fired() and session.supervisor is not None and session.supervisor.dying() \
+            and time.time() < dying_until:
+        session.pump(time.time() + 0.02)
 
 
 def start_target(s: Session) -> None:
@@ -110,20 +137,32 @@ def start_target(s: Session) -> None:
 class Runner:
     def __init__(self, cfg: RunConfig) -> None:
         self.cfg = cfg
-        self.supervisor = Supervisor(cfg.target_cmd) if cfg.target_cmd else None
-        self.session = Session(cfg.settings, self.supervisor)
         cfg.out.mkdir(parents=True, exist_ok=True)
+        # What can be refused (the log's path, the command, the map) before the socket is opened.
         self._log = _open_log(cfg.out) if cfg.target_cmd else None
-        if self.supervisor is not None:
-            self.supervisor.log = self._log
+        self.guided: Optional[Guided] = None
+        try:
+            self.supervisor = Supervisor(cfg.target_cmd, self._log, core=cfg.core) if cfg.target_cmd else None
+            self.guided = Guided(cfg.coverage, cfg.seed) if cfg.coverage else None
+            if self.guided is not None and self.supervisor is not None:
+                self.supervisor.extra_env.update(self.guided.environment())
+            self.session = Session(cfg.settings, self.supervisor, cfg.out)
+        except BaseException:
+            if self._log is not None:
+                self._log.close()
+            if self.guided is not None:
+                self.guided.close()
+            raise
         self.records: collections.OrderedDict[int, tuple[K.Case, list[Sent]]] = collections.OrderedDict()
         self.findings: list[F.Finding] = []
         self.files: list[str] = []
         self.unreproduced: list[dict[str, Any]] = []
         self.repeats: collections.Counter[str] = collections.Counter()
-        self.found: set[tuple[str, str]] = set()
+        self.buckets: dict[str, F.Bucket] = {}
         self.cases_run = 0
         self.started = time.time()
+        self.end: Optional[float] = None
+        self._last_status = 0.0
         self.stopped_early: Optional[str] = None
 
     # --- the run ----------------------------------------------------------------------------------
@@ -132,19 +171,27 @@ class Runner:
         self.started = time.time()
         end = None if cfg.duration_s is None else self.started + cfg.duration_s
         index = 0
+        self.end = end
         try:
+            if self.guided is not None:
+                self.guided.open(cfg.target_cmd)
             start_target(s)
             while (cfg.cases is None or index < cfg.cases) and (end is None or time.time() < end) \
                     and len(self.findings) < cfg.max_findings:
-                case = K.generate(cfg.seed, index)
+                case = self.guided.next_case(index) if self.guided else K.generate(cfg.seed, index)
+                if self.guided is not None:
+                    self.guided.before_case()
                 sent = s.run_steps(index, [(st.build, st.delay_ms, st.expect_ack) for st in case.steps],
                                    case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream, case.settle_ms)
+                if self.guided is not None:
+                    self.guided.after_case(s, case, sent)
                 self.records[index] = (case, sent)
                 while len(self.records) > _RECORDS_KEPT:
                     self.records.popitem(last=False)
                 self.cases_run = index = index + 1
                 if s.monitor.triggers:
                     self._investigate_all()
+                self._status()
             # The last cases are judged too: wait out the ack timeout and the VRPO watchdog.
             limits = s.settings.limits
             s.pump(time.time() + max(limits.ack_timeout_ms, limits.stall_ms) / 1000 + 0.2)
@@ -155,7 +202,23 @@ class Runner:
             s.close()
             if self._log is not None:
                 self._log.close()
+            if self.guided is not None:
+                self.guided.close()
         return self.summary()
+
+    def _status(self, force: bool = False) -> None:
+        now = time.time()
+        if self.cfg.status is None or (not force and now - self._last_status < _STATUS_EVERY_S):
+            return
+        self._last_status = now
+        elapsed = max(1e-6, now - self.started)
+        left = None if self.end is None else max(0.0, self.end - now)
+        line: dict[str, Any] = {"cases": self.cases_run, "rate": self.cases_run / elapsed, "buckets": len(self.buckets),
+                                "findings": len(self.findings), "hits": sum(b.count for b in self.buckets.values()),
+                                "left_s": left}
+        if self.guided is not None:
+            line.update(edges=self.guided.edges(), corpus=len(self.guided.corpus))
+        self.cfg.status(line)
 
     def summary(self) -> dict[str, Any]:
         cfg = self.cfg
@@ -165,9 +228,14 @@ class Runner:
             "cases_run": self.cases_run, "duration_s": round(time.time() - self.started, 3),
             "restarts": max(0, (self.supervisor.starts - 1) if self.supervisor else 0),
             "findings": [{"oracle": f.oracle, "case_index": f.case_index, "mutation": f.mutation,
-                          "detail": f.detail, "file": name} for f, name in zip(self.findings, self.files)],
+                          "detail": f.detail, "signature": f.signature, "file": name}
+                         for f, name in zip(self.findings, self.files)],
             "counts": dict(counts), "repeats": dict(self.repeats), "unreproduced": self.unreproduced,
+            "buckets": [b.to_json() for b in self.buckets.values()],
+            "sanitizer_options": self.supervisor.sanitizer_options if self.supervisor else {},
+            "core_files": (self.supervisor.no_core_reason or "on") if self.supervisor else None,
             "stopped_early": self.stopped_early,
+            **({"coverage": self.guided.summary()} if self.guided else {}),
         }
 
     # --- triggers -----------------------------------------------------------------------------------
@@ -185,7 +253,8 @@ class Runner:
         investigated = False
         for trig in queue:
             if len(self.findings) >= self.cfg.max_findings:
-                break
+                F.discard_core(self.cfg.out, trig.crash)      # not investigated: not kept
+                continue
             investigated = self._investigate(trig) or investigated
         if investigated or not s.healthy():
             self._recover()
@@ -200,48 +269,127 @@ class Runner:
         elif not s.healthy() and not s.wait_for_vrpo(time.time(), s.settings.startup_s):
             raise TargetLost("the controller stopped sending VRPO and there is no --target-cmd to restart it")
 
-    def _key(self, oracle: str, index: Optional[int], kind: str) -> tuple[str, str]:
-        family = self.records[index][0].family if index in self.records else "none"
-        return oracle, f"{family.split('-', 1)[-1]}/{kind}"
+    def _signature(self, trig: Trigger, index: Optional[int]) -> str:
+        """What makes two triggers the same bug: a crash's own signature; for the other oracles,
+        the oracle, what it judged and the packet type of the case."""
+        if trig.oracle == CRASH:
+            return f"crash {trig.kind}"
+        family = self.records[index][0].family if index is not None and index in self.records else "none"
+        return f"{trig.oracle} {trig.kind} ({family.split('-', 1)[-1]})"
 
     def _investigate(self, trig: Trigger) -> bool:
         """Confirm `trig` by replaying its suspects; save a finding. True if replays were run."""
         suspects = [i for i in ([trig.case_index] if trig.case_index is not None else trig.suspects)
                     if i in self.records]
         spontaneous = not trig.suspects and trig.case_index is None
-        # A suspect of a kind already found most likely did it again: not worth the replays.
-        known = [i for i in suspects if self._key(trig.oracle, i, trig.kind) in self.found]
-        if known or (spontaneous and self._key(trig.oracle, None, trig.kind) in self.found):
-            self.repeats[trig.oracle] += 1
-            return False
+        # A trigger whose signature has a bucket is that bug again: counted, not replayed.
+        candidates: list[Optional[int]] = list(suspects) if trig.oracle != CRASH and suspects else [None]
+        for i in candidates:
+            bucket = self.buckets.get(self._signature(trig, i))
+            if bucket is not None:
+                bucket.hit(trig.time)
+                self.repeats[trig.oracle] += 1
+                F.discard_core(self.cfg.out, trig.crash)
+                culprit = i if i is not None else (suspects[0] if len(suspects) == 1 else None)
+                return self._smaller(trig, bucket, culprit)
         what = "observing the controller again" if spontaneous else f"replaying {len(suspects)} suspect case(s)"
         self.cfg.progress(f"{trig.oracle}: {trig.detail}; {what}")
         traffic = [p for p in self.session.traffic if p[0] >= trig.time - 4.0]
         if spontaneous:   # nothing the cases did: does the controller do it again on its own?
-            if self._trial(Replay([]), trig.oracle):
-                self.found.add(self._key(trig.oracle, None, trig.kind))
+            if self._trial(Replay([]), trig):
                 vrai = trig.packet or b""
                 what = "none: the base unit's normal VRAI" if trig.packet else "none: no case in the window"
-                self._write(trig, max(0, self.cases_run - 1), "none", what, [],
+                self._write(trig, None, max(0, self.cases_run - 1), "none", what, [],
                             Sent(trig.time, vrai, vrai, 0.0, False), None, False, None, traffic)
             else:
                 self._unreproduced(trig, [])
             return True
+        if trig.oracle == CRASH and len(suspects) > 1:
+            return self._investigate_crash(trig, suspects, traffic)
         for index in suspects[:_MAX_SUSPECTS]:
-            if self._trial(Replay.of(*self.records[index]), trig.oracle):
-                self.found.add(self._key(trig.oracle, index, trig.kind))
+            if self._trial(Replay.of(*self.records[index]), trig):
                 case, sent = self.records[index]
                 shown, small, complete = self._minimize(trig, case, sent)
-                self._write(trig, index, case.family, case.description, sent, shown, small, complete, case, traffic)
+                self._write(trig, index, index, case.family, case.description, sent, shown, small, complete, case,
+                            traffic)
                 return True
         self._unreproduced(trig, suspects[:_MAX_SUSPECTS])
         return True
 
-    def _unreproduced(self, trig: Trigger, suspects: list[int]) -> None:
-        self.unreproduced.append({"oracle": trig.oracle, "detail": trig.detail, "time": trig.time,
-                                  "suspects": suspects})
+    def _smaller(self, trig: Trigger, bucket: F.Bucket, index: Optional[int]) -> bool:
+        """A known bug hit by a smaller case than its reproducer: when a replay confirms it, that
+        case becomes the reproducer. True if a replay was run."""
+        if index is None or index not in self.records or bucket.tries >= _SMALLER_TRIES:
+            return False
+        case, sent = self.records[index]
+        if _size(sent) >= bucket.size:
+            return False
+        bucket.tries += 1
+        if self._trial(Replay.of(case, sent), trig) is None:
+            return True
+        finding = self.findings[bucket.number - 1]
+        shown = _pick(sent, trig.command_id)
+        finding.case_index, finding.family, finding.mutation = index, case.family, case.description
+        finding.packet_hex = finding.original_hex = shown.data.hex() if shown else ""
+        finding.valid_hex = shown.twin.hex() if shown else ""
+        finding.differences = difference(shown.data, shown.twin) if shown else 0
+        finding.minimised = False
+        finding.steps = [{"hex": p.data.hex(), "valid_hex": p.twin.hex(),
+                          "delay_ms": p.delay_ms if len(sent) > 1 else 0.0, "expect_ack": p.expect_ack} for p in sent]
+        finding.pause_vrpi_ms, finding.withhold_vrai_ms = case.pause_vrpi_ms, case.withhold_vrai_ms
+        finding.stream, finding.settle_ms = _jsonable(case.stream), case.settle_ms
+        traffic = [p for p in self.session.traffic if p[0] >= trig.time - 4.0]
+        F.write_finding(self.cfg.out, bucket.number, finding, traffic, self.session.link.local)
+        bucket.size, bucket.replaced = _size(sent), bucket.replaced + 1
+        self.cfg.progress(f"{bucket.file}: smaller reproducer, case {index} ({case.description})")
+        return True
 
-    def _trial(self, replay: Replay, oracle: str) -> bool:
+    def _investigate_crash(self, trig: Trigger, suspects: list[int], traffic: list[Any]) -> bool:
+        """A crash and many cases since the controller last spoke: the fewest of them that, played
+        in order, crash it the same way (one case, or a sequence when the bug needs a state)."""
+        deadline = time.time() + self.cfg.minimize_budget_s
+
+        def replay_of(chosen: list[object]) -> Replay:
+            packets = [p for i in chosen for p in self.records[int(i)][1]]    # type: ignore[call-overload]
+            if len(chosen) == 1:
+                return Replay.of(*self.records[int(chosen[0])])             # type: ignore[call-overload]
+            return Replay(packets)
+
+        cache: dict[tuple[object, ...], bool] = {}
+
+        def test(chosen: list[object]) -> bool:
+            if time.time() > deadline:
+                raise _Budget
+            key = tuple(chosen)
+            if key not in cache:
+                cache[key] = self._trial(replay_of(chosen), trig) is not None
+            return cache[key]
+        try:
+            chosen = _culprits(list(suspects), test)
+        except _Budget:
+            chosen = None
+        if not chosen:
+            self._unreproduced(trig, suspects)
+            return True
+        if len(chosen) == 1:
+            index = int(chosen[0])  # type: ignore[call-overload]
+            case, sent = self.records[index]
+            shown, small, complete = self._minimize(trig, case, sent)
+            self._write(trig, index, index, case.family, case.description, sent, shown, small, complete, case, traffic)
+            return True
+        indexes = [int(i) for i in chosen]  # type: ignore[call-overload]
+        sent = [p for i in indexes for p in self.records[i][1]]
+        description = " then ".join(f"[{self.records[i][0].description}]" for i in indexes)
+        self._write(trig, indexes[-1], indexes[-1], "sequence-of-cases", description, sent, _pick(sent, None), None,
+                    False, None, traffic)
+        return True
+
+    def _unreproduced(self, trig: Trigger, suspects: list[int]) -> None:
+        F.discard_core(self.cfg.out, trig.crash)
+        self.unreproduced.append({"oracle": trig.oracle, "detail": trig.detail, "time": trig.time,
+                                  "suspects": suspects[:_MAX_SUSPECTS]})
+
+    def _trial(self, replay: Replay, trig: Trigger) -> Optional[Trigger]:
         """One replay against a clean controller: restarted first when supervised, so that no
         state left by earlier replays decides the result."""
         s = self.session
@@ -249,7 +397,7 @@ class Runner:
             s.restart_target()
         elif not s.healthy() and not s.wait_for_vrpo(time.time(), s.settings.startup_s):
             raise TargetLost("the controller stopped sending VRPO and there is no --target-cmd to restart it")
-        return trial(s, replay, oracle)
+        return trial(s, replay, trig.oracle, trig.kind)
 
     def _minimize(self, trig: Trigger, case: K.Case, sent: list[Sent]) -> tuple[Optional[Sent], Optional[Sent], bool]:
         """(the packet the finding shows, its minimised version or None, complete): first the
@@ -261,7 +409,7 @@ class Runner:
             if time.time() > deadline:
                 raise _Budget
             return self._trial(Replay(packets, case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream,
-                                      case.settle_ms), trig.oracle)
+                                      case.settle_ms), trig) is not None
         chosen: list[object] = list(range(len(sent)))
         complete = True
         if len(chosen) > 1:
@@ -284,12 +432,13 @@ class Runner:
             [Sent(0.0, candidate, one.twin, 0.0, one.expect_ack)]), budget_s=max(0.0, deadline - time.time()))
         return one, Sent(0.0, result.packet, one.twin, 0.0, one.expect_ack), complete and result.complete
 
-    def _write(self, trig: Trigger, index: int, family: str, description: str, sent: list[Sent],
-               shown: Optional[Sent], small: Optional[Sent], complete: bool, case: Optional[K.Case],
-               traffic: list[Any]) -> None:
+    def _write(self, trig: Trigger, culprit: Optional[int], index: int, family: str, description: str,
+               sent: list[Sent], shown: Optional[Sent], small: Optional[Sent], complete: bool,
+               case: Optional[K.Case], traffic: list[Any]) -> None:
         st = self.cfg.settings
         packet = small or shown
         steps = [small] if small is not None else sent
+        signature = self._signature(trig, culprit)
         finding = F.Finding(
             oracle=trig.oracle, seed=self.cfg.seed, case_index=index, family=family, mutation=description,
             detail=trig.detail, packet_hex=packet.data.hex() if packet else "",
@@ -302,15 +451,47 @@ class Runner:
             withhold_vrai_ms=case.withhold_vrai_ms if case else 0.0,
             stream=_jsonable(case.stream if case else None), settle_ms=case.settle_ms if case else 0.0,
             output_hex=trig.output.hex() if trig.output else None,
-            target="%s:%d" % st.target, listen="%s:%d" % st.listen, group=st.group, target_cmd=self.cfg.target_cmd)
+            target="%s:%d" % st.target, listen="%s:%d" % st.listen, group=st.group, target_cmd=self.cfg.target_cmd,
+            signature=signature)
         self.findings.append(finding)
-        path = F.write_finding(self.cfg.out, len(self.findings), finding, traffic, self.session.link.local)
+        number = len(self.findings)
+        if trig.crash is not None:
+            finding.crash = F.write_crash(self.cfg.out, finding.name(number), trig.crash)
+        path = F.write_finding(self.cfg.out, number, finding, traffic, self.session.link.local)
         self.files.append(path.name)
-        self.cfg.progress(f"finding {path.name}: {trig.oracle} at case {index} ({description})")
+        headline = trig.detail if trig.oracle == CRASH else f"{trig.oracle}: {trig.detail}"
+        self.buckets[signature] = F.Bucket(signature, trig.oracle, path.name, trig.time, trig.time, headline=headline,
+                                           number=number, size=_size([small] if small is not None else sent))
+        self.cfg.progress(f"finding {path.name}: {trig.detail if trig.oracle == CRASH else trig.oracle} "
+                          f"at case {index} ({description})")
 
 
 class _Budget(Exception):
     pass
+
+
+def _size(sent: list[Sent]) -> int:
+    """A reproducer's size: packets and bytes (fewer packets first)."""
+    return 100_000 * len(sent) + sum(len(p.data) for p in sent)
+
+
+def _culprits(suspects: list[object], crashes: Callable[[list[object]], bool]) -> Optional[list[object]]:
+    """The cases of `suspects` (in the order sent) that crash the controller when played in order:
+    the shortest crashing prefix by bisection (the crash comes at its last case), then that case
+    alone, else the fewest earlier cases it needs before it (a state). None: no prefix crashes."""
+    if not crashes(suspects):
+        return None
+    lo, hi = 0, len(suspects)            # the prefix of length hi crashes; of length lo does not
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if crashes(suspects[:mid]):
+            hi = mid
+        else:
+            lo = mid
+    last = suspects[hi - 1]
+    if hi == 1 or crashes([last]):
+        return [last]
+    return ddmin(suspects[:hi - 1], lambda before: crashes(before + [last])) + [last]
 
 
 def _pick(sent: list[Sent], command_id: Optional[int]) -> Optional[Sent]:
@@ -337,11 +518,13 @@ def _jsonable(stream: Optional[dict[str, Any]]) -> Optional[dict[str, Any]]:
 
 
 def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[str],
-                   out: Optional[Path] = None) -> bool:
-    """Send the finding again (minimised packet when there is one); True when it still triggers."""
+                   out: Optional[Path] = None) -> Optional[Trigger]:
+    """Send the finding again (minimised packet when there is one); the trigger when it still
+    triggers (a crash's carries its signature: the same bug or another), else None."""
     log = _open_log(out) if out is not None and target_cmd else None
     supervisor = Supervisor(target_cmd, log) if target_cmd else None
-    session = Session(settings, supervisor)
+    scratch = Path(tempfile.mkdtemp(prefix="vm110-replay-"))
+    session = Session(settings, supervisor, scratch)
     try:
         start_target(session)
         session.monitor.vrco_seen = bool(finding.withhold_vrai_ms)   # it had VRCO to withhold: wait for one
@@ -356,3 +539,23 @@ def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[
         session.close()
         if log is not None:
             log.close()
+        shutil.rmtree(scratch, ignore_errors=True)    # our own folder: cores of the replay, if any
+
+
+def replay_corpus_case(entry: Any, settings: Settings, target_cmd: Optional[str]) -> list[Trigger]:
+    """Play one corpus case (`--corpus` file) and wait out the oracles' windows: what fired."""
+    from .guided import case_of
+    supervisor = Supervisor(target_cmd) if target_cmd else None
+    scratch = Path(tempfile.mkdtemp(prefix="vm110-replay-"))
+    session = Session(settings, supervisor, scratch)
+    try:
+        start_target(session)
+        case = case_of(entry, 0, "corpus", "corpus case")
+        session.run_steps(TRIAL, [(st.build, st.delay_ms, st.expect_ack) for st in case.steps], case.pause_vrpi_ms,
+                          case.withhold_vrai_ms, case.stream, case.settle_ms)
+        limits = settings.limits
+        session.pump(time.time() + limits.ack_timeout_ms / 1000 + 0.3)
+        return list(session.monitor.triggers)
+    finally:
+        session.close()
+        shutil.rmtree(scratch, ignore_errors=True)

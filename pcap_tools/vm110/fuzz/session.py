@@ -10,6 +10,7 @@ import collections
 import select
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Optional
 
 from .. import constants as C
@@ -19,6 +20,8 @@ from .oracles import Limits, Monitor
 from .supervisor import Supervisor
 
 _TICK_S = 0.005
+_RATE_CREDIT_S = 0.01
+_AVERAGE_FROM = 1000.0
 _TRAFFIC_S = 12.0     # traffic kept for the pcap of a finding
 
 
@@ -50,7 +53,8 @@ class TargetLost(Exception):
 
 
 class Session:
-    def __init__(self, settings: Settings, supervisor: Optional[Supervisor] = None) -> None:
+    def __init__(self, settings: Settings, supervisor: Optional[Supervisor] = None,
+                 evidence_dir: Path = Path(".")) -> None:
         self.settings = settings
         self.supervisor = supervisor
         self.link = Link(settings.target, settings.listen, settings.group, settings.allow_remote)
@@ -63,7 +67,10 @@ class Session:
         self.withheld: dict[int, float] = {}     # VRCO IDs seen while withholding -> first seen
         self.traffic: collections.deque[tuple[float, bool, bytes, tuple[str, int]]] = collections.deque()
         self.last_case_send = 0.0
+        self.next_case_send = 0.0
         self.exit_reported = False
+        self.crashes = 0
+        self.evidence_dir = evidence_dir
 
     # --- the loop ---------------------------------------------------------------------------------
     def pump(self, until: float) -> None:
@@ -81,7 +88,10 @@ class Session:
                 code = self.supervisor.poll()
                 if code is not None:
                     self.exit_reported = True
-                    self.monitor.on_exit(time.time(), code)
+                    t = time.time()
+                    self.crashes += 1
+                    crash = self.supervisor.evidence(self.evidence_dir, f".crash-{self.crashes}")
+                    self.monitor.on_exit(t, code, crash)
             self.monitor.tick(time.time())
             now = time.time()
             if now >= until:
@@ -121,11 +131,18 @@ class Session:
     # --- cases ------------------------------------------------------------------------------------
     def send_case_packet(self, index: int, build: Any, delay_ms: float, expect_ack: bool) -> Sent:
         """Wait `delay_ms` and for the rate limit, then build the packet on the next serial and send it."""
-        self.pump(time.time() + delay_ms / 1000)
-        self.pump(self.last_case_send + 1.0 / self.settings.rate)
+        if delay_ms:
+            self.pump(time.time() + delay_ms / 1000)
+        self.pump(self.next_case_send)
         data, twin = build(self._take_serial())
         t = self._send(data)
         self.last_case_send = t
+        # Packets at least 1/rate apart; above _AVERAGE_FROM packets/s (intervals shorter than a
+        # sleep can time on a loaded machine) the rate holds on average instead: time lost to a late
+        # wake-up may be made up within _RATE_CREDIT_S, so that a high --rate is reached, never exceeded.
+        interval = 1.0 / self.settings.rate
+        credit = _RATE_CREDIT_S if self.settings.rate >= _AVERAGE_FROM else 0.0
+        self.next_case_send = max(self.next_case_send, t - credit) + interval
         self.monitor.on_tx(t, data, twin, index, expect_ack)
         return Sent(t, data, twin, delay_ms, expect_ack)
 

@@ -1,21 +1,64 @@
-"""Start, watch, restart and stop the controller under test (`--target-cmd`)."""
+"""Start, watch, restart and stop the controller under test (`--target-cmd`), and keep what it
+leaves behind when it dies: the output of that run (a bounded ring), how it ended, its sanitizer
+report and its core file."""
 from __future__ import annotations
 
+import collections
 import os
+import resource
 import shlex
+import shutil
 import signal
 import subprocess
+import threading
+import time
+from pathlib import Path
 from typing import IO, Optional
 
 from ..errors import CliError
+from . import cores
+from .evidence import Crash, parse_sanitizer
 
 _STOP_WAIT_S = 2.0
+RING_BYTES = 256 * 1024
+_REPORT_TAIL = 64 * 1024
+_READ_WAIT_S = 3.0           # for the rest of a dying controller's report to arrive
+
+# As AFL++ and libFuzzer start their targets: an error ends the process with a signal and a
+# symbolised report; leaks are not crashes of a long-running service.
+SANITIZER_DEFAULTS = {
+    "ASAN_OPTIONS": "abort_on_error=1:symbolize=1:detect_leaks=0",
+    "UBSAN_OPTIONS": "abort_on_error=1:halt_on_error=1:print_stacktrace=1:symbolize=1",
+    "LSAN_OPTIONS": "symbolize=1",
+}
+
+
+class _Ring:
+    """The last `limit` bytes a stream delivered."""
+
+    def __init__(self, limit: int = RING_BYTES) -> None:
+        self.limit = limit
+        self.chunks: collections.deque[bytes] = collections.deque()
+        self.size = 0
+        self.lock = threading.Lock()
+
+    def add(self, data: bytes) -> None:
+        with self.lock:
+            self.chunks.append(data)
+            self.size += len(data)
+            while self.size - len(self.chunks[0]) >= self.limit:
+                self.size -= len(self.chunks.popleft())
+
+    def value(self) -> bytes:
+        with self.lock:
+            return b"".join(self.chunks)[-self.limit:]
 
 
 class Supervisor:
     """One controller process at a time, in its own process group so that its children go too."""
 
-    def __init__(self, command: str, log: Optional[IO[bytes]] = None) -> None:
+    def __init__(self, command: str, log: Optional[IO[bytes]] = None, env: Optional[dict[str, str]] = None,
+                 core: bool = True, cwd: Optional[Path] = None) -> None:
         try:
             self.argv = shlex.split(command)
         except ValueError as exc:
@@ -24,24 +67,148 @@ class Supervisor:
             raise CliError("--target-cmd is empty")
         self.command = command
         self.log = log
+        self.extra_env = dict(env or {})
+        self.cwd = cwd or Path.cwd()
         self.proc: Optional[subprocess.Popen[bytes]] = None
         self.starts = 0
+        self.started_at = 0.0
+        self.ring = _Ring()
+        self.reader: Optional[threading.Thread] = None
+        self.sanitizer_options = {name: ("user" if name in os.environ else value)
+                                  for name, value in SANITIZER_DEFAULTS.items()}
+        self.core_hard = resource.getrlimit(resource.RLIMIT_CORE)[1]
+        self.core_limit = self.core_hard if core else 0
+        self.core_pattern = cores.read_pattern()
+        self.no_core_reason = cores.why_no_core(self.core_pattern, self.core_limit)
+        self.exe = shutil.which(self.argv[0], path=os.environ.get("PATH")) or str(self.cwd / self.argv[0])
+
+    def environment(self) -> dict[str, str]:
+        env = dict(os.environ)
+        for name, value in SANITIZER_DEFAULTS.items():
+            env.setdefault(name, value)
+        env.update(self.extra_env)
+        return env
 
     def start(self) -> None:
+        self.ring = _Ring()
         try:
-            self.proc = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=self.log or subprocess.DEVNULL,
-                                         stderr=self.log or subprocess.DEVNULL, start_new_session=True)
+            self.proc = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                         stderr=subprocess.STDOUT, start_new_session=True, env=self.environment(),
+                                         cwd=self.cwd)
         except OSError as exc:
             raise CliError(f"cannot start --target-cmd {self.argv[0]!r}: {exc.strerror}") from None
+        # The core size limit, set from outside (no code between fork and exec: the reader threads).
+        try:
+            resource.prlimit(self.proc.pid, resource.RLIMIT_CORE, (self.core_limit, self.core_hard))
+        except OSError:
+            pass     # it has exited already
+        self.started_at = time.time()
         self.starts += 1
+        assert self.proc.stdout is not None
+        self.reader = threading.Thread(target=self._read, args=(self.proc.stdout, self.ring), daemon=True)
+        self.reader.start()
+
+    def _read(self, stream: IO[bytes], ring: _Ring) -> None:
+        fd = stream.fileno()
+        while True:
+            try:
+                data = os.read(fd, 65536)
+            except OSError:
+                break
+            if not data:
+                break
+            ring.add(data)
+            if self.log is not None:
+                try:
+                    self.log.write(data)
+                    self.log.flush()
+                except (OSError, ValueError):
+                    pass
+        stream.close()
+
+    def dying(self) -> bool:
+        """A sanitizer has begun its report: the process ends once it is written (symbolising
+        takes a while on a loaded machine)."""
+        tail = self.ring.value()[-_REPORT_TAIL:]
+        return b"==ERROR: " in tail or b"DEADLYSIGNAL" in tail or b"runtime error: " in tail
 
     def poll(self) -> Optional[int]:
-        """The exit code once the controller has exited, else None."""
+        """The exit code once the controller has exited (negative: the signal that ended it), else None."""
         return None if self.proc is None else self.proc.poll()
+
+    def output(self) -> bytes:
+        """What this start of the controller wrote (its last RING_BYTES), once its output has ended."""
+        if self.reader is not None:
+            self.reader.join(_READ_WAIT_S)
+        return self.ring.value()
+
+    def evidence(self, folder: Path, name: str) -> Crash:
+        """The crash of the process just ended: its output, sanitizer report, core (moved to
+        `folder`/`name`.core) and the backtrace from it."""
+        proc = self.proc
+        assert proc is not None and proc.returncode is not None
+        self._kill_group(proc)
+        crash = Crash(proc.returncode, self.output())
+        crash.sanitizer = parse_sanitizer(crash.output.decode("utf-8", "replace"))
+        if proc.returncode >= 0:
+            crash.core_missing = "the controller exited, no signal: no core"
+            return crash
+        if self.no_core_reason:
+            crash.core_missing = self.no_core_reason
+            return crash
+        if crash.sanitizer is not None and crash.sanitizer.tool == "asan" \
+                and "disable_coredump=0" not in self.environment().get("ASAN_OPTIONS", ""):
+            crash.core_missing = self._why_missing(crash)
+            return crash
+        dest = folder / f"{name}.core"
+        core = self._core(proc.pid, dest)
+        if core is None:
+            crash.core_missing = self._why_missing(crash)
+            return crash
+        crash.core = dest.name
+        crash.backtrace_text, crash.backtrace = cores.backtrace(self.exe, dest)
+        if not crash.backtrace_text and shutil.which("gdb") is None:
+            crash.backtrace_text = "(gdb is not installed: no backtrace from the core)"
+        return crash
+
+    def _core(self, pid: int, dest: Path) -> Optional[Path]:
+        pattern = self.core_pattern or ""
+        if pattern.startswith("|"):
+            return cores.coredumpctl_core(pid, dest)
+        for _ in range(20):          # the kernel writes the core before the parent sees the exit
+            found = cores.find_core(pattern, pid, self.exe, self.cwd, self.started_at)
+            if found is not None:
+                try:
+                    shutil.move(str(found), str(dest))
+                except OSError:
+                    return None
+                return dest
+            time.sleep(0.05)
+        return None
+
+    def _why_missing(self, crash: Crash) -> str:
+        how = crash.how
+        if crash.sanitizer is not None and crash.sanitizer.tool == "asan":
+            return ("AddressSanitizer turns core files off (its disable_coredump=1 on 64-bit, against a core of its "
+                    "whole shadow memory); its report has the stack")
+        if how.get("signal") in (signal.SIGKILL, signal.SIGTERM, signal.SIGINT):
+            return f"{how['signal_name']} does not dump core"
+        return f"no core file found by core_pattern {self.core_pattern!r} in {self.cwd}"
+
+    @staticmethod
+    def _kill_group(proc: subprocess.Popen[bytes]) -> None:
+        """A dead controller's children go too (they would hold its port and output)."""
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
 
     def stop(self) -> None:
         proc, self.proc = self.proc, None
-        if proc is None or proc.poll() is not None:
+        if proc is None:
+            return
+        if proc.poll() is not None:
+            self._kill_group(proc)
             return
         for sig in (signal.SIGTERM, signal.SIGKILL):
             try:

@@ -1,0 +1,187 @@
+"""What a crashed controller left behind: how it ended, its sanitizer report, its core and backtrace.
+
+Everything here reads text the controller (or gdb) wrote: it is parsed defensively, bounded, and
+never run. A crash's signature (signal or exit code, sanitizer error type, top frames of the
+target's own code) is what groups crashes into one finding per bug.
+"""
+from __future__ import annotations
+
+import re
+import signal
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+TOP_FRAMES = 3
+_MAX_FRAMES = 64
+
+# Frames that are not the target's own code: libc start-up, the sanitizer runtimes, signal delivery.
+_FOREIGN_FUNCTIONS = re.compile(
+    r"^(__asan|__ubsan|__lsan|__sanitizer|__interceptor_|__libc_|_start$|__GI_|__pthread|raise$|abort$|"
+    r"gsignal$|__restore_rt|__kernel|__afl|___interceptor_|__wrap_|_dl_|__memset|__memcpy|__strlen|"
+    r"mem(cpy|set|move|cmp)$|str\w*$|malloc$|calloc$|realloc$|free$|operator (new|delete))")
+_FOREIGN_FILES = re.compile(r"(^|/)(sanitizer_common|asan|ubsan|lsan|libsanitizer|compiler-rt|sysdeps|csu|nptl|"
+                            r"libc\.so|libasan|libubsan|ld-linux|glibc|\.\./sysdeps)(/|\.|$)")
+_ASAN_FRAME = re.compile(r"^\s*#(\d+)\s+0x[0-9a-fA-F]+\s+(?:in\s+(.+?)\s+)?(\S+|\(.*\))\s*$")
+_GDB_FRAME = re.compile(r"^#(\d+)\s+(?:0x[0-9a-fA-F]+\s+in\s+)?(\S+)\s*\(.*?\)(?:\s+(?:at|from)\s+(\S+))?\s*$")
+_ERROR = re.compile(r"==\d+==\s*ERROR:\s*(AddressSanitizer|LeakSanitizer|ThreadSanitizer|MemorySanitizer):\s*"
+                    r"([\w-]+)")
+_UBSAN = re.compile(r"^(\S+:\d+(?::\d+)?): runtime error: (.*)$")
+_SUMMARY = re.compile(r"^SUMMARY:\s*(\w+):\s*(.*)$")
+_TOOL_NAMES = {"AddressSanitizer": "asan", "LeakSanitizer": "lsan", "UndefinedBehaviorSanitizer": "ubsan",
+               "ThreadSanitizer": "tsan", "MemorySanitizer": "msan"}
+
+
+@dataclass
+class Frame:
+    function: str
+    location: str = ""            # file:line[:column] when symbolised, else the module
+
+    def own(self) -> bool:
+        """The target's own code, not libc's or a sanitizer runtime's."""
+        if not self.function or self.function in ("??", "<unknown>") or _FOREIGN_FUNCTIONS.match(self.function):
+            return False
+        return not _FOREIGN_FILES.search(self.location)
+
+    def short(self) -> str:
+        where = self.location.rsplit("/", 1)[-1]
+        where = re.sub(r"^(.+?:\d+):\d+$", r"\1", where)     # no column
+        return f"{self.function} ({where})" if ":" in where else self.function
+
+
+@dataclass
+class SanitizerReport:
+    tool: str                      # asan, ubsan, lsan ...
+    error_type: str                # heap-buffer-overflow, SEGV, signed-integer-overflow ...
+    summary: str
+    frames: list[Frame] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"tool": self.tool, "error_type": self.error_type, "summary": self.summary,
+                "frames": [{"function": f.function, "location": f.location} for f in self.frames]}
+
+
+def signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
+
+
+def ended(returncode: int) -> dict[str, Any]:
+    """How a process ended, from Popen's returncode (negative: killed by that signal)."""
+    if returncode < 0:
+        return {"signal": -returncode, "signal_name": signal_name(-returncode)}
+    return {"exit_code": returncode}
+
+
+def _frames(lines: list[str], start: int) -> list[Frame]:
+    """The first block of `#N` frame lines at or after `start` (the crashing thread's stack)."""
+    out: list[Frame] = []
+    for line in lines[start:]:
+        m = _ASAN_FRAME.match(line)
+        if m is None:
+            if out:
+                break
+            continue
+        function = (m.group(2) or "").strip()
+        location = m.group(3).strip("()")
+        out.append(Frame(function, location))
+        if len(out) >= _MAX_FRAMES:
+            break
+    return out
+
+
+def parse_sanitizer(text: str) -> Optional[SanitizerReport]:
+    """The last sanitizer report in a controller's output, or None when there is none."""
+    lines = text.splitlines()
+    start = None
+    tool = error_type = ""
+    for n, line in enumerate(lines):
+        m = _ERROR.search(line)
+        if m:
+            start, tool, error_type = n, _TOOL_NAMES.get(m.group(1), m.group(1)), m.group(2)
+            continue
+        u = _UBSAN.match(line)
+        if u:
+            start, tool = n, "ubsan"
+            error_type = _ubsan_type(u.group(2))
+    if start is None:
+        return None
+    summary = ""
+    for line in lines[start:]:
+        if _SUMMARY.match(line):
+            summary = line.strip()[:500]
+            break
+    if tool == "lsan" and error_type == "detected":
+        error_type = "memory-leak"
+    return SanitizerReport(tool, error_type, summary, _frames(lines, start + 1))
+
+
+def _ubsan_type(message: str) -> str:
+    """A stable name for a UBSan runtime error (its message carries values that change)."""
+    known = (("signed integer overflow", "signed-integer-overflow"), ("division by zero", "integer-divide-by-zero"),
+             ("shift exponent", "shift-exponent"), ("left shift", "shift-base"), ("out of bounds", "bounds"),
+             ("null pointer", "null"), ("misaligned", "alignment"), ("load of value", "invalid-value"),
+             ("unsigned integer overflow", "unsigned-integer-overflow"))
+    for needle, name in known:
+        if needle in message:
+            return name
+    return re.sub(r"[^a-z]+", "-", message.split(":")[0].lower()).strip("-")[:40] or "undefined-behavior"
+
+
+def parse_gdb_backtrace(text: str) -> list[Frame]:
+    """Frames of `gdb -batch -ex bt` output."""
+    out: list[Frame] = []
+    for line in text.splitlines():
+        m = _GDB_FRAME.match(line.strip())
+        if m and (not out or int(m.group(1)) == len(out)):
+            out.append(Frame(m.group(2), m.group(3) or ""))
+            if len(out) >= _MAX_FRAMES:
+                break
+    return out
+
+
+@dataclass
+class Crash:
+    """One death of the supervised controller, and its evidence."""
+
+    returncode: int
+    output: bytes = b""
+    sanitizer: Optional[SanitizerReport] = None
+    core: Optional[str] = None            # where the core file is now (moved next to the findings)
+    core_missing: Optional[str] = None    # why there is none
+    backtrace: list[Frame] = field(default_factory=list)
+    backtrace_text: str = ""
+
+    @property
+    def how(self) -> dict[str, Any]:
+        return ended(self.returncode)
+
+    def stack(self) -> list[Frame]:
+        """The crashing thread's frames: the sanitizer's, else gdb's."""
+        return self.sanitizer.frames if self.sanitizer and self.sanitizer.frames else self.backtrace
+
+    def own_frames(self, count: int = TOP_FRAMES) -> list[Frame]:
+        return [f for f in self.stack() if f.own()][:count]
+
+    def ending(self) -> str:
+        how = self.how
+        return how["signal_name"] if "signal" in how else f"exit {how['exit_code']}"
+
+    def signature(self) -> str:
+        """Signal or exit code, sanitizer error type, the top frames of the target's own code."""
+        parts = [self.ending()]
+        if self.sanitizer is not None:
+            parts.append(f"{self.sanitizer.tool}:{self.sanitizer.error_type}")
+        parts += [f.function for f in self.own_frames()]
+        return " ".join(parts)
+
+    def headline(self) -> str:
+        """`crash SIGSEGV in dispatch_state (controller.c:141)`, with the sanitizer's error type."""
+        text = f"crash {self.ending()}"
+        if self.sanitizer is not None:
+            text += f" {self.sanitizer.error_type}"
+        top = self.own_frames(1)
+        if top:
+            text += f" in {top[0].short()}"
+        return text

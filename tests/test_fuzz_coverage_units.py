@@ -1,0 +1,106 @@
+"""Coverage-guided pieces without a controller: the shared-memory map, AFL's hit-count classes,
+the corpus on disk (hostile files skipped), AFL dictionaries, strings of a program, mutation that
+keeps size and CRC right."""
+from __future__ import annotations
+
+import json
+import random
+
+import pytest
+from vm110 import constants as C
+from vm110.decode import decode
+from vm110.errors import CliError
+from vm110.fuzz import mutate as M
+from vm110.fuzz.corpus import CorpusDir, Entry, Packet, binary_strings, load_dictionary
+from vm110.fuzz.coverage import COUNT_CLASS, ShmMap, Virgin, map_size
+from vm110.fuzz.havoc import Mutator
+
+
+def test_hit_count_classes_are_afls():
+    # AFL's classes: 0, 1, 2, 3, 4-7, 8-15, 16-31, 32-127, 128-255.
+    expected = {0: 0, 1: 1, 2: 2, 3: 4, 4: 8, 7: 8, 8: 16, 15: 16, 16: 32, 31: 32, 32: 64, 127: 64, 128: 128, 255: 128}
+    assert {n: COUNT_CLASS[n] for n in expected} == expected
+
+
+def test_virgin_counts_new_edges_and_new_classes():
+    v = Virgin(8)
+    assert v.novel(bytes(8)) == 0 and not v.ever_nonzero
+    assert v.novel(bytes([1, 0, 0, 5, 0, 0, 0, 0])) == 2 and v.edges == 2
+    assert v.novel(bytes([1, 0, 0, 6, 0, 0, 0, 0])) == 0, "5 and 6 are one class"
+    assert v.novel(bytes([2, 0, 0, 0, 0, 0, 0, 0])) == -1, "a new class of a known edge"
+    assert v.novel(bytes([0, 0, 0, 0, 0, 0, 0, 9])) == 1 and v.edges == 3
+
+
+def test_shm_map_clear_and_read():
+    m = ShmMap(4096)
+    try:
+        assert m.id >= 0 and m.read() == bytes(4096)
+        import ctypes
+        ctypes.memset(m.addr + 100, 7, 3)
+        assert m.read()[100:103] == b"\x07\x07\x07"
+        m.clear()
+        assert m.read() == bytes(4096)
+    finally:
+        m.close()
+
+
+def test_map_size_from_environment():
+    assert map_size({}) == 65536 and map_size({"AFL_MAP_SIZE": "262144"}) == 262144
+    for bad in ("0", "-1", "1e9", "x"):
+        with pytest.raises(CliError):
+            map_size({"AFL_MAP_SIZE": bad})
+
+
+def test_afl_dictionary(tmp_path):
+    path = tmp_path / "d.dict"
+    path.write_text('# comment\nmaint="MAINT:"\n"ENGAGE"\nbin="\\x00\\xffA\\"\\\\"\nkw@2="X"\n\n')
+    assert load_dictionary(str(path)) == [b"MAINT:", b"ENGAGE", b'\x00\xffA"\\', b"X"]
+    path.write_text('ok="A"\nbroken\n')
+    with pytest.raises(CliError, match="line 2"):
+        load_dictionary(str(path))
+
+
+def test_program_strings_are_its_own(tmp_path):
+    prog = tmp_path / "prog"
+    prog.write_bytes(b"\0\0MAINT:\0ENGAGE\0a b\0%d\0_private\0xy\0")
+    assert binary_strings(str(prog)) == [b"MAINT:", b"ENGAGE"]
+    assert binary_strings(str(tmp_path / "missing")) == []
+
+
+def test_corpus_round_trip_and_hostile_files_skipped(tmp_path):
+    store = CorpusDir(tmp_path)
+    vrci = M.build(C.PacketType.VRCI, 3, M.default_fields(C.PacketType.VRCI, 9))
+    store.save(Entry([Packet(vrci, 5.0), Packet(b"junk", 0.0, raw=True)], dict(M.DISARMED_VRPI), origin="test"))
+    (tmp_path / "id-000007.json").write_text(json.dumps({"vm110_corpus_entry": 1, "packets": [
+        {"hex": "zz", "delay_ms": 0, "raw": False, "expect_ack": True}]}))
+    (tmp_path / "id-000008.json").write_text("[1e999999")
+    (tmp_path / "id-000009.json").write_text(json.dumps({"vm110_corpus_entry": 1, "packets": [
+        {"hex": "00", "delay_ms": float("nan"), "raw": False, "expect_ack": True}]}).replace("NaN", "1e999"))
+    again = CorpusDir(tmp_path)
+    entries = again.load()
+    assert len(entries) == 1 and entries[0].packets[0].data == vrci and entries[0].packets[1].raw
+    assert entries[0].stream == {k: int(v) for k, v in M.DISARMED_VRPI.items()}
+    assert len(again.skipped) == 3 and again.next == 10
+
+
+def test_mutants_keep_size_and_crc_unless_raw():
+    rng = random.Random(1)
+    m = Mutator(rng, [b"MAINT:", b"ENGAGE"])
+    base = Entry([Packet(M.build(C.PacketType.VRCI, 1, M.default_fields(C.PacketType.VRCI, 5))),
+                  Packet(M.build(C.PacketType.VRPI, 2, M.ARMED_VRPI))])
+    broken = legal_changed = 0
+    for _ in range(400):
+        child = m.mutate(base, base)
+        assert 0 < len(child.packets) <= 8 or not child.packets
+        assert child.pause_vrpi_ms == child.withhold_vrai_ms == 0, "mutants need no waiting"
+        for p in child.packets:
+            d = decode(p.data)
+            if p.raw:
+                broken += 1
+                continue
+            if len(p.data) >= C.OVERHEAD:
+                assert d["crc.status"] == C.CRC_GOOD and d["size"] == len(p.data) - C.OVERHEAD, p.data.hex()
+                legal_changed += p.data not in (base.packets[0].data, base.packets[1].data)
+    assert broken > 0 and legal_changed > 200
+    assert any(p.data[C.PREFIX_LEN + 6:].startswith(b"ENGAGE") for _ in range(200)
+               for p in m.mutate(base, base).packets), "dictionary tokens go into command data"
