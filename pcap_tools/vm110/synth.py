@@ -72,7 +72,7 @@ def write_capture(stream: ByteSink, sc: Scenario, seed: int, duration: float, fm
     # the station's own port), then the other traffic's: its arrivals carry that index.
     flows = [UdpFlow(stations[i].ip, port, C.MULTICAST_GROUP, stations[i].port, ttl=C.MULTICAST_TTL)
              for i, port in endpoints(stations)]
-    others = [(t, 0, len(flows), OTHER_PAYLOAD, (), None, False)
+    others: list[Arrival] = [(t, 0, len(flows), OTHER_PAYLOAD, (), None, False)
               for t in map(seconds, sc.other_traffic) if t < seconds(duration)]
     flows.append(UdpFlow(OTHER_SOURCE, MDNS_PORT, OTHER_GROUP, MDNS_PORT, ttl=255))
     frame = [flow.frame for flow in flows]

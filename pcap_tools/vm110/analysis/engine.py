@@ -490,12 +490,12 @@ class FastEngine:
     def _slow(self, got: Collected, reader: CaptureReader, variant: str, order: str, ts: float, src: bytes,
               sport: int, dport: int, payload: bytes, frame: int) -> None:
         n = len(payload)
-        if sport not in self.ports and dport not in self.ports:
-            # Heuristic for other ports: a known packet ID and a size consistent with the length.
-            if not C.OVERHEAD <= n <= C.MAX_PACKET or payload[:C.ID_LEN] not in CODE_OF_ID \
-                    or n != C.OVERHEAD + P.SIZE.unpack_from(payload, P.SIZE_OFFSET)[0]:
-                got.other_udp += 1
-                return
+        # Heuristic for other ports: a known packet ID and a size consistent with the length.
+        if sport not in self.ports and dport not in self.ports and (
+                not C.OVERHEAD <= n <= C.MAX_PACKET or payload[:C.ID_LEN] not in CODE_OF_ID
+                or n != C.OVERHEAD + P.SIZE.unpack_from(payload, P.SIZE_OFFSET)[0]):
+            got.other_udp += 1
+            return
         got.eglink += 1
         fields = decode(payload, variant, order)
         problems = list(fields["problems"])

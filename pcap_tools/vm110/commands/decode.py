@@ -10,9 +10,10 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-from typing import Any, Iterator, Mapping, Optional, cast
+from typing import Any, Iterator, Optional
 
 from .. import constants as C
+from .. import protocol as P
 from ..capture.reader import CaptureReader, address
 from ..capture.spool import stdin_spool
 from ..crc import BYTE_ORDERS, VARIANTS
@@ -49,7 +50,7 @@ def eglink_datagrams(reader: CaptureReader, port: int) -> Iterator[tuple[int, fl
 
 def enum_name(name: str, value: int) -> str:
     """The name of an enumerated field's value, "Unknown" beyond the enumeration (as the dissector)."""
-    names = cast(Mapping[int, str], C.ENUM_FIELDS[name])
+    names = P.ENUM_FIELDS[name]
     return names.get(value, "Unknown")
 
 
@@ -59,7 +60,7 @@ def enum_text(name: str, value: int) -> str:
 
 
 def _value(name: str, value: Any) -> str:
-    if name in C.ENUM_FIELDS:
+    if name in P.ENUM_FIELDS:
         return enum_text(name, value)
     return f"0x{value:04X}" if name == "armed_ru" else str(value)
 
@@ -82,7 +83,7 @@ def _jsonable(value: Any) -> Any:
 
 def _json(number: int, when: float, start: float, src: str, fields: dict[str, Any]) -> str:
     """The decoded fields, plus the time in both readable forms and each enum's name (`names`)."""
-    names = {k: enum_name(k, v) for k, v in fields.items() if k in C.ENUM_FIELDS}
+    names = {k: enum_name(k, v) for k, v in fields.items() if k in P.ENUM_FIELDS}
     return json.dumps({"frame": number, "time": when, "time_utc": utc_iso(when),
                        "time_relative": round(when - start, 6), "src": src,
                        **{k: _jsonable(v) for k, v in fields.items()}, "names": names})

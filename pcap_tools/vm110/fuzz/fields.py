@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Any, Optional
 
 from .. import constants as C
+from .. import protocol as P
 from ..layers import PAYLOAD_CLASSES
 
 SERIAL_AT = C.ID_LEN + 4
@@ -54,10 +55,10 @@ def _declared(ptype: C.PacketType) -> list[FieldSpot]:
             out.append(FieldSpot(field.name, offset, width, text=True))
         else:
             width = struct.calcsize(fmt)
-            names: Any = C.ENUM_FIELDS.get(field.name, {})
+            names: Any = P.ENUM_FIELDS.get(field.name, {})
             enum = tuple(sorted(int(v) for v in names))
             out.append(FieldSpot(field.name, offset, width, fmt[-1].islower(), enum=enum,
-                                 limits=C.RANGES.get(field.name)))
+                                 limits=P.RANGES.get(field.name)))
         offset += width
     return out
 

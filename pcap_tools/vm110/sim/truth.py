@@ -381,6 +381,7 @@ class GroundTruth:
             if endpoint >= count:
                 self.other += 1
                 continue
+            assert meta is not None      # every EG-Link sender's packet carries its Meta
             if problems:
                 self.illegal_total += 1
                 self.illegal.update(problems)

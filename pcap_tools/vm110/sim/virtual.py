@@ -51,7 +51,7 @@ def endpoints(stations: list[Station]) -> list[tuple[int, int]]:
 # of the sending endpoint (`endpoints`), bytes, illegal reasons by construction (() for a legal
 # packet), the sender's `Meta`, whether the receivers got it (False: a mirror copy)). It is the
 # network's own queue entry, handed over as it is: no copy per packet.
-Arrival = tuple[int, int, int, bytes, tuple[str, ...], Meta, bool]
+Arrival = tuple[int, int, int, bytes, tuple[str, ...], Optional[Meta], bool]   # no Meta: other traffic
 BATCH = 4096                 # arrivals handed to the tap at a time
 
 
