@@ -78,7 +78,7 @@ def _build(got: Collected) -> dict:
         "schema_version": SCHEMA_VERSION,
         "tool": {"name": "vm110", "version": __version__, "engine": got.engine},
         "capture": {
-            "file": got.path, "format": got.format, "link_types": got.link_types,
+            "file": got.path, "format": got.format or None, "link_types": got.link_types,
             "packets": got.frames, "udp_packets": got.udp, "eglink_packets": got.eglink,
             "other_udp_packets": got.other_udp, "non_udp_packets": got.non_udp,
             "fragments": got.fragments, "snaplen_truncated": got.snap_truncated,
