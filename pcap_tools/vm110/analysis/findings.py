@@ -84,6 +84,21 @@ def frame_filter(frames: list[int]) -> str:
     return "frame.number in {" + " ".join(str(f) for f in frames) + "}"
 
 
+def located_item(frames: Any, time: float, sender: Optional[str], **what: Any) -> dict:
+    """One item of a finding: its frame(s), time, sender, details and the display filter that shows it
+    (also the shape of `vm110 monitor`'s live findings)."""
+    frames = [int(f) for f in frames] if isinstance(frames, list) else [int(frames)]
+    item: dict = {"frame": frames[0]}
+    if len(frames) > 1:
+        item["frames"] = frames
+    item["time"] = time
+    if sender is not None:
+        item["sender"] = sender
+    item.update(what)
+    item["filter"] = frame_filter(frames)
+    return item
+
+
 class Where:
     """Adds located items to the findings of a report under construction."""
 
@@ -91,16 +106,7 @@ class Where:
         self.located = located
 
     def add(self, rule: str, frames: Any, time: float, sender: Optional[str], **what: Any) -> None:
-        frames = [int(f) for f in frames] if isinstance(frames, list) else [int(frames)]
-        item: dict = {"frame": frames[0]}
-        if len(frames) > 1:
-            item["frames"] = frames
-        item["time"] = time
-        if sender is not None:
-            item["sender"] = sender
-        item.update(what)
-        item["filter"] = frame_filter(frames)
-        self._kept(rule).add(item)
+        self._kept(rule).add(located_item(frames, time, sender, **what))
 
     def skip(self, rule: str, count: int) -> None:
         """Count items that lie beyond the first MAX_ITEMS of their rule without making them."""

@@ -26,7 +26,7 @@ from .. import constants as C
 from ..analysis import serials
 from ..analysis.collect import CODE_OF_ID, STATE, STATE_FIELDS, TYPES, VRPI_CODE, VRPO_CODE, sender_id
 from ..capture.reader import address
-from ..analysis.findings import frame_filter
+from ..analysis.findings import located_item as item
 from ..analysis.state import _name as state_name
 from ..analysis.timing import JITTER_GAIN
 
@@ -34,20 +34,6 @@ SILENT_S = 10.0            # a watchdog lasting longer than this shows as "silen
 WINDOW_S = 60              # "last minute" numbers
 Emit = Callable[[dict], None]
 _INPUT = [t.direction is C.Direction.INPUT for t in TYPES]
-
-
-def item(frames, time: float, sender: Optional[str], **what) -> dict:
-    """A located item as in the report's findings (findings.Where.add)."""
-    frames = [int(f) for f in frames] if isinstance(frames, list) else [int(frames)]
-    out: dict = {"frame": frames[0]}
-    if len(frames) > 1:
-        out["frames"] = frames
-    out["time"] = time
-    if sender is not None:
-        out["sender"] = sender
-    out.update(what)
-    out["filter"] = frame_filter(frames)
-    return out
 
 
 class LiveSender:
