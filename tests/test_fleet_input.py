@@ -103,10 +103,12 @@ def test_rebuild_skips_unchanged_and_replaces_changed(src, built, tmp_path):
 @pytest.mark.parametrize("stop, jobs", [(signal.SIGKILL, "1"), (signal.SIGINT, "2")], ids=["kill", "ctrl-c"])
 def test_stopped_build_continues_where_it_stopped(src, built, tmp_path, stop, jobs):
     """A kill (nothing runs after it) and Ctrl-C to the whole process group (pool workers too)."""
-    for n in range(3):                                          # a bigger job: copies under other names
+    # A job big enough that a loaded machine cannot finish it between the check and the signal.
+    copies = 9
+    for n in range(copies):
         for name in NAMES:
             shutil.copy(src / name, src / f"copy{n}-{name}")
-    total = 4 * len(NAMES)
+    total = (copies + 1) * len(NAMES)
     dataset = tmp_path / "killed"
     command = [sys.executable, "-m", "vm110", "fleet", "build", str(src), "--out", str(dataset), "-j", jobs]
     proc = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
