@@ -4,10 +4,12 @@ namespace); and the dashboard in tmux on a capture replayed at the pace of its t
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import pytest
@@ -82,7 +84,7 @@ def test_watchdog_alarm_evidence_and_recovery_on_a_live_link(netns, tmp_path):
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux not installed")
 def test_dashboard_in_tmux(tmp_path):
     capture = ROOT / "captures" / "bu-watchdog.pcap"     # controller silent 3.1 s from 4.9 s on
-    session = f"vm110-dash-{tmp_path.name[-12:]}"
+    session = f"vm110-dash-{os.getpid()}-{uuid.uuid4().hex[:8]}"      # unique: runs in parallel share the tmux server
     cmd = " ".join([*VM110, "monitor", "--read", str(capture), "--realtime", "--idle", "0", "--duration", "20",
                     "--quiet"])
     subprocess.run(["tmux", "new-session", "-d", "-s", session, "-x", "80", "-y", "24", cmd], check=True,

@@ -1,5 +1,6 @@
-"""Watch a live EG-Link: dashboard, alarms as they happen, evidence around each alarm, and at the
-end the report of `vm110 analyze` for everything seen.
+"""Watch a live EG-Link: dashboard, alarms as they happen, evidence around each alarm.
+
+At the end, the report of `vm110 analyze` for everything seen.
 
 Input: an interface through dumpcap (-i), a capture file followed as it grows (--read FILE), or
 pcap/pcapng on standard input (--read -). The dashboard is drawn on a terminal about once a

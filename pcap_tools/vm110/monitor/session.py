@@ -101,6 +101,10 @@ class Session:
         mono = time.monotonic()
         if self.cfg.realtime and self.first_mono is not None and self.first_ts is not None:
             return max(self.last_ts, self.first_ts + (mono - self.first_mono))
+        if not self.cfg.live:
+            # A file read as fast as it goes: its time is the capture's, and waiting at its end
+            # is not silence on the link (a growing file's watchdog comes with its next packet).
+            return self.last_ts
         return self.last_ts + (mono - self.last_mono)
 
     # -- the loop ------------------------------------------------------------------------------
