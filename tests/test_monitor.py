@@ -236,3 +236,15 @@ def test_a_replay_stopped_by_duration_reports_exactly_what_it_judged(tmp_path):
     expected = json.loads((tmp_path / "a.json").read_text())
     expected["capture"]["file"] = str(capture)
     assert report == expected
+
+
+def test_waiting_at_the_end_of_a_file_is_not_silence(tmp_path):
+    """--read FILE runs on capture time: a clean capture raises no watchdog while the monitor waits
+    for the file to grow (it once took wall-clock waiting for a silent link)."""
+    lines = tmp_path / "lines.jsonl"
+    done = _run(["monitor", "--read", str(ROOT / "captures" / "normal.pcap"), "--idle", "1.5", "--no-dashboard",
+                 "--json-lines", str(lines)])
+    assert done.returncode == 0, done.stderr
+    findings = [json.loads(line) for line in lines.read_text().splitlines()]
+    assert [f for f in findings if f["type"] == "finding" and f["rule"] == "watchdog"] == []
+    assert any(f["type"] == "snapshot" for f in findings)
