@@ -114,8 +114,14 @@ def test_stopped_build_continues_where_it_stopped(src, built, tmp_path, stop, jo
         made, total = copies, (copies + 1) * len(NAMES)
         dataset = tmp_path / f"killed-{copies}"
         command = [sys.executable, "-m", "vm110", "fleet", "build", str(src), "--out", str(dataset), "-j", jobs]
-        proc = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                                start_new_session=True)
+        # Ctrl-C as at a terminal: a test run in the background (`make test &`) hands its children
+        # SIGINT ignored, and Python keeps an inherited ignore; a handled signal is reset by exec.
+        previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+        try:
+            proc = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                    start_new_session=True)
+        finally:
+            signal.signal(signal.SIGINT, previous)
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and proc.poll() is None:
             if (dataset / "captures").exists() and len(list((dataset / "captures").glob("part-*.parquet"))) >= 3:
