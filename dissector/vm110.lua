@@ -791,6 +791,10 @@ vm110.prefs.vrpo_number_start = Pref.uint("First VRPO packet number", 0,
 vm110.prefs.burst_gap_ms = Pref.uint("VRPO burst gap (ms)", VRPO_BURST_GAP_MS, "A new burst starts after this gap")
 vm110.prefs.machine = Pref.string("Machine", "",
     "Key of the machine-specific sub-dissectors in the vm110.periodic_data and vm110.command_data tables")
+vm110.prefs.fields_from_command_line = Pref.bool("tshark 4.0 -T fields: build only the fields named", true,
+    "Wireshark 4.0's tshark -T fields builds every field of every packet; build only the vm110 fields its "
+    .. "command line names (-e, -Y, -R, -z), as later versions do. Off: every field (say, for a Lua script "
+    .. "of your own that reads vm110 fields with Field.new)")
 vm110.prefs.tune_gc = Pref.bool("Tune Lua's garbage collector", false,
     "Collector settings that make this dissector faster (Lua 5.4: generational; Lua 5.2: pause 100, "
     .. "step multiplier 800). They apply to every Lua plugin of this Wireshark, so they are off by default")
@@ -805,6 +809,8 @@ vm110.prefs.tune_gc = Pref.bool("Tune Lua's garbage collector", false,
 -- protocol item when their field is not built. Methods are fetched once (`item:add(...)`
 -- looks the method up in C on every call).
 ---------------------------------------------------------------------------------------------
+-- Preferences as plain values (read_settings()): reading vm110.prefs costs C calls on every packet.
+local settings = {}
 local tree_add, tree_add_le, set_generated = TreeItem.add, TreeItem.add_le, TreeItem.set_generated
 local add_expert, append_text, tvb_range = TreeItem.add_proto_expert_info, TreeItem.append_text, Tvb.range
 local referenced = TreeItem.referenced
@@ -847,24 +853,88 @@ local function referenced_view(tree, columns)
     return with_layouts(view)
 end
 
+-- Wireshark 4.0's `tshark -T fields` dissects with a visible tree (4.2 and later do not), so
+-- referenced() says yes to every field, and every field would be built with its bytes and label
+-- for output that prints a few values. There, the fields named on tshark's command line (-e,
+-- -Y, -R, -z, -o; read from /proc/self/cmdline, so Linux only) are what is referenced, as a
+-- later tshark works out by itself. Not where a display filter macro (${...}) could name more;
+-- the preference vm110.fields_from_command_line turns it off (for a Lua script of your own that
+-- reads vm110 fields with Field.new under tshark 4.0 -T fields).
+-- Returns the view, or nil when this is not such a command line.
+local function command_line_view()
+    local file = io.open("/proc/self/cmdline", "rb")
+    if not file then return nil end
+    local line = file:read("*a") or ""
+    file:close()
+    local argv = {}
+    for a in line:gmatch("([^\0]*)\0") do argv[#argv + 1] = a end
+    local words = " " .. line:gsub("\0", " ") .. " "
+    if not argv[1] or not argv[1]:match("tshark[^/]*$") then return nil end
+    -- getopt over tshark's options: those that take a value, so that a value is never an option
+    local WITH_VALUE = "aAbBcCdeEfFGHiIjJKMNoOrRsStTuUwWXyYz"
+    local format, i = nil, 2
+    while i <= #argv do
+        local a = argv[i]
+        if a == "--" then break end
+        if a:sub(1, 2) == "--" then
+            if not a:find("=", 1, true) and argv[i + 1] and argv[i + 1]:sub(1, 1) ~= "-" then i = i + 1 end
+        elseif a:sub(1, 1) == "-" then
+            for j = 2, #a do
+                local opt = a:sub(j, j)
+                if opt == "V" or opt == "O" or opt == "P" or opt == "x" then return nil end -- (details printed)
+                if WITH_VALUE:find(opt, 1, true) then
+                    local value = a:sub(j + 1)
+                    if value == "" then
+                        i = i + 1
+                        value = argv[i] or ""
+                    end
+                    if opt == "T" then format = value end
+                    break
+                end
+            end
+        end
+        i = i + 1
+    end
+    if format ~= "fields" or line:find("${", 1, true) then return nil end
+    local view = { visible = false, any = false, columns = false }
+    for name, f in pairs(F) do
+        local abbr = tostring(f):match("(%S+) ftypes%.")
+        -- (a whole name: vm110.crc is not vm110.crc.status)
+        if abbr and words:find("[^%w_.]" .. abbr:gsub("%.", "%%.") .. "[^%w_.]") then
+            view[name], view.any = true, true
+        end
+    end
+    return with_layouts(view)
+end
+
 -- What is referenced changes only when Wireshark primes other fields (a new display filter,
 -- column, tap, or tshark's second pass), and it then dissects frames again (pinfo.visited):
 -- so one view serves a run of first-pass dissections, and visited ones ask per packet.
 local first_pass_view = false
 local want = EVERY -- the view of the packet being dissected
+local cmdline_view = false -- command_line_view(), once asked: a view, or nil
+
+-- A visible tree: every field, unless this is tshark 4.0 -T fields (see command_line_view()).
+-- Without column data (tshark -T fields without _ws.col) a column reads "(info)".
+local function visible_view(pinfo)
+    if tostring(pinfo.cols.info) ~= "(info)" then return EVERY end
+    if cmdline_view == false then
+        cmdline_view = settings.fields_from_command_line and command_line_view() or nil
+    end
+    return cmdline_view or EVERY_NO_COLUMNS
+end
 
 local function choose_view(tree, pinfo, visited)
     local visible = tree.visible
     if visited then
         first_pass_view = false
-        if visible then return EVERY end
+        if visible then return visible_view(pinfo) end
         return referenced(tree, vm110_handle) and referenced_view(tree, true) or NOTHING
     end
-    if not first_pass_view or first_pass_view.visible ~= visible then
-        -- Without column data (tshark -T fields without _ws.col; tshark 4.0's tree is visible
-        -- there) a column reads "(info)".
-        local columns = tostring(pinfo.cols.info) ~= "(info)"
-        first_pass_view = visible and (columns and EVERY or EVERY_NO_COLUMNS) or referenced_view(tree, columns)
+    if not first_pass_view or first_pass_view.tree_visible ~= visible then
+        first_pass_view = visible and visible_view(pinfo)
+            or referenced_view(tree, tostring(pinfo.cols.info) ~= "(info)")
+        first_pass_view.tree_visible = visible
     end
     return first_pass_view
 end
@@ -960,8 +1030,11 @@ local function add_undecoded(tree, tvb, off, len, why)
 end
 
 -- A generated field when it is built; else the parent, which then carries the field's experts.
+-- On an invisible tree an item is its value alone: its bytes and the generated mark are shown
+-- only in a visible one, and a TvbRange per item is the largest cost of a Lua field.
 local function generated(parent, name, tvb, off, len, value)
     if not want[name] then return parent end
+    if not want.visible then return tree_add(parent, F[name], value) end
     local item = tree_add(parent, F[name], range(tvb, off, len), value)
     set_generated(item)
     return item
@@ -976,7 +1049,7 @@ local function add_header(r, tvb, root)
             local label = info and info.label or fmt("Packet ID: %s (Unknown)", printable(r.type))
             item = tree_add(root, F.type, range(tvb, 0, ID_LEN), r.type, label)
         elseif want.type then
-            item = tree_add(root, F.type, range(tvb, 0, ID_LEN), r.type)
+            item = tree_add(root, F.type, r.type)
         end
         if info then
             generated(item, "direction", tvb, 0, ID_LEN, info.direction)
@@ -994,7 +1067,12 @@ local function add_header(r, tvb, root)
         local name = h[1]
         local value = r[name]
         if not value then break end
-        local item = want[name] and tree_add_le(header, F[name], tvb_range(tvb, h.off, h[2])) or header
+        local item = header
+        if want[name] and visible then
+            item = tree_add_le(header, F[name], tvb_range(tvb, h.off, h[2]))
+        elseif want[name] then
+            item = tree_add(header, F[name], value)
+        end
         field_experts(r, item, name)
         if name == "revision" and r.problems.revision then
             add_expert(item, E.revision, "Unsupported revision: only the header is decoded")
@@ -1027,10 +1105,16 @@ local function add_payload(r, tvb, root)
     end
     local whole = r.present == info.layout
     local relays = v.bu_state ~= nil
+    local visible = want.visible
     for _, f in ipairs(whole and want.layouts[r.type] or r.present) do
         local name = f[1]
         if whole or want[name] then
-            local item = tree_add_le(payload, F[name], tvb_range(tvb, f.off, f[2]))
+            local item
+            if visible or f[3] == "b" then
+                item = tree_add_le(payload, F[name], tvb_range(tvb, f.off, f[2]))
+            else
+                item = tree_add(payload, F[name], v[name])
+            end
             if fieldwarn[name] then
                 field_experts(r, item, name)
                 fieldwarn[name] = nil -- shown
@@ -1066,7 +1150,7 @@ local function add_crc(r, tvb, root)
         item = tree_add(root, F.crc, range(tvb, r.crc_off, CRC_LEN), r.crc,
             fmt("CRC: 0x%08x%s", r.crc, CRC_VERDICT[r.crc_status]))
     elseif want.crc then
-        item = tree_add(root, F.crc, range(tvb, r.crc_off, CRC_LEN), r.crc)
+        item = tree_add(root, F.crc, r.crc)
     end
     if r.crc_calc then generated(item, "crc_calculated", tvb, r.crc_off, CRC_LEN, r.crc_calc) end
     generated(item, "crc_status", tvb, r.crc_off, CRC_LEN, r.crc_status)
@@ -1135,8 +1219,7 @@ do
     end
 end
 
--- Preferences as plain values: reading vm110.prefs costs C calls on every packet.
-local settings = {}
+-- (settings: the preferences as plain values, above)
 local function read_settings()
     local prefs = vm110.prefs
     settings.variant = prefs.check_crc and CRC_VARIANTS[prefs.crc_variant] or nil
@@ -1151,6 +1234,7 @@ local function read_settings()
     settings.vrci_fail, settings.vrco_give_up = prefs.vrci_fail_ms, prefs.vrco_give_up_ms
     settings.data_size, settings.number_start = prefs.vrpo_data_size, prefs.vrpo_number_start
     settings.burst_gap, settings.machine = prefs.burst_gap_ms, prefs.machine
+    settings.fields_from_command_line = prefs.fields_from_command_line
     tune_collector(prefs.tune_gc)
 end
 
@@ -1796,7 +1880,7 @@ end
 local function show_findings(r, tvb, root, pinfo)
     local n = found.n
     if want.analysis_flags then
-        set_generated(tree_add(found.at or root, F.analysis_flags, range(tvb, 0, r.n), concat(found, ", ", 1, n)))
+        generated(found.at or root, "analysis_flags", tvb, 0, r.n, concat(found, ", ", 1, n))
     end
     if want.columns or want.visible then
         local markers = "[" .. concat(found, "] [", 1, n) .. "] "
@@ -2069,6 +2153,7 @@ end
 function vm110.prefs_changed()
     crc_memo = new_memo()
     first_pass_view = false
+    cmdline_view = false
     reset_analysis()
     read_settings()
     register_ports()
