@@ -828,8 +828,37 @@ local LAZY_LAYOUTS = {
         return list
     end,
 }
+-- `flat`: per packet type, the built fields of a packet with nothing to flag on an invisible
+-- tree, as {field, where, key}: where 1 the record's r[key] (absent when false), 2 the payload
+-- value v[key], 3 the direction, 4 es_relays_open; false when a bytes field is built (those
+-- take the general path, which gives them their bytes).
+local LAZY_FLAT = {
+    __index = function(flat, id)
+        local view, list = flat.view, {}
+        local function put(name, where, key)
+            if view[name] then list[#list + 1] = { F[name], where, key or name } end
+        end
+        put("type", 1)
+        put("direction", 3)
+        for _, h in ipairs(HEADER) do put(h[1], 1) end
+        for _, f in ipairs(TYPES[id].layout) do
+            if view[f[1]] and f[3] == "b" then list = false break end
+            put(f[1], 2)
+        end
+        if list and id == "VRPI" then put("es_relays_open", 4) end
+        if list and id == "VRPO" and view.periodic_data then list = false end
+        if list then
+            put("crc", 1)
+            put("crc_calculated", 1, "crc_calc")
+            put("crc_status", 1)
+        end
+        flat[id] = list
+        return list
+    end,
+}
 local function with_layouts(view)
     view.layouts = setmetatable({ view = view }, LAZY_LAYOUTS)
+    view.flat = setmetatable({ view = view }, LAZY_FLAT)
     return view
 end
 
@@ -1159,16 +1188,40 @@ local function add_crc(r, tvb, root)
     end
 end
 
+-- The usual packet on an invisible tree (decoded whole, nothing to flag): its built fields'
+-- values, flat under the protocol item. False when a bytes field is built.
+local function add_flat(r, root)
+    local list = want.flat[r.type]
+    if not list then return false end
+    local v = r.values
+    for i = 1, #list do
+        local e = list[i]
+        local where = e[2]
+        local value
+        if where == 1 then
+            value = r[e[3]]
+        elseif where == 2 then
+            value = v[e[3]]
+        elseif where == 3 then
+            value = r.info.direction
+        else
+            value = r.es_relays_open
+        end
+        if value ~= nil and (value or where == 4) then tree_add(root, e[1], value) end
+    end
+    return true
+end
+
 local function add_tree(r, tvb, tree)
     local root
     if want.visible then
         root = tree_add(tree, vm110, range(tvb, 0, r.n), "VM-110 EG-Link, " .. r.info_text)
     else
-        root = tree_add(tree, vm110, range(tvb, 0, r.n))
+        root = tree_add(tree, vm110) -- (no bytes: see generated())
     end
-    if not want.any and not (next(r.problems) or next(r.fieldwarn) or r.es_relays_open or r.extra) then
-        return root -- nothing referenced, nothing to flag
-    end
+    local clean = r.problems == EMPTY and r.fieldwarn == EMPTY and not r.es_relays_open and not r.extra
+    if not want.any and clean then return root end -- nothing referenced, nothing to flag
+    if clean and not want.visible and r.payload and add_flat(r, root) then return root end
     add_header(r, tvb, root)
     local n = r.n
     if n < PREFIX_LEN then
@@ -2104,7 +2157,12 @@ local function dissect(tvb, pinfo, tree)
     local root = add_tree(r, tvb, tree)
     if settings.analysis then
         if not visited then -- (tshark -2 -R gives a frame the read filter drops the number of the next one it keeps)
-            res = not next(r.problems) and analyse(r, s, pinfo, number, offset)
+            res = false
+            if not next(r.problems) then
+                res = analyse(r, s, pinfo, number, offset)
+            elseif number > last_number then -- (not analysed, but the capture's last record so far)
+                last_number, last_record = number, pinfo.abs_ts
+            end
             memo_set(results, number, offset, res)
         end
         if type(res) == "number" then
@@ -2159,15 +2217,16 @@ function vm110.prefs_changed()
     register_ports()
 end
 
--- The capture's last record, of any kind (a stream silent until the end is measured to it): a
--- postdissector sees every frame.
-local capture_end = Proto("vm110_end", "VM-110 EG-Link stream analysis: the capture's last record")
-function capture_end.dissector(_, pinfo)
+-- The capture's last record, of any kind (a stream silent until the end is measured to it): the
+-- dissector sees its own frames, and a tap filtered to the others sees the rest (a postdissector
+-- would be a Lua call, with its userdata, for every frame: the largest single cost of this
+-- file's on a pure EG-Link capture).
+local other_frames = Listener.new("frame", "not vm110")
+function other_frames.packet(pinfo)
     if not settings.analysis then return end
     local n = pinfo.number
     if n > last_number then last_number, last_record = n, pinfo.abs_ts end
 end
-register_postdissector(capture_end)
 
 read_settings()
 register_ports()
