@@ -180,6 +180,47 @@ local function layout_size(layout)
     return size
 end
 
+-- tshark's command line, when this process is tshark (/proc/self/cmdline: Linux): option letter
+-- -> its value (the last given) or true; `words`: every argument, space-separated. nil elsewhere.
+-- Only for choices that cannot be made otherwise: which fields 4.0's -T fields prints (section
+-- 5), and whether a single pass's taps see every frame (section 6).
+local TSHARK_OPTIONS
+do
+    local file = io.open("/proc/self/cmdline", "rb")
+    local line = file and file:read("*a") or ""
+    if file then file:close() end
+    local argv = {}
+    for a in line:gmatch("([^\0]*)\0") do argv[#argv + 1] = a end
+    if argv[1] and argv[1]:match("tshark[^/]*$") then
+        -- getopt over tshark's options: those that take a value, so that a value is never an option
+        local WITH_VALUE = "aAbBcCdeEfFGHiIjJKMNoOrRsStTuUwWXyYz"
+        local opts, i = { words = " " .. line:gsub("\0", " ") .. " " }, 2
+        while i <= #argv do
+            local a = argv[i]
+            if a == "--" then break end
+            if a:sub(1, 2) == "--" then
+                if not a:find("=", 1, true) and argv[i + 1] and argv[i + 1]:sub(1, 1) ~= "-" then i = i + 1 end
+            elseif a:sub(1, 1) == "-" then
+                for j = 2, #a do
+                    local opt = a:sub(j, j)
+                    if WITH_VALUE:find(opt, 1, true) then
+                        local value = a:sub(j + 1)
+                        if value == "" then
+                            i = i + 1
+                            value = argv[i] or ""
+                        end
+                        opts[opt] = value
+                        break
+                    end
+                    opts[opt] = true
+                end
+            end
+            i = i + 1
+        end
+        TSHARK_OPTIONS = opts
+    end
+end
+
 -- Packet types by ID. min/max: payload sizes; the 4th ID character gives the direction.
 local TYPES = {}
 for _, t in ipairs(PACKET_TYPES) do
@@ -891,40 +932,10 @@ end
 -- reads vm110 fields with Field.new under tshark 4.0 -T fields).
 -- Returns the view, or nil when this is not such a command line.
 local function command_line_view()
-    local file = io.open("/proc/self/cmdline", "rb")
-    if not file then return nil end
-    local line = file:read("*a") or ""
-    file:close()
-    local argv = {}
-    for a in line:gmatch("([^\0]*)\0") do argv[#argv + 1] = a end
-    local words = " " .. line:gsub("\0", " ") .. " "
-    if not argv[1] or not argv[1]:match("tshark[^/]*$") then return nil end
-    -- getopt over tshark's options: those that take a value, so that a value is never an option
-    local WITH_VALUE = "aAbBcCdeEfFGHiIjJKMNoOrRsStTuUwWXyYz"
-    local format, i = nil, 2
-    while i <= #argv do
-        local a = argv[i]
-        if a == "--" then break end
-        if a:sub(1, 2) == "--" then
-            if not a:find("=", 1, true) and argv[i + 1] and argv[i + 1]:sub(1, 1) ~= "-" then i = i + 1 end
-        elseif a:sub(1, 1) == "-" then
-            for j = 2, #a do
-                local opt = a:sub(j, j)
-                if opt == "V" or opt == "O" or opt == "P" or opt == "x" then return nil end -- (details printed)
-                if WITH_VALUE:find(opt, 1, true) then
-                    local value = a:sub(j + 1)
-                    if value == "" then
-                        i = i + 1
-                        value = argv[i] or ""
-                    end
-                    if opt == "T" then format = value end
-                    break
-                end
-            end
-        end
-        i = i + 1
-    end
-    if format ~= "fields" or line:find("${", 1, true) then return nil end
+    local opts = TSHARK_OPTIONS
+    if not opts or opts.T ~= "fields" or opts.V or opts.O or opts.P or opts.x then return nil end -- (details printed)
+    local words = opts.words
+    if words:find("${", 1, true) then return nil end
     local view = { visible = false, any = false, columns = false }
     for name, f in pairs(F) do
         local abbr = tostring(f):match("(%S+) ftypes%.")
@@ -2218,14 +2229,22 @@ function vm110.prefs_changed()
 end
 
 -- The capture's last record, of any kind (a stream silent until the end is measured to it): the
--- dissector sees its own frames, and a tap filtered to the others sees the rest (a postdissector
--- would be a Lua call, with its userdata, for every frame: the largest single cost of this
--- file's on a pure EG-Link capture).
-local other_frames = Listener.new("frame", "not vm110")
-function other_frames.packet(pinfo)
+-- dissector sees its own frames. The others: in a single-pass tshark, where taps see every frame,
+-- a tap filtered to them; elsewhere (the GUI, tshark -2, whose first pass runs no taps) a
+-- postdissector, a Lua call with its userdata for every frame (on a pure EG-Link capture the
+-- largest single cost of this file's).
+local function other_frame(_, pinfo)
     if not settings.analysis then return end
     local n = pinfo.number
     if n > last_number then last_number, last_record = n, pinfo.abs_ts end
+end
+if TSHARK_OPTIONS and not TSHARK_OPTIONS["2"] then
+    local others = Listener.new("frame", "not vm110")
+    function others.packet(pinfo) other_frame(nil, pinfo) end
+else
+    local capture_end = Proto("vm110_end", "VM-110 EG-Link stream analysis: the capture's last record")
+    capture_end.dissector = other_frame
+    register_postdissector(capture_end)
 end
 
 read_settings()

@@ -578,15 +578,26 @@ def test_rules_duplicates_take_no_part(tshark, tmp_path):
     assert rows[6].int("vm110.analysis.ack_to") == 4
 
 
+def _bad_crc(packet: bytes) -> bytes:
+    return packet[:-1] + bytes([packet[-1] ^ 0xFF])
+
+
+# The capture's last record: another protocol's (which the dissector never sees: a tap filtered to
+# frames without EG-Link does), or an illegal EG-Link packet (dissected, not analysed).
+LAST_RECORDS = {"other-udp": T.Datagram(b"not EG-Link at all, just UDP", sport=9999, dport=9999),
+                "illegal-eg-link": None}
+
+
+@pytest.mark.parametrize("last", LAST_RECORDS)
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
-def test_rules_silent_until_the_end(tshark, tmp_path):
-    """The base unit stops at 375 ms; the capture's last record (not EG-Link) is at 2000 ms: the
-    VRPI stream's last packet is silent until the end (1625 ms); the VRPO stream (last 1500 ms) is
-    not. Known on the second pass; the statistics say it too."""
+def test_rules_silent_until_the_end(tshark, last, tmp_path):
+    """The base unit stops at 375 ms; the capture's last record (not a legal EG-Link packet) is at
+    2000 ms: the VRPI stream's last packet is silent until the end (1625 ms); the VRPO stream (last
+    1500 ms) is not. Known on the second pass; the statistics say it too."""
     timeline = [(125 * k, _bu(k + 1, _vrpi())) for k in range(4)]
     timeline += [(100 * k + 50, _ctl(k + 1, _vrpo())) for k in range(15)]
     timeline.sort(key=lambda e: e[0])
-    timeline.append((2000, T.Datagram(b"not EG-Link at all, just UDP", sport=9999, dport=9999)))
+    timeline.append((2000, LAST_RECORDS[last] or _bad_crc(_ctl(16, _vrpo()))))
     rows = _crafted(tshark, tmp_path / "two", timeline)
     silent = {n: r.float("vm110.analysis.silent_until_end") for n, r in rows.items()
               if r.get("vm110.analysis.silent_until_end")}

@@ -104,7 +104,7 @@ def _as_user(ws: T.Workspace, home: Path, args: list[str]) -> subprocess.Complet
     """tshark of the workspace with HOME and XDG_CONFIG_HOME in `home`, as `nobody` when we are root."""
     inner = ws.tshark.inner(home)
     env = {**os.environ, "HOME": inner, "XDG_CONFIG_HOME": f"{inner}/config"}
-    command = ws.tshark.command(args)
+    command = ws.tshark.command(args, user=NOBODY if os.geteuid() == 0 else None)
     if os.geteuid() == 0:
         top = home if ws.tshark.root is None else ws.dir
         for folder in [home, *home.parents]:     # our own temporary folders, opened for `nobody`
@@ -113,8 +113,6 @@ def _as_user(ws: T.Workspace, home: Path, args: list[str]) -> subprocess.Complet
                 break
         if ws.tshark.root is None:
             command = ["setpriv", f"--reuid={NOBODY}", f"--regid={NOBODY}", "--clear-groups", *command]
-        else:
-            command = ["chroot", f"--userspec={NOBODY}:{NOBODY}", *command[1:]]
     return run(command, env=env)
 
 

@@ -76,9 +76,15 @@ class Tshark:
             return str(path)
         return "/" + str(Path(path).resolve().relative_to(self.root.resolve()))
 
-    def command(self, args: Sequence[str]) -> list[str]:
-        prefix = ["tshark"] if self.root is None else ["chroot", str(self.root), "tshark"]
-        return prefix + list(args)
+    def command(self, args: Sequence[str], user: Optional[str] = None) -> list[str]:
+        """tshark with `args`; in a chroot, as `user` when given (the host's tshark: the caller's)."""
+        if self.root is None:
+            return ["tshark", *args]
+        # In a mount namespace of its own with /proc mounted in the chroot, as on a real system:
+        # the dissector reads tshark's command line from /proc/self/cmdline.
+        spec = [f"--userspec={user}:{user}"] if user else []
+        return ["unshare", "--mount", "--fork", "sh", "-c", 'mount -t proc proc "$0/proc" && exec chroot "$@"',
+                str(self.root), *spec, str(self.root), "tshark", *args]
 
 
 HOST = Tshark("host")
