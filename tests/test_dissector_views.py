@@ -2,9 +2,9 @@
 
 With an invisible tree (tshark 4.4 `-T fields`, display filters over summary lines, the GUI's
 packet list) the dissector builds only the referenced fields, flat; with a visible one (PDML,
--V) every field in its subtree. tshark 4.0 builds a visible tree for `-T fields`: there those
-runs compare two visible trees, and only the display filter runs (`-Y` with `-T tabs` summary
-lines and custom columns, on both versions) take the fast path. The expectation is the visible
+-V) every field in its subtree. tshark 4.0 builds a visible tree for `-T fields`: there the
+dissector builds the fields its command line names, flat and without bytes, as on an invisible
+tree (tests/test_dissector_command_line.py), so those runs test that path on 4.0. The expectation is the visible
 path (PDML, or `-V -P` for the Info column) of the same tshark, or an independent one (the
 vectors, `vm110.decode` of the packet bytes, a capture's ground truth) for display filters.
 """
