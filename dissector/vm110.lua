@@ -1373,6 +1373,11 @@ local function reset_analysis()
 end
 reset_analysis()
 
+-- Frame `n` at time `t` was seen on the first pass: the capture's last record, if the latest.
+local function note_record(n, t)
+    if n > last_number then last_number, last_record = n, t end
+end
+
 -- Seconds to milliseconds, rounded to the microsecond: capture times are doubles of the epoch,
 -- whose last bits are noise; pcap timestamps are (at most) microseconds in practice.
 local function ms(seconds)
@@ -1759,7 +1764,7 @@ local function analyse(r, s, pinfo, frame, offset)
     local snd, restart = sender_of(r, pinfo, t, frame)
     snd.count[id] = (snd.count[id] or 0) + 1
     snd.last, dirty = t, true
-    if frame > last_number then last_number, last_record = frame, t end
+    note_record(frame, t)
     local serial = r.serial
     local c, fresh
     if settings.per_type then
@@ -2171,8 +2176,8 @@ local function dissect(tvb, pinfo, tree)
             res = false
             if not next(r.problems) then
                 res = analyse(r, s, pinfo, number, offset)
-            elseif number > last_number then -- (not analysed, but the capture's last record so far)
-                last_number, last_record = number, pinfo.abs_ts
+            else -- (not analysed, but the capture's last record so far)
+                note_record(number, pinfo.abs_ts)
             end
             memo_set(results, number, offset, res)
         end
@@ -2234,9 +2239,7 @@ end
 -- postdissector, a Lua call with its userdata for every frame (on a pure EG-Link capture the
 -- largest single cost of this file's).
 local function other_frame(_, pinfo)
-    if not settings.analysis then return end
-    local n = pinfo.number
-    if n > last_number then last_number, last_record = n, pinfo.abs_ts end
+    if settings.analysis then note_record(pinfo.number, pinfo.abs_ts) end
 end
 if TSHARK_OPTIONS and not TSHARK_OPTIONS["2"] then
     local others = Listener.new("frame", "not vm110")
