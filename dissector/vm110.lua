@@ -266,15 +266,18 @@ local NATIVE_INTEGERS = _VERSION >= "Lua 5.3" -- ("Lua 5.2" < "Lua 5.3" < "Lua 5
 do
     local SLICES = 16
 
-    -- The tables, in plain arithmetic (once, at load): S[j][v] as unsigned numbers.
-    local function xor32(a, b) -- (load time only)
-        local r, p = 0, 1
-        for _ = 1, 32 do
-            local x, y = a % 2, b % 2
-            if x ~= y then r = r + p end
-            a, b, p = (a - x) / 2, (b - y) / 2, p * 2
+    -- The tables, built for a variant's bit order when it is first used: S[j][v] as unsigned
+    -- numbers. XOR of two unsigned 32-bit numbers: native on Lua 5.3+, LuaBitOp's (signed) on 5.2.
+    local xor32
+    if NATIVE_INTEGERS then
+        xor32 = assert(load("return function(a, b) return a ~ b end", "=vm110 xor", "t", {}))()
+    else
+        local bxor = (bit or require("bit")).bxor
+        function xor32(a, b)
+            local x = bxor(a, b)
+            if x < 0 then x = x + 4294967296 end
+            return x
         end
-        return r
     end
     local function build_tables(reflected)
         local T = {}
@@ -380,8 +383,16 @@ do
         return assert(load(code, "=vm110 crc", "t", {}))(table.unpack(args, 1, 5 + SLICES))
     end
 
-    local tables = { [false] = build_tables(false), [true] = build_tables(true) }
-    for _, v in ipairs(CRC_VARIANTS) do v.calc = build_crc(v.reflected, v.xorout, tables[v.reflected]) end
+    -- A variant's calc, compiled when first asked for: a tshark run uses one of the four.
+    local tables = {}
+    local LAZY_CALC = { __index = function(v, key)
+        if key ~= "calc" then return nil end
+        tables[v.reflected] = tables[v.reflected] or build_tables(v.reflected)
+        local calc = build_crc(v.reflected, v.xorout, tables[v.reflected])
+        rawset(v, "calc", calc)
+        return calc
+    end }
+    for _, v in ipairs(CRC_VARIANTS) do setmetatable(v, LAZY_CALC) end
 end
 
 ---------------------------------------------------------------------------------------------
@@ -2234,20 +2245,28 @@ function vm110.prefs_changed()
 end
 
 -- The capture's last record, of any kind (a stream silent until the end is measured to it): the
--- dissector sees its own frames. The others: in a single-pass tshark, where taps see every frame,
--- a tap filtered to them; elsewhere (the GUI, tshark -2, whose first pass runs no taps) a
--- postdissector, a Lua call with its userdata for every frame (on a pure EG-Link capture the
--- largest single cost of this file's).
-local function other_frame(_, pinfo)
-    if settings.analysis then note_record(pinfo.number, pinfo.abs_ts) end
-end
-if TSHARK_OPTIONS and not TSHARK_OPTIONS["2"] then
-    local others = Listener.new("frame", "not vm110")
-    function others.packet(pinfo) other_frame(nil, pinfo) end
-else
-    local capture_end = Proto("vm110_end", "VM-110 EG-Link stream analysis: the capture's last record")
-    capture_end.dissector = other_frame
-    register_postdissector(capture_end)
+-- dissector sees its own frames. The others: in the GUI and tshark -2 (whose first pass runs no
+-- taps) a postdissector, a Lua call with its userdata for every frame (on a pure EG-Link capture
+-- the largest single cost of this file's). A single-pass tshark prints each frame before the next
+-- is read, so that nothing it prints can depend on the end: there only the statistics (-z
+-- vm110,stat) read it, and they ask for a tap filtered to the other frames (a filter run on every
+-- frame, which costs about as much as the postdissector).
+local watch_other_frames -- (its state in a block: the main chunk may have at most 200 locals)
+do
+    local function other_frame(_, pinfo)
+        if settings.analysis then note_record(pinfo.number, pinfo.abs_ts) end
+    end
+    local single_pass_tshark, tap = TSHARK_OPTIONS and not TSHARK_OPTIONS["2"], false
+    function watch_other_frames()
+        if not single_pass_tshark or tap then return end
+        tap = Listener.new("frame", "not vm110")
+        function tap.packet(pinfo) other_frame(nil, pinfo) end
+    end
+    if not single_pass_tshark then
+        local capture_end = Proto("vm110_end", "VM-110 EG-Link stream analysis: the capture's last record")
+        capture_end.dissector = other_frame
+        register_postdissector(capture_end)
+    end
 end
 
 read_settings()
@@ -2415,6 +2434,7 @@ end
 -- Wireshark's own statistics take a filter.
 if register_stat_cmd_arg then
     register_stat_cmd_arg("vm110,stat", function(arg)
+        watch_other_frames()
         local filter = type(arg) == "string" and arg:match("^vm110,stat,(.+)$") or nil
         if filter and filter:match("%S") then
             local ok, acc = pcall(filtered_stats.new, filter)
