@@ -217,6 +217,8 @@ do
             end
             i = i + 1
         end
+        -- A single pass (no -2) dissects each frame once, all with one tree of fixed visibility.
+        opts.single_pass = not opts["2"]
         TSHARK_OPTIONS = opts
     end
 end
@@ -343,8 +345,8 @@ do
 
     -- calc(s, len) of one variant.
     local function build_crc(reflected, xorout, S)
-        local tables = {}
-        for j = 0, SLICES - 1 do tables[j + 1] = "S" .. j end
+        local tables, upvalues = {}, {}
+        for j = 0, SLICES - 1 do tables[j + 1], upvalues[j + 1] = "S" .. j, "U" .. j end
         local tails = {}
         for n = SLICES - 1, 4, -1 do
             tails[#tails + 1] = fmt("%s t == %d then\n%s", n == SLICES - 1 and "if" or "elseif", n,
@@ -361,9 +363,10 @@ do
             finish = "if r < 0 then r = r + 4294967296 end\n"
                 .. (xorout and "return 4294967295 - r\n" or "return r\n")
         end
-        local code = fmt("local byte, bxor, band, lshift, rshift, %s = ...\n", concat(tables, ", "))
-            .. fmt("return function(s, len)\nlocal r, i = %s, 1\nwhile i + 15 <= len do\n",
-                NATIVE_INTEGERS and "0xFFFFFFFF" or "-1")
+        -- (the tables in registers: an upvalue costs an instruction more per lookup)
+        local code = fmt("local byte, bxor, band, lshift, rshift, %s = ...\n", concat(upvalues, ", "))
+            .. fmt("return function(s, len)\nlocal %s = %s\n", concat(tables, ", "), concat(upvalues, ", "))
+            .. fmt("local r, i = %s, 1\nwhile i + 15 <= len do\n", NATIVE_INTEGERS and "0xFFFFFFFF" or "-1")
             .. block_source(SLICES, reflected) .. "i = i + 16\nend\nlocal t = len - i + 1\n"
             .. concat(tails) .. fmt("else\nfor j = i, len do %s end\nend\n", byte_step)
             .. finish .. "end\n"
@@ -580,10 +583,10 @@ local record = new_record()
 local function decode(s, variant, big_endian, known_crc)
     local n = #s
     local r = record
+    -- (each field is set on every path: the header's and the CRC's where they are read)
     r.n, r.problems, r.fieldwarn, r.values, r.type, r.info = n, EMPTY, EMPTY, EMPTY, false, false
-    r.revision, r.origin, r.serial, r.size, r.spare, r.crc_off = false, false, false, false, false, false
-    r.pay_end, r.crc, r.crc_calc, r.crc_status, r.payload, r.present = false, false, false, false, false, false
-    r.decoded_end, r.data_len, r.extra, r.es_relays_open, r.info_text = false, false, false, false, false
+    r.payload, r.present, r.decoded_end, r.data_len, r.extra, r.es_relays_open, r.info_text =
+        false, false, false, false, false, false, false
     local info
     if n >= ID_LEN then
         r.type = sub(s, 1, ID_LEN)
@@ -592,6 +595,8 @@ local function decode(s, variant, big_endian, known_crc)
         if not info then problem(r, "unknown_id") end
     end
     if n < PREFIX_LEN then
+        r.revision, r.origin, r.serial, r.size, r.spare = false, false, false, false, false
+        r.crc_off, r.pay_end, r.crc, r.crc_calc, r.crc_status = false, false, false, false, false
         for _, h in ipairs(HEADER) do
             if h.off + h[2] > n then break end
             r[h[1]] = h[2] == 2 and u16(s, h.off) or u32(s, h.off)
@@ -623,8 +628,10 @@ local function decode(s, variant, big_endian, known_crc)
                 problem(r, "bad_crc")
             end
         else
-            r.crc_status = CRC_UNVERIFIED
+            r.crc_calc, r.crc_status = false, CRC_UNVERIFIED
         end
+    else
+        r.crc_off, r.pay_end, r.crc, r.crc_calc, r.crc_status = false, false, false, false, false
     end
     if revision ~= SUPPORTED_REVISION then problem(r, "revision") end
     if n ~= OVERHEAD + size then problem(r, "size_mismatch") end
@@ -862,7 +869,9 @@ vm110.prefs.tune_gc = Pref.bool("Tune Lua's garbage collector", false,
 -- looks the method up in C on every call).
 ---------------------------------------------------------------------------------------------
 -- Preferences as plain values (read_settings()): reading vm110.prefs costs C calls on every packet.
-local settings = {}
+-- (settings: the preferences as plain values, read_settings(); single_pass: this is a single-pass
+-- tshark, where no frame is dissected twice and the tree's visibility never changes)
+local settings = { single_pass = TSHARK_OPTIONS and TSHARK_OPTIONS.single_pass or false }
 local tree_add, tree_add_le, set_generated = TreeItem.add, TreeItem.add_le, TreeItem.set_generated
 local add_expert, append_text, tvb_range = TreeItem.add_proto_expert_info, TreeItem.append_text, Tvb.range
 local referenced = TreeItem.referenced
@@ -880,10 +889,31 @@ local LAZY_LAYOUTS = {
         return list
     end,
 }
--- `flat`: per packet type, the built fields of a packet with nothing to flag on an invisible
--- tree, as {field, where, key}: where 1 the record's r[key] (absent when false), 2 the payload
--- value v[key], 3 the direction, 4 es_relays_open; false when a bytes field is built (those
--- take the general path, which gives them their bytes).
+-- `flat`: per packet type, a function(root, r, v) that adds the built fields of a packet with
+-- nothing to flag on an invisible tree, straight-line code like the payload readers; false when
+-- a bytes field is built (those take the general path, which gives them their bytes). Each field:
+-- where 1 the record's r[key] (absent when false), 2 the payload value v[key], 3 the direction,
+-- 4 es_relays_open (a boolean, always added).
+local compile_flat
+do
+    local SOURCE = {
+        "local x = r.%s if x then tree_add(root, f[%d], x) end",
+        "local x = v.%s if x ~= nil then tree_add(root, f[%d], x) end",
+        "tree_add(root, f[%d], r.info.direction)",
+        "tree_add(root, f[%d], r.es_relays_open)",
+    }
+    function compile_flat(list)
+        local lines, fields = { "local tree_add, f = ...", "return function(root, r, v)" }, {}
+        for i, e in ipairs(list) do
+            local where = e[2]
+            fields[i] = e[1]
+            local line = where <= 2 and fmt(SOURCE[where], e[3], i) or fmt(SOURCE[where], i)
+            lines[#lines + 1] = "do " .. line .. " end"
+        end
+        lines[#lines + 1] = "end"
+        return assert(load(concat(lines, "\n"), "=vm110 flat", "t", {}))(tree_add, fields)
+    end
+end
 local LAZY_FLAT = {
     __index = function(flat, id)
         local view, list = flat.view, {}
@@ -904,8 +934,9 @@ local LAZY_FLAT = {
             put("crc_calculated", 1, "crc_calc")
             put("crc_status", 1)
         end
-        flat[id] = list
-        return list
+        local adder = list and compile_flat(list)
+        flat[id] = adder
+        return adder
     end,
 }
 local function with_layouts(view)
@@ -976,6 +1007,7 @@ local function visible_view(pinfo)
 end
 
 local function choose_view(tree, pinfo, visited)
+    if settings.single_pass and first_pass_view then return first_pass_view end
     local visible = tree.visible
     if visited then
         first_pass_view = false
@@ -1213,24 +1245,9 @@ end
 -- The usual packet on an invisible tree (decoded whole, nothing to flag): its built fields'
 -- values, flat under the protocol item. False when a bytes field is built.
 local function add_flat(r, root)
-    local list = want.flat[r.type]
-    if not list then return false end
-    local v = r.values
-    for i = 1, #list do
-        local e = list[i]
-        local where = e[2]
-        local value
-        if where == 1 then
-            value = r[e[3]]
-        elseif where == 2 then
-            value = v[e[3]]
-        elseif where == 3 then
-            value = r.info.direction
-        else
-            value = r.es_relays_open
-        end
-        if value ~= nil and (value or where == 4) then tree_add(root, e[1], value) end
-    end
+    local adder = want.flat[r.type]
+    if not adder then return false end
+    adder(root, r, r.values)
     return true
 end
 
@@ -2156,7 +2173,7 @@ function vm110.init()
 end
 
 local function dissect(tvb, pinfo, tree)
-    local visited = pinfo.visited
+    local visited = not settings.single_pass and pinfo.visited
     want = choose_view(tree, pinfo, visited)
     dissection = dissection + 1
     local number = pinfo.number
@@ -2172,7 +2189,8 @@ local function dissect(tvb, pinfo, tree)
         end
     end
     local r = decode(s, settings.variant, settings.big_endian, known)
-    if r.crc_calc and not known and not (settings.analysis and not next(r.problems)) then
+    local clean = r.problems == EMPTY -- (own() replaces EMPTY at the first problem)
+    if r.crc_calc and not known and not (settings.analysis and clean) then
         memo_set(crc_memo, number, offset, r.crc_calc) -- (an analysed packet's is its stored CRC)
     end
     if want.visible or want.columns then r.info_text = summary(r) end -- (the root item's label too)
@@ -2185,7 +2203,7 @@ local function dissect(tvb, pinfo, tree)
     if settings.analysis then
         if not visited then -- (tshark -2 -R gives a frame the read filter drops the number of the next one it keeps)
             res = false
-            if not next(r.problems) then
+            if clean then
                 res = analyse(r, s, pinfo, number, offset)
             else -- (not analysed, but the capture's last record so far)
                 note_record(number, pinfo.abs_ts)
@@ -2256,13 +2274,13 @@ do
     local function other_frame(_, pinfo)
         if settings.analysis then note_record(pinfo.number, pinfo.abs_ts) end
     end
-    local single_pass_tshark, tap = TSHARK_OPTIONS and not TSHARK_OPTIONS["2"], false
+    local tap = false
     function watch_other_frames()
-        if not single_pass_tshark or tap then return end
+        if not settings.single_pass or tap then return end
         tap = Listener.new("frame", "not vm110")
         function tap.packet(pinfo) other_frame(nil, pinfo) end
     end
-    if not single_pass_tshark then
+    if not settings.single_pass then
         local capture_end = Proto("vm110_end", "VM-110 EG-Link stream analysis: the capture's last record")
         capture_end.dissector = other_frame
         register_postdissector(capture_end)
