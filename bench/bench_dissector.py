@@ -13,6 +13,10 @@ about 100,000 packets. Every run prints the same four frame/IP/UDP fields, and t
 A field referenced is what any column, display filter or -T fields -e vm110.* does; with none,
 Wireshark may skip building the tree, which is not how the plugin is used.
 
+For scale, "Lua floor" is the least any Lua dissector pays for that output: a plugin of a few
+lines that registers the same four fields, reads the packet ID and serial and adds the protocol
+item and three values (no CRC, no checks, no analysis). What the plugin costs above it is its own.
+
 Each command runs REPEAT times, interleaved over the commands and the tshark versions (the host's
 4.0 with Lua 5.2; Debian 13's 4.4 and Debian testing's 4.6 with Lua 5.4, in the chroots of
 `make tshark44` / `make tshark46`); the best time of each is compared: wall time, the figure of
@@ -51,6 +55,28 @@ PLAIN_EXTRA = ["-e", "ip.dst", "-e", "udp.dstport", "-e", "ip.ttl", "-e", "udp.c
                "-e", "frame.len", "-e", "eth.src", "-e", "eth.dst", "-e", "ip.id"]
 
 
+# The "Lua floor" plugin: the same fields, values only, nothing computed.
+FLOOR_PLUGIN = """\
+local p = Proto("vm110", "VM-110 EG-Link (Lua floor)")
+local f_type = ProtoField.string("vm110.type", "Type")
+local f_serial = ProtoField.uint16("vm110.serial", "Serial")
+local f_crc = ProtoField.uint8("vm110.crc.status", "CRC status")
+local f_cid = ProtoField.uint16("vm110.command_id", "Command ID")
+p.fields = { f_type, f_serial, f_crc, f_cid }
+function p.dissector(tvb, pinfo, tree)
+    local s = tvb:raw(0, 10)
+    local root = tree:add(p)
+    root:add(f_type, s:sub(1, 4))
+    root:add(f_serial, s:byte(9) + s:byte(10) * 256)
+    root:add(f_crc, 2)
+    return tvb:len()
+end
+local udp = DissectorTable.get("udp.port")
+udp:add(5825, p)
+udp:add(5827, p)
+"""
+
+
 def timed(command: list[str]) -> tuple[float, float]:
     """(wall, CPU) seconds of one run; CPU (user + system) is less disturbed by other load."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -68,8 +94,12 @@ def commands(ws: T.Workspace, pcap: Path, baseline: Path | None, tune_gc: bool) 
         copy = ws.dir / "baseline.lua"
         shutil.copyfile(baseline, copy)
         plugins["before: "] = ws.tshark.inner(copy)
+    floor = ws.dir / "floor.lua"
+    floor.write_text(FLOOR_PLUGIN)
     out = {
         "plain 8": ws.tshark.command(["-n", "-r", capture, "-T", "fields", *COMMON, *PLAIN_EXTRA[:8]]),
+        "Lua floor": ws.tshark.command(["-n", "-X", f"lua_script:{ws.tshark.inner(floor)}", "-r", capture,
+                                        "-T", "fields", *COMMON, *VM110_FIELDS]),
         "plain 12": ws.tshark.command(["-n", "-r", capture, "-T", "fields", *COMMON, *PLAIN_EXTRA]),
     }
     for label, plugin in plugins.items():

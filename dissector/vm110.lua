@@ -869,8 +869,8 @@ vm110.prefs.tune_gc = Pref.bool("Tune Lua's garbage collector", false,
 -- looks the method up in C on every call).
 ---------------------------------------------------------------------------------------------
 -- Preferences as plain values (read_settings()): reading vm110.prefs costs C calls on every packet.
--- (settings: the preferences as plain values, read_settings(); single_pass: this is a single-pass
--- tshark, where no frame is dissected twice and the tree's visibility never changes)
+-- single_pass: this is a single-pass tshark, where no frame is dissected twice and the tree's
+-- visibility never changes (so that neither is asked per packet).
 local settings = { single_pass = TSHARK_OPTIONS and TSHARK_OPTIONS.single_pass or false }
 local tree_add, tree_add_le, set_generated = TreeItem.add, TreeItem.add_le, TreeItem.set_generated
 local add_expert, append_text, tvb_range = TreeItem.add_proto_expert_info, TreeItem.append_text, Tvb.range
