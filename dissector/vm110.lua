@@ -875,6 +875,19 @@ local settings = { single_pass = TSHARK_OPTIONS and TSHARK_OPTIONS.single_pass o
 local tree_add, tree_add_le, set_generated = TreeItem.add, TreeItem.add_le, TreeItem.set_generated
 local add_expert, append_text, tvb_range = TreeItem.add_proto_expert_info, TreeItem.append_text, Tvb.range
 local referenced = TreeItem.referenced
+-- The Wireshark calls made for every packet, as the C functions themselves: `pinfo.number` goes
+-- through wslua's attribute dispatcher, which looks the getter up by name on every access (in the
+-- class metatable's __getters, wslua's layout since 1.99; plain indexing where a Wireshark keeps
+-- them elsewhere), and `tvb:raw()` looks the method up.
+local WS = { raw = Tvb.raw, offset = Tvb.offset, number = false }
+function WS.init(pinfo)
+    local mt = getmetatable(pinfo)
+    local getters = type(mt) == "table" and rawget(mt, "__getters")
+    for _, name in ipairs({ "number", "abs_ts", "src_port", "src", "visited" }) do
+        local f = type(getters) == "table" and rawget(getters, name)
+        WS[name] = type(f) == "function" and f or function(p) return p[name] end
+    end
+end
 
 -- A view: field name -> true when it is built; `visible` for labels and subtrees; `layouts`:
 -- per packet type, the payload layout entries that are built (made when first asked for: a
@@ -1750,7 +1763,7 @@ end
 -- sender from a host (direction, origin, address) heard before on another port restarts the
 -- sender of that host heard last among those silent for at least 250 ms: returned as a record.
 local function sender_of(r, pinfo, t, frame)
-    local port = pinfo.src_port
+    local port = WS.src_port(pinfo)
     local direction = r.info.direction
     local k = (r.origin * 65536 + port) * 2 + (direction == "Input" and 1 or 0)
     local by_addr = senders[k]
@@ -1758,7 +1771,7 @@ local function sender_of(r, pinfo, t, frame)
         by_addr = {}
         senders[k] = by_addr
     end
-    local addr = tostring(pinfo.src)
+    local addr = tostring(WS.src(pinfo))
     local snd = by_addr[addr]
     if snd then return snd end
     snd = new_sender(fmt("%s %s:%d origin 0x%04x", direction, addr, port, r.origin), port)
@@ -1788,7 +1801,7 @@ end
 -- retained heap small for the collector), else a table.
 local function analyse(r, s, pinfo, frame, offset)
     local id = r.type
-    local t = pinfo.abs_ts
+    local t = WS.abs_ts(pinfo)
     local snd, restart = sender_of(r, pinfo, t, frame)
     snd.count[id] = (snd.count[id] or 0) + 1
     snd.last, dirty = t, true
@@ -2173,12 +2186,13 @@ function vm110.init()
 end
 
 local function dissect(tvb, pinfo, tree)
-    local visited = not settings.single_pass and pinfo.visited
+    if not WS.number then WS.init(pinfo) end
+    local visited = not settings.single_pass and WS.visited(pinfo)
     want = choose_view(tree, pinfo, visited)
     dissection = dissection + 1
-    local number = pinfo.number
-    local offset = tvb:offset()
-    local s = tvb:raw()
+    local number = WS.number(pinfo)
+    local offset = WS.offset(tvb)
+    local s = WS.raw(tvb)
     local res, known -- the frame's analysis and calculated CRC, from the first pass
     if visited then
         known = memo_get(crc_memo, number, offset) or nil
@@ -2206,7 +2220,7 @@ local function dissect(tvb, pinfo, tree)
             if clean then
                 res = analyse(r, s, pinfo, number, offset)
             else -- (not analysed, but the capture's last record so far)
-                note_record(number, pinfo.abs_ts)
+                note_record(number, WS.abs_ts(pinfo))
             end
             memo_set(results, number, offset, res)
         end
@@ -2240,17 +2254,16 @@ local function heuristic(tvb, pinfo, tree)
 end
 
 local udp_port = DissectorTable.get("udp.port")
-local registered_port
-local function register_ports()
-    local port = floor(vm110.prefs.input_port) -- an integer on Lua 5.4 too
-    if port == registered_port then return end
-    if registered_port then
-        udp_port:remove(registered_port, vm110)
-        udp_port:remove(registered_port + OUTPUT_PORT_OFFSET, vm110)
+local function register_ports() -- (settings.port: the input port registered)
+    local port, old = floor(vm110.prefs.input_port), settings.port -- (an integer on Lua 5.4 too)
+    if port == old then return end
+    if old then
+        udp_port:remove(old, vm110)
+        udp_port:remove(old + OUTPUT_PORT_OFFSET, vm110)
     end
     udp_port:add(port, vm110)
     udp_port:add(port + OUTPUT_PORT_OFFSET, vm110)
-    registered_port = port
+    settings.port = port
 end
 
 function vm110.prefs_changed()
