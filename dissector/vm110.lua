@@ -1084,7 +1084,7 @@ local function summary(r)
         text = id
     end
     if r.serial then text = text .. fmt(", serial %d", r.serial) end
-    if next(r.problems) then
+    if r.problems ~= EMPTY then
         local p = {}
         for _, code in ipairs(PROBLEM_ORDER) do
             if r.problems[code] then p[#p + 1] = PROBLEM_TEXT[code] end
@@ -2203,8 +2203,8 @@ local function dissect(tvb, pinfo, tree)
         end
     end
     local r = decode(s, settings.variant, settings.big_endian, known)
-    local clean = r.problems == EMPTY -- (own() replaces EMPTY at the first problem)
-    if r.crc_calc and not known and not (settings.analysis and clean) then
+    local legal = r.problems == EMPTY -- (own() replaces EMPTY at the first problem)
+    if r.crc_calc and not known and not (settings.analysis and legal) then
         memo_set(crc_memo, number, offset, r.crc_calc) -- (an analysed packet's is its stored CRC)
     end
     if want.visible or want.columns then r.info_text = summary(r) end -- (the root item's label too)
@@ -2217,7 +2217,7 @@ local function dissect(tvb, pinfo, tree)
     if settings.analysis then
         if not visited then -- (tshark -2 -R gives a frame the read filter drops the number of the next one it keeps)
             res = false
-            if clean then
+            if legal then
                 res = analyse(r, s, pinfo, number, offset)
             else -- (not analysed, but the capture's last record so far)
                 note_record(number, WS.abs_ts(pinfo))
@@ -2365,7 +2365,7 @@ function filtered_stats.new(filter)
     local tap = Listener.new("frame", filtered_stats.tap_filter(filter))
     function tap.packet(pinfo)
         local r = found.r
-        if not r or found.number ~= pinfo.number or not r.info or next(r.problems) then return end
+        if not r or found.number ~= pinfo.number or not r.info or r.problems ~= EMPTY then return end
         local list = acc.list
         list[#list + 1] = { fmt("%s %s:%d origin 0x%04x", r.info.direction, tostring(pinfo.src), pinfo.src_port,
             r.origin), r.type, found.number, found.offset }
