@@ -183,7 +183,8 @@ end
 -- tshark's command line, when this process is tshark (/proc/self/cmdline: Linux): option letter
 -- -> its value (the last given) or true; `words`: every argument, space-separated. nil elsewhere.
 -- Only for choices that cannot be made otherwise: which fields 4.0's -T fields prints (section
--- 5), and whether a single pass's taps see every frame (section 6).
+-- 5), and whether this is a single pass (sections 5 and 6: each frame dissected once, with one
+-- tree; the capture's end read by the statistics alone).
 local TSHARK_OPTIONS
 do
     local file = io.open("/proc/self/cmdline", "rb")
