@@ -15,7 +15,6 @@ from ..errors import CliError
 from .sources import Source
 from .work import Done, Settings, build_one
 
-ENGINES = ("local", "dask")
 CONNECT_TIMEOUT_S = 10
 
 

@@ -13,7 +13,6 @@ import json
 import math
 import os
 import signal
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -346,7 +345,3 @@ def _finite(obj):
     if isinstance(obj, (list, tuple)):
         return [_finite(v) for v in obj]
     return obj
-
-
-def stdout_is_terminal() -> bool:
-    return sys.stdout.isatty()
