@@ -26,7 +26,7 @@ from pathlib import Path
 from scapy.utils import RawPcapReader
 
 from vm110.analysis import analyze
-from vm110.analysis.tshark_engine import plugin_path
+from vm110.plugin import plugin_path
 from vm110.synth import synthesize
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -14,32 +14,23 @@ import os
 import shutil
 import signal
 import struct
-import subprocess
 import tempfile
-from pathlib import Path
 from typing import Iterator, Optional
 
 from .. import constants as C
-from .. import resources
 from ..capture.reader import CaptureReader, address
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS
 from ..errors import CliError
+from ..plugin import PLUGIN_ENV, list_protocols, plugin_path
 from .collect import RECORD, STATE, STATE_FIELDS, Collected
 from .engine import crc_candidates
 from .incremental import Analysis
 
-PLUGIN_ENV = "VM110_DISSECTOR"
 REASONS = frozenset(p.value for p in C.Problem)
 _EXPERT = "vm110.expert."
 _HEADER = struct.Struct("<4sHHHHI")      # what the fast engine records: packet ID and header ...
 _AUX = struct.Struct("<H")                 # ... then the command ID or VRPO packet number
 _BATCH = 4096 * RECORD.size                # bytes of records fed to the analysis at a time
-
-
-def plugin_path() -> Path:
-    """The Lua dissector: $VM110_DISSECTOR, else dissector/vm110.lua as this installation ships it."""
-    env = os.environ.get(PLUGIN_ENV)
-    return Path(env) if env else resources.plugin()
 
 
 def check_available() -> None:
@@ -49,9 +40,8 @@ def check_available() -> None:
     plugin = plugin_path()
     if not plugin.is_file():
         raise CliError(f"--engine tshark needs the Lua dissector; not found at {plugin} (set {PLUGIN_ENV})")
-    done = subprocess.run(["tshark", "-G", "protocols", "-X", f"lua_script:{plugin}"],
-                          capture_output=True, text=True, check=False)
-    if not any(line.split("\t")[2:3] == ["vm110"] for line in done.stdout.splitlines()):
+    loaded, done = list_protocols("tshark", plugin)
+    if not loaded:
         lines = [ln for ln in done.stderr.splitlines() if "dangerous" not in ln]
         raise CliError(f"the Lua dissector {plugin} did not load in tshark: {(lines or ['no vm110 protocol'])[0]}")
 

@@ -12,17 +12,8 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from .. import resources
 from ..errors import CliError
-
-PLUGIN_ENV = "VM110_DISSECTOR"
-
-
-def plugin_path() -> Path:
-    """$VM110_DISSECTOR, else dissector/vm110.lua as this installation ships it (the wheel's
-    package data, or beside the package's source in an editable install: vm110.resources)."""
-    env = os.environ.get(PLUGIN_ENV)
-    return Path(env) if env else resources.plugin()
+from ..plugin import PLUGIN_ENV, list_protocols, plugin_path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,10 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _check_loads(tshark: str, plugin: Path) -> None:
     """Wireshark 4.4 silently skips Lua plugins when run as root: say so instead of decoding nothing."""
-    done = subprocess.run([tshark, "-G", "protocols", "-X", f"lua_script:{plugin}"],
-                          capture_output=True, text=True, check=False)
-    # name, short name, filter name (4.6 adds flag columns after them)
-    if not any(line.split("\t")[2:3] == ["vm110"] for line in done.stdout.splitlines()):
+    if not list_protocols(tshark, plugin)[0]:
         hint = " (Wireshark 4.4 loads no Lua plugin as root: run as a normal user)" if os.geteuid() == 0 else ""
         raise CliError(f"tshark did not load the dissector {plugin}{hint}")
 

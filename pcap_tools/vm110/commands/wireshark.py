@@ -22,6 +22,7 @@ from typing import Optional
 from .. import resources
 from ..errors import EXIT_OK, EXIT_USAGE, CliError
 from ..fileio import check_target, write_bytes
+from ..plugin import registers_vm110
 from ..wireshark_folders import find_tshark, locate, run_tshark
 
 ROOT_HINT = ("Wireshark 4.4 and later load no Lua plugin when run as root (unless the global init.lua sets "
@@ -154,12 +155,6 @@ def _skips_lua_as_root(version: str) -> bool:
     found = re.search(r"\(Wireshark\) (\d+)\.(\d+)", version)
     newer = found is not None and (int(found[1]), int(found[2])) >= (4, 4)
     return newer and hasattr(os, "geteuid") and os.geteuid() == 0
-
-
-def registers_vm110(line: str) -> bool:
-    """Whether a line of `tshark -G protocols` is vm110's (name, short name, filter name, then
-    flags on 4.6)."""
-    return line.split("\t")[2:3] == ["vm110"]
 
 
 def lua_errors(stderr: str) -> list[str]:
