@@ -91,6 +91,20 @@ def crc_matches(data: bytes, end: int) -> set[tuple[str, str]]:
     return got
 
 
+def looks_like_eglink(payload: bytes) -> bool:
+    """The heuristic for a datagram on another port: a known packet ID and a size consistent with
+    the length."""
+    n = len(payload)
+    return (C.OVERHEAD <= n <= C.MAX_PACKET and payload[:C.ID_LEN] in CODE_OF_ID
+            and n == C.OVERHEAD + P.SIZE.unpack_from(payload, P.SIZE_OFFSET)[0])
+
+
+def best_candidate(candidates: list[tuple[str, str]], counts: Counter) -> tuple[str, str]:
+    """The (variant, byte order) that validates the most packets; ties go to the earliest
+    candidate (the documented default comes first)."""
+    return max(candidates, key=lambda c: (counts[c], -candidates.index(c)))
+
+
 def crc_candidates(path: str, ports: Collection[int], limit: Optional[int] = None,
                    chunk_size: int = CHUNK) -> Counter:
     """How many EG-Link datagrams on `ports` (the first `limit` of them) each (variant, byte
@@ -152,27 +166,20 @@ class FastEngine:
         if sniffed:
             variant, order = sniffed
         got = self._pass(path, variant, order, opt)
-        best = self._best(got)
+        best = best_candidate(self.candidates(), got.crc_counts)
         if best != (variant, order) and got.crc_counts[best] > got.crc_counts[(variant, order)]:
             got = self._pass(path, *best, opt)     # the sniffed guess was wrong: judge again with the best
         return got
 
-    def _candidates(self) -> list[tuple[str, str]]:
+    def candidates(self) -> list[tuple[str, str]]:
+        """The (variant, byte order) pairs the options allow, the documented default first."""
         variants = VARIANTS if self.crc == "auto" else (self.crc,)
         orders = BYTE_ORDERS if self.crc_order == "auto" else (self.crc_order,)
         return [(v, o) for v in variants for o in orders]
 
-    def _best(self, got: Collected) -> tuple[str, str]:
-        # Ties go to the earliest candidate: the documented default comes first.
-        candidates = self._candidates()
-        return max(candidates, key=lambda c: (got.crc_counts[c], -candidates.index(c)))
-
     def _sniff(self, path: str) -> Optional[tuple[str, str]]:
         counts = crc_candidates(path, self.ports, _SNIFF, _SNIFF_CHUNK)
-        candidates = self._candidates()
-        if not counts:
-            return None
-        return max(candidates, key=lambda c: (counts[c], -candidates.index(c)))
+        return best_candidate(self.candidates(), counts) if counts else None
 
     def _pass(self, path: str, variant: str, order: str, opt) -> Collected:
         if pipelined(path):
@@ -490,10 +497,7 @@ class FastEngine:
     def _slow(self, got: Collected, reader: CaptureReader, variant: str, order: str, ts: float, src: bytes,
               sport: int, dport: int, payload: bytes, frame: int) -> None:
         n = len(payload)
-        # Heuristic for other ports: a known packet ID and a size consistent with the length.
-        if sport not in self.ports and dport not in self.ports and (
-                not C.OVERHEAD <= n <= C.MAX_PACKET or payload[:C.ID_LEN] not in CODE_OF_ID
-                or n != C.OVERHEAD + P.SIZE.unpack_from(payload, P.SIZE_OFFSET)[0]):
+        if sport not in self.ports and dport not in self.ports and not looks_like_eglink(payload):
             got.other_udp += 1
             return
         got.eglink += 1

@@ -6,12 +6,12 @@ worker) and returns a small summary; the driver only records it in the manifest.
 from __future__ import annotations
 
 import math
-import struct
 from dataclasses import dataclass, field
 from typing import Iterator, Optional
 
 from .. import constants as C
 from ..analysis import Options, analyze
+from ..analysis.engine import looks_like_eglink
 from ..capture.reader import CaptureReader, address
 from ..decode import decode
 from ..errors import CliError
@@ -104,11 +104,8 @@ def packet_rows(path: str, cid: str, port: int, variant: str, order: str) -> Ite
     another), decoded with the CRC the analysis used: for drill-down next to the findings."""
     ports = (port, port + C.OUTPUT_PORT_OFFSET)
     for ts, src, sport, dport, payload, frame in CaptureReader(path):
-        if sport not in ports and dport not in ports:
-            n = len(payload)
-            if not C.OVERHEAD <= n <= C.MAX_PACKET or payload[:C.ID_LEN] not in _IDS \
-                    or n != C.OVERHEAD + struct.unpack_from("<H", payload, 10)[0]:
-                continue
+        if sport not in ports and dport not in ports and not looks_like_eglink(payload):
+            continue
         f = decode(payload, variant, order)
         time = round(ts * 1_000_000) if math.isfinite(ts) else None
         yield {"capture_id": cid, "file": path, "frame": frame, "time": time,
@@ -117,5 +114,3 @@ def packet_rows(path: str, cid: str, port: int, variant: str, order: str) -> Ite
                "command_id": f.get("command_id"), "legal": not f["problems"],
                "problems": ",".join(f["problems"]) or None}
 
-
-_IDS = frozenset(t.value.encode() for t in C.PacketType)

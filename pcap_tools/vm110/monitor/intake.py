@@ -14,17 +14,16 @@ says so (a stream cannot be judged again).
 """
 from __future__ import annotations
 
-import struct
 import zlib
 from collections import Counter
 from typing import Callable, Optional
 
 from .. import constants as C
 from ..analysis.collect import Collected
-from ..analysis.engine import _HDR, _LOW, _SNIFF, FastEngine, crc_matches
-from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, VARIANTS, zlib_form
+from .. import protocol as P
+from ..analysis.engine import _HDR, _LOW, _SNIFF, _U32, FastEngine, best_candidate, crc_matches
+from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, zlib_form
 
-_U32 = {"little": struct.Struct("<I"), "big": struct.Struct(">I")}
 HOLD_MAX = 1 << 16                                 # datagrams held at most while choosing the CRC
 Illegal = Callable[[int, float, str, str, list], None]
 
@@ -60,8 +59,7 @@ class Intake:
         self.got.live = []
         self.variant: Optional[str] = None if self.auto else crc
         self.order: Optional[str] = None if self.auto else crc_order
-        self.candidates = [(v, o) for v in (VARIANTS if crc == "auto" else (crc,))
-                           for o in (BYTE_ORDERS if crc_order == "auto" else (crc_order,))]
+        self.candidates = self.engine.candidates()
         self.sniffed: Counter = Counter()
         self.sniff_seen = 0
         self.held: list[tuple] = []
@@ -84,7 +82,7 @@ class Intake:
         if self.variant is None:
             self.held.append((reader, ts, src, sport, dport, payload, frame))
             if (sport in self.ports or dport in self.ports) and len(payload) >= C.OVERHEAD:
-                size = struct.unpack_from("<H", payload, C.ID_LEN + 6)[0]
+                size = P.SIZE.unpack_from(payload, P.SIZE_OFFSET)[0]
                 self.sniffed.update(crc_matches(payload, min(C.PREFIX_LEN + size, len(payload) - C.CRC_LEN)))
                 self.sniff_seen += 1
             if self.sniff_seen >= _SNIFF or len(self.held) >= HOLD_MAX:
@@ -98,7 +96,7 @@ class Intake:
             return
         cands = self.candidates
         if self.sniffed:
-            best = max(cands, key=lambda c: (self.sniffed[c], -cands.index(c)))
+            best = best_candidate(cands, self.sniffed)
         else:                                   # as analyze: the documented default, or the one asked for
             best = (DEFAULT_VARIANT if len({v for v, _ in cands}) > 1 else cands[0][0],
                     DEFAULT_BYTE_ORDER if len({o for _, o in cands}) > 1 else cands[0][1])
@@ -113,7 +111,7 @@ class Intake:
         counts, cands = self.got.crc_counts, self.candidates
         if not self.auto or self.variant is None:
             return None
-        best = max(cands, key=lambda c: (counts[c], -cands.index(c)))
+        best = best_candidate(cands, counts)
         chosen = (self.variant, self.order)
         return best if best != chosen and counts[best] > counts[chosen] else None
 
