@@ -17,7 +17,7 @@ import json
 import os
 import posixpath
 import secrets
-from typing import Any, Collection, Iterable, Iterator
+from typing import Any, Callable, Collection, Iterable, Iterator
 
 import fsspec
 import pyarrow as pa
@@ -123,19 +123,7 @@ class Dataset:
         """One part from `batches` (tables of `schema`), written as they come: memory holds one
         batch, whatever the number of rows."""
         relative = part_name(table, capture_id)
-        target = self.path(relative)
-        try:
-            self.fs.makedirs(posixpath.dirname(target), exist_ok=True)
-            if self.local:
-                with atomic_writer(target) as stream:
-                    _write_parquet(stream, schema, batches)
-                return relative
-            temp = f"{target}.{secrets.token_hex(4)}.tmp"
-            with self.fs.open(temp, "wb") as f:
-                _write_parquet(f, schema, batches)
-            self.fs.mv(temp, target)
-        except OSError as exc:
-            raise CliError(f"cannot write {self.url}/{relative}: {exc}") from None
+        self._write_atomic(relative, lambda stream: _write_parquet(stream, schema, batches))
         return relative
 
     def complete_captures(self, skip: Collection[str] = ()) -> dict[str, dict]:
@@ -185,16 +173,21 @@ class Dataset:
                     self.fs.rm(name)
 
     def _write_bytes(self, relative: str, data: bytes) -> None:
+        self._write_atomic(relative, lambda stream: stream.write(data))
+
+    def _write_atomic(self, relative: str, write: Callable[[Any], object]) -> None:
+        """`write(stream)` into `relative`, seen whole or not at all: fileio's atomic writer on a
+        local dataset, else a temporary name of ours moved into place."""
         target = self.path(relative)
         try:
             self.fs.makedirs(posixpath.dirname(target), exist_ok=True)
             if self.local:
                 with atomic_writer(target) as stream:
-                    stream.write(data)
+                    write(stream)
                 return
             temp = f"{target}.{secrets.token_hex(4)}.tmp"
             with self.fs.open(temp, "wb") as f:
-                f.write(data)
+                write(f)
             self.fs.mv(temp, target)
         except OSError as exc:
             raise CliError(f"cannot write {self.url}/{relative}: {exc}") from None

@@ -23,6 +23,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from .. import constants as C
+from .. import protocol as P
 from ..analysis import serials
 from ..analysis.collect import CODE_OF_ID, STATE, STATE_FIELDS, TYPES, VRPI_CODE, VRPO_CODE, sender_id
 from ..capture.reader import address
@@ -34,6 +35,7 @@ SILENT_S = 10.0            # a watchdog lasting longer than this shows as "silen
 WINDOW_S = 60              # "last minute" numbers
 Emit = Callable[[dict], None]
 _INPUT = [t.direction is C.Direction.INPUT for t in TYPES]
+_ORIGIN = P.HEADER_OFFSETS["origin"]          # the origin, u16 little-endian
 
 
 class LiveSender:
@@ -188,7 +190,7 @@ class Live:
         last_vrpi: dict = {}
         for ts, frame, src, sport, packet in rows:
             code = CODE_OF_ID[packet[:4]]
-            key = (_INPUT[code], src, sport, packet[6] | packet[7] << 8)
+            key = (_INPUT[code], src, sport, packet[_ORIGIN] | packet[_ORIGIN + 1] << 8)
             snd = senders.get(key)
             if snd is None:
                 direction = C.Direction.INPUT.value if key[0] else C.Direction.OUTPUT.value
