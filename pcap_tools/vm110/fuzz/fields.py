@@ -1,22 +1,18 @@
-"""Where each field of an input packet sits, from the protocol declaration: the one adapter the
-coverage-guided mutator reads the protocol through.
-
-Today the declaration is the scapy layers (`layers.PAYLOAD_CLASSES`) with the ranges and enums of
-`constants`; a change of where the protocol is declared changes only `_declared`.
+"""Where each field of an input packet sits, from the protocol declaration (vm110.protocol): the
+one adapter the coverage-guided mutator reads the protocol through.
 """
 from __future__ import annotations
 
 import functools
-import struct
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Optional
 
 from .. import constants as C
 from .. import protocol as P
-from ..layers import PAYLOAD_CLASSES
 
-SERIAL_AT = C.ID_LEN + 4
-SIZE_AT = C.ID_LEN + 6
+SERIAL_AT = P.HEADER_OFFSETS["serial"]
+SIZE_AT = P.SIZE_OFFSET
+COMMAND_ID_AT = C.PREFIX_LEN + P.PACKETS[C.PacketType.VRCI].offsets()["command_id"]
 
 
 @dataclass(frozen=True)
@@ -46,25 +42,20 @@ class FieldSpot:
 
 
 def _declared(ptype: C.PacketType) -> list[FieldSpot]:
-    out = []
-    offset = C.PREFIX_LEN
-    for field in PAYLOAD_CLASSES[ptype].fields_desc:
-        fmt = getattr(field, "fmt", "")
-        if isinstance(field.default, bytes):
-            width = len(field.default) or C.COMMAND_DATA_LEN
-            out.append(FieldSpot(field.name, offset, width, text=True))
+    out, offset = [], C.PREFIX_LEN
+    for field in P.PACKETS[ptype].fields:
+        if field.kind == "bytes":
+            out.append(FieldSpot(field.name, offset, field.size, text=True))
         else:
-            width = struct.calcsize(fmt)
-            names: Any = P.ENUM_FIELDS.get(field.name, {})
-            enum = tuple(sorted(int(v) for v in names))
-            out.append(FieldSpot(field.name, offset, width, fmt[-1].islower(), enum=enum,
-                                 limits=P.RANGES.get(field.name)))
-        offset += width
+            enum = tuple(sorted(int(v) for v in field.enum.values)) if field.enum else ()
+            out.append(FieldSpot(field.name, offset, field.size, field.kind == "s16", enum=enum,
+                                 limits=field.range))
+        offset += field.size
     return out
 
 
-_HEADER = [FieldSpot("revision", C.ID_LEN, 2), FieldSpot("origin", C.ID_LEN + 2, 2),
-           FieldSpot("serial", SERIAL_AT, 2), FieldSpot("size", SIZE_AT, 2), FieldSpot("spare", C.ID_LEN + 8, 4)]
+# The header's fields, as plain numbers: what the mutator may do to them is not bounded by a range.
+_HEADER = [FieldSpot(f.name, P.HEADER_OFFSETS[f.name], f.size) for f in P.HEADER_FIELDS]
 
 
 @functools.lru_cache(maxsize=None)

@@ -22,7 +22,7 @@ from ..errors import CliError
 from . import cases as K
 from .corpus import CorpusDir, Entry, Packet, binary_strings, load_dictionary
 from .coverage import ShmMap, Virgin
-from .fields import SERIAL_AT
+from .fields import COMMAND_ID_AT, SERIAL_AT
 from .havoc import Mutator, fix
 from .session import Sent, Session
 
@@ -30,7 +30,6 @@ _SETTLE_STEP_S = 0.0001       # the map is read until it has hits and two reads 
 _SETTLE_MAX_S = 0.03
 _EMPTY_AFTER = 30             # cases: a map still empty then is not instrumented
 _SERIES_POINTS = 2000
-_CMD_ID_AT = C.PREFIX_LEN
 _RECENT = 8
 
 
@@ -50,10 +49,10 @@ def _builder(p: Packet, ids: dict[int, int]) -> K.Builder:
             return data, fix(data)
         body = bytearray(data)
         body[SERIAL_AT:SERIAL_AT + 2] = serial.to_bytes(2, "little")
-        if body[:C.ID_LEN] == b"VRCI" and len(body) >= _CMD_ID_AT + 2:
-            old = int.from_bytes(body[_CMD_ID_AT:_CMD_ID_AT + 2], "little")
+        if body[:C.ID_LEN] == b"VRCI" and len(body) >= COMMAND_ID_AT + 2:
+            old = int.from_bytes(body[COMMAND_ID_AT:COMMAND_ID_AT + 2], "little")
             if old in ids:
-                body[_CMD_ID_AT:_CMD_ID_AT + 2] = ids[old].to_bytes(2, "little")
+                body[COMMAND_ID_AT:COMMAND_ID_AT + 2] = ids[old].to_bytes(2, "little")
         data = fix(bytes(body))
         return data, data
     return build
@@ -63,8 +62,8 @@ def case_of(entry: Entry, index: int, family: str, description: str) -> K.Case:
     fresh = K.command_ids(index)
     ids: dict[int, int] = {}
     for p in entry.packets:
-        if p.data[:C.ID_LEN] == b"VRCI" and len(p.data) >= _CMD_ID_AT + 2 and len(ids) < len(fresh):
-            ids.setdefault(int.from_bytes(p.data[_CMD_ID_AT:_CMD_ID_AT + 2], "little"), fresh[len(ids)])
+        if p.data[:C.ID_LEN] == b"VRCI" and len(p.data) >= COMMAND_ID_AT + 2 and len(ids) < len(fresh):
+            ids.setdefault(int.from_bytes(p.data[COMMAND_ID_AT:COMMAND_ID_AT + 2], "little"), fresh[len(ids)])
     steps = [K.Step(_builder(p, ids), p.delay_ms, p.expect_ack) for p in entry.packets]
     return K.Case(index, family, description, steps, entry.pause_vrpi_ms, entry.withhold_vrai_ms,
                   dict(entry.stream) if entry.stream else None, entry.settle_ms)

@@ -12,7 +12,7 @@ from .. import constants as C
 from ..crc import crc_bytes
 from . import mutate as M
 from .corpus import Entry, Packet
-from .fields import SIZE_AT, FieldSpot, spots
+from .fields import COMMAND_ID_AT, SIZE_AT, FieldSpot, spots
 
 INTERESTING_8 = (-128, -1, 0, 1, 16, 32, 64, 100, 127)
 INTERESTING_16 = (-32768, -129, 128, 255, 256, 512, 1000, 1024, 4096, 32767)
@@ -26,7 +26,6 @@ _BREAK = 0.08                  # share of byte mutations that keep a broken size
 
 
 _VRCI_TEMPLATE = M.build(C.PacketType.VRCI, 0, M.default_fields(C.PacketType.VRCI))
-_COMMAND_ID = next(s.offset for s in spots(b"VRCI") if s.name == "command_id")
 _COMMAND_DATA = next(s.offset for s in spots(b"VRCI") if s.name == "command_data")
 
 
@@ -114,7 +113,7 @@ class Mutator:
         commands are where a controller compares strings, and some take a state earlier ones made."""
         data = self._token()[:C.COMMAND_DATA_LEN] if self.tokens else b""
         body = bytearray(_VRCI_TEMPLATE)
-        body[_COMMAND_ID:_COMMAND_ID + 2] = self.rng.randrange(1 << 16).to_bytes(2, "little")
+        body[COMMAND_ID_AT:COMMAND_ID_AT + 2] = self.rng.randrange(1 << 16).to_bytes(2, "little")
         body[_COMMAND_DATA:_COMMAND_DATA + C.COMMAND_DATA_LEN] = data.ljust(C.COMMAND_DATA_LEN, b"\0")
         entry.packets.insert(self.rng.randrange(len(entry.packets) + 1), Packet(fix(bytes(body))))
 

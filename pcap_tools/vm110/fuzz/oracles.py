@@ -18,10 +18,11 @@ from .. import constants as C
 from ..decode import decode
 from ..sim.ledger import REUSE_GAP_MS
 from .evidence import Crash
+from .fields import COMMAND_ID_AT
 
 CRASH, STALL, MISSING_ACK, ILLEGAL_ACKED, MALFORMED_OUTPUT, VRCO_RETRANSMIT = ORACLES = (
     "crash", "stall", "missing_ack", "illegal_acked", "malformed_output", "vrco_retransmit")
-_CMD_ID_AT = slice(C.PREFIX_LEN, C.PREFIX_LEN + 2)
+_CMD_ID_AT = slice(COMMAND_ID_AT, COMMAND_ID_AT + 2)
 _VRCI = C.PacketType.VRCI.value
 _HISTORY_S = 10.0
 _MAX_CRASH_SUSPECTS = 400
