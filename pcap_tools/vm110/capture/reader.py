@@ -41,6 +41,16 @@ _FAST_HEAD = L.ETH_HEADER_LEN + L.IPV4_MIN_HEADER + L.UDP_HEADER_LEN
 _FAST_VI = 0x45
 
 
+def format_of(head: bytes, path: str) -> str:
+    """"pcap" or "pcapng" from a capture's first 4 bytes, or CaptureError."""
+    magic_le, magic_be = struct.unpack_from("<I", head)[0], struct.unpack_from(">I", head)[0]
+    if magic_le == PCAPNG_SHB:
+        return "pcapng"
+    if PCAP_MAGIC_US in (magic_le, magic_be) or PCAP_MAGIC_NS in (magic_le, magic_be):
+        return "pcap"
+    raise CaptureError(f"{path}: not a pcap or pcapng capture (magic 0x{magic_be:08x})")
+
+
 class PcapLayout(NamedTuple):
     endian: str          # struct byte order of the record headers
     scale: float         # seconds per unit of the fraction field (us or ns)
@@ -76,6 +86,11 @@ class CaptureReader:
         except BaseException:
             self._file.close()
             raise
+        self._layout: Optional[PcapLayout] = None
+        self.reset_counters()
+
+    def reset_counters(self) -> None:
+        """The counts and per-section state that reading fills in (a stream's too)."""
         self.frames = 0            # every packet record
         self.non_udp = 0           # frames that carry no (whole) UDP datagram
         self.fragments = 0         # IP fragments (counted in non_udp)
@@ -87,7 +102,6 @@ class CaptureReader:
         self.bytes_read = 0
         self.first_ts: Optional[float] = None   # of the first and last packet record
         self.last_ts: Optional[float] = None
-        self._layout: Optional[PcapLayout] = None
         self.endian = "<"                       # pcapng: of the current section
         self.interfaces: list[tuple] = []       # pcapng: (link, ticks/s or 0, s/tick, offset, Ethernet?)
 
@@ -103,13 +117,7 @@ class CaptureReader:
             raise CaptureError(f"{path}: empty file, not a pcap or pcapng capture")
         if len(head) < 4:
             raise CaptureError(f"{path}: not a pcap or pcapng capture (too short)")
-        magic_le = struct.unpack("<I", head)[0]
-        magic_be = struct.unpack(">I", head)[0]
-        if magic_le == PCAPNG_SHB:
-            return size, "pcapng"
-        if PCAP_MAGIC_US in (magic_le, magic_be) or PCAP_MAGIC_NS in (magic_le, magic_be):
-            return size, "pcap"
-        raise CaptureError(f"{path}: not a pcap or pcapng capture (magic 0x{magic_be:08x})")
+        return size, format_of(head, path)
 
     def close(self) -> None:
         """Close the file; safe to repeat."""
@@ -142,13 +150,17 @@ class CaptureReader:
         head = self._file.read(PCAP_HEADER_LEN)
         if len(head) < PCAP_HEADER_LEN:
             raise CaptureError(f"{self.path}: pcap file header cut short")
-        e = "<" if struct.unpack("<I", head[:4])[0] in (PCAP_MAGIC_US, PCAP_MAGIC_NS) else ">"
-        magic, _, _, _, _, _snaplen, network = struct.unpack(e + "IHHiIII", head)
+        self._layout = self.pcap_header(head)
+        return self._layout
+
+    def pcap_header(self, head: bytes) -> PcapLayout:
+        """The layout a pcap file header (PCAP_HEADER_LEN bytes) gives; its link type noted."""
+        e = "<" if struct.unpack_from("<I", head)[0] in (PCAP_MAGIC_US, PCAP_MAGIC_NS) else ">"
+        magic, _, _, _, _, _snaplen, network = struct.unpack_from(e + "IHHiIII", head)
         link = network & 0x0FFFFFFF      # the top bits may carry FCS information
         self.link_types.add(L.NAMES.get(link, str(link)))
         # Never the snaplen: a file's own header must not let a record claim gigabytes.
-        self._layout = PcapLayout(e, 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link, MAX_RECORD)
-        return self._layout
+        return PcapLayout(e, 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link, MAX_RECORD)
 
     def raw_chunks(self, start: int = PCAP_HEADER_LEN, stop: Optional[int] = None) -> Generator[bytes, int, None]:
         """Chunks of records (pcap) or blocks (pcapng) for a consumer that walks them itself: each

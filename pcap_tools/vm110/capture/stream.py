@@ -14,8 +14,8 @@ import struct
 from typing import Optional
 
 from . import linktypes as L
-from .reader import (_FAST, _FAST_HEAD, _FAST_VI, MAX_RECORD, PCAP_HEADER_LEN, PCAP_MAGIC_NS, PCAP_MAGIC_US,
-                     PCAPNG_SHB, CaptureError, CaptureReader)
+from .reader import (_FAST, _FAST_HEAD, _FAST_VI, MAX_RECORD, PCAP_HEADER_LEN, PCAPNG_SHB, CaptureError, CaptureReader,
+                     format_of)
 
 Packet = tuple   # (ts, frame, link, frame bytes, (src, sport, dport, payload) or None)
 _MAX_BUFFER = 1 << 21          # more waiting than any legal record or block: the stream is not a capture
@@ -25,19 +25,11 @@ class StreamReader(CaptureReader):
     """One capture stream named `name` (for messages); feed it bytes in order."""
 
     def __init__(self, name: str) -> None:     # pylint: disable=super-init-not-called
-        # No file: the counters and per-section state of the reader, which its methods use.
+        # No file: the counters and per-section state of the reader, which its methods use
+        # (bytes_read: the stream offset of the start of `buf`).
         self.path = name
         self.format = ""
-        self.frames = self.non_udp = self.fragments = self.unknown_link = 0
-        self.snap_truncated: set[int] = set()
-        self.problem: Optional[str] = None
-        self.damage: Optional[int] = None
-        self.link_types: set[str] = set()
-        self.bytes_read = 0                    # stream offset of the start of `buf`
-        self.first_ts: Optional[float] = None
-        self.last_ts: Optional[float] = None
-        self.endian = "<"
-        self.interfaces: list[tuple] = []
+        self.reset_counters()
         self._record: Optional[tuple] = None   # pcap: (record struct, scale, link)
         self.buf = b""
         self.stopped = False                   # damage seen: the rest is not read
@@ -51,7 +43,7 @@ class StreamReader(CaptureReader):
         if not self.format:
             if len(self.buf) < 4:
                 return []
-            self._sniff()
+            self.format = format_of(self.buf, self.path)
         out: list[Packet] = []
         used = self._walk_pcap(out) if self.format == "pcap" else self._walk_pcapng(out)
         self.buf = self.buf[used:]
@@ -72,25 +64,13 @@ class StreamReader(CaptureReader):
         self.buf = b""
 
     # -- formats -------------------------------------------------------------------------------
-    def _sniff(self) -> None:
-        magic_le, magic_be = struct.unpack_from("<I", self.buf)[0], struct.unpack_from(">I", self.buf)[0]
-        if magic_le == PCAPNG_SHB:
-            self.format = "pcapng"
-        elif PCAP_MAGIC_US in (magic_le, magic_be) or PCAP_MAGIC_NS in (magic_le, magic_be):
-            self.format = "pcap"
-        else:
-            raise CaptureError(f"{self.path}: not a pcap or pcapng capture (magic 0x{magic_be:08x})")
-
     def _walk_pcap(self, out: list[Packet]) -> int:
         data, pos = self.buf, 0
         if self._record is None:
             if len(data) < PCAP_HEADER_LEN:
                 return 0
-            e = "<" if struct.unpack_from("<I", data)[0] in (PCAP_MAGIC_US, PCAP_MAGIC_NS) else ">"
-            magic, _, _, _, _, _, network = struct.unpack_from(e + "IHHiIII", data)
-            link = network & 0x0FFFFFFF
-            self.link_types.add(L.NAMES.get(link, str(link)))
-            self._record = (struct.Struct(e + "IIII"), 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link)
+            layout = self.pcap_header(data)
+            self._record = (struct.Struct(layout.endian + "IIII"), layout.scale, layout.link)
             pos = PCAP_HEADER_LEN
         rec, scale, link = self._record
         end = len(data)
