@@ -155,11 +155,13 @@ class PcapWriter(_Writer):
         return [pack(t // _US, t % _US, len(frame), len(frame)) + frame for t, frame in frames]
 
 
-def _option(code: int, value: bytes) -> bytes:
+def build_option(code: int, value: bytes) -> bytes:
+    """A pcapng option, padded to 32 bits."""
     return struct.pack("<HH", code, len(value)) + value + bytes(-len(value) % 4)
 
 
-def _block(block_type: int, body: bytes) -> bytes:
+def build_block(block_type: int, body: bytes) -> bytes:
+    """A pcapng block: type, total length, body, total length."""
     length = 12 + len(body)
     return struct.pack("<II", block_type, length) + body + struct.pack("<I", length)
 
@@ -178,9 +180,9 @@ class PcapngWriter(_Writer):
     def __init__(self, stream: ByteSink, linktype: int = LINKTYPE_ETHERNET, snaplen: int = SNAPLEN,
                  application: str = "vm110") -> None:
         super().__init__(stream)
-        shb = struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1) + _option(4, application.encode()) + self._END_OF_OPTIONS
+        shb = struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1) + build_option(4, application.encode()) + self._END_OF_OPTIONS
         idb = struct.pack("<HHI", linktype, 0, snaplen)
-        stream.write(_block(self._SHB, shb) + _block(self._IDB, idb))
+        stream.write(build_block(self._SHB, shb) + build_block(self._IDB, idb))
 
     def _records(self, frames: Iterable[tuple[int, bytes]]) -> list[bytes]:
         head, tail, pads, epb, overhead = (self._EPB_HEAD.pack, self._EPB_TAIL.pack, self._PADS, self._EPB,

@@ -18,6 +18,7 @@ import struct
 from dataclasses import dataclass, field
 from typing import Optional
 
+from ..capture.writer import build_block, build_option
 from ..fileio import write_bytes, write_text
 
 RING_BYTES = 64 << 20
@@ -25,22 +26,18 @@ WINDOW_BYTES = 64 << 20
 MAX_OPEN = 64
 MAX_SPAN_S = 120.0              # a window that alarms keep extending stops growing at this length
 MAX_NUMBERS = 10_000           # frame numbers listed in the JSON (else first and last only)
-_SHB = struct.pack("<IIIHHq", 0x0A0D0D0A, 28, 0x1A2B3C4D, 1, 0, -1) + struct.pack("<I", 28)
+_SHB = build_block(0x0A0D0D0A, struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1))
 
 
 def _idb(link: int) -> bytes:
     # Link type, snaplen 0 (no limit), option if_tsresol = 9 (nanoseconds), end of options.
-    body = struct.pack("<HHI", link, 0, 0) + struct.pack("<HHB3x", 9, 1, 9) + struct.pack("<HH", 0, 0)
-    size = 12 + len(body)
-    return struct.pack("<II", 1, size) + body + struct.pack("<I", size)
+    return build_block(1, struct.pack("<HHI", link, 0, 0) + build_option(9, bytes([9])) + struct.pack("<HH", 0, 0))
 
 
 def _epb(iface: int, ts: float, frame: bytes) -> bytes:
     ns = round(ts * 1e9)
-    pad = (-len(frame)) % 4
-    size = 32 + len(frame) + pad
-    return (struct.pack("<IIIIIII", 6, size, iface, (ns >> 32) & 0xFFFFFFFF, ns & 0xFFFFFFFF, len(frame), len(frame))
-            + frame + bytes(pad) + struct.pack("<I", size))
+    head = struct.pack("<IIIII", iface, (ns >> 32) & 0xFFFFFFFF, ns & 0xFFFFFFFF, len(frame), len(frame))
+    return build_block(6, head + frame + bytes(-len(frame) % 4))
 
 
 def pcapng(frames: list[tuple]) -> bytes:
