@@ -91,22 +91,37 @@ class Supervisor:
 
     def start(self) -> None:
         self.ring = _Ring()
+        self._check_program()
         try:
-            self.proc = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+            self.proc = subprocess.Popen(self._with_core_limit(), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                          stderr=subprocess.STDOUT, start_new_session=True, env=self.environment(),
                                          cwd=self.cwd)
         except OSError as exc:
             raise CliError(f"cannot start --target-cmd {self.argv[0]!r}: {exc.strerror}") from None
-        # The core size limit, set from outside (no code between fork and exec: the reader threads).
-        try:
-            resource.prlimit(self.proc.pid, resource.RLIMIT_CORE, (self.core_limit, self.core_hard))
-        except OSError:
-            pass     # it has exited already
         self.started_at = time.time()
         self.starts += 1
         assert self.proc.stdout is not None
         self.reader = threading.Thread(target=self._read, args=(self.proc.stdout, self.ring), daemon=True)
         self.reader.start()
+
+    def _check_program(self) -> None:
+        """The shell in front would report a missing program only as an early exit."""
+        prog = self.argv[0]
+        if "/" in prog:
+            path: Optional[str] = str(self.cwd / prog)
+        else:
+            path = shutil.which(prog, path=self.environment().get("PATH"))
+        if path is None or os.path.isdir(path) or not os.access(path, os.X_OK):
+            raise CliError(f"cannot start --target-cmd {prog!r}: no such executable")
+
+    def _with_core_limit(self) -> list[str]:
+        """The command behind a shell that sets its core size limit and execs it (same pid): the
+        limit is in place before the controller runs, so that a limit the controller sets itself
+        (AddressSanitizer's disable_coredump) stands. Set from outside after the start, it raced
+        with that and could drop a core into the working folder. (No Python between fork and exec:
+        the reader threads.)"""
+        limit = "unlimited" if self.core_limit == resource.RLIM_INFINITY else str(self.core_limit)
+        return ["/bin/sh", "-c", 'ulimit -S -c "$0" && exec "$@"', limit, *self.argv]
 
     def _read(self, stream: IO[bytes], ring: _Ring) -> None:
         fd = stream.fileno()
