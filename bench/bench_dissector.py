@@ -16,6 +16,10 @@ Wireshark may skip building the tree, which is not how the plugin is used.
 For scale, "Lua floor" is the least any Lua dissector pays for that output: a plugin of a few
 lines that registers the same four fields, reads the packet ID and serial and adds the protocol
 item and three values (no CRC, no checks, no analysis). What the plugin costs above it is its own.
+"vm110, CRC + analysis off" is the plugin with both switched off (-o vm110.check_crc:FALSE -o
+vm110.analysis:FALSE): its decode, value checks and fields alone. The last lines put the target in
+these terms: the time the target leaves for CRC validation and stream analysis together, against
+what they cost in this run (the default run less that row).
 
 Each command runs REPEAT times, interleaved over the commands and the tshark versions (the host's
 4.0 with Lua 5.2; Debian 13's 4.4 and Debian testing's 4.6 with Lua 5.4, in the chroots of
@@ -51,6 +55,7 @@ COMMON = ["-e", "frame.number", "-e", "ip.src", "-e", "udp.srcport", "-e", "udp.
 VM110_FIELDS = ["-e", "vm110.type", "-e", "vm110.serial", "-e", "vm110.crc.status", "-e", "vm110.command_id"]
 ANALYSIS_FIELDS = ["-e", "vm110.analysis.serial_missing", "-e", "vm110.analysis.interval",
                    "-e", "vm110.analysis.retransmission_of", "-e", "vm110.analysis.ack_to"]
+BARE = "vm110, CRC + analysis off"
 PLAIN_EXTRA = ["-e", "ip.dst", "-e", "udp.dstport", "-e", "ip.ttl", "-e", "udp.checksum",
                "-e", "frame.len", "-e", "eth.src", "-e", "eth.dst", "-e", "ip.id"]
 
@@ -106,6 +111,9 @@ def commands(ws: T.Workspace, pcap: Path, baseline: Path | None, tune_gc: bool) 
         base = ["-n", "-X", f"lua_script:{plugin}", "-r", capture, "-T", "fields", *COMMON, *VM110_FIELDS]
         out[f"{label}vm110"] = ws.tshark.command(base)
         out[f"{label}vm110 + analysis"] = ws.tshark.command([*base, *ANALYSIS_FIELDS])
+    out[BARE] = ws.tshark.command(["-n", "-X", f"lua_script:{ws.plugin()}", "-o", "vm110.check_crc:FALSE",
+                                   "-o", "vm110.analysis:FALSE", "-r", capture, "-T", "fields", *COMMON,
+                                   *VM110_FIELDS])
     if tune_gc:
         base = ["-n", "-X", f"lua_script:{ws.plugin()}", "-r", capture, "-o", "vm110.tune_gc:TRUE",
                 "-T", "fields", *COMMON, *VM110_FIELDS]
@@ -150,7 +158,7 @@ def main() -> int:
                 for name, command in cmds.items():
                     runs.setdefault((runner.name, name), []).append(timed(command))
         best = {key: tuple(map(min, zip(*values))) for key, values in runs.items()}
-        headline = []
+        headline, budget = [], []
         for runner, version, packets, cmds in setups:
             t = {name: best[(runner.name, name)] for name in cmds}
             print(f"{version}: tshark -T fields, {packets} EG-Link packets ('day', {args.duration} s), default "
@@ -167,7 +175,14 @@ def main() -> int:
             ratio_a = t["vm110 + analysis"][0] / t["plain 12"][0]
             headline.append(f"{runner.version} {ratio:.2f}x ({ratio_a:.2f}x with analysis fields; "
                             f"target <= {TARGETS.get(runner.version, '?')})")
+            if runner.version in TARGETS:
+                left = TARGETS[runner.version] * t["plain 8"][0] - t[BARE][0]
+                cost = t["vm110"][0] - t[BARE][0]
+                budget.append(f"{runner.version} {left * 1e6 / packets:.1f} us left, "
+                              f"{cost * 1e6 / packets:.1f} us spent")
         print("vm110 / plain UDP, wall time: " + "; ".join(headline))
+        print("CRC validation + stream analysis per packet, what the target leaves / what they cost: "
+              + "; ".join(budget))
     return 0
 
 

@@ -432,7 +432,10 @@ local function compile_reader(layout)
         elseif width == 1 then
             expr = fmt("b%d", off + 1)
         elseif width == 2 then
-            expr = fmt(kind == "s" and "s16(b%d + b%d * 256)" or "b%d + b%d * 256", off + 1, off + 2)
+            expr = fmt("b%d + b%d * 256", off + 1, off + 2)
+            if kind == "s" then -- (the sign from the high byte inline: a call per field costs more)
+                expr = fmt("b%d < 128 and %s or %s - 65536", off + 2, expr, expr)
+            end
         else
             expr = fmt("((b%d * 256 + b%d) * 256 + b%d) * 256 + b%d", off + 4, off + 3, off + 2, off + 1)
         end
@@ -440,9 +443,9 @@ local function compile_reader(layout)
         off = off + width
     end
     for i = PREFIX_LEN + 1, off do locals[#locals + 1] = "b" .. i end
-    local code = fmt("local byte, sub, s16 = ...\nreturn function(s, v)\nlocal %s = byte(s, %d, %d)\n"
+    local code = fmt("local byte, sub = ...\nreturn function(s, v)\nlocal %s = byte(s, %d, %d)\n"
         .. "%s\nreturn v\nend", concat(locals, ", "), PREFIX_LEN + 1, off, concat(parts, "\n"))
-    return assert(load(code, "=vm110 reader", "t", {}))(byte, sub, s16)
+    return assert(load(code, "=vm110 reader", "t", {}))(byte, sub)
 end
 
 -- The problems, warnings or values of a packet that has none: shared, never written (most
