@@ -1536,7 +1536,8 @@ end
 
 -- Serial counters (rules.md "Serial numbers"): h, the start (first packet or last restart), the
 -- time each serial was last accepted (`acc`, by serial), the open gaps (ranges {first serial,
--- count, time opened}, oldest first), the previous accepted packet's time (`prev`), and the
+-- count, time opened, the result of the packet that opened it}, oldest first; a late packet
+-- counts itself in that result's `filled`), the previous accepted packet's time (`prev`), and the
 -- accepted times of the last RATE_WINDOW_S seconds in a ring (the rate of the plausible-gap
 -- test, counted exactly: by binary search while the times are in order).
 local new_counter, classify, decide
@@ -1643,6 +1644,8 @@ do
                 local g = gaps[i]
                 local k = (s - g[1]) % SERIAL_MODULUS
                 if k < g[2] and ms(t - g[3]) < window then
+                    local opener = g[4]
+                    opener.filled = (opener.filled or 0) + 1
                     if g[2] == 1 then
                         table.remove(gaps, i)
                     elseif k == 0 then
@@ -1650,7 +1653,7 @@ do
                     elseif k == g[2] - 1 then
                         g[2] = k
                     else
-                        table.insert(gaps, i + 1, { (s + 1) % SERIAL_MODULUS, g[2] - k - 1, g[3] })
+                        table.insert(gaps, i + 1, { (s + 1) % SERIAL_MODULUS, g[2] - k - 1, g[3], opener })
                         g[2] = k
                     end
                     c.lost = c.lost - 1
@@ -1840,7 +1843,9 @@ local function analyse(r, s, pinfo, frame, offset)
             return DUP_RES
         elseif missing ~= 0 then
             res = { serial = missing }
-            if missing == LATE then
+            if missing > 0 then
+                c.gaps[#c.gaps][4] = res -- (the gap classify() just opened)
+            elseif missing == LATE then
                 snd.late = snd.late + 1
             elseif missing == CANDIDATE then
                 local rec = { of = snd, frame = frame, t = t, from = c.h, to = serial, decided = false,
@@ -2355,7 +2360,7 @@ end
 -- (its sender, type, frame and offset: dissect() leaves them in `found`); the figures are read
 -- from the packets' final analysis once every frame has been seen, so they are complete on a
 -- single pass too (as far as the filter itself can match there). Per sender: packets by type;
--- lost (serials missing before the matching packets), duplicates, out of order and restarts at
+-- lost (serials missing before the matching packets and never received later), duplicates, out of order and restarts at
 -- them; commands first sent in them, with those acknowledged, interrupted and unacknowledged;
 -- retransmissions among them; their intervals; a silence until the end after one of them.
 local filtered_stats = {}
@@ -2400,7 +2405,7 @@ function filtered_stats.text(acc)
             iv = res.interval
             local missing = res.serial
             if missing > 0 then
-                s.lost = s.lost + missing
+                s.lost = s.lost + missing - (res.filled or 0) -- (as the whole capture's: net of late packets)
             elseif missing == DUPLICATE then
                 s.duplicates = s.duplicates + 1
             elseif missing == LATE or missing == CANDIDATE and res.cand.decided and not res.cand.confirmed then

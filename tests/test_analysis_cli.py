@@ -58,6 +58,20 @@ def test_bad_arguments(files, args):
     one_line_error(vm110(str(files / "clean.pcap"), *args))
 
 
+def test_report_on_standard_output_stands_alone(files):
+    """--json - (or --html -): standard output is the report alone, to pipe into a parser; the
+    summary goes to standard error. Both on standard output would be neither."""
+    result = vm110(str(files / "lossy.pcapng"), "--json", "-")
+    assert result.returncode == EXIT_OK, result.stderr
+    assert json.loads(result.stdout)["totals"]["lost"] == 1
+    assert "VERDICT: FAIL" in result.stderr
+    html = vm110(str(files / "lossy.pcapng"), "--html", "-")
+    assert html.stdout.lstrip().lower().startswith("<!doctype html") and "VERDICT: FAIL" in html.stderr
+    quiet = vm110(str(files / "lossy.pcapng"), "--json", "-", "--quiet")
+    assert json.loads(quiet.stdout) and quiet.stderr == ""
+    one_line_error(vm110(str(files / "lossy.pcapng"), "--json", "-", "--html", "-"))
+
+
 def test_unreadable_inputs(files):
     one_line_error(vm110(str(files / "text.pcap")))
     one_line_error(vm110(str(files / "missing.pcap")))

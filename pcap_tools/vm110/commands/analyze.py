@@ -53,8 +53,10 @@ def add_analysis_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_report_options(parser: argparse.ArgumentParser) -> None:
     """Where the reports go and what makes the exit code."""
-    parser.add_argument("--json", metavar="FILE", help="write the JSON report (docs/report.md); - for standard output")
-    parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report; - for standard output")
+    parser.add_argument("--json", metavar="FILE", help="write the JSON report (docs/report.md); - for standard "
+                        "output (the summary then goes to standard error)")
+    parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report; - for standard "
+                        "output (the summary then goes to standard error)")
     parser.add_argument("--fail-on", metavar="RULES", default="",
                         help="exit 1 when a rule holds, e.g. lost>0,watchdog>0,unacked>0,illegal>0; "
                              f"names: {', '.join(TOTAL_NAMES)}")
@@ -169,6 +171,8 @@ def report_rules(args: argparse.Namespace) -> list:
     """The --fail-on rules of `add_report_options` arguments; the report files checked up front,
     not after minutes of analysis."""
     fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on else []
+    if args.json == "-" and args.html == "-":
+        raise CliError("--json - and --html -: only one report can go to standard output")
     for target in (args.json, args.html):
         if target not in (None, "-"):
             check_target(target)
@@ -214,13 +218,15 @@ def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rule
     document = reports[0] if combined is None else {
         "schema_version": SCHEMA_VERSION, "reports": reports, "errors": errors, "combined": combined}
     # A reader that stops early (`| head`) cuts standard output short; the report files and the
-    # verdict below still follow.
+    # verdict below still follow. A report on standard output keeps it to itself: the summary
+    # then goes to standard error.
     with closedpipe.tolerated():
         if not args.quiet:
-            print("\n\n".join(summary.render(r, args.list) for r in reports))
+            out = sys.stderr if "-" in (args.json, args.html) else sys.stdout
+            print("\n\n".join(summary.render(r, args.list) for r in reports), file=out)
             if combined:
-                print()
-                print(summary.render_combined(combined))
+                print(file=out)
+                print(summary.render_combined(combined), file=out)
         if args.json == "-":
             report_json.dump(sys.stdout, document)
         if args.html == "-":
