@@ -94,6 +94,15 @@ def test_decode_and_analyze_read_a_pipe():
     assert done.returncode == 0 and report["capture"]["file"] == "-" and report["totals"]["eglink_packets"] == 382
 
 
+@pytest.mark.parametrize("command", [["decode", "-"], ["analyze", "-"], ["analyze", "-", "--engine", "tshark"]])
+def test_a_bad_pipe_is_named_standard_input(command):
+    """Not the temporary file standard input was copied to: the user never named that."""
+    for data in (b"", b"not a capture at all"):
+        done = vm110(*command, stdin=data)
+        err = done.stderr.decode()
+        assert done.returncode == 2 and err.count("\n") == 1 and "standard input: " in err and "vm110-stdin" not in err
+
+
 def test_a_record_claiming_gigabytes_is_damage_never_silence(tmp_path):
     path = tmp_path / "big.pcap"
     _traffic(path)

@@ -109,8 +109,12 @@ def test_without_tshark_the_default_is_used_and_said(user, tmp_path, monkeypatch
     monkeypatch.setenv("PATH", str(tmp_path / "empty"))
     assert cli.main(["wireshark", "path"]) == 0
     assert capsys.readouterr().out.splitlines()[2] == "(from the default for Linux (tshark not found))"
-    assert cli.main(["wireshark", "path", "--tshark", str(tmp_path / "nope")]) == 0
-    assert "the default for Linux (" in capsys.readouterr().out
+    # A tshark the user named that cannot say where its folders are is an error, not a default:
+    # install would put the plugin where that Wireshark may never look.
+    for action in ("path", "install", "check"):
+        assert cli.main(["wireshark", action, "--tshark", str(tmp_path / "nope")]) == 2
+        assert str(tmp_path / "nope") in capsys.readouterr().err
+    assert not (user / ".local").exists()
     assert cli.main(["wireshark", "check"]) == 2
     assert "tshark not found" in capsys.readouterr().err
 

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 from pathlib import PurePath, PurePosixPath, PureWindowsPath
 from typing import Mapping, Optional
 
+from .errors import CliError
+
 PLUGINS_KEY = "Personal Lua Plugins"
 CONFIG_KEY = "Personal configuration"
 TSHARK_TIMEOUT_S = 60
@@ -110,12 +112,15 @@ def from_tshark(tshark: str) -> tuple[Optional[Folders], str]:
 
 def locate(explicit_tshark: Optional[str] = None) -> Folders:
     """The folders of this user's Wireshark: tshark's word, else the system's defaults (`source`
-    says which, and why)."""
+    says which, and why). A tshark named by the user that cannot say is an error (CliError), not
+    a reason to fall back."""
     tshark = find_tshark(explicit_tshark)
     why = "tshark not found"
     if tshark is not None:
         folders, why = from_tshark(tshark)
         if folders is not None:
             return folders
+        if explicit_tshark:
+            raise CliError(f"--tshark: {why}")
     fallback = default(platform.system(), os.environ, os.path.expanduser("~"))
     return Folders(fallback.plugins, fallback.config, f"{fallback.source} ({why})")

@@ -23,3 +23,9 @@ def stdin_spool(stack: contextlib.ExitStack) -> str:
     except OSError as exc:
         raise CliError(f"cannot read standard input: {exc.strerror or exc}") from None
     return path
+
+
+def as_given(message: str, path: str, given: str) -> str:
+    """A message about the capture at `path` in the words the user gave it: a spooled standard
+    input (`given` "-") is "standard input", never the temporary file's name."""
+    return message.replace(path, "standard input") if given == "-" else message

@@ -21,7 +21,7 @@ from ..analysis.findings import MAX_TOTALS, TOTAL_NAMES
 from ..analysis.serials import DUP_WINDOW_MS
 from ..analysis.report import SCHEMA_VERSION, SCOPES, Options
 from ..crc import BYTE_ORDERS, VARIANTS
-from ..capture.spool import stdin_spool
+from ..capture.spool import as_given, stdin_spool
 from ..fileio import check_target
 from ..errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE, CliError
 from ..numbers import number
@@ -198,9 +198,11 @@ def run(args: argparse.Namespace) -> int:
                 results = pool.map(_one, jobs)
         else:
             results = [_one(job) for job in jobs]
-    for name, result in zip(args.captures, results):
+    for i, (name, path, result) in enumerate(zip(args.captures, paths, results)):
         if name == "-" and isinstance(result, dict):
             result["capture"]["file"] = "-"
+        elif isinstance(result, str):
+            results[i] = as_given(result, path, name)
     return deliver(args, list(args.captures), results, fail_rules, "analyze")
 
 

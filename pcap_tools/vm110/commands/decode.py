@@ -14,8 +14,8 @@ from typing import Any, Iterator, Optional
 
 from .. import constants as C
 from .. import protocol as P
-from ..capture.reader import CaptureReader, address
-from ..capture.spool import stdin_spool
+from ..capture.reader import CaptureError, CaptureReader, address
+from ..capture.spool import as_given, stdin_spool
 from ..crc import BYTE_ORDERS, VARIANTS
 from ..decode import decode
 from ..errors import CliError
@@ -93,7 +93,11 @@ def run(args: argparse.Namespace) -> int:
     count = 0
     start: Optional[float] = None
     with contextlib.ExitStack() as stack:
-        reader = stack.enter_context(CaptureReader(stdin_spool(stack) if args.capture == "-" else args.capture))
+        path = stdin_spool(stack) if args.capture == "-" else args.capture
+        try:
+            reader = stack.enter_context(CaptureReader(path))
+        except CaptureError as exc:
+            raise CliError(as_given(str(exc), path, args.capture)) from None
         for number, when, src, data in eglink_datagrams(reader, args.port):
             if start is None:     # the capture's first packet, EG-Link or not
                 start = reader.first_ts if reader.first_ts is not None else when

@@ -13,7 +13,7 @@ import argparse
 from ..capture.writer import FORMATS, Format
 from ..errors import CliError
 from ..numbers import number
-from ..sim.scenario import EPOCH_US, SCENARIOS
+from ..sim.scenario import SCENARIOS
 from ..synth import output_rate, synthesize, truth_path
 from ..timefmt import utc_iso
 from .options import SEED
@@ -61,8 +61,8 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None:
         check_size(args.scenario, args.duration, args.seed, fmt)
     truth = synthesize(args.scenario, args.out, args.seed, args.duration, fmt)
-    start = EPOCH_US / 1e6
-    print(f"wrote {truth['capture']['packets']} packets ({truth['capture']['duration_s']:.3f} s from "
-          f"{utc_iso(start)} to {utc_iso(start + truth['capture']['duration_s'])}) to {args.out}, "
-          f"ground truth to {truth_path(args.out)}")
+    cap = truth["capture"]
+    span = "no packet" if cap["first_time"] is None else \
+        f"{cap['duration_s']:.3f} s from {utc_iso(cap['first_time'])} to {utc_iso(cap['last_time'])}"
+    print(f"wrote {cap['packets']} packets ({span}) to {args.out}, ground truth to {truth_path(args.out)}")
     return 0

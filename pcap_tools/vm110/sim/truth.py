@@ -424,10 +424,13 @@ class GroundTruth:
         periodic = sorted(((ptype, sender) for sender in senders for ptype in sender.last),
                           key=lambda item: (_NAMES[item[0]], item[1].id))
         eglink = self.frames - self.other
-        duration = self.last_t - self.first_t if self.first_t is not None else 0
+        first, duration = self.first_t, self.last_t - self.first_t if self.first_t is not None else 0
         return {
             "schema_version": SCHEMA_VERSION,
-            "capture": {"packets": self.frames, "eglink_packets": eglink, "duration_s": _time(duration)},
+            "capture": {"packets": self.frames, "eglink_packets": eglink,
+                        "first_time": None if first is None else _time(self.epoch_us + first),
+                        "last_time": None if first is None else _time(self.epoch_us + self.last_t),
+                        "duration_s": _time(duration)},
             "crc": {"variant": DEFAULT_VARIANT, "byte_order": DEFAULT_BYTE_ORDER,
                     "valid": eglink - self.crc_bad, "invalid": self.crc_bad},
             "illegal": {"total": self.illegal_total, "by_reason": dict(sorted(self.illegal.items()))},
