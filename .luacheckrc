@@ -14,6 +14,7 @@ stds.wireshark = {
         "bit", -- LuaBitOp, which Wireshark ships for Lua 5.2 (the CRC uses it there only)
     },
 }
+stds.wireshark.read_globals[#stds.wireshark.read_globals + 1] = "report_failure"
 std = "min+lua52_54+wireshark"
 max_line_length = 120
 -- Callbacks take Wireshark's arguments in order; an unused one is named with a leading underscore.

@@ -18,6 +18,18 @@
 --   7. dissector, heuristic and port registration; statistics (-z vm110,stat, GUI menu)
 
 local PLUGIN_VERSION = "0.1.0"
+-- A second copy (an installed plugin and `-X lua_script:` with this file, say) would fail in
+-- Proto() with a Lua error and a stack trace; the copy loaded first stays, and this one says so.
+-- (Kept in _G: each Lua plugin has an environment of its own.)
+do -- (no local of the main chunk: it may have at most 200)
+    local this_file, first = debug.getinfo(1, "S").source:gsub("^@", ""), _G.VM110_PLUGIN
+    if first then
+        report_failure(("vm110: %s not loaded: the VM-110 dissector is loaded already from %s (version %s);"
+            .. " remove one of the two"):format(this_file, first.file, first.version))
+        return
+    end
+    _G.VM110_PLUGIN = { file = this_file, version = PLUGIN_VERSION }
+end
 if set_plugin_info then
     set_plugin_info({
         version = PLUGIN_VERSION,

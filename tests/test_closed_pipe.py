@@ -47,8 +47,8 @@ def output_size(*args: str) -> int:
 @pytest.mark.parametrize("args, code, first", [
     (["decode", str(CAPTURES / "overlap.pcapng")], EXIT_OK, b"     1 2025-06-15T15:06:40"),
     (["analyze", str(CAPTURES / "overlap.pcapng"), str(CAPTURES / "loss.pcapng"), "--html", "-", "--quiet"], EXIT_OK, b"<!DOCTYPE"),
-    (["analyze", str(CAPTURES / "overlap.pcapng"), "--json", "-", "--fail-on", "lost>0"], EXIT_FINDINGS,
-     str(CAPTURES).encode()),
+    (["analyze", str(CAPTURES / "overlap.pcapng"), "--json", "-", "--quiet", "--fail-on", "lost>0"], EXIT_FINDINGS,
+     b"{"),
 ])
 def test_a_long_output_cut_after_one_line_ends_quietly_with_its_verdict(args, code, first):
     assert output_size(*args) > 2 * PIPE_BUFFER      # so the closed end is met for certain

@@ -116,6 +116,22 @@ def _vm110(*args: str, env=None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "vm110", *args], capture_output=True, text=True, env=env)
 
 
+def test_a_second_copy_stands_aside(ws):
+    """An installed plugin and `-X lua_script:` with the repository's copy: the first loaded
+    dissects, the second says in one line that it was not loaded and why (no Lua stack trace)."""
+    second = ws.dir / "second" / "vm110.lua"
+    second.parent.mkdir()
+    second.write_bytes(T.PLUGIN.read_bytes())
+    pcap = ws.dir / "capture.pcap"
+    T.write_pcap(pcap, [VRPI_ARMED, VRCI_17])
+    proc = ws.run(["-X", f"lua_script:{second}", "-r", str(pcap), "-T", "fields", "-e", "vm110.type"])
+    assert proc.stdout.split() == ["VRPI", "VRCI"]
+    said = [line for line in proc.stderr.splitlines() if "vm110" in line]
+    assert len(said) == 1 and "stack traceback" not in proc.stderr, proc.stderr
+    assert said[0].endswith(f"vm110: {ws.tshark.inner(second)} not loaded: the VM-110 dissector is loaded already "
+                            f"from {ws.plugin()} (version 0.1.0); remove one of the two")
+
+
 def test_dissect_command(sample_capture):
     T.HOST.check()
     done = _vm110("dissect", str(sample_capture), "-T", "fields", "-e", "vm110.type", "-e", "vm110.command_id")

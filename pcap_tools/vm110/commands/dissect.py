@@ -13,7 +13,7 @@ import subprocess
 from pathlib import Path
 
 from ..errors import CliError
-from ..plugin import PLUGIN_ENV, list_protocols, plugin_path
+from ..plugin import PLUGIN_ENV, ROOT_HINT, list_protocols, lua_errors, plugin_path, skips_lua_as_root
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -23,10 +23,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _check_loads(tshark: str, plugin: Path) -> None:
-    """Wireshark 4.4 silently skips Lua plugins when run as root: say so instead of decoding nothing."""
-    if not list_protocols(tshark, plugin)[0]:
-        hint = " (Wireshark 4.4 loads no Lua plugin as root: run as a normal user)" if os.geteuid() == 0 else ""
-        raise CliError(f"tshark did not load the dissector {plugin}{hint}")
+    """The dissector must register: else tshark's own word why (a Lua error), or the reason it
+    gives none (Wireshark 4.4 and later skip Lua plugins as root), instead of decoding nothing."""
+    loaded, done = list_protocols(tshark, plugin)
+    if loaded:
+        return
+    errors = lua_errors(done.stderr)
+    if errors:
+        why = ": " + " ".join(errors)[:500]
+    else:
+        version = subprocess.run([tshark, "-v"], capture_output=True, text=True, check=False).stdout
+        why = f" ({ROOT_HINT})" if skips_lua_as_root(version.split("\n")[0]) else ""
+    raise CliError(f"tshark did not load the dissector {plugin}{why}")
 
 
 def run(args: argparse.Namespace) -> int:

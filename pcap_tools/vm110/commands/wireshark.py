@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import subprocess
 import sys
 import tempfile
@@ -22,12 +21,8 @@ from typing import Optional
 from .. import resources
 from ..errors import EXIT_OK, EXIT_USAGE, CliError
 from ..fileio import check_target, write_bytes
-from ..plugin import registers_vm110
+from ..plugin import ROOT_HINT, lua_errors, registers_vm110, skips_lua_as_root
 from ..wireshark_folders import find_tshark, locate, run_tshark
-
-ROOT_HINT = ("Wireshark 4.4 and later load no Lua plugin when run as root (unless the global init.lua sets "
-             "run_user_scripts_when_superuser = true): run it as a normal user")
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
@@ -143,25 +138,11 @@ def check(explicit: Optional[str]) -> int:
     profile = Path(folders.profiles) / resources.PROFILE_NAME
     state = "installed" if profile.is_dir() else "not installed: vm110 wireshark install --profile"
     print(f"profile: {profile} ({state})")
-    if broken and not registered and _skips_lua_as_root(version[0] if version else ""):
+    if broken and not registered and skips_lua_as_root(version[0] if version else ""):
         broken.append(ROOT_HINT)
     for line in broken:
         print(f"vm110 wireshark check: {line}", file=sys.stderr)
     return EXIT_USAGE if broken else EXIT_OK
-
-
-def _skips_lua_as_root(version: str) -> bool:
-    """Whether this tshark (`tshark -v`'s first line) runs as root and is 4.4 or later."""
-    found = re.search(r"\(Wireshark\) (\d+)\.(\d+)", version)
-    newer = found is not None and (int(found[1]), int(found[2])) >= (4, 4)
-    return newer and hasattr(os, "geteuid") and os.geteuid() == 0
-
-
-def lua_errors(stderr: str) -> list[str]:
-    """tshark's Lua messages on stderr (a message may go on over several lines), without the
-    warning about running as root."""
-    return [line.rstrip() for line in stderr.splitlines()
-            if line.strip() and not line.startswith("Running as user")]
 
 
 def _compare(installed: Path) -> str:
