@@ -57,7 +57,7 @@ def add_report_options(parser: argparse.ArgumentParser) -> None:
                         "output (the summary then goes to standard error)")
     parser.add_argument("--html", metavar="FILE", help="write the self-contained HTML report; - for standard "
                         "output (the summary then goes to standard error)")
-    parser.add_argument("--fail-on", metavar="RULES", default="",
+    parser.add_argument("--fail-on", metavar="RULES",
                         help="exit 1 when a rule holds, e.g. lost>0,watchdog>0,unacked>0,illegal>0; "
                              f"names: {', '.join(TOTAL_NAMES)}")
     parser.add_argument("--quiet", action="store_true", help="no summary on standard output")
@@ -170,7 +170,7 @@ def analysis_options(args: argparse.Namespace) -> Options:
 def report_rules(args: argparse.Namespace) -> list:
     """The --fail-on rules of `add_report_options` arguments; the report files checked up front,
     not after minutes of analysis."""
-    fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on else []
+    fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on is not None else []
     if args.json == "-" and args.html == "-":
         raise CliError("--json - and --html -: only one report can go to standard output")
     for target in (args.json, args.html):
