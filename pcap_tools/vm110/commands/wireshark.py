@@ -24,6 +24,7 @@ from ..fileio import check_target, write_bytes
 from ..plugin import ROOT_HINT, lua_errors, registers_vm110, skips_lua_as_root
 from ..wireshark_folders import find_tshark, locate, run_tshark
 
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     install = actions.add_parser("install", help="copy the plugin (and the profile) where this user's Wireshark looks")

@@ -106,13 +106,8 @@ class Supervisor:
 
     def _check_program(self) -> None:
         """The shell in front would report a missing program only as an early exit."""
-        prog = self.argv[0]
-        if "/" in prog:
-            path: Optional[str] = str(self.cwd / prog)
-        else:
-            path = shutil.which(prog, path=self.environment().get("PATH"))
-        if path is None or os.path.isdir(path) or not os.access(path, os.X_OK):
-            raise CliError(f"cannot start --target-cmd {prog!r}: no such executable")
+        if not os.path.isfile(self.exe) or not os.access(self.exe, os.X_OK):
+            raise CliError(f"cannot start --target-cmd {self.argv[0]!r}: no such executable")
 
     def _with_core_limit(self) -> list[str]:
         """The command behind a shell that sets its core size limit and execs it (same pid): the
