@@ -87,7 +87,8 @@ def test_a_counter_fed_in_pieces_equals_one_pass(steps, seed):
     got = counter.result()
     assert held == len(seq)
     for name in ("received", "duplicates", "out_of_order", "wraps", "lost_serials", "duplicate_serials",
-                 "out_of_order_serials", "gaps", "duplicates_located", "out_of_order_located", "restarts", "last"):
+                 "out_of_order_serials", "gaps", "gap_late", "duplicates_located", "out_of_order_located", "restarts",
+                 "last"):
         assert getattr(got, name) == getattr(want, name), name
 
 

@@ -72,6 +72,30 @@ def test_serial_wrap_and_loss_across_it():
     assert (got.gaps, got.lost_serials, got.out_of_order_serials, got.wraps) == ([(65534, 2, 0.1, 1)], [65535], [0], 1)
 
 
+def test_late_serials_are_counted_on_the_gap_they_fill():
+    """A late packet counts on the gap it fills (by the packet that opened it), whichever gap that
+    is: later gaps may be open already."""
+    seq = [0, 1, 4, 5, 8, 2, 9, 10, 12, 11]   # gaps 2-3 (then 2 late), 6-7 (lost), 11 (then late)
+    got = serials.classify(seq, [i / 1000 for i in range(len(seq))])
+    assert got.gaps == [(1, 2, 0.002, 2), (5, 2, 0.004, 4), (10, 1, 0.008, 8)]
+    assert got.gap_late == {2: 1, 8: 1} and sorted(got.lost_serials) == [3, 6, 7]
+
+
+def test_lost_items_are_the_gaps_still_missing_serials(tmp_path):
+    """The `lost` finding's items add up to its count: a gap whose serials all came later is no
+    item (those packets are out of order), one partly filled says how many came late."""
+    traffic = Traffic()
+    for i, s in enumerate([0, 1, 4, 5, 8, 2, 9, 10, 12, 11, 13]):
+        traffic.add(i * 0.125, vrpi(s))
+    traffic.write(tmp_path / "late.pcap")
+    report = analyze(str(tmp_path / "late.pcap"))
+    [lost] = [f for f in report["verdict"]["findings"] if f["rule"] == "lost"]
+    items = [{k: i[k] for k in ("frame", "after", "count", "late") if k in i} for i in lost["items"]]
+    assert items == [{"frame": 3, "after": 1, "count": 2, "late": 1}, {"frame": 5, "after": 5, "count": 2}]
+    assert lost["count"] == report["totals"]["lost"] == 3 == sum(i["count"] - i.get("late", 0) for i in lost["items"])
+    assert report["totals"]["out_of_order"] == 2
+
+
 def test_a_gap_left_behind_a_whole_cycle_stays_lost():
     seq = [0, 2] + list(range(3, MOD)) + [0, 1, 2]        # 1 missing; 65536 later, 1 comes round again
     got = serials.classify(seq, [i / 1000 for i in range(len(seq))])

@@ -117,9 +117,12 @@ def _sender_report(snd: Sender, where: findings.Where) -> dict:
     if snd.link is not None:
         restarts.insert(0, snd.link)
     gaps = [{"after": a, "count": n, "time": t, "frame": int(f)} for a, n, t, f in res.gaps]
-    for g in gaps:
-        where.add("lost", g["frame"], g["time"], name, serial=(g["after"] + g["count"] + 1) % serials.MOD,
-                  after=g["after"], count=g["count"])
+    for (*_, opened), g in zip(res.gaps, gaps):
+        # A gap's serials that came late are out of order, not lost: the items add up to `lost`.
+        late = res.gap_late.get(opened, 0)
+        if late < g["count"]:
+            where.add("lost", g["frame"], g["time"], name, serial=(g["after"] + g["count"] + 1) % serials.MOD,
+                      after=g["after"], count=g["count"], **({"late": late} if late else {}))
     for rule, located, count in (("duplicates", res.duplicates_located, res.duplicates),
                                  ("out_of_order", res.out_of_order_located, res.out_of_order)):
         for f, t, s in located:                             # the first few (serials.LOCATED) ...

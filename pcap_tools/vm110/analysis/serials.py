@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from bisect import bisect_left
 from dataclasses import dataclass, field
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
@@ -50,6 +50,7 @@ class SerialResult:
     duplicate_serials: list = field(default_factory=list)
     out_of_order_serials: list = field(default_factory=list)
     gaps: list = field(default_factory=list)              # (after, count, time, where)
+    gap_late: dict = field(default_factory=dict)          # a gap's `where` -> its serials that came late
     # The first LOCATED duplicates and out-of-order packets: (where, time, serial).
     duplicates_located: list = field(default_factory=list)
     out_of_order_located: list = field(default_factory=list)
@@ -71,6 +72,7 @@ class SerialResult:
         for name in ("lost_serials", "duplicate_serials", "out_of_order_serials", "gaps", "duplicates_located",
                      "out_of_order_located", "restarts"):
             getattr(self, name).extend(getattr(other, name))
+        self.gap_late.update(other.gap_late)
         self.last.update(other.last)
         self.aborted = self.aborted or other.aborted
 
@@ -139,7 +141,7 @@ class Counter:
         self.started = False
         self.accepted_at = SerialTimes()           # time each serial was last accepted
         self.gap_at = SerialTimes()                # time the gap a missing serial lies in opened
-        self.missing: dict[int, None] = {}         # insertion-ordered set of serials in open gaps
+        self.missing: dict[int, Any] = {}          # serials in open gaps (in order) -> the gap's `where`
         self.lost_for_good: list[int] = []
         self.h = 0
         self.start = self.prev = 0.0
@@ -245,7 +247,8 @@ class Counter:
                 ooo.append(s)                 # late: fills its gap
                 self._locate(where[i], t, s)
                 gap_at[s] = NEVER
-                del missing[s]
+                opened = missing.pop(s)
+                res.gap_late[opened] = res.gap_late.get(opened, 0) + 1
                 accepted_at[s], self.prev = t, t
             elif 1 < d < HALF and plausible(d - 1, t):
                 gaps.append((self.h, d - 1, t, where[i]))
@@ -254,7 +257,7 @@ class Counter:
                     fill(new)
                 hole = new[:-1]
                 gap_at[hole] = t
-                missing.update(dict.fromkeys(hole.tolist()))
+                missing.update(dict.fromkeys(hole.tolist(), where[i]))
                 if s < self.h:
                     res.wraps += 1
                 self.h, self.prev = s, t

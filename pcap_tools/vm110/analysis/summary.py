@@ -20,8 +20,8 @@ def _table(rows: list[list[str]], indent: str = "  ") -> list[str]:
 
 
 SHOWN_ITEMS = 3           # located items printed per finding without --list
-_ITEM_KEYS = ("sender", "type", "command_id", "serial", "after", "count", "from", "to", "port_from", "port_to",
-              "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s")
+_ITEM_KEYS = ("sender", "type", "command_id", "serial", "after", "count", "late", "from", "to", "port_from",
+              "port_to", "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s")
 
 
 def _item(item: dict, t0: float) -> str:
