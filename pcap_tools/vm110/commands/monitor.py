@@ -57,6 +57,11 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--idle applies to --read FILE")
     if args.evidence is not None and not os.path.isdir(args.evidence):
         raise CliError(f"--evidence {args.evidence}: no such directory")
+    # A report on standard output (--json - / --html -) is alone there: finding lines go to
+    # standard error, and there is no dashboard.
+    report_out = "-" in (args.json, args.html)
+    if report_out and args.json_lines == "-":
+        raise CliError("--json-lines - and a report on standard output (--json - or --html -): only one can go there")
     name = args.read if args.read is not None else f"interface {args.interface}"
     with contextlib.ExitStack() as stack:
         json_lines = None
@@ -81,15 +86,16 @@ def run(args: argparse.Namespace) -> int:
         else:
             source = Dumpcap(args.interface, (args.port, args.port + 2))
         stack.callback(source.close)
-        on_terminal = sys.stdout.isatty() and not args.no_dashboard and args.json_lines != "-"
+        on_terminal = sys.stdout.isatty() and not args.no_dashboard and args.json_lines != "-" and not report_out
         cfg = Settings(name=name, port=args.port, crc=args.crc, crc_order=args.crc_order, realtime=args.realtime,
                        live=args.read is None or args.read == "-", duration=args.duration, dashboard=on_terminal,
-                       lines=args.json_lines != "-" and not args.quiet, json_lines=json_lines, evidence=evidence)
+                       lines=args.json_lines != "-" and not args.quiet, lines_to_stderr=report_out,
+                       json_lines=json_lines, evidence=evidence)
         session = Session(source, options, cfg)
         stack.callback(session.close)
         session.run()
         if session.board is None and cfg.lines and not args.quiet:
-            print()
+            print(file=sys.stderr if report_out else sys.stdout)
         regret = session.intake.regret()
         if regret is not None:
             print(f"vm110 monitor: CRC {regret[0]}/{regret[1]} validates more packets than "

@@ -214,8 +214,9 @@ class Live:
         return self.ids
 
     # -- the current time ----------------------------------------------------------------------
-    def tick(self, now: float) -> None:
-        """Judge what needs the time `now` (capture time) and what the analysis decided since."""
+    def tick(self, now: float, final: bool = False) -> None:
+        """Judge what needs the time `now` (capture time) and what the analysis decided since
+        (`final`: the input has ended)."""
         ids = self._by_id()
         for snd in self.senders.values():
             a = ids.get(snd.id)
@@ -226,10 +227,13 @@ class Live:
                     self.emit(finding("watchdog", "cleared", cleared, f"{snd.ptype}: sender restarted on a new port"))
                     snd.alarm = None
             snd.tick(now, self.emit)
-        self._serials()
+        self._serials(now, final)
         self._commands(now)
 
-    def _serials(self) -> None:
+    def _serials(self, now: float, final: bool) -> None:
+        """A gap is reported once no late packet can fill it any more (the duplicate window after
+        it opened, or the end of the input), with its serials still missing: as analyze's items."""
+        window = self.opt.dup_window_ms / 1000
         for key, a in self.analysis.senders.items():
             if a.link is not None and key not in self.links_seen:
                 self.links_seen.add(key)
@@ -239,14 +243,21 @@ class Live:
             for ckey, counter in a.counters.items():
                 seen_gaps, seen_restarts = self.gaps_seen.get((key, ckey), (0, 0))
                 res = counter.res
-                for after, count, t, f in res.gaps[seen_gaps:]:
-                    serial = (after + count + 1) % serials.MOD
-                    self.emit(finding("lost", "found", item(f, t, a.id, serial=serial, after=after, count=count),
-                                      f"{count} packet(s) lost before serial {serial}"))
+                while seen_gaps < len(res.gaps):
+                    after, count, t, f = res.gaps[seen_gaps]
+                    if not final and now - t < window:
+                        break
+                    seen_gaps += 1
+                    late = res.gap_late.get(f, 0)
+                    if late < count:
+                        serial = (after + count + 1) % serials.MOD
+                        self.emit(finding("lost", "found", item(f, t, a.id, serial=serial, after=after, count=count,
+                                                                **({"late": late} if late else {})),
+                                          f"{count - late} packet(s) lost before serial {serial}"))
                 for f, old, new, t in res.restarts[seen_restarts:]:
                     self.emit(finding("restarts", "found", item(f, t, a.id, **{"from": old, "to": new}),
                                       f"serial counter started afresh ({old} -> {new})"))
-                self.gaps_seen[(key, ckey)] = (len(res.gaps), len(res.restarts))
+                self.gaps_seen[(key, ckey)] = (seen_gaps, len(res.restarts))
 
     def _commands(self, now: float) -> None:
         tracker = self.analysis.tracker

@@ -13,6 +13,7 @@ import json
 import math
 import os
 import signal
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -46,7 +47,8 @@ class Settings:
     live: bool = False                  # a live link (dumpcap, stdin): wall clock matters
     duration: Optional[float] = None
     dashboard: bool = False
-    lines: bool = True                  # one line per finding on stdout (no dashboard)
+    lines: bool = True                  # one line per finding (no dashboard) ...
+    lines_to_stderr: bool = False       # ... on stdout, or on stderr where a report goes to stdout
     json_lines: Optional[IO[str]] = None
     evidence: Optional[Evidence] = None
 
@@ -258,7 +260,8 @@ class Session:
         if self.cfg.json_lines is not None:
             self._write_line(f)
         if self.cfg.lines and self.board is None:
-            print(dash.finding_line(f) + f"  [{f['item']['filter']}]", flush=True)
+            print(dash.finding_line(f) + f"  [{f['item']['filter']}]", flush=True,
+                  file=sys.stderr if self.cfg.lines_to_stderr else sys.stdout)
         if self.cfg.evidence is not None and f["severity"] == "error" and f["event"] in ("raised", "found"):
             now = self.now()
             self.cfg.evidence.alarm(f, f["time"] if now is None else max(now, f["time"]))
@@ -307,7 +310,7 @@ class Session:
             self.failure = f"{self.cfg.name}: {self.reader.problem}"
         self._flush()
         if self.last_ts is not None:
-            self.live.tick(self.last_ts)           # what the end of the input can tell
+            self.live.tick(self.last_ts, final=True)   # what the end of the input can tell
         self.intake.sync(self.reader)
         self.intake.got.analysis = self.analysis     # the report is built from it (report.build)
         if self.cfg.evidence is not None:
