@@ -120,9 +120,10 @@ def legal_rows(rows: list[Row]) -> list[Row]:
 # --- Serial numbers -------------------------------------------------------------------------------
 def serial_view(rows: list[Row]) -> dict:
     """Per sender: gaps at detection, duplicates, late serials and the serials still lost, from the
-    generated fields alone (a late packet removes its serial from the lost ones)."""
+    generated fields alone (a late packet removes its serial from the lost ones and counts as late
+    on the latest gap that left it missing)."""
     out = defaultdict(lambda: {"gaps": [], "duplicate_serials": [], "out_of_order_serials": [], "missing": Counter(),
-                               "restart_events": []})
+                               "restart_events": [], "gap_of": {}})
     for r in legal_rows(rows):
         missing = r.int("vm110.analysis.serial_missing")
         v, serial = out[r.sender], r.int("vm110.serial")
@@ -135,9 +136,11 @@ def serial_view(rows: list[Row]) -> dict:
             assert r.has("restart")
         if missing:
             after = (serial - missing - 1) % C.SERIAL_MODULUS
-            v["gaps"].append({"after": after, "count": missing, "time": round(r.time, 6), "frame": r.number})
+            gap = {"after": after, "count": missing, "time": round(r.time, 6), "frame": r.number}
+            v["gaps"].append(gap)
             for k in range(1, missing + 1):
                 v["missing"][(after + k) % C.SERIAL_MODULUS] += 1
+                v["gap_of"][(after + k) % C.SERIAL_MODULUS] = gap
             assert r.has("serial_gap")
         if r.get("vm110.analysis.serial_duplicate"):
             v["duplicate_serials"].append(serial)
@@ -147,6 +150,8 @@ def serial_view(rows: list[Row]) -> dict:
             assert r.has("serial_out_of_order")
             if v["missing"][serial]:
                 v["missing"][serial] -= 1
+                gap = v["gap_of"].pop(serial)
+                gap["late"] = gap.get("late", 0) + 1
     return out
 
 

@@ -112,8 +112,9 @@ def test_without_tshark_the_default_is_used_and_said(user, tmp_path, monkeypatch
     # A tshark the user named that cannot say where its folders are is an error, not a default:
     # install would put the plugin where that Wireshark may never look.
     for action in ("path", "install", "check"):
-        assert cli.main(["wireshark", action, "--tshark", str(tmp_path / "nope")]) == 2
-        assert str(tmp_path / "nope") in capsys.readouterr().err
+        for named in (str(tmp_path / "nope"), ""):
+            assert cli.main(["wireshark", action, "--tshark", named]) == 2
+            assert f"'{named}'" in capsys.readouterr().err
     assert not (user / ".local").exists()
     assert cli.main(["wireshark", "check"]) == 2
     assert "tshark not found" in capsys.readouterr().err

@@ -76,7 +76,7 @@ def default(system: str, env: Mapping[str, str], home: str) -> Folders:
 def find_tshark(explicit: Optional[str] = None, system: Optional[str] = None,
                 env: Optional[Mapping[str, str]] = None) -> Optional[str]:
     """`explicit`, else tshark on the PATH, else where the system's installer puts it; None when none."""
-    if explicit:
+    if explicit is not None:
         return explicit
     found = shutil.which("tshark")
     if found:
@@ -120,7 +120,7 @@ def locate(explicit_tshark: Optional[str] = None) -> Folders:
         folders, why = from_tshark(tshark)
         if folders is not None:
             return folders
-        if explicit_tshark:
-            raise CliError(f"--tshark: {why}")
+        if explicit_tshark is not None:
+            raise CliError(f"--tshark {explicit_tshark!r}: {why}")
     fallback = default(platform.system(), os.environ, os.path.expanduser("~"))
     return Folders(fallback.plugins, fallback.config, f"{fallback.source} ({why})")

@@ -116,13 +116,13 @@ def _sender_report(snd: Sender, where: findings.Where) -> dict:
     restarts = [{"time": t, "frame": int(f), "from": a, "to": b} for f, a, b, t in res.restarts]
     if snd.link is not None:
         restarts.insert(0, snd.link)
-    gaps = [{"after": a, "count": n, "time": t, "frame": int(f)} for a, n, t, f in res.gaps]
-    for (*_, opened), g in zip(res.gaps, gaps):
-        # A gap's serials that came late are out of order, not lost: the items add up to `lost`.
-        late = res.gap_late.get(opened, 0)
-        if late < g["count"]:
+    # A gap's serials that came late are out of order, not lost: the `lost` items add up to `lost`.
+    gaps = [{"after": a, "count": n, "time": t, "frame": int(f), **({"late": res.gap_late[f]} if f in res.gap_late
+                                                                     else {})} for a, n, t, f in res.gaps]
+    for g in gaps:
+        if g.get("late", 0) < g["count"]:
             where.add("lost", g["frame"], g["time"], name, serial=(g["after"] + g["count"] + 1) % serials.MOD,
-                      after=g["after"], count=g["count"], **({"late": late} if late else {}))
+                      **{k: g[k] for k in ("after", "count", "late") if k in g})
     for rule, located, count in (("duplicates", res.duplicates_located, res.duplicates),
                                  ("out_of_order", res.out_of_order_located, res.out_of_order)):
         for f, t, s in located:                             # the first few (serials.LOCATED) ...

@@ -392,7 +392,7 @@ def _section(report: dict) -> str:
     out.append(_table(["sender", "packets by type", "scope", "received", "lost", "gaps", "duplicates",
                        "out of order", "wraps", "restarts"],
                       [[s["id"], ", ".join(f"{k} {v}" for k, v in s["by_type"].items()), s["serial"]["scope"],
-                        s["serial"]["received"], s["serial"]["lost"], len(s["serial"]["gaps"]),
+                        s["serial"]["received"], s["serial"]["lost"], summary.open_gaps(s["serial"]["gaps"]),
                         s["serial"]["duplicates"], s["serial"]["out_of_order"], s["serial"]["wraps"],
                         "; ".join([str(s["serial"]["restarts"])] + [
                             f"{since(r['time'], t0)} s frame {r['frame']}: {r['from']} → {r['to']}"

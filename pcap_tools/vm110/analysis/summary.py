@@ -19,6 +19,11 @@ def _table(rows: list[list[str]], indent: str = "  ") -> list[str]:
             for r in rows]
 
 
+def open_gaps(gaps: list[dict]) -> int:
+    """The gaps with serials still missing (those whose serials all came late lost nothing)."""
+    return sum(g.get("late", 0) < g["count"] for g in gaps)
+
+
 SHOWN_ITEMS = 3           # located items printed per finding without --list
 _ITEM_KEYS = ("sender", "type", "command_id", "serial", "after", "count", "late", "from", "to", "port_from",
               "port_to", "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s")
@@ -68,7 +73,7 @@ def render(report: dict, everything: bool = False) -> str:
         lines.append(f"Sender {snd['id']}  (serial scope {ser['scope']})")
         types = ", ".join(f"{t} {n}" for t, n in snd["by_type"].items())
         lines.append(f"  packets: {types}")
-        lines.append(f"  serials: received {ser['received']}, lost {ser['lost']} in {len(ser['gaps'])} gaps, "
+        lines.append(f"  serials: received {ser['received']}, lost {ser['lost']} in {open_gaps(ser['gaps'])} gaps, "
                      f"duplicates {ser['duplicates']}, out of order {ser['out_of_order']}, wraps {ser['wraps']}, "
                      f"restarts {ser['restarts']}")
         for r in ser["restart_events"]:

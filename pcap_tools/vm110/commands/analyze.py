@@ -62,7 +62,8 @@ def add_report_options(parser: argparse.ArgumentParser) -> None:
                              f"names: {', '.join(TOTAL_NAMES)}")
     parser.add_argument("--quiet", action="store_true", help="no summary on standard output")
     parser.add_argument("--list", action="store_true",
-                        help="list every located item of each finding (default: the first few)")
+                        help="list the located items of each finding as the JSON report keeps them (the first "
+                             "100; default: the first few)")
 
 
 def add_analysis_options(parser: argparse.ArgumentParser) -> None:
@@ -220,11 +221,12 @@ def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rule
     document = reports[0] if combined is None else {
         "schema_version": SCHEMA_VERSION, "reports": reports, "errors": errors, "combined": combined}
     # A reader that stops early (`| head`) cuts standard output short; the report files and the
-    # verdict below still follow. A report on standard output keeps it to itself: the summary
-    # then goes to standard error.
+    # verdict below still follow. A report (or the monitor's JSON lines) on standard output keeps
+    # it to itself: the summary then goes to standard error.
     with closedpipe.tolerated():
         if not args.quiet:
-            out = sys.stderr if "-" in (args.json, args.html) else sys.stdout
+            on_stdout = "-" in (args.json, args.html) or getattr(args, "json_lines", None) == "-"
+            out = sys.stderr if on_stdout else sys.stdout
             print("\n\n".join(summary.render(r, args.list) for r in reports), file=out)
             if combined:
                 print(file=out)

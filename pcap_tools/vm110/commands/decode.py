@@ -108,5 +108,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"{count} EG-Link packets")
     if reader.problem is not None:
         # Everything before the damage was printed; the damage is never passed over in silence.
-        raise CliError(f"{args.capture}: damaged, read up to byte {reader.damage}: {reader.problem}")
+        raise CliError(as_given(f"{path}: damaged, read up to byte {reader.damage}: {reader.problem}", path,
+                                args.capture))
     return 0

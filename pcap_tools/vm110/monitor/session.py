@@ -201,8 +201,10 @@ class Session:
             rows.clear()
 
     def _second(self, ts: float, second: int) -> None:
-        """Capture second `self.second` ended (the packet at `ts` begins a later one)."""
-        self._live()
+        """Capture second `self.second` ended (the packet at `ts` begins a later one). The analysis
+        gets that second's records first: a file read faster than real time comes in reads of
+        many seconds, and its findings are told in their second, not at the read's end."""
+        self._flush()
         self.live.tick(ts)
         self.live.close_second()
         if self.analysis.settled():       # every event applied: what is finished stays finished

@@ -61,7 +61,7 @@ class _Counter:
         self.h: Optional[int] = None
         self.start = self.prev = 0                   # counter start (first packet, last restart); previous accepted
         self.accepted: dict[int, int] = {}           # serial -> when last accepted
-        self.missing: dict[int, int] = {}            # serials in open gaps -> when the gap opened (in order)
+        self.missing: dict[int, tuple[int, dict]] = {}   # serials in open gaps -> when it opened, the gap (in order)
         self.recent: collections.deque[int] = collections.deque()    # accepted times, for the rate
         self.lost_for_good: list[int] = []           # missing when the counter restarted or came round
         self.wraps = 0
@@ -93,15 +93,17 @@ class _Counter:
                 self.wraps += 1
             self._came_round(s)
             self.h = s
-        elif s in self.missing and t - self.missing[s] < DUP_WINDOW_US:
-            del self.missing[s]
-            self.out_of_order.append(s)              # late: fills its gap
+        elif s in self.missing and t - self.missing[s][0] < DUP_WINDOW_US:
+            gap = self.missing.pop(s)[1]
+            gap["late"] = gap.get("late", 0) + 1     # late: fills its gap
+            self.out_of_order.append(s)
         elif 1 < d < _HALF and self._plausible(d - 1, t):
-            self.gaps.append({"after": self.h, "count": d - 1, "time": _time(self.epoch_us + t), "frame": frame})
+            gap = {"after": self.h, "count": d - 1, "time": _time(self.epoch_us + t), "frame": frame}
+            self.gaps.append(gap)
             for k in range(1, d):
                 lost = (self.h + k) % _MODULUS
                 self._came_round(lost)
-                self.missing[lost] = t
+                self.missing[lost] = (t, gap)
             self._came_round(s)
             if s < self.h:
                 self.wraps += 1
