@@ -41,8 +41,10 @@ def _pyshark_read(ws: T.Workspace, pcap, prefs: dict) -> list:
     try:
         return [pkt.vm110 if "vm110" in pkt else None for pkt in capture]
     finally:
-        capture.close()
-        release_sigchld(capture)
+        try:
+            capture.close()
+        finally:    # (also when tshark died: else every later child of this worker fills the wakeup pipe)
+            release_sigchld(capture)
 
 
 def _from_layer(layer) -> tuple[dict, list]:
