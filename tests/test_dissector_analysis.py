@@ -150,8 +150,9 @@ def serial_view(rows: list[Row]) -> dict:
             assert r.has("serial_out_of_order")
             if v["missing"][serial]:
                 v["missing"][serial] -= 1
-                gap = v["gap_of"].pop(serial)
-                gap["late"] = gap.get("late", 0) + 1
+                gap = v["gap_of"].pop(serial, None)   # (None: its number came round since: lost for good)
+                if gap is not None:
+                    gap["late"] = gap.get("late", 0) + 1
     return out
 
 
