@@ -66,6 +66,7 @@ class Session:
         self.intake = Intake(cfg.name, cfg.port, cfg.crc, cfg.crc_order, self)
         self.intake.got.on_illegal = self._illegal
         self.live = Live(self.analysis, opt, self.emit)
+        self.ticking: Optional[float] = None   # the time of the live view's judgement under way
         self.findings: collections.deque = collections.deque(maxlen=FINDINGS_SHOWN)
         self.active: dict = {}
         self.limited: dict = {}             # (rule, sender) -> (time of last line, suppressed since)
@@ -205,7 +206,7 @@ class Session:
         gets that second's records first: a file read faster than real time comes in reads of
         many seconds, and its findings are told in their second, not at the read's end."""
         self._flush()
-        self.live.tick(ts)
+        self._tick(ts)
         self.live.close_second()
         if self.analysis.settled():       # every event applied: what is finished stays finished
             self.retiring.retire(self.fed_until, self.live.cmd_seen)
@@ -226,7 +227,7 @@ class Session:
             self._flush()
         now = self.now()
         if now is not None and not self.intake.deciding:
-            self.live.tick(now)
+            self._tick(now)
             second = math.floor(now) if math.isfinite(now) else None
             if second is not None and self.second is not None and second > self.second:
                 self._second(now, second)
@@ -241,9 +242,18 @@ class Session:
         self.emit(finding("illegal", "found", item(frame, ts, src, type=ptype, reasons=list(reasons)),
                           f"illegal {ptype or 'packet'}: {', '.join(reasons)}"))
 
+    def _tick(self, now: float, final: bool = False) -> None:
+        """The live view judges at `now`: what it tells then, it tells at `now` (self.now() may
+        lag the packet that began a new second, timed by the kernel before we read it)."""
+        self.ticking = now
+        try:
+            self.live.tick(now, final)
+        finally:
+            self.ticking = None
+
     def emit(self, f: dict) -> None:
         rule, sender = f["rule"], f.get("sender")
-        f["at"] = self.now()                 # the capture time it was told at
+        f["at"] = self.now() if self.ticking is None else self.ticking   # the capture time it was told at
         self.counts[rule] += 1
         if rule == "watchdog":
             if f["event"] == "raised":
@@ -312,7 +322,7 @@ class Session:
             self.failure = f"{self.cfg.name}: {self.reader.problem}"
         self._flush()
         if self.last_ts is not None:
-            self.live.tick(self.last_ts, final=True)   # what the end of the input can tell
+            self._tick(self.last_ts, final=True)   # what the end of the input can tell
         self.intake.sync(self.reader)
         self.intake.got.analysis = self.analysis     # the report is built from it (report.build)
         if self.cfg.evidence is not None:
