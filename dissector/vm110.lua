@@ -2372,8 +2372,8 @@ end
 -- (its sender, type, frame and offset: dissect() leaves them in `found`); the figures are read
 -- from the packets' final analysis once every frame has been seen, so they are complete on a
 -- single pass too (as far as the filter itself can match there). Per sender: packets by type;
--- lost (serials missing before the matching packets and never received later), duplicates, out of order and restarts at
--- them; commands first sent in them, with those acknowledged, interrupted and unacknowledged;
+-- lost (serials missing before the matching packets and never received later), duplicates, out
+-- of order and restarts at them; commands first sent in them, with those acknowledged, interrupted and unacknowledged;
 -- retransmissions among them; their intervals; a silence until the end after one of them.
 local filtered_stats = {}
 

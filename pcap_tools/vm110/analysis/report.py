@@ -120,9 +120,9 @@ def _sender_report(snd: Sender, where: findings.Where) -> dict:
     gaps = [{"after": a, "count": n, "time": t, "frame": int(f), **({"late": res.gap_late[f]} if f in res.gap_late
                                                                      else {})} for a, n, t, f in res.gaps]
     for g in gaps:
-        if g.get("late", 0) < g["count"]:
-            where.add("lost", g["frame"], g["time"], name, serial=(g["after"] + g["count"] + 1) % serials.MOD,
-                      **{k: g[k] for k in ("after", "count", "late") if k in g})
+        what = serials.gap_lost(g["after"], g["count"], g.get("late", 0))
+        if what is not None:
+            where.add("lost", g["frame"], g["time"], name, **what)
     for rule, located, count in (("duplicates", res.duplicates_located, res.duplicates),
                                  ("out_of_order", res.out_of_order_located, res.out_of_order)):
         for f, t, s in located:                             # the first few (serials.LOCATED) ...

@@ -77,6 +77,15 @@ class SerialResult:
         self.aborted = self.aborted or other.aborted
 
 
+def gap_lost(after: int, count: int, late: int) -> Optional[dict]:
+    """What a `lost` finding says of a gap (analyze's item, the monitor's live one): the serial
+    after it, the one before, the serials missing when seen and how many of them came late; None
+    when they all came late (those packets are out of order, nothing was lost)."""
+    if late >= count:
+        return None
+    return {"serial": (after + count + 1) % MOD, "after": after, "count": count, **({"late": late} if late else {})}
+
+
 class SerialTimes:
     """A time per serial number (NEVER when none): a dict while few are set, then the full array
     of 65536. A sender that sends a few packets, or a capture full of senders (every source port

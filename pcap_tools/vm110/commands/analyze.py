@@ -168,6 +168,11 @@ def analysis_options(args: argparse.Namespace) -> Options:
                    vrpo_start=args.vrpo_start, vrpo_data_size=args.vrpo_data_size)
 
 
+def report_on_stdout(args: argparse.Namespace) -> bool:
+    """--json - or --html -: standard output is the report's alone."""
+    return "-" in (args.json, args.html)
+
+
 def report_rules(args: argparse.Namespace) -> list:
     """The --fail-on rules of `add_report_options` arguments; the report files checked up front,
     not after minutes of analysis."""
@@ -225,7 +230,7 @@ def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rule
     # it to itself: the summary then goes to standard error.
     with closedpipe.tolerated():
         if not args.quiet:
-            on_stdout = "-" in (args.json, args.html) or getattr(args, "json_lines", None) == "-"
+            on_stdout = report_on_stdout(args) or getattr(args, "json_lines", None) == "-"
             out = sys.stderr if on_stdout else sys.stdout
             print("\n\n".join(summary.render(r, args.list) for r in reports), file=out)
             if combined:

@@ -18,7 +18,7 @@ import sys
 from ..errors import EXIT_USAGE, CliError
 from ..fileio import check_target
 from ..numbers import number
-from .analyze import add_analysis_arguments, analysis_options, deliver, report_rules
+from .analyze import add_analysis_arguments, analysis_options, deliver, report_on_stdout, report_rules
 
 SECONDS = number(0, 30 * 86400, "s", allow_zero=False)
 WINDOW = number(0, 3600, "s")
@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--evidence {args.evidence}: no such directory")
     # A report on standard output (--json - / --html -) is alone there: finding lines go to
     # standard error, and there is no dashboard.
-    report_out = "-" in (args.json, args.html)
+    report_out = report_on_stdout(args)
     if report_out and args.json_lines == "-":
         raise CliError("--json-lines - and a report on standard output (--json - or --html -): only one can go there")
     name = args.read if args.read is not None else f"interface {args.interface}"

@@ -248,12 +248,11 @@ class Live:
                     if not final and now - t < window:
                         break
                     seen_gaps += 1
-                    late = res.gap_late.get(f, 0)
-                    if late < count:
-                        serial = (after + count + 1) % serials.MOD
-                        self.emit(finding("lost", "found", item(f, t, a.id, serial=serial, after=after, count=count,
-                                                                **({"late": late} if late else {})),
-                                          f"{count - late} packet(s) lost before serial {serial}"))
+                    what = serials.gap_lost(after, count, res.gap_late.get(f, 0))
+                    if what is not None:
+                        lost = count - what.get("late", 0)
+                        self.emit(finding("lost", "found", item(f, t, a.id, **what),
+                                          f"{lost} packet(s) lost before serial {what['serial']}"))
                 for f, old, new, t in res.restarts[seen_restarts:]:
                     self.emit(finding("restarts", "found", item(f, t, a.id, **{"from": old, "to": new}),
                                       f"serial counter started afresh ({old} -> {new})"))
