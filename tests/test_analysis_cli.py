@@ -58,6 +58,12 @@ def test_bad_arguments(files, args):
     one_line_error(vm110(str(files / "clean.pcap"), *args))
 
 
+def test_fail_on_name_in_capitals_is_named_as_unknown(files):
+    result = vm110(str(files / "clean.pcap"), "--fail-on", "LOST>0")
+    one_line_error(result)
+    assert "unknown --fail-on name 'LOST'" in result.stderr and "'lost'" in result.stderr
+
+
 def test_report_on_standard_output_stands_alone(files):
     """--json - (or --html -): standard output is the report alone, to pipe into a parser; the
     summary goes to standard error. Both on standard output would be neither."""

@@ -139,6 +139,10 @@ def test_dissect_command(sample_capture):
     assert done.stdout.splitlines() == ["VRPI\t", "VRCI\t17", "VRAO\t17"]
     done = _vm110("dissect", str(sample_capture), "--", "-Y", "vm110.command_id == 17")
     assert done.returncode == 0 and len(done.stdout.splitlines()) == 2
+    piped = subprocess.run([sys.executable, "-m", "vm110", "dissect", "-", "-T", "fields", "-e", "vm110.type"],
+                           input=sample_capture.read_bytes(), capture_output=True)  # `-`: from a pipe
+    assert piped.returncode == 0, piped.stderr
+    assert piped.stdout.decode().splitlines() == ["VRPI", "VRCI", "VRAO"]
 
 
 def test_dissect_command_errors(sample_capture, tmp_path):

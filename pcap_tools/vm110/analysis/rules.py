@@ -13,7 +13,7 @@ OPS: dict[str, Callable[[float, float], bool]] = {
     ">=": operator.ge, "<=": operator.le, "==": operator.eq, "!=": operator.ne,
     ">": operator.gt, "<": operator.lt,
 }
-_RULE = re.compile(r"^\s*([a-z_0-9]+)\s*(?:(>=|<=|==|!=|>|<)\s*(-?\d+(?:\.\d+)?))?\s*$")
+_RULE = re.compile(r"^\s*([A-Za-z_0-9]+)\s*(?:(>=|<=|==|!=|>|<)\s*(-?\d+(?:\.\d+)?))?\s*$")
 Rule = tuple[str, str, float]
 
 
@@ -26,7 +26,8 @@ def parse(text: str, names: tuple) -> list[Rule]:
             raise CliError(f"bad --fail-on rule {part.strip()!r}: expected NAME OP NUMBER, e.g. lost>0")
         name, op, number = match.group(1), match.group(2) or ">", float(match.group(3) or 0)
         if name not in names:
-            raise CliError(f"unknown --fail-on name {name!r}; choose from {', '.join(names)}")
+            hint = f" (names are lower case: {name.lower()!r})" if name.lower() in names else ""
+            raise CliError(f"unknown --fail-on name {name!r}{hint}; choose from {', '.join(names)}")
         rules.append((name, op, number))
     return rules
 

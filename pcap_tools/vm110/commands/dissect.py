@@ -1,8 +1,9 @@
 """Run tshark on a capture with the bundled Wireshark dissector (dissector/vm110.lua).
 
 For people who have not installed the plugin: everything after the capture goes to tshark
-unchanged, e.g. `vm110 dissect cap.pcap -V -Y "vm110.command_id == 17"`. The exit status is
-tshark's; 2 when tshark or the dissector cannot be used.
+unchanged, e.g. `vm110 dissect cap.pcap -V -Y "vm110.command_id == 17"`; `-` reads the capture
+from standard input (`tcpdump -w - ... | vm110 dissect -`). The exit status is tshark's; 2 when
+tshark or the dissector cannot be used.
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from ..plugin import PLUGIN_ENV, ROOT_HINT, list_protocols, lua_errors, plugin_p
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("capture", help="pcap or pcapng file")
+    parser.add_argument("capture", help="pcap or pcapng file, - for standard input")
     parser.add_argument("tshark_args", nargs=argparse.REMAINDER, metavar="TSHARK_ARGS",
                         help="passed to tshark, e.g. -V, -T fields -e vm110.serial, -Y FILTER")
 
@@ -45,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     plugin = plugin_path()
     if not plugin.is_file():
         raise CliError(f"the dissector is not at {plugin} (set {PLUGIN_ENV} to its path)")
-    if not os.access(args.capture, os.R_OK) or not os.path.isfile(args.capture):
+    if args.capture != "-" and (not os.access(args.capture, os.R_OK) or not os.path.isfile(args.capture)):
         raise CliError(f"cannot read {args.capture}")
     _check_loads(tshark, plugin)
     extra = args.tshark_args[1:] if args.tshark_args[:1] == ["--"] else args.tshark_args
