@@ -104,9 +104,11 @@ def test_live_lost_findings_are_analyze_s_items(tmp_path, capsys):
         assert f["item"] == items[f["item"]["frame"]]
         # (told in the capture second after the window: `at` is the last packet before that tick)
         assert window - 1 <= f["at"] - f["item"]["time"] <= window + 2 or f["at"] == end
-    # (what the limit held back after a sender's last line is counted nowhere: at most one a sender)
-    shown = len(live) + sum(f.get("suppressed_before", 0) for f in live)
-    assert shown <= len(items) <= shown + len({f["item"]["sender"] for f in live})
+    # every item: a line, counted in a later line's suppressed_before, or in the closing count
+    held = [o for o in map(json.loads, lines.read_text().splitlines()) if o["type"] == "suppressed"]
+    assert all(o["rule"] == "lost" and o["count"] > 0 and o["at"] == end for o in held)
+    assert len({o["sender"] for o in held}) == len(held)
+    assert len(live) + sum(f.get("suppressed_before", 0) for f in live) + sum(o["count"] for o in held) == len(items)
     assert any("late" in i for i in items.values())
 
 

@@ -26,7 +26,7 @@ def _ms(v: Optional[float]) -> str:
     return f"{v / 1000:.1f} s" if v >= 10_000 else f"{v:.0f} ms"
 
 
-def _short(sid: str) -> str:
+def short(sid: str) -> str:
     # "input 127.0.0.10:5825 origin 0x0101" -> "127.0.0.10:5825 0x0101"
     parts = sid.split()
     return f"{parts[1]} {parts[3]}" if len(parts) == 4 else sid
@@ -34,7 +34,7 @@ def _short(sid: str) -> str:
 
 def sender_lines(s: dict) -> list[str]:
     role = "BU " if s["role"] == "BU" else "CTL"
-    head = (f"{role} {_short(s['sender']):<28} {s['state'].upper():<8} {s['type']} {_ms(s['age_ms'])} ago  "
+    head = (f"{role} {short(s['sender']):<28} {s['state'].upper():<8} {s['type']} {_ms(s['age_ms'])} ago  "
             f"jitter {'-' if s['jitter_ms'] is None else format(s['jitter_ms'], '.1f') + ' ms'}")
     loss = (f"    loss {s['lost_1m']}/{s['lost']}  dup {s['duplicates_1m']}/{s['duplicates']} (1m/all)"
             f"  restarts {s['restarts']}")
@@ -57,7 +57,7 @@ def sender_lines(s: dict) -> list[str]:
 def finding_line(f: dict) -> str:
     sev = "ERROR" if f["severity"] == "error" else "warn "
     event = {"raised": "!", "cleared": "ok", "found": ""}.get(f["event"], "")
-    who = f" {_short(f['sender'])}" if f.get("sender") else ""
+    who = f" {short(f['sender'])}" if f.get("sender") else ""
     return f"{clock(f['time'])} #{f['frame']} {sev} {f['rule']}{(' ' + event) if event else ''}{who}: {f['message']}"
 
 
@@ -69,7 +69,7 @@ def render(header: dict, view: dict, findings: list[dict], width: int, height: i
     lines = [f"vm110 monitor  {header['source']}  {clock(header['now'])}  {header['status']}",
              (f"packets {header['packets']} ({header['rate']:.0f}/s)  EG-Link {header['eglink']}  "
               f"illegal {header['illegal']}  alarms {len(header['alarms'])}")]
-    lines += [f"  ALARM {a['rule']} {_short(a.get('sender') or '')} since {clock(a['time'])} #{a['frame']}"
+    lines += [f"  ALARM {a['rule']} {short(a.get('sender') or '')} since {clock(a['time'])} #{a['frame']}"
               for a in header["alarms"][:3]]
     lines.append("")
     senders = view["senders"]

@@ -278,6 +278,23 @@ class Session:
             now = self.now()
             self.cfg.evidence.alarm(f, f["time"] if now is None else max(now, f["time"]))
 
+    def _held_back(self) -> None:
+        """What the rate limit held back after a sender's last line of a rule: one line each, so
+        that the lines and their `suppressed_before` add up to every finding."""
+        at = self.now()
+        for (rule, sender), (_, suppressed) in self.limited.items():
+            if not suppressed:
+                continue
+            self.limited[(rule, sender)] = (None, 0)
+            if self.cfg.json_lines is not None:
+                self._write_line({"type": "suppressed", "rule": rule, "sender": sender, "count": suppressed,
+                                  "at": at})
+            if self.cfg.lines and self.board is None:
+                who = f" of {dash.short(sender)}" if sender else ""
+                print(f"{dash.clock(at)} {rule}: {suppressed} more line{'s' if suppressed > 1 else ''}{who} not shown "
+                      "(at most one a second)", flush=True,
+                      file=sys.stderr if self.cfg.lines_to_stderr else sys.stdout)
+
     def _write_line(self, obj: dict) -> None:
         out = self.cfg.json_lines
         assert out is not None
@@ -323,6 +340,7 @@ class Session:
         self._flush()
         if self.last_ts is not None:
             self._tick(self.last_ts, final=True)   # what the end of the input can tell
+        self._held_back()
         self.intake.sync(self.reader)
         self.intake.got.analysis = self.analysis     # the report is built from it (report.build)
         if self.cfg.evidence is not None:
