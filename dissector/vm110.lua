@@ -1415,7 +1415,9 @@ local by_id = {}        -- command kind -> command ID -> its commands (any sende
 -- Command events (and restarts) wait here, in capture order, while a restart candidate before
 -- them is undecided: a restart interrupts its sender's commands as of the candidate's time.
 local queue, qhead, qtail = {}, 1, 0
-local last_number, last_record = 0, false -- the capture's last record (any frame) so far
+-- The capture so far: its last record (any frame: number, time) and the analysis clock (rules.md:
+-- the latest time of a legal packet).
+local capture = { number = 0, last = false, clock = -math.huge }
 local dirty = false     -- packets analysed since the last finalize()
 local silent_marks = {} -- results finalize() marked silent until the end
 
@@ -1426,13 +1428,13 @@ local function reset_analysis()
     results, senders, sender_list, hosts, counters = new_memo(), {}, {}, {}, {}
     by_id = { VRCI = {}, VRCO = {} }
     queue, qhead, qtail = {}, 1, 0
-    last_number, last_record, dirty, silent_marks = 0, false, false, {}
+    capture, dirty, silent_marks = { number = 0, last = false, clock = -math.huge }, false, {}
 end
 reset_analysis()
 
 -- Frame `n` at time `t` was seen on the first pass: the capture's last record, if the latest.
 local function note_record(n, t)
-    if n > last_number then last_number, last_record = n, t end
+    if n > capture.number then capture.number, capture.last = n, t end
 end
 
 -- Seconds to milliseconds, rounded to the microsecond: capture times are doubles of the epoch,
@@ -1559,13 +1561,12 @@ do
 
     function new_counter(snd, s, t)
         return { snd = snd, h = s, start = t, prev = t, acc = { [s] = t }, gaps = {}, lost = 0, wraps = 0,
-            ring = { t }, rhead = 1, rtail = 1, sorted = true, cand = false }
+            ring = { t }, rhead = 1, rtail = 1, cand = false }
     end
 
     local function accept(c, s, t)
         c.acc[s], c.prev = t, t
         local ring, tail = c.ring, c.rtail + 1
-        if t < ring[tail - 1] then c.sorted = false end
         ring[tail], c.rtail = t, tail
         local head, lo = c.rhead, t - RATE_WINDOW_S
         if ring[head] < lo then
@@ -1583,7 +1584,7 @@ do
         end
     end
 
-    -- First ring index from `a` with a time >= v (times in order).
+    -- First ring index from `a` with a time >= v (the counter's clock: times in order).
     local function lower_bound(ring, a, b, v)
         while a < b do
             local m = (a + b - (a + b) % 2) / 2
@@ -1598,16 +1599,8 @@ do
         if w > RATE_WINDOW_S then w, lo = RATE_WINDOW_S, t - RATE_WINDOW_S end
         local rate = 0
         if w > 0 then
-            local ring, head, tail, n = c.ring, c.rhead, c.rtail, 0
-            if c.sorted then
-                n = lower_bound(ring, head, tail + 1, t) - lower_bound(ring, head, tail + 1, lo)
-            else
-                for i = head, tail do
-                    local x = ring[i]
-                    if x >= lo and x < t then n = n + 1 end
-                end
-            end
-            rate = n / w
+            local ring, head, tail = c.ring, c.rhead, c.rtail
+            rate = (lower_bound(ring, head, tail + 1, t) - lower_bound(ring, head, tail + 1, lo)) / w
         end
         if rate < GAP_MIN_RATE then rate = GAP_MIN_RATE end
         return d - 1 <= GAP_SLACK + GAP_RATE_FACTOR * rate * (t - c.prev)
@@ -1621,7 +1614,7 @@ do
             rec.confirmed = true
             local s, t = rec.to, rec.t
             c.h, c.start, c.prev, c.acc, c.gaps = s, t, t, { [s] = t }, {}
-            c.ring, c.rhead, c.rtail, c.sorted = { t }, 1, 1, true
+            c.ring, c.rhead, c.rtail = { t }, 1, 1
             snd.restarts[#snd.restarts + 1] = rec
         else
             snd.late = snd.late + 1
@@ -1820,10 +1813,14 @@ end
 -- retained heap small for the collector), else a table.
 local function analyse(r, s, pinfo, frame, offset)
     local id = r.type
-    local t = WS.abs_ts(pinfo)
-    local snd, restart = sender_of(r, pinfo, t, frame)
+    local t = WS.abs_ts(pinfo) -- (the periodic streams': its own time)
+    local now = capture.clock -- (senders', serials' and commands': rules.md, "the analysis clock")
+    if t > now then
+        now, capture.clock = t, t
+    end
+    local snd, restart = sender_of(r, pinfo, now, frame)
     snd.count[id] = (snd.count[id] or 0) + 1
-    snd.last, dirty = t, true
+    snd.last, dirty = now, true
     note_record(frame, t)
     local serial = r.serial
     local c, fresh
@@ -1835,21 +1832,21 @@ local function analyse(r, s, pinfo, frame, offset)
         end
         c = by_type[id]
         if not c then
-            c, fresh = new_counter(snd, serial, t), true
+            c, fresh = new_counter(snd, serial, now), true
             by_type[id] = c
             snd.states[#snd.states + 1] = c
         end
     else
         c = counters[snd]
         if not c then
-            c, fresh = new_counter(snd, serial, t), true
+            c, fresh = new_counter(snd, serial, now), true
             counters[snd] = c
             snd.states[1] = c
         end
     end
     local res = false -- (a table only where a number cannot say it)
     if not fresh then
-        local missing = classify(c, serial, t)
+        local missing = classify(c, serial, now)
         if missing == DUPLICATE then
             snd.duplicates = snd.duplicates + 1
             return DUP_RES
@@ -1860,7 +1857,7 @@ local function analyse(r, s, pinfo, frame, offset)
             elseif missing == LATE then
                 snd.late = snd.late + 1
             elseif missing == CANDIDATE then
-                local rec = { of = snd, frame = frame, t = t, from = c.h, to = serial, decided = false,
+                local rec = { of = snd, frame = frame, t = now, from = c.h, to = serial, decided = false,
                     confirmed = false }
                 c.cand, res.cand = rec, rec
                 restart_event(rec)
@@ -1895,7 +1892,7 @@ local function analyse(r, s, pinfo, frame, offset)
     if v.command_id then
         res = res or { serial = 0 }
         res.interval = iv
-        command_event(id, v.command_id, snd, t, frame, res)
+        command_event(id, v.command_id, snd, now, frame, res)
         return res
     end
     if res then res.interval = iv end
@@ -1941,6 +1938,7 @@ local function finalize()
     flush()
     for _, res in ipairs(silent_marks) do res.silent = nil end
     silent_marks = {}
+    local last_record = capture.last
     if not last_record then return end
     for _, snd in ipairs(sender_list) do
         for _, stats in pairs(snd.intervals) do stats.silent = false end

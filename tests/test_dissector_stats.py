@@ -271,3 +271,40 @@ def test_gui_window_takes_the_display_filter(tshark, tmp_path):
     assert gui.stdout.splitlines() == ["MENU VM-110 EG-Link Stream Statistics MENU_STAT_UNSORTED",
                                        "WINDOW VM-110 EG-Link Stream Statistics (ip.src == 10.0.0.10)",
                                        "BUTTON Display filter...", "ATCLOSE", "RETAP"]
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_appended_captures_restart_at_the_seam(tshark, tmp_path):
+    """Two captures of one link appended (`mergecap -a`: the clock steps back 30 s): each sender
+    restarts at its first packet of the second capture, and the serial figures are those of the two
+    captures added up (rules.md, "the analysis clock"); `vm110 analyze` says the same."""
+    from scapy.utils import wrpcap
+    from vm110.analysis import analyze
+    first, second = (T.REPO / "captures" / name for name in ("loss.pcapng", "normal.pcap"))
+    packets = [*rdpcap(str(first)), *rdpcap(str(second))]
+    truths = [json.loads(Path(f"{c}.truth.json").read_text()) for c in (first, second)]
+    seam: dict[str, tuple[int, int]] = {}    # sender -> (frame, serial) of its first packet after the seam
+    offset = len(rdpcap(str(first)))
+    for number, pkt in enumerate(rdpcap(str(second)), start=offset + 1):
+        d = decode(bytes(pkt[UDP].payload))
+        sender = f"{d['direction']} {pkt[IP].src}:{pkt[UDP].sport} origin 0x{d['origin']:04x}"
+        seam.setdefault(sender, (number, d["serial"]))
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            appended = ws.dir / "appended.pcap"
+            wrpcap(str(appended), packets)
+            proc = ws.run(["-r", str(appended), "-q", "-z", "vm110,stat"])
+            report = json.loads(json.dumps(analyze(str(appended))))
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    got = parse(proc.stdout)
+    assert sorted(got) == sorted(seam)
+    for sender, (frame, serial) in seam.items():
+        want = {k: sum(s["serial"].get(k, 0) for t in truths for s in t["senders"] if s["id"] == sender)
+                for k in ("lost", "duplicates", "out_of_order")}
+        assert {k: got[sender]["serial"][k] for k in want} == want, sender
+        [event] = got[sender]["restart_events"]
+        assert (event["frame"], event["to"]) == (frame, serial), sender
+        [mine] = [s for s in report["senders"] if s["id"] == sender]
+        assert {k: mine["serial"][k] for k in (*want, "restarts")} == {**want, "restarts": 1}, sender
+        assert [{k: e[k] for k in ("frame", "from", "to")} for e in mine["serial"]["restart_events"]] == [event]

@@ -34,8 +34,8 @@ import pytest
 from hypothesis import HealthCheck, Phase, assume, given, settings
 
 from reference.analyser import analyse
-from reference.generator import IN_PORT, OUT_PORT, packet, scenarios, vrpi_payload, write_capture, \
-    write_scenario, _udp_frame
+from reference.generator import IN_PORT, OUT_PORT, packet, scenarios, stepped_scenarios, vrpi_payload, \
+    write_capture, write_scenario, _udp_frame
 from tshark_runner import RUNNERS, Tshark, TsharkUnavailable
 
 REPO = Path(__file__).resolve().parents[1]
@@ -183,6 +183,14 @@ def test_fast_engine_equals_the_reference(sc):
 @given(scenarios())
 @_settings(_examples(2000))
 def test_fast_engine_equals_the_reference_long(sc):
+    check_engine(sc, "fast")
+
+
+@given(stepped_scenarios())
+@_settings(_examples(30))
+def test_fast_engine_equals_the_reference_when_the_clock_steps_back(sc):
+    """rules.md, "the counter's clock": a capture whose timestamps step back, or two captures
+    appended, is judged alike by every engine."""
     check_engine(sc, "fast")
 
 
@@ -391,6 +399,16 @@ def check_dissector(runner: Tshark, sc: dict) -> None:
 def test_dissector_fields_equal_the_reference(runner):
     @given(scenarios())
     @_settings(_examples(10))
+    def prop(sc):
+        check_dissector(runner, sc)
+    prop()
+
+
+@pytest.mark.tshark
+@pytest.mark.parametrize("runner", RUNNERS, ids=lambda r: r.name)
+def test_dissector_fields_equal_the_reference_when_the_clock_steps_back(runner):
+    @given(stepped_scenarios())
+    @_settings(_examples(4))
     def prop(sc):
         check_dissector(runner, sc)
     prop()

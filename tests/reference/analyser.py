@@ -295,6 +295,7 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
     illegal_total = 0
     legal: list[dict] = []
     eglink = 0
+    clock: Optional[int] = None    # rules.md "the analysis clock": the latest legal timestamp so far
     for rec in records:
         dg = udp_datagram(rec["linktype"], rec["data"])
         if dg is None or not is_eglink(dg, ports):
@@ -309,7 +310,9 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
             continue
         ptype = p[:4].decode()
         _rev, origin, serial, _size, _spare = struct.unpack("<HHHHI", p[4:16])
-        pkt = {"frame": rec["frame"], "t": rec["t"], "type": ptype, "direction": DIRECTIONS[p[:4]],
+        clock = rec["t"] if clock is None else max(clock, rec["t"])
+        # "t": the time of the sender, serial and command rules; "own": the periodic streams'
+        pkt = {"frame": rec["frame"], "t": clock, "own": rec["t"], "type": ptype, "direction": DIRECTIONS[p[:4]],
                "origin": origin, "serial": serial, "src": dg["src"], "sport": dg["sport"],
                "cid": None}
         if ptype in ("VRCI", "VRCO", "VRAO", "VRAI"):
@@ -382,9 +385,9 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
                 before = [p for p in senders[s["pred"]]["packets"]
                           if p["type"] == ptype and p["accepted"] and p["frame"] < pk[0]["frame"]]
                 if before:
-                    intervals.append((before[-1]["t"], pk[0]["t"] - before[-1]["t"], pk[0]["frame"]))
+                    intervals.append((before[-1]["own"], pk[0]["own"] - before[-1]["own"], pk[0]["frame"]))
             for a, b in itertools.pairwise(pk):
-                intervals.append((a["t"], b["t"] - a["t"], b["frame"]))
+                intervals.append((a["own"], b["own"] - a["own"], b["frame"]))
             violations = []
             for start, gap, after in intervals:
                 flags.near(gap, limit, f"{ptype} interval of {sid}")
@@ -393,10 +396,10 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
                                        "frame": after})
                     frames.setdefault(after, {})["watchdog"] = ptype
             if not s["taken_over"]:
-                gap = last_record_t - pk[-1]["t"]
+                gap = last_record_t - pk[-1]["own"]
                 flags.near(gap, limit, f"{ptype} silence to the end of {sid}")
                 if gap > limit:
-                    violations.append({"start": _sec(pk[-1]["t"]), "gap_ms": _ms(gap), "until_end": True,
+                    violations.append({"start": _sec(pk[-1]["own"]), "gap_ms": _ms(gap), "until_end": True,
                                        "frame": pk[-1]["frame"]})
                     frames.setdefault(pk[-1]["frame"], {})["silent_until_end"] = _ms(gap)
             periodic.append({"type": ptype, "sender": sid, "count": len(pk),

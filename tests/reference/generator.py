@@ -14,7 +14,10 @@ serials. The network loses packets (both ways, or only at the capture point), du
 
 `build(scenario)` gives the frames in arrival order with strictly increasing timestamps and the
 generator's own notes (fuzzy: what it meant, not what the rules make of it); `write_capture`
-writes pcap (Ethernet, optionally VLAN-tagged, or Linux cooked) or pcapng.
+writes pcap (Ethernet, optionally VLAN-tagged, or Linux cooked) or pcapng. `stepped_scenarios`
+adds a clock that steps back: from a frame on, every timestamp is earlier by a fixed amount, or
+the whole capture follows itself again with its own timestamps (two captures of the same link
+appended, as `mergecap -a` does).
 """
 from __future__ import annotations
 
@@ -144,6 +147,27 @@ def scenarios(draw: Any) -> dict:
         "format": draw(st.sampled_from(["pcap", "pcap", "pcapng"])),
         "link": draw(st.sampled_from(["eth", "eth", "vlan", "cooked"])),
     }
+
+
+@st.composite
+def stepped_scenarios(draw: Any) -> dict:
+    """A scenario whose capture clock steps back once (see `step_back`)."""
+    sc = draw(scenarios())
+    sc["step_back"] = draw(st.one_of(   # (microseconds: within and beyond the limits of the rules)
+        st.tuples(st.just("shift"), st.floats(0.1, 0.9), st.sampled_from([200, 300_000, 900_000, 1_200_000,
+                                                                           2_500_000, 40_000_000])),
+        st.just(("append", 0.0, 0))))
+    return sc
+
+
+def step_back(frames: list[tuple[int, bytes]], how: tuple) -> list[tuple[int, bytes]]:
+    """("shift", f, us): the frames from fraction f on are `us` microseconds earlier; ("append", ...):
+    the capture, then the capture again with the same timestamps."""
+    kind, fraction, us = how
+    if kind == "append":
+        return frames + frames
+    cut = max(1, int(len(frames) * fraction))
+    return frames[:cut] + [(t - us, b) for t, b in frames[cut:]]
 
 
 # --- simulation ---------------------------------------------------------------------------------
@@ -381,6 +405,8 @@ def write_capture(path: str, frames: list[tuple[int, bytes]], fmt: str = "pcap",
 def write_scenario(path: str, sc: dict) -> dict:
     """Build the scenario and write it; returns the generator's notes (with the frame count)."""
     frames, notes = build(sc)
+    if sc.get("step_back"):
+        frames = step_back(frames, sc["step_back"])
     write_capture(path, frames, sc["format"], sc["link"])
     notes["frames"] = len(frames)
     return notes

@@ -43,6 +43,8 @@ class Analysis:
         self.tracker = commands.Tracker(fail, opt.reuse_gap_ms)
         self.events: list[tuple] = []                 # command events not applied yet
         self.finished = False
+        self.clock = -np.inf                          # the analysis clock (rules.md): latest time so far
+        self.stamps: dict[int, float] = {}            # frame -> own time, where the clock is later
 
     def feed(self, rec: np.ndarray, sources: dict[bytes, int]) -> None:
         """Legal packets (collect.RECORD_DTYPE) in arrival order; `sources`: packed source
@@ -51,6 +53,7 @@ class Analysis:
             self.names = [b""] * len(sources)
             for src, index in sources.items():
                 self.names[index] = src
+        rec = self._clocked(rec)
         key = sender_keys(rec, code_of(rec["pid"]))
         values, firsts = np.unique(key, return_index=True)
         new = sorted((f, k) for k, f in zip(values.tolist(), firsts.tolist()) if k not in self.senders)
@@ -66,6 +69,21 @@ class Analysis:
             for value, rows in _groups(key[a:b]):
                 self.senders[value].feed(part[rows], self.events)
         self._apply(self._horizon())
+
+    def _clocked(self, rec: np.ndarray) -> np.ndarray:
+        """The records with `ts` on the analysis clock; the own times it replaces go to `stamps`
+        (the periodic streams use those). Nothing is copied while the capture's clock runs forward."""
+        if not len(rec):
+            return rec
+        clock = np.maximum.accumulate(np.concatenate(([self.clock], rec["ts"])))[1:]
+        self.clock = float(clock[-1])
+        behind = clock != rec["ts"]
+        if not behind.any():
+            return rec
+        self.stamps.update(zip(rec["frame"][behind].tolist(), rec["ts"][behind].tolist()))
+        rec = rec.copy()
+        rec["ts"] = clock
+        return rec
 
     def finish(self) -> None:
         """The capture ended: decide everything left and apply every command event."""
@@ -92,7 +110,7 @@ class Analysis:
         and origin heard last, when that one has been silent for NEW_PORT_SILENCE_MS."""
         direction, origin, src, port = key_sender(key)
         new = self.senders[key] = Sender(direction, origin, address(self.names[src], port), first, self.opt,
-                                         self.floats)
+                                         self.floats, self.stamps)
         silence = NEW_PORT_SILENCE_MS / 1000.0
         quiet = [(old.last_ts, old.last_frame, i, old) for i, old in enumerate(self.senders.values())
                  if old is not new and (old.direction, old.origin, old.host) == (direction, origin, new.host)

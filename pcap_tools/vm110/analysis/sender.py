@@ -61,9 +61,12 @@ class Sender:
     """(direction, origin, source address, source port) and everything judged of it so far."""
 
     def __init__(self, direction: str, origin: int, src: str, first: np.void, opt,
-                 floats: FloatsFactory = Floats) -> None:
+                 floats: FloatsFactory = Floats, stamps: Optional[dict[int, float]] = None) -> None:
         self.direction, self.origin, self.src = direction, origin, src
         self.floats = floats                     # the store of periodic times (periodic.Stream)
+        # Rows carry the analysis clock (rules.md); frame -> own timestamp where that differs,
+        # for the periodic streams (shared by the senders; taken out as the rows are decided).
+        self.stamps: dict[int, float] = {} if stamps is None else stamps
         self.id = sender_id(direction, origin, src)
         self.host, port = src.rsplit(":", 1)
         self.port = int(port)
@@ -161,7 +164,7 @@ class Sender:
                     accepted[i], at = True, t
             mine = rows[accepted & (code_of(rows["pid"]) == code)]
             if len(mine):
-                return float(mine["ts"][-1])
+                return self.stamps.get(int(mine["frame"][-1]), float(mine["ts"][-1]))
         stream = self.streams.get(code)
         return stream.times.last() if stream is not None and len(stream.times) else None
 
@@ -194,9 +197,18 @@ class Sender:
                 self._hold(key, self.pending[key], todo[done + 1:])
             for frame, _, _, t in counter.res.restarts[restarts:]:
                 events.append((frame, t, RESTART, self.id, None))
+            own = self._own_times(decided)
             if counter.fed_duplicates:
-                decided = decided[~np.isin(decided["frame"], counter.fed_duplicates)]
-            self._accept(decided, events)
+                kept = ~np.isin(decided["frame"], counter.fed_duplicates)
+                decided, own = decided[kept], own[kept]
+            self._accept(decided, own, events)
+
+    def _own_times(self, rows: np.ndarray) -> np.ndarray:
+        """The rows' own timestamps (their `ts` is the analysis clock), taken out of `stamps`."""
+        if not self.stamps:
+            return rows["ts"]
+        pop = self.stamps.pop
+        return np.array([pop(f, t) for f, t in zip(rows["frame"].tolist(), rows["ts"].tolist())], dtype=np.float64)
 
     def _hold(self, key, held: list, copies: np.ndarray) -> None:
         """Copies of the undecided candidate held[0][0]: those within its duplicate window are
@@ -206,35 +218,39 @@ class Sender:
             return
         inside = copies["ts"] - held[0]["ts"][0] < self.opt.dup_window_ms / 1000.0
         if inside.any():
-            self.counters[key].copies(int(copies["serial"][0]), copies["ts"][inside], copies["frame"][inside].tolist())
+            judged = copies[inside]
+            self.counters[key].copies(int(copies["serial"][0]), judged["ts"], judged["frame"].tolist())
+            self._own_times(judged)
         if not inside.all():
             held.append(copies[~inside].copy())
 
-    def _accept(self, rows: np.ndarray, events: list) -> None:
-        """Accepted packets (not duplicates) of one counter, in arrival order."""
+    def _accept(self, rows: np.ndarray, own: np.ndarray, events: list) -> None:
+        """Accepted packets (not duplicates) of one counter, in arrival order; `own`: their own
+        timestamps, which the periodic streams use."""
         if not len(rows):
             return
         codes = code_of(rows["pid"])
         for code in (VRPI_CODE, VRPO_CODE):
-            mine = rows[codes == code]
+            which = codes == code
+            mine = rows[which]
             if not len(mine):
                 continue
-            frames = mine["frame"]
+            frames, times = mine["frame"], own[which]
             stream = self.streams.get(code)
             if stream is None:
                 limit = self.opt.vrpi_watchdog_ms if code == VRPI_CODE else self.opt.vrpo_watchdog_ms
                 stream = self.streams[code] = Stream(TYPES[code].value, self.id, limit, self.floats)
-            stream.feed(mine["ts"], frames)
+            stream.feed(times, frames)
             if code == VRPI_CODE:
                 if self.timeline is None:
                     self.timeline = Timeline()
-                self.timeline.feed(mine["ts"], mine["state"], frames)
+                self.timeline.feed(times, mine["state"], frames)
             else:
                 if self.bursts is None:
                     opt = self.opt
                     self.bursts = Bursts(stream.times, opt.burst_gap_ms, opt.vrpo_start, opt.vrpo_data_size,
                                          opt.vrpo_min_ms, opt.vrpo_max_ms, self.floats)
-                self.bursts.feed(mine["ts"], mine["aux"], mine["size"], frames)
+                self.bursts.feed(times, mine["aux"], mine["size"], frames)
         command = np.isin(codes, COMMAND_CODES)
         if command.any():
             picked = rows[command]
