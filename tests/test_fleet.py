@@ -208,13 +208,26 @@ def test_errors_and_packets(fleet):
     assert errors[cut]["kind"] == "damaged"
     assert errors[cut]["message"] == fleet["reports"][cut]["capture"]["problem"]
     assert errors[junk]["kind"] == "unreadable"
-    assert errors[junk]["message"] in fleet["junk_error"]          # what analyze says, word for word
+    # what analyze says, word for word, without the path (the `file` column has it), as a damaged one's
+    assert f"vm110 analyze: {junk}: {errors[junk]['message']}" == fleet["junk_error"]
+    assert all(path not in row["message"] for path, row in errors.items())
     assert errors[junk]["machine"] == "m6"
     packets = by_file(read_table(fleet["dataset"], "packets"))
     for path, report in fleet["reports"].items():
         rows = packets.get(path, [])
         assert len(rows) == report["capture"]["eglink_packets"]
         assert sum(not r["legal"] for r in rows) == report["illegal"]["total"]
+
+
+def test_worst_links_and_machines_count_the_same_captures(fleet):
+    """Both rankings count every capture of a machine, and say how many could not be read."""
+    def counts(what: str) -> dict:
+        rows = json.loads(vm110("fleet", "query", str(fleet["dataset"]), "--worst", what, "--format", "json").stdout)
+        return {(r["site"], r["machine"]): (r["captures"], r["unreadable"]) for r in rows}
+    links = counts("links")
+    assert links == counts("machines")
+    assert links[("west", "m6")] == (3, 1) and links[("east", "m5")] == (3, 0)     # junk; cut is damaged, not unreadable
+    assert sum(n for n, _ in links.values()) == len(read_table(fleet["dataset"], "captures"))
 
 
 def test_dask_local_cluster_builds_the_same_rows(fleet, tmp_path):

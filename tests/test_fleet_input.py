@@ -258,9 +258,11 @@ def test_metadata_from_path_and_sidecar(tmp_path):
             MetaPattern(bad_pattern)
 
 
-def test_metadata_may_not_shadow_a_column(src, tmp_path):
-    (src / "normal.pcap.meta.json").write_text(json.dumps({"lost": "none"}))
-    one_line_error(vm110("fleet", "build", str(src), "--out", str(tmp_path / "x")), "'lost'", "column")
+def test_meta_pattern_may_not_shadow_a_column(src, tmp_path):
+    """A --meta field named after a column is a usage error, before anything is written (a
+    sidecar's is its capture's error row: test_bad_sidecars_are_error_rows_and_the_build_goes_on)."""
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(tmp_path / "x"), "--meta", "{lost}.pcap"),
+                   "'lost'", "column")
     assert not (tmp_path / "x").exists()
 
 
@@ -280,3 +282,106 @@ def test_one_build_at_a_time(src, built):
         one_line_error(vm110("fleet", "build", str(src), "--out", str(built)), "another build")
     assert snapshot(built) == before
     assert vm110("fleet", "build", str(src), "--out", str(built)).returncode == 0
+
+
+def test_query_takes_options_between_dataset_and_sql(built):
+    """argparse alone takes an optional SQL as absent once an option follows DATASET."""
+    got = vm110("fleet", "query", str(built), "--format", "json", "SELECT count(*) AS n FROM captures")
+    assert got.returncode == 0, got.stderr
+    assert json.loads(got.stdout) == [{"n": len(NAMES)}]
+    csv = vm110("fleet", "query", "--format", "csv", str(built), "--limit", "3", "SELECT 1 AS one")
+    assert (csv.returncode, csv.stdout) == (0, "one\n1\n"), csv.stderr
+
+
+@pytest.mark.parametrize("args, words", [
+    (("SELECT 1", "SELECT 2"), ("unrecognized arguments: SELECT 2",)),
+    (("--bogus",), ("unrecognized arguments: --bogus",)),
+    (("--format", "xml", "SELECT 1"), ("--format", "xml")),
+    (("--limit", "0"), ("--limit",)),
+    ((), ("give SQL",)),
+    (("-- nothing but a comment;",), ("query failed", "no statement")),                                    # the command's own check (CliError)
+    (("SELECT 1", "--worst", "links"), ("give one of",)),
+])
+def test_query_errors_are_one_line_of_the_command(built, args, words):
+    """`vm110 fleet: ...` (as every command's: `vm110 <command>: ...`), not the top-level `vm110: ...`."""
+    result = vm110("fleet", "query", str(built), *args)
+    one_line_error(result, *words)
+    assert result.stderr.startswith("vm110 fleet: "), result.stderr
+
+
+def test_build_takes_sources_after_options(src, tmp_path):
+    dataset = tmp_path / "ds"
+    got = vm110("fleet", "build", str(src / NAMES[0]), "--out", str(dataset), "-j", "1", str(src / NAMES[1]))
+    assert got.returncode == 0 and "2 analysed" in got.stdout, got.stderr
+    missing = vm110("fleet", "build", str(src))
+    one_line_error(missing, "--out")
+    assert missing.stderr.startswith("vm110 fleet: ")
+
+
+def test_bad_sidecars_are_error_rows_and_the_build_goes_on(src, tmp_path):
+    """Each bad sidecar: its capture gets an `unreadable` row with every problem of that sidecar,
+    one line each on standard error; the other captures are built; fixed, it is analysed."""
+    sidecars = {"normal.pcap": json.dumps({"machine": "crane-9", "bu_firmware": "3.4"}),      # --meta says normal
+                "disarmed.pcap": "{not json",
+                "vrco.pcap": json.dumps({"a b": 1, "lost": "none", "x": [1]})}
+    for name, text in sidecars.items():
+        (src / f"{name}.meta.json").write_text(text)
+    dataset = tmp_path / "ds"
+    result = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "1", "--meta", "{machine}.pcap")
+    assert result.returncode == 2
+    assert f"{len(NAMES)} analysed (0 damaged, 3 unreadable)" in result.stdout
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 3 and all(line.startswith("vm110 fleet: ") for line in lines), lines
+    line = {name: next(x for x in lines if f"{src / name}: " in x) for name in sidecars}
+    assert "'crane-9' in its sidecar" in line["normal.pcap"] and "'normal' by --meta" in line["normal.pcap"]
+    assert "normal.pcap.meta.json" in line["normal.pcap"]
+    assert "not a metadata file" in line["disarmed.pcap"]
+    for words in ("'a b' is not a column name", "'lost' is a column", "x: only text"):      # all, at once
+        assert words in line["vrco.pcap"], line["vrco.pcap"]
+    captures = {Path(r["file"]).name: r for r in rows(dataset)}
+    assert len(captures) == len(NAMES)
+    assert {n for n, r in captures.items() if r["status"] == "unreadable"} == set(sidecars)
+    assert captures["normal.pcap"]["machine"] == "normal" and captures["retransmit.pcap"]["status"] == "ok"
+    errors = {Path(r["file"]).name: r for r in rows(dataset, "errors")}
+    assert set(errors) == set(sidecars) and {r["kind"] for r in errors.values()} == {"unreadable"}
+    assert all(r["file"] not in r["message"] for r in errors.values())
+    (src / "normal.pcap.meta.json").write_text(json.dumps({"bu_firmware": "3.4"}))           # fixed
+    again = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "1", "--meta", "{machine}.pcap")
+    assert again.returncode == 2 and "3 analysed (0 damaged, 2 unreadable)" in again.stdout
+    assert "1 replaced" in again.stdout and len(again.stderr.strip().splitlines()) == 2
+    captures = {Path(r["file"]).name: r for r in rows(dataset)}
+    assert len(captures) == len(NAMES) and captures["normal.pcap"]["status"] == "ok"
+    assert captures["normal.pcap"]["bu_firmware"] == "3.4"
+    assert {Path(r["file"]).name for r in rows(dataset, "errors")} == {"disarmed.pcap", "vrco.pcap"}
+
+
+def test_unreadable_entries_of_a_folder(src, tmp_path):
+    """A broken link, a FIFO (never opened: reading it would wait for a writer) and a link out of
+    the folder given: an unreadable row each. A link that stays inside the folder is followed."""
+    (src / "gone.pcap").symlink_to(tmp_path / "nothing.pcap")
+    os.mkfifo(src / "fifo.pcap")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    shutil.copy(BUNDLED / "loss.pcapng", elsewhere / "loss.pcapng")
+    (src / "out.pcapng").symlink_to(elsewhere / "loss.pcapng")
+    (src / "in.pcap").symlink_to(src / "normal.pcap")
+    (src / "folder.pcap").mkdir()                          # a folder is walked, not a capture
+    dataset = tmp_path / "ds"
+    command = [sys.executable, "-m", "vm110", "fleet", "build", str(src), "--out", str(dataset), "-j", "1"]
+    result = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    assert f"{len(NAMES) + 4} analysed (0 damaged, 3 unreadable)" in result.stdout
+    assert len(result.stderr.strip().splitlines()) == 3, result.stderr
+    captures = {Path(r["file"]).name: r for r in rows(dataset)}
+    assert {n for n, r in captures.items() if r["status"] == "unreadable"} == {"gone.pcap", "fifo.pcap", "out.pcapng"}
+    assert captures["in.pcap"]["sha256"] == captures["normal.pcap"]["sha256"] and captures["in.pcap"]["status"] == "ok"
+    errors = {Path(r["file"]).name: r["message"] for r in rows(dataset, "errors")}
+    assert "broken symbolic link" in errors["gone.pcap"] and "FIFO" in errors["fifo.pcap"]
+    assert "outside" in errors["out.pcapng"] and str(elsewhere / "loss.pcapng") in errors["out.pcapng"]
+    assert all(str(src) not in message for message in errors.values())
+    # A glob names each path it matches: the link out is taken; a FIFO is still never opened.
+    command[5] = str(src / "*.pcap*")
+    command[7] = str(tmp_path / "g")
+    globbed = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert globbed.returncode == 2 and "2 unreadable" in globbed.stdout, globbed.stderr
+    assert {Path(r["file"]).name for r in rows(tmp_path / "g") if r["status"] == "ok"} >= {"out.pcapng", "in.pcap"}

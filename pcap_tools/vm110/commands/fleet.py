@@ -11,7 +11,9 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from typing import Optional, Sequence
 
+from ..cli import Parser
 from ..errors import EXIT_OK, EXIT_USAGE, CliError
 from ..fileio import check_target, write_text
 from ..numbers import number
@@ -21,8 +23,29 @@ JOBS = number(1, 256, integer=True)
 LIMIT = number(1, 1_000_000, integer=True)
 
 
+class ActionParser(Parser):
+    """The parser of one action (`vm110 fleet query`): options may come between positionals.
+    argparse alone takes `query DATASET --format json SQL` as DATASET with SQL absent (nargs '?'
+    is matched, empty, before the option) and then refuses SQL as an extra argument."""
+
+    _inner = False       # parse_known_intermixed_args calls parse_known_args (Python < 3.12.7)
+
+    def parse_known_args(self, args: Optional[Sequence[str]] = None,     # type: ignore[override]  # typeshed: overloads
+                         namespace: Optional[argparse.Namespace] = None) -> tuple[argparse.Namespace, list[str]]:
+        if self._inner:
+            return super().parse_known_args(args, namespace)
+        self._inner = True
+        try:
+            parsed, extras = self.parse_known_intermixed_args(args, namespace)
+        finally:
+            self._inner = False
+        if extras:      # said here, as `vm110 fleet: ...` (the top-level parser would say `vm110: ...`)
+            self.error(f"unrecognized arguments: {' '.join(extras)}")
+        return parsed, extras
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    sub = parser.add_subparsers(dest="fleet_command", metavar="ACTION", required=True)
+    sub = parser.add_subparsers(dest="fleet_command", metavar="ACTION", required=True, parser_class=ActionParser)
     build = sub.add_parser("build", help="analyse captures into a dataset (incremental)",
                            description="Analyse captures (files, folders, globs) into a Parquet dataset.")
     build.add_argument("sources", nargs="+", metavar="SRC", help="capture files, folders (recursive) or glob patterns")

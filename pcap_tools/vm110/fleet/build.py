@@ -10,13 +10,13 @@ import os
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Iterator, Optional, Sequence
 
 from ..errors import CliError
 from .dataset import Dataset
 from .engines import run_dask, run_local
-from .sources import MetaPattern, Source, content_hash, find, metadata
+from .sources import MetadataError, MetaPattern, Source, content_hash, find, metadata, path_fields
 from .tables import SCHEMAS, check_meta_keys
 from .work import Done, Settings
 
@@ -39,26 +39,34 @@ def fingerprint(settings: Settings) -> dict:
             "crc_order": settings.crc_order, "packets": settings.packets}
 
 
-def _hash(path: str) -> tuple[Optional[int], Optional[str]]:
+def _hash(source: Source) -> Source:
+    """`source` with its size and content hash (none for a source that is not read, or cannot be)."""
+    if source.problem is not None:
+        return source
     try:
-        return content_hash(path)
+        size, digest = content_hash(source.path)
     except OSError:
-        return None, None
+        return source
+    return replace(source, size=size, sha256=digest)
 
 
 def sources(srcs: Sequence[str], pattern: Optional[MetaPattern], threads: int = 1) -> list[Source]:
     """The captures SRC names, each hashed (`threads` at a time: hashlib lets go of the GIL), with
-    its metadata. A capture that cannot be hashed still becomes a Source (its analysis then fails
-    into an error row)."""
-    paths = find(srcs)
-    metas = []
-    for path in paths:
-        meta = tuple(sorted(metadata(path, pattern).items()))
-        check_meta_keys({k for k, _ in meta})
-        metas.append(meta)
+    its metadata. A capture that cannot be hashed, or is not to be read (a FIFO, a broken link, a
+    bad sidecar), still becomes a Source: it gives an unreadable row and a line, one each."""
+    if pattern is not None:
+        check_meta_keys(set(pattern.keys))          # the command line's mistake: before any work
+    found = [_source(path, pattern, problem) for path, problem in find(srcs).items()]
     with ThreadPoolExecutor(max(1, min(threads, HASH_THREADS))) as pool:
-        hashes = list(pool.map(_hash, paths))
-    return [Source(path, size, digest, meta) for path, (size, digest), meta in zip(paths, hashes, metas)]
+        return list(pool.map(_hash, found))
+
+
+def _source(path: str, pattern: Optional[MetaPattern], problem: Optional[str]) -> Source:
+    try:
+        meta = metadata(path, pattern)
+    except MetadataError as exc:     # the capture's own fault, as a damaged file: a row, not the end
+        meta, problem = path_fields(path, pattern), problem or str(exc)
+    return Source(path, None, None, tuple(sorted(meta.items())), problem)
 
 
 def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern] = None,
@@ -104,7 +112,7 @@ def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: s
                                              done.message, dict(done.meta))
             outcome.analysed += 1
             if done.status == "unreadable":
-                outcome.unreadable.append(done.message or done.path)
+                outcome.unreadable.append(f"{done.path}: {done.message}")
             elif done.status == "damaged":
                 outcome.damaged.append(f"{done.path}: {done.message}")
             stale |= versions.add(done.path, done.capture_id)

@@ -67,6 +67,8 @@ class Fleet:
         """The result of `sql`; CliError (one line) when DuckDB refuses it."""
         try:
             cursor = self.con.execute(sql)
+            if cursor is None:               # nothing but comments or semicolons
+                raise CliError("query failed: the SQL has no statement")
             columns = [d[0] for d in cursor.description] if cursor.description else []
             return Result(columns, cursor.fetchall() if columns else [])
         except self.duckdb.Error as exc:
@@ -98,16 +100,21 @@ def _cols(prefix: str, cols: Sequence[str]) -> str:
     return ", ".join(f"{prefix}.{c}" for c in cols)
 
 
+# Both rankings count every capture of a machine (`captures`) and, of those, the ones that could
+# not be read (`unreadable`): they give no link figures and count as failing, but are the machine's.
+_CAPTURE_COUNTS = "count(*) AS captures, count(*) FILTER (WHERE status = 'unreadable') AS unreadable"
+
+
 def _worst_links(f: Fleet, a: Args) -> str:
     who = f.who()
     w = ", ".join(who)
     return f"""
-WITH c AS (SELECT {w}, count(*) AS captures FROM captures WHERE status <> 'unreadable' GROUP BY ALL),
+WITH c AS (SELECT {w}, {_CAPTURE_COUNTS} FROM captures GROUP BY ALL),
 s AS (SELECT {w}, sum(lost) AS lost, sum(received) AS received, sum(restarts) AS restarts FROM senders GROUP BY ALL),
 t AS (SELECT {w}, sum(watchdog_violations) AS watchdog,
              max(jitter_max_ms) FILTER (WHERE type = 'VRPI') AS vrpi_jitter_max_ms,
              max(jitter_max_ms) FILTER (WHERE type = 'VRPO') AS vrpo_jitter_max_ms FROM streams GROUP BY ALL)
-SELECT {_cols('c', who)}, c.captures, coalesce(s.lost, 0) AS lost,
+SELECT {_cols('c', who)}, c.captures, c.unreadable, coalesce(s.lost, 0) AS lost,
        round(100.0 * coalesce(s.lost, 0) / nullif(s.received + s.lost, 0), 3) AS loss_pct,
        coalesce(t.watchdog, 0) AS watchdog, t.vrpi_jitter_max_ms, t.vrpo_jitter_max_ms,
        coalesce(s.restarts, 0) AS restarts
@@ -120,13 +127,13 @@ def _worst_machines(f: Fleet, a: Args) -> str:
     who = f.who()
     w = ", ".join(who)
     return f"""
-WITH c AS (SELECT {w}, count(*) AS captures,
+WITH c AS (SELECT {w}, {_CAPTURE_COUNTS},
                   count(*) FILTER (WHERE status <> 'ok' OR NOT verdict_ok) AS failing_captures
            FROM captures GROUP BY ALL),
 r AS (SELECT {w}, capture_id, rule, any_value(severity) AS severity, any_value(count) AS n FROM findings GROUP BY ALL),
 f AS (SELECT {w}, count(*) FILTER (WHERE severity = 'error') AS error_findings,
              count(*) FILTER (WHERE severity <> 'error') AS other_findings, sum(n) AS items FROM r GROUP BY ALL)
-SELECT {_cols('c', who)}, c.captures, c.failing_captures, coalesce(f.error_findings, 0) AS error_findings,
+SELECT {_cols('c', who)}, c.captures, c.unreadable, c.failing_captures, coalesce(f.error_findings, 0) AS error_findings,
        coalesce(f.other_findings, 0) AS other_findings, coalesce(f.items, 0) AS counted
 FROM c LEFT JOIN f USING ({w})
 ORDER BY error_findings DESC, failing_captures DESC, other_findings DESC, counted DESC

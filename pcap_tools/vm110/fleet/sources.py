@@ -2,6 +2,8 @@
 
 SRC arguments are files (taken whatever their name), folders (every capture below them, by
 extension) or glob patterns. Metadata becomes string columns on every table of the dataset.
+An entry a build cannot take (a broken link, a FIFO, a link out of the folder walked, a bad
+sidecar) is still a capture: it carries the reason, and becomes an `unreadable` row.
 """
 from __future__ import annotations
 
@@ -10,17 +12,21 @@ import hashlib
 import json
 import os
 import re
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Optional
 
 from ..errors import CliError
+from .tables import COLUMNS
 
 CAPTURE_SUFFIXES = (".pcap", ".pcapng", ".cap")
 SIDECAR_SUFFIX = ".meta.json"
 MAX_SIDECAR_BYTES = 64 << 10
 KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,62}\Z")
 HASH_CHUNK = 1 << 20
+_KINDS = ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"))
 
 
 @dataclass(frozen=True)
@@ -31,6 +37,7 @@ class Source:
     size: Optional[int]                 # None: the file could not be read
     sha256: Optional[str]
     meta: tuple[tuple[str, Optional[str]], ...] = field(default=())
+    problem: Optional[str] = None       # why it is not read at all (it is never opened)
 
     @property
     def capture_id(self) -> str:
@@ -39,27 +46,65 @@ class Source:
         return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
-def find(sources: Iterable[str]) -> list[str]:
-    """The capture files named by SRC arguments, absolute, sorted, each once. CliError for a SRC
-    that names nothing."""
-    found: set[str] = set()
+def find(sources: Iterable[str]) -> dict[str, Optional[str]]:
+    """The capture files named by SRC arguments, absolute, sorted, each once: path -> None to read
+    it, or why it is not read. CliError for a SRC that names nothing."""
+    found: dict[str, Optional[str]] = {}
     for src in sources:
         if os.path.isdir(src):
-            hits = [str(p) for p in Path(src).rglob("*") if p.suffix.lower() in CAPTURE_SUFFIXES and p.is_file()]
+            hits = _walk(src)
             if not hits:
                 raise CliError(f"{src}: no captures in this folder (*{', *'.join(CAPTURE_SUFFIXES)})")
         elif os.path.exists(src):
             if not os.path.isfile(src):
                 raise CliError(f"{src}: not a file or folder")
-            hits = [src]
+            hits = {src: None}
         elif glob.has_magic(src):
-            hits = [p for p in glob.glob(src, recursive=True) if os.path.isfile(p)]
+            # The pattern names each path it matches: links are followed wherever they lead.
+            hits = {p: not_a_capture(p) for p in glob.glob(src, recursive=True) if not os.path.isdir(p)}
             if not hits:
                 raise CliError(f"{src}: no file matches")
         else:
             raise CliError(f"{src}: no such file or folder")
-        found.update(os.path.abspath(p) for p in hits)
-    return sorted(found)
+        for path, problem in hits.items():
+            found.setdefault(os.path.abspath(path), problem)
+    return dict(sorted(found.items()))
+
+
+def _walk(folder: str) -> dict[str, Optional[str]]:
+    """Every entry below `folder` named as a capture that is not a folder (links to folders are
+    not walked, as by rglob), with why it is not read, if so."""
+    inside = os.path.realpath(folder)
+    return {str(p): not_a_capture(str(p), inside) for p in Path(folder).rglob("*")
+            if p.suffix.lower() in CAPTURE_SUFFIXES and not p.is_dir()}
+
+
+def not_a_capture(path: str, inside: Optional[str] = None) -> Optional[str]:
+    """Why `path` is not read as a capture, found without opening it (a FIFO would wait for a
+    writer): a broken link, not a regular file, or a link that leads out of the folder `inside`
+    (the user gave the folder, not what its links point to). None: read it."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        if os.path.islink(path):
+            return f"a broken symbolic link (to {_target(path)}): {exc.strerror}"
+        return f"cannot read: {exc.strerror}"
+    if not stat.S_ISREG(mode):
+        kind = next((name for test, name in _KINDS if test(mode)), "not a regular file")
+        return f"{kind}, not a capture file: not opened"
+    if inside is not None and os.path.islink(path):
+        target = os.path.realpath(path)
+        if os.path.commonpath([target, inside]) != inside:
+            return (f"a symbolic link to {target}, outside the folder given: not followed "
+                    "(give it, or its folder, as a SRC to take it)")
+    return None
+
+
+def _target(path: str) -> str:
+    try:
+        return os.readlink(path)
+    except OSError:
+        return "?"
 
 
 class MetaPattern:
@@ -95,12 +140,16 @@ class MetaPattern:
         return None if m is None else dict(m.groupdict())
 
 
-def sidecar(path: str) -> dict[str, Optional[str]]:
+class MetadataError(CliError):
+    """A capture's metadata cannot be made: every problem of its sidecar, in one message."""
+
+
+def sidecar(path: str) -> tuple[dict[str, Optional[str]], list[str]]:
     """The metadata in `CAPTURE.meta.json` (a flat object; values are kept as text), if there is
-    one. CliError when it is not such an object."""
+    one, and every problem found in it (a bad field is left out, the others kept)."""
     side = path + SIDECAR_SUFFIX
     if not os.path.isfile(side):
-        return {}
+        return {}, []
     try:
         with open(side, "rb") as f:
             raw = f.read(MAX_SIDECAR_BYTES + 1)
@@ -108,33 +157,45 @@ def sidecar(path: str) -> dict[str, Optional[str]]:
             raise ValueError(f"larger than {MAX_SIDECAR_BYTES} bytes")
         data = json.loads(raw, parse_constant=_refuse_constant)
     except (OSError, ValueError) as exc:
-        raise CliError(f"{side}: not a metadata file: {exc}") from None
+        return {}, [f"not a metadata file: {exc}"]
     if not isinstance(data, dict):
-        raise CliError(f"{side}: not a metadata file: a JSON object is expected")
+        return {}, ["not a metadata file: a JSON object is expected"]
     out: dict[str, Optional[str]] = {}
+    problems = []
     for key, value in data.items():
         if not KEY.match(key):
-            raise CliError(f"{side}: {key[:40]!r} is not a column name (letters, digits, _)")
-        if isinstance(value, (dict, list)):
-            raise CliError(f"{side}: {key}: only text, numbers, true/false or null")
-        out[key] = None if value is None else (json.dumps(value) if isinstance(value, bool) else str(value))
-    return out
+            problems.append(f"{key[:40]!r} is not a column name (letters, digits, _)")
+        elif key in COLUMNS:
+            problems.append(f"{key!r} is a column of the dataset already")
+        elif isinstance(value, (dict, list)):
+            problems.append(f"{key}: only text, numbers, true/false or null")
+        else:
+            out[key] = None if value is None else (json.dumps(value) if isinstance(value, bool) else str(value))
+    return out, problems
 
 
 def _refuse_constant(name: str) -> None:
     raise ValueError(f"{name} is not a value")
 
 
+def path_fields(path: str, pattern: Optional[MetaPattern]) -> dict[str, Optional[str]]:
+    """The fields `pattern` gives `path` (None each when it does not match)."""
+    if pattern is None:
+        return {}
+    return dict(pattern.fields(path) or dict.fromkeys(pattern.keys))
+
+
 def metadata(path: str, pattern: Optional[MetaPattern]) -> dict[str, Optional[str]]:
-    """Fields from the pattern (None each when it does not match), then the sidecar's; a field in
-    both must agree."""
-    meta: dict[str, Optional[str]] = {}
-    if pattern is not None:
-        meta = dict(pattern.fields(path) or dict.fromkeys(pattern.keys))
-    for key, value in sidecar(path).items():
+    """Fields from the pattern, then the sidecar's; a field in both must agree. MetadataError with
+    every problem of the sidecar (the path is the capture's: the message does not repeat it)."""
+    meta = path_fields(path, pattern)
+    fields, problems = sidecar(path)
+    for key, value in fields.items():
         if meta.get(key) is not None and meta[key] != value:
-            raise CliError(f"{path}: {key} is {meta[key]!r} by --meta and {value!r} in its sidecar")
+            problems.append(f"{key} is {value!r} in its sidecar and {meta[key]!r} by --meta")
         meta[key] = value
+    if problems:
+        raise MetadataError(f"sidecar {os.path.basename(path)}{SIDECAR_SUFFIX}: {'; '.join(problems)}")
     return meta
 
 

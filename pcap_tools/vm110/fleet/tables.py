@@ -55,6 +55,7 @@ SCHEMAS: dict[str, pa.Schema] = {
         ("type", pa.string()), ("origin", pa.int64()), ("serial", pa.int64()), ("size", pa.int64()),
         ("command_id", pa.int64()), ("legal", pa.bool_()), ("problems", pa.string())]),
 }
+COLUMNS = frozenset(f.name for schema in SCHEMAS.values() for f in schema)     # no metadata field may take one
 # Item keys that have a column of their own in `findings`; the rest go to `details` (JSON).
 _ITEM_COLUMNS = ("frame", "frames", "time", "sender", "type", "command_id", "filter")
 
@@ -161,7 +162,6 @@ def arrow_table(name: str, rows: list[dict], meta: dict[str, Optional[str]]) -> 
 def check_meta_keys(keys: set[str]) -> None:
     """A metadata field may not shadow a column of any table."""
     from ..errors import CliError
-    taken = {f.name for schema in SCHEMAS.values() for f in schema}
-    clash = sorted(keys & taken)
+    clash = sorted(keys & COLUMNS)
     if clash:
         raise CliError(f"metadata field {clash[0]!r} is a column of the dataset already; rename it")

@@ -50,28 +50,17 @@ class Done:
 
 def build_one(source: Source, settings: Settings) -> Done:
     """Analyse `source` and write its parts; a capture that cannot be read gives error rows (and
-    parts) like any other, never an exception."""
+    parts) like any other, never an exception. Messages leave out the path: rows have it in `file`."""
     meta = dict(source.meta)
     cid = source.capture_id
-    message: Optional[str] = None
-    try:
-        report = analyze(source.path, "fast", settings.port, settings.crc, settings.crc_order, settings.options)
-        report["capture"]["file"] = source.path
-        tables = capture_rows(report, cid, source.size, source.sha256)
-        status = tables["captures"][0]["status"]
-        if status == "damaged":
-            message = report["capture"]["problem"]
-    except CliError as exc:
-        message, status = str(exc), "unreadable"
-    except MemoryError:
-        message, status = f"{source.path}: out of memory", "unreadable"
-    except Exception as exc:     # a broken file must give a row and one line, never end the build
-        message, status = f"cannot analyse {source.path}: {type(exc).__name__}: {exc}", "unreadable"
-    if status == "unreadable":
+    report, message, status = _analyse(source, settings)
+    if report is None:
         tables = error_rows(source.path, cid, source.size, source.sha256, message or "")
+    else:
+        tables = capture_rows(report, cid, source.size, source.sha256)
     dataset = Dataset(settings.dataset)
     parts = []
-    if settings.packets and status != "unreadable":
+    if settings.packets and report is not None:
         packets = packet_rows(source.path, cid, settings.port, report["crc"]["variant"], report["crc"]["byte_order"])
         try:
             parts.append(dataset.write_part("packets", cid, table_schema("packets", meta),
@@ -80,12 +69,36 @@ def build_one(source: Source, settings: Settings) -> Done:
             raise                       # the dataset cannot be written: that ends the build
         except Exception as exc:        # the capture changed or broke since its analysis
             tables["errors"].append({"capture_id": cid, "file": source.path, "kind": "packets",
-                                     "message": f"packets of {source.path}: {type(exc).__name__}: {exc}",
+                                     "message": f"packets: {type(exc).__name__}: {_unnamed(str(exc), source.path)}",
                                      "file_offset": None})
     parts += [dataset.write_part(table, cid, table_schema(table, meta), [arrow_table(table, tables[table], meta)])
               for table in sorted(tables, key=lambda t: t == COMMIT_TABLE)      # the commit part last
               if tables[table] or table == COMMIT_TABLE]
     return Done(cid, source.path, source.size, source.sha256, status, tuple(parts), message, source.meta)
+
+
+def _analyse(source: Source, settings: Settings) -> tuple[Optional[dict], Optional[str], str]:
+    """(the report or None, message, status): `unreadable` with the reason, never an exception."""
+    if source.problem is not None:
+        return None, source.problem, "unreadable"       # never opened (a FIFO would wait for a writer)
+    try:
+        report = analyze(source.path, "fast", settings.port, settings.crc, settings.crc_order, settings.options)
+    except CliError as exc:
+        return None, _unnamed(str(exc), source.path), "unreadable"
+    except MemoryError:
+        return None, "out of memory", "unreadable"
+    except Exception as exc:     # a broken file must give a row and one line, never end the build
+        return None, f"cannot analyse: {type(exc).__name__}: {_unnamed(str(exc), source.path)}", "unreadable"
+    report["capture"]["file"] = source.path
+    problem = report["capture"]["problem"]
+    return report, problem, "ok" if problem is None else "damaged"
+
+
+def _unnamed(message: str, path: str) -> str:
+    """`message` without `path` (`PATH: reason`, `cannot read PATH: reason`)."""
+    if message.startswith(f"{path}: "):
+        return message[len(path) + 2:]
+    return message.replace(f" {path}:", ":").replace(path, "the file")
 
 
 def _batches(rows: Iterator[dict]) -> Iterator[list[dict]]:
