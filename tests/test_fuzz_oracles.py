@@ -231,3 +231,54 @@ def test_vrco_in_flight_together_and_an_id_reused_after_a_pause(link):
     link.rx(T0 + 0.25 + 2.5, "VRCO", encode.command_payload(1))        # a new command with ID 1
     link.mon.tick(T0 + 3)
     assert link.oracles() == []
+
+
+# --- one command, one missing ack; a dead controller owes none ------------------------------------------
+def test_a_command_resent_by_one_case_and_never_acked_is_one_trigger(link):
+    """A case that sends one VRCI five times, none acknowledged: one trigger (five before, each
+    replaying the same case)."""
+    for n in range(5):
+        link.mon.on_tx(T0 + n * 0.05, vrci(9, n), vrci(9, n), index=4)
+    link.mon.tick(T0 + 1.5)
+    assert link.oracles() == ["missing_ack"]
+    assert (link.mon.triggers[0].command_id, link.mon.triggers[0].case_index) == (9, 4)
+    assert not link.mon.pending
+
+
+def test_the_same_command_id_from_two_cases_is_two_triggers(link):
+    link.mon.on_tx(T0, vrci(9, 1), vrci(9, 1), index=4)
+    link.mon.on_tx(T0 + 0.05, vrci(9, 2), vrci(9, 2), index=5)
+    link.mon.tick(T0 + 1.5)
+    assert [t.case_index for t in link.mon.triggers] == [4, 5]
+
+
+def test_commands_sent_to_a_dead_controller_owe_no_ack(link):
+    """The trial's run: the controller crashed in the middle of a case resending a command; the
+    resends that went out after its exit raised missing_ack (one per resend, never reproduced).
+    Nor is its silence a stall."""
+    link.vrpo(T0)
+    link.mon.on_tx(T0 + 0.01, vrci(9, 1), vrci(9, 1), index=7)
+    link.mon.on_exit(T0 + 0.02, -6)
+    for n in range(1, 4):
+        link.mon.on_tx(T0 + 0.02 + n * 0.05, vrci(9, n + 1), vrci(9, n + 1), index=7)
+    link.mon.tick(T0 + 3)
+    assert link.oracles() == ["crash"]
+    link.mon.reset_controller(T0 + 3)                                  # restarted: owed again
+    link.mon.on_tx(T0 + 3.1, vrci(10, 5), vrci(10, 5), index=8)
+    link.mon.tick(T0 + 4.2)
+    assert link.oracles() == ["crash", "missing_ack"]
+
+
+def test_acks_missed_while_the_controller_was_dying_are_the_crash(link):
+    """A sanitizer report that takes longer than the ack timeout: the command went out after the
+    controller last spoke, so its missing ack is the crash's."""
+    link.mon.note_case(T0 - 1, 1)
+    link.mon.on_tx(T0 - 1, vrci(5, 1), vrci(5, 1), index=1)
+    link.rx(T0 - 0.9, "VRAO", encode.ack_payload(5))
+    link.mon.on_tx(T0 - 0.5, vrci(6, 2), vrci(6, 2), index=2)          # acked late: another bug
+    link.vrpo(T0)
+    link.mon.on_tx(T0 + 0.01, vrci(7, 3), vrci(7, 3), index=3)         # the controller is dying
+    link.mon.tick(T0 + 1.2)
+    assert [t.case_index for t in link.mon.triggers] == [2, 3]
+    link.mon.on_exit(T0 + 1.5, -6)
+    assert [(t.oracle, t.case_index) for t in link.mon.triggers] == [("missing_ack", 2), ("crash", None)]

@@ -300,6 +300,38 @@ def test_unreadable_finding_files_are_one_line_errors(capsys, nothing_leaves, tm
     assert code == 2 and str(path) in one_line(err)
 
 
+MS_RANGE = "is out of range: must be a number of milliseconds from 0 to 60000"
+OUT_OF_RANGE: dict[str, Any] = {
+    "settle 1e300": (lambda f: f.update(settle_ms=1e300), f"settle_ms {MS_RANGE}"),
+    "settle -5": (lambda f: f.update(settle_ms=-5), f"settle_ms {MS_RANGE}"),
+    "delay 1e300": (lambda f: f["steps"][0].update(delay_ms=1e300), f"steps[0].delay_ms {MS_RANGE}"),
+    "pause NaN": (lambda f: f.update(pause_vrpi_ms=math.nan), "pause_vrpi_ms is not a finite number"),
+    "withhold -inf": (lambda f: f.update(withhold_vrai_ms=-math.inf), "withhold_vrai_ms is not a finite number"),
+    "time inf": (lambda f: f.update(time=math.inf), "time is not a finite number"),
+    "time 1e300": (lambda f: f.update(time=1e300), "time is out of range: must be from 0 to 9223372036854775807"),
+    "seed 10**30": (lambda f: f.update(seed=10**30), "seed is out of range: must be from 0 to 18446744073709551615"),
+    "case_index -1": (lambda f: f.update(case_index=-1), "case_index is out of range: must be from 0 to"),
+    "differences 10**6": (lambda f: f.update(differences=10**6), "differences is out of range: must be from 0 to 65507"),
+    "schema 10**30": (lambda f: f.update(schema=10**30), "schema of 31 digits (this version"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(OUT_OF_RANGE))
+def test_out_of_range_numbers_in_a_finding_give_the_range(capsys, nothing_leaves, tmp_path, name):
+    """1e300 was "not a finite number below 2**63" (it is finite); NaN and infinities say so."""
+    change, message = OUT_OF_RANGE[name]
+    finding = a_finding()
+    change(finding)
+    code, err = fuzz_in_process(capsys, "--replay", str(save(tmp_path, finding)))
+    line = one_line(err)
+    assert code == 2 and f"is not a valid vm110 fuzz finding: {message}" in line, line
+
+
+def test_every_seed_the_option_takes_is_a_valid_finding(tmp_path):
+    """A run with --seed 2**64-1 wrote a finding its replay refused (numbers stopped below 2**63)."""
+    assert findings.load_finding(str(save(tmp_path, a_finding(seed=2**64 - 1)))).seed == 2**64 - 1
+
+
 def test_a_hostile_finding_file_through_the_command(tmp_path):
     path = save(tmp_path, a_finding(pause_vrpi_ms=math.nan, mutation="\x1b[2J"))
     result = vm110("fuzz", "--replay", str(path))
@@ -353,6 +385,19 @@ def test_a_directory_for_the_target_log_is_refused(capsys, nothing_leaves, tmp_p
     code, err = fuzz_in_process(capsys, "--target", "127.0.0.1:5825", "--cases", "1", "--out", str(tmp_path),
                                 "--target-cmd", "true")
     assert code == 2 and "target.log" in one_line(err)
+
+
+@pytest.mark.parametrize("option", ["--out", "--corpus"])
+def test_a_file_where_a_folder_goes_is_not_a_directory(capsys, nothing_leaves, tmp_path, option):
+    """It said "cannot create afile: File exists"."""
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    args = ["--target", "127.0.0.1:5825", "--cases", "1", option, str(afile)]
+    if option == "--corpus":
+        args += ["--coverage", "--target-cmd", "true", "--out", str(tmp_path / "out")]
+    code, err = fuzz_in_process(capsys, *args)
+    assert code == 2 and one_line(err) == f"vm110 fuzz: {option} {afile} is not a directory"
+    assert afile.read_text() == "mine"
 
 
 def test_a_failed_finding_write_keeps_the_previous_files(tmp_path):

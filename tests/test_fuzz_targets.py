@@ -16,6 +16,9 @@ import pytest
 from loopback import free_ports
 from vm110 import constants as C
 from vm110.fuzz import mutate as M
+from vm110.fuzz.runner import start_target
+from vm110.fuzz.session import Session, Settings
+from vm110.fuzz.supervisor import Supervisor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "targets"))
 import build as targets
@@ -78,6 +81,26 @@ def test_heap_overflow_finding_carries_the_asan_report(tmp_path, programs):
     assert not list(here.iterdir()) and not list(tmp_path.glob("core*")), "no core left where the controller ran"
     fixed = replay(out / bucket["file"], programs("asan-correct"))
     assert fixed.returncode == 0 and "does not trigger" in fixed.stdout, fixed.stdout + fixed.stderr
+
+
+def test_a_crash_in_the_middle_of_a_case_is_one_trigger(tmp_path, programs):
+    """The trial's run: the controller crashed while a case was resending a command, and each resend
+    that went out after the exit was a missing_ack of its own (three, each replayed, none reproduced)."""
+    exe = programs("plain-null-call")
+    rx, listen = free_ports(2)
+    session = Session(Settings(("127.0.0.1", rx), ("127.0.0.1", listen)),
+                      Supervisor(f"{exe} {rx} {listen}", core=False), tmp_path)
+    unknown_state = dict(M.ARMED_VRPI, bu_state=0x55)
+    vrci = M.build(C.PacketType.VRCI, 0, M.default_fields(C.PacketType.VRCI, 77))
+    crash = lambda serial: (M.build(C.PacketType.VRPI, serial, unknown_state),) * 2    # noqa: E731
+    resend = lambda serial: (vrci, vrci)                                                 # noqa: E731
+    try:
+        start_target(session)
+        session.run_steps(1, [(crash, 0.0, True)] + [(resend, 100.0, True)] * 5)
+        session.pump(time.time() + 2.5)
+        assert [t.oracle for t in session.monitor.triggers] == ["crash"], [t.detail for t in session.monitor.triggers]
+    finally:
+        session.close()
 
 
 def decode_vlaps(packet_hex: str) -> int:

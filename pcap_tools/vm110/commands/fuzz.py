@@ -28,7 +28,7 @@ from ..fileio import check_target
 from ..fuzz.corpus import is_entry_file, load_entry
 from ..fuzz.coverage import map_size
 from ..fuzz.destination import check
-from ..fuzz.findings import load_finding, write_summary
+from ..fuzz.findings import load_finding, make_folder, write_summary
 from ..fuzz.guided import GuidedConfig
 from ..fuzz.link import parse_endpoint
 from ..fuzz.oracles import Limits
@@ -144,10 +144,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--target HOST:PORT is required (or --replay FINDING)")
     settings = _settings(args, args.target, args.listen, args.group)
     out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CliError(f"cannot create {out}: {exc.strerror}") from None
+    make_folder(out, "--out")
     check_target(out / "findings.json")    # refused now, not after the run
     duration = None if args.cases else (args.duration or DEFAULT_DURATION_S)
     guided = None

@@ -22,6 +22,7 @@ from ..errors import CliError
 from ..fileio import write_text
 from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
+from .findings import make_folder
 
 _MAX_PACKETS = 16
 _MAX_PACKET = 65_507
@@ -135,10 +136,7 @@ class CorpusDir:
 
     def __init__(self, folder: Path) -> None:
         self.folder = folder
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise CliError(f"cannot create --corpus {folder}: {exc.strerror}") from None
+        make_folder(folder, "--corpus")
         self.next = 0
         self.skipped: list[str] = []
 

@@ -24,7 +24,7 @@ _MAX_FILE = 16 << 20
 _MAX_STEPS = 64                  # the longest case has 20
 _MAX_PACKET = 65_507             # the largest UDP payload over IPv4
 _MAX_MS = 60_000.0               # delays, pauses and withholding
-_MAX_INT = 1 << 63
+_MAX_INT = (1 << 63) - 1
 _STREAM_FIELDS = frozenset(f.name for f in PAYLOAD_CLASSES[C.PacketType.VRPI].fields_desc)
 
 
@@ -143,6 +143,17 @@ def write_pcap(path: Path, traffic: list[tuple[float, bool, bytes, tuple[str, in
             writer.write(int(t * 1_000_000), flows[key].frame(data))
 
 
+def make_folder(folder: Path, what: str) -> None:
+    """Create `folder` (and its parents) unless it is there; CliError (one line) when it cannot be,
+    saying so when something that is not a folder has its name."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:     # mkdir's exist_ok forgives only a folder
+        raise CliError(f"{what} {folder} is not a directory") from None
+    except OSError as exc:
+        raise CliError(f"cannot create {what} {folder}: {exc.strerror}") from None
+
+
 def write_summary(out: Path, summary: dict[str, Any]) -> Path:
     path = out / "findings.json"
     write_text(path, json.dumps(summary, indent=2) + "\n")
@@ -190,11 +201,11 @@ def _checked(raw: dict[str, Any]) -> Finding:
         kinds = _KINDS[str(f.type)]
         if (isinstance(value, bool) and bool not in kinds) or not isinstance(value, kinds):
             raise _Bad(f"{f.name} is not of type {f.type}")
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and not _finite(value):
-            raise _Bad(f"{f.name} is not a finite number below 2**63")
     finding = Finding(**values)
     if finding.schema != SCHEMA:
-        raise _Bad(f"schema {finding.schema} (this version reads {SCHEMA})")
+        raise _Bad(f"schema {_short(finding.schema)} (this version reads {SCHEMA})")
+    for name, (low, high) in _RANGES.items():
+        _in_range(name, getattr(finding, name), low, high)
     for name in ("pause_vrpi_ms", "withhold_vrai_ms", "settle_ms"):
         _milliseconds(name, getattr(finding, name))
     _packet("packet_hex", finding.packet_hex)
@@ -213,13 +224,35 @@ def _checked(raw: dict[str, Any]) -> Finding:
     return finding
 
 
-def _finite(value: float) -> bool:
-    return math.isfinite(value) and abs(value) < _MAX_INT
+# The other numbers of a finding (its millisecond values are checked by _milliseconds).
+_RANGES: dict[str, tuple[int, int]] = {
+    "seed": (0, (1 << 64) - 1), "case_index": (0, _MAX_INT), "differences": (0, _MAX_PACKET), "time": (0, _MAX_INT),
+}
+
+
+def _in_range(name: str, value: float, low: int, high: int) -> None:
+    _finite(name, value)
+    if not low <= value <= high:
+        raise _Bad(f"{name} is out of range: must be from {low} to {high}")
+
+
+def _short(number: int) -> str:
+    text = str(number)
+    return text if len(text) <= 20 else f"of {len(text)} digits"
+
+
+def _finite(name: str, value: float) -> None:
+    """NaN and infinities (which Python's JSON reads) have no range to be out of."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise _Bad(f"{name} is not a finite number")
 
 
 def _milliseconds(name: str, value: Any) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= _MAX_MS:
-        raise _Bad(f"{name} is not a number of milliseconds from 0 to {_MAX_MS:.0f}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _Bad(f"{name} is not a number of milliseconds")
+    _finite(name, value)
+    if not 0 <= value <= _MAX_MS:
+        raise _Bad(f"{name} is out of range: must be a number of milliseconds from 0 to {_MAX_MS:.0f}")
 
 
 def _packet(name: str, value: Any) -> None:

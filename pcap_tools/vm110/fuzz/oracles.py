@@ -88,6 +88,7 @@ class Monitor:
         self.last_rx: Optional[float] = None
         self.vrco: dict[int, _Vrco] = {}
         self.stall_reported = False
+        self.exited = False                       # until a restart: a dead controller owes no acks
         self.pending.clear()
         self.illegal_ids.clear()
 
@@ -105,6 +106,7 @@ class Monitor:
         self.last_vrpo, self.vrpo_interval, self.last_rx = other.last_vrpo, other.vrpo_interval, other.last_rx
         self.vrco = copy.deepcopy(other.vrco)
         self.vrco_seen = other.vrco_seen
+        self.exited = other.exited
         self.sent_ids |= other.sent_ids
 
     def fire(self, trigger: Trigger) -> None:
@@ -135,7 +137,7 @@ class Monitor:
             return
         if not fields["problems"]:
             self.illegal_ids.pop(command_id, None)      # an ack of this ID is now this VRCI's
-            if expect_ack:
+            if expect_ack and not self.exited:
                 deadline = t + self.limits.ack_timeout_ms / 1000
                 self.pending.setdefault(command_id, collections.deque()).append((deadline, index))
         else:
@@ -220,7 +222,12 @@ class Monitor:
         sanitizer's report takes a while: the cases sent while it was written are innocent)."""
         start = (self.last_rx or t) - 0.05
         suspects = self._between(start, t)[:_MAX_CRASH_SUSPECTS]
-        self.pending.clear()      # a dead controller's missing acks are the crash's, not findings of their own
+        # A dead controller's missing acks are the crash's, not findings of their own: those still
+        # open, those of commands sent to it from now on, and those that timed out while it was
+        # dying (silent since before the command was sent).
+        self.exited = True
+        self.pending.clear()
+        self.triggers = [x for x in self.triggers if x.oracle != MISSING_ACK or x.case_index not in suspects]
         crash = crash or Crash(returncode)
         self.fire(Trigger(CRASH, t, crash.headline(), None, suspects, None, crash.signature(), crash=crash))
 
@@ -233,10 +240,15 @@ class Monitor:
                 self.fire(Trigger(MISSING_ACK, now, f"no VRAO for command ID {command_id} within "
                                   f"{self.limits.ack_timeout_ms:.0f} ms", index, [index], None, "no ack",
                                   command_id))
-            if not queue:
+                # One trigger per command: the case's retransmissions of it still open would only
+                # repeat it (and each would replay the same case).
+                queue = collections.deque(e for e in queue if e[1] != index)
+            if queue:
+                self.pending[command_id] = queue
+            else:
                 del self.pending[command_id]
-        if self.last_vrpo is not None and not self.stall_reported \
-                and now - self.last_vrpo > self.limits.stall_ms / 1000:
+        if self.last_vrpo is not None and not self.stall_reported and not self.exited \
+                and now - self.last_vrpo > self.limits.stall_ms / 1000:      # a dead one's silence is the crash
             self.stall_reported = True
             window = max(self.vrpo_interval, 0.1) + 0.1
             after = self._between(self.last_vrpo, self.last_vrpo + window)

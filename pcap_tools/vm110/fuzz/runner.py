@@ -137,7 +137,7 @@ def start_target(s: Session) -> None:
 class Runner:
     def __init__(self, cfg: RunConfig) -> None:
         self.cfg = cfg
-        cfg.out.mkdir(parents=True, exist_ok=True)
+        F.make_folder(cfg.out, "--out")
         # What can be refused (the log's path, the command, the map) before the socket is opened.
         self._log = _open_log(cfg.out) if cfg.target_cmd else None
         self.guided: Optional[Guided] = None
