@@ -1786,7 +1786,8 @@ local function sender_of(r, pinfo, t, frame)
     local addr = tostring(WS.src(pinfo))
     local snd = by_addr[addr]
     if snd then return snd end
-    snd = new_sender(fmt("%s %s:%d origin 0x%04x", direction, addr, port, r.origin), port)
+    local shown = addr:find(":", 1, true) and "[" .. addr .. "]" or addr -- (IPv6 in brackets, as analyze)
+    snd = new_sender(fmt("%s %s:%d origin 0x%04x", direction, shown, port, r.origin), port)
     by_addr[addr] = snd
     local host = fmt("%s %d %s", direction, r.origin, addr)
     local others = hosts[host]

@@ -52,7 +52,7 @@ def test_fail_on_violation_exits_one(files):
 
 
 @pytest.mark.parametrize("args", [
-    ["--fail-on", "lost>>0"], ["--fail-on", "nonsense>1"], ["--fail-on", ""], ["--jobs", "0"], ["--port", "70000"],
+    ["--fail-on", "lost>>0"], ["--fail-on", "nonsense>1"], ["--fail-on", ""], ["--fail-on", "lost>\uff11"], ["--jobs", "0"], ["--port", "70000"],
 ])
 def test_bad_arguments(files, args):
     one_line_error(vm110(str(files / "clean.pcap"), *args))

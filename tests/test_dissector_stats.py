@@ -308,3 +308,29 @@ def test_appended_captures_restart_at_the_seam(tshark, tmp_path):
         [mine] = [s for s in report["senders"] if s["id"] == sender]
         assert {k: mine["serial"][k] for k in (*want, "restarts")} == {**want, "restarts": 1}, sender
         assert [{k: e[k] for k in ("frame", "from", "to")} for e in mine["serial"]["restart_events"]] == [event]
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_ipv6_senders_are_named_as_analyze_names_them(tshark, tmp_path):
+    """An IPv6 source in brackets ([fd00::2]:5827), as `vm110 analyze` writes it: the two
+    outputs join by sender."""
+    from scapy.layers.inet6 import IPv6
+    from scapy.layers.l2 import Ether
+    from scapy.utils import wrpcap
+    from vm110.analysis import analyze
+    from vm110.encode import packet, vrpo_payload
+    frames = []
+    for n in range(5):
+        frame = Ether() / IPv6(src="fd00::2", dst="ff02::1") / UDP(sport=5827, dport=5827) / packet(
+            "VRPO", vrpo_payload(0, b"x"), serial=n)
+        frame.time = 1_750_000_000 + n / 10
+        frames.append(frame)
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            capture = ws.dir / "v6.pcap"
+            wrpcap(str(capture), frames)
+            proc = ws.run(["-r", str(capture), "-q", "-z", "vm110,stat"])
+            report = json.loads(json.dumps(analyze(str(capture))))
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert list(parse(proc.stdout)) == [s["id"] for s in report["senders"]] == ["Output [fd00::2]:5827 origin 0x0000"]

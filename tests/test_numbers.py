@@ -12,7 +12,7 @@ COUNT = number(1, 1000, integer=True)
 
 
 @pytest.mark.parametrize("text", ["nan", "NaN", "inf", "-inf", "infinity", "1e999", "-1", "0", "0.0", "-0",
-                                  "10000.5", "1e18", "", "abc", "0x10"])
+                                  "10000.5", "1e18", "", "abc", "0x10", "\uff11", "\u0661\u0662"])
 def test_refused(text):
     with pytest.raises(argparse.ArgumentTypeError, match=r"above 0 and at most 10000 packets/s"):
         RATE(text)
@@ -25,7 +25,7 @@ def test_accepted(text, value):
 
 def test_integers():
     assert COUNT("7") == 7 and isinstance(COUNT("7"), int)
-    for text in ("1.5", "1e3", "0", "1001", "nan", "9" * 5000):
+    for text in ("1.5", "1e3", "0", "1001", "nan", "9" * 5000, "\uff17", "\u0967"):
         with pytest.raises(argparse.ArgumentTypeError, match="1 to 1000"):
             COUNT(text)
 

@@ -47,6 +47,8 @@ class NumberType:
 
     def _parse(self, text: str) -> Number:
         try:
+            if not text.isascii():    # int() and float() also read other scripts' digits
+                raise ValueError(text)
             if not self.integer:
                 return float(text)
             try:

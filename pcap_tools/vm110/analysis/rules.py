@@ -13,7 +13,7 @@ OPS: dict[str, Callable[[float, float], bool]] = {
     ">=": operator.ge, "<=": operator.le, "==": operator.eq, "!=": operator.ne,
     ">": operator.gt, "<": operator.lt,
 }
-_RULE = re.compile(r"^\s*([A-Za-z_0-9]+)\s*(?:(>=|<=|==|!=|>|<)\s*(-?\d+(?:\.\d+)?))?\s*$")
+_RULE = re.compile(r"^\s*([A-Za-z_0-9]+)\s*(?:(>=|<=|==|!=|>|<)\s*(-?\d+(?:\.\d+)?))?\s*$", re.ASCII)  # (ASCII: no other digits)
 Rule = tuple[str, str, float]
 
 
