@@ -99,10 +99,13 @@ def user(tmp_path, monkeypatch) -> Path:
 
 def test_path_names_the_folders_and_where_they_come_from(user, capsys):
     assert cli.main(["wireshark", "path"]) == 0
-    out = capsys.readouterr().out.splitlines()
+    said = capsys.readouterr()
+    out = said.out.splitlines()
     assert out[:2] == [f"plugins: {user}/.local/lib/wireshark/plugins",
                        f"profile: {user}/cfg/wireshark/profiles/VM-110"]
     assert out[2].endswith("tshark -G folders)")
+    # (XDG_CONFIG_HOME moves the profile, not the plugin: tshark's own word, said)
+    assert said.err == f"note: the plugin folder follows HOME, not XDG_CONFIG_HOME={user}/cfg (only the profile does)\n"
 
 
 def test_without_tshark_the_default_is_used_and_said(user, tmp_path, monkeypatch, capsys):

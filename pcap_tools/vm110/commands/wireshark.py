@@ -22,7 +22,7 @@ from .. import resources
 from ..errors import EXIT_OK, EXIT_USAGE, CliError
 from ..fileio import check_target, write_bytes
 from ..plugin import ROOT_HINT, lua_errors, registers_vm110, skips_lua_as_root
-from ..wireshark_folders import find_tshark, locate, run_tshark
+from ..wireshark_folders import Folders, find_tshark, locate, run_tshark
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -49,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"plugins: {folders.plugins}")
         print(f"profile: {folders.profiles / resources.PROFILE_NAME}")
         print(f"(from {folders.source})")
+        _note_overrides(folders)
         return EXIT_OK
     return check(args.tshark)
 
@@ -66,11 +67,22 @@ def install(tshark: Optional[str], profile: bool, examples: bool) -> int:
     for source, folder in plan:
         _check_target(folder / source.name)
     print(f"folders from {folders.source}")
+    _note_overrides(folders)
     for source, folder in plan:
         print(f"{_copy(source, folder)}: {folder / source.name}")
     print("restart Wireshark (or Analyze > Reload Lua Plugins); `vm110 wireshark check` tests it"
           + ("; pick the VM-110 profile in the status bar (tshark -C VM-110)" if profile else ""))
     return EXIT_OK
+
+
+def _note_overrides(folders: Folders) -> None:
+    """Wireshark's Lua plugin folder follows HOME only: a user who set WIRESHARK_CONFIG_DIR or
+    XDG_CONFIG_HOME to keep a trial install elsewhere is told that the plugin does not follow."""
+    given = [f"{name}={os.environ[name]}" for name in ("WIRESHARK_CONFIG_DIR", "XDG_CONFIG_HOME")
+             if os.environ.get(name) and not str(folders.plugins).startswith(os.environ[name])]
+    if given:
+        print(f"note: the plugin folder follows HOME, not {' or '.join(given)} (only the profile does)",
+              file=sys.stderr)
 
 
 def _check_target(target: Path) -> None:
