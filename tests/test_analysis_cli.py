@@ -94,6 +94,9 @@ def test_empty_capture(files, tmp_path):
     assert result.returncode == EXIT_OK
     report = json.loads((tmp_path / "e.json").read_text())
     assert report["capture"]["packets"] == 0 and report["verdict"]["findings"][0]["rule"] == "no_eglink"
+    # no EG-Link at all is no clean verdict (a link dead from the start), and a rule can fail on it
+    assert "VERDICT: FAIL" in result.stdout
+    assert vm110(str(files / "empty.pcap"), "--fail-on", "eglink_packets<1").returncode == EXIT_FINDINGS
 
 
 def test_json_and_html_of_several_captures_in_parallel(files, tmp_path):

@@ -234,7 +234,7 @@ def test_empty_capture(tmp_path):
     Traffic().write(tmp_path / "empty.pcap")
     report = analyze(str(tmp_path / "empty.pcap"))
     assert report["capture"]["packets"] == 0 and report["senders"] == [] and report["periodic"] == []
-    assert report["verdict"]["ok"] and report["verdict"]["findings"][0]["rule"] == "no_eglink"
+    assert not report["verdict"]["ok"] and report["verdict"]["findings"][0]["rule"] == "no_eglink"
 
 
 def test_command_id_wrap_and_ack_matching(tmp_path):

@@ -133,7 +133,7 @@ def test_garbage_on_stdin_is_one_line_and_exit_2(tmp_path):
     out = _run(["monitor", "--read", "-", "--no-dashboard", "--json", str(tmp_path / "r.json")], b"this is no capture\n")
     assert out.returncode == 2
     err = out.stderr.decode().strip().splitlines()
-    assert err == ["vm110 monitor: -: not a pcap or pcapng capture (magic 0x74686973)"]
+    assert err == ["vm110 monitor: standard input: not a pcap or pcapng capture (magic 0x74686973)"]
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["capture"]["packets"] == 0
 
@@ -144,7 +144,7 @@ def test_a_pipe_that_closes_mid_record_keeps_what_was_seen(tmp_path):
     out = _run(["monitor", "--read", "-", "--no-dashboard", "--json", str(tmp_path / "r.json")], cut)
     assert out.returncode == 2
     err = out.stderr.decode().strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("vm110 monitor: -: file cut in the middle of a record at byte")
+    assert len(err) == 1 and err[0].startswith("vm110 monitor: standard input: file cut in the middle of a record at byte")
     report = json.loads((tmp_path / "r.json").read_text())
     whole = sum(1 for _ in CaptureReader(str(ROOT / "captures" / "normal.pcap")))
     assert 0 < report["capture"]["packets"] < whole
@@ -152,7 +152,7 @@ def test_a_pipe_that_closes_mid_record_keeps_what_was_seen(tmp_path):
     # The same bytes as a file give the same report (but for its name).
     part = tmp_path / "part.pcap"
     part.write_bytes(cut)
-    assert main(["analyze", str(part), "--quiet", "--json", str(tmp_path / "a.json")]) == 0
+    assert main(["analyze", str(part), "--quiet", "--json", str(tmp_path / "a.json")]) == 2     # (damaged: as the monitor)
     a = json.loads((tmp_path / "a.json").read_text())
     a["capture"]["file"] = "-"
     assert a == report

@@ -209,7 +209,8 @@ def verdict(report: dict, located: Located) -> dict:
         findings.insert(0, {"rule": "damaged", "severity": "error", "count": 1,
                             "message": f"capture damaged: {cap['problem']}", "items": where})
     if not report["capture"]["eglink_packets"]:
-        findings.insert(0, {"rule": "no_eglink", "severity": "warning", "count": 0,
+        # (a link silent from the start is no clean verdict either: README, "Silence")
+        findings.insert(0, {"rule": "no_eglink", "severity": "error", "count": 0,
                             "message": "no EG-Link packets in the capture", "items": []})
     return {"ok": not any(f["severity"] == "error" for f in findings), "findings": findings}
 

@@ -13,7 +13,8 @@ OPS: dict[str, Callable[[float, float], bool]] = {
     ">=": operator.ge, "<=": operator.le, "==": operator.eq, "!=": operator.ne,
     ">": operator.gt, "<": operator.lt,
 }
-_RULE = re.compile(r"^\s*([A-Za-z_0-9]+)\s*(?:(>=|<=|==|!=|>|<)\s*(-?\d+(?:\.\d+)?))?\s*$", re.ASCII)  # (ASCII: no other digits)
+# (ASCII: \d would take other scripts' digits too)
+_RULE = re.compile(r"^\s*([A-Za-z_0-9]+)\s*(?:(>=|<=|==|!=|>|<)\s*(-?\d+(?:\.\d+)?))?\s*$", re.ASCII)
 Rule = tuple[str, str, float]
 
 

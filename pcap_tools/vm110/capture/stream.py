@@ -56,7 +56,9 @@ class StreamReader(CaptureReader):
 
     def close(self) -> None:
         """The input ended: bytes left over are a record cut short."""
-        if not self.format and self.buf:
+        if not self.format:
+            if not self.buf and not self.bytes_read:
+                raise CaptureError(f"{self.path}: empty file, not a pcap or pcapng capture")
             raise CaptureError(f"{self.path}: not a pcap or pcapng capture (too short)")
         if self.buf and not self.stopped:
             self.damaged(self.bytes_read, f"file cut in the middle of a record at byte {self.bytes_read} "

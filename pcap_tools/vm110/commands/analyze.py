@@ -215,11 +215,16 @@ def run(args: argparse.Namespace) -> int:
 def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rules: list, command: str) -> int:
     """Print and write the reports (`results`: a report, or the one-line reason a capture could
     not be read, per name) as the options say; the exit code."""
-    # Every readable capture is reported; an unreadable one is an error entry beside them (exit 2).
+    # Every readable capture is reported; an unreadable one is an error entry beside them, and one
+    # damaged partway is reported up to the damage: either is exit 2 (README, "Exit codes").
     reports = [r for r in results if isinstance(r, dict)]
     errors = [{"file": name, "error": r} for name, r in zip(names, results) if isinstance(r, str)]
     for e in errors:
         print(f"vm110 {command}: {e['error']}", file=sys.stderr)
+    damaged = [f"{'standard input' if name == '-' else name}: {r['capture']['problem']}"
+               for name, r in zip(names, results) if isinstance(r, dict) and r["capture"]["problem"]]
+    for line in damaged:
+        print(f"vm110 {command}: {line}", file=sys.stderr)
     if not reports:
         return EXIT_USAGE
     combined: Optional[dict] = combine(reports) if len(names) > 1 else None
@@ -247,6 +252,6 @@ def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rule
     broken = [f"{r['capture']['file']}: {v}" for r in reports for v in rules.violations(fail_rules, r["totals"])]
     for line in broken:
         print(f"fail-on: {line}", file=sys.stderr)
-    if errors:
+    if errors or damaged:
         return EXIT_USAGE
     return EXIT_FINDINGS if broken else EXIT_OK

@@ -103,7 +103,7 @@ def _build(args: argparse.Namespace) -> int:
         print(f"vm110 fleet: damaged: {line}", file=sys.stderr)
     print(f"{args.out}: {outcome.analysed} analysed ({len(outcome.damaged)} damaged, {len(outcome.unreadable)} "
           f"unreadable), {outcome.skipped} already in the dataset, {outcome.replaced} replaced")
-    return EXIT_USAGE if outcome.unreadable else EXIT_OK
+    return EXIT_USAGE if outcome.unreadable or outcome.damaged else EXIT_OK
 
 
 def _query(args: argparse.Namespace) -> int:

@@ -107,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"evidence: {len(evidence.written)} file(s) in {args.evidence}", file=sys.stderr)
         code = deliver(args, [name], [report], fail_rules, "monitor")
         if session.failure:
-            print(f"vm110 monitor: {session.failure}", file=sys.stderr)
+            if not report["capture"]["problem"]:       # (deliver said that one)
+                print(f"vm110 monitor: {session.failure}", file=sys.stderr)
             return EXIT_USAGE
         return code

@@ -62,7 +62,7 @@ class Session:
         self.command_spool = tempfile.TemporaryFile(prefix="vm110-monitor-")   # noqa: SIM115 -- as the spool
         self.retiring = Retiring(self.analysis.tracker, self.command_spool)
         self.fed_until = -math.inf            # the latest time the analysis has been fed
-        self.reader = StreamReader(cfg.name)
+        self.reader = StreamReader("standard input" if cfg.name == "-" else cfg.name)
         self.intake = Intake(cfg.name, cfg.port, cfg.crc, cfg.crc_order, self)
         self.intake.got.on_illegal = self._illegal
         self.live = Live(self.analysis, opt, self.emit)
@@ -336,7 +336,7 @@ class Session:
         except CliError as exc:            # not a capture at all: said at the end
             self.failure = self.failure or str(exc)
         if self.reader.problem and not self.failure:
-            self.failure = f"{self.cfg.name}: {self.reader.problem}"
+            self.failure = f"{self.reader.path}: {self.reader.problem}"
         self._flush()
         if self.last_ts is not None:
             self._tick(self.last_ts, final=True)   # what the end of the input can tell
