@@ -278,8 +278,6 @@ def test_appended_captures_restart_at_the_seam(tshark, tmp_path):
     """Two captures of one link appended (`mergecap -a`: the clock steps back 30 s): each sender
     restarts at its first packet of the second capture, and the serial figures are those of the two
     captures added up (rules.md, "the analysis clock"); `vm110 analyze` says the same."""
-    from scapy.utils import wrpcap
-    from vm110.analysis import analyze
     first, second = (T.REPO / "captures" / name for name in ("loss.pcapng", "normal.pcap"))
     packets = [*rdpcap(str(first)), *rdpcap(str(second))]
     truths = [json.loads(Path(f"{c}.truth.json").read_text()) for c in (first, second)]
@@ -289,15 +287,7 @@ def test_appended_captures_restart_at_the_seam(tshark, tmp_path):
         d = decode(bytes(pkt[UDP].payload))
         sender = f"{d['direction']} {pkt[IP].src}:{pkt[UDP].sport} origin 0x{d['origin']:04x}"
         seam.setdefault(sender, (number, d["serial"]))
-    try:
-        with tshark.workspace(tmp_path) as ws:
-            appended = ws.dir / "appended.pcap"
-            wrpcap(str(appended), packets)
-            proc = ws.run(["-r", str(appended), "-q", "-z", "vm110,stat"])
-            report = json.loads(json.dumps(analyze(str(appended))))
-    except T.TsharkUnavailable as exc:
-        pytest.fail(str(exc))
-    got = parse(proc.stdout)
+    got, report = _stat_and_report(tshark, tmp_path, packets)
     assert sorted(got) == sorted(seam)
     for sender, (frame, serial) in seam.items():
         want = {k: sum(s["serial"].get(k, 0) for t in truths for s in t["senders"] if s["id"] == sender)
@@ -316,8 +306,6 @@ def test_ipv6_senders_are_named_as_analyze_names_them(tshark, tmp_path):
     outputs join by sender."""
     from scapy.layers.inet6 import IPv6
     from scapy.layers.l2 import Ether
-    from scapy.utils import wrpcap
-    from vm110.analysis import analyze
     from vm110.encode import packet, vrpo_payload
     frames = []
     for n in range(5):
@@ -325,12 +313,19 @@ def test_ipv6_senders_are_named_as_analyze_names_them(tshark, tmp_path):
             "VRPO", vrpo_payload(0, b"x"), serial=n)
         frame.time = 1_750_000_000 + n / 10
         frames.append(frame)
+    got, report = _stat_and_report(tshark, tmp_path, frames)
+    assert list(got) == [s["id"] for s in report["senders"]] == ["Output [fd00::2]:5827 origin 0x0000"]
+
+
+def _stat_and_report(tshark: T.Tshark, tmp_path: Path, packets: list) -> tuple[dict, dict]:
+    """`-z vm110,stat` (parsed) and `vm110 analyze`'s report of the packets written as a pcap."""
+    from scapy.utils import wrpcap
+    from vm110.analysis import analyze
     try:
         with tshark.workspace(tmp_path) as ws:
-            capture = ws.dir / "v6.pcap"
-            wrpcap(str(capture), frames)
+            capture = ws.dir / "packets.pcap"
+            wrpcap(str(capture), packets)
             proc = ws.run(["-r", str(capture), "-q", "-z", "vm110,stat"])
-            report = json.loads(json.dumps(analyze(str(capture))))
+            return parse(proc.stdout), json.loads(json.dumps(analyze(str(capture))))
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
-    assert list(parse(proc.stdout)) == [s["id"] for s in report["senders"]] == ["Output [fd00::2]:5827 origin 0x0000"]

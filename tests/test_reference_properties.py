@@ -396,19 +396,13 @@ def check_dissector(runner: Tshark, sc: dict) -> None:
 
 @pytest.mark.tshark
 @pytest.mark.parametrize("runner", RUNNERS, ids=lambda r: r.name)
-def test_dissector_fields_equal_the_reference(runner):
-    @given(scenarios())
-    @_settings(_examples(10))
-    def prop(sc):
-        check_dissector(runner, sc)
-    prop()
-
-
-@pytest.mark.tshark
-@pytest.mark.parametrize("runner", RUNNERS, ids=lambda r: r.name)
-def test_dissector_fields_equal_the_reference_when_the_clock_steps_back(runner):
-    @given(stepped_scenarios())
-    @_settings(_examples(4))
+@pytest.mark.parametrize("traffic, examples", [(scenarios, 10), (stepped_scenarios, 4)],
+                         ids=["forward", "steps-back"])
+def test_dissector_fields_equal_the_reference(runner, traffic, examples):
+    """The dissector's per-frame fields equal the reference's, on ordinary traffic and where the
+    capture's clock steps back (rules.md, "the analysis clock")."""
+    @given(traffic())
+    @_settings(_examples(examples))
     def prop(sc):
         check_dissector(runner, sc)
     prop()
