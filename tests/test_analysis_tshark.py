@@ -7,6 +7,7 @@ import signal
 
 import pytest
 
+import tshark_runner as T
 from test_analysis_engine import build_mixed
 from test_analysis_truth import ALL_CAPTURES, CAPTURES
 from vm110.analysis import analyze
@@ -105,3 +106,32 @@ def test_the_tshark_engine_hands_sigchld_back():
     analyze(str(CAPTURES / "normal.pcap"), engine="tshark")
     assert signal.getsignal(signal.SIGCHLD) == signal.SIG_DFL
     assert signal.set_wakeup_fd(-1) == -1                 # no wakeup fd was left installed
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_every_filter_a_report_gives_shows_its_frames(tshark, tmp_path):
+    """The display filter of each finding item, pasted into Wireshark (tshark -Y here, 4.0, 4.4
+    and 4.6), selects the item's frames: exactly them, or a range holding them all."""
+    checked = 0
+    for name in ("restart.pcapng", "retransmit.pcap", "illegal.pcap"):
+        capture = CAPTURES / name
+        items = [i for f in analyze(str(capture))["verdict"]["findings"] for i in f.get("items", [])]
+        several = [i for i in items if len(i.get("frames", [])) > 1][:12]
+        try:
+            with tshark.workspace(tmp_path / name) as ws:
+                local = ws.dir / name
+                local.write_bytes(capture.read_bytes())
+                for item in several + items[:4]:
+                    done = ws.run(["-r", str(local), "-Y", item["filter"], "-T", "fields", "-e", "frame.number"],
+                                  plugin=False, check=False)
+                    assert done.returncode == 0, (item["filter"], done.stderr)
+                    shown = [int(n) for n in done.stdout.split()]
+                    frames = item.get("frames", [item["frame"]])
+                    if " in {" in item["filter"] or "==" in item["filter"]:
+                        assert shown == sorted(frames), item
+                    else:
+                        assert set(frames) <= set(shown), item
+                    checked += 1
+        except T.TsharkUnavailable as exc:
+            pytest.fail(str(exc))
+    assert checked > 12

@@ -81,7 +81,7 @@ def frame_filter(frames: list[int]) -> str:
         return f"frame.number == {frames[0]}"
     if len(frames) > MAX_FILTER_FRAMES:
         return f"frame.number >= {min(frames)} && frame.number <= {max(frames)}"
-    return "frame.number in {" + " ".join(str(f) for f in frames) + "}"
+    return "frame.number in {" + ", ".join(str(f) for f in frames) + "}"
 
 
 def located_item(frames: Any, time: float, sender: Optional[str], **what: Any) -> dict:
