@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import signal
+import subprocess
 
 import pytest
 
@@ -135,3 +136,31 @@ def test_every_filter_a_report_gives_shows_its_frames(tshark, tmp_path):
         except T.TsharkUnavailable as exc:
             pytest.fail(str(exc))
     assert checked > 12
+
+
+def test_ip_fragments_are_a_warning_with_a_filter_that_shows_them(tmp_path):
+    """Fragments are not reassembled: the report says how many, and its filter shows exactly
+    those frames in Wireshark."""
+    from scapy.layers.inet import IP, UDP, fragment
+    from scapy.layers.l2 import Ether
+    from test_reader import pcap
+    from vm110 import constants as C
+    from vm110.analysis.findings import FRAGMENT_FILTER
+    from vm110.encode import packet, vrpo_payload
+    records, fragments = [], []
+    for i in range(6):
+        datagram = IP(src="10.0.0.20", dst="239.255.42.20") / UDP(sport=C.OUTPUT_PORT, dport=C.OUTPUT_PORT) / packet(
+            "VRPO", vrpo_payload(0, bytes(400 if i % 2 else 40)), serial=i)
+        parts = fragment(datagram, fragsize=256) if i % 2 else [datagram]
+        for part in parts:
+            records.append((1_700_000_000 + i / 10 + len(records) / 1e4, Ether() / part))
+            if len(parts) > 1:
+                fragments.append(len(records))
+    path = tmp_path / "fragments.pcap"
+    path.write_bytes(pcap(records))
+    report = analyze(str(path))
+    [warning] = [f for f in report["verdict"]["findings"] if f["rule"] == "ip_fragments"]
+    assert warning["count"] == len(fragments) == 6 and warning["message"].endswith(FRAGMENT_FILTER)
+    shown = T.HOST.command(["-r", str(path), "-Y", FRAGMENT_FILTER, "-T", "fields", "-e", "frame.number"])
+    assert [int(n) for n in subprocess.run(shown, capture_output=True, text=True, check=True).stdout.split()] == fragments
+    assert_same(str(path))

@@ -15,6 +15,7 @@ from .collect import CODE, TYPES
 
 MAX_ITEMS = 100
 MAX_FILTER_FRAMES = 64
+FRAGMENT_FILTER = "ip.flags.mf == 1 || ip.frag_offset > 0 || ipv6.fragment"   # (shows IP fragments)
 
 def _order(item: dict) -> tuple:
     return item["frame"], item.get("sender") or ""
@@ -208,6 +209,10 @@ def verdict(report: dict, located: Located) -> dict:
                   "filter": frame_filter([cap["packets"]])}] if cap["packets"] else []
         findings.insert(0, {"rule": "damaged", "severity": "error", "count": 1,
                             "message": f"capture damaged: {cap['problem']}", "items": where})
+    if cap["fragments"]:      # (not reassembled: what they carry is missing from everything above)
+        findings.insert(0, {"rule": "ip_fragments", "severity": "warning", "count": cap["fragments"],
+                            "message": f"{cap['fragments']} IP fragments not analysed (EG-Link packets in them "
+                                       f"count as lost): {FRAGMENT_FILTER}", "items": []})
     if not report["capture"]["eglink_packets"]:
         # (a link silent from the start is no clean verdict either: README, "Silence")
         findings.insert(0, {"rule": "no_eglink", "severity": "error", "count": 0,
