@@ -58,6 +58,12 @@ def test_bad_arguments(files, args):
     one_line_error(vm110(str(files / "clean.pcap"), *args))
 
 
+def test_a_report_file_that_cannot_be_written_is_said_before_the_analysis(files, tmp_path):
+    result = vm110(str(files / "clean.pcap"), "--json", str(tmp_path / "no" / "such" / "r.json"))
+    one_line_error(result)
+    assert "no folder" in result.stderr and "VERDICT" not in result.stdout     # (nothing analysed first)
+
+
 def test_fail_on_name_in_capitals_is_named_as_unknown(files):
     result = vm110(str(files / "clean.pcap"), "--fail-on", "LOST>0")
     one_line_error(result)

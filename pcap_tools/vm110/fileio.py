@@ -21,11 +21,16 @@ PathLike = Union[str, "os.PathLike[str]"]
 
 def check_target(path: PathLike) -> Path:
     """The path written to (symbolic links followed, so that a link stays a link); CliError when
-    it exists and is not a regular file."""
+    it exists and is not a regular file, or its folder is missing or not writable (said before
+    any work, not after it)."""
     real = Path(os.path.realpath(path))
     try:
         mode = real.stat().st_mode
     except FileNotFoundError:
+        if not real.parent.is_dir():
+            raise CliError(f"cannot write {os.fspath(path)}: no folder {real.parent}") from None
+        if not os.access(real.parent, os.W_OK | os.X_OK):
+            raise CliError(f"cannot write {os.fspath(path)}: the folder {real.parent} is not writable") from None
         return real
     except OSError as exc:
         raise CliError(f"cannot write {os.fspath(path)}: {exc.strerror}") from None

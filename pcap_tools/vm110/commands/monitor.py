@@ -94,6 +94,9 @@ def run(args: argparse.Namespace) -> int:
         session = Session(source, options, cfg)
         stack.callback(session.close)
         session.run()
+        if session.failure and not session.reader.format:    # nothing read (no interface, not a capture)
+            print(f"vm110 monitor: {session.failure}", file=sys.stderr)
+            return EXIT_USAGE
         if session.board is None and cfg.lines and not args.quiet:
             print(file=sys.stderr if report_out else sys.stdout)
         regret = session.intake.regret()
