@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from pathlib import Path
 
 import pytest
 from scapy.packet import Raw
@@ -243,3 +244,23 @@ def test_pcapng_gives_the_same_report(mixed, tmp_path):
     strip = ("capture", "tool")
     assert {k: v for k, v in again.items() if k not in strip} == {k: v for k, v in report.items() if k not in strip}
     assert again["capture"]["format"] == "pcapng" and again["capture"]["packets"] == report["capture"]["packets"]
+
+
+def test_crc_candidates_are_counted_alike_on_ipv6(tmp_path):
+    """A packet valid under the chosen CRC counts for it only, on IPv6 (off the hot path) as on
+    IPv4: restart.pcapng has one that a second variant validates too (frame 750, bzip2/big)."""
+    from scapy.layers.inet import IP, UDP
+    from scapy.layers.inet6 import IPv6
+    from scapy.layers.l2 import Ether
+    from scapy.utils import rdpcap, wrpcap
+    original = Path(__file__).resolve().parents[1] / "captures" / "restart.pcapng"
+    moved = []
+    for pkt in rdpcap(str(original)):
+        udp = pkt[UDP]
+        again = Ether() / IPv6(src="fd00::" + pkt[IP].src.rsplit(".", 1)[1], dst="ff02::1") / UDP(
+            sport=udp.sport, dport=udp.dport) / bytes(udp.payload)[:udp.len - 8]
+        again.time = pkt.time
+        moved.append(again)
+    wrpcap(str(tmp_path / "v6.pcap"), moved)
+    v4, v6 = analyze(str(original)), analyze(str(tmp_path / "v6.pcap"))
+    assert v6["crc"] == v4["crc"] and v4["crc"]["candidates"] == {"mpeg2/little": v4["crc"]["valid"]}

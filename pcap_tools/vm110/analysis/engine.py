@@ -506,7 +506,9 @@ class FastEngine:
         if n >= C.OVERHEAD:
             got.crc_checked += 1
             end = min(C.PREFIX_LEN + fields["size"], n - C.CRC_LEN)
-            got.crc_counts.update(crc_matches(payload, end))
+            # (valid under the chosen one: counted for it only, as on the hot path)
+            matches = crc_matches(payload, end)
+            got.crc_counts.update({(variant, order)} if (variant, order) in matches else matches)
         if frame in reader.snap_truncated:
             problems = [TRUNCATED]       # the capture cut it: nothing else can be judged
         if problems:

@@ -90,7 +90,7 @@ def _build(got: Collected) -> dict:
         },
         "crc": {"variant": got.crc_variant, "byte_order": got.crc_order, "auto": got.crc_auto,
                 "valid": got.eglink - invalid, "invalid": invalid, "unchecked": got.eglink - got.crc_checked,
-                "candidates": {f"{v}/{o}": n for (v, o), n in sorted(got.crc_counts.items())}},
+                "candidates": {f"{v}/{o}": n for (v, o), n in sorted(got.crc_counts.items()) if n}},
         "illegal": {"total": got.illegal, "by_reason": dict(sorted(got.illegal_reasons.items())),
                     "examples": [{"frame": f, "time": t, "src": s, "type": p, "reasons": list(r)}
                                  for f, t, s, p, r in got.illegal_examples]},
