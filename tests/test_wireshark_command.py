@@ -144,6 +144,19 @@ def test_install_updates_its_files_and_leaves_the_users(user, capsys):
     assert f"unchanged: {plugins / 'vm110.lua'}" in capsys.readouterr().out
 
 
+def test_check_names_the_version_when_another_plugin_prints(user, capsys):
+    """Another Lua plugin that prints while loading (on tshark's standard output) does not take the
+    place of the version line."""
+    plugins = user / ".local" / "lib" / "wireshark" / "plugins"
+    plugins.mkdir(parents=True)
+    (plugins / "chatty.lua").write_text('print("hello from chatty")')
+    assert cli.main(["wireshark", "install"]) == 0
+    capsys.readouterr()
+    assert cli.main(["wireshark", "check"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("tshark: ") and ": TShark (Wireshark) " in first, first
+
+
 def test_install_leaves_a_linked_plugin_alone(user, tmp_path, capsys):
     """A developer's link to a checkout is not written through: nothing is installed, exit 2."""
     plugins = user / ".local" / "lib" / "wireshark" / "plugins"

@@ -116,7 +116,8 @@ def check(explicit: Optional[str]) -> int:
     if tshark is None:
         raise CliError("tshark not found (install Wireshark's tshark, or give --tshark PATH)")
     try:
-        version = run_tshark(tshark, ["-v"]).stdout.splitlines()[:1]
+        # (a Lua plugin may print while loading: the version is the line that says TShark)
+        version = [line for line in run_tshark(tshark, ["-v"]).stdout.splitlines() if line.startswith("TShark")][:1]
         plugins = run_tshark(tshark, ["-G", "plugins"])
         protocols = run_tshark(tshark, ["-G", "protocols"])
     except (OSError, subprocess.TimeoutExpired) as exc:
@@ -178,10 +179,12 @@ def _decode_samples(tshark: str) -> str:
         with open(capture, "wb") as stream, PcapWriter(stream) as writer:
             writer.write_many((round(f.time * 1_000_000), bytes(f)) for f in frames)
         try:
-            done = run_tshark(tshark, ["-r", capture, "-T", "fields", "-e", "vm110.type"])
+            done = run_tshark(tshark, ["-r", capture, "-T", "fields", "-e", "frame.number", "-e", "vm110.type"])
         except (OSError, subprocess.TimeoutExpired) as exc:
             return f"tshark failed on the sample packets: {exc}"
-    got = done.stdout.split()
+    # (the frames' lines only: a Lua plugin may print on standard output while loading)
+    rows = [line.split("\t") for line in done.stdout.splitlines()]
+    got = [row[1] for row in rows if len(row) == 2 and row[0].isdigit()]
     lua = [line for line in (done.stdout + done.stderr).splitlines() if "Lua Error" in line]
     if lua:
         return f"Lua error while decoding: {lua[0].strip()}"
