@@ -27,10 +27,10 @@ trap 'kill "$dumpcap_pid" 2>/dev/null || true' EXIT
 for _ in $(seq 50); do [ -s "$out" ] && break; sleep 0.1; done   # capture running before traffic starts
 
 "$vm110" simulate controller --listen "$controller:$in_port" --peer "$bu:$out_port" \
-    --source "$controller:$out_port" --duration "$seconds" --command-every 3 >"$out.controller.log" &
+    --source "$controller:$out_port" --duration "$seconds" --command-every 3 >"$out.controller.log" 2>&1 &
 controller_pid=$!
 "$vm110" simulate bu --listen "$bu:$out_port" --peer "$controller:$in_port" --source "$bu:$in_port" \
-    --duration "$seconds" --command-every 1 --loss 5 --seed 1 --stall 6:6.8 >"$out.bu.log"
+    --duration "$seconds" --command-every 1 --loss 5 --seed 1 --stall 6:6.8 >"$out.bu.log" 2>&1
 wait "$controller_pid"
 wait "$dumpcap_pid"
 trap - EXIT

@@ -2,9 +2,11 @@
 every plot is there with something drawn in it."""
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 from html.parser import HTMLParser
+from pathlib import Path
 
 import pytest
 
@@ -14,6 +16,7 @@ from vm110.analysis import analyze, report_html
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--no-first-run",
          "--disable-component-update", "--disable-sync", "--enable-logging=stderr", "--v=0"]
 CONSOLE = re.compile(r":CONSOLE[:(]")
+CAPTURES = Path(__file__).resolve().parent.parent / "captures"
 PLOTS = {"interval-histogram": "bar", "interval-time": "series", "serial-gaps": "point",
          "ack-latency": "bar", "retransmissions": "bar", "state-timeline": "segment"}
 
@@ -71,3 +74,42 @@ def test_report_renders_with_every_plot(tmp_path):
     periodic = len(report["periodic"])
     assert sum(1 for cls in figures.plots["interval-histogram"] if cls == "marker") >= 2
     assert dom.count('data-plot="interval-time"') == periodic
+
+
+class Tables(HTMLParser):
+    """The page's tables as rows of cell texts (header row included)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.tables: list[list[list[str]]] = []
+        self.cell: list[str] | None = None
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "table":
+            self.tables.append([])
+        elif tag == "tr":
+            self.tables[-1].append([])
+        elif tag in ("td", "th"):
+            self.cell = []
+
+    def handle_data(self, data):
+        if self.cell is not None:
+            self.cell.append(data)
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th") and self.cell is not None:
+            self.tables[-1][-1].append("".join(self.cell))
+            self.cell = None
+
+
+def test_the_commands_table_names_ms_for_ack_latency():
+    """retransmit.pcap's VRCI are acknowledged up to 1599.991 ms after their first transmission
+    (its truth file): the column that shows 1599.99 says it is in ms."""
+    truth = json.loads((CAPTURES / "retransmit.pcap.truth.json").read_text())
+    latencies = [c["latency_first_ms"] for c in truth["commands"]["VRCI"]["list"] if c["latency_first_ms"] is not None]
+    tables = Tables()
+    tables.feed(report_html.render([analyze(str(CAPTURES / "retransmit.pcap"))]))
+    header, *rows = next(t for t in tables.tables if t[0][:2] == ["type", "commands"])
+    assert header[-3:] == ["latency p50 (ms)", "latency p95 (ms)", "latency max (ms)"]
+    vrci = dict(zip(header, next(r for r in rows if r[0] == "VRCI")))
+    assert vrci["latency max (ms)"] == f"{max(latencies):.2f}" == "1599.99"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -102,6 +103,50 @@ def test_the_summary_shows_start_and_end_in_utc_and_relays_relative(capsys):
     relays = next(line for line in out.splitlines() if line.startswith("ES-Link relays open"))
     assert "2025-06-15T15:06:47.0000" in relays and "(+7.0000" in relays and "for 1.125 s" in relays
     assert "1750000" not in out                               # no raw epoch seconds anywhere
+
+
+def relays_capture(path: Path, opened_us: int, closed_us: int) -> Path:
+    """VRPI every 125 ms for 1 s, the BU in "External link error" (ES-Link relays open) from
+    `opened_us` until the packet at `closed_us`, armed before and after."""
+    times = sorted({*range(0, 1_000_000, 125_000), opened_us, closed_us})
+    T.write_pcap(path, [bytes(VM110(origin=0x0101, serial=i) / VRPI(
+        bu_state=0x02 if opened_us <= t < closed_us else 0x11, armed_ru=0x0C07, ru_state=3))
+        for i, t in enumerate(times)], times)
+    return path
+
+
+def test_finding_items_keep_seconds_to_the_ms(capsys, tmp_path):
+    """Relays open for 0.237654 s (the capture's own times): the finding's item line says 0.238 s
+    as the relays line does (it said 0.2); the JSON keeps every digit."""
+    pcap = relays_capture(tmp_path / "relays.pcap", 250_000, 487_654)
+    out = vm110(capsys, "analyze", str(pcap), "--json", str(tmp_path / "r.json"))
+    item = next(line for line in out.splitlines() if "duration_s" in line)
+    relays = next(line for line in out.splitlines() if line.startswith("ES-Link relays open"))
+    assert "duration_s 0.238 " in item and "for 0.238 s" in relays, (item, relays)
+    report = json.loads((tmp_path / "r.json").read_text())
+    (finding,) = [f for f in report["verdict"]["findings"] if f["rule"] == "relays_open"]
+    assert finding["items"][0]["duration_s"] == pytest.approx(0.237654, abs=1e-6)
+
+
+def test_restart_s_relays_duration_reads_the_same_twice(capsys):
+    """The trial's case: restart.pcapng's one relays-open episode, in its finding and its section."""
+    out = vm110(capsys, "analyze", str(CAPTURES / "restart.pcapng")).splitlines()
+    item = next(line for line in out if "duration_s" in line)
+    (seconds,) = re.findall(r" for ([\d.]+) s ", next(line for line in out if line.startswith("ES-Link relays open")))
+    assert f"duration_s {seconds} " in item and len(seconds.split(".")[1]) == 3, (item, seconds)
+
+
+def test_the_summary_names_ms_for_ack_latency(capsys):
+    """retransmit.pcap's VRCI are acknowledged up to 1599.991 ms after their first transmission
+    (its truth file): the column that shows 1600.0 says it is in ms."""
+    truth = json.loads((CAPTURES / "retransmit.pcap.truth.json").read_text())
+    latencies = [c["latency_first_ms"] for c in truth["commands"]["VRCI"]["list"] if c["latency_first_ms"] is not None]
+    lines = vm110(capsys, "analyze", str(CAPTURES / "retransmit.pcap")).splitlines()
+    at = next(i for i, line in enumerate(lines) if line.startswith("commands "))
+    header = re.split(r"\s{2,}", lines[at].strip())
+    assert header[-3:] == ["lat p50 ms", "lat p95 ms", "lat max ms"]
+    vrci = dict(zip(header, re.split(r"\s{2,}", next(line for line in lines[at:] if line.startswith("VRCI")).strip())))
+    assert vrci["lat max ms"] == f"{max(latencies):.1f}" == "1600.0"
 
 
 def test_synth_says_when_its_capture_lies(capsys, tmp_path):

@@ -11,14 +11,16 @@ import sys
 def test_multicast_defaults_inside_a_namespace(netns):
     run = ["ip", "netns", "exec", netns, sys.executable, "-m", "vm110", "simulate"]
     common = ["--iface", "127.0.0.1", "--duration", "2.5", "--json"]
-    with subprocess.Popen(run + ["controller", *common], stdout=subprocess.PIPE, text=True) as ctl:
+    with subprocess.Popen(run + ["controller", *common], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          text=True) as ctl:
         bu = subprocess.run(run + ["bu", "--command-every", "0.5", *common], capture_output=True, text=True, timeout=30)
-        ctl_out, _ = ctl.communicate(timeout=30)
+        ctl_out, ctl_err = ctl.communicate(timeout=30)
     assert bu.returncode == 0 and ctl.returncode == 0, bu.stderr
-    assert "group 239.255.42.20" in bu.stdout and "to 239.255.42.20:5825" in bu.stdout
-    assert "to 239.255.42.20:5827" in ctl_out
-    bu_log = [json.loads(line) for line in bu.stdout.splitlines() if line.startswith("{")]
-    ctl_log = [json.loads(line) for line in ctl_out.splitlines() if line.startswith("{")]
+    # The sockets line on stderr: stdout is the JSON log alone.
+    assert "group 239.255.42.20" in bu.stderr and "to 239.255.42.20:5825" in bu.stderr
+    assert "to 239.255.42.20:5827" in ctl_err
+    bu_log = [json.loads(line) for line in bu.stdout.splitlines()]
+    ctl_log = [json.loads(line) for line in ctl_out.splitlines()]
     assert bu_log[-1]["summary"]["received"]["VRPO"] >= 15 and ctl_log[-1]["summary"]["received"]["VRPI"] >= 12
     acked = [e["command_id"] for e in bu_log if e.get("event") == "command_acked"]
     assert len(acked) >= 3 and acked == [e["command_id"] for e in ctl_log if e.get("event") == "executed"]

@@ -203,8 +203,11 @@ def plot(after: Callable[[int], float], gaps: np.ndarray) -> dict:
     # min). Among a few hundred intervals, p99.9 is the longest one: a single watchdog gap would
     # make the bins so wide that every other interval fell into the first (the HTML plot showed an
     # empty, stretched histogram). Everything above goes to the last bin.
-    low = float(gaps[0])
-    p50, p95, top = (low if v is None else v for v in (timing.percentile(gaps, q) for q in (50, 95, 99.9)))
+    # A step back in time (negative intervals, time_backwards) stretches no bin either: the bins
+    # start at the lowest interval of 0 or more, and the first one holds the negative ones.
+    bulk = gaps[int(np.searchsorted(gaps, 0.0)):] if gaps[-1] >= 0 else gaps
+    low = float(bulk[0])
+    p50, p95, top = (low if v is None else v for v in (timing.percentile(bulk, q) for q in (50, 95, 99.9)))
     high = min(top, max(4 * p50, p95 + 3 * (p95 - low)))
     high = max(high, low + 1e-3)
     width = (high - low) / HISTOGRAM_BINS

@@ -21,8 +21,11 @@ MAX_POINTS = 2000                          # gap markers per sender
 MIN_BAR = 3                                # px: the narrowest and lowest bar drawn
 HIST_BAR_PX = 6                            # px: the narrowest histogram bin (narrower ones are merged)
 KEY_ROW = 15                               # px per legend row below a plot
-OVERFLOW = "#7f7f7f"                       # the histogram's bar of the intervals beyond its bins
+CHAR_PX = 6.5                              # px: the widest a character of the 11 px labels takes
+LABEL_ROW = 13                             # px between rows of line labels
+OVERFLOW = "#7f7f7f"                       # the histogram's bars of the intervals beyond its bins and below 0
 RELAYS, RESTART = "#c62828", "#6a1b9a"     # the state timeline's relays-open row and restart lines
+Bar = tuple[float, float, float]          # a histogram bar: left, width, count (data units)
 COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
           "#bcbd22", "#17becf")
 CSS = """
@@ -68,6 +71,7 @@ class Chart:
         self.y0, self.y1 = y0, y1 if y1 > y0 else y0 + 1
         self.parts: list[str] = []
         self.xlabel, self.ylabel, self.xtime, self.xint = xlabel, ylabel, xtime, xint
+        self.xtick_min = self.x0          # no x ticks left of this (the histogram's slot of negative intervals)
         self.xtick_max = self.x1          # no x ticks right of this (the histogram's overflow slot)
         self.extra = 0                    # px below the plot (a legend)
 
@@ -82,7 +86,7 @@ class Chart:
         p.append(f'<rect x="{ML}" y="{MT}" width="{W - ML - MR}" height="{H - MT - MB}" fill="none" stroke="#999"/>')
         # Time axes count seconds from the start of the capture, so their ticks are placed on that.
         base = self.x0 if self.xtime else 0.0
-        for t in _ticks(self.x0 - base, self.xtick_max - base):
+        for t in _ticks(self.xtick_min - base, self.xtick_max - base):
             if self.xint and t != int(t):
                 continue
             p.append(f'<text x="{self.x(t + base):.1f}" y="{H - MB + 14}" text-anchor="middle">{t:g}</text>')
@@ -94,20 +98,24 @@ class Chart:
             p.append(f'<text x="12" y="{(MT + H - MB) / 2}" text-anchor="middle" '
                      f'transform="rotate(-90 12 {(MT + H - MB) / 2})">{_e(self.ylabel)}</text>')
 
-    def vline(self, v: float, color: str, label: str, title: str = "") -> None:
+    def vline(self, v: float, color: str, label: str, title: str = "", y: float = MT + 11) -> None:
+        """A dashed line at v, its label at height y."""
         if self.x0 <= v <= self.x1:
             hover = f"<title>{_e(title)}</title>" if title else ""
             self.parts.append(f'<line class="marker" x1="{self.x(v):.1f}" x2="{self.x(v):.1f}" y1="{MT}" '
                               f'y2="{H - MB}" stroke="{color}" stroke-dasharray="4 3">{hover}</line>'
-                              + (self._vlabel(self.x(v), color, label) if label else ""))
+                              + (self._vlabel(self.x(v), color, label, y) if label else ""))
 
     @staticmethod
-    def _vlabel(x: float, color: str, label: str) -> str:
-        """The label right of its line, or left of it when the line is in the plot's right half
-        (where the text would run past the edge)."""
-        right_half = x > (ML + W - MR) / 2
-        anchor, dx = ("end", -3) if right_half else ("start", 3)
-        return f'<text x="{x + dx:.1f}" y="{MT + 11}" text-anchor="{anchor}" fill="{color}">{_e(label)}</text>'
+    def vlabel_at(x: float) -> tuple[str, float]:
+        """(text-anchor, offset) of a line's label: right of its line, or left of it when the line
+        is in the plot's right half (where the text would run past the edge)."""
+        return ("end", -3) if x > (ML + W - MR) / 2 else ("start", 3)
+
+    @classmethod
+    def _vlabel(cls, x: float, color: str, label: str, y: float) -> str:
+        anchor, dx = cls.vlabel_at(x)
+        return f'<text x="{x + dx:.1f}" y="{y:.1f}" text-anchor="{anchor}" fill="{color}">{_e(label)}</text>'
 
     def hline(self, v: float, color: str, label: str) -> None:
         if self.y0 <= v <= self.y1:
@@ -160,7 +168,7 @@ class Chart:
             self.parts.append(f'<text x="{ML - 4}" y="{y + 10}" text-anchor="end">{_e(label)}</text>')
             x: float = ML
             for k, (name, color) in enumerate(entries):
-                width = 14 + 6.5 * len(name) + 10
+                width = 14 + CHAR_PX * len(name) + 10
                 if x + width > W - MR:
                     self.parts.append(f'<text x="{x}" y="{y + 10}">+{len(entries) - k} more</text>')
                     break
@@ -185,16 +193,24 @@ def _empty(name: str, caption: str, why: str) -> str:
 def _histogram_plot(p: dict) -> str:
     """The report's bins (the bulk of the intervals: up to p99.9, at most 4 x the median) scaled
     to the data, not stretched to a far watchdog (a line out of range is named at the edge
-    instead), and a separate grey bar right of a break for the intervals beyond them (one 3 s
-    watchdog gap among 100 ms intervals)."""
+    instead), a separate grey bar right of a break for the intervals beyond them (one 3 s
+    watchdog gap among 100 ms intervals), and one left of a break for the negative intervals (the
+    clock stepped back 20 s among 100 ms intervals: an axis from -20000 left them a sliver)."""
     name = f"{p['type']} interval histogram — {p['sender']}"
     hist = p.get("plot", {}).get("histogram", [])
     if len(hist) < 2:
         return _empty("interval-histogram", name, "fewer than two packets")
     # The bin width from the bins themselves: the report's rounded bin_ms is 0 for tiny bins.
+    width = (hist[-1][0] - hist[0][0]) / (len(hist) - 1)
+    back = _stepped_back(p, hist)
+    hist = _without_lowest(hist, back)
     body, (over_at, over) = hist[:-1], hist[-1]
-    width = (over_at - hist[0][0]) / len(body)
-    low, high = hist[0][0], over_at
+    maximum = p["interval_ms"]["max"]
+    beyond = bool(over) and maximum is not None and maximum > over_at + width
+    # Without the negative intervals the rest starts at its first bin, and at 0 at the least; its
+    # bins are wide (from the lowest interval): the last one, kept on the axis, up to the maximum.
+    low = max(next(a for a, n in hist if n), 0.0) if back else hist[0][0]
+    high = max(over_at, maximum) if back and over and not beyond else over_at
     mid, span = (low + high) / 2, high - low
     span = max(span, 1.0, 0.04 * abs(mid))           # all intervals alike: a readable span around them
     x0, x1 = mid - span / 2 - 0.04 * span, mid + span / 2 + 0.04 * span
@@ -208,36 +224,109 @@ def _histogram_plot(p: dict) -> str:
             x1 = v + 0.04 * (v - x0)
     # Bins narrower than a few pixels are merged for display, so that a bar is wide enough to see;
     # the intervals of the last bin join them when they all lie within one bin width of its start.
-    maximum = p["interval_ms"]["max"]
-    beyond = bool(over) and maximum is not None and maximum > over_at + width
     shown = _merge(body if beyond else hist, width, x0, (x1 - x0) * HIST_BAR_PX / (W - ML - MR))
+    if back:                                   # what is left lies from 0 to the maximum
+        shown = _clip(shown, 0.0, maximum)
     slot = 0.12 * (x1 - x0) if beyond else 0.0
-    top = max([n for _, _, n in shown] + ([over] if beyond else [])) * 1.1
-    c = Chart(x0, x1 + slot, 0, top, "interval (ms)", "intervals (count)")
-    c.xtick_max = x1
+    under = 0.12 * (x1 - x0) if back else 0.0
+    top = max([n for _, _, n in shown] + ([over] if beyond else []) + [back]) * 1.1
+    c = Chart(x0 - under, x1 + slot, 0, top, "interval (ms)", "intervals (count)")
+    c.xtick_min, c.xtick_max = x0, x1
     c.axes()
     c.bars(shown, COLORS[0])
-    if beyond:
-        c.parts.append(f'<line x1="{c.x(x1):.1f}" x2="{c.x(x1):.1f}" y1="{MT}" y2="{H - MB}" stroke="#999" '
-                       'stroke-dasharray="2 2"/>')
-        c.parts.append(f'<text x="{c.x(x1 + slot / 2):.1f}" y="{H - MB + 14}" text-anchor="middle">'
-                       f'≥{over_at:.0f}</text>')
-        c.bars([(x1 + slot * 0.2, slot * 0.6, over)], OVERFLOW, "bar overflow",
-               f"{over} intervals of {over_at:g} ms or more (max {maximum:g} ms)")
-        c.parts.append(f'<text x="{c.x(x1 + slot / 2):.1f}" y="{min(c.y(over), H - MB - MIN_BAR) - 3:.1f}" '
-                       f'text-anchor="middle" fill="{OVERFLOW}">max {maximum:.0f}</text>')
-    for i, (v, color, label) in enumerate(lines):
-        if x0 <= v <= x1:
-            c.vline(v, color, label)
-        else:     # off the scale: named at that edge, below the other labels
-            right = v > x1
-            c.parts.append(f'<text class="offscale" x="{W - MR - 3 if right else ML + 3}" y="{MT + 24 + 12 * i}" '
-                           f'text-anchor="{"end" if right else "start"}" fill="{color}">'
-                           f'{"" if right else "← "}{_e(label)}{" →" if right else ""}</text>')
+    taken = [_overflow(c, x1, slot, over_at, over, maximum)] if beyond else []
+    if back:
+        _underflow(c, x0, under, back, p["interval_ms"]["min"])
+    _line_labels(c, lines, x0, x1, taken)
     return c.svg("interval-histogram", name)
 
 
-def _merge(hist: list, width: float, origin: float, least: float) -> list[tuple[float, float, float]]:
+def _stepped_back(p: dict, hist: list) -> int:
+    """The stream's negative intervals (its clock stepped back), unless nothing else is left to
+    scale the plot to."""
+    back = p.get("time_backwards", 0)
+    return back if back < sum(n for _, n in hist) else 0
+
+
+def _without_lowest(hist: list, n: int) -> list:
+    """The histogram without its n lowest intervals: the negative ones fill the first bins
+    (bins that start at the lowest interval, or a first bin they are clipped into)."""
+    out = []
+    for a, count in hist:
+        taken = min(n, count)
+        n -= taken
+        out.append([a, count - taken])
+    return out
+
+
+def _clip(bars: list[Bar], low: float, high: Optional[float]) -> list[Bar]:
+    """Bars (left, width, count) cut to [low, high], where their intervals are known to lie."""
+    out = []
+    for a, w, n in bars:
+        left, right = max(a, low), a + w if high is None else min(a + w, high)
+        out.append((left, max(right - left, 0.0), n))
+    return out
+
+
+def _overflow(c: Chart, x1: float, slot: float, over_at: float, over: int, maximum: float) -> tuple:
+    """The intervals beyond the bins as a grey bar right of a break; the box its "max" label takes."""
+    c.parts.append(f'<line x1="{c.x(x1):.1f}" x2="{c.x(x1):.1f}" y1="{MT}" y2="{H - MB}" stroke="#999" '
+                   'stroke-dasharray="2 2"/>')
+    c.parts.append(f'<text x="{c.x(x1 + slot / 2):.1f}" y="{H - MB + 14}" text-anchor="middle">'
+                   f'≥{over_at:.0f}</text>')
+    c.bars([(x1 + slot * 0.2, slot * 0.6, over)], OVERFLOW, "bar overflow",
+           f"{over} intervals of {over_at:g} ms or more (max {maximum:g} ms)")
+    label, x, y = f"max {maximum:.0f}", c.x(x1 + slot / 2), min(c.y(over), H - MB - MIN_BAR) - 3
+    c.parts.append(f'<text x="{x:.1f}" y="{y:.1f}" text-anchor="middle" fill="{OVERFLOW}">{label}</text>')
+    half = CHAR_PX * len(label) / 2
+    return (x - half, x + half, y - 11, y + 3)
+
+
+def _underflow(c: Chart, x0: float, under: float, back: int, minimum: float) -> None:
+    """The negative intervals (the report's time_backwards) as a grey bar left of a break, named
+    in a key below the plot: the slot is too narrow for the name."""
+    what = f"{back} interval{'s' if back > 1 else ''} < 0 (clock stepped back)"
+    c.parts.append(f'<line x1="{c.x(x0):.1f}" x2="{c.x(x0):.1f}" y1="{MT}" y2="{H - MB}" stroke="#999" '
+                   'stroke-dasharray="2 2"/>')
+    c.parts.append(f'<text class="underflow" x="{c.x(x0 - under / 2):.1f}" y="{H - MB + 14}" '
+                   'text-anchor="middle">&lt;0</text>')
+    c.bars([(x0 - under * 0.8, under * 0.6, back)], OVERFLOW, "bar underflow", f"{what}, min {minimum:g} ms")
+    c.key([("", [(f"{what}, min {minimum:.0f} ms", OVERFLOW)])])
+
+
+def _line_labels(c: Chart, lines: list, x0: float, x1: float, taken: list) -> None:
+    """The nominal and watchdog lines: in range a dashed line labelled beside it, off the scale
+    named at that edge, below the other labels. Each label goes on the first row where it
+    overlaps no other (two lines close together, the overflow bar's label)."""
+    for v, color, label in lines:
+        if x0 <= v <= x1:
+            anchor, dx = c.vlabel_at(c.x(v))
+            text, at, row = label, c.x(v) + dx, 0
+        else:
+            right = v > x1
+            text = f"{'' if right else '← '}{label}{' →' if right else ''}"
+            anchor, at, row = ("end", W - MR - 3, 1) if right else ("start", c.x(x0) + 3, 1)
+        left = at - CHAR_PX * len(text) if anchor == "end" else at
+        y = _free_row(taken, left, left + CHAR_PX * len(text), row)
+        if row == 0:
+            c.vline(v, color, label, y=y)
+        else:
+            c.parts.append(f'<text class="offscale" x="{at:.1f}" y="{y:.1f}" text-anchor="{anchor}" '
+                           f'fill="{color}">{_e(text)}</text>')
+
+
+def _free_row(taken: list, left: float, right: float, row: int) -> float:
+    """The baseline of the first label row from `row` on where a label from x `left` to `right`
+    overlaps none of the `taken` boxes (left, right, top, bottom); its box is then taken."""
+    while True:
+        y = MT + 11 + LABEL_ROW * row
+        if not any(left < r and a < right and y - 11 < b and t < y + 3 for a, r, t, b in taken):
+            taken.append((left, right, y - 11, y + 3))
+            return y
+        row += 1
+
+
+def _merge(hist: list, width: float, origin: float, least: float) -> list[Bar]:
     """(left, width, count) of the non-empty bins, merged into bins of at least `least` (aligned
     on `origin`) where the given ones are narrower."""
     if width >= least:
@@ -410,7 +499,7 @@ def _section(report: dict) -> str:
     out.append("<h3>Commands</h3>")
     keys = ("commands", "transmissions", "retransmissions", "acked", "unacked", "interrupted", "failed",
             "spurious_retransmissions", "acks_without_command", "duplicate_acks")
-    out.append(_table(["type", *keys, "latency p50", "latency p95", "latency max"],
+    out.append(_table(["type", *keys, "latency p50 (ms)", "latency p95 (ms)", "latency max (ms)"],
                       [[n, *(c[k] for k in keys), *(_num(c["ack_latency_ms"][k]) for k in ("p50", "p95", "max"))]
                        for n, c in report["commands"].items()]))
     b = report["vrpo_bursts"]

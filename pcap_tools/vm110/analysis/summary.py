@@ -29,11 +29,17 @@ _ITEM_KEYS = ("sender", "type", "command_id", "serial", "after", "count", "late"
               "port_to", "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s")
 
 
+def _value(value: object) -> str:
+    """An item's value: its floats are seconds or milliseconds (duration_s, gap_ms, interval_ms),
+    kept to 3 decimals as elsewhere in the summary (0.249991 s is 0.250, not 0.2)."""
+    return _f(value, 3) if isinstance(value, float) else str(value)
+
+
 def _item(item: dict, t0: float) -> str:
     frames = item.get("frames", [item["frame"]])
     where = f"frame {frames[0]}" if len(frames) == 1 else f"frames {', '.join(map(str, frames[:8]))}" + (
         ", ..." if len(frames) > 8 else "")
-    what = ", ".join(f"{k} {_f(item[k]) if isinstance(item[k], float) else item[k]}" for k in _ITEM_KEYS
+    what = ", ".join(f"{k} {_value(item[k])}" for k in _ITEM_KEYS
                      if k in item and item[k] is not None and item[k] is not False)
     return f"{where} at {since(item['time'], t0)} s: {what}  [{item['filter']}]"
 
@@ -93,7 +99,7 @@ def render(report: dict, everything: bool = False) -> str:
             lines += _table(rows)
     lines.append("")
     rows = [["commands", "cmds", "tx", "retx", "acked", "unacked", "interrupted", "failed", "spurious", "orphan acks",
-             "dup acks", "lat p50", "lat p95", "lat max"]]
+             "dup acks", "lat p50 ms", "lat p95 ms", "lat max ms"]]
     for name, c in report["commands"].items():
         lat = c["ack_latency_ms"]
         rows.append([name, *(str(c[k]) for k in ("commands", "transmissions", "retransmissions", "acked", "unacked",

@@ -3,7 +3,8 @@
 Default network set-up is the specification's: multicast group 239.255.42.20, inputs on port 5825
 (BU -> controller), outputs on 5827, TTL 1. `--peer`/`--listen` switch to unicast (for example two
 simulators on loopback: see captures/README.md). Logs what the node does and detects to stdout,
-and a summary line at the end. Stops after `--duration` seconds, on Ctrl-C or on SIGTERM.
+and a summary line at the end; the sockets it uses go to stderr first, so that stdout is the log
+alone (JSON lines only with `--json`). Stops after `--duration` seconds, on Ctrl-C or on SIGTERM.
 """
 from __future__ import annotations
 
@@ -195,6 +196,13 @@ def build_node(args: argparse.Namespace, printer: Callable[[str], None]) -> Any:
     return Controller(cfg, printer=printer, serial_start=args.serial_start)
 
 
+def sockets_line(role: str, transport: UdpTransport) -> str:
+    """Where the node receives and sends, as opened (port 0 resolved)."""
+    rx, tx, (dest_host, dest_port) = transport.rx_address, transport.tx_address, transport.config.dest
+    group = f" (group {transport.config.group})" if transport.config.group else ""
+    return f"{role}: receiving on {rx[0]}:{rx[1]}{group}, sending from {tx[0]}:{tx[1]} to {dest_host}:{dest_port}"
+
+
 def run(args: argparse.Namespace) -> int:
     # Each log line: the wall-clock time in ISO 8601 UTC, then the node's own seconds from its start.
     def printer(line: str) -> None:
@@ -208,10 +216,7 @@ def run(args: argparse.Namespace) -> int:
     imp = impairment(args)
     transport = UdpTransport(sockets, Impairer(imp, args.role) if imp.active() else None).open()
     runner = RealtimeRunner([(node, transport)])
-    rx, tx = transport.rx_address, transport.tx_address
-    print(f"{args.role}: receiving on {rx[0]}:{rx[1]}"
-          f"{' (group ' + transport.config.group + ')' if transport.config.group else ''}, "
-          f"sending from {tx[0]}:{tx[1]} to {transport.config.dest[0]}:{transport.config.dest[1]}", flush=True)
+    print(f"{utc_iso(time.time())} {sockets_line(args.role, transport)}", file=sys.stderr, flush=True)
     signal.signal(signal.SIGTERM, lambda *_: runner.stop(timeout=0))
     try:
         runner.run(args.duration)

@@ -22,7 +22,7 @@ from typing import Any, Optional
 from .. import constants as C
 from .. import encode
 from .. import protocol as P
-from .clock import ms, seconds
+from .clock import log_seconds, ms, seconds
 from .ledger import CommandLedger
 from .lifecycle import Life, Restart
 from .node import Node, Rx
@@ -72,7 +72,8 @@ class BaseUnit(CommandOutbox, Node):
         self._period_us, self._watchdog_us = ms(cfg.vrpi_period_ms), ms(cfg.vrpo_watchdog_ms)
         self._t0 = 0
         self._next_vrpi = 0
-        self.last_vrpo: Optional[int] = None
+        self.last_vrpo: Optional[int] = None     # when the last VRPO arrived; None: none since start-up
+        self._vrpo_since: Optional[int] = None   # the watchdog counts from here (last VRPO, start, resume)
         self.watchdog_tripped = False
         self._outbox_init(cfg.command_id_start, ms(cfg.vrci_resend_ms), ms(cfg.vrci_fail_ms))
         self._acks: list[tuple[int, int]] = []            # delayed VRAI: (due, command ID)
@@ -80,7 +81,7 @@ class BaseUnit(CommandOutbox, Node):
 
     def start(self, now: int) -> None:
         self._t0 = self._next_vrpi = now
-        self.last_vrpo = now      # grace period from start-up
+        self._vrpo_since = now    # grace period from start-up
         every, until = self.remote.command_every, self.remote.command_until
         self._outbox_start(((now + t, d, i) for t, d, i in self.remote.commands), now + every if every else None,
                            every, now + until if until else None)
@@ -113,7 +114,7 @@ class BaseUnit(CommandOutbox, Node):
         """This VRPI's payload values (payload order): the remote's, with the BU's own state on top."""
         values = self.remote.values(now - self._t0)
         armed = values[_ARMED_RU]
-        if self.last_vrpo is not None and now - self.last_vrpo > self._watchdog_us:
+        if self._vrpo_since is not None and now - self._vrpo_since > self._watchdog_us:
             self._check_watchdog(now, bool(armed))
         if self.watchdog_tripped:
             values[_EG_LINK] = C.LinkStatus.NO_LINK
@@ -124,24 +125,26 @@ class BaseUnit(CommandOutbox, Node):
         return values
 
     def _check_watchdog(self, now: int, armed: bool) -> None:
-        if not self.watchdog_tripped and self.last_vrpo is not None and now - self.last_vrpo > self._watchdog_us:
+        since = self._vrpo_since
+        if not self.watchdog_tripped and since is not None and now - since > self._watchdog_us:
             self.watchdog_tripped = True
-            self.event(self.last_vrpo + self._watchdog_us, "vrpo_watchdog", last_vrpo=self.last_vrpo / 1e6,
+            self.event(since + self._watchdog_us, "vrpo_watchdog", last_vrpo=log_seconds(self.last_vrpo),
                        es_relays_open=armed)
 
     def on_vrpo(self, rx: Rx, now: int) -> None:
-        if self.last_vrpo is not None and now - self.last_vrpo > self._watchdog_us:
+        if self._vrpo_since is not None and now - self._vrpo_since > self._watchdog_us:
             self._check_watchdog(now, bool(self.remote.values(now - self._t0)[_ARMED_RU]))
         if self.watchdog_tripped:
             self.watchdog_tripped = False
             self.event(now, "vrpo_restored")
-        self.last_vrpo = now
+        self.last_vrpo = self._vrpo_since = now
 
     def on_resume(self, now: int) -> None:
-        self.last_vrpo = now
+        self._vrpo_since = now   # it was not listening: judge VRPO from here on
 
     def on_restart(self, now: int, restart: Restart) -> None:
-        self._next_vrpi = self.last_vrpo = now
+        self._next_vrpi = self._vrpo_since = now
+        self.last_vrpo = None
         self.watchdog_tripped = False
         self._acks.clear()
         self.delivered = CommandLedger()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from typing import Optional
 
 US_PER_MS = 1000
 US_PER_S = 1_000_000
@@ -15,6 +16,11 @@ def ms(value: float) -> int:
 def seconds(value: float) -> int:
     """Seconds to microseconds."""
     return round(value * US_PER_S)
+
+
+def log_seconds(value: Optional[int]) -> Optional[float]:
+    """Microseconds to seconds for a log entry; None (e.g. a packet never received) stays None."""
+    return None if value is None else value / US_PER_S
 
 
 class WallClock:

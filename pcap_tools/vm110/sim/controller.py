@@ -23,7 +23,7 @@ from typing import Any, Optional
 from .. import constants as C
 from .. import protocol as P
 from .. import encode
-from .clock import ms, seconds
+from .clock import log_seconds, ms, seconds
 from .ledger import CommandLedger
 from .lifecycle import Life, Restart
 from .node import Node, Rx
@@ -76,7 +76,8 @@ class Controller(CommandOutbox, Node):
         self._glink = tuple((seconds(a), seconds(b)) for a, b in cfg.glink)
         self._next_vrpo = 0
         self.cycle = 0
-        self.last_vrpi: Optional[int] = None
+        self.last_vrpi: Optional[int] = None     # when the last VRPI arrived; None: none since start-up
+        self._vrpi_since: Optional[int] = None   # the watchdog counts from here (last VRPI, start, resume)
         self.vrpi_alarm = False
         self.ru_armed = False
         self.handled = CommandLedger()            # operator commands heard, to execute each once
@@ -86,7 +87,7 @@ class Controller(CommandOutbox, Node):
     # --- schedule -----------------------------------------------------------------------------
     def start(self, now: int) -> None:
         self._next_vrpo = now
-        self.last_vrpi = now     # the watchdog runs from start-up: no VRPI at all is an error too
+        self._vrpi_since = now   # the watchdog runs from start-up: no VRPI at all is an error too
         cfg = self.config
         every = seconds(cfg.command_every_s)
         self._outbox_start(((seconds(c[0]) + now, c[1], c[2] if len(c) > 2 else None) for c in cfg.commands),
@@ -95,15 +96,15 @@ class Controller(CommandOutbox, Node):
 
     def _due(self) -> Optional[int]:
         due = self._next_vrpo
-        if not self.vrpi_alarm and self.last_vrpi is not None:
-            t = self.last_vrpi + self._vrpi_alarm_after     # the first µs past the timeout
+        if not self.vrpi_alarm and self._vrpi_since is not None:
+            t = self._vrpi_since + self._vrpi_alarm_after     # the first µs past the timeout
             due = t if t < due else due
         return self._command_due if self._command_due < due else due
 
     def _tick(self, now: int) -> None:
-        if not self.vrpi_alarm and self.last_vrpi is not None and now - self.last_vrpi > self._vrpi_timeout_us:
+        if not self.vrpi_alarm and self._vrpi_since is not None and now - self._vrpi_since > self._vrpi_timeout_us:
             self.vrpi_alarm = True
-            self.event(self.last_vrpi + self._vrpi_timeout_us, "vrpi_timeout", last_vrpi=self.last_vrpi / 1e6)
+            self.event(self._vrpi_since + self._vrpi_timeout_us, "vrpi_timeout", last_vrpi=log_seconds(self.last_vrpi))
         if now >= self._command_due:
             self._tick_commands(now)
         if now >= self._next_vrpo:
@@ -121,11 +122,11 @@ class Controller(CommandOutbox, Node):
         return self._period
 
     def on_resume(self, now: int) -> None:
-        self.last_vrpi = now     # it was not listening: judge VRPI from here on
+        self._vrpi_since = now   # it was not listening: judge VRPI from here on
 
     def on_restart(self, now: int, restart: Restart) -> None:
         self._next_vrpo, self.cycle = now, 0
-        self.last_vrpi, self.vrpi_alarm, self.ru_armed = now, False, False
+        self.last_vrpi, self._vrpi_since, self.vrpi_alarm, self.ru_armed = None, now, False, False
         self.handled = CommandLedger()
         self._outbox_restart(now, restart.command_id)
 
@@ -147,8 +148,9 @@ class Controller(CommandOutbox, Node):
     def on_vrpi(self, rx: Rx, now: int) -> None:
         if self.vrpi_alarm:
             self.vrpi_alarm = False
-            self.event(now, "vrpi_restored", gap_ms=(now - (self.last_vrpi or now)) / 1000)
-        self.last_vrpi = now
+            gap = None if self.last_vrpi is None else (now - self.last_vrpi) / 1000
+            self.event(now, "vrpi_restored", gap_ms=gap)
+        self.last_vrpi = self._vrpi_since = now
         bu_state, armed_ru, ru_state = _VRPI_STATE.unpack_from(rx.payload)
         self.ru_armed = bu_state == _BU_ARMED and armed_ru != 0 and ru_state in _RU_ARMED
 

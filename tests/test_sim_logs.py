@@ -1,0 +1,122 @@
+"""What the simulators log: the watchdogs' last packet, and `vm110 simulate`'s stdout and stderr.
+
+Watchdogs on the virtual clock (no sockets); the command line over loopback only (unicast from
+127.0.0.1 to the discard port): nothing leaves the machine.
+"""
+from __future__ import annotations
+
+import datetime
+import json
+import subprocess
+import sys
+
+from loopback import LOOPBACK
+from vm110 import constants as C
+from vm110.sim.bu import BaseUnit, BaseUnitConfig
+from vm110.sim.controller import Controller, ControllerConfig
+from vm110.sim.lifecycle import Restart
+from vm110.sim.remote import Remote
+from vm110.sim.virtual import Station, VirtualNetwork
+
+BU_STATION, CTL_STATION = ("10.0.0.10", C.INPUT_PORT), ("10.0.0.20", C.OUTPUT_PORT)
+
+
+def run_virtual(seconds: float, bu: BaseUnit | None = None, ctl: Controller | None = None) -> list:
+    """Run the nodes given (one alone: nobody answers) and return the tap's arrivals."""
+    stations = ([Station(bu, *BU_STATION)] if bu else []) + ([Station(ctl, *CTL_STATION)] if ctl else [])
+    return [a for batch in VirtualNetwork(stations).run(seconds) for a in batch]
+
+
+def last_arrival(arrivals: list, ptype: C.PacketType) -> float:
+    return max(a[0] for a in arrivals if a[5].ptype is ptype) / 1e6
+
+
+def test_controller_alone_has_no_last_vrpi():
+    ctl = Controller()
+    run_virtual(1.0, ctl=ctl)
+    [timeout] = ctl.events("vrpi_timeout")
+    assert timeout["t"] == 0.5 and timeout["last_vrpi"] is None       # no VRPI ever: none, not start-up
+
+
+def test_controller_logs_the_vrpi_it_really_heard_last():
+    bu = BaseUnit(Remote.simple(armed=True), BaseUnitConfig(stop_at_s=1.0))
+    ctl = Controller()
+    arrivals = run_virtual(2.0, bu, ctl)
+    [timeout] = ctl.events("vrpi_timeout")
+    assert timeout["last_vrpi"] == last_arrival(arrivals, C.PacketType.VRPI)
+    assert timeout["t"] == timeout["last_vrpi"] + 0.5
+
+
+def test_controller_restored_gap_is_from_the_vrpi_before_it():
+    bu = BaseUnit(Remote.simple(armed=True), BaseUnitConfig(stalls=((1.0, 2.0),)))
+    ctl = Controller()
+    arrivals = run_virtual(3.0, bu, ctl)
+    [timeout], [restored] = ctl.events("vrpi_timeout"), ctl.events("vrpi_restored")
+    vrpi = sorted(a[0] / 1e6 for a in arrivals if a[5].ptype is C.PacketType.VRPI)
+    before = max(t for t in vrpi if t < 1.0)
+    assert timeout["last_vrpi"] == before
+    assert restored["gap_ms"] == round((restored["t"] - before) * 1000, 6)
+
+
+def test_bu_alone_has_no_last_vrpo():
+    bu = BaseUnit(Remote.simple(armed=True))
+    run_virtual(3.0, bu=bu)
+    [trip] = bu.events("vrpo_watchdog")
+    assert trip["t"] == 2.0 and trip["last_vrpo"] is None and trip["es_relays_open"]
+
+
+def test_bu_logs_the_vrpo_it_really_heard_last():
+    bu = BaseUnit(Remote.simple(armed=True))
+    ctl = Controller(ControllerConfig(stop_at_s=1.0))
+    arrivals = run_virtual(4.0, bu, ctl)
+    [trip] = bu.events("vrpo_watchdog")
+    assert trip["last_vrpo"] == last_arrival(arrivals, C.PacketType.VRPO)
+    assert trip["t"] == trip["last_vrpo"] + 2.0
+
+
+def test_after_a_restart_the_old_packets_are_forgotten():
+    bu = BaseUnit(Remote.simple(armed=True), BaseUnitConfig(stop_at_s=0.5))
+    ctl = Controller(ControllerConfig(restarts=(Restart(1.0, 0.5),)))
+    run_virtual(3.0, bu, ctl)
+    timeouts = ctl.events("vrpi_timeout")
+    assert [t["last_vrpi"] is None for t in timeouts] == [False, True]     # before and after the restart
+
+
+# --- the command line ---------------------------------------------------------------------------------
+
+def simulate(role: str, *extra: str) -> subprocess.CompletedProcess:
+    """`vm110 simulate ROLE` on loopback, sending to the discard port (nobody answers)."""
+    run = [sys.executable, "-m", "vm110", "simulate", role, "--listen", f"{LOOPBACK}:0",
+           "--peer", f"{LOOPBACK}:9", "--source", f"{LOOPBACK}:0", *extra]
+    return subprocess.run(run, capture_output=True, text=True, timeout=60, check=True)
+
+
+def utc(stamp: str) -> datetime.datetime:
+    return datetime.datetime.strptime(stamp, "%Y-%m-%dT%H:%M:%S.%fZ").replace(tzinfo=datetime.timezone.utc)
+
+
+def assert_sockets_line(stderr: str, role: str, before: datetime.datetime) -> None:
+    """The sockets line goes to stderr, with the UTC time in front like every log line."""
+    [line] = [line for line in stderr.splitlines() if "receiving on" in line]
+    stamp, rest = line.split(" ", 1)
+    assert before <= utc(stamp) <= datetime.datetime.now(datetime.timezone.utc)
+    assert rest.startswith(f"{role}: receiving on {LOOPBACK}:") and f"to {LOOPBACK}:9" in rest
+
+
+def test_json_stdout_is_json_lines_only():
+    before = datetime.datetime.now(datetime.timezone.utc)
+    done = simulate("controller", "--duration", "0.8", "--json")
+    entries = [json.loads(line) for line in done.stdout.splitlines()]     # every line, the first too
+    assert "summary" in entries[-1]
+    [timeout] = [e for e in entries if e.get("event") == "vrpi_timeout"]
+    assert timeout["last_vrpi"] is None                                   # the JSON null
+    assert_sockets_line(done.stderr, "controller", before)
+
+
+def test_text_log_lines_all_start_with_utc():
+    before = datetime.datetime.now(datetime.timezone.utc)
+    done = simulate("bu", "--duration", "0.8", "--command-every", "0.3")
+    lines = done.stdout.splitlines()
+    assert json.loads(lines[-1])["summary"]                               # the summary line at the end
+    assert len(lines) >= 3 and all(utc(line.split()[0]) >= before for line in lines[:-1]), lines
+    assert_sockets_line(done.stderr, "bu", before)
