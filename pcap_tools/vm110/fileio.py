@@ -21,21 +21,28 @@ PathLike = Union[str, "os.PathLike[str]"]
 
 def check_target(path: PathLike) -> Path:
     """The path written to (symbolic links followed, so that a link stays a link); CliError when
-    it exists and is not a regular file, or its folder is missing or not writable (said before
-    any work, not after it)."""
+    it exists and is not a regular file."""
     real = Path(os.path.realpath(path))
     try:
         mode = real.stat().st_mode
     except FileNotFoundError:
-        if not real.parent.is_dir():
-            raise CliError(f"cannot write {os.fspath(path)}: no folder {real.parent}") from None
-        if not os.access(real.parent, os.W_OK | os.X_OK):
-            raise CliError(f"cannot write {os.fspath(path)}: the folder {real.parent} is not writable") from None
         return real
     except OSError as exc:
         raise CliError(f"cannot write {os.fspath(path)}: {exc.strerror}") from None
     if not stat.S_ISREG(mode):
         raise CliError(f"refusing to write {os.fspath(path)}: it exists and is not a regular file")
+    return real
+
+
+def check_report_target(path: PathLike) -> Path:
+    """check_target, and the folder a new file goes into exists and is writable: a report file
+    that cannot be written is said before the work, not after it."""
+    real = check_target(path)
+    if not real.exists():
+        if not real.parent.is_dir():
+            raise CliError(f"cannot write {os.fspath(path)}: no folder {real.parent}")
+        if not os.access(real.parent, os.W_OK | os.X_OK):
+            raise CliError(f"cannot write {os.fspath(path)}: the folder {real.parent} is not writable")
     return real
 
 

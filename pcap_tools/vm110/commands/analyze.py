@@ -22,7 +22,7 @@ from ..analysis.serials import DUP_WINDOW_MS
 from ..analysis.report import SCHEMA_VERSION, SCOPES, Options
 from ..crc import BYTE_ORDERS, VARIANTS
 from ..capture.spool import as_given, stdin_spool
-from ..fileio import check_target
+from ..fileio import check_report_target
 from ..errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE, CliError
 from ..numbers import number
 from .options import INPUT_PORT, INPUT_PORT_HELP
@@ -181,7 +181,7 @@ def report_rules(args: argparse.Namespace) -> list:
         raise CliError("--json - and --html -: only one report can go to standard output")
     for target in (args.json, args.html):
         if target not in (None, "-"):
-            check_target(target)
+            check_report_target(target)
     return fail_rules
 
 
