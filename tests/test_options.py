@@ -213,6 +213,18 @@ def test_simulate_addresses_name_their_option(option, address, message):
         simulate.udp_config(args)
 
 
+@pytest.mark.parametrize("peer, said", [("8.8.8.8:5825", True), ("10.0.0.20:5825", False), ("127.0.0.1:5825", False),
+                                        ("192.168.1.9:5825", False), ("239.255.42.20:5825", False)])
+def test_a_public_peer_is_said(peer, said, capsys):
+    """A peer outside private, loopback and multicast ranges is named on stderr (here: the
+    sockets' set-up alone, nothing is opened or sent); it is not refused: plants use odd ranges."""
+    cfg = simulate.udp_config(cli.build_parser().parse_args(["simulate", "bu", "--peer", peer]))
+    assert cfg.dest == (peer.split(":")[0], 5825)
+    err = capsys.readouterr().err
+    assert (err == f"vm110 simulate: note: --peer {peer.split(':')[0]} is a public address; an EG-Link peer sits "
+                   "on the local network\n") if said else err == ""
+
+
 # --- the types behind the options ----------------------------------------------------------------
 def test_ports_leave_room_above():
     assert port()("65535") == 65535 and port(room_above=2)("65533") == 65533

@@ -139,6 +139,10 @@ def udp_config(args: argparse.Namespace) -> UdpConfig:
     cfg = multicast_config(args.role, args.group, args.port, args.iface)
     if args.peer:
         cfg.dest = _address("--peer", args.peer, lowest_port=1)
+        peer = ipaddress.IPv4Address(cfg.dest[0])
+        if peer.is_global and not peer.is_multicast:      # (said, not refused: plants use odd ranges)
+            print(f"vm110 simulate: note: --peer {cfg.dest[0]} is a public address; an EG-Link peer sits on "
+                  "the local network", file=sys.stderr)
     if args.listen:
         cfg.listen, cfg.group = _address("--listen", args.listen), None
     if args.source:
