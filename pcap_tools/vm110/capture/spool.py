@@ -25,7 +25,12 @@ def stdin_spool(stack: contextlib.ExitStack) -> str:
     return path
 
 
+def named(given: str) -> str:
+    """The capture the user gave as `given`, in words: "-" is "standard input"."""
+    return "standard input" if given == "-" else given
+
+
 def as_given(message: str, path: str, given: str) -> str:
     """A message about the capture at `path` in the words the user gave it: a spooled standard
     input (`given` "-") is "standard input", never the temporary file's name."""
-    return message.replace(path, "standard input") if given == "-" else message
+    return message.replace(path, named(given)) if given == "-" else message

@@ -21,7 +21,7 @@ from ..analysis.findings import MAX_TOTALS, TOTAL_NAMES
 from ..analysis.serials import DUP_WINDOW_MS
 from ..analysis.report import SCHEMA_VERSION, SCOPES, Options
 from ..crc import BYTE_ORDERS, VARIANTS
-from ..capture.spool import as_given, stdin_spool
+from ..capture.spool import as_given, named, stdin_spool
 from ..fileio import check_report_target
 from ..errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE, CliError
 from ..numbers import number
@@ -221,7 +221,7 @@ def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rule
     errors = [{"file": name, "error": r} for name, r in zip(names, results) if isinstance(r, str)]
     for e in errors:
         print(f"vm110 {command}: {e['error']}", file=sys.stderr)
-    damaged = [f"{'standard input' if name == '-' else name}: {r['capture']['problem']}"
+    damaged = [f"{named(name)}: {r['capture']['problem']}"
                for name, r in zip(names, results) if isinstance(r, dict) and r["capture"]["problem"]]
     for line in damaged:
         print(f"vm110 {command}: {line}", file=sys.stderr)

@@ -109,8 +109,7 @@ def run(args: argparse.Namespace) -> int:
         if evidence is not None and evidence.written and not args.quiet:
             print(f"evidence: {len(evidence.written)} file(s) in {args.evidence}", file=sys.stderr)
         code = deliver(args, [name], [report], fail_rules, "monitor")
-        if session.failure:
-            if not report["capture"]["problem"]:       # (deliver said that one)
-                print(f"vm110 monitor: {session.failure}", file=sys.stderr)
+        if session.failure:        # (a capture damaged partway is the report's: deliver says it)
+            print(f"vm110 monitor: {session.failure}", file=sys.stderr)
             return EXIT_USAGE
         return code

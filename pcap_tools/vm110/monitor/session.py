@@ -23,6 +23,7 @@ from ..analysis.commands import Retiring
 from ..analysis.incremental import Analysis
 from ..errors import CliError
 from ..analysis.periodic import SpilledFloats
+from ..capture.spool import named
 from ..capture.stream import StreamReader
 from . import dashboard as dash
 from .evidence import Evidence
@@ -62,7 +63,7 @@ class Session:
         self.command_spool = tempfile.TemporaryFile(prefix="vm110-monitor-")   # noqa: SIM115 -- as the spool
         self.retiring = Retiring(self.analysis.tracker, self.command_spool)
         self.fed_until = -math.inf            # the latest time the analysis has been fed
-        self.reader = StreamReader("standard input" if cfg.name == "-" else cfg.name)
+        self.reader = StreamReader(named(cfg.name))
         self.intake = Intake(cfg.name, cfg.port, cfg.crc, cfg.crc_order, self)
         self.intake.got.on_illegal = self._illegal
         self.live = Live(self.analysis, opt, self.emit)
@@ -272,8 +273,7 @@ class Session:
         if self.cfg.json_lines is not None:
             self._write_line(f)
         if self.cfg.lines and self.board is None:
-            print(dash.finding_line(f) + f"  [{f['item']['filter']}]", flush=True,
-                  file=sys.stderr if self.cfg.lines_to_stderr else sys.stdout)
+            self._say(dash.finding_line(f) + f"  [{f['item']['filter']}]")
         if self.cfg.evidence is not None and f["severity"] == "error" and f["event"] in ("raised", "found"):
             now = self.now()
             self.cfg.evidence.alarm(f, f["time"] if now is None else max(now, f["time"]))
@@ -291,9 +291,12 @@ class Session:
                                   "at": at})
             if self.cfg.lines and self.board is None:
                 who = f" of {dash.short(sender)}" if sender else ""
-                print(f"{dash.clock(at)} {rule}: {suppressed} more line{'s' if suppressed > 1 else ''}{who} not shown "
-                      "(at most one a second)", flush=True,
-                      file=sys.stderr if self.cfg.lines_to_stderr else sys.stdout)
+                self._say(f"{dash.clock(at)} {rule}: {suppressed} more line{'s' if suppressed > 1 else ''}{who} "
+                          "not shown (at most one a second)")
+
+    def _say(self, line: str) -> None:
+        """A finding line: on stdout, or on stderr where a report goes to stdout."""
+        print(line, flush=True, file=sys.stderr if self.cfg.lines_to_stderr else sys.stdout)
 
     def _write_line(self, obj: dict) -> None:
         out = self.cfg.json_lines
@@ -335,8 +338,6 @@ class Session:
                 self.reader.buf = b""
         except CliError as exc:            # not a capture at all: said at the end
             self.failure = self.failure or str(exc)
-        if self.reader.problem and not self.failure:
-            self.failure = f"{self.reader.path}: {self.reader.problem}"
         self._flush()
         if self.last_ts is not None:
             self._tick(self.last_ts, final=True)   # what the end of the input can tell
