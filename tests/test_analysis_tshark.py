@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import shutil
 import signal
 import subprocess
+import time
 
 import pytest
 
@@ -12,6 +14,7 @@ import tshark_runner as T
 from test_analysis_engine import build_mixed
 from test_analysis_truth import ALL_CAPTURES, CAPTURES
 from vm110.analysis import analyze
+from vm110.analysis import tshark_packets
 from vm110.synth import synthesize
 
 pytestmark = pytest.mark.tshark
@@ -107,6 +110,39 @@ def test_the_tshark_engine_hands_sigchld_back():
     analyze(str(CAPTURES / "normal.pcap"), engine="tshark")
     assert signal.getsignal(signal.SIGCHLD) == signal.SIG_DFL
     assert signal.set_wakeup_fd(-1) == -1                 # no wakeup fd was left installed
+
+
+def _tshark_wrapper(path, then: str):
+    """A `tshark` that reads a file as tshark does and then runs the shell text `then`."""
+    real = shutil.which("tshark")
+    path.write_text(f'#!/bin/bash\ncase " $* " in *" -r "*) ;; *) exec {real} "$@" ;; esac\n{real} "$@"\n{then}\n')
+    path.chmod(0o755)
+    return str(path)
+
+
+def test_a_tshark_that_exits_while_python_is_busy_is_a_clean_read(tmp_path, monkeypatch):
+    """The flake "Unknown child process pid ..., will report returncode 255", made certain: tshark's
+    output ends, Python is slow (a loaded machine) and tshark exits meanwhile. pyshark killed it
+    then, and killing polls first, reaping tshark behind asyncio's child watcher (exit 255): a
+    clean read reported as a crash. tshark is now reaped by the watcher."""
+    class Busy(tshark_packets._Capture):
+        async def _cleanup_subprocess(self, process):
+            time.sleep(0.1)
+            await super()._cleanup_subprocess(process)
+
+    monkeypatch.setattr(tshark_packets, "_Capture", Busy)
+    wrapper = _tshark_wrapper(tmp_path / "tshark", "exec >&-; sleep 0.02")    # output ends before exit
+    read = tshark_packets.packets(str(CAPTURES / "normal.pcap"), [], tshark_path=wrapper)
+    assert sum(1 for _ in read) == analyze(str(CAPTURES / "normal.pcap"))["capture"]["packets"]
+
+
+def test_a_failing_tshark_is_told_after_its_packets(tmp_path):
+    wrapper = _tshark_wrapper(tmp_path / "tshark", 'echo "tshark: a damaged record" >&2; exit 2')
+    seen = 0
+    with pytest.raises(tshark_packets.TsharkStopped, match="a damaged record"):
+        for _ in tshark_packets.packets(str(CAPTURES / "normal.pcap"), [], tshark_path=wrapper):
+            seen += 1
+    assert seen == analyze(str(CAPTURES / "normal.pcap"))["capture"]["packets"]
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)

@@ -10,11 +10,10 @@ from __future__ import annotations
 from collections import defaultdict
 from dataclasses import dataclass, field
 
-import pyshark
 import pytest
 
 import tshark_runner as T
-from vm110.analysis.tshark_engine import release_sigchld
+from vm110.analysis.tshark_packets import packets
 from vectorlib import load_vectors, packet_bytes
 
 pytestmark = pytest.mark.tshark
@@ -35,29 +34,11 @@ class Seen:
 
 
 def _pyshark_read(ws: T.Workspace, pcap, prefs: dict) -> list:
-    """The vm110 layer of each packet through pyshark; once more when asyncio reports tshark as
-    exit 255, "Unknown child process": something else in the worker reaped it, and what it printed
-    is cut short (seen about once in ten full runs; a second such loss fails)."""
-    try:
-        return _pyshark_once(ws, pcap, prefs)
-    except pyshark.capture.capture.TSharkCrashException as exc:
-        if "retcode: 255" not in str(exc):
-            raise
-        return _pyshark_once(ws, pcap, prefs)
-
-
-def _pyshark_once(ws: T.Workspace, pcap, prefs: dict) -> list:
+    """The vm110 layer of each packet, read through pyshark as the tshark engine reads it."""
     # Preferences after -X: tshark 4.4 rejects a plugin's -o given before the plugin is loaded.
-    capture = pyshark.FileCapture(str(pcap), tshark_path=ws.pyshark_tshark_path(), keep_packets=False,
-                                  custom_parameters=["-X", f"lua_script:{ws.plugin_file()}", *T.pref_args(prefs)])
-    try:
-        return [pkt.vm110 if "vm110" in pkt else None for pkt in capture]
-    finally:
-        try:
-            capture.close()
-        finally:    # (also when tshark died: else every later child of this worker fills the wakeup pipe,
-            release_sigchld(capture)    # and the capture's __del__ would raise the same again elsewhere)
-            capture._running_processes.clear()
+    read = packets(str(pcap), ["-X", f"lua_script:{ws.plugin_file()}", *T.pref_args(prefs)],
+                   tshark_path=ws.pyshark_tshark_path())
+    return [pkt.vm110 if "vm110" in pkt else None for pkt in read]
 
 
 def _from_layer(layer) -> tuple[dict, list]:

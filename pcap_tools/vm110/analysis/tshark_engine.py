@@ -12,7 +12,6 @@ from __future__ import annotations
 import ipaddress
 import os
 import shutil
-import signal
 import struct
 import tempfile
 from typing import Iterator, Optional
@@ -50,14 +49,6 @@ def _int(value: str) -> int:
     return int(value, 0)
 
 
-def release_sigchld(cap) -> None:
-    """Give SIGCHLD back after a pyshark capture is closed. pyshark routes it to its event loop,
-    through the loop's signal wakeup pipe, and leaves it so: every later child process of ours
-    would write to a pipe nobody reads, until it is full and Python reports each failed write."""
-    if os.name == "posix":
-        cap.eventloop.remove_signal_handler(signal.SIGCHLD)
-
-
 class TsharkEngine:
     def __init__(self, port: int = C.INPUT_PORT, crc: str = "auto", crc_order: str = "auto") -> None:
         self.port, self.crc, self.crc_order = port, crc, crc_order
@@ -69,24 +60,11 @@ class TsharkEngine:
                 "-o", f"vm110.crc_variant:{variant}", "-o", f"vm110.crc_byte_order:{order}"]
 
     def _packets(self, path: str, variant: str, order: str) -> Iterator:
-        import pyshark     # imported here: the fast engine and the CLI start without it
-        cap = pyshark.FileCapture(path, keep_packets=False,
-                                  custom_parameters=self._params(variant, order))
-        crash = pyshark.capture.capture.TSharkCrashException
+        from .tshark_packets import TsharkStopped, packets     # pyshark: the CLI starts without it
         try:
-            yield from cap
-        except crash:
-            self.stopped = cap._last_error_line or "tshark stopped"
-        finally:
-            try:
-                cap.close()
-            except crash:
-                # Damage the reader does not see (a pcapng option, say): keep what was read, say
-                # why it ended, and leave pyshark nothing to raise again when it is collected.
-                self.stopped = cap._last_error_line or "tshark stopped"
-                cap._running_processes.clear()
-            finally:
-                release_sigchld(cap)
+            yield from packets(path, self._params(variant, order))
+        except TsharkStopped as stop:
+            self.stopped = str(stop)
 
     def collect(self, path: str, opt) -> Collected:
         """Read the capture through tshark, feeding its legal packets to an `Analysis` with `opt`."""
