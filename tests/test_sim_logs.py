@@ -107,7 +107,7 @@ def test_json_stdout_is_json_lines_only():
     before = datetime.datetime.now(datetime.timezone.utc)
     done = simulate("controller", "--duration", "0.8", "--json")
     entries = [json.loads(line) for line in done.stdout.splitlines()]     # every line, the first too
-    assert "summary" in entries[-1]
+    assert "summary" in entries[-1] and utc(entries[-1]["time_utc"]) >= before
     [timeout] = [e for e in entries if e.get("event") == "vrpi_timeout"]
     assert timeout["last_vrpi"] is None                                   # the JSON null
     assert_sockets_line(done.stderr, "controller", before)
@@ -117,6 +117,7 @@ def test_text_log_lines_all_start_with_utc():
     before = datetime.datetime.now(datetime.timezone.utc)
     done = simulate("bu", "--duration", "0.8", "--command-every", "0.3")
     lines = done.stdout.splitlines()
-    assert json.loads(lines[-1])["summary"]                               # the summary line at the end
+    end = json.loads(lines[-1])                                           # the summary line at the end
+    assert end["summary"] and utc(end["time_utc"]) >= before
     assert len(lines) >= 3 and all(utc(line.split()[0]) >= before for line in lines[:-1]), lines
     assert_sockets_line(done.stderr, "bu", before)

@@ -225,6 +225,6 @@ def run(args: argparse.Namespace) -> int:
     try:
         runner.run(args.duration)
     finally:
-        print(json.dumps({"summary": node.summary()}), flush=True)
+        print(json.dumps({"time_utc": utc_iso(time.time()), "summary": node.summary()}), flush=True)
         sys.stdout.flush()
     return 0
