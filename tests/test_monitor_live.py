@@ -27,7 +27,7 @@ def test_watchdog_alarm_evidence_and_recovery_on_a_live_link(netns, tmp_path):
     ns = ["ip", "netns", "exec", netns]
     lines, evidence, report = tmp_path / "live.jsonl", tmp_path / "evidence", tmp_path / "report.json"
     evidence.mkdir()
-    monitor = subprocess.Popen(ns + VM110 + ["monitor", "-i", "lo", "--no-dashboard", "--quiet", "--duration", "9",
+    monitor = subprocess.Popen(ns + VM110 + ["monitor", "-i", "lo", "--no-dashboard", "--quiet", "--duration", "10",
                                              "--json-lines", str(lines), "--evidence", str(evidence), "--before", "2",
                                              "--after", "1", "--json", str(report)],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -79,6 +79,11 @@ def test_watchdog_alarm_evidence_and_recovery_on_a_live_link(netns, tmp_path):
     rep = json.loads(report.read_text())
     violations = [v for p in rep["periodic"] if p["type"] == "VRPI" for v in p["watchdog"]["violations"]]
     assert any(1.5 < v["gap_ms"] / 1000 < 3.0 for v in violations)
+    # The link died about 2 s before the monitor stopped: silent to the end, in the last judgement
+    # and in the report (it used to end at the last packet, with a clean verdict).
+    assert [v for v in violations if v["until_end"] and v["gap_ms"] > 1000]
+    assert rep["capture"]["last_time"] - rep["capture"]["first_time"] > 7.5
+    assert [f for f in raised if f["item"].get("until_end") and f["time"] > back["time"]]
 
 
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux not installed")

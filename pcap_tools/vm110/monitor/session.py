@@ -339,10 +339,15 @@ class Session:
         except CliError as exc:            # not a capture at all: said at the end
             self.failure = self.failure or str(exc)
         self._flush()
-        if self.last_ts is not None:
-            self._tick(self.last_ts, final=True)   # what the end of the input can tell
+        # A live link was watched until now, not until its last packet: one that died meanwhile
+        # is silent to the end, in the last judgement and in the report.
+        end = self.now() if self.cfg.live else self.last_ts
+        if end is not None:
+            self._tick(end, final=True)        # what the end of the input can tell
         self._held_back()
         self.intake.sync(self.reader)
+        if end is not None and self.intake.got.last_ts is not None:
+            self.intake.got.last_ts = max(self.intake.got.last_ts, end)
         self.intake.got.analysis = self.analysis     # the report is built from it (report.build)
         if self.cfg.evidence is not None:
             self.cfg.evidence.tick(None)
