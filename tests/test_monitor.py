@@ -112,6 +112,22 @@ def test_live_lost_findings_are_analyze_s_items(tmp_path, capsys):
     assert any("late" in i for i in items.values())
 
 
+def test_a_capture_ended_before_the_serial_scope_was_chosen_tells_its_findings(tmp_path):
+    """Default options on a 6 s capture: its senders are still choosing their serial scope (10 s)
+    when it ends. They choose then, as in the report, and every lost and restart item of the report
+    is told: a line, or counted in a later line or the closing count (none was told before)."""
+    capture, lines = tmp_path / "short.pcap", tmp_path / "live.jsonl"
+    synthesize("loss", str(capture), 3, 6, "pcap")
+    assert main(["monitor", "--read", str(capture), "--idle", "0", "--no-dashboard", "--quiet", "--json-lines",
+                 str(lines), "--json", str(tmp_path / "r.json")]) == 0
+    told = [o for o in map(json.loads, lines.read_text().splitlines()) if o.get("rule") in ("lost", "restarts")]
+    report = json.loads((tmp_path / "r.json").read_text())
+    items = [i for f in report["verdict"]["findings"] if f["rule"] in ("lost", "restarts") for i in f["items"]]
+    assert len(items) >= 3
+    assert {o["item"]["frame"] for o in told if o["type"] == "finding"} <= {i["frame"] for i in items}
+    assert sum(o.get("count", 1) + o.get("suppressed_before", 0) for o in told) == len(items)
+
+
 def test_a_report_on_standard_output_stands_alone(tmp_path):
     """--json -: standard output is the report alone; the finding lines go to standard error."""
     capture = str(ROOT / "captures" / "loss.pcapng")

@@ -342,6 +342,7 @@ class Session:
         # A live link was watched until now, not until its last packet: one that died meanwhile
         # is silent to the end, in the last judgement and in the report.
         end = self.now() if self.cfg.live else self.last_ts
+        self.analysis.finish()      # as the report does: a sender still choosing its serial scope chooses now
         if end is not None:
             self._tick(end, final=True)        # what the end of the input can tell
         self._held_back()
