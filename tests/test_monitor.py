@@ -73,8 +73,13 @@ def test_findings_json_lines_and_evidence_of_a_silent_base_unit(tmp_path, capsys
     assert bu["state"] == "watchdog" and bu["age_ms"] > 4000 and ctl["state"] == "alive"
     assert snapshots[-1]["alarms"][0]["rule"] == "watchdog" and bu["bu_state"] == "Armed"
     # The evidence: the frames of [alarm - 2 s, alarm + 1 s], named by time and rule, JSON beside.
-    files = sorted(evidence.iterdir())
-    assert [f.suffix for f in files] == [".json", ".pcapng"] and "-watchdog" in files[0].name
+    files = sorted(p for p in evidence.iterdir() if "-watchdog" in p.name)
+    assert [f.suffix for f in files] == [".json", ".pcapng"]
+    # The controller's last two commands, never acknowledged by the stopped BU, are failed at the
+    # end of the input (as in the report's `failed` 2), with their evidence too.
+    failed = [f for f in findings if f["rule"] == "failed"]
+    assert [(f["item"]["type"], f["event"]) for f in failed] == [("VRCO", "raised")] * 2
+    assert len([p for p in evidence.iterdir() if "-failed" in p.name]) == 2
     meta = json.loads(files[0].read_text())
     frames = list(CaptureReader(str(files[1])))
     assert meta["frames"]["count"] == len(frames) > 0 and meta["findings"][0]["rule"] == "watchdog"

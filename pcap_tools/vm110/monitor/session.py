@@ -339,9 +339,10 @@ class Session:
         except CliError as exc:            # not a capture at all: said at the end
             self.failure = self.failure or str(exc)
         self._flush()
-        # A live link was watched until now, not until its last packet: one that died meanwhile
-        # is silent to the end, in the last judgement and in the report.
-        end = self.now() if self.cfg.live else self.last_ts
+        # A live link still open when we stop was watched until now, not until its last packet: one
+        # that died meanwhile is silent to the end, in the last judgement and in the report. An
+        # input that ended (a file, a pipe closed) ends at its last record, as in analyze.
+        end = self.now() if self.cfg.live and not self.input_ended else self.last_ts
         self.analysis.finish()      # as the report does: a sender still choosing its serial scope chooses now
         if end is not None:
             self._tick(end, final=True)        # what the end of the input can tell
