@@ -260,3 +260,28 @@ def test_dask_on_a_given_scheduler(fleet, tmp_path):
     for table in TABLES:
         expected = sorted((r for r in read_table(fleet["dataset"], table) if r["file"] in paths), key=repr)
         assert sorted(read_table(tmp_path / "s", table), key=repr) == expected, table
+
+
+def test_captures_without_metadata_rank_each_under_its_file(tmp_path):
+    """A capture without site and machine is its own machine, named by its file, with its own
+    figures (a NULL key joined nothing: all such captures were one blank row of zeros)."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    shutil.copy(BUNDLED / "loss.pcapng", tmp_path / "a" / "loss.pcapng")
+    (tmp_path / "a" / "loss.pcapng.meta.json").write_text(json.dumps({"site": "north", "machine": "m1"}))
+    plain = [tmp_path / "b" / name for name in ("retransmit.pcap", "controller-watchdog.pcap")]
+    for path in plain:
+        shutil.copy(BUNDLED / path.name, path)
+    vm110("fleet", "build", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "ds"), "-j", "1")
+
+    def worst(what: str) -> dict:
+        rows = json.loads(vm110("fleet", "query", str(tmp_path / "ds"), "--worst", what, "--format", "json").stdout)
+        return {r["file"] or (r["site"], r["machine"]): r for r in rows}
+    links, machines = worst("links"), worst("machines")
+    assert set(links) == set(machines) == {("north", "m1"), *map(str, plain)}
+    for path in plain:
+        report = json.loads(vm110("analyze", str(path), "--json", "-", check=False).stdout)
+        errors = sum(f["severity"] == "error" for f in report["verdict"]["findings"])
+        assert links[str(path)]["lost"] == report["totals"]["lost"] > 0
+        assert links[str(path)]["watchdog"] == report["totals"]["watchdog"]
+        assert (machines[str(path)]["captures"], machines[str(path)]["error_findings"]) == (1, errors)

@@ -100,56 +100,71 @@ def _cols(prefix: str, cols: Sequence[str]) -> str:
     return ", ".join(f"{prefix}.{c}" for c in cols)
 
 
+def _machine(f: Fleet, table: str = "captures", alias: str = "") -> tuple[list[str], str]:
+    """A machine's key columns, and the select list that gives them: site and machine when the
+    metadata has them, and for a capture with neither its file (docs/fleet.md), so that captures
+    without metadata are not one blank machine; else the file."""
+    who, p = f.who(table), f"{alias}." if alias else ""
+    if who == ["file"]:
+        return who, f"{p}file"
+    unnamed = " AND ".join(f"{p}{c} IS NULL" for c in who)
+    return [*who, "file"], ", ".join(f"{p}{c}" for c in who) + f", CASE WHEN {unnamed} THEN {p}file END AS file"
+
+
+def _same(left: str, right: str, keys: Sequence[str]) -> str:
+    """Join condition on the machine's key: NULL (a metadata field a capture lacks) matches NULL."""
+    return " AND ".join(f"{left}.{k} IS NOT DISTINCT FROM {right}.{k}" for k in keys)
+
+
 # Both rankings count every capture of a machine (`captures`) and, of those, the ones that could
 # not be read (`unreadable`): they give no link figures and count as failing, but are the machine's.
 _CAPTURE_COUNTS = "count(*) AS captures, count(*) FILTER (WHERE status = 'unreadable') AS unreadable"
 
 
 def _worst_links(f: Fleet, a: Args) -> str:
-    who = f.who()
-    w = ", ".join(who)
+    keys, w = _machine(f)
     return f"""
 WITH c AS (SELECT {w}, {_CAPTURE_COUNTS} FROM captures GROUP BY ALL),
 s AS (SELECT {w}, sum(lost) AS lost, sum(received) AS received, sum(restarts) AS restarts FROM senders GROUP BY ALL),
 t AS (SELECT {w}, sum(watchdog_violations) AS watchdog,
              max(jitter_max_ms) FILTER (WHERE type = 'VRPI') AS vrpi_jitter_max_ms,
              max(jitter_max_ms) FILTER (WHERE type = 'VRPO') AS vrpo_jitter_max_ms FROM streams GROUP BY ALL)
-SELECT {_cols('c', who)}, c.captures, c.unreadable, coalesce(s.lost, 0) AS lost,
+SELECT {_cols('c', keys)}, c.captures, c.unreadable, coalesce(s.lost, 0) AS lost,
        round(100.0 * coalesce(s.lost, 0) / nullif(s.received + s.lost, 0), 3) AS loss_pct,
        coalesce(t.watchdog, 0) AS watchdog, t.vrpi_jitter_max_ms, t.vrpo_jitter_max_ms,
        coalesce(s.restarts, 0) AS restarts
-FROM c LEFT JOIN s USING ({w}) LEFT JOIN t USING ({w})
+FROM c LEFT JOIN s ON {_same('c', 's', keys)} LEFT JOIN t ON {_same('c', 't', keys)}
 ORDER BY loss_pct DESC NULLS LAST, watchdog DESC, greatest(t.vrpi_jitter_max_ms, t.vrpo_jitter_max_ms) DESC NULLS LAST
 LIMIT {a.limit}"""
 
 
 def _worst_machines(f: Fleet, a: Args) -> str:
-    who = f.who()
-    w = ", ".join(who)
+    keys, w = _machine(f)
+    k = ", ".join(keys)
     return f"""
 WITH c AS (SELECT {w}, {_CAPTURE_COUNTS},
                   count(*) FILTER (WHERE status <> 'ok' OR NOT verdict_ok) AS failing_captures
            FROM captures GROUP BY ALL),
 r AS (SELECT {w}, capture_id, rule, any_value(severity) AS severity, any_value(count) AS n FROM findings GROUP BY ALL),
-f AS (SELECT {w}, count(*) FILTER (WHERE severity = 'error') AS error_findings,
+f AS (SELECT {k}, count(*) FILTER (WHERE severity = 'error') AS error_findings,
              count(*) FILTER (WHERE severity <> 'error') AS other_findings, sum(n) AS items FROM r GROUP BY ALL)
-SELECT {_cols('c', who)}, c.captures, c.unreadable, c.failing_captures, coalesce(f.error_findings, 0) AS error_findings,
-       coalesce(f.other_findings, 0) AS other_findings, coalesce(f.items, 0) AS counted
-FROM c LEFT JOIN f USING ({w})
+SELECT {_cols('c', keys)}, c.captures, c.unreadable, c.failing_captures,
+       coalesce(f.error_findings, 0) AS error_findings, coalesce(f.other_findings, 0) AS other_findings,
+       coalesce(f.items, 0) AS counted
+FROM c LEFT JOIN f ON {_same('c', 'f', keys)}
 ORDER BY error_findings DESC, failing_captures DESC, other_findings DESC, counted DESC
 LIMIT {a.limit}"""
 
 
 def _failing_commands(f: Fleet, a: Args) -> str:
-    who = f.who("commands")
-    w = ", ".join(who)
+    keys, w = _machine(f, "commands")
     return f"""
 SELECT {w}, type, command_id, count(*) AS commands, count(*) FILTER (WHERE failed) AS failed,
        count(*) FILTER (WHERE NOT acked AND interrupted_frame IS NULL) AS unacked,
        round(100.0 * count(*) FILTER (WHERE failed) / count(*), 1) AS failed_pct,
        round(quantile_cont(latency_first_ms, 0.95), 3) AS ack_p95_ms, count(DISTINCT capture_id) AS captures
 FROM commands GROUP BY ALL HAVING count(*) FILTER (WHERE failed) > 0
-ORDER BY failed DESC, failed_pct DESC, {w}, type, command_id
+ORDER BY failed DESC, failed_pct DESC, {", ".join(f"#{i + 1}" for i in range(len(keys)))}, type, command_id
 LIMIT {a.limit}"""
 
 
@@ -162,10 +177,10 @@ def _month(f: Fleet, a: Args) -> str:
 
 
 def _watchdog(f: Fleet, a: Args) -> str:
-    who = f.who()
+    _, w = _machine(f, alias="c")
     return f"""
 WITH m AS (SELECT {_month(f, a)} AS start)
-SELECT strftime(m.start, '%Y-%m') AS month, {_cols('c', who)}, count(DISTINCT c.capture_id) AS captures,
+SELECT strftime(m.start, '%Y-%m') AS month, {w}, count(DISTINCT c.capture_id) AS captures,
        sum(s.watchdog_violations) AS violations, sum(s.watchdog_until_end) AS until_end,
        max(s.watchdog_max_gap_ms) AS max_gap_ms, string_agg(DISTINCT s.type, ',' ORDER BY s.type) AS types
 FROM streams s JOIN captures c USING (capture_id), m
