@@ -57,8 +57,8 @@ def check_written(folder: Path) -> int:
             continue                          # a FIFO or a folder a test made on purpose: never opened
         try:
             document = json.loads(path.read_text())
-        except (OSError, ValueError):
-            continue                          # not JSON (or half a file a test made on purpose)
+        except (OSError, ValueError, RecursionError):
+            continue                          # not JSON (or half a file, or a nesting, a test made on purpose)
         if is_report(document):
             check(document, str(path))
             seen += 1

@@ -292,7 +292,7 @@ def test_hostile_finding_files_are_one_line_errors(capsys, nothing_leaves, tmp_p
 
 
 @pytest.mark.parametrize("text", ["{", "", "NaN", '{"oracle": "crash", "steps": [], "seed": ' + "9" * 5000 + "}",
-                                  "\xff\xfe"])
+                                  "\xff\xfe", "[" * 100_000 + "]" * 100_000])    # (the last: a RecursionError)
 def test_unreadable_finding_files_are_one_line_errors(capsys, nothing_leaves, tmp_path, text):
     path = tmp_path / "finding.json"
     path.write_bytes(text.encode("latin-1"))

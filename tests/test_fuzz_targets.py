@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -245,3 +246,20 @@ def test_corpus_case_replays(tmp_path, programs):
     path.write_text('{"vm110_corpus_entry": 1, "packets": []}')
     bad = replay_case("plain-correct")
     assert bad.returncode == 2 and "not a valid vm110 corpus case" in bad.stderr
+
+
+def test_sigterm_still_writes_the_summary(tmp_path, programs):
+    """SIGTERM (a CI job's timeout) or Ctrl-C: the run ends with exit 130 and findings.json still
+    says what was run and found, and why it stopped (it used to be lost with the run's findings)."""
+    exe, out = programs("plain-correct"), tmp_path / "out"
+    rx, listen = free_ports(2)
+    run = subprocess.Popen([sys.executable, "-m", "vm110", "fuzz", "--target", f"127.0.0.1:{rx}", "--listen",
+                            f"127.0.0.1:{listen}", "--target-cmd", f"{exe} {rx} {listen}", "--out", str(out),
+                            "--duration", "120"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(4)
+    run.send_signal(signal.SIGTERM)
+    stdout, stderr = run.communicate(timeout=60)
+    assert run.returncode == 130, stderr
+    summary = json.loads((out / "findings.json").read_text())
+    assert summary["stopped_early"] == "interrupted" and summary["cases_run"] > 0
+    assert f"{summary['cases_run']} cases in" in stdout and "Traceback" not in stderr

@@ -7,13 +7,17 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
 import subprocess
 import sys
 from collections import Counter
 
+import pytest
+
 from loopback import LOOPBACK, free_ports
 from vm110 import constants as C
 from vm110.decode import decode
+from vm110.errors import CliError
 from vm110.sim.bu import BaseUnit, BaseUnitConfig
 from vm110.sim.controller import Controller, ControllerConfig
 from vm110.sim.impair import Impairer, Impairment
@@ -247,3 +251,29 @@ def test_cli_restart_stop_and_mirror_options():
     assert [round(e["t"], 1) for e in bu_log if e.get("event") == "stopped"] == [1.2]
     assert ctl_log[-1]["summary"]["received"]["VRPI"] < 12           # nothing after 1.2 s
     assert bu_log[-1]["summary"]["received"]["VRPO"] > ctl_log[-1]["summary"]["sent"]["VRPO"] * 0.9 * 0.6 / 1.7
+
+
+@pytest.mark.parametrize("script, message", [
+    ({"command_every": -1}, "command_every is '-1': must be a number from 0 to"),     # sent 33,216 VRCI in 1.5 s
+    ({"steps": [{"at": 0, "set": {"joystick1": 70000}}]}, "steps[0].set.joystick1 is '70000': must be an integer"),
+    ({"steps": [{"at": 1e308}]}, "steps[0].at is '1e+308'"),
+    ([1, 2], "the script must be a JSON object"),
+    ({"commands": [{"at": 1, "id": 70000}]}, "commands[0].id is '70000'"),                # was sent as ID 4464
+    ({"steps": [{"at": 0, "set": {"no_such_field": 1}}]}, "'no_such_field' is not a VRPI field"),
+    ({"steps": [{"at": 0, "colour": "red"}]}, "steps[0] has unknown key 'colour'"),
+    ({"steps": [{"at": float("nan")}]}, "steps[0].at is 'nan'"),
+    ({"commands": [{"at": 1, "data": 5}]}, "commands[0].data must be a string"),
+])
+def test_a_script_is_checked_before_anything_is_sent(tmp_path, script, message):
+    path = tmp_path / "remote.json"
+    path.write_text(json.dumps(script))
+    with pytest.raises(CliError, match=re.escape(message)):
+        Remote.load(str(path))
+
+
+def test_a_script_nested_too_deeply_is_one_line(tmp_path):
+    path = tmp_path / "remote.json"
+    path.write_text("[" * 100_000 + "]" * 100_000)
+    done = subprocess.run([sys.executable, "-m", "vm110", "simulate", "bu", "--script", str(path), "--listen",
+                           f"{LOOPBACK}:0", "--peer", f"{LOOPBACK}:9"], capture_output=True, text=True, timeout=20)
+    assert done.returncode == 2 and "nested too deeply" in done.stderr and done.stderr.count("\n") == 1

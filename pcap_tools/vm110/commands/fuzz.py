@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import constants as C
-from ..errors import EXIT_FINDINGS, EXIT_OK, CliError
+from ..errors import EXIT_FINDINGS, EXIT_INTERRUPTED, EXIT_OK, CliError
 from ..fileio import check_target
 from ..fuzz.corpus import is_entry_file, load_entry
 from ..fuzz.coverage import map_size
@@ -159,15 +159,16 @@ def run(args: argparse.Namespace) -> int:
                     target_cmd=args.target_cmd, minimize_budget_s=args.minimize_budget,
                     max_findings=args.max_findings, progress=status.message if status else _progress,
                     status=status, core=not args.no_core, coverage=guided)
+    runner = Runner(cfg)
     try:
-        summary = Runner(cfg).run()
+        summary = runner.run()
     finally:
         if status is not None:
             status.done()
     write_summary(out, summary)
     if guided is not None:
         write_coverage_html(out / "coverage.html", summary)
-    if summary["stopped_early"] and not summary["findings"] and summary["cases_run"] == 0:
+    if summary["stopped_early"] and not runner.interrupted and not summary["findings"] and summary["cases_run"] == 0:
         raise CliError(summary["stopped_early"])
     for bucket in summary["buckets"]:
         seen = f"{bucket['count']} time{'s' if bucket['count'] != 1 else ''}"
@@ -187,6 +188,8 @@ def run(args: argparse.Namespace) -> int:
     if args.target_cmd:
         options = ", ".join(f"{k}={'(yours)' if v == 'user' else v}" for k, v in summary["sanitizer_options"].items())
         print(f"sanitizer options: {options}; core files: {summary['core_files']}")
+    if runner.interrupted:
+        return EXIT_INTERRUPTED
     return EXIT_FINDINGS if summary["findings"] else EXIT_OK
 
 

@@ -27,6 +27,7 @@ from .. import __version__
 from ..errors import CliError
 from ..fileio import atomic_writer
 from .tables import TABLES
+from ..jsonin import loads
 
 FORMAT = "vm110-fleet"
 FORMAT_VERSION = 1
@@ -70,7 +71,7 @@ class Dataset:
         except OSError as exc:
             raise CliError(f"{self.url}: cannot read {MANIFEST}: {exc}") from None
         try:
-            doc = json.loads(raw)
+            doc = loads(raw)
         except ValueError:
             doc = None
         if not isinstance(doc, dict) or doc.get("format") != FORMAT or not isinstance(doc.get("captures"), dict):

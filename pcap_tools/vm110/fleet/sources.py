@@ -19,6 +19,7 @@ from typing import Iterable, Optional
 
 from ..errors import CliError
 from .tables import COLUMNS
+from ..jsonin import loads
 
 CAPTURE_SUFFIXES = (".pcap", ".pcapng", ".cap")
 SIDECAR_SUFFIX = ".meta.json"
@@ -155,7 +156,7 @@ def sidecar(path: str) -> tuple[dict[str, Optional[str]], list[str]]:
             raw = f.read(MAX_SIDECAR_BYTES + 1)
         if len(raw) > MAX_SIDECAR_BYTES:
             raise ValueError(f"larger than {MAX_SIDECAR_BYTES} bytes")
-        data = json.loads(raw, parse_constant=_refuse_constant)
+        data = loads(raw, parse_constant=_refuse_constant)
     except (OSError, ValueError) as exc:
         return {}, [f"not a metadata file: {exc}"]
     if not isinstance(data, dict):

@@ -23,6 +23,7 @@ from ..fileio import write_text
 from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
 from .findings import make_folder
+from ..jsonin import loads
 
 _MAX_PACKETS = 16
 _MAX_PACKET = 65_507
@@ -122,7 +123,7 @@ def load_entry(path: str) -> Entry:
     try:
         if Path(path).stat().st_size > _MAX_ENTRY_FILE:
             raise CliError(f"{path} is not a vm110 corpus case: larger than {_MAX_ENTRY_FILE >> 20} MiB")
-        return entry_from_json(json.loads(Path(path).read_bytes()))
+        return entry_from_json(loads(Path(path).read_bytes()))
     except OSError as exc:
         raise CliError(f"cannot read {path}: {exc.strerror}") from None
     except ValueError as exc:
@@ -150,7 +151,7 @@ class CorpusDir:
             try:
                 if path.stat().st_size > _MAX_ENTRY_FILE:
                     raise _Bad("too large")
-                entries.append(entry_from_json(json.loads(path.read_bytes())))
+                entries.append(entry_from_json(loads(path.read_bytes())))
             except (OSError, ValueError, _Bad) as exc:
                 self.skipped.append(f"{path.name}: {str(exc)[:100]}")
         return entries

@@ -17,6 +17,7 @@ from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
 from .evidence import Crash
 from .oracles import ORACLES
+from ..jsonin import loads
 
 SCHEMA = 1
 # What a finding file may hold, beyond its types: it is data from anywhere, never trusted.
@@ -166,7 +167,7 @@ def load_finding(path: str) -> Finding:
     try:
         if Path(path).stat().st_size > _MAX_FILE:
             raise CliError(f"{path} is not a vm110 fuzz finding: larger than {_MAX_FILE >> 20} MiB")
-        raw = json.loads(Path(path).read_bytes())
+        raw = loads(Path(path).read_bytes())
     except OSError as exc:
         raise CliError(f"cannot read {path}: {exc.strerror}") from None
     except ValueError as exc:    # also numbers of more digits than Python converts

@@ -164,6 +164,7 @@ class Runner:
         self.end: Optional[float] = None
         self._last_status = 0.0
         self.stopped_early: Optional[str] = None
+        self.interrupted: Optional[str] = None
 
     # --- the run ----------------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -198,6 +199,8 @@ class Runner:
             self._investigate_all()
         except TargetLost as exc:
             self.stopped_early = str(exc)
+        except KeyboardInterrupt:          # Ctrl-C, SIGTERM: what was found is still summarised
+            self.stopped_early = self.interrupted = "interrupted"
         finally:
             s.close()
             if self._log is not None:

@@ -18,14 +18,15 @@ ID after a pause) instead of the next. Times are seconds from start.
 from __future__ import annotations
 
 import bisect
-import json
 import math
+import struct
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Optional
 
 from .. import constants as C
 from .. import protocol as P
 from ..errors import CliError
+from ..jsonin import loads
 from .clock import US_PER_S, seconds
 
 DEFAULT_RU = 0x0C07
@@ -48,6 +49,76 @@ _STEP_US = 10_000           # switches and encoder move in steps of 10 ms
 _PUSHBUTTON, _TOGGLE, _POTENTIOMETER = _SWITCHES[:3]
 _SWITCH_STEPS = C.SWITCH_MAX + 1
 _ENABLED = C.RuState.ENABLED
+
+
+# --- what a script may hold ------------------------------------------------------------------------
+_MAX_SCRIPT = 16 << 20
+_MAX_S = 30 * 86400                        # as simulate's times
+_INT_FIELDS = {f.name: f for f in P.PACKETS[C.PacketType.VRPI].fields if f.kind != "bytes"}
+_KEYS = {"script": {"steps", "commands", "command_every", "command_until"},
+         "step": {"at", "state", "ru", "battery", "rssi", "unarmed_rus", "motion", "set"},
+         "command": {"at", "data", "id"}}
+_STEP_FIELD = {"ru": "armed_ru", "battery": "ru_battery", "rssi": "ru_rssi", "unarmed_rus": "unarmed_rus"}
+
+
+def _limits(name: str) -> tuple[int, int]:
+    code = P.PACKETS[C.PacketType.VRPI].fields[VRPI_INDEX[name]].code
+    bits = 8 * struct.calcsize("<" + code)
+    return (-(1 << bits - 1), (1 << bits - 1) - 1) if code.islower() else (0, (1 << bits) - 1)
+
+
+def _number(where: str, value: Any, low: float, high: float, integer: bool = False) -> None:
+    kind = (int,) if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kind) or not (math.isfinite(value) and low <= value <= high):
+        what = "an integer" if integer else "a number"
+        raise CliError(f"remote script: {where} is {str(value)[:30]!r}: must be {what} from {low:g} to {high:g}")
+
+
+def _object(where: str, value: Any, keys: str) -> Mapping[str, Any]:
+    if not isinstance(value, dict):
+        raise CliError(f"remote script: {where} must be a JSON object")
+    unknown = sorted(set(value) - _KEYS[keys])
+    if unknown:
+        raise CliError(f"remote script: {where} has unknown key {unknown[0][:30]!r} "
+                       f"(allowed: {', '.join(sorted(_KEYS[keys]))})")
+    return value
+
+
+def _list(where: str, value: Any) -> list:
+    if not isinstance(value, list):
+        raise CliError(f"remote script: {where} must be a JSON list")
+    return value
+
+
+def check_script(script: Any) -> None:
+    """CliError naming the first thing a remote script does not allow: unknown keys, values of the
+    wrong type, times outside 0 to 30 days, VRPI values and command IDs outside their fields."""
+    _object("the script", script, "script")
+    for key in ("command_every", "command_until"):
+        if key in script:
+            _number(key, script[key], 0, _MAX_S)
+    for i, raw in enumerate(_list("steps", script.get("steps", []))):
+        step = _object(f"steps[{i}]", raw, "step")
+        _number(f"steps[{i}].at", step.get("at", 0), 0, _MAX_S)
+        if "motion" in step and not isinstance(step["motion"], bool):
+            raise CliError(f"remote script: steps[{i}].motion must be true or false")
+        for key, name in _STEP_FIELD.items():
+            if key in step:
+                _number(f"steps[{i}].{key}", step[key], *_limits(name), integer=True)
+        values = step.get("set", {})
+        if not isinstance(values, dict):
+            raise CliError(f"remote script: steps[{i}].set must be a JSON object")
+        for name, value in values.items():
+            if name not in _INT_FIELDS:
+                raise CliError(f"remote script: steps[{i}].set: {name[:30]!r} is not a VRPI field")
+            _number(f"steps[{i}].set.{name}", value, *_limits(name), integer=True)
+    for i, raw in enumerate(_list("commands", script.get("commands", []))):
+        cmd = _object(f"commands[{i}]", raw, "command")
+        _number(f"commands[{i}].at", cmd.get("at"), 0, _MAX_S)
+        if "id" in cmd and cmd["id"] is not None:
+            _number(f"commands[{i}].id", cmd["id"], 0, 0xFFFF, integer=True)
+        if not isinstance(cmd.get("data", ""), str):
+            raise CliError(f"remote script: commands[{i}].data must be a string")
 
 
 def armed_fields(ru: int = DEFAULT_RU, battery: int = 90, rssi: int = 80) -> dict[str, int]:
@@ -84,6 +155,8 @@ class Remote:
 
     @classmethod
     def from_script(cls, script: Mapping[str, Any]) -> "Remote":
+        """The remote of a script (module docstring); CliError (one line) for anything it does not allow."""
+        check_script(script)
         steps = []
         for raw in script.get("steps", []):
             values: dict[str, int] = {}
@@ -100,7 +173,7 @@ class Remote:
             steps.append(_Step(seconds(float(raw.get("at", 0))), values, raw.get("motion"),
                                None if battery is None else int(battery)))
         commands = [(seconds(float(c["at"])), str(c.get("data", "CMD")).encode("ascii", "replace"),
-                     None if c.get("id") is None else int(c["id"]) & 0xFFFF)
+                     None if c.get("id") is None else int(c["id"]))
                     for c in script.get("commands", [])]
         return cls(sorted(steps, key=lambda s: s.at), sorted(commands, key=lambda c: c[0]),
                    seconds(float(script.get("command_every", 0))),
@@ -109,10 +182,19 @@ class Remote:
     @classmethod
     def load(cls, path: str) -> "Remote":
         try:
-            with open(path, encoding="utf-8") as fh:
-                return cls.from_script(json.load(fh))
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise CliError(f"cannot read remote script {path}: {exc}") from None
+            with open(path, "rb") as fh:
+                raw = fh.read(_MAX_SCRIPT + 1)
+            if len(raw) > _MAX_SCRIPT:
+                raise ValueError(f"larger than {_MAX_SCRIPT >> 20} MiB")
+            script = loads(raw)
+        except OSError as exc:
+            raise CliError(f"cannot read remote script {path}: {exc.strerror}") from None
+        except ValueError as exc:
+            raise CliError(f"cannot read remote script {path}: not JSON: {str(exc)[:120]}") from None
+        try:
+            return cls.from_script(script)
+        except CliError as exc:
+            raise CliError(f"{path}: {exc}") from None
 
     @classmethod
     def simple(cls, armed: bool = True, unarmed_rus: int = 0, motion: bool = True,
