@@ -592,15 +592,18 @@ local function new_record()
     return { n = 0, problems = EMPTY, fieldwarn = EMPTY, values = EMPTY, type = false, info = false,
         revision = false, origin = false, serial = false, size = false, spare = false, crc_off = false,
         pay_end = false, crc = false, crc_calc = false, crc_status = false, payload = false, present = false,
-        decoded_end = false, data_len = false, extra = false, es_relays_open = false, info_text = false }
+        decoded_end = false, data_len = false, extra = false, es_relays_open = false, info_text = false,
+        cut = false }
 end
 local record = new_record()
 
-local function decode(s, variant, big_endian, known_crc)
+-- `cut`: the capture holds less of the datagram than was sent (snaplen): a packet it shortened
+-- is illegal as truncated, and nothing else of it is judged (its CRC and size are not there).
+local function decode(s, variant, big_endian, known_crc, cut)
     local n = #s
     local r = record
     -- (each field is set on every path: the header's and the CRC's where they are read)
-    r.n, r.problems, r.fieldwarn, r.values, r.type, r.info = n, EMPTY, EMPTY, EMPTY, false, false
+    r.n, r.problems, r.fieldwarn, r.values, r.type, r.info, r.cut = n, EMPTY, EMPTY, EMPTY, false, false, false
     r.payload, r.present, r.decoded_end, r.data_len, r.extra, r.es_relays_open, r.info_text =
         false, false, false, false, false, false, false
     local info
@@ -624,6 +627,12 @@ local function decode(s, variant, big_endian, known_crc)
     local revision, origin, size = r1 + r2 * 256, o1 + o2 * 256, z1 + z2 * 256
     local spare = ((p4 * 256 + p3) * 256 + p2) * 256 + p1
     r.revision, r.origin, r.serial, r.size, r.spare = revision, origin, s1 + s2 * 256, size, spare
+    if cut and n < OVERHEAD + size then
+        r.crc_off, r.pay_end, r.crc, r.crc_calc, r.crc_status = false, false, false, false, false
+        r.cut, r.problems = true, EMPTY
+        problem(r, "truncated")
+        return r
+    end
     if n >= OVERHEAD then
         local off = PREFIX_LEN + size
         if off > n - CRC_LEN then off = n - CRC_LEN end
@@ -1294,6 +1303,11 @@ local function add_tree(r, tvb, tree)
     local n = r.n
     if n < PREFIX_LEN then
         add_expert(root, E.truncated, "Truncated: shorter than the 16-byte packet ID and header")
+        return root
+    end
+    if r.cut then
+        local item = add_undecoded(root, tvb, PREFIX_LEN, n - PREFIX_LEN, "cut short by the capture") or root
+        add_expert(item, E.truncated, "Truncated: cut short by the capture (snaplen)")
         return root
     end
     if not r.crc_off then
@@ -2223,6 +2237,9 @@ local function dissect(tvb, pinfo, tree)
         end
     end
     local r = decode(s, settings.variant, settings.big_endian, known)
+    if r.problems ~= EMPTY and tvb:reported_len() > r.n then -- (only then: a C call)
+        r = decode(s, settings.variant, settings.big_endian, known, true)
+    end
     local legal = r.problems == EMPTY -- (own() replaces EMPTY at the first problem)
     if r.crc_calc and not known and not (settings.analysis and legal) then
         memo_set(crc_memo, number, offset, r.crc_calc) -- (an analysed packet's is its stored CRC)

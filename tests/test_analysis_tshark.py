@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import shutil
 import signal
+import struct
 import subprocess
+import sys
 import time
 
 import pytest
@@ -16,6 +18,8 @@ from test_analysis_truth import ALL_CAPTURES, CAPTURES
 from vm110.analysis import analyze
 from vm110.analysis import tshark_packets
 from vm110.synth import synthesize
+
+VM110 = [sys.executable, "-m", "vm110"]
 
 pytestmark = pytest.mark.tshark
 
@@ -143,6 +147,38 @@ def test_a_failing_tshark_is_told_after_its_packets(tmp_path):
         for _ in tshark_packets.packets(str(CAPTURES / "normal.pcap"), [], tshark_path=wrapper):
             seen += 1
     assert seen == analyze(str(CAPTURES / "normal.pcap"))["capture"]["packets"]
+
+
+def snapped(source, target, snaplen: int) -> None:
+    """A copy of a little-endian pcap as a capture with `snaplen` would have written it."""
+    data = source.read_bytes()
+    out, pos = [data[:16] + struct.pack("<I", snaplen) + data[20:24]], 24
+    while pos < len(data):
+        ts_sec, ts_frac, incl, orig = struct.unpack_from("<IIII", data, pos)
+        kept = min(incl, snaplen)
+        out.append(struct.pack("<IIII", ts_sec, ts_frac, kept, orig) + data[pos + 16:pos + 16 + kept])
+        pos += 16 + incl
+    target.write_bytes(b"".join(out))
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_a_datagram_the_snaplen_cut_is_truncated_alone(tshark, tmp_path):
+    """Cut by the capture, a datagram is illegal as `truncated` and nothing else (its CRC and size
+    are not there to judge): in the dissector's experts as in the report and `vm110 decode`. The
+    dissector said bad CRC and size mismatch, 371 times each, on normal.pcap cut at 80 bytes."""
+    cut = tmp_path / "snap80.pcap"
+    snapped(CAPTURES / "normal.pcap", cut, 80)
+    report = analyze(str(cut))
+    assert report["illegal"]["by_reason"] == {"truncated": report["capture"]["snaplen_truncated"]} != {}
+    with tshark.workspace(tmp_path / "ws") as ws:
+        local = ws.dir / cut.name
+        local.write_bytes(cut.read_bytes())
+        experts = ws.run(["-r", str(local), "-T", "fields", "-e", "_ws.expert.message", "-Y", "vm110.expert.truncated"])
+    lines = experts.stdout.splitlines()
+    assert len(lines) == report["illegal"]["total"]
+    assert all(line == "Truncated: cut short by the capture (snaplen)" for line in lines), lines[:3]
+    decoded = subprocess.run([*VM110, "decode", str(cut)], capture_output=True, text=True, check=True).stdout
+    assert decoded.count("ILLEGAL(truncated)") == report["illegal"]["total"] and "bad_crc" not in decoded
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)

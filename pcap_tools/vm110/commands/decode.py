@@ -102,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
             if start is None:     # the capture's first packet, EG-Link or not
                 start = reader.first_ts if reader.first_ts is not None else when
             fields = decode(data, args.crc, args.crc_order)
+            if fields["problems"] and number in reader.snap_truncated:
+                fields["problems"] = [C.Problem.TRUNCATED.value]    # the capture cut it: nothing else is judged
             count += 1
             print((_json if args.json else _line)(number, when, start, src, fields))
     if not args.json:
