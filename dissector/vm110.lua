@@ -1920,7 +1920,7 @@ local function analyse(r, s, pinfo, frame, offset)
             local start = r.decoded_end - size
             data = sub(s, start + 1, start + size)
         end
-        if cur.tlast and ms(t - cur.tlast) < settings.burst_gap then
+        if cur.tlast and t >= cur.tlast and ms(t - cur.tlast) < settings.burst_gap then -- (back: a new one)
             res = join_burst(cur, res or iv or -1, frame, number, data, size)
         else
             -- A new burst: its interval from the previous burst's first packet (equal to the

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from scapy.layers.inet import IP, UDP
-from scapy.utils import rdpcap
+from scapy.utils import rdpcap, wrpcap
 
 import tshark_runner as T
 from vm110.decode import decode
@@ -298,6 +298,15 @@ def test_appended_captures_restart_at_the_seam(tshark, tmp_path):
         [mine] = [s for s in report["senders"] if s["id"] == sender]
         assert {k: mine["serial"][k] for k in (*want, "restarts")} == {**want, "restarts": 1}, sender
         assert [{k: e[k] for k in ("frame", "from", "to")} for e in mine["serial"]["restart_events"]] == [event]
+    # The step back begins a new VRPO burst: the last packet before the seam and the first after
+    # it were one incomplete burst (less than the burst gap "apart", 30 s back).
+    assert report["totals"]["vrpo_incomplete"] == sum(t["vrpo_bursts"]["incomplete"] for t in truths)
+    with tshark.workspace(tmp_path / "bursts") as ws:
+        def incomplete(name: str, part: list) -> int:
+            wrpcap(str(ws.dir / name), part)
+            return len(ws.run(["-r", str(ws.dir / name), "-2", "-Y", "vm110.expert.burst_incomplete"]).stdout.split())
+        assert incomplete("both.pcap", packets) == incomplete("a.pcap", packets[:offset]) + \
+            incomplete("b.pcap", packets[offset:])
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
@@ -319,7 +328,6 @@ def test_ipv6_senders_are_named_as_analyze_names_them(tshark, tmp_path):
 
 def _stat_and_report(tshark: T.Tshark, tmp_path: Path, packets: list) -> tuple[dict, dict]:
     """`-z vm110,stat` (parsed) and `vm110 analyze`'s report of the packets written as a pcap."""
-    from scapy.utils import wrpcap
     from vm110.analysis import analyze
     try:
         with tshark.workspace(tmp_path) as ws:

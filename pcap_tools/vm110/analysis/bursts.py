@@ -1,10 +1,11 @@
 """VRPO bursts (interpretation.md, "VRPO split into several packets").
 
-A burst is a run of VRPO packets from one sender less than the burst gap (20 ms) apart: the gap
-is the whole definition, since a receiver cannot know what was sent back to back. It is complete
-when its packet numbers are start, start+1, ... each once (in any order), every packet but the
-last by number carries 488 data bytes, and the last fewer, or, with a configured periodic data
-size, the data add up to exactly that size. Two unsplit VRPO packets that arrive closer than the
+A burst is a run of VRPO packets from one sender less than the burst gap (20 ms) apart, each at or
+after the one before (a step back of the clock begins a new burst): the gap is the whole
+definition, since a receiver cannot know what was sent back to back. It is complete when its
+packet numbers are start, start+1, ... each once (in any order), every packet but the last by
+number carries 488 data bytes, and the last fewer, or, with a configured periodic data size, the
+data add up to exactly that size. Two unsplit VRPO packets that arrive closer than the
 gap (jitter, reordering) therefore form one incomplete burst, as the truth of `vm110 synth` has it.
 
 `Bursts` is fed a sender's accepted VRPO packets a batch at a time and keeps only the burst still
@@ -76,8 +77,10 @@ class Bursts:
             return
         times = np.asarray(times, dtype=np.float64)
         begins = np.empty(n, dtype=bool)
-        begins[0] = self.last_time is None or float(times[0]) - self.last_time >= self.gap
-        begins[1:] = np.diff(times) >= self.gap
+        # (a step back of the clock begins a burst too: two captures appended end to end)
+        begins[0] = self.last_time is None or not 0 <= float(times[0]) - self.last_time < self.gap
+        steps = np.diff(times)
+        begins[1:] = (steps >= self.gap) | (steps < 0)
         self.last_time = float(times[-1])
         firsts = np.flatnonzero(begins)
         new = times[firsts]
