@@ -61,15 +61,28 @@ def find(sources: Iterable[str]) -> dict[str, Optional[str]]:
                 raise CliError(f"{src}: not a file or folder")
             hits = {src: None}
         elif glob.has_magic(src):
-            # The pattern names each path it matches: links are followed wherever they lead.
-            hits = {p: not_a_capture(p) for p in glob.glob(src, recursive=True) if not os.path.isdir(p)}
+            # The pattern names each path it matches: links are followed wherever they lead (`**`
+            # goes round a link to a folder above it until the path is too long to resolve).
+            hits = {p: not_a_capture(p) for p in glob.glob(src, recursive=True)
+                    if not os.path.isdir(os.path.realpath(p))}
             if not hits:
                 raise CliError(f"{src}: no file matches")
         else:
             raise CliError(f"{src}: no such file or folder")
         for path, problem in hits.items():
             found.setdefault(os.path.abspath(path), problem)
-    return dict(sorted(found.items()))
+    return dict(sorted(_once(found).items()))
+
+
+def _once(found: dict[str, Optional[str]]) -> dict[str, Optional[str]]:
+    """Each file once, under its shortest name: links (a loop, a `latest.pcap`) and several SRCs
+    may name one file many times, and each name would count it again in every sum."""
+    kept: dict[str, tuple[str, Optional[str]]] = {}
+    def first(item: tuple[str, Optional[str]]) -> tuple:     # readable, then the file itself, then shortest
+        return item[1] is not None, os.path.islink(item[0]), item[0].count(os.sep), item[0]
+    for path, problem in sorted(found.items(), key=first):
+        kept.setdefault(os.path.realpath(path), (path, problem))
+    return dict(kept.values())
 
 
 def _walk(folder: str) -> dict[str, Optional[str]]:
