@@ -252,7 +252,7 @@ def test_dask_on_a_given_scheduler(fleet, tmp_path):
     from vm110.fleet.work import Settings
     paths = [str(fleet["files"][name]) for name in ("normal.pcap", "retransmit.pcap", "cut")]
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None) as cluster:
+                      dashboard_address=":0") as cluster:     # (None still takes 8787: see fleet.engines)
         outcome = build(paths, Settings(dataset=str(tmp_path / "s"), packets=True),
                         MetaPattern("sites/{site}/{machine}/*"), engine="dask", jobs=1,
                         scheduler=cluster.scheduler_address)

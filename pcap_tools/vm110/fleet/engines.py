@@ -58,9 +58,11 @@ def run_dask(todo: Sequence[Source], settings: Settings, jobs: int, scheduler: O
             main = threading.current_thread() is threading.main_thread()
             previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
             try:
+                # (":0": the scheduler's HTTP server takes 8787 even without a dashboard, and a
+                # second cluster on the machine then warns and moves)
                 cluster = stack.enter_context(LocalCluster(
                     n_workers=jobs, threads_per_worker=1, processes=True, host="127.0.0.1",
-                    dashboard_address=None, silence_logs=logging.ERROR))
+                    dashboard_address=":0", silence_logs=logging.ERROR))
             finally:
                 if main:
                     signal.signal(signal.SIGINT, previous)
