@@ -247,3 +247,16 @@ def test_copies_of_an_undecided_candidate_cost_no_memory(tmp_path):
     ser = _sender(report, f"{BU}:5825")["serial"]
     assert (ser["restarts"], ser["duplicates"], ser["out_of_order"]) == (1, copies, 0)
     assert ser["restart_events"][0]["frame"] == 9 and report["periodic"][0]["count"] == 11
+
+
+def test_a_watchdog_item_says_its_frame_ends_the_silence(tmp_path):
+    """The item names the packet after the silence and the time the silence began: "frame 9 at
+    +1.000 s" read as one event, and frame 9 is at +3.5 s (trials, twice)."""
+    from vm110.analysis import summary
+    tr = Traffic()
+    for k, t in enumerate([i * 0.125 for i in range(9)] + [3.5 + i * 0.125 for i in range(8)]):
+        tr.add(t, vrpi(k))
+    report = _report(tr, tmp_path)
+    [item] = [i for f in report["verdict"]["findings"] if f["rule"] == "watchdog" for i in f["items"]]
+    assert (item["frame"], item["time"] - T0, item["until_end"]) == (10, 1.0, False)
+    assert "frame 10 ends a silence from +1.000000 s:" in summary.render(report)

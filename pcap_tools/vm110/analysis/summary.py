@@ -41,7 +41,9 @@ def _item(item: dict, t0: float) -> str:
         ", ..." if len(frames) > 8 else "")
     what = ", ".join(f"{k} {_value(item[k])}" for k in _ITEM_KEYS
                      if k in item and item[k] is not None and item[k] is not False)
-    return f"{where} at {since(item['time'], t0)} s: {what}  [{item['filter']}]"
+    # A watchdog item names the packet that ended the silence, and the time the silence began.
+    when = "ends a silence from" if item.get("until_end") is False else "at"
+    return f"{where} {when} {since(item['time'], t0)} s: {what}  [{item['filter']}]"
 
 
 def _finding(f: dict, everything: bool, t0: float) -> list[str]:
