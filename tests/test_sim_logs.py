@@ -121,3 +121,18 @@ def test_text_log_lines_all_start_with_utc():
     assert end["summary"] and utc(end["time_utc"]) >= before
     assert len(lines) >= 3 and all(utc(line.split()[0]) >= before for line in lines[:-1]), lines
     assert_sockets_line(done.stderr, "bu", before)
+
+
+def test_events_logged_after_a_stall_keep_the_time_they_happened():
+    """A stall's start is logged when the node runs again, and a restart after its silence: their
+    `time_utc` said when they were printed (stall_start and stall_end 0.3 ms apart, 2 s in `t`).
+    Now every line's `time_utc` is the start's plus `t`; a restart to port 0 names the port taken."""
+    done = simulate("bu", "--duration", "2.2", "--json", "--stall", "0.3:1.3", "--restart", "1.5:0",
+                    "--restart-silence", "0.4")
+    entries = [json.loads(line) for line in done.stdout.splitlines()]
+    events = [e for e in entries if "event" in e]
+    assert {"stall_start", "stall_end", "down", "restart"} <= {e["event"] for e in events}
+    starts = [utc(e["time_utc"]).timestamp() - e["t"] for e in events]
+    assert max(starts) - min(starts) < 0.002
+    [restart] = [e for e in events if e["event"] == "restart"]
+    assert 0 < restart["port"] <= 65535

@@ -21,6 +21,7 @@ from .. import constants as C
 from ..errors import CliError
 from ..numbers import fields, number, span
 from ..sim.bu import DEFAULT_ORIGIN, BaseUnit, BaseUnitConfig
+from ..sim.clock import WallClock
 from ..sim.controller import Controller, ControllerConfig
 from ..sim.impair import Impairer, Impairment
 from ..sim.lifecycle import DEFAULT_SILENCE_S, Restart
@@ -186,7 +187,7 @@ def life(args: argparse.Namespace) -> dict[str, Any]:
     return {"stalls": tuple(args.stall), "restarts": restarts, "stop_at_s": args.stop_at}
 
 
-def build_node(args: argparse.Namespace, printer: Callable[[str], None]) -> Any:
+def build_node(args: argparse.Namespace, printer: Callable[[int, str], None]) -> Any:
     if args.role == "bu":
         remote = Remote.load(args.script) if args.script else Remote.simple(
             armed=not args.disarmed, unarmed_rus=args.unarmed_rus, motion=not args.no_motion,
@@ -209,17 +210,20 @@ def sockets_line(role: str, transport: UdpTransport) -> str:
 
 def run(args: argparse.Namespace) -> int:
     # Each log line: the wall-clock time in ISO 8601 UTC, then the node's own seconds from its start.
-    def printer(line: str) -> None:
+    clock = WallClock()
+
+    def printer(now: int, line: str) -> None:
         if not args.quiet and not args.json:
-            print(f"{utc_iso(time.time())} {line}", flush=True)
+            print(f"{utc_iso(clock.wall(now))} {line}", flush=True)
 
     sockets = udp_config(args)      # its errors before anything starts
     node = build_node(args, printer)
     if args.json and not args.quiet:
-        node.listeners.append(lambda entry: print(json.dumps({"time_utc": utc_iso(time.time()), **entry}), flush=True))
+        node.listeners.append(lambda entry: print(json.dumps({"time_utc": utc_iso(clock.wall(round(entry["t"] * 1e6))),
+                                                              **entry}), flush=True))
     imp = impairment(args)
     transport = UdpTransport(sockets, Impairer(imp, args.role) if imp.active() else None).open()
-    runner = RealtimeRunner([(node, transport)])
+    runner = RealtimeRunner([(node, transport)], clock)
     print(f"{utc_iso(time.time())} {sockets_line(args.role, transport)}", file=sys.stderr, flush=True)
     signal.signal(signal.SIGTERM, lambda *_: runner.stop(timeout=0))
     try:

@@ -24,10 +24,16 @@ def log_seconds(value: Optional[int]) -> Optional[float]:
 
 
 class WallClock:
-    """Monotonic time since the clock was made."""
+    """Monotonic time since the clock was made; `epoch`: the wall-clock time (UNIX seconds) then."""
 
     def __init__(self) -> None:
         self._start = time.monotonic_ns()
+        self.epoch = time.time()
+
+    def wall(self, us: int) -> float:
+        """The wall-clock time (UNIX seconds) of clock time `us`: an event logged late (after a
+        stall) keeps the time it happened."""
+        return self.epoch + us / US_PER_S
 
     def now(self) -> int:
         return (time.monotonic_ns() - self._start) // 1000

@@ -95,7 +95,7 @@ class Node:
 
     def __init__(self, name: str, *, origin: int = 0, serial_start: int = 0,
                  windows: tuple[Window, ...] = (), crc: str = DEFAULT_VARIANT,
-                 crc_order: str = DEFAULT_BYTE_ORDER, printer: Optional[Callable[[str], None]] = None) -> None:
+                 crc_order: str = DEFAULT_BYTE_ORDER, printer: Optional[Callable[[int, str], None]] = None) -> None:
         self.name = name
         self.origin = origin
         self.serial = serial_start & 0xFFFF
@@ -103,7 +103,7 @@ class Node:
         self.stalls = tuple(sorted(windows, key=lambda w: (w[0], w[1])))
         self.restarts = tuple(r for _, _, r in self.stalls if r is not None)
         # Told the new source port at a restart that changes it (the runner reopens the socket).
-        self.on_port_change: Optional[Callable[[int], None]] = None
+        self.on_port_change: Optional[Callable[[int], Optional[int]]] = None
         self.crc, self.crc_order = crc, check_byte_order(crc_order)
         self._crc_fn = crc_function(crc)
         self._trailer = trailer_function(crc, self.crc_order)
@@ -240,7 +240,7 @@ class Node:
             listener(entry)
         if self.printer is not None:
             extra = " ".join(f"{k}={v}" for k, v in details.items())
-            self.printer(f"{now / US_PER_S:10.3f} {self.name} {kind} {extra}".rstrip())
+            self.printer(now, f"{now / US_PER_S:10.3f} {self.name} {kind} {extra}".rstrip())
 
     def events(self, kind: str) -> list[dict[str, Any]]:
         return [e for e in self.log if e["event"] == kind]
@@ -280,9 +280,10 @@ class Node:
     def _restart(self, now: int, restart: Restart) -> None:
         """Back from a restart: the counter afresh, maybe a new source port, then the subclass's state."""
         self.serial = restart.serial & 0xFFFF
-        self.event(now, "restart", serial=self.serial, port=restart.port)
-        if restart.port is not None and self.on_port_change is not None:
-            self.on_port_change(restart.port)
+        port = restart.port
+        if port is not None and self.on_port_change is not None:
+            port = self.on_port_change(port) or port     # the port it took (asked for 0: a free one)
+        self.event(now, "restart", serial=self.serial, port=port)
         self.on_restart(now, restart)
 
     def on_restart(self, now: int, restart: Restart) -> None:

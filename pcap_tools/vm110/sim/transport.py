@@ -108,8 +108,9 @@ class UdpTransport:
             raise
         return tx
 
-    def move_source(self, port: int) -> None:
-        """Send from `port` from now on (0: a new ephemeral port), as a restarted program would."""
+    def move_source(self, port: int) -> int:
+        """Send from `port` from now on (0: a new ephemeral port), as a restarted program would;
+        the port taken."""
         self.config.source = (self.config.source[0], port)
         try:
             tx = self._sending_socket()
@@ -118,6 +119,7 @@ class UdpTransport:
         if self.tx is not None:
             self.tx.close()
         self.tx = tx
+        return tx.getsockname()[1]
 
     @property
     def rx_address(self) -> Address:
