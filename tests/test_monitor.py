@@ -88,6 +88,10 @@ def test_findings_json_lines_and_evidence_of_a_silent_base_unit(tmp_path, capsys
     expected = [n for n, f in everything.items() if start <= f[0] <= end]
     assert meta["frames"]["numbers"] == expected
     assert [f[4] for f in frames] == [everything[n][4] for n in expected]     # the very payloads
+    # The finding's filter names the capture's frames; `evidence_filter` the same ones in this file.
+    item = meta["findings"][0]["item"]
+    assert [frames[n - 1][4] for n in item["evidence_frames"]] == [everything[item["frame"]][4]]
+    assert item["evidence_filter"] == f"frame.number == {item['evidence_frames'][0]}" != item["filter"]
 
 
 def test_live_lost_findings_are_analyze_s_items(tmp_path, capsys):

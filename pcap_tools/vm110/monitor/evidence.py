@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 from ..capture.writer import build_block, build_option
+from ..analysis.findings import frame_filter
 from ..fileio import write_bytes, write_text
 
 RING_BYTES = 64 << 20
@@ -123,7 +124,7 @@ class Evidence:
             name = f"{base}-{n}"
         frames = [f[1] for f in w.frames]
         meta = {"rule": w.rule, "sender": w.sender, "time": w.time, "window": {"start": w.start, "end": w.end},
-                "findings": w.findings, "frames": {"count": len(frames), "first": frames[0] if frames else None,
+                "findings": [_in_file(f, frames) for f in w.findings], "frames": {"count": len(frames), "first": frames[0] if frames else None,
                                                    "last": frames[-1] if frames else None,
                                                    "numbers": frames if len(frames) <= MAX_NUMBERS else None,
                                                    "cut_at_bytes": WINDOW_BYTES if w.cut else None},
@@ -131,3 +132,16 @@ class Evidence:
         write_bytes(name + ".pcapng", pcapng(w.frames))
         write_text(name + ".json", json.dumps(meta, indent=1, default=str) + "\n")
         self.written.append(name + ".pcapng")
+
+
+def _in_file(finding: dict, numbers: list[int]) -> dict:
+    """The finding, its item told where its frames are in the evidence file too: the file numbers
+    them 1, 2, ... while the finding's `filter` names the capture's numbers."""
+    item = finding.get("item")
+    if not isinstance(item, dict):
+        return finding
+    position = {n: i + 1 for i, n in enumerate(numbers)}
+    here = [position[n] for n in item.get("frames", [item.get("frame")]) if n in position]
+    return {**finding, "item": {**item, "evidence_frames": here,
+                                "evidence_filter": frame_filter(here) if here else None}}
+
