@@ -124,10 +124,11 @@ class Evidence:
             name = f"{base}-{n}"
         frames = [f[1] for f in w.frames]
         meta = {"rule": w.rule, "sender": w.sender, "time": w.time, "window": {"start": w.start, "end": w.end},
-                "findings": [_in_file(f, frames) for f in w.findings], "frames": {"count": len(frames), "first": frames[0] if frames else None,
-                                                   "last": frames[-1] if frames else None,
-                                                   "numbers": frames if len(frames) <= MAX_NUMBERS else None,
-                                                   "cut_at_bytes": WINDOW_BYTES if w.cut else None},
+                "findings": [_in_file(f, frames) for f in w.findings],
+                "frames": {"count": len(frames), "first": frames[0] if frames else None,
+                           "last": frames[-1] if frames else None,
+                           "numbers": frames if len(frames) <= MAX_NUMBERS else None,
+                           "cut_at_bytes": WINDOW_BYTES if w.cut else None},
                 "options": self.options}
         write_bytes(name + ".pcapng", pcapng(w.frames))
         write_text(name + ".json", json.dumps(meta, indent=1, default=str) + "\n")
