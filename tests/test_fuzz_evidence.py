@@ -6,6 +6,8 @@ import signal
 import sys
 import time
 
+import pytest
+from vm110.errors import CliError
 from vm110.fuzz import cores
 from vm110.fuzz.evidence import (
     Crash,
@@ -163,3 +165,13 @@ def test_no_core_turns_core_files_off_and_says_so(tmp_path):
         else:
             assert crash.output.split()[0] != b"0" or sup.core_hard == 0
         sup.stop()
+
+
+def test_a_program_that_cannot_be_started_is_named_for_what_is_wrong(tmp_path):
+    """A file that is there but not executable said "no such executable" (trial)."""
+    script = tmp_path / "controller"
+    script.write_text("#!/bin/sh\nexit 0\n")
+    with pytest.raises(CliError, match="not executable"):
+        Supervisor(str(script), cwd=tmp_path).start()
+    with pytest.raises(CliError, match="no such executable"):
+        Supervisor(str(tmp_path / "missing"), cwd=tmp_path).start()

@@ -106,8 +106,10 @@ class Supervisor:
 
     def _check_program(self) -> None:
         """The shell in front would report a missing program only as an early exit."""
-        if not os.path.isfile(self.exe) or not os.access(self.exe, os.X_OK):
+        if not os.path.isfile(self.exe):
             raise CliError(f"cannot start --target-cmd {self.argv[0]!r}: no such executable")
+        if not os.access(self.exe, os.X_OK):
+            raise CliError(f"cannot start --target-cmd {self.argv[0]!r}: not executable (chmod +x?)")
 
     def _with_core_limit(self) -> list[str]:
         """The command behind a shell that sets its core size limit and execs it (same pid): the
