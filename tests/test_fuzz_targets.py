@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -164,6 +165,9 @@ def test_deep_bug_blind_misses_it_coverage_finds_it(tmp_path, programs):
     assert bucket["headline"].startswith("crash SIGSEGV in maintenance_engage"), bucket
     cov = summary["coverage"]
     assert cov["edges"] > 20 and cov["corpus"] >= 1 and cov["edges_over_time"]
+    # The summary line's points are whole seconds, each once ("6 s: 93, 6 s: 95" before).
+    labels = re.findall(r"(\d+) s: \d+", result.stdout.split("edges over time", 1)[1].split("(all in")[0])
+    assert labels and len(labels) == len(set(labels)), result.stdout
     assert len(list(corpus.glob("id-*.json"))) > 1, "the corpus grew on disk"
     assert "<svg" in (out / "coverage.html").read_text()
     finding = json.loads((out / bucket["file"]).read_text())

@@ -180,9 +180,10 @@ def run(args: argparse.Namespace) -> int:
           + (f"; stopped early: {summary['stopped_early']}" if summary["stopped_early"] else ""))
     if "coverage" in summary:
         cov = summary["coverage"]
-        series = cov["edges_over_time"]
-        shown = series[::max(1, len(series) // 6)][:6] + series[-1:]
-        over_time = ", ".join(f"{p['s']:.0f} s: {p['edges']}" for p in shown)
+        by_second = {round(p["s"]): p["edges"] for p in cov["edges_over_time"]}   # each second's last count
+        seconds = list(by_second)
+        shown = dict.fromkeys(seconds[::max(1, len(seconds) // 6)][:6] + seconds[-1:])
+        over_time = ", ".join(f"{s} s: {by_second[s]}" for s in shown)
         print(f"coverage: {cov['edges']} edges, corpus {cov['corpus']} cases; edges over time {over_time} "
               f"(all in {out / 'findings.json'}, plotted in {out / 'coverage.html'})")
     if args.target_cmd:
