@@ -97,6 +97,9 @@ def located_item(frames: Any, time: float, sender: Optional[str], **what: Any) -
         item["sender"] = sender
     item.update(what)
     item["filter"] = frame_filter(frames)
+    if len(frames) > MAX_FILTER_FRAMES and what.get("command_id") is not None:
+        # A range holds other traffic too: a command's transmissions and acks carry its ID.
+        item["filter"] += f" && vm110.command_id == {what['command_id']}"
     return item
 
 
