@@ -154,6 +154,7 @@ def test_deep_bug_blind_misses_it_coverage_finds_it(tmp_path, programs):
     exe = programs("afl-deep")
     corpus = tmp_path / "corpus"
     _seed_corpus(corpus)
+    (corpus / "id-000009.json").write_text("{ not json")      # skipped, and said so
     dictionary = tmp_path / "commands.dict"
     dictionary.write_text('maint="MAINT:"\nengage="ENGAGE"\n')
     out = tmp_path / "cov"
@@ -168,6 +169,7 @@ def test_deep_bug_blind_misses_it_coverage_finds_it(tmp_path, programs):
     # The summary line's points are whole seconds, each once ("6 s: 93, 6 s: 95" before).
     labels = re.findall(r"(\d+) s: \d+", result.stdout.split("edges over time", 1)[1].split("(all in")[0])
     assert labels and len(labels) == len(set(labels)), result.stdout
+    assert "--corpus: 1 unreadable files skipped, e.g. id-000009.json: " in result.stdout
     assert len(list(corpus.glob("id-*.json"))) > 1, "the corpus grew on disk"
     assert "<svg" in (out / "coverage.html").read_text()
     finding = json.loads((out / bucket["file"]).read_text())

@@ -186,6 +186,9 @@ def run(args: argparse.Namespace) -> int:
         over_time = ", ".join(f"{s} s: {by_second[s]}" for s in shown)
         print(f"coverage: {cov['edges']} edges, corpus {cov['corpus']} cases; edges over time {over_time} "
               f"(all in {out / 'findings.json'}, plotted in {out / 'coverage.html'})")
+        if cov["corpus_skipped"]:
+            print(f"--corpus: {len(cov['corpus_skipped'])} unreadable files skipped, e.g. "
+                  f"{_printable(cov['corpus_skipped'][0])} (all in findings.json)")
     if args.target_cmd:
         options = ", ".join(f"{k}={'(yours)' if v == 'user' else v}" for k, v in summary["sanitizer_options"].items())
         print(f"sanitizer options: {options}; core files: {summary['core_files']}")
