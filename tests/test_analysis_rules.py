@@ -260,3 +260,20 @@ def test_a_watchdog_item_says_its_frame_ends_the_silence(tmp_path):
     [item] = [i for f in report["verdict"]["findings"] if f["rule"] == "watchdog" for i in f["items"]]
     assert (item["frame"], item["time"] - T0, item["until_end"]) == (10, 1.0, False)
     assert "frame 10 ends a silence from +1.000000 s:" in summary.render(report)
+
+
+def test_a_command_still_in_flight_at_the_end_has_not_failed(tmp_path):
+    """Two VRCI never acknowledged: one sent 2.5 s before the capture ends (past the 2000 ms limit:
+    failed), one 5 ms before (unacked, not failed: the capture cannot tell; it was failed)."""
+    tr = Traffic()
+    for k in range(41):
+        tr.add(k * 0.125, vrpi(k))
+    tr.add(2.5, payload(VRCI, 100, BU_ORIGIN, command_id=1))
+    tr.add(4.995, payload(VRCI, 101, BU_ORIGIN, command_id=2))
+    tr.frames.sort(key=lambda f: f[0])
+    report = _report(tr, tmp_path)
+    vrci = report["commands"]["VRCI"]
+    assert (vrci["commands"], vrci["unacked"], vrci["failed"]) == (2, 2, 1)
+    assert [(c["command_id"], c["failed"]) for c in vrci["list"]] == [(1, True), (2, False)]
+    assert [i["command_id"] for i in _finding(report, "failed")["items"]] == [1]
+    assert report["totals"]["failed"] == 1

@@ -408,7 +408,7 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
     periodic.sort(key=lambda e: (e["type"], e["sender"]))
 
     # 5. commands
-    commands = _commands(legal, senders, restart_at, reuse, fail_limit, flags, frames)
+    commands = _commands(legal, senders, restart_at, reuse, fail_limit, last_record_t, flags, frames)
 
     sender_list = []
     for sid in sorted(order):
@@ -572,7 +572,7 @@ def _serials(s: dict, dup_w: int, flags: _Flags, frames: dict, restart_at: dict)
                    "duplicates": duplicates, "out_of_order": out_of_order, "wraps": wraps, "gaps": gaps}
 
 
-def _commands(legal: list[dict], senders: dict, restart_at: dict, reuse: int, fail_limit: dict,
+def _commands(legal: list[dict], senders: dict, restart_at: dict, reuse: int, fail_limit: dict, last_record_t: int,
               flags: _Flags, frames: dict) -> dict:
     cmds: list[dict] = []
     latest: dict[tuple, dict] = {}        # (kind, sender, cid) -> its latest command
@@ -640,8 +640,11 @@ def _commands(legal: list[dict], senders: dict, restart_at: dict, reuse: int, fa
                 frames.setdefault(c["frames"][0], {})["interrupted_by"] = c["interrupted_by"]
                 continue
             if not c["acked"]:
-                failed += 1
                 frames.setdefault(c["frames"][0], {})["never_acked"] = 1
+                # failed only if the capture went on past its limit (docs/rules.md, "Failed")
+                flags.near(last_record_t - c["first_t"], fail_limit[kind], f"open at the end, frame {c['frames'][0]}")
+                if last_record_t - c["first_t"] > fail_limit[kind]:
+                    failed += 1
                 continue
             flags.near(c["ack_t"] - c["first_t"], fail_limit[kind], f"ack vs fail limit, frame {c['ack_frame']}")
             if c["ack_t"] - c["first_t"] > fail_limit[kind]:

@@ -49,11 +49,15 @@ class Command:
             return None
         return (self.ack_time - self.last_before_ack) * timing.MS
 
-    def failed(self, fail_ms: float) -> bool:
+    def failed(self, fail_ms: float, end: Optional[float]) -> bool:
+        """Acknowledged after the fail limit, or never while the capture (ending at `end`) lasted
+        beyond it: one still in flight at the end of the capture has not failed (yet)."""
         if self.interrupted_frame is not None:
             return False
         latency = self.latency_first_ms
-        return latency is None or latency > fail_ms
+        if latency is None:
+            return end is not None and (end - self.times[0]) * timing.MS > fail_ms
+        return latency > fail_ms
 
 
 @dataclass
@@ -191,7 +195,7 @@ class Retiring:
         self.spool.truncate()
 
 
-def report(tally: Tally, fail_ms: float, resend_ms: float) -> dict:
+def report(tally: Tally, fail_ms: float, resend_ms: float, end: Optional[float]) -> dict:
     """The `commands.<TYPE>` section."""
     cmds = tally.commands
     transmissions = sum(len(c.frames) for c in cmds)
@@ -209,7 +213,7 @@ def report(tally: Tally, fail_ms: float, resend_ms: float) -> dict:
         "acked": len(acked),
         "unacked": len(cmds) - len(acked) - len(interrupted),
         "interrupted": len(interrupted),
-        "failed": sum(1 for c in cmds if c.failed(fail_ms)),
+        "failed": sum(1 for c in cmds if c.failed(fail_ms, end)),
         "spurious_retransmissions": sum(len(c.spurious_frames) for c in cmds),
         "acks_without_command": len(tally.orphan_acks),
         "duplicate_acks": len(tally.duplicate_acks),
@@ -225,7 +229,8 @@ def report(tally: Tally, fail_ms: float, resend_ms: float) -> dict:
                   "ack_frame": c.ack_frame, "latency_first_ms": round_ms(c.latency_first_ms),
                   "latency_last_ms": round_ms(c.latency_last_ms), "time": round_s(c.times[0]),
                   "retransmissions": len(c.frames) - 1, "spurious": len(c.spurious_frames),
-                  "spurious_frames": c.spurious_frames, "interrupted_frame": c.interrupted_frame}
+                  "spurious_frames": c.spurious_frames, "interrupted_frame": c.interrupted_frame,
+                  "failed": c.failed(fail_ms, end)}
                  for c in cmds],
         "acks_without_command_list": [{"frame": f, "time": round_s(t), "command_id": i}
                                       for f, t, i in tally.orphan_acks],

@@ -123,7 +123,7 @@ class Where:
         return kept
 
 
-def locate_report(report: dict, tallies: dict[int, Tally], located: Located) -> None:
+def locate_report(report: dict, tallies: dict[int, Tally], located: Located, end: Optional[float]) -> None:
     """Items of the findings that the report's sections know of: commands, acks, illegal packets
     and relay episodes (serials, streams and bursts are located as they are judged)."""
     where = Where(located)
@@ -136,7 +136,7 @@ def locate_report(report: dict, tallies: dict[int, Tally], located: Located) -> 
                 where.add("interrupted", c.frames, c.times[0], c.sender, interrupted_frame=c.interrupted_frame, **what)
             elif c.ack_frame is None:
                 where.add("unacked", c.frames, c.times[0], c.sender, **what)
-            if c.failed(fail_ms):
+            if c.failed(fail_ms, end):
                 where.add("failed", c.frames + ([c.ack_frame] if c.ack_frame else []), c.times[0], c.sender,
                           latency_ms=c.latency_first_ms, **what)
             for f, t in zip(c.frames, c.times):

@@ -71,7 +71,8 @@ def _build(got: Collected) -> dict:
     periodic.sort(key=lambda p: (p["type"], p["sender"]))
     tallies = analysis.tracker.tallies
     fail = analysis.tracker.fail_ms
-    cmd = {t.value: commands.report(tallies[CODE[t]], fail[CODE[t]], opt.resend_ms) for t in commands.COMMAND_TYPES}
+    cmd = {t.value: commands.report(tallies[CODE[t]], fail[CODE[t]], opt.resend_ms, got.last_ts)
+           for t in commands.COMMAND_TYPES}
     invalid = got.illegal_reasons[C.Problem.BAD_CRC.value]
     stepped_back = sum(p["time_backwards"] for p in periodic)
     report = {
@@ -102,7 +103,7 @@ def _build(got: Collected) -> dict:
         "state": states,
         "options": asdict(opt),
     }
-    findings.locate_report(report, tallies, located)
+    findings.locate_report(report, tallies, located, got.last_ts)
     report = normalise(report)
     report["totals"] = findings.totals(report)
     report["verdict"] = normalise(findings.verdict(report, located))

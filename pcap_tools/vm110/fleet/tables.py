@@ -86,14 +86,13 @@ def capture_rows(report: dict, capture_id: str, size: Optional[int], sha256: Opt
         limit = block["fail_limit_ms"]
         for c in block["list"]:
             acked = c["ack_frame"] is not None
-            late = acked and c["latency_first_ms"] is not None and c["latency_first_ms"] > limit
             commands.append({
                 **key, "type": ctype, "sender": c["sender"], "command_id": c["command_id"], "time": _time(c["time"]),
                 "first_frame": c["frames"][0] if c["frames"] else None, "transmissions": len(c["frames"]),
                 "retransmissions": c["retransmissions"], "acked": acked, "ack_frame": c["ack_frame"],
                 "latency_first_ms": c["latency_first_ms"], "latency_last_ms": c["latency_last_ms"],
                 "spurious": c["spurious"], "interrupted_frame": c["interrupted_frame"],
-                "failed": c["interrupted_frame"] is None and (not acked or late), "fail_limit_ms": limit})
+                "failed": c["failed"], "fail_limit_ms": limit})
     findings = []
     for f in findings_list:
         head = {**key, "rule": f["rule"], "severity": f["severity"], "message": f["message"], "count": f["count"],

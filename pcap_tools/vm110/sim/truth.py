@@ -231,11 +231,12 @@ class _Commands:
                 self.interrupted += 1
                 self.by_id[key[1]].remove(cmd)
 
-    def report(self) -> dict[str, Any]:
+    def report(self, end: int) -> dict[str, Any]:
+        """`end`: the capture's last record (a command still within its limit then has not failed)."""
         transmissions = sum(len(c["frames"]) for c in self.list)
         acked = sum(c["ack_frame"] is not None for c in self.list)
-        failed = sum(not c.get("_interrupted") and (c["_ack_t"] is None or c["_ack_t"] - c["_times"][0] > self.fail_us)
-                     for c in self.list)
+        failed = sum(not c.get("_interrupted") and ((end if c["_ack_t"] is None else c["_ack_t"]) - c["_times"][0]
+                                                    > self.fail_us) for c in self.list)
         return {"commands": len(self.list), "transmissions": transmissions,
                 "retransmissions": transmissions - len(self.list), "acked": acked,
                 "unacked": len(self.list) - acked - self.interrupted, "interrupted": self.interrupted,
@@ -438,7 +439,7 @@ class GroundTruth:
             "illegal": {"total": self.illegal_total, "by_reason": dict(sorted(self.illegal.items()))},
             "senders": [sender.report() for sender in senders],
             "periodic": [self._periodic(ptype, sender) for ptype, sender in periodic],
-            "commands": {kind.value: c.report() for kind, c in self.commands.items()},
+            "commands": {kind.value: c.report(self.last_t) for kind, c in self.commands.items()},
             "vrpo_bursts": {"complete": sum(s.complete for s in senders),
                             "incomplete": sum(s.incomplete for s in senders)},
         }
