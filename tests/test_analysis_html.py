@@ -113,3 +113,21 @@ def test_the_commands_table_names_ms_for_ack_latency():
     assert header[-3:] == ["latency p50 (ms)", "latency p95 (ms)", "latency max (ms)"]
     vrci = dict(zip(header, next(r for r in rows if r[0] == "VRCI")))
     assert vrci["latency max (ms)"] == f"{max(latencies):.2f}" == "1599.99"
+
+
+def test_a_vrpo_stream_without_a_nominal_period_still_renders(tmp_path):
+    """VRPO packets all within one burst (5 ms apart): intervals, but no burst interval to take a
+    nominal period from. The histogram formatted `nominal None` and the report had no HTML (the
+    self-fuzzer's find)."""
+    from test_analysis_craft import CTRL, VRPO, Traffic, payload, vrpi
+    tr = Traffic()
+    for k in range(8):
+        tr.add(k * 0.125, vrpi(k))
+        tr.add(0.3 + k * 0.005, payload(VRPO, k, packet_number=0, periodic_data=b"d" * 8), src=CTRL, sport=5827)
+    tr.frames.sort(key=lambda f: f[0])
+    tr.write(tmp_path / "one-burst.pcap")
+    report = analyze(str(tmp_path / "one-burst.pcap"))
+    [vrpo] = [p for p in report["periodic"] if p["type"] == "VRPO"]
+    assert vrpo.get("nominal_ms") is None and len(vrpo["plot"]["histogram"]) >= 2
+    page = report_html.render([report])
+    assert "watchdog 2000 ms" in page and "nominal None" not in page

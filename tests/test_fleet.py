@@ -285,3 +285,13 @@ def test_captures_without_metadata_rank_each_under_its_file(tmp_path):
         assert links[str(path)]["lost"] == report["totals"]["lost"] > 0
         assert links[str(path)]["watchdog"] == report["totals"]["watchdog"]
         assert (machines[str(path)]["captures"], machines[str(path)]["error_findings"]) == (1, errors)
+
+
+def test_a_metadata_field_is_a_column_of_every_table(fleet):
+    """`bu_firmware` comes from one capture's sidecar; the unreadable and damaged captures have
+    none, and `errors` holds only their rows: the column is there all the same, NULL."""
+    out = vm110("fleet", "query", str(fleet["dataset"]), "SELECT bu_firmware, count(*) AS n FROM errors GROUP BY ALL",
+                "--format", "json").stdout
+    assert json.loads(out) == [{"bu_firmware": None, "n": len(read_table(fleet["dataset"], "errors"))}]
+    listed = vm110("fleet", "query", str(fleet["dataset"]), "--list").stdout
+    assert all("bu_firmware" in line for line in listed.splitlines() if line.split(":")[0].strip() in TABLES)

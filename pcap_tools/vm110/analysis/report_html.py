@@ -215,8 +215,9 @@ def _histogram_plot(p: dict) -> str:
     span = max(span, 1.0, 0.04 * abs(mid))           # all intervals alike: a readable span around them
     x0, x1 = mid - span / 2 - 0.04 * span, mid + span / 2 + 0.04 * span
     limit, nominal = p["watchdog"]["limit_ms"], p.get("nominal_ms")
-    lines = [(v, color, label) for v, color, label in ((nominal, "#2a8a2a", f"nominal {nominal:g} ms"),
-                                                       (limit, "#c62828", f"watchdog {limit:g} ms")) if v]
+    # (a VRPO stream with no burst interval has no nominal period: no line, and no label to format)
+    lines = [(v, color, f"{name} {v:g} ms") for v, color, name in ((nominal, "#2a8a2a", "nominal"),
+                                                                   (limit, "#c62828", "watchdog")) if v]
     for v, _, _ in lines:              # a line close to the data widens the axis to it, a far one not
         if v < x0 and x1 - v <= 2 * (x1 - x0):
             x0 = v - 0.04 * (x1 - v)

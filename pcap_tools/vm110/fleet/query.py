@@ -57,6 +57,13 @@ class Fleet:
                 self.con.register(f"_empty_{table}", empty)
                 sql = f"SELECT * FROM _empty_{table}"
             self.con.execute(f"CREATE VIEW {table} AS {sql}")
+            # A metadata field is a column of every table, also of one whose rows all come from
+            # captures without it (`errors` of captures without a sidecar): NULL there.
+            have = {r[0] for r in self.con.execute(f"DESCRIBE {table}").fetchall()}
+            missing = [k for k in self.meta_keys if k not in have]     # (names checked: \w+)
+            if missing:
+                nulls = ", ".join(f"CAST(NULL AS VARCHAR) AS {k}" for k in missing)
+                self.con.execute(f"CREATE OR REPLACE VIEW {table} AS SELECT *, {nulls} FROM ({sql})")
         every = [f for t in TABLES for f in files[t]]
         self.con.execute(f"SET allowed_paths = [{', '.join(_quote(f) for f in every)}]")
         self.con.execute("SET enable_external_access = false")
