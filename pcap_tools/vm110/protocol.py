@@ -74,6 +74,12 @@ class Field:
         return f"{self.size}{code}" if self.kind == "bytes" else code
 
     @property
+    def limits(self) -> tuple[int, int]:
+        """The lowest and highest value an integer field can carry."""
+        bits = 8 * self.size
+        return (-(1 << bits - 1), (1 << bits - 1) - 1) if self.code.islower() else (0, (1 << bits) - 1)
+
+    @property
     def lua_kind(self) -> str:
         return _KINDS[self.kind][1]
 

@@ -201,6 +201,7 @@ def report(tally: Tally, fail_ms: float, resend_ms: float, end: Optional[float])
     transmissions = sum(len(c.frames) for c in cmds)
     acked = [c for c in cmds if c.ack_frame is not None]
     interrupted = [c for c in cmds if c.interrupted_frame is not None]
+    failed = [c.failed(fail_ms, end) for c in cmds]
     resend = [(b - a) * timing.MS for c in cmds for a, b in zip(c.times, c.times[1:])]
     histogram = Counter(len(c.frames) - 1 for c in cmds)
     first = [c.latency_first_ms for c in acked]
@@ -213,7 +214,7 @@ def report(tally: Tally, fail_ms: float, resend_ms: float, end: Optional[float])
         "acked": len(acked),
         "unacked": len(cmds) - len(acked) - len(interrupted),
         "interrupted": len(interrupted),
-        "failed": sum(1 for c in cmds if c.failed(fail_ms, end)),
+        "failed": sum(failed),
         "spurious_retransmissions": sum(len(c.spurious_frames) for c in cmds),
         "acks_without_command": len(tally.orphan_acks),
         "duplicate_acks": len(tally.duplicate_acks),
@@ -230,8 +231,8 @@ def report(tally: Tally, fail_ms: float, resend_ms: float, end: Optional[float])
                   "latency_last_ms": round_ms(c.latency_last_ms), "time": round_s(c.times[0]),
                   "retransmissions": len(c.frames) - 1, "spurious": len(c.spurious_frames),
                   "spurious_frames": c.spurious_frames, "interrupted_frame": c.interrupted_frame,
-                  "failed": c.failed(fail_ms, end)}
-                 for c in cmds],
+                  "failed": f}
+                 for c, f in zip(cmds, failed)],
         "acks_without_command_list": [{"frame": f, "time": round_s(t), "command_id": i}
                                       for f, t, i in tally.orphan_acks],
         "duplicate_acks_list": [{"frame": f, "time": round_s(t), "command_id": i, "command_frame": c}

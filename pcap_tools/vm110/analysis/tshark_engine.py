@@ -150,9 +150,9 @@ class TsharkEngine:
         reasons = sorted(k[len(_EXPERT):] for k in f if k.startswith(_EXPERT) and k[len(_EXPERT):] in REASONS)
         if "vm110.crc.status" in f:
             got.crc_checked += 1
-        if reasons and int(pkt.frame_info.cap_len) < int(pkt.frame_info.len):
+        # (the dissector names a datagram the capture cut short truncated, and nothing else)
+        if reasons == [C.Problem.TRUNCATED.value] and int(pkt.frame_info.cap_len) < int(pkt.frame_info.len):
             got.snap_truncated += 1
-            reasons = [C.Problem.TRUNCATED.value]   # the capture cut it: nothing else can be judged
         if reasons:
             got.add_illegal(frame, ts, address(src, sport), f.get("vm110.type", ""), reasons)
             return

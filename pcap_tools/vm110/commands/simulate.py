@@ -21,7 +21,7 @@ from .. import constants as C
 from ..errors import CliError
 from ..numbers import fields, number, span
 from ..sim.bu import DEFAULT_ORIGIN, BaseUnit, BaseUnitConfig
-from ..sim.clock import WallClock
+from ..sim.clock import WallClock, seconds
 from ..sim.controller import Controller, ControllerConfig
 from ..sim.impair import Impairer, Impairment
 from ..sim.lifecycle import DEFAULT_SILENCE_S, Restart
@@ -219,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
     sockets = udp_config(args)      # its errors before anything starts
     node = build_node(args, printer)
     if args.json and not args.quiet:
-        node.listeners.append(lambda entry: print(json.dumps({"time_utc": utc_iso(clock.wall(round(entry["t"] * 1e6))),
+        node.listeners.append(lambda entry: print(json.dumps({"time_utc": utc_iso(clock.wall(seconds(entry["t"]))),
                                                               **entry}), flush=True))
     imp = impairment(args)
     transport = UdpTransport(sockets, Impairer(imp, args.role) if imp.active() else None).open()

@@ -75,11 +75,12 @@ def find(sources: Iterable[str]) -> dict[str, Optional[str]]:
 
 
 def _once(found: dict[str, Optional[str]]) -> dict[str, Optional[str]]:
-    """Each file once, under its shortest name: links (a loop, a `latest.pcap`) and several SRCs
-    may name one file many times, and each name would count it again in every sum."""
-    kept: dict[str, tuple[str, Optional[str]]] = {}
-    def first(item: tuple[str, Optional[str]]) -> tuple:     # readable, then the file itself, then shortest
+    """Each file once: links (a loop, a `latest.pcap`) and several SRCs may name one file many
+    times, and each name would count it again in every sum. The name kept: a readable one, the
+    file's own rather than a link's, then the shortest."""
+    def first(item: tuple[str, Optional[str]]) -> tuple:
         return item[1] is not None, os.path.islink(item[0]), item[0].count(os.sep), item[0]
+    kept: dict[str, tuple[str, Optional[str]]] = {}
     for path, problem in sorted(found.items(), key=first):
         kept.setdefault(os.path.realpath(path), (path, problem))
     return dict(kept.values())

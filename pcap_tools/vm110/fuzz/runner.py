@@ -164,7 +164,7 @@ class Runner:
         self.end: Optional[float] = None
         self._last_status = 0.0
         self.stopped_early: Optional[str] = None
-        self.interrupted: Optional[str] = None
+        self.interrupted = False             # by Ctrl-C or SIGTERM (stopped_early says so too)
 
     # --- the run ----------------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -200,7 +200,7 @@ class Runner:
         except TargetLost as exc:
             self.stopped_early = str(exc)
         except KeyboardInterrupt:          # Ctrl-C, SIGTERM: what was found is still summarised
-            self.stopped_early = self.interrupted = "interrupted"
+            self.stopped_early, self.interrupted = "interrupted", True
         finally:
             s.close()
             if self._log is not None:

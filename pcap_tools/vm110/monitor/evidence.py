@@ -124,7 +124,7 @@ class Evidence:
             name = f"{base}-{n}"
         frames = [f[1] for f in w.frames]
         meta = {"rule": w.rule, "sender": w.sender, "time": w.time, "window": {"start": w.start, "end": w.end},
-                "findings": [_in_file(f, frames) for f in w.findings],
+                "findings": _in_file(w.findings, frames),
                 "frames": {"count": len(frames), "first": frames[0] if frames else None,
                            "last": frames[-1] if frames else None,
                            "numbers": frames if len(frames) <= MAX_NUMBERS else None,
@@ -135,14 +135,15 @@ class Evidence:
         self.written.append(name + ".pcapng")
 
 
-def _in_file(finding: dict, numbers: list[int]) -> dict:
-    """The finding, its item told where its frames are in the evidence file too: the file numbers
-    them 1, 2, ... while the finding's `filter` names the capture's numbers."""
-    item = finding.get("item")
-    if not isinstance(item, dict):
-        return finding
+def _in_file(findings: list[dict], numbers: list[int]) -> list[dict]:
+    """The findings, each item told where its frames are in the evidence file too: the file
+    numbers them 1, 2, ... while a finding's `filter` names the capture's numbers."""
     position = {n: i + 1 for i, n in enumerate(numbers)}
-    here = [position[n] for n in item.get("frames", [item.get("frame")]) if n in position]
-    return {**finding, "item": {**item, "evidence_frames": here,
-                                "evidence_filter": frame_filter(here) if here else None}}
+    out = []
+    for f in findings:
+        item = f["item"]
+        here = [position[n] for n in item.get("frames", [item["frame"]]) if n in position]
+        out.append({**f, "item": {**item, "evidence_frames": here,
+                                  "evidence_filter": frame_filter(here) if here else None}})
+    return out
 

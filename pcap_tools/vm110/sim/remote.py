@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import bisect
 import math
-import struct
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Optional
 
@@ -54,17 +53,11 @@ _ENABLED = C.RuState.ENABLED
 # --- what a script may hold ------------------------------------------------------------------------
 _MAX_SCRIPT = 16 << 20
 _MAX_S = 30 * 86400                        # as simulate's times
-_INT_FIELDS = {f.name: f for f in P.PACKETS[C.PacketType.VRPI].fields if f.kind != "bytes"}
+_LIMITS = {f.name: f.limits for f in P.PACKETS[C.PacketType.VRPI].fields if f.kind != "bytes"}
 _KEYS = {"script": {"steps", "commands", "command_every", "command_until"},
          "step": {"at", "state", "ru", "battery", "rssi", "unarmed_rus", "motion", "set"},
          "command": {"at", "data", "id"}}
 _STEP_FIELD = {"ru": "armed_ru", "battery": "ru_battery", "rssi": "ru_rssi", "unarmed_rus": "unarmed_rus"}
-
-
-def _limits(name: str) -> tuple[int, int]:
-    code = P.PACKETS[C.PacketType.VRPI].fields[VRPI_INDEX[name]].code
-    bits = 8 * struct.calcsize("<" + code)
-    return (-(1 << bits - 1), (1 << bits - 1) - 1) if code.islower() else (0, (1 << bits) - 1)
 
 
 def _number(where: str, value: Any, low: float, high: float, integer: bool = False) -> None:
@@ -104,14 +97,14 @@ def check_script(script: Any) -> None:
             raise CliError(f"remote script: steps[{i}].motion must be true or false")
         for key, name in _STEP_FIELD.items():
             if key in step:
-                _number(f"steps[{i}].{key}", step[key], *_limits(name), integer=True)
+                _number(f"steps[{i}].{key}", step[key], *_LIMITS[name], integer=True)
         values = step.get("set", {})
         if not isinstance(values, dict):
             raise CliError(f"remote script: steps[{i}].set must be a JSON object")
         for name, value in values.items():
-            if name not in _INT_FIELDS:
+            if name not in _LIMITS:
                 raise CliError(f"remote script: steps[{i}].set: {name[:30]!r} is not a VRPI field")
-            _number(f"steps[{i}].set.{name}", value, *_limits(name), integer=True)
+            _number(f"steps[{i}].set.{name}", value, *_LIMITS[name], integer=True)
     for i, raw in enumerate(_list("commands", script.get("commands", []))):
         cmd = _object(f"commands[{i}]", raw, "command")
         _number(f"commands[{i}].at", cmd.get("at"), 0, _MAX_S)
