@@ -804,6 +804,7 @@ seq("serial_out_of_order", "Out-of-order serial")
 seq("watchdog_vrpi", "VRPI interval above the controller watchdog")
 seq("watchdog_vrpo", "VRPO interval above the base unit watchdog")
 seq("vrpo_interval", "VRPO interval outside the recommended range", severity.NOTE)
+seq("time_backwards", "Timestamp earlier than the stream's previous packet")
 seq("retransmission", "Command retransmission", severity.NOTE)
 seq("resend_interval", "Resend interval far from nominal", severity.NOTE)
 seq("spurious_retransmission", "Retransmission after the acknowledgement", severity.NOTE)
@@ -831,7 +832,7 @@ end
 local FINDING = {
     serial_gap = "Serial Gap", serial_duplicate = "Duplicate", serial_out_of_order = "Out-Of-Order",
     restart = "Restart", watchdog_vrpi = "Watchdog", watchdog_vrpo = "Watchdog",
-    silent_until_end = "Silent Until End", vrpo_interval = "VRPO Interval",
+    silent_until_end = "Silent Until End", vrpo_interval = "VRPO Interval", time_backwards = "Time Backwards",
     retransmission = false, spurious_retransmission = false, resend_interval = "Resend Interval",
     ack_without_command = "Ack Without Command", duplicate_ack = "Duplicate Ack", ack_late = "Late Ack",
     never_acked = "Unacknowledged", command_interrupted = "Interrupted",
@@ -1910,7 +1911,11 @@ local function analyse(r, s, pinfo, frame, offset)
         command_event(id, v.command_id, snd, now, frame, res)
         return res
     end
-    if res then res.interval = iv end
+    if res then
+        res.interval = iv
+    elseif iv and iv < 0 then -- (a negative number says "no interval")
+        res = { serial = 0, interval = iv }
+    end
     if r.data_len then
         local number, size, cur = v.packet_number, r.data_len, snd.burst
         -- The data are kept only where a reassembly may need them: a short first-numbered packet
@@ -2055,7 +2060,9 @@ end
 
 local function add_interval(iv, tvb, root, r)
     local item = generated(root, "interval", tvb, 0, ID_LEN, iv)
-    if r.type == "VRPI" then
+    if iv < 0 then
+        finding(item, "time_backwards")
+    elseif r.type == "VRPI" then
         if iv > settings.vrpi_watchdog then finding(item, "watchdog_vrpi") end
     elseif iv > settings.vrpo_watchdog then
         finding(item, "watchdog_vrpo")

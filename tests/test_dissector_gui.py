@@ -24,6 +24,7 @@ DOCS = [T.REPO / "README.md", CAPTURES / "README.md", *sorted((T.REPO / "docs").
 ON = {"vm110.analysis": "TRUE"}
 # The analysis findings' Info markers (FINDING in the dissector) and the experts they stand for.
 MARKERS = {"Serial Gap", "Duplicate", "Out-Of-Order", "Restart", "Watchdog", "Silent Until End", "VRPO Interval",
+           "Time Backwards",
            "VRCI Retransmission", "VRCO Retransmission", "VRCI Spurious Retransmission",
            "VRCO Spurious Retransmission", "Resend Interval", "Ack Without Command", "Duplicate Ack", "Late Ack",
            "Unacknowledged", "Interrupted", "Burst Packet Missing", "Incomplete Burst"}

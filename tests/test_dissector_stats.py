@@ -307,6 +307,14 @@ def test_appended_captures_restart_at_the_seam(tshark, tmp_path):
             return len(ws.run(["-r", str(ws.dir / name), "-2", "-Y", "vm110.expert.burst_incomplete"]).stdout.split())
         assert incomplete("both.pcap", packets) == incomplete("a.pcap", packets[:offset]) + \
             incomplete("b.pcap", packets[offset:])
+        # Each stream's first packet after the seam: a negative interval, flagged (trial: the field
+        # was left out, while -z vm110,stat and analyze counted it).
+        done = ws.run(["-r", str(ws.dir / "both.pcap"), "-Y", "vm110.expert.time_backwards", "-T", "fields",
+                       "-e", "frame.number", "-e", "vm110.analysis.interval", "-e", "vm110.analysis.flags"])
+        rows = [line.split("\t") for line in done.stdout.splitlines()]
+    items = [i["frame"] for f in report["verdict"]["findings"] if f["rule"] == "time_backwards" for i in f["items"]]
+    assert [int(r[0]) for r in rows] == sorted(items) and len(items) == report["capture"]["time_backwards"] > 0
+    assert all(float(r[1]) < 0 and "Time Backwards" in r[2] for r in rows), rows
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)

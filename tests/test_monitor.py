@@ -14,6 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from reference.generator import stepped_scenarios, write_scenario
+
+from vm110 import constants as C
 
 from vm110.analysis.periodic import Floats, SpilledFloats
 from vm110.capture.reader import CaptureReader
@@ -45,6 +49,58 @@ def test_monitor_matches_analyze_on_generated_captures(scenario, fmt, extra, tmp
     capture = tmp_path / f"{scenario}.{fmt}"
     synthesize(scenario, str(capture), seed=7, duration_s=40.0, fmt=fmt)
     a, m = _reports(str(capture), tmp_path, *extra)
+    assert a == m
+
+
+def _appended_shorter_capture(path: Path) -> None:
+    """A 9.9 s capture with a VRCI sent 3 times from 7.01 s and never acknowledged, then a 2.9 s
+    capture appended (mergecap -a) whose senders start their serials afresh (trial)."""
+    from test_analysis_craft import CTRL, Traffic, payload, vrpi
+    from vm110.layers import VRCI, VRPO
+    tr = Traffic()
+    for start, length, serial in ((0.0, 9.9, 100), (0.0, 2.9, 5000)):
+        events = [(i * 0.125, "VRPI") for i in range(int(length / 0.125) + 1)]
+        events += [(i * 0.1 + 0.003, "VRPO") for i in range(int(length / 0.1))]
+        if length > 9:
+            events += [(7.01 + 0.1 * k, "VRCI") for k in range(3)]
+        bu, ctrl = serial, serial
+        for t, kind in sorted(events):
+            if kind == "VRPO":
+                tr.add(start + t, payload(VRPO, ctrl), src=CTRL, sport=C.OUTPUT_PORT)
+                ctrl += 1
+            else:
+                tr.add(start + t, vrpi(bu) if kind == "VRPI" else payload(VRCI, bu, 0x0101, command_id=5))
+                bu += 1
+    tr.write(path)
+
+
+def test_appended_shorter_capture_judges_commands_on_the_clock_and_silence_on_records(tmp_path):
+    """Trial: after `mergecap -a` of a shorter capture, analyze said the unacknowledged VRCI had not
+    failed (its last record is earlier than the command), and the monitor reported both streams silent
+    to the end (it measured to the latest time, not the last record). rules.md: a command fails once
+    the capture went on past its limit on the analysis clock; silence to the end is measured to the
+    last record. The independent reference agrees."""
+    from reference.analyser import analyse
+    capture = tmp_path / "ab.pcap"
+    _appended_shorter_capture(capture)
+    a, m = _reports(str(capture), tmp_path)
+    assert a == m
+    report, ref = json.loads(a), analyse(str(capture))
+    assert report["commands"]["VRCI"]["failed"] == ref["commands"]["VRCI"]["failed"] == 1
+    assert report["commands"]["VRCI"]["unacked"] == 1
+    assert not [v for p in report["periodic"] for v in p["watchdog"]["violations"]]
+    assert report["capture"]["last_time"] == pytest.approx(1_700_000_002.903)
+
+
+@given(stepped_scenarios())
+@settings(max_examples=8, deadline=None, suppress_health_check=list(HealthCheck), print_blob=True)
+def test_monitor_matches_analyze_when_the_clock_steps_back(sc):
+    """A capture whose time steps back, or captures appended (also a shorter one after a longer):
+    the monitor's report is analyze's."""
+    with tempfile.TemporaryDirectory() as d:
+        path = os.path.join(d, "gen.pcapng" if sc["format"] == "pcapng" else "gen.pcap")
+        write_scenario(path, sc)
+        a, m = _reports(path, Path(d), "--crc", "mpeg2", "--crc-order", "little")
     assert a == m
 
 
@@ -88,6 +144,10 @@ def test_findings_json_lines_and_evidence_of_a_silent_base_unit(tmp_path, capsys
     expected = [n for n, f in everything.items() if start <= f[0] <= end]
     assert meta["frames"]["numbers"] == expected
     assert [f[4] for f in frames] == [everything[n][4] for n in expected]     # the very payloads
+    # ... at their very times (trial: written in ns from a float, 1750000007.875 became ...875000064).
+    from reference.analyser import read_records
+    original = read_records(capture)
+    assert [r["t"] for r in read_records(str(files[1]))] == [original[n - 1]["t"] for n in expected]
     # The finding's filter names the capture's frames; `evidence_filter` the same ones in this file.
     item = meta["findings"][0]["item"]
     assert [frames[n - 1][4] for n in item["evidence_frames"]] == [everything[item["frame"]][4]]

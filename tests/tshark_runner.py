@@ -292,7 +292,7 @@ NOT_CANONICAL = frozenset({"undecoded"})          # tree filler for bytes no fie
 # Stream analysis (issue 4): not part of a single packet's decoding, checked by test_dissector_analysis.
 ANALYSIS_PREFIXES = ("analysis.", "burst.", "reassembled")
 ANALYSIS_EXPERTS = frozenset({
-    "serial_gap", "serial_duplicate", "serial_out_of_order", "watchdog_vrpi", "watchdog_vrpo", "vrpo_interval",
+    "serial_gap", "serial_duplicate", "serial_out_of_order", "watchdog_vrpi", "watchdog_vrpo", "vrpo_interval", "time_backwards",
     "retransmission", "resend_interval", "spurious_retransmission", "ack_without_command", "duplicate_ack",
     "ack_late", "never_acked", "burst_missing", "burst_incomplete",
     "restart", "silent_until_end", "command_interrupted"})

@@ -44,6 +44,9 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
      first one.
  R10 A sender exists (senders[], periodic[]) only with at least one legal packet; illegal packets
      are attributed to nobody.
+ R13 "The capture went on past the limit" (rules.md, "Failed") is judged on the analysis clock the
+     command's times run on: the capture's latest time is the later of its last record and its
+     latest legal packet (appended captures: the clock stays ahead of a later, shorter part).
 """
 from __future__ import annotations
 
@@ -408,7 +411,10 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
     periodic.sort(key=lambda e: (e["type"], e["sender"]))
 
     # 5. commands
-    commands = _commands(legal, senders, restart_at, reuse, fail_limit, last_record_t, flags, frames)
+    # R13: the capture went on past a command's limit when its latest time did: the later of its
+    # last record and the analysis clock (a step back of the records' time leaves the clock ahead).
+    commands = _commands(legal, senders, restart_at, reuse, fail_limit, max(last_record_t, clock or last_record_t),
+                         flags, frames)
 
     sender_list = []
     for sid in sorted(order):
@@ -572,7 +578,7 @@ def _serials(s: dict, dup_w: int, flags: _Flags, frames: dict, restart_at: dict)
                    "duplicates": duplicates, "out_of_order": out_of_order, "wraps": wraps, "gaps": gaps}
 
 
-def _commands(legal: list[dict], senders: dict, restart_at: dict, reuse: int, fail_limit: dict, last_record_t: int,
+def _commands(legal: list[dict], senders: dict, restart_at: dict, reuse: int, fail_limit: dict, latest_t: int,
               flags: _Flags, frames: dict) -> dict:
     cmds: list[dict] = []
     latest: dict[tuple, dict] = {}        # (kind, sender, cid) -> its latest command
@@ -642,8 +648,8 @@ def _commands(legal: list[dict], senders: dict, restart_at: dict, reuse: int, fa
             if not c["acked"]:
                 frames.setdefault(c["frames"][0], {})["never_acked"] = 1
                 # failed only if the capture went on past its limit (docs/rules.md, "Failed")
-                flags.near(last_record_t - c["first_t"], fail_limit[kind], f"open at the end, frame {c['frames'][0]}")
-                if last_record_t - c["first_t"] > fail_limit[kind]:
+                flags.near(latest_t - c["first_t"], fail_limit[kind], f"open at the end, frame {c['frames'][0]}")
+                if latest_t - c["first_t"] > fail_limit[kind]:
                     failed += 1
                 continue
             flags.near(c["ack_t"] - c["first_t"], fail_limit[kind], f"ack vs fail limit, frame {c['ack_frame']}")

@@ -156,16 +156,18 @@ def stepped_scenarios(draw: Any) -> dict:
     sc["step_back"] = draw(st.one_of(   # (microseconds: within and beyond the limits of the rules)
         st.tuples(st.just("shift"), st.floats(0.1, 0.9), st.sampled_from([200, 300_000, 900_000, 1_200_000,
                                                                            2_500_000, 40_000_000])),
-        st.just(("append", 0.0, 0))))
+        st.just(("append", 0.0, 0)),
+        st.tuples(st.just("append"), st.floats(0.1, 0.9), st.just(0))))
     return sc
 
 
 def step_back(frames: list[tuple[int, bytes]], how: tuple) -> list[tuple[int, bytes]]:
-    """("shift", f, us): the frames from fraction f on are `us` microseconds earlier; ("append", ...):
-    the capture, then the capture again with the same timestamps."""
+    """("shift", f, us): the frames from fraction f on are `us` microseconds earlier; ("append", f, 0):
+    the capture, then again its part before fraction f (all of it for 0) with the same timestamps: a
+    shorter capture appended leaves the clock ahead of its records."""
     kind, fraction, us = how
     if kind == "append":
-        return frames + frames
+        return frames + frames[:max(1, int(len(frames) * fraction)) if fraction else len(frames)]
     cut = max(1, int(len(frames) * fraction))
     return frames[:cut] + [(t - us, b) for t, b in frames[cut:]]
 

@@ -85,6 +85,27 @@ def frame_filter(frames: list[int]) -> str:
     return "frame.number in {" + ", ".join(str(f) for f in frames) + "}"
 
 
+def sender_filter(sender: str) -> str:
+    """A display filter for the packets of a sender (collect.sender_id: "Input 10.0.0.10:5825 origin
+    0x0101", an IPv6 address in brackets)."""
+    _, address, _, origin = sender.split(" ")
+    host, port = address.rsplit(":", 1)
+    ip = f"ipv6.src == {host[1:-1]}" if host.startswith("[") else f"ip.src == {host}"
+    return f"{ip} && udp.srcport == {port} && vm110.origin == {origin}"
+
+
+def command_filter(frames: list[int], sender: str, what: dict) -> str:
+    """A command's frames beyond MAX_FILTER_FRAMES: the range of its transmissions narrowed to its
+    kind, sender and ID and to packets that are no copies (within the range, any other such packet
+    would be one of its transmissions), and its ack by number."""
+    ack = what.get("ack_frame")
+    sent = [f for f in frames if f != ack]
+    text = (f"frame.number >= {min(sent)} && frame.number <= {max(sent)} && vm110.type == \"{what['type']}\" && "
+            f"{sender_filter(sender)} && vm110.command_id == {what['command_id']} && "
+            "!vm110.analysis.serial_duplicate")
+    return f"({text}) || frame.number == {ack}" if ack in frames else text
+
+
 def located_item(frames: Any, time: float, sender: Optional[str], **what: Any) -> dict:
     """One item of a finding: its frame(s), time, sender, details and the display filter that shows it
     (also the shape of `vm110 monitor`'s live findings)."""
@@ -96,10 +117,10 @@ def located_item(frames: Any, time: float, sender: Optional[str], **what: Any) -
     if sender is not None:
         item["sender"] = sender
     item.update(what)
-    item["filter"] = frame_filter(frames)
-    if len(frames) > MAX_FILTER_FRAMES and what.get("command_id") is not None:
-        # A range holds other traffic too: a command's transmissions and acks carry its ID.
-        item["filter"] += f" && vm110.command_id == {what['command_id']}"
+    if len(frames) > MAX_FILTER_FRAMES and sender is not None and what.get("command_id") is not None:
+        item["filter"] = command_filter(frames, sender, what)
+    else:
+        item["filter"] = frame_filter(frames)
     return item
 
 
@@ -138,7 +159,7 @@ def locate_report(report: dict, tallies: dict[int, Tally], located: Located, end
                 where.add("unacked", c.frames, c.times[0], c.sender, **what)
             if c.failed(fail_ms, end):
                 where.add("failed", c.frames + ([c.ack_frame] if c.ack_frame else []), c.times[0], c.sender,
-                          latency_ms=c.latency_first_ms, **what)
+                          latency_ms=c.latency_first_ms, ack_frame=c.ack_frame, **what)
             for f, t in zip(c.frames, c.times):
                 if f in c.spurious_frames:
                     where.add("spurious", f, t, c.sender, ack_frame=c.ack_frame, **what)

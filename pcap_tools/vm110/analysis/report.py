@@ -71,7 +71,10 @@ def _build(got: Collected) -> dict:
     periodic.sort(key=lambda p: (p["type"], p["sender"]))
     tallies = analysis.tracker.tallies
     fail = analysis.tracker.fail_ms
-    cmd = {t.value: commands.report(tallies[CODE[t]], fail[CODE[t]], opt.resend_ms, got.last_ts)
+    # A command has failed once the capture went on past its limit, on the analysis clock that its
+    # times run on: after a step back of the clock (appended captures) the last record is earlier.
+    cmd_end = got.last_ts if got.last_ts is None or analysis.clock <= got.last_ts else analysis.clock
+    cmd = {t.value: commands.report(tallies[CODE[t]], fail[CODE[t]], opt.resend_ms, cmd_end)
            for t in commands.COMMAND_TYPES}
     invalid = got.illegal_reasons[C.Problem.BAD_CRC.value]
     stepped_back = sum(p["time_backwards"] for p in periodic)
@@ -103,7 +106,7 @@ def _build(got: Collected) -> dict:
         "state": states,
         "options": asdict(opt),
     }
-    findings.locate_report(report, tallies, located, got.last_ts)
+    findings.locate_report(report, tallies, located, cmd_end)
     report = normalise(report)
     report["totals"] = findings.totals(report)
     report["verdict"] = normalise(findings.verdict(report, located))

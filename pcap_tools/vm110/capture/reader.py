@@ -104,6 +104,7 @@ class CaptureReader:
         self.last_ts: Optional[float] = None
         self.endian = "<"                       # pcapng: of the current section
         self.interfaces: list[tuple] = []       # pcapng: (link, ticks/s or 0, s/tick, offset, Ethernet?)
+        self.ts_digits = 6                      # decimal digits of the finest timestamps (9: ns)
 
     def _identify(self, path: str) -> tuple[int, str]:
         """The file's size and format ("pcap" or "pcapng") from its magic, or CaptureError."""
@@ -160,6 +161,7 @@ class CaptureReader:
         link = network & 0x0FFFFFFF      # the top bits may carry FCS information
         self.link_types.add(L.NAMES.get(link, str(link)))
         # Never the snaplen: a file's own header must not let a record claim gigabytes.
+        self.ts_digits = 9 if magic == PCAP_MAGIC_NS else 6
         return PcapLayout(e, 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link, MAX_RECORD)
 
     def raw_chunks(self, start: int = PCAP_HEADER_LEN, stop: Optional[int] = None) -> Generator[bytes, int, None]:
@@ -286,6 +288,8 @@ class CaptureReader:
             div, scale, tsoff = self._idb_options(data, pos + 16, pos + blen - 4, e)
             self.link_types.add(L.NAMES.get(link, str(link)))
             self.interfaces.append((link, div, scale, tsoff, link == L.LINKTYPE_ETHERNET))
+            digits = len(str(div)) - 1 if div else 9       # (binary fractions: in nanoseconds)
+            self.ts_digits = max(self.ts_digits, min(digits, 9))
         return None
 
     def pcapng_section(self, data: bytes, pos: int) -> None:

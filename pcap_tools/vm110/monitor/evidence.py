@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 from ..capture.writer import build_block, build_option
-from ..analysis.findings import frame_filter
+from ..analysis.findings import MAX_FILTER_FRAMES, command_filter, frame_filter
 from ..fileio import write_bytes, write_text
 
 RING_BYTES = 64 << 20
@@ -30,24 +30,26 @@ MAX_NUMBERS = 10_000           # frame numbers listed in the JSON (else first an
 _SHB = build_block(0x0A0D0D0A, struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1))
 
 
-def _idb(link: int) -> bytes:
-    # Link type, snaplen 0 (no limit), option if_tsresol = 9 (nanoseconds), end of options.
-    return build_block(1, struct.pack("<HHI", link, 0, 0) + build_option(9, bytes([9])) + struct.pack("<HH", 0, 0))
+def _idb(link: int, digits: int) -> bytes:
+    # Link type, snaplen 0 (no limit), option if_tsresol (10^-digits s), end of options.
+    return build_block(1, struct.pack("<HHI", link, 0, 0) + build_option(9, bytes([digits])) + struct.pack("<HH", 0, 0))
 
 
-def _epb(iface: int, ts: float, frame: bytes) -> bytes:
-    ns = round(ts * 1e9)
-    head = struct.pack("<IIIII", iface, (ns >> 32) & 0xFFFFFFFF, ns & 0xFFFFFFFF, len(frame), len(frame))
+def _epb(iface: int, ticks: int, frame: bytes) -> bytes:
+    head = struct.pack("<IIIII", iface, (ticks >> 32) & 0xFFFFFFFF, ticks & 0xFFFFFFFF, len(frame), len(frame))
     return build_block(6, head + frame + bytes(-len(frame) % 4))
 
 
-def pcapng(frames: list[tuple]) -> bytes:
-    """A pcapng file of (ts, frame number, link type, frame bytes)."""
+def pcapng(frames: list[tuple], digits: int = 9) -> bytes:
+    """A pcapng file of (ts, frame number, link type, frame bytes), its times in units of 10^-digits s:
+    those of the capture they come from, which a float of the epoch holds to a microsecond exactly,
+    not to a nanosecond (a time written in ns would not be the capture's own)."""
     links: dict[int, int] = {}
     for _, _, link, _ in frames:
         links.setdefault(link, len(links))
-    parts = [_SHB, *(_idb(link) for link in links)]
-    parts += [_epb(links[link], ts, data) for ts, _, link, data in frames]
+    unit = 10 ** digits
+    parts = [_SHB, *(_idb(link, digits) for link in links)]
+    parts += [_epb(links[link], round(ts * unit), data) for ts, _, link, data in frames]
     return b"".join(parts)
 
 
@@ -69,6 +71,7 @@ class Evidence:
 
     def __init__(self, folder: str, before: float, after: float, options: dict) -> None:
         self.folder, self.before, self.after, self.options = folder, before, after, options
+        self.ts_digits = 9          # the input's timestamp resolution (the session sets it)
         self.ring: collections.deque = collections.deque()
         self.ring_bytes = 0
         self.open: list[Window] = []
@@ -130,9 +133,19 @@ class Evidence:
                            "numbers": frames if len(frames) <= MAX_NUMBERS else None,
                            "cut_at_bytes": WINDOW_BYTES if w.cut else None},
                 "options": self.options}
-        write_bytes(name + ".pcapng", pcapng(w.frames))
+        write_bytes(name + ".pcapng", pcapng(w.frames, self.ts_digits))
         write_text(name + ".json", json.dumps(meta, indent=1, default=str) + "\n")
         self.written.append(name + ".pcapng")
+
+
+def _filter(here: list[int], item: dict, position: dict[int, int]) -> Optional[str]:
+    """The item's filter in the evidence file's numbering (its own frames there: `here`)."""
+    if not here:
+        return None
+    if len(here) > MAX_FILTER_FRAMES and item.get("sender") is not None and item.get("command_id") is not None:
+        ack = item.get("ack_frame")
+        return command_filter(here, item["sender"], {**item, "ack_frame": None if ack is None else position.get(ack)})
+    return frame_filter(here)
 
 
 def _in_file(findings: list[dict], numbers: list[int]) -> list[dict]:
@@ -143,7 +156,6 @@ def _in_file(findings: list[dict], numbers: list[int]) -> list[dict]:
     for f in findings:
         item = f["item"]
         here = [position[n] for n in item.get("frames", [item["frame"]]) if n in position]
-        out.append({**f, "item": {**item, "evidence_frames": here,
-                                  "evidence_filter": frame_filter(here) if here else None}})
+        out.append({**f, "item": {**item, "evidence_frames": here, "evidence_filter": _filter(here, item, position)}})
     return out
 

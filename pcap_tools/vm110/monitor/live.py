@@ -89,8 +89,7 @@ class LiveSender:
             cleared = item(frame, ts, self.id, type=self.ptype, gap_ms=gap_ms, since_frame=self.last_frame)
             emit(finding("watchdog", "cleared", cleared, f"{self.ptype} back after {gap_ms:.0f} ms"))
             self.alarm = None
-        if last is None or ts >= last:
-            self.last_ts, self.last_frame = ts, frame
+        self.last_ts, self.last_frame = ts, frame   # (in capture order, as analyze's silence to the end)
 
     def _interval(self, ms: float) -> None:
         self.interval = ms
@@ -227,8 +226,11 @@ class Live:
                     self.emit(finding("watchdog", "cleared", cleared, f"{snd.ptype}: sender restarted on a new port"))
                     snd.alarm = None
             snd.tick(now, self.emit)
-        self._serials(now, final)
-        self._commands(now)
+        # The periodic streams judge on the records' own times; serials and commands on the analysis
+        # clock (rules.md), later than `now` after a step back of the time (appended captures).
+        clock = max(now, self.analysis.clock)
+        self._serials(clock, final)
+        self._commands(clock)
 
     def _serials(self, now: float, final: bool) -> None:
         """A gap is reported once no late packet can fill it any more (the duplicate window after
@@ -283,7 +285,7 @@ class Live:
                     self.cmd["failed"] += 1
                     self.emit(finding("failed", "found", item(cmd.frames + [cmd.ack_frame], cmd.times[0], cmd.sender,
                                                               type=kind, command_id=cmd.command_id,
-                                                              latency_ms=latency),
+                                                              latency_ms=latency, ack_frame=cmd.ack_frame),
                                       f"{kind} {cmd.command_id} acknowledged after {latency:.0f} ms "
                                       f"(limit {limit:g} ms)"))
                 continue
@@ -292,7 +294,7 @@ class Live:
                 flagged = True
                 self.cmd["failed"] += 1
                 self.emit(finding("failed", "raised", item(cmd.frames, cmd.times[0], cmd.sender, type=kind,
-                                                           command_id=cmd.command_id, latency_ms=None),
+                                                           command_id=cmd.command_id, latency_ms=None, ack_frame=None),
                                   f"{kind} {cmd.command_id} not acknowledged within {limit:g} ms"))
             if flagged and (now - cmd.times[-1]) * 1000.0 > max(self.opt.reuse_gap_ms, limit):
                 continue        # given up on: counted as failed, no longer watched

@@ -156,6 +156,8 @@ class Session:
         for ts, frame, link, data, dgram in packets:
             if self.first_mono is None:
                 self.first_mono, self.first_ts = time.monotonic(), ts
+                if evidence is not None:
+                    evidence.ts_digits = reader.ts_digits
             if self.cfg.realtime:
                 self._pace(ts)
             second = math.floor(ts) if math.isfinite(ts) else None
@@ -163,8 +165,7 @@ class Session:
                 self.second = second
             elif second is not None and second > self.second:
                 self._second(ts, second)
-            if self.last_ts is None or ts > self.last_ts:
-                self.last_ts = ts
+            self.last_ts = ts           # the last record's own time: a step back is no silence
             self.last_mono = time.monotonic()
             self.done = frame
             if evidence is not None:
