@@ -141,3 +141,16 @@ def test_random_cases_mutate_valid_packets():
             if case.family != "random-sequence":    # sequences send valid packets, in odd order or timing
                 assert data != twin, case.description
     assert kinds == {"random-bytes", "random-fields", "random-structure", "random-sequence"}
+
+
+def test_a_bug_s_signature_names_the_packet_type_not_how_it_was_mutated():
+    """Trial: a stall on a VRPI field and one on a VRCI field shared the signature `stall no VRPO
+    (fields)`, the second replacing the first's reproducer; one missing CRC check was two findings,
+    `(structure)` and `(bytes)`. README: the oracle, what it judged and the packet type."""
+    from vm110.fuzz.runner import case_kind
+    kinds = [case_kind(K.Case(i, family, description)) for i, (family, description) in enumerate([
+        ("vrpi-fields", "VRPI joystick1=-32768"), ("vrci-fields", "VRCI command_spare=2147483647"),
+        ("vrci-structure", "VRCI CRC of another variant"), ("random-bytes", "VRCI byte 7 = 0xff"),
+        ("wrong-direction", "VRAI sent to the controller"), ("sequence", "four new commands back to back")])]
+    assert kinds == ["VRPI", "VRCI", "VRCI", "VRCI", "VRAI", "sequence"]
+    assert case_kind(None) == "none"

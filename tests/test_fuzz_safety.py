@@ -300,6 +300,16 @@ def test_unreadable_finding_files_are_one_line_errors(capsys, nothing_leaves, tm
     assert code == 2 and str(path) in one_line(err)
 
 
+def test_a_device_as_a_finding_or_dictionary_is_one_line_errors(capsys, nothing_leaves, tmp_path):
+    """Trial: --replay /dev/zero and --dict /dev/zero read until the kernel killed the process (a
+    device has no size to check first): at most the limit is read."""
+    code, err = fuzz_in_process(capsys, "--replay", "/dev/zero")
+    assert code == 2 and "/dev/zero is not a vm110 fuzz finding: larger than 16 MiB" in one_line(err)
+    from vm110.fuzz.corpus import load_dictionary
+    with pytest.raises(CliError, match="--dict /dev/zero: larger than 1 MiB"):
+        load_dictionary("/dev/zero")
+
+
 MS_RANGE = "is out of range: must be a number of milliseconds from 0 to 60000"
 OUT_OF_RANGE: dict[str, Any] = {
     "settle 1e300": (lambda f: f.update(settle_ms=1e300), f"settle_ms {MS_RANGE}"),

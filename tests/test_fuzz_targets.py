@@ -105,6 +105,30 @@ def test_a_crash_in_the_middle_of_a_case_is_one_trigger(tmp_path, programs):
         session.close()
 
 
+def test_a_controller_that_dies_without_target_cmd_is_flagged(tmp_path, programs):
+    """Trial: a controller started by the user (a real PLC) crashed under fuzzing, and the run said
+    `0 findings` and exited 0, nothing recorded: the trigger was lost when its replay found no
+    controller. Now it is kept with the cases before it, and the run exits 1."""
+    exe = programs("plain-null-call")
+    rx, listen = free_ports(2)
+    out = tmp_path / "out"
+    target = subprocess.Popen([str(exe), str(rx), str(listen)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        result = subprocess.run(
+            [sys.executable, "-m", "vm110", "fuzz", "--target", f"127.0.0.1:{rx}", "--listen", f"127.0.0.1:{listen}",
+             "--out", str(out), "--seed", "2", "--duration", "60", "--startup", "2"],
+            capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    finally:
+        target.kill()
+        target.wait()
+    assert result.returncode == 1, result.stdout + result.stderr
+    summary = json.loads((out / "findings.json").read_text())
+    assert summary["controller_lost"] and not summary["findings"]
+    [lost] = [u for u in summary["unreproduced"] if u.get("not_replayed")]
+    assert lost["oracle"] == "stall" and lost["suspect_cases"] and len(lost["suspect_cases"]) == len(lost["suspects"])
+    assert "the controller stopped while being fuzzed" in result.stdout
+
+
 def decode_vlaps(packet_hex: str) -> int:
     return bytes.fromhex(packet_hex)[C.PREFIX_LEN + 1]
 

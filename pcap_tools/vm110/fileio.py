@@ -19,6 +19,16 @@ from .errors import CliError
 PathLike = Union[str, "os.PathLike[str]"]
 
 
+def read_at_most(path: PathLike, limit: int) -> bytes:
+    """The bytes of an input file of at most `limit` bytes; ValueError when it has more (read no
+    further: a device such as /dev/zero, or a FIFO, has no size to check first)."""
+    with open(path, "rb") as f:
+        data = f.read(limit + 1)
+    if len(data) > limit:
+        raise ValueError(f"larger than {limit >> 20} MiB" if limit >= 1 << 20 else f"larger than {limit} bytes")
+    return data
+
+
 def check_target(path: PathLike) -> Path:
     """The path written to (symbolic links followed, so that a link stays a link); CliError when
     it exists and is not a regular file."""

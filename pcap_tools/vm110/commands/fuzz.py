@@ -192,9 +192,15 @@ def run(args: argparse.Namespace) -> int:
     if args.target_cmd:
         options = ", ".join(f"{k}={'(yours)' if v == 'user' else v}" for k, v in summary["sanitizer_options"].items())
         print(f"sanitizer options: {options}; core files: {summary['core_files']}")
+    if summary["controller_lost"]:
+        last = summary["unreproduced"][-1] if summary["unreproduced"] else None
+        print(f"the controller stopped while being fuzzed ({_printable(last['detail']) if last else 'no VRPO'}) "
+              "and there is no --target-cmd to restart and replay it: the cases before it, "
+              f"{', '.join(_printable(c) for c in last.get('suspect_cases', [])[:3]) if last else 'unknown'}, "
+              f"are in {out / 'findings.json'} (unreproduced)")
     if runner.interrupted:
         return EXIT_INTERRUPTED
-    return EXIT_FINDINGS if summary["findings"] else EXIT_OK
+    return EXIT_FINDINGS if summary["findings"] or summary["controller_lost"] else EXIT_OK
 
 
 class _StatusLine:

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Iterable, Optional
 
 from ..errors import CliError
+from ..fileio import read_at_most
 from .tables import COLUMNS
 from ..jsonin import loads
 
@@ -166,11 +167,7 @@ def sidecar(path: str) -> tuple[dict[str, Optional[str]], list[str]]:
     if not os.path.isfile(side):
         return {}, []
     try:
-        with open(side, "rb") as f:
-            raw = f.read(MAX_SIDECAR_BYTES + 1)
-        if len(raw) > MAX_SIDECAR_BYTES:
-            raise ValueError(f"larger than {MAX_SIDECAR_BYTES} bytes")
-        data = loads(raw, parse_constant=_refuse_constant)
+        data = loads(read_at_most(side, MAX_SIDECAR_BYTES), parse_constant=_refuse_constant)
     except (OSError, ValueError) as exc:
         return {}, [f"not a metadata file: {exc}"]
     if not isinstance(data, dict):

@@ -19,7 +19,7 @@ from typing import Any, Optional
 
 from .. import constants as C
 from ..errors import CliError
-from ..fileio import write_text
+from ..fileio import read_at_most, write_text
 from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
 from .findings import make_folder
@@ -121,9 +121,13 @@ def is_entry_file(path: str) -> bool:
 def load_entry(path: str) -> Entry:
     """One corpus file, checked; CliError (one line) when it is not a valid corpus case."""
     try:
-        if Path(path).stat().st_size > _MAX_ENTRY_FILE:
-            raise CliError(f"{path} is not a vm110 corpus case: larger than {_MAX_ENTRY_FILE >> 20} MiB")
-        return entry_from_json(loads(Path(path).read_bytes()))
+        data = read_at_most(path, _MAX_ENTRY_FILE)
+    except OSError as exc:
+        raise CliError(f"cannot read {path}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise CliError(f"{path} is not a vm110 corpus case: {exc}") from None
+    try:
+        return entry_from_json(loads(data))
     except OSError as exc:
         raise CliError(f"cannot read {path}: {exc.strerror}") from None
     except ValueError as exc:
@@ -149,9 +153,7 @@ class CorpusDir:
                 continue
             self.next = max(self.next, int(m.group(1)) + 1)
             try:
-                if path.stat().st_size > _MAX_ENTRY_FILE:
-                    raise _Bad("too large")
-                entries.append(entry_from_json(loads(path.read_bytes())))
+                entries.append(entry_from_json(loads(read_at_most(path, _MAX_ENTRY_FILE))))
             except (OSError, ValueError, _Bad) as exc:
                 self.skipped.append(f"{path.name}: {str(exc)[:100]}")
         return entries
@@ -192,11 +194,11 @@ def _unescape(text: str) -> bytes:
 def load_dictionary(path: str) -> list[bytes]:
     """Tokens of an AFL dictionary; CliError (one line, with the line number) for a bad line."""
     try:
-        if Path(path).stat().st_size > _MAX_DICT_FILE:
-            raise CliError(f"--dict {path}: larger than {_MAX_DICT_FILE >> 20} MiB")
-        lines = Path(path).read_text(encoding="latin-1").splitlines()
+        lines = read_at_most(path, _MAX_DICT_FILE).decode("latin-1").splitlines()
     except OSError as exc:
         raise CliError(f"cannot read --dict {path}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise CliError(f"--dict {path}: {exc}") from None
     tokens = []
     for n, line in enumerate(lines, 1):
         if not line.strip() or line.lstrip().startswith("#"):

@@ -12,7 +12,7 @@ from typing import Any, Optional
 from .. import constants as C
 from ..capture.writer import PcapWriter, UdpFlow
 from ..errors import CliError
-from ..fileio import atomic_writer, write_bytes, write_text
+from ..fileio import atomic_writer, read_at_most, write_bytes, write_text
 from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
 from .evidence import Crash
@@ -165,9 +165,13 @@ def load_finding(path: str) -> Finding:
     """A finding JSON written by `write_finding`, every value checked; CliError (one line) when it
     is not one. Nothing in it is run: the stored command is only a hint."""
     try:
-        if Path(path).stat().st_size > _MAX_FILE:
-            raise CliError(f"{path} is not a vm110 fuzz finding: larger than {_MAX_FILE >> 20} MiB")
-        raw = loads(Path(path).read_bytes())
+        data = read_at_most(path, _MAX_FILE)
+    except OSError as exc:
+        raise CliError(f"cannot read {path}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise CliError(f"{path} is not a vm110 fuzz finding: {exc}") from None
+    try:
+        raw = loads(data)
     except OSError as exc:
         raise CliError(f"cannot read {path}: {exc.strerror}") from None
     except ValueError as exc:    # also numbers of more digits than Python converts

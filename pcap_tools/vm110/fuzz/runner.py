@@ -134,6 +134,19 @@ def start_target(s: Session) -> None:
     s.monitor.triggers.clear()     # whatever happened before the first VRPI is not a case's doing
 
 
+_PACKET_TYPES = frozenset(t.value for t in C.PacketType)
+
+
+def case_kind(case: Optional[K.Case]) -> str:
+    """The packet type a case mutates (its description begins with it), else its family (a
+    sequence, packets in the wrong direction): how the fuzz mutated the packet (its fields, its
+    structure, its bytes) is no part of a bug's signature, the packet it reached is."""
+    if case is None:
+        return "none"
+    first = case.description.split(" ", 1)[0]
+    return first if first in _PACKET_TYPES else case.family
+
+
 class Runner:
     def __init__(self, cfg: RunConfig) -> None:
         self.cfg = cfg
@@ -165,6 +178,7 @@ class Runner:
         self._last_status = 0.0
         self.stopped_early: Optional[str] = None
         self.interrupted = False             # by Ctrl-C or SIGTERM (stopped_early says so too)
+        self.controller_lost = False         # an unsupervised controller stopped while being fuzzed
 
     # --- the run ----------------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -199,6 +213,7 @@ class Runner:
             self._investigate_all()
         except TargetLost as exc:
             self.stopped_early = str(exc)
+            self.controller_lost = self.cases_run > 0
         except KeyboardInterrupt:          # Ctrl-C, SIGTERM: what was found is still summarised
             self.stopped_early, self.interrupted = "interrupted", True
         finally:
@@ -235,6 +250,7 @@ class Runner:
                          for f, name in zip(self.findings, self.files)],
             "counts": dict(counts), "repeats": dict(self.repeats), "unreproduced": self.unreproduced,
             "buckets": [b.to_json() for b in self.buckets.values()],
+            "controller_lost": self.controller_lost,
             "sanitizer_options": self.supervisor.sanitizer_options if self.supervisor else {},
             "core_files": (self.supervisor.no_core_reason or "on") if self.supervisor else None,
             "stopped_early": self.stopped_early,
@@ -254,11 +270,16 @@ class Runner:
         self._settle()
         queue, s.monitor.triggers = s.monitor.triggers, []
         investigated = False
-        for trig in queue:
+        for n, trig in enumerate(queue):
             if len(self.findings) >= self.cfg.max_findings:
                 F.discard_core(self.cfg.out, trig.crash)      # not investigated: not kept
                 continue
-            investigated = self._investigate(trig) or investigated
+            try:
+                investigated = self._investigate(trig) or investigated
+            except TargetLost as exc:    # gone for good: what made it go is kept, not replayed
+                for left in queue[n:]:
+                    self._unreproduced(left, self._suspects(left)[:_MAX_SUSPECTS], str(exc))
+                raise
         if investigated or not s.healthy():
             self._recover()
         s.monitor.pending.clear()
@@ -277,13 +298,12 @@ class Runner:
         the oracle, what it judged and the packet type of the case."""
         if trig.oracle == CRASH:
             return f"crash {trig.kind}"
-        family = self.records[index][0].family if index is not None and index in self.records else "none"
-        return f"{trig.oracle} {trig.kind} ({family.split('-', 1)[-1]})"
+        case = self.records[index][0] if index is not None and index in self.records else None
+        return f"{trig.oracle} {trig.kind} ({case_kind(case)})"
 
     def _investigate(self, trig: Trigger) -> bool:
         """Confirm `trig` by replaying its suspects; save a finding. True if replays were run."""
-        suspects = [i for i in ([trig.case_index] if trig.case_index is not None else trig.suspects)
-                    if i in self.records]
+        suspects = self._suspects(trig)
         spontaneous = not trig.suspects and trig.case_index is None
         # A trigger whose signature has a bucket is that bug again: counted, not replayed.
         candidates: list[Optional[int]] = list(suspects) if trig.oracle != CRASH and suspects else [None]
@@ -387,10 +407,18 @@ class Runner:
                     False, None, traffic)
         return True
 
-    def _unreproduced(self, trig: Trigger, suspects: list[int]) -> None:
+    def _suspects(self, trig: Trigger) -> list[int]:
+        """The cases that may have caused `trig` and are still kept."""
+        return [i for i in ([trig.case_index] if trig.case_index is not None else trig.suspects) if i in self.records]
+
+    def _unreproduced(self, trig: Trigger, suspects: list[int], not_replayed: Optional[str] = None) -> None:
         F.discard_core(self.cfg.out, trig.crash)
-        self.unreproduced.append({"oracle": trig.oracle, "detail": trig.detail, "time": trig.time,
-                                  "suspects": suspects[:_MAX_SUSPECTS]})
+        kept = suspects[:_MAX_SUSPECTS]
+        entry: dict[str, Any] = {"oracle": trig.oracle, "detail": trig.detail, "time": trig.time, "suspects": kept}
+        if not_replayed is not None:     # the controller is gone: the cases are all there is to go on
+            entry["not_replayed"] = not_replayed
+            entry["suspect_cases"] = [self.records[i][0].description for i in kept]
+        self.unreproduced.append(entry)
 
     def _trial(self, replay: Replay, trig: Trigger) -> Optional[Trigger]:
         """One replay against a clean controller: restarted first when supervised, so that no

@@ -25,6 +25,7 @@ from typing import Any, Mapping, Optional
 from .. import constants as C
 from .. import protocol as P
 from ..errors import CliError
+from ..fileio import read_at_most
 from ..jsonin import loads
 from .clock import US_PER_S, seconds
 
@@ -175,11 +176,7 @@ class Remote:
     @classmethod
     def load(cls, path: str) -> "Remote":
         try:
-            with open(path, "rb") as fh:
-                raw = fh.read(_MAX_SCRIPT + 1)
-            if len(raw) > _MAX_SCRIPT:
-                raise ValueError(f"larger than {_MAX_SCRIPT >> 20} MiB")
-            script = loads(raw)
+            script = loads(read_at_most(path, _MAX_SCRIPT))
         except OSError as exc:
             raise CliError(f"cannot read remote script {path}: {exc.strerror}") from None
         except ValueError as exc:
