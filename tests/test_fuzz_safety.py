@@ -220,6 +220,24 @@ def test_replay_runs_only_the_command_line_command(tmp_path):
     assert result.returncode == 2 and "not running the command" not in result.stderr
 
 
+def test_replay_joins_no_group_the_file_names(capsys, monkeypatch, tmp_path):
+    """Trial: a finding file's `group` was joined on the host's interfaces (an IGMP report out of
+    eth0) with no option saying so."""
+    rx, listen = free_ports(2)
+    path = save(tmp_path, a_finding(target=f"127.0.0.1:{rx}", listen=f"127.0.0.1:{listen}", group=C.MULTICAST_GROUP))
+    joined = []
+    monkeypatch.setattr(Link, "send", lambda self, data: 0.0)
+    real = Link.__init__
+
+    def init(self, target: Any, listen: Any, group: Any = None, *args: Any, **kwargs: Any) -> None:
+        joined.append(group)
+        real(self, target, listen, group, *args, **kwargs)
+    monkeypatch.setattr(Link, "__init__", init)
+    code, err = fuzz_in_process(capsys, "--replay", str(path), "--startup", "0.3")
+    assert code == 2 and "no VRPO" in err and joined and not any(joined)
+    assert f"not joining the multicast group stored in {path}" in err
+
+
 @pytest.mark.parametrize("target, allow, refusal", [
     ("192.0.2.7:5825", False, "not a loopback address"),
     (f"{C.MULTICAST_GROUP}:5825", False, "multicast group"),

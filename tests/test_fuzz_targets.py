@@ -85,6 +85,20 @@ def test_heap_overflow_finding_carries_the_asan_report(tmp_path, programs):
     assert fixed.returncode == 0 and "does not trigger" in fixed.stdout, fixed.stdout + fixed.stderr
 
 
+def test_an_abort_in_an_asan_build_has_its_stack(tmp_path, programs):
+    """Trial: abort() (a failed assert) in an AddressSanitizer build was `crash SIGABRT` with no
+    frames (ASan leaves no core), so every abort of a program was one finding. handle_abort=1 by
+    default: ASan reports it with its stack."""
+    exe = programs("asan-abort")
+    out = tmp_path / "out"
+    result, summary = fuzz(out, exe, "--duration", "60", "--max-findings", "1", "--rate", "2000")
+    assert result.returncode == 1, result.stdout + result.stderr
+    [bucket] = summary["buckets"]
+    finding = json.loads((out / bucket["file"]).read_text())
+    assert finding["crash"]["signal_name"] == "SIGABRT" and finding["crash"]["top_frames"][0]["function"] == "on_vrci"
+    assert "on_vrci" in finding["signature"] and "handle_abort=1" in summary["sanitizer_options"]["ASAN_OPTIONS"]
+
+
 def test_a_crash_in_the_middle_of_a_case_is_one_trigger(tmp_path, programs):
     """The trial's run: the controller crashed while a case was resending a command, and each resend
     that went out after the exit was a missing_ack of its own (three, each replayed, none reproduced)."""
@@ -293,3 +307,24 @@ def test_sigterm_still_writes_the_summary(tmp_path, programs):
     summary = json.loads((out / "findings.json").read_text())
     assert summary["stopped_early"] == "interrupted" and summary["cases_run"] > 0
     assert f"{summary['cases_run']} cases in" in stdout and "Traceback" not in stderr
+
+
+def test_an_interrupt_while_a_crash_is_confirmed_keeps_it(tmp_path, programs):
+    """Trial: SIGTERM while the fuzzer replayed the cases before a crash left findings.json without
+    any trace of it (the ASan reports were only in target.log)."""
+    exe, out = programs("asan-heap-overflow"), tmp_path / "out"
+    rx, listen = free_ports(2)
+    run = subprocess.Popen([sys.executable, "-m", "vm110", "fuzz", "--target", f"127.0.0.1:{rx}", "--listen",
+                            f"127.0.0.1:{listen}", "--target-cmd", f"{exe} {rx} {listen}", "--out", str(out),
+                            "--duration", "120", "--rate", "2000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           text=True)
+    assert run.stderr is not None
+    for line in run.stderr:
+        if "replaying" in line:
+            run.send_signal(signal.SIGTERM)
+            break
+    run.communicate(timeout=60)
+    assert run.returncode == 130
+    summary = json.loads((out / "findings.json").read_text())
+    kept = [u for u in summary["unreproduced"] if u.get("not_replayed") == "interrupted"]
+    assert summary["findings"] or (kept and kept[0]["oracle"] == "crash" and kept[0]["suspect_cases"]), summary

@@ -18,6 +18,7 @@ _AFL = ["afl-clang-fast", "-g", "-O1"]
 VARIANTS: dict[str, list[str]] = {
     "asan-correct": _ASAN,
     "asan-heap-overflow": _ASAN + ["-DBUG_HEAP_OVERFLOW"],
+    "asan-abort": _ASAN + ["-DBUG_ABORT"],
     "plain-correct": _PLAIN,
     "plain-null-call": _PLAIN + ["-DBUG_NULL_CALL"],
     "plain-deep": _PLAIN + ["-DBUG_DEEP"],

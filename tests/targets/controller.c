@@ -7,6 +7,7 @@
  *   -DBUG_NULL_CALL      a VRPI with an unknown bu_state calls through a NULL handler (dispatch_state)
  *   -DBUG_DEEP           VRCI "MAINT:" then VRCI "ENGAGE" writes through a NULL pointer (maintenance_engage):
  *                        two multi-byte comparisons and a state, out of reach of blind mutation
+ *   -DBUG_ABORT          a VRCI with command ID 65535 fails an assertion-like abort() (on_vrci)
  *
  * VRPO every 100 ms, a VRCO every second (resent every 100 ms until its VRAI, given up after
  * 2 s), a VRAO for every legal VRCI; a command ID heard again within 2 s is a retransmission
@@ -204,6 +205,10 @@ static void execute(const uint8_t *data)
 static void on_vrci(const uint8_t *p)
 {
     uint16_t id = get16(p);
+#ifdef BUG_ABORT
+    if (id == 0xFFFF)
+        abort();
+#endif
     uint8_t ack[ACK_SIZE];
     put16(ack, id);
     send_packet("VRAO", ack, sizeof ack);

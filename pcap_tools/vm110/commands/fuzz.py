@@ -235,8 +235,11 @@ def _replay(args: argparse.Namespace) -> int:
         return _replay_corpus(args)
     finding = load_finding(args.replay)
     stored_in = None if args.target else args.replay
-    settings = _settings(args, args.target or finding.target, args.listen or finding.listen,
-                         args.group or finding.group, stored_in)
+    # Joining a group sends IGMP out of an interface: only when the command line says so.
+    settings = _settings(args, args.target or finding.target, args.listen or finding.listen, args.group, stored_in)
+    if finding.group and not args.group:
+        _progress(f"not joining the multicast group stored in {args.replay} (give --group to join it): "
+                  f"{_printable(finding.group)}")
     if finding.target_cmd and not args.target_cmd:
         _progress(f"not running the command stored in {args.replay} (give --target-cmd to start a "
                   f"controller): {_printable(finding.target_cmd)!r}")

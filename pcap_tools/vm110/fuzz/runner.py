@@ -276,9 +276,12 @@ class Runner:
                 continue
             try:
                 investigated = self._investigate(trig) or investigated
-            except TargetLost as exc:    # gone for good: what made it go is kept, not replayed
+            except (TargetLost, KeyboardInterrupt) as exc:
+                # The controller gone for good, or the user stopping us: the triggers not confirmed
+                # yet are kept with their cases, not replayed.
+                why = str(exc) if isinstance(exc, TargetLost) else "interrupted"
                 for left in queue[n:]:
-                    self._unreproduced(left, self._suspects(left)[:_MAX_SUSPECTS], str(exc))
+                    self._unreproduced(left, self._suspects(left)[:_MAX_SUSPECTS], why)
                 raise
         if investigated or not s.healthy():
             self._recover()

@@ -27,7 +27,9 @@ _READ_WAIT_S = 3.0           # for the rest of a dying controller's report to ar
 # As AFL++ and libFuzzer start their targets: an error ends the process with a signal and a
 # symbolised report; leaks are not crashes of a long-running service.
 SANITIZER_DEFAULTS = {
-    "ASAN_OPTIONS": "abort_on_error=1:symbolize=1:detect_leaks=0",
+    # handle_abort: an abort() (a failed assert) gets AddressSanitizer's report and stack, as a
+    # plain build's core does (ASan builds leave no core).
+    "ASAN_OPTIONS": "abort_on_error=1:symbolize=1:detect_leaks=0:handle_abort=1",
     "UBSAN_OPTIONS": "abort_on_error=1:halt_on_error=1:print_stacktrace=1:symbolize=1",
     "LSAN_OPTIONS": "symbolize=1",
 }
