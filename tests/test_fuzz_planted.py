@@ -13,6 +13,7 @@ import socket
 import struct
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any, Callable
 
@@ -148,3 +149,17 @@ def test_usage_errors_exit_2(tmp_path):
     result = vm110("fuzz", "--target", "127.0.0.1:9", "--listen", f"127.0.0.1:{listen}", "--startup", "1",
                    "--cases", "3", "--out", str(tmp_path))
     assert result.returncode == 2 and "no VRPO" in result.stderr
+
+
+def test_a_controller_that_exits_at_once_is_told_at_once(tmp_path):
+    """Trial: --target-cmd true exited at once, and the fuzzer still waited out --startup (10 s)
+    before saying so. An empty --target-cmd or --out was taken as none given."""
+    rx, listen = free_ports(2)
+    started = time.monotonic()
+    result = vm110("fuzz", "--target", f"127.0.0.1:{rx}", "--listen", f"127.0.0.1:{listen}", "--target-cmd", "true",
+                   "--startup", "30", "--cases", "3", "--out", str(tmp_path / "out"))
+    assert result.returncode == 2 and time.monotonic() - started < 15, result.stderr
+    assert "the controller exited with code 0 before sending any VRPO" in result.stderr
+    for option in ("--target-cmd", "--out"):
+        result = vm110("fuzz", "--target", f"127.0.0.1:{rx}", option, "", "--cases", "3")
+        assert result.returncode == 2 and f"{option} is empty" in result.stderr, result.stderr

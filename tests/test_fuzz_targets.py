@@ -64,6 +64,9 @@ def test_heap_overflow_finding_carries_the_asan_report(tmp_path, programs):
     [bucket] = summary["buckets"]
     assert bucket["headline"].startswith("crash SIGABRT heap-buffer-overflow in record_laps (controller.c:")
     assert bucket["headline"] in result.stdout
+    # Why it stopped, and how to replay it (trial: neither was said).
+    assert summary["stopped_early"] == "--max-findings 1 reached"
+    assert f"replay one: vm110 fuzz --replay {out / bucket['file']} --target-cmd '{exe} " in result.stdout
     finding = json.loads((out / bucket["file"]).read_text())
     crash = finding["crash"]
     assert crash["signal_name"] == "SIGABRT" and crash["sanitizer"]["error_type"] == "heap-buffer-overflow"

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
+import shlex
 import signal
 import sys
 from pathlib import Path
@@ -138,6 +139,9 @@ def _interrupt(signum: int, frame: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, _interrupt)
+    for option, value in (("--target-cmd", args.target_cmd), ("--out", args.out)):
+        if value is not None and not value.strip():
+            raise CliError(f"{option} is empty")
     if args.replay:
         return _replay(args)
     if not args.target:
@@ -173,6 +177,10 @@ def run(args: argparse.Namespace) -> int:
     for bucket in summary["buckets"]:
         seen = f"{bucket['count']} time{'s' if bucket['count'] != 1 else ''}"
         print(f"{_printable(bucket['headline'])} [{seen}] -> {out / bucket['file']}")
+    if summary["buckets"]:
+        first = shlex.quote(str(out / summary["buckets"][0]["file"]))
+        print(f"replay one: vm110 fuzz --replay {first}"
+              + (f" --target-cmd {shlex.quote(args.target_cmd)}" if args.target_cmd else ""))
     rate = summary["cases_run"] / max(summary["duration_s"], 1e-6)
     print(f"{summary['cases_run']} cases in {summary['duration_s']:.1f} s ({rate:.0f}/s), {len(summary['findings'])} "
           f"findings ({sum(b['count'] for b in summary['buckets'])} triggers), "

@@ -128,8 +128,9 @@ def start_target(s: Session) -> None:
     if not s.wait_for_vrpo(0.0, s.settings.startup_s):
         where = f"{s.link.local[0]}:{s.link.local[1]}"
         code = s.supervisor.poll() if s.supervisor else None
-        raise TargetLost(f"no VRPO from the controller on {where} within {s.settings.startup_s:.0f} s"
-                         + (f" (it exited with code {code})" if code is not None else ""))
+        if code is not None:
+            raise TargetLost(f"the controller exited with code {code} before sending any VRPO to {where}")
+        raise TargetLost(f"no VRPO from the controller on {where} within {s.settings.startup_s:.0f} s")
     s.pump(time.time() + 2 * C.VRPI_PERIOD_MS / 1000)
     s.monitor.triggers.clear()     # whatever happened before the first VRPI is not a case's doing
 
@@ -211,6 +212,8 @@ class Runner:
             limits = s.settings.limits
             s.pump(time.time() + max(limits.ack_timeout_ms, limits.stall_ms) / 1000 + 0.2)
             self._investigate_all()
+            if len(self.findings) >= cfg.max_findings:
+                self.stopped_early = f"--max-findings {cfg.max_findings} reached"
         except TargetLost as exc:
             self.stopped_early = str(exc)
             self.controller_lost = self.cases_run > 0

@@ -184,11 +184,15 @@ class Session:
 
     # --- the controller's life --------------------------------------------------------------------
     def wait_for_vrpo(self, since: float, timeout: float) -> bool:
-        """Pump until a VRPO newer than `since` arrives; False after `timeout` seconds."""
+        """Pump until a VRPO newer than `since` arrives; False after `timeout` seconds, or as soon as
+        the supervised controller has exited (nothing more can come)."""
         deadline = time.time() + timeout
         while time.time() < deadline:
             if self.monitor.last_vrpo is not None and self.monitor.last_vrpo > since:
                 return True
+            if self.supervisor is not None and self.supervisor.poll() is not None:
+                self.pump(time.time() + 0.05)      # (what it sent before it went)
+                break
             self.pump(min(deadline, time.time() + 0.02))
         return self.monitor.last_vrpo is not None and self.monitor.last_vrpo > since
 
