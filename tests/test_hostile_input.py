@@ -198,3 +198,25 @@ def test_damage_only_tshark_sees_ends_the_tshark_engine_with_a_problem_not_a_tra
     report_schema.check(report)
     assert report["capture"]["problem"].startswith("tshark stopped reading after frame ")
     assert report["totals"]["damaged"] == 1
+
+
+@pytest.mark.parametrize("command, outputs", [
+    (["analyze", "{cap}", "--quiet"], ["--json", "{cap}"]),
+    (["analyze", "{cap}", "--quiet"], ["--html", "{link}"]),
+    (["analyze", "{cap}", "--quiet"], ["--json", "{out}", "--html", "{out}"]),
+    (["monitor", "--read", "{cap}", "--idle", "0", "--no-dashboard", "--quiet"], ["--json", "{cap}"]),
+    (["monitor", "--read", "{cap}", "--idle", "0", "--no-dashboard", "--quiet"], ["--json-lines", "{link}"]),
+    (["monitor", "--read", "{cap}", "--idle", "0", "--no-dashboard", "--quiet"], ["--json-lines", "{out}",
+                                                                                  "--json", "{out}"]),
+])
+def test_no_output_over_the_capture_or_another_output(tmp_path, command, outputs):
+    """Trial: `analyze in.pcap --json in.pcap` replaced the capture by its report (exit 0), also
+    through a symbolic link, and `--json r.json --html r.json` kept the HTML alone."""
+    cap, link, out = tmp_path / "in.pcap", tmp_path / "link.pcap", tmp_path / "r.out"
+    cap.write_bytes((CAPTURES / "normal.pcap").read_bytes())
+    link.symlink_to(cap)
+    args = [a.format(cap=cap, link=link, out=out) for a in command + outputs]
+    done = subprocess.run([sys.executable, "-m", "vm110", *args], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert "refusing to write over it" in done.stderr or "one would be lost" in done.stderr
+    assert cap.read_bytes() == (CAPTURES / "normal.pcap").read_bytes() and not out.exists()

@@ -44,6 +44,29 @@ def check_target(path: PathLike) -> Path:
     return real
 
 
+def check_distinct(outputs: dict[str, str], inputs: list[str]) -> None:
+    """Output files (option -> path, "-" for standard output) are neither an input nor one another:
+    CliError before anything is read or written (a report written over its capture destroyed it,
+    and two reports on one path kept only the last)."""
+    def identity(path: str) -> tuple:
+        try:
+            st = os.stat(path)
+            return (st.st_dev, st.st_ino)
+        except OSError:                       # not there yet: its resolved path
+            return (os.path.realpath(path),)
+    read = {identity(p): p for p in inputs if p != "-"}
+    seen: dict[tuple, str] = {}
+    for option, path in outputs.items():
+        if path == "-":
+            continue
+        key = identity(path)
+        if key in read:
+            raise CliError(f"{option} {path} is the input {read[key]}: refusing to write over it")
+        if key in seen:
+            raise CliError(f"{seen[key]} and {option} name the same file {path}: one would be lost")
+        seen[key] = option
+
+
 def check_report_target(path: PathLike) -> Path:
     """check_target, and the folder a new file goes into exists and is writable: a report file
     that cannot be written is said before the work, not after it."""

@@ -22,7 +22,7 @@ from ..analysis.serials import DUP_WINDOW_MS
 from ..analysis.report import SCHEMA_VERSION, SCOPES, Options
 from ..crc import BYTE_ORDERS, VARIANTS
 from ..capture.spool import as_given, named, stdin_spool
-from ..fileio import check_report_target
+from ..fileio import check_distinct, check_report_target
 from ..errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE, CliError
 from ..numbers import number
 from .options import INPUT_PORT, INPUT_PORT_HELP
@@ -179,6 +179,10 @@ def report_rules(args: argparse.Namespace) -> list:
     fail_rules = rules.parse(args.fail_on, TOTAL_NAMES) if args.fail_on is not None else []
     if args.json == "-" and args.html == "-":
         raise CliError("--json - and --html -: only one report can go to standard output")
+    outputs = {o: v for o, v in (("--json", args.json), ("--html", args.html),
+                                 ("--json-lines", getattr(args, "json_lines", None))) if v is not None}
+    inputs = list(getattr(args, "captures", None) or [getattr(args, "read", None) or "-"])
+    check_distinct(outputs, inputs)
     for target in (args.json, args.html):
         if target not in (None, "-"):
             check_report_target(target)
