@@ -220,3 +220,29 @@ def test_no_output_over_the_capture_or_another_output(tmp_path, command, outputs
     assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
     assert "refusing to write over it" in done.stderr or "one would be lost" in done.stderr
     assert cap.read_bytes() == (CAPTURES / "normal.pcap").read_bytes() and not out.exists()
+
+
+def test_timestamps_beyond_any_calendar_are_reported_not_a_traceback(tmp_path):
+    """Trial: a pcapng interface whose if_tsoffset is 2^63-1 s crashed the HTML report (a chart of
+    no span: x0 + 1 == x0) and fleet build (microseconds beyond int64), which lost the whole build."""
+    from vm110 import encode as E
+    from vm110.capture.writer import UdpFlow, build_block, build_option
+    shb = build_block(0x0A0D0D0A, struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1))
+    idb = build_block(1, struct.pack("<HHI", 1, 0, 0) + build_option(14, struct.pack("<q", 2**63 - 1))
+                      + struct.pack("<HH", 0, 0))
+    flow = UdpFlow("10.0.0.10", 5825, "239.255.42.20", 5825)
+    epbs = []
+    for i in range(12):
+        f = flow.frame(E.packet("VRPI", E.vrpi_payload({}), serial=i))
+        ticks = 1_700_000_000_000_000 + i * 125_000
+        epbs.append(build_block(6, struct.pack("<IIIII", 0, ticks >> 32, ticks & 0xFFFFFFFF, len(f), len(f))
+                                + f + bytes(-len(f) % 4)))
+    cap = tmp_path / "far.pcapng"
+    cap.write_bytes(shb + idb + b"".join(epbs))
+    for args in (["analyze", str(cap), "--quiet", "--html", str(tmp_path / "a.html")],
+                 ["monitor", "--read", str(cap), "--idle", "0", "--no-dashboard", "--quiet", "--html",
+                  str(tmp_path / "m.html")],
+                 ["fleet", "build", str(cap), "--out", str(tmp_path / "ds"), "-j", "1"]):
+        done = vm110(*args)
+        assert done.returncode in (0, 1) and b"Traceback" not in done.stderr, (args, done.stderr[-2000:])
+    assert (tmp_path / "a.html").stat().st_size > 0 and (tmp_path / "m.html").stat().st_size > 0

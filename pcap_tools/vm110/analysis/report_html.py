@@ -62,13 +62,21 @@ def _ticks(low: float, high: float, count: int = 5) -> list[float]:
     return [first + i * step for i in range(int((high - first) / step) + 1)]
 
 
+def _above(low: float, high: float) -> float:
+    """`high`, or where `low` leaves no span (equal, or a number so large that adding 1 changes
+    nothing: a hostile capture's timestamps), a value a span above it."""
+    if high > low:
+        return high
+    return low + max(1.0, abs(low) * 1e-9)
+
+
 class Chart:
     """A tiny SVG plotter: linear axes, then lines, bars, points and rectangles in data units."""
 
     def __init__(self, x0: float, x1: float, y0: float, y1: float, xlabel: str, ylabel: str,
                  xtime: bool = False, xint: bool = False) -> None:
-        self.x0, self.x1 = x0, x1 if x1 > x0 else x0 + 1
-        self.y0, self.y1 = y0, y1 if y1 > y0 else y0 + 1
+        self.x0, self.x1 = x0, _above(x0, x1)
+        self.y0, self.y1 = y0, _above(y0, y1)
         self.parts: list[str] = []
         self.xlabel, self.ylabel, self.xtime, self.xint = xlabel, ylabel, xtime, xint
         self.xtick_min = self.x0          # no x ticks left of this (the histogram's slot of negative intervals)

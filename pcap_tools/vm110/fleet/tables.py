@@ -19,6 +19,7 @@ FLOAT_TOTALS = frozenset(name for name in TOTAL_NAMES if name.endswith("_ms"))
 
 _KEY = [("capture_id", pa.string()), ("file", pa.string())]
 _TS = pa.timestamp("us")       # UTC (no zone in the column: readers need no time zone data)
+_MAX_S = 9.2e12                 # seconds a column of int64 microseconds holds (about 290,000 years)
 SCHEMAS: dict[str, pa.Schema] = {
     "captures": pa.schema(_KEY + [
         ("size", pa.int64()), ("sha256", pa.string()), ("status", pa.string()), ("format", pa.string()),
@@ -61,8 +62,11 @@ _ITEM_COLUMNS = ("frame", "frames", "time", "sender", "type", "command_id", "fil
 
 
 def _time(seconds: Optional[float]) -> Optional[int]:
-    """Capture seconds to the microseconds of a timestamp column."""
-    return None if seconds is None else round(seconds * 1_000_000)
+    """Capture seconds to the microseconds of a timestamp column; None (null) for a time the column
+    cannot hold (a hostile capture's timestamps beyond its range)."""
+    if seconds is None or not -_MAX_S < seconds < _MAX_S:
+        return None
+    return round(seconds * 1_000_000)
 
 
 def capture_rows(report: dict, capture_id: str, size: Optional[int], sha256: Optional[str]) -> dict[str, list[dict]]:
