@@ -401,3 +401,18 @@ def test_a_pattern_round_a_link_loop_takes_each_file_once(tmp_path):
     result = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0 and "1 analysed (0 damaged, 0 unreadable)" in result.stdout, result.stdout + result.stderr
     assert [Path(r["file"]) for r in rows(tmp_path / "ds")] == [loop / "c.pcap"]
+
+
+@pytest.mark.parametrize("damage", ["garbage", "gone"])
+def test_a_damaged_or_missing_part_is_one_line(built, tmp_path, damage):
+    """Trial: a Parquet part overwritten or deleted after the build made `fleet query` and `fleet
+    report` end in a DuckDB traceback."""
+    part = next((built / "senders").glob("*.parquet"))
+    if damage == "garbage":
+        part.write_text("garbage")
+    else:
+        part.unlink()
+    one_line_error(vm110("fleet", "query", str(built), "SELECT count(*) FROM senders"), "the dataset cannot be read")
+    one_line_error(vm110("fleet", "report", str(built), "--html", str(tmp_path / "r.html")),
+                   "the dataset cannot be read")
+    assert not (tmp_path / "r.html").exists()

@@ -47,6 +47,15 @@ class Fleet:
         self.con = duckdb.connect(":memory:")
         if not self.dataset.local:
             self.con.register_filesystem(self.dataset.fs)
+        try:
+            self._views()
+        except duckdb.Error as exc:     # a part damaged or gone since it was written
+            self.con.close()
+            first = str(exc).splitlines()[0][:300]
+            raise CliError(f"{url}: the dataset cannot be read: {first} (build it again into a new folder)") from None
+
+    def _views(self) -> None:
+        """A view per table over its Parquet parts (the manifest's), locked to those files."""
         files = view_files(self.manifest, self.dataset)
         for table in TABLES:
             if files[table]:
