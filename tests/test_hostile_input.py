@@ -246,3 +246,32 @@ def test_timestamps_beyond_any_calendar_are_reported_not_a_traceback(tmp_path):
         done = vm110(*args)
         assert done.returncode in (0, 1) and b"Traceback" not in done.stderr, (args, done.stderr[-2000:])
     assert (tmp_path / "a.html").stat().st_size > 0 and (tmp_path / "m.html").stat().st_size > 0
+
+
+@pytest.mark.parametrize("defect", ["interface 7", "captured length", "no interface block"])
+def test_a_corrupt_packet_block_is_damage_in_every_reader(tmp_path, defect):
+    """Trial: packet blocks naming an interface the section lacks (or claiming more bytes than
+    they hold) were skipped in silence by the fast engine (exit 0, '0 EG-Link'), while tshark stops
+    there (exit 2). Now every reader stops there: decode, analyze (both engines), monitor."""
+    from vm110 import encode as E
+    from vm110.capture.writer import UdpFlow, build_block
+    shb = build_block(0x0A0D0D0A, struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1))
+    idb = build_block(1, struct.pack("<HHI", 1, 0, 0))
+    flow = UdpFlow("10.0.0.10", 5825, "239.255.42.20", 5825)
+
+    def epb(i: int, iface: int = 0, claim: int = 0) -> bytes:
+        f = flow.frame(E.packet("VRPI", E.vrpi_payload({}), serial=i))
+        ticks = 1_700_000_000_000_000 + i * 125_000
+        return build_block(6, struct.pack("<IIIII", iface, ticks >> 32, ticks & 0xFFFFFFFF, claim or len(f), len(f))
+                           + f + bytes(-len(f) % 4))
+    good = [epb(i) for i in range(4)]
+    bad = {"interface 7": epb(4, iface=7), "captured length": epb(4, claim=5000), "no interface block": epb(4)}[defect]
+    cap = tmp_path / "bad.pcapng"
+    cap.write_bytes(shb + bad if defect == "no interface block" else shb + idb + b"".join(good) + bad)
+    for args in (["decode", str(cap)], ["analyze", str(cap), "--quiet"], ["analyze", str(cap), "--quiet", "--engine",
+                                                                         "tshark"],
+                 ["monitor", "--read", str(cap), "--idle", "0", "--no-dashboard", "--quiet"]):
+        done = vm110(*args)
+        assert done.returncode == 2 and b"Traceback" not in done.stderr, (args, done.stderr)
+        if "tshark" not in args:
+            assert b"corrupt pcapng packet block" in done.stderr, (args, done.stderr)

@@ -429,6 +429,10 @@ class FastEngine:
                     if found is not None:
                         slow(got, reader, variant, order, ts, *found, frame)
                     continue
+                if reader.bad_packet(data, p, btype, blen):  # (off the fast path: it takes only good ones)
+                    chunks.close()
+                    damaged = True
+                    break
                 reader.last_ts = ts if frame else None      # a simple packet block takes this time
                 block = reader.pcapng_block(data, p, btype, blen)
                 if block is None:

@@ -315,6 +315,28 @@ class CaptureReader:
         self.damaged(at, f"corrupt pcapng block at byte {at} (leading length {blen}, trailing {last})")
         return True
 
+    def bad_packet(self, data: bytes, pos: int, btype: int, blen: int) -> bool:
+        """Whether a whole packet block is corrupt (damage, where tshark stops too): it names an
+        interface its section does not have, or claims more captured bytes than it holds."""
+        if btype in (PCAPNG_EPB, PCAPNG_PB):
+            e = self.endian
+            iface = struct.unpack_from(e + ("I" if btype == PCAPNG_EPB else "H"), data, pos + 8)[0]
+            incl = struct.unpack_from(e + "I", data, pos + 20)[0]
+            at = self.bytes_read + pos
+            if iface >= len(self.interfaces):
+                self.damaged(at, f"corrupt pcapng packet block at byte {at} (interface {iface}; its section has "
+                                 f"{len(self.interfaces)})")
+                return True
+            if incl > blen - 28:
+                self.damaged(at, f"corrupt pcapng packet block at byte {at} (captured length {incl} in a "
+                                 f"{blen}-byte block)")
+                return True
+        elif btype == PCAPNG_SPB and not self.interfaces:
+            at = self.bytes_read + pos
+            self.damaged(at, f"corrupt pcapng packet block at byte {at} (no interface block before it)")
+            return True
+        return False
+
     def bad_block(self, pos: int, blen: int, btype: int) -> bool:
         """Whether the walk must stop at this block: damage found before, or a corrupt or
         oversized block length (and if so, say where)."""
@@ -352,6 +374,11 @@ class CaptureReader:
                 if pos + blen > end:
                     break
                 if self.bad_trailer(data, pos, blen):
+                    chunks.close()
+                    self.frames = frame
+                    yield out
+                    return
+                if self.bad_packet(data, pos, btype, blen):
                     chunks.close()
                     self.frames = frame
                     yield out

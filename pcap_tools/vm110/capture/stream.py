@@ -102,7 +102,7 @@ class StreamReader(CaptureReader):
                 break
             if pos + blen > end:
                 break
-            if self.bad_trailer(data, pos, blen):
+            if self.bad_trailer(data, pos, blen) or self.bad_packet(data, pos, btype, blen):
                 self.stopped = True
                 break
             block = self.pcapng_block(data, pos, btype, blen)
