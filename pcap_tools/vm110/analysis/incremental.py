@@ -38,6 +38,7 @@ class Analysis:
         self.opt = opt
         self.floats = floats
         self.senders: dict[int, Sender] = {}          # sender key -> its state, in order of appearance
+        self.hosts: dict[tuple, list] = {}            # (direction, origin, host) -> [(order, sender)]
         self.names: list[bytes] = []                  # source index -> packed address
         fail = {CODE[C.PacketType.VRCI]: opt.vrci_fail_ms, CODE[C.PacketType.VRCO]: opt.vrco_give_up_ms}
         self.tracker = commands.Tracker(fail, opt.reuse_gap_ms)
@@ -112,9 +113,11 @@ class Analysis:
         new = self.senders[key] = Sender(direction, origin, address(self.names[src], port), first, self.opt,
                                          self.floats, self.stamps)
         silence = NEW_PORT_SILENCE_MS / 1000.0
-        quiet = [(old.last_ts, old.last_frame, i, old) for i, old in enumerate(self.senders.values())
-                 if old is not new and (old.direction, old.origin, old.host) == (direction, origin, new.host)
-                 and old.src != new.src and new.first_ts - old.last_ts >= silence]
+        # Only the senders of its host: a capture of many senders costs no scan of them all.
+        same_host = self.hosts.setdefault((direction, origin, new.host), [])
+        quiet = [(old.last_ts, old.last_frame, i, old) for i, old in same_host
+                 if old.src != new.src and new.first_ts - old.last_ts >= silence]
+        same_host.append((len(self.senders) - 1, new))
         if not quiet:
             return
         old = max(quiet, key=lambda q: q[:3])[3]
