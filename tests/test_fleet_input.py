@@ -416,3 +416,14 @@ def test_a_damaged_or_missing_part_is_one_line(built, tmp_path, damage):
     one_line_error(vm110("fleet", "report", str(built), "--html", str(tmp_path / "r.html")),
                    "the dataset cannot be read")
     assert not (tmp_path / "r.html").exists()
+
+
+@pytest.mark.parametrize("kind", ["fifo", "folder"])
+def test_a_sidecar_that_is_no_file_is_an_error_row(src, tmp_path, kind):
+    """Trial: a sidecar that was a FIFO or a folder was ignored in silence (status ok, no metadata)."""
+    side = src / "normal.pcap.meta.json"
+    os.mkfifo(side) if kind == "fifo" else side.mkdir()
+    result = vm110("fleet", "build", str(src), "--out", str(tmp_path / "ds"), "-j", "1")
+    assert result.returncode == 2 and "not a metadata file: not a regular file" in result.stderr, result.stderr
+    captures = {Path(r["file"]).name: r for r in rows(tmp_path / "ds")}
+    assert captures["normal.pcap"]["status"] == "unreadable"

@@ -275,3 +275,12 @@ def test_a_corrupt_packet_block_is_damage_in_every_reader(tmp_path, defect):
         assert done.returncode == 2 and b"Traceback" not in done.stderr, (args, done.stderr)
         if "tshark" not in args:
             assert b"corrupt pcapng packet block" in done.stderr, (args, done.stderr)
+
+
+@pytest.mark.parametrize("command", ["analyze", "decode"])
+def test_a_named_pipe_is_told_to_come_on_standard_input(tmp_path, command):
+    """Trial: a FIFO was 'cannot read f: None' with a writer and a wait forever without one."""
+    fifo = tmp_path / "f"
+    os.mkfifo(fifo)
+    done = vm110(command, str(fifo))
+    assert done.returncode == 2 and b"is a named pipe: give it on standard input" in done.stderr, done.stderr

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ipaddress
 import os
+import stat
 import struct
 from typing import BinaryIO, Generator, Iterator, NamedTuple, Optional
 
@@ -78,9 +79,12 @@ class CaptureReader:
         self.path = path
         self.chunk_size = chunk_size
         try:
+            if stat.S_ISFIFO(os.stat(path).st_mode):   # (opening one waits for a writer)
+                raise CaptureError(f"{path} is a named pipe: give it on standard input (- < {path}), "
+                                   "which is read as it comes")
             self._file: BinaryIO = open(path, "rb")   # noqa: SIM115 -- the reader owns it; close()/with
         except OSError as exc:
-            raise CaptureError(f"cannot read {path}: {exc.strerror}") from None
+            raise CaptureError(f"cannot read {path}: {exc.strerror or exc}") from None
         try:
             self.size, self.format = self._identify(path)
         except BaseException:
@@ -113,7 +117,7 @@ class CaptureReader:
             head = self._file.read(4)
             self._file.seek(0)
         except OSError as exc:
-            raise CaptureError(f"cannot read {path}: {exc.strerror}") from None
+            raise CaptureError(f"cannot read {path}: {exc.strerror or exc}") from None
         if not head:
             raise CaptureError(f"{path}: empty file, not a pcap or pcapng capture")
         if len(head) < 4:

@@ -164,8 +164,10 @@ def sidecar(path: str) -> tuple[dict[str, Optional[str]], list[str]]:
     """The metadata in `CAPTURE.meta.json` (a flat object; values are kept as text), if there is
     one, and every problem found in it (a bad field is left out, the others kept)."""
     side = path + SIDECAR_SUFFIX
-    if not os.path.isfile(side):
+    if not os.path.lexists(side):
         return {}, []
+    if not os.path.isfile(side):      # (a FIFO would be waited on; a folder cannot be read)
+        return {}, ["not a metadata file: not a regular file"]
     try:
         data = loads(read_at_most(side, MAX_SIDECAR_BYTES), parse_constant=_refuse_constant)
     except (OSError, ValueError) as exc:
