@@ -57,7 +57,7 @@ def test_command_ids_are_fresh_across_nearby_cases():
 def test_field_cases_are_legal_and_change_one_field():
     checked = 0
     for case in all_sweep():
-        if not case.family.endswith("-fields") or "header" in case.description:
+        if not case.family.endswith("-fields") or "header" in case.description or "beyond" in case.description:
             continue
         (data, twin), = packets(case)
         assert crc_ok(data), case.description
@@ -154,3 +154,18 @@ def test_a_bug_s_signature_names_the_packet_type_not_how_it_was_mutated():
         ("wrong-direction", "VRAI sent to the controller"), ("sequence", "four new commands back to back")])]
     assert kinds == ["VRPI", "VRCI", "VRCI", "VRCI", "VRAI", "sequence"]
     assert case_kind(None) == "none"
+
+
+def test_legal_packets_with_payload_beyond_the_layout_are_sent():
+    """Trial: blind mode never sent a legal packet longer than its layout (interpretation.md: a
+    warning), so a controller that copies `size` bytes into a buffer of the layout's length was never
+    caught. They are field cases: legal, acknowledged, the layout's fields unchanged."""
+    found = [c for c in all_sweep() if "beyond its layout" in c.description]
+    assert {c.description.split()[0] for c in found} == {"VRPI", "VRCI", "VRAI"} and len(found) == 9
+    for case in found:
+        (data, twin), = packets(case)
+        mine, base = decode(data), decode(twin)
+        assert mine["problems"] == [] and "extra_payload" in str(mine["warnings"]), case.description
+        assert len(data) - len(twin) in (1, 64) or len(data) == C.MAX_PACKET, case.description
+        assert {k: mine[k] for k in base if k not in ("size", "crc", "crc.calculated", "warnings")} == \
+            {k: base[k] for k in base if k not in ("size", "crc", "crc.calculated", "warnings")}

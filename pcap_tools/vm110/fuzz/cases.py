@@ -118,7 +118,28 @@ def _field_family(ptype: C.PacketType, rng: random.Random) -> list[Callable[[int
                 return Case(index, family, f"{ptype.value} header {n}={v:#x}",
                             [Step(_valid(ptype, _fields_for(ptype, index, sweep=True), {n: v}))])
             out.insert(min(len(out), 3), header)
+    for extra in _EXTRA_PAYLOAD:
+        def longer(index: int, extra: Optional[int] = extra) -> Case:
+            shown = "up to 492" if extra is None else str(extra)
+            return Case(index, family, f"{ptype.value} payload: {shown} bytes beyond its layout (legal)",
+                        [Step(_extra_payload(ptype, _fields_for(ptype, index, sweep=True), extra))])
+        out.insert(min(len(out), 4), longer)
     return out
+
+
+# A legal packet may carry payload beyond its type's layout (interpretation.md: a warning, not
+# illegal): a controller that trusts `size` to fill a buffer of the layout's length overflows it.
+_EXTRA_PAYLOAD = (1, 64, None)        # None: up to the largest payload (492 bytes)
+
+
+def _extra_payload(ptype: C.PacketType, fields: dict[str, Any], extra: Optional[int]) -> Builder:
+    def build(serial: int) -> tuple[bytes, bytes]:
+        twin = M.build(ptype, serial, fields)
+        body = twin[:-C.CRC_LEN]
+        size = len(body) - C.PREFIX_LEN
+        more = C.MAX_PAYLOAD - size if extra is None else extra
+        return M.recrc(M.set_u16(body + bytes([0x41]) * more, M.SIZE_OFFSET, size + more)), twin
+    return build
 
 
 def _vrci(command_id: int) -> Builder:
