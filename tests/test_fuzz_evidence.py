@@ -175,3 +175,40 @@ def test_a_program_that_cannot_be_started_is_named_for_what_is_wrong(tmp_path):
         Supervisor(str(script), cwd=tmp_path).start()
     with pytest.raises(CliError, match="no such executable"):
         Supervisor(str(tmp_path / "missing"), cwd=tmp_path).start()
+
+
+PY_CHAINED = """\
+listening on 127.0.0.1:5825
+Traceback (most recent call last):
+  File "/srv/ctl/handlers.py", line 12, in lookup
+    return TABLE[cid]
+KeyError: 65535
+
+During handling of the above exception, another exception occurred:
+
+Traceback (most recent call last):
+  File "/srv/ctl/main.py", line 40, in <module>
+    loop()
+  File "/usr/lib/python3.11/selectors.py", line 468, in select
+    fd_event_list = self._selector.poll(timeout, max_ev)
+  File "/srv/ctl/main.py", line 31, in on_vrci
+    run(lookup(cid))
+  File "/srv/ctl/handlers.py", line 14, in lookup
+    raise ctl.errors.UnknownCommand(cid)
+ctl.errors.UnknownCommand: 65535
+"""
+
+
+def test_a_python_controller_s_exception_is_its_signature():
+    """Trial: a controller in Python that died of two different exceptions was one finding,
+    `crash exit 1`: its traceback now gives the exception type and its own frames, innermost first."""
+    from vm110.fuzz.evidence import parse_python_traceback
+    report = parse_python_traceback(PY_CHAINED)
+    assert report is not None and (report.tool, report.error_type) == ("python", "UnknownCommand")
+    assert [(f.function, f.location) for f in report.frames] == [
+        ("lookup", "/srv/ctl/handlers.py:14"), ("on_vrci", "/srv/ctl/main.py:31"), ("<module>", "/srv/ctl/main.py:40")]
+    crash = Crash(1, PY_CHAINED.encode(), sanitizer=report)
+    assert crash.signature() == "exit 1 python:UnknownCommand lookup on_vrci <module>"
+    assert crash.headline() == "crash exit 1 UnknownCommand in lookup (handlers.py:14)"
+    assert parse_python_traceback("no traceback here\n") is None
+    assert parse_python_traceback("Traceback (most recent call last):\n  File \"x.py\", line 1, in f\n") is None

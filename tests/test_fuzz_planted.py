@@ -163,3 +163,14 @@ def test_a_controller_that_exits_at_once_is_told_at_once(tmp_path):
     for option in ("--target-cmd", "--out"):
         result = vm110("fuzz", "--target", f"127.0.0.1:{rx}", option, "", "--cases", "3")
         assert result.returncode == 2 and f"{option} is empty" in result.stderr, result.stderr
+
+
+def test_two_exceptions_of_a_python_controller_are_two_findings(tmp_path):
+    """Trial: a KeyError and a ZeroDivisionError of one controller in Python were one finding,
+    `crash exit 1` (the signature had the exit code alone)."""
+    result, summary = fuzz(tmp_path, "two-exceptions", "--duration", "90", "--max-findings", "2")
+    assert result.returncode == 1, result.stdout + result.stderr
+    signatures = sorted(f["signature"] for f in summary["findings"])
+    assert [s.split()[:4] for s in signatures] == [["crash", "exit", "1", "python:KeyError"],
+                                                   ["crash", "exit", "1", "python:ZeroDivisionError"]], signatures
+    assert "crash exit 1 KeyError in on_vrci (bugs.py:" in result.stdout

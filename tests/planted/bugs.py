@@ -99,6 +99,24 @@ class NoVrcoResend(Controller):
         super().transmit(data, now, meta)
 
 
+class TwoExceptions(Controller):
+    """Two bugs of a controller in Python, each an uncaught exception: a KeyError on command ID
+    65535 (a table of the IDs it knows) and a ZeroDivisionError on a battery of 0 %."""
+
+    ORACLE = "crash"
+
+    def on_vrci(self, rx: Rx, now: int) -> None:
+        if decode(rx.data).get("command_id") == 0xFFFF:
+            raise KeyError(0xFFFF)
+        super().on_vrci(rx, now)
+
+    def on_vrpi(self, rx: Rx, now: int) -> None:
+        battery = decode(rx.data).get("ru_battery")
+        if battery is not None:
+            100 // battery
+        super().on_vrpi(rx, now)
+
+
 BUGS: dict[str, type[Controller]] = {
     "reference": Controller,
     "crash-on-joystick": CrashOnJoystick,
@@ -108,4 +126,5 @@ BUGS: dict[str, type[Controller]] = {
     "bad-crc-after-wrap": BadCrcAfterWrap,
     "resend-after-vrai": ResendAfterVrai,
     "no-vrco-resend": NoVrcoResend,
+    "two-exceptions": TwoExceptions,
 }

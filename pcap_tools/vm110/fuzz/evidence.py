@@ -26,6 +26,9 @@ _GDB_FRAME = re.compile(r"^#(\d+)\s+(?:0x[0-9a-fA-F]+\s+in\s+)?(\S+)\s*\(.*?\)(?
 _ERROR = re.compile(r"==\d+==\s*ERROR:\s*(AddressSanitizer|LeakSanitizer|ThreadSanitizer|MemorySanitizer):\s*"
                     r"([\w-]+)")
 _UBSAN = re.compile(r"^(\S+:\d+(?::\d+)?): runtime error: (.*)$")
+_PY_FRAME = re.compile(r'^  File "(.+)", line (\d+), in (.+)$')
+_PY_ERROR = re.compile(r"^([A-Za-z_][\w.]*)(?::|$)")
+_PY_LIBRARY = re.compile(r"(^<frozen |/lib/python\d[\d.]*/(?!site-packages/))")
 _SUMMARY = re.compile(r"^SUMMARY:\s*(\w+):\s*(.*)$")
 _TOOL_NAMES = {"AddressSanitizer": "asan", "LeakSanitizer": "lsan", "UndefinedBehaviorSanitizer": "ubsan",
                "ThreadSanitizer": "tsan", "MemorySanitizer": "msan"}
@@ -115,6 +118,32 @@ def parse_sanitizer(text: str) -> Optional[SanitizerReport]:
     if tool == "lsan" and error_type == "detected":
         error_type = "memory-leak"
     return SanitizerReport(tool, error_type, summary, _frames(lines, start + 1))
+
+
+def parse_python_traceback(text: str) -> Optional[SanitizerReport]:
+    """The last Python traceback in a controller's output (a controller in Python that died of an
+    exception), as a report of tool "python": the exception's type, and its frames innermost first
+    (the standard library's left out), so that two exceptions are two bugs."""
+    lines = text.splitlines()
+    starts = [n for n, line in enumerate(lines) if line.startswith("Traceback (most recent call last):")]
+    if not starts:
+        return None
+    frames: list[Frame] = []
+    for n in range(starts[-1] + 1, len(lines)):
+        line = lines[n]
+        m = _PY_FRAME.match(line)
+        if m:
+            if not _PY_LIBRARY.search(m.group(1)):
+                frames.append(Frame(m.group(3), f"{m.group(1)}:{m.group(2)}"))
+            continue
+        if line.startswith(" "):
+            continue
+        error = _PY_ERROR.match(line)
+        if error is None:
+            return None
+        frames.reverse()
+        return SanitizerReport("python", error.group(1).rsplit(".", 1)[-1], line.strip()[:500], frames[:_MAX_FRAMES])
+    return None
 
 
 def _ubsan_type(message: str) -> str:

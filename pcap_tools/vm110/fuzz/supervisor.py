@@ -17,7 +17,7 @@ from typing import IO, Optional
 
 from ..errors import CliError
 from . import cores
-from .evidence import Crash, parse_sanitizer
+from .evidence import Crash, parse_python_traceback, parse_sanitizer
 
 _STOP_WAIT_S = 2.0
 RING_BYTES = 256 * 1024
@@ -163,7 +163,8 @@ class Supervisor:
         assert proc is not None and proc.returncode is not None
         self._kill_group(proc)
         crash = Crash(proc.returncode, self.output())
-        crash.sanitizer = parse_sanitizer(crash.output.decode("utf-8", "replace"))
+        text = crash.output.decode("utf-8", "replace")
+        crash.sanitizer = parse_sanitizer(text) or parse_python_traceback(text)
         if proc.returncode >= 0:
             crash.core_missing = "the controller exited, no signal: no core"
             return crash
