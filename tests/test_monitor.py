@@ -373,3 +373,22 @@ def test_waiting_at_the_end_of_a_file_is_not_silence(tmp_path):
     findings = [json.loads(line) for line in lines.read_text().splitlines()]
     assert [f for f in findings if f["type"] == "finding" and f["rule"] == "watchdog"] == []
     assert any(f["type"] == "snapshot" for f in findings)
+
+
+def test_a_long_command_s_evidence_filter_is_narrowed_in_the_file_s_numbers():
+    """A command item of more than 64 frames: its filter in the evidence file is the exact form
+    (kind, sender, ID, no copies) over the file's own numbers, its ack renumbered too."""
+    from vm110.analysis.findings import located_item
+    from vm110.monitor.evidence import _in_file
+    frames = list(range(101, 241, 2))                       # 70 transmissions, every other frame
+    ack = 300
+    item = located_item(frames + [ack], 1.0, "Input 10.0.0.10:5825 origin 0x0101", type="VRCI", command_id=7,
+                        latency_ms=2500.0, ack_frame=ack)
+    numbers = list(range(90, 301))                          # the evidence file holds frames 90..300
+    [told] = _in_file([{"rule": "failed", "item": item}], numbers)
+    here = told["item"]["evidence_frames"]
+    assert here == [n - 89 for n in frames + [ack]]
+    assert told["item"]["evidence_filter"] == (
+        f'(frame.number >= {here[0]} && frame.number <= {here[-2]} && vm110.type == "VRCI" && '
+        "ip.src == 10.0.0.10 && udp.srcport == 5825 && vm110.origin == 0x0101 && vm110.command_id == 7 && "
+        f"!vm110.analysis.serial_duplicate) || frame.number == {here[-1]}")
