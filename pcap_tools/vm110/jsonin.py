@@ -4,6 +4,9 @@ from __future__ import annotations
 import json
 from typing import Any, Callable, Optional, Union
 
+from .errors import CliError
+from .fileio import read_at_most
+
 
 def loads(raw: Union[str, bytes], parse_constant: Optional[Callable[[str], Any]] = None) -> Any:
     """`json.loads`; nesting too deep for Python's recursive parser is a ValueError, as any other
@@ -12,3 +15,18 @@ def loads(raw: Union[str, bytes], parse_constant: Optional[Callable[[str], Any]]
         return json.loads(raw, parse_constant=parse_constant)
     except RecursionError:
         raise ValueError("nested too deeply") from None
+
+
+def load_file(path: str, limit: int, what: str) -> Any:
+    """The JSON of an input file of at most `limit` bytes; CliError (one line) when it cannot be
+    read, is larger (`what` names what it should have been) or is no JSON."""
+    try:
+        data = read_at_most(path, limit)
+    except OSError as exc:
+        raise CliError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise CliError(f"{path} is not {what}: {exc}") from None
+    try:
+        return loads(data)
+    except ValueError as exc:    # also numbers of more digits than Python converts
+        raise CliError(f"{path} is not JSON: {str(exc)[:120]}") from None

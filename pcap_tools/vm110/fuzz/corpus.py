@@ -23,7 +23,7 @@ from ..fileio import read_at_most, write_text
 from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
 from .findings import make_folder
-from ..jsonin import loads
+from ..jsonin import load_file, loads
 
 _MAX_PACKETS = 16
 _MAX_PACKET = 65_507
@@ -120,18 +120,9 @@ def is_entry_file(path: str) -> bool:
 
 def load_entry(path: str) -> Entry:
     """One corpus file, checked; CliError (one line) when it is not a valid corpus case."""
+    raw = load_file(path, _MAX_ENTRY_FILE, "a vm110 corpus case")
     try:
-        data = read_at_most(path, _MAX_ENTRY_FILE)
-    except OSError as exc:
-        raise CliError(f"cannot read {path}: {exc.strerror}") from None
-    except ValueError as exc:
-        raise CliError(f"{path} is not a vm110 corpus case: {exc}") from None
-    try:
-        return entry_from_json(loads(data))
-    except OSError as exc:
-        raise CliError(f"cannot read {path}: {exc.strerror}") from None
-    except ValueError as exc:
-        raise CliError(f"{path} is not JSON: {str(exc)[:120]}") from None
+        return entry_from_json(raw)
     except _Bad as exc:
         raise CliError(f"{path} is not a valid vm110 corpus case: {exc}") from None
 

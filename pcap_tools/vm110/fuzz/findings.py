@@ -12,12 +12,12 @@ from typing import Any, Optional
 from .. import constants as C
 from ..capture.writer import PcapWriter, UdpFlow
 from ..errors import CliError
-from ..fileio import atomic_writer, read_at_most, write_bytes, write_text
+from ..fileio import atomic_writer, write_bytes, write_text
 from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
 from .evidence import Crash
 from .oracles import ORACLES
-from ..jsonin import loads
+from ..jsonin import load_file
 
 SCHEMA = 1
 # What a finding file may hold, beyond its types: it is data from anywhere, never trusted.
@@ -164,18 +164,7 @@ def write_summary(out: Path, summary: dict[str, Any]) -> Path:
 def load_finding(path: str) -> Finding:
     """A finding JSON written by `write_finding`, every value checked; CliError (one line) when it
     is not one. Nothing in it is run: the stored command is only a hint."""
-    try:
-        data = read_at_most(path, _MAX_FILE)
-    except OSError as exc:
-        raise CliError(f"cannot read {path}: {exc.strerror}") from None
-    except ValueError as exc:
-        raise CliError(f"{path} is not a vm110 fuzz finding: {exc}") from None
-    try:
-        raw = loads(data)
-    except OSError as exc:
-        raise CliError(f"cannot read {path}: {exc.strerror}") from None
-    except ValueError as exc:    # also numbers of more digits than Python converts
-        raise CliError(f"{path} is not JSON: {str(exc)[:120]}") from None
+    raw = load_file(path, _MAX_FILE, "a vm110 fuzz finding")
     if not isinstance(raw, dict) or raw.get("oracle") not in ORACLES or not isinstance(raw.get("steps"), list):
         raise CliError(f"{path} is not a vm110 fuzz finding")
     try:

@@ -216,7 +216,7 @@ class Runner:
                 self.stopped_early = f"--max-findings {cfg.max_findings} reached"
         except TargetLost as exc:
             self.stopped_early = str(exc)
-            self.controller_lost = self.cases_run > 0
+            self.controller_lost = self.cases_run > 0 and self.supervisor is None   # (nothing restarts it)
         except KeyboardInterrupt:          # Ctrl-C, SIGTERM: what was found is still summarised
             self.stopped_early, self.interrupted = "interrupted", True
         finally:
