@@ -117,11 +117,15 @@ def located_item(frames: Any, time: float, sender: Optional[str], **what: Any) -
     if sender is not None:
         item["sender"] = sender
     item.update(what)
-    if len(frames) > MAX_FILTER_FRAMES and sender is not None and what.get("command_id") is not None:
-        item["filter"] = command_filter(frames, sender, what)
-    else:
-        item["filter"] = frame_filter(frames)
+    item["filter"] = item_filter(frames, sender, what)
     return item
+
+
+def item_filter(frames: list[int], sender: Optional[str], what: dict) -> str:
+    """The display filter of an item's frames: their numbers, or a long command's exact form."""
+    if len(frames) > MAX_FILTER_FRAMES and sender is not None and what.get("command_id") is not None:
+        return command_filter(frames, sender, what)
+    return frame_filter(frames)
 
 
 class Where:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 from ..capture.writer import build_block, build_option
-from ..analysis.findings import MAX_FILTER_FRAMES, command_filter, frame_filter
+from ..analysis.findings import item_filter
 from ..fileio import write_bytes, write_text
 
 RING_BYTES = 64 << 20
@@ -142,10 +142,8 @@ def _filter(here: list[int], item: dict, position: dict[int, int]) -> Optional[s
     """The item's filter in the evidence file's numbering (its own frames there: `here`)."""
     if not here:
         return None
-    if len(here) > MAX_FILTER_FRAMES and item.get("sender") is not None and item.get("command_id") is not None:
-        ack = item.get("ack_frame")
-        return command_filter(here, item["sender"], {**item, "ack_frame": None if ack is None else position.get(ack)})
-    return frame_filter(here)
+    ack = item.get("ack_frame")
+    return item_filter(here, item.get("sender"), {**item, "ack_frame": None if ack is None else position.get(ack)})
 
 
 def _in_file(findings: list[dict], numbers: list[int]) -> list[dict]:
