@@ -148,20 +148,20 @@ class Where:
         return kept
 
 
-def locate_report(report: dict, tallies: dict[int, Tally], located: Located, end: Optional[float]) -> None:
+def locate_report(report: dict, tallies: dict[int, Tally], located: Located) -> None:
     """Items of the findings that the report's sections know of: commands, acks, illegal packets
     and relay episodes (serials, streams and bursts are located as they are judged)."""
     where = Where(located)
     for code, tally in tallies.items():
         kind = TYPES[code].value
-        fail_ms = report["commands"][kind]["fail_limit_ms"]
-        for c in tally.commands:
+        listed = report["commands"][kind]["list"]      # (in the tally's order, each with its `failed`)
+        for c, entry in zip(tally.commands, listed):
             what = {"type": kind, "command_id": c.command_id}
             if c.interrupted_frame is not None:
                 where.add("interrupted", c.frames, c.times[0], c.sender, interrupted_frame=c.interrupted_frame, **what)
             elif c.ack_frame is None:
                 where.add("unacked", c.frames, c.times[0], c.sender, **what)
-            if c.failed(fail_ms, end):
+            if entry["failed"]:
                 where.add("failed", c.frames + ([c.ack_frame] if c.ack_frame else []), c.times[0], c.sender,
                           latency_ms=c.latency_first_ms, ack_frame=c.ack_frame, **what)
             for f, t in zip(c.frames, c.times):

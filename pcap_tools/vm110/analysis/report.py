@@ -73,7 +73,7 @@ def _build(got: Collected) -> dict:
     fail = analysis.tracker.fail_ms
     # A command has failed once the capture went on past its limit, on the analysis clock that its
     # times run on: after a step back of the clock (appended captures) the last record is earlier.
-    cmd_end = got.last_ts if got.last_ts is None or analysis.clock <= got.last_ts else analysis.clock
+    cmd_end = None if got.last_ts is None else max(got.last_ts, analysis.clock)
     cmd = {t.value: commands.report(tallies[CODE[t]], fail[CODE[t]], opt.resend_ms, cmd_end)
            for t in commands.COMMAND_TYPES}
     invalid = got.illegal_reasons[C.Problem.BAD_CRC.value]
@@ -106,7 +106,7 @@ def _build(got: Collected) -> dict:
         "state": states,
         "options": asdict(opt),
     }
-    findings.locate_report(report, tallies, located, cmd_end)
+    findings.locate_report(report, tallies, located)
     report = normalise(report)
     report["totals"] = findings.totals(report)
     report["verdict"] = normalise(findings.verdict(report, located))

@@ -40,7 +40,7 @@ def _epb(iface: int, ticks: int, frame: bytes) -> bytes:
     return build_block(6, head + frame + bytes(-len(frame) % 4))
 
 
-def pcapng(frames: list[tuple], digits: int = 9) -> bytes:
+def pcapng(frames: list[tuple], digits: int) -> bytes:
     """A pcapng file of (ts, frame number, link type, frame bytes), its times in units of 10^-digits s:
     those of the capture they come from, which a float of the epoch holds to a microsecond exactly,
     not to a nanosecond (a time written in ns would not be the capture's own)."""
