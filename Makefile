@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 DEMO_DIR := out/demo
 
-.PHONY: setup system-deps demo fleet-demo lint test test-long bench install-wireshark clean tshark44 tshark46 golden captures fuzz-self install-profile lua-tables wheel
+.PHONY: setup system-deps demo fleet-demo lint test test-long bench install-wireshark clean tsharks golden captures fuzz-self install-profile lua-tables wheel
 
 setup: system-deps $(STAMP)
 
@@ -52,7 +52,7 @@ lint: setup
 	luacheck --no-color $(LUACHECK_CONFIG) dissector || status=1; \
 	exit $$status
 
-test: setup tshark44 tshark46 lint
+test: setup tsharks lint
 	$(PY) -m pytest -n 2 -q
 
 # Long runs kept out of `make test` (e.g. the fuzzer against the reference controller for 60 s).
@@ -62,10 +62,10 @@ test-long: setup
 # Soak run of the self-fuzzer (tests/selffuzz): mutated bundled captures through decode, analyze (both
 # engines) and the dissector on every tshark; failing inputs kept in out/fuzz-self/ with a .txt each.
 FUZZ_SELF_SECONDS ?= 600
-fuzz-self: setup tshark44 tshark46
+fuzz-self: setup tsharks
 	FUZZ_SELF_SECONDS=$(FUZZ_SELF_SECONDS) $(PY) scripts/fuzz-self
 
-bench: setup
+bench: setup tsharks
 	@set -e; for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b; done
 
 # The synthesised part of captures/ (each with its .truth.json; see captures/README.md).
@@ -75,16 +75,14 @@ captures: setup
 	@set -e; for c in $(CAPTURES); do $(VENV)/bin/vm110 synth "$${c%.*}" --seed 1 --out "captures/$$c"; done
 	$(PY) captures/crane.py captures/crane.pcapng
 
-# Debian 13 chroot with tshark 4.4 and Debian testing chroot with tshark 4.6 (both Lua 5.4): the
-# dissector tests run on them as well as on the host's tshark 4.0 (Lua 5.2).
-tshark44:
-	@bash scripts/setup-tshark44.sh >/dev/null
-
-tshark46:
-	@bash scripts/setup-tshark46.sh >/dev/null
+# The dissector is tested on tshark 4.0 (Lua 5.2), 4.4 and 4.6 (Lua 5.4): the host's tshark stands
+# for its own version when it loads Lua plugins for this user, and each other version runs in a
+# cached Debian chroot (bookworm, trixie, forky) built here (tests/tshark_runner.py decides which).
+tsharks: setup
+	@$(PY) tests/tshark_runner.py --setup
 
 # Regenerate the dissector's `tshark -V -O vm110` goldens (tests/golden/), one per tshark version.
-golden: setup tshark44 tshark46
+golden: setup tsharks
 	$(PY) tests/test_dissector_golden.py
 
 # The dissector's field, enum and layout tables from the Python declaration (vm110/protocol.py).

@@ -21,9 +21,9 @@ vm110.analysis:FALSE): its decode, value checks and fields alone. The last lines
 these terms: the time the target leaves for CRC validation and stream analysis together, against
 what they cost in this run (the default run less that row).
 
-Each command runs REPEAT times, interleaved over the commands and the tshark versions (the host's
-4.0 with Lua 5.2; Debian 13's 4.4 and Debian testing's 4.6 with Lua 5.4, in the chroots of
-`make tshark44` / `make tshark46`); the best time of each is compared: wall time, the figure of
+Each command runs REPEAT times, interleaved over the commands and the tshark versions (4.0 with Lua
+5.2; 4.4 and 4.6 with Lua 5.4: the host's tshark for its own version, Debian chroots for the others,
+as the tests run them, tests/tshark_runner.py); the best time of each is compared: wall time, the figure of
 the issue, and CPU time (user + system), which other load on the machine disturbs less.
 
 Options: --baseline FILE also times another copy of the plugin (say, the previous commit's) in the

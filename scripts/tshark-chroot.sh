@@ -2,10 +2,11 @@
 # Builds, once, a cached Debian chroot with tshark, in which the dissector's tests run on another
 # Wireshark version (tests/tshark_runner.py). Idempotent and non-interactive; needs root (no sudo).
 #   scripts/tshark-chroot.sh NAME SUITE [DEBOOTSTRAP_SCRIPT]
-# NAME trixie (Debian 13, Wireshark 4.4) or forky (Debian testing, Wireshark 4.6). The chroot is
-# cached in ${VM110_<NAME>_ROOT:-${XDG_CACHE_HOME:-$HOME/.cache}/vm110/<name>}. Packages come from
-# the Debian mirror this machine's apt uses (its sources; VM110_DEBIAN_MIRROR overrides) through
-# its apt proxy, if any: nothing is fetched from an address written into the project.
+# NAME bookworm (Debian 12, Wireshark 4.0), trixie (Debian 13, 4.4) or forky (Debian testing, 4.6);
+# tests/tshark_runner.py --setup (`make tsharks`) calls it for each version the host's tshark does
+# not stand for. The chroot is cached in ${VM110_<NAME>_ROOT:-${XDG_CACHE_HOME:-$HOME/.cache}/vm110/<name>}.
+# Packages come from the Debian mirror this machine's apt uses (its sources; VM110_DEBIAN_MIRROR
+# overrides) through its apt proxy, if any: nothing is fetched from an address written into the project.
 # Prints the chroot's path on success.
 set -euo pipefail
 

@@ -36,7 +36,7 @@ from hypothesis import HealthCheck, Phase, assume, given, settings
 from reference.analyser import analyse
 from reference.generator import IN_PORT, OUT_PORT, packet, scenarios, stepped_scenarios, vrpi_payload, \
     write_capture, write_scenario, _udp_frame
-from tshark_runner import RUNNERS, Tshark, TsharkUnavailable
+from tshark_runner import HOST, RUNNERS, Tshark, TsharkUnavailable
 
 REPO = Path(__file__).resolve().parents[1]
 FAILURES = REPO / "out" / "reference-failures"
@@ -197,7 +197,7 @@ def test_fast_engine_equals_the_reference_when_the_clock_steps_back(sc):
 # --- b. the tshark engine -------------------------------------------------------------------------
 def _host_tshark() -> None:
     try:
-        RUNNERS[0].check()
+        HOST.check()
     except TsharkUnavailable as exc:
         pytest.skip(str(exc))
 

@@ -1,18 +1,23 @@
-"""Runs dissector/vm110.lua through real tshark: the host's (Debian 12: 4.0, Lua 5.2), Debian 13's
-(4.4, Lua 5.4) and Debian testing's (4.6, Lua 5.4), the last two inside the chroots that
-scripts/setup-tshark44.sh and scripts/setup-tshark46.sh build and cache.
+"""Runs dissector/vm110.lua through real tshark, once per Wireshark version the dissector supports:
+4.0 (Lua 5.2, Debian 12), 4.4 (Lua 5.4, Debian 13) and 4.6 (Lua 5.4, Debian testing). The host's
+tshark stands for its own version when it loads a Lua plugin for this user (4.4 and later load none
+when run as root); every other version runs in a cached Debian chroot that scripts/tshark-chroot.sh
+builds (`make tsharks`: `python tests/tshark_runner.py --setup` builds the ones this host needs).
 
 Also writes EG-Link payloads into a pcap (Ethernet/IPv4/UDP, padded to 60 bytes like a real wire) and
 reads tshark's PDML back into plain Python objects, with the field an expert is attached to.
 """
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
 import re
+import shlex
 import shutil
 import struct
 import subprocess
+import sys
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,8 +30,6 @@ from vm110 import constants as C
 REPO = Path(__file__).resolve().parents[1]
 PLUGIN = REPO / "dissector" / "vm110.lua"
 CACHE = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "vm110"
-TRIXIE_ROOT = Path(os.environ.get("VM110_TRIXIE_ROOT") or CACHE / "trixie")
-FORKY_ROOT = Path(os.environ.get("VM110_FORKY_ROOT") or CACHE / "forky")
 LUA_ERROR = "Lua Error"
 BU_ADDR, CONTROLLER_ADDR = "10.0.0.10", "10.0.0.20"
 GROUP_ADDR = C.MULTICAST_GROUP
@@ -38,23 +41,35 @@ class TsharkUnavailable(RuntimeError):
 
 @dataclass(frozen=True)
 class Tshark:
-    """One tshark installation: the host's, or the one in a chroot (`root`)."""
+    """One tshark installation: the host's, or the one in a Debian chroot (`root`)."""
 
     name: str
     root: Optional[Path] = None
-    version: str = "4.0"
-    make: str = ""                 # the make target that builds its chroot
+    version: str = ""              # major.minor; the host's: as `tshark --version` says
+    suite: str = ""                # the chroot's Debian suite
+    script: str = ""               # the debootstrap script for it, when debootstrap may not know the suite
 
     def check(self) -> None:
         if self.root is None:
             if shutil.which("tshark") is None:
                 raise TsharkUnavailable("tshark is not installed: run `make setup`")
+            if not host_loads_lua():
+                raise TsharkUnavailable(f"the host's tshark {host_version()} loads no Lua plugin for this user "
+                                        "(4.4 and later skip them as root)")
             return
         if not (self.root / ".vm110-ready").exists():
-            raise TsharkUnavailable(f"no tshark {self.version} chroot at {self.root}: run `make {self.make}` "
+            raise TsharkUnavailable(f"no tshark {self.version} chroot at {self.root}: run `make tsharks` "
                                     "(needs root)")
         if os.geteuid() != 0:
             raise TsharkUnavailable(f"running tshark inside the {self.version} chroot needs root")
+
+    def setup(self) -> None:
+        """Build this runner's chroot (cached: at once when it is there)."""
+        if self.root is None:
+            return
+        env = dict(os.environ, **{f"VM110_{self.suite.upper()}_ROOT": str(self.root)})
+        subprocess.run(["bash", str(REPO / "scripts" / "tshark-chroot.sh"), self.suite, self.suite,
+                        *([self.script] if self.script else [])], env=env, check=True, stdout=subprocess.DEVNULL)
 
     @contextlib.contextmanager
     def workspace(self, base: Path) -> Iterator["Workspace"]:
@@ -87,10 +102,80 @@ class Tshark:
                 str(self.root), *spec, str(self.root), "tshark", *args]
 
 
-HOST = Tshark("host")
-TRIXIE = Tshark("trixie", TRIXIE_ROOT, "4.4", "tshark44")
-FORKY = Tshark("forky", FORKY_ROOT, "4.6", "tshark46")
-RUNNERS = (HOST, TRIXIE, FORKY)
+_host_facts: dict[str, object] = {}
+
+
+def host_version() -> Optional[str]:
+    """The host's tshark version, major.minor (None without one)."""
+    if "version" not in _host_facts:
+        found = None
+        if shutil.which("tshark"):
+            with contextlib.suppress(OSError, subprocess.SubprocessError):
+                first = subprocess.run(["tshark", "--version"], capture_output=True, text=True,
+                                       timeout=120).stdout.split("\n")[0]
+                match = re.search(r"\b(\d+)\.(\d+)\.\d+", first)
+                found = match and f"{match[1]}.{match[2]}"
+        _host_facts["version"] = found
+    return _host_facts["version"]  # type: ignore[return-value]
+
+
+def host_loads_lua() -> bool:
+    """Whether the host's tshark loads a Lua script given with -X lua_script for this user."""
+    if "lua" not in _host_facts:
+        loads = False
+        if shutil.which("tshark"):
+            with tempfile.TemporaryDirectory() as tmp, contextlib.suppress(OSError, subprocess.SubprocessError):
+                probe = Path(tmp) / "probe.lua"
+                probe.write_text('Proto("vm110probe", "probe")\n')
+                out = subprocess.run(["tshark", "-G", "protocols", "-X", f"lua_script:{probe}"],
+                                     capture_output=True, text=True, timeout=120).stdout
+                loads = any(line.split("\t")[2:3] == ["vm110probe"] for line in out.splitlines())
+        _host_facts["lua"] = loads
+    return bool(_host_facts["lua"])
+
+
+# The versions the dissector is tested on: (version, Debian suite, debootstrap script).
+VERSIONS = (("4.0", "bookworm", ""), ("4.4", "trixie", ""),
+            ("4.6", "forky", "/usr/share/debootstrap/scripts/sid"))   # (debootstrap may not know forky yet)
+
+
+def _runner(version: str, suite: str, script: str) -> Tshark:
+    if host_version() == version and host_loads_lua():
+        return Tshark("host", None, version)
+    root = Path(os.environ.get(f"VM110_{suite.upper()}_ROOT") or CACHE / suite)
+    return Tshark(suite, root, version, suite, script)
+
+
+RUNNERS = tuple(_runner(*v) for v in VERSIONS)
+
+
+def overlay_bin(runner: Tshark) -> Path:
+    """A folder with a `tshark` that runs the runner's chroot tshark on this machine's own files:
+    the chroot's /usr mounted over the host's in a mount namespace of its own (needs root)."""
+    assert runner.root is not None
+    folder = CACHE / f"{runner.suite}-bin"
+    script = folder / "tshark"
+    text = (f"#!/bin/sh\n# vm110 tests: tshark {runner.version} of the {runner.suite} chroot, on this machine's files\n"
+            "exec unshare --mount sh -c 'mount --bind \"$0/usr\" /usr && exec /usr/bin/tshark \"$@\"' "
+            f"{shlex.quote(str(runner.root))} \"$@\"\n")
+    if not script.exists() or script.read_text() != text:
+        folder.mkdir(parents=True, exist_ok=True)
+        fresh = folder / f".tshark.{os.getpid()}"
+        fresh.write_text(text)
+        fresh.chmod(0o755)
+        os.replace(fresh, script)
+    return folder
+
+
+# The tshark that the package's own commands find on the PATH (vm110 dissect, analyze --engine
+# tshark, wireshark check) is the host's. Where that one loads no Lua plugin (run as root, 4.4 and
+# later), it is the first runner's through overlay_bin(), so that those tests run here too.
+_first = RUNNERS[0]
+if (not host_loads_lua() and os.geteuid() == 0 and _first.root is not None
+        and (_first.root / ".vm110-ready").exists()):
+    os.environ["PATH"] = f"{overlay_bin(_first)}{os.pathsep}{os.environ.get('PATH', '')}"
+    _host_facts.clear()
+HOST = Tshark("host", None, host_version() or "")
 
 
 @dataclass
@@ -358,3 +443,22 @@ def python_expectation(decoded: dict) -> dict:
     """`vm110.decode()` output in the canonical form of `canonical_fields`."""
     return {k: (v.hex() if isinstance(v, bytes) else v)
             for k, v in decoded.items() if k not in ("problems", "warnings")}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description="The tshark versions the dissector tests run on.")
+    parser.add_argument("--setup", action="store_true", help="build the chroots this host needs")
+    args = parser.parse_args()
+    for runner in RUNNERS:
+        where = "the host's tshark" if runner.root is None else f"Debian {runner.suite} chroot {runner.root}"
+        print(f"tshark {runner.version}: {where}", file=sys.stderr)
+        if args.setup:
+            try:
+                runner.setup()
+            except subprocess.CalledProcessError:
+                return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
