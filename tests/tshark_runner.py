@@ -51,10 +51,11 @@ class Tshark:
 
     def check(self) -> None:
         if self.root is None:
-            if shutil.which("tshark") is None:
+            found = facts(shutil.which("tshark"))
+            if found.version is None:
                 raise TsharkUnavailable("tshark is not installed: run `make setup`")
-            if not host_loads_lua():
-                raise TsharkUnavailable(f"the host's tshark {host_version()} loads no Lua plugin for this user "
+            if not found.loads_lua:
+                raise TsharkUnavailable(f"the host's tshark {found.version} loads no Lua plugin for this user "
                                         "(4.4 and later skip them as root)")
             return
         if not (self.root / ".vm110-ready").exists():
@@ -102,36 +103,44 @@ class Tshark:
                 str(self.root), *spec, str(self.root), "tshark", *args]
 
 
-_host_facts: dict[str, object] = {}
+@dataclass(frozen=True)
+class Facts:
+    """What a tshark executable is: its version (major.minor) and whether it loads a Lua script
+    given with -X lua_script for this user."""
+
+    version: Optional[str]
+    loads_lua: bool
 
 
-def host_version() -> Optional[str]:
-    """The host's tshark version, major.minor (None without one)."""
-    if "version" not in _host_facts:
-        found = None
-        if shutil.which("tshark"):
-            with contextlib.suppress(OSError, subprocess.SubprocessError):
-                first = subprocess.run(["tshark", "--version"], capture_output=True, text=True,
-                                       timeout=120).stdout.split("\n")[0]
-                match = re.search(r"\b(\d+)\.(\d+)\.\d+", first)
-                found = match and f"{match[1]}.{match[2]}"
-        _host_facts["version"] = found
-    return _host_facts["version"]  # type: ignore[return-value]
+_facts: dict[str, Facts] = {}
 
 
-def host_loads_lua() -> bool:
-    """Whether the host's tshark loads a Lua script given with -X lua_script for this user."""
-    if "lua" not in _host_facts:
-        loads = False
-        if shutil.which("tshark"):
-            with tempfile.TemporaryDirectory() as tmp, contextlib.suppress(OSError, subprocess.SubprocessError):
+def facts(tshark: Optional[str]) -> Facts:
+    """The facts of the executable `tshark` (a path; None: no tshark), asked once."""
+    if tshark is None:
+        return Facts(None, False)
+    if tshark not in _facts:
+        version, loads = None, False
+        with contextlib.suppress(OSError, subprocess.SubprocessError):
+            first = subprocess.run([tshark, "--version"], capture_output=True, text=True,
+                                   timeout=120).stdout.split("\n")[0]
+            match = re.search(r"\b(\d+)\.(\d+)\.\d+", first)
+            version = match and f"{match[1]}.{match[2]}"
+            with tempfile.TemporaryDirectory() as tmp:
                 probe = Path(tmp) / "probe.lua"
                 probe.write_text('Proto("vm110probe", "probe")\n')
-                out = subprocess.run(["tshark", "-G", "protocols", "-X", f"lua_script:{probe}"],
+                out = subprocess.run([tshark, "-G", "protocols", "-X", f"lua_script:{probe}"],
                                      capture_output=True, text=True, timeout=120).stdout
                 loads = any(line.split("\t")[2:3] == ["vm110probe"] for line in out.splitlines())
-        _host_facts["lua"] = loads
-    return bool(_host_facts["lua"])
+        _facts[tshark] = Facts(version, loads)
+    return _facts[tshark]
+
+
+def host_tshark() -> Optional[str]:
+    """The host's own tshark: the PATH's, past any overlay_bin() folder (below) a parent put there."""
+    path = [d for d in os.environ.get("PATH", "").split(os.pathsep)
+            if not (Path(d).parent == CACHE and d.endswith("-bin"))]
+    return shutil.which("tshark", path=os.pathsep.join(path))
 
 
 # The versions the dissector is tested on: (version, Debian suite, debootstrap script).
@@ -140,7 +149,8 @@ VERSIONS = (("4.0", "bookworm", ""), ("4.4", "trixie", ""),
 
 
 def _runner(version: str, suite: str, script: str) -> Tshark:
-    if host_version() == version and host_loads_lua():
+    host = facts(host_tshark())
+    if host.version == version and host.loads_lua:
         return Tshark("host", None, version)
     root = Path(os.environ.get(f"VM110_{suite.upper()}_ROOT") or CACHE / suite)
     return Tshark(suite, root, version, suite, script)
@@ -151,12 +161,14 @@ RUNNERS = tuple(_runner(*v) for v in VERSIONS)
 
 def overlay_bin(runner: Tshark) -> Path:
     """A folder with a `tshark` that runs the runner's chroot tshark on this machine's own files:
-    the chroot's /usr mounted over the host's in a mount namespace of its own (needs root)."""
+    the chroot's /usr and /etc (4.0's global init.lua is /etc/wireshark's) mounted over the host's
+    in a mount namespace of its own (needs root)."""
     assert runner.root is not None
     folder = CACHE / f"{runner.suite}-bin"
     script = folder / "tshark"
     text = (f"#!/bin/sh\n# vm110 tests: tshark {runner.version} of the {runner.suite} chroot, on this machine's files\n"
-            "exec unshare --mount sh -c 'mount --bind \"$0/usr\" /usr && exec /usr/bin/tshark \"$@\"' "
+            "exec unshare --mount sh -c 'mount --bind \"$0/usr\" /usr && mount --bind \"$0/etc\" /etc "
+            "&& exec /usr/bin/tshark \"$@\"' "
             f"{shlex.quote(str(runner.root))} \"$@\"\n")
     if not script.exists() or script.read_text() != text:
         folder.mkdir(parents=True, exist_ok=True)
@@ -171,11 +183,12 @@ def overlay_bin(runner: Tshark) -> Path:
 # tshark, wireshark check) is the host's. Where that one loads no Lua plugin (run as root, 4.4 and
 # later), it is the first runner's through overlay_bin(), so that those tests run here too.
 _first = RUNNERS[0]
-if (not host_loads_lua() and os.geteuid() == 0 and _first.root is not None
+if (not facts(host_tshark()).loads_lua and os.geteuid() == 0 and _first.root is not None
         and (_first.root / ".vm110-ready").exists()):
-    os.environ["PATH"] = f"{overlay_bin(_first)}{os.pathsep}{os.environ.get('PATH', '')}"
-    _host_facts.clear()
-HOST = Tshark("host", None, host_version() or "")
+    _overlay = str(overlay_bin(_first))
+    if shutil.which("tshark") != os.path.join(_overlay, "tshark"):
+        os.environ["PATH"] = f"{_overlay}{os.pathsep}{os.environ.get('PATH', '')}"
+HOST = Tshark("host", None, facts(shutil.which("tshark")).version or "")
 
 
 @dataclass
