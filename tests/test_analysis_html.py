@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
 from html.parser import HTMLParser
 from pathlib import Path
@@ -21,9 +22,18 @@ PLOTS = {"interval-histogram": "bar", "interval-time": "series", "serial-gaps": 
          "ack-latency": "bar", "retransmissions": "bar", "state-timeline": "segment"}
 
 
+def browser() -> str:
+    """The headless browser that renders the reports: chromium, which scripts/setup-system.sh
+    installs where apt has it. Ubuntu ships it only as a snap: the test is skipped there."""
+    found = shutil.which("chromium")
+    if found is None:
+        pytest.skip("chromium is not installed (apt has none here: Ubuntu ships it only as a snap)")
+    return found
+
+
 def chromium(page, tmp_path) -> tuple[str, list[str]]:
     """(DOM after loading, console lines) of a page."""
-    done = subprocess.run(["chromium", *FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--dump-dom",
+    done = subprocess.run([browser(), *FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--dump-dom",
                            page.as_uri()], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     return done.stdout, [line for line in done.stderr.splitlines() if CONSOLE.search(line)]

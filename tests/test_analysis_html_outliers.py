@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import tshark_runner as T
-from test_analysis_html import FLAGS
+from test_analysis_html import FLAGS, browser
 from vm110.analysis import analyze
 from vm110.analysis import report_html as R
 from vm110.layers import VM110, VRPI
@@ -64,7 +64,7 @@ def text_boxes(figures: list[str], tmp_path: Path) -> list[list[tuple[str, float
     page = tmp_path / "boxes.html"
     page.write_text(f"<!DOCTYPE html><html><head><meta charset='utf-8'><style>{R.CSS}</style></head><body>"
                     + "".join(figures) + f'<pre id="boxes"></pre>{MEASURE}</body></html>')
-    done = subprocess.run(["chromium", *FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--dump-dom",
+    done = subprocess.run([browser(), *FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--dump-dom",
                            page.as_uri()], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     found = re.search(r'<pre id="boxes">(.*?)</pre>', done.stdout, re.DOTALL)

@@ -18,7 +18,7 @@ from pathlib import Path
 import png
 import pytest
 import tshark_runner as T
-from test_analysis_html import CONSOLE, FLAGS
+from test_analysis_html import CONSOLE, FLAGS, browser
 from vm110.analysis import analyze
 from vm110.analysis import report_html as R
 from vm110.layers import VM110, VRPI
@@ -62,7 +62,7 @@ def screenshot(figures: list[str], tmp_path: Path) -> tuple[list[list[tuple[int,
                     "body{margin:0}figure{margin:0}figcaption{display:none}</style></head>"
                     f"<body>{body}</body></html>")
     shot = tmp_path / "plots.png"
-    done = subprocess.run(["chromium", *FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars",
+    done = subprocess.run([browser(), *FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars",
                            "--force-device-scale-factor=1", f"--window-size={R.W},{y}", f"--screenshot={shot}",
                            page.as_uri()], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0 and shot.exists(), done.stderr[-2000:]
