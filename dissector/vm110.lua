@@ -873,7 +873,8 @@ vm110.prefs.vrpo_data_size = Pref.uint("Configured periodic data size (bytes)", 
     "Total VRPO periodic data of a burst; 0 = infer (a burst ends with a packet of fewer than 488 bytes)")
 vm110.prefs.vrpo_number_start = Pref.uint("First VRPO packet number", 0,
     "Packet number of a burst's first packet (0 or 1)")
-vm110.prefs.burst_gap_ms = Pref.uint("VRPO burst gap (ms)", VRPO_BURST_GAP_MS, "A new burst starts after this gap")
+vm110.prefs.burst_gap_ms = Pref.uint("VRPO burst gap (ms)", VRPO_BURST_GAP_MS,
+    "A new burst starts after this gap (or after a complete burst)")
 vm110.prefs.machine = Pref.string("Machine", "",
     "Key of the machine-specific sub-dissectors in the vm110.periodic_data and vm110.command_data tables")
 vm110.prefs.fields_from_command_line = Pref.bool("tshark 4.0 -T fields: build only the fields named", true,
@@ -1718,6 +1719,15 @@ function burst.complete(b)
     return top_short == 1
 end
 
+-- A complete burst is over ("a burst ends with a packet of fewer than 488 bytes"): the sender's
+-- next packet begins another, even within the gap. `cur`: the sender's current burst.
+function burst.over(cur)
+    if cur.b then return burst.complete(cur.b) end
+    local size = cur.size
+    return cur.number == settings.number_start and (settings.data_size > 0 and size == settings.data_size
+        or settings.data_size == 0 and size < VRPO_MAX_DATA)
+end
+
 -- The data of a complete burst in number order (built once per burst length: O(n) per burst).
 function burst.data(b)
     if b.data_n == b.n then return b.data end
@@ -1925,7 +1935,8 @@ local function analyse(r, s, pinfo, frame, offset)
             local start = r.decoded_end - size
             data = sub(s, start + 1, start + size)
         end
-        if cur.tlast and t >= cur.tlast and ms(t - cur.tlast) < settings.burst_gap then -- (back: a new one)
+        -- (a step back: a new one; so is the packet after a complete burst)
+        if cur.tlast and t >= cur.tlast and ms(t - cur.tlast) < settings.burst_gap and not burst.over(cur) then
             res = join_burst(cur, res or iv or -1, frame, number, data, size)
         else
             -- A new burst: its interval from the previous burst's first packet (equal to the

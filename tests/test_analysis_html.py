@@ -133,7 +133,8 @@ def test_a_vrpo_stream_without_a_nominal_period_still_renders(tmp_path):
     tr = Traffic()
     for k in range(8):
         tr.add(k * 0.125, vrpi(k))
-        tr.add(0.3 + k * 0.005, payload(VRPO, k, packet_number=0, periodic_data=b"d" * 8), src=CTRL, sport=5827)
+        data = b"d" * (488 if k < 7 else 8)      # one split burst: parts 0..7, the last short
+        tr.add(0.3 + k * 0.005, payload(VRPO, k, packet_number=k, periodic_data=data), src=CTRL, sport=5827)
     tr.frames.sort(key=lambda f: f[0])
     tr.write(tmp_path / "one-burst.pcap")
     report = analyze(str(tmp_path / "one-burst.pcap"))

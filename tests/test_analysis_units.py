@@ -150,7 +150,15 @@ def test_bursts():
     complete, incomplete, starts = burst_count(times, numbers, sizes)
     assert (complete, incomplete, list(starts)) == (3, [3], [0, 3, 5, 8])   # 0.2: reordered, still whole
     assert burst_count([0.0, 0.1], [0, 1], [tail, tail])[:2] == (1, [1])
-    assert burst_count([0.0, 0.01], [0, 0], [tail, tail])[:2] == (0, [0])        # closer than the burst gap
+    # interpretation.md: "a burst ends with a packet of fewer than 488 bytes": a complete burst takes
+    # no more packets, even closer than the burst gap.
+    def judged(*args: list) -> tuple:
+        complete, incomplete, starts = burst_count(*args)
+        return complete, incomplete, list(starts)
+    assert judged([0.0, 0.01], [0, 0], [tail, tail]) == (2, [], [0, 1])
+    assert judged([0.0, 0.01], [0, 1], [2 + 300, tail]) == (1, [1], [0, 1])
+    # reordered and complete, then a part whose first was lost
+    assert judged([0.0, 0.001, 0.002], [1, 0, 1], [tail, full, tail]) == (1, [2], [0, 2])
     assert burst_count([0.0, 0.001], [0, 1], [full, full], data_size=2 * C.VRPO_MAX_DATA)[:2] == (1, [])
 
 

@@ -471,6 +471,30 @@ def test_burst_preferences(tshark, tmp_path):
     assert [r.get("vm110.burst.frame") for r in rows] == ["1|2", "1|2", "3|4", "3|4"]
 
 
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_a_complete_burst_takes_no_more_packets(tshark, tmp_path):
+    """interpretation.md: "a burst ends with a packet of fewer than 488 bytes". Packets 10 ms apart
+    (closer than the 20 ms gap): two unsplit ones are two complete bursts; a 300-byte packet 0 is
+    complete alone, so the packet 1 after it is a burst of its own, missing packet 0; a split burst
+    whose short part 1 arrives before its part 0 is one burst, complete with its second packet."""
+    from vm110.layers import VM110, VRPO
+    sends = [(0, 100), (0, 100), (0, 300), (1, 100), (1, 100), (0, C.VRPO_MAX_DATA)]
+    packets = [bytes(VM110(serial=i + 1) / VRPO(packet_number=n, periodic_data=bytes(size)))
+               for i, (n, size) in enumerate(sends)]
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            pcap = ws.dir / "bursts.pcap"
+            T.write_pcap(pcap, packets, [0, 10_000, 100_000, 110_000, 200_000, 201_000])
+            rows, _ = run_fields(ws, pcap, ["-2"], prefs=ON)
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    shown = [(r.get("vm110.burst.frame") or str(r.number), r.get("vm110.burst.complete") in ("1", "True"))
+             for r in rows]
+    assert shown == [("1", True), ("2", True), ("3", True), ("4", False), ("5|6", False), ("5|6", True)]
+    assert rows[3].has("burst_missing") and rows[3].has("burst_incomplete")
+    assert not any(r.has("burst_incomplete") for r in rows[:3] + rows[4:])
+
+
 # --- docs/rules.md on hand-crafted captures (expected values worked out by hand) ------------------------
 def _bu(serial: int, payload) -> bytes:
     from vm110.layers import VM110

@@ -392,3 +392,29 @@ def test_a_long_command_s_evidence_filter_is_narrowed_in_the_file_s_numbers():
         f'(frame.number >= {here[0]} && frame.number <= {here[-2]} && vm110.type == "VRCI" && '
         "ip.src == 10.0.0.10 && udp.srcport == 5825 && vm110.origin == 0x0101 && vm110.command_id == 7 && "
         f"!vm110.analysis.serial_duplicate) || frame.number == {here[-1]}")
+
+
+def test_live_vrpo_bursts_end_where_analyze_s_do(tmp_path):
+    """interpretation.md: "a burst ends with a packet of fewer than 488 bytes". Unsplit VRPO
+    packets 15 ms apart (closer than the 20 ms burst gap) are bursts of their own, 15 ms apart:
+    the live view counts their intervals outside the recommended 50-200 ms as analyze does (9); a
+    split burst (488 + 100 bytes, 1 ms apart) is one, so its parts add no interval."""
+    from test_analysis_craft import CTRL, Traffic
+    from vm110.analysis import analyze
+    from vm110.analysis.report import Options
+    from vm110.encode import packet, vrpo_payload
+    from vm110.monitor.live import LiveSender
+    sends = [(i * 0.015, 0, 100) for i in range(10)]
+    sends += [(1.0 + k * 0.1 + j * 0.001, j, 488 if j == 0 else 100) for k in range(3) for j in range(2)]
+    tr = Traffic()
+    snd = LiveSender((False, b"", 5827, 0), "controller", "Output", Options())
+    for serial, (t, number, size) in enumerate(sends):
+        data = packet("VRPO", vrpo_payload(number, bytes(size)), serial=serial)
+        tr.add(t, data, src=CTRL, sport=5827)
+        snd.periodic(t, serial + 1, data, lambda _: None)
+    path = tmp_path / "bursts.pcap"
+    tr.write(path)
+    report = analyze(str(path))
+    [vrpo] = [p for p in report["periodic"] if p["type"] == "VRPO"]
+    assert vrpo["outside_recommended"]["count"] == snd.outside == 9 + 1   # 15 ms x 9; 0.135 s -> 1.0 s
+    assert report["vrpo_bursts"] == {**report["vrpo_bursts"], "complete": 13, "incomplete": 0}

@@ -87,6 +87,8 @@ def normal_form(report: dict) -> dict:
         out[f"{p}.restart_events"] = events if events == MISSING else [
             {k: _r6(e.get(k)) if k != "time" else round(e.get(k, 0), 4)
              for k in ("time", "frame", "from", "to", "port_from", "port_to") if k in e} for e in events]
+    bursts = report.get("vrpo_bursts") or {}
+    out["vrpo_bursts"] = (bursts.get("complete", MISSING), bursts.get("incomplete", MISSING))
     for per in report.get("periodic", []):
         p = f"periodic[{per['type']} {per['sender']}]"
         out[f"{p}.count"] = per.get("count", MISSING)

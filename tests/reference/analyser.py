@@ -47,6 +47,11 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
  R13 "The capture went on past the limit" (rules.md, "Failed") is judged on the analysis clock the
      command's times run on: the capture's latest time is the later of its last record and its
      latest legal packet (appended captures: the clock stays ahead of a later, shorter part).
+ R14 VRPO bursts (interpretation.md, "VRPO split"): a sender's accepted VRPO packets in capture
+     order, each less than 20 ms after the one before on its own timestamp and not before it, belong
+     to one burst, until it is complete: "a burst ends with a packet of fewer than 488 bytes", so a
+     complete burst (numbers 0..n-1 each once, in any order; all but the last by number 488 bytes,
+     the last fewer) takes no further packet, and the next one begins another burst.
 """
 from __future__ import annotations
 
@@ -320,6 +325,8 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
                "cid": None}
         if ptype in ("VRCI", "VRCO", "VRAO", "VRAI"):
             pkt["cid"] = int.from_bytes(p[16:18], "little")
+        if ptype == "VRPO":
+            pkt["number"], pkt["data"] = int.from_bytes(p[16:18], "little"), _size - 2
         pkt["sender"] = sender_id(pkt["direction"], dg["src"], dg["sport"], origin)
         legal.append(pkt)
 
@@ -410,6 +417,18 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
                              "watchdog": {"limit_ms": limit / MS, "violations": violations}})
     periodic.sort(key=lambda e: (e["type"], e["sender"]))
 
+    # 4b. VRPO bursts (R14)
+    bursts = {"complete": 0, "incomplete": 0}
+    for sid in order:
+        burst: list[dict] = []
+        for q in (q for q in senders[sid]["packets"] if q["type"] == "VRPO" and q["accepted"]):
+            if burst and (not 0 <= q["own"] - burst[-1]["own"] < BURST_GAP_NS or _burst_whole(burst)):
+                bursts["complete" if _burst_whole(burst) else "incomplete"] += 1
+                burst = []
+            burst.append(q)
+        if burst:
+            bursts["complete" if _burst_whole(burst) else "incomplete"] += 1
+
     # 5. commands
     # R13: the capture went on past a command's limit when its latest time did: the later of its
     # last record and the analysis clock (a step back of the records' time leaves the clock ahead).
@@ -430,9 +449,20 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
         "senders": sender_list,
         "periodic": periodic,
         "commands": commands,
+        "vrpo_bursts": bursts,
         "frames": frames,
         "ambiguous": flags.items,
     }
+
+
+BURST_GAP_NS = 20 * MS
+
+
+def _burst_whole(burst: list[dict]) -> bool:
+    """R14: numbers 0..n-1 each once; every packet but the last by number 488 bytes, the last fewer."""
+    parts = sorted((q["number"], q["data"]) for q in burst)
+    return ([n for n, _ in parts] == list(range(len(parts)))
+            and all(d == 488 for _, d in parts[:-1]) and parts[-1][1] < 488)
 
 
 def _check_accepted_silence(order: list[str], senders: dict, legal: list[dict], silence: int,

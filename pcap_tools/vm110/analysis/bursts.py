@@ -1,19 +1,20 @@
 """VRPO bursts (interpretation.md, "VRPO split into several packets").
 
 A burst is a run of VRPO packets from one sender less than the burst gap (20 ms) apart, each at or
-after the one before (a step back of the clock begins a new burst): the gap is the whole
-definition, since a receiver cannot know what was sent back to back. It is complete when its
-packet numbers are start, start+1, ... each once (in any order), every packet but the last by
-number carries 488 data bytes, and the last fewer, or, with a configured periodic data size, the
-data add up to exactly that size. Two unsplit VRPO packets that arrive closer than the
-gap (jitter, reordering) therefore form one incomplete burst, as the truth of `vm110 synth` has it.
+after the one before (a step back of the clock begins a new burst), that ends with its last packet:
+a burst is complete when its packet numbers are start, start+1, ... each once (in any order),
+every packet but the last by number carries 488 data bytes, and the last fewer, or, with a
+configured periodic data size, the data add up to exactly that size; and a complete burst is
+over ("a burst ends with a packet of fewer than 488 bytes"), so the next packet begins another
+even within the gap. Two unsplit VRPO packets closer than the gap (jitter) are two bursts; a
+split one whose parts arrive out of order is one, complete once its parts are all there.
 
 `Bursts` is fed a sender's accepted VRPO packets a batch at a time and keeps only the burst still
-open: bursts of one packet (the usual case) are judged a batch at a time with numpy. A burst of
-more packets than there are packet numbers cannot be complete; its parts are then no longer kept.
-The time of each burst's first packet is kept for the exact statistics of the intervals between
-bursts; as long as every burst is a single packet these are the times of the VRPO stream
-(`packets`, shared with `periodic.Stream`), and only a sender that splits gets its own array.
+open, judged in constant time per packet (a burst may be endless): bursts of one packet (the usual
+case) are judged a batch at a time with numpy. The time of each burst's first packet is kept for
+the exact statistics of the intervals between bursts; as long as every burst is a single packet
+these are the times of the VRPO stream (`packets`, shared with `periodic.Stream`), and only a
+sender that splits gets its own array.
 """
 from __future__ import annotations
 
@@ -27,7 +28,42 @@ from . import timing
 from .periodic import Floats
 
 DATA_OFFSET = P.PAYLOAD_BOUNDS[C.PacketType.VRPO][0]
-MAX_PARTS = 1 << 16          # packet numbers are 16 bits: a longer burst is incomplete
+
+
+class Open:
+    """The burst being received, judged complete or not in constant time per packet: `bad` (a
+    number below the start, or seen before), `top` (the highest number) and its data length,
+    `short` (packets of fewer than 488 data bytes). n distinct numbers from the start whose
+    highest is start + n - 1 are exactly start ... start + n - 1."""
+
+    def __init__(self, start: int, data_size: int) -> None:
+        self.start, self.data_size = start, data_size
+        self.clear()
+
+    def clear(self) -> None:
+        self.seen: set[int] = set()                 # (at most 65,536 numbers)
+        self.bad = False
+        self.top, self.top_data = -1, 0
+        self.n = self.short = self.total = 0
+
+    def add(self, number: int, data: int) -> None:
+        if number < self.start or number in self.seen:
+            self.bad = True
+        else:
+            self.seen.add(number)
+        if number > self.top:
+            self.top, self.top_data = number, data
+        self.short += data != C.VRPO_MAX_DATA
+        self.n += 1
+        self.total += data
+
+    def complete(self) -> bool:
+        if not self.n or self.bad or self.top - self.start != self.n - 1:
+            return False
+        top_short = int(self.top_data != C.VRPO_MAX_DATA)
+        if self.short != top_short:                  # a packet other than the last is short
+            return False
+        return self.total == self.data_size if self.data_size else top_short == 1
 
 
 class Bursts:
@@ -50,24 +86,16 @@ class Bursts:
         self.last_start: Optional[float] = None
         self.firsts: list = []                       # where of each burst's first packet (count() only)
         self.first: tuple[int, float] = (0, 0.0)    # the open burst's first packet
-        self.parts: list[tuple[int, int]] = []       # its (packet number, data bytes)
-        self.overflow = False                        # more parts than MAX_PARTS
+        self.open = Open(start, data_size)
         self.last_time: Optional[float] = None
 
-    def _whole(self, parts: list[tuple[int, int]]) -> bool:
-        parts = sorted(parts)
-        full = all(data == C.VRPO_MAX_DATA for _, data in parts[:-1])
-        ends = sum(data for _, data in parts) == self.data_size if self.data_size else parts[-1][1] < C.VRPO_MAX_DATA
-        # Numbers start, start+1, ... each once (in any order: reordering inside a burst is harmless).
-        return [n for n, _ in parts] == list(range(self.start, self.start + len(parts))) and full and ends
-
     def _close(self) -> None:
-        if self.parts or self.overflow:
-            if not self.overflow and self._whole(self.parts):
+        if self.open.n:
+            if self.open.complete():
                 self.complete += 1
             else:
                 self.incomplete.append(self.first)
-        self.parts, self.overflow = [], False
+            self.open.clear()
 
     def feed(self, times: np.ndarray, numbers: np.ndarray, sizes: np.ndarray, where: Sequence[int],
              keep_firsts: bool = False) -> None:
@@ -82,6 +110,26 @@ class Bursts:
         steps = np.diff(times)
         begins[1:] = (steps >= self.gap) | (steps < 0)
         self.last_time = float(times[-1])
+        if begins[0]:
+            self._close()
+        data = np.asarray(sizes, dtype=np.int64) - DATA_OFFSET
+        number = np.asarray(numbers, dtype=np.int64)
+        # Bursts of one packet by the gap alone are judged all at once ...
+        lone = begins.copy()
+        lone[:-1] &= begins[1:]
+        lone[-1] = False
+        ok = (number == self.start) & ((data == self.data_size) if self.data_size else (data < C.VRPO_MAX_DATA))
+        self.complete += int(np.count_nonzero(lone & ok))
+        for i in np.flatnonzero(lone & ~ok).tolist():
+            self.incomplete.append((int(where[i]), float(times[i])))
+        # ... the rest a packet at a time: the burst open from before, longer ones, the last one. A
+        # packet within the gap after a complete burst begins the next one.
+        for i in np.flatnonzero(~lone).tolist():
+            if begins[i] or self.open.complete():
+                self._close()
+                self.first = (int(where[i]), float(times[i]))
+                begins[i] = True
+            self.open.add(int(number[i]), int(data[i]))
         firsts = np.flatnonzero(begins)
         new = times[firsts]
         if self.own is None and len(new) < n:
@@ -99,27 +147,6 @@ class Bursts:
             self.outside.append((int(where[i]), float(times[i]), float(between[k])))
         if keep_firsts:
             self.firsts += [where[i] for i in firsts.tolist()]
-        if begins[0]:
-            self._close()
-        data = np.asarray(sizes, dtype=np.int64) - DATA_OFFSET
-        number = np.asarray(numbers, dtype=np.int64)
-        # Bursts of one packet closed within the batch are judged all at once ...
-        lone = begins.copy()
-        lone[:-1] &= begins[1:]
-        lone[-1] = False
-        ok = (number == self.start) & ((data == self.data_size) if self.data_size else (data < C.VRPO_MAX_DATA))
-        self.complete += int(np.count_nonzero(lone & ok))
-        for i in np.flatnonzero(lone & ~ok).tolist():
-            self.incomplete.append((int(where[i]), float(times[i])))
-        # ... the rest a packet at a time: the burst open from before, longer ones, the last one.
-        for i in np.flatnonzero(~lone).tolist():
-            if begins[i]:
-                self._close()
-                self.first = (int(where[i]), float(times[i]))
-            if len(self.parts) < MAX_PARTS:
-                self.parts.append((int(number[i]), int(data[i])))
-            else:
-                self.overflow = True
 
     @property
     def starts(self) -> Floats:

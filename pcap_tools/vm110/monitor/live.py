@@ -25,6 +25,7 @@ import numpy as np
 from .. import constants as C
 from .. import protocol as P
 from ..analysis import serials
+from ..analysis.bursts import Open
 from ..analysis.collect import CODE_OF_ID, STATE, STATE_FIELDS, TYPES, VRPI_CODE, VRPO_CODE, sender_id
 from ..capture.reader import address
 from ..analysis.findings import located_item as item
@@ -36,6 +37,7 @@ WINDOW_S = 60              # "last minute" numbers
 Emit = Callable[[dict], None]
 _INPUT = [t.direction is C.Direction.INPUT for t in TYPES]
 _ORIGIN = P.HEADER_OFFSETS["origin"]          # the origin, u16 little-endian
+_SIZE = P.SIZE_OFFSET                          # the payload size, u16 little-endian
 
 
 class LiveSender:
@@ -58,6 +60,7 @@ class LiveSender:
         self.jitter: Optional[float] = None
         self.prev: Optional[float] = None             # previous periodic arrival (VRPI) or burst start (VRPO)
         self.vrpo_last: Optional[float] = None        # last VRPO packet (bursts)
+        self.burst = Open(opt.vrpo_start, opt.vrpo_data_size)   # the VRPO burst being received
         self.interval: Optional[float] = None         # the last interval (ms)
         self.outside = 0
         self.recent: collections.deque = collections.deque(maxlen=64)   # intervals, for the VRPO period
@@ -67,10 +70,15 @@ class LiveSender:
         self.state: Optional[dict] = None
         self.nominal: Optional[float] = None          # VRPO without --vrpo-period: median of the recent intervals
 
-    def periodic(self, ts: float, frame: int, emit: Emit) -> None:
+    def periodic(self, ts: float, frame: int, packet: bytes, emit: Emit) -> None:
         if self.code == VRPO_CODE:
-            begins = self.vrpo_last is None or ts - self.vrpo_last >= self.gap
+            # (a burst ends at its gap, or complete: docs/rules.md, "VRPO bursts")
+            begins = self.vrpo_last is None or ts - self.vrpo_last >= self.gap or self.burst.complete()
             self.vrpo_last = ts
+            if begins:
+                self.burst.clear()
+            number = packet[C.PREFIX_LEN] | packet[C.PREFIX_LEN + 1] << 8
+            self.burst.add(number, (packet[_SIZE] | packet[_SIZE + 1] << 8) - 2)
             if not begins:
                 self._arrived(ts, frame, emit)
                 return
@@ -197,7 +205,7 @@ class Live:
                                                 self.opt)
             snd.packets += 1
             if code == snd.code:
-                snd.periodic(ts, frame, emit)
+                snd.periodic(ts, frame, packet, emit)
                 if code == VRPI_CODE:
                     last_vrpi[key] = packet
         for key, packet in last_vrpi.items():

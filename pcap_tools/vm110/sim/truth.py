@@ -248,7 +248,7 @@ class _Commands:
 def _complete_burst(burst: list[tuple[int, int]]) -> bool:
     """A VRPO burst of (packet number, data length): complete when the numbers are 0..n-1 each
     once, every packet but the last carries 488 data bytes and the last fewer (interpretation.md,
-    'VRPO split'). A burst: accepted packets less than 20 ms apart."""
+    'VRPO split'). A burst: accepted packets less than 20 ms apart, until it is complete."""
     ordered = sorted(burst)
     numbers = [n for n, _ in ordered]
     return (numbers == list(range(len(numbers)))
@@ -280,16 +280,16 @@ class _Sender:
             self.violations.setdefault(ptype, []).append((last[0], t, False, frame))
         self.last[ptype] = (t, frame)
 
-    def close_burst(self) -> None:
+    def burst_complete(self) -> bool:
         burst = self.burst
-        if not burst:
-            return
         if len(burst) == 1:                        # most bursts: one packet
-            meta = burst[0]
-            complete = meta.key == 0 and meta.data_len < _VRPO_MAX_DATA
-        else:
-            complete = _complete_burst([(meta.key, meta.data_len) for meta in burst])
-        if complete:
+            return burst[0].key == 0 and burst[0].data_len < _VRPO_MAX_DATA
+        return _complete_burst([(meta.key, meta.data_len) for meta in burst])
+
+    def close_burst(self) -> None:
+        if not self.burst:
+            return
+        if self.burst_complete():
             self.complete += 1
         else:
             self.incomplete += 1
@@ -406,7 +406,8 @@ class GroundTruth:
                 sender.periodic(ptype, t, frame)
             if ptype is _VRPO:
                 burst = sender.burst
-                if burst and t - sender.burst_t >= burst_gap:
+                # (a burst ends with its last packet: a complete one takes no more, even within the gap)
+                if burst and (t - sender.burst_t >= burst_gap or sender.burst_complete()):
                     sender.close_burst()
                     burst = sender.burst
                 burst.append(meta)
