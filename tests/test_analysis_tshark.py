@@ -46,6 +46,35 @@ def test_engines_agree_on_bundled_captures(capture):
     assert_same(str(capture))
 
 
+@pytest.mark.parametrize("wrap", ["sll2-vlan", "ipv6-atomic-fragment", "port-7000"])
+def test_engines_agree_on_unusual_wrappings(wrap, tmp_path):
+    """The bundled traffic as a cooked capture of a tagged interface, over IPv6 in atomic fragments
+    (RFC 6946: whole datagrams), and on ports 7000/7002, which Wireshark gives to AFS: the reader
+    found no EG-Link packet in the first two, the tshark engine only some in the third."""
+    from scapy.layers.inet import IP, UDP
+    from scapy.layers.inet6 import IPv6, IPv6ExtHdrFragment
+    from scapy.layers.l2 import CookedLinuxV2, Dot1Q, Ether
+    from scapy.utils import rdpcap, wrpcap
+    frames = []
+    for i, p in enumerate(rdpcap(str(CAPTURES / "normal.pcap"))[:80]):
+        udp = p[UDP]
+        inner = UDP(sport=udp.sport, dport=udp.dport) / bytes(udp.payload)[:udp.len - 8]
+        if wrap == "sll2-vlan":
+            f = CookedLinuxV2(proto=0x8100) / Dot1Q(vlan=7) / IP(src=p[IP].src, dst=p[IP].dst) / inner
+        elif wrap == "port-7000":
+            inner[UDP].sport, inner[UDP].dport = udp.sport + 1175, udp.dport + 1175
+            f = Ether() / IP(src=p[IP].src, dst=p[IP].dst) / inner
+        else:
+            f = (Ether() / IPv6(src=f"fe80::{p[IP].src.split('.')[-1]}", dst="ff02::1")
+                 / IPv6ExtHdrFragment(offset=0, m=0, id=i) / inner)
+        f.time = p.time
+        frames.append(f)
+    path = tmp_path / f"{wrap}.pcap"
+    wrpcap(str(path), frames, linktype=276 if wrap == "sll2-vlan" else 1)
+    assert analyze(str(path))["capture"]["eglink_packets"] == 80
+    assert_same(str(path))
+
+
 def test_engines_agree_on_the_crafted_capture(tmp_path):
     build_mixed(tmp_path / "mixed.pcap")
     assert_same(str(tmp_path / "mixed.pcap"))

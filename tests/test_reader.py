@@ -9,7 +9,7 @@ import struct
 
 import pytest
 from scapy.layers.inet import IP, TCP, UDP, fragment
-from scapy.layers.inet6 import IPv6
+from scapy.layers.inet6 import IPv6, IPv6ExtHdrFragment
 from scapy.layers.l2 import ARP, CookedLinux, CookedLinuxV2, Dot1AD, Dot1Q, Ether, Loopback
 from scapy.packet import Padding
 
@@ -75,11 +75,14 @@ def test_byte_orders_and_resolutions(tmp_path, endian, nanos):
     (Ether() / Dot1AD(vlan=1) / Dot1Q(vlan=7) / udp_ip(), 1),
     (CookedLinux(proto=0x0800) / udp_ip(), 113),
     (CookedLinuxV2(proto=0x0800) / udp_ip(), 276),
+    # a cooked capture of a tagged interface: the tag follows the cooked header
+    (CookedLinux(proto=0x8100) / Dot1Q(vlan=7) / udp_ip(), 113),
+    (CookedLinuxV2(proto=0x8100) / Dot1Q(vlan=7) / udp_ip(), 276),
     (udp_ip(), 101),
     (udp_ip(), 228),
     (Loopback(type=2) / udp_ip(), 0),
     (Ether() / IP(src=SRC, dst="239.255.42.20", options=b"\x01\x01\x01\x00") / UDP(sport=5825, dport=5825) / PAYLOAD, 1),
-], ids=["vlan", "qinq", "sll", "sll2", "raw", "ipv4", "null", "ip-options"])
+], ids=["vlan", "qinq", "sll", "sll2", "sll-vlan", "sll2-vlan", "raw", "ipv4", "null", "ip-options"])
 def test_link_types(tmp_path, frame, linktype):
     reader, got = read(tmp_path, pcap([(5.0, frame)], linktype=linktype))
     assert [(g[1], g[2], g[4]) for g in got] == [(bytes([10, 1, 2, 3]), 5825, PAYLOAD)]
@@ -90,6 +93,18 @@ def test_ipv6_udp(tmp_path):
     frame = Ether() / IPv6(src="fe80::1", dst="ff02::1") / UDP(sport=5825, dport=5825) / PAYLOAD
     _, got = read(tmp_path, pcap([(1.0, frame)]))
     assert got[0][1] == bytes.fromhex("fe800000000000000000000000000001") and got[0][4] == PAYLOAD
+
+
+def test_ipv6_atomic_fragment_is_a_whole_datagram(tmp_path):
+    """RFC 6946: a fragment header with offset 0 and no more fragments holds the whole datagram
+    (tshark decodes it too); a real first fragment is still a fragment, counted and not analysed."""
+    atomic = Ether() / IPv6(src="fe80::1", dst="ff02::1") / IPv6ExtHdrFragment(offset=0, m=0, id=7) / \
+        UDP(sport=5825, dport=5825) / PAYLOAD
+    first = Ether() / IPv6(src="fe80::1", dst="ff02::1") / IPv6ExtHdrFragment(offset=0, m=1, id=8) / \
+        UDP(sport=5825, dport=5825) / PAYLOAD
+    reader, got = read(tmp_path, pcap([(1.0, atomic), (2.0, first)]))
+    assert [(g[4], g[5]) for g in got] == [(PAYLOAD, 1)]
+    assert (reader.fragments, reader.non_udp) == (1, 1)
 
 
 def test_other_traffic_is_counted_not_yielded(tmp_path):

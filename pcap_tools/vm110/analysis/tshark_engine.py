@@ -55,8 +55,11 @@ class TsharkEngine:
         self.stopped: Optional[str] = None     # tshark's last error line when it stopped early
 
     def _params(self, variant: str, order: str) -> list[str]:
-        # IP fragments stay fragments, as the fast engine counts them (no reassembly).
-        return ["-X", f"lua_script:{plugin_path()}", "-o", "ip.defragment:FALSE", "-o", f"vm110.input_port:{self.port}",
+        # IP fragments stay fragments, as the fast engine counts them (no reassembly). The heuristic
+        # first: EG-Link on a port Wireshark gives another protocol (7000: AFS) is found, as the
+        # fast engine finds it.
+        return ["-X", f"lua_script:{plugin_path()}", "-o", "ip.defragment:FALSE", "-o", "udp.try_heuristic_first:TRUE",
+                "-o", f"vm110.input_port:{self.port}",
                 "-o", f"vm110.crc_variant:{variant}", "-o", f"vm110.crc_byte_order:{order}"]
 
     def _packets(self, path: str, variant: str, order: str) -> Iterator:

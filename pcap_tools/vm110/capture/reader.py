@@ -463,8 +463,13 @@ class CaptureReader:
             proto = data[pos + 6]
             src = data[pos + 8:pos + 24]
             pos += L.IPV6_HEADER_LEN
-            while proto in L.IPV6_EXTENSIONS and pos + 8 <= end:
-                proto, pos = data[pos], pos + (data[pos + 1] + 1) * 8
+            while pos + 8 <= end:
+                if proto in L.IPV6_EXTENSIONS:
+                    proto, pos = data[pos], pos + (data[pos + 1] + 1) * 8
+                elif proto == L.IPV6_FRAGMENT and not struct.unpack_from("!H", data, pos + 2)[0] & 0xFFF9:
+                    proto, pos = data[pos], pos + 8   # an atomic fragment (RFC 6946): the whole datagram
+                else:
+                    break
             if proto == L.IPV6_FRAGMENT:
                 self.fragments += 1
                 self.non_udp += 1
@@ -485,20 +490,15 @@ class CaptureReader:
         if link == L.LINKTYPE_ETHERNET:
             if pos + L.ETH_HEADER_LEN > end:
                 return None
-            et = struct.unpack_from("!H", data, pos + 12)[0]
-            pos += L.ETH_HEADER_LEN
-            while et in L.ETHERTYPE_VLANS and pos + L.VLAN_TAG_LEN <= end:
-                et = struct.unpack_from("!H", data, pos + 2)[0]
-                pos += L.VLAN_TAG_LEN
-            return self._ethertype(et, pos)
+            return self._ethertype(struct.unpack_from("!H", data, pos + 12)[0], data, pos + L.ETH_HEADER_LEN, end)
         if link == L.LINKTYPE_LINUX_SLL:
             if pos + L.SLL_HEADER_LEN > end:
                 return None
-            return self._ethertype(struct.unpack_from("!H", data, pos + 14)[0], pos + L.SLL_HEADER_LEN)
+            return self._ethertype(struct.unpack_from("!H", data, pos + 14)[0], data, pos + L.SLL_HEADER_LEN, end)
         if link == L.LINKTYPE_LINUX_SLL2:
             if pos + L.SLL2_HEADER_LEN > end:
                 return None
-            return self._ethertype(struct.unpack_from("!H", data, pos)[0], pos + L.SLL2_HEADER_LEN)
+            return self._ethertype(struct.unpack_from("!H", data, pos)[0], data, pos + L.SLL2_HEADER_LEN, end)
         if link in (L.LINKTYPE_RAW, *L.DLT_RAW_ALIASES):
             if pos >= end:
                 return None
@@ -523,7 +523,12 @@ class CaptureReader:
         return None
 
     @staticmethod
-    def _ethertype(et: int, pos: int) -> Optional[tuple[int, int]]:
+    def _ethertype(et: int, data: bytes, pos: int, end: int) -> Optional[tuple[int, int]]:
+        """(IP version, offset) after an EtherType at data[pos], past any VLAN tags (Ethernet, and the
+        cooked captures of a tagged interface)."""
+        while et in L.ETHERTYPE_VLANS and pos + L.VLAN_TAG_LEN <= end:
+            et = struct.unpack_from("!H", data, pos + 2)[0]
+            pos += L.VLAN_TAG_LEN
         if et == L.ETHERTYPE_IPV4:
             return 4, pos
         if et == L.ETHERTYPE_IPV6:
