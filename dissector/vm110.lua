@@ -620,6 +620,7 @@ local function decode(s, variant, big_endian, known_crc, cut)
             if h.off + h[2] > n then break end
             r[h[1]] = h[2] == 2 and u16(s, h.off) or u32(s, h.off)
         end
+        if cut then r.cut, r.problems = true, EMPTY end -- (cut by the snaplen: truncated, and for that alone)
         problem(r, "truncated")
         return r
     end
@@ -1303,7 +1304,7 @@ local function add_tree(r, tvb, tree)
     if clean and not want.visible and r.payload and add_flat(r, root) then return root end
     add_header(r, tvb, root)
     local n = r.n
-    if n < PREFIX_LEN then
+    if n < PREFIX_LEN and not r.cut then
         add_expert(root, E.truncated, "Truncated: shorter than the 16-byte packet ID and header")
         return root
     end

@@ -213,6 +213,23 @@ def test_a_datagram_the_snaplen_cut_is_truncated_alone(tshark, tmp_path):
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_a_datagram_cut_inside_its_header_is_truncated_alone(tshark, tmp_path):
+    """The same below 16 bytes: an unknown packet ID cut to 8 bytes is truncated only. The dissector
+    said "unknown packet ID, truncated" there (and "truncated" alone from 16 bytes on; trial)."""
+    whole, cut = tmp_path / "whole.pcap", tmp_path / "snap50.pcap"
+    T.write_pcap(whole, [b"VRXX" + bytes(60), b"VRPI" + bytes(60)])
+    snapped(whole, cut, 50)                   # 14 + 20 + 8 header bytes, 8 of the datagram
+    assert analyze(str(cut))["illegal"]["by_reason"] == {"truncated": 2}
+    decoded = subprocess.run([*VM110, "decode", str(cut)], capture_output=True, text=True, check=True).stdout
+    assert decoded.count("ILLEGAL(truncated)") == 2
+    with tshark.workspace(tmp_path / "ws") as ws:
+        local = ws.dir / cut.name
+        local.write_bytes(cut.read_bytes())
+        info = ws.run(["-r", str(local), "-T", "fields", "-e", "_ws.col.Info"]).stdout.splitlines()
+    assert [line.split(" [")[-1] for line in info] == ["Illegal: truncated]"] * 2, info
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 def test_every_filter_a_report_gives_shows_its_frames(tshark, tmp_path):
     """The display filter of each finding item, pasted into Wireshark (tshark -Y here, 4.0, 4.4
     and 4.6), selects the item's frames: exactly them, or a range holding them all."""
