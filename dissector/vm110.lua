@@ -1724,8 +1724,12 @@ end
 -- next packet begins another, even within the gap. `cur`: the sender's current burst.
 function burst.over(cur)
     if cur.b then return burst.complete(cur.b) end
-    local size = cur.size
-    return cur.number == settings.number_start and (settings.data_size > 0 and size == settings.data_size
+    return burst.alone(cur.number, cur.size)
+end
+
+-- Whether one packet (packet number, data length) is a complete burst by itself.
+function burst.alone(number, size)
+    return number == settings.number_start and (settings.data_size > 0 and size == settings.data_size
         or settings.data_size == 0 and size < VRPO_MAX_DATA)
 end
 
@@ -2182,9 +2186,7 @@ end
 -- first and its data end the burst.
 local function add_single_burst(r, tvb, root, pinfo, tree, visited)
     local number, size, start = r.values.packet_number, r.data_len, settings.number_start
-    local full = settings.data_size > 0 and size == settings.data_size
-        or settings.data_size == 0 and size < VRPO_MAX_DATA
-    if number == start and full then
+    if burst.alone(number, size) then
         generated(root, "burst_complete", tvb, NUMBER_OFF, NUMBER_LEN, true)
         if size > 0 and settings.machine ~= "" then
             sub_dissect(periodic_table, range(tvb, PREFIX_LEN + VRPO_HEADER_SIZE, size):tvb(), pinfo, tree)
