@@ -43,11 +43,15 @@ class TsharkUnavailable(RuntimeError):
 class Tshark:
     """One tshark installation: the host's, or the one in a Debian chroot (`root`)."""
 
-    name: str
     root: Optional[Path] = None
     version: str = ""              # major.minor; the host's: as `tshark --version` says
     suite: str = ""                # the chroot's Debian suite
     script: str = ""               # the debootstrap script for it, when debootstrap may not know the suite
+
+    @property
+    def name(self) -> str:
+        """"host", or the chroot's suite (the tests' ids)."""
+        return self.suite if self.root is not None else "host"
 
     def check(self) -> None:
         if self.root is None:
@@ -151,9 +155,9 @@ VERSIONS = (("4.0", "bookworm", ""), ("4.4", "trixie", ""),
 def _runner(version: str, suite: str, script: str) -> Tshark:
     host = facts(host_tshark())
     if host.version == version and host.loads_lua:
-        return Tshark("host", None, version)
+        return Tshark(None, version)
     root = Path(os.environ.get(f"VM110_{suite.upper()}_ROOT") or CACHE / suite)
-    return Tshark(suite, root, version, suite, script)
+    return Tshark(root, version, suite, script)
 
 
 RUNNERS = tuple(_runner(*v) for v in VERSIONS)
@@ -188,7 +192,7 @@ if (not facts(host_tshark()).loads_lua and os.geteuid() == 0 and _first.root is 
     _overlay = str(overlay_bin(_first))
     if shutil.which("tshark") != os.path.join(_overlay, "tshark"):
         os.environ["PATH"] = f"{_overlay}{os.pathsep}{os.environ.get('PATH', '')}"
-HOST = Tshark("host", None, facts(shutil.which("tshark")).version or "")
+HOST = Tshark(None, facts(shutil.which("tshark")).version or "")
 
 
 @dataclass

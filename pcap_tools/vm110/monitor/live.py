@@ -25,7 +25,7 @@ import numpy as np
 from .. import constants as C
 from .. import protocol as P
 from ..analysis import serials
-from ..analysis.bursts import Open
+from ..analysis.bursts import DATA_OFFSET, Open
 from ..analysis.collect import CODE_OF_ID, STATE, STATE_FIELDS, TYPES, VRPI_CODE, VRPO_CODE, sender_id
 from ..capture.reader import address
 from ..analysis.findings import located_item as item
@@ -78,7 +78,7 @@ class LiveSender:
             if begins:
                 self.burst.clear()
             number = packet[C.PREFIX_LEN] | packet[C.PREFIX_LEN + 1] << 8
-            self.burst.add(number, (packet[_SIZE] | packet[_SIZE + 1] << 8) - 2)
+            self.burst.add(number, (packet[_SIZE] | packet[_SIZE + 1] << 8) - DATA_OFFSET)
             if not begins:
                 self._arrived(ts, frame, emit)
                 return
