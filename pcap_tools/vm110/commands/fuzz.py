@@ -20,6 +20,7 @@ import ipaddress
 import shlex
 import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -133,12 +134,19 @@ def _progress(text: str) -> None:
     print(f"vm110 fuzz: {text}", file=sys.stderr, flush=True)
 
 
+# Set by Ctrl-C or SIGTERM. The KeyboardInterrupt raised with it can land in a finalizer (a Popen's
+# __del__), where Python ignores it: the runner also stops at its next case or replay on the flag.
+_STOP = threading.Event()
+
+
 def _interrupt(signum: int, frame: Any) -> None:
+    _STOP.set()
     raise KeyboardInterrupt   # unwinds through the runner, which stops the supervised controller
 
 
 def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGINT, _interrupt)
     for option, value in (("--target-cmd", args.target_cmd), ("--out", args.out)):
         if value is not None and not value.strip():
             raise CliError(f"{option} is empty")
@@ -162,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = RunConfig(settings=settings, seed=args.seed, duration_s=duration, cases=args.cases, out=out,
                     target_cmd=args.target_cmd, minimize_budget_s=args.minimize_budget,
                     max_findings=args.max_findings, progress=status.message if status else _progress,
-                    status=status, core=not args.no_core, coverage=guided)
+                    status=status, core=not args.no_core, coverage=guided, stop=_STOP.is_set)
     runner = Runner(cfg)
     try:
         summary = runner.run()

@@ -69,6 +69,7 @@ class RunConfig:
     status: Optional[Callable[[dict[str, Any]], None]] = None    # the progress line on a terminal
     core: bool = True
     coverage: Optional[GuidedConfig] = None
+    stop: Callable[[], bool] = field(default=lambda: False)   # Ctrl-C or SIGTERM came (KeyboardInterrupt may not)
 
 
 def _const(data: bytes, twin: bytes) -> K.Builder:
@@ -194,6 +195,7 @@ class Runner:
             start_target(s)
             while (cfg.cases is None or index < cfg.cases) and (end is None or time.time() < end) \
                     and len(self.findings) < cfg.max_findings:
+                self._check_stop()
                 case = self.guided.next_case(index) if self.guided else K.generate(cfg.seed, index)
                 if self.guided is not None:
                     self.guided.before_case()
@@ -426,9 +428,14 @@ class Runner:
             entry["suspect_cases"] = [self.records[i][0].description for i in kept]
         self.unreproduced.append(entry)
 
+    def _check_stop(self) -> None:
+        if self.cfg.stop():
+            raise KeyboardInterrupt
+
     def _trial(self, replay: Replay, trig: Trigger) -> Optional[Trigger]:
         """One replay against a clean controller: restarted first when supervised, so that no
         state left by earlier replays decides the result."""
+        self._check_stop()
         s = self.session
         if self.supervisor is not None:
             s.restart_target()
