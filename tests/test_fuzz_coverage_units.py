@@ -10,10 +10,13 @@ import pytest
 from vm110 import constants as C
 from vm110.decode import decode
 from vm110.errors import CliError
+from vm110.fuzz import cases as K
 from vm110.fuzz import mutate as M
 from vm110.fuzz.corpus import CorpusDir, Entry, Packet, binary_strings, load_dictionary
 from vm110.fuzz.coverage import COUNT_CLASS, ShmMap, Virgin, map_size
+from vm110.fuzz.guided import entry_of
 from vm110.fuzz.havoc import Mutator
+from vm110.fuzz.session import Sent
 
 
 def test_hit_count_classes_are_afls():
@@ -81,6 +84,23 @@ def test_corpus_round_trip_and_hostile_files_skipped(tmp_path):
     assert len(entries) == 1 and entries[0].packets[0].data == vrci and entries[0].packets[1].raw
     assert entries[0].stream == {k: int(v) for k, v in M.DISARMED_VRPI.items()}
     assert len(again.skipped) == 3 and again.next == 10
+
+
+def test_every_case_the_fuzzer_makes_resumes_from_the_corpus(tmp_path):
+    # The sweep seeds the corpus with all its cases: waiting alone (no packet: a VRPI gap, a VRAI
+    # withheld) and a 20-transmission storm were written, then refused when read back.
+    count = len(K.sweep(1)) + 200
+    cases = [K.generate(1, i) for i in range(count)]
+    store = CorpusDir(tmp_path)
+    for case in cases:
+        sent = [Sent(0.0, *step.build(n), step.delay_ms, step.expect_ack) for n, step in enumerate(case.steps)]
+        store.save(entry_of(case, sent, case.description))
+    again = CorpusDir(tmp_path)
+    entries = again.load()
+    assert again.skipped == []
+    assert [(len(e.packets), e.pause_vrpi_ms, e.withhold_vrai_ms) for e in entries] == [
+        (len(c.steps), c.pause_vrpi_ms, c.withhold_vrai_ms) for c in cases]
+    assert {0, 20} <= {len(c.steps) for c in cases}
 
 
 def test_mutants_keep_size_and_crc_unless_raw():

@@ -22,10 +22,9 @@ from ..errors import CliError
 from ..fileio import read_at_most, write_text
 from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
-from .findings import make_folder
+from .findings import MAX_STEPS, make_folder
 from ..jsonin import load_file, loads
 
-_MAX_PACKETS = 16
 _MAX_PACKET = 65_507
 _MAX_MS = 5_000.0
 _MAX_ENTRY_FILE = 4 << 20
@@ -82,8 +81,9 @@ def entry_from_json(raw: Any) -> Entry:
     if not isinstance(raw, dict) or raw.get("vm110_corpus_entry") != 1:
         raise _Bad("not a vm110 corpus entry")
     packets = raw.get("packets")
-    if not isinstance(packets, list) or not 0 < len(packets) <= _MAX_PACKETS:
-        raise _Bad(f"packets: a list of 1 to {_MAX_PACKETS}")
+    # (no packets: a case of waiting alone, a VRPI gap or a VRAI withheld)
+    if not isinstance(packets, list) or len(packets) > MAX_STEPS:
+        raise _Bad(f"packets: a list of at most {MAX_STEPS}")
     out = []
     for n, p in enumerate(packets):
         if not isinstance(p, dict) or not isinstance(p.get("hex"), str) or len(p["hex"]) > 2 * _MAX_PACKET:

@@ -22,7 +22,7 @@ from ..jsonin import load_file
 SCHEMA = 1
 # What a finding file may hold, beyond its types: it is data from anywhere, never trusted.
 _MAX_FILE = 16 << 20
-_MAX_STEPS = 64                  # the longest case has 20
+MAX_STEPS = 64                   # packets a case may send (the longest made here has 20)
 _MAX_PACKET = 65_507             # the largest UDP payload over IPv4
 _MAX_MS = 60_000.0               # delays, pauses and withholding
 _MAX_INT = (1 << 63) - 1
@@ -203,8 +203,8 @@ def _checked(raw: dict[str, Any]) -> Finding:
     for name in ("pause_vrpi_ms", "withhold_vrai_ms", "settle_ms"):
         _milliseconds(name, getattr(finding, name))
     _packet("packet_hex", finding.packet_hex)
-    if len(finding.steps) > _MAX_STEPS:
-        raise _Bad(f"{len(finding.steps)} steps (at most {_MAX_STEPS})")
+    if len(finding.steps) > MAX_STEPS:
+        raise _Bad(f"{len(finding.steps)} steps (at most {MAX_STEPS})")
     for n, step in enumerate(finding.steps):
         if not isinstance(step, dict):
             raise _Bad(f"steps[{n}] is not an object")
