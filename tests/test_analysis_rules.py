@@ -199,6 +199,30 @@ def test_findings_are_located_and_capped(tmp_path):
     assert first["sender"] == report["senders"][0]["id"] and first["time"] == T0 + 0.125
 
 
+def test_a_finding_beyond_the_kept_items_says_where_all_of_them_are(tmp_path):
+    from vm110.analysis import report_html, summary
+    tr = Traffic()
+    for k in range(150):
+        tr.add(k * 0.125, vrpi(k))
+        tr.add(k * 0.125 + 0.001, vrpi(k))                  # each packet twice: 150 duplicates
+    tr.add(150 * 0.125, vrpi(152))                           # and 2 lost
+    report = _report(tr, tmp_path)
+    dup = _finding(report, "duplicates")
+    assert (dup["count"], len(dup["items"]), dup["more"], dup["filter"]) == (
+        150, 100, 50, "vm110.expert.serial_duplicate")
+    assert "filter" not in _finding(report, "lost"), "the dissector also marks gaps filled later"
+    text = summary.render(report)
+    assert ("... 147 more (--list, or the JSON report: the first 100; all of them in Wireshark: "
+            "[vm110.expert.serial_duplicate])") in text
+    assert "... 50 more (all of them in Wireshark: [vm110.expert.serial_duplicate])" in summary.render(report, True)
+    assert ('… 50 more (all of them in Wireshark: <code class="filter">vm110.expert.serial_duplicate</code>)'
+            in report_html.render([report]))
+    # Options the dissector's defaults do not share: its filters would show other frames.
+    other = _report(tr, tmp_path, dup_window_ms=500.0)
+    assert "filter" not in _finding(other, "duplicates")
+    assert "... 50 more (the report keeps the first 100)" in summary.render(other, True)
+
+
 def test_html_and_terminal_show_where_findings_lie(tmp_path):
     from vm110.analysis import report_html, summary
     tr = Traffic()

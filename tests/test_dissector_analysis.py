@@ -23,6 +23,7 @@ from scapy.utils import rdpcap
 
 import tshark_runner as T
 from vm110 import constants as C
+from vm110.analysis import analyze
 from vm110.decode import decode
 
 pytestmark = pytest.mark.tshark
@@ -812,6 +813,51 @@ def test_counts_equal_vm110_analyze(tshark, capture, tmp_path):
     differ = [k for k in keys if got[k] != want[k]]
     assert {k: got[k] for k in differ} == {k: want[k] for k in differ}
     assert sum(want.values()) > 0
+
+
+_DEFAULT_REPORTS: dict = {}
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+@pytest.mark.parametrize("capture", ALL_CAPTURES, ids=lambda p: p.name)
+def test_a_findings_filter_shows_its_items_and_no_other_frame(tshark, capture, tmp_path):
+    """A finding's `filter` (the report with default options, as a user runs it) is the dissector's
+    experts that mark exactly the frames of its items, and beyond them as many as `more` says."""
+    from vm110.analysis.findings import RULE_FILTERS
+    if capture.name not in _DEFAULT_REPORTS:
+        _DEFAULT_REPORTS[capture.name] = analyze(str(capture))
+    report = _DEFAULT_REPORTS[capture.name]
+    rows = dissected(tshark, capture, tmp_path)
+    per_sender = all(s["serial"]["scope"] == "sender" for s in report["senders"])
+    for f in report["verdict"]["findings"]:
+        assert ("filter" in f) == (f["rule"] in RULE_FILTERS and per_sender), f["rule"]
+        if "filter" not in f:
+            continue
+        codes = [term.removeprefix("vm110.expert.") for term in f["filter"].split(" || ")]
+        marked = {r.number for r in rows if any(r.has(code) for code in codes)}
+        items = {item["frame"] for item in f["items"]}
+        assert items <= marked and len(marked) == len(items) + f.get("more", 0), f["rule"]
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_the_findings_filters_are_wireshark_filters(tshark, tmp_path):
+    """Each rule's filter compiles, and shows every duplicate of overlap.pcapng: 107, of which the
+    report keeps 100."""
+    from vm110.analysis.findings import RULE_FILTERS
+    capture = CAPTURES / "overlap.pcapng"
+    report = analyze(str(capture))
+    dup = next(f for f in report["verdict"]["findings"] if f["rule"] == "duplicates")
+    assert (dup["count"], dup.get("more")) == (107, 7)
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            (ws.dir / capture.name).write_bytes(capture.read_bytes())
+            every = " || ".join(f"({f})" for f in RULE_FILTERS.values())
+            for expression, expected in ((dup["filter"], 107), (every, None)):
+                proc = ws.run(["-r", str(ws.dir / capture.name), "-2", "-Y", expression], check=False)
+                assert proc.returncode == 0, f"{expression!r}: {proc.stderr.strip()}"
+                assert expected is None or len(proc.stdout.splitlines()) == expected
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)

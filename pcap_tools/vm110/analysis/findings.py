@@ -75,6 +75,26 @@ FINDINGS = (
     ("snaplen_truncated", "warning", "datagrams cut short by the capture's snaplen"),
 )
 
+# The dissector's experts that mark exactly the frames of a rule's items (tshark -2, or the GUI):
+# the filter that shows all of them, also those beyond the MAX_ITEMS the report keeps. The other
+# rules have none: lost (the dissector also marks a gap whose packets all came later), failed (also
+# a command still in flight at the end), vrpo_incomplete (marked on the burst's last packet),
+# relays_open (marked on every packet of an episode) and snaplen_truncated (with other truncations).
+RULE_FILTERS = {
+    "illegal": " || ".join(f"vm110.expert.{problem.value}" for problem in C.Problem),
+    "watchdog": "vm110.expert.watchdog_vrpi || vm110.expert.watchdog_vrpo || vm110.expert.silent_until_end",
+    "unacked": "vm110.expert.never_acked",
+    "restarts": "vm110.expert.restart",
+    "interrupted": "vm110.expert.command_interrupted",
+    "duplicates": "vm110.expert.serial_duplicate",
+    "out_of_order": "vm110.expert.serial_out_of_order",
+    "spurious": "vm110.expert.spurious_retransmission",
+    "acks_without_command": "vm110.expert.ack_without_command",
+    "duplicate_acks": "vm110.expert.duplicate_ack",
+    "vrpo_outside_recommended": "vm110.expert.vrpo_interval",
+    "time_backwards": "vm110.expert.time_backwards",
+}
+
 
 def frame_filter(frames: list[int]) -> str:
     """A display filter selecting these frames (a range beyond MAX_FILTER_FRAMES of them)."""
@@ -225,10 +245,13 @@ def _items(kept: Kept) -> dict:
     return out
 
 
-def verdict(report: dict, located: Located) -> dict:
+def verdict(report: dict, located: Located, as_wireshark: bool) -> dict:
+    """The findings; `as_wireshark`: the dissector's default preferences judge as the report did,
+    so that each rule's filter (RULE_FILTERS) is given."""
     tot = report["totals"]
+    filters = RULE_FILTERS if as_wireshark else {}
     findings = [{"rule": key, "severity": sev, "count": tot[key], "message": f"{tot[key]} {msg}",
-                 **_items(located.get(key, Kept()))}
+                 **({"filter": filters[key]} if key in filters else {}), **_items(located.get(key, Kept()))}
                 for key, sev, msg in FINDINGS if tot[key] > 0]
     cap = report["capture"]
     if cap["problem"]:

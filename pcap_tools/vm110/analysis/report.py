@@ -2,13 +2,14 @@
 report, docs/report.md) and its verdict."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Optional
 
 import numpy as np
 
 from .. import __version__
 from .. import constants as C
+from .. import crc
 from . import commands, findings, serials, timing
 from .collect import CODE, TYPES, VRPO_CODE, Collected
 from .report_json import normalise
@@ -109,8 +110,18 @@ def _build(got: Collected) -> dict:
     findings.locate_report(report, tallies, located)
     report = normalise(report)
     report["totals"] = findings.totals(report)
-    report["verdict"] = normalise(findings.verdict(report, located))
+    report["verdict"] = normalise(findings.verdict(report, located, _judged_as_wireshark(report, opt)))
     return report
+
+
+def _judged_as_wireshark(report: dict, opt: Options) -> bool:
+    """Whether the dissector, with its default preferences, judges this capture as the report
+    does (only then do the verdict's rule filters show the same frames): default options, the
+    serials of every sender counted per sender, and the CRC the dissector checks by default."""
+    return (replace(opt, serial_scope="sender") == Options(serial_scope="sender")
+            and all(s["serial"]["scope"] == "sender" for s in report["senders"])
+            and report["crc"]["variant"] == crc.DEFAULT_VARIANT
+            and report["crc"]["byte_order"] == crc.DEFAULT_BYTE_ORDER)
 
 
 def _sender_report(snd: Sender, where: findings.Where) -> dict:

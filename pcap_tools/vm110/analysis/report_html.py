@@ -462,7 +462,9 @@ def _findings_table(findings: list[dict], t0: float) -> str:
                         f"<td>{_e(what)}</td>"
                         f'<td><code class="filter">{_e(item["filter"])}</code></td></tr>')
         if f.get("more"):
-            rows.append(f'<tr><td>{_e(f["rule"])}</td><td colspan="5">… {f["more"]} more in the JSON report</td></tr>')
+            where = (f'all of them in Wireshark: <code class="filter">{_e(f["filter"])}</code>' if f.get("filter")
+                     else f'the reports keep the first {len(f["items"])}')
+            rows.append(f'<tr><td>{_e(f["rule"])}</td><td colspan="5">… {f["more"]} more ({where})</td></tr>')
     if not rows:
         return ""
     head = "".join(f"<th>{h}</th>" for h in ("finding", "frames", "time (s)", "sender", "what", "display filter"))

@@ -50,14 +50,22 @@ def _finding(f: dict, everything: bool, t0: float) -> list[str]:
     items = f.get("items", [])
     shown = items if everything else items[:SHOWN_ITEMS]
     lines = [f"  {f['severity']:<7} {f['message']}"] + [f"            {_item(i, t0)}" for i in shown]
-    rest = len(items) - len(shown) + f.get("more", 0)
+    more = f.get("more", 0)
+    rest = len(items) - len(shown) + more
     if rest:
-        lines.append(f"            ... {rest} more" + ("" if everything else " (--list, or the JSON report)"))
+        where = []
+        if len(shown) < len(items):
+            where.append("--list, or the JSON report" + (f": the first {len(items)}" if more else ""))
+        if f.get("filter"):
+            where.append(f"all of them in Wireshark: [{f['filter']}]")
+        elif more:
+            where.append(f"the report keeps the first {len(items)}")
+        lines.append(f"            ... {rest} more" + (f" ({'; '.join(where)})" if where else ""))
     return lines
 
 
 def render(report: dict, everything: bool = False) -> str:
-    """The summary; `everything`: every located item of each finding, not just the first few."""
+    """The summary; `everything`: the located items of each finding the report keeps, not just the first few."""
     cap, crc, verdict = report["capture"], report["crc"], report["verdict"]
     lines = [(f"{cap['file']}: {cap['packets']} packets, {cap['eglink_packets']} EG-Link, "
               f"{_f(cap['duration_s'])} s; CRC {crc['variant']}/{crc['byte_order']}"
