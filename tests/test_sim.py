@@ -104,6 +104,20 @@ def test_both_watchdogs_react_when_the_other_side_stops():
     assert all(f["bu_state"] == C.BuState.ARMED for t, f in states if t < trips[0]["t"] or t > back[0]["t"] + 0.2)
 
 
+def test_a_remote_disarmed_after_being_armed_sends_no_ru_data():
+    # Spec 4.1, Armed RU: "When 0, all the following fields are set to 0" (the RU's state, battery
+    # and RSSI of the armed step stayed, warned as disarmed_ru_data by decode and the dissector).
+    bu = RecordingBU(Remote.from_script({"steps": [{"at": 0, "state": "armed", "battery": 90, "rssi": 80},
+                                                  {"at": 0.5, "state": "disarmed", "unarmed_rus": 2}]}))
+    run_pair(bu, Controller(), 1.0)
+    states = [(now / 1e6, decode(data)) for now, data in bu.wire if data[:4] == b"VRPI"]
+    armed = [f for t, f in states if t < 0.45]
+    disarmed = [f for t, f in states if t > 0.55]
+    assert armed and all(f["armed_ru"] and f["ru_battery"] for f in armed)
+    assert disarmed and all(f["armed_ru"] == 0 and not f["warnings"] for f in disarmed), disarmed[0]
+    assert all((f["ru_state"], f["ru_battery"], f["ru_rssi"]) == (0, 0, 0) for f in disarmed)
+
+
 def test_illegal_packets_are_ignored_and_counted():
     reasons = ("bad_crc", "revision", "unknown_id", "size_mismatch", "size_too_large", "truncated",
                "revision+bad_crc")

@@ -35,6 +35,7 @@ _JOYSTICK_PERIODS_US = (4_000_000, 6_000_000, 5_000_000, 7_000_000)
 VRPI_NAMES = tuple(f.name for f in P.PACKETS[C.PacketType.VRPI].fields)
 _VRPI_DEFAULTS = tuple(f.default for f in P.PACKETS[C.PacketType.VRPI].fields)
 VRPI_INDEX = {name: i for i, name in enumerate(VRPI_NAMES)}
+_RU_FIELDS = tuple(f.name for f in P.PACKETS[C.PacketType.VRPI].fields if f.ru)
 _ARMED_RU, _BATTERY, _RU_STATE = VRPI_INDEX["armed_ru"], VRPI_INDEX["ru_battery"], VRPI_INDEX["ru_state"]
 _JOYSTICKS = tuple(VRPI_INDEX[f"joystick{i}"] for i in range(1, C.JOYSTICKS + 1))
 _SWITCHES = tuple(VRPI_INDEX[f"switch{i}"] for i in range(1, C.SWITCHES + 1))
@@ -124,10 +125,12 @@ def armed_fields(ru: int = DEFAULT_RU, battery: int = 90, rssi: int = 80) -> dic
 
 
 def disarmed_fields(unarmed_rus: int = 0) -> dict[str, int]:
-    """No RU data (section 4.1: all RU fields 0); C-Link passive when no remote talks to the BU."""
+    """No RU data (section 4.1: all RU fields 0, also those an armed step before set); C-Link
+    passive when no remote talks to the BU."""
     return {"bu_state": C.BuState.DISARMED, "vlaps": 1, "unarmed_rus": unarmed_rus,
             "eg_link": C.LinkStatus.OPERATIONAL, "ec_link": C.LinkStatus.OPERATIONAL,
-            "c_link": C.LinkStatus.OPERATIONAL if unarmed_rus else C.LinkStatus.PASSIVE, "armed_ru": 0}
+            "c_link": C.LinkStatus.OPERATIONAL if unarmed_rus else C.LinkStatus.PASSIVE, "armed_ru": 0,
+            **dict.fromkeys(_RU_FIELDS, 0)}
 
 
 @dataclass
