@@ -5,6 +5,7 @@ few seconds of wall-clock time.
 """
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import re
@@ -140,14 +141,16 @@ def test_illegal_packets_are_ignored_and_counted():
 
 def test_cli_simulators_talk_over_loopback():
     ctl_rx, bu_rx = free_ports(2)
-    common = ["--source", f"{LOOPBACK}:0", "--duration", "2.5", "--json"]
+    common = ["--source", f"{LOOPBACK}:0", "--json"]
     vm110 = [sys.executable, "-m", "vm110", "simulate"]
+    # The controller outlives the BU (however long the BU's start takes): the BU hears it all its 2.5 s.
     with subprocess.Popen(vm110 + ["controller", "--listen", f"{LOOPBACK}:{ctl_rx}", "--peer", f"{LOOPBACK}:{bu_rx}",
-                                   "--command-every", "0.5", *common], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                          text=True) as ctl:
+                                   "--command-every", "0.5", "--duration", "6", *common], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True) as ctl:
         assert "receiving on" in ctl.stderr.readline()      # listening before the BU speaks
         bu = subprocess.run(vm110 + ["bu", "--listen", f"{LOOPBACK}:{bu_rx}", "--peer", f"{LOOPBACK}:{ctl_rx}",
-                                     "--command-every", "0.3", "--loss", "10", "--seed", "5", *common],
+                                     "--command-every", "0.3", "--loss", "10", "--seed", "5", "--duration", "2.5",
+                                     *common],
                             capture_output=True, text=True, timeout=20)
         ctl_out, _ = ctl.communicate(timeout=20)
     assert bu.returncode == 0 and ctl.returncode == 0, bu.stderr
@@ -167,6 +170,8 @@ def test_cli_usage_errors_are_one_line_with_exit_code_2(tmp_path):
     vm110 = [sys.executable, "-m", "vm110", "simulate"]
     bad_script = tmp_path / "remote.json"
     bad_script.write_text('{"steps": [{"at": 0, "state": "flying"}]}')
+    good_script = tmp_path / "good.json"
+    good_script.write_text('{"steps": [{"at": 0, "state": "armed"}]}')
     for args in (["bu", "--peer", "not-an-address"],
                  ["controller", "--listen", "127.0.0.1:99999"],
                  ["bu", "--stall", "5:3"],
@@ -176,7 +181,14 @@ def test_cli_usage_errors_are_one_line_with_exit_code_2(tmp_path):
                  ["bu", "--restart", "soon"],
                  ["controller", "--restart", "3:70000"],
                  ["controller", "--restart", "3", "--restart-silence", "0", "--duration", "1"],
-                 ["bu", "--script", str(bad_script), "--listen", f"{LOOPBACK}:0", "--peer", f"{LOOPBACK}:9"]):
+                 ["bu", "--script", str(bad_script), "--listen", f"{LOOPBACK}:0", "--peer", f"{LOOPBACK}:9"],
+                 # (a script and the flags it replaces: the flags were ignored without a word)
+                 ["bu", "--script", str(good_script), "--no-motion", "--listen", f"{LOOPBACK}:0", "--peer",
+                  f"{LOOPBACK}:9"],
+                 ["bu", "--script", str(good_script), "--command-every", "1", "--listen", f"{LOOPBACK}:0"],
+                 # (below the clock's 1 µs: 0, which means none (BU), or a command every tick (controller))
+                 ["bu", "--command-every", "1e-9"],
+                 ["controller", "--command-every", "0.0000005"]):
         done = subprocess.run(vm110 + args, capture_output=True, text=True, timeout=20)
         assert done.returncode == 2, (args, done.stderr)
         assert "Traceback" not in done.stderr and done.stderr.strip(), args
@@ -278,12 +290,20 @@ def test_cli_restart_stop_and_mirror_options():
     ({"steps": [{"at": 0, "colour": "red"}]}, "steps[0] has unknown key 'colour'"),
     ({"steps": [{"at": float("nan")}]}, "steps[0].at is 'nan'"),
     ({"commands": [{"at": 1, "data": 5}]}, "commands[0].data must be a string"),
+    ({"command_every": 1e-9}, "command_every is 1e-09: must be 0 (none) or at least 1e-06 s"),   # was none
 ])
 def test_a_script_is_checked_before_anything_is_sent(tmp_path, script, message):
     path = tmp_path / "remote.json"
     path.write_text(json.dumps(script))
     with pytest.raises(CliError, match=re.escape(message)):
         Remote.load(str(path))
+
+
+def test_a_unicast_address_is_one_simulators_alone():
+    # Two on one address shared its packets (SO_REUSEADDR): a simulator left running took half.
+    cfg = UdpConfig(listen=(LOOPBACK, free_ports(1)[0]), dest=(LOOPBACK, 9), source=(LOOPBACK, 0))
+    with contextlib.closing(UdpTransport(cfg).open()), pytest.raises(CliError, match="Address already in use"):
+        UdpTransport(cfg).open()
 
 
 def test_a_script_nested_too_deeply_is_one_line(tmp_path):

@@ -24,6 +24,7 @@ class NumberType:
     unit: str = ""
     integer: bool = False
     allow_zero: bool = True
+    least: Number = 0             # the smallest value above 0 (an interval finer than a clock is 0)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.low) and math.isfinite(self.high) and self.low <= self.high):
@@ -33,6 +34,8 @@ class NumberType:
     def range_text(self) -> str:
         """E.g. "1 to 1000", "above 0 and at most 3600 s", "-10 to 10 mm, not 0"."""
         unit = f" {self.unit}" if self.unit else ""
+        if self.low == 0 and self.least:
+            return f"0 or {_show(self.least)} to {_show(self.high)}{unit}"
         if self.low == 0 and not self.allow_zero:
             return f"above 0 and at most {_show(self.high)}{unit}"
         excluded = ", not 0" if self.low < 0 < self.high and not self.allow_zero else ""
@@ -41,7 +44,7 @@ class NumberType:
     def __call__(self, text: str) -> Number:
         value = self._parse(text)
         inside = math.isfinite(value) and self.low <= value <= self.high
-        if not inside or (value == 0 and not self.allow_zero):
+        if not inside or (value == 0 and not self.allow_zero) or 0 < value < self.least:
             raise argparse.ArgumentTypeError(f"{text[:40]!r} is out of range: must be {self.range_text}")
         return value
 
@@ -61,10 +64,10 @@ class NumberType:
 
 
 def number(low: Number, high: Number, unit: str = "", integer: bool = False,
-           allow_zero: bool = True) -> NumberType:
+           allow_zero: bool = True, least: Number = 0) -> NumberType:
     """An argparse `type=` for a value in [low, high] (both included; 0 left out when not
-    `allow_zero`), in `unit`; integers only when `integer`."""
-    return NumberType(low, high, unit, integer, allow_zero)
+    `allow_zero`; with `least`, nothing between 0 and it), in `unit`; integers only when `integer`."""
+    return NumberType(low, high, unit, integer, allow_zero, least)
 
 
 def port(room_above: int = 0) -> NumberType:

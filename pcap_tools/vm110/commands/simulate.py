@@ -26,7 +26,7 @@ from ..sim.controller import Controller, ControllerConfig
 from ..sim.impair import Impairer, Impairment
 from ..sim.lifecycle import DEFAULT_SILENCE_S, Restart
 from ..sim.realtime import RealtimeRunner
-from ..sim.remote import Remote
+from ..sim.remote import EVERY_LEAST_S, Remote
 from ..sim.transport import Address, UdpConfig, UdpTransport, multicast_config, parse_address
 from ..timefmt import utc_iso
 from .options import INPUT_PORT, INPUT_PORT_HELP, SEED
@@ -36,7 +36,7 @@ from .options import INPUT_PORT, INPUT_PORT_HELP, SEED
 MAX_S = 30 * 86400
 TIME = number(0, MAX_S, "s")
 DURATION = number(0, MAX_S, "s", allow_zero=False)
-EVERY = number(0, MAX_S, "s")                       # 0: never
+EVERY = number(0, MAX_S, "s", least=EVERY_LEAST_S)   # 0: never
 WINDOW = span(TIME)
 RESTART = fields(("AT", "NEW_PORT"), (TIME, number(0, 0xFFFF, integer=True)), required=1)
 PCT = number(0, 100, "percent")
@@ -189,6 +189,12 @@ def life(args: argparse.Namespace) -> dict[str, Any]:
 
 def build_node(args: argparse.Namespace, printer: Callable[[int, str], None]) -> Any:
     if args.role == "bu":
+        if args.script:
+            given = [name for name, on in (("--disarmed", args.disarmed), ("--unarmed-rus", args.unarmed_rus),
+                                           ("--no-motion", args.no_motion), ("--command-every", args.command_every))
+                     if on]
+            if given:
+                raise CliError(f"{given[0]} and --script contradict each other: the script says what the remote does")
         remote = Remote.load(args.script) if args.script else Remote.simple(
             armed=not args.disarmed, unarmed_rus=args.unarmed_rus, motion=not args.no_motion,
             command_every=args.command_every)

@@ -35,6 +35,7 @@ _JOYSTICK_PERIODS_US = (4_000_000, 6_000_000, 5_000_000, 7_000_000)
 VRPI_NAMES = tuple(f.name for f in P.PACKETS[C.PacketType.VRPI].fields)
 _VRPI_DEFAULTS = tuple(f.default for f in P.PACKETS[C.PacketType.VRPI].fields)
 VRPI_INDEX = {name: i for i, name in enumerate(VRPI_NAMES)}
+EVERY_LEAST_S = 1e-6     # the clock's step: a shorter interval would be 0, which means none
 _RU_FIELDS = tuple(f.name for f in P.PACKETS[C.PacketType.VRPI].fields if f.ru)
 _ARMED_RU, _BATTERY, _RU_STATE = VRPI_INDEX["armed_ru"], VRPI_INDEX["ru_battery"], VRPI_INDEX["ru_state"]
 _JOYSTICKS = tuple(VRPI_INDEX[f"joystick{i}"] for i in range(1, C.JOYSTICKS + 1))
@@ -92,6 +93,9 @@ def check_script(script: Any) -> None:
     for key in ("command_every", "command_until"):
         if key in script:
             _number(key, script[key], 0, _MAX_S)
+    if 0 < script.get("command_every", 0) < EVERY_LEAST_S:
+        raise CliError(f"remote script: command_every is {script['command_every']!r}: must be 0 (none) "
+                       f"or at least {EVERY_LEAST_S:g} s (the clock's step)")
     for i, raw in enumerate(_list("steps", script.get("steps", []))):
         step = _object(f"steps[{i}]", raw, "step")
         _number(f"steps[{i}].at", step.get("at", 0), 0, _MAX_S)

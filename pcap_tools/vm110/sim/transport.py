@@ -74,8 +74,10 @@ class UdpTransport:
         cfg = self.config
         try:
             self.rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            self.rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             if cfg.group:
+                # (a group's port is shared with the other listeners of the group; a unicast one is
+                # ours alone: a simulator left running on it would take half of our packets)
+                self.rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
                 self.rx.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
                 self.rx.bind(("0.0.0.0" if cfg.listen[0] in ("", "0.0.0.0") else cfg.listen[0], cfg.listen[1]))
                 membership = socket.inet_aton(cfg.group) + socket.inet_aton(cfg.iface)
