@@ -110,6 +110,19 @@ def refused_in_one_line(code: int, err: str, path: tuple[str, ...], option: str)
     return lines[0]
 
 
+# What each command needs before an unknown argument is the only thing wrong (dissect passes what
+# follows its capture to tshark).
+NEEDS = {"analyze": ["c.pcap"], "craft": ["--out", "o.pcap"], "decode": ["c.pcap"], "fleet": ["query", "d"],
+         "monitor": ["--read", "c.pcap"], "simulate": ["bu"], "wireshark": ["path"]}
+
+
+@pytest.mark.parametrize("command", sorted(set(cli.COMMANDS) - {"dissect"}))
+def test_an_unknown_argument_is_told_by_its_command(capsys, command):
+    # (argparse leaves it to the top parser: "vm110: unrecognized arguments")
+    code, err = in_process(capsys, [command, *NEEDS.get(command, []), "--no-such-option"])
+    refused_in_one_line(code, err, (command,), "unrecognized arguments: --no-such-option")
+
+
 @pytest.mark.parametrize("path, option, value, args", CASES)
 def test_every_numeric_option_refuses_bad_values(capsys, path, option, value, args):
     code, err, sentinel = outcome(capsys, path, args)

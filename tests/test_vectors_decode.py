@@ -26,3 +26,12 @@ def test_decode_matches_vector(vector):
     assert sorted(got["problems"]) == vector["problems"]
     assert sorted(got["warnings"]) == vector["warnings"]
     assert {k: v for k, v in got.items() if k not in GENERATED} == expected_fields(vector)
+
+
+@pytest.mark.parametrize("kind", [bytearray, memoryview])
+def test_decode_takes_any_bytes_like_object(kind):
+    # (README: "it never raises"; a bytearray was a TypeError, a memoryview an AttributeError)
+    for vector in VECTORS:
+        data = packet_bytes(vector)
+        assert decode(kind(data), vector["crc_variant"], vector["crc_byte_order"]) == decode(
+            data, vector["crc_variant"], vector["crc_byte_order"])

@@ -32,13 +32,24 @@ class Parser(argparse.ArgumentParser):
     """Usage errors as one line, `vm110 <cmd>: <message>`, exit 2: the message names the option,
     and the usage lines argparse prints first would bury it (`--help` gives them)."""
 
+    commands: dict[str, argparse.ArgumentParser]
+
     def error(self, message: str) -> NoReturn:
         command = " ".join(self.prog.split()[:2])     # a role (simulate bu) is not part of the name
         self.exit(EXIT_USAGE, f"{command}: {' '.join(message.splitlines())}\n")
 
+    def parse_command(self, argv: Optional[Sequence[str]]) -> argparse.Namespace:
+        """parse_args, with an unknown argument told by its command ("vm110 analyze: ..."; argparse
+        leaves it to the top parser, which says "vm110: ...")."""
+        args, extra = self.parse_known_args(argv)
+        if extra:
+            self.commands[args.command].error(f"unrecognized arguments: {' '.join(extra)}")
+        return args
 
-def build_parser() -> argparse.ArgumentParser:
+
+def build_parser() -> Parser:
     parser = Parser(prog="vm110", description="Tools for the VM-110 EG-Link (TS-0006).")
+    parser.commands = {}
     parser.add_argument("--version", action="version", version=f"vm110 {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, module_name in COMMANDS.items():
@@ -47,11 +58,12 @@ def build_parser() -> argparse.ArgumentParser:
         command = sub.add_parser(name, help=doc[0] if doc else None, description=module.__doc__)
         module.add_arguments(command)
         command.set_defaults(run=module.run)
+        parser.commands[name] = command
     return parser
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_command(argv)
     # A closed pipe ends the output quietly, and the final flush is made here, not at exit. It
     # keeps the command's code; one that escapes the command keeps 0: commands with a verdict
     # (analyze) catch it around their output and go on to the verdict.

@@ -79,8 +79,10 @@ def crc_span(data: bytes, size: int) -> int:
     return min(C.PREFIX_LEN + size, len(data) - C.CRC_LEN)
 
 
-def decode(data: bytes, crc: str = DEFAULT_VARIANT, crc_order: str = DEFAULT_BYTE_ORDER) -> dict[str, Any]:
-    """Decode one EG-Link UDP payload. Never raises on any input bytes.
+def decode(data: bytes | bytearray | memoryview, crc: str = DEFAULT_VARIANT,
+           crc_order: str = DEFAULT_BYTE_ORDER) -> dict[str, Any]:
+    """Decode one EG-Link UDP payload. Never raises on any input bytes (also a bytearray or a
+    memoryview, as a socket's recv_into or scapy's raw() may give them).
 
     Returns canonical field names (those of the scapy layers and of `vm110.<name>` in Wireshark),
     the generated `direction`, `crc.calculated`, `crc.status` and (VRPI) `es_relays_open`, plus `problems`
@@ -88,6 +90,8 @@ def decode(data: bytes, crc: str = DEFAULT_VARIANT, crc_order: str = DEFAULT_BYT
     """
     crc_fn = crc_function(crc)
     order = check_byte_order(crc_order)
+    if not isinstance(data, bytes):
+        data = bytes(data)
     out: dict[str, Any] = {}
     problems: list[str] = []
     warnings: list[str] = []
