@@ -5,6 +5,7 @@ import json
 import subprocess
 import sys
 
+import pytest
 from vm110.errors import EXIT_OK, EXIT_USAGE
 
 
@@ -12,9 +13,11 @@ def vm110(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "vm110", *args], capture_output=True, text=True)
 
 
-def test_craft_then_decode_gives_every_type(tmp_path):
-    capture = tmp_path / "crafted.pcap"
+@pytest.mark.parametrize("name, magic", [("crafted.pcap", b"\xd4\xc3\xb2\xa1"), ("crafted.pcapng", b"\n\r\r\n")])
+def test_craft_then_decode_gives_every_type(tmp_path, name, magic):
+    capture = tmp_path / name            # (a .pcapng was written as pcap)
     assert vm110("craft", "--out", str(capture)).returncode == EXIT_OK
+    assert capture.read_bytes()[:4] == magic
     result = vm110("decode", str(capture), "--json")
     assert result.returncode == EXIT_OK, result.stderr
     packets = [json.loads(line) for line in result.stdout.splitlines()]

@@ -12,7 +12,7 @@ from scapy.layers.inet import IP, UDP
 from scapy.layers.l2 import Ether
 
 from .. import constants as C
-from ..capture.writer import PcapWriter
+from ..capture.writer import Format, open_writer
 from ..fileio import atomic_writer
 from ..layers import VM110, VRAI, VRAO, VRCI, VRCO, VRPI, VRPO
 
@@ -58,12 +58,14 @@ def _frame(src: str, port: int, packet):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True,
-                        help="capture file to write (pcap), through a temporary file renamed into place")
+                        help="capture file to write (pcapng when it ends in .pcapng, else pcap), through a "
+                             "temporary file renamed into place")
 
 
 def run(args: argparse.Namespace) -> int:
     frames = sample_packets()
-    with atomic_writer(args.out) as stream, PcapWriter(stream) as writer:
+    fmt: Format = "pcapng" if args.out.endswith(".pcapng") else "pcap"      # (as synth names it)
+    with atomic_writer(args.out) as stream, open_writer(stream, fmt) as writer:
         writer.write_many((round(frame.time * 1_000_000), bytes(frame)) for frame in frames)
     print(f"wrote {len(frames)} packets to {args.out}")
     return 0
