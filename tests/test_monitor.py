@@ -104,6 +104,20 @@ def test_monitor_matches_analyze_when_the_clock_steps_back(sc):
     assert a == m
 
 
+def test_the_dashboard_gives_each_latest_finding_its_filter(tmp_path):
+    from vm110.monitor import dashboard
+    lines = tmp_path / "live.jsonl"
+    assert main(["monitor", "--read", str(ROOT / "captures" / "loss.pcapng"), "--idle", "0", "--no-dashboard",
+                 "--quiet", "--json-lines", str(lines)]) == 0
+    objects = [json.loads(line) for line in lines.read_text().splitlines()]
+    findings = [o for o in objects if o["type"] == "finding"]
+    header = {"source": "loss.pcapng", "now": findings[-1]["at"], "status": "done", "packets": 612, "rate": 0.0,
+              "eglink": 612, "illegal": 0, "alarms": []}
+    shown = dashboard.render(header, [o for o in objects if o["type"] == "snapshot"][-1], findings, 200, 40)
+    last = [line for line in shown if line.endswith(f"[{findings[-1]['item']['filter']}]")]
+    assert last and f"#{findings[-1]['frame']} " in last[0]
+
+
 def test_findings_json_lines_and_evidence_of_a_silent_base_unit(tmp_path, capsys):
     capture = str(ROOT / "captures" / "bu-stops.pcap")
     lines, evidence = tmp_path / "live.jsonl", tmp_path / "evidence"

@@ -58,7 +58,9 @@ def finding_line(f: dict) -> str:
     sev = "ERROR" if f["severity"] == "error" else "warn "
     event = {"raised": "!", "cleared": "ok", "found": ""}.get(f["event"], "")
     who = f" {short(f['sender'])}" if f.get("sender") else ""
-    return f"{clock(f['time'])} #{f['frame']} {sev} {f['rule']}{(' ' + event) if event else ''}{who}: {f['message']}"
+    where = (f.get("item") or {}).get("filter")
+    return (f"{clock(f['time'])} #{f['frame']} {sev} {f['rule']}{(' ' + event) if event else ''}{who}: {f['message']}"
+            + (f"  [{where}]" if where else ""))
 
 
 def render(header: dict, view: dict, findings: list[dict], width: int, height: int) -> list[str]:
