@@ -37,6 +37,9 @@ def test_dissect_matches_vector(vector):
     with crc_settings(vector["crc_variant"], vector["crc_byte_order"]):
         pkt = VM110(packet_bytes(vector))
         assert pkt.crc_ok() == ("bad_crc" not in vector["problems"])
+    # Written back after the block (wrpcap of what rdpcap read in it): the same bytes, the CRC in
+    # the byte order it was read in (a big-endian one came back little-endian).
+    assert bytes(pkt) == bytes(pkt.copy()) == packet_bytes(vector)
     assert {k: pkt.getfieldval(k) for k in HEADER} == header
     if cls is None:
         assert not isinstance(pkt.payload, tuple(PAYLOAD_CLASSES.values()))

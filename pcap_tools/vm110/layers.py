@@ -59,20 +59,31 @@ def crc_settings(variant: str = DEFAULT_VARIANT, order: str = DEFAULT_BYTE_ORDER
         cfg.update(saved)
 
 
+class StoredCRC(int):
+    """A dissected CRC: written back in the byte order it was read in, whatever the settings are
+    by then (a packet read inside `crc_settings(..., "big")` and written after it keeps its bytes)."""
+
+    order: str
+
+
 class CRCField(Field[Optional[int], bytes]):
-    """32-bit CRC stored in the configured byte order."""
+    """32-bit CRC stored in the configured byte order (a dissected one: in its own)."""
 
     def __init__(self, name: str, default: Optional[int]) -> None:
         super().__init__(name, default, "<I")
 
-    def _struct(self) -> struct.Struct:
-        return struct.Struct("<I" if _settings()[1] == "little" else ">I")
+    @staticmethod
+    def _struct(order: str) -> struct.Struct:
+        return struct.Struct("<I" if order == "little" else ">I")
 
     def addfield(self, pkt: Packet, s: bytes, val: Optional[int]) -> bytes:
-        return s + self._struct().pack(self.i2m(pkt, val) or 0)
+        order = val.order if isinstance(val, StoredCRC) else _settings()[1]
+        return s + self._struct(order).pack(self.i2m(pkt, val) or 0)
 
     def getfield(self, pkt: Packet, s: bytes) -> tuple[bytes, int]:
-        return s[4:], self._struct().unpack_from(s)[0]
+        crc = StoredCRC(self._struct(_settings()[1]).unpack_from(s)[0])
+        crc.order = _settings()[1]
+        return s[4:], crc
 
     def i2repr(self, pkt: Optional[Packet], x: Optional[int]) -> str:
         return "None" if x is None else f"0x{x:08X}"
