@@ -106,6 +106,9 @@ def test_bind_other_input_port():
     finally:
         unbind_ports(7000)
     assert not dissected(7002)
+    for port in (0, -1, 65534, 5825.5, "x", True):       # (output port 65536; all were bound, "x" a TypeError)
+        with pytest.raises(ValueError, match="an integer from 1 to 65533"):
+            bind_ports(port)
 
 
 def test_ack_answers_command_with_same_id():

@@ -291,6 +291,7 @@ def test_cli_restart_stop_and_mirror_options():
     ({"steps": [{"at": float("nan")}]}, "steps[0].at is 'nan'"),
     ({"commands": [{"at": 1, "data": 5}]}, "commands[0].data must be a string"),
     ({"command_every": 1e-9}, "command_every is 1e-09: must be 0 (none) or at least 1e-06 s"),   # was none
+    ({"steps": [{"at": 0}] * 100_001}, "steps has 100001 entries (at most 100000)"),
 ])
 def test_a_script_is_checked_before_anything_is_sent(tmp_path, script, message):
     path = tmp_path / "remote.json"

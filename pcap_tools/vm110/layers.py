@@ -254,7 +254,11 @@ _bound_ports: list[int] = []
 
 
 def bind_ports(input_port: int = C.INPUT_PORT) -> None:
-    """Decode UDP on `input_port` and `input_port + 2` (both directions) as EG-Link."""
+    """Decode UDP on `input_port` and `input_port + 2` (both directions) as EG-Link; ValueError for
+    an input port whose output port would be no UDP port."""
+    if isinstance(input_port, bool) or not isinstance(input_port, int) or not (
+            0 < input_port <= 0xFFFF - C.OUTPUT_PORT_OFFSET):
+        raise ValueError(f"input port {input_port!r}: an integer from 1 to {0xFFFF - C.OUTPUT_PORT_OFFSET}")
     ports = (input_port, input_port + C.OUTPUT_PORT_OFFSET)
     for port in ports:
         if port not in _bound_ports:

@@ -35,6 +35,7 @@ _JOYSTICK_PERIODS_US = (4_000_000, 6_000_000, 5_000_000, 7_000_000)
 VRPI_NAMES = tuple(f.name for f in P.PACKETS[C.PacketType.VRPI].fields)
 _VRPI_DEFAULTS = tuple(f.default for f in P.PACKETS[C.PacketType.VRPI].fields)
 VRPI_INDEX = {name: i for i, name in enumerate(VRPI_NAMES)}
+_MAX_ENTRIES = 100_000   # steps, commands: a 16 MiB script of 1.5 M steps took 1.3 GB before it began
 EVERY_LEAST_S = 1e-6     # the clock's step: a shorter interval would be 0, which means none
 _RU_FIELDS = tuple(f.name for f in P.PACKETS[C.PacketType.VRPI].fields if f.ru)
 _ARMED_RU, _BATTERY, _RU_STATE = VRPI_INDEX["armed_ru"], VRPI_INDEX["ru_battery"], VRPI_INDEX["ru_state"]
@@ -83,6 +84,8 @@ def _object(where: str, value: Any, keys: str) -> Mapping[str, Any]:
 def _list(where: str, value: Any) -> list:
     if not isinstance(value, list):
         raise CliError(f"remote script: {where} must be a JSON list")
+    if len(value) > _MAX_ENTRIES:
+        raise CliError(f"remote script: {where} has {len(value)} entries (at most {_MAX_ENTRIES})")
     return value
 
 
