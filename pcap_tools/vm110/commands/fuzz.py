@@ -68,7 +68,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=SEED, default=0, help=f"case schedule seed, {SEED.range_text} (default 0)")
     stop = parser.add_mutually_exclusive_group()
     stop.add_argument("--duration", type=DURATION, metavar="S",
-                      help=f"seconds to fuzz, {DURATION.range_text} (default {DEFAULT_DURATION_S:.0f})")
+                      help=f"seconds to start new cases, {DURATION.range_text} (default {DEFAULT_DURATION_S:.0f}); "
+                           "judging the last ones, replays and minimisation come on top")
     stop.add_argument("--cases", type=CASES, metavar="N", help=f"number of cases to run, {CASES.range_text}")
     parser.add_argument("--rate", type=RATE, metavar="PPS",
                         help=f"case packets per second at most, {RATE.range_text} (default {DEFAULT_RATE:.0f}, "
