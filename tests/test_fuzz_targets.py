@@ -290,7 +290,7 @@ def test_corpus_case_replays(tmp_path, programs):
     assert crashed.returncode == 1 and "crash: crash SIGSEGV in maintenance_engage" in crashed.stdout, crashed.stdout
     fine = replay_case("plain-correct")
     assert fine.returncode == 0 and "no trigger" in fine.stdout, fine.stdout + fine.stderr
-    path.write_text('{"vm110_corpus_entry": 1, "packets": []}')
+    path.write_text('{"vm110_corpus_entry": 1, "packets": [{"hex": "zz"}]}')     # (no packets: a case of waiting)
     bad = replay_case("plain-correct")
     assert bad.returncode == 2 and "not a valid vm110 corpus case" in bad.stderr
 
