@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from vm110.capture.writer import format_of
 from vm110.fileio import atomic_writer, write_text
 from vm110.sim.bu import BaseUnit, BaseUnitConfig
 from vm110.sim.clock import US_PER_S
@@ -113,7 +114,7 @@ def generate(out: str, duration: float = DURATION_S) -> dict[str, Any]:
         return built[-1]
     scenario = Scenario("crane", "a crane's machine data (dissector/examples/crane.lua)", duration, keep)
     with atomic_writer(out) as stream:
-        truth = write_capture(stream, scenario, 1, duration, "pcapng" if out.endswith(".pcapng") else "pcap")
+        truth = write_capture(stream, scenario, 1, duration, format_of(out))
         write_text(truth_path(out), json.dumps(truth, indent=1) + "\n")
     machine = machine_truth(built[0], duration)
     # One line per cycle and command: readable, and a diff shows which one changed.

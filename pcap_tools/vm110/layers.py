@@ -81,8 +81,9 @@ class CRCField(Field[Optional[int], bytes]):
         return s + self._struct(order).pack(self.i2m(pkt, val) or 0)
 
     def getfield(self, pkt: Packet, s: bytes) -> tuple[bytes, int]:
-        crc = StoredCRC(self._struct(_settings()[1]).unpack_from(s)[0])
-        crc.order = _settings()[1]
+        order = _settings()[1]
+        crc = StoredCRC(self._struct(order).unpack_from(s)[0])
+        crc.order = order
         return s[4:], crc
 
     def i2repr(self, pkt: Optional[Packet], x: Optional[int]) -> str:

@@ -21,6 +21,11 @@ UDP_HEADER_LEN = 8
 Format = Literal["pcap", "pcapng"]
 FORMATS: tuple[Format, ...] = ("pcap", "pcapng")
 
+
+def format_of(path: str) -> Format:
+    """The format a file name asks for: pcapng when it ends in .pcapng, else pcap."""
+    return "pcapng" if path.endswith(".pcapng") else "pcap"
+
 ETH_HEADER_LEN = 14
 # Ethernet + IPv4 + UDP headers in one go: the constant runs as bytes, the rest as numbers.
 _HEAD = struct.Struct("!16sHH4sH12sHH")

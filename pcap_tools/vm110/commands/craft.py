@@ -12,7 +12,7 @@ from scapy.layers.inet import IP, UDP
 from scapy.layers.l2 import Ether
 
 from .. import constants as C
-from ..capture.writer import Format, open_writer
+from ..capture.writer import format_of, open_writer
 from ..fileio import atomic_writer
 from ..layers import VM110, VRAI, VRAO, VRCI, VRCO, VRPI, VRPO
 
@@ -64,8 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     frames = sample_packets()
-    fmt: Format = "pcapng" if args.out.endswith(".pcapng") else "pcap"      # (as synth names it)
-    with atomic_writer(args.out) as stream, open_writer(stream, fmt) as writer:
+    with atomic_writer(args.out) as stream, open_writer(stream, format_of(args.out)) as writer:
         writer.write_many((round(frame.time * 1_000_000), bytes(frame)) for frame in frames)
     print(f"wrote {len(frames)} packets to {args.out}")
     return 0

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..capture.writer import FORMATS, Format
+from ..capture.writer import FORMATS, Format, format_of
 from ..errors import CliError
 from ..numbers import number
 from ..sim.scenario import SCENARIOS
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("give a SCENARIO and --out FILE (or --list)")
     if args.scenario not in SCENARIOS:
         raise CliError(f"unknown scenario {args.scenario!r}; choose from {', '.join(SCENARIOS)}")
-    fmt: Format = args.format or ("pcapng" if args.out.endswith(".pcapng") else "pcap")
+    fmt: Format = args.format or format_of(args.out)
     if args.duration is not None:
         check_size(args.scenario, args.duration, args.seed, fmt)
     truth = synthesize(args.scenario, args.out, args.seed, args.duration, fmt)
