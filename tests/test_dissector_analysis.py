@@ -24,6 +24,7 @@ from scapy.utils import rdpcap
 import tshark_runner as T
 from vm110 import constants as C
 from vm110.analysis import analyze
+from vm110.analysis.findings import RULE_FILTERS
 from vm110.decode import decode
 
 pytestmark = pytest.mark.tshark
@@ -818,15 +819,19 @@ def test_counts_equal_vm110_analyze(tshark, capture, tmp_path):
 _DEFAULT_REPORTS: dict = {}
 
 
+def default_report(capture: Path) -> dict:
+    """`vm110 analyze` with its default options, as a user runs it (once per capture)."""
+    if capture.name not in _DEFAULT_REPORTS:
+        _DEFAULT_REPORTS[capture.name] = analyze(str(capture))
+    return _DEFAULT_REPORTS[capture.name]
+
+
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 @pytest.mark.parametrize("capture", ALL_CAPTURES, ids=lambda p: p.name)
 def test_a_findings_filter_shows_its_items_and_no_other_frame(tshark, capture, tmp_path):
     """A finding's `filter` (the report with default options, as a user runs it) is the dissector's
     experts that mark exactly the frames of its items, and beyond them as many as `more` says."""
-    from vm110.analysis.findings import RULE_FILTERS
-    if capture.name not in _DEFAULT_REPORTS:
-        _DEFAULT_REPORTS[capture.name] = analyze(str(capture))
-    report = _DEFAULT_REPORTS[capture.name]
+    report = default_report(capture)
     rows = dissected(tshark, capture, tmp_path)
     per_sender = all(s["serial"]["scope"] == "sender" for s in report["senders"])
     for f in report["verdict"]["findings"]:
@@ -843,9 +848,8 @@ def test_a_findings_filter_shows_its_items_and_no_other_frame(tshark, capture, t
 def test_the_findings_filters_are_wireshark_filters(tshark, tmp_path):
     """Each rule's filter compiles, and shows every duplicate of overlap.pcapng: 107, of which the
     report keeps 100."""
-    from vm110.analysis.findings import RULE_FILTERS
     capture = CAPTURES / "overlap.pcapng"
-    report = analyze(str(capture))
+    report = default_report(capture)
     dup = next(f for f in report["verdict"]["findings"] if f["rule"] == "duplicates")
     assert (dup["count"], dup.get("more")) == (107, 7)
     try:

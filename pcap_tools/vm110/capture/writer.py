@@ -21,11 +21,6 @@ UDP_HEADER_LEN = 8
 Format = Literal["pcap", "pcapng"]
 FORMATS: tuple[Format, ...] = ("pcap", "pcapng")
 
-
-def format_of(path: str) -> Format:
-    """The format a file name asks for: pcapng when it ends in .pcapng, else pcap."""
-    return "pcapng" if path.endswith(".pcapng") else "pcap"
-
 ETH_HEADER_LEN = 14
 # Ethernet + IPv4 + UDP headers in one go: the constant runs as bytes, the rest as numbers.
 _HEAD = struct.Struct("!16sHH4sH12sHH")
@@ -199,6 +194,11 @@ class PcapngWriter(_Writer):
             length = overhead + size + len(pad)
             records.append(head(epb, length, 0, t >> 32, t & 0xFFFFFFFF, size, size) + frame + pad + tail(length))
         return records
+
+
+def format_of(path: str) -> Format:
+    """The format a file name asks for: pcapng when it ends in .pcapng, else pcap."""
+    return "pcapng" if path.endswith(".pcapng") else "pcap"
 
 
 def open_writer(stream: ByteSink, fmt: Format = "pcap") -> _Writer:
