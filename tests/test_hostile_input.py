@@ -70,6 +70,21 @@ def test_a_damaged_later_pcapng_section_keeps_what_came_before(tmp_path):
 
 
 @pytest.mark.tshark
+def test_a_fraction_of_a_million_microseconds_or_more_is_analysed_by_both_engines(tmp_path):
+    """A record's microseconds of 2,890,186,947 (self-fuzz): tshark prints the overflowed time as
+    "1750000009.-326043208"; the tshark engine read that as a ValueError and stopped."""
+    path = tmp_path / "usec.pcap"
+    _traffic(path)
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<I", data, _record_starts(bytes(data))[5] + 4, 2_890_186_947)
+    path.write_bytes(bytes(data))
+    for engine in ("fast", "tshark"):
+        done = vm110("analyze", str(path), "--engine", engine, "--quiet", "--json", "-")
+        assert done.returncode in (0, 1) and b"Error" not in done.stderr, (engine, done.stderr)
+        assert json.loads(done.stdout)["capture"]["packets"] == 12, engine
+
+
+@pytest.mark.tshark
 def test_the_tshark_engine_keeps_what_comes_before_a_cut(tmp_path):
     path = tmp_path / "cut.pcap"
     _traffic(path)

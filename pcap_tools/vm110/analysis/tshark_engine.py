@@ -49,6 +49,17 @@ def _int(value: str) -> int:
     return int(value, 0)
 
 
+def _epoch(text: str) -> float:
+    """A frame's time as tshark gives it. A pcap record whose microseconds are a million or more
+    overflows wiretap's nanoseconds, which tshark then prints negative ("1750000009.-326043208"):
+    its seconds plus those nanoseconds, the time tshark itself works with (self-fuzz found the
+    ValueError)."""
+    sec, _, frac = text.partition(".")
+    if frac.startswith("-") and frac[1:].isdigit():
+        return int(sec) - int(frac[1:]) * 1e-9
+    return float(text)
+
+
 class TsharkEngine:
     def __init__(self, port: int = C.INPUT_PORT, crc: str = "auto", crc_order: str = "auto") -> None:
         self.port, self.crc, self.crc_order = port, crc, crc_order
@@ -146,7 +157,7 @@ class TsharkEngine:
     def _eglink(self, got: Collected, pkt, layers: set) -> None:
         f = pkt.vm110._all_fields
         got.eglink += 1
-        frame, ts = int(pkt.frame_info.number), float(pkt.sniff_timestamp)
+        frame, ts = int(pkt.frame_info.number), _epoch(pkt.sniff_timestamp)
         src_text = pkt.ip.src if "ip" in layers else pkt.ipv6.src
         src = ipaddress.ip_address(src_text).packed
         sport = int(pkt.udp.srcport)
