@@ -871,7 +871,8 @@ vm110.prefs.vrci_fail_ms = Pref.uint("VRCI failure timeout (ms)", VRCI_FAIL_MS,
 vm110.prefs.vrco_give_up_ms = Pref.uint("VRCO give-up timeout (ms)", VRCO_GIVE_UP_MS,
     "Acknowledgement later than this: late")
 vm110.prefs.vrpo_data_size = Pref.uint("Configured periodic data size (bytes)", 0,
-    "Total VRPO periodic data of a burst; 0 = infer (a burst ends with a packet of fewer than 488 bytes)")
+    "Total VRPO periodic data of a burst; 0 = infer (a burst ends with a packet of fewer than 488 bytes, or its "
+    .. "packets all carry 488 bytes and are at least as many as in the sender's longest complete such burst)")
 vm110.prefs.vrpo_number_start = Pref.uint("First VRPO packet number", 0,
     "Packet number of a burst's first packet (0 or 1)")
 vm110.prefs.burst_gap_ms = Pref.uint("VRPO burst gap (ms)", VRPO_BURST_GAP_MS,
@@ -1697,8 +1698,11 @@ do
     end
 end
 
--- Complete: numbers start, start+1, ... each once (in any order), every packet but the last by
--- number carries 488 bytes, the last fewer (or the data add up to the configured size).
+-- Numbered: start, start+1, ... each once (in any order), every packet but the last by number
+-- carrying 488 bytes. Ended: numbered, and the last fewer (or the data add up to the configured
+-- size). Complete: ended; or (size inferred) all carry 488 and the sender sent no shorter packet
+-- and no longer complete burst of full packets before (`need`: the least number of packets, taken
+-- when the burst began; docs/rules.md, "VRPO bursts").
 -- Kept as the burst grows, in constant time per packet (a burst may be endless): `bad` (a number
 -- below the start or seen before), `top` (the highest number), `top_size` (its data length),
 -- `short` (packets with fewer than 488 bytes). The numbers n distinct ones from `start` with the
@@ -1712,25 +1716,58 @@ function burst.part(b, number, size)
     if size ~= VRPO_MAX_DATA then b.short = b.short + 1 end
 end
 
-function burst.complete(b)
-    if b.bad or b.top - settings.number_start ~= b.n - 1 then return false end
+function burst.numbered(b)
+    return not b.bad and b.top - settings.number_start == b.n - 1
+end
+
+function burst.ended(b)
+    if not burst.numbered(b) then return false end
     local top_short = b.top_size ~= VRPO_MAX_DATA and 1 or 0
     if b.short ~= top_short then return false end -- a packet other than the last is short
     if settings.data_size > 0 then return b.size == settings.data_size end
     return top_short == 1
 end
 
--- A complete burst is over ("a burst ends with a packet of fewer than 488 bytes"): the sender's
--- next packet begins another, even within the gap. `cur`: the sender's current burst.
-function burst.over(cur)
-    if cur.b then return burst.complete(cur.b) end
-    return burst.alone(cur.number, cur.size)
+function burst.complete(b)
+    return burst.ended(b) or b.short == 0 and settings.data_size == 0 and b.n >= b.need and burst.numbered(b)
 end
 
--- Whether one packet (packet number, data length) is a complete burst by itself.
-function burst.alone(number, size)
-    return number == settings.number_start and (settings.data_size > 0 and size == settings.data_size
-        or settings.data_size == 0 and size < VRPO_MAX_DATA)
+-- A burst is over once it has ended; when the packet `number` restarts the numbering (the start
+-- number again); or (size inferred) when it has the inferred size and `number` does not go on from
+-- it: the sender's next packet begins another, even within the gap. `cur`: the sender's current
+-- burst.
+function burst.over(cur, number)
+    local start, infer = settings.number_start, settings.data_size == 0
+    local b = cur.b
+    if b then
+        return burst.ended(b) or number == start and b.seen[start] == true
+            or infer and b.short == 0 and b.need > 0 and b.n >= b.need and number ~= b.top + 1 and burst.numbered(b)
+    end
+    return cur.number == start and (number == start or burst.alone_ended(cur.size)
+        or infer and cur.size == VRPO_MAX_DATA and cur.need == 1 and number ~= start + 1)
+end
+
+-- Whether one packet numbered first, of data length `size`, ends a burst by itself.
+function burst.alone_ended(size)
+    local data_size = settings.data_size
+    return data_size > 0 and size == data_size or data_size == 0 and size < VRPO_MAX_DATA
+end
+
+-- Whether one packet (packet number, data length, the burst's `need` if it was kept) is a
+-- complete burst by itself.
+function burst.alone(number, size, need)
+    return number == settings.number_start and (burst.alone_ended(size)
+        or settings.data_size == 0 and size == VRPO_MAX_DATA and need ~= nil and need <= 1)
+end
+
+-- The burst `cur` is over: a complete one of full packets raises the sender's `full`.
+function burst.learn(snd, cur)
+    local b = cur.b
+    if b then
+        if b.short == 0 and burst.complete(b) and b.n > snd.full then snd.full = b.n end
+    elseif cur.size == VRPO_MAX_DATA and snd.full < 1 and burst.alone(cur.number, cur.size, cur.need) then
+        snd.full = 1
+    end
 end
 
 -- The data of a complete burst in number order (built once per burst length: O(n) per burst).
@@ -1753,7 +1790,10 @@ local function new_sender(name, port)
         intervals = {}, -- type -> {last = time, frame, offset, n, min, max, sum}
         -- the current VRPO burst while it has one packet: no table of its own (most bursts)
         burst = { b = false, tlast = false, tstart = false, offset = false, frame = false, number = false,
-            size = false, data = false } }
+            size = false, data = false, need = 0 },
+        -- the periodic data size inferred: a packet of fewer than 488 bytes seen; the most packets
+        -- of a complete burst of full packets
+        short_seen = false, full = 0 }
     sender_list[#sender_list + 1] = snd
     return snd
 end
@@ -1771,7 +1811,8 @@ local function join_burst(cur, res, frame, number, data, size)
     local b = cur.b
     if not b then
         b = { cur.frame, cur.number, cur.data, n = 1, size = cur.size, top = settings.number_start - 1,
-            top_size = 0, short = 0, bad = false, seen = {}, complete = nil, data = false, data_n = false }
+            top_size = 0, short = 0, bad = false, seen = {}, complete = nil, data = false, data_n = false,
+            need = cur.need }
         cur.b = b
         local first = as_table(memo_get(results, cur.frame, cur.offset))
         if cur.number > b.top + 1 then first.burst_missing = b.top + 1 end
@@ -1940,20 +1981,27 @@ local function analyse(r, s, pinfo, frame, offset)
             local start = r.decoded_end - size
             data = sub(s, start + 1, start + size)
         end
-        -- (a step back: a new one; so is the packet after a complete burst)
-        if cur.tlast and t >= cur.tlast and ms(t - cur.tlast) < settings.burst_gap and not burst.over(cur) then
+        -- (a step back: a new one; so is the packet after a burst that is over)
+        if cur.tlast and t >= cur.tlast and ms(t - cur.tlast) < settings.burst_gap and not burst.over(cur, number) then
             res = join_burst(cur, res or iv or -1, frame, number, data, size)
         else
             -- A new burst: its interval from the previous burst's first packet (equal to the
             -- packet's interval, as a number result says, after a burst of one packet).
             local bi = cur.tstart and ms(t - cur.tstart)
+            local infer = settings.data_size == 0
+            if infer and cur.tstart and (cur.b or cur.size == VRPO_MAX_DATA) then burst.learn(snd, cur) end
             cur.b, cur.offset, cur.frame, cur.number, cur.size, cur.data = false, offset, frame, number, size, data
-            cur.tstart = t
+            cur.tstart, cur.need = t, snd.short_seen and math.huge or snd.full
             if bi ~= iv then
                 res = res or { serial = 0, interval = iv }
                 res.binterval = bi
             end
+            if infer and size == VRPO_MAX_DATA then -- (judged alone by what came before)
+                res = res or { serial = 0, interval = iv }
+                res.need = cur.need
+            end
         end
+        if size < VRPO_MAX_DATA then snd.short_seen = true end
         cur.tlast = t
     end
     return res or iv or -1
@@ -2184,9 +2232,9 @@ end
 
 -- A VRPO packet alone in its burst (so far, on the first pass): complete when it is numbered
 -- first and its data end the burst.
-local function add_single_burst(r, tvb, root, pinfo, tree, visited)
+local function add_single_burst(r, need, tvb, root, pinfo, tree, visited)
     local number, size, start = r.values.packet_number, r.data_len, settings.number_start
-    if burst.alone(number, size) then
+    if burst.alone(number, size, need) then
         generated(root, "burst_complete", tvb, NUMBER_OFF, NUMBER_LEN, true)
         if size > 0 and settings.machine ~= "" then
             sub_dissect(periodic_table, range(tvb, PREFIX_LEN + VRPO_HEADER_SIZE, size):tvb(), pinfo, tree)
@@ -2224,7 +2272,7 @@ local function add_analysis(res, r, tvb, pinfo, tree, root)
         local bi = res.binterval
         if bi == nil then bi = iv end
         if bi then add_burst_interval(bi, tvb, root) end
-        add_single_burst(r, tvb, root, pinfo, tree, visited)
+        add_single_burst(r, res.need, tvb, root, pinfo, tree, visited)
     end
     if r.values.command_data and settings.machine ~= "" then
         pinfo.private.vm110_type = r.type
@@ -2289,7 +2337,7 @@ local function dissect(tvb, pinfo, tree)
                     add_interval(res, tvb, at, r)
                     if r.data_len then add_burst_interval(res, tvb, at) end -- (a number: equal)
                 end
-                if r.data_len then add_single_burst(r, tvb, at, pinfo, tree, visited) end
+                if r.data_len then add_single_burst(r, nil, tvb, at, pinfo, tree, visited) end
             end
         elseif res then
             add_analysis(res, r, tvb, pinfo, tree, analysis_tree(tvb, root, r))

@@ -68,3 +68,35 @@ def test_synthesised_capture_matches_its_truth(scenario, tmp_path):
     on_disk = json.loads(Path(f"{out}.truth.json").read_text())
     assert on_disk["capture"] == truth["capture"]
     assert contract_diff(on_disk, analyze(str(out))) == []
+
+
+@pytest.mark.parametrize("data_size", [488, 976, 1464])
+def test_a_data_size_a_multiple_of_488_is_inferred(data_size, tmp_path):
+    """docs/rules.md, "VRPO bursts": a controller whose periodic data are a multiple of 488 bytes
+    sends no short packet; its bursts of full packets are complete, those that lost a packet are
+    not (trial: every burst was incomplete). Expected from the capture alone: VRPO grouped by the
+    20 ms gap (bursts 100 ms apart), a group complete when it has all data_size / 488 packets."""
+    from vm110.sim.controller import ControllerConfig
+    from vm110.sim.impair import Impairment
+    from vm110.sim.scenario import Scenario, _armed, _pair
+    from vm110.synth import write_capture
+    from scapy.utils import rdpcap
+
+    def build(seed: int, duration: float) -> list:
+        return _pair(seed, duration, _armed(duration), ctl=ControllerConfig(data_size=data_size),
+                     ctl_imp=Impairment(loss=4.0, jitter_ms=2.0, only=("VRPO",), seed=seed))
+    out = tmp_path / "full.pcap"
+    with open(out, "wb") as stream:
+        truth = write_capture(stream, Scenario("full", "", 20.0, build), 3, 20.0, "pcap")
+    times = [float(p.time) for p in rdpcap(str(out)) if bytes(p)[42:46] == b"VRPO"]
+    groups, last = [], None
+    for t in times:
+        if last is None or t - last >= 0.020:
+            groups.append(0)
+        groups[-1] += 1
+        last = t
+    whole = data_size // 488
+    assert groups[0] == whole
+    expected = {"complete": groups.count(whole), "incomplete": len(groups) - groups.count(whole)}
+    assert truth["vrpo_bursts"] == expected and (expected["incomplete"] > 0) == (whole > 1), expected
+    assert contract_diff(json.loads(json.dumps(truth)), analyze(str(out))) == []

@@ -7,10 +7,11 @@ import math
 import random
 import struct
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given, settings, strategies as st
 
 from test_analysis_craft import BU_ORIGIN, T0, Traffic, payload, vrpi
 from vm110 import constants as C
@@ -130,14 +131,18 @@ def test_percentiles_are_linear_between_ranks():
                                                     "max": 4.0}
 
 
-def burst_count(times: list, numbers: list, sizes: list, data_size: int = 0) -> tuple:
+def burst_count(times: list, numbers: list, sizes: list, data_size: int = 0, cuts: Sequence[int] = ()) -> tuple:
     """(complete, positions of the first packet of each incomplete burst, of every burst) of one
-    sender's VRPO packets, fed to the incremental burst assembly at once."""
+    sender's VRPO packets, fed to the incremental burst assembly at once (or in batches that end
+    before the positions `cuts`)."""
     from vm110.analysis.periodic import Floats
     packets = Floats()
-    packets.extend(np.asarray(times, dtype=np.float64))
     b = bursts.Bursts(packets, C.VRPO_BURST_GAP_MS, 0, data_size)
-    b.feed(np.asarray(times, dtype=np.float64), np.asarray(numbers), np.asarray(sizes), range(len(times)), True)
+    bounds = [0, *sorted(set(cuts) - {0, len(times)}), len(times)]
+    for lo, hi in itertools.pairwise(bounds):
+        packets.extend(np.asarray(times[lo:hi], dtype=np.float64))
+        b.feed(np.asarray(times[lo:hi], dtype=np.float64), np.asarray(numbers[lo:hi]), np.asarray(sizes[lo:hi]),
+               range(lo, hi), True)
     b.finish()
     return b.complete, sorted(w for w, _ in b.incomplete), np.array(b.firsts, dtype=np.int64)
 
@@ -160,6 +165,49 @@ def test_bursts():
     # reordered and complete, then a part whose first was lost
     assert judged([0.0, 0.001, 0.002], [1, 0, 1], [tail, full, tail]) == (1, [2], [0, 2])
     assert burst_count([0.0, 0.001], [0, 1], [full, full], data_size=2 * C.VRPO_MAX_DATA)[:2] == (1, [])
+
+
+def test_bursts_of_full_packets_infer_the_data_size():
+    """docs/rules.md, "VRPO bursts": with the data size inferred (0), a burst of 488-byte packets is
+    complete when the sender sent no shorter packet and no longer complete such burst before it;
+    a packet that restarts the numbering begins the next burst even within the gap."""
+    full, tail = 2 + C.VRPO_MAX_DATA, 2 + 100
+
+    def judged(times: list, numbers: list, sizes: list) -> tuple:
+        complete, incomplete, starts = burst_count(times, numbers, sizes)
+        return complete, incomplete, list(starts)
+    # 976 bytes a cycle; the third lost its second packet
+    assert judged([0.0, 0.001, 0.1, 0.101, 0.2, 0.3, 0.301], [0, 1, 0, 1, 0, 0, 1], [full] * 7) == \
+        (3, [4], [0, 2, 4, 5])
+    # 488 bytes every 15 ms: the numbering restarts within the gap
+    assert judged([0.0, 0.015, 0.03], [0, 0, 0], [full] * 3) == (3, [], [0, 1, 2])
+    # 976 bytes every 15 ms: each burst over when the next restarts it
+    assert judged([0.0, 0.001, 0.015, 0.016, 0.03], [0, 1, 0, 1, 0], [full] * 5) == (2, [4], [0, 2, 4])
+    # a sender that has split with a short last packet: a lone full packet lost its tail
+    assert judged([0.0, 0.001, 0.1], [0, 1, 0], [full, tail, full]) == (1, [2], [0, 2])
+    # the first burst's lost tail is not seen; later bursts set the size
+    assert judged([0.0, 0.1, 0.101, 0.2], [0, 0, 1, 0], [full] * 4) == (2, [3], [0, 1, 3])
+    # the inferred size reached: a packet that does not go on from it begins the next burst (its
+    # parts out of order, 15 ms after); one that goes on shows the size was inferred too small
+    assert judged([0.0, 0.001, 0.1, 0.101, 0.115, 0.116], [0, 1, 0, 1, 1, 0], [full] * 6) == (3, [], [0, 2, 4])
+    assert judged([0.0, 0.1, 0.101], [0, 0, 1], [full] * 3) == (2, [], [0, 1])
+    # a configured size judges alone: 976 configured, 488 alone is incomplete
+    assert burst_count([0.0, 0.1], [0, 0], [full, full], data_size=2 * C.VRPO_MAX_DATA)[:2] == (0, [0, 1])
+
+
+@given(st.lists(st.tuples(st.sampled_from([0.0005, 0.005, 0.015, 0.05, 0.1]), st.integers(0, 2), st.booleans()),
+                max_size=40),
+       st.lists(st.integers(0, 40), max_size=6), st.sampled_from([0, 2 * C.VRPO_MAX_DATA]))
+@settings(max_examples=300, deadline=None)
+def test_bursts_judge_alike_in_any_batches(steps, cuts, data_size):
+    """Fed in any batches (bursts of one packet judged a batch at a time), the bursts are those fed
+    a packet at a time (every packet through `Open`)."""
+    times = list(np.cumsum([s for s, _, _ in steps]))
+    numbers = [n for _, n, _ in steps]
+    sizes = [2 + (C.VRPO_MAX_DATA if f else 100) for _, _, f in steps]
+    one = burst_count(times, numbers, sizes, data_size, range(len(times)))
+    got = burst_count(times, numbers, sizes, data_size, cuts)
+    assert got[:2] == one[:2] and list(got[2]) == list(one[2])
 
 
 def test_crc_auto_finds_another_variant_and_byte_order(tmp_path):

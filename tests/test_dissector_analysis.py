@@ -497,6 +497,43 @@ def test_a_complete_burst_takes_no_more_packets(tshark, tmp_path):
     assert not any(r.has("burst_incomplete") for r in rows[:3] + rows[4:])
 
 
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_bursts_of_full_packets_infer_the_data_size(tshark, tmp_path):
+    """docs/rules.md, "VRPO bursts" (data size 0 = infer): a sender of 976 bytes a cycle sends
+    bursts of two 488-byte packets, complete; the third lost its second packet and is incomplete.
+    Then 488 bytes every 15 ms (closer than the gap): each packet restarts the numbering and is a
+    complete burst of its own, as long as the sender's longest burst so far is not longer. A burst
+    that has the size inferred takes no packet that does not go on from it."""
+    from vm110.layers import VM110, VRPO
+    sends = [(0, 0), (1, 1), (100, 0), (101, 1), (200, 0), (300, 0), (301, 1)]
+    packets = [bytes(VM110(serial=i + 1) / VRPO(packet_number=n, periodic_data=bytes(C.VRPO_MAX_DATA)))
+               for i, (_, n) in enumerate(sends)]
+    quick = [bytes(VM110(serial=i + 1) / VRPO(packet_number=0, periodic_data=bytes(C.VRPO_MAX_DATA)))
+             for i in range(3)]
+    # the size reached (two packets): packet 1 of the next cycle, 14 ms after, arrives before its 0
+    swapped = [bytes(VM110(serial=i + 1) / VRPO(packet_number=n, periodic_data=bytes(C.VRPO_MAX_DATA)))
+               for i, n in enumerate([0, 1, 0, 1, 1, 0])]
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            T.write_pcap(ws.dir / "976.pcap", packets, [ms * 1000 for ms, _ in sends])
+            T.write_pcap(ws.dir / "488.pcap", quick, [0, 15_000, 30_000])
+            T.write_pcap(ws.dir / "swapped.pcap", swapped, [0, 1000, 100_000, 101_000, 115_000, 116_000])
+            rows, _ = run_fields(ws, ws.dir / "976.pcap", ["-2"], prefs=ON)
+            fast, _ = run_fields(ws, ws.dir / "488.pcap", ["-2"], prefs=ON)
+            reached, _ = run_fields(ws, ws.dir / "swapped.pcap", ["-2"], prefs=ON)
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert [(r.get("vm110.burst.frame"), r.get("vm110.burst.complete") in ("1", "True")) for r in reached] == [
+        ("1|2", False), ("1|2", True), ("3|4", False), ("3|4", True), ("5|6", False), ("5|6", True)]
+    assert not any(r.has("burst_incomplete") for r in reached)
+    shown = [(r.get("vm110.burst.frame") or str(r.number), r.get("vm110.burst.complete")) for r in rows]
+    assert [(f, c in ("1", "True") if c else None) for f, c in shown] == [
+        ("1|2", None), ("1|2", True), ("3|4", None), ("3|4", True), ("5", False), ("6|7", None), ("6|7", True)]
+    assert [r.number for r in rows if r.has("burst_incomplete")] == [5]
+    assert [r.get("vm110.burst.complete") in ("1", "True") for r in fast] == [True] * 3
+    assert not any(r.has("burst_incomplete") or r.get("vm110.burst.frame") for r in fast)
+
+
 # --- docs/rules.md on hand-crafted captures (expected values worked out by hand) ------------------------
 def _bu(serial: int, payload) -> bytes:
     from vm110.layers import VM110

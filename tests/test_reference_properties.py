@@ -238,10 +238,11 @@ ANALYSIS_FIELDS = {
     "interrupted_by": "vm110.analysis.interrupted_by",
     "duplicate_ack": "vm110.expert.duplicate_ack",
     "ack_without_command": "vm110.expert.ack_without_command",
+    "burst_incomplete": "vm110.expert.burst_incomplete",
 }
 ID_FIELDS = ("frame.number", "ip.src", "udp.srcport", "vm110.type", "vm110.origin", "vm110.serial")
 PRESENCE = ("serial_duplicate", "serial_out_of_order", "watchdog_vrpi", "watchdog_vrpo",
-            "duplicate_ack", "ack_without_command")
+            "duplicate_ack", "ack_without_command", "burst_incomplete")
 
 
 def expected_frames(ref: dict) -> dict[int, dict]:
@@ -611,6 +612,113 @@ def test_reference_late_packet_of_the_old_port(tmp_path):
     per = {p["sender"]: p for p in ref["periodic"]}
     assert per["Output 10.0.0.2:40000 origin 0x0000"]["interval_ms"]["max"] == 600.0    # 900 -> 1500
     assert per[CTL_ID]["watchdog"]["violations"] == []
+
+
+def vrpo(number: int, data: int) -> bytes:
+    """A VRPO payload: packet number, then `data` data bytes."""
+    return struct.pack("<H", number) + bytes(data)
+
+
+def _bursts(path: Path, plan: list[tuple[float, list[tuple[int, int]]]]) -> dict:
+    """The controller sends, at each planned time (ms), its parts (number, data bytes) 1 ms apart,
+    in the order given; one serial per packet."""
+    c = Capture()
+    serial = 0
+    for ms, parts in plan:
+        for k, (number, data) in enumerate(parts):
+            c.add(ms + k, CTL, "VRPO", serial, vrpo(number, data))
+            serial += 1
+    return c.write(path)
+
+
+def _incomplete_frames(ref: dict) -> list[int]:
+    return sorted(fr for fr, f in ref["frames"].items() if f.get("burst_incomplete"))
+
+
+FULL2 = [(0, 488), (1, 488)]
+
+
+def test_reference_bursts_of_a_multiple_of_488_and_a_lost_tail(tmp_path):
+    """rules.md, "VRPO bursts": 976 bytes a cycle every 100 ms, two 488-byte packets each: no
+    packet marks the end, and none is short, so each burst is complete (no longer complete burst
+    of 488-byte packets before it). With the second packet of the third burst lost, that burst
+    (one 488-byte packet, frame 5) is shorter than the complete bursts of two before it: incomplete."""
+    ref = _bursts(tmp_path / "full-976.pcap", [(100 * k, FULL2) for k in range(5)])
+    assert ref["vrpo_bursts"] == {"complete": 5, "incomplete": 0}
+    assert _incomplete_frames(ref) == []
+    plan = [(100 * k, FULL2 if k != 2 else FULL2[:1]) for k in range(5)]
+    ref = _bursts(tmp_path / "full-976-lost-tail.pcap", plan)
+    assert ref["vrpo_bursts"] == {"complete": 4, "incomplete": 1}
+    assert _incomplete_frames(ref) == [5]                        # frames 1 2 | 3 4 | 5 | 6 7 | 8 9
+
+
+def test_reference_full_packets_closer_than_the_gap(tmp_path):
+    """488 bytes every 15 ms (closer than the 20 ms gap): each next packet 0 restarts the numbering
+    (the burst already holds a 0), so every packet is a burst of its own, complete (no short
+    packet, no longer burst)."""
+    ref = _bursts(tmp_path / "full-488-15ms.pcap", [(15 * k, [(0, 488)]) for k in range(10)])
+    assert ref["vrpo_bursts"] == {"complete": 10, "incomplete": 0}
+    assert _incomplete_frames(ref) == []
+
+
+def test_reference_full_burst_after_a_short_ended_one(tmp_path):
+    """A split burst 488 + 100 bytes (complete: its last packet is short), then a single 488-byte
+    packet 0: the sender has sent a packet of fewer than 488 bytes before it, so its data size is
+    not a multiple of 488 and the burst lost its tail: incomplete (frame 3). The next 488 + 100
+    burst is complete again."""
+    ref = _bursts(tmp_path / "short-then-full.pcap", [(0, [(0, 488), (1, 100)]), (100, [(0, 488)]),
+                                                       (200, [(0, 488), (1, 100)])])
+    assert ref["vrpo_bursts"] == {"complete": 2, "incomplete": 1}
+    assert _incomplete_frames(ref) == [3]
+
+
+def test_reference_a_lost_tail_in_the_first_burst_is_not_seen(tmp_path):
+    """The first burst is one 488-byte packet (its tail lost): nothing before it tells, complete.
+    Then bursts of two: complete (the earlier complete burst is shorter, not longer). Then a burst
+    of one (frame 8): a complete burst of two 488-byte packets came before: incomplete."""
+    plan = [(0, FULL2[:1])] + [(100 * k, FULL2) for k in (1, 2, 3)]
+    ref = _bursts(tmp_path / "first-lost-tail.pcap", plan)
+    assert ref["vrpo_bursts"] == {"complete": 4, "incomplete": 0}
+    assert _incomplete_frames(ref) == []
+    ref = _bursts(tmp_path / "first-lost-tail-then-one.pcap", plan + [(400, FULL2[:1])])
+    assert ref["vrpo_bursts"] == {"complete": 4, "incomplete": 1}
+    assert _incomplete_frames(ref) == [8]                        # frames 1 | 2 3 | 4 5 | 6 7 | 8
+
+
+def test_reference_full_parts_out_of_order_and_a_lost_first_part(tmp_path):
+    """976 bytes a cycle: parts arriving 1 then 0 are one burst (the 0 does not restart the
+    numbering after packet 1 alone), complete; a burst of packet 1 alone (packet 0 lost) has no
+    start number: incomplete (frame 5)."""
+    ref = _bursts(tmp_path / "full-out-of-order.pcap", [(0, FULL2), (100, FULL2[::-1]), (200, FULL2[1:]),
+                                                         (300, FULL2)])
+    assert ref["vrpo_bursts"] == {"complete": 3, "incomplete": 1}
+    assert _incomplete_frames(ref) == [5]                        # frames 1 2 | 3 4 | 5 | 6 7
+
+
+def test_reference_a_lost_middle_part_ends_at_the_next_start(tmp_path):
+    """488 + 488 + 100 bytes every 15 ms; the second send lost its packet 1. Its packets 0 and 2
+    (frames 4, 5) are one burst, over when the next send's packet 0 arrives within the gap (it
+    restarts the numbering: the burst holds a 0): incomplete, marked on frame 5."""
+    part3 = [(0, 488), (1, 488), (2, 100)]
+    ref = _bursts(tmp_path / "lost-middle.pcap", [(0, part3), (15, [part3[0], part3[2]]), (30, part3)])
+    assert ref["vrpo_bursts"] == {"complete": 2, "incomplete": 1}
+    assert _incomplete_frames(ref) == [5]                        # frames 1 2 3 | 4 5 | 6 7 8
+
+
+def test_reference_a_full_burst_is_over_when_the_next_number_does_not_follow(tmp_path):
+    """976 bytes a cycle: two complete bursts of two (0, 100 ms); the next send (115 ms) lost its
+    packet 0, its packet 1 (frame 5) arrives 15 ms after the second burst. That burst (numbered from
+    0, as many 488-byte packets as the longest complete such burst, none shorter before) is over,
+    as 1 does not follow its highest number (1): complete. Packet 1 alone ends at the gap:
+    incomplete. The next send (200 ms) is complete. In the sender's first burst no size is inferred
+    yet (no complete burst of 488-byte packets before it): the late 1 joins it, 0 1 1: incomplete."""
+    ref = _bursts(tmp_path / "full-next-does-not-follow.pcap",
+                  [(0, FULL2), (100, FULL2), (115, FULL2[1:]), (200, FULL2)])
+    assert ref["vrpo_bursts"] == {"complete": 3, "incomplete": 1}
+    assert _incomplete_frames(ref) == [5]                        # frames 1 2 | 3 4 | 5 | 6 7
+    ref = _bursts(tmp_path / "full-first-no-size-yet.pcap", [(0, FULL2), (15, FULL2[1:]), (100, FULL2)])
+    assert ref["vrpo_bursts"] == {"complete": 1, "incomplete": 1}
+    assert _incomplete_frames(ref) == [3]                        # frames 1 2 3 | 4 5
 
 
 def test_fast_engine_on_the_hand_built_captures(tmp_path):

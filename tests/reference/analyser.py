@@ -47,11 +47,23 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
  R13 "The capture went on past the limit" (rules.md, "Failed") is judged on the analysis clock the
      command's times run on: the capture's latest time is the later of its last record and its
      latest legal packet (appended captures: the clock stays ahead of a later, shorter part).
- R14 VRPO bursts (interpretation.md, "VRPO split"): a sender's accepted VRPO packets in capture
-     order, each less than 20 ms after the one before on its own timestamp and not before it, belong
-     to one burst, until it is complete: "a burst ends with a packet of fewer than 488 bytes", so a
-     complete burst (numbers 0..n-1 each once, in any order; all but the last by number 488 bytes,
-     the last fewer) takes no further packet, and the next one begins another burst.
+ R14 VRPO bursts (docs/rules.md "VRPO bursts", interpretation.md "VRPO split"; data size option 0,
+     infer, the default and the only one handled here): a sender's accepted VRPO packets in capture
+     order (duplicates are not parts), each less than 20 ms after the one before on its own
+     timestamp and not before it, belong to one burst. A burst is complete when its numbers are
+     0..n-1 each once (in any order), all but the last by number carry 488 bytes, and either the
+     last carries fewer, or it carries 488 too (every packet 488) and the sender sent, in the bursts
+     before it, no accepted VRPO packet of fewer than 488 bytes and no complete burst of 488-byte
+     packets with more packets than it. A burst is over (the next packet begins another, even
+     within the gap) when it is complete with a short last packet; when the next packet carries
+     number 0 and the burst already holds a 0; or when its packets all carry 488 bytes, are
+     numbered 0..n-1 each once, n at least the length of the sender's longest complete burst of
+     488-byte packets, with no packet of fewer than 488 bytes before, and the next packet's number
+     is not n (the one after its highest). Reading: "as many as in the sender's longest complete
+     such burst or more" and "the size inferred" need such a burst: before the sender's first
+     complete burst of 488-byte packets no size is inferred and this ending does not apply (so an
+     out-of-order first burst stays one burst, as rules.md promises). An incomplete burst marks
+     its last packet in capture order: frames[..]["burst_incomplete"].
 """
 from __future__ import annotations
 
@@ -420,14 +432,20 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
     # 4b. VRPO bursts (R14)
     bursts = {"complete": 0, "incomplete": 0}
     for sid in order:
+        earlier: list[tuple[list[dict], bool]] = []         # the sender's bursts so far, with verdicts
         burst: list[dict] = []
         for q in (q for q in senders[sid]["packets"] if q["type"] == "VRPO" and q["accepted"]):
-            if burst and (not 0 <= q["own"] - burst[-1]["own"] < BURST_GAP_NS or _burst_whole(burst)):
-                bursts["complete" if _burst_whole(burst) else "incomplete"] += 1
-                burst = []
+            if burst:
+                step = q["own"] - burst[-1]["own"]
+                over = _burst_over(burst, q, earlier)
+                if not over:                                 # the gap decides
+                    flags.near(step, BURST_GAP_NS, f"VRPO burst gap of {sid}, frame {q['frame']}")
+                if over or not 0 <= step < BURST_GAP_NS:
+                    earlier.append((burst, _burst_judge(burst, earlier, bursts, frames)))
+                    burst = []
             burst.append(q)
         if burst:
-            bursts["complete" if _burst_whole(burst) else "incomplete"] += 1
+            earlier.append((burst, _burst_judge(burst, earlier, bursts, frames)))
 
     # 5. commands
     # R13: the capture went on past a command's limit when its latest time did: the later of its
@@ -458,11 +476,61 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
 BURST_GAP_NS = 20 * MS
 
 
-def _burst_whole(burst: list[dict]) -> bool:
-    """R14: numbers 0..n-1 each once; every packet but the last by number 488 bytes, the last fewer."""
-    parts = sorted((q["number"], q["data"]) for q in burst)
-    return ([n for n, _ in parts] == list(range(len(parts)))
-            and all(d == 488 for _, d in parts[:-1]) and parts[-1][1] < 488)
+def _numbered_from_zero(burst: list[dict]) -> bool:
+    """R14: the packet numbers are 0, 1, .., n-1, each once (in any order)."""
+    return sorted(q["number"] for q in burst) == list(range(len(burst)))
+
+
+def _by_number(burst: list[dict]) -> list[dict]:
+    return sorted(burst, key=lambda q: q["number"])
+
+
+def _well_formed(burst: list[dict]) -> bool:
+    """R14: numbers 0..n-1 each once, every packet but the last by number 488 bytes."""
+    return _numbered_from_zero(burst) and all(q["data"] == 488 for q in _by_number(burst)[:-1])
+
+
+def _burst_over(burst: list[dict], q: dict, earlier: list[tuple[list[dict], bool]]) -> bool:
+    """R14: the burst is over before q (the sender's next packet, within the gap)."""
+    if _well_formed(burst) and _by_number(burst)[-1]["data"] < 488:
+        return True                                  # complete by its own packets
+    if q["number"] == 0 and any(p["number"] == 0 for p in burst):
+        return True                                  # q restarts the numbering
+    # inferring: as many full packets, numbered from 0, as the sender's longest complete burst of
+    # full packets (there must be one: the size inferred), no shorter packet before, and q's number
+    # does not follow the highest (if it does, the size inferred was too small: the burst goes on)
+    full_before = [len(parts) for parts, complete in earlier
+                   if complete and all(p["data"] == 488 for p in parts)]
+    short_before = any(p["data"] < 488 for parts, _complete in earlier for p in parts)
+    return (all(p["data"] == 488 for p in burst) and _numbered_from_zero(burst) and bool(full_before)
+            and len(burst) >= max(full_before) and not short_before and q["number"] != len(burst))
+
+
+def _burst_complete(burst: list[dict], earlier: list[tuple[list[dict], bool]]) -> bool:
+    """R14, inferring the data size: a short last packet; or every packet 488 bytes, with no packet
+    of fewer than 488 bytes and no longer complete burst of 488-byte packets before it."""
+    if not _well_formed(burst):
+        return False
+    last = _by_number(burst)[-1]["data"]
+    if last < 488:
+        return True
+    if last != 488:
+        return False
+    for parts, complete in earlier:
+        if any(q["data"] < 488 for q in parts):
+            return False
+        if complete and all(q["data"] == 488 for q in parts) and len(parts) > len(burst):
+            return False
+    return True
+
+
+def _burst_judge(burst: list[dict], earlier: list[tuple[list[dict], bool]], bursts: dict, frames: dict) -> bool:
+    """Count a finished burst; an incomplete one marks its last packet in capture order."""
+    complete = _burst_complete(burst, earlier)
+    bursts["complete" if complete else "incomplete"] += 1
+    if not complete:
+        frames.setdefault(burst[-1]["frame"], {})["burst_incomplete"] = True
+    return complete
 
 
 def _check_accepted_silence(order: list[str], senders: dict, legal: list[dict], silence: int,

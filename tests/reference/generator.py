@@ -4,13 +4,15 @@ no `vm110` code at all (not the simulator, not the encoder, not the capture writ
 A scenario (drawn by Hypothesis: the structure, plus a seed for the jitter and the per-packet dice)
 has base units and controllers. Each device keeps one serial counter for everything it sends:
 base units send VRPI every ~125 ms, VRCI commands (resent every ~100 ms until a VRAO arrives,
-given up after 2 s) and VRAI acks; controllers send VRPO every 50-200 ms (sometimes split into
-bursts of 488-byte parts), VRCO commands and VRAO acks. Devices fall silent (in the middle, or for
-good while the capture goes on), restart (counter afresh at 0, 1, a random value, above 32767; on
-the same or a new source port; command IDs afresh), reuse command IDs after a pause, wrap IDs and
-serials. The network loses packets (both ways, or only at the capture point), duplicates them
-(mirror copies 0.05-3 ms later), reorders them, delivers single ones very late, corrupts some
-(bad CRC, wrong size, unknown ID, revision 1) and there is unrelated UDP and ARP traffic.
+given up after 2 s) and VRAI acks; controllers send VRPO every 15-200 ms (unsplit; or split into
+bursts of 488-byte parts and a shorter last one; or, for a periodic data size that is a multiple of
+488, 1-3 parts of exactly 488 bytes, a fixed number per device), VRCO commands and VRAO acks.
+Devices fall silent (in the middle, or for good while the capture goes on), restart (counter afresh
+at 0, 1, a random value, above 32767; on the same or a new source port; command IDs afresh), reuse
+command IDs after a pause, wrap IDs and serials. The network loses packets (both ways, or only at
+the capture point), duplicates them (mirror copies 0.05-3 ms later), reorders them, delivers
+single ones very late, corrupts some (bad CRC, wrong size, unknown ID, revision 1) and there is
+unrelated UDP and ARP traffic.
 
 `build(scenario)` gives the frames in arrival order with strictly increasing timestamps and the
 generator's own notes (fuzzy: what it meant, not what the rules make of it); `write_capture`
@@ -110,7 +112,10 @@ def _device(draw: Any, kind: str, duration: int, index: int) -> dict:
            "port": (IN_PORT if kind == "bu" else draw(st.sampled_from([OUT_PORT, OUT_PORT, 49152 + index]))),
            # (15 ms: faster than recommended, unsplit packets closer than the 20 ms burst gap)
            "period": 125 if kind == "bu" else draw(st.sampled_from([15, 50, 100, 100, 150, 200])),
-           "split": kind == "ctl" and draw(st.integers(0, 3)) == 0,
+           # VRPO: unsplit (0..60 bytes), split (2-3 parts, the last short) or "full": a periodic
+           # data size that is a multiple of 488, every VRPO 1-3 parts of exactly 488 bytes
+           "vrpo": draw(st.sampled_from(["unsplit"] * 5 + ["split"] * 2 + ["full"] * 2)) if kind == "ctl" else None,
+           "full_parts": draw(st.integers(1, 3)) if kind == "ctl" else 0,
            "armed": draw(st.booleans()),
            "commands": sorted(draw(st.lists(st.integers(0, duration - 200), max_size=8))),
            "reuse_p": draw(st.sampled_from([0.0, 0.0, 0.3])),
@@ -233,10 +238,14 @@ def build(sc: dict) -> tuple[list[tuple[int, bytes]], dict]:
                 if dev.d["kind"] == "bu":
                     sends[i].append({"t": t, "type": "VRPI", "payload": vrpi_payload(rng, dev.d["armed"])})
                 else:
-                    parts = rng.randint(2, 3) if dev.d["split"] else 1
+                    vrpo = dev.d["vrpo"]
+                    parts = rng.randint(2, 3) if vrpo == "split" else dev.d["full_parts"] if vrpo == "full" else 1
                     tp = t
                     for n in range(parts):
-                        size = 488 if n < parts - 1 else rng.randint(0, 487 if parts > 1 else 60)
+                        if vrpo == "full" or n < parts - 1:
+                            size = 488
+                        else:
+                            size = rng.randint(0, 487 if parts > 1 else 60)
                         sends[i].append({"t": tp, "type": "VRPO",
                                          "payload": struct.pack("<H", n) + bytes(rng.randint(0, 255)
                                                                                  for _ in range(size))})

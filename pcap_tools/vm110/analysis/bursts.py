@@ -1,13 +1,18 @@
-"""VRPO bursts (interpretation.md, "VRPO split into several packets").
+"""VRPO bursts (interpretation.md, "VRPO split into several packets"; docs/rules.md, "VRPO bursts").
 
 A burst is a run of VRPO packets from one sender less than the burst gap (20 ms) apart, each at or
-after the one before (a step back of the clock begins a new burst), that ends with its last packet:
-a burst is complete when its packet numbers are start, start+1, ... each once (in any order),
-every packet but the last by number carries 488 data bytes, and the last fewer, or, with a
-configured periodic data size, the data add up to exactly that size; and a complete burst is
-over ("a burst ends with a packet of fewer than 488 bytes"), so the next packet begins another
-even within the gap. Two unsplit VRPO packets closer than the gap (jitter) are two bursts; a
-split one whose parts arrive out of order is one, complete once its parts are all there.
+after the one before (a step back of the clock begins a new burst). Its packet numbers must be
+start, start+1, ... each once (in any order), every packet but the last by number carrying 488
+data bytes. With a configured periodic data size, a burst is complete when its data add up to
+exactly that size. With 0 (infer, the default) it is complete when its last packet carries fewer
+than 488 bytes, or, every packet carrying 488 (a data size that is a multiple of 488, which no
+packet marks), when the sender has sent no shorter VRPO packet before it and no complete burst of
+full packets longer than it. A burst is over when it is complete by its own packets, when a
+packet restarts the numbering (the start number again), or when it has reached the inferred size
+and the next packet does not go on from it: the sender's next packet begins another burst even
+within the gap. Two unsplit VRPO packets closer than the gap (jitter)
+are two bursts; a split one whose parts arrive out of order is one, complete once its parts are
+all there.
 
 `Bursts` is fed a sender's accepted VRPO packets a batch at a time and keeps only the burst still
 open, judged in constant time per packet (a burst may be endless): bursts of one packet (the usual
@@ -31,13 +36,17 @@ DATA_OFFSET = P.PAYLOAD_BOUNDS[C.PacketType.VRPO][0]
 
 
 class Open:
-    """The burst being received, judged complete or not in constant time per packet: `bad` (a
-    number below the start, or seen before), `top` (the highest number) and its data length,
-    `short` (packets of fewer than 488 data bytes). n distinct numbers from the start whose
-    highest is start + n - 1 are exactly start ... start + n - 1."""
+    """The burst being received, judged in constant time per packet: `bad` (a number below the
+    start, or seen before), `top` (the highest number) and its data length, `short` (packets of
+    fewer than 488 data bytes). n distinct numbers from the start whose highest is start + n - 1
+    are exactly start ... start + n - 1. What the sender's earlier packets tell about its data size
+    outlives each burst: `short_seen` (a packet of fewer than 488 bytes) and `full` (the most
+    packets of a complete burst of full packets)."""
 
     def __init__(self, start: int, data_size: int) -> None:
         self.start, self.data_size = start, data_size
+        self.short_seen = False
+        self.full = 0
         self.clear()
 
     def clear(self) -> None:
@@ -53,17 +62,44 @@ class Open:
             self.seen.add(number)
         if number > self.top:
             self.top, self.top_data = number, data
-        self.short += data != C.VRPO_MAX_DATA
+        short = data != C.VRPO_MAX_DATA
+        self.short += short
+        self.short_seen |= short                    # (a burst with a short packet is judged by its own)
         self.n += 1
         self.total += data
 
+    def _numbered(self) -> bool:
+        """Numbers start ... start + n - 1, each once."""
+        return self.n > 0 and not self.bad and self.top - self.start == self.n - 1
+
+    def ended(self) -> bool:
+        """Complete by its own packets: the configured size reached, or (infer) a short last packet."""
+        if not self._numbered() or self.short != int(self.top_data != C.VRPO_MAX_DATA):
+            return False                             # (a packet other than the last is short)
+        return self.total == self.data_size if self.data_size else self.top_data != C.VRPO_MAX_DATA
+
+    def over(self, number: int) -> bool:
+        """A packet of this number, within the gap, begins the next burst: this one ended, or the
+        number restarts the numbering, or (infer) the inferred size is reached and the number does
+        not go on from it (if it does, the size was inferred too small)."""
+        if self.ended() or (number == self.start and number in self.seen):
+            return True
+        return (not self.data_size and 0 < self.full <= self.n and not self.short_seen
+                and number != self.top + 1 and self._numbered())
+
     def complete(self) -> bool:
-        if not self.n or self.bad or self.top - self.start != self.n - 1:
-            return False
-        top_short = int(self.top_data != C.VRPO_MAX_DATA)
-        if self.short != top_short:                  # a packet other than the last is short
-            return False
-        return self.total == self.data_size if self.data_size else top_short == 1
+        """Complete if it ended now; full packets only, judged by what came before (`short_seen`
+        counts no packet of theirs)."""
+        return self.ended() or (not self.data_size and not self.short and self._numbered()
+                                and not self.short_seen and self.n >= self.full)
+
+    def close(self) -> bool:
+        """The burst has ended: whether complete, learnt from, and cleared for the next one."""
+        complete = self.complete()
+        if complete and not self.short:
+            self.full = max(self.full, self.n)
+        self.clear()
+        return complete
 
 
 class Bursts:
@@ -91,11 +127,10 @@ class Bursts:
 
     def _close(self) -> None:
         if self.open.n:
-            if self.open.complete():
+            if self.open.close():
                 self.complete += 1
             else:
                 self.incomplete.append(self.first)
-            self.open.clear()
 
     def feed(self, times: np.ndarray, numbers: np.ndarray, sizes: np.ndarray, where: Sequence[int],
              keep_firsts: bool = False) -> None:
@@ -114,21 +149,31 @@ class Bursts:
             self._close()
         data = np.asarray(sizes, dtype=np.int64) - DATA_OFFSET
         number = np.asarray(numbers, dtype=np.int64)
-        # Bursts of one packet by the gap alone are judged all at once ...
+        # Bursts of one packet by the gap alone are judged all at once (but for one of 488 bytes
+        # with the size inferred: that depends on the sender's packets before it) ...
         lone = begins.copy()
         lone[:-1] &= begins[1:]
         lone[-1] = False
-        ok = (number == self.start) & ((data == self.data_size) if self.data_size else (data < C.VRPO_MAX_DATA))
+        short = data < C.VRPO_MAX_DATA
+        if not self.data_size:
+            lone &= short
+        ok = (number == self.start) & ((data == self.data_size) if self.data_size else short)
         self.complete += int(np.count_nonzero(lone & ok))
         for i in np.flatnonzero(lone & ~ok).tolist():
             self.incomplete.append((int(where[i]), float(times[i])))
         # ... the rest a packet at a time: the burst open from before, longer ones, the last one. A
-        # packet within the gap after a complete burst begins the next one.
+        # packet within the gap after a burst that is over begins the next one. (The short packets
+        # judged alone count for `open` from the first packet fed after them, once it has closed the
+        # burst before them: the batch's last packet is always fed.)
+        alone_short = np.flatnonzero(lone & short)
+        first_short = int(alone_short[0]) if len(alone_short) else n
         for i in np.flatnonzero(~lone).tolist():
-            if begins[i] or self.open.complete():
+            if begins[i] or self.open.over(int(number[i])):
                 self._close()
                 self.first = (int(where[i]), float(times[i]))
                 begins[i] = True
+            if first_short < i:
+                self.open.short_seen = True
             self.open.add(int(number[i]), int(data[i]))
         firsts = np.flatnonzero(begins)
         new = times[firsts]

@@ -72,12 +72,12 @@ class LiveSender:
 
     def periodic(self, ts: float, frame: int, packet: bytes, emit: Emit) -> None:
         if self.code == VRPO_CODE:
-            # (a burst ends at its gap, or complete: docs/rules.md, "VRPO bursts")
-            begins = self.vrpo_last is None or ts - self.vrpo_last >= self.gap or self.burst.complete()
+            # (a burst ends at its gap, or once it is over: docs/rules.md, "VRPO bursts")
+            number = packet[C.PREFIX_LEN] | packet[C.PREFIX_LEN + 1] << 8
+            begins = self.vrpo_last is None or ts - self.vrpo_last >= self.gap or self.burst.over(number)
             self.vrpo_last = ts
             if begins:
-                self.burst.clear()
-            number = packet[C.PREFIX_LEN] | packet[C.PREFIX_LEN + 1] << 8
+                self.burst.close()
             self.burst.add(number, (packet[_SIZE] | packet[_SIZE + 1] << 8) - DATA_OFFSET)
             if not begins:
                 self._arrived(ts, frame, emit)

@@ -245,14 +245,18 @@ class _Commands:
                 "list": [{k: v for k, v in c.items() if not k.startswith("_")} for c in self.list]}
 
 
-def _complete_burst(burst: list[tuple[int, int]]) -> bool:
-    """A VRPO burst of (packet number, data length): complete when the numbers are 0..n-1 each
-    once, every packet but the last carries 488 data bytes and the last fewer (interpretation.md,
-    'VRPO split'). A burst: accepted packets less than 20 ms apart, until it is complete."""
+def _burst_shape(burst: list[tuple[int, int]]) -> Optional[bool]:
+    """A VRPO burst of (packet number, data length) numbered 0..n-1 each once with every packet but
+    the last by number carrying 488 data bytes: whether the last carries fewer (it ended the
+    burst); None for any other burst (interpretation.md, 'VRPO split')."""
+    if len(burst) == 1:                            # most bursts: one packet
+        number, size = burst[0]
+        return None if number else size < _VRPO_MAX_DATA
     ordered = sorted(burst)
-    numbers = [n for n, _ in ordered]
-    return (numbers == list(range(len(numbers)))
-            and all(n == C.VRPO_MAX_DATA for _, n in ordered[:-1]) and ordered[-1][1] < C.VRPO_MAX_DATA)
+    if [n for n, _ in ordered] != list(range(len(ordered))) or \
+            any(n != _VRPO_MAX_DATA for _, n in ordered[:-1]):
+        return None
+    return ordered[-1][1] < _VRPO_MAX_DATA
 
 
 class _Sender:
@@ -270,8 +274,13 @@ class _Sender:
         self.taken_over = False                        # a later sender on a new port took over
         self.violations: dict[C.PacketType, list[tuple[int, int, bool, int]]] = {}   # (start, end, until end, frame)
         self.burst: list[Meta] = []                    # the VRPO burst being received
+        self.burst_zero = False                        # it holds a packet numbered 0
         self.burst_t = 0
         self.complete = self.incomplete = 0
+        # The data size inferred (docs/rules.md, "VRPO bursts"): a VRPO packet of fewer than 488
+        # bytes seen before the burst; the most packets of a complete burst of 488-byte packets.
+        self.short_before = False
+        self.full_most = 0
 
     def periodic(self, ptype: C.PacketType, t: int, frame: int) -> None:
         self.streams[ptype] = self.streams.get(ptype, 0) + 1
@@ -280,20 +289,30 @@ class _Sender:
             self.violations.setdefault(ptype, []).append((last[0], t, False, frame))
         self.last[ptype] = (t, frame)
 
-    def burst_complete(self) -> bool:
-        burst = self.burst
-        if len(burst) == 1:                        # most bursts: one packet
-            return burst[0].key == 0 and burst[0].data_len < _VRPO_MAX_DATA
-        return _complete_burst([(meta.key, meta.data_len) for meta in burst])
+    def burst_over(self, meta: Meta) -> bool:
+        """The burst ended with a short last packet; or `meta` restarts the numbering (a second 0);
+        or the burst has the inferred size (full packets, as many as the longest complete such
+        burst) and `meta` does not go on from it."""
+        if meta.key == 0 and self.burst_zero:
+            return True
+        shape = _burst_shape([(m.key, m.data_len) for m in self.burst])
+        return shape is True or (shape is False and not self.short_before and 0 < self.full_most <= len(self.burst)
+                                 and meta.key != len(self.burst))
 
     def close_burst(self) -> None:
         if not self.burst:
             return
-        if self.burst_complete():
+        parts = [(meta.key, meta.data_len) for meta in self.burst]
+        shape = _burst_shape(parts)
+        full = shape is False and not self.short_before and len(parts) >= self.full_most
+        if shape or full:
             self.complete += 1
         else:
             self.incomplete += 1
-        self.burst = []
+        if full:
+            self.full_most = len(parts)
+        self.short_before = self.short_before or any(size < _VRPO_MAX_DATA for _, size in parts)
+        self.burst, self.burst_zero = [], False
 
     def report(self) -> dict[str, Any]:
         station = self.station
@@ -406,11 +425,12 @@ class GroundTruth:
                 sender.periodic(ptype, t, frame)
             if ptype is _VRPO:
                 burst = sender.burst
-                # (a burst ends with its last packet: a complete one takes no more, even within the gap)
-                if burst and (t - sender.burst_t >= burst_gap or sender.burst_complete()):
+                # (a burst that is over takes no more, even within the gap)
+                if burst and (t - sender.burst_t >= burst_gap or sender.burst_over(meta)):
                     sender.close_burst()
                     burst = sender.burst
                 burst.append(meta)
+                sender.burst_zero = sender.burst_zero or meta.key == 0
                 sender.burst_t = t
             elif ptype in commands:
                 self._command_event(commands[ptype].command, sender.id, meta.key, frame, t)
