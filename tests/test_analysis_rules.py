@@ -221,6 +221,13 @@ def test_a_finding_beyond_the_kept_items_says_where_all_of_them_are(tmp_path):
     other = _report(tr, tmp_path, dup_window_ms=500.0)
     assert "filter" not in _finding(other, "duplicates")
     assert "... 50 more (the report keeps the first 100)" in summary.render(other, True)
+    # Other ports: the dissector's default preferences decode none of these packets.
+    moved = Traffic()
+    for t, _, sport, _, data in tr.frames:
+        moved.add(t - T0, data, sport=sport + 1000)
+    moved.write(tmp_path / "moved.pcap")
+    report = analyze(str(tmp_path / "moved.pcap"), port=C.INPUT_PORT + 1000, options=Options(serial_scope="sender"))
+    assert _finding(report, "duplicates")["count"] == 150 and "filter" not in _finding(report, "duplicates")
 
 
 def test_html_and_terminal_show_where_findings_lie(tmp_path):

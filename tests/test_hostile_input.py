@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 
 import report_schema
-from test_analysis_craft import Traffic, vrpi
+from test_analysis_craft import T0, Traffic, vrpi
+from vm110 import constants as C
 from vm110.analysis import analyze, report_json
 
 CAPTURES = Path(__file__).resolve().parent.parent / "captures"
@@ -82,6 +83,32 @@ def test_a_fraction_of_a_million_microseconds_or_more_is_analysed_by_both_engine
         done = vm110("analyze", str(path), "--engine", engine, "--quiet", "--json", "-")
         assert done.returncode in (0, 1) and b"Error" not in done.stderr, (engine, done.stderr)
         assert json.loads(done.stdout)["capture"]["packets"] == 12, engine
+
+
+@pytest.mark.tshark
+def test_an_empty_datagram_on_the_eglink_port_is_a_truncated_packet_everywhere(tmp_path):
+    """Wireshark gives an empty UDP datagram no dissector ("UDP Len=0"): the tshark engine counted it
+    as other UDP, while the fast engine had a truncated EG-Link packet. Both now report it, and the
+    illegal finding's display filter shows it in Wireshark."""
+    from scapy.layers.inet import IP, UDP, Ether
+    from scapy.utils import wrpcap
+    from tshark_runner import HOST
+    frames = []
+    for k in range(6):
+        frame = Ether() / IP(src="10.0.0.10", dst=C.MULTICAST_GROUP) / UDP(sport=C.INPUT_PORT, dport=C.INPUT_PORT)
+        frame = frame / (b"" if k == 3 else vrpi(k))
+        frame.time = T0 + k * 0.125
+        frames.append(frame)
+    path = tmp_path / "empty.pcap"
+    wrpcap(str(path), frames)
+    reports = [analyze(str(path), engine) for engine in ("fast", "tshark")]
+    for report in reports:
+        assert (report["capture"]["eglink_packets"], report["illegal"]["by_reason"]) == (6, {"truncated": 1})
+        illegal = next(f for f in report["verdict"]["findings"] if f["rule"] == "illegal")
+        assert [i["frame"] for i in illegal["items"]] == [4]
+    with HOST.workspace(tmp_path / "ws") as ws:
+        shown = ws.run(["-r", str(path), "-Y", illegal["filter"], "-T", "fields", "-e", "frame.number"]).stdout.split()
+    assert shown == ["4"]
 
 
 @pytest.mark.tshark

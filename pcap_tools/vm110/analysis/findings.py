@@ -81,7 +81,9 @@ FINDINGS = (
 # a command still in flight at the end), vrpo_incomplete (marked on the burst's last packet),
 # relays_open (marked on every packet of an episode) and snaplen_truncated (with other truncations).
 RULE_FILTERS = {
-    "illegal": " || ".join(f"vm110.expert.{problem.value}" for problem in C.Problem),
+    # (Wireshark gives an empty datagram no dissector: "UDP Len=0", a truncated EG-Link packet here)
+    "illegal": " || ".join(f"vm110.expert.{problem.value}" for problem in C.Problem)
+               + f" || (udp.length == 8 && udp.port in {{{C.INPUT_PORT}, {C.OUTPUT_PORT}}})",
     "watchdog": "vm110.expert.watchdog_vrpi || vm110.expert.watchdog_vrpo || vm110.expert.silent_until_end",
     "unacked": "vm110.expert.never_acked",
     "restarts": "vm110.expert.restart",

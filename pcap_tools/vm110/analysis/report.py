@@ -116,9 +116,11 @@ def _build(got: Collected) -> dict:
 
 def _judged_as_wireshark(report: dict, opt: Options) -> bool:
     """Whether the dissector, with its default preferences, judges this capture as the report
-    does (only then do the verdict's rule filters show the same frames): default options, the
-    serials of every sender counted per sender, and the CRC the dissector checks by default."""
+    does (only then do the verdict's rule filters show the same frames): default options and
+    ports, the serials of every sender counted per sender, and the CRC the dissector checks by
+    default."""
     return (replace(opt, serial_scope="sender") == Options(serial_scope="sender")
+            and report["capture"]["ports"] == [C.INPUT_PORT, C.OUTPUT_PORT]
             and all(s["serial"]["scope"] == "sender" for s in report["senders"])
             and report["crc"]["variant"] == crc.DEFAULT_VARIANT
             and report["crc"]["byte_order"] == crc.DEFAULT_BYTE_ORDER)

@@ -128,7 +128,7 @@ class TsharkEngine:
                         ports=(self.port, self.port + C.OUTPUT_PORT_OFFSET), crc_variant=variant,
                         crc_order=order, crc_auto=self.crc == "auto" or self.crc_order == "auto",
                         problem=reader.problem, first_ts=reader.first_ts, last_ts=reader.last_ts)
-        frames = 0
+        frames, ports = 0, frozenset(got.ports)
         for pkt in self._packets(path, variant, order):
             frames += 1
             layers = {layer.layer_name for layer in pkt.layers}
@@ -140,10 +140,12 @@ class TsharkEngine:
                 got.fragments += fragment
                 continue
             got.udp += 1
-            if "vm110" not in layers:
+            if "vm110" in layers:
+                self._eglink(got, pkt, layers)
+            elif pkt.udp.length == "8" and not ports.isdisjoint((int(pkt.udp.srcport), int(pkt.udp.dstport))):
+                self._empty(got, pkt, layers)
+            else:
                 got.other_udp += 1
-                continue
-            self._eglink(got, pkt, layers)
             if len(got.records) >= _BATCH:
                 got.flush()
         got.flush()
@@ -153,6 +155,14 @@ class TsharkEngine:
         self.stopped = None
         got.crc_counts[(variant, order)] = got.crc_checked - got.illegal_reasons[C.Problem.BAD_CRC.value]
         return got
+
+    def _empty(self, got: Collected, pkt, layers: set) -> None:
+        """An empty datagram on an EG-Link port, to which Wireshark gives no dissector: a truncated
+        EG-Link packet, as the fast engine has it."""
+        got.eglink += 1
+        src = ipaddress.ip_address(pkt.ip.src if "ip" in layers else pkt.ipv6.src).packed
+        got.add_illegal(int(pkt.frame_info.number), _epoch(pkt.sniff_timestamp), address(src, int(pkt.udp.srcport)),
+                        "", [C.Problem.TRUNCATED.value])
 
     def _eglink(self, got: Collected, pkt, layers: set) -> None:
         f = pkt.vm110._all_fields
