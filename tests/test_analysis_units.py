@@ -191,6 +191,8 @@ def test_bursts_of_full_packets_infer_the_data_size():
     # parts out of order, 15 ms after); one that goes on shows the size was inferred too small
     assert judged([0.0, 0.001, 0.1, 0.101, 0.115, 0.116], [0, 1, 0, 1, 1, 0], [full] * 6) == (3, [], [0, 2, 4])
     assert judged([0.0, 0.1, 0.101], [0, 0, 1], [full] * 3) == (2, [], [0, 1])
+    # exactly the gap apart on an epoch clock (0.01999998 s in floats): two bursts, as in the dissector
+    assert judged([1_700_000_000.05, 1_700_000_000.07], [0, 1], [full] * 2) == (1, [1], [0, 1])
     # a configured size judges alone: 976 configured, 488 alone is incomplete
     assert burst_count([0.0, 0.1], [0, 0], [full, full], data_size=2 * C.VRPO_MAX_DATA)[:2] == (0, [0, 1])
 

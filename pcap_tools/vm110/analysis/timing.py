@@ -27,6 +27,11 @@ def intervals_ms(times: FloatSeq) -> np.ndarray:
     return np.round(np.diff(np.asarray(times, dtype=np.float64)) * 1e6) / MS
 
 
+def interval_ms(later: float, earlier: float) -> float:
+    """One interval as `intervals_ms` gives it: in milliseconds to the microsecond."""
+    return round((later - earlier) * 1e6) / MS
+
+
 def percentile(ordered: FloatSeq, q: float) -> Optional[float]:
     """The q-th percentile of sorted values, linear between closest ranks (numpy's default)."""
     n = len(ordered)

@@ -84,8 +84,8 @@ def add_analysis_options(parser: argparse.ArgumentParser) -> None:
                         help=f"first VRPO packet number, {VRPO_START.range_text}; default 0")
     parser.add_argument("--vrpo-data-size", type=DATA_SIZE, default=0, metavar="BYTES",
                         help=f"configured periodic data size, {DATA_SIZE.range_text}; 0 (default): inferred, a burst "
-                             "ends with a packet under 488 data bytes, or has as many 488-byte packets as the "
-                             "sender's longest complete such burst (docs/rules.md)")
+                             "ends with a packet under 488 data bytes, or has at least as many 488-byte packets as "
+                             "the sender's longest complete such burst (docs/rules.md)")
     limits = parser.add_argument_group("thresholds (interpretation.md, 'Timing')")
     limits.add_argument("--vrpi-watchdog", type=MS, default=C.VRPI_WATCHDOG_MS, metavar="MS",
                         help=f"controller watchdog on VRPI, {MS.range_text}; default {C.VRPI_WATCHDOG_MS}")

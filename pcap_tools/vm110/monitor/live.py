@@ -30,7 +30,7 @@ from ..analysis.collect import CODE_OF_ID, STATE, STATE_FIELDS, TYPES, VRPI_CODE
 from ..capture.reader import address
 from ..analysis.findings import located_item as item
 from ..analysis.state import _name as state_name
-from ..analysis.timing import JITTER_GAIN
+from ..analysis.timing import JITTER_GAIN, interval_ms
 
 SILENT_S = 10.0            # a watchdog lasting longer than this shows as "silent"
 WINDOW_S = 60              # "last minute" numbers
@@ -50,7 +50,7 @@ class LiveSender:
         limit = opt.vrpi_watchdog_ms if self.code == VRPI_CODE else opt.vrpo_watchdog_ms
         self.limit = limit / 1000.0
         self.period = opt.vrpi_period_ms if self.code == VRPI_CODE else opt.vrpo_period_ms
-        self.gap = opt.burst_gap_ms / 1000.0
+        self.gap_ms = opt.burst_gap_ms
         self.low, self.high = opt.vrpo_min_ms, opt.vrpo_max_ms
         self.packets = 0
         self.last_ts: Optional[float] = None          # of its periodic type
@@ -74,7 +74,8 @@ class LiveSender:
         if self.code == VRPO_CODE:
             # (a burst ends at its gap, or once it is over: docs/rules.md, "VRPO bursts")
             number = packet[C.PREFIX_LEN] | packet[C.PREFIX_LEN + 1] << 8
-            begins = self.vrpo_last is None or ts - self.vrpo_last >= self.gap or self.burst.over(number)
+            begins = (self.vrpo_last is None or interval_ms(ts, self.vrpo_last) >= self.gap_ms
+                      or self.burst.over(number))
             self.vrpo_last = ts
             if begins:
                 self.burst.close()
