@@ -2,17 +2,16 @@
 
 A burst is a run of VRPO packets from one sender less than the burst gap (20 ms) apart, each at or
 after the one before (a step back of the clock begins a new burst). Its packet numbers must be
-start, start+1, ... each once (in any order), every packet but the last by number carrying 488
-data bytes. With a configured periodic data size, a burst is complete when its data add up to
-exactly that size. With 0 (infer, the default) it is complete when its last packet carries fewer
-than 488 bytes, or, every packet carrying 488 (a data size that is a multiple of 488, which no
-packet marks), when the sender has sent no shorter VRPO packet before it and no complete burst of
-full packets longer than it. A burst is over when it is complete by its own packets, when a
-packet restarts the numbering (the start number again), or when it has reached the inferred size
-and the next packet does not go on from it: the sender's next packet begins another burst even
-within the gap. Two unsplit VRPO packets closer than the gap (jitter)
-are two bursts; a split one whose parts arrive out of order is one, complete once its parts are
-all there.
+start, start+1, ... each once (in any order), every packet but the last by number carrying 488 data
+bytes. With a configured periodic data size, a burst is complete when its data add up to exactly
+that size. With 0 (infer, the default) it is complete when its last packet carries fewer than 488
+bytes, or, every packet carrying 488 (a data size that is a multiple of 488, which no packet
+marks), when the sender has sent no shorter VRPO packet before it and no complete burst of full
+packets longer than it. A burst is over when it is complete by its own packets, when a packet
+restarts the numbering (the start number again), or when it has reached the inferred size and the
+next packet does not go on from it: the sender's next packet begins another burst even within the
+gap. Two unsplit VRPO packets closer than the gap (jitter) are two bursts; a split one whose parts
+arrive out of order is one, complete once its parts are all there.
 
 `Bursts` is fed a sender's accepted VRPO packets a batch at a time and keeps only the burst still
 open, judged in constant time per packet (a burst may be endless): bursts of one packet (the usual
@@ -73,7 +72,7 @@ class Open:
         return self.n > 0 and not self.bad and self.top - self.start == self.n - 1
 
     def ended(self) -> bool:
-        """Complete by its own packets: the configured size reached, or (infer) a short last packet."""
+        """Complete by its own packets: the data add up to the configured size, or (infer) the last is short."""
         if not self._numbered() or self.short != int(self.top_data != C.VRPO_MAX_DATA):
             return False                             # (a packet other than the last is short)
         return self.total == self.data_size if self.data_size else self.top_data != C.VRPO_MAX_DATA
@@ -88,8 +87,8 @@ class Open:
                 and number != self.top + 1 and self._numbered())
 
     def complete(self) -> bool:
-        """Complete if it ended now; full packets only, judged by what came before (`short_seen`
-        counts no packet of theirs)."""
+        """Ended; or (infer) full packets numbered from the start, no shorter packet before them
+        (`short_seen` counts none of theirs) and at least as many as the longest complete such burst."""
         return self.ended() or (not self.data_size and not self.short and self._numbered()
                                 and not self.short_seen and self.n >= self.full)
 
