@@ -112,6 +112,23 @@ def test_an_empty_datagram_on_the_eglink_port_is_a_truncated_packet_everywhere(t
 
 
 @pytest.mark.tshark
+def test_a_udp_header_cut_short_is_no_crash_of_the_tshark_engine(tmp_path):
+    """An IP total length of 24 leaves the UDP header 4 bytes (self-fuzz): tshark's udp layer then
+    has its ports but no length, and the tshark engine's AttributeError stopped the analysis."""
+    from scapy.layers.inet import IP, Ether
+    from scapy.packet import Raw
+    from scapy.utils import wrpcap
+    cut = Ether() / IP(src="10.0.0.10", dst=C.MULTICAST_GROUP, proto=17, len=24) / Raw(
+        struct.pack("!HH", C.INPUT_PORT, C.INPUT_PORT))
+    cut.time = T0
+    path = tmp_path / "cut-udp.pcap"
+    wrpcap(str(path), [cut])
+    done = vm110("analyze", str(path), "--engine", "tshark", "--quiet", "--json", "-")
+    assert done.returncode in (0, 1) and b"Error" not in done.stderr, done.stderr
+    assert json.loads(done.stdout)["capture"]["packets"] == 1
+
+
+@pytest.mark.tshark
 def test_the_tshark_engine_keeps_what_comes_before_a_cut(tmp_path):
     path = tmp_path / "cut.pcap"
     _traffic(path)

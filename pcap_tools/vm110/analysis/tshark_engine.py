@@ -60,6 +60,13 @@ def _epoch(text: str) -> float:
     return float(text)
 
 
+def _empty_on(udp, ports: frozenset) -> bool:
+    """An empty datagram on one of `ports`. (get_field: a UDP header cut short lacks its length;
+    self-fuzz found the AttributeError.)"""
+    length, sport, dport = (udp.get_field(name) for name in ("length", "srcport", "dstport"))
+    return length == "8" and sport is not None and dport is not None and not ports.isdisjoint((int(sport), int(dport)))
+
+
 class TsharkEngine:
     def __init__(self, port: int = C.INPUT_PORT, crc: str = "auto", crc_order: str = "auto") -> None:
         self.port, self.crc, self.crc_order = port, crc, crc_order
@@ -142,7 +149,7 @@ class TsharkEngine:
             got.udp += 1
             if "vm110" in layers:
                 self._eglink(got, pkt, layers)
-            elif pkt.udp.length == "8" and not ports.isdisjoint((int(pkt.udp.srcport), int(pkt.udp.dstport))):
+            elif _empty_on(pkt.udp, ports):
                 self._empty(got, pkt, layers)
             else:
                 got.other_udp += 1
