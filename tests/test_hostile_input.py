@@ -15,6 +15,7 @@ import pytest
 
 import report_schema
 from test_analysis_craft import T0, Traffic, vrpi
+from tshark_runner import RUNNERS
 from vm110 import constants as C
 from vm110.analysis import analyze, report_json
 
@@ -70,19 +71,49 @@ def test_a_damaged_later_pcapng_section_keeps_what_came_before(tmp_path):
         assert report["totals"]["damaged"] == 1 and report["verdict"]["findings"][0]["rule"] == "damaged"
 
 
-@pytest.mark.tshark
-def test_a_fraction_of_a_million_microseconds_or_more_is_analysed_by_both_engines(tmp_path):
-    """A record's microseconds of 2,890,186,947 (self-fuzz): tshark prints the overflowed time as
-    "1750000009.-326043208"; the tshark engine read that as a ValueError and stopped."""
-    path = tmp_path / "usec.pcap"
-    _traffic(path)
-    data = bytearray(path.read_bytes())
-    struct.pack_into("<I", data, _record_starts(bytes(data))[5] + 4, 2_890_186_947)
-    path.write_bytes(bytes(data))
+def _on(runner) -> dict:
+    """The environment in which the package's commands find `runner`'s tshark."""
+    import tshark_runner
+    if runner.root is None:
+        return dict(os.environ)
+    return dict(os.environ, PATH=f"{tshark_runner.overlay_bin(runner)}{os.pathsep}{os.environ.get('PATH', '')}")
+
+
+def _reports(path: Path, env: dict) -> list[dict]:
+    """Both engines' JSON reports of `path`, `tool` left out."""
+    out = []
     for engine in ("fast", "tshark"):
-        done = vm110("analyze", str(path), "--engine", engine, "--quiet", "--json", "-")
-        assert done.returncode in (0, 1) and b"Error" not in done.stderr, (engine, done.stderr)
-        assert json.loads(done.stdout)["capture"]["packets"] == 12, engine
+        done = subprocess.run([sys.executable, "-m", "vm110", "analyze", str(path), "--engine", engine, "--quiet",
+                               "--json", "-"], capture_output=True, env=env, timeout=300)
+        assert done.returncode in (0, 1, 2) and b"Traceback" not in done.stderr, (engine, done.stderr)
+        report = json.loads(done.stdout)
+        report_schema.check(report)
+        report.pop("tool")
+        out.append(report)
+    return out
+
+
+@pytest.mark.tshark
+@pytest.mark.parametrize("runner", RUNNERS, ids=lambda r: r.version)
+def test_a_fraction_of_a_second_or_more_is_read_as_wireshark_reads_it(runner, tmp_path):
+    """A pcap record's fraction of a million microseconds or more (damage): wiretap keeps it in
+    signed 32-bit nanoseconds, which tshark prints out of range, "S.1250000000" (4.0) or
+    "S.(1250000000 nanosec" (4.4 and later), wrapped ones negative. The tshark engine lost a second
+    on the first (a trial: 8 times backwards, 3 watchdogs) and stopped at the last with a
+    ValueError (self-fuzz); the fast engine put the last 2,890 s later than Wireshark shows it."""
+    path = tmp_path / "usec.pcap"
+    _traffic(path)                                       # 12 VRPI, T0 + k * 0.125 s
+    data = bytearray(path.read_bytes())
+    starts = _record_starts(bytes(data))
+    struct.pack_into("<II", data, starts[0], int(T0) - 1, 1_000_000)         # T0, written oddly
+    struct.pack_into("<II", data, starts[4], int(T0) - 2, 2_500_000)         # T0 + 0.5
+    struct.pack_into("<II", data, starts[11], int(T0) + 2, 2_890_186_947)   # wraps: T0 + 2 - 0.326043208
+    path.write_bytes(bytes(data))
+    fast, slow = _reports(path, _on(runner))
+    assert fast == slow
+    assert fast["capture"]["first_time"] == T0
+    assert fast["capture"]["last_time"] == pytest.approx(T0 + 2 - 0.326043208, abs=1e-6)
+    assert fast["totals"]["lost"] == 0
 
 
 @pytest.mark.tshark
@@ -142,6 +173,22 @@ def test_the_tshark_engine_keeps_what_comes_before_a_cut(tmp_path):
     done = vm110("analyze", str(path), "--engine", "tshark", "--quiet", "--fail-on", "damaged")
     # (exit 2: a verdict on part of the input is not the verdict on it; the rule still names it)
     assert done.returncode == 2 and b"damaged=1" in done.stderr and b"Traceback" not in done.stderr
+
+
+@pytest.mark.tshark
+def test_a_corrupt_record_header_leaves_both_engines_the_times_before_it(tmp_path):
+    """The tshark engine takes the capture's times from the reader, which lost them at a corrupt
+    record header (a trial): null first and last times, null item times, a report that failed its
+    own schema."""
+    path = tmp_path / "corrupt.pcap"
+    _traffic(path)
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<I", data, _record_starts(bytes(data))[6] + 8, 0x7FFFFFFF)
+    path.write_bytes(bytes(data))
+    fast, slow = _reports(path, dict(os.environ))
+    assert fast == slow
+    assert (fast["capture"]["packets"], fast["capture"]["first_time"], fast["capture"]["last_time"]) == (
+        6, T0, T0 + 5 * 0.125)
 
 
 def test_decode_and_analyze_read_a_pipe():

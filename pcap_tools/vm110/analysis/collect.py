@@ -19,7 +19,7 @@ import numpy as np
 from .. import constants as C
 from .. import protocol as P
 from ..capture import linktypes as L
-from ..capture.reader import PCAP_RECORD_LEN
+from ..capture.reader import PCAP_RECORD_LEN, PcapLayout
 
 TYPES = tuple(C.PacketType)
 CODE = {t: i for i, t in enumerate(TYPES)}               # packet type -> small integer code
@@ -155,7 +155,7 @@ class Collected:
     def add_legal(self, ts: float, frame: int, src: bytes, sport: int, packet: bytes) -> None:
         self.records += RECORD.pack(ts, frame, self.source(src), sport, packet)
 
-    def located_rows(self, data: bytes, offsets: array, frames: array, scale: float) -> np.ndarray:
+    def located_rows(self, data: bytes, offsets: array, frames: array, layout: PcapLayout) -> np.ndarray:
         """RECORDs of EG-Link packets located in a chunk of a little-endian Ethernet pcap (offsets
         into `data`, which runs at least PREFIX bytes past the last). Before each lie its pcap
         record header (time) and the Ethernet/IPv4/UDP headers (source address and port) at fixed
@@ -168,7 +168,9 @@ class Collected:
         rows = np.concatenate([raw[at[k:k + _ROWS, None] + _PICK].view(_PICKED).ravel()     # small index arrays
                                for k in range(0, len(at), _ROWS)])
         out["frame"] = np.frombuffer(frames, dtype=np.uint32)
-        out["ts"] = rows["sec"] + rows["frac"] * scale
+        out["ts"] = rows["sec"] + rows["frac"] * layout.scale
+        for i in np.flatnonzero(rows["frac"] >= layout.units).tolist():   # damage: as Wireshark reads it
+            out["ts"][i] = layout.time(int(rows["sec"][i]), int(rows["frac"][i]))
         out["sport"] = rows["sport"]
         out["packet"] = rows["packet"]
         values, which = np.unique(rows["src"], return_inverse=True)

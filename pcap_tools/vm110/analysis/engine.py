@@ -262,7 +262,7 @@ class FastEngine:
         A chunk at a time: one Python step per record finds where the records are, numpy reads
         their headers (`_HEADS`) and picks the EG-Link candidates of the common frame, a zlib call
         each checks their CRC; everything else goes the general way, in frame order."""
-        scale, link, limit = layout.scale, layout.link, layout.limit
+        link, limit, when = layout.link, layout.limit, layout.time
         length = struct.Struct("<I").unpack_from
         slack = bytes(_FUSED.size)
         ports_le = np.array(sorted(_SWAP[p] for p in self.ports), dtype=np.uint16)
@@ -325,7 +325,7 @@ class FastEngine:
             for i in np.flatnonzero(rest).tolist():
                 h = head[i]
                 p, incl = int(at[i]) + 16, int(h["incl"])
-                ts = int(h["sec"]) + int(h["frac"]) * scale
+                ts = when(int(h["sec"]), int(h["frac"]))
                 if plain[i]:
                     n = swap[int(h["ulen"])]
                     if udp_head <= n <= incl - ip_end:
@@ -337,11 +337,11 @@ class FastEngine:
                     slow(got, reader, variant, order, ts, *found, frame + i + 1)
             if len(at):
                 if not frame:
-                    reader.first_ts = int(head["sec"][0]) + int(head["frac"][0]) * scale
-                reader.last_ts = int(head["sec"][-1]) + int(head["frac"][-1]) * scale
+                    reader.first_ts = when(int(head["sec"][0]), int(head["frac"][0]))
+                reader.last_ts = when(int(head["sec"][-1]), int(head["frac"][-1]))
             frame += len(at)
             reader.frames = frame
-            got.flush(got.located_rows(data, offsets, frames, scale))
+            got.flush(got.located_rows(data, offsets, frames, layout))
             if damaged:
                 break
             data = self._advance(reader, chunks, pos)

@@ -50,13 +50,17 @@ def _int(value: str) -> int:
 
 
 def _epoch(text: str) -> float:
-    """A frame's time as tshark gives it. A pcap record whose microseconds are a million or more
-    overflows wiretap's nanoseconds, which tshark then prints negative ("1750000009.-326043208"):
-    its seconds plus those nanoseconds, the time tshark itself works with (self-fuzz found the
-    ValueError)."""
+    """A frame's time as tshark gives it. A decimal fraction has 9 digits at most; a pcap record's
+    fraction of a second or more (damage) leaves wiretap's nanoseconds out of range, and tshark
+    prints them as they are: 4.0 "S.1253000000" or, wrapped negative, "S.-326043208"; 4.4 and
+    later "S.(1253000000 nanosec". Such a time is S plus those nanoseconds, as tshark's relative
+    times have it (self-fuzz and a trial found the ValueError and a second lost)."""
     sec, _, frac = text.partition(".")
-    if frac.startswith("-") and frac[1:].isdigit():
-        return int(sec) - int(frac[1:]) * 1e-9
+    if frac.isdigit() and len(frac) <= 9:
+        return float(text)
+    nsec = frac.removeprefix("(").removesuffix(" nanosec")
+    if nsec.lstrip("-").isdigit():
+        return int(sec) + int(nsec) * 1e-9
     return float(text)
 
 

@@ -57,6 +57,16 @@ class PcapLayout(NamedTuple):
     scale: float         # seconds per unit of the fraction field (us or ns)
     link: int
     limit: int           # largest plausible record
+    units: int           # fraction units in a second: a fraction this large or more is damage
+
+    def time(self, sec: int, frac: int) -> float:
+        """A record's time as Wireshark reads it, so that a frame's time is the one the user sees
+        there and the two engines agree. wiretap keeps the fraction in signed 32-bit nanoseconds:
+        one of a second or more (damage; no writer means it) wraps there."""
+        if frac < self.units:
+            return sec + frac * self.scale
+        nsec = (frac * (1_000_000_000 // self.units)) & 0xFFFFFFFF
+        return sec + (nsec - (1 << 32) if nsec >= 1 << 31 else nsec) * 1e-9
 
 
 def address(src: bytes, port: int) -> str:
@@ -166,7 +176,8 @@ class CaptureReader:
         self.link_types.add(L.NAMES.get(link, str(link)))
         # Never the snaplen: a file's own header must not let a record claim gigabytes.
         self.ts_digits = 9 if magic == PCAP_MAGIC_NS else 6
-        return PcapLayout(e, 1e-9 if magic == PCAP_MAGIC_NS else 1e-6, link, MAX_RECORD)
+        ns = magic == PCAP_MAGIC_NS
+        return PcapLayout(e, 1e-9 if ns else 1e-6, link, MAX_RECORD, 1_000_000_000 if ns else 1_000_000)
 
     def raw_chunks(self, start: int = PCAP_HEADER_LEN, stop: Optional[int] = None) -> Generator[bytes, int, None]:
         """Chunks of records (pcap) or blocks (pcapng) for a consumer that walks them itself: each
@@ -207,13 +218,15 @@ class CaptureReader:
         self.damaged(at, f"corrupt record header at byte {at} (length {length}{over})")
 
     def _pcap(self) -> Iterator[list[Datagram]]:
-        e, scale, link, limit = self.pcap_layout()
+        layout = self.pcap_layout()
+        e, scale, link, limit, units = layout
+        when = layout.time
         rec = struct.Struct(e + "IIII").unpack_from
         fast = _FAST.unpack_from if link == L.LINKTYPE_ETHERNET else None
         parse = self.udp_of
         vi45, head_len, frag_mask = _FAST_VI, _FAST_HEAD, L.IPV4_FRAGMENT_MASK
         ipv4, udp = L.ETHERTYPE_IPV4, L.IPPROTO_UDP
-        frame = 0
+        frame, ts = 0, 0.0
         chunks = self.raw_chunks()
         data = next(chunks, None)
         while data is not None:
@@ -227,6 +240,7 @@ class CaptureReader:
                 if incl > limit:
                     self.corrupt(pos, incl)
                     chunks.close()
+                    self._times(data, frame, ts, rec, when)
                     self.frames = frame
                     yield out
                     return
@@ -234,7 +248,7 @@ class CaptureReader:
                     break
                 pos = p + incl
                 frame += 1
-                ts = sec + frac * scale
+                ts = sec + frac * scale if frac < units else when(sec, frac)
                 if fast is not None and incl >= head_len:
                     et, vi, frag, proto, src, sport, dport, ulen = fast(data, p)
                     if (et == ipv4 and vi == vi45 and proto == udp and not frag & frag_mask
@@ -244,14 +258,19 @@ class CaptureReader:
                 got = parse(link, data, p, incl, orig, frame)
                 if got is not None:
                     append((ts, *got, frame))
-            if frame:
-                self.last_ts = ts
-                if self.first_ts is None:
-                    sec, frac = rec(data, 0)[:2]
-                    self.first_ts = sec + frac * scale
+            self._times(data, frame, ts, rec, when)
             self.frames = frame
             yield out
             data = self.next_chunk(chunks, pos)
+
+    def _times(self, data: bytes, frame: int, ts: float, rec, when) -> None:
+        """first_ts and last_ts, `ts` the time of the last of `frame` records so far (the first
+        one's read from the chunk `data` that began with it)."""
+        if frame:
+            self.last_ts = ts
+            if self.first_ts is None:
+                self.first_ts = when(*rec(data, 0)[:2])
+
     @staticmethod
     def next_chunk(chunks: Generator[bytes, int, None], pos: int) -> Optional[bytes]:
         """The next chunk of `raw_chunks`, resuming at `pos` of the current one; None at the end."""

@@ -30,7 +30,7 @@ class StreamReader(CaptureReader):
         self.path = name
         self.format = ""
         self.reset_counters()
-        self._record: Optional[tuple] = None   # pcap: (record struct, scale, link)
+        self._record: Optional[tuple] = None   # pcap: (record struct, layout, link)
         self.buf = b""
         self.stopped = False                   # damage seen: the rest is not read
 
@@ -72,9 +72,9 @@ class StreamReader(CaptureReader):
             if len(data) < PCAP_HEADER_LEN:
                 return 0
             layout = self.pcap_header(data)
-            self._record = (struct.Struct(layout.endian + "IIII"), layout.scale, layout.link)
+            self._record = (struct.Struct(layout.endian + "IIII"), layout, layout.link)
             pos = PCAP_HEADER_LEN
-        rec, scale, link = self._record
+        rec, layout, link = self._record
         end = len(data)
         while pos + 16 <= end:
             sec, frac, incl, orig = rec.unpack_from(data, pos)
@@ -84,7 +84,7 @@ class StreamReader(CaptureReader):
                 break
             if pos + 16 + incl > end:
                 break
-            ts = sec + frac * scale
+            ts = layout.time(sec, frac)
             self._packet(out, ts, link, data, pos + 16, incl, orig)
             pos += 16 + incl
         return pos
