@@ -126,7 +126,7 @@ def test_pcapng_interfaces_resolutions_and_blocks(tmp_path):
         return block(6, struct.pack("<IIIII", iface, ticks >> 32, ticks & 0xFFFFFFFF, len(frame), len(frame)) + frame)
     data = b"".join([shb, idb0, idb1, idb2,
                      epb(0, 1_700_000_000_250_000, ether),
-                     block(0x0BAD, b"unknown block"),                                    # skipped
+                     block(0x1234, b"unknown block"),                                    # skipped
                      epb(1, 1_700_000_001_000_000_500, raw),
                      block(3, struct.pack("<I", len(ether)) + ether),                    # simple packet block
                      epb(2, 12, raw)])                                                   # 12/8 s + 10 s

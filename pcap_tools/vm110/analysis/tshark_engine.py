@@ -139,9 +139,15 @@ class TsharkEngine:
                         ports=(self.port, self.port + C.OUTPUT_PORT_OFFSET), crc_variant=variant,
                         crc_order=order, crc_auto=self.crc == "auto" or self.crc_order == "auto",
                         problem=reader.problem, first_ts=reader.first_ts, last_ts=reader.last_ts)
-        frames, ports = 0, frozenset(got.ports)
+        frames, ports, ts = 0, frozenset(got.ports), 0.0
         for pkt in self._packets(path, variant, order):
             frames += 1
+            # A packet without a time (a pcapng simple packet block: no frame.time_epoch; pyshark
+            # gives 0) takes the last packet's, as the reader gives it; records that are no
+            # packets (no encapsulation) set none.
+            if (pkt.frame_info.get_field("time_epoch") is not None
+                    and pkt.frame_info.get_field("encap_type") is not None):
+                ts = _epoch(pkt.sniff_timestamp)
             layers = {layer.layer_name for layer in pkt.layers}
             # get_field: a damaged IP header may lack either field (self-fuzz found the AttributeError).
             fragment = "ip" in layers and (pkt.ip.get_field("flags_mf") in ("1", "True")
@@ -152,9 +158,9 @@ class TsharkEngine:
                 continue
             got.udp += 1
             if "vm110" in layers:
-                self._eglink(got, pkt, layers)
+                self._eglink(got, pkt, layers, ts)
             elif _empty_on(pkt.udp, ports):
-                self._empty(got, pkt, layers)
+                self._empty(got, pkt, layers, ts)
             else:
                 got.other_udp += 1
             if len(got.records) >= _BATCH:
@@ -167,18 +173,18 @@ class TsharkEngine:
         got.crc_counts[(variant, order)] = got.crc_checked - got.illegal_reasons[C.Problem.BAD_CRC.value]
         return got
 
-    def _empty(self, got: Collected, pkt, layers: set) -> None:
+    def _empty(self, got: Collected, pkt, layers: set, ts: float) -> None:
         """An empty datagram on an EG-Link port, to which Wireshark gives no dissector: a truncated
         EG-Link packet, as the fast engine has it."""
         got.eglink += 1
         src = ipaddress.ip_address(pkt.ip.src if "ip" in layers else pkt.ipv6.src).packed
-        got.add_illegal(int(pkt.frame_info.number), _epoch(pkt.sniff_timestamp), address(src, int(pkt.udp.srcport)),
+        got.add_illegal(int(pkt.frame_info.number), ts, address(src, int(pkt.udp.srcport)),
                         "", [C.Problem.TRUNCATED.value])
 
-    def _eglink(self, got: Collected, pkt, layers: set) -> None:
+    def _eglink(self, got: Collected, pkt, layers: set, ts: float) -> None:
         f = pkt.vm110._all_fields
         got.eglink += 1
-        frame, ts = int(pkt.frame_info.number), _epoch(pkt.sniff_timestamp)
+        frame = int(pkt.frame_info.number)
         src_text = pkt.ip.src if "ip" in layers else pkt.ipv6.src
         src = ipaddress.ip_address(src_text).packed
         sport = int(pkt.udp.srcport)

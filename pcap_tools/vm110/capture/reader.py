@@ -27,6 +27,9 @@ PCAP_MAGIC_NS = 0xA1B23C4D
 PCAPNG_SHB = 0x0A0D0D0A
 PCAPNG_BOM = 0x1A2B3C4D
 PCAPNG_IDB, PCAPNG_PB, PCAPNG_SPB, PCAPNG_EPB = 1, 2, 3, 6
+# Blocks that are records (frames) in Wireshark, not packets: systemd journal entries, custom
+# blocks, system-call events (Sysdig/Falco). Frame numbers count them, as Wireshark's do.
+PCAPNG_OTHER_RECORDS = frozenset((0x9, 0xBAD, 0x40000BAD, 0x204, 0x208, 0x216, 0x217, 0x221, 0x222))
 OPT_END, OPT_TSRESOL, OPT_TSOFFSET = 0, 9, 14
 PCAP_HEADER_LEN = 24
 PCAP_RECORD_LEN = 16
@@ -283,7 +286,8 @@ class CaptureReader:
     def pcapng_block(self, data: bytes, pos: int, btype: int, blen: int) -> Optional[tuple]:
         """Take in one pcapng block (its header checked by the caller). Section and interface
         blocks update the reader; a packet block returns (ts, link, start of frame, captured
-        length, original length); anything else None. A bad byte-order magic raises CaptureError."""
+        length, original length), another record link None; anything else None. A bad byte-order
+        magic raises CaptureError."""
         e = self.endian
         if btype in (PCAPNG_EPB, PCAPNG_PB):
             if btype == PCAPNG_EPB:
@@ -306,6 +310,8 @@ class CaptureReader:
             orig = struct.unpack_from(e + "I", data, pos + 8)[0]
             # A simple packet block has no time: it gets the time of the packet before it.
             return self.last_ts or 0.0, self.interfaces[0][0], pos + 12, min(orig, blen - 16), orig
+        if btype in PCAPNG_OTHER_RECORDS:
+            return (self.last_ts or 0.0, None, pos, 0, 0)
         if btype == PCAPNG_IDB:
             link = struct.unpack_from(e + "H", data, pos + 8)[0]
             div, scale, tsoff = self._idb_options(data, pos + 16, pos + blen - 4, e)
