@@ -381,7 +381,7 @@ def test_pcapng_interfaces_and_odd_blocks_through_the_engine(tmp_path, endian):
     for i in range(6):
         t_us = 1_700_000_000_000_000 + i * 125_000
         if i == 2:
-            blocks.append(block(0x0BAD, b"skip me", e))
+            blocks.append(block(0x1234, b"skip me", e))                               # unknown: skipped
         if i == 3:
             frame = bytes(Ether(type=0x0800) / ip(i))
             blocks.append(block(3, struct.pack(e + "I", len(frame)) + frame, e))   # simple packet block
