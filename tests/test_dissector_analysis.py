@@ -778,6 +778,57 @@ def test_rules_new_port_restart(tshark, tmp_path):
     assert not any(r.get("vm110.analysis.silent_until_end") for r in rows.values())
 
 
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_limits_are_judged_to_the_microsecond_in_analyze_as_in_the_dissector(tshark, tmp_path):
+    """Intervals exactly at a limit, on an epoch clock: a float difference there is off by some
+    0.2 us, and analyze judged copies exactly the duplicate window apart duplicates and an ID
+    exactly the reuse gap later a retransmission, where the dissector (to the microsecond) did not
+    (a trial). Each limit here is met exactly and missed by 1 us; the rules' "less than" decides."""
+    import subprocess
+    import sys
+    new = 40000
+    timeline = [
+        (0, _bu(1, _cmd("VRCI", 7))),              # 1
+        (150, _bu(2, _cmd("VRCI", 7))),            # 2  the reuse gap (150) later: a new command
+        (299.999, _bu(3, _cmd("VRCI", 7))),        # 3  149.999 later: retransmission of 2
+        (400, _bu(4, _cmd("VRCI", 8))),            # 4
+        (700, _ctl(1, _cmd("VRAO", 8))),           # 5  acks 4 at the fail limit (300): not late
+        (800, _bu(5, _cmd("VRCI", 9))),            # 6
+        (1100.001, _ctl(2, _cmd("VRAO", 9))),      # 7  acks 6 1 us past it: late, failed
+        (1200, _ctl(3, _vrpo())),                  # 8
+        (1450, T.Datagram(_ctl(0, _vrpo()), sport=new)),   # 9  the new-port silence (250) after 8: restart
+        (2000, _bu(6, _vrpi())),                   # 10
+        (2125, _bu(7, _vrpi())),                   # 11
+        (2224.999, _bu(7, _vrpi())),               # 12 99.999 after 11: duplicate
+        (2250, _bu(8, _vrpi())),                   # 13
+        (2350, _bu(8, _vrpi())),                   # 14 the window (100) after 13: no copy, restart to 8
+        (2375, _bu(9, _vrpi())),                   # 15 confirms it
+    ]
+    prefs = {"vm110.dup_window_ms": "100", "vm110.reuse_gap_ms": "150", "vm110.vrci_fail_ms": "300"}
+    try:
+        with tshark.workspace(tmp_path / "ws") as ws:
+            pcap = ws.dir / "limits.pcap"
+            T.write_pcap(pcap, [p for _, p in timeline], [round(ms * 1000) for ms, _ in timeline])
+            rows, _ = run_fields(ws, pcap, ["-2"], prefs={**ON, **prefs})
+            out = tmp_path / "limits.json"
+            done = subprocess.run([sys.executable, "-m", "vm110", "analyze", str(pcap), "--json", str(out), "--quiet",
+                                   "--dup-window", "100", "--reuse-gap", "150", "--vrci-fail", "300"],
+                                  capture_output=True, text=True)
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert done.returncode in (0, 1), done.stderr
+    by = {r.number: r for r in rows}
+    assert not by[2].get("vm110.analysis.retransmission_of") and by[3].int("vm110.analysis.retransmission_of") == 2
+    assert by[5].int("vm110.analysis.ack_to") == 4 and not by[5].has("ack_late")
+    assert by[7].int("vm110.analysis.ack_to") == 6 and by[7].has("ack_late")
+    assert by[9].int("vm110.analysis.restart_port_from") == 5827
+    assert by[12].has("serial_duplicate") and not by[14].has("serial_duplicate") and by[14].has("restart")
+    report = json.loads(out.read_text())
+    vrci = report["commands"]["VRCI"]
+    assert (vrci["commands"], vrci["retransmissions"], vrci["failed"]) == (4, 1, 3)   # 1 and 2-3 never acked
+    assert report["totals"]["duplicates"] == 1 and report["totals"]["restarts"] == 2
+
+
 # --- The dissector and `vm110 analyze --json` count the same things -----------------------------------
 ALL_CAPTURES = sorted(p for p in CAPTURES.iterdir() if p.suffix in (".pcap", ".pcapng"))
 

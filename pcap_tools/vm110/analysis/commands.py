@@ -54,10 +54,9 @@ class Command:
         beyond it: one still in flight at the end of the capture has not failed (yet)."""
         if self.interrupted_frame is not None:
             return False
-        latency = self.latency_first_ms
-        if latency is None:
-            return end is not None and (end - self.times[0]) * timing.MS > fail_ms
-        return latency > fail_ms
+        if self.ack_time is None:
+            return end is not None and timing.longer(end - self.times[0], fail_ms)
+        return timing.longer(self.ack_time - self.times[0], fail_ms)
 
 
 @dataclass
@@ -78,20 +77,19 @@ class Tracker:
     def __init__(self, fail_ms: dict[int, float], reuse_gap_ms: float = REUSE_GAP_MS) -> None:
         self.tallies = {CODE[t]: Tally() for t in COMMAND_TYPES}
         self.fail_ms = fail_ms
-        self.reuse = reuse_gap_ms / timing.MS
+        self.reuse_ms = reuse_gap_ms
         self.open: dict[tuple[int, str, int], Command] = {}      # (code, sender, ID) -> its latest command
         self.by_id: dict[tuple[int, int], list[Command]] = {}    # (code, ID) -> not interrupted, in order of start
         self.last_id: dict[tuple[int, str], int] = {}            # (code, sender) -> ID of its latest new command
 
     def apply(self, events: Iterable[tuple]) -> None:
-        tallies, open_, by_id, last_id, reuse = self.tallies, self.open, self.by_id, self.last_id, self.reuse
+        tallies, open_, by_id, last_id, reuse_ms = self.tallies, self.open, self.by_id, self.last_id, self.reuse_ms
         cmd: Optional[Command]
         for frame, ts, code, sender, cid in events:
             if code == RESTART:
                 for key in [k for k in open_ if k[1] == sender]:
                     cmd = open_.pop(key)
-                    limit = self.fail_ms[key[0]] / timing.MS
-                    if cmd.ack_frame is None and ts - cmd.times[0] <= limit:
+                    if cmd.ack_frame is None and not timing.longer(ts - cmd.times[0], self.fail_ms[key[0]]):
                         cmd.interrupted_frame, cmd.interrupted_time = frame, ts
                         by_id[(key[0], key[2])].remove(cmd)
                 for code_ in _COMMAND_CODES:
@@ -99,7 +97,7 @@ class Tracker:
             elif code in _COMMAND_CODES:
                 tally = tallies[code]
                 cmd = open_.get((code, sender, cid))
-                if cmd is not None and ts - cmd.times[-1] < reuse:
+                if cmd is not None and timing.shorter(ts - cmd.times[-1], reuse_ms):
                     cmd.frames.append(frame)
                     cmd.times.append(ts)
                     if cmd.ack_frame is not None:
@@ -158,7 +156,7 @@ class Retiring:
             for i in self.pending[code]:
                 cmd = cmds[i]
                 done = cmd.interrupted_frame is not None or cmd.ack_frame is not None
-                if not done or now - max(cmd.times) <= t.reuse:
+                if not done or not timing.longer(now - max(cmd.times), t.reuse_ms):
                     keep.append(i)
                     continue
                 self._retire(code, i, cmd)

@@ -25,7 +25,7 @@ import numpy as np
 
 from .. import constants as C
 from ..capture.reader import address
-from . import commands
+from . import commands, timing
 from .collect import CODE, _groups, code_of, key_sender, sender_keys
 from .periodic import Floats, FloatsFactory
 from .sender import Sender
@@ -112,11 +112,10 @@ class Analysis:
         direction, origin, src, port = key_sender(key)
         new = self.senders[key] = Sender(direction, origin, address(self.names[src], port), first, self.opt,
                                          self.floats, self.stamps)
-        silence = NEW_PORT_SILENCE_MS / 1000.0
         # Only the senders of its host: a capture of many senders costs no scan of them all.
         same_host = self.hosts.setdefault((direction, origin, new.host), [])
         quiet = [(old.last_ts, old.last_frame, i, old) for i, old in same_host
-                 if old.src != new.src and new.first_ts - old.last_ts >= silence]
+                 if old.src != new.src and not timing.shorter(new.first_ts - old.last_ts, NEW_PORT_SILENCE_MS)]
         same_host.append((len(self.senders) - 1, new))
         if not quiet:
             return

@@ -22,7 +22,7 @@ from typing import Optional
 import numpy as np
 
 from .. import constants as C
-from . import serials
+from . import serials, timing
 from .bursts import Bursts
 from .collect import CODE, RECORD_DTYPE, TYPES, VRPI_CODE, VRPO_CODE, code_of, sender_id
 from .commands import RESTART
@@ -150,7 +150,7 @@ class Sender:
 
     def _last_accepted(self, code: int) -> Optional[float]:
         """Time of the last accepted packet of that type so far, undecided ones included."""
-        window = self.opt.dup_window_ms / 1000.0
+        edge = timing.edge_us(self.opt.dup_window_ms)
         for held in self.pending.values():
             if not held:
                 continue
@@ -160,7 +160,7 @@ class Sender:
             accepted, at = np.zeros(len(rows), dtype=bool), float(rows["ts"][0])
             accepted[0] = True
             for i, t in enumerate(rows["ts"][1:].tolist(), 1):
-                if t - at >= window:
+                if (t - at) * 1e6 >= edge:
                     accepted[i], at = True, t
             mine = rows[accepted & (code_of(rows["pid"]) == code)]
             if len(mine):
@@ -216,7 +216,7 @@ class Sender:
         later ones wait with it."""
         if not len(copies):
             return
-        inside = copies["ts"] - held[0]["ts"][0] < self.opt.dup_window_ms / 1000.0
+        inside = (copies["ts"] - held[0]["ts"][0]) * 1e6 < timing.edge_us(self.opt.dup_window_ms)
         if inside.any():
             judged = copies[inside]
             self.counters[key].copies(int(copies["serial"][0]), judged["ts"], judged["frame"].tolist())

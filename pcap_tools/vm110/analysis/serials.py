@@ -24,6 +24,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 from .. import constants as C
+from . import timing
 from .timing import FloatSeq, IntSeq
 
 MOD, HALF = C.SERIAL_MODULUS, C.SERIAL_HALF
@@ -144,7 +145,7 @@ class Counter:
     """One counter, fed its packets in arrival order a batch at a time (see the module doc)."""
 
     def __init__(self, dup_window_ms: float = DUP_WINDOW_MS, key=None) -> None:
-        self.window = dup_window_ms / 1000.0
+        self.window_ms = dup_window_ms
         self.key = key
         self.res = SerialResult()
         self.started = False
@@ -184,7 +185,7 @@ class Counter:
         base = self.recent_base
         off = base + len(self.recent)               # number of the first packet given here
         all_ts = np.concatenate((self.recent, ts)) if len(self.recent) else ts
-        window = self.window
+        edge = timing.edge_us(self.window_ms)     # t - a within the window: (t - a) * 1e6 < edge
         breaks = (np.flatnonzero((np.diff(arr) & MASK) != 1) + 1).tolist()   # where s[i] != s[i-1] + 1
         dup, ooo, gaps = res.duplicate_serials, res.out_of_order_serials, res.gaps
         dup_pos, lost_for_good = self.dup_pos, self.lost_for_good
@@ -228,14 +229,14 @@ class Counter:
         while i < n:
             s, t = int(arr[i]), float(ts[i])
             d = (s - self.h) & MASK
-            if d == 1 and t - accepted_at[s] >= window:
+            if d == 1 and (t - accepted_at[s]) * 1e6 >= edge:
                 while b < len(breaks) and breaks[b] <= i:
                     b += 1
                 j = breaks[b] if b < len(breaks) else n
                 run = arr[i:j]                # s[i] = h + 1 and every later one follows its predecessor
                 # A serial accepted within the window is a duplicate even in sequence (rule 1
                 # first): the run stops before it.
-                recent = np.flatnonzero(ts[i:j] - accepted_at[run] < window)
+                recent = np.flatnonzero((ts[i:j] - accepted_at[run]) * 1e6 < edge)
                 if len(recent):
                     j = i + int(recent[0])
                     run = arr[i:j]
@@ -246,13 +247,13 @@ class Counter:
                 self.h, self.prev = int(arr[j - 1]), float(ts[j - 1])
                 i = j
                 continue
-            if t - accepted_at[s] < window:
+            if (t - accepted_at[s]) * 1e6 < edge:
                 dup.append(s)
                 dup_pos.append(off + i)
                 fed.append(where[i])
                 if len(res.duplicates_located) < LOCATED:
                     res.duplicates_located.append((where[i], t, s))
-            elif gap_at[s] > NEVER and t - gap_at[s] < window:
+            elif gap_at[s] > NEVER and (t - gap_at[s]) * 1e6 < edge:
                 ooo.append(s)                 # late: fills its gap
                 self._locate(where[i], t, s)
                 gap_at[s] = NEVER

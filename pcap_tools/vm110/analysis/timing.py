@@ -32,6 +32,24 @@ def interval_ms(later: float, earlier: float) -> float:
     return round((later - earlier) * 1e6) / MS
 
 
+def edge_us(limit_ms: float) -> float:
+    """An interval is shorter than `limit_ms`, taken to the microsecond (rounded half up, as the
+    dissector rounds), exactly when its unrounded microseconds lie below this edge."""
+    return round(limit_ms * 1000) - 0.5
+
+
+def shorter(seconds: float, limit_ms: float) -> bool:
+    """Whether an interval of `seconds` is shorter than `limit_ms`, to the microsecond: in floats
+    copies exactly a 100 ms duplicate window apart fell inside it in analyze and outside it in the
+    dissector (a trial). An infinite interval (never) is not shorter."""
+    return seconds * 1e6 < edge_us(limit_ms)
+
+
+def longer(seconds: float, limit_ms: float) -> bool:
+    """Whether an interval of `seconds` is longer than `limit_ms`, to the microsecond."""
+    return seconds * 1e6 >= edge_us(limit_ms) + 1.0
+
+
 def percentile(ordered: FloatSeq, q: float) -> Optional[float]:
     """The q-th percentile of sorted values, linear between closest ranks (numpy's default)."""
     n = len(ordered)
