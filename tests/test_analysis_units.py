@@ -306,6 +306,16 @@ def test_command_id_wrap_and_ack_matching(tmp_path):
     assert vrci["ack_latency_ms"]["max"] == 50.0
 
 
+def test_command_ids_counted_from_0_again_are_no_wrap(tmp_path):
+    """A controller numbering 0, 1, 2, 0, 1, 2 never passed 65535 (a trial saw 2 wraps counted)."""
+    tr = Traffic()
+    for s, cid in enumerate((0, 1, 2, 0, 1, 2, 65534, 65535, 3)):
+        tr.add(s * 3.0, payload(VRCI, s, BU_ORIGIN, command_id=cid))       # beyond the reuse gap: new
+    tr.write(tmp_path / "ids.pcap")
+    vrci = analyze(str(tmp_path / "ids.pcap"))["commands"]["VRCI"]
+    assert (vrci["commands"], vrci["command_id_wraps"]) == (9, 1)           # 65535 -> 3 only
+
+
 def test_vrpo_on_another_port_found_by_its_header(tmp_path):
     tr = Traffic()
     for i in range(5):

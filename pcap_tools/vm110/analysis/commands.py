@@ -104,7 +104,10 @@ class Tracker:
                         cmd.spurious_frames.append(frame)
                     continue
                 previous = last_id.get((code, sender))
-                if previous is not None and cid < previous:
+                # A wrap passes 65535 to 0: the ID goes on forward (as serials do). A fall back
+                # within the range (IDs counted from 0 again) is none (a trial saw 0, 1, 2, 0
+                # counted as wraps).
+                if previous is not None and cid < previous and (cid - previous) & 0xFFFF < 0x8000:
                     tally.id_wraps += 1
                 last_id[(code, sender)] = cid
                 cmd = Command(sender, cid, [frame], [ts])
