@@ -799,7 +799,7 @@ local E = {
 local function seq(code, text, sev, grp)
     E[code] = ProtoExpert.new("vm110.expert." .. code, text, grp or group.SEQUENCE, sev or severity.WARN)
 end
-seq("serial_gap", "Serial gap: packets lost")
+seq("serial_gap", "Serial gap: packets missing")
 seq("serial_duplicate", "Duplicate serial")
 seq("serial_out_of_order", "Out-of-order serial")
 seq("watchdog_vrpi", "VRPI interval above the controller watchdog")
