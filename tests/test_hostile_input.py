@@ -168,6 +168,79 @@ def test_records_that_are_no_packets_and_packets_without_a_time_as_in_wireshark(
     assert fast["senders"][0]["serial"]["received"] == 11
 
 
+def _ipv4_frame(payload: bytes, ulen: int | None = None, tot: int | None = None, ihl: int = 5, version: int = 4,
+                pad: bytes = b"") -> bytes:
+    """Ethernet, IPv4 and UDP (5825 -> 5825) around `payload`, with the header fields given (damage)."""
+    udp = struct.pack("!HHHH", C.INPUT_PORT, C.INPUT_PORT, 8 + len(payload) if ulen is None else ulen, 0) + payload
+    ip = bytearray(struct.pack("!BBHHHBBH4s4s", (version << 4) | ihl, 0, 20 + len(udp) if tot is None else tot, 1, 0,
+                               64, 17, 0, bytes([10, 0, 0, 10]), bytes([239, 1, 1, 1])))
+    total = sum(struct.unpack("!10H", bytes(ip)))
+    while total >> 16:
+        total = (total & 0xFFFF) + (total >> 16)
+    struct.pack_into("!H", ip, 10, ~total & 0xFFFF)
+    return b"\x01\x00\x5e\x01\x01\x01" + b"\x02" * 6 + b"\x08\x00" + bytes(ip) + udp + pad
+
+
+# Damaged IPv4/UDP headers, and what Wireshark (4.0, 4.4, 4.6 alike) makes of the datagram: a
+# legal packet, an illegal one, a UDP datagram whose payload nothing dissects, or no UDP at all.
+# (n: the EG-Link packet's length.)
+_DAMAGE = {
+    "UDP length 10 past the IP payload": (lambda n: {"ulen": 18 + n}, "legal"),
+    "IP total length 20 past the frame": (lambda n: {"tot": 48 + n}, "legal"),
+    "IP total length 0 (segmentation offload)": (lambda n: {"tot": 0}, "legal"),
+    "UDP length over 4 bytes of padding": (lambda n: {"ulen": 12 + n, "pad": bytes(8)}, "legal"),
+    "IP total length over 4 bytes of padding": (lambda n: {"tot": 32 + n, "pad": bytes(8)}, "legal"),
+    "UDP length 4 short": (lambda n: {"ulen": 4 + n}, "illegal"),
+    "IP total length 4 short": (lambda n: {"tot": 24 + n}, "illegal"),
+    "IP total length 3 bytes into the payload": (lambda n: {"tot": 31}, "illegal"),
+    "UDP length 4": (lambda n: {"ulen": 4}, "other UDP"),
+    "UDP length 0": (lambda n: {"ulen": 0}, "other UDP"),
+    "IP total length 24 (half a UDP header)": (lambda n: {"tot": 24}, "other UDP"),
+    "IP total length 27": (lambda n: {"tot": 27}, "other UDP"),
+    "IP total length 28 (the UDP header alone)": (lambda n: {"tot": 28}, "other UDP"),
+    "IP total length 10 (below the header)": (lambda n: {"tot": 10}, "no UDP"),
+    "IP header length 16": (lambda n: {"ihl": 4}, "no UDP"),
+    "IP version 6 in an IPv4 frame": (lambda n: {"version": 6}, "no UDP"),
+    "IP total length 20 (no UDP)": (lambda n: {"tot": 20}, "no UDP"),
+    "IP total length 22": (lambda n: {"tot": 22}, "no UDP"),
+    "IP total length 23": (lambda n: {"tot": 23}, "no UDP"),
+}
+
+
+@pytest.mark.tshark
+@pytest.mark.parametrize("runner", RUNNERS, ids=lambda r: r.version)
+def test_damaged_ip_and_udp_headers_are_read_as_wireshark_reads_them(runner, tmp_path):
+    """The fast engine read a datagram by its UDP length alone: a UDP length past the IP payload was
+    "cut short by the snaplen", padding under a UDP length an illegal size, a UDP length below 8 or
+    a damaged IP header a legal packet; the tshark engine saw what Wireshark sees (a trial, and the
+    self-fuzzer's soak). Both now read IP and UDP headers as Wireshark does, and agree."""
+    path = tmp_path / "damaged.pcap"
+    out = bytearray(struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 65535, 1))
+    kinds = {}
+    for k in range(2 * len(_DAMAGE) + 1):
+        packet = vrpi(k)
+        fields, kind = {}, "legal"
+        if k % 2:                                        # every other packet damaged, one way each
+            fields, kind = (lambda f, w: (f(len(packet)), w))(*list(_DAMAGE.values())[k // 2])
+        kinds[k] = kind
+        frame = _ipv4_frame(packet, **fields)
+        sec, usec = divmod(int(T0 * 1_000_000) + k * 125_000, 1_000_000)
+        out += struct.pack("<IIII", sec, usec, len(frame), len(frame)) + frame
+    path.write_bytes(bytes(out))
+    fast, slow = _reports(path, _on(runner))
+    assert fast == slow
+    done = subprocess.run([sys.executable, "-m", "vm110", "monitor", "--read", str(path), "--idle", "0", "--json", "-"],
+                          capture_output=True, timeout=300)
+    live = json.loads(done.stdout)
+    assert all(live[key] == fast[key] for key in ("illegal", "senders", "totals")), done.stderr
+    count = {w: sum(v == w for v in kinds.values()) for w in ("legal", "illegal", "other UDP", "no UDP")}
+    cap = fast["capture"]
+    assert (cap["packets"], cap["udp_packets"], cap["eglink_packets"], fast["illegal"]["total"]) == (
+        len(kinds), len(kinds) - count["no UDP"], count["legal"] + count["illegal"], count["illegal"])
+    assert cap["snaplen_truncated"] == 0
+    assert sorted(fast["senders"][0]["serial"]["lost_serials"]) == sorted(k for k, w in kinds.items() if w != "legal")
+
+
 @pytest.mark.tshark
 def test_an_empty_datagram_on_the_eglink_port_is_a_truncated_packet_everywhere(tmp_path):
     """Wireshark gives an empty UDP datagram no dissector ("UDP Len=0"): the tshark engine counted it

@@ -43,16 +43,17 @@ from .incremental import Analysis
 # holds each walk's legal/illegal verdicts to decode()'s, packet by packet.
 _HDR = struct.Struct("<4sH4xH")                    # packet ID, revision, size (it once read the spare as size)
 # One little-endian read of a record of the common frame: pcap record header (sec, frac, incl,
-# orig); Ethernet type (raw bytes); IPv4 version/IHL, fragment field, protocol, source; UDP ports
-# and length (big-endian fields read little-endian: compared through _SWAP); EG-Link packet ID,
-# revision and size.
-_FUSED = struct.Struct("<IIII12x2sB5xHxB2x4s4xHHH2x4sH4xH")
+# orig); Ethernet type (raw bytes); IPv4 version/IHL, total length, fragment field, protocol,
+# source; UDP ports and length (big-endian fields read little-endian: compared through _SWAP);
+# EG-Link packet ID, revision and size. A frame whose IP total length is not its UDP length's
+# (damage, padding it covers) goes through the reader's udp_of, as Wireshark reads it.
+_FUSED = struct.Struct("<IIII12x2sBxH2xHxB2x4s4xHHH2x4sH4xH")
 _FUSED_MIN_FRAME = _FUSED.size - 16
 # The same fields for numpy, read from every record of a chunk at once (`_fused_pcap`): the bytes
 # at these offsets of a record, packed.
 _HEAD_FIELDS = (("sec", "<u4", 0), ("frac", "<u4", 4), ("incl", "<u4", 8), ("orig", "<u4", 12), ("et", "<u2", 28),
-                ("vi", "u1", 30), ("frag", "<u2", 36), ("proto", "u1", 39), ("sp", "<u2", 50), ("dp", "<u2", 52),
-                ("ulen", "<u2", 54), ("pid", "<u4", 58), ("rev", "<u2", 62), ("size", "<u2", 68))
+                ("vi", "u1", 30), ("tot", "<u2", 32), ("frag", "<u2", 36), ("proto", "u1", 39), ("sp", "<u2", 50),
+                ("dp", "<u2", 52), ("ulen", "<u2", 54), ("pid", "<u4", 58), ("rev", "<u2", 62), ("size", "<u2", 68))
 _HEADS = np.dtype([(name, kind) for name, kind, _ in _HEAD_FIELDS])
 _HEAD_PICK = np.concatenate([np.arange(at, at + np.dtype(kind).itemsize) for _, kind, at in _HEAD_FIELDS])
 _HEAD_ROWS = 4096              # records gathered at a time: the index array stays small
@@ -113,7 +114,7 @@ def crc_candidates(path: str, ports: Collection[int], limit: Optional[int] = Non
     seen = 0
     with CaptureReader(path, chunk_size=chunk_size) as reader:
         for _, _, sport, dport, payload, _ in reader:
-            if (sport in ports or dport in ports) and len(payload) >= C.OVERHEAD:
+            if (sport in ports or dport in ports) and payload is not None and len(payload) >= C.OVERHEAD:
                 size = P.SIZE.unpack_from(payload, P.SIZE_OFFSET)[0]
                 counts.update(crc_matches(payload, min(C.PREFIX_LEN + size, len(payload) - C.CRC_LEN)))
                 seen += 1
@@ -270,7 +271,7 @@ class FastEngine:
         rev_table, crc = REVERSE_BITS, zlib.crc32
         stored_dtype = np.dtype("<u4" if stored_order == "little" else ">u4")
         slow, udp_of, swap = self._slow, reader.udp_of, _SWAP
-        udp_head, ip_end, udp_data = L.UDP_HEADER_LEN, _IP_END, _IP_END + L.UDP_HEADER_LEN
+        udp_head, ip_head, ip_end, udp_data = L.UDP_HEADER_LEN, L.IPV4_MIN_HEADER, _IP_END, _IP_END + L.UDP_HEADER_LEN
         valid = frame = 0
         chunks = reader.raw_chunks(PCAP_HEADER_LEN)
         data = next(chunks, None)
@@ -305,9 +306,11 @@ class FastEngine:
             known = np.isin(head["pid"], _PID_LE)
             low = _LOW_LE[np.searchsorted(_PID_LE, head["pid"]).clip(0, len(_PID_LE) - 1)]
             over = size + L.UDP_HEADER_LEN + C.OVERHEAD
+            total = over + L.IPV4_MIN_HEADER
             candidate = np.flatnonzero(
                 plain & known & (head["rev"] == 0) & (low <= size) & (size <= C.MAX_PAYLOAD)
-                & (head["ulen"] == (((over & 0xFF) << 8) | (over >> 8))) & (size + _FRAME_OVER <= head["incl"])
+                & (head["ulen"] == (((over & 0xFF) << 8) | (over >> 8)))
+                & (head["tot"] == (((total & 0xFF) << 8) | (total >> 8))) & (size + _FRAME_OVER <= head["incl"])
                 & (np.isin(head["sp"], ports_le) | np.isin(head["dp"], ports_le)))
             q = at[candidate] + 16 + udp_data              # the EG-Link packet: q .. e, then the CRC
             e = q + C.PREFIX_LEN + size[candidate]
@@ -328,7 +331,7 @@ class FastEngine:
                 ts = when(int(h["sec"]), int(h["frac"]))
                 if plain[i]:
                     n = swap[int(h["ulen"])]
-                    if udp_head <= n <= incl - ip_end:
+                    if udp_head <= n <= incl - ip_end and swap[int(h["tot"])] == n + ip_head:
                         slow(got, reader, variant, order, ts, data[p + 26:p + 30], swap[int(h["sp"])],
                              swap[int(h["dp"])], data[p + udp_data:p + ip_end + n], frame + i + 1)
                         continue
@@ -364,6 +367,7 @@ class FastEngine:
         ipv4_plain, udp, frag_le = _IPV4_PLAIN, L.IPPROTO_UDP, _FRAG_LE
         prefix, udp_data = C.PREFIX_LEN, _IP_END + L.UDP_HEADER_LEN
         udp_over, frame_over, epb_head = L.UDP_HEADER_LEN + C.OVERHEAD, _FRAME_OVER, _EPB_HEAD
+        ip_over = udp_over + L.IPV4_MIN_HEADER
         shb, epb = PCAPNG_SHB, PCAPNG_EPB
         ifaces, little = reader.interfaces, True
         valid = frame = 0
@@ -378,7 +382,7 @@ class FastEngine:
             data += slack               # so that the fused read never runs off the end of a chunk
             cdata = data.translate(rev_table) if reversed_bytes else data
             while pos + 12 <= end:
-                (btype, blen, iface, tsh, tsl, incl, orig, et, vi, frag, proto, src, sp, dp, ulen,
+                (btype, blen, iface, tsh, tsl, incl, orig, et, vi, tot, frag, proto, src, sp, dp, ulen,
                  pid, rev, size) = fused(data, pos)
                 if btype == shb:
                     reader.pcapng_section(data, pos)
@@ -414,7 +418,8 @@ class FastEngine:
                             and incl >= min_frame):
                         low = low_of.get(pid)
                         if (low is not None and not rev and low <= size <= max_payload
-                                and ulen == swap[size + udp_over] and size + frame_over <= incl
+                                and ulen == swap[size + udp_over] and tot == swap[size + ip_over]
+                                and size + frame_over <= incl
                                 and (sp in ports_le or dp in ports_le)):
                             q = d + udp_data            # the EG-Link packet: q .. e, then the CRC
                             e = q + prefix + size
@@ -470,10 +475,10 @@ class FastEngine:
         for batch in reader.batches():
             udp += len(batch)
             for ts, src, sport, dport, payload, frame in batch:
-                n = len(payload)
-                if (sport not in ports and dport not in ports) or n < C.OVERHEAD:
+                if payload is None or (sport not in ports and dport not in ports) or len(payload) < C.OVERHEAD:
                     slow(got, reader, variant, order, ts, src, sport, dport, payload, frame)
                     continue
+                n = len(payload)
                 pid, rev, size = unpack(payload)
                 low = low_of.get(pid)
                 if low is None or rev or n != size + C.OVERHEAD or not low <= size <= max_payload:
@@ -499,12 +504,12 @@ class FastEngine:
         return valid
 
     def _slow(self, got: Collected, reader: CaptureReader, variant: str, order: str, ts: float, src: bytes,
-              sport: int, dport: int, payload: bytes, frame: int) -> None:
-        n = len(payload)
-        if sport not in self.ports and dport not in self.ports and not looks_like_eglink(payload):
+              sport: int, dport: int, payload: Optional[bytes], frame: int) -> None:
+        if payload is None or (sport not in self.ports and dport not in self.ports and not looks_like_eglink(payload)):
             got.other_udp += 1
             return
         got.eglink += 1
+        n = len(payload)
         fields = decode(payload, variant, order)
         problems = list(fields["problems"])
         if n >= C.OVERHEAD:

@@ -20,7 +20,7 @@ from typing import BinaryIO, Generator, Iterator, NamedTuple, Optional
 from ..errors import CliError
 from . import linktypes as L
 
-Datagram = tuple  # (ts: float, src: bytes, sport: int, dport: int, payload: bytes, frame: int)
+Datagram = tuple  # (ts: float, src: bytes, sport: int, dport: int, payload: bytes or None (see udp_of), frame: int)
 
 PCAP_MAGIC_US = 0xA1B2C3D4
 PCAP_MAGIC_NS = 0xA1B23C4D
@@ -40,7 +40,10 @@ CHUNK = 1 << 22
 
 # Ethernet + IPv4 (no options) + UDP in one call: ethertype, version/IHL, fragment field,
 # protocol, source, (destination), ports, UDP length.
-_FAST = struct.Struct("!12xHB5xHxB2x4s4xHHH")
+# The common frame (Ethernet, IPv4 without options, UDP): EtherType, version/IHL, total length,
+# fragment field, protocol, source, ports, UDP length. It is taken at once when the IP total length
+# and the UDP length agree; anything else goes through udp_of, which reads headers as Wireshark does.
+_FAST = struct.Struct("!12xHBxH2xHxB2x4s4xHHH")
 _FAST_HEAD = L.ETH_HEADER_LEN + L.IPV4_MIN_HEADER + L.UDP_HEADER_LEN
 _FAST_VI = 0x45
 
@@ -253,9 +256,9 @@ class CaptureReader:
                 frame += 1
                 ts = sec + frac * scale if frac < units else when(sec, frac)
                 if fast is not None and incl >= head_len:
-                    et, vi, frag, proto, src, sport, dport, ulen = fast(data, p)
+                    et, vi, tot, frag, proto, src, sport, dport, ulen = fast(data, p)
                     if (et == ipv4 and vi == vi45 and proto == udp and not frag & frag_mask
-                            and 34 + ulen <= incl and ulen >= 8):
+                            and tot == 20 + ulen and 34 + ulen <= incl and ulen >= 8):
                         append((ts, src, sport, dport, data[p + 42:p + 34 + ulen], frame))
                         continue
                 got = parse(link, data, p, incl, orig, frame)
@@ -426,9 +429,9 @@ class CaptureReader:
                 if self.first_ts is None:
                     self.first_ts = ts
                 if link == L.LINKTYPE_ETHERNET and incl >= head_len:
-                    et, vi, frag, proto, src, sport, dport, ulen = fast(data, d)
+                    et, vi, tot, frag, proto, src, sport, dport, ulen = fast(data, d)
                     if (et == ipv4 and vi == vi45 and proto == udp and not frag & frag_mask
-                            and 34 + ulen <= incl and ulen >= 8):
+                            and tot == 20 + ulen and 34 + ulen <= incl and ulen >= 8):
                         append((ts, src, sport, dport, data[d + 42:d + 34 + ulen], frame))
                         continue
                 got = parse(link, data, d, incl, orig, frame)
@@ -460,8 +463,13 @@ class CaptureReader:
 
     # -- every layout but the fast one ---------------------------------------------------------
     def udp_of(self, link: int, data: bytes, start: int, incl: int, orig: int,
-                frame: int) -> Optional[tuple[bytes, int, int, bytes]]:
-        """(src, sport, dport, payload) of the UDP datagram in a frame, or None (counted)."""
+               frame: int) -> Optional[tuple[bytes, int, int, Optional[bytes]]]:
+        """(src, sport, dport, payload) of the UDP datagram in a frame, or None (counted as no
+        UDP). The headers are read as Wireshark reads them, so that the two engines agree on
+        damaged ones: an IPv4 header that is no IPv4 header is no UDP; the IPv4 total length bounds
+        the datagram (0: the frame's, as for TCP segmentation offload); a UDP length past the IP
+        payload gives way to it; a UDP header cut short, or a UDP length below 8, is a datagram
+        whose payload nothing dissects (None)."""
         end = start + incl
         net = self._network(link, data, start, end)
         if net is None:
@@ -473,14 +481,18 @@ class CaptureReader:
                 self.non_udp += 1
                 return None
             ihl = (data[pos] & 0x0F) * 4
-            frag = struct.unpack_from("!H", data, pos + 6)[0]
+            tot, frag = struct.unpack_from("!H2xH", data, pos + 2)
+            if data[pos] >> 4 != 4 or ihl < L.IPV4_MIN_HEADER or 0 < tot < ihl:
+                self.non_udp += 1
+                return None
             proto = data[pos + 9]
             src = data[pos + 12:pos + 16]
             if frag & L.IPV4_FRAGMENT_MASK:
                 self.fragments += 1
                 self.non_udp += 1
                 return None
-            pos += max(ihl, L.IPV4_MIN_HEADER)
+            ip_end = pos + tot if tot else end
+            pos += ihl
         else:
             if pos + L.IPV6_HEADER_LEN > end:
                 self.non_udp += 1
@@ -499,12 +511,26 @@ class CaptureReader:
                 self.fragments += 1
                 self.non_udp += 1
                 return None
-        if proto != L.IPPROTO_UDP or pos + L.UDP_HEADER_LEN > end:
+            ip_end = None
+        have = end if ip_end is None else min(end, ip_end)
+        if proto != L.IPPROTO_UDP or pos + 4 > have:     # (Wireshark shows UDP from its ports on)
             self.non_udp += 1
             return None
-        sport, dport, ulen = struct.unpack_from("!HHH", data, pos)
+        sport, dport = struct.unpack_from("!HH", data, pos)
         body = pos + L.UDP_HEADER_LEN
-        stop = pos + ulen if ulen >= L.UDP_HEADER_LEN else end   # 0: IPv6 jumbogram
+        if body > have:
+            return src, sport, dport, None
+        ulen = struct.unpack_from("!H", data, pos + 4)[0]
+        if ip_end is None:
+            stop = pos + ulen if ulen >= L.UDP_HEADER_LEN else end   # 0: IPv6 jumbogram
+        elif ulen < L.UDP_HEADER_LEN:
+            return src, sport, dport, None
+        else:
+            stop = pos + ulen
+            if stop > ip_end:
+                if ip_end == body:          # an IP payload of the UDP header alone
+                    return src, sport, dport, None
+                stop = ip_end
         if stop > end:
             self.snap_truncated.add(frame)   # snaplen (or a broken frame) cut the datagram short
             stop = end

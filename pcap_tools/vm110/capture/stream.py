@@ -125,9 +125,9 @@ class StreamReader(CaptureReader):
             self.first_ts = ts
         if link == L.LINKTYPE_ETHERNET and incl >= _FAST_HEAD:
             # The common frame (Ethernet, IPv4 without options, UDP) in one call, as the reader does.
-            et, vi, frag, proto, src, sport, dport, ulen = _FAST.unpack_from(data, start)
-            if (et == L.ETHERTYPE_IPV4 and vi == _FAST_VI and proto == L.IPPROTO_UDP
-                    and not frag & L.IPV4_FRAGMENT_MASK and 34 + ulen <= incl and ulen >= 8):
+            et, vi, tot, frag, proto, src, sport, dport, ulen = _FAST.unpack_from(data, start)
+            if (et == L.ETHERTYPE_IPV4 and vi == _FAST_VI and proto == L.IPPROTO_UDP and not frag & L.IPV4_FRAGMENT_MASK
+                    and tot == 20 + ulen and 34 + ulen <= incl and ulen >= 8):
                 out.append((ts, frame, link, data[start:start + incl],
                             (src, sport, dport, data[start + 42:start + 34 + ulen])))
                 return

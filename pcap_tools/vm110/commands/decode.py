@@ -44,7 +44,7 @@ def eglink_datagrams(reader: CaptureReader, port: int) -> Iterator[tuple[int, fl
     """(frame number, time, source "ip:port", UDP payload) of each EG-Link datagram."""
     ports = {port, port + C.OUTPUT_PORT_OFFSET}
     for ts, src, sport, dport, payload, frame in reader:
-        if sport in ports or dport in ports or payload[:C.ID_LEN] in _IDS:
+        if payload is not None and (sport in ports or dport in ports or payload[:C.ID_LEN] in _IDS):
             yield frame, ts, address(src, sport), payload
 
 

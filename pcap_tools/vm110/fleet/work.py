@@ -117,7 +117,7 @@ def packet_rows(path: str, cid: str, port: int, variant: str, order: str) -> Ite
     another), decoded with the CRC the analysis used: for drill-down next to the findings."""
     ports = (port, port + C.OUTPUT_PORT_OFFSET)
     for ts, src, sport, dport, payload, frame in CaptureReader(path):
-        if sport not in ports and dport not in ports and not looks_like_eglink(payload):
+        if payload is None or (sport not in ports and dport not in ports and not looks_like_eglink(payload)):
             continue
         f = decode(payload, variant, order)
         time = round(ts * 1_000_000) if math.isfinite(ts) else None

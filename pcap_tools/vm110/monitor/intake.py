@@ -77,11 +77,13 @@ class Intake:
         self.reversed_bytes, self.xor, stored_order = zlib_form(variant, order)
         self.stored = _U32[stored_order].unpack_from
 
-    def datagram(self, reader, ts: float, src: bytes, sport: int, dport: int, payload: bytes, frame: int) -> None:
-        """One UDP datagram of the stream (reader: the StreamReader that read it)."""
+    def datagram(self, reader, ts: float, src: bytes, sport: int, dport: int, payload: Optional[bytes],
+                 frame: int) -> None:
+        """One UDP datagram of the stream (reader: the StreamReader that read it; payload None: one
+        whose payload nothing dissects)."""
         if self.variant is None:
             self.held.append((reader, ts, src, sport, dport, payload, frame))
-            if (sport in self.ports or dport in self.ports) and len(payload) >= C.OVERHEAD:
+            if (sport in self.ports or dport in self.ports) and payload is not None and len(payload) >= C.OVERHEAD:
                 size = P.SIZE.unpack_from(payload, P.SIZE_OFFSET)[0]
                 self.sniffed.update(crc_matches(payload, min(C.PREFIX_LEN + size, len(payload) - C.CRC_LEN)))
                 self.sniff_seen += 1
@@ -115,10 +117,12 @@ class Intake:
         chosen = (self.variant, self.order)
         return best if best != chosen and counts[best] > counts[chosen] else None
 
-    def _judge(self, reader, ts: float, src: bytes, sport: int, dport: int, payload: bytes, frame: int) -> None:
-        got, ports, n = self.got, self.ports, len(payload)
+    def _judge(self, reader, ts: float, src: bytes, sport: int, dport: int, payload: Optional[bytes],
+               frame: int) -> None:
+        got, ports, n = self.got, self.ports, len(payload or b"")
         # A datagram the snaplen cut short is judged by the slow path (truncated), as the engine's do.
-        if (sport in ports or dport in ports) and n >= C.OVERHEAD and frame not in reader.snap_truncated:
+        if (payload is not None and (sport in ports or dport in ports) and n >= C.OVERHEAD
+                and frame not in reader.snap_truncated):
             pid, rev, size = _HDR.unpack_from(payload)
             low = _LOW.get(pid)
             if low is not None and not rev and n == size + C.OVERHEAD and low <= size <= C.MAX_PAYLOAD:
