@@ -130,6 +130,20 @@ def test_stall_blames_the_cases_right_after_the_last_vrpo(link):
     assert link.oracles() == ["stall"], "reported once per silence"
 
 
+def test_stall_blames_the_cases_nearest_the_last_vrpo_on_either_side(link):
+    """Trial: a controller that read its input after sending its VRPO (a PLC cycle) stopped on the
+    case sent 5 ms before it; the cases after the VRPO were listed first and it was cut from the
+    12 suspects kept."""
+    for n in range(5):
+        link.vrpo(T0 + n * 0.1)
+    last = T0 + 0.4
+    link.mon.note_case(last - 0.005, 99)                 # the culprit, read after the VRPO
+    for n in range(20):
+        link.mon.note_case(last + 0.01 * (n + 1), n)      # the cases it never read
+    link.mon.tick(last + 2.01)
+    assert link.mon.triggers[0].suspects[:3] == [99, 0, 1]
+
+
 def test_vrco_resent_while_withheld_is_fine_until_it_stops(link):
     link.mon.withholding = True
     for n in range(4):

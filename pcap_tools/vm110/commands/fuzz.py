@@ -212,9 +212,9 @@ def run(args: argparse.Namespace) -> int:
     if summary["controller_lost"]:
         last = summary["unreproduced"][-1] if summary["unreproduced"] else None
         print(f"the controller stopped while being fuzzed ({_printable(last['detail']) if last else 'no VRPO'}) "
-              "and there is no --target-cmd to restart and replay it: the cases before it, "
+              "and there is no --target-cmd to restart and replay it: the cases that may have caused it, "
               f"{', '.join(_printable(c) for c in last.get('suspect_cases', [])[:3]) if last else 'unknown'}, "
-              f"are in {out / 'findings.json'} (unreproduced)")
+              f"... (most likely first) are in {out / 'findings.json'} (unreproduced)")
     if runner.interrupted:
         return EXIT_INTERRUPTED
     return EXIT_FINDINGS if summary["findings"] or summary["controller_lost"] else EXIT_OK

@@ -250,16 +250,25 @@ class Monitor:
         if self.last_vrpo is not None and not self.stall_reported and not self.exited \
                 and now - self.last_vrpo > self.limits.stall_ms / 1000:      # a dead one's silence is the crash
             self.stall_reported = True
-            window = max(self.vrpo_interval, 0.1) + 0.1
-            after = self._between(self.last_vrpo, self.last_vrpo + window)
-            before = list(reversed(self._between(self.last_vrpo - 0.1, self.last_vrpo)))
             self.fire(Trigger(STALL, now, f"no VRPO for {(now - self.last_vrpo) * 1000:.0f} ms",
-                              None, after + [i for i in before if i not in after], None, "no VRPO"))
+                              None, self._around(self.last_vrpo), None, "no VRPO"))
         self._check_resends(now)
         if now >= self._next_purge:      # once a second: thousands of IDs at a high case rate
             self._next_purge = now + 1.0
             for command_id in [c for c, (t, _) in self.illegal_ids.items() if now - t > _HISTORY_S]:
                 del self.illegal_ids[command_id]
+
+    def _around(self, t: float) -> list[int]:
+        """The cases within a VRPO cycle (and 100 ms) either side of `t`, nearest first: a
+        controller that reads its input once a cycle, after its VRPO (a PLC), stops on a case
+        sent before that VRPO; one that reads it at once, on a case sent after it."""
+        window = max(self.vrpo_interval, 0.1) + 0.1
+        near = [(abs(when - t), index) for when, index in self.notes if abs(when - t) <= window]
+        seen: list[int] = []
+        for _, index in sorted(near):
+            if index not in seen:
+                seen.append(index)
+        return seen
 
     def _check_resends(self, now: float) -> None:
         limit = self.limits.resend_max_ms / 1000

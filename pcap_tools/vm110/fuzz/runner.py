@@ -33,7 +33,8 @@ from .session import Sent, Session, Settings, TargetLost
 from .supervisor import Supervisor
 
 TRIAL = -1               # the case index of replayed packets
-_MAX_SUSPECTS = 12
+_MAX_SUSPECTS = 12       # replayed one by one (a stall's replay takes over 2 s)
+_MAX_LISTED = 100         # suspects listed when none could be replayed (the controller is gone)
 _RECORDS_KEPT = 2000
 _STATUS_EVERY_S = 0.5
 _DYING_WAIT_S = 10.0      # for a sanitizer's report to be written
@@ -286,7 +287,7 @@ class Runner:
                 # yet are kept with their cases, not replayed.
                 why = str(exc) if isinstance(exc, TargetLost) else "interrupted"
                 for left in queue[n:]:
-                    self._unreproduced(left, self._suspects(left)[:_MAX_SUSPECTS], why)
+                    self._unreproduced(left, self._suspects(left), why)
                 raise
         if investigated or not s.healthy():
             self._recover()
@@ -323,7 +324,8 @@ class Runner:
                 F.discard_core(self.cfg.out, trig.crash)
                 culprit = i if i is not None else (suspects[0] if len(suspects) == 1 else None)
                 return self._smaller(trig, bucket, culprit)
-        what = "observing the controller again" if spontaneous else f"replaying {len(suspects)} suspect case(s)"
+        replayed = len(suspects) if trig.oracle == CRASH else min(len(suspects), _MAX_SUSPECTS)
+        what = "observing the controller again" if spontaneous else f"replaying {replayed} suspect case(s)"
         self.cfg.progress(f"{trig.oracle}: {trig.detail}; {what}")
         traffic = [p for p in self.session.traffic if p[0] >= trig.time - 4.0]
         if spontaneous:   # nothing the cases did: does the controller do it again on its own?
@@ -421,7 +423,7 @@ class Runner:
 
     def _unreproduced(self, trig: Trigger, suspects: list[int], not_replayed: Optional[str] = None) -> None:
         F.discard_core(self.cfg.out, trig.crash)
-        kept = suspects[:_MAX_SUSPECTS]
+        kept = suspects[:_MAX_LISTED if not_replayed is not None else _MAX_SUSPECTS]
         entry: dict[str, Any] = {"oracle": trig.oracle, "detail": trig.detail, "time": trig.time, "suspects": kept}
         if not_replayed is not None:     # the controller is gone: the cases are all there is to go on
             entry["not_replayed"] = not_replayed
