@@ -355,6 +355,22 @@ def test_out_of_range_numbers_in_a_finding_give_the_range(capsys, nothing_leaves
     assert code == 2 and f"is not a valid vm110 fuzz finding: {message}" in line, line
 
 
+def test_a_finding_without_steps_is_refused_unless_no_case_caused_it(capsys, nothing_leaves, tmp_path):
+    """Trial: `"steps": []` replayed nothing and said "does not trigger any more", exit 0, of a
+    controller that still crashed (a CI gate would have passed)."""
+    code, err = fuzz_in_process(capsys, "--replay", str(save(tmp_path, a_finding(steps=[]))))
+    assert code == 2 and "is not a valid vm110 fuzz finding: steps is empty" in one_line(err)
+    spontaneous = a_finding(steps=[], family="none", mutation="none: the base unit's normal VRAI")
+    assert findings.load_finding(str(save(tmp_path, spontaneous))).steps == []
+
+
+def test_a_crash_finding_is_replayed_only_with_target_cmd(capsys, nothing_leaves, tmp_path):
+    """Without --target-cmd no exit can be seen: a crash replayed that way always 'did not trigger'."""
+    path = save(tmp_path, a_finding(oracle="crash"))
+    code, err = fuzz_in_process(capsys, "--replay", str(path))
+    assert code == 2 and f"{path} is a crash finding: give --target-cmd" in one_line(err)
+
+
 def test_every_seed_the_option_takes_is_a_valid_finding(tmp_path):
     """A run with --seed 2**64-1 wrote a finding its replay refused (numbers stopped below 2**63)."""
     assert findings.load_finding(str(save(tmp_path, a_finding(seed=2**64 - 1)))).seed == 2**64 - 1

@@ -33,7 +33,7 @@ from ..fuzz.destination import check
 from ..fuzz.findings import load_finding, make_folder, write_summary
 from ..fuzz.guided import GuidedConfig
 from ..fuzz.link import parse_endpoint
-from ..fuzz.oracles import Limits
+from ..fuzz.oracles import CRASH, Limits
 from ..fuzz.report_html import write_coverage_html
 from ..fuzz.runner import RunConfig, Runner, replay_corpus_case, replay_finding
 from ..fuzz.session import Settings, TargetLost
@@ -251,6 +251,10 @@ def _replay(args: argparse.Namespace) -> int:
     if is_entry_file(args.replay):
         return _replay_corpus(args)
     finding = load_finding(args.replay)
+    if finding.oracle == CRASH and not args.target_cmd:
+        # Only a controller the fuzzer started can be seen to exit: "fixed" would be a guess.
+        raise CliError(f"{args.replay} is a crash finding: give --target-cmd (a crash is seen only in a "
+                       "controller the fuzzer starts)")
     stored_in = None if args.target else args.replay
     # Joining a group sends IGMP out of an interface: only when the command line says so.
     settings = _settings(args, args.target or finding.target, args.listen or finding.listen, args.group, stored_in)

@@ -26,6 +26,7 @@ MAX_STEPS = 64                   # packets a case may send (the longest made her
 _MAX_PACKET = 65_507             # the largest UDP payload over IPv4
 _MAX_MS = 60_000.0               # delays, pauses and withholding
 _MAX_INT = (1 << 63) - 1
+NO_CASE = "none"                 # the family of a finding that the controller made on its own
 _STREAM_FIELDS = frozenset(f.name for f in PAYLOAD_CLASSES[C.PacketType.VRPI].fields_desc)
 
 
@@ -203,6 +204,9 @@ def _checked(raw: dict[str, Any]) -> Finding:
     for name in ("pause_vrpi_ms", "withhold_vrai_ms", "settle_ms"):
         _milliseconds(name, getattr(finding, name))
     _packet("packet_hex", finding.packet_hex)
+    if not finding.steps and finding.family != NO_CASE:
+        # Replaying nothing would say "does not trigger any more" of any bug.
+        raise _Bad(f"steps is empty (only a finding of family {NO_CASE!r}, which no case caused, has none)")
     if len(finding.steps) > MAX_STEPS:
         raise _Bad(f"{len(finding.steps)} steps (at most {MAX_STEPS})")
     for n, step in enumerate(finding.steps):

@@ -332,7 +332,7 @@ class Runner:
             if self._trial(Replay([]), trig):
                 vrai = trig.packet or b""
                 what = "none: the base unit's normal VRAI" if trig.packet else "none: no case in the window"
-                self._write(trig, None, max(0, self.cases_run - 1), "none", what, [],
+                self._write(trig, None, max(0, self.cases_run - 1), F.NO_CASE, what, [],
                             Sent(trig.time, vrai, vrai, 0.0, False), None, False, None, traffic)
             else:
                 self._unreproduced(trig, [])
