@@ -8,7 +8,7 @@ import pytest
 from loopback import free_ports
 from vm110.fuzz import cases as K
 from vm110.fuzz.oracles import STALL, Trigger
-from vm110.fuzz.runner import RunConfig, Runner
+from vm110.fuzz.runner import RunConfig, Runner, _open_log
 from vm110.fuzz.session import Settings
 
 
@@ -29,3 +29,13 @@ def test_a_lost_controller_keeps_more_suspects_than_are_replayed(runner):
     [entry] = runner.unreproduced
     assert entry["suspects"] == list(range(30))
     assert entry["suspect_cases"] == [K.generate(1, i).description for i in range(30)]
+
+
+def test_each_run_appends_to_target_log_under_its_own_header(tmp_path):
+    """A run that could not start leaves target.log; the next one must not mix into it unmarked."""
+    (tmp_path / "target.log").write_bytes(b"the first run's controller output\n")
+    with _open_log(tmp_path, "./ctl 5825 5827") as log:
+        log.write(b"the second run's\n")
+    lines = (tmp_path / "target.log").read_bytes().decode().splitlines()
+    assert lines[0] == "the first run's controller output" and lines[2] == "the second run's"
+    assert lines[1].startswith("== vm110 fuzz ") and lines[1].endswith(": ./ctl 5825 5827 ==")

@@ -420,7 +420,7 @@ def test_a_fifo_for_the_summary_is_refused_before_the_run(capsys, nothing_leaves
     """It blocked for ever before: the summary was written into the FIFO at the end of the run."""
     os.mkfifo(tmp_path / "findings.json")
     code, err = fuzz_in_process(capsys, "--target", "127.0.0.1:5825", "--cases", "1", "--out", str(tmp_path))
-    assert code == 2 and "findings.json" in one_line(err) and "not a regular file" in err
+    assert code == 2 and "previous run's files (findings.json)" in one_line(err)
     assert stat.S_ISFIFO((tmp_path / "findings.json").lstat().st_mode)
 
 
@@ -442,6 +442,37 @@ def test_a_file_where_a_folder_goes_is_not_a_directory(capsys, nothing_leaves, t
     code, err = fuzz_in_process(capsys, *args)
     assert code == 2 and one_line(err) == f"vm110 fuzz: {option} {afile} is not a directory"
     assert afile.read_text() == "mine"
+
+
+def test_a_previous_run_s_out_is_refused_and_left_as_it_was(capsys, nothing_leaves, tmp_path):
+    """Trial: a second run into the same --out overwrote finding-001-* of the first and left its
+    finding-002/003 beside a findings.json that did not list them."""
+    old = {"findings.json": "{}", "finding-001-crash.json": "first", "finding-002-stall.pcap": "second",
+           "id-000000.json": "a corpus case", "notes.txt": "mine"}
+    for name, text in old.items():
+        (tmp_path / name).write_text(text)
+    code, err = fuzz_in_process(capsys, "--target", "127.0.0.1:5825", "--cases", "1", "--out", str(tmp_path))
+    line = one_line(err)
+    assert code == 2 and f"--out {tmp_path} holds a previous run's files (finding-001-crash.json and 2 more)" in line
+    assert {p.name: p.read_text() for p in tmp_path.iterdir()} == old
+
+
+def test_a_corpus_or_other_files_leave_out_usable(tmp_path):
+    (tmp_path / "id-000000.json").write_text("a corpus case")
+    (tmp_path / "target.log").write_text("a run that could not start")
+    findings.check_out(tmp_path)
+    findings.check_out(tmp_path / "new")
+
+
+def test_a_run_that_never_started_leaves_no_summary(capsys, monkeypatch, tmp_path):
+    """Else a retry after 'no VRPO' (the controller not up yet) would find --out used."""
+    monkeypatch.setattr(Link, "send", lambda self, data: 0.0)
+    _, listen = free_ports(2)
+    for _ in range(2):
+        code, err = fuzz_in_process(capsys, "--target", "127.0.0.1:9", "--listen", f"127.0.0.1:{listen}",
+                                    "--startup", "0.2", "--cases", "1", "--out", str(tmp_path))
+        assert code == 2 and "no VRPO" in one_line(err)
+    assert not (tmp_path / "findings.json").exists()
 
 
 def test_a_failed_finding_write_keeps_the_previous_files(tmp_path):

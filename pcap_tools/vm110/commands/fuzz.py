@@ -26,11 +26,10 @@ from typing import Any
 
 from .. import constants as C
 from ..errors import EXIT_FINDINGS, EXIT_INTERRUPTED, EXIT_OK, CliError
-from ..fileio import check_target
 from ..fuzz.corpus import is_entry_file, load_entry
 from ..fuzz.coverage import map_size
 from ..fuzz.destination import check
-from ..fuzz.findings import load_finding, make_folder, write_summary
+from ..fuzz.findings import check_out, load_finding, write_summary
 from ..fuzz.guided import GuidedConfig
 from ..fuzz.link import parse_endpoint
 from ..fuzz.oracles import CRASH, Limits
@@ -157,8 +156,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--target HOST:PORT is required (or --replay FINDING)")
     settings = _settings(args, args.target, args.listen, args.group)
     out = Path(args.out)
-    make_folder(out, "--out")
-    check_target(out / "findings.json")    # refused now, not after the run
+    check_out(out)    # refused now, not after the run
     duration = None if args.cases else (args.duration or DEFAULT_DURATION_S)
     guided = None
     if args.coverage:
@@ -178,11 +176,11 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if status is not None:
             status.done()
+    if summary["stopped_early"] and not runner.interrupted and not summary["findings"] and summary["cases_run"] == 0:
+        raise CliError(summary["stopped_early"])    # it never started: no summary to keep --out from a retry
     write_summary(out, summary)
     if guided is not None:
         write_coverage_html(out / "coverage.html", summary)
-    if summary["stopped_early"] and not runner.interrupted and not summary["findings"] and summary["cases_run"] == 0:
-        raise CliError(summary["stopped_early"])
     for bucket in summary["buckets"]:
         seen = f"{bucket['count']} time{'s' if bucket['count'] != 1 else ''}"
         print(f"{_printable(bucket['headline'])} [{seen}] -> {out / bucket['file']}")

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import struct
 import time
 from dataclasses import MISSING, asdict, dataclass, field, fields
@@ -154,6 +155,30 @@ def make_folder(folder: Path, what: str) -> None:
         raise CliError(f"{what} {folder} is not a directory") from None
     except OSError as exc:
         raise CliError(f"cannot create {what} {folder}: {exc.strerror}") from None
+
+
+# What a run leaves in --out (crash cores wait there as .crash-N.core until kept or removed). Not
+# target.log: a run that could not start leaves only that, and each run appends under a header.
+_RUN_FILES = frozenset({"findings.json", "coverage.html"})
+_RUN_PREFIXES = ("finding-", ".crash-")
+
+
+def check_out(out: Path) -> None:
+    """CliError (one line) when `out` is not a folder or holds a previous run's files: a run
+    never overwrites another's evidence, nor leaves findings that its findings.json does not list.
+    A corpus there (`id-*.json`) is no run's output: --corpus may be the same folder."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise CliError(f"--out {out} is not a directory")
+    try:
+        used = sorted(n for n in os.listdir(out) if n in _RUN_FILES or n.startswith(_RUN_PREFIXES))
+    except OSError as exc:
+        raise CliError(f"cannot read --out {out}: {exc.strerror}") from None
+    if used:
+        more = f" and {len(used) - 1} more" if len(used) > 1 else ""
+        raise CliError(f"--out {out} holds a previous run's files ({used[0]}{more}): give a new --out "
+                       "(nothing is overwritten)")
 
 
 def write_summary(out: Path, summary: dict[str, Any]) -> Path:

@@ -155,7 +155,7 @@ class Runner:
         self.cfg = cfg
         F.make_folder(cfg.out, "--out")
         # What can be refused (the log's path, the command, the map) before the socket is opened.
-        self._log = _open_log(cfg.out) if cfg.target_cmd else None
+        self._log = _open_log(cfg.out, cfg.target_cmd) if cfg.target_cmd else None
         self.guided: Optional[Guided] = None
         try:
             self.supervisor = Supervisor(cfg.target_cmd, self._log, core=cfg.core) if cfg.target_cmd else None
@@ -550,11 +550,14 @@ def _pick(sent: list[Sent], command_id: Optional[int]) -> Optional[Sent]:
     return sent[-1] if sent else None
 
 
-def _open_log(folder: Path) -> IO[bytes]:
-    """The controller's output, appended to `folder`/target.log (a regular file, never a FIFO or device)."""
+def _open_log(folder: Path, command: str) -> IO[bytes]:
+    """The controller's output, appended to `folder`/target.log (a regular file, never a FIFO or
+    device) under a line that says which run's it is."""
     path = check_target(folder / "target.log")
     try:
-        return path.open("ab")
+        log = path.open("ab")
+        log.write(f"== vm110 fuzz {time.strftime('%Y-%m-%d %H:%M:%S')}: {command} ==\n".encode(errors="replace"))
+        return log
     except OSError as exc:
         raise CliError(f"cannot write {folder / 'target.log'}: {exc.strerror}") from None
 
@@ -567,7 +570,7 @@ def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[
                    out: Optional[Path] = None) -> Optional[Trigger]:
     """Send the finding again (minimised packet when there is one); the trigger when it still
     triggers (a crash's carries its signature: the same bug or another), else None."""
-    log = _open_log(out) if out is not None and target_cmd else None
+    log = _open_log(out, target_cmd) if out is not None and target_cmd else None
     supervisor = Supervisor(target_cmd, log) if target_cmd else None
     scratch = Path(tempfile.mkdtemp(prefix="vm110-replay-"))
     session = Session(settings, supervisor, scratch)
