@@ -6,6 +6,7 @@ import struct
 from reference_crc import reference_crc
 from vm110 import constants as C
 from vm110 import encode
+from vm110.decode import decode
 from vm110.fuzz.minimize import ddmin, difference, minimize
 
 VRPI_FIELDS = dict(bu_state=0x11, armed_ru=0x0C07, ru_state=3, ru_battery=80, joystick1=250)
@@ -58,3 +59,19 @@ def test_budget_keeps_a_packet_that_triggers():
     packet = vrpi(joystick1=-32768, ru_battery=200)
     result = minimize(packet, twin, lambda b: crc_ok(b) and joystick1(b) == -32768, max_trials=1)
     assert not result.complete and joystick1(result.packet) == -32768 and crc_ok(result.packet)
+
+
+def test_a_legal_extra_payload_shrinks_with_its_size_field():
+    """Trial: every shorter tail kept the original `size` (a size mismatch, illegal): a legal VRCI
+    of 512 bytes stayed 512 bytes, 476 differences, and was marked minimised."""
+    twin = encode.packet("VRCI", encode.command_payload(5), origin=0x0101, serial=3)
+    body = twin[:-4] + bytes(range(256)) + bytes(214)
+    packet = body[:10] + struct.pack("<H", len(body) - C.PREFIX_LEN) + body[12:]
+    packet += reference_crc(packet).to_bytes(4, "little")
+    assert len(packet) == C.MAX_PACKET and decode(packet)["problems"] == []
+
+    def legal_and_longer(b: bytes) -> bool:
+        fields = decode(b)
+        return not fields["problems"] and fields["type"] == "VRCI" and fields["size"] > 22
+    result = minimize(packet, twin, legal_and_longer, max_trials=100)
+    assert result.complete and legal_and_longer(result.packet) and len(result.packet) == len(twin) + 1

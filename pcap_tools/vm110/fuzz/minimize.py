@@ -37,6 +37,12 @@ def _strip_crc(data: bytes) -> Optional[bytes]:
     return data[:end] + data[end + C.CRC_LEN:]
 
 
+def _size_fits(content: bytes) -> bool:
+    """`size` (of a packet without its CRC) counts exactly the bytes after the prefix."""
+    return len(content) >= C.PREFIX_LEN and struct.unpack_from("<H", content, SIZE_OFFSET)[0] == \
+        len(content) - C.PREFIX_LEN
+
+
 def _with_crc(content: bytes) -> bytes:
     if len(content) < C.PREFIX_LEN:
         return content + crc_bytes(content)
@@ -58,7 +64,12 @@ def minimize(packet: bytes, twin: bytes, triggers: Predicate, max_trials: int = 
     if not fix:
         content, base = packet, twin
     assert content is not None and base is not None
-    edits: list[object] = [i for i in range(min(len(content), len(base))) if content[i] != base[i]]
+    # A legal packet longer than its twin (`size` matching its payload): `size` follows the length
+    # of each candidate, or every shorter tail would be a size mismatch, another defect.
+    sized = fix and _size_fits(content) and _size_fits(base)
+    size_bytes = range(SIZE_OFFSET, SIZE_OFFSET + 2) if sized else range(0)
+    edits: list[object] = [i for i in range(min(len(content), len(base)))
+                           if content[i] != base[i] and i not in size_bytes]
     if len(content) != len(base):
         edits.append("length")
     cache: dict[bytes, bool] = {packet: True, twin: False}
@@ -73,6 +84,8 @@ def minimize(packet: bytes, twin: bytes, triggers: Predicate, max_trials: int = 
         for i in chosen:
             if isinstance(i, int):
                 out[i] = content[i]
+        if sized:
+            struct.pack_into("<H", out, SIZE_OFFSET, len(out) - C.PREFIX_LEN)
         return _with_crc(bytes(out)) if fix else bytes(out)
 
     def test(candidate: bytes) -> bool:
