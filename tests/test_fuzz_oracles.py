@@ -283,6 +283,29 @@ def test_commands_sent_to_a_dead_controller_owe_no_ack(link):
     assert link.oracles() == ["crash", "missing_ack"]
 
 
+def test_a_controller_that_hangs_on_a_command_is_one_stall_led_by_that_command(link):
+    """Trial (BUGS=hang_any): a hang gave a missing_ack finding and a stall finding."""
+    for n in range(5):
+        link.vrpo(T0 + n * 0.1)
+    link.mon.note_case(T0 + 0.3, 6)
+    link.mon.on_tx(T0 + 0.45, vrci(7, 1), vrci(7, 1), index=8)      # it hangs on this one
+    link.mon.note_case(T0 + 0.45, 8)
+    link.mon.tick(T0 + 1.5)
+    assert link.oracles() == []
+    link.mon.tick(T0 + 2.5)
+    [stall] = link.mon.triggers
+    assert stall.oracle == "stall" and stall.suspects == [8, 6] and stall.command_id == 7
+
+
+def test_a_controller_silent_for_a_while_still_owes_its_ack(link):
+    link.vrpo(T0)
+    link.mon.on_tx(T0 + 0.01, vrci(7, 1), vrci(7, 1), index=8)
+    link.mon.tick(T0 + 1.5)
+    assert link.oracles() == []
+    link.vrpo(T0 + 1.6)
+    assert [(t.oracle, t.case_index, t.command_id) for t in link.mon.triggers] == [("missing_ack", 8, 7)]
+
+
 def test_acks_missed_while_the_controller_was_dying_are_the_crash(link):
     """A sanitizer report that takes longer than the ack timeout: the command went out after the
     controller last spoke, so its missing ack is the crash's."""
@@ -293,6 +316,6 @@ def test_acks_missed_while_the_controller_was_dying_are_the_crash(link):
     link.vrpo(T0)
     link.mon.on_tx(T0 + 0.01, vrci(7, 3), vrci(7, 3), index=3)         # the controller is dying
     link.mon.tick(T0 + 1.2)
-    assert [t.case_index for t in link.mon.triggers] == [2, 3]
+    assert [t.case_index for t in link.mon.triggers] == [2]     # 3: silent since it came, held
     link.mon.on_exit(T0 + 1.5, -6)
     assert [(t.oracle, t.case_index) for t in link.mon.triggers] == [("missing_ack", 2), ("crash", None)]

@@ -89,6 +89,7 @@ class Monitor:
         self.vrco: dict[int, _Vrco] = {}
         self.stall_reported = False
         self.exited = False                       # until a restart: a dead controller owes no acks
+        self.held: list[tuple[float, int, int]] = []   # (time, command ID, case) of acks owed by a silent one
         self.pending.clear()
         self.illegal_ids.clear()
 
@@ -152,6 +153,9 @@ class Monitor:
     def on_rx(self, t: float, data: bytes, src: Any) -> dict[str, Any]:
         fields = decode(data)
         self.last_rx = t
+        for when, owed, index in self.held:     # it was not hung: those acks are missing
+            self._missing_ack(when, owed, index)
+        self.held = []
         ptype = fields.get("type", "?")
         if fields["problems"]:
             command_id = fields.get("command_id") if ptype == C.PacketType.VRAO.value else None
@@ -227,19 +231,29 @@ class Monitor:
         # dying (silent since before the command was sent).
         self.exited = True
         self.pending.clear()
+        self.held = []
         self.triggers = [x for x in self.triggers if x.oracle != MISSING_ACK or x.case_index not in suspects]
         crash = crash or Crash(returncode)
         self.fire(Trigger(CRASH, t, crash.headline(), None, suspects, None, crash.signature(), crash=crash))
 
     # --- time ------------------------------------------------------------------------------------
+    def _missing_ack(self, now: float, command_id: int, index: int) -> None:
+        self.fire(Trigger(MISSING_ACK, now, f"no VRAO for command ID {command_id} within "
+                          f"{self.limits.ack_timeout_ms:.0f} ms", index, [index], None, "no ack", command_id))
+
     def tick(self, now: float) -> None:
+        # A controller silent since a command came (a VRPO of the cycle it came in aside) has hung:
+        # that is the stall's finding, not a missing ack as well (one bug, one finding).
+        cycle = max(self.vrpo_interval, 0.1) + 0.05
         for command_id in [c for c, q in self.pending.items() if q[0][0] < now]:
             queue = self.pending[command_id]
             while queue and queue[0][0] < now:
-                _, index = queue.popleft()
-                self.fire(Trigger(MISSING_ACK, now, f"no VRAO for command ID {command_id} within "
-                                  f"{self.limits.ack_timeout_ms:.0f} ms", index, [index], None, "no ack",
-                                  command_id))
+                deadline, index = queue.popleft()
+                sent = deadline - self.limits.ack_timeout_ms / 1000
+                if self.last_vrpo is not None and self.last_rx is not None and self.last_rx < sent + cycle:
+                    self.held.append((now, command_id, index))
+                else:
+                    self._missing_ack(now, command_id, index)
                 # One trigger per command: the case's retransmissions of it still open would only
                 # repeat it (and each would replay the same case).
                 queue = collections.deque(e for e in queue if e[1] != index)
@@ -250,8 +264,11 @@ class Monitor:
         if self.last_vrpo is not None and not self.stall_reported and not self.exited \
                 and now - self.last_vrpo > self.limits.stall_ms / 1000:      # a dead one's silence is the crash
             self.stall_reported = True
+            hung = list(dict.fromkeys(index for _, _, index in self.held))    # the commands it hung on first
+            suspects = hung + [i for i in self._around(self.last_vrpo) if i not in hung]
             self.fire(Trigger(STALL, now, f"no VRPO for {(now - self.last_vrpo) * 1000:.0f} ms",
-                              None, self._around(self.last_vrpo), None, "no VRPO"))
+                              None, suspects, None, "no VRPO", self.held[0][1] if self.held else None))
+            self.held = []
         self._check_resends(now)
         if now >= self._next_purge:      # once a second: thousands of IDs at a high case rate
             self._next_purge = now + 1.0

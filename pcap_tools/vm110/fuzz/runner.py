@@ -28,7 +28,7 @@ from . import cases as K
 from . import findings as F
 from .guided import Guided, GuidedConfig
 from .minimize import ddmin, difference, minimize
-from .oracles import CRASH, STALL, VRCO_RETRANSMIT, Monitor, Trigger
+from .oracles import CRASH, MISSING_ACK, STALL, VRCO_RETRANSMIT, Monitor, Trigger
 from .session import Sent, Session, Settings, TargetLost
 from .supervisor import Supervisor
 
@@ -89,7 +89,7 @@ def trial(session: Session, replay: Replay, oracle: str, signature: Optional[str
         if oracle != CRASH and any(t.oracle == CRASH for t in mon.triggers):
             return None      # it crashed: that is the crash oracle's finding, not this one's
         for t in mon.triggers:
-            if t.oracle == oracle and (signature is None or oracle != CRASH or t.kind == signature):
+            if _counts_as(t, oracle) and (signature is None or oracle != CRASH or t.kind == signature):
                 return t
         return None
     finally:
@@ -99,9 +99,15 @@ def trial(session: Session, replay: Replay, oracle: str, signature: Optional[str
         main.adopt(mon)
 
 
+def _counts_as(trig: Trigger, oracle: str) -> bool:
+    """`trig` is a trigger of `oracle`: a stall that holds an unacknowledged command is a missing
+    ack as well (the controller hung on it; the monitor reports the one bug once, as the stall)."""
+    return trig.oracle == oracle or (oracle == MISSING_ACK and trig.oracle == STALL and trig.command_id is not None)
+
+
 def _observe(session: Session, mon: Monitor, oracle: str, t_end: float) -> None:
     limits = mon.limits
-    fired = lambda: any(t.oracle == oracle for t in mon.triggers)   # noqa: E731
+    fired = lambda: any(_counts_as(t, oracle) for t in mon.triggers)   # noqa: E731
     if oracle == STALL:
         # A stall that starts within `grace` of the packets: VRPO after that clears the case.
         grace = max(0.3, 2 * mon.vrpo_interval)
@@ -117,6 +123,9 @@ def _observe(session: Session, mon: Monitor, oracle: str, t_end: float) -> None:
     deadline = t_end + window
     while time.time() < deadline and not fired():
         session.pump(min(deadline, time.time() + 0.02))
+    hung_until = t_end + (limits.ack_timeout_ms + limits.stall_ms) / 1000 + 0.5
+    while oracle == MISSING_ACK and mon.held and not fired() and time.time() < hung_until:
+        session.pump(time.time() + 0.02)      # an ack held by a silent controller: a stall, or late
     dying_until = time.time() + _DYING_WAIT_S
     while oracle == CRASH and not fired() and session.supervisor is not None and session.supervisor.dying() \
             and time.time() < dying_until:
