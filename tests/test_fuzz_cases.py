@@ -13,6 +13,7 @@ from reference_crc import reference_crc
 from vm110 import constants as C
 from vm110.decode import decode
 from vm110.fuzz import cases as K
+from vm110.fuzz import mutate as M
 
 SEED = 1
 SWEEP = len(K.sweep(SEED))
@@ -154,6 +155,17 @@ def test_a_bug_s_signature_names_the_packet_type_not_how_it_was_mutated():
         ("wrong-direction", "VRAI sent to the controller"), ("sequence", "four new commands back to back")])]
     assert kinds == ["VRPI", "VRCI", "VRCI", "VRCI", "VRAI", "sequence"]
     assert case_kind(None) == "none"
+
+
+def test_a_sequence_s_signature_names_the_packet_type_it_sent():
+    """Trial: a controller whose serial went back on command ID 65535 gave `malformed_output serial
+    (sequence)` for the command ID wrap and `(VRCI)` for a VRCI case: one bug, two findings."""
+    from vm110.fuzz.runner import case_kind
+    from vm110.fuzz.session import Sent
+    vrci = M.build(C.PacketType.VRCI, 3, M.default_fields(C.PacketType.VRCI, 0xFFFF))
+    wrap = K.Case(9, "sequence", "command ID wrap 65534, 65535, 0, 1")
+    assert case_kind(wrap, Sent(0.0, b"XXXX" + vrci[4:], vrci, 0.0, True)) == "VRCI"
+    assert case_kind(wrap, Sent(0.0, b"XXXX", b"XXXX", 0.0, True)) == "sequence"
 
 
 def test_legal_packets_with_payload_beyond_the_layout_are_sent():

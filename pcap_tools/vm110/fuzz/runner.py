@@ -149,14 +149,19 @@ def start_target(s: Session) -> None:
 _PACKET_TYPES = frozenset(t.value for t in C.PacketType)
 
 
-def case_kind(case: Optional[K.Case]) -> str:
-    """The packet type a case mutates (its description begins with it), else its family (a
-    sequence, packets in the wrong direction): how the fuzz mutated the packet (its fields, its
-    structure, its bytes) is no part of a bug's signature, the packet it reached is."""
+def case_kind(case: Optional[K.Case], shown: Optional[Sent] = None) -> str:
+    """The packet type a case mutates (its description begins with it), else the type of `shown`,
+    the packet of the case a finding shows (a sequence's: the command ID wrap is VRCI, as a
+    VRCI field case on the same ID is), else its family: how the fuzz mutated the packet (its
+    fields, its structure, its bytes, a sequence) is no part of a bug's signature, the packet it
+    reached is."""
     if case is None:
         return "none"
     first = case.description.split(" ", 1)[0]
-    return first if first in _PACKET_TYPES else case.family
+    if first in _PACKET_TYPES:
+        return first
+    sent_as = shown.twin[:C.ID_LEN].decode("latin-1") if shown is not None else ""
+    return sent_as if sent_as in _PACKET_TYPES else case.family
 
 
 class Runner:
@@ -316,8 +321,10 @@ class Runner:
         the oracle, what it judged and the packet type of the case."""
         if trig.oracle == CRASH:
             return f"crash {trig.kind}"
-        case = self.records[index][0] if index is not None and index in self.records else None
-        return f"{trig.oracle} {trig.kind} ({case_kind(case)})"
+        if index is None or index not in self.records:
+            return f"{trig.oracle} {trig.kind} ({case_kind(None)})"
+        case, sent = self.records[index]
+        return f"{trig.oracle} {trig.kind} ({case_kind(case, _pick(sent, trig.command_id))})"
 
     def _investigate(self, trig: Trigger) -> bool:
         """Confirm `trig` by replaying its suspects; save a finding. True if replays were run."""
