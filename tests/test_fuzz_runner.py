@@ -6,10 +6,12 @@ from pathlib import Path
 
 import pytest
 from loopback import free_ports
+from vm110 import constants as C
 from vm110.fuzz import cases as K
-from vm110.fuzz.oracles import STALL, Trigger
+from vm110.fuzz import mutate as M
+from vm110.fuzz.oracles import MISSING_ACK, STALL, Trigger
 from vm110.fuzz.runner import RunConfig, Runner, _open_log
-from vm110.fuzz.session import Settings
+from vm110.fuzz.session import Sent, Settings
 
 
 @pytest.fixture
@@ -39,3 +41,16 @@ def test_each_run_appends_to_target_log_under_its_own_header(tmp_path):
     lines = (tmp_path / "target.log").read_bytes().decode().splitlines()
     assert lines[0] == "the first run's controller output" and lines[2] == "the second run's"
     assert lines[1].startswith("== vm110 fuzz ") and lines[1].endswith(": ./ctl 5825 5827 ==")
+
+
+def test_two_packets_left_by_minimising_are_the_reproducer(runner):
+    """Trial: a case minimised to two of its three packets kept all three, minimised false (the
+    reduction was dropped whenever more than one packet was left)."""
+    vrci = [M.build(C.PacketType.VRCI, n, M.default_fields(C.PacketType.VRCI, 40 + n)) for n in range(2)]
+    vrpi = M.build(C.PacketType.VRPI, 9, M.ARMED_VRPI)
+    sent = [Sent(0.0, vrci[0], vrci[0], 0.0, True), Sent(0.0, vrpi, vrpi, 20.0, True),
+            Sent(0.0, vrci[1], vrci[1], 20.0, True)]
+    trig = Trigger(MISSING_ACK, 0.0, "no VRAO", case_index=1)
+    runner._trial = lambda replay, t: t if set(vrci) <= {p.data for p in replay.packets} else None
+    kept, shown, small, complete = runner._minimize(trig, K.Case(1, "sequence", "two commands"), sent)
+    assert [p.data for p in kept] == vrci and complete and small is None and shown is not None

@@ -358,8 +358,8 @@ class Runner:
         for index in suspects[:_MAX_SUSPECTS]:
             if self._trial(Replay.of(*self.records[index]), trig):
                 case, sent = self.records[index]
-                shown, small, complete = self._minimize(trig, case, sent)
-                self._write(trig, index, index, case.family, case.description, sent, shown, small, complete, case,
+                kept, shown, small, complete = self._minimize(trig, case, sent)
+                self._write(trig, index, index, case.family, case.description, kept, shown, small, complete, case,
                             traffic)
                 return True
         self._unreproduced(trig, suspects[:_MAX_SUSPECTS])
@@ -423,8 +423,8 @@ class Runner:
         if len(chosen) == 1:
             index = int(chosen[0])  # type: ignore[call-overload]
             case, sent = self.records[index]
-            shown, small, complete = self._minimize(trig, case, sent)
-            self._write(trig, index, index, case.family, case.description, sent, shown, small, complete, case, traffic)
+            kept, shown, small, complete = self._minimize(trig, case, sent)
+            self._write(trig, index, index, case.family, case.description, kept, shown, small, complete, case, traffic)
             return True
         indexes = [int(i) for i in chosen]  # type: ignore[call-overload]
         sent = [p for i in indexes for p in self.records[i][1]]
@@ -461,11 +461,12 @@ class Runner:
             raise TargetLost("the controller stopped sending VRPO and there is no --target-cmd to restart it")
         return trial(s, replay, trig.oracle, trig.kind)
 
-    def _minimize(self, trig: Trigger, case: K.Case, sent: list[Sent]) -> tuple[Optional[Sent], Optional[Sent], bool]:
-        """(the packet the finding shows, its minimised version or None, complete): first the
-        fewest steps of the case that still trigger, then, with one packet left, its fewest changes."""
+    def _minimize(self, trig: Trigger, case: K.Case,
+                  sent: list[Sent]) -> tuple[list[Sent], Optional[Sent], Optional[Sent], bool]:
+        """(the packets of the case kept, the packet the finding shows, its minimised version or
+        None, complete): first the fewest steps of the case that still trigger, then, with one
+        packet left, its fewest changes."""
         deadline = time.time() + self.cfg.minimize_budget_s
-        shown = _pick(sent, trig.command_id)
 
         def again(packets: list[Sent]) -> bool:
             if time.time() > deadline:
@@ -485,14 +486,15 @@ class Runner:
                 chosen = ddmin(chosen, test)
             except _Budget:
                 complete = False
-        if len(chosen) != 1:
-            return shown, None, False
-        one = sent[int(chosen[0])]  # type: ignore[call-overload]
+        kept = [sent[int(i)] for i in chosen]  # type: ignore[call-overload]
+        if len(kept) != 1:
+            return kept, _pick(kept, trig.command_id), None, complete
+        one = kept[0]
         if one.data == one.twin:
-            return one, one, complete
+            return kept, one, one, complete
         result = minimize(one.data, one.twin, lambda candidate: again(
             [Sent(0.0, candidate, one.twin, 0.0, one.expect_ack)]), budget_s=max(0.0, deadline - time.time()))
-        return one, Sent(0.0, result.packet, one.twin, 0.0, one.expect_ack), complete and result.complete
+        return kept, one, Sent(0.0, result.packet, one.twin, 0.0, one.expect_ack), complete and result.complete
 
     def _write(self, trig: Trigger, culprit: Optional[int], index: int, family: str, description: str,
                sent: list[Sent], shown: Optional[Sent], small: Optional[Sent], complete: bool,
@@ -506,7 +508,7 @@ class Runner:
             detail=trig.detail, packet_hex=packet.data.hex() if packet else "",
             original_hex=shown.data.hex() if shown else "", valid_hex=shown.twin.hex() if shown else "",
             differences=difference(packet.data, packet.twin) if packet else 0,
-            minimised=small is not None and complete,
+            minimised=complete,
             steps=[{"hex": p.data.hex(), "valid_hex": p.twin.hex(), "delay_ms": p.delay_ms if len(steps) > 1 else 0.0,
                     "expect_ack": p.expect_ack} for p in steps],
             pause_vrpi_ms=case.pause_vrpi_ms if case else 0.0,
