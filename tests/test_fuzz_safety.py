@@ -358,10 +358,12 @@ def test_out_of_range_numbers_in_a_finding_give_the_range(capsys, nothing_leaves
 def test_a_finding_without_steps_is_refused_unless_no_case_caused_it(capsys, nothing_leaves, tmp_path):
     """Trial: `"steps": []` replayed nothing and said "does not trigger any more", exit 0, of a
     controller that still crashed (a CI gate would have passed)."""
-    code, err = fuzz_in_process(capsys, "--replay", str(save(tmp_path, a_finding(steps=[]))))
+    code, err = fuzz_in_process(capsys, "--replay", str(save(tmp_path, a_finding(steps=[], stream=None))))
     assert code == 2 and "is not a valid vm110 fuzz finding: steps is empty" in one_line(err)
-    spontaneous = a_finding(steps=[], family="none", mutation="none: the base unit's normal VRAI")
-    assert findings.load_finding(str(save(tmp_path, spontaneous))).steps == []
+    spontaneous = a_finding(steps=[], family="none", mutation="none: the base unit's normal VRAI", stream=None)
+    gap = a_finding(steps=[], family="sequence", mutation="VRPI gap of 2100 ms", pause_vrpi_ms=2100.0, stream=None)
+    for finding in (spontaneous, gap):
+        assert findings.load_finding(str(save(tmp_path, finding))).steps == []
 
 
 def test_a_crash_finding_is_replayed_only_with_target_cmd(capsys, nothing_leaves, tmp_path):

@@ -229,9 +229,11 @@ def _checked(raw: dict[str, Any]) -> Finding:
     for name in ("pause_vrpi_ms", "withhold_vrai_ms", "settle_ms"):
         _milliseconds(name, getattr(finding, name))
     _packet("packet_hex", finding.packet_hex)
-    if not finding.steps and finding.family != NO_CASE:
+    if not finding.steps and finding.family != NO_CASE and not (
+            finding.pause_vrpi_ms or finding.withhold_vrai_ms or finding.stream):
         # Replaying nothing would say "does not trigger any more" of any bug.
-        raise _Bad(f"steps is empty (only a finding of family {NO_CASE!r}, which no case caused, has none)")
+        raise _Bad("steps is empty (only a finding no case caused, family 'none', or a case of the base "
+                   "unit's doing, a VRPI pause, a VRAI withheld or a stream, has none)")
     if len(finding.steps) > MAX_STEPS:
         raise _Bad(f"{len(finding.steps)} steps (at most {MAX_STEPS})")
     for n, step in enumerate(finding.steps):
