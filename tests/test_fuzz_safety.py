@@ -477,6 +477,21 @@ def test_a_run_that_never_started_leaves_no_summary(capsys, monkeypatch, tmp_pat
     assert not (tmp_path / "findings.json").exists()
 
 
+@pytest.mark.parametrize("bad", ["--dict", "--corpus", "--target-cmd"])
+def test_a_bad_option_leaves_no_files(capsys, nothing_leaves, tmp_path, bad):
+    """Trial: a bad --dict or --corpus, or a --target-cmd program that is not there, created --out
+    and an empty target.log before exit 2 (README: a bad option ends before any work starts)."""
+    (tmp_path / "bad.dict").write_text("not a dictionary line\n")
+    (tmp_path / "afile").write_text("mine")
+    values = {"--dict": str(tmp_path / "bad.dict"), "--corpus": str(tmp_path / "afile"),
+              "--target-cmd": str(tmp_path / "missing-controller")}
+    args = ["--target", "127.0.0.1:5825", "--cases", "1", "--out", str(tmp_path / "out"), "--coverage",
+            "--target-cmd", "true", bad, values[bad]]
+    code, err = fuzz_in_process(capsys, *args)
+    assert code == 2 and bad in one_line(err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "bad.dict"]
+
+
 def test_a_failed_finding_write_keeps_the_previous_files(tmp_path):
     finding = findings.Finding(**{k: v for k, v in a_finding().items() if k != "pcap"})
     good = [(1.0, True, b"VRPI", ("127.0.0.1", 5825))]

@@ -79,14 +79,14 @@ class Guided:
     def __init__(self, cfg: GuidedConfig, seed: int) -> None:
         self.cfg = cfg
         self.rng = random.Random(f"vm110-coverage/{seed}")
+        self.tokens: list[bytes] = load_dictionary(cfg.dictionary) if cfg.dictionary else []   # refused first
+        self.store = CorpusDir(cfg.corpus_dir) if cfg.corpus_dir else None
         self.map = ShmMap(cfg.map_size)
         self.virgin = Virgin(cfg.map_size)
         self.empty = bytes(cfg.map_size)
         self.corpus: list[Entry] = []
-        self.store = CorpusDir(cfg.corpus_dir) if cfg.corpus_dir else None
         self.resume: list[Entry] = []
-        self.tokens: list[bytes] = []
-        self.mutator = Mutator(self.rng, self.tokens)
+        self.mutator = Mutator(self.rng, self.tokens, list(self.tokens))
         self.seed = seed
         self.sweep = 0
         self.cases = 0
@@ -100,9 +100,6 @@ class Guided:
         return {"__AFL_SHM_ID": str(self.map.id), "AFL_MAP_SIZE": str(self.cfg.map_size)}
 
     def open(self, target_cmd: Optional[str]) -> None:
-        if self.cfg.dictionary:
-            self.tokens += load_dictionary(self.cfg.dictionary)
-            self.mutator.preferred = list(self.tokens)
         binary = self.cfg.binary or (shlex.split(target_cmd)[0] if target_cmd else None)
         if binary:
             where = shutil.which(binary) or binary

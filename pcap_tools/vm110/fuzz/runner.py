@@ -167,15 +167,18 @@ def case_kind(case: Optional[K.Case], shown: Optional[Sent] = None) -> str:
 class Runner:
     def __init__(self, cfg: RunConfig) -> None:
         self.cfg = cfg
-        F.make_folder(cfg.out, "--out")
-        # What can be refused (the log's path, the command, the map) before the socket is opened.
-        self._log = _open_log(cfg.out, cfg.target_cmd) if cfg.target_cmd else None
+        # What can be refused (the command, the dictionary, the corpus folder, the map) before --out
+        # is made and the socket opened: a bad option leaves no files.
+        self.supervisor = Supervisor(cfg.target_cmd, core=cfg.core) if cfg.target_cmd else None
+        self._log: Optional[IO[bytes]] = None
         self.guided: Optional[Guided] = None
         try:
-            self.supervisor = Supervisor(cfg.target_cmd, self._log, core=cfg.core) if cfg.target_cmd else None
             self.guided = Guided(cfg.coverage, cfg.seed) if cfg.coverage else None
             if self.guided is not None and self.supervisor is not None:
                 self.supervisor.extra_env.update(self.guided.environment())
+            F.make_folder(cfg.out, "--out")
+            if self.supervisor is not None:
+                self._log = self.supervisor.log = _open_log(cfg.out, self.supervisor.command)
             self.session = Session(cfg.settings, self.supervisor, cfg.out)
         except BaseException:
             if self._log is not None:

@@ -83,6 +83,7 @@ class Supervisor:
         self.core_pattern = cores.read_pattern()
         self.no_core_reason = cores.why_no_core(self.core_pattern, self.core_limit)
         self.exe = shutil.which(self.argv[0], path=os.environ.get("PATH")) or str(self.cwd / self.argv[0])
+        self._check_program()      # now, before the run makes its files (and at each start)
 
     def environment(self) -> dict[str, str]:
         env = dict(os.environ)
