@@ -318,6 +318,14 @@ def test_unreadable_finding_files_are_one_line_errors(capsys, nothing_leaves, tm
     assert code == 2 and str(path) in one_line(err)
 
 
+def test_a_number_of_too_many_digits_is_said_plainly(capsys, nothing_leaves, tmp_path):
+    """Trial: the line ended "...use sys.set_int_max_str_digits() t", cut mid-word, Python's internals."""
+    path = tmp_path / "finding.json"
+    path.write_text('{"oracle": "crash", "steps": [], "seed": ' + "9" * 5000 + "}")
+    code, err = fuzz_in_process(capsys, "--replay", str(path))
+    assert code == 2 and one_line(err) == f"vm110 fuzz: {path} is not JSON: a number of 5000 digits (at most 4300)"
+
+
 def test_a_device_as_a_finding_or_dictionary_is_one_line_errors(capsys, nothing_leaves, tmp_path):
     """Trial: --replay /dev/zero and --dict /dev/zero read until the kernel killed the process (a
     device has no size to check first): at most the limit is read."""

@@ -8,11 +8,20 @@ from .errors import CliError
 from .fileio import read_at_most
 
 
+_MAX_DIGITS = 4300      # Python's own limit for int(): its message names its internals
+
+
+def _integer(text: str) -> int:
+    if len(text.lstrip("-")) > _MAX_DIGITS:
+        raise ValueError(f"a number of {len(text.lstrip('-'))} digits (at most {_MAX_DIGITS})")
+    return int(text)
+
+
 def loads(raw: Union[str, bytes], parse_constant: Optional[Callable[[str], Any]] = None) -> Any:
     """`json.loads`; nesting too deep for Python's recursive parser is a ValueError, as any other
-    malformed JSON is, not a RecursionError."""
+    malformed JSON is, not a RecursionError; so is an integer of more digits than Python reads."""
     try:
-        return json.loads(raw, parse_constant=parse_constant)
+        return json.loads(raw, parse_constant=parse_constant, parse_int=_integer)
     except RecursionError:
         raise ValueError("nested too deeply") from None
 
