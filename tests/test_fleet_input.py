@@ -201,6 +201,10 @@ def test_foreign_folder_and_other_options(src, built, tmp_path):
                    "other analysis options", "vrpi_watchdog_ms")
     assert snapshot(built) == before
     one_line_error(vm110("fleet", "build", str(src), "--out", str(tmp_path / "x"), "--meta", "{site"), "names no field")
+    # Two fields side by side split "north7" any way: refused, not guessed (it was accepted).
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(tmp_path / "x"), "--meta", "sites/{site}{machine}/*"),
+                   "{site}{machine} has nothing between them")
+    assert not (tmp_path / "x").exists()
     one_line_error(vm110("fleet", "build", str(src), "--out", str(tmp_path / "x"), "-j", "nan"), "-j")
 
 

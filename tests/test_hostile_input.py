@@ -316,6 +316,22 @@ def test_a_corrupt_record_header_leaves_both_engines_the_times_before_it(tmp_pat
         6, T0, T0 + 5 * 0.125)
 
 
+@pytest.mark.tshark
+@pytest.mark.parametrize("name,cut,message", [("normal.pcap", 10, "pcap file header cut short"),
+                                              ("loss.pcapng", 30, "pcapng section header block cut short")])
+def test_a_file_header_cut_short_is_no_capture_for_every_reader(tmp_path, name, cut, message):
+    """No capture at all: one line, exit 2, no report, whichever command reads it. The monitor
+    reported a pcap's cut header as a record cut at byte 0 and wrote a report; a pcapng's cut
+    section header was that in analyze too (a trial)."""
+    path = tmp_path / f"cut.{name.split('.')[1]}"
+    path.write_bytes((CAPTURES / name).read_bytes()[:cut])
+    for command in (["analyze", str(path), "--json", "-"], ["analyze", str(path), "--engine", "tshark", "--json", "-"],
+                    ["monitor", "--read", str(path), "--idle", "0", "--json", "-"], ["decode", str(path)]):
+        done = vm110(*command)
+        assert (done.returncode, done.stdout, done.stderr.decode()) == (
+            2, b"", f"vm110 {command[0]}: {path}: {message}\n"), command
+
+
 def test_decode_and_analyze_read_a_pipe():
     data = (CAPTURES / "normal.pcap").read_bytes()
     done = vm110("decode", "-", stdin=data)
@@ -374,12 +390,18 @@ def test_reports_are_written_whole_or_not_at_all(tmp_path):
     folder.mkdir()
     done = vm110("analyze", str(CAPTURES / "normal.pcap"), "--json", str(folder), "--quiet")
     assert done.returncode == 2 and b"is not a regular file" in done.stderr and folder.is_dir()
+    done = vm110("analyze", str(CAPTURES / "normal.pcap"), "--json", "", "--quiet")   # ("refusing to write : ...")
+    assert (done.returncode, done.stderr) == (2, b"vm110 analyze: refusing to write a file with an empty name\n")
+    plain = tmp_path / "plain"
+    plain.write_text("a file")
+    done = vm110("monitor", "--read", str(CAPTURES / "normal.pcap"), "--idle", "0", "--evidence", str(plain))
+    assert (done.returncode, done.stderr) == (2, f"vm110 monitor: --evidence {plain}: not a directory\n".encode())
     old = tmp_path / "r.json"
     old.write_text("the previous report")
     with pytest.raises(ValueError):        # fails half-way through writing: NaN is not JSON
         report_json.write(str(old), {"a": list(range(100000)), "b": float("nan")})
     assert old.read_text() == "the previous report"
-    assert sorted(os.listdir(tmp_path)) == ["dir.json", "fifo", "r.json"]
+    assert sorted(os.listdir(tmp_path)) == ["dir.json", "fifo", "plain", "r.json"]
 
 
 def _block_starts(data: bytes) -> list[int]:

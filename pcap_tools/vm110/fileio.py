@@ -32,6 +32,8 @@ def read_at_most(path: PathLike, limit: int) -> bytes:
 def check_target(path: PathLike) -> Path:
     """The path written to (symbolic links followed, so that a link stays a link); CliError when
     it exists and is not a regular file."""
+    if not os.fspath(path):
+        raise CliError("refusing to write a file with an empty name")
     real = Path(os.path.realpath(path))
     try:
         mode = real.stat().st_mode

@@ -209,6 +209,8 @@ class CaptureReader:
         finally:
             self._file.close()
         self.bytes_read = offset + len(leftover)
+        if leftover and not offset:      # (a pcap's records start after its header)
+            raise CaptureError(f"{self.path}: pcapng section header block cut short")
         if leftover:
             self.damaged(offset, f"file cut in the middle of a record at byte {offset} ({len(leftover)} bytes ignored)")
 

@@ -60,6 +60,11 @@ class StreamReader(CaptureReader):
             if not self.buf and not self.bytes_read:
                 raise CaptureError(f"{self.path}: empty file, not a pcap or pcapng capture")
             raise CaptureError(f"{self.path}: not a pcap or pcapng capture (too short)")
+        # No capture at all, as `vm110 analyze` has it: one line, no report.
+        if self.format == "pcap" and self._record is None:
+            raise CaptureError(f"{self.path}: pcap file header cut short")
+        if self.format == "pcapng" and self.buf and not self.bytes_read:
+            raise CaptureError(f"{self.path}: pcapng section header block cut short")
         if self.buf and not self.stopped:
             self.damaged(self.bytes_read, f"file cut in the middle of a record at byte {self.bytes_read} "
                                           f"({len(self.buf)} bytes ignored)")

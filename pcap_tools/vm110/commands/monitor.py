@@ -56,7 +56,8 @@ def run(args: argparse.Namespace) -> int:
     if args.idle is not None and args.read in (None, "-"):
         raise CliError("--idle applies to --read FILE")
     if args.evidence is not None and not os.path.isdir(args.evidence):
-        raise CliError(f"--evidence {args.evidence}: no such directory")
+        raise CliError(f"--evidence {args.evidence}: " +
+                       ("not a directory" if os.path.exists(args.evidence) else "no such directory"))
     # A report on standard output (--json - / --html -) is alone there: finding lines go to
     # standard error, and there is no dashboard.
     report_out = report_on_stdout(args)
@@ -94,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
         session = Session(source, options, cfg)
         stack.callback(session.close)
         session.run()
-        if session.failure and not session.reader.format:    # nothing read (no interface, not a capture)
+        if session.failure and (not session.reader.format or session.no_capture):   # no interface, not a capture
             print(f"vm110 monitor: {session.failure}", file=sys.stderr)
             return EXIT_USAGE
         if session.board is None and cfg.lines and not args.quiet:

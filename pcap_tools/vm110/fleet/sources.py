@@ -131,11 +131,18 @@ class MetaPattern:
         self.pattern = pattern
         self.keys: list[str] = []
         out = []
+        previous = ""
         for piece in re.split(r"(\{[^{}]*\}|\*\*|\*|\?)", pattern.replace(os.sep, "/")):
+            if not piece:
+                continue
             if piece.startswith("{") and piece.endswith("}"):
                 key = piece[1:-1]
                 if not KEY.match(key) or key in self.keys:
                     raise CliError(f"--meta: {piece!r} must name a new field (letters, digits, _)")
+                if previous.startswith("{") or previous == "*":
+                    # "{a}{b}" against "ab": which letters are whose? Say so, not guess.
+                    raise CliError(f"--meta {pattern!r}: {previous}{piece} has nothing between them to tell "
+                                   "where one ends; put a separator, e.g. {site}_{machine}")
                 self.keys.append(key)
                 out.append(f"(?P<{key}>[^/]+)")
             elif piece == "**":
@@ -146,6 +153,7 @@ class MetaPattern:
                 out.append("[^/]")
             else:
                 out.append(re.escape(piece))
+            previous = piece
         if not self.keys:
             raise CliError(f"--meta {pattern!r}: names no field; e.g. 'sites/{{site}}/{{machine}}/*.pcapng'")
         self.regex = re.compile("(?:^|/)" + "".join(out) + r"\Z")

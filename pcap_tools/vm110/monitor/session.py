@@ -85,6 +85,7 @@ class Session:
         self.stop = False
         self.input_ended = False
         self.failure: Optional[str] = None
+        self.no_capture = False                # the input ended before a capture header was whole
 
     # -- the analysis sees the intake's records through here -------------------------------------
     def feed(self, rec, sources) -> None:
@@ -339,6 +340,7 @@ class Session:
                 self.reader.buf = b""
         except CliError as exc:            # not a capture at all: said at the end
             self.failure = self.failure or str(exc)
+            self.no_capture = True
         self._flush()
         # A live link still open when we stop was watched until now, not until its last packet: one
         # that died meanwhile is silent to the end, in the last judgement and in the report. An
