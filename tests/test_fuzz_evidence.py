@@ -134,7 +134,8 @@ def test_output_ring_is_per_start_and_bounded(tmp_path):
     first = sup.output()
     assert len(first) == RING_BYTES and set(first) == {ord("A")}
     sup.argv[-1] = "B"
-    sup.restart()
+    sup.stop()
+    sup.start()
     sup.proc.wait(10)
     assert set(sup.output()) == {ord("B")}, "the second start's output only"
     sup.stop()

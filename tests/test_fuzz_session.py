@@ -4,6 +4,7 @@ multicast TTL 1 and the rate limit."""
 from __future__ import annotations
 
 import itertools
+import sys
 import socket
 import struct
 import time
@@ -85,3 +86,46 @@ def test_base_unit_role(reference):
                   if d[:4] == b"VRCI" and not decode(d)["problems"]}
     handled = {e["command_id"] for e in ctl.events("executed") + ctl.events("refused") + ctl.events("repeat")}
     assert legal_vrci and legal_vrci <= handled
+
+
+# A controller that says a last word when stopped: SIGTERM lands while a VRPO is due, and its loop
+# sends it before it looks at the flag (the trial's ctl.py on a loaded machine).
+_LAST_WORD = """
+import signal, socket, sys, time
+from vm110 import encode
+sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+sock.bind(("127.0.0.1", int(sys.argv[1])))
+peer, serial, stop = ("127.0.0.1", int(sys.argv[2])), 0, []
+signal.signal(signal.SIGTERM, lambda *a: stop.append(1))
+def vrpo():
+    global serial
+    sock.sendto(encode.packet("VRPO", encode.vrpo_payload(serial, b"x"), serial=serial), peer)
+    serial += 1
+while not stop:
+    vrpo()
+    time.sleep(0.05)
+vrpo()
+"""
+
+
+def test_a_restart_by_the_fuzzer_starts_the_serials_afresh(tmp_path):
+    """Trial (BUGS=hang_any,bogus_any): the last VRPO of the controller the fuzzer stopped was read
+    after the monitor's reset, and the new process's first serial was 'VRPO serial 0 after 6', a
+    malformed_output finding of the fuzzer's own restart."""
+    from loopback import free_ports
+    from vm110.fuzz.supervisor import Supervisor
+
+    (tmp_path / "ctl.py").write_text(_LAST_WORD)
+    rx, listen = free_ports(2)
+    supervisor = Supervisor(f"{sys.executable} ctl.py {rx} {listen}", cwd=tmp_path)
+    session = Session(Settings(("127.0.0.1", rx), ("127.0.0.1", listen), startup_s=10.0), supervisor, tmp_path)
+    try:
+        start_target(session)
+        session.pump(time.time() + 0.3)
+        session.restart_target()
+        session.pump(time.time() + 0.2)
+    finally:
+        session.close()
+    assert session.monitor.triggers == []
+    assert sorted(session.monitor.serials.values()) and max(session.monitor.serials.values()) < 10, \
+        "the new process's serials"

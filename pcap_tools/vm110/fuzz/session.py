@@ -199,7 +199,13 @@ class Session:
     def restart_target(self) -> None:
         """Restart the supervised controller and wait for its first VRPO (TargetLost if none)."""
         assert self.supervisor is not None
-        self.supervisor.restart()
+        self.supervisor.stop()
+        # What the stopped process sent before it went (a VRPO due when SIGTERM came) is its, not
+        # the new one's: kept for the pcap, not judged (its serial would make the new process's
+        # first serials 'not incrementing'). Nothing of it can come later: it is dead.
+        for t, data, src in self.link.receive():
+            self._log(t, False, data, src)
+        self.supervisor.start()
         now = time.time()
         self.exit_reported = False
         self.monitor.reset_controller(now)

@@ -236,7 +236,3 @@ class Supervisor:
                 return
             except subprocess.TimeoutExpired:
                 continue
-
-    def restart(self) -> None:
-        self.stop()
-        self.start()
