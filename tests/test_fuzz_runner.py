@@ -9,8 +9,8 @@ from loopback import free_ports
 from vm110 import constants as C
 from vm110.fuzz import cases as K
 from vm110.fuzz import mutate as M
-from vm110.fuzz.oracles import MISSING_ACK, STALL, Trigger
-from vm110.fuzz.runner import RunConfig, Runner, _open_log
+from vm110.fuzz.oracles import MALFORMED_OUTPUT, MISSING_ACK, STALL, Limits, Monitor, Trigger
+from vm110.fuzz.runner import Replay, RunConfig, Runner, _open_log, trial
 from vm110.fuzz.session import Sent, Settings
 
 
@@ -54,3 +54,28 @@ def test_two_packets_left_by_minimising_are_the_reproducer(runner):
     runner._trial = lambda replay, t: t if set(vrci) <= {p.data for p in replay.packets} else None
     kept, shown, small, complete = runner._minimize(trig, K.Case(1, "sequence", "two commands"), sent)
     assert [p.data for p in kept] == vrci and complete and small is None and shown is not None
+
+
+class _Echo:
+    """A session whose controller answers every replay with the malformed output `kind`."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind, self.supervisor, self.evidence_dir = kind, None, Path(".")
+        self.settings = Settings(("127.0.0.1", 1), ("127.0.0.1", 2), limits=Limits(ack_timeout_ms=50.0))
+        self.monitor = Monitor(self.settings.limits, 0.0)
+
+    def run_steps(self, *args: object) -> list[Sent]:
+        self.monitor.fire(Trigger(MALFORMED_OUTPUT, 0.0, self.kind, kind=self.kind))
+        return []
+
+    def pump(self, until: float) -> None:
+        pass
+
+
+def test_a_malformed_output_is_confirmed_only_by_its_own_kind():
+    """Trial (BUGS=hang_any,bogus_any): 'VRPO serial 0 after 6' was confirmed by a replay whose
+    VRAI drew a VRAO for a command never sent, another malformed output, and became a finding."""
+    replay = Replay([Sent(0.0, b"VRAI", b"VRAI", 0.0, False)])
+    assert trial(_Echo("VRAO unknown"), replay, MALFORMED_OUTPUT, "serial") is None    # type: ignore[arg-type]
+    again = trial(_Echo("serial"), replay, MALFORMED_OUTPUT, "serial")                 # type: ignore[arg-type]
+    assert again is not None and again.kind == "serial"

@@ -28,7 +28,7 @@ from . import cases as K
 from . import findings as F
 from .guided import Guided, GuidedConfig
 from .minimize import ddmin, difference, minimize
-from .oracles import CRASH, MISSING_ACK, STALL, VRCO_RETRANSMIT, Monitor, Trigger
+from .oracles import CRASH, MALFORMED_OUTPUT, MISSING_ACK, STALL, VRCO_RETRANSMIT, Monitor, Trigger
 from .session import Sent, Session, Settings, TargetLost
 from .supervisor import Supervisor
 
@@ -78,8 +78,9 @@ def _const(data: bytes, twin: bytes) -> K.Builder:
 
 
 def trial(session: Session, replay: Replay, oracle: str, signature: Optional[str] = None) -> Optional[Trigger]:
-    """Play `replay` once: the trigger of `oracle` it caused (with `signature`, for a crash, when
-    given: a crash with another stack is another bug), else None."""
+    """Play `replay` once: the trigger of `oracle` it caused (with `signature`, the trigger's kind,
+    for a crash or a malformed output, when given: a crash with another stack, a serial going back
+    where an ack of a command never sent was seen, is another bug), else None."""
     main = session.monitor
     mon = session.monitor = main.fork()
     try:
@@ -89,7 +90,7 @@ def trial(session: Session, replay: Replay, oracle: str, signature: Optional[str
         if oracle != CRASH and any(t.oracle == CRASH for t in mon.triggers):
             return None      # it crashed: that is the crash oracle's finding, not this one's
         for t in mon.triggers:
-            if _counts_as(t, oracle) and (signature is None or oracle != CRASH or t.kind == signature):
+            if _counts_as(t, oracle) and (signature is None or oracle not in _BY_KIND or t.kind == signature):
                 return t
         return None
     finally:
@@ -97,6 +98,9 @@ def trial(session: Session, replay: Replay, oracle: str, signature: Optional[str
         for t in mon.triggers:
             F.discard_core(session.evidence_dir, t.crash)
         main.adopt(mon)
+
+
+_BY_KIND = (CRASH, MALFORMED_OUTPUT)    # oracles whose kinds are different bugs
 
 
 def _counts_as(trig: Trigger, oracle: str) -> bool:
