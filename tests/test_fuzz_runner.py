@@ -79,3 +79,36 @@ def test_a_malformed_output_is_confirmed_only_by_its_own_kind():
     assert trial(_Echo("VRAO unknown"), replay, MALFORMED_OUTPUT, "serial") is None    # type: ignore[arg-type]
     again = trial(_Echo("serial"), replay, MALFORMED_OUTPUT, "serial")                 # type: ignore[arg-type]
     assert again is not None and again.kind == "serial"
+
+
+def test_a_valid_twin_that_triggers_too_is_said_and_no_field_is_blamed(runner):
+    """Trial: a VRAO for a command never sent answered every VRAI, yet the finding was 'VRAI
+    header origin=0x0' minimised to 5 differences: the minimiser took it that the twin does not
+    trigger, and replaying valid_hex triggered too."""
+    twin = M.build(C.PacketType.VRAI, 7, {"command_id": 40})
+    mutated = M.build(C.PacketType.VRAI, 7, {"command_id": 40}, header={"origin": 0})
+    case = K.Case(6, "vrai-fields", "VRAI header origin=0x0")
+    sent = [Sent(0.0, mutated, twin, 0.0, False)]
+    runner.records[6] = (case, sent)
+    runner._trial = lambda replay, t: t                # every VRAI draws the bogus VRAO
+    trig = Trigger("malformed_output", 0.0, "VRAO for command ID 40, never sent", suspects=[6],
+                   kind="VRAO unknown")
+    kept, shown, small, complete = runner._minimize(trig, case, sent)
+    runner._write(trig, 6, 6, case.family, case.description, kept, shown, small, complete, case, [])
+    finding = runner.findings[0]
+    assert finding.valid_triggers and finding.differences == 0
+    assert finding.packet_hex == finding.valid_hex == twin.hex() and finding.original_hex == mutated.hex()
+    assert [step["hex"] for step in finding.steps] == [twin.hex()]
+
+
+def test_a_valid_twin_that_does_not_trigger_leaves_the_fields_to_the_minimiser(runner):
+    twin = M.build(C.PacketType.VRAI, 7, {"command_id": 40})
+    mutated = M.build(C.PacketType.VRAI, 7, {"command_id": 40}, header={"origin": 0})
+    case = K.Case(6, "vrai-fields", "VRAI header origin=0x0")
+    sent = [Sent(0.0, mutated, twin, 0.0, False)]
+    runner._trial = lambda replay, t: t if replay.packets[0].data[6] == 0 else None   # origin 0 does it
+    trig = Trigger("malformed_output", 0.0, "VRAI origin", suspects=[6], kind="x")
+    runner._write(trig, 6, 6, case.family, case.description, *runner._minimize(trig, case, sent), case, [])
+    finding = runner.findings[0]
+    assert not finding.valid_triggers and bytes.fromhex(finding.packet_hex)[6] == 0
+    assert finding.differences == 5, "one origin byte and the CRC"

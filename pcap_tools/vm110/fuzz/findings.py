@@ -59,6 +59,7 @@ class Finding:
     schema: int = SCHEMA
     signature: str = ""                  # the bug's: findings with one signature are one bucket
     crash: Optional[dict[str, Any]] = None   # a crash's evidence; its files are named in it
+    valid_triggers: bool = False         # the valid twin triggers too: the case's changes are not the cause
 
     def name(self, number: int) -> str:
         return f"finding-{number:03d}-{self.oracle}"

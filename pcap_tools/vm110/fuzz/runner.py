@@ -389,7 +389,7 @@ class Runner:
         finding.packet_hex = finding.original_hex = shown.data.hex() if shown else ""
         finding.valid_hex = shown.twin.hex() if shown else ""
         finding.differences = difference(shown.data, shown.twin) if shown else 0
-        finding.minimised = False
+        finding.minimised = finding.valid_triggers = False
         finding.steps = [{"hex": p.data.hex(), "valid_hex": p.twin.hex(),
                           "delay_ms": p.delay_ms if len(sent) > 1 else 0.0, "expect_ack": p.expect_ack} for p in sent]
         finding.pause_vrpi_ms, finding.withhold_vrai_ms = case.pause_vrpi_ms, case.withhold_vrai_ms
@@ -472,7 +472,8 @@ class Runner:
                   sent: list[Sent]) -> tuple[list[Sent], Optional[Sent], Optional[Sent], bool]:
         """(the packets of the case kept, the packet the finding shows, its minimised version or
         None, complete): first the fewest steps of the case that still trigger, then, with one
-        packet left, its fewest changes."""
+        packet left, its fewest changes; that is none (the twin itself) when its valid twin
+        triggers too (the case's fields are then not the cause)."""
         deadline = time.time() + self.cfg.minimize_budget_s
 
         def again(packets: list[Sent]) -> bool:
@@ -499,6 +500,12 @@ class Runner:
         one = kept[0]
         if one.data == one.twin:
             return kept, one, one, complete
+        twin = Sent(0.0, one.twin, one.twin, 0.0, one.expect_ack)
+        try:
+            if again([twin]):       # the minimiser assumes the twin does not: ask once
+                return kept, one, twin, complete
+        except _Budget:
+            return kept, one, None, False
         result = minimize(one.data, one.twin, lambda candidate: again(
             [Sent(0.0, candidate, one.twin, 0.0, one.expect_ack)]), budget_s=max(0.0, deadline - time.time()))
         return kept, one, Sent(0.0, result.packet, one.twin, 0.0, one.expect_ack), complete and result.complete
@@ -516,6 +523,8 @@ class Runner:
             original_hex=shown.data.hex() if shown else "", valid_hex=shown.twin.hex() if shown else "",
             differences=difference(packet.data, packet.twin) if packet else 0,
             minimised=complete,
+            valid_triggers=small is not None and small.data == small.twin and shown is not None
+            and shown.data != shown.twin,
             steps=[{"hex": p.data.hex(), "valid_hex": p.twin.hex(), "delay_ms": p.delay_ms if len(steps) > 1 else 0.0,
                     "expect_ack": p.expect_ack} for p in steps],
             pause_vrpi_ms=case.pause_vrpi_ms if case else 0.0,
@@ -534,7 +543,9 @@ class Runner:
         self.buckets[signature] = F.Bucket(signature, trig.oracle, path.name, trig.time, trig.time, headline=headline,
                                            number=number, size=_size([small] if small is not None else sent))
         self.cfg.progress(f"finding {path.name}: {trig.detail if trig.oracle == CRASH else trig.oracle} "
-                          f"at case {index} ({description})")
+                          f"at case {index} ({description})"
+                          + ("; its valid twin triggers too: not the fields it changed" if finding.valid_triggers
+                             else ""))
 
 
 class _Budget(Exception):
