@@ -220,6 +220,24 @@ def test_replay_runs_only_the_command_line_command(tmp_path):
     assert result.returncode == 2 and "not running the command" not in result.stderr
 
 
+def test_replay_shows_the_controllers_output_and_writes_nothing_beside_the_finding(tmp_path):
+    """Trial: --replay appended to a target.log beside the finding, through a symbolic link there,
+    and a FIFO there made it refuse to run."""
+    rx, listen = free_ports(2)
+    elsewhere = tmp_path / "not-ours.txt"
+    elsewhere.write_text("someone's file\n")
+    for name, make in (("link", lambda p: p.symlink_to(elsewhere)), ("fifo", os.mkfifo)):
+        folder = tmp_path / name
+        folder.mkdir()
+        make(folder / "target.log")
+        path = save(folder, a_finding(target=f"127.0.0.1:{rx}", listen=f"127.0.0.1:{listen}"))
+        result = vm110("fuzz", "--replay", str(path), "--startup", "0.5", "--target-cmd", "echo controller says hi")
+        assert result.returncode == 2 and "exited with code 0 before sending any VRPO" in result.stderr
+        assert "controller says hi" in result.stderr, "its output is on the terminal"
+        assert sorted(p.name for p in folder.iterdir()) == ["finding.json", "target.log"]
+    assert elsewhere.read_text() == "someone's file\n"
+
+
 def test_replay_joins_no_group_the_file_names(capsys, monkeypatch, tmp_path):
     """Trial: a finding file's `group` was joined on the host's interfaces (an IGMP report out of
     eth0) with no option saying so."""

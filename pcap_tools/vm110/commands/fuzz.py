@@ -263,7 +263,7 @@ def _replay(args: argparse.Namespace) -> int:
         _progress(f"not running the command stored in {args.replay} (give --target-cmd to start a "
                   f"controller): {_printable(finding.target_cmd)!r}")
     try:
-        trig = replay_finding(finding, settings, args.target_cmd, Path(args.replay).parent)
+        trig = replay_finding(finding, settings, args.target_cmd, sys.stderr.buffer)
     except TargetLost as exc:
         raise CliError(str(exc)) from None
     verdict = "still triggers" if trig else "does not trigger any more"
@@ -282,7 +282,7 @@ def _replay_corpus(args: argparse.Namespace) -> int:
         raise CliError(f"--target HOST:PORT is needed to replay {args.replay} (a corpus case stores none)")
     settings = _settings(args, args.target, args.listen, args.group)
     try:
-        triggers = replay_corpus_case(entry, settings, args.target_cmd)
+        triggers = replay_corpus_case(entry, settings, args.target_cmd, sys.stderr.buffer)
     except TargetLost as exc:
         raise CliError(str(exc)) from None
     for trig in triggers:

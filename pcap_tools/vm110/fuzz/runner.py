@@ -603,10 +603,10 @@ def _jsonable(stream: Optional[dict[str, Any]]) -> Optional[dict[str, Any]]:
 
 
 def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[str],
-                   out: Optional[Path] = None) -> Optional[Trigger]:
+                   log: Optional[IO[bytes]] = None) -> Optional[Trigger]:
     """Send the finding again (minimised packet when there is one); the trigger when it still
-    triggers (a crash's carries its signature: the same bug or another), else None."""
-    log = _open_log(out, target_cmd) if out is not None and target_cmd else None
+    triggers (a crash's carries its signature: the same bug or another), else None. The
+    controller's output goes to `log` (the terminal), not into a file beside the finding."""
     supervisor = Supervisor(target_cmd, log) if target_cmd else None
     scratch = Path(tempfile.mkdtemp(prefix="vm110-replay-"))
     session = Session(settings, supervisor, scratch)
@@ -621,16 +621,23 @@ def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[
         return trial(session, Replay(packets, finding.pause_vrpi_ms, finding.withhold_vrai_ms, finding.stream,
                                      finding.settle_ms), finding.oracle)
     finally:
-        session.close()
-        if log is not None:
-            log.close()
+        _close(session)
         shutil.rmtree(scratch, ignore_errors=True)    # our own folder: cores of the replay, if any
 
 
-def replay_corpus_case(entry: Any, settings: Settings, target_cmd: Optional[str]) -> list[Trigger]:
-    """Play one corpus case (`--corpus` file) and wait out the oracles' windows: what fired."""
+def _close(session: Session) -> None:
+    """Stop the controller and wait until what it wrote has been passed on (before the verdict)."""
+    session.close()
+    if session.supervisor is not None:
+        session.supervisor.output()
+
+
+def replay_corpus_case(entry: Any, settings: Settings, target_cmd: Optional[str],
+                       log: Optional[IO[bytes]] = None) -> list[Trigger]:
+    """Play one corpus case (`--corpus` file) and wait out the oracles' windows: what fired (the
+    controller's output goes to `log`)."""
     from .guided import case_of
-    supervisor = Supervisor(target_cmd) if target_cmd else None
+    supervisor = Supervisor(target_cmd, log) if target_cmd else None
     scratch = Path(tempfile.mkdtemp(prefix="vm110-replay-"))
     session = Session(settings, supervisor, scratch)
     try:
@@ -642,5 +649,5 @@ def replay_corpus_case(entry: Any, settings: Settings, target_cmd: Optional[str]
         session.pump(time.time() + limits.ack_timeout_ms / 1000 + 0.3)
         return list(session.monitor.triggers)
     finally:
-        session.close()
+        _close(session)
         shutil.rmtree(scratch, ignore_errors=True)
