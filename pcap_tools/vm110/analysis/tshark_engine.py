@@ -10,6 +10,7 @@ facts that tshark does not report (format, link types, a file cut short) come fr
 from __future__ import annotations
 
 import ipaddress
+import re
 import os
 import shutil
 import struct
@@ -49,19 +50,29 @@ def _int(value: str) -> int:
     return int(value, 0)
 
 
-def _epoch(text: str) -> float:
-    """A frame's time as tshark gives it. A decimal fraction has 9 digits at most; a pcap record's
-    fraction of a second or more (damage) leaves wiretap's nanoseconds out of range, and tshark
-    prints them as they are: 4.0 "S.1253000000" or, wrapped negative, "S.-326043208"; 4.4 and
-    later "S.(1253000000 nanosec". Such a time is S plus those nanoseconds, as tshark's relative
-    times have it (self-fuzz and a trial found the ValueError and a second lost)."""
+_NSEC = re.compile(r"\(?(\d+)")
+
+
+def _epoch(text: str, pcap: bool) -> float:
+    """A frame's time from tshark's frame.time_epoch (geninfo's timestamp, pyshark's
+    sniff_timestamp, wraps at 2^31 seconds). A decimal fraction has 9 digits at most. A pcap
+    record's fraction of a second or more (damage) leaves wiretap's nanoseconds out of range, and
+    tshark prints them as they are: "S.1250000000" (4.0), "S.(1250000000 nanosec" (4.4 and later),
+    and a negative one as "-S.326043208": the minus is the fraction's (a pcap's seconds are
+    unsigned), the time S less those nanoseconds. (Self-fuzz and trials found a ValueError, a
+    second lost and a time wrapped at 2^31 s.)"""
     sec, _, frac = text.partition(".")
-    if frac.isdigit() and len(frac) <= 9:
+    negative = sec.startswith("-")
+    if not negative and frac.isdigit() and len(frac) <= 9:
         return float(text)
-    nsec = frac.removeprefix("(").removesuffix(" nanosec")
-    if nsec.lstrip("-").isdigit():
-        return int(sec) + int(nsec) * 1e-9
-    return float(text)
+    digits = _NSEC.match(frac)
+    if digits is None:
+        return float(text)
+    nsec = int(digits.group(1)) if frac.startswith("(") or len(digits.group(1)) > 9 else \
+        int(digits.group(1).ljust(9, "0"))
+    if negative and pcap:
+        return int(sec[1:]) - nsec * 1e-9
+    return int(sec) + (-nsec if negative and int(sec) == 0 else nsec) * 1e-9
 
 
 def _empty_on(udp, ports: frozenset) -> bool:
@@ -69,6 +80,17 @@ def _empty_on(udp, ports: frozenset) -> bool:
     self-fuzz found the AttributeError.)"""
     length, sport, dport = (udp.get_field(name) for name in ("length", "srcport", "dstport"))
     return length == "8" and sport is not None and dport is not None and not ports.isdisjoint((int(sport), int(dport)))
+
+
+def _raw_type(layer) -> str:
+    """The packet ID's bytes as the fast engine shows them (Latin-1): tshark's text drops or
+    escapes bytes that are no UTF-8, differently by version ("VPO", "V\\x12PO", "aaaaaaaa")."""
+    field = layer.get_field("type")
+    raw = getattr(field, "raw_value", None) if field is not None else None
+    try:
+        return bytes.fromhex(raw).decode("latin-1") if raw else ""
+    except ValueError:
+        return str(field)
 
 
 class TsharkEngine:
@@ -139,15 +161,15 @@ class TsharkEngine:
                         ports=(self.port, self.port + C.OUTPUT_PORT_OFFSET), crc_variant=variant,
                         crc_order=order, crc_auto=self.crc == "auto" or self.crc_order == "auto",
                         problem=reader.problem, first_ts=reader.first_ts, last_ts=reader.last_ts)
-        frames, ports, ts = 0, frozenset(got.ports), 0.0
+        frames, ports, ts, pcap = 0, frozenset(got.ports), 0.0, reader.format == "pcap"
         for pkt in self._packets(path, variant, order):
             frames += 1
-            # A packet without a time (a pcapng simple packet block: no frame.time_epoch; pyshark
-            # gives 0) takes the last packet's, as the reader gives it; records that are no
-            # packets (no encapsulation) set none.
-            if (pkt.frame_info.get_field("time_epoch") is not None
-                    and pkt.frame_info.get_field("encap_type") is not None):
-                ts = _epoch(pkt.sniff_timestamp)
+            # A packet without a time (a pcapng simple packet block: no frame.time_epoch) takes the
+            # last packet's, as the reader gives it; records that are no packets (no
+            # encapsulation) set none.
+            when = pkt.frame_info.get_field("time_epoch")
+            if when is not None and pkt.frame_info.get_field("encap_type") is not None:
+                ts = _epoch(when, pcap)
             layers = {layer.layer_name for layer in pkt.layers}
             # get_field: a damaged IP header may lack either field (self-fuzz found the AttributeError).
             fragment = "ip" in layers and (pkt.ip.get_field("flags_mf") in ("1", "True")
@@ -195,7 +217,7 @@ class TsharkEngine:
         if reasons == [C.Problem.TRUNCATED.value] and int(pkt.frame_info.cap_len) < int(pkt.frame_info.len):
             got.snap_truncated += 1
         if reasons:
-            got.add_illegal(frame, ts, address(src, sport), f.get("vm110.type", ""), reasons)
+            got.add_illegal(frame, ts, address(src, sport), _raw_type(pkt.vm110), reasons)
             return
         ptype = f["vm110.type"]
         if ptype == C.PacketType.VRPI.value:
