@@ -193,6 +193,7 @@ _DAMAGE = {
     "UDP length 4 short": (lambda n: {"ulen": 4 + n}, "illegal"),
     "IP total length 4 short": (lambda n: {"tot": 24 + n}, "illegal"),
     "IP total length 3 bytes into the payload": (lambda n: {"tot": 31}, "illegal"),
+    "IP and UDP lengths 32 past a whole frame": (lambda n: {"tot": 60 + n, "ulen": 40 + n}, "legal"),
     "UDP length 4": (lambda n: {"ulen": 4}, "other UDP"),
     "UDP length 0": (lambda n: {"ulen": 0}, "other UDP"),
     "IP total length 24 (half a UDP header)": (lambda n: {"tot": 24}, "other UDP"),
@@ -237,7 +238,7 @@ def test_damaged_ip_and_udp_headers_are_read_as_wireshark_reads_them(runner, tmp
     cap = fast["capture"]
     assert (cap["packets"], cap["udp_packets"], cap["eglink_packets"], fast["illegal"]["total"]) == (
         len(kinds), len(kinds) - count["no UDP"], count["legal"] + count["illegal"], count["illegal"])
-    assert cap["snaplen_truncated"] == 0
+    assert cap["snaplen_truncated"] == 0                 # (every frame is whole: its headers lie)
     assert sorted(fast["senders"][0]["serial"]["lost_serials"]) == sorted(k for k, w in kinds.items() if w != "legal")
 
 

@@ -534,7 +534,10 @@ class CaptureReader:
                     return src, sport, dport, None
                 stop = ip_end
         if stop > end:
-            self.snap_truncated.add(frame)   # snaplen (or a broken frame) cut the datagram short
+            # The capture cut the frame (its snaplen): the datagram is truncated, nothing else can
+            # be judged. A whole frame whose headers claim more is damage: its bytes are judged.
+            if incl < orig:
+                self.snap_truncated.add(frame)
             stop = end
         return src, sport, dport, data[body:stop]
 
