@@ -365,6 +365,32 @@ def test_a_file_header_cut_short_is_no_capture_for_every_reader(tmp_path, name, 
             2, b"", f"vm110 {command[0]}: {path}: {message}\n"), command
 
 
+def test_ctrl_c_stops_analyze_and_its_reading_process_quietly(tmp_path):
+    """Ctrl-C goes to the whole process group: the reading child of a large capture printed a
+    traceback of its own ("Process ForkProcess-1: ... KeyboardInterrupt") beside exit 130 (a
+    trial). The parent now handles it and ends the child."""
+    import signal
+    from vm110.analysis.engine import PIPELINE_MIN_BYTES
+    from vm110.synth import synthesize
+    path = tmp_path / "day.pcap"
+    synthesize("day", str(path), duration_s=3000)
+    assert path.stat().st_size >= PIPELINE_MIN_BYTES                     # read by a child process
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # (a background run ignores it)
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "vm110", "analyze", str(path), "--quiet"],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+    deadline = time.monotonic() + 60
+    while proc.poll() is None and time.monotonic() < deadline and not children.read_text().split():
+        time.sleep(0.005)
+    assert proc.poll() is None, "the analysis ended before its reading process was seen"
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert (proc.returncode, err) == (130, b"")
+
+
 def test_decode_and_analyze_read_a_pipe():
     data = (CAPTURES / "normal.pcap").read_bytes()
     done = vm110("decode", "-", stdin=data)

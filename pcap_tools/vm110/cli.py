@@ -63,7 +63,10 @@ def build_parser() -> Parser:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    args = build_parser().parse_command(argv)
+    try:
+        args = build_parser().parse_command(argv)
+    except KeyboardInterrupt:       # while the commands' modules load (scapy's take a while)
+        return EXIT_INTERRUPTED
     # A closed pipe ends the output quietly, and the final flush is made here, not at exit. It
     # keeps the command's code; one that escapes the command keeps 0: commands with a verdict
     # (analyze) catch it around their output and go on to the verdict.

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import struct
 from array import array
 import zlib
@@ -193,10 +194,17 @@ class FastEngine:
         ctx = multiprocessing.get_context("fork")
         recv, send = ctx.Pipe(duplex=False)
         child = ctx.Process(target=self._produce, args=(path, variant, order, send), daemon=True)
-        child.start()
+        # A Ctrl-C goes to the whole process group; it is this process's to handle (it ends the
+        # child): the child starts with SIGINT blocked, and one that comes meanwhile waits here.
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            child.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         send.close()
         analysis = Analysis(opt)
         sources: dict[bytes, int] = {}
+        done = False
         try:
             while True:
                 try:
@@ -206,16 +214,19 @@ class FastEngine:
                 if kind == "error":
                     raise body
                 if kind == "done":
+                    done = True
                     body.analysis, body.sources = analysis, sources
                     return body
                 sources.update(more)
                 analysis.feed(np.frombuffer(bytearray(body), dtype=RECORD_DTYPE), sources)
         finally:
             recv.close()
+            if not done:            # an error or an interrupt here: the reader is not waited for
+                child.terminate()
             child.join()
 
     def _produce(self, path: str, variant: str, order: str, conn) -> None:
-        """The child of `_pipelined`: read, send the batches, then the file's facts."""
+        """The child of `_pipelined` (SIGINT blocked): read, send the batches, then the file's facts."""
         try:
             got = self._read(path, variant, order, _Forward(conn))
             got.analysis, got.sources = None, {}
