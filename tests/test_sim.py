@@ -295,12 +295,28 @@ def test_cli_restart_stop_and_mirror_options():
     ({"commands": [{"at": 1, "data": 5}]}, "commands[0].data must be a string"),
     ({"command_every": 1e-9}, "command_every is 1e-09: must be 0 (none) or at least 1e-06 s"),   # was none
     ({"steps": [{"at": 0}] * 100_001}, "steps has 100001 entries (at most 100000)"),
+    # Keys of a state, given without it, were checked and then did nothing (a trial):
+    ({"steps": [{"at": 5, "battery": 20}]}, ('steps[0].battery goes with "state": "armed" (to change only the field: '
+                                             '"set": {"ru_battery": ...})')),
+    ({"steps": [{"at": 0, "state": "disarmed", "ru": 5}]}, 'steps[0].ru goes with "state": "armed"'),
+    ({"steps": [{"at": 7, "unarmed_rus": 3}]}, 'steps[0].unarmed_rus goes with "state": "armed" or "state": "disarmed"'),
 ])
 def test_a_script_is_checked_before_anything_is_sent(tmp_path, script, message):
     path = tmp_path / "remote.json"
     path.write_text(json.dumps(script))
     with pytest.raises(CliError, match=re.escape(message)):
         Remote.load(str(path))
+
+
+def test_arming_another_ru_starts_its_own_battery_and_a_set_level_stays():
+    """Re-arming without `battery` kept draining the previous RU's battery (80 % on RU 4000, a
+    trial); a level `set` is the field's value, not a level the old drain overrides."""
+    remote = Remote.from_script({"steps": [{"at": 0, "state": "armed", "battery": 80},
+                                           {"at": 600, "state": "armed", "ru": 4000, "unarmed_rus": 2},
+                                           {"at": 1200, "set": {"ru_battery": 50}}]})
+    at = {t: remote.fields(t * 1_000_000) for t in (0, 599, 601, 1199, 1201, 1800)}
+    assert [at[t]["ru_battery"] for t in at] == [80, 71, 90, 90, 50, 50]      # 1 % a minute from 80
+    assert (at[601]["armed_ru"], at[601]["unarmed_rus"]) == (4000, 2)        # unarmed_rus beside it was dropped
 
 
 def test_a_unicast_address_is_one_simulators_alone():

@@ -101,7 +101,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bu.add_argument("--script", help="remote/operator script (JSON, see vm110.sim.remote)")
     bu.add_argument("--disarmed", action="store_true", help="no RU armed (default: one RU armed)")
     bu.add_argument("--unarmed-rus", type=UNARMED_RUS, default=0, metavar="N",
-                    help=f"unarmed RUs reported when disarmed, {UNARMED_RUS.range_text}")
+                    help="unarmed RUs reported (beside the armed one, or alone with --disarmed), "
+                         f"{UNARMED_RUS.range_text}")
     bu.add_argument("--no-motion", action="store_true", help="joysticks and switches stay at rest")
     bu.add_argument("--command-every", type=EVERY, default=0.0, metavar="S",
                     help=f"an operator command every S s, {EVERY.range_text} (0, the default: none)")

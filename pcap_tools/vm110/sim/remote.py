@@ -9,9 +9,11 @@ A script is JSON (or the same dict in Python):
                   {"at": 30, "data": "STOP PUMP", "id": 0}],
      "command_every": 2.0, "command_until": 50}
 
-`state` is `armed` or `disarmed` (the VRPI fields that go with it), `set` overrides VRPI fields
-by their canonical names, `motion` moves joysticks, switches and the encoder in deterministic
-patterns, `battery` drains 1 % a minute from the given level. Commands are sent at their time
+`state` is `armed` or `disarmed` (the VRPI fields that go with it; `ru`, `battery`, `rssi` and
+`unarmed_rus` are the armed state's, `unarmed_rus` the disarmed one's too, and refused without it),
+`set` overrides VRPI fields by their canonical names (a value that stays), `motion` moves joysticks,
+switches and the encoder in deterministic patterns, `battery` drains 1 % a minute from the given
+level (an armed step without it: no drain). Commands are sent at their time
 even while others are still in flight; `id` gives one its own command ID (a device reusing an
 ID after a pause) instead of the next. Times are seconds from start.
 """
@@ -62,6 +64,7 @@ _KEYS = {"script": {"steps", "commands", "command_every", "command_until"},
          "step": {"at", "state", "ru", "battery", "rssi", "unarmed_rus", "motion", "set"},
          "command": {"at", "data", "id"}}
 _STEP_FIELD = {"ru": "armed_ru", "battery": "ru_battery", "rssi": "ru_rssi", "unarmed_rus": "unarmed_rus"}
+_STATE_KEYS = {"armed": ("ru", "battery", "rssi", "unarmed_rus"), "disarmed": ("unarmed_rus",)}
 
 
 def _number(where: str, value: Any, low: float, high: float, integer: bool = False) -> None:
@@ -107,6 +110,12 @@ def check_script(script: Any) -> None:
         for key, name in _STEP_FIELD.items():
             if key in step:
                 _number(f"steps[{i}].{key}", step[key], *_LIMITS[name], integer=True)
+                # They describe the state they come with: without it they would do nothing.
+                allowed = _STATE_KEYS.get(str(step.get("state")), ())
+                if key not in allowed:
+                    raise CliError(f"remote script: steps[{i}].{key} goes with " +
+                                   " or ".join(f'"state": "{s}"' for s, keys in _STATE_KEYS.items() if key in keys) +
+                                   f' (to change only the field: "set": {{"{name}": ...}})')
         values = step.get("set", {})
         if not isinstance(values, dict):
             raise CliError(f"remote script: steps[{i}].set must be a JSON object")
@@ -145,7 +154,8 @@ class _Step:
     at: int
     fields: dict[str, int]
     motion: Optional[bool] = None
-    battery: Optional[int] = None
+    battery: Optional[int] = None    # the level the battery drains from, from this step on
+    battery_set: bool = False        # this step sets the battery (arming: the RU's own; None: no drain)
 
 
 @dataclass
@@ -168,14 +178,18 @@ class Remote:
             if state == "armed":
                 values.update(armed_fields(int(raw.get("ru", DEFAULT_RU)), int(raw.get("battery", 90)),
                                            int(raw.get("rssi", 80))))
+                values["unarmed_rus"] = int(raw.get("unarmed_rus", 0))
             elif state == "disarmed":
                 values.update(disarmed_fields(int(raw.get("unarmed_rus", 0))))
             elif state is not None:
                 raise CliError(f"remote script: unknown state {state!r} (armed or disarmed)")
             values.update({k: int(v) for k, v in raw.get("set", {}).items()})
-            battery = raw.get("battery") if state == "armed" or "battery" in raw.get("set", {}) else None
+            # Arming is another RU's battery: it drains from its `battery` or not at all (it kept
+            # draining the previous RU's); a level `set` stays as set.
+            given = raw.get("battery")
             steps.append(_Step(seconds(float(raw.get("at", 0))), values, raw.get("motion"),
-                               None if battery is None else int(battery)))
+                               None if given is None else int(given),
+                               state == "armed" or "ru_battery" in raw.get("set", {})))
         commands = [(seconds(float(c["at"])), str(c.get("data", "CMD")).encode("ascii", "replace"),
                      None if c.get("id") is None else int(c["id"]))
                     for c in script.get("commands", [])]
@@ -199,8 +213,8 @@ class Remote:
     @classmethod
     def simple(cls, armed: bool = True, unarmed_rus: int = 0, motion: bool = True,
                command_every: float = 0.0, ru: int = DEFAULT_RU, command_until: float = 0.0) -> "Remote":
-        state = {"at": 0, "state": "armed" if armed else "disarmed", "ru": ru,
-                 "unarmed_rus": unarmed_rus, "motion": motion}
+        state = {"at": 0, "state": "armed" if armed else "disarmed", "unarmed_rus": unarmed_rus, "motion": motion,
+                 **({"ru": ru} if armed else {})}
         return cls.from_script({"steps": [state], "command_every": command_every, "command_until": command_until})
 
     def __post_init__(self) -> None:
@@ -212,7 +226,7 @@ class Remote:
         for step in self.steps:
             current.update(step.fields)
             motion = motion if step.motion is None else step.motion
-            if step.battery is not None:
+            if step.battery_set:
                 battery, battery_at = step.battery, step.at
             self._ats.append(step.at)
             self._states.append((_values(current), motion, battery, battery_at))
