@@ -9,6 +9,7 @@ run in a subprocess with a timeout.
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import stat
@@ -156,6 +157,17 @@ def test_an_unwritable_folder_fails_before_the_run(capsys, monkeypatch, tmp_path
     monkeypatch.setattr(synth, "write_capture", lambda *args: pytest.fail("the scenario was run"))
     assert cli.main(["synth", "day", "--out", str(out)]) == EXIT_USAGE
     assert str(out) in one_line(capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--duration", "5e-7"], "argument --duration: '5e-7' is out of range: must be 1e-06 to"),   # wrote no packet
+    (["--out", "-"], "--out - : synth writes a capture file and OUT.truth.json beside it"),     # wrote a file '-'
+])
+def test_options_that_made_nothing_or_a_file_named_dash_are_refused(capsys, monkeypatch, tmp_path, args, message):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) if args[0] == "--duration" else contextlib.nullcontext():
+        assert cli.main(["synth", "normal", "--out", "x.pcap", *args]) == EXIT_USAGE
+    assert message in one_line(capsys.readouterr().err) and list(tmp_path.iterdir()) == []
 
 
 def test_the_library_refuses_durations_that_are_not_finite(tmp_path):

@@ -17,11 +17,23 @@ def _integer(text: str) -> int:
     return int(text)
 
 
+def _object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out = dict(pairs)
+    if len(out) < len(pairs):      # which one counts? (the last did, silently: a trial's "steps" twice)
+        seen: set[str] = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise ValueError(f"the key {key[:40]!r} is given twice in one object")
+            seen.add(key)
+    return out
+
+
 def loads(raw: Union[str, bytes], parse_constant: Optional[Callable[[str], Any]] = None) -> Any:
     """`json.loads`; nesting too deep for Python's recursive parser is a ValueError, as any other
-    malformed JSON is, not a RecursionError; so is an integer of more digits than Python reads."""
+    malformed JSON is, not a RecursionError; so is an integer of more digits than Python reads,
+    and a key given twice in one object."""
     try:
-        return json.loads(raw, parse_constant=parse_constant, parse_int=_integer)
+        return json.loads(raw, parse_constant=parse_constant, parse_int=_integer, object_pairs_hook=_object)
     except RecursionError:
         raise ValueError("nested too deeply") from None
 

@@ -21,7 +21,7 @@ from .options import SEED
 GIB = 1 << 30
 MAX_OUTPUT_BYTES = 4 * GIB
 # Finite and positive; how long is too long depends on the scenario's rate (MAX_OUTPUT_BYTES).
-DURATION = number(0, 1e9, "s", allow_zero=False)
+DURATION = number(1e-6, 1e9, "s")      # from the clock's step (less was no packet at all)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -55,6 +55,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.scenario or not args.out:
         raise CliError("give a SCENARIO and --out FILE (or --list)")
+    if args.out == "-":      # (elsewhere standard output: here a capture and its truth beside it)
+        raise CliError("--out - : synth writes a capture file and OUT.truth.json beside it; give a file name")
     if args.scenario not in SCENARIOS:
         raise CliError(f"unknown scenario {args.scenario!r}; choose from {', '.join(SCENARIOS)}")
     fmt: Format = args.format or format_of(args.out)

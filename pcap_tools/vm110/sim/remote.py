@@ -128,8 +128,13 @@ def check_script(script: Any) -> None:
         _number(f"commands[{i}].at", cmd.get("at"), 0, _MAX_S)
         if "id" in cmd and cmd["id"] is not None:
             _number(f"commands[{i}].id", cmd["id"], 0, 0xFFFF, integer=True)
-        if not isinstance(cmd.get("data", ""), str):
+        data = cmd.get("data", "")
+        if not isinstance(data, str):
             raise CliError(f"remote script: commands[{i}].data must be a string")
+        # (it was cut to the field and its other characters sent as "?": TS-0006 2.1, ASCII is 0x20..0x7E)
+        if len(data) > C.COMMAND_DATA_LEN or not all(" " <= ch <= "~" for ch in data):
+            raise CliError(f"remote script: commands[{i}].data {data[:40]!r}: at most {C.COMMAND_DATA_LEN} "
+                           "characters of printable ASCII (0x20 to 0x7E)")
 
 
 def armed_fields(ru: int = DEFAULT_RU, battery: int = 90, rssi: int = 80) -> dict[str, int]:
