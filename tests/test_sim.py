@@ -311,6 +311,15 @@ def test_a_script_is_checked_before_anything_is_sent(tmp_path, script, message):
         Remote.load(str(path))
 
 
+def test_a_restart_onto_the_port_it_receives_on_is_refused_before_the_run(capsys):
+    """It failed at the restart ("Address already in use"), after running until then (a trial)."""
+    code = cli.main(["simulate", "bu", "--listen", "127.0.0.10:15827", "--peer", "127.0.0.20:15825",
+                     "--source", "127.0.0.10:15825", "--restart", "0.2:15827", "--duration", "1"])
+    assert code == 2 and capsys.readouterr().err == (
+        "vm110 simulate: --restart 0.2:15827: the node receives on port 15827 (127.0.0.10); a restart on a new "
+        "port must send from another\n")
+
+
 def test_a_key_given_twice_is_refused(tmp_path):
     """The last one counted, silently (a trial: "steps" twice)."""
     path = tmp_path / "remote.json"

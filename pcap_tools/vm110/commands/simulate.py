@@ -15,7 +15,7 @@ import json
 import signal
 import sys
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 from .. import constants as C
 from ..errors import CliError
@@ -152,6 +152,17 @@ def udp_config(args: argparse.Namespace) -> UdpConfig:
     return cfg
 
 
+def _check_restart_ports(cfg: UdpConfig, restarts: Sequence[Restart]) -> None:
+    """A restart on a new port may not take the port the node receives on: that failed at the
+    restart, "Address already in use", hours into a run (a trial)."""
+    (rx_host, rx_port), tx_host = cfg.listen, cfg.source[0]
+    shared = rx_host == tx_host or "0.0.0.0" in (rx_host, tx_host) or ipaddress.IPv4Address(rx_host).is_multicast
+    for r in restarts:
+        if r.port and r.port == rx_port and shared:
+            raise CliError(f"--restart {r.at_s:g}:{r.port}: the node receives on port {rx_port} ({rx_host}); "
+                           "a restart on a new port must send from another")
+
+
 def _ipv4(option: str, text: str) -> ipaddress.IPv4Address:
     try:
         return ipaddress.IPv4Address(text)
@@ -225,6 +236,7 @@ def run(args: argparse.Namespace) -> int:
 
     sockets = udp_config(args)      # its errors before anything starts
     node = build_node(args, printer)
+    _check_restart_ports(sockets, life(args)["restarts"])
     if args.json and not args.quiet:
         node.listeners.append(lambda entry: print(json.dumps({"time_utc": utc_iso(clock.wall(seconds(entry["t"]))),
                                                               **entry}), flush=True))
