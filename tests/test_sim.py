@@ -80,6 +80,9 @@ def test_commands_are_acknowledged_and_executed_once_despite_loss():
     # The controller's own commands: resent until the VRAI, each delivered to the RU once.
     vrco = ids(ctl, "vrco_sent")
     assert len(vrco) >= 4 and sorted(ids(ctl, "vrco_acked")) == vrco
+    # The summary says so, as the base unit's does (it had no command outcomes).
+    assert (ctl.summary()["commands_acked"], ctl.summary()["commands_gave_up"]) == (len(vrco), 0)
+    assert (bu.summary()["commands_acked"], bu.summary()["commands_failed"]) == (len(sent), 0)
     delivered = ids(bu, "vrco_delivered")
     assert sorted(delivered) == vrco
     assert bu.sent["VRAI"] == bu.received["VRCO"] >= len(vrco)

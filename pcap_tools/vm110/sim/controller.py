@@ -180,4 +180,6 @@ class Controller(CommandOutbox, Node):
         """Counters for logs and tests."""
         return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
                 "illegal": dict(self.illegal), "executed": len(self.events("executed")),
-                "refused": len(self.events("refused")), "vrpi_timeouts": len(self.events("vrpi_timeout"))}
+                "refused": len(self.events("refused")), "vrpi_timeouts": len(self.events("vrpi_timeout")),
+                # its own commands' outcomes, as the base unit's summary has them (they were missing)
+                "commands_acked": len(self.events("vrco_acked")), "commands_gave_up": len(self.events("vrco_gave_up"))}
