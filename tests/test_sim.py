@@ -303,9 +303,9 @@ def test_cli_restart_stop_and_mirror_options():
                                              '"set": {"ru_battery": ...})')),
     ({"steps": [{"at": 0, "state": "disarmed", "ru": 5}]}, 'steps[0].ru goes with "state": "armed"'),
     ({"steps": [{"at": 7, "unarmed_rus": 3}]}, 'steps[0].unarmed_rus goes with "state": "armed" or "state": "disarmed"'),
-    # Command data beyond TS-0006's ASCII or the 16 bytes of the field (sent as "?", cut silently):
-    ({"commands": [{"at": 1, "data": "\u00e9\u0000\n ABC"}]}, "commands[0].data 'é\\x00\\n ABC': at most 16 characters"),
-    ({"commands": [{"at": 1, "data": "A" * 17}]}, "at most 16 characters of printable ASCII (0x20 to 0x7E)"),
+    # Command data beyond the 16 bytes of the field, or characters of no byte (cut, sent as "?", silently):
+    ({"commands": [{"at": 1, "data": "\u20ac 5"}]}, "commands[0].data '€ 5': at most 16 characters, each one byte"),
+    ({"commands": [{"at": 1, "data": "A" * 17}]}, "at most 16 characters, each one byte (U+0000 to U+00FF)"),
 ])
 def test_a_script_is_checked_before_anything_is_sent(tmp_path, script, message):
     path = tmp_path / "remote.json"

@@ -131,10 +131,11 @@ def check_script(script: Any) -> None:
         data = cmd.get("data", "")
         if not isinstance(data, str):
             raise CliError(f"remote script: commands[{i}].data must be a string")
-        # (it was cut to the field and its other characters sent as "?": TS-0006 2.1, ASCII is 0x20..0x7E)
-        if len(data) > C.COMMAND_DATA_LEN or not all(" " <= ch <= "~" for ch in data):
+        # Machine-specific bytes (the crane's are binary), one per character: it was cut to the
+        # field, and characters beyond ASCII sent as "?", without a word.
+        if len(data) > C.COMMAND_DATA_LEN or any(ord(ch) > 0xFF for ch in data):
             raise CliError(f"remote script: commands[{i}].data {data[:40]!r}: at most {C.COMMAND_DATA_LEN} "
-                           "characters of printable ASCII (0x20 to 0x7E)")
+                           "characters, each one byte (U+0000 to U+00FF)")
 
 
 def armed_fields(ru: int = DEFAULT_RU, battery: int = 90, rssi: int = 80) -> dict[str, int]:
@@ -195,7 +196,7 @@ class Remote:
             steps.append(_Step(seconds(float(raw.get("at", 0))), values, raw.get("motion"),
                                None if given is None else int(given),
                                state == "armed" or "ru_battery" in raw.get("set", {})))
-        commands = [(seconds(float(c["at"])), str(c.get("data", "CMD")).encode("ascii", "replace"),
+        commands = [(seconds(float(c["at"])), str(c.get("data", "CMD")).encode("latin-1"),
                      None if c.get("id") is None else int(c["id"]))
                     for c in script.get("commands", [])]
         return cls(sorted(steps, key=lambda s: s.at), sorted(commands, key=lambda c: c[0]),
