@@ -10,8 +10,8 @@ facts that tshark does not report (format, link types, a file cut short) come fr
 from __future__ import annotations
 
 import ipaddress
-import re
 import os
+import re
 import shutil
 import struct
 import tempfile

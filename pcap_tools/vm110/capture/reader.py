@@ -38,8 +38,6 @@ MAX_PACKET_BLOCK = MAX_RECORD + (1 << 12)   # a pcapng packet block: the record,
 MAX_BLOCK = 1 << 20            # any other pcapng block
 CHUNK = 1 << 22
 
-# Ethernet + IPv4 (no options) + UDP in one call: ethertype, version/IHL, fragment field,
-# protocol, source, (destination), ports, UDP length.
 # The common frame (Ethernet, IPv4 without options, UDP): EtherType, version/IHL, total length,
 # fragment field, protocol, source, ports, UDP length. It is taken at once when the IP total length
 # and the UDP length agree; anything else goes through udp_of, which reads headers as Wireshark does.
