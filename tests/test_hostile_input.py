@@ -15,7 +15,7 @@ import pytest
 
 import report_schema
 from test_analysis_craft import T0, Traffic, vrpi
-from tshark_runner import RUNNERS
+from tshark_runner import RUNNERS, ip_checksum
 from vm110 import constants as C
 from vm110.analysis import analyze, report_json
 
@@ -174,10 +174,7 @@ def _ipv4_frame(payload: bytes, ulen: int | None = None, tot: int | None = None,
     udp = struct.pack("!HHHH", C.INPUT_PORT, C.INPUT_PORT, 8 + len(payload) if ulen is None else ulen, 0) + payload
     ip = bytearray(struct.pack("!BBHHHBBH4s4s", (version << 4) | ihl, 0, 20 + len(udp) if tot is None else tot, 1, 0,
                                64, 17, 0, bytes([10, 0, 0, 10]), bytes([239, 1, 1, 1])))
-    total = sum(struct.unpack("!10H", bytes(ip)))
-    while total >> 16:
-        total = (total & 0xFFFF) + (total >> 16)
-    struct.pack_into("!H", ip, 10, ~total & 0xFFFF)
+    struct.pack_into("!H", ip, 10, ip_checksum(bytes(ip)))
     return b"\x01\x00\x5e\x01\x01\x01" + b"\x02" * 6 + b"\x08\x00" + bytes(ip) + udp + pad
 
 

@@ -256,7 +256,7 @@ class Datagram:
     trailer: bytes = b""          # after the IP packet, inside the Ethernet frame
 
 
-def _ip_checksum(header: bytes) -> int:
+def ip_checksum(header: bytes) -> int:
     total = sum(struct.unpack(f"!{len(header) // 2}H", header))
     while total >> 16:
         total = (total & 0xFFFF) + (total >> 16)
@@ -280,7 +280,7 @@ def frame(d: Datagram) -> bytes:
     udp = struct.pack("!HHHH", sport, dport, 8 + len(d.payload), 0) + d.payload
     ip = struct.pack("!BBHHHBBH4s4s", 0x45, 0, 20 + len(udp), 0, 0, C.MULTICAST_TTL, 17, 0,
                      _addr(src), _addr(GROUP_ADDR))
-    ip = ip[:10] + struct.pack("!H", _ip_checksum(ip)) + ip[12:]
+    ip = ip[:10] + struct.pack("!H", ip_checksum(ip)) + ip[12:]
     eth = bytes.fromhex("01005e7f2a14 02fc00000001 0800")   # destination, source, IPv4
     return (eth + ip + udp + d.trailer).ljust(60, b"\0")
 

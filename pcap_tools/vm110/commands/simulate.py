@@ -236,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
 
     sockets = udp_config(args)      # its errors before anything starts
     node = build_node(args, printer)
-    _check_restart_ports(sockets, life(args)["restarts"])
+    _check_restart_ports(sockets, node.restarts)
     if args.json and not args.quiet:
         node.listeners.append(lambda entry: print(json.dumps({"time_utc": utc_iso(clock.wall(seconds(entry["t"]))),
                                                               **entry}), flush=True))

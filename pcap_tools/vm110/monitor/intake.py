@@ -119,10 +119,12 @@ class Intake:
 
     def _judge(self, reader, ts: float, src: bytes, sport: int, dport: int, payload: Optional[bytes],
                frame: int) -> None:
-        got, ports, n = self.got, self.ports, len(payload or b"")
-        # A datagram the snaplen cut short is judged by the slow path (truncated), as the engine's do.
-        if (payload is not None and (sport in ports or dport in ports) and n >= C.OVERHEAD
+        got, ports = self.got, self.ports
+        # A datagram the snaplen cut short is judged by the slow path (truncated), as the engine's
+        # do; one whose payload nothing dissects (None) is other UDP there.
+        if (payload is not None and (sport in ports or dport in ports) and len(payload) >= C.OVERHEAD
                 and frame not in reader.snap_truncated):
+            n = len(payload)
             pid, rev, size = _HDR.unpack_from(payload)
             low = _LOW.get(pid)
             if low is not None and not rev and n == size + C.OVERHEAD and low <= size <= C.MAX_PAYLOAD:

@@ -138,8 +138,8 @@ def check_script(script: Any) -> None:
                            "characters, each one byte (U+0000 to U+00FF)")
 
 
-def armed_fields(ru: int = DEFAULT_RU, battery: int = 90, rssi: int = 80) -> dict[str, int]:
-    return {"bu_state": C.BuState.ARMED, "vlaps": 1, "unarmed_rus": 0,
+def armed_fields(ru: int = DEFAULT_RU, battery: int = 90, rssi: int = 80, unarmed_rus: int = 0) -> dict[str, int]:
+    return {"bu_state": C.BuState.ARMED, "vlaps": 1, "unarmed_rus": unarmed_rus,
             "eg_link": C.LinkStatus.OPERATIONAL, "ec_link": C.LinkStatus.OPERATIONAL,
             "c_link": C.LinkStatus.OPERATIONAL, "armed_ru": ru, "ru_state": C.RuState.ENABLED,
             "ru_battery": battery, "ru_rssi": rssi, "ru_cable": C.RuCable.WIRELESS,
@@ -183,8 +183,7 @@ class Remote:
             state = raw.get("state")
             if state == "armed":
                 values.update(armed_fields(int(raw.get("ru", DEFAULT_RU)), int(raw.get("battery", 90)),
-                                           int(raw.get("rssi", 80))))
-                values["unarmed_rus"] = int(raw.get("unarmed_rus", 0))
+                                           int(raw.get("rssi", 80)), int(raw.get("unarmed_rus", 0))))
             elif state == "disarmed":
                 values.update(disarmed_fields(int(raw.get("unarmed_rus", 0))))
             elif state is not None:
