@@ -205,23 +205,64 @@ _DAMAGE = {
 }
 
 
+def _ipv6_frame(payload: bytes, ulen: int | None = None, plen: int | None = None, version: int = 6,
+                ext: bytes = b"", pad: bytes = b"") -> bytes:
+    """Ethernet, IPv6 (with extension headers `ext`, the first a hop-by-hop one) and UDP
+    (5825 -> 5825) around `payload`, with the header fields given (damage)."""
+    udp = struct.pack("!HHHH", C.INPUT_PORT, C.INPUT_PORT, 8 + len(payload) if ulen is None else ulen, 0) + payload
+    ip = struct.pack("!IHBB16s16s", version << 28, len(ext) + len(udp) if plen is None else plen,
+                     0 if ext else 17, 64, bytes.fromhex("fe80" + "0" * 26 + "10"), bytes.fromhex("ff02" + "0" * 26 + "01"))
+    return b"\x33\x33\x00\x00\x00\x01" + b"\x02" * 6 + b"\x86\xdd" + ip + ext + udp + pad
+
+
+_HOP_BY_HOP = bytes([17, 0, 1, 4, 0, 0, 0, 0])          # to UDP; a PadN option of 4 bytes
+
+# Damaged IPv6/UDP headers, and what Wireshark (4.0, 4.4, 4.6 alike) makes of the datagram.
+_DAMAGE_IPV6 = {
+    "payload length 10 past the frame": (lambda n: {"plen": 18 + n}, "legal"),
+    "payload length over 8 bytes of padding": (lambda n: {"plen": 8 + n, "pad": bytes(8)}, "legal"),
+    "UDP length over 4 bytes of padding": (lambda n: {"ulen": 12 + n, "pad": bytes(8)}, "legal"),
+    "UDP length 10 past the IP payload": (lambda n: {"ulen": 18 + n}, "legal"),
+    "UDP length 0 (the IP payload's)": (lambda n: {"ulen": 0, "pad": bytes(8)}, "legal"),
+    "payload and UDP lengths 32 past a whole frame": (lambda n: {"plen": 40 + n, "ulen": 40 + n}, "legal"),
+    "a hop-by-hop header": (lambda n: {"ext": _HOP_BY_HOP}, "legal"),
+    "payload length 4 short": (lambda n: {"plen": 4 + n}, "illegal"),
+    "payload length 4 short, a hop-by-hop header": (lambda n: {"ext": _HOP_BY_HOP, "plen": 12 + n}, "illegal"),
+    "payload length 3 bytes into the payload": (lambda n: {"plen": 11}, "illegal"),
+    "UDP length 4 short": (lambda n: {"ulen": 4 + n}, "illegal"),
+    "payload length 6 (part of a UDP header)": (lambda n: {"plen": 6}, "other UDP"),
+    "payload length 8 (the UDP header alone)": (lambda n: {"plen": 8}, "other UDP"),
+    "UDP length 4": (lambda n: {"ulen": 4}, "other UDP"),
+    "payload length 0 (no jumbo option)": (lambda n: {"plen": 0}, "no UDP"),
+    "payload length 0, a hop-by-hop header": (lambda n: {"plen": 0, "ext": _HOP_BY_HOP}, "no UDP"),
+    "payload length 0, UDP length 0": (lambda n: {"plen": 0, "ulen": 0}, "no UDP"),
+    "payload length 2": (lambda n: {"plen": 2}, "no UDP"),
+    "payload length of the hop-by-hop header alone": (lambda n: {"plen": 8, "ext": _HOP_BY_HOP}, "no UDP"),
+    "IP version 4 in an IPv6 frame": (lambda n: {"version": 4}, "no UDP"),
+}
+
+
 @pytest.mark.tshark
+@pytest.mark.parametrize("ip", [4, 6])
 @pytest.mark.parametrize("runner", RUNNERS, ids=lambda r: r.version)
-def test_damaged_ip_and_udp_headers_are_read_as_wireshark_reads_them(runner, tmp_path):
+def test_damaged_ip_and_udp_headers_are_read_as_wireshark_reads_them(runner, ip, tmp_path):
     """The fast engine read a datagram by its UDP length alone: a UDP length past the IP payload was
     "cut short by the snaplen", padding under a UDP length an illegal size, a UDP length below 8 or
-    a damaged IP header a legal packet; the tshark engine saw what Wireshark sees (a trial, and the
-    self-fuzzer's soak). Both now read IP and UDP headers as Wireshark does, and agree."""
+    a damaged IP header a legal packet; over IPv6 it ignored the payload length and the version
+    (a payload length of 0 was a legal packet, padding under it an illegal size); the tshark engine
+    saw what Wireshark sees (trials, and the self-fuzzer's soak). Both now read IP and UDP headers
+    as Wireshark does, and agree."""
+    damage, frame_of = (_DAMAGE, _ipv4_frame) if ip == 4 else (_DAMAGE_IPV6, _ipv6_frame)
     path = tmp_path / "damaged.pcap"
     out = bytearray(struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 65535, 1))
     kinds = {}
-    for k in range(2 * len(_DAMAGE) + 1):
+    for k in range(2 * len(damage) + 1):
         packet = vrpi(k)
         fields, kind = {}, "legal"
         if k % 2:                                        # every other packet damaged, one way each
-            fields, kind = (lambda f, w: (f(len(packet)), w))(*list(_DAMAGE.values())[k // 2])
+            fields, kind = (lambda f, w: (f(len(packet)), w))(*list(damage.values())[k // 2])
         kinds[k] = kind
-        frame = _ipv4_frame(packet, **fields)
+        frame = frame_of(packet, **fields)
         sec, usec = divmod(int(T0 * 1_000_000) + k * 125_000, 1_000_000)
         out += struct.pack("<IIII", sec, usec, len(frame), len(frame)) + frame
     path.write_bytes(bytes(out))

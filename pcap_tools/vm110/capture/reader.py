@@ -466,10 +466,12 @@ class CaptureReader:
                frame: int) -> Optional[tuple[bytes, int, int, Optional[bytes]]]:
         """(src, sport, dport, payload) of the UDP datagram in a frame, or None (counted as no
         UDP). The headers are read as Wireshark reads them, so that the two engines agree on
-        damaged ones: an IPv4 header that is no IPv4 header is no UDP; the IPv4 total length bounds
-        the datagram (0: the frame's, as for TCP segmentation offload); a UDP length past the IP
-        payload gives way to it; a UDP header cut short, or a UDP length below 8, is a datagram
-        whose payload nothing dissects (None)."""
+        damaged ones: an IP header that is no IP header is no UDP; the IPv4 total length, or the
+        IPv6 payload length, bounds the datagram (an IPv4 total length of 0: the frame's, as for
+        TCP segmentation offload; an IPv6 payload length of 0: nothing, Wireshark finds no jumbo
+        option there); a UDP length past the IP payload gives way to it, and so does an IPv6 UDP
+        length of 0; a UDP header cut short, or a UDP length below 8, is a datagram whose payload
+        nothing dissects (None)."""
         end = start + incl
         net = self._network(link, data, start, end)
         if net is None:
@@ -494,13 +496,14 @@ class CaptureReader:
             ip_end = pos + tot if tot else end
             pos += ihl
         else:
-            if pos + L.IPV6_HEADER_LEN > end:
+            if pos + L.IPV6_HEADER_LEN > end or data[pos] >> 4 != 6:
                 self.non_udp += 1
                 return None
             proto = data[pos + 6]
             src = data[pos + 8:pos + 24]
+            ip_end = pos + L.IPV6_HEADER_LEN + struct.unpack_from("!H", data, pos + 4)[0]
             pos += L.IPV6_HEADER_LEN
-            while pos + 8 <= end:
+            while pos + 8 <= min(end, ip_end):
                 if proto in L.IPV6_EXTENSIONS:
                     proto, pos = data[pos], pos + (data[pos + 1] + 1) * 8
                 elif proto == L.IPV6_FRAGMENT and not struct.unpack_from("!H", data, pos + 2)[0] & 0xFFF9:
@@ -511,8 +514,7 @@ class CaptureReader:
                 self.fragments += 1
                 self.non_udp += 1
                 return None
-            ip_end = None
-        have = end if ip_end is None else min(end, ip_end)
+        have = min(end, ip_end)
         if proto != L.IPPROTO_UDP or pos + 4 > have:     # (Wireshark shows UDP from its ports on)
             self.non_udp += 1
             return None
@@ -521,16 +523,16 @@ class CaptureReader:
         if body > have:
             return src, sport, dport, None
         ulen = struct.unpack_from("!H", data, pos + 4)[0]
-        if ip_end is None:
-            stop = pos + ulen if ulen >= L.UDP_HEADER_LEN else end   # 0: IPv6 jumbogram
+        if ulen == 0 and version == 6:
+            stop = ip_end
         elif ulen < L.UDP_HEADER_LEN:
             return src, sport, dport, None
         else:
             stop = pos + ulen
-            if stop > ip_end:
-                if ip_end == body:          # an IP payload of the UDP header alone
-                    return src, sport, dport, None
-                stop = ip_end
+        if stop > ip_end:
+            if ip_end == body:              # an IP payload of the UDP header alone
+                return src, sport, dport, None
+            stop = ip_end
         if stop > end:
             # The capture cut the frame (its snaplen): the datagram is truncated, nothing else can
             # be judged. A whole frame whose headers claim more is damage: its bytes are judged.
