@@ -14,6 +14,7 @@ import struct
 import subprocess
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Callable
 
@@ -25,7 +26,7 @@ from loopback import free_ports
 from planted.bugs import BUGS
 from vm110 import cli, constants as C
 from vm110.decode import decode
-from vm110.fuzz import cases
+from vm110.fuzz import cases, findings, mutate
 
 PLANTED = Path(__file__).resolve().parent / "planted" / "run.py"
 SEED = 1
@@ -98,6 +99,27 @@ def test_planted_bug_is_found_named_and_replayable(tmp_path, bug):
     fixed = vm110("fuzz", "--replay", str(tmp_path / first["file"]),
                   "--target-cmd", controller_cmd("reference", rx, listen))
     assert fixed.returncode == 0 and "does not trigger" in fixed.stdout, fixed.stdout + fixed.stderr
+
+
+def test_a_malformed_output_replay_says_whether_it_is_the_same_kind(tmp_path):
+    """--replay counted a malformed output of any kind: a finding of one kind 'still triggered' on
+    a controller that now sent another (a different bug), where a crash's replay compared its
+    signature. It now says which, as for a crash."""
+    rx, listen = free_ports(2)
+    packet = mutate.build(C.PacketType.VRCI, 5, mutate.default_fields(C.PacketType.VRCI, 0xFFFF))
+    for kind, verdict in (("VRAO with bad_crc", "still triggers: the same signature"),
+                          ("VRAO unknown", "still triggers: another signature (illegal VRAO from the controller: bad_crc")):
+        finding = findings.Finding(
+            oracle="malformed_output", seed=SEED, case_index=3, family="sweep-vrci", mutation="a VRCI",
+            detail="a bad VRAO", packet_hex=packet.hex(), original_hex=packet.hex(), valid_hex=packet.hex(),
+            differences=0, minimised=True,
+            steps=[{"hex": packet.hex(), "valid_hex": packet.hex(), "delay_ms": 0.0, "expect_ack": True}],
+            stream=dict(mutate.ARMED_VRPI), target=f"127.0.0.1:{rx}", listen=f"127.0.0.1:{listen}",
+            signature=f"malformed_output {kind} (VRCI)")
+        path = tmp_path / "finding.json"
+        path.write_text(json.dumps(asdict(finding)))
+        again = vm110("fuzz", "--replay", str(path), "--target-cmd", controller_cmd("bad-crc-after-wrap", rx, listen))
+        assert again.returncode == 1 and verdict in again.stdout, again.stdout + again.stderr
 
 
 def _clean_run(tmp_path: Path, seconds: str) -> None:

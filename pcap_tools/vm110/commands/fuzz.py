@@ -7,8 +7,8 @@ missing_ack, illegal_acked, malformed_output, vrco_retransmit. Each confirmed fi
 --out as JSON (with the minimised packet) and a pcap; --out/findings.json summarises the run.
 Sends only to --target (multicast TTL 1), and only on loopback unless --allow-remote; never to a
 broadcast address. Exit code 1 when there are findings, 0 when none, 2 on usage errors.
-`--replay FINDING` sends a finding again and says whether it still triggers (a crash: with the same
-signature or another); the finding is data: its stored command is never run and its stored target
+`--replay FINDING` sends a finding again and says whether it still triggers (a crash or a malformed
+output: with the same signature or another); the finding is data: its stored command is never run and its stored target
 obeys the --target rules. A crash finding keeps the controller's output, signal, sanitizer report,
 core and gdb backtrace; triggers of one signature are one finding (a bucket with a count).
 `--coverage` is coverage-guided fuzzing of a controller built with AFL++ (see fuzz/guided.py).
@@ -34,7 +34,7 @@ from ..fuzz.guided import GuidedConfig
 from ..fuzz.link import parse_endpoint
 from ..fuzz.oracles import CRASH, Limits
 from ..fuzz.report_html import write_coverage_html
-from ..fuzz.runner import RunConfig, Runner, replay_corpus_case, replay_finding
+from ..fuzz.runner import RunConfig, Runner, finding_kind, replay_corpus_case, replay_finding
 from ..fuzz.session import Settings, TargetLost
 from ..numbers import number
 from .options import SEED
@@ -267,9 +267,9 @@ def _replay(args: argparse.Namespace) -> int:
     except TargetLost as exc:
         raise CliError(str(exc)) from None
     verdict = "still triggers" if trig else "does not trigger any more"
-    if trig is not None and trig.oracle == "crash" and finding.signature:
-        same = f"crash {trig.kind}" == finding.signature
-        verdict += (": the same signature" if same else
+    kind = finding_kind(finding)
+    if trig is not None and kind is not None:
+        verdict += (": the same signature" if trig.kind == kind else
                     f": another signature ({_printable(trig.detail)}; the finding's: {_printable(finding.signature)})")
     print(f"{args.replay}: {finding.oracle} ({_printable(finding.mutation)}): {verdict}")
     return EXIT_FINDINGS if trig else EXIT_OK

@@ -77,10 +77,12 @@ def _const(data: bytes, twin: bytes) -> K.Builder:
     return lambda serial: (data, twin)
 
 
-def trial(session: Session, replay: Replay, oracle: str, signature: Optional[str] = None) -> Optional[Trigger]:
+def trial(session: Session, replay: Replay, oracle: str, signature: Optional[str] = None,
+          strict: bool = True) -> Optional[Trigger]:
     """Play `replay` once: the trigger of `oracle` it caused (with `signature`, the trigger's kind,
     for a crash or a malformed output, when given: a crash with another stack, a serial going back
-    where an ack of a command never sent was seen, is another bug), else None."""
+    where an ack of a command never sent was seen, is another bug; not `strict`: one of that kind
+    first, else another), else None."""
     main = session.monitor
     mon = session.monitor = main.fork()
     try:
@@ -89,10 +91,11 @@ def trial(session: Session, replay: Replay, oracle: str, signature: Optional[str
         _observe(session, mon, oracle, time.time())
         if oracle != CRASH and any(t.oracle == CRASH for t in mon.triggers):
             return None      # it crashed: that is the crash oracle's finding, not this one's
-        for t in mon.triggers:
-            if _counts_as(t, oracle) and (signature is None or oracle not in _BY_KIND or t.kind == signature):
-                return t
-        return None
+        fired = [t for t in mon.triggers if _counts_as(t, oracle)]
+        if signature is not None and oracle in _BY_KIND:
+            same = [t for t in fired if t.kind == signature]
+            fired = same if strict or same else fired
+        return fired[0] if fired else None
     finally:
         session.monitor = main
         for t in mon.triggers:
@@ -602,11 +605,21 @@ def _jsonable(stream: Optional[dict[str, Any]]) -> Optional[dict[str, Any]]:
     return None if stream is None else {k: int(v) for k, v in stream.items()}
 
 
+def finding_kind(finding: F.Finding) -> Optional[str]:
+    """The kind of trigger a crash or malformed-output finding was (from its signature), else None."""
+    head = f"{finding.oracle} "
+    if finding.oracle not in _BY_KIND or not finding.signature.startswith(head):
+        return None
+    kind = finding.signature[len(head):]
+    return kind if finding.oracle == CRASH else kind.rpartition(" (")[0] or None
+
+
 def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[str],
                    log: Optional[IO[bytes]] = None) -> Optional[Trigger]:
     """Send the finding again (minimised packet when there is one); the trigger when it still
-    triggers (a crash's carries its signature: the same bug or another), else None. The
-    controller's output goes to `log` (the terminal), not into a file beside the finding."""
+    triggers (a crash's or malformed output's carries its kind: the finding's first, else another
+    bug's), else None. The controller's output goes to `log` (the terminal), not into a file
+    beside the finding."""
     supervisor = Supervisor(target_cmd, log) if target_cmd else None
     scratch = Path(tempfile.mkdtemp(prefix="vm110-replay-"))
     session = Session(settings, supervisor, scratch)
@@ -619,7 +632,7 @@ def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[
         packets = [Sent(0.0, bytes.fromhex(st["hex"]), bytes.fromhex(st["valid_hex"]),
                         float(st["delay_ms"]), bool(st["expect_ack"])) for st in steps]
         return trial(session, Replay(packets, finding.pause_vrpi_ms, finding.withhold_vrai_ms, finding.stream,
-                                     finding.settle_ms), finding.oracle)
+                                     finding.settle_ms), finding.oracle, finding_kind(finding), strict=False)
     finally:
         _close(session)
         shutil.rmtree(scratch, ignore_errors=True)    # our own folder: cores of the replay, if any
