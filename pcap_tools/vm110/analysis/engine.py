@@ -413,7 +413,8 @@ class FastEngine:
                     damaged = True                  # reader judges big-endian sections itself)
                     break
                 pos = p + blen
-                if btype == epb and et is not None and iface < len(ifaces) and incl <= blen - epb_head:
+                # (an EPB with options, which wiretap checks, takes the general path)
+                if btype == epb and et is not None and iface < len(ifaces) and blen == epb_head + 4 + (incl + 3 & -4):
                     link, div, scale, tsoff, eth = ifaces[iface]
                     frame += 1
                     ticks = (tsh << 32) | tsl
@@ -445,7 +446,7 @@ class FastEngine:
                     if found is not None:
                         slow(got, reader, variant, order, ts, *found, frame)
                     continue
-                if reader.bad_packet(data, p, btype, blen):  # (off the fast path: it takes only good ones)
+                if reader.corrupt_block(data, p, btype, blen):  # (off the fast path: it takes only good ones)
                     chunks.close()
                     damaged = True
                     break

@@ -1,4 +1,4 @@
-"""A capture's packets as tshark dissects them, through pyshark, without three flaws of pyshark 0.6
+"""A capture's packets as tshark dissects them, through pyshark, without four flaws of pyshark 0.6
 (two in how it ends tshark). Imported only by the tshark engine (and the tests): pyshark is slow to import.
 
 - At the end of tshark's output pyshark kills tshark at once if asyncio has not yet seen it exit.
@@ -7,7 +7,8 @@
   now and then, on a loaded machine. Here tshark is given time to exit on its own.
 - pyshark takes every packet's first two protocols for its general information and frame, and
   fails on a record that has one (an IndexError that ended the analysis): such a record is one
-  without layers here.
+  without layers here; and on a packet with a comment, whose comments come second (an
+  AttributeError that ended it): its frame is found by name.
 - pyshark leaves SIGCHLD routed to its event loop after the capture, and raises a crash again from
   `__del__` in whatever code runs when the capture is collected. Both are undone here.
 """
@@ -46,9 +47,15 @@ class _Record:
 class _Parser(tshark_xml.TsharkXmlParser):
     def _parse_single_packet(self, packet):
         try:
-            return super()._parse_single_packet(packet)
+            pkt = super()._parse_single_packet(packet)
         except IndexError:      # pyshark takes every packet's first two protocols for geninfo and frame
             return _Record()
+        if pkt.frame_info.layer_name != "frame":      # (4.0: a packet's comments come before its frame)
+            frame = next((layer for layer in pkt.layers if layer.layer_name == "frame"), None)
+            if frame is not None:
+                pkt.layers.remove(frame)
+                pkt.frame_info = frame
+        return pkt
 
 
 class _Capture(pyshark.FileCapture):

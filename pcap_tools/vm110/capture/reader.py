@@ -31,6 +31,14 @@ PCAPNG_IDB, PCAPNG_PB, PCAPNG_SPB, PCAPNG_EPB = 1, 2, 3, 6
 # blocks, system-call events (Sysdig/Falco). Frame numbers count them, as Wireshark's do.
 PCAPNG_OTHER_RECORDS = frozenset((0x9, 0xBAD, 0x40000BAD, 0x204, 0x208, 0x216, 0x217, 0x221, 0x222))
 OPT_END, OPT_TSRESOL, OPT_TSOFFSET = 0, 9, 14
+PCAPNG_ISB = 5
+# Where a block's options start (after its fixed fields; a packet block's: after its padded data
+# too), for the blocks whose options wiretap reads.
+_OPTIONS_AT = {PCAPNG_SHB: 24, PCAPNG_IDB: 16, PCAPNG_ISB: 20, PCAPNG_EPB: 28, PCAPNG_PB: 28}
+# Options that wiretap refuses (and stops reading the file) at another length: (least, most).
+_PACKET_OPTION_LENGTHS = {2: (4, 4), 4: (8, 8), 5: (8, 8), 6: (4, 4), 7: (1, 0xFFFF)}   # flags .. verdict
+_VERDICT_LENGTHS = {1: 9, 2: 9}                 # a verdict of Linux eBPF TC or XDP: its type and 8 bytes
+_IDB_FILTER = 11                                # at least its type byte
 PCAP_HEADER_LEN = 24
 PCAP_RECORD_LEN = 16
 MAX_RECORD = 1 << 18           # Wireshark's largest standard packet; a longer record is damage
@@ -347,9 +355,46 @@ class CaptureReader:
         self.damaged(at, f"corrupt pcapng block at byte {at} (leading length {blen}, trailing {last})")
         return True
 
-    def bad_packet(self, data: bytes, pos: int, btype: int, blen: int) -> bool:
-        """Whether a whole packet block is corrupt (damage, where tshark stops too): it names an
-        interface its section does not have, or claims more captured bytes than it holds."""
+    def corrupt_block(self, data: bytes, pos: int, btype: int, blen: int) -> bool:
+        """Whether a whole block is corrupt (damage, where tshark stops too): a packet block names
+        an interface its section does not have, or claims more captured bytes than it holds; an
+        option runs past its block, or has a length wiretap refuses."""
+        if self._corrupt_packet(data, pos, btype, blen):
+            return True
+        start = _OPTIONS_AT.get(btype)
+        if start is None:
+            return False
+        if btype in (PCAPNG_EPB, PCAPNG_PB):
+            start += (struct.unpack_from(self.endian + "I", data, pos + 20)[0] + 3) & ~3
+        problem = self._option_problem(data, pos + start, pos + blen - 4, btype)
+        if problem is None:
+            return False
+        at = self.bytes_read + pos
+        self.damaged(at, f"corrupt pcapng block at byte {at} ({problem})")
+        return True
+
+    def _option_problem(self, data: bytes, pos: int, end: int, btype: int) -> Optional[str]:
+        """What wiretap refuses in the options from `pos` to `end` of a block, else None."""
+        e = self.endian
+        while pos + 4 <= end:                   # (blocks and options come in 4-byte units)
+            code, length = struct.unpack_from(e + "HH", data, pos)
+            pos += 4
+            if length > end - pos:
+                return f"option {code} of {length} bytes past the block's end"
+            if code == OPT_END:
+                return None
+            if btype in (PCAPNG_EPB, PCAPNG_PB) and code in _PACKET_OPTION_LENGTHS:
+                least, most = _PACKET_OPTION_LENGTHS[code]
+                if code == 7 and length and data[pos] in _VERDICT_LENGTHS:
+                    least = most = _VERDICT_LENGTHS[data[pos]]
+                if not least <= length <= most:
+                    return f"packet block option {code} of {length} bytes"
+            elif btype == PCAPNG_IDB and code == _IDB_FILTER and not length:
+                return "an empty interface filter option"
+            pos += (length + 3) & ~3
+        return None
+
+    def _corrupt_packet(self, data: bytes, pos: int, btype: int, blen: int) -> bool:
         if btype in (PCAPNG_EPB, PCAPNG_PB):
             e = self.endian
             iface = struct.unpack_from(e + ("I" if btype == PCAPNG_EPB else "H"), data, pos + 8)[0]
@@ -410,7 +455,7 @@ class CaptureReader:
                     self.frames = frame
                     yield out
                     return
-                if self.bad_packet(data, pos, btype, blen):
+                if self.corrupt_block(data, pos, btype, blen):
                     chunks.close()
                     self.frames = frame
                     yield out
@@ -451,13 +496,13 @@ class CaptureReader:
             pos += 4 + (length + 3) // 4 * 4
             if code == OPT_END:
                 break
-            if code == OPT_TSRESOL and length >= 1:
+            if code == OPT_TSRESOL and length == 1:     # (wiretap ignores one of another length)
                 v = value[0]
                 if v & 0x80:
                     div, scale = 0, 2.0 ** -(v & 0x7F)
                 else:
                     div, scale = 10 ** v, 10.0 ** -v
-            elif code == OPT_TSOFFSET and length >= 8:
+            elif code == OPT_TSOFFSET and length == 8:
                 tsoff = struct.unpack(e + "q", value[:8])[0]
         return div, scale, tsoff
 

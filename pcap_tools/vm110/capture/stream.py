@@ -107,7 +107,7 @@ class StreamReader(CaptureReader):
                 break
             if pos + blen > end:
                 break
-            if self.bad_trailer(data, pos, blen) or self.bad_packet(data, pos, btype, blen):
+            if self.bad_trailer(data, pos, blen) or self.corrupt_block(data, pos, btype, blen):
                 self.stopped = True
                 break
             block = self.pcapng_block(data, pos, btype, blen)
