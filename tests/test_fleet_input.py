@@ -431,3 +431,13 @@ def test_a_sidecar_that_is_no_file_is_an_error_row(src, tmp_path, kind):
     assert result.returncode == 2 and "not a metadata file: not a regular file" in result.stderr, result.stderr
     captures = {Path(r["file"]).name: r for r in rows(tmp_path / "ds")}
     assert captures["normal.pcap"]["status"] == "unreadable"
+
+
+def test_json_output_of_values_json_has_no_type_for(built):
+    """An INTERVAL, TIME or UUID in a query's result is text in JSON, as in the table and CSV."""
+    sql = "SELECT INTERVAL 90 MINUTE AS i, TIME '01:02:03' AS t, '5f2b6a1e-0c1d-4e5f-8a9b-0c1d2e3f4a5b'::UUID AS u"
+    got = vm110("fleet", "query", str(built), "--format", "json", sql)
+    assert got.returncode == 0, got.stderr
+    csv = vm110("fleet", "query", str(built), "--format", "csv", sql)
+    assert list(json.loads(got.stdout)[0].values()) == csv.stdout.splitlines()[1].split(",")
+    assert json.loads(got.stdout) == [{"i": "1:30:00", "t": "01:02:03", "u": "5f2b6a1e-0c1d-4e5f-8a9b-0c1d2e3f4a5b"}]

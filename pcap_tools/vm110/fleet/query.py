@@ -306,7 +306,10 @@ def _cell(value: Any) -> str:
 
 def render(result: Result, fmt: str) -> str:
     if fmt == "json":
-        return json.dumps([dict(zip(result.columns, map(_plain, row))) for row in result.rows], indent=1) + "\n"
+        # A value JSON has no type for (an INTERVAL, TIME or UUID of a query) as the text the
+        # table and CSV show, not a traceback.
+        return json.dumps([dict(zip(result.columns, map(_plain, row))) for row in result.rows], indent=1,
+                          default=str) + "\n"
     if fmt == "csv":
         out = io.StringIO()
         writer = csv.writer(out, lineterminator="\n")
