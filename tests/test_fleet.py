@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -262,9 +263,9 @@ def test_dask_on_a_given_scheduler(fleet, tmp_path):
         assert sorted(read_table(tmp_path / "s", table), key=repr) == expected, table
 
 
-def test_captures_without_metadata_rank_each_under_its_file(tmp_path):
-    """A capture without site and machine is its own machine, named by its file, with its own
-    figures (a NULL key joined nothing: all such captures were one blank row of zeros)."""
+def build_mixed(tmp_path: Path) -> list[Path]:
+    """A dataset (tmp_path/ds) of one capture named north/m1 by its sidecar and two without
+    metadata (returned)."""
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     shutil.copy(BUNDLED / "loss.pcapng", tmp_path / "a" / "loss.pcapng")
@@ -273,6 +274,13 @@ def test_captures_without_metadata_rank_each_under_its_file(tmp_path):
     for path in plain:
         shutil.copy(BUNDLED / path.name, path)
     vm110("fleet", "build", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "ds"), "-j", "1")
+    return plain
+
+
+def test_captures_without_metadata_rank_each_under_its_file(tmp_path):
+    """A capture without site and machine is its own machine, named by its file, with its own
+    figures (a NULL key joined nothing: all such captures were one blank row of zeros)."""
+    plain = build_mixed(tmp_path)
 
     def worst(what: str) -> dict:
         rows = json.loads(vm110("fleet", "query", str(tmp_path / "ds"), "--worst", what, "--format", "json").stdout)
@@ -285,6 +293,22 @@ def test_captures_without_metadata_rank_each_under_its_file(tmp_path):
         assert links[str(path)]["lost"] == report["totals"]["lost"] > 0
         assert links[str(path)]["watchdog"] == report["totals"]["watchdog"]
         assert (machines[str(path)]["captures"], machines[str(path)]["error_findings"]) == (1, errors)
+
+
+def test_report_counts_captures_without_metadata_each_as_a_machine(tmp_path):
+    """The report's machines are the rankings': a capture without site and machine is one of its
+    own, in the count and in the spread across machines (they were one machine, "None/None")."""
+    plain = build_mixed(tmp_path)
+    page = vm110("fleet", "report", str(tmp_path / "ds"), "--html", "-").stdout
+    assert re.search(r"<p>3 captures of 3 machines", page), page[:2000]
+    figure = re.search(r'<figure data-plot="spread-vrpi-jitter">.*?</figure>', page, re.S)
+    assert figure and "None" not in figure.group(0)
+    for path in plain:
+        report = json.loads(vm110("analyze", str(path), "--json", "-", check=False).stdout)
+        vrpi = max(p["jitter_ms"]["max"] for p in report["periodic"] if p["type"] == "VRPI")
+        row = re.search(rf"<title>{re.escape(str(path))}</title>.*?<title>min ([^,]+), median [^,]+, max ([^ ]+) ms",
+                        figure.group(0))
+        assert row and float(row.group(1)) == float(row.group(2)) == pytest.approx(vrpi, abs=5e-4), path
 
 
 def test_a_metadata_field_is_a_column_of_every_table(fleet):

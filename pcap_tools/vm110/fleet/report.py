@@ -13,10 +13,11 @@ from typing import Sequence
 
 from .. import __version__
 from ..analysis.report_html import COLORS, CSS, Chart
-from .query import NAMED, Args, Fleet, Result
+from .query import NAMED, Args, Fleet, Result, _machine
 
 MAX_FINDINGS = 500           # finding rows on the page (the dataset holds them all)
 ROW_H, LABEL_W, PLOT_W = 18, 190, 420
+LABEL_CHARS = 30            # of a machine's name beside its row (the label column holds about this)
 
 
 def _e(value: object) -> str:
@@ -38,7 +39,8 @@ def _table(result: Result, cls: str = "") -> str:
 
 
 def _name(row: Sequence, width: int) -> str:
-    return "/".join(str(v) for v in row[:width])
+    """A machine's name from its key columns (site/machine, or the file of a capture with neither)."""
+    return "/".join(str(v) for v in row[:width] if v is not None)
 
 
 def _trend_chart(fleet: Fleet, metric: str, columns: list[tuple[str, str]], ylabel: str, caption: str) -> str:
@@ -85,7 +87,10 @@ def _spread(fleet: Fleet, sql: str, caption: str, unit: str, name: str) -> str:
 
         def x(v: float) -> float:
             return LABEL_W + v / top * PLOT_W
-        parts.append(f'<text x="{LABEL_W - 6}" y="{y + 4}" text-anchor="end">{_e(_name(row, width))}</text>'
+        machine = _name(row, width)     # a capture's path would run off the left: its end, whole on hover
+        label = machine if len(machine) <= LABEL_CHARS else "…" + machine[-LABEL_CHARS + 1:]
+        parts.append(f'<text x="{LABEL_W - 6}" y="{y + 4}" text-anchor="end"><title>{_e(machine)}</title>{_e(label)}'
+                     '</text>'
                      f'<line x1="{x(low):.1f}" x2="{x(high):.1f}" y1="{y}" y2="{y}" stroke="{COLORS[0]}" '
                      'stroke-width="4">'
                      f"<title>{_e(f'min {low:g}, median {mid:g}, max {high:g} {unit}')}</title></line>"
@@ -125,16 +130,18 @@ def _findings(fleet: Fleet) -> str:
 
 
 def render(fleet: Fleet) -> str:
-    who = fleet.who()
-    w = ", ".join(who)
-    facts = fleet.run(f"SELECT count(*), count(DISTINCT ({w})), min(first_time), max(last_time), "
-                      "count(*) FILTER (WHERE status <> 'ok') FROM captures").rows[0]
+    # A machine as the rankings have it: a capture without site and machine is one of its own
+    # (by its file), not one blank machine of all such captures.
+    keys, who = _machine(fleet)
+    w = ", ".join(keys)
+    facts = fleet.run(f"SELECT count(*), (SELECT count(*) FROM (SELECT DISTINCT {who} FROM captures)), "
+                      "min(first_time), max(last_time), count(*) FILTER (WHERE status <> 'ok') FROM captures").rows[0]
     captures, machines, first, last, bad = facts
     span = f"{_cell(first)} to {_cell(last)}" if first is not None else "no readable capture"
-    jitter_sql = (f"SELECT {w}, min(j), median(j), max(j) FROM (SELECT {w}, capture_id, max(jitter_max_ms) AS j "
+    jitter_sql = (f"SELECT {w}, min(j), median(j), max(j) FROM (SELECT {who}, capture_id, max(jitter_max_ms) AS j "
                   f"FROM streams WHERE type = 'VRPI' GROUP BY ALL) GROUP BY ALL ORDER BY max(j) DESC, {w}")
     vrpo_sql = jitter_sql.replace("'VRPI'", "'VRPO'")
-    latency_sql = (f"SELECT {w}, min(l), median(l), max(l) FROM (SELECT {w}, capture_id, "
+    latency_sql = (f"SELECT {w}, min(l), median(l), max(l) FROM (SELECT {who}, capture_id, "
                    "quantile_cont(latency_first_ms, 0.95) AS l FROM commands WHERE acked GROUP BY ALL) "
                    f"GROUP BY ALL ORDER BY max(l) DESC, {w}")
     out = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
