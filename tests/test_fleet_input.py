@@ -441,3 +441,21 @@ def test_json_output_of_values_json_has_no_type_for(built):
     csv = vm110("fleet", "query", str(built), "--format", "csv", sql)
     assert list(json.loads(got.stdout)[0].values()) == csv.stdout.splitlines()[1].split(",")
     assert json.loads(got.stdout) == [{"i": "1:30:00", "t": "01:02:03", "u": "5f2b6a1e-0c1d-4e5f-8a9b-0c1d2e3f4a5b"}]
+
+
+def test_a_renamed_capture_is_counted_once(src, built):
+    """A capture moved or renamed (its old path gone) replaces its old entry: it was kept beside
+    the new one, and every sum counted the capture twice. A removed capture is still kept."""
+    os.rename(src / "retransmit.pcap", src / "retransmit-renamed.pcap")
+    os.remove(src / "normal.pcap")
+    again = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert again.returncode == 0 and "1 analysed" in again.stdout and "1 replaced" in again.stdout, again.stdout
+    files = [Path(r["file"]).name for r in rows(built)]
+    assert sorted(files) == sorted(n if n != "retransmit.pcap" else "retransmit-renamed.pcap" for n in NAMES)
+    report = json.loads(vm110("analyze", str(src / "retransmit-renamed.pcap"), "--json", "-").stdout)
+    lost = vm110("fleet", "query", str(built), "--format", "json", "SELECT sum(lost) AS lost FROM captures "
+                 "WHERE file LIKE '%retransmit%'")
+    assert json.loads(lost.stdout) == [{"lost": report["totals"]["lost"]}] and report["totals"]["lost"] > 0
+    manifest = json.loads((built / "manifest.json").read_text())
+    listed = {p for e in manifest["captures"].values() for p in e["parts"]}
+    assert {str(p.relative_to(built)) for p in built.rglob("*.parquet")} == listed     # the old parts are gone

@@ -102,7 +102,7 @@ def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: s
     # still being copied, a worker that could not see the share).
     todo = [s for s in wanted if s.capture_id not in listed or listed[s.capture_id]["status"] == "unreadable"]
     outcome.skipped = len(wanted) - len(todo)
-    versions = Versions(listed, {s.path: s.capture_id for s in wanted})
+    versions = Versions(listed, {s.path: s.capture_id for s in wanted}, _moved(listed, wanted))
     stale = versions.stale()
     bar = Progress(len(todo), outcome.skipped) if progress else None
     last = time.monotonic()
@@ -144,13 +144,25 @@ def _entry(path: str, size: Optional[int], sha256: Optional[str], status: str, p
             "message": message, "meta": meta}
 
 
+def _moved(listed: dict, wanted: list[Source]) -> dict[str, set[str]]:
+    """Path -> the entries a capture moved or renamed to it leaves behind: listed with its content
+    under a path that is no longer there (kept, it would be counted twice in every sum)."""
+    gone: dict[str, set[str]] = {}
+    for cid, entry in listed.items():
+        if entry.get("sha256") and not os.path.lexists(entry["file"]):
+            gone.setdefault(entry["sha256"], set()).add(cid)
+    return {s.path: gone[s.sha256] for s in wanted if s.sha256 in gone}
+
+
 class Versions:
     """The captures listed per path, to find those a changed file's new capture replaces: an
-    entry for a path of this build whose capture id is no longer the file's, once the file's
-    current capture is complete (never before: a stop in between keeps the old rows)."""
+    entry for a path of this build whose capture id is no longer the file's, or the entry of its
+    content's old path if the file was moved there, once the file's current capture is complete
+    (never before: a stop in between keeps the old rows)."""
 
-    def __init__(self, listed: dict, current: dict[str, str]) -> None:
+    def __init__(self, listed: dict, current: dict[str, str], moved: Optional[dict[str, set[str]]] = None) -> None:
         self.current = current
+        self.moved = moved or {}
         self.by_path: dict[str, set[str]] = {}
         for cid, entry in listed.items():
             self.by_path.setdefault(entry["file"], set()).add(cid)
@@ -166,7 +178,7 @@ class Versions:
     def _stale(self, path: str) -> set[str]:
         cids = self.by_path.get(path, set())
         now = self.current.get(path)
-        return {c for c in cids if c != now} if now in cids else set()
+        return {c for c in cids | self.moved.get(path, set()) if c != now} if now in cids else set()
 
 
 def _commit(dataset: Dataset, manifest: dict, stale: set[str]) -> None:
