@@ -459,3 +459,19 @@ def test_a_renamed_capture_is_counted_once(src, built):
     manifest = json.loads((built / "manifest.json").read_text())
     listed = {p for e in manifest["captures"].values() for p in e["parts"]}
     assert {str(p.relative_to(built)) for p in built.rglob("*.parquet")} == listed     # the old parts are gone
+
+
+@pytest.mark.parametrize("entry", ["not an entry", "parts outside"])
+def test_a_damaged_manifest_is_one_line_and_nothing_outside_is_removed(src, built, tmp_path, entry):
+    """A manifest whose capture entry is not one a build writes: a traceback (query), or parts
+    outside the dataset that a build removed as a replaced capture's (build)."""
+    victim = tmp_path / "victim.txt"
+    victim.write_text("not the tool's")
+    manifest = json.loads((built / "manifest.json").read_text())
+    manifest["captures"]["0" * 24] = 5 if entry == "not an entry" else {
+        "file": str(src / "normal.pcap"), "size": 1, "sha256": "0" * 64, "status": "ok", "message": None,
+        "meta": {}, "parts": ["../victim.txt"]}
+    (built / "manifest.json").write_text(json.dumps(manifest))
+    one_line_error(vm110("fleet", "query", str(built), "--worst", "links"), "manifest.json")
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(built), "-j", "1"), "manifest.json")
+    assert victim.read_text() == "not the tool's"

@@ -26,6 +26,7 @@ import pyarrow.parquet as pq
 from .. import __version__
 from ..errors import CliError
 from ..fileio import atomic_writer
+from .sources import KEY
 from .tables import TABLES
 from ..jsonin import loads
 
@@ -76,6 +77,9 @@ class Dataset:
             doc = None
         if not isinstance(doc, dict) or doc.get("format") != FORMAT or not isinstance(doc.get("captures"), dict):
             raise CliError(f"{self.url}: {MANIFEST} is not a vm110 fleet manifest")
+        bad = next((cid for cid, entry in doc["captures"].items() if not _entry_ok(cid, entry)), None)
+        if bad is not None:
+            raise CliError(f"{self.url}: {MANIFEST} is damaged (capture {bad[:40]!r}); rebuild into a new folder")
         if doc.get("format_version") != FORMAT_VERSION:
             raise CliError(f"{self.url}: dataset format version {doc.get('format_version')!r} "
                            f"(written by vm110 {doc.get('tool_version', '?')}); this vm110 {__version__} reads "
@@ -192,6 +196,16 @@ class Dataset:
             self.fs.mv(temp, target)
         except OSError as exc:
             raise CliError(f"cannot write {self.url}/{relative}: {exc}") from None
+
+
+def _entry_ok(cid: str, entry: Any) -> bool:
+    """A capture of a manifest as a build writes it: a damaged (or crafted) one must not end in a
+    traceback, name parts outside the dataset (a build removes those it replaces) nor metadata
+    that is no column name (the views are made with them)."""
+    return (isinstance(entry, dict) and isinstance(entry.get("file"), str) and isinstance(entry.get("status"), str)
+            and isinstance(entry.get("meta", {}), dict) and all(KEY.match(k) for k in entry.get("meta", {}))
+            and isinstance(entry.get("parts"), list)
+            and all(p in {part_name(t, cid) for t in TABLES} for p in entry["parts"]))
 
 
 def _write_parquet(stream: Any, schema: pa.Schema, batches: Iterable[pa.Table]) -> None:
