@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
+import html
 import json
 import re
 import shutil
@@ -200,6 +201,26 @@ def test_findings_equal_the_json_reports(fleet):
         got = [(r["rule"], r["severity"], r["count"], r["message"], r["item"], r["frame"], r["frames"], r["filter"],
                 r["time"]) for r in rows]
         assert sorted(got, key=repr) == sorted(expected, key=repr), path
+
+
+def test_report_names_each_findings_frame_time_and_sender(fleet):
+    """Every finding on the page says where it is as the capture's report does: its capture,
+    frame, time, sender and display filter (the time and the sender were not on the page)."""
+    page = vm110("fleet", "report", str(fleet["dataset"]), "--html", "-").stdout
+    table = page[page.index('<table class="findings">'):]
+    table = table[:table.index("</table>")]
+    head = re.findall(r"<th>([^<]*)</th>", table)
+    assert {"capture", "frame", "time (UTC)", "sender", "display filter"} <= set(head)
+    rows = [dict(zip(head, (html.unescape(re.sub(r"<[^>]+>", "", c)) for c in re.findall(r"<td[^>]*>(.*?)</td>", r))))
+            for r in re.findall(r"<tr><td.*?</tr>", table)]
+    items = {(path, f["rule"], item["frame"]): item for path, report in fleet["reports"].items()
+             for f in report["verdict"]["findings"] for item in f.get("items") or []}
+    assert len(rows) == min(len(items), 500) > 0
+    for row in rows:
+        item = items[(row["capture"], row["finding"], int(row["frame"]))]
+        assert row["time (UTC)"] == us(item["time"]).isoformat(sep=" "), row
+        assert row["sender"] == (item.get("sender") or item.get("src") or ""), row
+        assert row["display filter"] == item["filter"], row
 
 
 def test_errors_and_packets(fleet):

@@ -250,7 +250,7 @@ def _findings(f: Fleet, a: Args) -> str:
     who = [c for c in f.who("findings") if c != "file"]
     lead = ", ".join(who) + ", " if who else ""
     return f"""
-SELECT {lead}file, rule, severity, frame, sender, filter
+SELECT {lead}file, rule, severity, frame, time, sender, filter
 FROM findings WHERE item IS NOT NULL
 ORDER BY severity = 'error' DESC, rule, file, item
 LIMIT {a.limit}"""
@@ -268,7 +268,7 @@ NAMED = {n.name: n for n in (
           _watchdog),
     Named("trend", f"--trend METRIC ({', '.join(METRICS)}) --by {'|'.join(PERIODS)}|COLUMN", _trend),
     Named("errors", "captures that could not be read, or only in part, and why", _errors),
-    Named("findings", "findings to open in Wireshark: file, frame and display filter", _findings),
+    Named("findings", "findings to open in Wireshark: file, frame, time, sender and display filter", _findings),
 )}
 WORST = {"links": "worst-links", "machines": "worst-machines", "commands": "failing-commands"}
 

@@ -111,20 +111,22 @@ def _spread(fleet: Fleet, sql: str, caption: str, unit: str, name: str) -> str:
 def _findings(fleet: Fleet) -> str:
     who = [c for c in fleet.who("findings") if c != "file"]
     lead = "".join(f"{c}, " for c in who)
-    res = fleet.run(f"SELECT {lead}file, rule, severity, message, frame, filter FROM findings WHERE item IS NOT NULL "
+    res = fleet.run(f"SELECT {lead}file, rule, severity, message, frame, time, sender, filter FROM findings "
+                    "WHERE item IS NOT NULL "
                     f"ORDER BY severity = 'error' DESC, rule, {lead}file, item LIMIT {MAX_FINDINGS + 1}")
     total = fleet.run("SELECT count(*) FROM findings WHERE item IS NOT NULL").rows[0][0]
     rows = []
     n = len(who)
     for row in res.rows[:MAX_FINDINGS]:
-        file, rule, severity, message, frame, flt = row[n:]
+        file, rule, severity, message, frame, time, sender, flt = row[n:]
         command = f"wireshark -r {shlex.quote(file)} -Y {shlex.quote(flt)}" if flt else ""
         rows.append(f"<tr><td>{_e(_name(row, n))}</td><td>{_e(file)}</td>"
                     f'<td class="{_e(severity)}">{_e(rule)}</td><td>{_e(message)}</td><td>{_e(frame)}</td>'
+                    f"<td>{_e(_cell(time))}</td><td>{_e(sender)}</td>"
                     f'<td><code class="filter">{_e(flt)}</code></td>'
                     f'<td><code class="filter">{_e(command)}</code></td></tr>')
-    head = "".join(f"<th>{h}</th>" for h in ("machine", "capture", "finding", "message", "frame", "display filter",
-                                             "open it"))
+    head = "".join(f"<th>{h}</th>" for h in ("machine", "capture", "finding", "message", "frame", "time (UTC)",
+                                             "sender", "display filter", "open it"))
     more = f"<p>{total - MAX_FINDINGS} more in the dataset (table findings).</p>" if total > MAX_FINDINGS else ""
     return f'<table class="findings"><tr>{head}</tr>{"".join(rows)}</table>{more}'
 
@@ -170,7 +172,7 @@ def render(fleet: Fleet) -> str:
            "<h2>Captures with errors</h2>",
            _table(fleet.run(NAMED["errors"].sql(fleet, Args()))),
            "<h2>Findings</h2>",
-           "<p>Each with its capture, frame and the display filter that shows it in Wireshark.</p>",
+           "<p>Each with its capture, frame, time, sender and the display filter that shows it in Wireshark.</p>",
            _findings(fleet),
            "</body></html>"]
     return "\n".join(out)
