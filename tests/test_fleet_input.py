@@ -16,6 +16,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 from vm110.cli import main
+from vm110.errors import CliError
 
 ROOT = Path(__file__).resolve().parent.parent
 BUNDLED = ROOT / "captures"
@@ -475,3 +476,22 @@ def test_a_damaged_manifest_is_one_line_and_nothing_outside_is_removed(src, buil
     one_line_error(vm110("fleet", "query", str(built), "--worst", "links"), "manifest.json")
     one_line_error(vm110("fleet", "build", str(src), "--out", str(built), "-j", "1"), "manifest.json")
     assert victim.read_text() == "not the tool's"
+
+
+@pytest.mark.parametrize("out", ["foreign", "other options"])
+def test_a_wrong_out_is_said_before_any_capture_is_read(src, built, tmp_path, monkeypatch, out):
+    """A build into someone else's folder, or a dataset of other options, is refused before the
+    captures are hashed (they were all read first: hours, for a large fleet)."""
+    from vm110.fleet import build as fleet_build
+    from vm110.fleet.work import Settings
+    read = []
+    monkeypatch.setattr(fleet_build, "content_hash", lambda path: read.append(path) or (0, ""))
+    if out == "foreign":
+        (tmp_path / "foreign").mkdir()
+        (tmp_path / "foreign" / "notes.txt").write_text("mine")
+        settings = Settings(dataset=str(tmp_path / "foreign"))
+    else:
+        settings = Settings(dataset=str(built), port=6000)
+    with pytest.raises(CliError, match="not empty" if out == "foreign" else "other analysis options"):
+        fleet_build.build([str(src)], settings)
+    assert read == []

@@ -73,6 +73,12 @@ def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern
           engine: str = "local", jobs: int = 1, scheduler: Optional[str] = None,
           progress: bool = False) -> Outcome:
     dataset = Dataset(settings.dataset)
+    # A wrong --out (someone else's folder, other options) is said before the captures are hashed
+    # (hours of reading, for hundreds of them); _build checks again under the lock.
+    if dataset.exists():
+        _check_options(dataset, dataset.read_manifest(), fingerprint(settings))
+    else:
+        dataset.check_new()
     wanted = sources(srcs, pattern, jobs)
     if not dataset.exists():
         dataset.check_new()
@@ -85,10 +91,7 @@ def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: s
     options = fingerprint(settings)
     if dataset.exists():
         manifest = dataset.read_manifest()
-        if manifest.get("options") != options:
-            differ = _difference(manifest.get("options"), options)
-            raise CliError(f"{dataset.url}: built with other analysis options ({differ}); "
-                           "build into a new folder, or give the same options")
+        _check_options(dataset, manifest, options)
     else:
         manifest = Dataset.new_manifest(options)
         dataset.write_manifest(manifest)        # first: a build stopped at once is still ours to resume
@@ -127,6 +130,13 @@ def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: s
             bar.close()
         _commit(dataset, manifest, stale)
     return outcome
+
+
+def _check_options(dataset: Dataset, manifest: dict, options: dict) -> None:
+    if manifest.get("options") != options:
+        differ = _difference(manifest.get("options"), options)
+        raise CliError(f"{dataset.url}: built with other analysis options ({differ}); "
+                       "build into a new folder, or give the same options")
 
 
 _CAPTURE_COLUMNS = frozenset(SCHEMAS["captures"].names)
