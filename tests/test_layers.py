@@ -25,7 +25,8 @@ def _layer_fields(vector):
     header = {k: fields[k] for k in HEADER}
     header["type"] = header["type"].encode("latin-1")
     ptype = fields["type"]
-    cls = PAYLOAD_CLASSES.get(C.PacketType(ptype)) if ptype in C.PacketType.__members__ else None
+    known = ptype in C.PacketType.__members__ and fields["revision"] == C.SUPPORTED_REVISION
+    cls = PAYLOAD_CLASSES.get(C.PacketType(ptype)) if known else None  # else: header only (TS-0006 3.2)
     names = {f.name for f in cls.fields_desc} if cls else set()
     payload = {k: v for k, v in fields.items() if k in names}
     return header, cls, payload
@@ -83,6 +84,22 @@ def test_unknown_id_keeps_header_and_raw_payload():
     pkt = VM110(raw)
     assert pkt.type == b"VRXX" and pkt.size == 3 and pkt[Raw].load == b"\x01\x02\x03"
     assert pkt.crc_ok()
+
+
+REVISED = [v for v in VECTORS if "revision" in v["problems"]]
+
+
+@pytest.mark.parametrize("vector", REVISED, ids=vector_ids(REVISED))
+def test_other_revision_keeps_header_and_raw_payload(vector):
+    # TS-0006 3.2: only revision 0 has this document's layout; vm110.decode and the dissector
+    # decode the header alone (the vector lists no payload field)
+    pkt = VM110(packet_bytes(vector))
+    assert pkt.revision != C.SUPPORTED_REVISION
+    assert not isinstance(pkt.payload, tuple(PAYLOAD_CLASSES.values()))
+    assert pkt[Raw].load == packet_bytes(vector)[C.PREFIX_LEN:C.PREFIX_LEN + pkt.size]
+    # a revision set on purpose is built as given, with the payload layer's fields after it
+    crafted = VM110(revision=1) / VRAO(command_id=3)
+    assert bytes(crafted)[4:6] == b"\x01\x00" and bytes(crafted)[C.PREFIX_LEN:-C.CRC_LEN] == b"\x03\x00"
 
 
 def test_show_prints_enum_names_and_numbers_for_unknown():

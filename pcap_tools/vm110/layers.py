@@ -248,8 +248,9 @@ PAYLOAD_CLASSES: dict[C.PacketType, type[Packet]] = {
     C.PacketType.VRPI: VRPI, C.PacketType.VRPO: VRPO, C.PacketType.VRCI: VRCI,
     C.PacketType.VRCO: VRCO, C.PacketType.VRAI: VRAI, C.PacketType.VRAO: VRAO,
 }
+# Revision 0 is the layout of TS-0006 (3.2): any other revision's payload stays raw, as in the dissector.
 for _ptype, _cls in PAYLOAD_CLASSES.items():
-    bind_layers(VM110, _cls, type=_ptype.value.encode())
+    bind_layers(VM110, _cls, type=_ptype.value.encode(), revision=C.SUPPORTED_REVISION)
 
 _bound_ports: list[int] = []
 
