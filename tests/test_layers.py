@@ -102,6 +102,27 @@ def test_other_revision_keeps_header_and_raw_payload(vector):
     assert bytes(crafted)[4:6] == b"\x01\x00" and bytes(crafted)[C.PREFIX_LEN:-C.CRC_LEN] == b"\x03\x00"
 
 
+# Cut short, with the header and CRC whole: the payload is there in part.
+CUT = [v for v in VECTORS if "truncated" in v["problems"] and "size" in v["fields"] and "crc" in v["fields"]]
+
+
+@pytest.mark.parametrize("vector", CUT, ids=vector_ids(CUT))
+def test_payload_cut_short_carries_the_fields_that_fit_whole(vector):
+    # interpretation.md, tests/vectors/README: a payload shorter than its layout is illegal
+    # (truncated) and the fields that fit whole are decoded, by vm110.decode and the dissector alike
+    _, cls, payload = _layer_fields(vector)
+    pkt = VM110(packet_bytes(vector))
+    assert bytes(pkt) == packet_bytes(vector)
+    layer = pkt.getlayer(cls)
+    carried = {f.name: layer.getfieldval(f.name) for f in cls.fields_desc if layer and layer.getfieldval(f.name) is not None}
+    assert carried == payload
+    shown = layer.show(dump=True) if layer else ""
+    assert all((f" {f.name} " in shown or f" {f.name}=" in shown) == (f.name in payload) for f in cls.fields_desc)
+    if layer:   # changed, it is built as it was read: the fields it lacked stay out
+        layer.setfieldval(cls.fields_desc[0].name, layer.getfieldval(cls.fields_desc[0].name))
+        assert bytes(pkt) == packet_bytes(vector)
+
+
 def test_show_prints_enum_names_and_numbers_for_unknown():
     text = (VM110() / VRPI(bu_state=0x11, eg_link=6, ru_state=0x42)).show(dump=True)
     assert "bu_state  = Armed" in text and "eg_link   = Passive" in text and "ru_state  = 66" in text

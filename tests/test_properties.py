@@ -5,7 +5,7 @@ from __future__ import annotations
 import struct
 
 from hypothesis import given, settings, strategies as st
-from scapy.fields import StrFixedLenField
+from scapy.fields import ConditionalField, StrFixedLenField
 
 from vm110 import constants as C
 from vm110 import protocol as P
@@ -17,6 +17,8 @@ u16 = st.integers(0, 0xFFFF)
 
 
 def _strategy(field):
+    if isinstance(field, ConditionalField):   # payload fields: absent only from a payload cut short
+        field = field.fld
     if isinstance(field, StrFixedLenField):
         return st.binary(min_size=field.length_from(None), max_size=field.length_from(None))
     code = field.fmt[-1]

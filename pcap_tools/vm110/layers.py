@@ -16,12 +16,13 @@ As scapy's contrib layers do, importing the module binds the layers to their UDP
 from __future__ import annotations
 
 import contextlib
+import itertools
 import struct
 from typing import Any, Callable, Iterator, Optional
 
 from scapy.config import conf
 from scapy.fields import (
-    ByteEnumField, ByteField, Field, LEIntEnumField, LEIntField, LEShortEnumField, LEShortField,
+    ByteEnumField, ByteField, ConditionalField, Field, LEIntEnumField, LEIntField, LEShortEnumField, LEShortField,
     LESignedShortField, StrFixedLenEnumField, XByteField, XLEIntField, XLEShortField, XStrFixedLenField,
     XStrLenField,
 )
@@ -119,13 +120,25 @@ def _length(n: int) -> Callable[[Packet], int]:
     return lambda _pkt: n
 
 
+class CondWholeField(ConditionalField):
+    """A payload field that a payload cut short (illegal: truncated) may lack: dissected when its
+    bytes are all there, else None, and a field that is None is neither shown nor built."""
+
+    def __init__(self, fld: Field, size: int) -> None:
+        super().__init__(fld, lambda pkt: pkt.getfieldval(fld.name) is not None)
+        self.size = size
+
+    def getfield(self, pkt: Packet, s: bytes) -> tuple[bytes, Any]:
+        return (s, None) if len(s) < self.size else super().getfield(pkt, s)
+
+
 def fields_of(ptype: C.PacketType) -> list[Any]:
     """`fields_desc` of a payload layer, from the declaration."""
     packet = P.PACKETS[ptype]
-    out: list[Any] = [scapy_field(f) for f in packet.fields]
+    out: list[Any] = [CondWholeField(scapy_field(f), f.size) for f in packet.fields]
     if packet.tail is not None:
         # Bytes beyond the layout's maximum are not part of the tail: they dissect as a Raw payload.
-        out.append(XStrLenField(packet.tail.name, b"", length_from=_length(packet.tail.size)))
+        out.append(CondWholeField(XStrLenField(packet.tail.name, b"", length_from=_length(packet.tail.size)), 0))
     return out
 
 
@@ -186,7 +199,27 @@ class VM110(Packet):
         return self.sprintf("VM110 %type% serial=%serial%")
 
 
-class _CommandPair(Packet):
+class _Payload(Packet):
+    """A payload layer. Cut short (illegal: truncated), it carries the fields that fit whole, as
+    `vm110.decode` and the dissector show them, the others None; the bytes of a field cut in two
+    stay a Raw payload. With no field whole, the payload is Raw (as scapy's layers fall back)."""
+
+    ptype: C.PacketType
+
+    def do_dissect(self, s: bytes) -> bytes:
+        fields = P.PACKETS[self.ptype].fields
+        if len(s) >= P.PACKETS[self.ptype].min_size:
+            return super().do_dissect(s)
+        ends = list(itertools.takewhile(lambda end: end <= len(s), itertools.accumulate(f.size for f in fields)))
+        if not ends:
+            raise struct.error(f"{self.ptype.value} payload of {len(s)} bytes: no field whole")
+        rest = super().do_dissect(s[:ends[-1]]) + s[ends[-1]:]
+        for f in self.fields_desc[len(ends):]:
+            self.fields[f.name] = None
+        return rest
+
+
+class _CommandPair(_Payload):
     """Commands and their acknowledgements pair up by command ID (TS-0006 4.3 to 4.6)."""
 
     pair = b""
@@ -198,17 +231,19 @@ class _CommandPair(Packet):
         return self.sprintf(f"{self.__class__.__name__} command_id=%command_id%")
 
 
-class VRPI(Packet):
+class VRPI(_Payload):
     name = "VRPI (VisionRemote Periodic Input)"
-    fields_desc = fields_of(C.PacketType.VRPI)
+    ptype = C.PacketType.VRPI
+    fields_desc = fields_of(ptype)
 
     def mysummary(self) -> str:
         return self.sprintf("VRPI %bu_state% armed_ru=%armed_ru% %ru_state%")
 
 
-class VRPO(Packet):
+class VRPO(_Payload):
     name = "VRPO (VisionRemote Periodic Output)"
-    fields_desc = fields_of(C.PacketType.VRPO)
+    ptype = C.PacketType.VRPO
+    fields_desc = fields_of(ptype)
 
     def mysummary(self) -> str:
         return self.sprintf("VRPO #%packet_number%") + f" {len(self.periodic_data)} bytes"
@@ -217,19 +252,22 @@ class VRPO(Packet):
 class VRCI(_CommandPair):
     name = "VRCI (VisionRemote Command Input)"
     pair = b"CI"
-    fields_desc = fields_of(C.PacketType.VRCI)
+    ptype = C.PacketType.VRCI
+    fields_desc = fields_of(ptype)
 
 
 class VRCO(_CommandPair):
     name = "VRCO (VisionRemote Command Output)"
     pair = b"CO"
-    fields_desc = fields_of(C.PacketType.VRCO)
+    ptype = C.PacketType.VRCO
+    fields_desc = fields_of(ptype)
 
 
 class VRAO(_CommandPair):
     name = "VRAO (VisionRemote Acknowledge Output)"
     pair = VRCI.pair
-    fields_desc = fields_of(C.PacketType.VRAO)
+    ptype = C.PacketType.VRAO
+    fields_desc = fields_of(ptype)
 
     def answers(self, other: Packet) -> int:
         return isinstance(other, VRCI) and other.command_id == self.command_id
@@ -238,7 +276,8 @@ class VRAO(_CommandPair):
 class VRAI(_CommandPair):
     name = "VRAI (VisionRemote Acknowledge Input)"
     pair = VRCO.pair
-    fields_desc = fields_of(C.PacketType.VRAI)
+    ptype = C.PacketType.VRAI
+    fields_desc = fields_of(ptype)
 
     def answers(self, other: Packet) -> int:
         return isinstance(other, VRCO) and other.command_id == self.command_id

@@ -102,7 +102,8 @@ def field_mutations(ptype: C.PacketType, fields: dict[str, Any], rng: random.Ran
     """
     columns: list[list[tuple[str, Any]]] = []
     layer = PAYLOAD_CLASSES[ptype](**fields)
-    for field in PAYLOAD_CLASSES[ptype].fields_desc:
+    for cond in PAYLOAD_CLASSES[ptype].fields_desc:
+        field = cond.fld  # type: ignore[union-attr]  # payload fields: CondWholeField (vm110.layers)
         if field.name in skip:
             continue
         base = layer.getfieldval(field.name)
@@ -110,7 +111,7 @@ def field_mutations(ptype: C.PacketType, fields: dict[str, Any], rng: random.Ran
             length = len(base) if base else 16
             values: list[Any] = _bytes_values(length, rng)
         else:
-            bits, signed = _width(field)  # type: ignore[arg-type]  # payload fields are plain fields
+            bits, signed = _width(field)
             values = _int_values(field.name, bits, signed, int(base))
         columns.append([(field.name, v) for v in values])
     return [col[i] for i in range(max(map(len, columns), default=0)) for col in columns if i < len(col)]
