@@ -125,8 +125,10 @@ class CondWholeField(ConditionalField):
     bytes are all there, else None, and a field that is None is neither shown nor built."""
 
     def __init__(self, fld: Field, size: int) -> None:
-        super().__init__(fld, lambda pkt: pkt.getfieldval(fld.name) is not None)
-        self.size = size
+        name = fld.name
+        # A payload field's default is never None: None is a value set, by dissection or by hand.
+        super().__init__(fld, lambda pkt: pkt.fields.get(name, 0) is not None)
+        self.name, self.size = name, size   # (name: read on every build, not through the delegation)
 
     def getfield(self, pkt: Packet, s: bytes) -> tuple[bytes, Any]:
         return (s, None) if len(s) < self.size else super().getfield(pkt, s)
