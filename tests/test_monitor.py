@@ -432,3 +432,15 @@ def test_live_vrpo_bursts_end_where_analyze_s_do(tmp_path):
     [vrpo] = [p for p in report["periodic"] if p["type"] == "VRPO"]
     assert vrpo["outside_recommended"]["count"] == snd.outside == 9 + 1   # 15 ms x 9; 0.135 s -> 1.0 s
     assert report["vrpo_bursts"] == {**report["vrpo_bursts"], "complete": 13, "incomplete": 0}
+
+
+def test_each_finding_line_gives_its_filter_once(tmp_path, capsys):
+    """Trial: every finding line ended with its display filter twice (`[frame.number == 7]  [frame.number == 7]`)."""
+    capture = str(ROOT / "captures" / "loss.pcapng")
+    assert main(["monitor", "--read", capture, "--idle", "0", "--no-dashboard", "--crc", "mpeg2", "--crc-order",
+                 "little", "--serial-scope", "sender"]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if " ERROR lost " in line]
+    assert lines
+    for line in lines:
+        frame = line.split(" #", 1)[1].split()[0]
+        assert line.endswith(f"  [frame.number == {frame}]") and line.count("[frame.number") == 1

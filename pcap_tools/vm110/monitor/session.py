@@ -275,7 +275,7 @@ class Session:
         if self.cfg.json_lines is not None:
             self._write_line(f)
         if self.cfg.lines and self.board is None:
-            self._say(dash.finding_line(f) + f"  [{f['item']['filter']}]")
+            self._say(dash.finding_line(f))      # (its display filter included)
         if self.cfg.evidence is not None and f["severity"] == "error" and f["event"] in ("raised", "found"):
             now = self.now()
             self.cfg.evidence.alarm(f, f["time"] if now is None else max(now, f["time"]))
