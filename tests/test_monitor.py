@@ -444,3 +444,29 @@ def test_each_finding_line_gives_its_filter_once(tmp_path, capsys):
     for line in lines:
         frame = line.split(" #", 1)[1].split()[0]
         assert line.endswith(f"  [frame.number == {frame}]") and line.count("[frame.number") == 1
+
+
+def test_evidence_that_cannot_be_written_leaves_the_watch_and_its_report(tmp_path, monkeypatch, capsys):
+    """Trial: a disk full (or read-only) under --evidence ended the run at the first alarm's file,
+    exit 2, with no report and no verdict. Now each window not written is said and counted, and the
+    run ends with analyze's report and the --fail-on verdict."""
+    from vm110.errors import CliError
+    from vm110.monitor import evidence as ev
+
+    def full(path, data):
+        raise CliError(f"cannot write {path}: No space left on device")
+    monkeypatch.setattr(ev, "write_bytes", full)
+    capture, folder = str(ROOT / "captures" / "bu-stops.pcap"), tmp_path / "evidence"
+    folder.mkdir()
+    assert main(["analyze", capture, "--quiet", "--json", str(tmp_path / "a.json")]) == 0
+    capsys.readouterr()
+    assert main(["monitor", "--read", capture, "--idle", "0", "--quiet", "--no-dashboard", "--evidence", str(folder),
+                 "--json", str(tmp_path / "m.json"), "--fail-on", "watchdog>0"]) == 1
+    assert (tmp_path / "m.json").read_bytes() == (tmp_path / "a.json").read_bytes()
+    err = capsys.readouterr().err.splitlines()
+    # the watchdog's window, and one that the two failed commands (one sender, 1.5 s apart) share
+    said = [line for line in err if line.startswith("vm110 monitor: evidence not written: cannot write")]
+    assert [line.rsplit("Z-", 1)[1] for line in said] == ["watchdog.pcapng: No space left on device",
+                                                           "failed.pcapng: No space left on device"]
+    assert "vm110 monitor: evidence: 2 alarm window(s) not written, the last: " + said[-1].split(": ", 2)[2] in err
+    assert not list(folder.iterdir())

@@ -107,6 +107,9 @@ def run(args: argparse.Namespace) -> int:
                   "`vm110 analyze` would judge them with it", file=sys.stderr)
         from ..analysis.report import build
         report = build(session.report_state())
+        if evidence is not None and evidence.failed:       # (said when it happened; again here, with the report)
+            print(f"vm110 monitor: evidence: {evidence.failed} alarm window(s) not written, the last: {evidence.error}",
+                  file=sys.stderr)
         if evidence is not None and evidence.written and not args.quiet:
             print(f"evidence: {len(evidence.written)} file(s) in {args.evidence}", file=sys.stderr)
         code = deliver(args, [name], [report], fail_rules, "monitor")

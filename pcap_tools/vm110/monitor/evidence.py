@@ -6,7 +6,8 @@ Memory is a ring of the recent frames, bounded by time (`before`) and by RING_BY
 windows still collecting (at most MAX_OPEN, each bounded by WINDOW_BYTES); an alarm while a
 window of the same rule and sender is still collecting joins that window instead of opening
 another, extending it up to MAX_SPAN_S in all. Files are written atomically (vm110.fileio) and
-never over an existing file.
+never over an existing file. A window that cannot be written (disk full, folder gone) is counted
+and told to `warn`, and the monitoring goes on: evidence is a by-product of the watch.
 """
 from __future__ import annotations
 
@@ -16,10 +17,11 @@ import json
 import os
 import struct
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Callable, Optional
 
 from ..capture.writer import build_block, build_option
 from ..analysis.findings import item_filter
+from ..errors import CliError
 from ..fileio import write_bytes, write_text
 
 RING_BYTES = 64 << 20
@@ -77,6 +79,9 @@ class Evidence:
         self.open: list[Window] = []
         self.written: list[str] = []
         self.skipped = 0                # alarms beyond MAX_OPEN windows
+        self.failed = 0                 # windows that could not be written
+        self.error: Optional[str] = None   # why the last one could not
+        self.warn: Callable[[str], None] = lambda message: None
 
     def frame(self, ts: float, number: int, link: int, data: bytes) -> None:
         """Every frame of the capture, in order."""
@@ -116,7 +121,12 @@ class Evidence:
             return
         self.open = [w for w in self.open if w not in done]
         for w in done:
-            self._write(w)
+            try:
+                self._write(w)
+            except CliError as exc:
+                self.failed += 1
+                self.error = str(exc)
+                self.warn(f"evidence not written: {exc}")
 
     def _write(self, w: Window) -> None:
         stamp = datetime.datetime.fromtimestamp(w.time, datetime.timezone.utc).strftime("%Y%m%dT%H%M%S.%f")[:-3]

@@ -86,6 +86,9 @@ class Session:
         self.input_ended = False
         self.failure: Optional[str] = None
         self.no_capture = False                # the input ended before a capture header was whole
+        self.unsaid: list[str] = []            # warnings kept from the dashboard's screen till its end
+        if cfg.evidence is not None:
+            cfg.evidence.warn = self.warn
 
     # -- the analysis sees the intake's records through here -------------------------------------
     def feed(self, rec, sources) -> None:
@@ -296,6 +299,14 @@ class Session:
                 self._say(f"{dash.clock(at)} {rule}: {suppressed} more line{'s' if suppressed > 1 else ''}{who} "
                           "not shown (at most one a second)")
 
+    def warn(self, message: str) -> None:
+        """A trouble of our own output (the watch goes on): on standard error at once, or after the
+        dashboard, which it would garble."""
+        if self.board is not None and self.board.on:
+            self.unsaid.append(message)
+        else:
+            print(f"vm110 monitor: {message}", file=sys.stderr, flush=True)
+
     def _say(self, line: str) -> None:
         """A finding line: on stdout, or on stderr where a report goes to stdout."""
         print(line, flush=True, file=sys.stderr if self.cfg.lines_to_stderr else sys.stdout)
@@ -358,6 +369,8 @@ class Session:
             self.cfg.evidence.tick(None)
         if self.board is not None:
             self.board.close()
+        for message in self.unsaid:
+            print(f"vm110 monitor: {message}", file=sys.stderr)
 
     def close(self) -> None:
         self.spool.close()
