@@ -470,3 +470,24 @@ def test_evidence_that_cannot_be_written_leaves_the_watch_and_its_report(tmp_pat
                                                            "failed.pcapng: No space left on device"]
     assert "vm110 monitor: evidence: 2 alarm window(s) not written, the last: " + said[-1].split(": ", 2)[2] in err
     assert not list(folder.iterdir())
+
+
+def test_json_lines_that_cannot_be_written_leave_the_watch_and_its_report(tmp_path):
+    """Trial: a --json-lines file on a full disk ended the run with a traceback, no report and no
+    verdict. Now the lines end (said once) and the watch goes on to the report and the verdict.
+    (The file size limit stands in for the full disk: writes beyond it fail, EFBIG.)"""
+    import resource
+    limit, lines = 16 << 10, tmp_path / "live.jsonl"
+
+    def small_files() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    done = subprocess.run(VM110 + ["monitor", "--read", str(ROOT / "captures" / "loss.pcapng"), "--idle", "0",
+                                   "--no-dashboard", "--json-lines", str(lines), "--fail-on", "lost>0"],
+                          capture_output=True, timeout=60, preexec_fn=small_files)
+    assert done.returncode == 1, done.stderr
+    assert done.stderr.decode().splitlines() == [
+        f"vm110 monitor: --json-lines {lines}: cannot write: File too large; no more lines are written",
+        f"fail-on: {ROOT / 'captures' / 'loss.pcapng'}: lost=34 (rule lost>0)"]
+    assert b"VERDICT: FAIL" in done.stdout and b"error   34 packets lost" in done.stdout
+    written = lines.read_bytes()
+    assert len(written) == limit and [json.loads(line) for line in written.splitlines()[:-1]]

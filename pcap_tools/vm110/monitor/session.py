@@ -9,6 +9,7 @@ with `--realtime` the capture's timeline is laid on the wall clock.
 from __future__ import annotations
 
 import collections
+import contextlib
 import json
 import math
 import os
@@ -315,11 +316,20 @@ class Session:
         out = self.cfg.json_lines
         assert out is not None
         try:
-            out.write(json.dumps(obj, allow_nan=False, default=_plain) + "\n")
-            out.flush()
+            text = json.dumps(obj, allow_nan=False, default=_plain)
         except ValueError:                 # inf/nan from damaged timestamps: as null
-            out.write(json.dumps(_finite(obj), default=_plain) + "\n")
+            text = json.dumps(_finite(obj), default=_plain)
+        try:
+            out.write(text + "\n")
             out.flush()
+        except OSError as exc:
+            if out is sys.stdout:
+                raise
+            # A full disk: the lines end (after a torn one, none would parse), the watch goes on.
+            self.cfg.json_lines = None
+            with contextlib.suppress(OSError):
+                out.close()
+            self.warn(f"--json-lines {out.name}: cannot write: {exc.strerror or exc}; no more lines are written")
 
     # -- views ---------------------------------------------------------------------------------
     def snapshot(self, now: Optional[float]) -> dict:
