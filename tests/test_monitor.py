@@ -491,3 +491,23 @@ def test_json_lines_that_cannot_be_written_leave_the_watch_and_its_report(tmp_pa
     assert b"VERDICT: FAIL" in done.stdout and b"error   34 packets lost" in done.stdout
     written = lines.read_bytes()
     assert len(written) == limit and [json.loads(line) for line in written.splitlines()[:-1]]
+
+
+def test_a_closed_standard_output_ends_the_run_with_its_report_and_verdict(tmp_path):
+    """Trial: `vm110 monitor ... | head -1` exited 0 at the next line, without the --json report
+    and without the --fail-on verdict (analyze keeps both). Now the reader's going ends the run as
+    Ctrl-C does: the report of what was seen is written and the exit code is the verdict's."""
+    report = tmp_path / "r.json"
+    proc = subprocess.Popen(VM110 + ["monitor", "--read", str(ROOT / "captures" / "loss.pcapng"), "--realtime",
+                                     "--no-dashboard", "--json", str(report), "--fail-on", "lost>0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stderr is not None
+    first = proc.stdout.readline()
+    proc.stdout.close()                                         # head -1
+    assert b" ERROR lost " in first
+    assert proc.wait(timeout=40) == 1
+    with proc.stderr:
+        err = proc.stderr.read().decode()
+    seen = json.loads(report.read_text())
+    assert 0 < seen["totals"]["lost"] < 34 and seen["capture"]["packets"] < 612      # stopped, not read to its end
+    assert err.splitlines()[-1].endswith(f"lost={seen['totals']['lost']} (rule lost>0)")

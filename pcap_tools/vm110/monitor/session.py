@@ -20,6 +20,7 @@ import time
 from dataclasses import dataclass
 from typing import IO, Optional
 
+from .. import closedpipe
 from ..analysis.commands import Retiring
 from ..analysis.incremental import Analysis
 from ..errors import CliError
@@ -310,7 +311,19 @@ class Session:
 
     def _say(self, line: str) -> None:
         """A finding line: on stdout, or on stderr where a report goes to stdout."""
-        print(line, flush=True, file=sys.stderr if self.cfg.lines_to_stderr else sys.stdout)
+        try:
+            print(line, flush=True, file=sys.stderr if self.cfg.lines_to_stderr else sys.stdout)
+        except BrokenPipeError:
+            self._reader_gone()
+
+    def _reader_gone(self) -> None:
+        """Standard output's reader went away (`| head -1`): the run ends as at Ctrl-C, and the
+        report files and the --fail-on exit code still follow (cli.py, closedpipe)."""
+        closedpipe.silence_stdout()
+        self.cfg.lines = False
+        if self.cfg.json_lines is sys.stdout:
+            self.cfg.json_lines = None
+        self.stop = True
 
     def _write_line(self, obj: dict) -> None:
         out = self.cfg.json_lines
@@ -324,7 +337,10 @@ class Session:
             out.flush()
         except OSError as exc:
             if out is sys.stdout:
-                raise
+                if not isinstance(exc, BrokenPipeError):
+                    raise
+                self._reader_gone()
+                return
             # A full disk: the lines end (after a torn one, none would parse), the watch goes on.
             self.cfg.json_lines = None
             with contextlib.suppress(OSError):
