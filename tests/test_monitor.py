@@ -511,3 +511,32 @@ def test_a_closed_standard_output_ends_the_run_with_its_report_and_verdict(tmp_p
     seen = json.loads(report.read_text())
     assert 0 < seen["totals"]["lost"] < 34 and seen["capture"]["packets"] < 612      # stopped, not read to its end
     assert err.splitlines()[-1].endswith(f"lost={seen['totals']['lost']} (rule lost>0)")
+
+
+@pytest.mark.parametrize("how", ["replaced", "cut"])
+def test_a_followed_file_replaced_or_cut_shorter_ends_the_input(how, tmp_path):
+    """Trial: a followed capture renamed over by another (a capture re-recorded, a rotation) was
+    still read through the old file: the monitor waited on it in silence, its report that of the
+    old file, exit 0. Now the input ends there, with the report of what was read and exit 2, as for
+    any input not read to its end; likewise a file cut shorter than what was read."""
+    followed, other = tmp_path / "live.pcapng", tmp_path / "other.pcapng"
+    shutil.copy(ROOT / "captures" / "normal.pcap", followed)
+    shutil.copy(ROOT / "captures" / "loss.pcapng", other)
+    proc = subprocess.Popen(VM110 + ["monitor", "--read", str(followed), "--no-dashboard", "--quiet",
+                                     "--json", str(tmp_path / "m.json")], stderr=subprocess.PIPE)
+    time.sleep(2)                                  # the whole of it read (no --idle: followed for ever)
+    if how == "replaced":
+        other.replace(followed)
+        said = f"{followed} was replaced by another file while followed"
+    else:
+        os.truncate(followed, 1000)
+        said = f"{followed} was cut shorter (1000 bytes) than what was read ({(ROOT / 'captures' / 'normal.pcap').stat().st_size})"
+    try:
+        _, err = proc.communicate(timeout=20)
+    finally:
+        proc.kill()                                # (the old monitor followed the old file for ever)
+    assert proc.returncode == 2
+    assert err.decode().splitlines() == [f"vm110 monitor: {said}: the report is of what was read before"]
+    assert main(["analyze", str(ROOT / "captures" / "normal.pcap"), "--quiet", "--json", str(tmp_path / "a.json")]) == 0
+    a, m = json.loads((tmp_path / "a.json").read_text()), json.loads((tmp_path / "m.json").read_text())
+    assert m == {**a, "capture": {**a["capture"], "file": str(followed)}}

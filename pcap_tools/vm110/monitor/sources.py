@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import select
 import shutil
+import stat
 import subprocess
 import tempfile
 import time
@@ -57,7 +58,9 @@ class PipeSource(Source):
 
 class FollowFile(Source):
     """A capture file read as it grows (tail -f); the input ends when it has not grown for `idle`
-    seconds (None: never, until interrupted)."""
+    seconds (None: never, until interrupted), or when its path leads elsewhere: another file renamed
+    over it, or this one cut shorter than what was read (what comes then is another capture, not the
+    rest of this one). A file removed is still read through what was opened: its writer may go on."""
 
     def __init__(self, path: str, idle: Optional[float], size: int = FILE_READ_SIZE) -> None:
         self.name, self.idle, self.size = path, idle, size
@@ -65,7 +68,10 @@ class FollowFile(Source):
             self.file = open(path, "rb")   # noqa: SIM115 -- the source owns it; close()
         except OSError as exc:
             raise CliError(f"cannot read {path}: {exc.strerror}") from None
+        st = os.fstat(self.file.fileno())
+        self.identity = (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) else None   # (a FIFO has no size)
         self.grew = time.monotonic()
+        self.gone: Optional[str] = None
 
     def read(self, timeout: float) -> Optional[bytes]:
         try:
@@ -75,10 +81,28 @@ class FollowFile(Source):
         if data:
             self.grew = time.monotonic()
             return data
-        if self.idle is not None and time.monotonic() - self.grew >= self.idle:
+        self.gone = self._gone()
+        if self.gone is not None or (self.idle is not None and time.monotonic() - self.grew >= self.idle):
             return None
         time.sleep(timeout if self.idle is None else min(timeout, max(0.0, self.idle)))
         return b""
+
+    def _gone(self) -> Optional[str]:
+        """Why the path no longer leads to the rest of what was read (None: it still may)."""
+        if self.identity is None:
+            return None
+        try:
+            st = os.stat(self.name)
+        except OSError:                 # removed (or out of reach): what was opened may still grow
+            return None
+        if (st.st_dev, st.st_ino) != self.identity:
+            return f"{self.name} was replaced by another file while followed"
+        if st.st_size < self.file.tell():
+            return f"{self.name} was cut shorter ({st.st_size} bytes) than what was read ({self.file.tell()})"
+        return None
+
+    def failure(self) -> Optional[str]:
+        return None if self.gone is None else f"{self.gone}: the report is of what was read before"
 
     def close(self) -> None:
         self.file.close()
