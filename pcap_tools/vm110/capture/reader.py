@@ -31,10 +31,16 @@ PCAPNG_IDB, PCAPNG_PB, PCAPNG_SPB, PCAPNG_EPB = 1, 2, 3, 6
 # blocks, system-call events (Sysdig/Falco). Frame numbers count them, as Wireshark's do.
 PCAPNG_OTHER_RECORDS = frozenset((0x9, 0xBAD, 0x40000BAD, 0x204, 0x208, 0x216, 0x217, 0x221, 0x222))
 OPT_END, OPT_TSRESOL, OPT_TSOFFSET = 0, 9, 14
-PCAPNG_ISB = 5
-# Where a block's options start (after its fixed fields; a packet block's: after its padded data
-# too), for the blocks whose options wiretap reads.
-_OPTIONS_AT = {PCAPNG_SHB: 24, PCAPNG_IDB: 16, PCAPNG_ISB: 20, PCAPNG_EPB: 28, PCAPNG_PB: 28}
+PCAPNG_NRB, PCAPNG_ISB, PCAPNG_DSB = 4, 5, 10
+# The least length of a block of each kind (its fixed fields), below which wiretap stops reading.
+# (Not a system-call event's: that depends on the Wireshark version.)
+_LEAST_BLOCK = {PCAPNG_SHB: 28, PCAPNG_IDB: 20, PCAPNG_PB: 32, PCAPNG_SPB: 16, PCAPNG_NRB: 16, PCAPNG_ISB: 24,
+                PCAPNG_EPB: 32, 0x9: 35, PCAPNG_DSB: 20, 0xBAD: 16, 0x40000BAD: 16}   # (9: journal; custom)
+_NRB_ADDRESS = {1: 4, 2: 16}                    # an IPv4 or IPv6 record: its address at least
+# Where a block's options start, after its fixed fields (a packet block's: after its padded data
+# too, a name resolution block's after its records; both worked out), for the blocks whose options
+# wiretap reads.
+_OPTIONS_AT = {PCAPNG_SHB: 24, PCAPNG_IDB: 16, PCAPNG_ISB: 20}
 # Options that wiretap refuses (and stops reading the file) at another length: (least, most).
 _PACKET_OPTION_LENGTHS = {2: (4, 4), 4: (8, 8), 5: (8, 8), 6: (4, 4), 7: (1, 0xFFFF)}   # flags .. verdict
 _VERDICT_LENGTHS = {1: 9, 2: 9}                 # a verdict of Linux eBPF TC or XDP: its type and 8 bytes
@@ -130,6 +136,7 @@ class CaptureReader:
         self.last_ts: Optional[float] = None
         self.endian = "<"                       # pcapng: of the current section
         self.interfaces: list[tuple] = []       # pcapng: (link, ticks/s or 0, s/tick, offset, Ethernet?)
+        self.spb_snaplen = 0                    # pcapng: the section's first interface's snaplen (0: none)
         self.ts_digits = 6                      # decimal digits of the finest timestamps (9: ns)
 
     def _identify(self, path: str) -> tuple[int, str]:
@@ -320,11 +327,13 @@ class CaptureReader:
                 return (self.last_ts or 0.0, None, pos + 12, 0, 0)
             orig = struct.unpack_from(e + "I", data, pos + 8)[0]
             # A simple packet block has no time: it gets the time of the packet before it.
-            return self.last_ts or 0.0, self.interfaces[0][0], pos + 12, min(orig, blen - 16), orig
+            return self.last_ts or 0.0, self.interfaces[0][0], pos + 12, min(orig, self.spb_snaplen or orig), orig
         if btype in PCAPNG_OTHER_RECORDS:
             return (self.last_ts or 0.0, None, pos, 0, 0)
         if btype == PCAPNG_IDB:
-            link = struct.unpack_from(e + "H", data, pos + 8)[0]
+            link, snaplen = struct.unpack_from(e + "H2xI", data, pos + 8)
+            if not self.interfaces:
+                self.spb_snaplen = snaplen              # (a simple packet block's: of the first interface)
             div, scale, tsoff = self._idb_options(data, pos + 16, pos + blen - 4, e)
             self.link_types.add(L.NAMES.get(link, str(link)))
             self.interfaces.append((link, div, scale, tsoff, link == L.LINKTYPE_ETHERNET))
@@ -356,22 +365,55 @@ class CaptureReader:
         return True
 
     def corrupt_block(self, data: bytes, pos: int, btype: int, blen: int) -> bool:
-        """Whether a whole block is corrupt (damage, where tshark stops too): a packet block names
-        an interface its section does not have, or claims more captured bytes than it holds; an
-        option runs past its block, or has a length wiretap refuses."""
-        if self._corrupt_packet(data, pos, btype, blen):
-            return True
-        start = _OPTIONS_AT.get(btype)
-        if start is None:
-            return False
-        if btype in (PCAPNG_EPB, PCAPNG_PB):
-            start += (struct.unpack_from(self.endian + "I", data, pos + 20)[0] + 3) & ~3
-        problem = self._option_problem(data, pos + start, pos + blen - 4, btype)
+        """Whether a whole block is corrupt (damage, where tshark stops too): shorter than its
+        kind's fixed fields; a packet block that names an interface its section does not have, or
+        whose packet data do not fit it; a name resolution record or decryption secrets past the
+        block; an option past its block, or of a length wiretap refuses."""
+        problem = self._packet_problem(data, pos, btype, blen)
+        if problem is None:
+            problem = self._block_problem(data, pos, btype, blen)
         if problem is None:
             return False
         at = self.bytes_read + pos
-        self.damaged(at, f"corrupt pcapng block at byte {at} ({problem})")
+        self.damaged(at, f"corrupt pcapng {problem.format(at=at)}")
         return True
+
+    def _block_problem(self, data: bytes, pos: int, btype: int, blen: int) -> Optional[str]:
+        e, end = self.endian, pos + blen - 4
+        least = _LEAST_BLOCK.get(btype, 12)
+        if blen < least:
+            return f"block at byte {{at}} (type {btype}, {blen} bytes, below its {least})"
+        fixed = _OPTIONS_AT.get(btype)
+        options = None if fixed is None else pos + fixed
+        if btype in (PCAPNG_EPB, PCAPNG_PB):
+            options = pos + 28 + ((struct.unpack_from(e + "I", data, pos + 20)[0] + 3) & ~3)
+        elif btype == PCAPNG_NRB:
+            options, problem = self._nrb_records(data, pos + 8, end)
+            if problem is not None:
+                return f"block at byte {{at}} ({problem})"
+        elif btype == PCAPNG_DSB:
+            secrets = struct.unpack_from(e + "I", data, pos + 12)[0]
+            if (secrets + 3) & ~3 > blen - 20:
+                return f"block at byte {{at}} (decryption secrets of {secrets} bytes in a {blen}-byte block)"
+        if options is None:
+            return None
+        problem = self._option_problem(data, options, end, btype)
+        return None if problem is None else f"block at byte {{at}} ({problem})"
+
+    def _nrb_records(self, data: bytes, pos: int, end: int) -> tuple[int, Optional[str]]:
+        """Where a name resolution block's options start, and what wiretap refuses in its records."""
+        e = self.endian
+        while pos + 4 <= end:
+            kind, length = struct.unpack_from(e + "HH", data, pos)
+            pos += 4
+            if (length + 3) & ~3 > end - pos:
+                return pos, f"name resolution record of {length} bytes past the block's end"
+            if kind == 0:
+                return pos, None
+            if length < _NRB_ADDRESS.get(kind, 0):
+                return pos, f"name resolution record of type {kind} of {length} bytes"
+            pos += (length + 3) & ~3
+        return end, None
 
     def _option_problem(self, data: bytes, pos: int, end: int, btype: int) -> Optional[str]:
         """What wiretap refuses in the options from `pos` to `end` of a block, else None."""
@@ -394,25 +436,24 @@ class CaptureReader:
             pos += (length + 3) & ~3
         return None
 
-    def _corrupt_packet(self, data: bytes, pos: int, btype: int, blen: int) -> bool:
-        if btype in (PCAPNG_EPB, PCAPNG_PB):
-            e = self.endian
+    def _packet_problem(self, data: bytes, pos: int, btype: int, blen: int) -> Optional[str]:
+        e = self.endian
+        if btype in (PCAPNG_EPB, PCAPNG_PB) and blen >= _LEAST_BLOCK[btype]:
             iface = struct.unpack_from(e + ("I" if btype == PCAPNG_EPB else "H"), data, pos + 8)[0]
             incl = struct.unpack_from(e + "I", data, pos + 20)[0]
-            at = self.bytes_read + pos
             if iface >= len(self.interfaces):
-                self.damaged(at, f"corrupt pcapng packet block at byte {at} (interface {iface}; its section has "
-                                 f"{len(self.interfaces)})")
-                return True
+                return f"packet block at byte {{at}} (interface {iface}; its section has {len(self.interfaces)})"
             if incl > blen - 28:
-                self.damaged(at, f"corrupt pcapng packet block at byte {at} (captured length {incl} in a "
-                                 f"{blen}-byte block)")
-                return True
-        elif btype == PCAPNG_SPB and not self.interfaces:
-            at = self.bytes_read + pos
-            self.damaged(at, f"corrupt pcapng packet block at byte {at} (no interface block before it)")
-            return True
-        return False
+                return f"packet block at byte {{at}} (captured length {incl} in a {blen}-byte block)"
+        elif btype == PCAPNG_SPB and blen >= _LEAST_BLOCK[btype]:
+            if not self.interfaces:
+                return "packet block at byte {at} (no interface block before it)"
+            # wiretap reads min(length, snaplen) bytes of data, padded, then the trailing length.
+            orig = struct.unpack_from(e + "I", data, pos + 8)[0]
+            incl = min(orig, self.spb_snaplen or orig)
+            if (incl + 3) & ~3 != blen - 16:
+                return f"packet block at byte {{at}} ({incl} bytes of packet data in a {blen}-byte simple packet block)"
+        return None
 
     def bad_block(self, pos: int, blen: int, btype: int) -> bool:
         """Whether the walk must stop at this block: damage found before, or a corrupt or
