@@ -104,6 +104,23 @@ def test_floats_intervals_across_blocks(monkeypatch, before):
     assert f.last() == times[-1] and f[9] == times[9] and len(f) == len(times)
 
 
+def test_a_stream_of_a_few_packets_holds_a_few_values_not_a_block(monkeypatch):
+    """Every periodic stream took a whole block (65,536 values: 512 KiB of address space, a page or
+    more of it touched) at its first packet: a hostile capture of 20,000 senders heard once took
+    10 GiB of address space and 80 MiB more memory. The last block now grows as it fills."""
+    few = Floats()
+    few.extend(np.array([1.7e9, 1.7e9 + 0.125]))
+    assert sum(b.nbytes for b in few.blocks) <= Floats.FIRST * 8
+    monkeypatch.setattr(Floats, "BLOCK", 100)       # (growth across a block's end: 16, 32, 64, 100)
+    times = np.cumsum(np.random.default_rng(2).random(437)) + 1.7e9
+    f = Floats()
+    for a, b in zip([0, 1, 3, 20, 21, 99, 250], [1, 3, 20, 21, 99, 250, 437]):
+        f.extend(times[a:b])
+        assert [f[i] for i in range(b)] == times[:b].tolist() and f.last() == times[b - 1]
+    assert [len(block) for block in f.blocks] == [100, 100, 100, 100, 64]
+    assert np.array_equal(f.intervals_ms(), timing.intervals_ms(times))
+
+
 def test_copies_of_an_undecided_candidate_across_many_batches(tmp_path, monkeypatch):
     """A restart candidate repeated for thousands of packets stays undecided over many batches;
     it is decided once (not re-judged per batch), as in one pass."""

@@ -26,9 +26,13 @@ _CHUNK = 1 << 16
 
 
 class Floats:
-    """float64 values appended a batch at a time, in blocks of BLOCK values."""
+    """float64 values appended a batch at a time, in blocks of BLOCK values. The last block grows
+    from FIRST values as it fills: a stream of a few packets (thousands of senders heard once, a
+    hostile capture) holds a few hundred bytes, not a whole block (512 KiB of address space, and
+    the page or more of it that is touched)."""
 
     BLOCK = 1 << 16
+    FIRST = 1 << 4
 
     def __init__(self) -> None:
         self.blocks: list[np.ndarray] = []
@@ -40,9 +44,13 @@ class Floats:
 
     def extend(self, values: np.ndarray) -> None:
         while len(values):
-            if not self.blocks or self.used == len(self.blocks[-1]):
-                self.blocks.append(np.empty(self.BLOCK))
+            if not self.blocks or self.used == self.BLOCK:
+                self.blocks.append(np.empty(min(self.FIRST, self.BLOCK)))
                 self.used = 0
+            elif self.used == len(self.blocks[-1]):
+                grown = np.empty(min(2 * self.used, self.BLOCK))
+                grown[:self.used] = self.blocks[-1][:self.used]
+                self.blocks[-1] = grown
             take = min(len(self.blocks[-1]) - self.used, len(values))
             self.blocks[-1][self.used:self.used + take] = values[:take]
             self.used += take
@@ -90,6 +98,12 @@ class SpooledBlocks:
             while done < len(data):
                 done += os.pwrite(self.fd, data[done:], at + done)
             self.where.append((at, len(self.tail)))
+        self.tail = block
+
+    def __setitem__(self, k: int, block: np.ndarray) -> None:
+        """The last block, in memory, grown (Floats.extend)."""
+        if (k + len(self) if k < 0 else k) != len(self.where) or self.tail is None:
+            raise IndexError("only the last block, in memory, is replaced")
         self.tail = block
 
     def __getitem__(self, k: int) -> np.ndarray:
