@@ -27,11 +27,11 @@ PCAP_MAGIC_NS = 0xA1B23C4D
 PCAPNG_SHB = 0x0A0D0D0A
 PCAPNG_BOM = 0x1A2B3C4D
 PCAPNG_IDB, PCAPNG_PB, PCAPNG_SPB, PCAPNG_EPB = 1, 2, 3, 6
+PCAPNG_NRB, PCAPNG_ISB, PCAPNG_DSB = 4, 5, 10
 # Blocks that are records (frames) in Wireshark, not packets: systemd journal entries, custom
 # blocks, system-call events (Sysdig/Falco). Frame numbers count them, as Wireshark's do.
 PCAPNG_OTHER_RECORDS = frozenset((0x9, 0xBAD, 0x40000BAD, 0x204, 0x208, 0x216, 0x217, 0x221, 0x222))
 OPT_END, OPT_TSRESOL, OPT_TSOFFSET = 0, 9, 14
-PCAPNG_NRB, PCAPNG_ISB, PCAPNG_DSB = 4, 5, 10
 # The least length of a block of each kind (its fixed fields), below which wiretap stops reading.
 # (Not a system-call event's: that depends on the Wireshark version.)
 _LEAST_BLOCK = {PCAPNG_SHB: 28, PCAPNG_IDB: 20, PCAPNG_PB: 32, PCAPNG_SPB: 16, PCAPNG_NRB: 16, PCAPNG_ISB: 24,

@@ -116,7 +116,7 @@ def _cols(prefix: str, cols: Sequence[str]) -> str:
     return ", ".join(f"{prefix}.{c}" for c in cols)
 
 
-def _machine(f: Fleet, table: str = "captures", alias: str = "") -> tuple[list[str], str]:
+def machine_key(f: Fleet, table: str = "captures", alias: str = "") -> tuple[list[str], str]:
     """A machine's key columns, and the select list that gives them: site and machine when the
     metadata has them, and for a capture with neither its file (docs/fleet.md), so that captures
     without metadata are not one blank machine; else the file."""
@@ -138,7 +138,7 @@ _CAPTURE_COUNTS = "count(*) AS captures, count(*) FILTER (WHERE status = 'unread
 
 
 def _worst_links(f: Fleet, a: Args) -> str:
-    keys, w = _machine(f)
+    keys, w = machine_key(f)
     return f"""
 WITH c AS (SELECT {w}, {_CAPTURE_COUNTS} FROM captures GROUP BY ALL),
 s AS (SELECT {w}, sum(lost) AS lost, sum(received) AS received, sum(restarts) AS restarts FROM senders GROUP BY ALL),
@@ -155,7 +155,7 @@ LIMIT {a.limit}"""
 
 
 def _worst_machines(f: Fleet, a: Args) -> str:
-    keys, w = _machine(f)
+    keys, w = machine_key(f)
     k = ", ".join(keys)
     return f"""
 WITH c AS (SELECT {w}, {_CAPTURE_COUNTS},
@@ -173,7 +173,7 @@ LIMIT {a.limit}"""
 
 
 def _failing_commands(f: Fleet, a: Args) -> str:
-    keys, w = _machine(f, "commands")
+    keys, w = machine_key(f, "commands")
     return f"""
 SELECT {w}, type, command_id, count(*) AS commands, count(*) FILTER (WHERE failed) AS failed,
        count(*) FILTER (WHERE NOT acked AND interrupted_frame IS NULL) AS unacked,
@@ -193,7 +193,7 @@ def _month(f: Fleet, a: Args) -> str:
 
 
 def _watchdog(f: Fleet, a: Args) -> str:
-    _, w = _machine(f, alias="c")
+    _, w = machine_key(f, alias="c")
     return f"""
 WITH m AS (SELECT {_month(f, a)} AS start)
 SELECT strftime(m.start, '%Y-%m') AS month, {w}, count(DISTINCT c.capture_id) AS captures,

@@ -13,7 +13,7 @@ from typing import Sequence
 
 from .. import __version__
 from ..analysis.report_html import COLORS, CSS, Chart
-from .query import NAMED, Args, Fleet, Result, _machine
+from .query import NAMED, Args, Fleet, Result, machine_key
 
 MAX_FINDINGS = 500           # finding rows on the page (the dataset holds them all)
 ROW_H, LABEL_W, PLOT_W = 18, 190, 420
@@ -134,7 +134,7 @@ def _findings(fleet: Fleet) -> str:
 def render(fleet: Fleet) -> str:
     # A machine as the rankings have it: a capture without site and machine is one of its own
     # (by its file), not one blank machine of all such captures.
-    keys, who = _machine(fleet)
+    keys, who = machine_key(fleet)
     w = ", ".join(keys)
     facts = fleet.run(f"SELECT count(*), (SELECT count(*) FROM (SELECT DISTINCT {who} FROM captures)), "
                       "min(first_time), max(last_time), count(*) FILTER (WHERE status <> 'ok') FROM captures").rows[0]
