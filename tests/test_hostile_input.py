@@ -369,6 +369,24 @@ def test_damaged_ip_and_udp_headers_are_read_as_wireshark_reads_them(runner, ip,
 
 
 @pytest.mark.tshark
+def test_a_packet_the_capture_cut_has_no_crc_checked_in_either_engine(tmp_path):
+    """A record one byte shorter than its frame (the snaplen): the dissector checks no CRC of it
+    (the CRC is cut), while the fast engine counted it as checked (crc.unchecked 0 against 1;
+    self-fuzz agreement check, seed 67)."""
+    path = tmp_path / "cut.pcap"
+    _traffic(path)
+    data = bytearray(path.read_bytes())
+    at = _record_starts(bytes(data))[5]
+    incl = struct.unpack_from("<I", data, at + 8)[0]
+    struct.pack_into("<I", data, at + 8, incl - 1)
+    path.write_bytes(bytes(data[:at + 16 + incl - 1] + data[at + 16 + incl:]))
+    fast, slow = _reports(path, dict(os.environ))
+    assert fast == slow
+    assert fast["capture"]["snaplen_truncated"] == 1 and fast["crc"]["unchecked"] == 1
+    assert fast["illegal"]["by_reason"] == {"truncated": 1}
+
+
+@pytest.mark.tshark
 @pytest.mark.parametrize("runner", RUNNERS, ids=lambda r: r.version)
 def test_an_unknown_packet_id_is_shown_alike_by_both_engines(runner, tmp_path):
     """The tshark engine took the ID from tshark's text, which drops or escapes bytes that are no

@@ -524,13 +524,14 @@ class FastEngine:
         n = len(payload)
         fields = decode(payload, variant, order)
         problems = list(fields["problems"])
-        if n >= C.OVERHEAD:
+        cut = frame in reader.snap_truncated
+        if n >= C.OVERHEAD and not cut:          # (a packet the capture cut has no whole CRC to check)
             got.crc_checked += 1
             end = min(C.PREFIX_LEN + fields["size"], n - C.CRC_LEN)
             # (valid under the chosen one: counted for it only, as on the hot path)
             matches = crc_matches(payload, end)
             got.crc_counts.update({(variant, order)} if (variant, order) in matches else matches)
-        if frame in reader.snap_truncated:
+        if cut:
             problems = [TRUNCATED]       # the capture cut it: nothing else can be judged
         if problems:
             got.add_illegal(frame, ts, address(src, sport), fields.get("type", ""), problems)
