@@ -201,6 +201,9 @@ _PCAPNG: dict[str, tuple[Blocks, int]] = {
     "bytes after the end of options": (_options_of(3, _option(0, b"") + struct.pack("<HH", 1, 200)), 3),
     "an option past its block": (_options_of(3, struct.pack("<HH", 1, 100) + b"abcd"), 1),
     "packet flags of 2 bytes": (_options_of(3, _option(2, b"\x01\x00")), 1),
+    "a captured length one byte past the padded data": (
+        lambda blocks: blocks[:3] + [blocks[3][:20] + struct.pack("<I", struct.unpack_from("<I", blocks[3], 20)[0] + 1)
+                                     + blocks[3][24:]] + blocks[4:], 1),
     "an XDP verdict of 5 bytes": (_options_of(3, _option(7, b"\x02abcd")), 1),
     "a hardware verdict of 5 bytes": (_options_of(3, _option(7, b"\x00abcd")), 3),
     "an interface's time resolution of 2 bytes (ignored)": (_options_of(1, _option(9, b"\x09\x00")), 3),

@@ -443,7 +443,7 @@ class CaptureReader:
             incl = struct.unpack_from(e + "I", data, pos + 20)[0]
             if iface >= len(self.interfaces):
                 return f"packet block at byte {{at}} (interface {iface}; its section has {len(self.interfaces)})"
-            if incl > blen - 28:
+            if (incl + 3) & ~3 > blen - 32:      # (the data, padded, and the trailing length)
                 return f"packet block at byte {{at}} (captured length {incl} in a {blen}-byte block)"
         elif btype == PCAPNG_SPB and blen >= _LEAST_BLOCK[btype]:
             if not self.interfaces:
