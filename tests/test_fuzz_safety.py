@@ -182,6 +182,19 @@ def test_allow_remote_sends_to_a_non_loopback_address_inside_a_namespace(netns, 
     assert broadcast.returncode == 2 and "broadcast address" in one_line(broadcast.stderr)
 
 
+def test_a_unicast_listen_port_in_use_is_refused():
+    """The fuzzer bound its --listen port with SO_REUSEADDR, so a second process on it (another
+    fuzz run, a simulator) shared the port silently and took the controller's packets: 'no VRPO
+    from the controller', one possible cause of a CI run's failure), or findings judged on half
+    the traffic."""
+    [port] = free_ports(1)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as other:
+        other.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        other.bind(("127.0.0.1", port))
+        with pytest.raises(CliError, match=f"cannot listen on 127.0.0.1:{port}: Address already in use"):
+            Link(("127.0.0.1", 5825), ("127.0.0.1", port))
+
+
 # --- replay: the finding is data ---------------------------------------------------------------------
 def a_finding(**changes: Any) -> dict[str, Any]:
     packet = mutate.build(C.PacketType.VRCI, 5, mutate.default_fields(C.PacketType.VRCI, 7))

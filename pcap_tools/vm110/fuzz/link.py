@@ -39,7 +39,10 @@ class Link:
         self.target = target
         self.sock = sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            # (a group's port is shared with the group's other listeners; a unicast one is ours
+            # alone: another process bound to it would silently take the controller's packets)
+            if group is not None:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _RCVBUF)
             sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, C.MULTICAST_TTL)
             if hasattr(socket, "SO_TIMESTAMPNS"):
