@@ -263,6 +263,21 @@ def test_metadata_from_path_and_sidecar(tmp_path):
             MetaPattern(bad_pattern)
 
 
+def test_a_meta_pattern_that_matches_no_capture_path_is_said(src, tmp_path):
+    """A --meta pattern that matched none of a build's captures (a typo) left every site and
+    machine empty without a word (trial)."""
+    dataset = tmp_path / "ds"
+    result = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "1", "--meta", "site/{site}/{machine}.pcap")
+    assert result.returncode == 0, result.stderr
+    [line] = result.stderr.splitlines()
+    assert line.startswith(f"vm110 fleet: --meta 'site/{{site}}/{{machine}}.pcap' does not match the path of "
+                           f"{len(NAMES)} of {len(NAMES)} captures (the first: {src}/")
+    assert "their site, machine are empty unless a sidecar gives them" in line
+    assert {r["site"] for r in rows(dataset)} == {None}
+    again = vm110("fleet", "build", str(src), "--out", str(tmp_path / "ds2"), "-j", "1", "--meta", "{machine}.pcap*")
+    assert again.returncode == 0 and again.stderr == "", again.stderr
+
+
 def test_meta_pattern_may_not_shadow_a_column(src, tmp_path):
     """A --meta field named after a column is a usage error, before anything is written (a
     sidecar's is its capture's error row: test_bad_sidecars_are_error_rows_and_the_build_goes_on)."""

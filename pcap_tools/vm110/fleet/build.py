@@ -31,6 +31,7 @@ class Outcome:
     replaced: int = 0
     damaged: list[str] = field(default_factory=list)
     unreadable: list[str] = field(default_factory=list)
+    unmatched: list[str] = field(default_factory=list)     # captures whose path --meta does not match
 
 
 def fingerprint(settings: Settings) -> dict:
@@ -83,7 +84,10 @@ def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern
     if not dataset.exists():
         dataset.check_new()
     with dataset.lock():
-        return _build(dataset, wanted, settings, engine, jobs, scheduler, progress)
+        outcome = _build(dataset, wanted, settings, engine, jobs, scheduler, progress)
+    if pattern is not None:
+        outcome.unmatched = [s.path for s in wanted if pattern.fields(s.path) is None]
+    return outcome
 
 
 def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: str, jobs: int,
