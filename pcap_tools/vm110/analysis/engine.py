@@ -414,7 +414,7 @@ class FastEngine:
                     break
                 pos = p + blen
                 # (an EPB with options, which wiretap checks, takes the general path)
-                if btype == epb and et is not None and iface < len(ifaces) and blen == epb_head + 4 + (incl + 3 & -4):
+                if btype == epb and et is not None and iface < len(ifaces) and blen == epb_head + 4 + ((incl + 3) & -4):
                     link, div, scale, tsoff, eth = ifaces[iface]
                     frame += 1
                     ticks = (tsh << 32) | tsl

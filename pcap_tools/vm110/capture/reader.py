@@ -98,6 +98,11 @@ class CaptureError(CliError):
     """The file cannot be read as a capture."""
 
 
+def padded(n: int) -> int:
+    """`n` bytes of a pcapng block's field, padded to its 4-byte unit."""
+    return (n + 3) & ~3
+
+
 class CaptureReader:
     """One capture file; iterate it (or its `batches()`) once. A walk closes the file when it
     ends; use the reader as a context manager (`with CaptureReader(path) as reader:`) so that the
@@ -386,14 +391,14 @@ class CaptureReader:
         fixed = _OPTIONS_AT.get(btype)
         options = None if fixed is None else pos + fixed
         if btype in (PCAPNG_EPB, PCAPNG_PB):
-            options = pos + 28 + ((struct.unpack_from(e + "I", data, pos + 20)[0] + 3) & ~3)
+            options = pos + 28 + padded(struct.unpack_from(e + "I", data, pos + 20)[0])
         elif btype == PCAPNG_NRB:
             options, problem = self._nrb_records(data, pos + 8, end)
             if problem is not None:
                 return f"block at byte {{at}} ({problem})"
         elif btype == PCAPNG_DSB:
             secrets = struct.unpack_from(e + "I", data, pos + 12)[0]
-            if (secrets + 3) & ~3 > blen - 20:
+            if padded(secrets) > blen - 20:
                 return f"block at byte {{at}} (decryption secrets of {secrets} bytes in a {blen}-byte block)"
         if options is None:
             return None
@@ -406,13 +411,13 @@ class CaptureReader:
         while pos + 4 <= end:
             kind, length = struct.unpack_from(e + "HH", data, pos)
             pos += 4
-            if (length + 3) & ~3 > end - pos:
+            if padded(length) > end - pos:
                 return pos, f"name resolution record of {length} bytes past the block's end"
             if kind == 0:
                 return pos, None
             if length < _NRB_ADDRESS.get(kind, 0):
                 return pos, f"name resolution record of type {kind} of {length} bytes"
-            pos += (length + 3) & ~3
+            pos += padded(length)
         return end, None
 
     def _option_problem(self, data: bytes, pos: int, end: int, btype: int) -> Optional[str]:
@@ -433,7 +438,7 @@ class CaptureReader:
                     return f"packet block option {code} of {length} bytes"
             elif btype == PCAPNG_IDB and code == _IDB_FILTER and not length:
                 return "an empty interface filter option"
-            pos += (length + 3) & ~3
+            pos += padded(length)
         return None
 
     def _packet_problem(self, data: bytes, pos: int, btype: int, blen: int) -> Optional[str]:
@@ -443,7 +448,7 @@ class CaptureReader:
             incl = struct.unpack_from(e + "I", data, pos + 20)[0]
             if iface >= len(self.interfaces):
                 return f"packet block at byte {{at}} (interface {iface}; its section has {len(self.interfaces)})"
-            if (incl + 3) & ~3 > blen - 32:      # (the data, padded, and the trailing length)
+            if padded(incl) > blen - 32:      # (the data, padded, and the trailing length)
                 return f"packet block at byte {{at}} (captured length {incl} in a {blen}-byte block)"
         elif btype == PCAPNG_SPB and blen >= _LEAST_BLOCK[btype]:
             if not self.interfaces:
@@ -451,7 +456,7 @@ class CaptureReader:
             # wiretap reads min(length, snaplen) bytes of data, padded, then the trailing length.
             orig = struct.unpack_from(e + "I", data, pos + 8)[0]
             incl = min(orig, self.spb_snaplen or orig)
-            if (incl + 3) & ~3 != blen - 16:
+            if padded(incl) != blen - 16:
                 return f"packet block at byte {{at}} ({incl} bytes of packet data in a {blen}-byte simple packet block)"
         return None
 
@@ -534,7 +539,7 @@ class CaptureReader:
         while pos + 4 <= end:
             code, length = struct.unpack_from(e + "HH", data, pos)
             value = data[pos + 4:pos + 4 + length]
-            pos += 4 + (length + 3) // 4 * 4
+            pos += 4 + padded(length)
             if code == OPT_END:
                 break
             if code == OPT_TSRESOL and length == 1:     # (wiretap ignores one of another length)
