@@ -2,7 +2,9 @@
 core_pattern as a glob, the supervisor's output ring (one per start)."""
 from __future__ import annotations
 
+import os
 import signal
+import subprocess
 import sys
 import time
 
@@ -139,6 +141,51 @@ def test_output_ring_is_per_start_and_bounded(tmp_path):
     sup.proc.wait(10)
     assert set(sup.output()) == {ord("B")}, "the second start's output only"
     sup.stop()
+
+
+_STARTS_UNDER_SIGTERM = """
+import os, random, signal, sys, threading, time
+from vm110.fuzz.supervisor import Supervisor
+
+def interrupt(signum, frame):
+    raise KeyboardInterrupt   # as the fuzz command's handler does
+
+signal.signal(signal.SIGTERM, interrupt)
+sup, interrupted = Supervisor(sys.argv[1]), 0
+for _ in range(int(sys.argv[2])):
+    timer = threading.Timer(random.uniform(0.0001, 0.004), os.kill, (os.getpid(), signal.SIGTERM))
+    try:
+        timer.start()
+        sup.start()
+        time.sleep(0.01)
+    except KeyboardInterrupt:
+        interrupted += 1
+    timer.join()
+    sup.stop()
+print(interrupted)
+"""
+
+
+def test_sigterm_while_the_controller_starts_leaves_no_controller_running(tmp_path):
+    """A KeyboardInterrupt raised inside Popen after the fork left the controller running, its pid
+    lost with the Popen (CI: an ASan controller of test_fuzz_targets outlived its run). SIGTERM at
+    random moments of 200 starts: each still interrupts, no controller is left."""
+    command = f"sleep {time.time_ns() % 10**9}.5"
+    run = subprocess.run([sys.executable, "-c", _STARTS_UNDER_SIGTERM, command, "200"], capture_output=True,
+                         text=True, timeout=120, cwd=tmp_path)
+    left = [pid for pid in os.listdir("/proc") if pid.isdigit() and _cmdline(pid) == command.split()]
+    for pid in left:
+        os.kill(int(pid), signal.SIGKILL)
+    assert run.returncode == 0 and run.stdout.split() == ["200"], run.stdout + run.stderr
+    assert left == []
+
+
+def _cmdline(pid: str) -> list[str]:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().decode(errors="replace").split("\0")[:-1]
+    except OSError:
+        return []
 
 
 def test_sanitizer_defaults_unless_the_user_set_them(monkeypatch, tmp_path):

@@ -4,6 +4,7 @@ report and its core file."""
 from __future__ import annotations
 
 import collections
+import contextlib
 import os
 import resource
 import shlex
@@ -13,7 +14,7 @@ import subprocess
 import threading
 import time
 from pathlib import Path
-from typing import IO, Optional
+from typing import IO, Iterator, Optional
 
 from ..errors import CliError
 from . import cores
@@ -33,6 +34,26 @@ SANITIZER_DEFAULTS = {
     "UBSAN_OPTIONS": "abort_on_error=1:halt_on_error=1:print_stacktrace=1:symbolize=1",
     "LSAN_OPTIONS": "symbolize=1",
 }
+
+
+@contextlib.contextmanager
+def _interrupts_deferred() -> Iterator[None]:
+    """Ctrl-C and SIGTERM wait until the block ends. A KeyboardInterrupt raised inside Popen after
+    the fork left the controller running with nobody holding its pid (in its own session, so
+    nothing else stops it either). Only the main thread can change handlers or receive signals."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    held = (signal.SIGINT, signal.SIGTERM)
+    before = {signum: signal.signal(signum, lambda signum, frame: caught.append(signum)) for signum in held}
+    try:
+        yield
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
+        for pending in caught:
+            signal.raise_signal(pending)
 
 
 class _Ring:
@@ -96,9 +117,10 @@ class Supervisor:
         self.ring = _Ring()
         self._check_program()
         try:
-            self.proc = subprocess.Popen(self._with_core_limit(), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                         stderr=subprocess.STDOUT, start_new_session=True, env=self.environment(),
-                                         cwd=self.cwd)
+            with _interrupts_deferred():
+                self.proc = subprocess.Popen(self._with_core_limit(), stdin=subprocess.DEVNULL,
+                                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True,
+                                             env=self.environment(), cwd=self.cwd)
         except OSError as exc:
             raise CliError(f"cannot start --target-cmd {self.argv[0]!r}: {exc.strerror}") from None
         self.started_at = time.time()
