@@ -203,7 +203,9 @@ def test_a_scapy_session_imports_lists_and_sniffs(tmp_path):
     count, joystick, state = lines["ls"].split()
     assert int(count) == len(VRPI.fields_desc) and joystick == state == "True"
     # sniff() on a capture dissects EG-Link by port (the binding the import made), with summaries
-    assert lines["sniffed"] == "VM110 / VRPI Armed armed_ru=0xc07 Enabled|VM110 / VRAO command_id=17"
+    # that carry each packet's serial (scapy shows the top layer's only; the serial was lost)
+    assert lines["sniffed"] == ("VM110 / VRPI serial=7 Armed armed_ru=0xc07 Enabled|"
+                                "VM110 / VRAO serial=1 command_id=17")
 
 
 def test_vm110_fills_in_size_and_crc():

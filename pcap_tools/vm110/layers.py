@@ -220,6 +220,12 @@ class _Payload(Packet):
             self.fields[f.name] = None
         return rest
 
+    def _summary(self, text: str) -> str:
+        """`text` after the type and the header's serial: scapy shows only the top layer's summary,
+        and the serial is what a capture's packets are followed by."""
+        serial = f" serial={self.underlayer.serial}" if isinstance(self.underlayer, VM110) else ""
+        return f"{self.ptype.value}{serial} {text}"
+
 
 class _CommandPair(_Payload):
     """Commands and their acknowledgements pair up by command ID (TS-0006 4.3 to 4.6)."""
@@ -230,7 +236,7 @@ class _CommandPair(_Payload):
         return self.pair + struct.pack("<H", self.command_id)
 
     def mysummary(self) -> str:
-        return self.sprintf(f"{self.__class__.__name__} command_id=%command_id%")
+        return self._summary(self.sprintf("command_id=%command_id%"))
 
 
 class VRPI(_Payload):
@@ -239,7 +245,7 @@ class VRPI(_Payload):
     fields_desc = fields_of(ptype)
 
     def mysummary(self) -> str:
-        return self.sprintf("VRPI %bu_state% armed_ru=%armed_ru% %ru_state%")
+        return self._summary(self.sprintf("%bu_state% armed_ru=%armed_ru% %ru_state%"))
 
 
 class VRPO(_Payload):
@@ -248,7 +254,7 @@ class VRPO(_Payload):
     fields_desc = fields_of(ptype)
 
     def mysummary(self) -> str:
-        return self.sprintf("VRPO #%packet_number%") + f" {len(self.periodic_data)} bytes"
+        return self._summary(self.sprintf("#%packet_number%") + f" {len(self.periodic_data)} bytes")
 
 
 class VRCI(_CommandPair):
