@@ -912,7 +912,7 @@ local WS = { raw = Tvb.raw, offset = Tvb.offset, number = false }
 function WS.init(pinfo)
     local mt = getmetatable(pinfo)
     local getters = type(mt) == "table" and rawget(mt, "__getters")
-    for _, name in ipairs({ "number", "abs_ts", "src_port", "src", "visited" }) do
+    for _, name in ipairs({ "number", "abs_ts", "src_port", "src", "visited", "in_error_pkt" }) do
         local f = type(getters) == "table" and rawget(getters, name)
         WS[name] = type(f) == "function" and f or function(p) return p[name] end
     end
@@ -1421,7 +1421,8 @@ local crc_memo = new_memo()
 -- restart candidate confirmed or not by its counter's next packet, a command interrupted by a
 -- restart or never acknowledged, an incomplete burst, a stream silent until the end) are final
 -- once the whole capture has been seen: finalize() runs before the first visited dissection,
--- and they are shown on visited passes only. Illegal packets are not analysed (not received).
+-- and they are shown on visited passes only. Illegal packets are not analysed (not received), nor
+-- is a datagram quoted in an ICMP error.
 -- All state is rebuilt in init().
 ---------------------------------------------------------------------------------------------
 local results = new_memo() -- frame -> analysis of that packet (false: not analysed)
@@ -2323,7 +2324,8 @@ local function dissect(tvb, pinfo, tree)
     if settings.analysis then
         if not visited then -- (tshark -2 -R gives a frame the read filter drops the number of the next one it keeps)
             res = false
-            if legal then
+            -- (a datagram quoted in an ICMP error was not received: analyze reads no ICMP either)
+            if legal and not WS.in_error_pkt(pinfo) then
                 res = analyse(r, s, pinfo, number, offset)
             else -- (not analysed, but the capture's last record so far)
                 note_record(number, WS.abs_ts(pinfo))
@@ -2343,7 +2345,8 @@ local function dissect(tvb, pinfo, tree)
             add_analysis(res, r, tvb, pinfo, tree, analysis_tree(tvb, root, r))
         end
         if found.n > 0 then show_findings(r, tvb, root, pinfo) end
-        found.r, found.number, found.offset = r, number, offset -- (for the statistics with a filter)
+        -- (for the statistics with a filter: an analysed packet's record)
+        found.r, found.number, found.offset = res and r, number, offset
     end
     return r.n
 end
@@ -2471,7 +2474,7 @@ function filtered_stats.new(filter)
     local tap = Listener.new("frame", filtered_stats.tap_filter(filter))
     function tap.packet(pinfo)
         local r = found.r
-        if not r or found.number ~= pinfo.number or not r.info or r.problems ~= EMPTY then return end
+        if not r or found.number ~= pinfo.number then return end
         local list = acc.list
         list[#list + 1] = { fmt("%s %s:%d origin 0x%04x", r.info.direction, tostring(pinfo.src), pinfo.src_port,
             r.origin), r.type, found.number, found.offset }

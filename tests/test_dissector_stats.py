@@ -334,6 +334,38 @@ def test_ipv6_senders_are_named_as_analyze_names_them(tshark, tmp_path):
     assert list(got) == [s["id"] for s in report["senders"]] == ["Output [fd00::2]:5827 origin 0x0000"]
 
 
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_a_datagram_quoted_in_an_icmp_error_was_not_received(tshark, tmp_path):
+    """A controller's VRPO to a base unit whose port is closed comes back quoted in an ICMP port
+    unreachable. Wireshark dissects the quote, but it is no packet received (`vm110 analyze` reads
+    no ICMP): it counts nowhere, with or without a filter, and is no finding (trial: each quote was
+    a [Duplicate] of its VRPO, VRPO 22 and duplicates 2 where analyze counts 20 and 0)."""
+    from scapy.layers.inet import ICMP
+    from scapy.layers.l2 import Ether
+    from vm110.encode import packet, vrpo_payload
+    frames = []
+    for n in range(20):
+        vrpo = IP(src=T.CONTROLLER_ADDR, dst=T.BU_ADDR) / UDP(sport=5827, dport=5827) / packet(
+            "VRPO", vrpo_payload(0, b"x" * 64), serial=n)
+        frames.append(Ether() / vrpo)
+        if n in (5, 12):
+            frames.append(Ether() / IP(src=T.BU_ADDR, dst=T.CONTROLLER_ADDR) / ICMP(type=3, code=3) / vrpo)
+    for n, frame in enumerate(frames):
+        frame.time = 1_750_000_000 + n / 20
+    got, report = _stat_and_report(tshark, tmp_path, frames)
+    sender = f"Output {T.CONTROLLER_ADDR}:5827 origin 0x0000"
+    assert [s["id"] for s in report["senders"]] == [sender] and report["senders"][0]["by_type"] == {"VRPO": 20}
+    assert got[sender]["by_type"] == {"VRPO": 20} and got[sender]["serial"]["duplicates"] == 0
+    with tshark.workspace(tmp_path / "icmp") as ws:
+        capture = ws.dir / "icmp.pcap"
+        wrpcap(str(capture), frames)
+        assert parse(ws.run(["-r", str(capture), "-q", "-z", "vm110,stat,vm110"]).stdout)[sender]["by_type"] == \
+            {"VRPO": 20}
+        assert ws.run(["-r", str(capture), "-2", "-Y", "vm110.analysis.flags || icmp && vm110.analysis.interval"]).stdout == ""
+        quoted = ws.run(["-r", str(capture), "-2", "-Y", "icmp && vm110", "-T", "fields", "-e", "vm110.serial"])
+        assert quoted.stdout.split() == ["5", "12"]    # (still decoded)
+
+
 def _stat_and_report(tshark: T.Tshark, tmp_path: Path, packets: list) -> tuple[dict, dict]:
     """`-z vm110,stat` (parsed) and `vm110 analyze`'s report of the packets written as a pcap."""
     from vm110.analysis import analyze
