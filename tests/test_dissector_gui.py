@@ -200,6 +200,30 @@ def test_profile_filters_compile(ws):
                 f"{source}: {expression!r} matches nothing in {sorted(pcaps)}"
 
 
+def test_profile_illegal_filters_select_the_illegal_packets(ws):
+    """The Illegal button, and the colouring rules for bad CRCs and illegal packets, select the
+    packets `vm110 analyze` counts illegal, an empty datagram on an EG-Link port among them (the
+    README's `truncated`; Wireshark calls no dissector for it, "UDP Len=0"). Trial: the button
+    showed none of them, while analyze counted each one illegal."""
+    from vm110 import encode
+    from vm110.analysis import analyze
+    vrpi = [encode.encode({"type": "VRPI", "serial": n, "origin": 0x0101}) for n in range(6)]
+    bad_crc = encode.packet("VRPO", b"\0\0", serial=0, crc=0)
+    datagrams = [vrpi[0], T.Datagram(b""), vrpi[1], bad_crc, vrpi[2], T.Datagram(b"", sport=5827, dport=5827),
+                 vrpi[3], T.Datagram(b"", sport=6000, dport=6000), vrpi[4], vrpi[5]]
+    capture = ws.dir / "empty.pcap"
+    T.write_pcap(capture, datagrams, [n * 125_000 for n in range(len(datagrams))])
+    [illegal] = [f for f in analyze(str(capture))["verdict"]["findings"] if f["rule"] == "illegal"]
+    want = sorted(i["frame"] for i in illegal["items"])
+    assert want == [2, 4, 6]
+    filters = dict(profile_filters())
+    colour = f"({filters['colorfilters VM-110 bad CRC']}) || ({filters['colorfilters VM-110 illegal packet']})"
+    for expression in (filters["button Illegal"], colour):
+        proc = ws.run(["-r", str(capture), "-2", *T.pref_args(ON), "-Y", expression, "-T", "fields",
+                       "-e", "frame.number"])
+        assert [int(n) for n in proc.stdout.split()] == want, expression
+
+
 def test_profile_loads(ws):
     """`-C VM-110` with the profile in the personal configuration folder: the packet list has its
     columns (type, serial, command ID, interval) and the Info column its markers."""
