@@ -586,7 +586,7 @@ end
 -- could dissect another packet) has run.
 -- The record is one table, reused (a table of 24 keys per packet was garbage that the collector
 -- had to sweep: the largest allocation per packet): valid until the next packet is decoded.
--- sub_dissect() puts a new one in place before a machine sub-dissector runs (which could
+-- machine_data.dissect() puts a new one in place before a machine sub-dissector runs (which could
 -- dissect another packet while the caller still reads its own).
 local function new_record()
     return { n = 0, problems = EMPTY, fieldwarn = EMPTY, values = EMPTY, type = false, info = false,
@@ -2051,12 +2051,27 @@ local function table_named(name, description)
     if ok and t then return t end
     return DissectorTable.new(name, description, ftypes.STRING)
 end
-local periodic_table = table_named("vm110.periodic_data", "VM-110 periodic data (machine-specific)")
-local command_table = table_named("vm110.command_data", "VM-110 command data (machine-specific)")
+local machine_data = { -- (a table: the main chunk may have at most 200 locals)
+    periodic = table_named("vm110.periodic_data", "VM-110 periodic data (machine-specific)"),
+    command = table_named("vm110.command_data", "VM-110 command data (machine-specific)"),
+}
 
-local function sub_dissect(table_, data_tvb, pinfo, tree)
+function machine_data.dissect(table_, data_tvb, pinfo, tree)
     record = new_record() -- (the caller's record stays its own: see decode())
     table_:try(settings.machine, data_tvb, pinfo, tree)
+end
+
+-- What a packet carries alone: its command data, or its periodic data (when the caller knows them
+-- to be a whole burst).
+function machine_data.own(r, tvb, pinfo, tree)
+    if r.values.command_data then
+        pinfo.private.vm110_type = r.type
+        local data = FIELDS.command_data
+        machine_data.dissect(machine_data.command, range(tvb, data.off, data[2]):tvb(), pinfo, tree)
+    elseif r.data_len > 0 then
+        local data_tvb = range(tvb, PREFIX_LEN + VRPO_HEADER_SIZE, r.data_len):tvb()
+        machine_data.dissect(machine_data.periodic, data_tvb, pinfo, tree)
+    end
 end
 
 -- Expert summaries are constant (Wireshark's expert statistics group by them): the numbers are
@@ -2227,7 +2242,7 @@ local function add_burst(res, tvb, root, pinfo, tree, visited)
         local data = burst.data(b)
         local data_tvb = ByteArray.new(data, true):tvb("Reassembled periodic data")
         if want.reassembled then tree_add(bt, F.reassembled, tvb_range(data_tvb, 0, #data)) end
-        if machine then sub_dissect(periodic_table, data_tvb, pinfo, tree) end
+        if machine then machine_data.dissect(machine_data.periodic, data_tvb, pinfo, tree) end
     end
 end
 
@@ -2237,9 +2252,7 @@ local function add_single_burst(r, need, tvb, root, pinfo, tree, visited)
     local number, size, start = r.values.packet_number, r.data_len, settings.number_start
     if burst.alone(number, size, need) then
         generated(root, "burst_complete", tvb, NUMBER_OFF, NUMBER_LEN, true)
-        if size > 0 and settings.machine ~= "" then
-            sub_dissect(periodic_table, range(tvb, PREFIX_LEN + VRPO_HEADER_SIZE, size):tvb(), pinfo, tree)
-        end
+        if settings.machine ~= "" then machine_data.own(r, tvb, pinfo, tree) end
         return
     end
     if number > start then
@@ -2275,11 +2288,7 @@ local function add_analysis(res, r, tvb, pinfo, tree, root)
         if bi then add_burst_interval(bi, tvb, root) end
         add_single_burst(r, res.need, tvb, root, pinfo, tree, visited)
     end
-    if r.values.command_data and settings.machine ~= "" then
-        pinfo.private.vm110_type = r.type
-        local data = FIELDS.command_data
-        sub_dissect(command_table, range(tvb, data.off, data[2]):tvb(), pinfo, tree)
-    end
+    if r.values.command_data and settings.machine ~= "" then machine_data.own(r, tvb, pinfo, tree) end
 end
 
 function vm110.init()
@@ -2347,6 +2356,11 @@ local function dissect(tvb, pinfo, tree)
         if found.n > 0 then show_findings(r, tvb, root, pinfo) end
         -- (for the statistics with a filter: an analysed packet's record)
         found.r, found.number, found.offset = res and r, number, offset
+    elseif legal and settings.machine ~= "" then -- (no reassembly: what a packet carries alone)
+        local v = r.values
+        if v.command_data or r.data_len and burst.alone(v.packet_number, r.data_len) then
+            machine_data.own(r, tvb, pinfo, tree)
+        end
     end
     return r.n
 end
