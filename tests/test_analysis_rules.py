@@ -280,6 +280,19 @@ def test_copies_of_an_undecided_candidate_cost_no_memory(tmp_path):
     assert ser["restart_events"][0]["frame"] == 9 and report["periodic"][0]["count"] == 11
 
 
+def test_a_long_command_acked_late_is_a_report_its_schema_admits(tmp_path):
+    """A VRCI resent 70 times, then acknowledged: its `failed` item's filter is the narrowed range
+    in parentheses, then `|| frame.number == <ack>` (docs/report.md), which the schema's filter
+    pattern refused: the report did not validate against `vm110 analyze --schema` (trial)."""
+    tr = Traffic()
+    for k in range(70):
+        tr.add(k * 0.1, payload(VRCI, k, BU_ORIGIN, command_id=7))
+    ack = tr.add(7.0, payload(VRAO, 0, command_id=7), src=CTRL, sport=OUT)
+    [item] = _finding(_report(tr, tmp_path), "failed")["items"]     # conftest holds it to the schema
+    assert item["filter"].startswith("(frame.number >= 1 && frame.number <= 70 && ")
+    assert item["filter"].endswith(f") || frame.number == {ack}")
+
+
 def test_a_watchdog_item_says_its_frame_ends_the_silence(tmp_path):
     """The item names the packet after the silence and the time the silence began: "frame 9 at
     +1.000 s" read as one event, and frame 9 is at +3.5 s (trials, twice)."""
