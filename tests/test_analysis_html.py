@@ -142,3 +142,19 @@ def test_a_vrpo_stream_without_a_nominal_period_still_renders(tmp_path):
     assert vrpo.get("nominal_ms") is None and len(vrpo["plot"]["histogram"]) >= 2
     page = report_html.render([report])
     assert "watchdog 2000 ms" in page and "nominal None" not in page
+
+
+def test_a_watchdog_row_says_its_frame_ends_the_silence(tmp_path):
+    """The findings table put a watchdog item's frame (the packet after the silence) beside the time
+    the silence began, `10 | +1.000000`, and frame 10 is at +3.5 s (trial: the terminal summary said
+    "ends a silence from", the HTML did not)."""
+    from test_analysis_craft import Traffic, vrpi
+    tr = Traffic()
+    for k, t in enumerate([i * 0.125 for i in range(9)] + [3.5 + i * 0.125 for i in range(8)]):
+        tr.add(t, vrpi(k))
+    tr.write(tmp_path / "silence.pcap")
+    tables = Tables()
+    tables.feed(report_html.render([analyze(str(tmp_path / "silence.pcap"))]))
+    header, *rows = next(t for t in tables.tables if t[0][:3] == ["finding", "frames", "time (s)"])
+    [row] = [dict(zip(header, r)) for r in rows if r[0] == "watchdog"]
+    assert (row["frames"], row["time (s)"]) == ("10", "silence from +1.000000")

@@ -456,9 +456,11 @@ def _findings_table(findings: list[dict], t0: float) -> str:
                              if k not in ("frame", "frames", "time", "sender", "filter")
                              and v is not None and v is not False)
             frames = item.get("frames", [item["frame"]])
+            # A watchdog item names the packet that ended the silence, and the time the silence began.
+            when = ("silence from " if item.get("until_end") is False else "") + since(item["time"], t0)
             rows.append(f'<tr><td class="{_e(f["severity"])}">{_e(f["rule"])}</td>'
                         f"<td>{_e(', '.join(map(str, frames[:10])) + (' …' if len(frames) > 10 else ''))}</td>"
-                        f"<td>{since(item['time'], t0)}</td><td>{_e(item.get('sender', ''))}</td>"
+                        f"<td>{when}</td><td>{_e(item.get('sender', ''))}</td>"
                         f"<td>{_e(what)}</td>"
                         f'<td><code class="filter">{_e(item["filter"])}</code></td></tr>')
         if f.get("more"):
