@@ -128,6 +128,24 @@ def test_finding_items_keep_seconds_to_the_ms(capsys, tmp_path):
     assert finding["items"][0]["duration_s"] == pytest.approx(0.237654, abs=1e-6)
 
 
+def test_relays_still_open_at_the_end_say_so(capsys, tmp_path):
+    """The BU stops at 0.5 s and is still stopped when the capture ends at 0.875 s (spec 4.1.1: the
+    relays are open below 0x10). Its item and its relays line said "duration_s 0.375" and "for
+    0.375 s", read as relays that closed again (trial); the JSON knew (`open_at_end`), they did not."""
+    times = list(range(0, 1_000_000, 125_000))
+    T.write_pcap(tmp_path / "stopped.pcap", [bytes(VM110(origin=0x0101, serial=i) / VRPI(
+        bu_state=0x01 if t >= 500_000 else 0x11, armed_ru=0x0C07, ru_state=4 if t >= 500_000 else 3))
+        for i, t in enumerate(times)], times)
+    out = vm110(capsys, "analyze", str(tmp_path / "stopped.pcap"), "--json", str(tmp_path / "r.json"))
+    item = next(line for line in out.splitlines() if "duration_s" in line)
+    relays = next(line for line in out.splitlines() if line.startswith("ES-Link relays open"))
+    assert "duration_s 0.375, open_at_end True " in item, item
+    assert relays.endswith("for 0.375 s Stopped, still open at the end"), relays
+    (finding,) = [f for f in json.loads((tmp_path / "r.json").read_text())["verdict"]["findings"]
+                  if f["rule"] == "relays_open"]
+    assert finding["items"][0]["open_at_end"] is True
+
+
 def test_restart_s_relays_duration_reads_the_same_twice(capsys):
     """The trial's case: restart.pcapng's one relays-open episode, in its finding and its section."""
     out = vm110(capsys, "analyze", str(CAPTURES / "restart.pcapng")).splitlines()

@@ -201,7 +201,7 @@ def locate_report(report: dict, tallies: dict[int, Tally], located: Located) -> 
     for st in report["state"]:
         for e in st["episodes_relays_open"]:
             where.add("relays_open", e["frame"], e["start"], st["sender"], duration_s=e["duration_s"],
-                      states=e["states"])
+                      states=e["states"], open_at_end=e["open_at_end"])
 
 
 def totals(report: dict) -> dict:

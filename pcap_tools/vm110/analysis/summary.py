@@ -26,7 +26,8 @@ def open_gaps(gaps: list[dict]) -> int:
 
 SHOWN_ITEMS = 3           # located items printed per finding without --list
 _ITEM_KEYS = ("sender", "type", "command_id", "serial", "after", "count", "late", "from", "to", "port_from",
-              "port_to", "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s")
+              "port_to", "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s",
+              "open_at_end")
 
 
 def _value(value: object) -> str:
@@ -123,7 +124,8 @@ def render(report: dict, everything: bool = False) -> str:
         eps = st["episodes_relays_open"]
         if eps:
             lines.append(f"ES-Link relays open ({st['sender']}): " + "; ".join(
-                f"{stamp(e['start'], t0)} for {_f(e['duration_s'], 3)} s {'/'.join(e['states'])}" for e in eps[:5])
+                f"{stamp(e['start'], t0)} for {_f(e['duration_s'], 3)} s {'/'.join(e['states'])}"
+                + (", still open at the end" if e["open_at_end"] else "") for e in eps[:5])
                 + (f" ... {len(eps)} in all" if len(eps) > 5 else ""))
     return "\n".join(lines)
 
