@@ -46,14 +46,16 @@ def test_engines_agree_on_bundled_captures(capture):
     assert_same(str(capture))
 
 
-@pytest.mark.parametrize("wrap", ["sll2-vlan", "ipv6-atomic-fragment", "port-7000"])
+@pytest.mark.parametrize("wrap", ["sll2-vlan", "ipv6-atomic-fragment", "port-7000", "radiotap"])
 def test_engines_agree_on_unusual_wrappings(wrap, tmp_path):
     """The bundled traffic as a cooked capture of a tagged interface, over IPv6 in atomic fragments
-    (RFC 6946: whole datagrams), and on ports 7000/7002, which Wireshark gives to AFS: the reader
-    found no EG-Link packet in the first two, the tshark engine only some in the third."""
+    (RFC 6946: whole datagrams), on ports 7000/7002, which Wireshark gives to AFS, and over the air
+    (802.11 QoS data with radiotap: TS-0006 5.3, G-Link is WiFi): the reader found no EG-Link
+    packet in the first two and the last, the tshark engine only some in the third."""
+    from scapy.layers.dot11 import Dot11, Dot11QoS, RadioTap
     from scapy.layers.inet import IP, UDP
     from scapy.layers.inet6 import IPv6, IPv6ExtHdrFragment
-    from scapy.layers.l2 import CookedLinuxV2, Dot1Q, Ether
+    from scapy.layers.l2 import LLC, SNAP, CookedLinuxV2, Dot1Q, Ether
     from scapy.utils import rdpcap, wrpcap
     frames = []
     for i, p in enumerate(rdpcap(str(CAPTURES / "normal.pcap"))[:80]):
@@ -61,6 +63,9 @@ def test_engines_agree_on_unusual_wrappings(wrap, tmp_path):
         inner = UDP(sport=udp.sport, dport=udp.dport) / bytes(udp.payload)[:udp.len - 8]
         if wrap == "sll2-vlan":
             f = CookedLinuxV2(proto=0x8100) / Dot1Q(vlan=7) / IP(src=p[IP].src, dst=p[IP].dst) / inner
+        elif wrap == "radiotap":
+            f = (RadioTap() / Dot11(type=2, subtype=8, FCfield=0x02) / Dot11QoS() / LLC(dsap=0xAA, ssap=0xAA, ctrl=3)
+                 / SNAP(code=0x0800) / IP(src=p[IP].src, dst=p[IP].dst) / inner)
         elif wrap == "port-7000":
             inner[UDP].sport, inner[UDP].dport = udp.sport + 1175, udp.dport + 1175
             f = Ether() / IP(src=p[IP].src, dst=p[IP].dst) / inner
@@ -70,7 +75,7 @@ def test_engines_agree_on_unusual_wrappings(wrap, tmp_path):
         f.time = p.time
         frames.append(f)
     path = tmp_path / f"{wrap}.pcap"
-    wrpcap(str(path), frames, linktype=276 if wrap == "sll2-vlan" else 1)
+    wrpcap(str(path), frames, linktype={"sll2-vlan": 276, "radiotap": 127}.get(wrap, 1))
     assert analyze(str(path))["capture"]["eglink_packets"] == 80
     assert_same(str(path))
 

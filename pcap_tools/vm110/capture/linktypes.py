@@ -3,6 +3,8 @@ from __future__ import annotations
 
 LINKTYPE_NULL = 0            # BSD loopback: 4-byte address family in the writer's byte order
 LINKTYPE_ETHERNET = 1
+LINKTYPE_IEEE802_11 = 105    # 802.11 frames without a radio header
+LINKTYPE_IEEE802_11_RADIOTAP = 127
 LINKTYPE_RAW = 101           # raw IPv4 or IPv6, version from the first nibble
 LINKTYPE_LOOP = 108          # OpenBSD loopback: address family in network byte order
 LINKTYPE_LINUX_SLL = 113
@@ -15,6 +17,7 @@ NAMES = {
     LINKTYPE_NULL: "null", LINKTYPE_ETHERNET: "ethernet", LINKTYPE_RAW: "raw",
     LINKTYPE_LOOP: "loop", LINKTYPE_LINUX_SLL: "linux-sll", LINKTYPE_IPV4: "ipv4",
     LINKTYPE_IPV6: "ipv6", LINKTYPE_LINUX_SLL2: "linux-sll2",
+    LINKTYPE_IEEE802_11: "ieee802-11", LINKTYPE_IEEE802_11_RADIOTAP: "radiotap",
     **dict.fromkeys(DLT_RAW_ALIASES, "raw"),
 }
 
@@ -26,6 +29,15 @@ VLAN_TAG_LEN = 4
 SLL_HEADER_LEN = 16
 SLL2_HEADER_LEN = 20
 NULL_HEADER_LEN = 4
+RADIOTAP_MIN_LEN = 8          # version, pad, length, the first presence word
+RADIOTAP_TSFT = 0x1           # presence bits: TSFT (8 bytes, aligned to 8), Flags (1 byte)
+RADIOTAP_FLAGS = 0x2
+RADIOTAP_EXT = 0x80000000     # another presence word follows
+RADIOTAP_DATAPAD = 0x20       # Flags: the 802.11 header is padded to 32 bits
+WLAN_HEADER_LEN = 24          # 802.11 data frame header with three addresses
+LLC_SNAP = b"\xaa\xaa\x03"
+SNAP_OUIS = (b"\x00\x00\x00", b"\x00\x00\xf8")   # RFC 1042, 802.1H bridge tunnel: an EtherType follows
+LLC_SNAP_LEN = 8
 AF_INET = 2
 AF_INET6 = (10, 24, 28, 30)  # Linux, NetBSD/OpenBSD, FreeBSD, macOS
 

@@ -655,6 +655,13 @@ class CaptureReader:
             return 4, pos
         if link == L.LINKTYPE_IPV6:
             return 6, pos
+        if link == L.LINKTYPE_IEEE802_11_RADIOTAP:
+            if pos + L.RADIOTAP_MIN_LEN > end:
+                return None
+            length = struct.unpack_from("<H", data, pos + 2)[0]
+            return self._wlan(data, pos + length, end, self._radiotap_datapad(data, pos, min(end, pos + length)))
+        if link == L.LINKTYPE_IEEE802_11:
+            return self._wlan(data, pos, end, False)
         if link in (L.LINKTYPE_NULL, L.LINKTYPE_LOOP):
             if pos + L.NULL_HEADER_LEN > end:
                 return None
@@ -668,6 +675,40 @@ class CaptureReader:
             return None
         self.unknown_link += 1
         return None
+
+    @staticmethod
+    def _radiotap_datapad(data: bytes, pos: int, end: int) -> bool:
+        """Whether a radiotap header's Flags say the 802.11 header after it is padded to 32 bits."""
+        word = pos + 4
+        present = struct.unpack_from("<I", data, word)[0]
+        while struct.unpack_from("<I", data, word)[0] & L.RADIOTAP_EXT and word + 8 <= end:
+            word += 4
+        if not present & L.RADIOTAP_FLAGS:
+            return False
+        field = word + 4                                  # the fields follow the presence words
+        if present & L.RADIOTAP_TSFT:
+            field = pos + ((field - pos + 7) & ~7) + 8    # aligned to 8 from the header's start
+        return field < end and bool(data[field] & L.RADIOTAP_DATAPAD)
+
+    @classmethod
+    def _wlan(cls, data: bytes, pos: int, end: int, datapad: bool) -> Optional[tuple[int, int]]:
+        """(IP version, offset) in an 802.11 data frame carrying LLC/SNAP (a G-Link capture over the
+        air), as Wireshark reads it without keys: a protected frame, a data frame without a body
+        (null data) and any other frame carry none."""
+        if pos + L.WLAN_HEADER_LEN > end:
+            return None
+        control, flags = data[pos], data[pos + 1]
+        if control & 0x0F != 0x08 or control & 0x40 or flags & 0x40:  # version 0 data; null data; protected
+            return None
+        length = L.WLAN_HEADER_LEN + (6 if flags & 0x03 == 0x03 else 0)   # to and from DS: a fourth address
+        if control & 0x80:                                   # QoS data: QoS control, HT control with Order
+            length += 2 + (4 if flags & 0x80 else 0)
+        if datapad:
+            length = (length + 3) & ~3
+        pos += length
+        if pos + L.LLC_SNAP_LEN > end or data[pos:pos + 3] != L.LLC_SNAP or data[pos + 3:pos + 6] not in L.SNAP_OUIS:
+            return None
+        return cls._ethertype(struct.unpack_from("!H", data, pos + 6)[0], data, pos + L.LLC_SNAP_LEN, end)
 
     @staticmethod
     def _ethertype(et: int, data: bytes, pos: int, end: int) -> Optional[tuple[int, int]]:
