@@ -425,6 +425,26 @@ def test_other_pcap_layouts_through_the_engine(tmp_path, linktype, endian):
     assert (ser["received"], ser["lost"], ser["out_of_order"]) == (8, 2, 4)   # 9 after 2; 4..7 late; 3, 8 lost
 
 
+def test_frames_of_a_link_type_the_reader_does_not_read_are_said(tmp_path):
+    """A site capture in PPI (192, Ethernet inside), which Wireshark and --engine tshark read: the
+    fast engine gave "no EG-Link packets in the capture" and nothing else, read as a dead link
+    (trial). The report now counts the frames it could not read and says which link type."""
+    from scapy.layers.inet import IP, UDP
+    from scapy.layers.l2 import Ether
+    from test_reader import pcap
+    ppi = struct.pack("<BBHI", 0, 0, 8, 1)                        # version, flags, length, DLT Ethernet
+    records = [(1_700_000_000 + i * 0.125, ppi + bytes(Ether() / IP(src="10.0.0.10", dst="239.255.42.20")
+                                                        / UDP(sport=C.INPUT_PORT, dport=C.INPUT_PORT) / vrpi(i)))
+               for i in range(8)]
+    path = tmp_path / "ppi.pcap"
+    path.write_bytes(pcap(records, linktype=192))
+    report = analyze(str(path))
+    assert report["capture"]["unread_frames"] == 8
+    [unread] = [f for f in report["verdict"]["findings"] if f["rule"] == "unread_link_type"]
+    assert (unread["severity"], unread["count"]) == ("warning", 8)
+    assert unread["message"].startswith("8 frames of link type 192 not read") and "--engine tshark" in unread["message"]
+
+
 @pytest.mark.parametrize("fmt", ["pcap", "pcapng"])
 def test_damaged_files_never_raise(tmp_path, fmt):
     """Random byte damage and cuts: a report (that renders as JSON, HTML and summary) or a

@@ -121,6 +121,7 @@ class Collected:
     udp: int = 0
     non_udp: int = 0
     fragments: int = 0
+    unread: int = 0                       # frames of a link type the reader cannot read
     other_udp: int = 0
     snap_truncated: int = 0
     problem: Optional[str] = None

@@ -258,6 +258,7 @@ class FastEngine:
         got.crc_checked += valid
         got.crc_counts[(variant, order)] += valid
         got.frames, got.non_udp, got.fragments = reader.frames, reader.non_udp, reader.fragments
+        got.unread = reader.unknown_link
         got.snap_truncated, got.problem, got.damage = len(reader.snap_truncated), reader.problem, reader.damage
         got.first_ts, got.last_ts = reader.first_ts, reader.last_ts
         got.link_types = sorted(reader.link_types)

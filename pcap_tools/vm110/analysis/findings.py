@@ -266,6 +266,12 @@ def verdict(report: dict, located: Located, as_wireshark: bool) -> dict:
         findings.insert(0, {"rule": "ip_fragments", "severity": "warning", "count": cap["fragments"],
                             "message": f"{cap['fragments']} IP fragments not analysed (EG-Link packets in them "
                                        f"count as lost): {FRAGMENT_FILTER}", "items": []})
+    if cap["unread_frames"]:  # (what they carry is missing from everything above, as with fragments)
+        unknown = ", ".join(t for t in cap["link_types"] if t.isdigit())
+        findings.insert(0, {"rule": "unread_link_type", "severity": "warning", "count": cap["unread_frames"],
+                            "message": f"{cap['unread_frames']} frames of link type {unknown} not read (this engine "
+                                       "reads Ethernet, Linux cooked, raw IP, loopback and 802.11; --engine tshark "
+                                       "reads what Wireshark reads)", "items": []})
     if not report["capture"]["eglink_packets"]:
         # (a link silent from the start is no clean verdict either: README, "Silence")
         findings.insert(0, {"rule": "no_eglink", "severity": "error", "count": 0,
