@@ -32,6 +32,21 @@ def test_decode_with_the_wrong_crc_variant_flags_every_packet(tmp_path):
     assert result.stdout.count("ILLEGAL(bad_crc)") == 6
 
 
+def test_decode_says_which_frames_it_could_not_read(tmp_path):
+    """A capture in PPI (192): decode printed "0 EG-Link packets" and nothing else, where tshark
+    decodes every packet (trial). Standard error now names the frames it did not read."""
+    import struct
+    from test_reader import pcap, udp_ip
+    from scapy.layers.l2 import Ether
+    capture = tmp_path / "ppi.pcap"
+    capture.write_bytes(pcap([(1.0 + k, struct.pack("<BBHI", 0, 0, 8, 1) + bytes(Ether() / udp_ip())) for k in range(3)],
+                             linktype=192))
+    result = vm110("decode", str(capture))
+    assert result.returncode == EXIT_OK and result.stdout == "0 EG-Link packets\n"
+    assert result.stderr == ("vm110 decode: 3 frames of link type 192 not read (this reader reads Ethernet, Linux "
+                             "cooked, raw IP, loopback and 802.11; `vm110 dissect` reads what Wireshark reads)\n")
+
+
 def test_not_a_capture_is_one_line_and_exit_2(tmp_path):
     bogus = tmp_path / "notes.txt"
     bogus.write_text("hello\n")

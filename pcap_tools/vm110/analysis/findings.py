@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any, Optional
 
 from .. import constants as C
+from ..capture.linktypes import READ as LINK_TYPES_READ
 from .commands import Tally
 from .collect import CODE, TYPES
 
@@ -270,8 +271,8 @@ def verdict(report: dict, located: Located, as_wireshark: bool) -> dict:
         unknown = ", ".join(t for t in cap["link_types"] if t.isdigit())
         findings.insert(0, {"rule": "unread_link_type", "severity": "warning", "count": cap["unread_frames"],
                             "message": f"{cap['unread_frames']} frames of link type {unknown} not read (this engine "
-                                       "reads Ethernet, Linux cooked, raw IP, loopback and 802.11; --engine tshark "
-                                       "reads what Wireshark reads)", "items": []})
+                                       f"reads {LINK_TYPES_READ}; --engine tshark reads what Wireshark reads)",
+                            "items": []})
     if not report["capture"]["eglink_packets"]:
         # (a link silent from the start is no clean verdict either: README, "Silence")
         findings.insert(0, {"rule": "no_eglink", "severity": "error", "count": 0,

@@ -12,6 +12,7 @@ LINKTYPE_IPV4 = 228
 LINKTYPE_IPV6 = 229
 LINKTYPE_LINUX_SLL2 = 276
 DLT_RAW_ALIASES = (12, 14)   # DLT_RAW as some platforms number it in pcap files
+READ = "Ethernet, Linux cooked, raw IP, loopback and 802.11"   # (said when frames of another are not read)
 
 NAMES = {
     LINKTYPE_NULL: "null", LINKTYPE_ETHERNET: "ethernet", LINKTYPE_RAW: "raw",
