@@ -840,14 +840,25 @@ local FINDING = {
     burst_missing = "Burst Packet Missing", burst_incomplete = "Incomplete Burst",
 }
 
+-- A number preference outside the range the matching `vm110 analyze` option takes is refused as
+-- analyze refuses it: read_settings() says so (report_failure: a dialog in Wireshark, a line on
+-- tshark's standard error) and uses the default. (A duplicate window of 0 made every mirror copy a
+-- restart; an input port above 65533 put the output port past 65535.)
+local PREF_RANGES = {} -- { name, min, max, default }, in the order of the preferences
+do
+    local MS = 3600000 -- (analyze: above 0 and at most an hour)
+    local function uint(name, label, default, blurb, min, max)
+        vm110.prefs[name] = Pref.uint(label, default, blurb)
+        PREF_RANGES[#PREF_RANGES + 1] = { name, min, max, default }
+end
 local variant_enum, order_enum = {}, { { "little", "Little-endian (TS-0006 2.1)", 1 }, { "big", "Big-endian", 2 } }
 for i, v in ipairs(CRC_VARIANTS) do variant_enum[i] = { v.name, v.label, i } end
 vm110.prefs.crc_variant = Pref.enum("CRC variant", 1, "CRC-32 variant the packets are checked with", variant_enum,
     false)
 vm110.prefs.crc_byte_order = Pref.enum("Stored CRC byte order", 1, "Byte order of the CRC trailer", order_enum, false)
 vm110.prefs.check_crc = Pref.bool("Validate the CRC", true, "Calculate the CRC of each packet and flag bad ones")
-vm110.prefs.input_port = Pref.uint("Input UDP port", DEFAULT_INPUT_PORT,
-    "UDP port of input packets; output packets use this port + 2 (TS-0006 2.2)")
+uint("input_port", "Input UDP port", DEFAULT_INPUT_PORT,
+    "UDP port of input packets; output packets use this port + 2 (TS-0006 2.2)", 1, 65535 - OUTPUT_PORT_OFFSET)
 vm110.prefs.heuristic = Pref.bool("Find EG-Link on other UDP ports", true,
     "Heuristic: a known packet ID with a size that matches the UDP length")
 vm110.prefs.analysis = Pref.bool("Analyse the streams", true,
@@ -855,28 +866,28 @@ vm110.prefs.analysis = Pref.bool("Analyse the streams", true,
 vm110.prefs.serial_scope = Pref.enum("Serial number scope", 1,
     "One counter per sender, or one per packet type per sender",
     { { "sender", "Per sender (all packet types)", 1 }, { "type", "Per packet type per sender", 2 } }, false)
-vm110.prefs.dup_window_ms = Pref.uint("Duplicate window (ms)", RULES.dup_window_ms,
-    "A serial received again within this is a duplicate; a late packet fills a gap opened within it")
-vm110.prefs.reuse_gap_ms = Pref.uint("Command ID reuse gap (ms)", RULES.reuse_gap_ms,
-    "The same command ID again after a longer silence starts a new command")
-vm110.prefs.vrpi_watchdog_ms = Pref.uint("VRPI watchdog (ms)", VRPI_WATCHDOG_MS, "Warn above this VRPI interval")
-vm110.prefs.vrpo_watchdog_ms = Pref.uint("VRPO watchdog (ms)", VRPO_WATCHDOG_MS, "Warn above this VRPO interval")
-vm110.prefs.vrpo_min_ms = Pref.uint("VRPO recommended minimum interval (ms)", VRPO_PERIOD_MIN_MS, "Note below this")
-vm110.prefs.vrpo_max_ms = Pref.uint("VRPO recommended maximum interval (ms)", VRPO_PERIOD_MAX_MS, "Note above this")
-vm110.prefs.resend_ms = Pref.uint("Command resend interval (ms)", COMMAND_RESEND_MS, "Nominal resend interval")
-vm110.prefs.resend_tolerance_ms = Pref.uint("Resend interval tolerance (ms)", COMMAND_RESEND_MS / 2,
-    "Note when a resend interval differs from the nominal one by more than this")
-vm110.prefs.vrci_fail_ms = Pref.uint("VRCI failure timeout (ms)", VRCI_FAIL_MS,
-    "Acknowledgement later than this: failed")
-vm110.prefs.vrco_give_up_ms = Pref.uint("VRCO give-up timeout (ms)", VRCO_GIVE_UP_MS,
-    "Acknowledgement later than this: late")
-vm110.prefs.vrpo_data_size = Pref.uint("Configured periodic data size (bytes)", 0,
+uint("dup_window_ms", "Duplicate window (ms)", RULES.dup_window_ms,
+    "A serial received again within this is a duplicate; a late packet fills a gap opened within it", 1, MS)
+uint("reuse_gap_ms", "Command ID reuse gap (ms)", RULES.reuse_gap_ms,
+    "The same command ID again after a longer silence starts a new command", 1, MS)
+uint("vrpi_watchdog_ms", "VRPI watchdog (ms)", VRPI_WATCHDOG_MS, "Warn above this VRPI interval", 1, MS)
+uint("vrpo_watchdog_ms", "VRPO watchdog (ms)", VRPO_WATCHDOG_MS, "Warn above this VRPO interval", 1, MS)
+uint("vrpo_min_ms", "VRPO recommended minimum interval (ms)", VRPO_PERIOD_MIN_MS, "Note below this", 1, MS)
+uint("vrpo_max_ms", "VRPO recommended maximum interval (ms)", VRPO_PERIOD_MAX_MS, "Note above this", 1, MS)
+uint("resend_ms", "Command resend interval (ms)", COMMAND_RESEND_MS, "Nominal resend interval", 1, MS)
+uint("resend_tolerance_ms", "Resend interval tolerance (ms)", COMMAND_RESEND_MS / 2,
+    "Note when a resend interval differs from the nominal one by more than this", 0, MS)
+uint("vrci_fail_ms", "VRCI failure timeout (ms)", VRCI_FAIL_MS,
+    "Acknowledgement later than this: failed", 1, MS)
+uint("vrco_give_up_ms", "VRCO give-up timeout (ms)", VRCO_GIVE_UP_MS,
+    "Acknowledgement later than this: late", 1, MS)
+uint("vrpo_data_size", "Configured periodic data size (bytes)", 0,
     "Total VRPO periodic data of a burst; 0 = infer (a burst ends with a packet of fewer than 488 bytes, or its "
-    .. "packets all carry 488 bytes and are at least as many as in the sender's longest complete such burst)")
-vm110.prefs.vrpo_number_start = Pref.uint("First VRPO packet number", 0,
-    "Packet number of a burst's first packet (0 or 1)")
-vm110.prefs.burst_gap_ms = Pref.uint("VRPO burst gap (ms)", VRPO_BURST_GAP_MS,
-    "A new burst starts after this gap (or after a complete burst)")
+    .. "packets all carry 488 bytes and are at least as many as in the sender's longest complete such burst)", 0, 65535)
+uint("vrpo_number_start", "First VRPO packet number", 0,
+    "Packet number of a burst's first packet (0 or 1)", 0, 1)
+uint("burst_gap_ms", "VRPO burst gap (ms)", VRPO_BURST_GAP_MS,
+    "A new burst starts after this gap (or after a complete burst)", 1, MS)
 vm110.prefs.machine = Pref.string("Machine", "",
     "Key of the machine-specific sub-dissectors in the vm110.periodic_data and vm110.command_data tables")
 vm110.prefs.fields_from_command_line = Pref.bool("tshark 4.0 -T fields: build only the fields named", true,
@@ -886,6 +897,7 @@ vm110.prefs.fields_from_command_line = Pref.bool("tshark 4.0 -T fields: build on
 vm110.prefs.tune_gc = Pref.bool("Tune Lua's garbage collector", false,
     "Collector settings that make this dissector faster (Lua 5.4: generational; Lua 5.2: pause 100, "
     .. "step multiplier 800). They apply to every Lua plugin of this Wireshark, so they are off by default")
+end
 
 ---------------------------------------------------------------------------------------------
 -- 5. Tree and Info column
@@ -1360,7 +1372,26 @@ end
 
 -- (settings: the preferences as plain values, above)
 local function read_settings()
-    local prefs = vm110.prefs
+    local prefs = setmetatable({}, { __index = vm110.prefs }) -- (the values refused replaced)
+    local refused = {}
+    for _, r in ipairs(PREF_RANGES) do
+        local name, min, max, default = r[1], r[2], r[3], r[4]
+        local value = prefs[name]
+        if value < min or value > max then
+            refused[#refused + 1] = fmt("vm110.%s = %d is outside %d to %d; %d is used", name, value, min, max,
+                default)
+            prefs[name] = default
+        end
+    end
+    if prefs.vrpo_min_ms > prefs.vrpo_max_ms then -- (analyze: --vrpo-range MIN at most MAX)
+        refused[#refused + 1] = fmt("vm110.vrpo_min_ms = %d is above vm110.vrpo_max_ms = %d; %d and %d are used",
+            prefs.vrpo_min_ms, prefs.vrpo_max_ms, VRPO_PERIOD_MIN_MS, VRPO_PERIOD_MAX_MS)
+        prefs.vrpo_min_ms, prefs.vrpo_max_ms = VRPO_PERIOD_MIN_MS, VRPO_PERIOD_MAX_MS
+    end
+    -- (said once: Wireshark applies the preferences more than once, tshark once per -o)
+    local text = concat(refused, "\nvm110: preference ")
+    if text ~= "" and text ~= settings.refused then report_failure("vm110: preference " .. text) end
+    settings.refused = text
     settings.variant = prefs.check_crc and CRC_VARIANTS[prefs.crc_variant] or nil
     settings.big_endian = prefs.crc_byte_order == 2
     settings.heuristic = prefs.heuristic
@@ -1374,6 +1405,7 @@ local function read_settings()
     settings.data_size, settings.number_start = prefs.vrpo_data_size, prefs.vrpo_number_start
     settings.burst_gap, settings.machine = prefs.burst_gap_ms, prefs.machine
     settings.fields_from_command_line = prefs.fields_from_command_line
+    settings.input_port = prefs.input_port
     tune_collector(prefs.tune_gc)
 end
 
@@ -2378,7 +2410,7 @@ end
 
 local udp_port = DissectorTable.get("udp.port")
 local function register_ports() -- (settings.port: the input port registered)
-    local port, old = floor(vm110.prefs.input_port), settings.port -- (an integer on Lua 5.4 too)
+    local port, old = floor(settings.input_port), settings.port -- (an integer on Lua 5.4 too)
     if port == old then return end
     if old then
         udp_port:remove(old, vm110)

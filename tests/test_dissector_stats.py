@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import json
 import re
+import shutil
 from collections import defaultdict
 from pathlib import Path
 
@@ -377,3 +378,30 @@ def _stat_and_report(tshark: T.Tshark, tmp_path: Path, packets: list) -> tuple[d
             return parse(proc.stdout), json.loads(json.dumps(analyze(str(capture))))
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_a_preference_analyze_would_refuse_is_said_and_the_default_used(tshark, tmp_path):
+    """Number preferences took any value (trial): a duplicate window of 0 made every mirror copy of
+    overlap.pcapng a restart (106), an input port of 65534 an output port of 65536. Each is refused
+    as `vm110 analyze` refuses the matching option, said once on tshark's standard error (a dialog
+    in Wireshark), and the default analyses the capture."""
+    bad = {"vm110.dup_window_ms": "0", "vm110.input_port": "65534", "vm110.vrpo_number_start": "2",
+           "vm110.burst_gap_ms": "3600001", "vm110.vrpo_min_ms": "300"}
+    with tshark.workspace(tmp_path) as ws:
+        capture = ws.dir / "overlap.pcapng"
+        shutil.copyfile(T.REPO / "captures" / capture.name, capture)
+        plain = ws.run(["-r", str(capture), "-q", "-z", "vm110,stat"])
+        refused = ws.run(["-r", str(capture), "-q", "-z", "vm110,stat",
+                          *(a for key, value in bad.items() for a in ("-o", f"{key}:{value}"))])
+        fine = ws.run(["-r", str(capture), "-q", "-z", "vm110,stat", "-o", "vm110.dup_window_ms:1",
+                       "-o", "vm110.input_port:65533", "-o", "vm110.vrpo_min_ms:200"])
+    said = [line.split("vm110: preference ", 1)[1] for line in refused.stderr.splitlines()
+            if "vm110: preference " in line]
+    assert said == ["vm110.input_port = 65534 is outside 1 to 65533; 5825 is used",
+                    "vm110.dup_window_ms = 0 is outside 1 to 3600000; 1000 is used",
+                    "vm110.vrpo_number_start = 2 is outside 0 to 1; 0 is used",
+                    "vm110.burst_gap_ms = 3600001 is outside 1 to 3600000; 20 is used",
+                    "vm110.vrpo_min_ms = 300 is above vm110.vrpo_max_ms = 200; 50 and 200 are used"], refused.stderr
+    assert refused.stdout == plain.stdout and parse(plain.stdout)
+    assert "vm110: preference" not in fine.stderr     # (the limits themselves are taken)
