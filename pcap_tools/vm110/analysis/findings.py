@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Any, Optional
 
 from .. import constants as C
-from ..capture.linktypes import READ as LINK_TYPES_READ
+from ..capture.linktypes import unread
 from .commands import Tally
 from .collect import CODE, TYPES
 
@@ -268,11 +268,9 @@ def verdict(report: dict, located: Located, as_wireshark: bool) -> dict:
                             "message": f"{cap['fragments']} IP fragments not analysed (EG-Link packets in them "
                                        f"count as lost): {FRAGMENT_FILTER}", "items": []})
     if cap["unread_frames"]:  # (what they carry is missing from everything above, as with fragments)
-        unknown = ", ".join(t for t in cap["link_types"] if t.isdigit())
         findings.insert(0, {"rule": "unread_link_type", "severity": "warning", "count": cap["unread_frames"],
-                            "message": f"{cap['unread_frames']} frames of link type {unknown} not read (this engine "
-                                       f"reads {LINK_TYPES_READ}; --engine tshark reads what Wireshark reads)",
-                            "items": []})
+                            "message": unread(cap["unread_frames"], cap["link_types"])
+                            + "; --engine tshark reads what Wireshark reads)", "items": []})
     if not report["capture"]["eglink_packets"]:
         # (a link silent from the start is no clean verdict either: README, "Silence")
         findings.insert(0, {"rule": "no_eglink", "severity": "error", "count": 0,

@@ -1,6 +1,8 @@
 """Link-layer and network numbers the capture reader understands (pcap LINKTYPE_* values)."""
 from __future__ import annotations
 
+from typing import Iterable
+
 LINKTYPE_NULL = 0            # BSD loopback: 4-byte address family in the writer's byte order
 LINKTYPE_ETHERNET = 1
 LINKTYPE_IEEE802_11 = 105    # 802.11 frames without a radio header
@@ -12,7 +14,7 @@ LINKTYPE_IPV4 = 228
 LINKTYPE_IPV6 = 229
 LINKTYPE_LINUX_SLL2 = 276
 DLT_RAW_ALIASES = (12, 14)   # DLT_RAW as some platforms number it in pcap files
-READ = "Ethernet, Linux cooked, raw IP, loopback and 802.11"   # (said when frames of another are not read)
+READ = "Ethernet, Linux cooked, raw IP, loopback and 802.11"
 
 NAMES = {
     LINKTYPE_NULL: "null", LINKTYPE_ETHERNET: "ethernet", LINKTYPE_RAW: "raw",
@@ -21,6 +23,14 @@ NAMES = {
     LINKTYPE_IEEE802_11: "ieee802-11", LINKTYPE_IEEE802_11_RADIOTAP: "radiotap",
     **dict.fromkeys(DLT_RAW_ALIASES, "raw"),
 }
+
+
+
+def unread(count: int, link_types: Iterable[str]) -> str:
+    """What to say of `count` frames of the link types (of a reader's `link_types`) not read."""
+    numbers = ", ".join(sorted((t for t in link_types if t.isdigit()), key=int))
+    return f"{count} frames of link type {numbers} not read (this reader reads {READ}"
+
 
 ETHERTYPE_IPV4 = 0x0800
 ETHERTYPE_IPV6 = 0x86DD

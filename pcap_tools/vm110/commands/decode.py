@@ -15,7 +15,7 @@ from typing import Any, Iterator, Optional
 
 from .. import constants as C
 from .. import protocol as P
-from ..capture.linktypes import READ as LINK_TYPES_READ
+from ..capture.linktypes import unread
 from ..capture.reader import CaptureError, CaptureReader, address
 from ..capture.spool import as_given, stdin_spool
 from ..crc import BYTE_ORDERS, VARIANTS
@@ -111,9 +111,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.json:
         print(f"{count} EG-Link packets")
     if reader.unknown_link:     # (else "0 EG-Link packets" would read as a capture without any)
-        unknown = ", ".join(sorted(t for t in reader.link_types if t.isdigit()))
-        print(f"vm110 decode: {reader.unknown_link} frames of link type {unknown} not read (this reader reads "
-              f"{LINK_TYPES_READ}; `vm110 dissect` reads what Wireshark reads)", file=sys.stderr)
+        print(f"vm110 decode: {unread(reader.unknown_link, reader.link_types)}; `vm110 dissect` reads what "
+              "Wireshark reads)", file=sys.stderr)
     if reader.problem is not None:
         # Everything before the damage was printed; the damage is never passed over in silence.
         raise CliError(as_given(f"{path}: damaged, read up to byte {reader.damage}: {reader.problem}", path,
