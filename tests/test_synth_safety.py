@@ -12,9 +12,11 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import signal
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -126,6 +128,25 @@ def test_a_failure_half_way_leaves_the_old_files(capsys, monkeypatch, tmp_path, 
     err = capsys.readouterr().err
     if code == EXIT_USAGE:
         assert str(out) in one_line(err) and "No space left on device" in err
+    assert out.read_bytes() == OLD_CAPTURE
+    assert Path(synth.truth_path(str(out))).read_text() == OLD_TRUTH
+    assert leftovers(tmp_path) == []
+
+
+def test_sigterm_half_way_leaves_the_old_files_and_no_temporary_file(tmp_path):
+    """Before: SIGTERM (`timeout`, a cancelled CI job) killed the run and left its temporary file,
+    .run.pcap.<hex>.tmp, beside OUT (13 MB after 3 s of `day`); now it is an interruption as
+    Ctrl-C is: exit 130, the old files as they were, nothing left behind."""
+    out = old_files(tmp_path)
+    with subprocess.Popen([sys.executable, "-m", "vm110", "synth", "day", "--duration", "200000", "--out", str(out)],
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+        deadline = time.monotonic() + 30
+        while not leftovers(tmp_path) and time.monotonic() < deadline:     # the capture is being written
+            time.sleep(0.05)
+        assert leftovers(tmp_path), "the run never started writing"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == EXIT_INTERRUPTED and "Traceback" not in err, err
     assert out.read_bytes() == OLD_CAPTURE
     assert Path(synth.truth_path(str(out))).read_text() == OLD_TRUTH
     assert leftovers(tmp_path) == []

@@ -9,6 +9,8 @@ leaves what was there before. A target that is not a regular file is refused.
 from __future__ import annotations
 
 import argparse
+import signal
+from typing import Any, NoReturn
 
 from ..capture.writer import FORMATS, Format, format_of
 from ..errors import CliError
@@ -48,7 +50,21 @@ def check_size(name: str, duration: float, seed: int, fmt: Format) -> None:
                        f"({MAX_OUTPUT_BYTES // GIB} GiB at {rate / 1024:.0f} KiB/s)")
 
 
+def _interrupt(signum: int, frame: Any) -> NoReturn:
+    raise KeyboardInterrupt
+
+
 def run(args: argparse.Namespace) -> int:
+    # SIGTERM (`timeout`, a CI job cancelled) is an interruption like Ctrl-C: the temporary files
+    # are removed on the way out (killed by it, a run left them beside OUT, up to gigabytes).
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        return _synth(args)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _synth(args: argparse.Namespace) -> int:
     if args.list:
         for sc in SCENARIOS.values():
             print(f"{sc.name:<20} {sc.duration_s:>7g} s  {sc.description}")
