@@ -136,3 +136,16 @@ def test_events_logged_after_a_stall_keep_the_time_they_happened():
     assert max(starts) - min(starts) < 0.002
     [restart] = [e for e in events if e["event"] == "restart"]
     assert 0 < restart["port"] <= 65535
+
+
+def test_a_log_that_cannot_be_written_ends_with_one_line():
+    """Before: a log to a full disk (here /dev/full) ended in two tracebacks, exit 1. Now: one line
+    naming standard output, exit 2, for text and JSON logs and the summary alone (--quiet)."""
+    for extra in ((), ("--json",), ("--quiet",)):
+        run = [sys.executable, "-m", "vm110", "simulate", "bu", "--listen", f"{LOOPBACK}:0",
+               "--peer", f"{LOOPBACK}:9", "--source", f"{LOOPBACK}:0", "--duration", "0.5",
+               "--command-every", "0.2", *extra]
+        with open("/dev/full", "w") as full:
+            done = subprocess.run(run, stdout=full, stderr=subprocess.PIPE, text=True, timeout=60)
+        assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+        assert done.stderr.splitlines()[-1] == "vm110 simulate: cannot write standard output: No space left on device"

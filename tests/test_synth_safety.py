@@ -152,6 +152,16 @@ def test_sigterm_half_way_leaves_the_old_files_and_no_temporary_file(tmp_path):
     assert leftovers(tmp_path) == []
 
 
+@pytest.mark.parametrize("args", [["normal", "--duration", "1", "--out", "run.pcap"], ["--list"]])
+def test_a_standard_output_that_cannot_be_written_is_one_line(tmp_path, args):
+    """Before: `> /dev/full` (a full disk) ended in a traceback, exit 1."""
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([sys.executable, "-m", "vm110", "synth", *args], stdout=full, stderr=subprocess.PIPE,
+                              text=True, timeout=60, cwd=tmp_path)
+    assert done.returncode == EXIT_USAGE
+    assert one_line(done.stderr) == "vm110 synth: cannot write standard output: No space left on device"
+
+
 def test_a_failed_truth_write_keeps_the_old_capture(capsys, monkeypatch, tmp_path):
     """The truth is written before the capture is renamed: no new capture beside an old truth."""
     out = old_files(tmp_path)

@@ -13,6 +13,8 @@ import os
 import sys
 from collections.abc import Iterator
 
+from .errors import CliError
+
 
 def silence_stdout() -> None:
     """Point standard output's file descriptor at /dev/null (nothing to do without one)."""
@@ -35,3 +37,16 @@ def tolerated() -> Iterator[None]:
         sys.stdout.flush()
     except BrokenPipeError:
         silence_stdout()
+
+
+def print_line(text: str) -> None:
+    """`text` as one line on standard output, flushed. Standard output that cannot be written (a
+    log on a full disk) is a CliError naming it, not a traceback; a closed pipe passes on to
+    `tolerated`."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        raise
+    except OSError as exc:
+        silence_stdout()       # what stays buffered would fail again at exit
+        raise CliError(f"cannot write standard output: {exc.strerror or exc}") from None
