@@ -286,6 +286,16 @@ def test_the_issue_s_examples_and_cross_option_checks(capsys, path, args, option
     refused_in_one_line(code, err, path, option)
 
 
+@pytest.mark.parametrize("option", ["--period", "--vrco-timeout", "--vrpi-timeout"])
+def test_simulate_times_below_the_clock_step_are_refused(capsys, option):
+    """Before: `--period 0.0004` was accepted, rounded to a period of 0 µs, and the controller sent
+    VRPO back to back (200,000 a second); the timeouts were 0 µs too. The clock counts µs."""
+    code, err, _ = outcome(capsys, ("simulate", "controller"), [option, "0.0004"])
+    assert "must be 0.001 to" in refused_in_one_line(code, err, ("simulate",), option)
+    code, err, _ = outcome(capsys, ("simulate", "controller"), [option, "0.001"])
+    assert code == 0 and err == "", err
+
+
 @pytest.mark.parametrize("path, args", [
     (("analyze",), ["--burst-gap", "49.9"]), (("analyze",), ["--burst-gap", "5", "--vrpo-range", "10", "20"]),
     (("analyze",), ["--vrpo-period", "21"]),

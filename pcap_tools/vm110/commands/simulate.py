@@ -42,8 +42,9 @@ WINDOW = span(TIME)
 RESTART = fields(("AT", "NEW_PORT"), (TIME, number(0, 0xFFFF, integer=True)), required=1)
 PCT = number(0, 100, "percent")
 DELAY = number(0, 60_000, "ms")
-PERIOD = number(0, 60_000, "ms", allow_zero=False)
-TIMEOUT = number(0, 3_600_000, "ms", allow_zero=False)
+# From the clock's step, 1 µs: a shorter one is 0 µs (a period of 0 sent VRPO back to back, 200,000 a second).
+PERIOD = number(0.001, 60_000, "ms")
+TIMEOUT = number(0.001, 3_600_000, "ms")
 WORD = number(0, 0xFFFF, integer=True)             # serials, command IDs, origins: 16 bits (0x.. too)
 UNARMED_RUS = number(0, 0xFF, integer=True)        # a byte of VRPI
 DATA_SIZE = number(0, 0xFFFF, "bytes", integer=True)
