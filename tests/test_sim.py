@@ -9,6 +9,7 @@ import contextlib
 import itertools
 import json
 import re
+import socket
 import subprocess
 import sys
 from collections import Counter
@@ -347,6 +348,20 @@ def test_a_unicast_address_is_one_simulators_alone():
     cfg = UdpConfig(listen=(LOOPBACK, free_ports(1)[0]), dest=(LOOPBACK, 9), source=(LOOPBACK, 0))
     with contextlib.closing(UdpTransport(cfg).open()), pytest.raises(CliError, match="Address already in use"):
         UdpTransport(cfg).open()
+
+
+def test_a_port_in_use_is_named_with_the_socket_that_needs_it():
+    """The source port in use was said as "cannot open UDP sockets (LISTEN -> PEER): Address already
+    in use": it named the listening address, which was free (a trial)."""
+    listen, source = free_ports(2)
+    cfg = UdpConfig(listen=(LOOPBACK, listen), dest=(LOOPBACK, 9), source=(LOOPBACK, source))
+    for taken, message in ((source, f"cannot send from {LOOPBACK}:{source} to {LOOPBACK}:9: Address already in use"),
+                           (listen, f"cannot receive on {LOOPBACK}:{listen}: Address already in use")):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as holder:
+            holder.bind((LOOPBACK, taken))
+            with pytest.raises(CliError) as info:
+                UdpTransport(cfg).open()
+        assert str(info.value) == message
 
 
 def test_a_script_nested_too_deeply_is_one_line(tmp_path):

@@ -71,6 +71,8 @@ class UdpTransport:
         self._seq = 0
 
     def open(self) -> "UdpTransport":
+        """Bind both sockets; CliError naming the one that failed (a message naming the listening
+        address when the source port was the one in use sent the user to the wrong port)."""
         cfg = self.config
         try:
             self.rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -85,11 +87,16 @@ class UdpTransport:
             else:
                 self.rx.bind(cfg.listen)
             self.rx.setblocking(False)
+        except OSError as exc:
+            self.close()
+            group = f" (group {cfg.group})" if cfg.group else ""
+            raise CliError(f"cannot receive on {cfg.listen[0]}:{cfg.listen[1]}{group}: {exc.strerror or exc}") from None
+        try:
             self.tx = self._sending_socket()
         except OSError as exc:
             self.close()
-            raise CliError(f"cannot open UDP sockets ({cfg.listen[0]}:{cfg.listen[1]} -> "
-                           f"{cfg.dest[0]}:{cfg.dest[1]}): {exc.strerror or exc}") from None
+            raise CliError(f"cannot send from {cfg.source[0]}:{cfg.source[1]} to {cfg.dest[0]}:{cfg.dest[1]}: "
+                           f"{exc.strerror or exc}") from None
         return self
 
     def _sending_socket(self) -> socket.socket:
