@@ -318,6 +318,24 @@ def test_simulate_group_and_interface_are_checked_before_a_socket_opens(args, op
         simulate.udp_config(parsed)
 
 
+@pytest.mark.parametrize("args, message", [
+    # They were accepted and then ran into one another: a log that went back in time (stall_end at
+    # 3 s, then stopped at 2 s) and, on the virtual clock, a run that never ended.
+    (["--stall", "1:3", "--stop-at", "2"], "--stop-at: 2 s is within the stall 1:3"),
+    (["--stall", "1:3", "--stall", "2:4"], "--stall: 2 s is within the stall 1:3"),
+    (["--stall", "1:3", "--restart", "2"], "--restart: 2 s is within the stall 1:3"),
+    (["--restart", "2", "--stall", "3:4"], "--stall: 3 s is within the restart at 2 s (down for --restart-silence 1.5 s)"),
+    (["--stop-at", "2", "--restart", "5"], "--restart: 5 s is within --stop-at 2 (sends nothing from then on)"),
+])
+def test_stalls_restarts_and_the_stop_do_not_overlap(args, message):
+    parsed = cli.build_parser().parse_args(["simulate", "bu", *args])
+    with pytest.raises(CliError) as info:
+        simulate.life(parsed)
+    assert str(info.value) == message
+    touching = cli.build_parser().parse_args(["simulate", "bu", "--stall", "1:2", "--stall", "2:3", "--stop-at", "3"])
+    assert simulate.life(touching)["stop_at_s"] == 3
+
+
 @pytest.mark.parametrize("args, refused", [
     (["--restart", "3", "--restart", "4"], True),                      # inside the first's 1.5 s silence
     (["--restart", "4", "--restart", "3"], True),                      # in any order

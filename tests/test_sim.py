@@ -350,6 +350,26 @@ def test_a_unicast_address_is_one_simulators_alone():
         UdpTransport(cfg).open()
 
 
+def test_windows_that_touch_do_not_spin():
+    """A stall beginning where another ends (or a restart, a stop, one within another) spun the
+    virtual clock at that instant for ever (and `vm110 simulate` at 100 % CPU): the VRPI due in
+    the first window was looked up in it again and again. Run in a child with a timeout."""
+    code = """if True:
+        from vm110.sim.bu import BaseUnit, BaseUnitConfig
+        from vm110.sim.lifecycle import Restart
+        from vm110.sim.virtual import Station, VirtualNetwork
+        for life in ({"stalls": ((1.0, 2.0), (2.0, 3.0))}, {"stalls": ((1.0, 3.0),), "restarts": (Restart(2.0, 1.5),)},
+                     {"stalls": ((1.0, 3.0),), "stop_at_s": 2.0}):
+            bu = BaseUnit(config=BaseUnitConfig(**life))
+            sent = [a[0] for batch in VirtualNetwork([Station(bu, "10.0.0.10", 5825)]).run(5.0) for a in batch]
+            print(next((t for t in sent if t > 0.9e6), None), len(sent))
+    """
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
+    assert done.returncode == 0, done.stderr
+    # back at 3 s; back from the restart at 3.5 s; stopped for good
+    assert done.stdout.split() == ["3000000", "24", "3500000", "20", "None", "8"]
+
+
 def test_a_port_in_use_is_named_with_the_socket_that_needs_it():
     """The source port in use was said as "cannot open UDP sockets (LISTEN -> PEER): Address already
     in use": it named the listening address, which was free (a trial)."""

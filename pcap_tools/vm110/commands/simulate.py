@@ -12,6 +12,7 @@ import argparse
 import ipaddress
 import itertools
 import json
+import math
 import signal
 import sys
 import time
@@ -193,11 +194,19 @@ def life(args: argparse.Namespace) -> dict[str, Any]:
     """The `Life` fields of the node's configuration from the options."""
     restarts = tuple(sorted((Restart(at, args.restart_silence, args.restart_serial, 0, port)
                              for at, port in args.restart), key=lambda r: r.at_s))
-    for before, after in itertools.pairwise(restarts):
-        # A node that is down cannot go down again: the second restart would be lost in the first.
-        if after.at_s < before.at_s + args.restart_silence:
-            raise CliError(f"--restart: {after.at_s:g} s is within the restart at {before.at_s:g} s "
-                           f"(down for --restart-silence {args.restart_silence:g} s)")
+    # (start, end, option, what it is): a node that hangs, is down or has stopped cannot begin
+    # another of them (a restart lost in another; a stall ending after the stall it began in, its
+    # log going back in time).
+    windows = [(a, b, "--stall", f"the stall {a:g}:{b:g}") for a, b in args.stall]
+    windows += [(r.at_s, r.at_s + r.silence_s, "--restart",
+                 f"the restart at {r.at_s:g} s (down for --restart-silence {r.silence_s:g} s)") for r in restarts]
+    if args.stop_at is not None:
+        stop = args.stop_at
+        windows.append((stop, math.inf, "--stop-at", f"--stop-at {stop:g} (sends nothing from then on)"))
+    windows.sort(key=lambda w: w[:2])
+    for before, after in itertools.pairwise(windows):
+        if after[0] < before[1]:
+            raise CliError(f"{after[2]}: {after[0]:g} s is within {before[3]}")
     return {"stalls": tuple(args.stall), "restarts": restarts, "stop_at_s": args.stop_at}
 
 

@@ -7,6 +7,7 @@ attached. Subclasses override the `on_*` hooks.
 """
 from __future__ import annotations
 
+import itertools
 import struct
 from collections import Counter
 from typing import Any, Callable, NamedTuple, Optional, Sequence
@@ -116,6 +117,7 @@ class Node:
         self.illegal: Counter[str] = Counter()      # by reason; each packet counts once per reason
         self.illegal_packets = 0
         self._stall_index = 0
+        self._stall_passed = 0    # the end of the last window passed: nothing overdue runs before it
         self.stopped = False      # for good (a window without end)
         self._stalls_ahead = bool(self.stalls)
         if not self._stalls_ahead:
@@ -159,7 +161,10 @@ class Node:
         due = self._due()
         if due is None or not self._stalls_ahead:
             return due
-        stall_end = self._stall_end(due)
+        # An overdue event runs when the node runs again, at the end of the window it left: read at
+        # its own time, it lay in that window, whose end was `now`, and a window beginning there
+        # then kept the runners ticking at `now` for ever.
+        stall_end = self._stall_end(due if due > self._stall_passed else self._stall_passed)
         return due if stall_end is None else stall_end
 
     def tick(self, now: int) -> None:
@@ -246,7 +251,8 @@ class Node:
         return [e for e in self.log if e["event"] == kind]
 
     def _stall_end(self, now: int) -> Optional[int]:
-        for start, end, _ in self.stalls:
+        """The end of the window ahead that `now` lies in, if any."""
+        for start, end, _ in itertools.islice(self.stalls, self._stall_index, None):
             if start <= now < end:
                 return end
         return None
@@ -264,6 +270,7 @@ class Node:
                 return True
             self.event(start, "stall_start" if restart is None else "down")
             self._stall_index += 1
+            self._stall_passed = end
             self._stalls_ahead = self._stall_index < len(self.stalls)
             if not self._stalls_ahead:
                 self._bind_direct()
