@@ -149,3 +149,18 @@ def test_a_log_that_cannot_be_written_ends_with_one_line():
             done = subprocess.run(run, stdout=full, stderr=subprocess.PIPE, text=True, timeout=60)
         assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
         assert done.stderr.splitlines()[-1] == "vm110 simulate: cannot write standard output: No space left on device"
+
+
+def test_command_data_cannot_forge_log_lines_or_reach_the_terminal():
+    """Command data comes off the network: a VRCI with "GO\\nFAKE LINE\\x1b[2J" printed a log line of
+    its own and cleared the controller's terminal (and a VRCO's data the base unit's). Now control
+    characters are escaped in the text log; the JSON log (json.dumps) kept them escaped already."""
+    lines: list[str] = []
+    data = "GO\nFAKE LINE\x1b[2J"
+    remote = Remote.from_script({"steps": [{"at": 0, "state": "armed"}], "commands": [{"at": 0.3, "data": data}]})
+    bu = BaseUnit(remote, printer=lambda now, line: lines.append(line))
+    ctl = Controller(ControllerConfig(commands=((0.5, data.encode()),)), printer=lambda now, line: lines.append(line))
+    run_virtual(1.0, bu, ctl)
+    shown = [line for line in lines if "data=" in line]
+    assert len(shown) == 2 and all(line.endswith(r"data=GO\nFAKE LINE\x1b[2J") for line in shown), shown
+    assert not any(c in line for line in lines for c in "\n\x1b")

@@ -77,6 +77,15 @@ def inspect(data: bytes, crc_fn: Callable[[bytes], int],
     return problems, ptype
 
 
+def _shown(value: Any) -> str:
+    """A value in a text log line, control characters escaped: command data comes off the network,
+    and a newline in it forged a log line of its own, an escape sequence reached the terminal."""
+    text = str(value)
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
 _TABLES: dict[type, Optional[dict[C.PacketType, Optional[Callable[..., None]]]]] = {}
 
 
@@ -244,7 +253,7 @@ class Node:
         for listener in self.listeners:
             listener(entry)
         if self.printer is not None:
-            extra = " ".join(f"{k}={v}" for k, v in details.items())
+            extra = " ".join(f"{k}={_shown(v)}" for k, v in details.items())
             self.printer(now, f"{now / US_PER_S:10.3f} {self.name} {kind} {extra}".rstrip())
 
     def events(self, kind: str) -> list[dict[str, Any]]:
