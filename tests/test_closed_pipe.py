@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from vm110.errors import EXIT_FINDINGS, EXIT_OK
+from vm110.errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE
 
 CAPTURES = Path(__file__).resolve().parent.parent / "captures"
 PIPE_BUFFER = 1 << 16      # Linux: a pipe holds 64 KiB; more output than that must meet the closed end
@@ -76,3 +76,36 @@ def test_analyze_into_a_closed_pipe_still_writes_its_report_and_keeps_the_verdic
 def test_decode_into_a_closed_pipe_ends_quietly(tmp_path):
     got, err = closed_from_the_start("decode", str(CAPTURES / "normal.pcap"), "--json", cwd=tmp_path)
     assert (got, err) == (EXIT_OK, "")
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+@pytest.mark.parametrize("args", [
+    ["decode", str(CAPTURES / "loss.pcapng")],
+    ["decode", str(CAPTURES / "loss.pcapng"), "--json"],
+    ["analyze", str(CAPTURES / "loss.pcapng")],
+    ["analyze", str(CAPTURES / "loss.pcapng"), "--quiet", "--json", "-"],
+    ["wireshark", "path"],
+], ids=lambda a: " ".join(a[:1] + a[2:]))
+def test_a_standard_output_that_cannot_be_written_is_one_line_and_exit_2(args):
+    """`> /dev/full` (a full disk): a traceback, exit 1 (the sim trial found it in simulate and
+    synth; every command had it). Now one line naming standard output, exit 2: the output is
+    incomplete."""
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([sys.executable, "-m", "vm110", *args], stdout=full, stderr=subprocess.PIPE,
+                              text=True, timeout=120, check=False)
+    assert done.returncode == EXIT_USAGE, done.stderr
+    assert done.stderr.splitlines()[-1] == f"vm110 {args[0]}: cannot write standard output: No space left on device"
+    assert "Traceback" not in done.stderr and "Exception ignored" not in done.stderr
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_analyze_on_a_full_disk_still_writes_its_report_and_says_its_verdict(tmp_path):
+    """What follows the summary still runs: the report file is written and the --fail-on line said,
+    and exit 2 (output incomplete) wins over 1."""
+    report = tmp_path / "r.json"
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([sys.executable, "-m", "vm110", "analyze", str(CAPTURES / "loss.pcapng"), "--json",
+                               str(report), "--fail-on", "lost>0"], stdout=full, stderr=subprocess.PIPE, text=True,
+                              timeout=120, check=False)
+    assert done.returncode == EXIT_USAGE and "fail-on: " in done.stderr and "Traceback" not in done.stderr
+    assert json.loads(report.read_text())["totals"]["lost"] > 0

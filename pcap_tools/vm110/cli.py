@@ -71,7 +71,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     # keeps the command's code; one that escapes the command keeps 0: commands with a verdict
     # (analyze) catch it around their output and go on to the verdict.
     code = EXIT_OK
-    with closedpipe.tolerated():
+    closedpipe.said.unwritable = None
+    with closedpipe.tolerated(args.command):
         try:
             code = int(args.run(args) or EXIT_OK)
         except CliError as exc:
@@ -79,6 +80,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             code = EXIT_USAGE
         except KeyboardInterrupt:
             code = EXIT_INTERRUPTED
+    if closedpipe.said.unwritable is not None and code != EXIT_INTERRUPTED:
+        code = EXIT_USAGE       # (the output is incomplete: 2 wins over 1, as for input not read whole)
     return code
 
 

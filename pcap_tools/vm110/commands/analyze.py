@@ -238,7 +238,7 @@ def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rule
     # A reader that stops early (`| head`) cuts standard output short; the report files and the
     # verdict below still follow. A report (or the monitor's JSON lines) on standard output keeps
     # it to itself: the summary then goes to standard error.
-    with closedpipe.tolerated():
+    with closedpipe.tolerated(command):
         if not args.quiet:
             on_stdout = report_on_stdout(args) or getattr(args, "json_lines", None) == "-"
             out = sys.stderr if on_stdout else sys.stdout

@@ -19,7 +19,6 @@ import time
 from typing import Any, Callable, Sequence
 
 from .. import constants as C
-from ..closedpipe import print_line
 from ..errors import CliError
 from ..numbers import fields, number, span
 from ..sim.bu import DEFAULT_ORIGIN, BaseUnit, BaseUnitConfig
@@ -243,14 +242,14 @@ def run(args: argparse.Namespace) -> int:
 
     def printer(now: int, line: str) -> None:
         if not args.quiet and not args.json:
-            print_line(f"{utc_iso(clock.wall(now))} {line}")
+            print(f"{utc_iso(clock.wall(now))} {line}", flush=True)
 
     sockets = udp_config(args)      # its errors before anything starts
     node = build_node(args, printer)
     _check_restart_ports(sockets, node.restarts)
     if args.json and not args.quiet:
-        node.listeners.append(lambda entry: print_line(json.dumps({"time_utc": utc_iso(clock.wall(seconds(entry["t"]))),
-                                                                   **entry})))
+        node.listeners.append(lambda entry: print(json.dumps({"time_utc": utc_iso(clock.wall(seconds(entry["t"]))),
+                                                              **entry}), flush=True))
     imp = impairment(args)
     transport = UdpTransport(sockets, Impairer(imp, args.role) if imp.active() else None).open()
     runner = RealtimeRunner([(node, transport)], clock)
@@ -259,5 +258,5 @@ def run(args: argparse.Namespace) -> int:
     try:
         runner.run(args.duration)
     finally:
-        print_line(json.dumps({"time_utc": utc_iso(time.time()), "summary": node.summary()}))
+        print(json.dumps({"time_utc": utc_iso(time.time()), "summary": node.summary()}), flush=True)
     return 0

@@ -13,7 +13,6 @@ import signal
 from typing import Any, NoReturn
 
 from ..capture.writer import FORMATS, Format, format_of
-from ..closedpipe import print_line
 from ..errors import CliError
 from ..numbers import number
 from ..sim.scenario import SCENARIOS
@@ -68,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
 def _synth(args: argparse.Namespace) -> int:
     if args.list:
         for sc in SCENARIOS.values():
-            print_line(f"{sc.name:<20} {sc.duration_s:>7g} s  {sc.description}")
+            print(f"{sc.name:<20} {sc.duration_s:>7g} s  {sc.description}")
         return 0
     if not args.scenario or not args.out:
         raise CliError("give a SCENARIO and --out FILE (or --list)")
@@ -83,5 +82,5 @@ def _synth(args: argparse.Namespace) -> int:
     cap = truth["capture"]
     span = "no packet" if cap["first_time"] is None else \
         f"{cap['duration_s']:.3f} s from {utc_iso(cap['first_time'])} to {utc_iso(cap['last_time'])}"
-    print_line(f"wrote {cap['packets']} packets ({span}) to {args.out}, ground truth to {truth_path(args.out)}")
+    print(f"wrote {cap['packets']} packets ({span}) to {args.out}, ground truth to {truth_path(args.out)}")
     return 0
