@@ -372,16 +372,19 @@ def test_windows_that_touch_do_not_spin():
 
 def test_a_port_in_use_is_named_with_the_socket_that_needs_it():
     """The source port in use was said as "cannot open UDP sockets (LISTEN -> PEER): Address already
-    in use": it named the listening address, which was free (a trial)."""
+    in use": it named the listening address, which was free (a trial). Both simulators on one
+    address meet that way, so the message says how the README runs them."""
     listen, source = free_ports(2)
     cfg = UdpConfig(listen=(LOOPBACK, listen), dest=(LOOPBACK, 9), source=(LOOPBACK, source))
+    hint = (" (held by another program; on one machine each simulator needs an address of its own, as in the "
+            "README's \"Simulators and synthesis\": 127.0.0.10 and 127.0.0.20)")
     for taken, message in ((source, f"cannot send from {LOOPBACK}:{source} to {LOOPBACK}:9: Address already in use"),
                            (listen, f"cannot receive on {LOOPBACK}:{listen}: Address already in use")):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as holder:
             holder.bind((LOOPBACK, taken))
             with pytest.raises(CliError) as info:
                 UdpTransport(cfg).open()
-        assert str(info.value) == message
+        assert str(info.value) == message + hint
 
 
 def test_a_script_nested_too_deeply_is_one_line(tmp_path):

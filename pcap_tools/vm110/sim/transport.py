@@ -59,6 +59,15 @@ def multicast_config(role: str, group: str = C.MULTICAST_GROUP, port: int = C.IN
                      group=group, iface=iface)
 
 
+def _in_use_hint(exc: OSError) -> str:
+    """Both ends on one address meet each other's ports (each sends from the port the other listens
+    on): the way out, as the README shows it."""
+    if exc.errno != errno.EADDRINUSE:
+        return ""
+    return (" (held by another program; on one machine each simulator needs an address of its own, as in "
+            "the README's \"Simulators and synthesis\": 127.0.0.10 and 127.0.0.20)")
+
+
 class UdpTransport:
     """The sockets of one node. `open()` binds them; `rx_address` is where peers must send."""
 
@@ -90,13 +99,14 @@ class UdpTransport:
         except OSError as exc:
             self.close()
             group = f" (group {cfg.group})" if cfg.group else ""
-            raise CliError(f"cannot receive on {cfg.listen[0]}:{cfg.listen[1]}{group}: {exc.strerror or exc}") from None
+            raise CliError(f"cannot receive on {cfg.listen[0]}:{cfg.listen[1]}{group}: {exc.strerror or exc}"
+                           + _in_use_hint(exc)) from None
         try:
             self.tx = self._sending_socket()
         except OSError as exc:
             self.close()
             raise CliError(f"cannot send from {cfg.source[0]}:{cfg.source[1]} to {cfg.dest[0]}:{cfg.dest[1]}: "
-                           f"{exc.strerror or exc}") from None
+                           f"{exc.strerror or exc}" + _in_use_hint(exc)) from None
         return self
 
     def _sending_socket(self) -> socket.socket:
