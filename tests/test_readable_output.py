@@ -122,7 +122,7 @@ def test_finding_items_keep_seconds_to_the_ms(capsys, tmp_path):
     out = vm110(capsys, "analyze", str(pcap), "--json", str(tmp_path / "r.json"))
     item = next(line for line in out.splitlines() if "duration_s" in line)
     relays = next(line for line in out.splitlines() if line.startswith("ES-Link relays open"))
-    assert "duration_s 0.238 " in item and "for 0.238 s" in relays, (item, relays)
+    assert "duration_s 0.238, states External link error " in item and "for 0.238 s" in relays, (item, relays)
     report = json.loads((tmp_path / "r.json").read_text())
     (finding,) = [f for f in report["verdict"]["findings"] if f["rule"] == "relays_open"]
     assert finding["items"][0]["duration_s"] == pytest.approx(0.237654, abs=1e-6)
@@ -139,11 +139,19 @@ def test_relays_still_open_at_the_end_say_so(capsys, tmp_path):
     out = vm110(capsys, "analyze", str(tmp_path / "stopped.pcap"), "--json", str(tmp_path / "r.json"))
     item = next(line for line in out.splitlines() if "duration_s" in line)
     relays = next(line for line in out.splitlines() if line.startswith("ES-Link relays open"))
-    assert "duration_s 0.375, open_at_end True " in item, item
+    assert "duration_s 0.375, states Stopped, open_at_end True " in item, item
     assert relays.endswith("for 0.375 s Stopped, still open at the end"), relays
     (finding,) = [f for f in json.loads((tmp_path / "r.json").read_text())["verdict"]["findings"]
                   if f["rule"] == "relays_open"]
     assert finding["items"][0]["open_at_end"] is True
+
+
+def test_an_items_lists_read_as_words(capsys):
+    """An illegal packet's reasons were printed as Python's ['bad_crc'] (trial); they read as words."""
+    out = vm110(capsys, "analyze", str(CAPTURES / "illegal.pcap"), "--list")
+    reasons = [line.split(", reasons ", 1)[1].split("  [")[0] for line in out.splitlines() if ", reasons " in line]
+    assert reasons and all(r and "[" not in r and "'" not in r for r in reasons), reasons
+    assert "bad_crc" in reasons
 
 
 def test_restart_s_relays_duration_reads_the_same_twice(capsys):
@@ -151,7 +159,7 @@ def test_restart_s_relays_duration_reads_the_same_twice(capsys):
     out = vm110(capsys, "analyze", str(CAPTURES / "restart.pcapng")).splitlines()
     item = next(line for line in out if "duration_s" in line)
     (seconds,) = re.findall(r" for ([\d.]+) s ", next(line for line in out if line.startswith("ES-Link relays open")))
-    assert f"duration_s {seconds} " in item and len(seconds.split(".")[1]) == 3, (item, seconds)
+    assert f"duration_s {seconds}, states " in item and len(seconds.split(".")[1]) == 3, (item, seconds)
 
 
 def test_the_summary_names_ms_for_ack_latency(capsys):

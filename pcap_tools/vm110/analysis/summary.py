@@ -26,13 +26,16 @@ def open_gaps(gaps: list[dict]) -> int:
 
 SHOWN_ITEMS = 3           # located items printed per finding without --list
 _ITEM_KEYS = ("sender", "type", "command_id", "serial", "after", "count", "late", "from", "to", "port_from",
-              "port_to", "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s",
+              "port_to", "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s", "states",
               "open_at_end")
 
 
 def _value(value: object) -> str:
     """An item's value: its floats are seconds or milliseconds (duration_s, gap_ms, interval_ms),
-    kept to 3 decimals as elsewhere in the summary (0.249991 s is 0.250, not 0.2)."""
+    kept to 3 decimals as elsewhere in the summary (0.249991 s is 0.250, not 0.2); a list (reasons,
+    states) as words, not Python's ['bad_crc']."""
+    if isinstance(value, list):
+        return "/".join(map(str, value))
     return _f(value, 3) if isinstance(value, float) else str(value)
 
 
