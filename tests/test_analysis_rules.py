@@ -217,17 +217,23 @@ def test_a_finding_beyond_the_kept_items_says_where_all_of_them_are(tmp_path):
     assert "... 50 more (all of them in Wireshark: [vm110.expert.serial_duplicate])" in summary.render(report, True)
     assert ('… 50 more (all of them in Wireshark: <code class="filter">vm110.expert.serial_duplicate</code>)'
             in report_html.render([report]))
-    # Options the dissector's defaults do not share: its filters would show other frames.
+    # Options the dissector's defaults do not share: the filter goes with the preferences that do.
     other = _report(tr, tmp_path, dup_window_ms=500.0)
-    assert "filter" not in _finding(other, "duplicates")
-    assert "... 50 more (the report keeps the first 100)" in summary.render(other, True)
-    # Other ports: the dissector's default preferences decode none of these packets.
+    assert _finding(other, "duplicates")["filter"] and other["verdict"]["wireshark_prefs"] == ["vm110.dup_window_ms:500"]
+    assert ("... 50 more (all of them in Wireshark (with -o vm110.dup_window_ms:500): "
+            "[vm110.expert.serial_duplicate])") in summary.render(other, True)
+    # A window no preference takes (they are whole milliseconds): no filter.
+    fraction = _report(tr, tmp_path, dup_window_ms=500.5)
+    assert "filter" not in _finding(fraction, "duplicates") and "wireshark_prefs" not in fraction["verdict"]
+    assert "... 50 more (the report keeps the first 100)" in summary.render(fraction, True)
+    # Other ports: the dissector's input port preference.
     moved = Traffic()
     for t, _, sport, _, data in tr.frames:
         moved.add(t - T0, data, sport=sport + 1000)
     moved.write(tmp_path / "moved.pcap")
     report = analyze(str(tmp_path / "moved.pcap"), port=C.INPUT_PORT + 1000, options=Options(serial_scope="sender"))
-    assert _finding(report, "duplicates")["count"] == 150 and "filter" not in _finding(report, "duplicates")
+    assert _finding(report, "duplicates")["count"] == 150 and _finding(report, "duplicates")["filter"]
+    assert report["verdict"]["wireshark_prefs"] == [f"vm110.input_port:{C.INPUT_PORT + 1000}"]
 
 
 def test_html_and_terminal_show_where_findings_lie(tmp_path):

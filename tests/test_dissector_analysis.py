@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import json
 import random
+import subprocess
+import sys
 from collections import Counter, defaultdict
 from dataclasses import dataclass
 from pathlib import Path
@@ -934,6 +936,89 @@ def test_a_findings_filter_shows_its_items_and_no_other_frame(tshark, capture, t
         if "filter" not in f:
             continue
         codes = [term.removeprefix("vm110.expert.") for term in f["filter"].split(" || ")]
+        marked = {r.number for r in rows if any(r.has(code) for code in codes)}
+        items = {item["frame"] for item in f["items"]}
+        assert items <= marked and len(marked) == len(items) + f.get("more", 0), f["rule"]
+
+
+def _rewritten(source: Path, target: Path, change) -> Path:
+    """`source` with each EG-Link payload replaced by the payloads `change(payload, serials, frame)`
+    gives (none: the frame is dropped; two: a copy follows), at the same times; `serials` counts
+    per (sender, type) for a caller that renumbers."""
+    from scapy.packet import Raw
+    from scapy.utils import wrpcap
+    frames, serials = [], Counter()
+    for frame in rdpcap(str(source)):
+        if UDP not in frame or not decode(bytes(frame[UDP].payload))["type"]:
+            frames.append(frame)
+            continue
+        for data in change(bytes(frame[UDP].payload), serials, frame):
+            copy = frame.copy()
+            copy[UDP].remove_payload()
+            copy[UDP].add_payload(Raw(data))
+            copy[UDP].chksum = 0
+            frames.append(copy)
+    wrpcap(str(target), frames)
+    return target
+
+
+def _with_crc(data: bytes, variant: str, order: str) -> bytes:
+    from vm110.crc import crc_function
+    from vm110.decode import crc_span
+    end = crc_span(data, decode(data)["size"])
+    return data[:end] + crc_function(variant)(data[:end]).to_bytes(4, order) + data[end + 4:]
+
+
+def _crc_iso_hdlc_big(data: bytes, serials, frame) -> list[bytes]:
+    return [_with_crc(data, "iso-hdlc", "big")]
+
+
+def _serials_per_type(data: bytes, serials, frame) -> list[bytes]:
+    """Each sender's packet types counted on their own, with VRPI 30 and 31 lost and VRPO 12 twice."""
+    from vm110.protocol import HEADER_OFFSETS
+    key = (frame["IP"].src, data[:4])
+    serial = serials[key]
+    serials[key] += 1
+    at = HEADER_OFFSETS["serial"]
+    data = _with_crc(data[:at] + serial.to_bytes(2, "little") + data[at + 2:], "mpeg2", "little")
+    if data[:4] == b"VRPI" and serial in (30, 31):
+        return []
+    return [data, data] if data[:4] == b"VRPO" and serial == 12 else [data]
+
+
+# Options other than the defaults, each with the preferences the report must name for them.
+OTHER_OPTIONS = [
+    ("loss.pcapng", None, ["--dup-window", "500", "--vrpo-range", "90", "110", "--vrpi-watchdog", "300"],
+     ["vm110.vrpi_watchdog_ms:300", "vm110.vrpo_min_ms:90", "vm110.vrpo_max_ms:110", "vm110.dup_window_ms:500"]),
+    ("retransmit.pcap", None, ["--reuse-gap", "1000", "--vrci-fail", "1500", "--vrco-give-up", "1200"],
+     ["vm110.vrci_fail_ms:1500", "vm110.vrco_give_up_ms:1200", "vm110.reuse_gap_ms:1000"]),
+    ("loss.pcapng", _crc_iso_hdlc_big, [], ["vm110.crc_variant:iso-hdlc", "vm110.crc_byte_order:big"]),
+    ("normal.pcap", _serials_per_type, [], ["vm110.serial_scope:type"]),
+]
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+@pytest.mark.parametrize("name, change, options, prefs", OTHER_OPTIONS,
+                         ids=[" ".join([o[0], *o[2][:2]]) + (f" {o[1].__name__}" if o[1] else "") for o in OTHER_OPTIONS])
+def test_a_findings_filter_with_other_options_names_the_preferences_it_needs(tshark, name, change, options, prefs,
+                                                                             tmp_path):
+    """With options, CRC or serial scope other than the defaults a report gave no rule filters at
+    all (trial): Wireshark at its defaults would mark other frames. It now names the preferences
+    under which the dissector judges as it did, and under them each filter marks exactly its items."""
+    capture = CAPTURES / name if change is None else _rewritten(CAPTURES / name, tmp_path / f"x-{name}", change)
+    done = subprocess.run([sys.executable, "-m", "vm110", "analyze", str(capture), "--json", "-", "--quiet", *options],
+                          capture_output=True, text=True, timeout=300)
+    report = json.loads(done.stdout)
+    assert report["verdict"]["wireshark_prefs"] == prefs
+    filtered = [f for f in report["verdict"]["findings"] if "filter" in f]
+    assert filtered and all(f["rule"] in RULE_FILTERS for f in filtered)
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            rows, _ = run_fields(ws, capture, ["-2"], prefs={**ON, **dict(p.split(":", 1) for p in prefs)})
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    for f in filtered:
+        codes = [term.removeprefix("vm110.expert.") for term in f["filter"].split(" || ") if "(" not in term]
         marked = {r.number for r in rows if any(r.has(code) for code in codes)}
         items = {item["frame"] for item in f["items"]}
         assert items <= marked and len(marked) == len(items) + f.get("more", 0), f["rule"]

@@ -248,11 +248,12 @@ def _items(kept: Kept) -> dict:
     return out
 
 
-def verdict(report: dict, located: Located, as_wireshark: bool) -> dict:
-    """The findings; `as_wireshark`: the dissector's default preferences judge as the report did,
-    so that each rule's filter (RULE_FILTERS) is given."""
+def verdict(report: dict, located: Located, prefs: Optional[list[str]]) -> dict:
+    """The findings; `prefs`: the dissector's preferences (not at their defaults) under which it
+    judges as the report did, so that each rule's filter (RULE_FILTERS) is given with them; None:
+    no preferences do, no rule filters."""
     tot = report["totals"]
-    filters = RULE_FILTERS if as_wireshark else {}
+    filters = RULE_FILTERS if prefs is not None else {}
     findings = [{"rule": key, "severity": sev, "count": tot[key], "message": f"{tot[key]} {msg}",
                  **({"filter": filters[key]} if key in filters else {}), **_items(located.get(key, Kept()))}
                 for key, sev, msg in FINDINGS if tot[key] > 0]
@@ -275,5 +276,6 @@ def verdict(report: dict, located: Located, as_wireshark: bool) -> dict:
         # (a link silent from the start is no clean verdict either: README, "Silence")
         findings.insert(0, {"rule": "no_eglink", "severity": "error", "count": 0,
                             "message": "no EG-Link packets in the capture", "items": []})
-    return {"ok": not any(f["severity"] == "error" for f in findings), "findings": findings}
+    return {"ok": not any(f["severity"] == "error" for f in findings), "findings": findings,
+            **({"wireshark_prefs": prefs} if prefs else {})}
 

@@ -2,7 +2,7 @@
 report, docs/report.md) and its verdict."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from typing import Optional
 
 import numpy as np
@@ -110,20 +110,44 @@ def _build(got: Collected) -> dict:
     findings.locate_report(report, tallies, located)
     report = normalise(report)
     report["totals"] = findings.totals(report)
-    report["verdict"] = normalise(findings.verdict(report, located, _judged_as_wireshark(report, opt)))
+    report["verdict"] = normalise(findings.verdict(report, located, wireshark_prefs(report, opt)))
     return report
 
 
-def _judged_as_wireshark(report: dict, opt: Options) -> bool:
-    """Whether the dissector, with its default preferences, judges this capture as the report
-    does (only then do the verdict's rule filters show the same frames): default options and
-    ports, the serials of every sender counted per sender, and the CRC the dissector checks by
-    default."""
-    return (replace(opt, serial_scope="sender") == Options(serial_scope="sender")
-            and report["capture"]["ports"] == [C.INPUT_PORT, C.OUTPUT_PORT]
-            and all(s["serial"]["scope"] == "sender" for s in report["senders"])
-            and report["crc"]["variant"] == crc.DEFAULT_VARIANT
-            and report["crc"]["byte_order"] == crc.DEFAULT_BYTE_ORDER)
+# The dissector's preference of each option that decides what the rule filters show (the periods
+# set only the nominal of the jitter figures).
+_PREFS = {"vrpi_watchdog_ms": "vrpi_watchdog_ms", "vrpo_watchdog_ms": "vrpo_watchdog_ms",
+          "vrpo_min_ms": "vrpo_min_ms", "vrpo_max_ms": "vrpo_max_ms", "resend_ms": "resend_ms",
+          "vrci_fail_ms": "vrci_fail_ms", "vrco_give_up_ms": "vrco_give_up_ms", "reuse_gap_ms": "reuse_gap_ms",
+          "dup_window_ms": "dup_window_ms", "burst_gap_ms": "burst_gap_ms", "vrpo_start": "vrpo_number_start",
+          "vrpo_data_size": "vrpo_data_size"}
+
+
+def wireshark_prefs(report: dict, opt: Options) -> Optional[list[str]]:
+    """The dissector's preferences (`-o` values, `vm110.NAME:VALUE`) under which Wireshark judges
+    the capture as the report did, those not at their defaults; None when no preferences do: some
+    senders' serials counted per sender and others' per type, or a time of a fraction of a
+    millisecond (the preferences are whole milliseconds)."""
+    scopes = {s["serial"]["scope"] for s in report["senders"]}
+    if len(scopes) > 1:
+        return None
+    prefs = ["vm110.serial_scope:type"] if scopes == {"type"} else []
+    if report["capture"]["ports"][0] != C.INPUT_PORT:
+        prefs.append(f"vm110.input_port:{report['capture']['ports'][0]}")
+    variant, order = report["crc"]["variant"], report["crc"]["byte_order"]
+    if variant is not None and variant != crc.DEFAULT_VARIANT:
+        prefs.append(f"vm110.crc_variant:{variant}")
+    if order is not None and order != crc.DEFAULT_BYTE_ORDER:
+        prefs.append(f"vm110.crc_byte_order:{order}")
+    default = Options()
+    for name, pref in _PREFS.items():
+        value = getattr(opt, name)
+        if value == getattr(default, name):
+            continue
+        if value != int(value):
+            return None
+        prefs.append(f"vm110.{pref}:{int(value)}")
+    return prefs
 
 
 def _sender_report(snd: Sender, where: findings.Where) -> dict:

@@ -447,8 +447,9 @@ def _table(header: list[str], rows: list[list[object]]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def _findings_table(findings: list[dict], t0: float) -> str:
+def _findings_table(verdict: dict, t0: float) -> str:
     """Every located item of every finding, with the display filter that shows it in Wireshark."""
+    findings, wireshark = verdict["findings"], summary.in_wireshark(verdict)
     rows = []
     for f in findings:
         for item in f.get("items", []):
@@ -464,7 +465,7 @@ def _findings_table(findings: list[dict], t0: float) -> str:
                         f"<td>{_e(what)}</td>"
                         f'<td><code class="filter">{_e(item["filter"])}</code></td></tr>')
         if f.get("more"):
-            where = (f'all of them in Wireshark: <code class="filter">{_e(f["filter"])}</code>' if f.get("filter")
+            where = (f'{_e(wireshark)}: <code class="filter">{_e(f["filter"])}</code>' if f.get("filter")
                      else f'the reports keep the first {len(f["items"])}')
             rows.append(f'<tr><td>{_e(f["rule"])}</td><td colspan="5">… {f["more"]} more ({where})</td></tr>')
     if not rows:
@@ -486,7 +487,7 @@ def _section(report: dict) -> str:
     if verdict["findings"]:
         out.append("<ul>" + "".join(f'<li class="{_e(f["severity"])}">{_e(f["severity"])}: {_e(f["message"])}</li>'
                                     for f in verdict["findings"]) + "</ul>")
-        out.append(_findings_table(verdict["findings"], t0))
+        out.append(_findings_table(verdict, t0))
     if report["illegal"]["total"]:
         out.append("<h3>Illegal packets</h3>"
                    + _table(["reason", "packets"], list(report["illegal"]["by_reason"].items())))

@@ -50,7 +50,14 @@ def _item(item: dict, t0: float) -> str:
     return f"{where} {when} {since(item['time'], t0)} s: {what}  [{item['filter']}]"
 
 
-def _finding(f: dict, everything: bool, t0: float) -> list[str]:
+def in_wireshark(verdict: dict) -> str:
+    """Where a rule's filter shows all of its items: Wireshark, with the preferences the report
+    judged by when they are not the defaults."""
+    prefs = verdict.get("wireshark_prefs")
+    return "all of them in Wireshark" + (f" (with {' '.join('-o ' + p for p in prefs)})" if prefs else "")
+
+
+def _finding(f: dict, everything: bool, t0: float, wireshark: str) -> list[str]:
     items = f.get("items", [])
     shown = items if everything else items[:SHOWN_ITEMS]
     lines = [f"  {f['severity']:<7} {f['message']}"] + [f"            {_item(i, t0)}" for i in shown]
@@ -61,7 +68,7 @@ def _finding(f: dict, everything: bool, t0: float) -> list[str]:
         if len(shown) < len(items):
             where.append("--list, or the JSON report" + (f": the first {len(items)}" if more else ""))
         if f.get("filter"):
-            where.append(f"all of them in Wireshark: [{f['filter']}]")
+            where.append(f"{wireshark}: [{f['filter']}]")
         elif more:
             where.append(f"the report keeps the first {len(items)}")
         lines.append(f"            ... {rest} more" + (f" ({'; '.join(where)})" if where else ""))
@@ -82,7 +89,7 @@ def render(report: dict, everything: bool = False) -> str:
     warnings = len(verdict["findings"]) - errors
     lines.append(f"VERDICT: {'OK' if verdict['ok'] else 'FAIL'} ({errors} errors, {warnings} warnings)")
     for f in verdict["findings"]:
-        lines += _finding(f, everything, t0)
+        lines += _finding(f, everything, t0, in_wireshark(verdict))
     if report["illegal"]["total"]:
         reasons = ", ".join(f"{k} {v}" for k, v in report["illegal"]["by_reason"].items())
         lines.append(f"Illegal packets: {report['illegal']['total']} ({reasons})")
