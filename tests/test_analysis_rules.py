@@ -199,6 +199,15 @@ def test_findings_are_located_and_capped(tmp_path):
     assert first["sender"] == report["senders"][0]["id"] and first["time"] == T0 + 0.125
 
 
+def test_a_count_of_one_reads_in_the_singular(tmp_path):
+    """"1 packets lost", "1 duplicated packets" (trial): one of a kind reads in the singular."""
+    tr = Traffic()
+    for k in (0, 1, 2, 4, 5, 5, 6, 7):                       # serial 3 lost, 5 twice
+        tr.add(k * 0.125 + (0.001 if k == 5 and len(tr.frames) == 6 else 0), vrpi(k))
+    messages = {f["rule"]: f["message"] for f in _report(tr, tmp_path)["verdict"]["findings"]}
+    assert messages["lost"] == "1 packet lost (serial gaps)" and messages["duplicates"] == "1 duplicated packet"
+
+
 def test_a_finding_beyond_the_kept_items_says_where_all_of_them_are(tmp_path):
     from vm110.analysis import report_html, summary
     tr = Traffic()

@@ -56,24 +56,30 @@ TOTAL_NAMES = ("packets", "eglink_packets", "damaged", "lost", "duplicates", "ou
 MAX_TOTALS = frozenset({"jitter_max_ms", "interval_max_ms", "ack_latency_max_ms"})   # combined by max, not sum
 
 # (total, severity, message) for each finding the verdict reports when its total is above 0.
+# (rule, severity, message after the count: singular, plural)
 FINDINGS = (
-    ("lost", "error", "packets lost (serial gaps)"),
-    ("illegal", "error", "illegal packets"),
-    ("watchdog", "error", "watchdog violations"),
-    ("failed", "error", "commands failed (no acknowledgement within the limit)"),
-    ("unacked", "error", "commands never acknowledged"),
-    ("restarts", "warning", "sender restarts (serial counter started afresh)"),
-    ("interrupted", "warning", "commands interrupted by their sender's restart"),
-    ("relays_open", "warning", "episodes with the ES-Link relays open"),
-    ("duplicates", "warning", "duplicated packets"),
-    ("out_of_order", "warning", "packets out of order"),
-    ("spurious", "warning", "retransmissions after the acknowledgement"),
-    ("acks_without_command", "warning", "acknowledgements without a command"),
-    ("duplicate_acks", "warning", "duplicate acknowledgements"),
-    ("vrpo_incomplete", "warning", "incomplete VRPO bursts"),
-    ("vrpo_outside_recommended", "warning", "VRPO intervals outside the recommended range"),
-    ("time_backwards", "warning", "timestamps going backwards"),
-    ("snaplen_truncated", "warning", "datagrams cut short by the capture's snaplen"),
+    ("lost", "error", "packet lost (serial gaps)", "packets lost (serial gaps)"),
+    ("illegal", "error", "illegal packet", "illegal packets"),
+    ("watchdog", "error", "watchdog violation", "watchdog violations"),
+    ("failed", "error", "command failed (no acknowledgement within the limit)",
+     "commands failed (no acknowledgement within the limit)"),
+    ("unacked", "error", "command never acknowledged", "commands never acknowledged"),
+    ("restarts", "warning", "sender restart (serial counter started afresh)",
+     "sender restarts (serial counter started afresh)"),
+    ("interrupted", "warning", "command interrupted by its sender's restart",
+     "commands interrupted by their sender's restart"),
+    ("relays_open", "warning", "episode with the ES-Link relays open", "episodes with the ES-Link relays open"),
+    ("duplicates", "warning", "duplicated packet", "duplicated packets"),
+    ("out_of_order", "warning", "packet out of order", "packets out of order"),
+    ("spurious", "warning", "retransmission after the acknowledgement", "retransmissions after the acknowledgement"),
+    ("acks_without_command", "warning", "acknowledgement without a command", "acknowledgements without a command"),
+    ("duplicate_acks", "warning", "duplicate acknowledgement", "duplicate acknowledgements"),
+    ("vrpo_incomplete", "warning", "incomplete VRPO burst", "incomplete VRPO bursts"),
+    ("vrpo_outside_recommended", "warning", "VRPO interval outside the recommended range",
+     "VRPO intervals outside the recommended range"),
+    ("time_backwards", "warning", "timestamp going backwards", "timestamps going backwards"),
+    ("snaplen_truncated", "warning", "datagram cut short by the capture's snaplen",
+     "datagrams cut short by the capture's snaplen"),
 )
 
 # The dissector's experts that mark exactly the frames of a rule's items (tshark -2, or the GUI):
@@ -254,9 +260,10 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]]) -> dict:
     no preferences do, no rule filters."""
     tot = report["totals"]
     filters = RULE_FILTERS if prefs is not None else {}
-    findings = [{"rule": key, "severity": sev, "count": tot[key], "message": f"{tot[key]} {msg}",
+    findings = [{"rule": key, "severity": sev, "count": tot[key],
+                 "message": f"{tot[key]} {one if tot[key] == 1 else many}",
                  **({"filter": filters[key]} if key in filters else {}), **_items(located.get(key, Kept()))}
-                for key, sev, msg in FINDINGS if tot[key] > 0]
+                for key, sev, one, many in FINDINGS if tot[key] > 0]
     cap = report["capture"]
     if cap["problem"]:
         # Located by the last frame read before the damage (Wireshark stops there too).
