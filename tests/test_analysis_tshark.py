@@ -323,3 +323,38 @@ def test_ip_fragments_are_a_warning_with_a_filter_that_shows_them(tmp_path):
     shown = T.HOST.command(["-r", str(path), "-Y", FRAGMENT_FILTER, "-T", "fields", "-e", "frame.number"])
     assert [int(n) for n in subprocess.run(shown, capture_output=True, text=True, check=True).stdout.split()] == fragments
     assert_same(str(path))
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_tunnels_are_a_warning_with_a_filter_that_shows_them(tshark, tmp_path):
+    """A capture mirrored through a tunnel (GRE, VXLAN, IP in IP): the fast engine said only "no
+    EG-Link packets" (trial), which reads as a dead link. It now counts the tunnels' frames and
+    says they were not unwrapped, with a filter that shows exactly them; the tshark engine, which
+    unwraps them as Wireshark does, finds the EG-Link packets in them."""
+    from scapy.layers.inet import IP, UDP
+    from scapy.layers.l2 import GRE, Ether
+    from scapy.layers.vxlan import VXLAN
+    from scapy.utils import rdpcap, wrpcap
+    from vm110.analysis.findings import TUNNEL_FILTER
+    frames, tunnelled = [], []
+    for i, p in enumerate(rdpcap(str(CAPTURES / "normal.pcap"))[:30]):
+        outer = Ether() / IP(src="192.168.1.1", dst="192.168.1.2")
+        how = i % 4
+        f = (outer / GRE(proto=0x6558) / p if how == 0 else outer / UDP(sport=40000, dport=4789) / VXLAN(vni=5) / p
+             if how == 1 else outer / p[IP] if how == 2 else p)
+        f.time = p.time
+        frames.append(f)
+        if how < 3:
+            tunnelled.append(i + 1)
+    path = tmp_path / "tunnels.pcap"
+    wrpcap(str(path), frames)
+    report = analyze(str(path))
+    assert report["capture"]["tunnelled_frames"] == len(tunnelled)
+    [warning] = [f for f in report["verdict"]["findings"] if f["rule"] == "tunnels"]
+    assert warning["count"] == len(tunnelled) and warning["message"].endswith(TUNNEL_FILTER)
+    assert analyze(str(path), engine="tshark")["capture"]["eglink_packets"] == 30
+    with tshark.workspace(tmp_path / "ws") as ws:
+        local = ws.dir / path.name
+        local.write_bytes(path.read_bytes())
+        shown = ws.run(["-r", str(local), "-Y", TUNNEL_FILTER, "-T", "fields", "-e", "frame.number"]).stdout.split()
+    assert [int(n) for n in shown] == tunnelled

@@ -122,6 +122,7 @@ class Collected:
     non_udp: int = 0
     fragments: int = 0
     unread: int = 0                       # frames of a link type the reader cannot read
+    tunnelled: int = 0                    # frames of a tunnel the reader does not unwrap
     other_udp: int = 0
     snap_truncated: int = 0
     problem: Optional[str] = None

@@ -258,7 +258,7 @@ class FastEngine:
         got.crc_checked += valid
         got.crc_counts[(variant, order)] += valid
         got.frames, got.non_udp, got.fragments = reader.frames, reader.non_udp, reader.fragments
-        got.unread = reader.unknown_link
+        got.unread, got.tunnelled = reader.unknown_link, reader.tunnelled
         got.snap_truncated, got.problem, got.damage = len(reader.snap_truncated), reader.problem, reader.damage
         got.first_ts, got.last_ts = reader.first_ts, reader.last_ts
         got.link_types = sorted(reader.link_types)
@@ -520,6 +520,7 @@ class FastEngine:
               sport: int, dport: int, payload: Optional[bytes], frame: int) -> None:
         if payload is None or (sport not in self.ports and dport not in self.ports and not looks_like_eglink(payload)):
             got.other_udp += 1
+            reader.tunnelled += dport in L.TUNNEL_PORTS
             return
         got.eglink += 1
         n = len(payload)

@@ -10,13 +10,16 @@ from __future__ import annotations
 from typing import Any, Optional
 
 from .. import constants as C
-from ..capture.linktypes import unread
+from ..capture.linktypes import TUNNEL_PORTS, TUNNEL_PROTOCOLS, unread
 from .commands import Tally
 from .collect import CODE, TYPES
 
 MAX_ITEMS = 100
 MAX_FILTER_FRAMES = 64
 FRAGMENT_FILTER = "ip.flags.mf == 1 || ip.frag_offset > 0 || ipv6.fragment"   # (shows IP fragments)
+_PROTOCOLS = ", ".join(map(str, sorted(TUNNEL_PROTOCOLS)))
+TUNNEL_FILTER = (f"ip.proto in {{{_PROTOCOLS}}} || ipv6.nxt in {{{_PROTOCOLS}}} || "
+                 f"udp.dstport in {{{', '.join(map(str, sorted(TUNNEL_PORTS)))}}}")   # (shows the tunnels)
 
 def _order(item: dict) -> tuple:
     return item["frame"], item.get("sender") or ""
@@ -279,6 +282,11 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]]) -> dict:
         findings.insert(0, {"rule": "unread_link_type", "severity": "warning", "count": cap["unread_frames"],
                             "message": unread(cap["unread_frames"], cap["link_types"])
                             + "; --engine tshark reads what Wireshark reads)", "items": []})
+    if cap["tunnelled_frames"]:  # (what they carry is missing from everything above, as with fragments)
+        findings.insert(0, {"rule": "tunnels", "severity": "warning", "count": cap["tunnelled_frames"],
+                            "message": f"{cap['tunnelled_frames']} frames of tunnels not unwrapped (IP in IP, GRE "
+                                       f"with ERSPAN, VXLAN, GENEVE): EG-Link packets in them are not analysed; "
+                                       f"--engine tshark unwraps them: {TUNNEL_FILTER}", "items": []})
     if not report["capture"]["eglink_packets"]:
         # (a link silent from the start is no clean verdict either: README, "Silence")
         findings.insert(0, {"rule": "no_eglink", "severity": "error", "count": 0,

@@ -86,7 +86,8 @@ def _build(got: Collected) -> dict:
             "file": got.path, "format": got.format or None, "link_types": got.link_types,
             "packets": got.frames, "udp_packets": got.udp, "eglink_packets": got.eglink,
             "other_udp_packets": got.other_udp, "non_udp_packets": got.non_udp,
-            "fragments": got.fragments, "unread_frames": got.unread, "snaplen_truncated": got.snap_truncated,
+            "fragments": got.fragments, "unread_frames": got.unread,
+            "tunnelled_frames": got.tunnelled, "snaplen_truncated": got.snap_truncated,
             "first_time": got.first_ts, "last_time": got.last_ts,
             "duration_s": (got.last_ts - got.first_ts) if got.first_ts is not None and got.last_ts is not None
             else 0.0,

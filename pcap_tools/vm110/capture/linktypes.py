@@ -53,6 +53,10 @@ AF_INET = 2
 AF_INET6 = (10, 24, 28, 30)  # Linux, NetBSD/OpenBSD, FreeBSD, macOS
 
 IPPROTO_UDP = 17
+# Tunnels the reader does not unwrap (counted and said): IP in IP, IPv6 in IP, GRE (ERSPAN too),
+# EtherIP; and over UDP, VXLAN, VXLAN-GPE and GENEVE by their ports.
+TUNNEL_PROTOCOLS = frozenset((4, 41, 47, 97))
+TUNNEL_PORTS = frozenset((4789, 4790, 6081))
 IPV4_MIN_HEADER = 20
 IPV4_SRC = 12                 # offset of the source address in the IPv4 header
 IPV4_FRAGMENT_MASK = 0x3FFF   # MF flag and fragment offset

@@ -132,6 +132,7 @@ class CaptureReader:
         self.non_udp = 0           # frames that carry no (whole) UDP datagram
         self.fragments = 0         # IP fragments (counted in non_udp)
         self.unknown_link = 0      # frames of a link type the reader does not know (in non_udp)
+        self.tunnelled = 0         # frames of a tunnel it does not unwrap (in non_udp, or other UDP)
         self.snap_truncated: set[int] = set()   # frames whose UDP payload the snaplen cut short
         self.problem: Optional[str] = None      # why reading stopped early, if it did
         self.damage: Optional[int] = None       # and the file offset where it did
@@ -608,6 +609,7 @@ class CaptureReader:
         have = min(end, ip_end)
         if proto != L.IPPROTO_UDP or pos + 4 > have:     # (Wireshark shows UDP from its ports on)
             self.non_udp += 1
+            self.tunnelled += proto in L.TUNNEL_PROTOCOLS
             return None
         sport, dport = struct.unpack_from("!HH", data, pos)
         body = pos + L.UDP_HEADER_LEN

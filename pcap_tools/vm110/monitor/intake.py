@@ -143,7 +143,7 @@ class Intake:
         got = self.got
         got.format = reader.format
         got.frames, got.non_udp, got.fragments = reader.frames, reader.non_udp, reader.fragments
-        got.unread = reader.unknown_link
+        got.unread, got.tunnelled = reader.unknown_link, reader.tunnelled
         got.udp = reader.frames - reader.non_udp
         got.snap_truncated, got.problem, got.damage = len(reader.snap_truncated), reader.problem, reader.damage
         got.first_ts, got.last_ts = reader.first_ts, reader.last_ts
