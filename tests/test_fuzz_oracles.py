@@ -297,6 +297,26 @@ def test_a_controller_that_hangs_on_a_command_is_one_stall_led_by_that_command(l
     assert stall.oracle == "stall" and stall.suspects == [8, 6] and stall.command_id == 7
 
 
+def test_commands_sent_to_a_controller_already_hung_do_not_lead_the_stall(link):
+    """Trial (a controller of my own, hung by a VRPI one byte longer than its layout): the VRCI
+    cases sent during the 2 s after it had stopped led the suspects, the VRPI was cut from the 12
+    replayed, and the stall was left unreproduced."""
+    for n in range(5):
+        link.vrpo(T0 + n * 0.1)
+    last = T0 + 0.4
+    link.mon.note_case(last + 0.02, 48)                  # the culprit, a VRPI
+    for n in range(14):                                  # a VRCI case every 70 ms, unanswered
+        t = last + 0.09 + 0.07 * n
+        link.mon.note_case(t, 100 + n)
+        link.mon.on_tx(t, vrci(200 + n, n), vrci(200 + n, n), index=100 + n)
+        link.mon.tick(t)
+    link.mon.tick(last + 2.01)
+    [stall] = link.mon.triggers
+    assert stall.oracle == "stall" and stall.suspects[:2] == [100, 48]
+    assert 103 not in stall.suspects, "sent after it missed its next VRPO: not a suspect of the hang"
+    assert stall.command_id == 200
+
+
 def test_a_controller_silent_for_a_while_still_owes_its_ack(link):
     link.vrpo(T0)
     link.mon.on_tx(T0 + 0.01, vrci(7, 1), vrci(7, 1), index=8)

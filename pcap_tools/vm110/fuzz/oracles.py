@@ -89,7 +89,8 @@ class Monitor:
         self.vrco: dict[int, _Vrco] = {}
         self.stall_reported = False
         self.exited = False                       # until a restart: a dead controller owes no acks
-        self.held: list[tuple[float, int, int]] = []   # (time, command ID, case) of acks owed by a silent one
+        # (time, command ID, case, time sent) of the acks owed by a silent controller
+        self.held: list[tuple[float, int, int, float]] = []
         self.pending.clear()
         self.illegal_ids.clear()
 
@@ -153,7 +154,7 @@ class Monitor:
     def on_rx(self, t: float, data: bytes, src: Any) -> dict[str, Any]:
         fields = decode(data)
         self.last_rx = t
-        for when, owed, index in self.held:     # it was not hung: those acks are missing
+        for when, owed, index, _ in self.held:     # it was not hung: those acks are missing
             self._missing_ack(when, owed, index)
         self.held = []
         ptype = fields.get("type", "?")
@@ -251,7 +252,7 @@ class Monitor:
                 deadline, index = queue.popleft()
                 sent = deadline - self.limits.ack_timeout_ms / 1000
                 if self.last_vrpo is not None and self.last_rx is not None and self.last_rx < sent + cycle:
-                    self.held.append((now, command_id, index))
+                    self.held.append((now, command_id, index, sent))
                 else:
                     self._missing_ack(now, command_id, index)
                 # One trigger per command: the case's retransmissions of it still open would only
@@ -264,10 +265,14 @@ class Monitor:
         if self.last_vrpo is not None and not self.stall_reported and not self.exited \
                 and now - self.last_vrpo > self.limits.stall_ms / 1000:      # a dead one's silence is the crash
             self.stall_reported = True
-            hung = list(dict.fromkeys(index for _, _, index in self.held))    # the commands it hung on first
-            suspects = hung + [i for i in self._around(self.last_vrpo) if i not in hung]
+            # The commands it may have hung on first: those sent before it missed its next VRPO.
+            # Later ones found it silent already, and would push the culprit out of the replays.
+            hung = [(index, command_id) for _, command_id, index, sent in self.held
+                    if self.last_rx is not None and sent < self.last_rx + cycle]
+            first = list(dict.fromkeys(index for index, _ in hung))
+            suspects = first + [i for i in self._around(self.last_vrpo) if i not in first]
             self.fire(Trigger(STALL, now, f"no VRPO for {(now - self.last_vrpo) * 1000:.0f} ms",
-                              None, suspects, None, "no VRPO", self.held[0][1] if self.held else None))
+                              None, suspects, None, "no VRPO", hung[0][1] if hung else None))
             self.held = []
         self._check_resends(now)
         if now >= self._next_purge:      # once a second: thousands of IDs at a high case rate
