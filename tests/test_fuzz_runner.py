@@ -112,3 +112,19 @@ def test_a_valid_twin_that_does_not_trigger_leaves_the_fields_to_the_minimiser(r
     finding = runner.findings[0]
     assert not finding.valid_triggers and bytes.fromhex(finding.packet_hex)[6] == 0
     assert finding.differences == 5, "one origin byte and the CRC"
+
+
+def test_a_stall_whose_culprit_is_past_the_replayed_suspects_is_bisected(runner):
+    """Trial (a controller of my own that hangs on a VRPI one byte longer than its layout): at 100
+    cases/s the VRPO cycles around the silence held some 40 cases, the VRPI was not among the 12
+    replayed one by one, and the stall was left unreproduced."""
+    for i in range(40):
+        vrpi = M.build(C.PacketType.VRPI, i, M.ARMED_VRPI)
+        runner.records[i] = (K.generate(1, i), [Sent(0.0, vrpi, vrpi, 0.0, True)])
+    culprit = runner.records[25][1][0].data
+    runner._trial = lambda replay, t: t if culprit in [p.data for p in replay.packets] else None
+    nearest = [20, 19, 21, 18, 22, 17, 23, 16, 24, 15, 14, 13] + [25] + list(range(26, 40)) + list(range(13))
+    runner._investigate(Trigger(STALL, 0.0, "no VRPO for 2003 ms", suspects=nearest))
+    assert not runner.unreproduced
+    [finding] = runner.findings
+    assert finding.oracle == STALL and finding.case_index == 25

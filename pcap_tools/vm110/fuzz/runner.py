@@ -34,6 +34,7 @@ from .supervisor import Supervisor
 
 TRIAL = -1               # the case index of replayed packets
 _MAX_SUSPECTS = 12       # replayed one by one (a stall's replay takes over 2 s)
+_MAX_BISECTED = 400      # a stall's suspects bisected when none of those replayed triggers it
 _MAX_LISTED = 100         # suspects listed when none could be replayed (the controller is gone)
 _RECORDS_KEPT = 2000
 _STATUS_EVERY_S = 0.5
@@ -364,7 +365,7 @@ class Runner:
                 self._unreproduced(trig, [])
             return True
         if trig.oracle == CRASH and len(suspects) > 1:
-            return self._investigate_crash(trig, suspects, traffic)
+            return self._bisect(trig, suspects, traffic)
         for index in suspects[:_MAX_SUSPECTS]:
             if self._trial(Replay.of(*self.records[index]), trig):
                 case, sent = self.records[index]
@@ -372,6 +373,13 @@ class Runner:
                 self._write(trig, index, index, case.family, case.description, kept, shown, small, complete, case,
                             traffic)
                 return True
+        if trig.oracle == STALL and len(suspects) > _MAX_SUSPECTS:
+            # At 100 cases/s and more, the VRPO cycles around a silence hold more cases than are
+            # replayed one by one: they are bisected in the order sent, as a crash's are.
+            chosen = sorted(suspects[:_MAX_BISECTED])
+            self.cfg.progress(f"{trig.oracle}: no single case of the {_MAX_SUSPECTS} nearest; "
+                              f"bisecting {len(chosen)} case(s)")
+            return self._bisect(trig, chosen, traffic)
         self._unreproduced(trig, suspects[:_MAX_SUSPECTS])
         return True
 
@@ -403,9 +411,9 @@ class Runner:
         self.cfg.progress(f"{bucket.file}: smaller reproducer, case {index} ({case.description})")
         return True
 
-    def _investigate_crash(self, trig: Trigger, suspects: list[int], traffic: list[Any]) -> bool:
-        """A crash and many cases since the controller last spoke: the fewest of them that, played
-        in order, crash it the same way (one case, or a sequence when the bug needs a state)."""
+    def _bisect(self, trig: Trigger, suspects: list[int], traffic: list[Any]) -> bool:
+        """A crash (or a stall) and many cases since the controller last spoke: the fewest of them
+        that, played in order, trigger it again (one case, or a sequence when the bug needs a state)."""
         deadline = time.time() + self.cfg.minimize_budget_s
 
         def replay_of(chosen: list[object]) -> Replay:
