@@ -2,14 +2,16 @@
 is built on two free loopback ports; nothing is sent."""
 from __future__ import annotations
 
+import time
 from pathlib import Path
+from typing import Optional
 
 import pytest
 from loopback import free_ports
 from vm110 import constants as C
 from vm110.fuzz import cases as K
 from vm110.fuzz import mutate as M
-from vm110.fuzz.oracles import MALFORMED_OUTPUT, MISSING_ACK, STALL, Limits, Monitor, Trigger
+from vm110.fuzz.oracles import CRASH, MALFORMED_OUTPUT, MISSING_ACK, STALL, Limits, Monitor, Trigger
 from vm110.fuzz.runner import Replay, RunConfig, Runner, _open_log, trial
 from vm110.fuzz.session import Sent, Settings
 
@@ -79,6 +81,40 @@ def test_a_malformed_output_is_confirmed_only_by_its_own_kind():
     assert trial(_Echo("VRAO unknown"), replay, MALFORMED_OUTPUT, "serial") is None    # type: ignore[arg-type]
     again = trial(_Echo("serial"), replay, MALFORMED_OUTPUT, "serial")                 # type: ignore[arg-type]
     assert again is not None and again.kind == "serial"
+
+
+class _SlowDeath:
+    """A session whose controller falls silent at the replayed packets and dies `after` seconds
+    later (a loop that ends in a signed overflow under UBSan), or, `after` None, goes on."""
+
+    def __init__(self, after: Optional[float]) -> None:
+        self.after, self.supervisor, self.evidence_dir = after, None, Path(".")
+        self.settings = Settings(("127.0.0.1", 1), ("127.0.0.1", 2))
+        self.monitor = Monitor(self.settings.limits, 0.0)
+        self.start = time.time()
+
+    def run_steps(self, *args: object) -> list[Sent]:
+        self.start = time.time()
+        return []
+
+    def pump(self, until: float) -> None:
+        time.sleep(max(0.0, min(until, time.time() + 0.02) - time.time()))
+        now = time.time()
+        if self.after is None:
+            self.monitor.last_vrpo = now
+        elif now >= self.start + self.after and not self.monitor.exited:
+            self.monitor.on_exit(now, -6)
+
+
+def test_a_crash_that_comes_a_while_after_its_packet_is_confirmed():
+    """Trial (a controller of my own, built with UBSan, whose switch loop never ends on -1 until
+    its counter overflows, some 1.5 s later): each crash was replayed, waited for 0.5 s, and left
+    unreproduced; the run said 0 findings and exited 0."""
+    replay = Replay([Sent(0.0, b"VRPI", b"VRPI", 0.0, True)])
+    assert trial(_SlowDeath(1.5), replay, CRASH) is not None           # type: ignore[arg-type]
+    start = time.time()
+    assert trial(_SlowDeath(None), replay, CRASH) is None              # type: ignore[arg-type]
+    assert time.time() - start < 1.0, "a controller that goes on sending VRPO is not waited for"
 
 
 def test_a_valid_twin_that_triggers_too_is_said_and_no_field_is_blamed(runner):
