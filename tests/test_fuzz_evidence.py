@@ -88,6 +88,69 @@ def test_ubsan_and_lsan_reports():
     assert parse_sanitizer("controller: listening\nsegfault somewhere\n") is None
 
 
+# A controller built with -fsanitize=address,undefined under the fuzzer's default options
+# (UBSan's abort_on_error, ASan's handle_abort): UBSan's error, then ASan's report of its abort.
+UBSAN_THEN_ABRT = """ctl.c:73:17: runtime error: signed integer overflow: 2147483647 + 1 cannot be represented in type 'int'
+    #0 0x559044b01e6b in on_vrpi /src/ctl.c:73
+    #1 0x559044b01e6b in main /src/ctl.c:135
+    #2 0x7ff655445249 in __libc_start_call_main ../sysdeps/nptl/libc_start_call_main.h:58
+
+AddressSanitizer:DEADLYSIGNAL
+=================================================================
+==17266==ERROR: AddressSanitizer: ABRT on unknown address 0x000000004372 (pc 0x7ff6554a8eec bp 0x7ff6565447c0 sp 0x7ffc642fa7b0 T0)
+    #0 0x7ff6554a8eec in __pthread_kill_implementation nptl/pthread_kill.c:44
+    #1 0x7ff655459fb1 in __GI_raise ../sysdeps/posix/raise.c:26
+    #2 0x7ff655444471 in __GI_abort stdlib/abort.c:79
+    #3 0x7ff65561e84e in __sanitizer::Abort() ../../../../src/libsanitizer/sanitizer_common/sanitizer_posix_libcdep.cpp:143
+    #4 0x7ff65562aee0 in __sanitizer::Die() ../../../../src/libsanitizer/sanitizer_common/sanitizer_termination.cpp:58
+    #5 0x7ff655608cbe in __ubsan::ScopedReport::~ScopedReport() ../../../../src/libsanitizer/ubsan/ubsan_diag.cpp:396
+    #6 0x7ff65560a5c3 in handleIntegerOverflowImpl<__ubsan::Value> ../../../../src/libsanitizer/ubsan/ubsan_handlers.cpp:231
+    #7 0x7ff65560d7bc in __ubsan_handle_add_overflow ../../../../src/libsanitizer/ubsan/ubsan_handlers.cpp:242
+    #8 0x559044b01e6b in on_vrpi /src/ctl.c:73
+    #9 0x559044b01e6b in main /src/ctl.c:135
+
+AddressSanitizer can not provide additional info.
+SUMMARY: AddressSanitizer: ABRT nptl/pthread_kill.c:44 in __pthread_kill_implementation
+==17266==ABORTING
+"""
+ASSERT_ABRT = """ctl-asan: ctl.c:96: on_vrci: Assertion `last_cmd_count < 4' failed.
+AddressSanitizer:DEADLYSIGNAL
+=================================================================
+==18264==ERROR: AddressSanitizer: ABRT on unknown address 0x000000004758 (pc 0x7f5d35aa8eec bp 0x7f5d36b2d7c0 sp 0x7ffe52417400 T0)
+    #0 0x7f5d35aa8eec in __pthread_kill_implementation nptl/pthread_kill.c:44
+    #1 0x7f5d35a59fb1 in __GI_raise ../sysdeps/posix/raise.c:26
+    #2 0x7f5d35a44471 in __GI_abort stdlib/abort.c:79
+    #3 0x7f5d35a44394 in __assert_fail_base assert/assert.c:94
+    #4 0x7f5d35a52ec1 in __GI___assert_fail assert/assert.c:103
+    #5 0x55875560eff1 in on_vrci /src/ctl.c:96
+    #6 0x55875560eff1 in main /src/ctl.c:136
+    #7 0x7f5d35a45249 in __libc_start_call_main ../sysdeps/nptl/libc_start_call_main.h:58
+
+AddressSanitizer can not provide additional info.
+SUMMARY: AddressSanitizer: ABRT nptl/pthread_kill.c:44 in __pthread_kill_implementation
+==18264==ABORTING
+"""
+
+
+def test_the_abort_of_a_ubsan_error_is_that_error():
+    """Trial (a controller of my own, ASan+UBSan): a signed overflow was reported as 'crash SIGABRT
+    ABRT', ASan's report of the abort that UBSan made, not as the overflow."""
+    report = parse_sanitizer(UBSAN_THEN_ABRT)
+    assert (report.tool, report.error_type) == ("ubsan", "signed-integer-overflow")
+    assert report.summary.startswith("ctl.c:73:17: runtime error: signed integer overflow")
+    crash = Crash(-signal.SIGABRT, sanitizer=report)
+    assert crash.headline() == "crash SIGABRT signed-integer-overflow in on_vrpi (ctl.c:73)"
+    assert crash.signature() == "SIGABRT ubsan:signed-integer-overflow on_vrpi main"
+
+
+def test_a_failed_assertion_is_named_in_the_controller_s_code():
+    """Trial: an assert() in my controller was headlined 'in __assert_fail_base (assert.c:94)',
+    glibc's, and that frame was one of the three of its signature."""
+    crash = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(ASSERT_ABRT))
+    assert crash.headline() == "crash SIGABRT ABRT in on_vrci (ctl.c:96)"
+    assert crash.signature() == "SIGABRT asan:ABRT on_vrci main"
+
+
 def test_gdb_backtrace_frames_with_and_without_addresses():
     frames = parse_gdb_backtrace(GDB)
     assert [f.function for f in frames] == ["maintenance_engage", "execute", "on_vrci", "on_datagram",

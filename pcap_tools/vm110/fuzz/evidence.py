@@ -16,7 +16,7 @@ _MAX_FRAMES = 64
 
 # Frames that are not the target's own code: libc start-up, the sanitizer runtimes, signal delivery.
 _FOREIGN_FUNCTIONS = re.compile(
-    r"^(__asan|__ubsan|__lsan|__sanitizer|__interceptor_|__libc_|_start$|__GI_|__pthread|raise$|abort$|"
+    r"^(__asan|__ubsan|__lsan|__sanitizer|__interceptor_|__libc_|_start$|__GI_|__pthread|raise$|abort$|__assert|"
     r"gsignal$|__restore_rt|__kernel|__afl|___interceptor_|__wrap_|_dl_|__memset|__memcpy|__strlen|"
     r"mem(cpy|set|move|cmp)$|str\w*$|malloc$|calloc$|realloc$|free$|operator (new|delete))")
 _FOREIGN_FILES = re.compile(r"(^|/)(sanitizer_common|asan|ubsan|lsan|libsanitizer|compiler-rt|sysdeps|csu|nptl|"
@@ -99,6 +99,7 @@ def parse_sanitizer(text: str) -> Optional[SanitizerReport]:
     lines = text.splitlines()
     start = None
     tool = error_type = ""
+    ubsan: Optional[tuple[int, str]] = None     # the last UBSan error: (line, type)
     for n, line in enumerate(lines):
         m = _ERROR.search(line)
         if m:
@@ -108,16 +109,25 @@ def parse_sanitizer(text: str) -> Optional[SanitizerReport]:
         if u:
             start, tool = n, "ubsan"
             error_type = _ubsan_type(u.group(2))
+            ubsan = (n, error_type)
     if start is None:
         return None
-    summary = ""
-    for line in lines[start:]:
-        if _SUMMARY.match(line):
-            summary = line.strip()[:500]
+    frames = _frames(lines, start + 1)
+    if error_type == "ABRT" and ubsan is not None and any(f.function.startswith("__ubsan") for f in frames):
+        # ASan's report of the abort a UBSan error made (abort_on_error with handle_abort, the
+        # fuzzer's defaults): the bug is that error.
+        (start, error_type), tool = ubsan, "ubsan"
+        frames = _frames(lines, start + 1)
+    summary = lines[start].strip()[:500] if tool == "ubsan" else ""
+    for n in range(start, len(lines)):
+        if _SUMMARY.match(lines[n]):
+            summary = lines[n].strip()[:500]
             break
+        if n > start and (_ERROR.search(lines[n]) or _UBSAN.match(lines[n])):
+            break                                # the next report's
     if tool == "lsan" and error_type == "detected":
         error_type = "memory-leak"
-    return SanitizerReport(tool, error_type, summary, _frames(lines, start + 1))
+    return SanitizerReport(tool, error_type, summary, frames)
 
 
 def parse_python_traceback(text: str) -> Optional[SanitizerReport]:
