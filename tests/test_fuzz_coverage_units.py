@@ -14,7 +14,7 @@ from vm110.fuzz import cases as K
 from vm110.fuzz import mutate as M
 from vm110.fuzz.corpus import CorpusDir, Entry, Packet, binary_strings, load_dictionary
 from vm110.fuzz.coverage import COUNT_CLASS, ShmMap, Virgin, map_size
-from vm110.fuzz.guided import entry_of
+from vm110.fuzz.guided import entry_of, packet_id
 from vm110.fuzz.havoc import Mutator
 from vm110.fuzz.session import Sent
 
@@ -124,3 +124,11 @@ def test_mutants_keep_size_and_crc_unless_raw():
     assert broken > 0 and legal_changed > 200
     assert any(p.data[C.PREFIX_LEN + 6:].startswith(b"ENGAGE") for _ in range(200)
                for p in m.mutate(base, base).packets), "dictionary tokens go into command data"
+
+
+def test_a_havoced_packet_id_is_shown_without_control_characters():
+    """Trial: a finding's line was 'mutation of a corpus case: 5 packet(s) VRCI+V\\x7fR+\\ufffd\\x00\\x00\\ufffd',
+    the NUL and DEL (and so any ESC the havoc wrote) raw on the terminal."""
+    assert packet_id(b"VRCI" + bytes(20)) == "VRCI"
+    assert packet_id(b"V\x7fR+") == "V\\x7fR+"
+    assert packet_id(b"\xff\x00\x1b[") == "\\xff\\x00\\x1b["

@@ -23,6 +23,7 @@ import pytest
 
 from loopback import free_ports
 from vm110 import cli
+from vm110.commands import fuzz as fuzz_command
 from vm110 import constants as C
 from vm110.errors import CliError
 from vm110.fuzz import destination, findings, mutate
@@ -544,3 +545,10 @@ def test_a_failed_finding_write_keeps_the_previous_files(tmp_path):
     (tmp_path / "findings.json").mkdir()
     with pytest.raises(CliError, match="not a regular file"):
         findings.write_summary(tmp_path, {"findings": []})
+
+
+def test_progress_lines_carry_no_control_characters(capsys):
+    """What the runner says quotes bytes it did not write (a sanitizer's frame names, a packet ID)."""
+    fuzz_command._progress("finding x: crash in f\x1b[2J\x00 (c.c:1)")
+    err = capsys.readouterr().err
+    assert err == "vm110 fuzz: finding x: crash in f?[2J? (c.c:1)\n"

@@ -131,7 +131,9 @@ def _printable(text: str, limit: int = 200) -> str:
 
 
 def _progress(text: str) -> None:
-    print(f"vm110 fuzz: {text}", file=sys.stderr, flush=True)
+    # What the runner says quotes the controller's output and the cases' bytes (a sanitizer's
+    # frames, a havoc'd packet ID): no control character reaches the terminal.
+    print(f"vm110 fuzz: {_printable(text, 2000)}", file=sys.stderr, flush=True)
 
 
 # Set by Ctrl-C or SIGTERM. The KeyboardInterrupt raised with it can land in a finalizer (a Popen's

@@ -75,6 +75,12 @@ def entry_of(case: K.Case, sent: list[Sent], origin: str) -> Entry:
                  case.settle_ms, origin)
 
 
+def packet_id(data: bytes) -> str:
+    """A packet's ID as text: bytes outside printable ASCII as \\xNN (a havoc'd ID's ESC or NUL
+    went raw to the terminal in the finding's line)."""
+    return "".join(chr(b) if 0x20 <= b < 0x7F else f"\\x{b:02x}" for b in data[:C.ID_LEN])
+
+
 class Guided:
     def __init__(self, cfg: GuidedConfig, seed: int) -> None:
         self.cfg = cfg
@@ -131,7 +137,7 @@ class Guided:
         other = self.rng.choice(self.corpus)
         child = self.mutator.mutate(parent, other)
         self.pending = ("mutation", None)
-        kinds = "+".join(sorted({p.data[:C.ID_LEN].decode("ascii", "replace") for p in child.packets}))
+        kinds = "+".join(sorted({packet_id(p.data) for p in child.packets}))
         return case_of(child, index, "coverage", f"mutation of a corpus case: {len(child.packets)} packet(s) {kinds}")
 
     def _pick(self) -> Entry:
