@@ -294,6 +294,29 @@ def test_replay_target_on_the_command_line_overrides_the_stored_one(capsys, monk
     assert code == 2 and "no VRPO" in err and sent_to == {("127.0.0.1", rx)}
 
 
+@pytest.mark.parametrize("target", [[], ["--target", "127.0.0.1:5825"]])
+def test_replay_stored_listen_is_an_address_and_named_as_the_file_s(capsys, monkeypatch, tmp_path, target):
+    """Trial: with --target on the command line, a name stored as the finding's listen address was
+    looked up (a DNS query a file decided), and either way a bad one was blamed on '--listen',
+    which the command line did not have."""
+    lookups: list[str] = []
+    real_getaddrinfo = socket.getaddrinfo
+
+    def getaddrinfo(host, *args, **kwargs):
+        if not (args[4] if len(args) > 4 else kwargs.get("flags", 0)) & socket.AI_NUMERICHOST:
+            lookups.append(host)       # a name looked up
+            if host == "crane.example":
+                raise socket.gaierror("no lookups in tests")
+        return real_getaddrinfo(host, *args, **kwargs)
+    monkeypatch.setattr(socket, "getaddrinfo", getaddrinfo)
+    for listen, refusal in (("crane.example:5827", "not an IP address"), ("127.0.0.1:0", "must be HOST:PORT")):
+        path = save(tmp_path, a_finding(listen=listen))
+        code, err = fuzz_in_process(capsys, "--replay", str(path), *target)
+        line = one_line(err)
+        assert code == 2 and refusal in line and f"the listen address stored in {path}" in line, line
+    assert "crane.example" not in lookups
+
+
 HOSTILE: dict[str, Any] = {
     "missing packet_hex": lambda f: f.pop("packet_hex"),
     "missing steps": lambda f: f.pop("steps"),

@@ -98,9 +98,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _settings(args: argparse.Namespace, target: str, listen: str | None, group: str | None,
-              stored_in: str | None = None) -> Settings:
-    """Settings from the options, or from a finding file (`stored_in`) where they are not given:
-    a stored target obeys the --target rules, and stored addresses are never names to look up."""
+              stored_in: str | None = None, listen_stored_in: str | None = None) -> Settings:
+    """Settings from the options, or from a finding file (`stored_in` its target's, `listen_stored_in`
+    its listen address's) where they are not given: a stored target obeys the --target rules, and
+    stored addresses are never names to look up."""
     what = f"the target stored in {stored_in}" if stored_in else "--target"
     host_port = parse_endpoint(target, what, numeric=bool(stored_in))
     check(host_port[0], what, args.allow_remote)
@@ -113,7 +114,8 @@ def _settings(args: argparse.Namespace, target: str, listen: str | None, group: 
         except ValueError:
             raise CliError(f"--group {group[:80]!r} is not an IPv4 multicast address") from None
     if listen:
-        listen_at = parse_endpoint(listen, "--listen", numeric=bool(stored_in) and not args.listen)
+        listen_what = f"the listen address stored in {listen_stored_in}" if listen_stored_in else "--listen"
+        listen_at = parse_endpoint(listen, listen_what, numeric=bool(listen_stored_in))
     elif host_port[1] + C.OUTPUT_PORT_OFFSET <= 65535:
         listen_at = ("0.0.0.0", host_port[1] + C.OUTPUT_PORT_OFFSET)
     else:
@@ -257,7 +259,8 @@ def _replay(args: argparse.Namespace) -> int:
                        "controller the fuzzer starts)")
     stored_in = None if args.target else args.replay
     # Joining a group sends IGMP out of an interface: only when the command line says so.
-    settings = _settings(args, args.target or finding.target, args.listen or finding.listen, args.group, stored_in)
+    settings = _settings(args, args.target or finding.target, args.listen or finding.listen, args.group, stored_in,
+                         None if args.listen else args.replay)
     if finding.group and not args.group:
         _progress(f"not joining the multicast group stored in {args.replay} (give --group to join it): "
                   f"{_printable(finding.group)}")
