@@ -317,6 +317,35 @@ def test_commands_sent_to_a_controller_already_hung_do_not_lead_the_stall(link):
     assert stall.command_id == 200
 
 
+def test_a_controller_back_on_a_new_port_restarted_on_its_own(link):
+    """Trial: my controller, killed and started again 1 s later (as its service manager would
+    after a crash), came back on a new ephemeral port with serial 0: no stall (1 s), and its serials
+    were judged per port, so the run said nothing of it."""
+    for n in range(5):
+        link.vrpo(T0 + n * 0.1)
+    link.mon.note_case(T0 + 0.42, 48)                   # it died on this one
+    link.mon.on_rx(T0 + 1.5, out("VRPO", encode.vrpo_payload(0, b"x"), 0), ("127.0.0.1", 40001))
+    [restart] = link.mon.triggers
+    assert restart.oracle == "malformed_output" and restart.kind == "restart" and restart.suspects == [48]
+    assert "port 40001 after port 40000" in restart.detail
+
+
+def test_two_sockets_or_a_restart_by_the_fuzzer_are_no_restart(link):
+    for n in range(5):
+        link.vrpo(T0 + n * 0.1)
+        link.mon.on_rx(T0 + n * 0.1 + 0.05, out("VRCO", encode.command_payload(n), n), ("127.0.0.1", 40001))
+    link.mon.reset_controller(T0 + 1)                   # the fuzzer restarted it
+    link.mon.on_rx(T0 + 1.5, out("VRPO", encode.vrpo_payload(0, b"x"), 0), ("127.0.0.1", 40002))
+    assert link.oracles() == []
+
+
+def test_a_controller_back_on_a_new_port_after_a_stall_is_that_stall(link):
+    link.vrpo(T0)
+    link.mon.tick(T0 + 2.1)
+    link.mon.on_rx(T0 + 3, out("VRPO", encode.vrpo_payload(0, b"x"), 0), ("127.0.0.1", 40001))
+    assert link.oracles() == ["stall"]
+
+
 def test_a_controller_silent_for_a_while_still_owes_its_ack(link):
     link.vrpo(T0)
     link.mon.on_tx(T0 + 0.01, vrci(7, 1), vrci(7, 1), index=8)

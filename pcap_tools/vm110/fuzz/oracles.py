@@ -25,6 +25,7 @@ CRASH, STALL, MISSING_ACK, ILLEGAL_ACKED, MALFORMED_OUTPUT, VRCO_RETRANSMIT = OR
 _CMD_ID_AT = slice(COMMAND_ID_AT, COMMAND_ID_AT + 2)
 _VRCI = C.PacketType.VRCI.value
 _HISTORY_S = 10.0
+_NEW_PORT_SILENCE_S = 0.25    # a sender silent this long may come back on a new port (interpretation.md)
 _MAX_CRASH_SUSPECTS = 400
 
 
@@ -83,6 +84,7 @@ class Monitor:
     def reset_controller(self, now: float) -> None:
         """The controller (re)started: forget what it sent, and what it owed."""
         self.serials: dict[Any, int] = {}
+        self.sources: dict[Any, float] = {}      # (address, port) -> its last packet
         self.last_vrpo: Optional[float] = None
         self.vrpo_interval = 0.0
         self.last_rx: Optional[float] = None
@@ -105,6 +107,7 @@ class Monitor:
     def adopt(self, other: "Monitor") -> None:
         """Take over what `other` learned about the controller's output."""
         self.serials = dict(other.serials)
+        self.sources = dict(other.sources)
         self.last_vrpo, self.vrpo_interval, self.last_rx = other.last_vrpo, other.vrpo_interval, other.last_rx
         self.vrco = copy.deepcopy(other.vrco)
         self.vrco_seen = other.vrco_seen
@@ -153,6 +156,7 @@ class Monitor:
     # --- controller -> base unit ---------------------------------------------------------------
     def on_rx(self, t: float, data: bytes, src: Any) -> dict[str, Any]:
         fields = decode(data)
+        self._new_port(t, data, src, fields.get("type", "?"))
         self.last_rx = t
         for when, owed, index, _ in self.held:     # it was not hung: those acks are missing
             self._missing_ack(when, owed, index)
@@ -184,6 +188,21 @@ class Monitor:
         elif ptype == C.PacketType.VRCO.value:
             self._vrco(t, fields["command_id"])
         return fields
+
+    def _new_port(self, t: float, data: bytes, src: Any, ptype: str) -> None:
+        """A controller that restarted on its own (a crash its service manager or watchdog made good)
+        comes back on a new port once its old one has fallen silent: its serials start afresh there,
+        and, back within the stall limit, nothing else would show it. The cases around its last
+        packet are the suspects."""
+        before = [(last, port) for (host, port), last in self.sources.items() if host == src[0]]
+        self.sources[src] = t
+        if src[1] in [port for _, port in before] or not before or self.stall_reported:
+            return           # a known port, the first one, or a stall already reported for the silence
+        last, port = max(before)
+        if t - last >= _NEW_PORT_SILENCE_S:
+            self.fire(Trigger(MALFORMED_OUTPUT, t, f"{ptype} from port {src[1]} after port {port} was silent "
+                              f"{(t - last) * 1000:.0f} ms: the controller restarted on its own", None,
+                              self._around(last), data, "restart"))
 
     def _malformed(self, t: float, data: bytes, kind: str, detail: str, command_id: Optional[int] = None) -> None:
         """Blame the case that sent `command_id` (an ack's), then the cases of the last 500 ms."""

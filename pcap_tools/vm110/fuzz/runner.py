@@ -135,11 +135,12 @@ def _observe(session: Session, mon: Monitor, oracle: str, t_end: float) -> None:
     while oracle == MISSING_ACK and mon.held and not fired() and time.time() < hung_until:
         session.pump(time.time() + 0.02)      # an ack held by a silent controller: a stall, or late
     # A crash may come a while after its packet (a loop that ends in an overflow, memory running
-    # out): a controller silent since the packets may yet die, up to the stall limit (past it, the
-    # run would have seen a stall first).
+    # out), and a controller restarted by its own service manager comes back later still: one silent
+    # since the packets may yet die or come back, up to the stall limit (past it, the run would have
+    # seen a stall first).
     grace = max(0.3, 2 * mon.vrpo_interval)
     silent_until = t_end + grace + limits.stall_ms / 1000
-    while oracle == CRASH and not fired() and time.time() < silent_until \
+    while oracle in (CRASH, MALFORMED_OUTPUT) and not fired() and time.time() < silent_until \
             and (mon.last_vrpo is None or mon.last_vrpo <= t_end + grace):
         session.pump(min(silent_until, time.time() + 0.02))
     dying_until = time.time() + _DYING_WAIT_S
