@@ -20,11 +20,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from scapy.layers.inet import UDP
+from scapy.utils import PcapReader
 
 from loopback import free_ports
 from vm110 import cli
 from vm110.commands import fuzz as fuzz_command
 from vm110 import constants as C
+from vm110 import encode
 from vm110.errors import CliError
 from vm110.fuzz import destination, findings, mutate
 from vm110.fuzz.link import Link
@@ -553,6 +556,29 @@ def test_a_bad_option_leaves_no_files(capsys, nothing_leaves, tmp_path, bad):
     code, err = fuzz_in_process(capsys, *args)
     assert code == 2 and bad in one_line(err)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "bad.dict"]
+
+
+def test_a_finding_names_the_frames_of_its_evidence_in_its_pcap(tmp_path):
+    """Trial: a finding's pcap held 4 s of traffic, some 130 frames, and neither the finding nor its
+    line said which frame was the case's packet or the controller's packet judged (found by hand,
+    by serial, with tshark -X lua_script:dissector/vm110.lua)."""
+    ctl, bu = ("127.0.0.1", 40000), ("127.0.0.1", 5827)
+    case = bytes.fromhex(a_finding()["original_hex"])
+    vrpo = encode.packet("VRPO", encode.vrpo_payload(0, b"x"), serial=1)
+    vrao = encode.packet("VRAO", encode.ack_payload(9), serial=2)
+    traffic = [(1.0, False, vrpo, ctl), (1.1, True, case, ("127.0.0.1", 5825)), (1.2, False, vrao, ctl)]
+    finding = findings.Finding(**{**a_finding(oracle="malformed_output", output_hex=vrao.hex()), "pcap": ""})
+    findings.write_finding(tmp_path, 1, finding, traffic, bu)
+    saved = json.loads((tmp_path / "finding-001-malformed_output.json").read_text())
+    assert (saved["frame"], saved["output_frame"]) == (2, 3)
+    assert saved["display_filter"] == "frame.number == 2 || frame.number == 3"
+    with PcapReader(str(tmp_path / saved["pcap"])) as reader:
+        frames = [bytes(frame[UDP].payload) for frame in reader]
+    assert frames[saved["frame"] - 1] == case and frames[saved["output_frame"] - 1] == vrao
+    alone = findings.Finding(**{**a_finding(), "pcap": ""})          # no output judged, case not in the window
+    findings.write_finding(tmp_path, 2, alone, traffic[:1], bu)
+    saved = json.loads((tmp_path / "finding-002-missing_ack.json").read_text())
+    assert saved["frame"] is None and saved["output_frame"] is None and saved["display_filter"] is None
 
 
 def test_a_failed_finding_write_keeps_the_previous_files(tmp_path):

@@ -60,6 +60,9 @@ class Finding:
     signature: str = ""                  # the bug's: findings with one signature are one bucket
     crash: Optional[dict[str, Any]] = None   # a crash's evidence; its files are named in it
     valid_triggers: bool = False         # the valid twin triggers too: the case's changes are not the cause
+    frame: Optional[int] = None          # the case's packet in the pcap (None: not in its window)
+    output_frame: Optional[int] = None   # the controller's packet judged, in the pcap
+    display_filter: Optional[str] = None  # those frames, for Wireshark or tshark -Y
 
     def name(self, number: int) -> str:
         return f"finding-{number:03d}-{self.oracle}"
@@ -70,10 +73,27 @@ def write_finding(out: Path, number: int, finding: Finding,
     """Write `<name>.pcap` and `<name>.json`; returns the JSON path."""
     base = finding.name(number)
     finding.pcap = f"{base}.pcap"
+    finding.frame = _frame_of(traffic, finding.original_hex, outbound=True)
+    finding.output_frame = _frame_of(traffic, finding.output_hex, outbound=False)
+    shown = [n for n in (finding.frame, finding.output_frame) if n is not None]
+    finding.display_filter = " || ".join(f"frame.number == {n}" for n in shown) or None
     write_pcap(out / finding.pcap, traffic, local)
     path = out / f"{base}.json"
     write_text(path, json.dumps(asdict(finding), indent=2) + "\n")
     return path
+
+
+def _frame_of(traffic: list[tuple[float, bool, bytes, tuple[str, int]]], packet_hex: Optional[str],
+              outbound: bool) -> Optional[int]:
+    """The frame of the pcap written from `traffic` (one frame per entry) that holds the packet
+    (its last copy: a case's packet has the serial it was sent with), if it is there."""
+    if not packet_hex:
+        return None
+    packet = bytes.fromhex(packet_hex)
+    for n in range(len(traffic) - 1, -1, -1):
+        if traffic[n][1] == outbound and traffic[n][2] == packet:
+            return n + 1
+    return None
 
 
 def write_crash(out: Path, base: str, crash: Crash) -> dict[str, Any]:
@@ -207,6 +227,7 @@ class _Bad(Exception):
 # Finding's annotations -> the JSON types they allow (bool is an int to Python, not here).
 _KINDS: dict[str, tuple[type, ...]] = {
     "str": (str,), "int": (int,), "float": (int, float), "bool": (bool,), "Optional[str]": (str, type(None)),
+    "Optional[int]": (int, type(None)),
     "list[dict[str, Any]]": (list,), "Optional[dict[str, Any]]": (dict, type(None)),
 }
 

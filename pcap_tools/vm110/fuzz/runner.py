@@ -565,7 +565,8 @@ class Runner:
         self.cfg.progress(f"finding {path.name}: {trig.detail if trig.oracle == CRASH else trig.oracle} "
                           f"at case {index} ({description})"
                           + ("; its valid twin triggers too: not the fields it changed" if finding.valid_triggers
-                             else ""))
+                             else "")
+                          + (f"; in {finding.pcap}: {finding.display_filter}" if finding.display_filter else ""))
 
 
 class _Budget(Exception):
