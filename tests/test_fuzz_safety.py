@@ -11,6 +11,7 @@ import json
 import math
 import os
 import shutil
+import signal
 import socket
 import stat
 import subprocess
@@ -392,6 +393,30 @@ def test_a_device_as_a_finding_or_dictionary_is_one_line_errors(capsys, nothing_
     from vm110.fuzz.corpus import load_dictionary
     with pytest.raises(CliError, match="--dict /dev/zero: larger than 1 MiB"):
         load_dictionary("/dev/zero")
+
+
+@pytest.fixture
+def within_5_s():
+    """Fail, not hang, when the test blocks."""
+    def expired(signum, frame):
+        pytest.fail("blocked for 5 s")        # (not an OSError, which the code may catch)
+    previous = signal.signal(signal.SIGALRM, expired)
+    signal.alarm(5)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, previous)
+
+
+def test_a_fifo_as_a_finding_or_a_corpus_case_does_not_block(capsys, nothing_leaves, tmp_path, within_5_s):
+    """Trial: a FIFO named id-000901.json in the --corpus folder held the run at '0 cases' until it
+    was killed (its open() waited for a writer), and --replay of one never returned."""
+    os.mkfifo(tmp_path / "finding.json")
+    code, err = fuzz_in_process(capsys, "--replay", str(tmp_path / "finding.json"))
+    assert code == 2 and "is not JSON" in one_line(err)
+    from vm110.fuzz.corpus import CorpusDir
+    os.mkfifo(tmp_path / "id-000901.json")
+    store = CorpusDir(tmp_path)
+    assert store.load() == [] and store.skipped[0].startswith("id-000901.json: ")
 
 
 MS_RANGE = "is out of range: must be a number of milliseconds from 0 to 60000"

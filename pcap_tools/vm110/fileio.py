@@ -19,10 +19,18 @@ from .errors import CliError
 PathLike = Union[str, "os.PathLike[str]"]
 
 
+def open_input(path: PathLike) -> IO[bytes]:
+    """An input file opened for reading without waiting for a writer: a FIFO that no process
+    writes to reads as empty (open() would block for ever); one that is being written reads as usual."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    os.set_blocking(fd, True)
+    return os.fdopen(fd, "rb")
+
+
 def read_at_most(path: PathLike, limit: int) -> bytes:
     """The bytes of an input file of at most `limit` bytes; ValueError when it has more (read no
     further: a device such as /dev/zero, or a FIFO, has no size to check first)."""
-    with open(path, "rb") as f:
+    with open_input(path) as f:
         data = f.read(limit + 1)
     if len(data) > limit:
         raise ValueError(f"larger than {limit >> 20} MiB" if limit >= 1 << 20 else f"larger than {limit} bytes")

@@ -19,7 +19,7 @@ from typing import Any, Optional
 
 from .. import constants as C
 from ..errors import CliError
-from ..fileio import read_at_most, write_text
+from ..fileio import open_input, read_at_most, write_text
 from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
 from .findings import MAX_STEPS, make_folder
@@ -112,7 +112,7 @@ def entry_from_json(raw: Any) -> Entry:
 def is_entry_file(path: str) -> bool:
     """Whether `path` looks like a corpus case (not a finding): a cheap look at its start."""
     try:
-        with open(path, "rb") as f:
+        with open_input(path) as f:
             return b'"vm110_corpus_entry"' in f.read(64)
     except OSError:
         return False
