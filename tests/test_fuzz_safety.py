@@ -415,8 +415,10 @@ def test_a_fifo_as_a_finding_or_a_corpus_case_does_not_block(capsys, nothing_lea
     assert code == 2 and "is not JSON" in one_line(err)
     from vm110.fuzz.corpus import CorpusDir
     os.mkfifo(tmp_path / "id-000901.json")
+    (tmp_path / "id-000902.json").mkdir()
     store = CorpusDir(tmp_path)
     assert store.load() == [] and store.skipped[0].startswith("id-000901.json: ")
+    assert f"Is a directory: '{tmp_path}" in store.skipped[1], "named, not a file descriptor"
 
 
 MS_RANGE = "is out of range: must be a number of milliseconds from 0 to 60000"

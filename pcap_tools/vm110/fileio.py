@@ -22,9 +22,9 @@ PathLike = Union[str, "os.PathLike[str]"]
 def open_input(path: PathLike) -> IO[bytes]:
     """An input file opened for reading without waiting for a writer: a FIFO that no process
     writes to reads as empty (open() would block for ever); one that is being written reads as usual."""
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-    os.set_blocking(fd, True)
-    return os.fdopen(fd, "rb")
+    f = open(path, "rb", opener=lambda name, flags: os.open(name, flags | os.O_NONBLOCK))  # noqa: SIM115 -- the caller's
+    os.set_blocking(f.fileno(), True)
+    return f
 
 
 def read_at_most(path: PathLike, limit: int) -> bytes:
