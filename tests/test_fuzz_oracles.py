@@ -346,6 +346,20 @@ def test_a_controller_back_on_a_new_port_after_a_stall_is_that_stall(link):
     assert link.oracles() == ["stall"]
 
 
+def test_acks_owed_from_before_the_controller_last_spoke_are_cut_short_by_a_crash_not_its(link):
+    """Trial: my controller ignored a VRCI longer than its layout (a legal one) and went on acking
+    the commands after it; it crashed on another case 0.5 s later, before that ack's timeout, and
+    the missing ack was dropped as the crash's: the bug was never reported."""
+    link.mon.on_tx(T0, vrci(35, 1), vrci(35, 1), index=35)              # never acked
+    link.mon.on_tx(T0 + 0.1, vrci(46, 2), vrci(46, 2), index=46)
+    link.rx(T0 + 0.12, "VRAO", encode.ack_payload(46))
+    link.vrpo(T0 + 0.4)
+    link.mon.on_tx(T0 + 0.45, vrci(81, 3), vrci(81, 3), index=81)        # it dies on this one
+    link.mon.on_exit(T0 + 0.5, 1)
+    [crash] = link.mon.triggers
+    assert crash.suspects == [81] and link.mon.cut_short == [35]
+
+
 def test_a_controller_silent_for_a_while_still_owes_its_ack(link):
     link.vrpo(T0)
     link.mon.on_tx(T0 + 0.01, vrci(7, 1), vrci(7, 1), index=8)

@@ -164,3 +164,17 @@ def test_a_stall_whose_culprit_is_past_the_replayed_suspects_is_bisected(runner)
     assert not runner.unreproduced
     [finding] = runner.findings
     assert finding.oracle == STALL and finding.case_index == 25
+
+
+def test_cases_whose_acks_a_crash_cut_short_are_played_again_once(runner):
+    """Trial: a VRCI my controller never acked was judged by no one: it crashed on a later case
+    before the ack timeout, the ack was dropped with the crash, and the case was not sent again."""
+    for i in (35, 46):
+        runner.records[i] = (K.generate(1, i), [])
+    played: list[int] = []
+    runner.session.run_steps = lambda index, *args: played.append(index) or []
+    runner.session.monitor.cut_short = [35, 7]           # 7: no longer kept
+    runner._judge_again()
+    runner.session.monitor.cut_short = [35]              # cut short again: not played a third time
+    runner._judge_again()
+    assert played == [35] and runner.session.monitor.cut_short == []

@@ -77,6 +77,7 @@ class Monitor:
         self.id_case: dict[int, int] = {}        # command ID -> last case that sent it
         self.withholding = False
         self.vrco_seen = False                    # has this controller ever sent a VRCO?
+        self.cut_short: list[int] = []            # cases whose acks a crash cut short, not its suspects
         self._next_purge = 0.0
         self.reset_controller(now)
 
@@ -248,7 +249,11 @@ class Monitor:
         suspects = self._between(start, t)[:_MAX_CRASH_SUSPECTS]
         # A dead controller's missing acks are the crash's, not findings of their own: those still
         # open, those of commands sent to it from now on, and those that timed out while it was
-        # dying (silent since before the command was sent).
+        # dying (silent since before the command was sent). Those still open of commands sent
+        # before it last spoke were no suspects: their cases are to be judged again (cut_short).
+        owed = {index for queue in self.pending.values() for deadline, index in queue
+                if deadline - self.limits.ack_timeout_ms / 1000 < start}
+        self.cut_short += sorted(owed - set(suspects) - set(self.cut_short))
         self.exited = True
         self.pending.clear()
         self.held = []

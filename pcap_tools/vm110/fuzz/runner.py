@@ -216,6 +216,7 @@ class Runner:
         self.stopped_early: Optional[str] = None
         self.interrupted = False             # by Ctrl-C or SIGTERM (stopped_early says so too)
         self.controller_lost = False         # an unsupervised controller stopped while being fuzzed
+        self.judged_again: set[int] = set()   # cases played again after a crash cut their verdict short
 
     # --- the run ----------------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -234,16 +235,15 @@ class Runner:
                 case = self.guided.next_case(index) if self.guided else K.generate(cfg.seed, index)
                 if self.guided is not None:
                     self.guided.before_case()
-                sent = s.run_steps(index, [(st.build, st.delay_ms, st.expect_ack) for st in case.steps],
-                                   case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream, case.settle_ms)
+                sent = self._play(index, case)
                 if self.guided is not None:
                     self.guided.after_case(s, case, sent)
-                self.records[index] = (case, sent)
                 while len(self.records) > _RECORDS_KEPT:
                     self.records.popitem(last=False)
                 self.cases_run = index = index + 1
                 if s.monitor.triggers:
                     self._investigate_all()
+                    self._judge_again()
                 self._status()
             # The last cases are judged too: wait out the ack timeout and the VRPO watchdog.
             limits = s.settings.limits
@@ -263,6 +263,22 @@ class Runner:
             if self.guided is not None:
                 self.guided.close()
         return self.summary()
+
+    def _play(self, index: int, case: K.Case) -> list[Sent]:
+        sent = self.session.run_steps(index, [(st.build, st.delay_ms, st.expect_ack) for st in case.steps],
+                                      case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream, case.settle_ms)
+        self.records[index] = (case, sent)
+        return sent
+
+    def _judge_again(self) -> None:
+        """The cases whose acks a crash cut short (sent before the controller last spoke: none of
+        its suspects), played once more to the restarted controller: a missing ack among them is a
+        bug of its own (one was dropped with a crash that came 0.5 s later)."""
+        again, self.session.monitor.cut_short = self.session.monitor.cut_short, []
+        for index in again:
+            if index in self.records and index not in self.judged_again:
+                self.judged_again.add(index)
+                self._play(index, self.records[index][0])
 
     def _status(self, force: bool = False) -> None:
         now = time.time()
