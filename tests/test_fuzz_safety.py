@@ -217,6 +217,21 @@ def save(tmp_path: Path, finding: dict[str, Any], name: str = "finding.json") ->
     return path
 
 
+def test_a_target_port_another_process_receives_on_is_refused_before_the_controller_starts(capsys, tmp_path):
+    """Trial: a controller left running by a fuzz run that was killed (SIGKILL) kept the target
+    port; the next run's controller could not bind it and exited, and the run fuzzed the one left
+    running, which it had not started and could not watch: '0 findings', no crash."""
+    rx, listen = free_ports(2)
+    marker = tmp_path / "started"
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as left_running:
+        left_running.bind(("127.0.0.1", rx))
+        code, err = fuzz_in_process(capsys, "--target", f"127.0.0.1:{rx}", "--listen", f"127.0.0.1:{listen}",
+                                    "--target-cmd", f"touch {marker}", "--cases", "1", "--out", str(tmp_path / "out"))
+    line = one_line(err)
+    assert code == 2 and f"another process already receives on 127.0.0.1:{rx}" in line, line
+    assert not marker.exists()
+
+
 def test_replay_never_runs_the_stored_command(tmp_path):
     marker = tmp_path / "stored-command-ran"
     rx, listen = free_ports(2)

@@ -5,6 +5,8 @@ slow to read its socket does not mistake late reading for a late controller.
 """
 from __future__ import annotations
 
+import errno
+import ipaddress
 import socket
 import struct
 import time
@@ -30,6 +32,19 @@ def parse_endpoint(text: str, what: str, numeric: bool = False) -> tuple[str, in
     if not sep or not host or not number or not 0 < int(port) < 65536:
         raise CliError(f"{what} must be HOST:PORT, got {text[:80]!r}")
     return resolve(host, what, numeric), int(port)
+
+
+def taken(address: tuple[str, int]) -> bool:
+    """Whether a process of this host already receives on the unicast `address` (a bind there is
+    refused as in use); False for a multicast group (shared by design) or an address not of this host."""
+    if ipaddress.ip_address(address[0]).is_multicast:
+        return False
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            return exc.errno == errno.EADDRINUSE
+    return False
 
 
 class Link:

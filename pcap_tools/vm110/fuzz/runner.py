@@ -29,6 +29,7 @@ from . import findings as F
 from .guided import Guided, GuidedConfig
 from .minimize import ddmin, difference, minimize
 from .oracles import CRASH, MALFORMED_OUTPUT, MISSING_ACK, STALL, VRCO_RETRANSMIT, Monitor, Trigger
+from .link import taken
 from .session import Sent, Session, Settings, TargetLost
 from .supervisor import Supervisor
 
@@ -152,6 +153,12 @@ def _observe(session: Session, mon: Monitor, oracle: str, t_end: float) -> None:
 def start_target(s: Session) -> None:
     """Start the controller (when supervised) and wait until it sends VRPO."""
     if s.supervisor is not None:
+        if taken(s.settings.target):
+            # (a controller left running by a run that was killed: ours could not bind the port,
+            # and its VRPO would make a controller the fuzzer neither started nor watches look like ours)
+            raise TargetLost(f"another process already receives on {s.settings.target[0]}:{s.settings.target[1]} "
+                             "(a controller left running by an earlier run?): the one --target-cmd starts could "
+                             "not; stop it first")
         s.supervisor.start()
     if not s.wait_for_vrpo(0.0, s.settings.startup_s):
         where = f"{s.link.local[0]}:{s.link.local[1]}"
