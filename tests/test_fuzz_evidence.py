@@ -323,3 +323,32 @@ def test_a_python_controller_s_exception_is_its_signature():
     assert crash.headline() == "crash exit 1 UnknownCommand in lookup (handlers.py:14)"
     assert parse_python_traceback("no traceback here\n") is None
     assert parse_python_traceback("Traceback (most recent call last):\n  File \"x.py\", line 1, in f\n") is None
+
+
+def _running(pid: int) -> bool:
+    """Whether `pid` runs (a zombie nobody reaps, as here under a PID 1 that does not, has ended)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_the_controller_does_not_outlive_a_fuzzer_that_is_killed():
+    """Trial: a fuzz run killed with SIGKILL (a CI timeout, the OOM killer) left its controller
+    running, in its own session, on the target port."""
+    script = ("import time; from vm110.fuzz.supervisor import Supervisor; s = Supervisor('sleep 60'); "
+              "s.start(); print(s.proc.pid, flush=True); time.sleep(60)")
+    with subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True) as fuzzer:
+        assert fuzzer.stdout is not None
+        controller = int(fuzzer.stdout.readline())
+        time.sleep(0.3)                          # (exec'd into the controller)
+        assert _running(controller)
+        fuzzer.kill()
+    deadline = time.time() + 5
+    while _running(controller) and time.time() < deadline:
+        time.sleep(0.05)
+    running = _running(controller)
+    if running:
+        os.kill(controller, signal.SIGKILL)
+    assert not running

@@ -143,7 +143,11 @@ class Supervisor:
         with that and could drop a core into the working folder. (No Python between fork and exec:
         the reader threads.)"""
         limit = "unlimited" if self.core_limit == resource.RLIM_INFINITY else str(self.core_limit)
-        return ["/bin/sh", "-c", 'ulimit -S -c "$0" && exec "$@"', limit, *self.argv]
+        # Killed with the fuzzer (SIGKILL, the OOM killer: no stop() runs), a controller would go on
+        # in its own session, holding the target port: setpriv has the kernel kill it too.
+        setpriv = shutil.which("setpriv")
+        tie = [setpriv, "--pdeathsig", "KILL", "--"] if setpriv else []
+        return ["/bin/sh", "-c", 'ulimit -S -c "$0" && exec "$@"', limit, *tie, *self.argv]
 
     def _read(self, stream: IO[bytes], ring: _Ring) -> None:
         fd = stream.fileno()
