@@ -178,3 +178,12 @@ def test_cases_whose_acks_a_crash_cut_short_are_played_again_once(runner):
     runner.session.monitor.cut_short = [35]              # cut short again: not played a third time
     runner._judge_again()
     assert played == [35] and runner.session.monitor.cut_short == []
+
+
+def test_a_crash_s_progress_line_says_crash_once(runner):
+    """Trial: 'vm110 fuzz: crash: crash SIGABRT ABRT in on_vrpi (ctl.c:73); replaying 49 suspect case(s)'."""
+    said: list[str] = []
+    runner.cfg.progress = said.append
+    runner._trial = lambda replay, t: None
+    runner._investigate(Trigger(CRASH, 0.0, "crash SIGSEGV in execute (ctl.c:83)", kind="SIGSEGV execute"))
+    assert said[0] == "crash SIGSEGV in execute (ctl.c:83); observing the controller again"

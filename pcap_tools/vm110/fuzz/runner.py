@@ -385,7 +385,7 @@ class Runner:
                 return self._smaller(trig, bucket, culprit)
         replayed = len(suspects) if trig.oracle == CRASH else min(len(suspects), _MAX_SUSPECTS)
         what = "observing the controller again" if spontaneous else f"replaying {replayed} suspect case(s)"
-        self.cfg.progress(f"{trig.oracle}: {trig.detail}; {what}")
+        self.cfg.progress(f"{_headline(trig)}; {what}")
         traffic = [p for p in self.session.traffic if p[0] >= trig.time - 4.0]
         if spontaneous:   # nothing the cases did: does the controller do it again on its own?
             if self._trial(Replay([]), trig):
@@ -582,7 +582,7 @@ class Runner:
             finding.crash = F.write_crash(self.cfg.out, finding.name(number), trig.crash)
         path = F.write_finding(self.cfg.out, number, finding, traffic, self.session.link.local)
         self.files.append(path.name)
-        headline = trig.detail if trig.oracle == CRASH else f"{trig.oracle}: {trig.detail}"
+        headline = _headline(trig)
         self.buckets[signature] = F.Bucket(signature, trig.oracle, path.name, trig.time, trig.time, headline=headline,
                                            number=number, size=_size([small] if small is not None else sent))
         self.cfg.progress(f"finding {path.name}: {trig.detail if trig.oracle == CRASH else trig.oracle} "
@@ -594,6 +594,11 @@ class Runner:
 
 class _Budget(Exception):
     pass
+
+
+def _headline(trig: Trigger) -> str:
+    """`missing_ack: no VRAO ...`; a crash's detail names it already (`crash SIGSEGV in ...`)."""
+    return trig.detail if trig.oracle == CRASH else f"{trig.oracle}: {trig.detail}"
 
 
 def _size(sent: list[Sent]) -> int:
