@@ -195,9 +195,10 @@ class Monitor:
         comes back on a new port once its old one has fallen silent: its serials start afresh there,
         and, back within the stall limit, nothing else would show it. The cases around its last
         packet are the suspects."""
+        known = src in self.sources
         before = [(last, port) for (host, port), last in self.sources.items() if host == src[0]]
         self.sources[src] = t
-        if src[1] in [port for _, port in before] or not before or self.stall_reported:
+        if known or not before or self.stall_reported:
             return           # a known port, the first one, or a stall already reported for the silence
         last, port = max(before)
         if t - last >= _NEW_PORT_SILENCE_S:

@@ -27,9 +27,9 @@ from ..fileio import check_target
 from . import cases as K
 from . import findings as F
 from .guided import Guided, GuidedConfig
+from .link import taken
 from .minimize import ddmin, difference, minimize
 from .oracles import CRASH, MALFORMED_OUTPUT, MISSING_ACK, STALL, VRCO_RETRANSMIT, Monitor, Trigger
-from .link import taken
 from .session import Sent, Session, Settings, TargetLost
 from .supervisor import Supervisor
 
