@@ -232,6 +232,19 @@ def test_a_target_port_another_process_receives_on_is_refused_before_the_control
     assert not marker.exists()
 
 
+@pytest.mark.parametrize("listen", ["127.0.0.1", "0.0.0.0"])
+def test_a_listen_address_that_is_the_target_is_refused(capsys, nothing_leaves, tmp_path, listen):
+    """Trial: --listen on the target's own port had the fuzzer receive what it sent; with
+    --target-cmd the run blamed 'another process ... left running by an earlier run', itself."""
+    rx = free_ports(1)[0]
+    marker = tmp_path / "started"
+    code, err = fuzz_in_process(capsys, "--target", f"127.0.0.1:{rx}", "--listen", f"{listen}:{rx}",
+                                "--target-cmd", f"touch {marker}", "--cases", "1", "--out", str(tmp_path / "out"))
+    line = one_line(err)
+    assert code == 2 and f"--listen {listen}:{rx} is the --target" in line, line
+    assert not marker.exists() and not (tmp_path / "out").exists()
+
+
 def test_replay_never_runs_the_stored_command(tmp_path):
     marker = tmp_path / "stored-command-ran"
     rx, listen = free_ports(2)

@@ -113,13 +113,18 @@ def _settings(args: argparse.Namespace, target: str, listen: str | None, group: 
                 raise ValueError
         except ValueError:
             raise CliError(f"--group {group[:80]!r} is not an IPv4 multicast address") from None
+    listen_what = f"the listen address stored in {listen_stored_in}" if listen_stored_in else "--listen"
     if listen:
-        listen_what = f"the listen address stored in {listen_stored_in}" if listen_stored_in else "--listen"
         listen_at = parse_endpoint(listen, listen_what, numeric=bool(listen_stored_in))
     elif host_port[1] + C.OUTPUT_PORT_OFFSET <= 65535:
         listen_at = ("0.0.0.0", host_port[1] + C.OUTPUT_PORT_OFFSET)
     else:
         raise CliError("--listen is needed: target port + 2 is not a port")
+    if listen_at[1] == host_port[1] and (listen_at[0] == host_port[0] or (
+            listen_at[0] == "0.0.0.0" and ipaddress.ip_address(host_port[0]).is_loopback)):
+        # The fuzzer would receive what it sends, and the controller could not bind its port.
+        raise CliError(f"{listen_what} {listen_at[0]}:{listen_at[1]} is the --target: the "
+                       "controller's output arrives on another port (the specification's: the target port + 2)")
     if args.allow_remote:
         _progress(f"sending to {host_port[0]}:{host_port[1]} only ({what} {_printable(target)})")
     rate = args.rate or (COVERAGE_RATE if getattr(args, "coverage", False) else DEFAULT_RATE)
