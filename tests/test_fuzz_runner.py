@@ -187,3 +187,24 @@ def test_a_crash_s_progress_line_says_crash_once(runner):
     runner._trial = lambda replay, t: None
     runner._investigate(Trigger(CRASH, 0.0, "crash SIGSEGV in execute (ctl.c:83)", kind="SIGSEGV execute"))
     assert said[0] == "crash SIGSEGV in execute (ctl.c:83); observing the controller again"
+
+
+def test_a_minimised_missing_ack_names_the_command_its_packets_leave_unacknowledged(runner):
+    """Trial: the command ID wrap case (65534, 65535, 0, 1) was minimised to 65535 then 1, yet the
+    finding said 'no VRAO for command ID 0' and showed the VRCI of 1: 0 was no longer sent."""
+    ids = (0xFFFE, 0xFFFF, 0, 1)
+    vrci = {cid: M.build(C.PacketType.VRCI, n, M.default_fields(C.PacketType.VRCI, cid)) for n, cid in enumerate(ids)}
+    sent = [Sent(0.0, vrci[cid], vrci[cid], 20.0, True) for cid in ids]
+
+    def trial(replay: Replay, trig: Trigger) -> Optional[Trigger]:
+        """My controller: an ID not above the last one is taken for a repeat and the last one acked."""
+        played = [cid for cid in ids if vrci[cid] in {p.data for p in replay.packets}]
+        owed = [cid for n, cid in enumerate(played) if n and cid <= played[n - 1]]
+        return Trigger(MISSING_ACK, 0.0, f"no VRAO for command ID {owed[0]} within 1000 ms",
+                       command_id=owed[0]) if owed else None
+    runner._trial = trial
+    trig = Trigger(MISSING_ACK, 0.0, "no VRAO for command ID 0 within 1000 ms", case_index=9, command_id=0)
+    kept, shown, _, complete = runner._minimize(trig, K.Case(9, "sequence", "command ID wrap"), sent)
+    assert [p.data for p in kept] == [vrci[0xFFFF], vrci[1]] and complete
+    assert shown is not None and shown.data == vrci[1]
+    assert (trig.command_id, trig.detail) == (1, "no VRAO for command ID 1 within 1000 ms")

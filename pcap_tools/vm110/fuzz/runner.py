@@ -516,28 +516,36 @@ class Runner:
         """(the packets of the case kept, the packet the finding shows, its minimised version or
         None, complete): first the fewest steps of the case that still trigger, then, with one
         packet left, its fewest changes; that is none (the twin itself) when its valid twin
-        triggers too (the case's fields are then not the cause)."""
+        triggers too (the case's fields are then not the cause). `trig` comes to name the command
+        the packets kept trigger on."""
         deadline = time.time() + self.cfg.minimize_budget_s
 
-        def again(packets: list[Sent]) -> bool:
+        def hit(packets: list[Sent]) -> Optional[Trigger]:
             if time.time() > deadline:
                 raise _Budget
             return self._trial(Replay(packets, case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream,
-                                      case.settle_ms), trig) is not None
+                                      case.settle_ms), trig)
+
+        def again(packets: list[Sent]) -> bool:
+            return hit(packets) is not None
         chosen: list[object] = list(range(len(sent)))
         complete = True
+        cache: dict[tuple[object, ...], Optional[Trigger]] = {tuple(chosen): trig}   # subset -> what it triggered
         if len(chosen) > 1:
-            cache: dict[tuple[object, ...], bool] = {tuple(chosen): True}
-
             def test(subset: list[object]) -> bool:
                 if tuple(subset) not in cache:
-                    cache[tuple(subset)] = again([sent[int(i)] for i in subset])  # type: ignore[call-overload]
-                return cache[tuple(subset)]
+                    cache[tuple(subset)] = hit([sent[int(i)] for i in subset])  # type: ignore[call-overload]
+                return cache[tuple(subset)] is not None
             try:
                 chosen = ddmin(chosen, test)
             except _Budget:
                 complete = False
         kept = [sent[int(i)] for i in chosen]  # type: ignore[call-overload]
+        last = cache.get(tuple(chosen))
+        if last is not None and last.oracle == trig.oracle and last.command_id not in (None, trig.command_id):
+            # The packets kept leave another of the case's commands unacknowledged (the one named
+            # may be gone): the finding names that one, and shows its VRCI.
+            trig.detail, trig.command_id = last.detail, last.command_id
         if len(kept) != 1:
             return kept, _pick(kept, trig.command_id), None, complete
         one = kept[0]
