@@ -45,20 +45,24 @@ FIELDS = ("frame.number", "crane.hoist_height", "crane.load", "crane.alarms", "c
           "crane.alarm_text", "vm110.reassembled", "_ws.lua.error")
 
 
+def with_crane(ws: T.Workspace, *runs: list[str]) -> list:
+    """tshark with the crane example on the capture of `capture_packets` (crane.pcap in the
+    workspace), FIELDS printed, once per argument list."""
+    packets, times = capture_packets()
+    pcap = ws.dir / "crane.pcap"
+    T.write_pcap(pcap, packets, times)
+    crane = ws.dir / CRANE.name
+    crane.write_bytes(CRANE.read_bytes())
+    fields = ["-T", "fields", "-E", "aggregator=|", "-E", "occurrence=a", *(a for f in FIELDS for a in ("-e", f))]
+    return [ws.run(["-X", f"lua_script:{ws.tshark.inner(crane)}", "-r", str(pcap), *args, *fields]) for args in runs]
+
+
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 def test_crane_example_decodes_the_capture(tshark, tmp_path):
-    packets, times = capture_packets()
     try:
         with tshark.workspace(tmp_path) as ws:
-            pcap = ws.dir / "crane.pcap"
-            T.write_pcap(pcap, packets, times)
-            crane = ws.dir / CRANE.name
-            crane.write_bytes(CRANE.read_bytes())
-            fields = ["-T", "fields", "-E", "aggregator=|", "-E", "occurrence=a", *(a for f in FIELDS for a in ("-e", f))]
-            on = ws.run(["-X", f"lua_script:{ws.tshark.inner(crane)}", "-r", str(pcap), "-2",
-                         "-o", "vm110.machine:crane", *fields])
-            off = ws.run(["-X", f"lua_script:{ws.tshark.inner(crane)}", "-r", str(pcap), "-2", *fields])
-            alone = ws.run(["-r", str(pcap), "-2", "-o", "vm110.machine:crane", "-V"])
+            on, off = with_crane(ws, ["-2", "-o", "vm110.machine:crane"], ["-2"])
+            alone = ws.run(["-r", str(ws.dir / "crane.pcap"), "-2", "-o", "vm110.machine:crane", "-V"])
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
     assert T.LUA_ERROR not in on.stdout + on.stderr + off.stderr
@@ -94,16 +98,10 @@ def test_crane_example_without_the_stream_analysis(tshark, tmp_path):
     no other packet: the command data, and an unsplit VRPO's periodic data; a split burst is not
     reassembled. Trial: nothing at all was decoded for the crane, though the README gives the
     command table every command's data."""
-    packets, times = capture_packets()
     try:
         with tshark.workspace(tmp_path) as ws:
-            pcap = ws.dir / "crane.pcap"
-            T.write_pcap(pcap, packets, times)
-            crane = ws.dir / CRANE.name
-            crane.write_bytes(CRANE.read_bytes())
-            fields = ["-T", "fields", "-E", "aggregator=|", "-E", "occurrence=a", *(a for f in FIELDS for a in ("-e", f))]
-            runs = [ws.run(["-X", f"lua_script:{ws.tshark.inner(crane)}", "-r", str(pcap), *passes,
-                            "-o", "vm110.machine:crane", "-o", "vm110.analysis:FALSE", *fields]) for passes in ([], ["-2"])]
+            runs = with_crane(ws, *([*passes, "-o", "vm110.machine:crane", "-o", "vm110.analysis:FALSE"]
+                                    for passes in ([], ["-2"])))
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
     for run in runs:

@@ -58,8 +58,8 @@ TOTAL_NAMES = ("packets", "eglink_packets", "damaged", "lost", "duplicates", "ou
                "ack_latency_max_ms")
 MAX_TOTALS = frozenset({"jitter_max_ms", "interval_max_ms", "ack_latency_max_ms"})   # combined by max, not sum
 
-# (total, severity, message) for each finding the verdict reports when its total is above 0.
-# (rule, severity, message after the count: singular, plural)
+# (total, severity, message after the count: singular, plural) for each finding the verdict
+# reports when its total is above 0.
 FINDINGS = (
     ("lost", "error", "packet lost (serial gaps)", "packets lost (serial gaps)"),
     ("illegal", "error", "illegal packet", "illegal packets"),
