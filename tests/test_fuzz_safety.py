@@ -417,7 +417,7 @@ def test_a_device_as_a_finding_or_dictionary_is_one_line_errors(capsys, nothing_
     """Trial: --replay /dev/zero and --dict /dev/zero read until the kernel killed the process (a
     device has no size to check first): at most the limit is read."""
     code, err = fuzz_in_process(capsys, "--replay", "/dev/zero")
-    assert code == 2 and "/dev/zero is not a vm110 fuzz finding: larger than 16 MiB" in one_line(err)
+    assert code == 2 and "/dev/zero is not a vm110 fuzz finding or corpus case: larger than 16 MiB" in one_line(err)
     from vm110.fuzz.corpus import load_dictionary
     with pytest.raises(CliError, match="--dict /dev/zero: larger than 1 MiB"):
         load_dictionary("/dev/zero")
@@ -484,7 +484,8 @@ def test_a_finding_without_steps_is_refused_unless_no_case_caused_it(capsys, not
     spontaneous = a_finding(steps=[], family="none", mutation="none: the base unit's normal VRAI", stream=None)
     gap = a_finding(steps=[], family="sequence", mutation="VRPI gap of 2100 ms", pause_vrpi_ms=2100.0, stream=None)
     for finding in (spontaneous, gap):
-        assert findings.load_finding(str(save(tmp_path, finding))).steps == []
+        path = save(tmp_path, finding)
+        assert findings.finding_from_json(json.loads(path.read_text()), str(path)).steps == []
 
 
 def test_a_crash_finding_is_replayed_only_with_target_cmd(capsys, nothing_leaves, tmp_path):
@@ -496,7 +497,8 @@ def test_a_crash_finding_is_replayed_only_with_target_cmd(capsys, nothing_leaves
 
 def test_every_seed_the_option_takes_is_a_valid_finding(tmp_path):
     """A run with --seed 2**64-1 wrote a finding its replay refused (numbers stopped below 2**63)."""
-    assert findings.load_finding(str(save(tmp_path, a_finding(seed=2**64 - 1)))).seed == 2**64 - 1
+    path = save(tmp_path, a_finding(seed=2**64 - 1))
+    assert findings.finding_from_json(json.loads(path.read_text()), str(path)).seed == 2**64 - 1
 
 
 def test_a_hostile_finding_file_through_the_command(tmp_path):
@@ -656,3 +658,18 @@ def test_progress_lines_carry_no_control_characters(capsys):
     fuzz_command._progress("finding x: crash in f\x1b[2J\x00 (c.c:1)")
     err = capsys.readouterr().err
     assert err == "vm110 fuzz: finding x: crash in f?[2J? (c.c:1)\n"
+
+
+def test_a_finding_from_a_pipe_is_replayed(tmp_path):
+    """`--replay <(...)`: the file was read twice (once to tell a corpus case from a finding, once
+    to load it), and a pipe has nothing left the second time: 'is not a vm110 fuzz finding' (fuzz
+    trial). It is read once; a corpus case through a pipe is told apart as well."""
+    rx, listen = free_ports(2)
+    finding = json.dumps(a_finding(target=f"127.0.0.1:{rx}", listen=f"127.0.0.1:{listen}"))
+    entry = json.dumps({"vm110_corpus_entry": 1, "packets": [{"hex": "zz"}]})
+    # (no controller runs: the finding gets as far as waiting for one)
+    for text, said in ((finding, "no VRPO from the controller"), (entry, "not a valid vm110 corpus case")):
+        done = subprocess.run(["bash", "-c", 'exec "$@" --replay <(printf %s "$0")', text, sys.executable, "-m",
+                               "vm110", "fuzz", "--target", f"127.0.0.1:{rx}", "--startup", "1"],
+                              capture_output=True, text=True, timeout=60, cwd=tmp_path)
+        assert said in done.stdout + done.stderr and "not a vm110 fuzz finding" not in done.stderr, done.stderr

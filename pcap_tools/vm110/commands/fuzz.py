@@ -26,16 +26,17 @@ from typing import Any
 
 from .. import constants as C
 from ..errors import EXIT_FINDINGS, EXIT_INTERRUPTED, EXIT_OK, CliError
-from ..fuzz.corpus import is_entry_file, load_entry
+from ..fuzz.corpus import Entry, checked_entry, is_entry
 from ..fuzz.coverage import map_size
 from ..fuzz.destination import check
-from ..fuzz.findings import check_out, load_finding, write_summary
+from ..fuzz.findings import MAX_FILE, check_out, finding_from_json, write_summary
 from ..fuzz.guided import GuidedConfig
 from ..fuzz.link import parse_endpoint
 from ..fuzz.oracles import CRASH, Limits
 from ..fuzz.report_html import write_coverage_html
 from ..fuzz.runner import RunConfig, Runner, finding_kind, replay_corpus_case, replay_finding
 from ..fuzz.session import Settings, TargetLost
+from ..jsonin import load_file
 from ..numbers import number
 from .options import SEED
 
@@ -255,9 +256,11 @@ class _StatusLine:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    if is_entry_file(args.replay):
-        return _replay_corpus(args)
-    finding = load_finding(args.replay)
+    # Read once: a pipe (--replay <(...)) cannot be read again to tell a corpus case from a finding.
+    raw = load_file(args.replay, MAX_FILE, "a vm110 fuzz finding or corpus case")
+    if is_entry(raw):
+        return _replay_corpus(args, checked_entry(raw, args.replay))
+    finding = finding_from_json(raw, args.replay)
     if finding.oracle == CRASH and not args.target_cmd:
         # Only a controller the fuzzer started can be seen to exit: "fixed" would be a guess.
         raise CliError(f"{args.replay} is a crash finding: give --target-cmd (a crash is seen only in a "
@@ -285,9 +288,8 @@ def _replay(args: argparse.Namespace) -> int:
     return EXIT_FINDINGS if trig else EXIT_OK
 
 
-def _replay_corpus(args: argparse.Namespace) -> int:
+def _replay_corpus(args: argparse.Namespace, entry: Entry) -> int:
     """A `--corpus` case: it stores no target (give --target), and says what the oracles saw."""
-    entry = load_entry(args.replay)
     if not args.target:
         raise CliError(f"--target HOST:PORT is needed to replay {args.replay} (a corpus case stores none)")
     settings = _settings(args, args.target, args.listen, args.group)

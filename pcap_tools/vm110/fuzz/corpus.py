@@ -19,11 +19,11 @@ from typing import Any, Optional
 
 from .. import constants as C
 from ..errors import CliError
-from ..fileio import open_input, read_at_most, write_text
+from ..fileio import read_at_most, write_text
 from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
 from .findings import MAX_STEPS, make_folder
-from ..jsonin import load_file, loads
+from ..jsonin import loads
 
 _MAX_PACKET = 65_507
 _MAX_MS = 5_000.0
@@ -109,18 +109,14 @@ def entry_from_json(raw: Any) -> Entry:
                  str(raw.get("origin", ""))[:200], 0)
 
 
-def is_entry_file(path: str) -> bool:
-    """Whether `path` looks like a corpus case (not a finding): a cheap look at its start."""
-    try:
-        with open_input(path) as f:
-            return b'"vm110_corpus_entry"' in f.read(64)
-    except OSError:
-        return False
+def is_entry(raw: Any) -> bool:
+    """Whether the JSON of a file is a corpus case (not a finding)."""
+    return isinstance(raw, dict) and "vm110_corpus_entry" in raw
 
 
-def load_entry(path: str) -> Entry:
-    """One corpus file, checked; CliError (one line) when it is not a valid corpus case."""
-    raw = load_file(path, _MAX_ENTRY_FILE, "a vm110 corpus case")
+def checked_entry(raw: Any, path: str) -> Entry:
+    """The corpus case of the JSON `raw` read from `path`, checked; CliError (one line) when it is
+    not a valid corpus case."""
     try:
         return entry_from_json(raw)
     except _Bad as exc:

@@ -18,11 +18,10 @@ from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
 from .evidence import Crash
 from .oracles import ORACLES
-from ..jsonin import load_file
 
 SCHEMA = 1
 # What a finding file may hold, beyond its types: it is data from anywhere, never trusted.
-_MAX_FILE = 16 << 20
+MAX_FILE = 16 << 20
 MAX_STEPS = 64                   # packets a case may send (the longest made here has 20)
 _MAX_PACKET = 65_507             # the largest UDP payload over IPv4
 _MAX_MS = 60_000.0               # delays, pauses and withholding
@@ -208,10 +207,10 @@ def write_summary(out: Path, summary: dict[str, Any]) -> Path:
     return path
 
 
-def load_finding(path: str) -> Finding:
-    """A finding JSON written by `write_finding`, every value checked; CliError (one line) when it
-    is not one. Nothing in it is run: the stored command is only a hint."""
-    raw = load_file(path, _MAX_FILE, "a vm110 fuzz finding")
+def finding_from_json(raw: Any, path: str) -> Finding:
+    """The finding written by `write_finding` whose JSON `raw` was read from `path`, every value
+    checked; CliError (one line) when it is not one. Nothing in it is run: the stored command is
+    only a hint."""
     if not isinstance(raw, dict) or raw.get("oracle") not in ORACLES or not isinstance(raw.get("steps"), list):
         raise CliError(f"{path} is not a vm110 fuzz finding")
     try:
