@@ -405,6 +405,16 @@ def test_unreadable_finding_files_are_one_line_errors(capsys, nothing_leaves, tm
     assert code == 2 and str(path) in one_line(err)
 
 
+def test_a_file_of_bytes_that_are_no_text_is_said_plainly(capsys, nothing_leaves, tmp_path):
+    """Trial: a file beginning with zero bytes was "'utf-32-be' codec can't decode bytes in position
+    4-7: code point not in range(0x110000)", the words of Python's codec (json takes zero bytes for
+    UTF-32)."""
+    path = tmp_path / "finding.json"
+    path.write_bytes(b'\x00\x00{"oracle": 1, \xff}')
+    code, err = fuzz_in_process(capsys, "--replay", str(path))
+    assert code == 2 and one_line(err).endswith(f"{path} is not JSON: not text (UTF-8, UTF-16 or UTF-32) at byte 4")
+
+
 def test_a_number_of_too_many_digits_is_said_plainly(capsys, nothing_leaves, tmp_path):
     """Trial: the line ended "...use sys.set_int_max_str_digits() t", cut mid-word, Python's internals."""
     path = tmp_path / "finding.json"

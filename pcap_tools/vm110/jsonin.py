@@ -49,5 +49,7 @@ def load_file(path: str, limit: int, what: str) -> Any:
         raise CliError(f"{path} is not {what}: {exc}") from None
     try:
         return loads(data)
+    except UnicodeDecodeError as exc:   # (json guesses UTF-16 or -32 from zero bytes: its codec's words)
+        raise CliError(f"{path} is not JSON: not text (UTF-8, UTF-16 or UTF-32) at byte {exc.start}") from None
     except ValueError as exc:    # also numbers of more digits than Python converts
         raise CliError(f"{path} is not JSON: {str(exc)[:120]}") from None
