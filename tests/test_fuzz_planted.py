@@ -177,6 +177,15 @@ def test_usage_errors_exit_2(tmp_path, capsys):
     assert code == 2 and "no VRPO" in err
 
 
+def test_a_run_whose_duration_ends_before_its_first_case_is_no_pass(tmp_path):
+    """Trial: `--duration 0.001` ran 0 cases and exited 0, a pass for a CI gate that tested nothing.
+    It says so, exit 2; the summary is still written."""
+    result, summary = fuzz(tmp_path, "reference", "--duration", "0.001")
+    assert result.returncode == 2 and summary["cases_run"] == 0, result.stdout + result.stderr
+    assert result.stderr.splitlines()[-1] == ("vm110 fuzz: no case ran: --duration 0.001 s ended before the first "
+                                              "case (the controller's start and its first VRPO come first)")
+
+
 def test_a_controller_that_exits_at_once_is_told_at_once(tmp_path):
     """Trial: --target-cmd true exited at once, and the fuzzer still waited out --startup (10 s)
     before saying so. An empty --target-cmd or --out was taken as none given."""

@@ -225,7 +225,12 @@ def run(args: argparse.Namespace) -> int:
               f"... (most likely first) are in {out / 'findings.json'} (unreproduced)")
     if runner.interrupted:
         return EXIT_INTERRUPTED
-    return EXIT_FINDINGS if summary["findings"] or summary["controller_lost"] else EXIT_OK
+    if summary["findings"] or summary["controller_lost"]:
+        return EXIT_FINDINGS
+    if summary["cases_run"] == 0 and duration is not None:     # (nothing was tested: no pass for a CI gate)
+        raise CliError(f"no case ran: --duration {duration:g} s ended before the first case (the controller's "
+                       "start and its first VRPO come first)")
+    return EXIT_OK
 
 
 class _StatusLine:
