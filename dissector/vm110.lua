@@ -850,53 +850,55 @@ do
     local function uint(name, label, default, blurb, min, max)
         vm110.prefs[name] = Pref.uint(label, default, blurb)
         PREF_RANGES[#PREF_RANGES + 1] = { name, min, max, default }
-end
-local variant_enum, order_enum = {}, { { "little", "Little-endian (TS-0006 2.1)", 1 }, { "big", "Big-endian", 2 } }
-for i, v in ipairs(CRC_VARIANTS) do variant_enum[i] = { v.name, v.label, i } end
-vm110.prefs.crc_variant = Pref.enum("CRC variant", 1, "CRC-32 variant the packets are checked with", variant_enum,
-    false)
-vm110.prefs.crc_byte_order = Pref.enum("Stored CRC byte order", 1, "Byte order of the CRC trailer", order_enum, false)
-vm110.prefs.check_crc = Pref.bool("Validate the CRC", true, "Calculate the CRC of each packet and flag bad ones")
-uint("input_port", "Input UDP port", DEFAULT_INPUT_PORT,
-    "UDP port of input packets; output packets use this port + 2 (TS-0006 2.2)", 1, 65535 - OUTPUT_PORT_OFFSET)
-vm110.prefs.heuristic = Pref.bool("Find EG-Link on other UDP ports", true,
-    "Heuristic: a known packet ID with a size that matches the UDP length")
-vm110.prefs.analysis = Pref.bool("Analyse the streams", true,
-    "Serial gaps, intervals and watchdogs, retransmissions and acknowledgements, VRPO reassembly")
-vm110.prefs.serial_scope = Pref.enum("Serial number scope", 1,
-    "One counter per sender, or one per packet type per sender",
-    { { "sender", "Per sender (all packet types)", 1 }, { "type", "Per packet type per sender", 2 } }, false)
-uint("dup_window_ms", "Duplicate window (ms)", RULES.dup_window_ms,
-    "A serial received again within this is a duplicate; a late packet fills a gap opened within it", 1, MS)
-uint("reuse_gap_ms", "Command ID reuse gap (ms)", RULES.reuse_gap_ms,
-    "The same command ID again after a longer silence starts a new command", 1, MS)
-uint("vrpi_watchdog_ms", "VRPI watchdog (ms)", VRPI_WATCHDOG_MS, "Warn above this VRPI interval", 1, MS)
-uint("vrpo_watchdog_ms", "VRPO watchdog (ms)", VRPO_WATCHDOG_MS, "Warn above this VRPO interval", 1, MS)
-uint("vrpo_min_ms", "VRPO recommended minimum interval (ms)", VRPO_PERIOD_MIN_MS, "Note below this", 1, MS)
-uint("vrpo_max_ms", "VRPO recommended maximum interval (ms)", VRPO_PERIOD_MAX_MS, "Note above this", 1, MS)
-uint("resend_ms", "Command resend interval (ms)", COMMAND_RESEND_MS, "Nominal resend interval", 1, MS)
-uint("resend_tolerance_ms", "Resend interval tolerance (ms)", COMMAND_RESEND_MS / 2,
-    "Note when a resend interval differs from the nominal one by more than this", 0, MS)
-uint("vrci_fail_ms", "VRCI failure timeout (ms)", VRCI_FAIL_MS,
-    "Acknowledgement later than this: failed", 1, MS)
-uint("vrco_give_up_ms", "VRCO give-up timeout (ms)", VRCO_GIVE_UP_MS,
-    "Acknowledgement later than this: late", 1, MS)
-uint("vrpo_data_size", "Configured periodic data size (bytes)", 0,
-    "Total VRPO periodic data of a burst; 0 = infer (a burst ends with a packet of fewer than 488 bytes, or its "
-    .. "packets all carry 488 bytes and are at least as many as in the sender's longest complete such burst)", 0, 65535)
-uint("vrpo_number_start", "First VRPO packet number", 0,
-    "Packet number of a burst's first packet (0 or 1)", 0, 1)
-uint("burst_gap_ms", "VRPO burst gap (ms)", VRPO_BURST_GAP_MS,
-    "A new burst starts after this gap (or after a complete burst)", 1, MS)
-vm110.prefs.machine = Pref.string("Machine", "",
-    "Key of the machine-specific sub-dissectors in the vm110.periodic_data and vm110.command_data tables")
-vm110.prefs.fields_from_command_line = Pref.bool("tshark 4.0 -T fields: build only the fields named", true,
-    "Wireshark 4.0's tshark -T fields builds every field of every packet; build only the vm110 fields its "
-    .. "command line names (-e, -Y, -R, -z), as later versions do. Off: every field (say, for a Lua script "
-    .. "of your own that reads vm110 fields with Field.new)")
-vm110.prefs.tune_gc = Pref.bool("Tune Lua's garbage collector", false,
-    "Collector settings that make this dissector faster (Lua 5.4: generational; Lua 5.2: pause 100, "
-    .. "step multiplier 800). They apply to every Lua plugin of this Wireshark, so they are off by default")
+    end
+    local variant_enum, order_enum = {}, { { "little", "Little-endian (TS-0006 2.1)", 1 }, { "big", "Big-endian", 2 } }
+    for i, v in ipairs(CRC_VARIANTS) do variant_enum[i] = { v.name, v.label, i } end
+    vm110.prefs.crc_variant = Pref.enum("CRC variant", 1, "CRC-32 variant the packets are checked with", variant_enum,
+        false)
+    vm110.prefs.crc_byte_order = Pref.enum("Stored CRC byte order", 1, "Byte order of the CRC trailer", order_enum,
+        false)
+    vm110.prefs.check_crc = Pref.bool("Validate the CRC", true, "Calculate the CRC of each packet and flag bad ones")
+    uint("input_port", "Input UDP port", DEFAULT_INPUT_PORT,
+        "UDP port of input packets; output packets use this port + 2 (TS-0006 2.2)", 1, 65535 - OUTPUT_PORT_OFFSET)
+    vm110.prefs.heuristic = Pref.bool("Find EG-Link on other UDP ports", true,
+        "Heuristic: a known packet ID with a size that matches the UDP length")
+    vm110.prefs.analysis = Pref.bool("Analyse the streams", true,
+        "Serial gaps, intervals and watchdogs, retransmissions and acknowledgements, VRPO reassembly")
+    vm110.prefs.serial_scope = Pref.enum("Serial number scope", 1,
+        "One counter per sender, or one per packet type per sender",
+        { { "sender", "Per sender (all packet types)", 1 }, { "type", "Per packet type per sender", 2 } }, false)
+    uint("dup_window_ms", "Duplicate window (ms)", RULES.dup_window_ms,
+        "A serial received again within this is a duplicate; a late packet fills a gap opened within it", 1, MS)
+    uint("reuse_gap_ms", "Command ID reuse gap (ms)", RULES.reuse_gap_ms,
+        "The same command ID again after a longer silence starts a new command", 1, MS)
+    uint("vrpi_watchdog_ms", "VRPI watchdog (ms)", VRPI_WATCHDOG_MS, "Warn above this VRPI interval", 1, MS)
+    uint("vrpo_watchdog_ms", "VRPO watchdog (ms)", VRPO_WATCHDOG_MS, "Warn above this VRPO interval", 1, MS)
+    uint("vrpo_min_ms", "VRPO recommended minimum interval (ms)", VRPO_PERIOD_MIN_MS, "Note below this", 1, MS)
+    uint("vrpo_max_ms", "VRPO recommended maximum interval (ms)", VRPO_PERIOD_MAX_MS, "Note above this", 1, MS)
+    uint("resend_ms", "Command resend interval (ms)", COMMAND_RESEND_MS, "Nominal resend interval", 1, MS)
+    uint("resend_tolerance_ms", "Resend interval tolerance (ms)", COMMAND_RESEND_MS / 2,
+        "Note when a resend interval differs from the nominal one by more than this", 0, MS)
+    uint("vrci_fail_ms", "VRCI failure timeout (ms)", VRCI_FAIL_MS,
+        "Acknowledgement later than this: failed", 1, MS)
+    uint("vrco_give_up_ms", "VRCO give-up timeout (ms)", VRCO_GIVE_UP_MS,
+        "Acknowledgement later than this: late", 1, MS)
+    uint("vrpo_data_size", "Configured periodic data size (bytes)", 0,
+        "Total VRPO periodic data of a burst; 0 = infer (a burst ends with a packet of fewer than 488 bytes, or its "
+        .. "packets all carry 488 bytes and are at least as many as in the sender's longest complete such burst)",
+        0, 65535)
+    uint("vrpo_number_start", "First VRPO packet number", 0,
+        "Packet number of a burst's first packet (0 or 1)", 0, 1)
+    uint("burst_gap_ms", "VRPO burst gap (ms)", VRPO_BURST_GAP_MS,
+        "A new burst starts after this gap (or after a complete burst)", 1, MS)
+    vm110.prefs.machine = Pref.string("Machine", "",
+        "Key of the machine-specific sub-dissectors in the vm110.periodic_data and vm110.command_data tables")
+    vm110.prefs.fields_from_command_line = Pref.bool("tshark 4.0 -T fields: build only the fields named", true,
+        "Wireshark 4.0's tshark -T fields builds every field of every packet; build only the vm110 fields its "
+        .. "command line names (-e, -Y, -R, -z), as later versions do. Off: every field (say, for a Lua script "
+        .. "of your own that reads vm110 fields with Field.new)")
+    vm110.prefs.tune_gc = Pref.bool("Tune Lua's garbage collector", false,
+        "Collector settings that make this dissector faster (Lua 5.4: generational; Lua 5.2: pause 100, "
+        .. "step multiplier 800). They apply to every Lua plugin of this Wireshark, so they are off by default")
 end
 
 ---------------------------------------------------------------------------------------------
