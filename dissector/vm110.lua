@@ -1192,7 +1192,7 @@ local function add_header(r, tvb, root)
         end
         if info then
             generated(item, "direction", tvb, 0, ID_LEN, info.direction)
-        else
+        elseif not r.cut then -- (cut by the snaplen: truncated, and for that alone, as decode() says)
             add_expert(item, E.unknown_id, "Unknown packet ID: the payload is not decoded")
         end
     else

@@ -375,18 +375,24 @@ def test_damaged_ip_and_udp_headers_are_read_as_wireshark_reads_them(runner, ip,
 def test_a_packet_the_capture_cut_has_no_crc_checked_in_either_engine(tmp_path):
     """A record one byte shorter than its frame (the snaplen): the dissector checks no CRC of it
     (the CRC is cut), while the fast engine counted it as checked (crc.unchecked 0 against 1;
-    self-fuzz agreement check, seed 67)."""
+    self-fuzz agreement check, seed 67). Such a packet is truncated and nothing else, also with an
+    unknown packet ID, which the dissector still marked as unknown_id (agreement check, seed 107)."""
     path = tmp_path / "cut.pcap"
     _traffic(path)
     data = bytearray(path.read_bytes())
-    at = _record_starts(bytes(data))[5]
-    incl = struct.unpack_from("<I", data, at + 8)[0]
-    struct.pack_into("<I", data, at + 8, incl - 1)
-    path.write_bytes(bytes(data[:at + 16 + incl - 1] + data[at + 16 + incl:]))
+    for k, packet_id in ((7, b"VRP/"), (5, None)):     # (from the end: the offsets before stay)
+        at = _record_starts(bytes(data))[k]
+        if packet_id:
+            data[at + 16 + 42:at + 16 + 46] = packet_id   # (after Ethernet, IPv4 and UDP headers)
+        incl = struct.unpack_from("<I", data, at + 8)[0]
+        struct.pack_into("<I", data, at + 8, incl - 1)
+        data = data[:at + 16 + incl - 1] + data[at + 16 + incl:]
+    path.write_bytes(bytes(data))
     fast, slow = _reports(path, dict(os.environ))
     assert fast == slow
-    assert fast["capture"]["snaplen_truncated"] == 1 and fast["crc"]["unchecked"] == 1
-    assert fast["illegal"]["by_reason"] == {"truncated": 1}
+    assert fast["capture"]["snaplen_truncated"] == 2 and fast["crc"]["unchecked"] == 2
+    assert fast["illegal"]["by_reason"] == {"truncated": 2}
+    assert [e["type"] for e in fast["illegal"]["examples"]] == ["VRPI", "VRP/"]
 
 
 @pytest.mark.tshark
