@@ -510,3 +510,16 @@ def test_a_wrong_out_is_said_before_any_capture_is_read(src, built, tmp_path, mo
     with pytest.raises(CliError, match="not empty" if out == "foreign" else "other analysis options"):
         fleet_build.build([str(src)], settings)
     assert read == []
+
+
+def test_a_file_name_with_control_characters_stays_on_its_row(tmp_path):
+    """Trial: a capture named "a<newline>b.pcapng" split each of its rows of the text table in two,
+    and an escape sequence in a name would have reached the terminal. Names are shown escaped."""
+    src = tmp_path / "caps"
+    src.mkdir()
+    shutil.copyfile(BUNDLED / "loss.pcapng", src / "a\nb\x1b[2J.pcapng")
+    assert vm110("fleet", "build", str(src), "--out", str(tmp_path / "ds")).returncode == 0
+    done = vm110("fleet", "query", str(tmp_path / "ds"), "--named", "findings")
+    rows = done.stdout.splitlines()[2:-1]
+    assert done.returncode == 0 and rows and all(row.startswith(f"{src}/a\\nb\\x1b[2J.pcapng  ") for row in rows), rows
+    assert "\x1b" not in done.stdout

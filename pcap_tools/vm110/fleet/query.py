@@ -19,6 +19,7 @@ from typing import Any, Callable, Optional, Sequence
 import pyarrow as pa
 
 from ..errors import CliError
+from ..printable import escaped
 from .dataset import Dataset, view_files
 from .tables import TABLES, table_schema
 
@@ -296,12 +297,13 @@ def _plain(value: Any) -> Any:
 
 
 def _cell(value: Any) -> str:
+    """A table cell: one line, whatever a file name holds (a newline in one split its row in two)."""
     value = _plain(value)
     if value is None:
         return ""
     if isinstance(value, float):
         return f"{value:.3f}".rstrip("0").rstrip(".") if value != int(value) or abs(value) < 1e15 else f"{value:g}"
-    return str(value)
+    return escaped(str(value))
 
 
 def render(result: Result, fmt: str) -> str:
@@ -318,8 +320,8 @@ def render(result: Result, fmt: str) -> str:
             writer.writerow(["" if v is None else _plain(v) for v in row])
         return out.getvalue()
     cells = [[_cell(v) for v in row] for row in result.rows]
-    widths = [max([len(c)] + [len(r[i]) for r in cells]) for i, c in enumerate(result.columns)]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(result.columns, widths)).rstrip(),
+    widths = [max([len(escaped(c))] + [len(r[i]) for r in cells]) for i, c in enumerate(result.columns)]
+    lines = ["  ".join(escaped(c).ljust(w) for c, w in zip(result.columns, widths)).rstrip(),
              "  ".join("-" * w for w in widths)]
     for shown, raw in zip(cells, result.rows):
         lines.append("  ".join(c.rjust(w) if isinstance(v, (int, float)) and not isinstance(v, bool) else c.ljust(w)

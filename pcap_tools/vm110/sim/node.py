@@ -16,6 +16,7 @@ from .. import constants as C
 from .. import protocol as P
 from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, ByteOrder, check_byte_order, crc_function, trailer_function
 from ..decode import crc_span, decode
+from ..printable import escaped
 from .clock import US_PER_S
 from .lifecycle import NEVER, Restart, Window
 
@@ -75,15 +76,6 @@ def inspect(data: bytes, crc_fn: Callable[[bytes], int],
     if ptype and revision == C.SUPPORTED_REVISION and end - C.PREFIX_LEN < P.PAYLOAD_BOUNDS[ptype][0]:
         problems.append(C.Problem.TRUNCATED.value)
     return problems, ptype
-
-
-def _shown(value: Any) -> str:
-    """A value in a text log line, control characters escaped: command data comes off the network,
-    and a newline in it forged a log line of its own, an escape sequence reached the terminal."""
-    text = str(value)
-    if text.isprintable():
-        return text
-    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
 
 
 _TABLES: dict[type, Optional[dict[C.PacketType, Optional[Callable[..., None]]]]] = {}
@@ -253,7 +245,8 @@ class Node:
         for listener in self.listeners:
             listener(entry)
         if self.printer is not None:
-            extra = " ".join(f"{k}={_shown(v)}" for k, v in details.items())
+            # (command data comes off the network: a newline in it forged a log line of its own)
+            extra = " ".join(f"{k}={escaped(str(v))}" for k, v in details.items())
             self.printer(now, f"{now / US_PER_S:10.3f} {self.name} {kind} {extra}".rstrip())
 
     def events(self, kind: str) -> list[dict[str, Any]]:
