@@ -280,8 +280,8 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]]) -> dict:
                                        f"count as lost): {FRAGMENT_FILTER}", "items": []})
     if cap["unread_frames"]:  # (what they carry is missing from everything above, as with fragments)
         findings.insert(0, {"rule": "unread_link_type", "severity": "warning", "count": cap["unread_frames"],
-                            "message": unread(cap["unread_frames"], cap["link_types"])
-                            + "; --engine tshark reads what Wireshark reads)", "items": []})
+                            "message": unread(cap["unread_frames"], cap["link_types"],
+                                              "--engine tshark reads what Wireshark reads"), "items": []})
     if cap["tunnelled_frames"]:  # (what they carry is missing from everything above, as with fragments)
         findings.insert(0, {"rule": "tunnels", "severity": "warning", "count": cap["tunnelled_frames"],
                             "message": f"{cap['tunnelled_frames']} frames of tunnels not unwrapped (IP in IP, GRE "

@@ -115,13 +115,11 @@ def _build(got: Collected) -> dict:
     return report
 
 
-# The dissector's preference of each option that decides what the rule filters show (the periods
-# set only the nominal of the jitter figures).
-_PREFS = {"vrpi_watchdog_ms": "vrpi_watchdog_ms", "vrpo_watchdog_ms": "vrpo_watchdog_ms",
-          "vrpo_min_ms": "vrpo_min_ms", "vrpo_max_ms": "vrpo_max_ms", "resend_ms": "resend_ms",
-          "vrci_fail_ms": "vrci_fail_ms", "vrco_give_up_ms": "vrco_give_up_ms", "reuse_gap_ms": "reuse_gap_ms",
-          "dup_window_ms": "dup_window_ms", "burst_gap_ms": "burst_gap_ms", "vrpo_start": "vrpo_number_start",
-          "vrpo_data_size": "vrpo_data_size"}
+# The options that decide what the rule filters show, each a dissector preference of the same name
+# but vrpo_start (the periods set only the nominal of the jitter figures).
+_PREFS = ("vrpi_watchdog_ms", "vrpo_watchdog_ms", "vrpo_min_ms", "vrpo_max_ms", "resend_ms", "vrci_fail_ms",
+          "vrco_give_up_ms", "reuse_gap_ms", "dup_window_ms", "burst_gap_ms", "vrpo_start", "vrpo_data_size")
+_PREF_NAMES = {"vrpo_start": "vrpo_number_start"}
 
 
 def wireshark_prefs(report: dict, opt: Options) -> Optional[list[str]]:
@@ -141,13 +139,13 @@ def wireshark_prefs(report: dict, opt: Options) -> Optional[list[str]]:
     if order is not None and order != crc.DEFAULT_BYTE_ORDER:
         prefs.append(f"vm110.crc_byte_order:{order}")
     default = Options()
-    for name, pref in _PREFS.items():
+    for name in _PREFS:
         value = getattr(opt, name)
         if value == getattr(default, name):
             continue
         if value != int(value):
             return None
-        prefs.append(f"vm110.{pref}:{int(value)}")
+        prefs.append(f"vm110.{_PREF_NAMES.get(name, name)}:{int(value)}")
     return prefs
 
 

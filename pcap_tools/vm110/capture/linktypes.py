@@ -26,10 +26,11 @@ NAMES = {
 
 
 
-def unread(count: int, link_types: Iterable[str]) -> str:
-    """What to say of `count` frames of the link types (of a reader's `link_types`) not read."""
+def unread(count: int, link_types: Iterable[str], instead: str) -> str:
+    """What to say of `count` frames of the link types (of a reader's `link_types`) not read, and
+    what reads them `instead`."""
     numbers = ", ".join(sorted((t for t in link_types if t.isdigit()), key=int))
-    return f"{count} frames of link type {numbers} not read (this reader reads {READ}"
+    return f"{count} frames of link type {numbers} not read (this reader reads {READ}; {instead})"
 
 
 ETHERTYPE_IPV4 = 0x0800

@@ -111,8 +111,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.json:
         print(f"{count} EG-Link packets")
     if reader.unknown_link:     # (else "0 EG-Link packets" would read as a capture without any)
-        print(f"vm110 decode: {unread(reader.unknown_link, reader.link_types)}; `vm110 dissect` reads what "
-              "Wireshark reads)", file=sys.stderr)
+        said = unread(reader.unknown_link, reader.link_types, "`vm110 dissect` reads what Wireshark reads")
+        print(f"vm110 decode: {said}", file=sys.stderr)
     if reader.problem is not None:
         # Everything before the damage was printed; the damage is never passed over in silence.
         raise CliError(as_given(f"{path}: damaged, read up to byte {reader.damage}: {reader.problem}", path,

@@ -319,9 +319,9 @@ def render(result: Result, fmt: str) -> str:
         for row in result.rows:
             writer.writerow(["" if v is None else _plain(v) for v in row])
         return out.getvalue()
-    cells = [[_cell(v) for v in row] for row in result.rows]
-    widths = [max([len(escaped(c))] + [len(r[i]) for r in cells]) for i, c in enumerate(result.columns)]
-    lines = ["  ".join(escaped(c).ljust(w) for c, w in zip(result.columns, widths)).rstrip(),
+    heads, cells = [escaped(c) for c in result.columns], [[_cell(v) for v in row] for row in result.rows]
+    widths = [max([len(c)] + [len(r[i]) for r in cells]) for i, c in enumerate(heads)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(heads, widths)).rstrip(),
              "  ".join("-" * w for w in widths)]
     for shown, raw in zip(cells, result.rows):
         lines.append("  ".join(c.rjust(w) if isinstance(v, (int, float)) and not isinstance(v, bool) else c.ljust(w)
