@@ -32,6 +32,7 @@ class Outcome:
     damaged: list[str] = field(default_factory=list)
     unreadable: list[str] = field(default_factory=list)
     unmatched: list[str] = field(default_factory=list)     # captures whose path --meta does not match
+    copies: list[str] = field(default_factory=list)        # "copy: the capture it copies", not analysed
 
 
 def fingerprint(settings: Settings) -> dict:
@@ -109,6 +110,7 @@ def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: s
     # still being copied, a worker that could not see the share).
     todo = [s for s in wanted if s.capture_id not in listed or listed[s.capture_id]["status"] == "unreadable"]
     outcome.skipped = len(wanted) - len(todo)
+    todo, outcome.copies = _without_copies(listed, wanted, todo)
     versions = Versions(listed, {s.path: s.capture_id for s in wanted}, _moved(listed, wanted))
     stale = versions.stale()
     bar = Progress(len(todo), outcome.skipped) if progress else None
@@ -156,6 +158,25 @@ def _entry(path: str, size: Optional[int], sha256: Optional[str], status: str, p
            message: Optional[str], meta: dict) -> dict:
     return {"file": path, "size": size, "sha256": sha256, "status": status, "parts": sorted(parts),
             "message": message, "meta": meta}
+
+
+def _without_copies(listed: dict, wanted: list[Source], todo: list[Source]) -> tuple[list[Source], list[str]]:
+    """`todo` without copies, and a line for each: a capture whose content the dataset holds, or
+    an earlier path of this build holds, under another path that is still there (an archive
+    folder, a file copied into two machines' folders). Analysed, a copy is counted again in
+    every sum of the fleet."""
+    current = {s.path: s.sha256 for s in wanted}
+    held: dict[str, str] = {}
+    for entry in sorted(listed.values(), key=lambda e: e["file"]):
+        sha, path = entry.get("sha256"), entry["file"]
+        if sha and entry["status"] != "unreadable" and current.get(path, sha) == sha and os.path.lexists(path):
+            held.setdefault(sha, path)
+    for s in wanted:                                     # (sorted by path: the first is the original)
+        if s.sha256 and s.problem is None:
+            held.setdefault(s.sha256, s.path)
+    copies = {s.path: held[s.sha256] for s in todo if s.sha256 and held.get(s.sha256, s.path) != s.path}
+    lines = [f"{copy}: the same capture as {of}" for copy, of in copies.items()]
+    return [s for s in todo if s.path not in copies], lines
 
 
 def _moved(listed: dict, wanted: list[Source]) -> dict[str, set[str]]:
