@@ -1,13 +1,15 @@
 """Fuzz ourselves (issue 17, part 6): mutations of the bundled captures (tests/selffuzz: editcap -E,
 bit flips, cuts, lying length fields, duplicated and reordered records, EG-Link fields) through
 `vm110 decode`, `vm110 analyze` (both engines) and the dissector on every supported tshark: no
-traceback, no Lua error, no exit code outside the documented ones, within a time budget. Failing
+traceback, no Lua error, no exit code outside the documented ones, within a time budget, and the
+tshark engine's report on each tshark the fast engine's (the two implementations agree). Failing
 inputs are kept under out/fuzz-self/. The seed varies per run unless FUZZ_SELF_SEED or CI is set;
 `make fuzz-self` is the long soak. Also: the HTML report escapes what comes from a capture or a
 file name."""
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import random
 import struct
@@ -88,6 +90,31 @@ def test_oracles_see_planted_failures(tmp_path):
                         lambda f, s: ["tshark", "-X", f"lua_script:{lua}", "-r", str(f), "-V"])
     problems = oracles.judge(tools.run(tshark, runner.SMALL[0], tmp_path / "s", timeout=30), budget=30)
     assert any("Lua Error" in p for p in problems), problems
+
+
+def test_oracle_holds_the_engines_to_one_report(tmp_path):
+    """Reports that differ only in the engine's name agree; a count, a finding or an exit code apart
+    is a disagreement, named at its place in the report."""
+    site = tools.Site(T.Workspace(T.HOST, tmp_path), "host")
+    fast = {"tool": {"name": "vm110", "engine": "fast"}, "packets": {"VRPI": 40}, "findings": [{"rule": "gap"}]}
+
+    def writes(name: str, report: dict, code: int = 0) -> tools.Tool:
+        text = json.dumps(report)
+        return tools.Tool(name, site, "python", lambda f, s: [
+            sys.executable, "-c", f"import sys; open(sys.argv[1], 'w').write({text!r}); sys.exit({code})",
+            str(s / "report.json")], versioned=False, agrees="engines")
+
+    def judged(*tried: tools.Tool) -> list[list[str]]:
+        runs = [tools.run(t, tmp_path, tmp_path / t.name, timeout=30) for t in tried]
+        return [problems for _, problems in oracles.disagreements(runs)]
+
+    same = {**fast, "tool": {"name": "vm110", "engine": "tshark"}}
+    assert judged(writes("fast", fast), writes("tshark", same)) == []
+    fewer = {**same, "packets": {"VRPI": 39}, "findings": []}
+    [[problem]] = judged(writes("fast", fast), writes("tshark", fewer))
+    assert "2 places" in problem and "/packets/VRPI: 40 / 39" in problem and "/findings: 1 items / 0 items" in problem
+    [[problem]] = judged(writes("fast", fast), writes("tshark", same, code=2))
+    assert problem == "exit 2 where fast exits 0"
 
 
 def test_tools_read_an_unmutated_capture(session):

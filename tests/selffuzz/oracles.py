@@ -2,11 +2,14 @@
 outside the documented ones (a signal included), a Python traceback or an exception's name in an
 error message (a crash turned into one line is still a crash), a Lua error (on stderr, or in the
 packet details as tshark_runner and test_dissector_robustness detect it), a dissector bug, and a
-report that exit 0 or 1 promised but is missing, unreadable or not as docs/report.schema.json says."""
+report that exit 0 or 1 promised but is missing, unreadable or not as docs/report.schema.json says;
+and two engines that disagree: the tshark engine's report on any tshark must be the fast engine's,
+but for the engine's name (a second implementation of the rules, held to the first on hostile input)."""
 from __future__ import annotations
 
 import json
 import re
+from typing import Any, Iterator, Sequence
 
 import report_schema
 
@@ -66,3 +69,60 @@ def _reports(run: Run) -> list[str]:
             except ValueError as exc:
                 problems.append(f"{name} is not JSON: {exc}")
     return problems
+
+
+ENGINE_NAME = "/tool/engine"
+
+
+def disagreements(runs: Sequence[Run]) -> list[tuple[Run, list[str]]]:
+    """Each run of an `agrees` group whose exit code or report differs from the group's first."""
+    groups: dict[str, list[Run]] = {}
+    for run in runs:
+        if run.tool.agrees:
+            groups.setdefault(run.tool.agrees, []).append(run)
+    out = []
+    for first, *others in groups.values():
+        for run in others:
+            problems = _disagreement(first, run)
+            if problems:
+                out.append((run, problems))
+    return out
+
+
+def _disagreement(first: Run, run: Run) -> list[str]:
+    if first.returncode is None or run.returncode is None:
+        return []                                   # (a hang is judged on its own)
+    if first.returncode != run.returncode:
+        return [f"exit {run.returncode} where {first.tool.label} exits {first.returncode}"]
+    if first.returncode not in (0, 1):
+        return []
+    try:
+        # (each tool reads its own copy of the capture: its path is named the same in both)
+        ours, theirs = (json.loads((r.scratch / "report.json").read_text().replace(
+            json.dumps(str(r.capture))[1:-1], "CAPTURE")) for r in (first, run))
+    except (OSError, ValueError):
+        return []                                   # (a missing or broken report is judged on its own)
+    diffs = [d for d in _differences(ours, theirs, "") if not d.startswith(ENGINE_NAME + ":")]
+    if not diffs:
+        return []
+    return [f"report differs from {first.tool.label}'s in {len(diffs)} place{'s' if len(diffs) > 1 else ''}: "
+            + "; ".join(diffs[:3])]
+
+
+def _differences(a: Any, b: Any, path: str) -> Iterator[str]:
+    """`path: a / b` for each leaf where two JSON documents differ."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for key in sorted(set(a) | set(b)):
+            yield from _differences(a.get(key, "(none)"), b.get(key, "(none)"), f"{path}/{key}")
+    elif isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            yield f"{path}: {len(a)} items / {len(b)} items"
+        for i, (x, y) in enumerate(zip(a, b)):
+            yield from _differences(x, y, f"{path}[{i}]")
+    elif a != b:
+        yield f"{path}: {_short(a)} / {_short(b)}"
+
+
+def _short(value: Any) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."

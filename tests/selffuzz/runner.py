@@ -95,6 +95,7 @@ class Session:
                 problems = oracles.judge(run, limit)
                 if problems:
                     outcome.failures.append((run, problems))
+            outcome.failures += oracles.disagreements(outcome.runs)
         finally:
             for path in placed.values():
                 shutil.rmtree(path.parent, ignore_errors=True)

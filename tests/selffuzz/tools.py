@@ -43,6 +43,9 @@ class Tool:
     argv: Callable[[Path, Path], list[str]]                # (capture, scratch dir) -> command
     env: dict[str, str] = field(default_factory=dict)
     versioned: bool = True                                 # runs on each tshark (else once, on the host)
+    # Runs of one `agrees` group must give the same report: the fast engine (the group's first tool)
+    # and the tshark engine on each tshark, with the same options.
+    agrees: str = ""
 
     @property
     def label(self) -> str:
@@ -62,6 +65,7 @@ class Run:
     stderr: str
     seconds: float
     scratch: Path
+    capture: Path
 
 
 @contextlib.contextmanager
@@ -102,7 +106,11 @@ def tools(all_sites: Sequence[Site], crc_auto: bool = True) -> list[Tool]:
     out = [Tool("decode", host, "python", lambda f, s: [*VM110, "decode", str(f)], versioned=False),
            Tool("analyze", host, "python", lambda f, s: [*VM110, "analyze", "--json", str(s / "report.json"),
                                                          "--html", str(s / "report.html"), str(f)],
-                versioned=False)]
+                versioned=False, agrees="engines" if crc_auto else "")]
+    if not crc_auto:    # (the fast engine with the tshark engine's options, to compare their reports)
+        out.append(Tool("analyze " + " ".join(crc), host, "python",
+                        lambda f, s: [*VM110, "analyze", *crc, "--json", str(s / "report.json"), str(f)],
+                        versioned=False, agrees="engines"))
     for site in all_sites:
         ws = site.ws
         env = {} if ws.tshark.root is None else {
@@ -110,7 +118,7 @@ def tools(all_sites: Sequence[Site], crc_auto: bool = True) -> list[Tool]:
             "VM110_DISSECTOR": str(ws.plugin_file()), "TMPDIR": str(ws.dir)}
         out.append(Tool("analyze --engine tshark", site, "python",
                         lambda f, s: [*VM110, "analyze", "--engine", "tshark", *crc, "--json",
-                                      str(s / "report.json"), str(f)], env))
+                                      str(s / "report.json"), str(f)], env, agrees="engines"))
         out.append(Tool("tshark -V", site, "tshark", _dissect(ws, ["-V"])))
         out.append(Tool("tshark -2 -V -z vm110,stat", site, "tshark", _dissect(ws, ["-2", "-V", "-z", "vm110,stat"])))
     return out
@@ -135,4 +143,4 @@ def run(tool: Tool, capture: Path, scratch: Path, timeout: float) -> Run:
         out, err = proc.communicate()
         code = None
     return Run(tool, command, code, out.decode(errors="replace"), err.decode(errors="replace"),
-               time.monotonic() - start, scratch)
+               time.monotonic() - start, scratch, capture)
