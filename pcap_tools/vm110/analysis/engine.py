@@ -109,13 +109,15 @@ def best_candidate(candidates: list[tuple[str, str]], counts: Counter) -> tuple[
 
 def crc_candidates(path: str, ports: Collection[int], limit: Optional[int] = None,
                    chunk_size: int = CHUNK) -> Counter:
-    """How many EG-Link datagrams on `ports` (the first `limit` of them) each (variant, byte
-    order) validates."""
+    """How many EG-Link datagrams (the first `limit` of them) each (variant, byte order) validates:
+    those the analysis checks, on `ports` or found by the heuristic, each with its whole CRC."""
     counts: Counter = Counter()
     seen = 0
     with CaptureReader(path, chunk_size=chunk_size) as reader:
-        for _, _, sport, dport, payload, _ in reader:
-            if (sport in ports or dport in ports) and payload is not None and len(payload) >= C.OVERHEAD:
+        for _, _, sport, dport, payload, frame in reader:
+            if payload is None or len(payload) < C.OVERHEAD or frame in reader.snap_truncated:
+                continue
+            if sport in ports or dport in ports or looks_like_eglink(payload):
                 size = P.SIZE.unpack_from(payload, P.SIZE_OFFSET)[0]
                 counts.update(crc_matches(payload, min(C.PREFIX_LEN + size, len(payload) - C.CRC_LEN)))
                 seen += 1
