@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import datetime
 import json
+import signal
 import subprocess
 import sys
+import time
 
 from loopback import LOOPBACK
 from vm110 import constants as C
@@ -164,3 +166,27 @@ def test_command_data_cannot_forge_log_lines_or_reach_the_terminal():
     shown = [line for line in lines if "data=" in line]
     assert len(shown) == 2 and all(line.endswith(r"data=GO\nFAKE LINE\x1b[2J") for line in shown), shown
     assert not any(c in line for line in lines for c in "\n\x1b")
+
+
+def test_sigterm_and_ctrl_c_end_a_run_as_interrupted():
+    """A supervisor must tell an interrupted run from a clean end. SIGTERM ended `simulate` with
+    exit 0, as `--duration` does; now it is an interruption like Ctrl-C: the summary still comes
+    last on standard output, one line on stderr names the signal, and the exit code is the
+    README's "130 interrupted"."""
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        run = [sys.executable, "-m", "vm110", "simulate", "bu", "--listen", f"{LOOPBACK}:0",
+               "--peer", f"{LOOPBACK}:9", "--source", f"{LOOPBACK}:0", "--command-every", "0.2"]
+        with subprocess.Popen(run, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+            assert proc.stderr is not None
+            assert "receiving on" in proc.stderr.readline()         # the loop is about to run
+            time.sleep(0.5)
+            proc.send_signal(sig)
+            stdout, stderr = proc.communicate(timeout=30)
+        assert proc.returncode == 130, (sig, proc.returncode, stderr)
+        assert "Traceback" not in stderr and f"bu: stopped by {sig.name}" in stderr
+        assert json.loads(stdout.splitlines()[-1])["summary"]["sent"]["VRPI"] >= 2
+
+
+def test_a_run_that_reaches_its_duration_ends_with_exit_0():
+    done = simulate("controller", "--duration", "0.3")
+    assert done.returncode == 0 and "stopped by" not in done.stderr

@@ -4,7 +4,8 @@ Default network set-up is the specification's: multicast group 239.255.42.20, in
 (BU -> controller), outputs on 5827, TTL 1. `--peer`/`--listen` switch to unicast (for example two
 simulators on loopback: see captures/README.md). Logs what the node does and detects to stdout,
 and a summary line at the end; the sockets it uses go to stderr first, so that stdout is the log
-alone (JSON lines only with `--json`). Stops after `--duration` seconds, on Ctrl-C or on SIGTERM.
+alone (JSON lines only with `--json`). Stops after `--duration` seconds (exit 0), on Ctrl-C or on SIGTERM
+(an interruption: the summary still comes, exit 130).
 """
 from __future__ import annotations
 
@@ -16,10 +17,10 @@ import math
 import signal
 import sys
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 from .. import constants as C
-from ..errors import CliError
+from ..errors import EXIT_INTERRUPTED, EXIT_OK, CliError
 from ..numbers import fields, number, span
 from ..sim.bu import DEFAULT_ORIGIN, BaseUnit, BaseUnitConfig
 from ..sim.clock import WallClock, seconds
@@ -237,7 +238,31 @@ def sockets_line(role: str, transport: UdpTransport) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    # Each log line: the wall-clock time in ISO 8601 UTC, then the node's own seconds from its start.
+    # SIGTERM (systemd, `timeout`, a test harness) is an interruption like Ctrl-C: the loop ends at
+    # its next turn, the sockets close, the summary is printed, exit 130 (SIGTERM ended it 0, a
+    # clean end to a supervisor). Before the loop runs, and at a second signal, it stops at once.
+    stopped_by: list[str] = []
+    runner: Optional[RealtimeRunner] = None
+
+    def interrupt(signum: int, frame: Any) -> None:
+        if stopped_by or runner is None:
+            raise KeyboardInterrupt
+        stopped_by.append(signal.Signals(signum).name)
+        runner.stop(timeout=0)
+
+    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        node, runner = _prepare(args)
+        _run(args, node, runner, stopped_by)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return EXIT_INTERRUPTED if stopped_by else EXIT_OK
+
+
+def _prepare(args: argparse.Namespace) -> tuple[Any, RealtimeRunner]:
+    """The node and its runner, sockets open; each log line carries the wall-clock time in ISO 8601
+    UTC, then the node's own seconds from its start."""
     clock = WallClock()
 
     def printer(now: int, line: str) -> None:
@@ -252,11 +277,14 @@ def run(args: argparse.Namespace) -> int:
                                                               **entry}), flush=True))
     imp = impairment(args)
     transport = UdpTransport(sockets, Impairer(imp, args.role) if imp.active() else None).open()
-    runner = RealtimeRunner([(node, transport)], clock)
     print(f"{utc_iso(time.time())} {sockets_line(args.role, transport)}", file=sys.stderr, flush=True)
-    signal.signal(signal.SIGTERM, lambda *_: runner.stop(timeout=0))
+    return node, RealtimeRunner([(node, transport)], clock)
+
+
+def _run(args: argparse.Namespace, node: Any, runner: RealtimeRunner, stopped_by: list[str]) -> None:
     try:
         runner.run(args.duration)
     finally:
+        if stopped_by:
+            print(f"{utc_iso(time.time())} {args.role}: stopped by {stopped_by[0]}", file=sys.stderr, flush=True)
         print(json.dumps({"time_utc": utc_iso(time.time()), "summary": node.summary()}), flush=True)
-    return 0
