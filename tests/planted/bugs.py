@@ -61,7 +61,7 @@ class NoReack(Controller):
     ORACLE = "missing_ack"
 
     def on_vrci(self, rx: Rx, now: int) -> None:
-        if self.handled.recent(rx.origin, int.from_bytes(rx.payload[:2], "little"), now):
+        if self.handled.recent(rx, int.from_bytes(rx.payload[:2], "little"), now):
             return
         super().on_vrci(rx, now)
 

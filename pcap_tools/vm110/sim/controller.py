@@ -3,8 +3,9 @@
 - VRPO every `period_ms` (default 100 ms); periodic data above 488 bytes goes out as a burst of
   back-to-back packets numbered from 0 (section 4.2, 5.1.2).
 - Every VRCI is acknowledged with a VRAO, retransmissions too, in the order they arrive; each
-  command is executed once (a command ID heard again within the reuse gap is a retransmission),
-  and only while the last VRPI showed an armed RU (section 4.3).
+  command is executed once (a command ID heard again within the reuse gap is a retransmission,
+  unless the BU rebooted in between: its serials tell, `sim.peers`), and only while the last VRPI
+  showed an armed RU (section 4.3).
 - Own commands (VRCO), several in flight at once, are each resent every 100 ms until the VRAI, and
   given up after `vrco_timeout_ms`.
 - Restarts (`sim.lifecycle`): back with VRPO from cycle 0, serials and command IDs afresh.
@@ -24,7 +25,7 @@ from .. import constants as C
 from .. import protocol as P
 from .. import encode
 from .clock import log_seconds, ms, seconds
-from .ledger import CommandLedger
+from .ledger import PeerCommands
 from .lifecycle import Life, Restart
 from .node import Node, Rx
 from .outbox import CommandOutbox, OutboxEvents
@@ -80,7 +81,7 @@ class Controller(CommandOutbox, Node):
         self._vrpi_since: Optional[int] = None   # the watchdog counts from here (last VRPI, start, resume)
         self.vrpi_alarm = False
         self.ru_armed = False
-        self.handled = CommandLedger()            # operator commands heard, to execute each once
+        self.handled = PeerCommands()             # operator commands heard, to execute each once
         self._outbox_init(cfg.command_id_start, ms(cfg.vrco_resend_ms), ms(cfg.vrco_timeout_ms))
         self._data_tail = bytes(i & 0xFF for i in range(4, cfg.data_size))
 
@@ -127,7 +128,7 @@ class Controller(CommandOutbox, Node):
     def on_restart(self, now: int, restart: Restart) -> None:
         self._next_vrpo, self.cycle = now, 0
         self.last_vrpi, self._vrpi_since, self.vrpi_alarm, self.ru_armed = None, now, False, False
-        self.handled = CommandLedger()
+        self.handled = PeerCommands()
         self._outbox_restart(now, restart.command_id)
 
     # --- VRPO ---------------------------------------------------------------------------------
@@ -145,7 +146,20 @@ class Controller(CommandOutbox, Node):
         return [encode.vrpo_payload((first + n) & 0xFFFF, chunk) for n, chunk in enumerate(chunks)]
 
     # --- input handling -----------------------------------------------------------------------
+    def follow(self, rx: Rx, now: int) -> None:
+        """Every legal packet of the BU, first: a BU that rebooted begins a new command stream (an
+        ID it reuses within the reuse gap was a repeat, never executed: interpretation.md)."""
+        restart, held, new = self.handled.follow(rx, now)
+        if restart is not None:
+            self.event(now, "bu_restart", origin=f"0x{rx.origin:04x}", serial=rx.serial)
+        if held is not None:
+            if new:
+                self.execute(held.origin, held.command_id, held.data, now)
+            else:
+                self.event(held.heard, "repeat", command_id=held.command_id)
+
     def on_vrpi(self, rx: Rx, now: int) -> None:
+        self.follow(rx, now)
         if self.vrpi_alarm:
             self.vrpi_alarm = False
             gap = None if self.last_vrpi is None else (now - self.last_vrpi) / 1000
@@ -155,11 +169,13 @@ class Controller(CommandOutbox, Node):
         self.ru_armed = bu_state == _BU_ARMED and armed_ru != 0 and ru_state in _RU_ARMED
 
     def on_vrci(self, rx: Rx, now: int) -> None:
+        self.follow(rx, now)
         command_id = _CMD_ID.unpack_from(rx.payload)[0]
         self.acknowledge(command_id, now)
-        if self.handled.hear(rx.origin, command_id, now):
+        new = self.handled.command(rx, command_id, rx.payload[_DATA], now)
+        if new:
             self.execute(rx.origin, command_id, rx.payload[_DATA], now)
-        else:
+        elif new is not None:      # (None: it waits for the BU's next packet, `follow`)
             self.event(now, "repeat", command_id=command_id)
 
     def acknowledge(self, command_id: int, now: int) -> None:
@@ -174,7 +190,9 @@ class Controller(CommandOutbox, Node):
             self.event(now, "executed", command_id=command_id, origin=f"0x{origin:04x}", data=text)
 
     # --- own commands (VRCO): `CommandOutbox` -------------------------------------------------
-    on_vrai = CommandOutbox.on_command_ack     # completes the VRCO in flight with its ID
+    def on_vrai(self, rx: Rx, now: int) -> None:
+        self.follow(rx, now)
+        self.on_command_ack(rx, now)           # completes the VRCO in flight with its ID
 
     def summary(self) -> dict[str, Any]:
         """Counters for logs and tests."""

@@ -1,31 +1,96 @@
 """What a receiver remembers of the commands it handled, so that each is carried out once.
 
-A command is (sender, command ID), and several of a sender's commands may be open at once: a
-command ID heard again from the same origin less than the reuse gap after its previous
-transmission is a retransmission of a command already handled; after a longer pause the same ID
-is a new command (interpretation.md, "Commands").
+A command is (sender, command ID), a sender (origin, source address and port), and several of a
+sender's commands may be open at once: a command ID heard again from the same sender less than the
+reuse gap after its previous transmission is a retransmission of a command already handled; after
+a longer pause, or after the sender restarted, the same ID is a new command (interpretation.md,
+"Commands", "Sender restarts").
 """
 from __future__ import annotations
 
+from typing import Any, Hashable, NamedTuple, Optional
+
 from .clock import ms
+from .node import Rx
+from .peers import PeerRestarts
 
 REUSE_GAP_MS = 2000.0
 
 
 class CommandLedger:
-    """(origin, command ID) -> when it was last heard (µs)."""
+    """(sender, command ID) -> when it was last heard (µs)."""
 
     def __init__(self, reuse_gap_ms: float = REUSE_GAP_MS) -> None:
         self._gap = ms(reuse_gap_ms)
-        self._heard: dict[tuple[int, int], int] = {}
+        self._heard: dict[tuple[Hashable, int], int] = {}
 
-    def recent(self, origin: int, command_id: int, now: int) -> bool:
-        """Was this command ID heard from `origin` less than the reuse gap ago?"""
-        last = self._heard.get((origin, command_id))
+    def recent(self, sender: Hashable, command_id: int, now: int) -> bool:
+        """Was this command ID heard from `sender` less than the reuse gap ago?"""
+        last = self._heard.get((sender, command_id))
         return last is not None and now - last < self._gap
 
-    def hear(self, origin: int, command_id: int, now: int) -> bool:
+    def hear(self, sender: Hashable, command_id: int, now: int) -> bool:
         """Note a transmission; True when it begins a new command."""
-        new = not self.recent(origin, command_id, now)
-        self._heard[(origin, command_id)] = now
+        new = not self.recent(sender, command_id, now)
+        self._heard[(sender, command_id)] = now
         return new
+
+    def forget(self, sender: Hashable, before: int) -> None:
+        """`sender` restarted at `before`: what it sent earlier belongs to its old command stream."""
+        self._heard = {k: t for k, t in self._heard.items() if k[0] != sender or t >= before}
+
+
+class Held(NamedTuple):
+    """A command heard in the packet that may restart its sender: new or a repeat, as the sender's
+    next packet tells."""
+
+    origin: int
+    serial: int
+    command_id: int
+    data: bytes
+    heard: int
+
+
+def sender(rx: Rx) -> tuple[int, Any]:
+    """Who sent `rx`: its origin and source address (direction: the receiver hears one)."""
+    return rx.origin, rx.src
+
+
+class PeerCommands:
+    """The commands a node receives, each carried out once, across restarts of their senders (their
+    serials tell, `sim.peers`)."""
+
+    def __init__(self, reuse_gap_ms: float = REUSE_GAP_MS) -> None:
+        self.ledger = CommandLedger(reuse_gap_ms)
+        self.peers = PeerRestarts()
+        self._held: dict[tuple[int, Any], Held] = {}
+
+    def recent(self, rx: Rx, command_id: int, now: int) -> bool:
+        """Was this command ID heard from the sender of `rx` less than the reuse gap ago?"""
+        return self.ledger.recent(sender(rx), command_id, now)
+
+    def follow(self, rx: Rx, now: int) -> tuple[Optional[int], Optional[Held], bool]:
+        """Every legal packet the node receives, first: (when its sender restarted, if this packet
+        shows it; the command held at the sender's previous packet, if any, and whether it is new)."""
+        key = sender(rx)
+        restart, gone = self.peers.restarted(rx.origin, rx.src, rx.serial, now)
+        for old in gone:                      # (an earlier source port of a sender back on a new one)
+            self.ledger.forget(old, now)
+        if restart is not None:
+            self.ledger.forget(key, restart)
+        held = self._held.get(key)
+        if held is None or held.serial == rx.serial:      # (a copy of its packet tells nothing)
+            return restart, None, False
+        del self._held[key]
+        return restart, held, restart == held.heard
+
+    def command(self, rx: Rx, command_id: int, data: bytes, now: int) -> Optional[bool]:
+        """A command heard (after `follow`): True when new, False for a repeat, None when that waits
+        for the sender's next packet (a repeat unless this packet restarted the sender)."""
+        key = sender(rx)
+        if self.ledger.hear(key, command_id, now):
+            return True
+        if self.peers.pending(rx.origin, rx.src, rx.serial):
+            self._held[key] = Held(rx.origin, rx.serial, command_id, data, now)
+            return None
+        return False

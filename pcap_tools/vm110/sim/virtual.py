@@ -117,7 +117,8 @@ class VirtualNetwork:
         never = end + 1
         # Each node's next deadline, recomputed only when that node has run.
         dues: list[int] = [never if d is None else d for d in (node.next_due() for node in nodes)]
-        ips = [self.stations[station].ip for station, _ in self._endpoints]
+        # The source as a socket gives it, (address, port): a restart on a new port is a new source.
+        sources = [(self.stations[station].ip, port) for station, port in self._endpoints]
         clock = self.clock
         batch: list[Arrival] = []
         append, room = batch.append, BATCH
@@ -150,7 +151,7 @@ class VirtualNetwork:
                 _, _, index, data, problems, _, delivered = arrival
                 if not delivered:
                     continue
-                src = ips[index]
+                src = sources[index]
                 for r, node, receive, next_due in receivers[index]:
                     node.vouched = problems       # it built this packet: skip the legality check
                     receive(data, now, src)

@@ -1,0 +1,136 @@
+"""Restarts of the peer a node hears, packet by packet, by interpretation.md ("Sender restarts").
+
+A receiver must know when its peer rebooted: the peer's command stream starts afresh there, so a
+command ID it reuses afterwards is a new command even within the reuse gap. A counter restarts at
+a serial that is none of in order, a duplicate, late or a plausible gap, once the counter's next
+packet that is not a copy of it confirms it (serial + 1 … + 4); a sender that appears on a new
+source port of the same origin and address after 250 ms of silence of the old one restarted too.
+"""
+from __future__ import annotations
+
+from collections import deque
+from typing import Any, Hashable, Optional
+
+from .clock import US_PER_S, ms
+
+DUP_WINDOW_US = ms(1000)          # a serial heard again within this is a copy
+RATE_WINDOW_US = 10 * US_PER_S    # the counter's rate: its packets in the 10 s before
+NEW_PORT_SILENCE_US = ms(250)
+CONFIRM_AHEAD = 4                 # the next packet confirms a restart at s with s + 1 … s + 4
+_HALF = 0x8000
+
+
+class SerialCounter:
+    """One sender's serial counter as a receiver follows it (times in µs)."""
+
+    @property
+    def candidate(self) -> Optional[int]:
+        """The serial of a restart not yet confirmed, if any."""
+        return None if self._candidate is None else self._candidate[0]
+
+    def __init__(self, serial: int, now: int) -> None:
+        self._reset(serial, now)
+
+    def _reset(self, serial: int, now: int) -> None:
+        self.high, self.start, self.last = serial, now, now
+        self._seen: dict[int, int] = {serial: now}                # serial -> when, within the window
+        self._recent: deque[tuple[int, int]] = deque([(now, serial)])   # (when, serial) of `_seen`
+        self._heard: deque[int] = deque([now])                      # when, for the rate
+        self._gaps: deque[tuple[int, int, int]] = deque()          # (opened, first missing, count)
+        self._candidate: Optional[tuple[int, int]] = None          # (serial, when): a restart unconfirmed
+
+    def feed(self, serial: int, now: int) -> Optional[int]:
+        """Note a legal packet; the time of the packet that restarted the counter when this one
+        confirms a restart, else None."""
+        self._expire(now)
+        candidate = self._candidate
+        if candidate is not None:
+            if serial == candidate[0]:
+                return None                      # a copy of it confirms nothing
+            self._candidate = None
+            if 1 <= (serial - candidate[0]) & 0xFFFF <= CONFIRM_AHEAD:
+                self._reset(*candidate)
+                self._advance(serial, now)
+                return candidate[1]
+        if serial in self._seen:
+            return None                          # a duplicate (within the window: `_expire`)
+        d = (serial - self.high) & 0xFFFF
+        if d == 1 or (1 < d < _HALF and self._plausible(d - 1, now)):
+            self._advance(serial, now)
+        elif self._late(serial):
+            self._note(serial, now)
+        else:
+            self._candidate = (serial, now)      # out of order until the next packet says more
+        return None
+
+    def _plausible(self, missing: int, now: int) -> bool:
+        """Could the counter have lost `missing` packets in its silence, at its rate?"""
+        life = min(RATE_WINDOW_US, now - self.start)
+        rate = len(self._heard) * US_PER_S / life if life > 0 else 0.0
+        return missing <= 64 + 4 * max(rate, 20.0) * (now - self.last) / US_PER_S
+
+    def _late(self, serial: int) -> bool:
+        return any((serial - first) & 0xFFFF < count for _, first, count in self._gaps)
+
+    def _advance(self, serial: int, now: int) -> None:
+        missing = ((serial - self.high) & 0xFFFF) - 1
+        if missing:
+            self._gaps.append((now, (self.high + 1) & 0xFFFF, missing))
+        self.high = serial
+        self._note(serial, now)
+
+    def _note(self, serial: int, now: int) -> None:
+        self._seen[serial] = now
+        self._recent.append((now, serial))
+        self._heard.append(now)
+        self.last = now
+
+    def _expire(self, now: int) -> None:
+        recent, seen, heard = self._recent, self._seen, self._heard
+        while recent and now - recent[0][0] >= DUP_WINDOW_US:
+            t, serial = recent.popleft()
+            if seen.get(serial) == t:
+                del seen[serial]
+        while heard and now - heard[0] >= RATE_WINDOW_US:
+            heard.popleft()
+        while self._gaps and now - self._gaps[0][0] >= DUP_WINDOW_US:
+            self._gaps.popleft()
+
+
+class PeerRestarts:
+    """The senders a node hears, by (origin, source address): which of them restarted, and when."""
+
+    def __init__(self) -> None:
+        self._counters: dict[tuple[int, Any], SerialCounter] = {}
+
+    def pending(self, origin: int, src: Any, serial: int) -> bool:
+        """Is `serial` the sender's restart still to be confirmed (its last packet)?"""
+        counter = self._counters.get((origin, src))
+        return counter is not None and counter.candidate == serial
+
+    def restarted(self, origin: int, src: Any, serial: int, now: int) -> tuple[Optional[int], list[Any]]:
+        """Feed a legal packet: (the time the sender restarted, when this packet shows it; the earlier
+        sources of the same origin and address this new source replaces, now forgotten)."""
+        key = (origin, src)
+        counter = self._counters.get(key)
+        if counter is not None:
+            return counter.feed(serial, now), []
+        self._counters[key] = SerialCounter(serial, now)
+        gone = self._new_port(origin, src, now)
+        return (now if gone else None), gone
+
+    def _new_port(self, origin: int, src: Any, now: int) -> list[Any]:
+        """Earlier senders with this one's origin and address, silent for 250 ms: they restarted on
+        this new source port (and are forgotten)."""
+        host = _host(src)
+        gone = [key for key, counter in self._counters.items()
+                if key[0] == origin and key[1] != src and _host(key[1]) == host
+                and now - counter.last >= NEW_PORT_SILENCE_US]
+        for key in gone:
+            del self._counters[key]
+        return gone
+
+
+def _host(src: Hashable) -> Hashable:
+    """The address part of a source (host, port); a bare host as it is."""
+    return src[0] if isinstance(src, tuple) else src

@@ -1,0 +1,133 @@
+"""The reference controller across base-unit reboots, held to interpretation.md ("Sender restarts",
+"Commands"): a BU that rebooted starts a new command stream, so a command ID it reuses after the
+reboot is a new command, even within the 2000 ms reuse gap; without a reboot it is a repeat.
+
+The BU's packets are written by hand here (serials, times, source ports as the rule's examples
+give them), not by our simulated BU, and fed straight to the controller.
+"""
+from __future__ import annotations
+
+from vm110 import constants as C
+from vm110 import encode
+from vm110.sim.controller import Controller
+
+ORIGIN, BU = 0x0101, ("10.0.0.10", C.INPUT_PORT)
+ARMED = {"bu_state": int(C.BuState.ARMED), "armed_ru": 0x0C07, "ru_state": int(C.RuState.ENABLED),
+         "ru_battery": 90}
+
+
+class Bu:
+    """A base unit written by hand: each packet with the serial and source given."""
+
+    def __init__(self, ctl: Controller, serial: int = 1000, src: tuple[str, int] = BU) -> None:
+        self.ctl, self.serial, self.src = ctl, serial, src
+
+    def send(self, ptype: C.PacketType, payload: bytes, t: float, serial: int | None = None) -> None:
+        if serial is not None:
+            self.serial = serial
+        data = encode.packet(ptype, payload, origin=ORIGIN, serial=self.serial)
+        self.serial = (self.serial + 1) & 0xFFFF
+        self.ctl.receive(data, round(t * 1e6), self.src)
+
+    def vrpi(self, t: float, serial: int | None = None) -> None:
+        self.send(C.PacketType.VRPI, encode.vrpi_payload(ARMED), t, serial)
+
+    def vrci(self, t: float, command_id: int, serial: int | None = None) -> None:
+        self.send(C.PacketType.VRCI, encode.command_payload(command_id, b"GO"), t, serial)
+
+    def running(self, start: float, end: float) -> None:
+        """VRPI every 125 ms from `start` until before `end`."""
+        t = start
+        while t < end - 1e-9:
+            self.vrpi(t)
+            t += 0.125
+
+
+def controller() -> Controller:
+    ctl = Controller()
+    ctl.attach(lambda data, now, meta: None)
+    ctl.start(0)
+    return ctl
+
+
+def executed(ctl: Controller) -> list[int]:
+    return [e["command_id"] for e in ctl.events("executed")]
+
+
+def test_an_id_reused_without_a_reboot_within_the_reuse_gap_is_a_repeat():
+    ctl = controller()
+    bu = Bu(ctl)
+    bu.running(0.0, 1.0)
+    bu.vrci(1.0, 5)
+    bu.running(1.05, 1.6)
+    bu.vrci(1.6, 5)                              # 600 ms later, the counter going on: a retransmission
+    assert executed(ctl) == [5] and [e["command_id"] for e in ctl.events("repeat")] == [5]
+
+
+def test_an_id_reused_after_a_reboot_is_a_new_command():
+    """Before: the second ID 5, 600 ms after the first but after the BU rebooted (its counter back
+    at 0), was a "repeat" and never executed."""
+    ctl = controller()
+    bu = Bu(ctl)
+    bu.running(0.0, 1.0)
+    bu.vrci(1.0, 5)
+    bu.vrpi(1.05)                                # ... the BU reboots: silent until 1.5 s
+    bu.vrpi(1.5, serial=0)                       # a restart: not in order, nor a copy, nor a plausible gap
+    bu.vrpi(1.55)                                # serial 1 confirms it
+    bu.vrci(1.6, 5)
+    assert executed(ctl) == [5, 5] and not ctl.events("repeat")
+    assert [e["serial"] for e in ctl.events("bu_restart")] == [1]
+
+
+def test_the_restarting_packet_itself_may_carry_the_reused_id():
+    """The reboot's first packet is the command (serial 0): it is a new command once the next packet
+    (serial 1) confirms the restart, and it is acknowledged at once either way."""
+    ctl = controller()
+    bu = Bu(ctl)
+    bu.running(0.0, 1.0)
+    bu.vrci(1.0, 5)
+    bu.vrci(1.5, 5, serial=0)
+    assert executed(ctl) == [5] and ctl.sent["VRAO"] == 2       # not decided yet, but acknowledged
+    bu.vrpi(1.55)
+    assert executed(ctl) == [5, 5] and not ctl.events("repeat")
+
+
+def test_a_stray_packet_that_no_next_packet_confirms_restarts_nothing():
+    """An unconfirmed jump is out of order and nothing else: the command in it is a repeat."""
+    ctl = controller()
+    bu = Bu(ctl)
+    bu.running(0.0, 1.0)
+    bu.vrci(1.0, 5)
+    end = bu.serial
+    bu.vrci(1.5, 5, serial=30000)                # far from the counter, and not followed by 30001…30004
+    bu.vrpi(1.55, serial=end)                    # the counter goes on where it was
+    bu.vrci(1.6, 5)
+    assert executed(ctl) == [5] and [e["command_id"] for e in ctl.events("repeat")] == [5, 5]
+    assert not ctl.events("bu_restart")
+
+
+def test_a_copy_of_the_command_is_not_a_new_command_after_a_reboot():
+    ctl = controller()
+    bu = Bu(ctl)
+    bu.running(0.0, 1.0)
+    bu.vrci(1.0, 5)
+    bu.vrpi(1.5, serial=0)
+    bu.vrpi(1.55)
+    bu.vrci(1.6, 5)
+    bu.vrci(1.6005, 5, serial=2)                 # a copy (same serial, 0.5 ms later: a mirror port)
+    bu.vrci(1.7, 5)                              # and a retransmission of the new command
+    assert executed(ctl) == [5, 5] and len(ctl.events("repeat")) == 2
+
+
+def test_a_bu_back_on_a_new_source_port_is_a_new_sender():
+    """A command is (sender, command ID), the sender including its source port: the same ID from a
+    new port is a new command. After 250 ms of silence of the old port that is the BU restarted
+    (logged as such); before, another sender (nothing restarted)."""
+    for silence, restarted in ((0.3, True), (0.2, False)):
+        ctl = controller()
+        bu = Bu(ctl)
+        bu.running(0.0, 1.0)
+        bu.vrci(1.0, 5)
+        Bu(ctl, serial=bu.serial, src=(BU[0], 40000)).vrci(1.0 + silence, 5)
+        assert executed(ctl) == [5, 5] and not ctl.events("repeat")
+        assert bool(ctl.events("bu_restart")) is restarted
