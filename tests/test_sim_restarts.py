@@ -131,3 +131,25 @@ def test_a_bu_back_on_a_new_source_port_is_a_new_sender():
         Bu(ctl, serial=bu.serial, src=(BU[0], 40000)).vrci(1.0 + silence, 5)
         assert executed(ctl) == [5, 5] and not ctl.events("repeat")
         assert bool(ctl.events("bu_restart")) is restarted
+
+
+def test_the_base_unit_delivers_an_id_a_restarted_controller_reuses():
+    """The same rule the other way: a controller program restarted (its counter back at 0) sends a
+    VRCO with an ID it used 500 ms before; the BU hands it to the RU application again."""
+    from vm110.sim.bu import BaseUnit
+
+    bu = BaseUnit()
+    bu.attach(lambda data, now, meta: None)
+    bu.start(0)
+    ctl = ("10.0.0.20", C.OUTPUT_PORT)
+
+    def send(ptype: C.PacketType, payload: bytes, t: float, serial: int) -> None:
+        bu.receive(encode.packet(ptype, payload, serial=serial), round(t * 1e6), ctl)
+
+    for n in range(10):
+        send(C.PacketType.VRPO, encode.vrpo_payload(0, b"x" * 8), n * 0.1, 500 + n)
+    send(C.PacketType.VRCO, encode.command_payload(3, b"SET"), 1.0, 510)
+    send(C.PacketType.VRCO, encode.command_payload(3, b"SET"), 1.1, 511)          # a retransmission
+    send(C.PacketType.VRPO, encode.vrpo_payload(0, b"x" * 8), 1.4, 0)            # restarted
+    send(C.PacketType.VRCO, encode.command_payload(3, b"SET"), 1.5, 1)
+    assert [e["command_id"] for e in bu.events("vrco_delivered")] == [3, 3]

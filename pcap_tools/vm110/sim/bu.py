@@ -4,7 +4,8 @@
 - Operator commands as VRCI, several in flight at once (two keys pressed within 100 ms): each
   resent every 100 ms until its VRAO, failed (logged, no more resends) after 2000 ms without one.
 - Every VRCO is acknowledged with a VRAI (retransmissions too) and handed to the RU application
-  once per command (a command ID heard again within the reuse gap is a retransmission).
+  once per command (a command ID heard again within the reuse gap is a retransmission, unless the
+  controller restarted in between: its serials tell, `sim.peers`).
 - VRPO watchdog: no VRPO for 2000 ms shows in VRPI as EG-Link "No link" and, with an RU armed,
   BU state "External link error" (ES-Link relays open) until VRPO comes back.
 - G-Link fallback windows: the RU application answers over the slower C-Link, so each VRAI leaves
@@ -23,7 +24,7 @@ from .. import constants as C
 from .. import encode
 from .. import protocol as P
 from .clock import log_seconds, ms, seconds
-from .ledger import CommandLedger
+from .ledger import PeerCommands
 from .lifecycle import Life, Restart
 from .node import Node, Rx
 from .outbox import CommandOutbox, OutboxEvents
@@ -77,7 +78,7 @@ class BaseUnit(CommandOutbox, Node):
         self.watchdog_tripped = False
         self._outbox_init(cfg.command_id_start, ms(cfg.vrci_resend_ms), ms(cfg.vrci_fail_ms))
         self._acks: list[tuple[int, int]] = []            # delayed VRAI: (due, command ID)
-        self.delivered = CommandLedger()                  # VRCO heard, to hand each to the RU app once
+        self.delivered = PeerCommands()                   # VRCO heard, to hand each to the RU app once
 
     def start(self, now: int) -> None:
         self._t0 = self._next_vrpi = now
@@ -131,7 +132,21 @@ class BaseUnit(CommandOutbox, Node):
             self.event(since + self._watchdog_us, "vrpo_watchdog", last_vrpo=log_seconds(self.last_vrpo),
                        es_relays_open=armed)
 
+    def follow(self, rx: Rx, now: int) -> None:
+        """Every legal packet of the controller, first: a controller restarted begins a new command
+        stream (an ID it reuses within the reuse gap was a repeat, never delivered: interpretation.md)."""
+        restart, held, new = self.delivered.follow(rx, now)
+        if restart is not None:
+            self.event(now, "controller_restart", serial=rx.serial)
+        if held is not None and new:
+            self.deliver(held.command_id, held.data, now)
+
+    def deliver(self, command_id: int, data: bytes, now: int) -> None:
+        """Hand a controller command to the RU application (here: log it)."""
+        self.event(now, "vrco_delivered", command_id=command_id, data=data.rstrip(b"\0").decode("ascii", "replace"))
+
     def on_vrpo(self, rx: Rx, now: int) -> None:
+        self.follow(rx, now)
         if self._vrpo_since is not None and now - self._vrpo_since > self._watchdog_us:
             self._check_watchdog(now, bool(self.remote.values(now - self._t0)[_ARMED_RU]))
         if self.watchdog_tripped:
@@ -147,18 +162,20 @@ class BaseUnit(CommandOutbox, Node):
         self.last_vrpo = None
         self.watchdog_tripped = False
         self._acks.clear()
-        self.delivered = CommandLedger()
+        self.delivered = PeerCommands()
         self._outbox_restart(now, restart.command_id)
 
     # --- operator commands (VRCI): `CommandOutbox` ---------------------------------------------
-    on_vrao = CommandOutbox.on_command_ack
+    def on_vrao(self, rx: Rx, now: int) -> None:
+        self.follow(rx, now)
+        self.on_command_ack(rx, now)
 
     # --- controller commands (VRCO) -----------------------------------------------------------
     def on_vrco(self, rx: Rx, now: int) -> None:
+        self.follow(rx, now)
         command_id = _CMD_ID.unpack_from(rx.payload)[0]
-        if self.delivered.hear(rx.origin, command_id, now):
-            data = rx.payload[_DATA].rstrip(b"\0").decode("ascii", "replace")
-            self.event(now, "vrco_delivered", command_id=command_id, data=data)
+        if self.delivered.command(rx, command_id, rx.payload[_DATA], now):
+            self.deliver(command_id, rx.payload[_DATA], now)
         if self.in_glink_fallback(now):
             low, high = self.config.glink_ack_delay_ms
             self._acks.append((now + ms(self._rng.uniform(low, high)), command_id))
