@@ -46,7 +46,8 @@ ACCEPTED: dict[tuple[str, str], set[str]] = {
     ("fuzz", "--seed"): {"0", "1e18"},
     **{("simulate bu", option): values for option, values in {
         **_SIMULATE, "--unarmed-rus": {"0"}, "--origin": {"0"}}.items()},
-    **{("simulate controller", option): values for option, values in {**_SIMULATE, "--data-size": {"0"}}.items()},
+    **{("simulate controller", option): values
+       for option, values in {**_SIMULATE, "--data-size": {"0"}, "--vrpo-start": {"0"}}.items()},
 }
 
 

@@ -19,18 +19,16 @@ from ..analysis import analyze, report_html, report_json, rules, summary
 from ..analysis.commands import REUSE_GAP_MS
 from ..analysis.findings import MAX_TOTALS, TOTAL_NAMES
 from ..analysis.serials import DUP_WINDOW_MS
-from ..analysis.report import SCHEMA_VERSION, SCOPES, Options
-from ..crc import BYTE_ORDERS, VARIANTS
+from ..analysis.report import SCHEMA_VERSION, Options
 from ..capture.spool import as_given, named, stdin_spool
 from ..fileio import check_distinct, check_report_target
 from ..errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE, CliError
 from ..numbers import number
-from .options import INPUT_PORT, INPUT_PORT_HELP
+from .options import INPUT_PORT, INPUT_PORT_HELP, VRPO_START, VRPO_START_HELP, add_reading_options
 
 # Times in ms: above 0 (a zero watchdog or period flags everything) and at most an hour.
 MS = number(0, 3_600_000, "ms", allow_zero=False)
 JOBS = number(1, 256, integer=True)
-VRPO_START = number(0, 1, integer=True)
 DATA_SIZE = number(0, 0xFFFF, "bytes", integer=True)
 
 
@@ -68,20 +66,14 @@ def add_report_options(parser: argparse.ArgumentParser) -> None:
 
 def add_analysis_options(parser: argparse.ArgumentParser) -> None:
     """The options that decide what the analysis says (shared with `vm110 monitor` and `vm110 fleet build`)."""
-    parser.add_argument("--crc", choices=("auto", *VARIANTS), default="auto",
-                        help="CRC variant; auto picks the one that validates most packets")
-    parser.add_argument("--crc-order", choices=("auto", *BYTE_ORDERS), default="auto",
-                        help="byte order of the stored CRC; default auto")
-    parser.add_argument("--serial-scope", choices=SCOPES, default="auto",
-                        help="one serial counter per sender or per packet type; auto picks per sender")
+    add_reading_options(parser, found=True)
     parser.add_argument("--port", type=INPUT_PORT, default=C.INPUT_PORT, help=INPUT_PORT_HELP)
     parser.add_argument("--vrpo-period", type=MS, metavar="MS",
                         help=f"nominal VRPO period for jitter, {MS.range_text} (default: median interval "
                              "between bursts)")
     parser.add_argument("--burst-gap", type=MS, default=C.VRPO_BURST_GAP_MS, metavar="MS",
                         help=f"largest gap inside a VRPO burst, {MS.range_text}; default {C.VRPO_BURST_GAP_MS}")
-    parser.add_argument("--vrpo-start", type=VRPO_START, default=0, metavar="N",
-                        help=f"first VRPO packet number, {VRPO_START.range_text}; default 0")
+    parser.add_argument("--vrpo-start", type=VRPO_START, default=0, metavar="N", help=VRPO_START_HELP)
     parser.add_argument("--vrpo-data-size", type=DATA_SIZE, default=0, metavar="BYTES",
                         help=f"configured periodic data size, {DATA_SIZE.range_text}; 0 (default): inferred, a burst "
                              "ends with a packet under 488 data bytes, or has at least as many 488-byte packets as "

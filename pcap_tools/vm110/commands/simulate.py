@@ -31,7 +31,7 @@ from ..sim.realtime import RealtimeRunner
 from ..sim.remote import EVERY_LEAST_S, Remote
 from ..sim.transport import Address, UdpConfig, UdpTransport, multicast_config, parse_address
 from ..timefmt import utc_iso
-from .options import INPUT_PORT, INPUT_PORT_HELP, SEED
+from .options import INPUT_PORT, INPUT_PORT_HELP, SEED, VRPO_START, VRPO_START_HELP, add_reading_options
 
 
 # A run is at most 30 days (as the fuzzer's); every time in it (windows, stop, restarts) too.
@@ -127,7 +127,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help=f"a VRCO every S s, {EVERY.range_text} (0, the default: none)")
     ctl.add_argument("--command-id-start", type=WORD, default=0, metavar="N",
                      help=f"first command ID, {WORD.range_text}")
+    ctl.add_argument("--vrpo-start", type=VRPO_START, default=0, metavar="N", help=VRPO_START_HELP)
     for p in (bu, ctl):
+        add_reading_options(p, found=False)     # (another reading of TS-0006: analyze takes the same)
         add_network_arguments(p)
         add_impairment_arguments(p)
         p.add_argument("--duration", type=DURATION, metavar="S",
@@ -223,11 +225,18 @@ def build_node(args: argparse.Namespace, printer: Callable[[int, str], None]) ->
             command_every=args.command_every)
         bu_cfg = BaseUnitConfig(origin=args.origin, command_id_start=args.command_id_start,
                                 glink=tuple(args.glink), seed=args.seed, **life(args))
-        return BaseUnit(remote, bu_cfg, printer=printer, serial_start=args.serial_start)
+        return BaseUnit(remote, bu_cfg, printer=printer, **wire(args))
     cfg = ControllerConfig(period_ms=args.period, data_size=args.data_size, vrco_timeout_ms=args.vrco_timeout,
                            vrpi_timeout_ms=args.vrpi_timeout, command_every_s=args.command_every,
-                           command_id_start=args.command_id_start, glink=tuple(args.glink), **life(args))
-    return Controller(cfg, printer=printer, serial_start=args.serial_start)
+                           command_id_start=args.command_id_start, first_packet_number=args.vrpo_start,
+                           glink=tuple(args.glink), **life(args))
+    return Controller(cfg, printer=printer, **wire(args))
+
+
+def wire(args: argparse.Namespace) -> dict[str, Any]:
+    """How the node numbers and checks its packets (the `Node` arguments) from the options."""
+    return {"serial_start": args.serial_start, "serial_scope": args.serial_scope, "crc": args.crc,
+            "crc_order": args.crc_order}
 
 
 def sockets_line(role: str, transport: UdpTransport) -> str:
@@ -276,7 +285,9 @@ def _prepare(args: argparse.Namespace) -> tuple[Any, RealtimeRunner]:
         node.listeners.append(lambda entry: print(json.dumps({"time_utc": utc_iso(clock.wall(seconds(entry["t"]))),
                                                               **entry}), flush=True))
     imp = impairment(args)
-    transport = UdpTransport(sockets, Impairer(imp, args.role) if imp.active() else None).open()
+    # (--corrupt spoils the CRC of the variant sent: one of another variant could be right by chance)
+    impairer = Impairer(imp, args.role, args.crc, args.crc_order) if imp.active() else None
+    transport = UdpTransport(sockets, impairer).open()
     print(f"{utc_iso(time.time())} {sockets_line(args.role, transport)}", file=sys.stderr, flush=True)
     return node, RealtimeRunner([(node, transport)], clock)
 

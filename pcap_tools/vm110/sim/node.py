@@ -29,6 +29,7 @@ _RAW_NAMES = {raw: t.value for raw, t in _TYPES.items()}
 _HANDLERS = {t: f"on_{t.value.lower()}" for t in C.PacketType}
 _new = tuple.__new__     # builds a NamedTuple without its Python-level __new__
 _PREFIX_LEN, _REVISION = C.PREFIX_LEN, C.SUPPORTED_REVISION    # hot paths
+SERIAL_SCOPES = ("sender", "type")
 
 
 class Rx(NamedTuple):
@@ -97,10 +98,16 @@ class Node:
 
     def __init__(self, name: str, *, origin: int = 0, serial_start: int = 0,
                  windows: tuple[Window, ...] = (), crc: str = DEFAULT_VARIANT,
-                 crc_order: str = DEFAULT_BYTE_ORDER, printer: Optional[Callable[[int, str], None]] = None) -> None:
+                 crc_order: str = DEFAULT_BYTE_ORDER, serial_scope: str = "sender",
+                 printer: Optional[Callable[[int, str], None]] = None) -> None:
         self.name = name
         self.origin = origin
         self.serial = serial_start & 0xFFFF
+        if serial_scope not in SERIAL_SCOPES:
+            raise ValueError(f"unknown serial scope {serial_scope!r}; choose from {', '.join(SERIAL_SCOPES)}")
+        # One counter for everything sent (interpretation.md), or, for devices that number that
+        # way, one per packet type, each from `serial`: the next serial of each type sent so far.
+        self.type_serials: Optional[dict[C.PacketType, int]] = {} if serial_scope == "type" else None
         # (start, end, restart or None) in µs: neither sends nor receives (`sim.lifecycle`)
         self.stalls = tuple(sorted(windows, key=lambda w: (w[0], w[1])))
         self.restarts = tuple(r for _, _, r in self.stalls if r is not None)
@@ -204,9 +211,14 @@ class Node:
 
     # --- sending ------------------------------------------------------------------------------
     def send(self, ptype: C.PacketType, payload: bytes, now: int, key: int = 0, data_len: int = 0) -> bytes:
-        """Frame `payload` with the next serial of this node's single counter and send it."""
-        serial = self.serial
-        self.serial = (serial + 1) & 0xFFFF
+        """Frame `payload` with the next serial of this node's counter (of its type's, per type) and send it."""
+        counters = self.type_serials
+        if counters is None:
+            serial = self.serial
+            self.serial = (serial + 1) & 0xFFFF
+        else:
+            serial = counters.get(ptype, self.serial)
+            counters[ptype] = (serial + 1) & 0xFFFF
         body = _HEADER.pack(_RAW_IDS[ptype], _REVISION, self.origin, serial, len(payload), 0) + payload
         data = body + self._trailer(body)
         try:
@@ -289,6 +301,8 @@ class Node:
     def _restart(self, now: int, restart: Restart) -> None:
         """Back from a restart: the counter afresh, maybe a new source port, then the subclass's state."""
         self.serial = restart.serial & 0xFFFF
+        if self.type_serials is not None:
+            self.type_serials.clear()
         port = restart.port
         if port is not None and self.on_port_change is not None:
             port = self.on_port_change(port) or port     # the port it took (asked for 0: a free one)
