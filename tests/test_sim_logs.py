@@ -190,3 +190,21 @@ def test_sigterm_and_ctrl_c_end_a_run_as_interrupted():
 def test_a_run_that_reaches_its_duration_ends_with_exit_0():
     done = simulate("controller", "--duration", "0.3")
     assert done.returncode == 0 and "stopped by" not in done.stderr
+
+
+def test_the_first_illegal_packet_of_each_reason_is_logged():
+    """Two ends given different --crc ignore each other's every packet (bad CRC); the log showed
+    only a watchdog, the reason only in the final summary. Now the first of each reason is logged,
+    with its source; the rest are counted."""
+    from vm110 import encode
+
+    ctl = Controller(crc="bzip2")
+    ctl.attach(lambda data, now, meta: None)
+    ctl.start(0)
+    for serial in range(5):
+        ctl.receive(encode.packet(C.PacketType.VRPI, bytes(46), origin=0x0101, serial=serial), serial * 125_000,
+                    ("10.0.0.10", C.INPUT_PORT))
+    ctl.receive(b"VRXX" + bytes(16), 700_000, ("10.0.0.10", C.INPUT_PORT))
+    assert [(e["reasons"], e["src"]) for e in ctl.events("illegal_first")] == [
+        ("bad_crc", f"10.0.0.10:{C.INPUT_PORT}"), ("unknown_id", f"10.0.0.10:{C.INPUT_PORT}")]
+    assert ctl.illegal["bad_crc"] == 6 and not ctl.received

@@ -242,7 +242,13 @@ class Node:
             handler(rx, now)
 
     def on_illegal(self, data: bytes, problems: list[str], now: int, src: Any) -> None:
-        """An illegal packet, already counted; the specification says: ignore it silently."""
+        """An illegal packet, already counted; the specification says: ignore it. The first of each
+        reason is logged: a peer given another --crc had every packet ignored with nothing in the
+        log but a watchdog."""
+        first = [p for p in problems if self.illegal[p] == 1]
+        if first:
+            where = f"{src[0]}:{src[1]}" if isinstance(src, tuple) else src
+            self.event(now, "illegal_first", reasons=",".join(first), src=where)
 
     def _due(self) -> Optional[int]:
         return None
