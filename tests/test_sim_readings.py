@@ -31,6 +31,7 @@ ANOMALIES = ("vm110.expert.bad_crc", "vm110.expert.serial_gap", "vm110.expert.se
              "vm110.expert.serial_out_of_order", "vm110.expert.restart", "vm110.expert.burst_missing",
              "vm110.expert.burst_incomplete")
 SECONDS = 3.0
+LOGS: dict[str, list[dict]] = {}        # each simulator's JSON log, the summary last
 
 
 def _tap(routes: dict[socket.socket, tuple[tuple[str, int], bool]], record: list, stop: threading.Event) -> None:
@@ -77,8 +78,7 @@ def capture(tmp_path_factory) -> Path:
             s.close()
     for p, (out, err) in zip((ctl, bu), outs):
         assert p.returncode == 0, err
-        summary = json.loads(out.splitlines()[-1])["summary"]
-        assert summary["illegal_packets"] == 0, summary        # each understood the other
+        LOGS[p is ctl and "controller" or "bu"] = [json.loads(line) for line in out.splitlines()]
     path = tmp_path_factory.mktemp("readings") / "readings.pcap"
     flows: dict = {}
     with open(path, "wb") as stream:
@@ -93,6 +93,21 @@ def capture(tmp_path_factory) -> Path:
         writer.close()
     assert len(record) > 60
     return path
+
+
+def test_each_simulator_understood_the_other(capture):
+    """Every packet legal to its receiver, and no restart seen where there was none: with one
+    counter per packet type, a receiver that followed the peer's serials as one counter took the
+    interleaved counters for restarts (and would have carried a retransmitted command out again)."""
+    for role, log in LOGS.items():
+        assert log[-1]["summary"]["illegal_packets"] == 0, (role, log[-1])
+        assert not [e for e in log if e.get("event") in ("bu_restart", "controller_restart")], role
+    executed = [e["command_id"] for e in LOGS["controller"] if e.get("event") == "executed"]
+    sent = [e["command_id"] for e in LOGS["bu"] if e.get("event") == "command_sent"]
+    assert executed == sent and len(sent) >= 4
+    delivered = [e["command_id"] for e in LOGS["bu"] if e.get("event") == "vrco_delivered"]
+    assert delivered == [e["command_id"] for e in LOGS["controller"] if e.get("event") == "vrco_sent"][:len(delivered)]
+    assert len(delivered) >= 3
 
 
 def analyze(path: Path, *options: str) -> dict:

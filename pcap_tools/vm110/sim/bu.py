@@ -78,7 +78,8 @@ class BaseUnit(CommandOutbox, Node):
         self.watchdog_tripped = False
         self._outbox_init(cfg.command_id_start, ms(cfg.vrci_resend_ms), ms(cfg.vrci_fail_ms))
         self._acks: list[tuple[int, int]] = []            # delayed VRAI: (due, command ID)
-        self.delivered = PeerCommands()                   # VRCO heard, to hand each to the RU app once
+        # VRCO heard, to hand each to the RU app once; the controller numbers as this node does
+        self.delivered = PeerCommands(self.type_serials is not None)
 
     def start(self, now: int) -> None:
         self._t0 = self._next_vrpi = now
@@ -162,7 +163,7 @@ class BaseUnit(CommandOutbox, Node):
         self.last_vrpo = None
         self.watchdog_tripped = False
         self._acks.clear()
-        self.delivered = PeerCommands()
+        self.delivered = PeerCommands(self.type_serials is not None)
         self._outbox_restart(now, restart.command_id)
 
     # --- operator commands (VRCI): `CommandOutbox` ---------------------------------------------

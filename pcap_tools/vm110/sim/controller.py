@@ -81,7 +81,8 @@ class Controller(CommandOutbox, Node):
         self._vrpi_since: Optional[int] = None   # the watchdog counts from here (last VRPI, start, resume)
         self.vrpi_alarm = False
         self.ru_armed = False
-        self.handled = PeerCommands()             # operator commands heard, to execute each once
+        # operator commands heard, to execute each once; the BU numbers as this node does
+        self.handled = PeerCommands(self.type_serials is not None)
         self._outbox_init(cfg.command_id_start, ms(cfg.vrco_resend_ms), ms(cfg.vrco_timeout_ms))
         self._data_tail = bytes(i & 0xFF for i in range(4, cfg.data_size))
 
@@ -128,7 +129,7 @@ class Controller(CommandOutbox, Node):
     def on_restart(self, now: int, restart: Restart) -> None:
         self._next_vrpo, self.cycle = now, 0
         self.last_vrpi, self._vrpi_since, self.vrpi_alarm, self.ru_armed = None, now, False, False
-        self.handled = PeerCommands()
+        self.handled = PeerCommands(self.type_serials is not None)
         self._outbox_restart(now, restart.command_id)
 
     # --- VRPO ---------------------------------------------------------------------------------

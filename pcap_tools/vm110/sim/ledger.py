@@ -58,11 +58,11 @@ def sender(rx: Rx) -> tuple[int, Any]:
 
 class PeerCommands:
     """The commands a node receives, each carried out once, across restarts of their senders (their
-    serials tell, `sim.peers`)."""
+    serials tell, `sim.peers`; `per_type`: a counter per packet type, as the node numbers its own)."""
 
-    def __init__(self, reuse_gap_ms: float = REUSE_GAP_MS) -> None:
+    def __init__(self, per_type: bool = False, reuse_gap_ms: float = REUSE_GAP_MS) -> None:
         self.ledger = CommandLedger(reuse_gap_ms)
-        self.peers = PeerRestarts()
+        self.peers = PeerRestarts(per_type)
         self._held: dict[tuple[int, Any], Held] = {}
 
     def recent(self, rx: Rx, command_id: int, now: int) -> bool:
@@ -73,7 +73,7 @@ class PeerCommands:
         """Every legal packet the node receives, first: (when its sender restarted, if this packet
         shows it; the command held at the sender's previous packet, if any, and whether it is new)."""
         key = sender(rx)
-        restart, gone = self.peers.restarted(rx.origin, rx.src, rx.serial, now)
+        restart, gone = self.peers.restarted(rx.origin, rx.src, rx.ptype, rx.serial, now)
         for old in gone:                      # (an earlier source port of a sender back on a new one)
             self.ledger.forget(old, now)
         if restart is not None:
@@ -90,7 +90,7 @@ class PeerCommands:
         key = sender(rx)
         if self.ledger.hear(key, command_id, now):
             return True
-        if self.peers.pending(rx.origin, rx.src, rx.serial):
+        if self.peers.pending(rx.origin, rx.src, rx.ptype, rx.serial):
             self._held[key] = Held(rx.origin, rx.serial, command_id, data, now)
             return None
         return False

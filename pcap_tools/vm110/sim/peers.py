@@ -98,36 +98,43 @@ class SerialCounter:
 
 
 class PeerRestarts:
-    """The senders a node hears, by (origin, source address): which of them restarted, and when."""
+    """The senders a node hears, by (origin, source address): which of them restarted, and when.
+    `per_type`: the peer numbers each packet type on its own (`--serial-scope type`), a counter each."""
 
-    def __init__(self) -> None:
-        self._counters: dict[tuple[int, Any], SerialCounter] = {}
+    def __init__(self, per_type: bool = False) -> None:
+        self.per_type = per_type
+        self._counters: dict[tuple[int, Any, Any], SerialCounter] = {}
 
-    def pending(self, origin: int, src: Any, serial: int) -> bool:
-        """Is `serial` the sender's restart still to be confirmed (its last packet)?"""
-        counter = self._counters.get((origin, src))
+    def _key(self, origin: int, src: Any, ptype: Any) -> tuple[int, Any, Any]:
+        return origin, src, ptype if self.per_type else None
+
+    def pending(self, origin: int, src: Any, ptype: Any, serial: int) -> bool:
+        """Is `serial` the counter's restart still to be confirmed (its last packet)?"""
+        counter = self._counters.get(self._key(origin, src, ptype))
         return counter is not None and counter.candidate == serial
 
-    def restarted(self, origin: int, src: Any, serial: int, now: int) -> tuple[Optional[int], list[Any]]:
+    def restarted(self, origin: int, src: Any, ptype: Any, serial: int,
+                  now: int) -> tuple[Optional[int], list[tuple[int, Any]]]:
         """Feed a legal packet: (the time the sender restarted, when this packet shows it; the earlier
-        sources of the same origin and address this new source replaces, now forgotten)."""
-        key = (origin, src)
+        senders, (origin, source), of the same origin and address this new source replaces)."""
+        key = self._key(origin, src, ptype)
         counter = self._counters.get(key)
         if counter is not None:
             return counter.feed(serial, now), []
+        new_sender = not any(k[:2] == key[:2] for k in self._counters)
         self._counters[key] = SerialCounter(serial, now)
-        gone = self._new_port(origin, src, now)
+        gone = self._new_port(origin, src, now) if new_sender else []
         return (now if gone else None), gone
 
-    def _new_port(self, origin: int, src: Any, now: int) -> list[Any]:
+    def _new_port(self, origin: int, src: Any, now: int) -> list[tuple[int, Any]]:
         """Earlier senders with this one's origin and address, silent for 250 ms: they restarted on
         this new source port (and are forgotten)."""
-        host = _host(src)
-        gone = [key for key, counter in self._counters.items()
-                if key[0] == origin and key[1] != src and _host(key[1]) == host
-                and now - counter.last >= NEW_PORT_SILENCE_US]
-        for key in gone:
-            del self._counters[key]
+        host, last = _host(src), dict[tuple[int, Any], int]()
+        for (o, s, _), counter in self._counters.items():
+            if o == origin and s != src and _host(s) == host:
+                last[(o, s)] = max(last.get((o, s), counter.last), counter.last)
+        gone = [sender for sender, t in last.items() if now - t >= NEW_PORT_SILENCE_US]
+        self._counters = {k: c for k, c in self._counters.items() if k[:2] not in gone}
         return gone
 
 
