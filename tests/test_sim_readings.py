@@ -76,9 +76,9 @@ def capture(tmp_path_factory) -> Path:
         tapper.join()
         for s in (tap_in, tap_out):
             s.close()
-    for p, (out, err) in zip((ctl, bu), outs):
+    for role, p, (out, err) in zip(("controller", "bu"), (ctl, bu), outs):
         assert p.returncode == 0, err
-        LOGS[p is ctl and "controller" or "bu"] = [json.loads(line) for line in out.splitlines()]
+        LOGS[role] = [json.loads(line) for line in out.splitlines()]
     path = tmp_path_factory.mktemp("readings") / "readings.pcap"
     flows: dict = {}
     with open(path, "wb") as stream:

@@ -76,7 +76,7 @@ def test_an_id_reused_after_a_reboot_is_a_new_command():
     bu.vrpi(1.55)                                # serial 1 confirms it
     bu.vrci(1.6, 5)
     assert executed(ctl) == [5, 5] and not ctl.events("repeat")
-    assert [e["serial"] for e in ctl.events("bu_restart")] == [1]
+    assert [(e["at"], e["serial"]) for e in ctl.events("bu_restart")] == [(1.5, 0)]
 
 
 def test_the_restarting_packet_itself_may_carry_the_reused_id():

@@ -138,7 +138,7 @@ class BaseUnit(CommandOutbox, Node):
         stream (an ID it reuses within the reuse gap was a repeat, never delivered: interpretation.md)."""
         restart, held, new = self.delivered.follow(rx, now)
         if restart is not None:
-            self.event(now, "controller_restart", serial=rx.serial)
+            self.event(now, "controller_restart", at=log_seconds(restart[1]), serial=restart[0])
         if held is not None and new:
             self.deliver(held.command_id, held.data, now)
 

@@ -152,7 +152,8 @@ class Controller(CommandOutbox, Node):
         ID it reuses within the reuse gap was a repeat, never executed: interpretation.md)."""
         restart, held, new = self.handled.follow(rx, now)
         if restart is not None:
-            self.event(now, "bu_restart", origin=f"0x{rx.origin:04x}", serial=rx.serial)
+            # (logged when the next packet confirms it: the restart's own time and first serial)
+            self.event(now, "bu_restart", origin=f"0x{rx.origin:04x}", at=log_seconds(restart[1]), serial=restart[0])
         if held is not None:
             if new:
                 self.execute(held.origin, held.command_id, held.data, now)

@@ -69,20 +69,20 @@ class PeerCommands:
         """Was this command ID heard from the sender of `rx` less than the reuse gap ago?"""
         return self.ledger.recent(sender(rx), command_id, now)
 
-    def follow(self, rx: Rx, now: int) -> tuple[Optional[int], Optional[Held], bool]:
-        """Every legal packet the node receives, first: (when its sender restarted, if this packet
-        shows it; the command held at the sender's previous packet, if any, and whether it is new)."""
+    def follow(self, rx: Rx, now: int) -> tuple[Optional[tuple[int, int]], Optional[Held], bool]:
+        """Every legal packet the node receives, first: ((first serial, time) of its sender's restart,
+        if this packet shows it; the command held at the sender's previous packet, if any, and whether it is new)."""
         key = sender(rx)
         restart, gone = self.peers.restarted(rx.origin, rx.src, rx.ptype, rx.serial, now)
         for old in gone:                      # (an earlier source port of a sender back on a new one)
             self.ledger.forget(old, now)
         if restart is not None:
-            self.ledger.forget(key, restart)
+            self.ledger.forget(key, restart[1])
         held = self._held.get(key)
         if held is None or held.serial == rx.serial:      # (a copy of its packet tells nothing)
             return restart, None, False
         del self._held[key]
-        return restart, held, restart == held.heard
+        return restart, held, restart is not None and restart[1] == held.heard
 
     def command(self, rx: Rx, command_id: int, data: bytes, now: int) -> Optional[bool]:
         """A command heard (after `follow`): True when new, False for a repeat, None when that waits

@@ -39,8 +39,8 @@ class SerialCounter:
         self._gaps: deque[tuple[int, int, int]] = deque()          # (opened, first missing, count)
         self._candidate: Optional[tuple[int, int]] = None          # (serial, when): a restart unconfirmed
 
-    def feed(self, serial: int, now: int) -> Optional[int]:
-        """Note a legal packet; the time of the packet that restarted the counter when this one
+    def feed(self, serial: int, now: int) -> Optional[tuple[int, int]]:
+        """Note a legal packet; (serial, time) of the packet that restarted the counter when this one
         confirms a restart, else None."""
         self._expire(now)
         candidate = self._candidate
@@ -51,7 +51,7 @@ class SerialCounter:
             if 1 <= (serial - candidate[0]) & 0xFFFF <= CONFIRM_AHEAD:
                 self._reset(*candidate)
                 self._advance(serial, now)
-                return candidate[1]
+                return candidate
         if serial in self._seen:
             return None                          # a duplicate (within the window: `_expire`)
         d = (serial - self.high) & 0xFFFF
@@ -114,8 +114,9 @@ class PeerRestarts:
         return counter is not None and counter.candidate == serial
 
     def restarted(self, origin: int, src: Any, ptype: Any, serial: int,
-                  now: int) -> tuple[Optional[int], list[tuple[int, Any]]]:
-        """Feed a legal packet: (the time the sender restarted, when this packet shows it; the earlier
+                  now: int) -> tuple[Optional[tuple[int, int]], list[tuple[int, Any]]]:
+        """Feed a legal packet: ((first serial, time) of the sender's restart, when this packet shows
+        it; the earlier
         senders, (origin, source), of the same origin and address this new source replaces)."""
         key = self._key(origin, src, ptype)
         counter = self._counters.get(key)
@@ -124,7 +125,7 @@ class PeerRestarts:
         new_sender = not any(k[:2] == key[:2] for k in self._counters)
         self._counters[key] = SerialCounter(serial, now)
         gone = self._new_port(origin, src, now) if new_sender else []
-        return (now if gone else None), gone
+        return ((serial, now) if gone else None), gone
 
     def _new_port(self, origin: int, src: Any, now: int) -> list[tuple[int, Any]]:
         """Earlier senders with this one's origin and address, silent for 250 ms: they restarted on
