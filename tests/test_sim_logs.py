@@ -184,12 +184,14 @@ def test_sigterm_and_ctrl_c_end_a_run_as_interrupted():
             stdout, stderr = proc.communicate(timeout=30)
         assert proc.returncode == 130, (sig, proc.returncode, stderr)
         assert "Traceback" not in stderr and f"bu: stopped by {sig.name}" in stderr
-        assert json.loads(stdout.splitlines()[-1])["summary"]["sent"]["VRPI"] >= 2
+        end = json.loads(stdout.splitlines()[-1])
+        assert end["end"] == sig.name and end["summary"]["sent"]["VRPI"] >= 2
 
 
 def test_a_run_that_reaches_its_duration_ends_with_exit_0():
     done = simulate("controller", "--duration", "0.3")
     assert done.returncode == 0 and "stopped by" not in done.stderr
+    assert json.loads(done.stdout.splitlines()[-1])["end"] == "duration"
 
 
 def test_the_first_illegal_packet_of_each_reason_is_logged():

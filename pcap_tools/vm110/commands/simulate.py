@@ -298,4 +298,6 @@ def _run(args: argparse.Namespace, node: Any, runner: RealtimeRunner, stopped_by
     finally:
         if stopped_by:
             print(f"{utc_iso(time.time())} {args.role}: stopped by {stopped_by[0]}", file=sys.stderr, flush=True)
-        print(json.dumps({"time_utc": utc_iso(time.time()), "summary": node.summary()}), flush=True)
+        # How the run ended, in the log too (a log kept without stderr): its --duration or a signal.
+        end = stopped_by[0] if stopped_by else "duration"
+        print(json.dumps({"time_utc": utc_iso(time.time()), "end": end, "summary": node.summary()}), flush=True)
