@@ -44,9 +44,9 @@ def _tap(routes: dict[socket.socket, tuple[tuple[str, int], bool]], record: list
             sock.sendto(data, dest)
 
 
-@pytest.fixture(scope="module")
-def capture(tmp_path_factory) -> Path:
-    """A capture of both simulators talking with READING and VRPO numbered from 1."""
+def record_pair(path: Path, ctl_args: list[str], bu_args: list[str]) -> dict[str, list[dict]]:
+    """Run both simulators through the tap for SECONDS, write what passed to `path` (as a tap on
+    the group would show it) and return each one's JSON log, the summary last."""
     socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(4)]
     tap_in, tap_out, bu_rx, ctl_rx = socks
     for s in socks:
@@ -60,14 +60,13 @@ def capture(tmp_path_factory) -> Path:
     routes = {tap_in: ((LOOPBACK, ctl_port), True), tap_out: ((LOOPBACK, bu_port), False)}
     tapper = threading.Thread(target=_tap, args=(routes, record, stop), daemon=True)
     tapper.start()
-    common = [*READING, "--source", f"{LOOPBACK}:0", "--duration", str(SECONDS), "--json"]
+    common = ["--source", f"{LOOPBACK}:0", "--duration", str(SECONDS), "--json"]
     run = [sys.executable, "-m", "vm110", "simulate"]
     ctl = subprocess.Popen([*run, "controller", "--listen", f"{LOOPBACK}:{ctl_port}", "--peer",
-                            f"{LOOPBACK}:{tap_out.getsockname()[1]}", "--vrpo-start", "1", "--data-size", "1200",
-                            "--command-every", "0.7", *common], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           text=True)
+                            f"{LOOPBACK}:{tap_out.getsockname()[1]}", *ctl_args, *common],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     bu = subprocess.Popen([*run, "bu", "--listen", f"{LOOPBACK}:{bu_port}", "--peer",
-                           f"{LOOPBACK}:{tap_in.getsockname()[1]}", "--command-every", "0.5", *common],
+                           f"{LOOPBACK}:{tap_in.getsockname()[1]}", *bu_args, *common],
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         outs = [p.communicate(timeout=60) for p in (ctl, bu)]
@@ -76,10 +75,10 @@ def capture(tmp_path_factory) -> Path:
         tapper.join()
         for s in (tap_in, tap_out):
             s.close()
+    logs = {}
     for role, p, (out, err) in zip(("controller", "bu"), (ctl, bu), outs):
         assert p.returncode == 0, err
-        LOGS[role] = [json.loads(line) for line in out.splitlines()]
-    path = tmp_path_factory.mktemp("readings") / "readings.pcap"
+        logs[role] = [json.loads(line) for line in out.splitlines()]
     flows: dict = {}
     with open(path, "wb") as stream:
         writer = open_writer(stream)
@@ -92,6 +91,15 @@ def capture(tmp_path_factory) -> Path:
         writer.write_many(frames)
         writer.close()
     assert len(record) > 60
+    return logs
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    """A capture of both simulators talking with READING and VRPO numbered from 1."""
+    path = tmp_path_factory.mktemp("readings") / "readings.pcap"
+    LOGS.update(record_pair(path, [*READING, "--vrpo-start", "1", "--data-size", "1200", "--command-every", "0.7"],
+                            [*READING, "--command-every", "0.5"]))
     return path
 
 
@@ -148,3 +156,21 @@ def test_the_dissector_reads_them_clean_under_the_matching_preferences(capture, 
     assert found.stdout.split() == []
     default = ws.run(["-r", str(pcap), "-Y", " || ".join(ANOMALIES), "-T", "fields", "-e", "frame.number"])
     assert default.stdout.split()
+
+
+@pytest.mark.parametrize("restart", ["1.2", "1.2:0"], ids=["same-port", "new-port"])
+def test_the_controller_sees_the_bu_restarts_that_analyze_counts(tmp_path, restart):
+    """The controller and `analyze` count the same thing: the BU's restarts (a reboot from serial
+    40000 back to 0, on the same or a new source port), and every operator command, the ones whose
+    IDs the rebooted BU reused within 2 s included, carried out once."""
+    path = tmp_path / "restart.pcap"
+    logs = record_pair(path, [], ["--command-every", "0.4", "--serial-start", "40000", "--restart", restart,
+                                  "--restart-silence", "0.4"])
+    report = analyze(path)
+    restarts = [e for e in logs["controller"] if e.get("event") == "bu_restart"]
+    assert len(restarts) == report["totals"]["restarts"] == 1, report["totals"]
+    executed = [e["command_id"] for e in logs["controller"] if e.get("event") == "executed"]
+    sent = [e["command_id"] for e in logs["bu"] if e.get("event") == "command_sent"]
+    # (the controller, started first, ends first: the BU's last commands may find it gone)
+    assert executed == sent[:len(executed)] and len(set(executed)) < len(executed), (executed, sent)
+    assert report["totals"]["commands"] == len(sent)
