@@ -11,25 +11,28 @@ from __future__ import annotations
 from collections import deque
 from typing import Any, Hashable, Optional
 
+from .. import constants as C
 from .clock import US_PER_S, ms
 
-DUP_WINDOW_US = ms(1000)          # a serial heard again within this is a copy
-RATE_WINDOW_US = 10 * US_PER_S    # the counter's rate: its packets in the 10 s before
-NEW_PORT_SILENCE_US = ms(250)
-CONFIRM_AHEAD = 4                 # the next packet confirms a restart at s with s + 1 … s + 4
-_HALF = 0x8000
+# The rule's numbers (the ground truth, `sim.truth`, judges by them too).
+DUP_WINDOW_US = ms(1000)            # a serial accepted less than this ago is a duplicate
+NEW_PORT_SILENCE_US = ms(250)       # an earlier sender silent this long may reappear on a new port
+RATE_WINDOW_US = 10 * US_PER_S      # the counter's rate: its packets in the 10 s before
+PLAUSIBLE_BASE, PLAUSIBLE_FACTOR, MIN_RATE = 64, 4, 20     # plausible loss: d - 1 <= 64 + 4 max(r, 20) dt
+CONFIRM = 4                         # a restart candidate s is confirmed by s + 1 .. s + 4
+_HALF = C.SERIAL_HALF
 
 
 class SerialCounter:
     """One sender's serial counter as a receiver follows it (times in µs)."""
 
+    def __init__(self, serial: int, now: int) -> None:
+        self._reset(serial, now)
+
     @property
     def candidate(self) -> Optional[int]:
         """The serial of a restart not yet confirmed, if any."""
         return None if self._candidate is None else self._candidate[0]
-
-    def __init__(self, serial: int, now: int) -> None:
-        self._reset(serial, now)
 
     def _reset(self, serial: int, now: int) -> None:
         self.high, self.start, self.last = serial, now, now
@@ -48,7 +51,7 @@ class SerialCounter:
             if serial == candidate[0]:
                 return None                      # a copy of it confirms nothing
             self._candidate = None
-            if 1 <= (serial - candidate[0]) & 0xFFFF <= CONFIRM_AHEAD:
+            if 1 <= (serial - candidate[0]) & 0xFFFF <= CONFIRM:
                 self._reset(*candidate)
                 self._advance(serial, now)
                 return candidate
@@ -67,7 +70,7 @@ class SerialCounter:
         """Could the counter have lost `missing` packets in its silence, at its rate?"""
         life = min(RATE_WINDOW_US, now - self.start)
         rate = len(self._heard) * US_PER_S / life if life > 0 else 0.0
-        return missing <= 64 + 4 * max(rate, 20.0) * (now - self.last) / US_PER_S
+        return missing <= PLAUSIBLE_BASE + PLAUSIBLE_FACTOR * max(rate, MIN_RATE) * (now - self.last) / US_PER_S
 
     def _late(self, serial: int) -> bool:
         return any((serial - first) & 0xFFFF < count for _, first, count in self._gaps)

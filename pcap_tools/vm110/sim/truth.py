@@ -16,6 +16,8 @@ from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT
 from .clock import US_PER_S, ms
 from .ledger import REUSE_GAP_MS
 from .node import Meta
+from .peers import (CONFIRM, DUP_WINDOW_US, MIN_RATE, NEW_PORT_SILENCE_US, PLAUSIBLE_BASE, PLAUSIBLE_FACTOR,
+                    RATE_WINDOW_US)
 from .virtual import Arrival, Station, endpoints
 
 SCHEMA_VERSION = 2
@@ -27,12 +29,7 @@ _VRPO = C.PacketType.VRPO
 _BAD_CRC = C.Problem.BAD_CRC.value
 _NAMES = {t: t.value for t in C.PacketType}
 _MODULUS, _HALF, _VRPO_MAX_DATA = C.SERIAL_MODULUS, C.SERIAL_HALF, C.VRPO_MAX_DATA
-DUP_WINDOW_US = ms(1000)            # a serial accepted less than this ago is a duplicate
 REUSE_GAP_US = ms(REUSE_GAP_MS)     # a command ID within this of its previous transmission: a retransmission
-NEW_PORT_SILENCE_US = ms(250)       # an earlier sender silent this long may reappear on a new port
-RATE_WINDOW_US = 10 * US_PER_S
-PLAUSIBLE_BASE, PLAUSIBLE_FACTOR, MIN_RATE = 64, 4, 20     # plausible loss: d - 1 <= 64 + 4 max(r, 20) dt
-CONFIRM = 4                         # a restart candidate s is confirmed by s + 1 .. s + 4
 
 
 def _time(t_us: int) -> float:
