@@ -5,7 +5,8 @@ Default network set-up is the specification's: multicast group 239.255.42.20, in
 simulators on loopback: see captures/README.md). Logs what the node does and detects to stdout,
 and a summary line at the end; the sockets it uses go to stderr first, so that stdout is the log
 alone (JSON lines only with `--json`). Stops after `--duration` seconds (exit 0), on Ctrl-C or on SIGTERM
-(an interruption: the summary still comes, exit 130).
+(an interruption: the summary still comes, exit 130). `--crc`, `--crc-order`, `--serial-scope` and
+`--vrpo-start` speak another reading of TS-0006, as `analyze` reads one under the same options.
 """
 from __future__ import annotations
 
