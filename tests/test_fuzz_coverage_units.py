@@ -132,3 +132,41 @@ def test_a_havoced_packet_id_is_shown_without_control_characters():
     assert packet_id(b"VRCI" + bytes(20)) == "VRCI"
     assert packet_id(b"V\x7fR+") == "V\\x7fR+"
     assert packet_id(b"\xff\x00\x1b[") == "\\xff\\x00\\x1b["
+
+
+class _Quiet:
+    """A session with nothing to pump: the test writes the controller's hits into the map itself."""
+
+    def pump(self, until: float) -> None:
+        pass
+
+
+def test_a_resumed_corpus_restores_edges_the_controllers_timers_reached(tmp_path):
+    """Trial: a resumed --corpus reached 57 edges where the run that wrote it had 69 (AFL++ build of
+    tests/targets/controller.c). The controller's timers and the base unit's stream and acks hit
+    edges whenever they fire: inside a case in one run (counted), between cases in the next (lost,
+    the map is cleared before each case). Both runs must count them."""
+    import ctypes
+    from vm110.fuzz.guided import Guided, GuidedConfig
+
+    def run(timer_inside_case: bool) -> int:
+        g = Guided(GuidedConfig(4096, tmp_path / "corpus"), seed=1)
+        try:
+            g.open(None)
+            for index in range(2):
+                case = g.next_case(index)
+                if index == 1 and not timer_inside_case:
+                    ctypes.memset(g.map.addr + 300, 1, 1)      # the VRCO timer, between cases
+                g.before_case()
+                ctypes.memset(g.map.addr + 100, 1, 2)          # what the case itself reaches
+                if index == 0 and timer_inside_case:
+                    ctypes.memset(g.map.addr + 300, 1, 1)      # the VRCO timer, during the case
+                g.after_case(_Quiet(), case, [])
+            return g.edges()
+        finally:
+            g.close()
+
+    written = run(timer_inside_case=True)
+    assert written == 3 and len(list((tmp_path / "corpus").glob("id-*.json"))) >= 1
+    resumed = run(timer_inside_case=False)
+    assert resumed == written

@@ -219,6 +219,22 @@ def test_deep_bug_blind_misses_it_coverage_finds_it(tmp_path, programs):
     print(f"coverage found the deep bug in {time.time() - start:.1f} s, {summary['cases_run']} cases")
 
 
+def test_a_resumed_corpus_restores_the_coverage_of_the_run_that_wrote_it(tmp_path, programs):
+    """Trial: resuming a --corpus reached 57 edges, the run that wrote it 69 (edges the controller's
+    timers and the base unit's stream reached counted only when they fell inside a case)."""
+    exe = programs("afl-correct")
+    corpus = tmp_path / "corpus"
+    _, first = fuzz(tmp_path / "first", exe, "--coverage", "--corpus", str(corpus), "--duration", "3")
+    stored = len(list(corpus.glob("id-*.json")))
+    assert stored > 5, first
+    result, again = fuzz(tmp_path / "again", exe, "--coverage", "--corpus", str(corpus), "--cases", str(stored + 1))
+    assert result.returncode == 0, result.stdout + result.stderr
+    resumed = again["coverage"]["resumed"]
+    assert resumed["cases"] == resumed["of"] == stored
+    assert resumed["edges"] >= first["coverage"]["edges"], (resumed, first["coverage"]["edges"])
+    assert f"--corpus: its {stored} cases played again reached {resumed['edges']} edges" in result.stdout
+
+
 def test_coverage_map_that_stays_empty_is_one_line_exit_2(tmp_path, programs):
     out = tmp_path / "out"
     result, _ = fuzz(out, programs("plain-correct"), "--coverage", "--duration", "20")

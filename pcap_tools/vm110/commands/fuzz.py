@@ -211,6 +211,12 @@ def run(args: argparse.Namespace) -> int:
         over_time = ", ".join(f"{s} s: {by_second[s]}" for s in shown)
         print(f"coverage: {cov['edges']} edges, corpus {cov['corpus']} cases; edges over time {over_time} "
               f"(all in {out / 'findings.json'}, plotted in {out / 'coverage.html'})")
+        resumed = cov.get("resumed")
+        if resumed and resumed["cases"] < resumed["of"]:
+            print(f"--corpus: only {resumed['cases']} of its {resumed['of']} cases were played again before the run "
+                  "ended: its coverage is not all restored (a longer --duration or more --cases restores it)")
+        elif resumed:
+            print(f"--corpus: its {resumed['of']} cases played again reached {resumed['edges']} edges")
         if cov["corpus_skipped"]:
             print(f"--corpus: {len(cov['corpus_skipped'])} unreadable files skipped, e.g. "
                   f"{_printable(cov['corpus_skipped'][0])} (all in findings.json)")
