@@ -151,6 +151,71 @@ def test_a_failed_assertion_is_named_in_the_controller_s_code():
     assert crash.signature() == "SIGABRT asan:ABRT on_vrci main"
 
 
+# The `crash` objects of findings written before the signature's rules changed (SIGNATURE_VERSION
+# 1), for the two reports above: what that version wrote, ASan's full stack abridged to its frames.
+_OLD_ASSERT_CRASH = {
+    "headline": "crash SIGABRT ABRT in __assert_fail_base (assert.c:94)", "signal": 6, "signal_name": "SIGABRT",
+    "signature": "SIGABRT asan:ABRT __assert_fail_base on_vrci main",
+    "sanitizer": {"tool": "asan", "error_type": "ABRT", "summary": "", "frames": [
+        {"function": "__pthread_kill_implementation", "location": "nptl/pthread_kill.c:44"},
+        {"function": "__GI_raise", "location": "../sysdeps/posix/raise.c:26"},
+        {"function": "__GI_abort", "location": "stdlib/abort.c:79"},
+        {"function": "__assert_fail_base", "location": "assert/assert.c:94"},
+        {"function": "__GI___assert_fail", "location": "assert/assert.c:103"},
+        {"function": "on_vrci", "location": "/src/ctl.c:96"}, {"function": "main", "location": "/src/ctl.c:136"},
+        {"function": "__libc_start_call_main", "location": "../sysdeps/nptl/libc_start_call_main.h:58"}]},
+    "top_frames": [{"function": "__assert_fail_base", "location": "assert/assert.c:94"},
+                   {"function": "on_vrci", "location": "/src/ctl.c:96"}, {"function": "main", "location": "/src/ctl.c:136"}]}
+_OLD_UBSAN_CRASH = {
+    "headline": "crash SIGABRT ABRT in on_vrpi (ctl.c:73)", "signal": 6, "signal_name": "SIGABRT",
+    "signature": "SIGABRT asan:ABRT on_vrpi main",
+    "sanitizer": {"tool": "asan", "error_type": "ABRT", "summary": "", "frames": [
+        {"function": "__GI_abort", "location": "stdlib/abort.c:79"},
+        {"function": "__sanitizer::Die()", "location": "../../../../src/libsanitizer/sanitizer_common/x.cpp:58"},
+        {"function": "__ubsan_handle_add_overflow", "location": "../../../../src/libsanitizer/ubsan/ubsan_handlers.cpp:242"},
+        {"function": "on_vrpi", "location": "/src/ctl.c:73"}, {"function": "main", "location": "/src/ctl.c:135"}]},
+    "top_frames": [{"function": "on_vrpi", "location": "/src/ctl.c:73"}, {"function": "main", "location": "/src/ctl.c:135"}]}
+
+
+def _old_finding(tmp_path, crash: dict):
+    """A crash finding file as the version before SIGNATURE_VERSION wrote it, read back."""
+    import json
+    from dataclasses import asdict
+    from vm110.fuzz.findings import Finding, finding_from_json
+    step = {"hex": "00" * 20, "valid_hex": "00" * 20, "delay_ms": 0.0, "expect_ack": True}
+    finding = Finding("crash", 1, 5, "vrci-fields", "VRCI command_id", crash["headline"], "00" * 20, "00" * 20,
+                      "00" * 20, 0, True, [step], signature="crash " + crash["signature"], crash=crash)
+    path = tmp_path / "finding-001-crash.json"
+    path.write_text(json.dumps(asdict(finding)))
+    return finding_from_json(json.loads(path.read_text()), str(path))
+
+
+@pytest.mark.parametrize("report, old", [(ASSERT_ABRT, _OLD_ASSERT_CRASH), (UBSAN_THEN_ABRT, _OLD_UBSAN_CRASH)])
+def test_an_old_finding_replays_as_the_same_bug_after_the_signature_changed(tmp_path, report, old):
+    """Trial: a finding written before the signature's rules changed (UBSan's error type, glibc's
+    assert frames) replayed as 'another signature' of the very same crash."""
+    from vm110.fuzz.oracles import CRASH, Trigger
+    from vm110.fuzz.runner import same_bug
+    finding = _old_finding(tmp_path, old)
+    crash = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(report))
+    assert "crash " + crash.signature() != finding.signature, "the rules did change"
+    assert same_bug(finding, Trigger(CRASH, 0.0, crash.headline(), None, [], None, crash.signature(), crash=crash))
+    elsewhere = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(report.replace("on_vrpi", "on_vrai")
+                                                                 .replace("on_vrci", "on_vrai")))
+    assert not same_bug(finding, Trigger(CRASH, 0.0, "", None, [], None, elsewhere.signature(), crash=elsewhere))
+    segv = Crash(-signal.SIGSEGV, sanitizer=parse_sanitizer(report))
+    assert not same_bug(finding, Trigger(CRASH, 0.0, "", None, [], None, segv.signature(), crash=segv))
+
+
+def test_a_new_finding_is_compared_by_its_whole_signature(tmp_path):
+    from vm110.fuzz.findings import write_crash
+    crash = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(ASSERT_ABRT))
+    info = write_crash(tmp_path, "finding-001-crash", crash)
+    assert info["signature_version"] == 2 and crash.same_bug(info)
+    other = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(ASSERT_ABRT.replace("in main", "in loop")))
+    assert not other.same_bug(info), "a different third frame is another bug under today's rules"
+
+
 def test_gdb_backtrace_frames_with_and_without_addresses():
     frames = parse_gdb_backtrace(GDB)
     assert [f.function for f in frames] == ["maintenance_engage", "execute", "on_vrci", "on_datagram",

@@ -34,7 +34,7 @@ from ..fuzz.guided import GuidedConfig
 from ..fuzz.link import parse_endpoint
 from ..fuzz.oracles import CRASH, Limits
 from ..fuzz.report_html import write_coverage_html
-from ..fuzz.runner import RunConfig, Runner, finding_kind, replay_corpus_case, replay_finding
+from ..fuzz.runner import RunConfig, Runner, finding_kind, replay_corpus_case, replay_finding, same_bug
 from ..fuzz.session import Settings, TargetLost
 from ..jsonin import load_file
 from ..numbers import number
@@ -293,7 +293,7 @@ def _replay(args: argparse.Namespace) -> int:
     verdict = "still triggers" if trig else "does not trigger any more"
     kind = finding_kind(finding)
     if trig is not None and kind is not None:
-        verdict += (": the same signature" if trig.kind == kind else
+        verdict += (": the same signature" if same_bug(finding, trig) else
                     f": another signature ({_printable(trig.detail)}; the finding's: {_printable(finding.signature)})")
     print(f"{args.replay}: {finding.oracle} ({_printable(finding.mutation)}): {verdict}")
     return EXIT_FINDINGS if trig else EXIT_OK

@@ -12,6 +12,9 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 TOP_FRAMES = 3
+# The rules a crash's signature was made by, kept in its finding: 2, a UBSan error's own type
+# (1: ASan's ABRT of the abort it made) and glibc's assert frames not the controller's own.
+SIGNATURE_VERSION = 2
 _MAX_FRAMES = 64
 
 # Frames that are not the target's own code: libc start-up, the sanitizer runtimes, signal delivery.
@@ -214,6 +217,36 @@ class Crash:
             parts.append(f"{self.sanitizer.tool}:{self.sanitizer.error_type}")
         parts += [f.function for f in self.own_frames()]
         return " ".join(parts)
+
+    def same_bug(self, stored: Any) -> bool:
+        """Whether a finding's `crash` object is this crash's bug. One written by the rules of
+        today compares signatures; an older one what both rules give alike: how it ended, the
+        sanitizer's error type (an old ASan ABRT may be a UBSan error's abort) and its top frames,
+        those today's rules call the controller's own. Not an object of either form: False."""
+        if not isinstance(stored, dict):
+            return False
+        if stored.get("signature_version") == SIGNATURE_VERSION:
+            return stored.get("signature") == self.signature()
+        if {k: stored.get(k) for k in self.how} != self.how:
+            return False
+        tool = stored.get("sanitizer")
+        if isinstance(tool, dict) != (self.sanitizer is not None):
+            return False
+        frames = stored.get("top_frames")
+        if isinstance(tool, dict):
+            old = (tool.get("tool"), tool.get("error_type"))
+            new = (self.sanitizer.tool, self.sanitizer.error_type) if self.sanitizer else None
+            if old != new and not (old == ("asan", "ABRT") and new and new[0] == "ubsan"):
+                return False
+            if tool.get("frames"):
+                frames = tool["frames"]      # the whole stack, re-judged (top_frames was cut at 3)
+        if not isinstance(frames, list) or not all(
+                isinstance(f, dict) and isinstance(f.get("function"), str) and isinstance(f.get("location", ""), str)
+                for f in frames):
+            return False
+        old_own = [f["function"] for f in frames if Frame(f["function"], f.get("location", "")).own()][:TOP_FRAMES]
+        own = [f.function for f in self.own_frames()]
+        return old_own == own[:len(old_own)] and bool(old_own) == bool(own)
 
     def headline(self) -> str:
         """`crash SIGSEGV in dispatch_state (controller.c:141)`, with the sanitizer's error type."""

@@ -16,7 +16,7 @@ from ..errors import CliError
 from ..fileio import atomic_writer, write_bytes, write_text
 from ..layers import PAYLOAD_CLASSES
 from . import mutate as M
-from .evidence import Crash
+from .evidence import SIGNATURE_VERSION, Crash
 from .oracles import ORACLES
 
 SCHEMA = 1
@@ -98,7 +98,8 @@ def _frame_of(traffic: list[tuple[float, bool, bytes, tuple[str, int]]], packet_
 def write_crash(out: Path, base: str, crash: Crash) -> dict[str, Any]:
     """The evidence files of a crash finding (`base`.output.txt, .core, .backtrace.txt) and what
     the finding's JSON says of them."""
-    info: dict[str, Any] = {"headline": crash.headline(), **crash.how, "signature": crash.signature()}
+    info: dict[str, Any] = {"headline": crash.headline(), **crash.how, "signature": crash.signature(),
+                            "signature_version": SIGNATURE_VERSION}
     info["sanitizer"] = crash.sanitizer.to_json() if crash.sanitizer else None
     info["top_frames"] = [{"function": f.function, "location": f.location} for f in crash.own_frames()]
     info["output"] = f"{base}.output.txt"

@@ -668,6 +668,14 @@ def finding_kind(finding: F.Finding) -> Optional[str]:
     return kind if finding.oracle == CRASH else kind.rpartition(" (")[0] or None
 
 
+def same_bug(finding: F.Finding, trig: Trigger) -> bool:
+    """Whether a replay's crash or malformed output is the finding's bug: a crash by its stored
+    evidence too, whose signature may be of older rules (findings.json keeps them)."""
+    if trig.kind == finding_kind(finding):
+        return True
+    return finding.oracle == CRASH and trig.crash is not None and trig.crash.same_bug(finding.crash)
+
+
 def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[str],
                    log: Optional[IO[bytes]] = None) -> Optional[Trigger]:
     """Send the finding again (minimised packet when there is one); the trigger when it still
