@@ -181,3 +181,19 @@ def test_legal_packets_with_payload_beyond_the_layout_are_sent():
         assert len(data) - len(twin) in (1, 64) or len(data) == C.MAX_PACKET, case.description
         assert {k: mine[k] for k in base if k not in ("size", "crc", "crc.calculated", "warnings")} == \
             {k: base[k] for k in base if k not in ("size", "crc", "crc.calculated", "warnings")}
+
+
+def test_extra_payload_cases_say_byte_for_one_and_old_findings_with_the_old_text_still_read(tmp_path):
+    """Trial: a case was described as 'VRPI payload: 1 bytes beyond its layout (legal)'."""
+    import json
+    from dataclasses import asdict
+    from vm110.fuzz.findings import Finding, finding_from_json
+    shown = sorted({c.description.split(": ", 1)[1] for c in all_sweep() if "beyond its layout" in c.description})
+    assert shown == ["1 byte beyond its layout (legal)", "64 bytes beyond its layout (legal)",
+                     "up to 492 bytes beyond its layout (legal)"]
+    vrpi = M.build(C.PacketType.VRPI, 1, M.ARMED_VRPI).hex()
+    old = Finding("missing_ack", 1, 7, "vrpi-fields", "VRPI payload: 1 bytes beyond its layout (legal)", "no VRAO",
+                  vrpi, vrpi, vrpi, 0, True, [{"hex": vrpi, "valid_hex": vrpi, "delay_ms": 0.0, "expect_ack": True}])
+    path = tmp_path / "finding-001-missing_ack.json"
+    path.write_text(json.dumps(asdict(old)))
+    assert finding_from_json(json.loads(path.read_text()), str(path)).mutation == old.mutation

@@ -120,8 +120,8 @@ def _field_family(ptype: C.PacketType, rng: random.Random) -> list[Callable[[int
             out.insert(min(len(out), 3), header)
     for extra in _EXTRA_PAYLOAD:
         def longer(index: int, extra: Optional[int] = extra) -> Case:
-            shown = "up to 492" if extra is None else str(extra)
-            return Case(index, family, f"{ptype.value} payload: {shown} bytes beyond its layout (legal)",
+            shown = "up to 492 bytes" if extra is None else f"{extra} byte{'s' if extra != 1 else ''}"
+            return Case(index, family, f"{ptype.value} payload: {shown} beyond its layout (legal)",
                         [Step(_extra_payload(ptype, _fields_for(ptype, index, sweep=True), extra))])
         out.insert(min(len(out), 4), longer)
     return out
