@@ -68,6 +68,8 @@ CHECKS: dict[str, Callable[[dict[str, Any], bytes], None]] = {
     "bad-crc-after-wrap": lambda f, p: (command_id(p) == 0xFFFF and len(f["steps"]) == 1) or pytest.fail(f["packet_hex"]),
     "resend-after-vrai": lambda f, p: decode(p)["type"] == C.PacketType.VRAI.value or pytest.fail(f["packet_hex"]),
     "no-vrco-resend": lambda f, p: (f["withhold_vrai_ms"] > 0 and "not resent" in f["detail"]) or pytest.fail(f["detail"]),
+    # Trial: blind mode never sent command data FF 00 (an opcode with an argument count of 0) in 60 s.
+    "crash-on-empty-command": lambda f, p: (decode(p)["command_data"][:2] == b"\xff\0" and not decode(p)["problems"]) or pytest.fail(f["packet_hex"]),
 }
 
 

@@ -117,6 +117,20 @@ class TwoExceptions(Controller):
         super().on_vrpi(rx, now)
 
 
+class CrashOnEmptyCommand(Controller):
+    """Dies on command data FF 00 ...: opcode 0xFF carries its argument count, here 0, and the
+    handler reads its first argument all the same (an IndexError, as a controller in Python dies)."""
+
+    ORACLE = "crash"
+
+    def on_vrci(self, rx: Rx, now: int) -> None:
+        data = decode(rx.data).get("command_data", b"")
+        if data[:1] == b"\xff":
+            arguments = data[2:2 + data[1]]
+            arguments[0]
+        super().on_vrci(rx, now)
+
+
 BUGS: dict[str, type[Controller]] = {
     "reference": Controller,
     "crash-on-joystick": CrashOnJoystick,
@@ -127,4 +141,5 @@ BUGS: dict[str, type[Controller]] = {
     "resend-after-vrai": ResendAfterVrai,
     "no-vrco-resend": NoVrcoResend,
     "two-exceptions": TwoExceptions,
+    "crash-on-empty-command": CrashOnEmptyCommand,
 }

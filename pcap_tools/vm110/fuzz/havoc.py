@@ -83,7 +83,7 @@ class Mutator:
             self.havoc(entry, other)
             return
         if spot.text:
-            value = self.rng.choice((b"\xff", b"\x00", b"A", bytes([self.rng.randrange(256)]))) * spot.width
+            value = self.rng.choice(M.bytes_values(spot.width, self.rng))
         else:
             boundary = self.rng.random() < 0.8
             number = self.rng.choice(spot.interesting()) if boundary else self.rng.randrange(1 << 8 * spot.width)

@@ -89,8 +89,17 @@ def _int_values(name: str, bits: int, signed: bool, base: int) -> list[int]:
     return seen
 
 
-def _bytes_values(length: int, rng: random.Random) -> list[bytes]:
-    return [b"\xff" * length, b"\x80" * length, b"A" * length, bytes(rng.randrange(256) for _ in range(length))]
+# First bytes of a byte string a controller parses (command data: an opcode and its argument
+# count or length): a one-byte value and NUL after it, so a count of 0 is sent too. Byte values
+# alone (FF FF ...) never give a controller an opcode with nothing after it.
+_FIRST_BYTES = (0xFF, 0x80, 0x7F, 0x01)
+
+
+def bytes_values(length: int, rng: random.Random) -> list[bytes]:
+    """Boundary values of a byte-string field: every byte at a boundary, text without a NUL, all
+    NUL, one boundary byte then NULs, random bytes."""
+    return [b"\xff" * length, b"\x80" * length, b"A" * length, bytes(length),
+            *(bytes([b]).ljust(length, b"\0") for b in _FIRST_BYTES), bytes(rng.randrange(256) for _ in range(length))]
 
 
 def field_mutations(ptype: C.PacketType, fields: dict[str, Any], rng: random.Random,
@@ -109,7 +118,7 @@ def field_mutations(ptype: C.PacketType, fields: dict[str, Any], rng: random.Ran
         base = layer.getfieldval(field.name)
         if isinstance(field, StrField):
             length = len(base) if base else 16
-            values: list[Any] = _bytes_values(length, rng)
+            values: list[Any] = [v for v in bytes_values(length, rng) if v != base]
         else:
             bits, signed = _width(field)
             values = _int_values(field.name, bits, signed, int(base))
