@@ -208,3 +208,12 @@ def test_a_minimised_missing_ack_names_the_command_its_packets_leave_unacknowled
     assert [p.data for p in kept] == [vrci[0xFFFF], vrci[1]] and complete
     assert shown is not None and shown.data == vrci[1]
     assert (trig.command_id, trig.detail) == (1, "no VRAO for command ID 1 within 1000 ms")
+
+
+def test_status_line_counts_one_bug_and_one_hit_in_the_singular(capsys):
+    """Trial: the status line read '1 bugs (1 hits)', the summary '1 findings (1 triggers)'."""
+    from vm110.commands.fuzz import _StatusLine
+    _StatusLine()({"cases": 1, "rate": 1.0, "buckets": 1, "hits": 1, "left_s": None})
+    assert "1 case, 1/s, 1 bug (1 hit)" in capsys.readouterr().err
+    _StatusLine()({"cases": 2, "rate": 1.0, "buckets": 2, "hits": 0, "left_s": None})
+    assert "2 cases, 1/s, 2 bugs (0 hits)" in capsys.readouterr().err

@@ -199,9 +199,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"replay one: vm110 fuzz --replay {first}"
               + (f" --target-cmd {shlex.quote(args.target_cmd)}" if args.target_cmd else ""))
     rate = summary["cases_run"] / max(summary["duration_s"], 1e-6)
-    print(f"{summary['cases_run']} cases in {summary['duration_s']:.1f} s ({rate:.0f}/s), {len(summary['findings'])} "
-          f"findings ({sum(b['count'] for b in summary['buckets'])} triggers), "
-          f"{len(summary['unreproduced'])} unreproduced triggers, {summary['restarts']} restarts"
+    print(f"{_n(summary['cases_run'], 'case')} in {summary['duration_s']:.1f} s ({rate:.0f}/s), "
+          f"{_n(len(summary['findings']), 'finding')} ({_n(sum(b['count'] for b in summary['buckets']), 'trigger')}), "
+          f"{_n(len(summary['unreproduced']), 'unreproduced trigger')}, {_n(summary['restarts'], 'restart')}"
           + (f"; stopped early: {summary['stopped_early']}" if summary["stopped_early"] else ""))
     if "coverage" in summary:
         cov = summary["coverage"]
@@ -239,6 +239,11 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _n(count: int, word: str) -> str:
+    """`1 bug`, `2 bugs`: the status and summary lines counted '1 bugs (1 hits)'."""
+    return f"{count} {word}{'' if count == 1 else 's'}"
+
+
 class _StatusLine:
     """One line on the terminal, rewritten in place: cases, rate, findings, coverage, time left."""
 
@@ -246,7 +251,8 @@ class _StatusLine:
         self.shown = False
 
     def __call__(self, line: dict[str, Any]) -> None:
-        parts = [f"{line['cases']} cases", f"{line['rate']:.0f}/s", f"{line['buckets']} bugs ({line['hits']} hits)"]
+        parts = [_n(line["cases"], "case"), f"{line['rate']:.0f}/s",
+                 f"{_n(line['buckets'], 'bug')} ({_n(line['hits'], 'hit')})"]
         if "edges" in line:
             parts += [f"{line['edges']} edges", f"corpus {line['corpus']}"]
         if line["left_s"] is not None:
