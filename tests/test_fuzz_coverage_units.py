@@ -170,3 +170,28 @@ def test_a_resumed_corpus_restores_edges_the_controllers_timers_reached(tmp_path
     assert written == 3 and len(list((tmp_path / "corpus").glob("id-*.json"))) >= 1
     resumed = run(timer_inside_case=False)
     assert resumed == written
+
+
+def test_coverage_report_says_where_each_bug_is_and_why_the_run_ended():
+    """Trial: coverage.html listed a bug's headline, hits and file only (no case, no time, no pcap
+    or display filter, as its finding and terminal line have), and nothing of a run that stopped
+    early, of unreproduced triggers or of a resumed corpus."""
+    from vm110.fuzz.report_html import render
+    summary = {
+        "target": "127.0.0.1:5825", "cases_run": 40, "duration_s": 9.5, "started": 1_700_000_000.0,
+        "stopped_early": "--max-findings 1 reached", "unreproduced": [{"oracle": "stall"}],
+        "findings": [{"oracle": "crash", "case_index": 33, "mutation": "mutation of a corpus case: 2 packet(s) VRCI",
+                      "file": "finding-001-crash.json", "pcap": "finding-001-crash.pcap", "frame": 133,
+                      "display_filter": "frame.number == 133", "time": 1_700_000_004.5}],
+        "buckets": [{"headline": "crash SIGSEGV in maintenance_engage (controller.c:182)", "count": 2,
+                     "file": "finding-001-crash.json", "first": 1_700_000_004.5, "last": 1_700_000_008.0}],
+        "coverage": {"edges": 75, "map_size": 65536, "corpus": 21, "edges_over_time": [{"s": 1, "edges": 75}],
+                     "corpus_skipped": [], "resumed": {"cases": 5, "of": 21, "edges": 60}}}
+    page = render(summary)
+    row = page.split("<tr><td>crash SIGSEGV", 1)[1].split("</tr>", 1)[0]
+    assert "2023-11-14T22:13:24.500000Z (+4.500000 s)" in row
+    assert "33: mutation of a corpus case: 2 packet(s) VRCI" in row
+    assert "finding-001-crash.pcap" in row and "<code class='filter'>frame.number == 133</code>" in row
+    assert "Stopped early: --max-findings 1 reached" in page
+    assert "1 trigger(s) did not happen again" in page
+    assert "Resumed 5 of the 21 cases of --corpus (the run ended first" in page

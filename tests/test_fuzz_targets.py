@@ -212,8 +212,11 @@ def test_deep_bug_blind_misses_it_coverage_finds_it(tmp_path, programs):
     assert labels and len(labels) == len(set(labels)), result.stdout
     assert "--corpus: 1 unreadable files skipped, e.g. id-000009.json: " in result.stdout
     assert len(list(corpus.glob("id-*.json"))) > 1, "the corpus grew on disk"
-    assert "<svg" in (out / "coverage.html").read_text()
+    page = (out / "coverage.html").read_text()
     finding = json.loads((out / bucket["file"]).read_text())
+    # The report names where to look, as the finding does: its pcap and the display filter there.
+    assert "<svg" in page and finding["pcap"] in page and f"<code class='filter'>{finding['display_filter']}" in page
+    assert "Stopped early: --max-findings 1 reached" in page
     sent = [bytes.fromhex(s["hex"]) for s in finding["steps"]]
     assert any(b"ENGAGE" in p for p in sent), "the reproducer holds the command that crashed it"
     print(f"coverage found the deep bug in {time.time() - start:.1f} s, {summary['cases_run']} cases")

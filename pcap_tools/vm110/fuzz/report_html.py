@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import html
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 from .. import __version__
 from ..analysis.report_html import COLORS, CSS, Chart
 from ..fileio import write_text
+from ..timefmt import stamp
 
 
 def _e(value: object) -> str:
@@ -28,18 +29,54 @@ def _edges_plot(points: list[dict[str, Any]]) -> str:
     return c.svg("edges-time", "Edges covered over time")
 
 
+def _bug_row(bucket: dict[str, Any], finding: dict[str, Any], started: Optional[float]) -> str:
+    """One bug: what it is, how often, when first seen, the case that found it and where to look
+    (its finding, its pcap and the display filter of its packets there)."""
+    first = bucket.get("first")
+    when = stamp(first, started) if started is not None and first is not None else "-"
+    shown = finding.get("display_filter")
+    where = _e(bucket["file"]) + (f"<br>{_e(finding['pcap'])}" if finding.get("pcap") else "")
+    if shown:
+        where += f"<br><code class='filter'>{_e(shown)}</code>"
+    case = f"{finding['case_index']}: {finding.get('mutation', '')}" if "case_index" in finding else "-"
+    return (f"<tr><td>{_e(bucket['headline'])}</td><td>{bucket['count']}</td><td>{_e(when)}</td>"
+            f"<td>{_e(case)}</td><td>{where}</td></tr>")
+
+
+def _notes(summary: dict[str, Any], cov: dict[str, Any]) -> str:
+    """What a reader of the plot must know: the run ended early, triggers not confirmed, a
+    resumed corpus."""
+    notes = []
+    if summary.get("stopped_early"):
+        notes.append(f"Stopped early: {_e(summary['stopped_early'])}.")
+    if summary.get("unreproduced"):
+        notes.append(f"{len(summary['unreproduced'])} trigger(s) did not happen again when replayed: not counted "
+                     "as bugs (listed in findings.json, unreproduced).")
+    resumed = cov.get("resumed")
+    if resumed:
+        notes.append(f"Resumed {resumed['cases']} of the {resumed['of']} cases of --corpus "
+                     + (f"({resumed['edges']} edges once played)." if resumed["cases"] == resumed["of"]
+                        else "(the run ended first: its coverage is not all restored)."))
+    if cov.get("corpus_skipped"):
+        notes.append(f"{len(cov['corpus_skipped'])} unreadable --corpus file(s) skipped (in findings.json).")
+    return "".join(f"<p class='warning'>{n}</p>" for n in notes)
+
+
 def render(summary: dict[str, Any]) -> str:
     cov = summary.get("coverage", {})
-    rows = "".join(f"<tr><td>{_e(b['headline'])}</td><td>{b['count']}</td><td>{_e(b['file'])}</td></tr>"
+    found = {f.get("file"): f for f in summary.get("findings", [])}
+    rows = "".join(_bug_row(b, found.get(b["file"], {}), summary.get("started"))
                    for b in summary.get("buckets", []))
     return "".join([
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>VM-110 fuzz coverage</title>",
         f"<style>{CSS}</style></head><body><h1>vm110 fuzz --coverage: {_e(summary.get('target', ''))}</h1>",
         (f"<p>{summary.get('cases_run', 0)} cases in {summary.get('duration_s', 0):.1f} s; {cov.get('edges', 0)} "
          f"edges of a {cov.get('map_size', 0)}-byte map; corpus {cov.get('corpus', 0)} cases.</p>"),
+        _notes(summary, cov),
         _edges_plot(cov.get("edges_over_time", [])),
         "<h2>Bugs (one row per signature)</h2>",
-        f"<table class='findings'><tr><th>bug</th><th>hits</th><th>finding</th></tr>{rows}</table>" if rows
+        ("<table class='findings'><tr><th>bug</th><th>hits</th><th>first seen (UTC, from the run's start)</th>"
+         f"<th>case</th><th>finding, pcap, display filter</th></tr>{rows}</table>") if rows
         else "<p>none</p>",
         f"<p>vm110 {_e(__version__)}</p></body></html>"])
 

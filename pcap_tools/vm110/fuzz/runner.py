@@ -308,8 +308,10 @@ class Runner:
             "schema": F.SCHEMA, "seed": cfg.seed, "target": "%s:%d" % cfg.settings.target,
             "cases_run": self.cases_run, "duration_s": round(time.time() - self.started, 3),
             "restarts": max(0, (self.supervisor.starts - 1) if self.supervisor else 0),
+            "started": round(self.started, 6),
             "findings": [{"oracle": f.oracle, "case_index": f.case_index, "mutation": f.mutation,
-                          "detail": f.detail, "signature": f.signature, "file": name}
+                          "detail": f.detail, "signature": f.signature, "file": name, "time": f.time,
+                          "pcap": f.pcap, "frame": f.frame, "display_filter": f.display_filter}
                          for f, name in zip(self.findings, self.files)],
             "counts": dict(counts), "repeats": dict(self.repeats), "unreproduced": self.unreproduced,
             "buckets": [b.to_json() for b in self.buckets.values()],
