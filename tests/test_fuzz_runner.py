@@ -217,3 +217,28 @@ def test_status_line_counts_one_bug_and_one_hit_in_the_singular(capsys):
     assert "1 case, 1/s, 1 bug (1 hit)" in capsys.readouterr().err
     _StatusLine()({"cases": 2, "rate": 1.0, "buckets": 2, "hits": 0, "left_s": None})
     assert "2 cases, 1/s, 2 bugs (0 hits)" in capsys.readouterr().err
+
+
+def test_a_crash_made_by_a_case_s_stream_is_confirmed_among_several_suspects(runner):
+    """Trial (a Python controller that divides by the battery): 'VRCI while the base unit is
+    disarmed' streams VRPI with ru_battery 0; with 7 cases since the controller last spoke they were
+    bisected as their packets alone, without that stream, and the crash was left unreproduced."""
+    disarmed = next(i for i in range(len(K.sweep(1))) if K.generate(1, i).stream == M.DISARMED_VRPI)
+    suspects = list(range(disarmed - 6, disarmed + 1))
+    for i in suspects:
+        case = K.generate(1, i)
+        runner.records[i] = (case, [Sent(0.0, *step.build(n), step.delay_ms, step.expect_ack)
+                                    for n, step in enumerate(case.steps)])
+
+    def controller(replay: Replay, trig: Trigger) -> Optional[Trigger]:
+        """Dies on a VRPI with ru_battery 0: what the base unit streams during the replay."""
+        played = getattr(replay, "parts", None) or [replay]     # (cases played in turn)
+        return trig if any(p.stream is not None and p.stream.get("ru_battery", 0) == 0 for p in played) else None
+    runner._trial = controller
+    runner._minimize = lambda trig, case, sent: (sent, sent[-1] if sent else None, None, True)
+    runner.session.traffic = []
+    runner._investigate(Trigger(CRASH, time.time(), "crash exit 1 ZeroDivisionError in on_vrpi (bugs.py:116)",
+                                suspects=suspects, kind="exit 1 python:ZeroDivisionError on_vrpi"))
+    assert not runner.unreproduced
+    [finding] = runner.findings
+    assert finding.case_index == disarmed and finding.stream == M.DISARMED_VRPI

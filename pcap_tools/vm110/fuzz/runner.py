@@ -52,10 +52,17 @@ class Replay:
     withhold_vrai_ms: float = 0.0
     stream: Optional[dict[str, Any]] = None
     settle_ms: float = 0.0
+    parts: list["Replay"] = field(default_factory=list)    # cases played in turn, each as it was sent
 
     @classmethod
     def of(cls, case: K.Case, sent: list[Sent]) -> "Replay":
         return cls(sent, case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream, case.settle_ms)
+
+    @classmethod
+    def sequence(cls, replays: list["Replay"]) -> "Replay":
+        """Several cases one after the other, each with its own stream, pause and withholding (a
+        crash that the disarmed stream of one case made was not confirmed: its packets alone went)."""
+        return cls([p for r in replays for p in r.packets], parts=replays)
 
 
 @dataclass
@@ -88,8 +95,9 @@ def trial(session: Session, replay: Replay, oracle: str, signature: Optional[str
     main = session.monitor
     mon = session.monitor = main.fork()
     try:
-        steps = [(_const(p.data, p.twin), p.delay_ms, p.expect_ack) for p in replay.packets]
-        session.run_steps(TRIAL, steps, replay.pause_vrpi_ms, replay.withhold_vrai_ms, replay.stream, replay.settle_ms)
+        for part in replay.parts or [replay]:
+            steps = [(_const(p.data, p.twin), p.delay_ms, p.expect_ack) for p in part.packets]
+            session.run_steps(TRIAL, steps, part.pause_vrpi_ms, part.withhold_vrai_ms, part.stream, part.settle_ms)
         _observe(session, mon, oracle, time.time())
         if oracle != CRASH and any(t.oracle == CRASH for t in mon.triggers):
             return None      # it crashed: that is the crash oracle's finding, not this one's
@@ -451,10 +459,7 @@ class Runner:
         deadline = time.time() + self.cfg.minimize_budget_s
 
         def replay_of(chosen: list[object]) -> Replay:
-            packets = [p for i in chosen for p in self.records[int(i)][1]]    # type: ignore[call-overload]
-            if len(chosen) == 1:
-                return Replay.of(*self.records[int(chosen[0])])             # type: ignore[call-overload]
-            return Replay(packets)
+            return Replay.sequence([Replay.of(*self.records[int(i)]) for i in chosen])   # type: ignore[call-overload]
 
         cache: dict[tuple[object, ...], bool] = {}
 
