@@ -195,3 +195,32 @@ def test_coverage_report_says_where_each_bug_is_and_why_the_run_ended():
     assert "Stopped early: --max-findings 1 reached" in page
     assert "1 trigger(s) did not happen again" in page
     assert "Resumed 5 of the 21 cases of --corpus (the run ended first" in page
+
+
+def test_a_resumed_corpus_says_when_it_reaches_fewer_edges_than_the_runs_that_kept_it(tmp_path):
+    """A stored case may have reached an edge through what a case not kept left behind (the C
+    controller's MAINT: state): played again without it, it does not, and the run says so rather
+    than showing fewer edges unexplained."""
+    import ctypes
+    from vm110.fuzz.guided import Guided, GuidedConfig
+
+    def run(hits: list[list[int]]) -> dict:
+        g = Guided(GuidedConfig(4096, tmp_path / "corpus"), seed=1)
+        try:
+            g.open(None)
+            for index, edges in enumerate(hits):
+                case = g.next_case(index)
+                g.before_case()
+                for e in edges:
+                    ctypes.memset(g.map.addr + e, 1, 1)
+                g.after_case(_Quiet(), case, [])
+            g.before_case()
+            return g.summary()
+        finally:
+            g.close()
+
+    # Case 1 (nothing new, not kept) leaves a state in which case 2 reaches edge 200.
+    first = run([[100, 101], [100], [100, 200]])
+    assert first["edges"] == 3 and len(list((tmp_path / "corpus").glob("id-*.json"))) == 2
+    again = run([[100, 101], [100]])           # case 2 played again, without that state
+    assert again["resumed"] == {"cases": 2, "of": 2, "edges": 2, "stored_edges": 3}

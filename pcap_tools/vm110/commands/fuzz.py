@@ -215,6 +215,10 @@ def run(args: argparse.Namespace) -> int:
         if resumed and resumed["cases"] < resumed["of"]:
             print(f"--corpus: only {resumed['cases']} of its {resumed['of']} cases were played again before the run "
                   "ended: its coverage is not all restored (a longer --duration or more --cases restores it)")
+        elif resumed and resumed["stored_edges"] and resumed["edges"] < resumed["stored_edges"]:
+            print(f"--corpus: its {resumed['of']} cases played again reached {resumed['edges']} edges, the runs "
+                  f"that kept them {resumed['stored_edges']}: the rest depend on a state the stored cases do not "
+                  "make again (what cases not kept left behind, the order they ran in)")
         elif resumed:
             print(f"--corpus: its {resumed['of']} cases played again reached {resumed['edges']} edges")
         if cov["corpus_skipped"]:

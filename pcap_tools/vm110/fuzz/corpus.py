@@ -53,6 +53,7 @@ class Entry:
     origin: str = ""                            # how it was made
     new_edges: int = 0
     picked: int = 0
+    run_edges: int = 0                          # the edges of the run that kept it, once it was kept
 
     def cost(self) -> float:
         """Seconds one run of the case waits at least (the scheduler prefers cheap cases)."""
@@ -61,6 +62,7 @@ class Entry:
 
     def to_json(self) -> dict[str, Any]:
         return {"vm110_corpus_entry": 1, "origin": self.origin, "new_edges": self.new_edges,
+                "run_edges": self.run_edges,
                 "stream": self.stream, "pause_vrpi_ms": self.pause_vrpi_ms,
                 "withhold_vrai_ms": self.withhold_vrai_ms, "settle_ms": self.settle_ms,
                 "packets": [{"hex": p.data.hex(), "delay_ms": p.delay_ms, "raw": p.raw, "expect_ack": p.expect_ack}
@@ -104,9 +106,12 @@ def entry_from_json(raw: Any) -> Entry:
             M.build(C.PacketType.VRPI, 0, stream)
         except (ValueError, struct.error, OverflowError):
             raise _Bad("stream: a value does not fit its VRPI field") from None
+    run_edges = raw.get("run_edges", 0)         # (not in corpora written before it)
+    if isinstance(run_edges, bool) or not isinstance(run_edges, int) or not 0 <= run_edges <= 1 << 28:
+        raise _Bad("run_edges is not a number of edges")
     return Entry(out, stream, _ms(raw.get("pause_vrpi_ms", 0), "pause_vrpi_ms"),
                  _ms(raw.get("withhold_vrai_ms", 0), "withhold_vrai_ms"), _ms(raw.get("settle_ms", 0), "settle_ms"),
-                 str(raw.get("origin", ""))[:200], 0)
+                 str(raw.get("origin", ""))[:200], 0, run_edges=run_edges)
 
 
 def is_entry(raw: Any) -> bool:

@@ -108,6 +108,7 @@ class Guided:
         self.recent: list[Entry] = []
         self.resumed = 0                         # corpus cases played again so far
         self.resume_edges: Optional[int] = None  # the edges once the whole stored corpus was played
+        self.stored_edges = 0                    # the most the runs that kept them had (0: not said)
 
     def environment(self) -> dict[str, str]:
         return {"__AFL_SHM_ID": str(self.map.id), "AFL_MAP_SIZE": str(self.cfg.map_size)}
@@ -119,6 +120,7 @@ class Guided:
             self.tokens += [t for t in binary_strings(where) if t not in self.tokens]
         if self.store is not None:
             self.resume = self.store.load()
+            self.stored_edges = max((e.run_edges for e in self.resume), default=0)
         self.sweep = 0 if self.resume else len(K.sweep(self.seed))
         self.started = time.time()
 
@@ -167,6 +169,8 @@ class Guided:
         raw = self.map.read()                 # what came between cases: coverage, not a corpus case
         if raw != self.empty and self.virgin.novel(raw):
             self._point()
+        if self.resume_edges == -1:
+            self.resume_edges = self.virgin.edges
         self.map.clear()
 
     def settle(self, session: Session) -> bytes:
@@ -196,6 +200,7 @@ class Guided:
         if new:
             entry = resumed or entry_of(case, sent, f"{kind} case {case.index}: {case.description}"[:200])
             entry.new_edges = max(new, 0)
+            entry.run_edges = max(entry.run_edges, self.virgin.edges)
             self.corpus.append(entry)
             if new > 0 and entry.cost() == 0:
                 self.recent = (self.recent + [entry])[-_RECENT:]
@@ -206,7 +211,7 @@ class Guided:
         elif kind == "resumed" and resumed is not None:
             self.corpus.append(resumed)       # kept: it was new once, its state may matter
         if kind == "resumed" and not self.resume:
-            self.resume_edges = self.virgin.edges
+            self.resume_edges = -1                # set once what came after the last one is read
         if self.cases == _EMPTY_AFTER and not self.virgin.ever_nonzero:
             raise CliError("--coverage: the coverage map stayed empty: is the controller built with afl-clang-fast "
                            "or afl-cc, and does __AFL_SHM_ID reach it (not through a wrapper that drops it)?")
@@ -223,5 +228,7 @@ class Guided:
                 "corpus_dir": str(self.cfg.corpus_dir) if self.cfg.corpus_dir else None,
                 "corpus_skipped": self.store.skipped if self.store else [],
                 "resumed": {"cases": self.resumed, "of": self.resumed + len(self.resume),
-                            "edges": self.resume_edges} if self.resumed or self.resume else None,
+                            "edges": self.virgin.edges if self.resume_edges == -1 else self.resume_edges,
+                            "stored_edges": self.stored_edges or None}
+                if self.resumed or self.resume else None,
                 "edges_over_time": [{"s": s, "edges": e, "cases": c} for s, e, c in self.series]}

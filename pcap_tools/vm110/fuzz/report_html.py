@@ -54,8 +54,11 @@ def _notes(summary: dict[str, Any], cov: dict[str, Any]) -> str:
                      "as bugs (listed in findings.json, unreproduced).")
     resumed = cov.get("resumed")
     if resumed:
+        stored = resumed.get("stored_edges")
         notes.append(f"Resumed {resumed['cases']} of the {resumed['of']} cases of --corpus "
-                     + (f"({resumed['edges']} edges once played)." if resumed["cases"] == resumed["of"]
+                     + (f"({resumed['edges']} edges once played" + (f", the runs that kept them {stored}" if stored
+                                                                    else "") + ")."
+                        if resumed["cases"] == resumed["of"]
                         else "(the run ended first: its coverage is not all restored)."))
     if cov.get("corpus_skipped"):
         notes.append(f"{len(cov['corpus_skipped'])} unreadable --corpus file(s) skipped (in findings.json).")
