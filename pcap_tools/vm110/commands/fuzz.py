@@ -213,8 +213,9 @@ def run(args: argparse.Namespace) -> int:
               f"(all in {out / 'findings.json'}, plotted in {out / 'coverage.html'})")
         resumed = cov.get("resumed")
         if resumed and resumed["cases"] < resumed["of"]:
+            why = summary["stopped_early"] or "--duration or --cases"
             print(f"--corpus: only {resumed['cases']} of its {resumed['of']} cases were played again before the run "
-                  "ended: its coverage is not all restored (a longer --duration or more --cases restores it)")
+                  f"ended ({_printable(why)}): its coverage is not all restored")
         elif resumed and resumed["stored_edges"] and resumed["edges"] < resumed["stored_edges"]:
             print(f"--corpus: its {resumed['of']} cases played again reached {resumed['edges']} edges, the runs "
                   f"that kept them {resumed['stored_edges']}: the rest depend on a state the stored cases do not "
