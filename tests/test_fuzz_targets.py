@@ -238,8 +238,9 @@ def test_a_resumed_corpus_restores_the_coverage_of_the_run_that_wrote_it(tmp_pat
     assert f"--corpus: its {stored} cases played again reached {resumed['edges']} edges" in result.stdout
     result, cut = fuzz(tmp_path / "cut", exe, "--coverage", "--corpus", str(corpus), "--cases", "2")
     assert cut["coverage"]["resumed"]["cases"] == 2
-    assert f"--corpus: only 2 of its {len(list(corpus.glob('id-*.json')))} cases were played again before the run ended (--duration or " \
-           "--cases): its coverage is not all restored" in result.stdout
+    now = len(list(corpus.glob("id-*.json")))
+    assert (f"--corpus: only 2 of its {now} cases were played again before the run ended (--duration or --cases): "
+            "its coverage is not all restored") in result.stdout
 
 
 def test_coverage_map_that_stays_empty_is_one_line_exit_2(tmp_path, programs):
