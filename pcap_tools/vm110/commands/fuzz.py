@@ -11,7 +11,8 @@ broadcast address. Exit code 1 when there are findings, 0 when none, 2 on usage 
 output: with the same signature or another); the finding is data: its stored command is never run and its stored target
 obeys the --target rules. A crash finding keeps the controller's output, signal, sanitizer report,
 core and gdb backtrace; triggers of one signature are one finding (a bucket with a count).
-`--coverage` is coverage-guided fuzzing of a controller built with AFL++ (see fuzz/guided.py).
+`--coverage` is coverage-guided fuzzing of a controller built with AFL++: --corpus keeps and
+resumes its corpus, --out/coverage.html plots its edges (README: Fuzzing a controller you build).
 """
 from __future__ import annotations
 
