@@ -65,12 +65,20 @@ class Tally:
     id_wraps: int = 0
     orphan_acks: list = field(default_factory=list)       # (frame, time, command_id)
     duplicate_acks: list = field(default_factory=list)    # (frame, time, command_id, command's first frame)
+    # The times above are the analysis clock's (rules.md); a frame's own timestamp where it differs
+    # (a step back of the capture's clock), which is what the report names.
+    shown: dict = field(default_factory=dict)
+
+    def time_of(self, frame: int, t: float) -> float:
+        """The own timestamp of a frame of the tally (`t`: its time on the analysis clock)."""
+        return self.shown.get(frame, t)
 
 
 class Tracker:
     """Commands and acknowledgements, applied as a stream of events in capture order:
-    (frame, ts, type code, sender id, command ID) for commands and acks, and (frame, ts, RESTART,
-    sender id, None) where a sender restarted (before that frame's own packet). `fail_ms`: the
+    (frame, ts, type code, sender id, command ID, own timestamp) for commands and acks, and (frame,
+    ts, RESTART, sender id, None, None) where a sender restarted (before that frame's own packet);
+    ts is the analysis clock. `fail_ms`: the
     fail limit per command type code. The state is the commands (they are the report) and the
     latest command per (sender, ID) and per ID."""
 
@@ -85,7 +93,7 @@ class Tracker:
     def apply(self, events: Iterable[tuple]) -> None:
         tallies, open_, by_id, last_id, reuse_ms = self.tallies, self.open, self.by_id, self.last_id, self.reuse_ms
         cmd: Optional[Command]
-        for frame, ts, code, sender, cid in events:
+        for frame, ts, code, sender, cid, own in events:
             if code == RESTART:
                 for key in [k for k in open_ if k[1] == sender]:
                     cmd = open_.pop(key)
@@ -96,6 +104,8 @@ class Tracker:
                     last_id.pop((code_, sender), None)
             elif code in _COMMAND_CODES:
                 tally = tallies[code]
+                if own != ts:
+                    tally.shown[frame] = own
                 cmd = open_.get((code, sender, cid))
                 if cmd is not None and timing.shorter(ts - cmd.times[-1], reuse_ms):
                     cmd.frames.append(frame)
@@ -117,6 +127,8 @@ class Tracker:
             else:
                 target = _ACK_OF_CODE[code]
                 tally = tallies[target]
+                if own != ts:
+                    tally.shown[frame] = own
                 live = by_id.get((target, cid))
                 cmd = live[-1] if live else None
                 if cmd is None:
@@ -229,13 +241,14 @@ def report(tally: Tally, fail_ms: float, resend_ms: float, end: Optional[float])
         # Long lists: rounded here, so that report_json.normalise need not walk them (PRE_ROUNDED).
         "list": [{"sender": c.sender, "command_id": c.command_id, "frames": c.frames,
                   "ack_frame": c.ack_frame, "latency_first_ms": round_ms(c.latency_first_ms),
-                  "latency_last_ms": round_ms(c.latency_last_ms), "time": round_s(c.times[0]),
+                  "latency_last_ms": round_ms(c.latency_last_ms),
+                  "time": round_s(tally.time_of(c.frames[0], c.times[0])),
                   "retransmissions": len(c.frames) - 1, "spurious": len(c.spurious_frames),
                   "spurious_frames": c.spurious_frames, "interrupted_frame": c.interrupted_frame,
                   "failed": f}
                  for c, f in zip(cmds, failed)],
-        "acks_without_command_list": [{"frame": f, "time": round_s(t), "command_id": i}
+        "acks_without_command_list": [{"frame": f, "time": round_s(tally.time_of(f, t)), "command_id": i}
                                       for f, t, i in tally.orphan_acks],
-        "duplicate_acks_list": [{"frame": f, "time": round_s(t), "command_id": i, "command_frame": c}
-                                for f, t, i, c in tally.duplicate_acks],
+        "duplicate_acks_list": [{"frame": f, "time": round_s(tally.time_of(f, t)), "command_id": i,
+                                 "command_frame": c} for f, t, i, c in tally.duplicate_acks],
     }

@@ -189,21 +189,22 @@ def locate_report(report: dict, tallies: dict[int, Tally], located: Located) -> 
         listed = report["commands"][kind]["list"]      # (in the tally's order, each with its `failed`)
         for c, entry in zip(tally.commands, listed):
             what = {"type": kind, "command_id": c.command_id}
+            began = entry["time"]                      # (the first frame's own time)
             if c.interrupted_frame is not None:
-                where.add("interrupted", c.frames, c.times[0], c.sender, interrupted_frame=c.interrupted_frame, **what)
+                where.add("interrupted", c.frames, began, c.sender, interrupted_frame=c.interrupted_frame, **what)
             elif c.ack_frame is None:
-                where.add("unacked", c.frames, c.times[0], c.sender, **what)
+                where.add("unacked", c.frames, began, c.sender, **what)
             if entry["failed"]:
-                where.add("failed", c.frames + ([c.ack_frame] if c.ack_frame else []), c.times[0], c.sender,
+                where.add("failed", c.frames + ([c.ack_frame] if c.ack_frame else []), began, c.sender,
                           latency_ms=c.latency_first_ms, ack_frame=c.ack_frame, **what)
             for f, t in zip(c.frames, c.times):
                 if f in c.spurious_frames:
-                    where.add("spurious", f, t, c.sender, ack_frame=c.ack_frame, **what)
+                    where.add("spurious", f, tally.time_of(f, t), c.sender, ack_frame=c.ack_frame, **what)
         ack = TYPES[_ACK_CODE[code]].value
         for f, t, cid in tally.orphan_acks:
-            where.add("acks_without_command", f, t, None, type=ack, command_id=cid)
+            where.add("acks_without_command", f, tally.time_of(f, t), None, type=ack, command_id=cid)
         for f, t, cid, first in tally.duplicate_acks:
-            where.add("duplicate_acks", f, t, None, type=ack, command_id=cid, command_frame=first)
+            where.add("duplicate_acks", f, tally.time_of(f, t), None, type=ack, command_id=cid, command_frame=first)
     for ex in report["illegal"]["examples"]:
         where.add("illegal", ex["frame"], ex["time"], ex["src"], type=ex["type"], reasons=ex["reasons"])
         if ex["reasons"] == ["truncated"]:

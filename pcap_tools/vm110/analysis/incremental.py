@@ -120,10 +120,10 @@ class Analysis:
         if not quiet:
             return
         old = max(quiet, key=lambda q: q[:3])[3]
-        new.link = {"time": new.first_ts, "frame": new.first_frame, "from": 0, "to": new.first_serial,
-                    "port_from": old.port, "port_to": new.port}
+        new.link = {"time": self.stamps.get(new.first_frame, new.first_ts), "frame": new.first_frame, "from": 0,
+                    "to": new.first_serial, "port_from": old.port, "port_to": new.port}   # (the frame's own time)
         old.probe(new)
-        self.events.append((new.first_frame, new.first_ts, commands.RESTART, old.id, None))
+        self.events.append((new.first_frame, new.first_ts, commands.RESTART, old.id, None, None))
 
     def _horizon(self) -> Optional[int]:
         frames = [f for f in (s.undecided() for s in self.senders.values()) if f is not None]

@@ -153,12 +153,13 @@ def _sender_report(snd: Sender, where: findings.Where) -> dict:
     res = snd.serial_result()
     counts = {c: int(n) for c, n in enumerate(snd.counts.tolist()) if n}
     name = snd.id
-    restarts = [{"time": t, "frame": int(f), "from": a, "to": b} for f, a, b, t in res.restarts]
+    # Times as Wireshark shows the frames (the rules judged them on the analysis clock).
+    restarts = [{"time": res.time_of(f, t), "frame": int(f), "from": a, "to": b} for f, a, b, t in res.restarts]
     if snd.link is not None:
         restarts.insert(0, snd.link)
     # A gap's serials that came late are out of order, not lost: the `lost` items add up to `lost`.
-    gaps = [{"after": a, "count": n, "time": t, "frame": int(f), **({"late": res.gap_late[f]} if f in res.gap_late
-                                                                     else {})} for a, n, t, f in res.gaps]
+    gaps = [{"after": a, "count": n, "time": res.time_of(f, t), "frame": int(f),
+             **({"late": res.gap_late[f]} if f in res.gap_late else {})} for a, n, t, f in res.gaps]
     for g in gaps:
         what = serials.gap_lost(g["after"], g["count"], g.get("late", 0))
         if what is not None:
@@ -166,7 +167,7 @@ def _sender_report(snd: Sender, where: findings.Where) -> dict:
     for rule, located, count in (("duplicates", res.duplicates_located, res.duplicates),
                                  ("out_of_order", res.out_of_order_located, res.out_of_order)):
         for f, t, s in located:                             # the first few (serials.LOCATED) ...
-            where.add(rule, int(f), t, name, serial=s)
+            where.add(rule, int(f), res.time_of(f, t), name, serial=s)
         where.skip(rule, count - len(located))             # ... and how many more
     for r in restarts:
         where.add("restarts", r["frame"], r["time"], name, **{k: v for k, v in r.items() if k not in ("frame", "time")})

@@ -189,26 +189,28 @@ class Sender:
             if counter is None:
                 counter = self.counters[key] = serials.Counter(self.opt.dup_window_ms, key)
             restarts = len(counter.res.restarts)
-            done = counter.feed(todo["serial"], todo["ts"], todo["frame"].tolist(), final)
+            done = counter.feed(todo["serial"], todo["ts"], todo["frame"].tolist(), final,
+                                own=self._own_times(todo, take=False))
             decided = todo[:done]
             self.pending[key] = []
             if done < len(todo):                   # an undecided candidate, then copies of it only
                 self.pending[key] = [todo[done:done + 1].copy()]          # a copy: not the batch
                 self._hold(key, self.pending[key], todo[done + 1:])
             for frame, _, _, t in counter.res.restarts[restarts:]:
-                events.append((frame, t, RESTART, self.id, None))
+                events.append((frame, t, RESTART, self.id, None, None))
             own = self._own_times(decided)
             if counter.fed_duplicates:
                 kept = ~np.isin(decided["frame"], counter.fed_duplicates)
                 decided, own = decided[kept], own[kept]
             self._accept(decided, own, events)
 
-    def _own_times(self, rows: np.ndarray) -> np.ndarray:
-        """The rows' own timestamps (their `ts` is the analysis clock), taken out of `stamps`."""
+    def _own_times(self, rows: np.ndarray, take: bool = True) -> np.ndarray:
+        """The rows' own timestamps (their `ts` is the analysis clock), taken out of `stamps`
+        (left there, when not `take`: rows not decided yet)."""
         if not self.stamps:
             return rows["ts"]
-        pop = self.stamps.pop
-        return np.array([pop(f, t) for f, t in zip(rows["frame"].tolist(), rows["ts"].tolist())], dtype=np.float64)
+        get = self.stamps.pop if take else self.stamps.get
+        return np.array([get(f, t) for f, t in zip(rows["frame"].tolist(), rows["ts"].tolist())], dtype=np.float64)
 
     def _hold(self, key, held: list, copies: np.ndarray) -> None:
         """Copies of the undecided candidate held[0][0]: those within its duplicate window are
@@ -219,8 +221,8 @@ class Sender:
         inside = (copies["ts"] - held[0]["ts"][0]) * 1e6 < timing.edge_us(self.opt.dup_window_ms)
         if inside.any():
             judged = copies[inside]
-            self.counters[key].copies(int(copies["serial"][0]), judged["ts"], judged["frame"].tolist())
-            self._own_times(judged)
+            self.counters[key].copies(int(copies["serial"][0]), judged["ts"], judged["frame"].tolist(),
+                                      self._own_times(judged).tolist())
         if not inside.all():
             held.append(copies[~inside].copy())
 
@@ -255,7 +257,7 @@ class Sender:
         if command.any():
             picked = rows[command]
             events += zip(picked["frame"].tolist(), picked["ts"].tolist(), codes[command].tolist(),
-                          [self.id] * len(picked), picked["aux"].tolist())
+                          [self.id] * len(picked), picked["aux"].tolist(), own[command].tolist())
 
     def serial_counts(self) -> dict:
         """The serial verdicts so far (decided packets only), cheaply: for a live view."""

@@ -42,7 +42,9 @@ LOCATED = 100                  # duplicates and out-of-order packets located (fi
 @dataclass
 class SerialResult:
     """What a counter found. Packets are named by the caller's `where` (a frame number, or a
-    position) and located by their time (`*_at`)."""
+    position) and located by their time (`*_at`): the time the rules judged them at (the
+    analysis clock); `shown` has the packet's own timestamp where that differs (a step back of
+    the capture's clock), which is what a finding names."""
     received: int = 0
     duplicates: int = 0
     out_of_order: int = 0
@@ -57,7 +59,12 @@ class SerialResult:
     out_of_order_located: list = field(default_factory=list)
     restarts: list = field(default_factory=list)          # (where, from, to, time)
     last: dict = field(default_factory=dict)              # counter key -> its highest serial at the end
+    shown: dict = field(default_factory=dict)             # where -> own time, of those located above
     aborted: bool = False
+
+    def time_of(self, where, t: float) -> float:
+        """The own timestamp of a located packet (`t`: the time it was judged at)."""
+        return self.shown.get(where, t)
 
     @property
     def lost(self) -> int:
@@ -74,6 +81,7 @@ class SerialResult:
                      "out_of_order_located", "restarts"):
             getattr(self, name).extend(getattr(other, name))
         self.gap_late.update(other.gap_late)
+        self.shown.update(other.shown)
         self.last.update(other.last)
         self.aborted = self.aborted or other.aborted
 
@@ -172,9 +180,10 @@ class Counter:
         self.accepted_at[s] = t
 
     def feed(self, serials: IntSeq, times: FloatSeq, where: IntSeq, final: bool = False,
-             limit: Optional[int] = None) -> int:
+             limit: Optional[int] = None, own: Optional[FloatSeq] = None) -> int:
         """Judge packets in arrival order; returns how many were decided (all when `final`).
-        `where` names each packet in the results; `limit` stops once the anomalies exceed it."""
+        `where` names each packet in the results; `limit` stops once the anomalies exceed it;
+        `own`: the packets' own timestamps where `times` is the analysis clock (default: the same)."""
         n = len(serials)
         if not n:
             return 0
@@ -188,6 +197,14 @@ class Counter:
         edge = timing.edge_us(self.window_ms)     # t - a within the window: (t - a) * 1e6 < edge
         breaks = (np.flatnonzero((np.diff(arr) & MASK) != 1) + 1).tolist()   # where s[i] != s[i-1] + 1
         dup, ooo, gaps = res.duplicate_serials, res.out_of_order_serials, res.gaps
+        own_ts = ts if own is None else np.asarray(own, dtype=np.float64)
+        behind = np.flatnonzero(own_ts != ts)         # (none while the capture's clock runs forward)
+        own_at = dict(zip(behind.tolist(), own_ts[behind].tolist()))
+
+        def show(k: int) -> None:
+            """Packet k is located in the results: keep its own time if the clock is ahead of it."""
+            if k in own_at:
+                res.shown[where[k]] = own_at[k]
         dup_pos, lost_for_good = self.dup_pos, self.lost_for_good
         accepted_at, gap_at, missing = self.accepted_at, self.gap_at, self.missing
         i, b = 0, 0                           # position, and index of the next break at or after it
@@ -253,15 +270,18 @@ class Counter:
                 fed.append(where[i])
                 if len(res.duplicates_located) < LOCATED:
                     res.duplicates_located.append((where[i], t, s))
+                    show(i)
             elif gap_at[s] > NEVER and (t - gap_at[s]) * 1e6 < edge:
                 ooo.append(s)                 # late: fills its gap
-                self._locate(where[i], t, s)
+                if self._locate(where[i], t, s):
+                    show(i)
                 gap_at[s] = NEVER
                 opened = missing.pop(s)
                 res.gap_late[opened] = res.gap_late.get(opened, 0) + 1
                 accepted_at[s], self.prev = t, t
             elif 1 < d < HALF and plausible(d - 1, t):
                 gaps.append((self.h, d - 1, t, where[i]))
+                show(i)
                 new = np.arange(self.h + 1, self.h + d + 1) & MASK
                 if missing:
                     fill(new)
@@ -282,11 +302,13 @@ class Counter:
                     break                                 # undecided until its next packet comes
                 if nxt < n and 1 <= (int(arr[nxt]) - s) & MASK <= CONFIRM:
                     res.restarts.append((where[i], self.h, s, t))
+                    show(i)
                     lost_for_good.extend(missing)         # serials lost before stay lost
                     self._restart(s, t, off + i)
                 else:
                     ooo.append(s)                         # unconfirmed: moves nothing
-                    self._locate(where[i], t, s)
+                    if self._locate(where[i], t, s):
+                        show(i)
                     accepted_at[s], self.prev = t, t
             i += 1
             if limit is not None and len(dup) + len(ooo) + len(missing) + len(lost_for_good) > limit:
@@ -296,21 +318,27 @@ class Counter:
         self._keep_recent(all_ts[:len(all_ts) - n + i])
         return i
 
-    def copies(self, serial: int, times: Sequence[float], where: Sequence) -> None:
+    def copies(self, serial: int, times: Sequence[float], where: Sequence, own: Sequence[float]) -> None:
         """Copies of the undecided candidate `serial` within the duplicate window of it: duplicates
         whatever the candidate turns out to be (it is accepted at its own time either way), so
-        they are judged at once instead of waiting with it. They take no part in the rate."""
+        they are judged at once instead of waiting with it. They take no part in the rate.
+        `own`: their own timestamps (`times` is the analysis clock)."""
         res = self.res
         res.received += len(times)
         res.duplicate_serials.extend([serial] * len(times))
-        for t, w in zip(times, where):
+        for t, w, o in zip(times, where, own):
             if len(res.duplicates_located) >= LOCATED:
                 break
             res.duplicates_located.append((w, float(t), serial))
+            if o != t:
+                res.shown[w] = float(o)
 
-    def _locate(self, where, t: float, s: int) -> None:
+    def _locate(self, where, t: float, s: int) -> bool:
+        """Locate an out-of-order packet among the first LOCATED; whether it was."""
         if len(self.res.out_of_order_located) < LOCATED:
             self.res.out_of_order_located.append((where, t, s))
+            return True
+        return False
 
     def _keep_recent(self, done: np.ndarray) -> None:
         """Keep the times the rate can still ask for: those of the last RATE_WINDOW_S."""

@@ -1,0 +1,51 @@
+"""Captures whose clock steps back (two captures appended with `mergecap -a`, a clock set back
+mid-way): the rules run on the analysis clock (docs/rules.md), but what the report names is each
+frame's own time, as Wireshark shows it."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from scapy.all import rdpcap, wrpcap
+
+from vm110.analysis import analyze
+
+CAPTURES = Path(__file__).resolve().parent.parent / "captures"
+
+
+@pytest.fixture(scope="module")
+def appended(tmp_path_factory) -> tuple[Path, list[float]]:
+    """loss.pcapng (gaps, duplicates, late packets) with retransmit.pcap (retransmissions, a failed
+    command) after it: the second one's timestamps begin 30 s before the first one's end. Returns
+    the file and every frame's own time (scapy's reading, frame 1 first)."""
+    packets = [*rdpcap(str(CAPTURES / "loss.pcapng")), *rdpcap(str(CAPTURES / "retransmit.pcap"))]
+    path = tmp_path_factory.mktemp("clock") / "appended.pcap"
+    wrpcap(str(path), packets)
+    return path, [float(p.time) for p in packets]
+
+
+# Items that name a moment other than their frame's: a watchdog violation names the start of the
+# silence, its frame the packet after it.
+OTHER_MOMENT = frozenset({"watchdog"})
+
+
+@pytest.mark.parametrize("engine", ["fast", "tshark"])
+def test_items_name_each_frames_own_time(appended, engine):
+    """Every located item of the findings, and every time of the senders' and commands' lists,
+    is the time of its frame as the capture stores it (a trial: after the seam they showed the
+    first capture's last time, +29.9 s, for frames Wireshark shows at +0.1 s ... +20 s)."""
+    path, own = appended
+    report = analyze(str(path), engine=engine)
+    named = [(f["rule"], i["frame"], i["time"]) for f in report["verdict"]["findings"] if f["rule"] not in OTHER_MOMENT
+             for i in f["items"] if "time" in i]
+    for s in report["senders"]:
+        named += [("gap", g["frame"], g["time"]) for g in s["serial"]["gaps"]]
+        named += [("restart", r["frame"], r["time"]) for r in s["serial"]["restart_events"]]
+    for kind, c in report["commands"].items():
+        named += [(kind, e["frames"][0], e["time"]) for e in c["list"]]
+        named += [(kind, e["frame"], e["time"]) for e in c["acks_without_command_list"] + c["duplicate_acks_list"]]
+    seam = len(rdpcap(str(CAPTURES / "loss.pcapng")))
+    assert sum(frame > seam for _, frame, _ in named) > 20          # the second capture has its findings
+    wrong = [(rule, frame, time, own[frame - 1]) for rule, frame, time in named
+             if time != pytest.approx(own[frame - 1], abs=1e-6)]
+    assert wrong == []
