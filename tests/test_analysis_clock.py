@@ -6,9 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from scapy.all import rdpcap, wrpcap
+from scapy.all import rdpcap, wrpcap, wrpcapng
 
-from vm110.analysis import analyze
+import report_schema
+from vm110.analysis import analyze, summary
+from vm110.analysis import report_html
+from vm110.timefmt import utc_iso
 
 CAPTURES = Path(__file__).resolve().parent.parent / "captures"
 
@@ -49,3 +52,42 @@ def test_items_name_each_frames_own_time(appended, engine):
     wrong = [(rule, frame, time, own[frame - 1]) for rule, frame, time in named
              if time != pytest.approx(own[frame - 1], abs=1e-6)]
     assert wrong == []
+
+
+def _first_late(folder: Path, name: str, write) -> tuple[Path, list[float]]:
+    """normal.pcap with its first record stamped 100 s late (a clock set right after one packet):
+    the last record lies 80 s before the first. Returns the file and every frame's own time."""
+    packets = rdpcap(str(CAPTURES / "normal.pcap"))
+    packets[0].time += 100
+    write(str(folder / name), packets)
+    return folder / name, [float(p.time) for p in packets]
+
+
+@pytest.fixture(scope="module")
+def first_late(tmp_path_factory) -> tuple[Path, list[float]]:
+    return _first_late(tmp_path_factory.mktemp("clock"), "first-late.pcap", wrpcap)
+
+
+@pytest.fixture(scope="module")
+def first_late_ng(tmp_path_factory) -> tuple[Path, list[float]]:
+    return _first_late(tmp_path_factory.mktemp("clock"), "first-late.pcapng", wrpcapng)
+
+
+@pytest.mark.parametrize("engine", ["fast", "tshark"])
+@pytest.mark.parametrize("capture", ["first_late", "first_late_ng", "appended"])
+def test_duration_is_the_span_of_the_records(capture, engine, request):
+    """The capture's duration is the span from its earliest record to its latest, as capinfos
+    gives it, never the last record minus the first (a trial printed -80.0 s); the summary and the
+    HTML say that the records are not in time order and what they span."""
+    path, own = request.getfixturevalue(capture)
+    report = analyze(str(path), engine=engine)
+    report_schema.check(report)
+    cap = report["capture"]
+    assert cap["duration_s"] == pytest.approx(max(own) - min(own), abs=1e-6)
+    assert (cap["first_time"], cap["last_time"]) == pytest.approx((own[0], own[-1]))
+    assert (cap["earliest_time"], cap["latest_time"]) == pytest.approx((min(own), max(own)))
+    text = summary.render(report)
+    assert f" EG-Link, {max(own) - min(own):.1f} s;" in text.splitlines()[0]
+    if capture != "appended":
+        assert f"not in time order, they span {utc_iso(min(own))} to {utc_iso(max(own))}" in text
+        assert "not in time order, they span" in report_html.render([report])

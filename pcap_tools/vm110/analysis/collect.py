@@ -8,6 +8,7 @@ never in how it is judged. Records are not kept: memory does not grow with the p
 """
 from __future__ import annotations
 
+import math
 import struct
 from collections import Counter
 from array import array
@@ -129,6 +130,8 @@ class Collected:
     damage: Optional[int] = None          # file offset where reading stopped for `problem`
     first_ts: Optional[float] = None
     last_ts: Optional[float] = None
+    earliest_ts: float = math.inf         # the span of the records' times, in any order (capinfos')
+    latest_ts: float = -math.inf
     eglink: int = 0
     ports: tuple = ()
     crc_variant: str = ""

@@ -263,6 +263,7 @@ class FastEngine:
         got.unread, got.tunnelled = reader.unknown_link, reader.tunnelled
         got.snap_truncated, got.problem, got.damage = len(reader.snap_truncated), reader.problem, reader.damage
         got.first_ts, got.last_ts = reader.first_ts, reader.last_ts
+        got.earliest_ts, got.latest_ts = reader.earliest, reader.latest
         got.link_types = sorted(reader.link_types)
         return got
 
@@ -356,6 +357,10 @@ class FastEngine:
                 if not frame:
                     reader.first_ts = when(int(head["sec"][0]), int(head["frac"][0]))
                 reader.last_ts = when(int(head["sec"][-1]), int(head["frac"][-1]))
+                times = head["sec"] + head["frac"] * layout.scale
+                for i in np.flatnonzero(head["frac"] >= layout.units).tolist():   # damage: as Wireshark reads it
+                    times[i] = when(int(head["sec"][i]), int(head["frac"][i]))
+                reader.spanned(float(times.min()), float(times.max()))
             frame += len(at)
             reader.frames = frame
             got.flush(got.located_rows(data, offsets, frames, layout))
@@ -387,6 +392,7 @@ class FastEngine:
         valid = frame = 0
         ts = 0.0
         first = None
+        lo, hi = np.inf, -np.inf            # the span of record times (reader.spanned)
         chunks = reader.raw_chunks(0)
         data = next(chunks, None)
         while data is not None:
@@ -428,6 +434,10 @@ class FastEngine:
                         ts = ticks * scale + tsoff
                     if first is None:
                         first = ts
+                    if ts > hi:         # (a new latest is no new earliest but for the first: `first`)
+                        hi = ts
+                    elif ts < lo:
+                        lo = ts
                     d = p + epb_head
                     if (eth and et == eth_ipv4 and vi == ipv4_plain and proto == udp and not frag & frag_le
                             and incl >= min_frame):
@@ -465,11 +475,13 @@ class FastEngine:
                 ts = block_ts
                 if first is None:
                     first = ts
+                lo, hi = min(lo, ts), max(hi, ts)
                 found = udp_of(link, data, d, incl, orig, frame)
                 if found is not None:
                     slow(got, reader, variant, order, ts, *found, frame)
             reader.frames = frame
             reader.first_ts, reader.last_ts = first, (ts if frame else None)
+            reader.spanned(lo if first is None else min(lo, first), hi)
             got.flush()
             if damaged:
                 break

@@ -89,8 +89,11 @@ def _build(got: Collected) -> dict:
             "fragments": got.fragments, "unread_frames": got.unread,
             "tunnelled_frames": got.tunnelled, "snaplen_truncated": got.snap_truncated,
             "first_time": got.first_ts, "last_time": got.last_ts,
-            "duration_s": (got.last_ts - got.first_ts) if got.first_ts is not None and got.last_ts is not None
-            else 0.0,
+            # From the earliest record to the latest, as capinfos gives it: the last record need not
+            # be the latest (appended captures, a clock set back), and a span is never negative.
+            "duration_s": got.latest_ts - got.earliest_ts if got.earliest_ts <= got.latest_ts else 0.0,
+            "earliest_time": got.earliest_ts if got.earliest_ts <= got.latest_ts else None,
+            "latest_time": got.latest_ts if got.earliest_ts <= got.latest_ts else None,
             "time_backwards": stepped_back, "problem": got.problem, "ports": list(got.ports),
             "damage": None if got.problem is None else {"offset": got.damage, "message": got.problem},
         },

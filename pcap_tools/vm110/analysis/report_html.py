@@ -12,7 +12,7 @@ from typing import Iterable, Optional, Sequence
 
 from .. import __version__
 from ..fileio import write_text
-from ..timefmt import since, utc_iso
+from ..timefmt import since
 from . import summary
 
 W, H = 640, 220
@@ -74,8 +74,9 @@ class Chart:
     """A tiny SVG plotter: linear axes, then lines, bars, points and rectangles in data units."""
 
     def __init__(self, x0: float, x1: float, y0: float, y1: float, xlabel: str, ylabel: str,
-                 xtime: bool = False, xint: bool = False) -> None:
+                 xtime: bool = False, xint: bool = False, origin: Optional[float] = None) -> None:
         self.x0, self.x1 = x0, _above(x0, x1)
+        self.origin = x0 if origin is None else origin   # a time axis counts seconds from this
         self.y0, self.y1 = y0, _above(y0, y1)
         self.parts: list[str] = []
         self.xlabel, self.ylabel, self.xtime, self.xint = xlabel, ylabel, xtime, xint
@@ -92,8 +93,9 @@ class Chart:
     def axes(self, yticks: bool = True) -> None:
         p = self.parts
         p.append(f'<rect x="{ML}" y="{MT}" width="{W - ML - MR}" height="{H - MT - MB}" fill="none" stroke="#999"/>')
-        # Time axes count seconds from the start of the capture, so their ticks are placed on that.
-        base = self.x0 if self.xtime else 0.0
+        # Time axes count seconds from the start of the capture (its first record, which need not be
+        # the earliest), so their ticks are placed on that.
+        base = self.origin if self.xtime else 0.0
         for t in _ticks(self.xtick_min - base, self.xtick_max - base):
             if self.xint and t != int(t):
                 continue
@@ -349,25 +351,28 @@ def _merge(hist: list, width: float, origin: float, least: float) -> list[Bar]:
 
 
 def _series_plot(p: dict, t0: float) -> str:
+    """Intervals over time, from the first record (`t0`) or any earlier arrival."""
     name = f"{p['type']} interval over time — {p['sender']}"
     series = p.get("plot", {}).get("series", [])
     if not series:
         return _empty("interval-time", name, "fewer than two packets")
     limit = p["watchdog"]["limit_ms"]
-    c = Chart(t0, max(t for t, _ in series), 0, max(*(v for _, v in series), limit) * 1.1,
-              "time since capture start (s)", "interval (ms, max per bucket)", xtime=True)
+    c = Chart(min(t0, *(t for t, _ in series)), max(t for t, _ in series), 0, max(*(v for _, v in series), limit) * 1.1,
+              "time since capture start (s)", "interval (ms, max per bucket)", xtime=True, origin=t0)
     c.axes()
     c.steps(series, COLORS[0])
     c.hline(limit, "#c62828", f"watchdog {limit:g} ms")
     return c.svg("interval-time", name)
 
 
-def _gap_plot(report: dict, t0: float, t1: float) -> str:
+def _gap_plot(report: dict, t0: float, span: tuple[float, float]) -> str:
+    """Gaps over the capture's `span` (earliest, latest record), in s from its first record `t0`."""
     senders = [s for s in report["senders"] if s["serial"]["gaps"]]
     if not senders:
         return _empty("serial-gaps", "Serial gaps", "no serial gaps")
     top = max(g["count"] for s in senders for g in s["serial"]["gaps"])
-    c = Chart(t0, t1, 0, top * 1.2, "time since capture start (s)", "packets missing (count)", xtime=True)
+    c = Chart(*span, 0, top * 1.2, "time since capture start (s)", "packets missing (count)", xtime=True,
+              origin=t0)
     c.axes()
     for i, s in enumerate(senders):
         gaps = s["serial"]["gaps"]
@@ -414,10 +419,12 @@ def _retransmission_plot(report: dict) -> str:
     return c.svg("retransmissions", "Retransmissions per command")
 
 
-def _state_plot(st: dict, t0: float, t1: float, restarts: list[tuple[float, str]]) -> str:
-    """The base unit's state over time, with every sender's restarts as vertical lines."""
+def _state_plot(st: dict, t0: float, span: tuple[float, float], restarts: list[tuple[float, str]]) -> str:
+    """The base unit's state over the capture's `span` (earliest, latest record), with every
+    sender's restarts as vertical lines; in s from its first record `t0`."""
     fields = list(st["segments"])
-    c = Chart(t0, t1, 0, len(fields) + 1, "time since capture start (s)", "", xtime=True)
+    t1 = span[1]
+    c = Chart(*span, 0, len(fields) + 1, "time since capture start (s)", "", xtime=True, origin=t0)
     c.axes(yticks=False)
     key: list[tuple[str, list[tuple[str, str]]]] = []
     for row, f in enumerate(reversed(fields)):
@@ -478,12 +485,13 @@ def _section(report: dict) -> str:
     cap, crc, verdict = report["capture"], report["crc"], report["verdict"]
     t0 = cap["first_time"] or 0.0
     t1 = cap["last_time"] or t0 + 1
+    # The plots cover every record: the last need not be the latest (appended captures).
+    span = (t0, t1) if cap["earliest_time"] is None else (cap["earliest_time"], cap["latest_time"])
     out = [f"<h2>{_e(cap['file'])}</h2>",
            (f'<p><span class="{"ok" if verdict["ok"] else "fail"}">{"OK" if verdict["ok"] else "FAIL"}</span> '
             f"{cap['packets']} packets, {cap['eglink_packets']} EG-Link, {_num(cap['duration_s'], 1)} s; "
             f"CRC {_e(crc['variant'])}/{_e(crc['byte_order'])}: {crc['valid']} valid, {crc['invalid']} invalid"
-            + (f"; from {utc_iso(cap['first_time'])} to {utc_iso(t1)} (UTC), times below in s from the start"
-               if cap["first_time"] is not None and cap["last_time"] is not None else "") + "</p>")]
+            + (f"; {_e(summary.time_range(cap))}" if cap["first_time"] is not None else "") + "</p>")]
     if verdict["findings"]:
         out.append("<ul>" + "".join(f'<li class="{_e(f["severity"])}">{_e(f["severity"])}: {_e(f["message"])}</li>'
                                     for f in verdict["findings"]) + "</ul>")
@@ -522,13 +530,13 @@ def _section(report: dict) -> str:
     for p in report["periodic"]:
         out.append(_histogram_plot(p))
         out.append(_series_plot(p, t0))
-    out.append(_gap_plot(report, t0, t1))
+    out.append(_gap_plot(report, t0, span))
     out.append(_latency_plot(report))
     out.append(_retransmission_plot(report))
     restarts = [(r["time"], s["id"]) for s in report["senders"] for r in s["serial"]["restart_events"]
                 if r["time"] is not None]
     for st in report["state"]:
-        out.append(_state_plot(st, t0, t1, restarts))
+        out.append(_state_plot(st, t0, span, restarts))
         if st["episodes_relays_open"]:
             out.append("<h3>ES-Link relays open</h3>" + _table(
                 ["start (s)", "duration (s)", "BU states", "still open at end"],

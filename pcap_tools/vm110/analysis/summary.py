@@ -75,6 +75,16 @@ def _finding(f: dict, everything: bool, t0: float, wireshark: str) -> list[str]:
     return lines
 
 
+def time_range(cap: dict) -> str:
+    """When the capture's records lie (`capture` of a report with a record): first to last, or,
+    where they are not in time order, both and the span they cover."""
+    first, last, earliest, latest = (cap[k] for k in ("first_time", "last_time", "earliest_time", "latest_time"))
+    if (earliest, latest) == (first, last) or earliest is None:
+        return f"{utc_iso(first)} to {utc_iso(last)} (UTC); times below in s from the start"
+    return (f"first record {utc_iso(first)}, last {utc_iso(last)}: not in time order, they span "
+            f"{utc_iso(earliest)} to {utc_iso(latest)} (UTC); times below in s from the first record")
+
+
 def render(report: dict, everything: bool = False) -> str:
     """The summary; `everything`: the located items of each finding the report keeps, not just the first few."""
     cap, crc, verdict = report["capture"], report["crc"], report["verdict"]
@@ -83,8 +93,7 @@ def render(report: dict, everything: bool = False) -> str:
               f"{' (auto)' if crc['auto'] else ''}: {crc['valid']} valid, {crc['invalid']} invalid")]
     t0 = cap["first_time"] or 0.0
     if cap["first_time"] is not None:
-        end = f" to {utc_iso(cap['last_time'])}" if cap["last_time"] is not None else ""
-        lines.append(f"Time: {utc_iso(cap['first_time'])}{end} (UTC); times below in s from the start")
+        lines.append(f"Time: {time_range(cap)}")
     errors = sum(1 for f in verdict["findings"] if f["severity"] == "error")
     warnings = len(verdict["findings"]) - errors
     lines.append(f"VERDICT: {'OK' if verdict['ok'] else 'FAIL'} ({errors} errors, {warnings} warnings)")

@@ -12,6 +12,7 @@ record keeps what was read and says so in `problem`; a file that is not a captur
 from __future__ import annotations
 
 import ipaddress
+import math
 import os
 import stat
 import struct
@@ -140,6 +141,9 @@ class CaptureReader:
         self.bytes_read = 0
         self.first_ts: Optional[float] = None   # of the first and last packet record
         self.last_ts: Optional[float] = None
+        # The earliest and latest time of any packet record (capinfos' span: records need not be in
+        # time order); inf and -inf until one is read.
+        self.earliest, self.latest = math.inf, -math.inf
         self.endian = "<"                       # pcapng: of the current section
         self.interfaces: list[tuple] = []       # pcapng: (link, ticks/s or 0, s/tick, offset, Ethernet?)
         self.spb_snaplen = 0                    # pcapng: the section's first interface's snaplen (0: none)
@@ -254,6 +258,7 @@ class CaptureReader:
         vi45, head_len, frag_mask = _FAST_VI, _FAST_HEAD, L.IPV4_FRAGMENT_MASK
         ipv4, udp = L.ETHERTYPE_IPV4, L.IPPROTO_UDP
         frame, ts = 0, 0.0
+        lo, hi = math.inf, -math.inf
         chunks = self.raw_chunks()
         data = next(chunks, None)
         while data is not None:
@@ -267,6 +272,7 @@ class CaptureReader:
                 if incl > limit:
                     self.corrupt(pos, incl)
                     chunks.close()
+                    self.spanned(lo, hi)
                     self._times(data, frame, ts, rec, when)
                     self.frames = frame
                     yield out
@@ -276,6 +282,7 @@ class CaptureReader:
                 pos = p + incl
                 frame += 1
                 ts = sec + frac * scale if frac < units else when(sec, frac)
+                lo, hi = min(lo, ts), max(hi, ts)
                 if fast is not None and incl >= head_len:
                     et, vi, tot, frag, proto, src, sport, dport, ulen = fast(data, p)
                     if (et == ipv4 and vi == vi45 and proto == udp and not frag & frag_mask
@@ -285,10 +292,15 @@ class CaptureReader:
                 got = parse(link, data, p, incl, orig, frame)
                 if got is not None:
                     append((ts, *got, frame))
+            self.spanned(lo, hi)
             self._times(data, frame, ts, rec, when)
             self.frames = frame
             yield out
             data = self.next_chunk(chunks, pos)
+
+    def spanned(self, lo: float, hi: float) -> None:
+        """Widen the span of record times (earliest, latest) to [lo, hi]."""
+        self.earliest, self.latest = min(self.earliest, lo), max(self.latest, hi)
 
     def _times(self, data: bytes, frame: int, ts: float, rec, when) -> None:
         """first_ts and last_ts, `ts` the time of the last of `frame` records so far (the first
@@ -520,6 +532,7 @@ class CaptureReader:
                 self.last_ts = ts
                 if self.first_ts is None:
                     self.first_ts = ts
+                self.spanned(ts, ts)
                 if link == L.LINKTYPE_ETHERNET and incl >= head_len:
                     et, vi, tot, frag, proto, src, sport, dport, ulen = fast(data, d)
                     if (et == ipv4 and vi == vi45 and proto == udp and not frag & frag_mask

@@ -128,6 +128,7 @@ class StreamReader(CaptureReader):
         self.last_ts = ts
         if self.first_ts is None:
             self.first_ts = ts
+        self.spanned(ts, ts)
         if link == L.LINKTYPE_ETHERNET and incl >= _FAST_HEAD:
             # The common frame (Ethernet, IPv4 without options, UDP) in one call, as the reader does.
             et, vi, tot, frag, proto, src, sport, dport, ulen = _FAST.unpack_from(data, start)
