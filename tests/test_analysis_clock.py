@@ -9,8 +9,12 @@ import pytest
 from scapy.all import rdpcap, wrpcap, wrpcapng
 
 import report_schema
+import tshark_runner as T
+from test_analysis_craft import CTRL, Traffic, payload
+from vm110 import constants as C
 from vm110.analysis import analyze, summary
 from vm110.analysis import report_html
+from vm110.layers import VRPO
 from vm110.timefmt import utc_iso
 
 CAPTURES = Path(__file__).resolve().parent.parent / "captures"
@@ -91,3 +95,40 @@ def test_duration_is_the_span_of_the_records(capture, engine, request):
     if capture != "appended":
         assert f"not in time order, they span {utc_iso(min(own))} to {utc_iso(max(own))}" in text
         assert "not in time order, they span" in report_html.render([report])
+
+
+def vrpo_set_back(path: Path) -> Path:
+    """A VRPO stream every 100 ms whose clock is set back 10 s after 40 packets (at frame 41)."""
+    tr = Traffic()
+    for n in range(80):
+        t = n * 0.1 - (10.0 if n >= 40 else 0.0)
+        tr.add(t, payload(VRPO, n, packet_number=0, periodic_data=b"x" * 10), src=CTRL, sport=C.OUTPUT_PORT)
+    tr.write(path)
+    return path
+
+
+def test_a_vrpo_step_back_is_time_backwards_and_nothing_else(tmp_path):
+    """One step back of the time (rules.md, "the analysis clock": a negative interval, counted as
+    time_backwards), not also an interval outside the recommended 50-200 ms (a trial counted the
+    one cause twice) and no jitter: every interval the capture's own clock measures forward is
+    exactly the period."""
+    report = analyze(str(vrpo_set_back(tmp_path / "back.pcap")))
+    [p] = report["periodic"]
+    assert (p["type"], p["time_backwards"], p["outside_recommended"]["count"]) == ("VRPO", 1, 0)
+    assert p["jitter_ms"] == {"final": 0.0, "mean": 0.0, "max": 0.0}
+    rules = {f["rule"]: [i["frame"] for i in f["items"]] for f in report["verdict"]["findings"]}
+    assert rules == {"time_backwards": [41]}
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="the dissector marks the step back a VRPO interval outside the range too: "
+                          "add_burst_interval should skip a negative interval, as analyze does")
+def test_the_dissector_marks_a_vrpo_step_back_once(tmp_path):
+    """Where analyze and the dissector count the same thing they agree: the step back is one
+    finding, Time Backwards, in Wireshark too."""
+    runner = next(r for r in T.RUNNERS if r.root is None)
+    with runner.workspace(tmp_path / "ws") as ws:
+        path = vrpo_set_back(ws.dir / "back.pcap")
+        done = ws.run(["-r", str(path), "-Y", "vm110.analysis.flags", "-T", "fields", "-e", "frame.number",
+                       "-e", "vm110.analysis.flags"])
+    assert [line.split("\t") for line in done.stdout.splitlines()] == [["41", "Time Backwards"]]

@@ -105,7 +105,7 @@ class Bursts:
     """Burst assembly of one sender: complete bursts counted, the first packet (where, time) of
     each incomplete one, the time of each burst's first packet (`starts`), and the bursts that
     follow the one before after an interval outside [low_ms, high_ms] (`outside`: where, time,
-    interval)."""
+    interval; not a negative one, a step back of the clock, which is time_backwards)."""
 
     def __init__(self, packets: Floats, gap_ms: float = C.VRPO_BURST_GAP_MS, start: int = 0, data_size: int = 0,
                  low_ms: float = C.VRPO_PERIOD_MIN_MS, high_ms: float = C.VRPO_PERIOD_MAX_MS,
@@ -185,7 +185,8 @@ class Bursts:
             self.own.extend(new)
         between = timing.intervals_ms(np.concatenate(([] if self.last_start is None else [self.last_start], new)))
         self.last_start = float(new[-1]) if len(new) else self.last_start
-        out = np.flatnonzero((between < self.low_ms) | (between > self.high_ms))
+        # (a negative interval is a step back of the clock, counted as time_backwards: no period)
+        out = np.flatnonzero(((between < self.low_ms) & (between >= 0)) | (between > self.high_ms))
         shift = len(new) - len(between)             # the first start has no interval before it
         for k in out.tolist():
             i = int(firsts[k + shift])

@@ -107,8 +107,11 @@ def jitter_of_intervals(delta: np.ndarray, period_ms: float) -> np.ndarray:
 
 
 def jitter_summary(delta: np.ndarray, period_ms: Optional[float]) -> dict:
-    """Final, mean (over every update) and maximum jitter of the intervals `delta` (ms)."""
-    series = jitter_of_intervals(delta, period_ms) if period_ms else np.empty(0)
+    """Final, mean (over every update) and maximum jitter of the intervals `delta` (ms). A negative
+    interval is a step back of the capture's clock (time_backwards), no variation of the period:
+    it updates nothing."""
+    forward = delta[delta >= 0] if len(delta) and delta.min() < 0 else delta
+    series = jitter_of_intervals(forward, period_ms) if period_ms else np.empty(0)
     if not len(series):
         return {"final": None, "mean": None, "max": None}
     return {"final": float(series[-1]), "mean": float(series.mean()), "max": float(series.max())}
