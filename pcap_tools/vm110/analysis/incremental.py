@@ -108,14 +108,17 @@ class Analysis:
 
     def _join(self, key: int, first: np.void) -> None:
         """A new sender: a restart on a new port of the earlier sender of its address, direction
-        and origin heard last, when that one has been silent for NEW_PORT_SILENCE_MS."""
+        and origin heard last among those silent for NEW_PORT_SILENCE_MS and not restarted on a
+        new port already (a sender taken over lives on in its successor: one that moved on and on
+        was linked back to its first port, past the one it moved from)."""
         direction, origin, src, port = key_sender(key)
         new = self.senders[key] = Sender(direction, origin, address(self.names[src], port), first, self.opt,
                                          self.floats, self.stamps)
         # Only the senders of its host: a capture of many senders costs no scan of them all.
         same_host = self.hosts.setdefault((direction, origin, new.host), [])
         quiet = [(old.last_ts, old.last_frame, i, old) for i, old in same_host
-                 if old.src != new.src and not timing.shorter(new.first_ts - old.last_ts, NEW_PORT_SILENCE_MS)]
+                 if old.src != new.src and not old.taken_over
+                 and not timing.shorter(new.first_ts - old.last_ts, NEW_PORT_SILENCE_MS)]
         same_host.append((len(self.senders) - 1, new))
         if not quiet:
             return
