@@ -15,7 +15,6 @@ from .commands import Tally
 from .collect import CODE, TYPES
 
 MAX_ITEMS = 100
-MAX_FILTER_FRAMES = 64
 FRAGMENT_FILTER = "ip.flags.mf == 1 || ip.frag_offset > 0 || ipv6.fragment"   # (shows IP fragments)
 _PROTOCOLS = ", ".join(map(str, sorted(TUNNEL_PROTOCOLS)))
 TUNNEL_FILTER = (f"ip.proto in {{{_PROTOCOLS}}} || ipv6.nxt in {{{_PROTOCOLS}}} || "
@@ -109,33 +108,19 @@ RULE_FILTERS = {
 
 
 def frame_filter(frames: list[int]) -> str:
-    """A display filter selecting these frames (a range beyond MAX_FILTER_FRAMES of them)."""
+    """A display filter selecting exactly these frames, by number: no field of the analysis, whose
+    verdicts hang on the preferences (a long command was once narrowed by its transmissions'
+    `!vm110.analysis.serial_duplicate`, which shows other frames under another duplicate window,
+    and illegal copies besides). Runs of consecutive numbers as ranges (`a..b`), to keep it short."""
     if len(frames) == 1:
         return f"frame.number == {frames[0]}"
-    if len(frames) > MAX_FILTER_FRAMES:
-        return f"frame.number >= {min(frames)} && frame.number <= {max(frames)}"
-    return "frame.number in {" + ", ".join(str(f) for f in frames) + "}"
-
-
-def sender_filter(sender: str) -> str:
-    """A display filter for the packets of a sender (collect.sender_id: "Input 10.0.0.10:5825 origin
-    0x0101", an IPv6 address in brackets)."""
-    _, address, _, origin = sender.split(" ")
-    host, port = address.rsplit(":", 1)
-    ip = f"ipv6.src == {host[1:-1]}" if host.startswith("[") else f"ip.src == {host}"
-    return f"{ip} && udp.srcport == {port} && vm110.origin == {origin}"
-
-
-def command_filter(frames: list[int], sender: str, what: dict) -> str:
-    """A command's frames beyond MAX_FILTER_FRAMES: the range of its transmissions narrowed to its
-    kind, sender and ID and to packets that are no copies (within the range, any other such packet
-    would be one of its transmissions), and its ack by number."""
-    ack = what.get("ack_frame")
-    sent = [f for f in frames if f != ack]
-    text = (f"frame.number >= {min(sent)} && frame.number <= {max(sent)} && vm110.type == \"{what['type']}\" && "
-            f"{sender_filter(sender)} && vm110.command_id == {what['command_id']} && "
-            "!vm110.analysis.serial_duplicate")
-    return f"({text}) || frame.number == {ack}" if ack in frames else text
+    runs: list[list[int]] = []
+    for f in sorted(set(frames)):
+        if runs and f == runs[-1][1] + 1:
+            runs[-1][1] = f
+        else:
+            runs.append([f, f])
+    return "frame.number in {" + ", ".join(str(a) if a == b else f"{a}..{b}" for a, b in runs) + "}"
 
 
 def located_item(frames: Any, time: float, sender: Optional[str], **what: Any) -> dict:
@@ -149,15 +134,8 @@ def located_item(frames: Any, time: float, sender: Optional[str], **what: Any) -
     if sender is not None:
         item["sender"] = sender
     item.update(what)
-    item["filter"] = item_filter(frames, sender, what)
+    item["filter"] = frame_filter(frames)
     return item
-
-
-def item_filter(frames: list[int], sender: Optional[str], what: dict) -> str:
-    """The display filter of an item's frames: their numbers, or a long command's exact form."""
-    if len(frames) > MAX_FILTER_FRAMES and sender is not None and what.get("command_id") is not None:
-        return command_filter(frames, sender, what)
-    return frame_filter(frames)
 
 
 class Where:

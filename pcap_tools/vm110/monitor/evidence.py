@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 from ..capture.writer import build_block, build_option
-from ..analysis.findings import item_filter
+from ..analysis.findings import frame_filter
 from ..errors import CliError
 from ..fileio import write_bytes, write_text
 
@@ -148,14 +148,6 @@ class Evidence:
         self.written.append(name + ".pcapng")
 
 
-def _filter(here: list[int], item: dict, position: dict[int, int]) -> Optional[str]:
-    """The item's filter in the evidence file's numbering (its own frames there: `here`)."""
-    if not here:
-        return None
-    ack = item.get("ack_frame")
-    return item_filter(here, item.get("sender"), {**item, "ack_frame": None if ack is None else position.get(ack)})
-
-
 def _in_file(findings: list[dict], numbers: list[int]) -> list[dict]:
     """The findings, each item told where its frames are in the evidence file too: the file
     numbers them 1, 2, ... while a finding's `filter` names the capture's numbers."""
@@ -164,6 +156,7 @@ def _in_file(findings: list[dict], numbers: list[int]) -> list[dict]:
     for f in findings:
         item = f["item"]
         here = [position[n] for n in item.get("frames", [item["frame"]]) if n in position]
-        out.append({**f, "item": {**item, "evidence_frames": here, "evidence_filter": _filter(here, item, position)}})
+        told = frame_filter(here) if here else None          # (the item's filter in the file's numbering)
+        out.append({**f, "item": {**item, "evidence_frames": here, "evidence_filter": told}})
     return out
 
