@@ -260,8 +260,13 @@ def test_a_count_of_one_reads_in_the_singular(tmp_path):
     tr = Traffic()
     for k in (0, 1, 2, 4, 5, 5, 6, 7):                       # serial 3 lost, 5 twice
         tr.add(k * 0.125 + (0.001 if k == 5 and len(tr.frames) == 6 else 0), vrpi(k))
-    messages = {f["rule"]: f["message"] for f in _report(tr, tmp_path)["verdict"]["findings"]}
+    from vm110.analysis import summary
+    report = _report(tr, tmp_path)
+    messages = {f["rule"]: f["message"] for f in report["verdict"]["findings"]}
     assert messages["lost"] == "1 packet lost (serial gaps)" and messages["duplicates"] == "1 duplicated packet"
+    severities = sorted(f["severity"] for f in report["verdict"]["findings"])
+    assert severities == ["error", "warning"]
+    assert "VERDICT: FAIL (1 error, 1 warning)" in summary.render(report)
 
 
 def test_a_finding_beyond_the_kept_items_says_where_all_of_them_are(tmp_path):

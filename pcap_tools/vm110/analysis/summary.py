@@ -96,7 +96,8 @@ def render(report: dict, everything: bool = False) -> str:
         lines.append(f"Time: {time_range(cap)}")
     errors = sum(1 for f in verdict["findings"] if f["severity"] == "error")
     warnings = len(verdict["findings"]) - errors
-    lines.append(f"VERDICT: {'OK' if verdict['ok'] else 'FAIL'} ({errors} errors, {warnings} warnings)")
+    lines.append(f"VERDICT: {'OK' if verdict['ok'] else 'FAIL'} ({errors} error{'' if errors == 1 else 's'}, "
+                 f"{warnings} warning{'' if warnings == 1 else 's'})")
     for f in verdict["findings"]:
         lines += _finding(f, everything, t0, in_wireshark(verdict))
     if report["illegal"]["total"]:
