@@ -1011,14 +1011,36 @@ local EVERY, EVERY_NO_COLUMNS = every_view(true), every_view(false)
 local NOTHING = with_layouts({ visible = false, any = false, columns = true })
 local vm110_handle -- (the dissector handle, once registered: referenced when any vm110 field is)
 
+-- The view of the fields a tree references. Made once per set of fields and kept: a visited
+-- frame asks per packet (tshark -2's second pass, the GUI), and a new view there would compile
+-- its flat adders again for every packet. The cache is a trie over the field list's indexes of
+-- the referenced fields, so that finding a view allocates nothing.
+local FIELD_LIST = {}
+for name, f in pairs(F) do FIELD_LIST[#FIELD_LIST + 1] = { name, f } end
+table.sort(FIELD_LIST, function(a, b) return a[1] < b[1] end)
+local referenced_views = { [true] = {}, [false] = {} }
 local function referenced_view(tree, columns)
-    local view = { visible = false, any = false, columns = columns }
-    for name, f in pairs(F) do
-        if referenced(tree, f) then
-            view[name], view.any = true, true
+    local node = referenced_views[columns]
+    for i = 1, #FIELD_LIST do
+        if referenced(tree, FIELD_LIST[i][2]) then
+            local next_ = node[i]
+            if not next_ then
+                next_ = {}
+                node[i] = next_
+            end
+            node = next_
         end
     end
-    return with_layouts(view)
+    local view = node.view
+    if not view then
+        view = { visible = false, any = false, columns = columns }
+        for i = 1, #FIELD_LIST do
+            if referenced(tree, FIELD_LIST[i][2]) then view[FIELD_LIST[i][1]], view.any = true, true end
+        end
+        view = with_layouts(view)
+        node.view = view
+    end
+    return view
 end
 
 -- Wireshark 4.0's `tshark -T fields` dissects with a visible tree (4.2 and later do not), so
@@ -2441,8 +2463,13 @@ end
 -- frame, which costs about as much as the postdissector).
 local watch_other_frames -- (its state in a block: the main chunk may have at most 200 locals)
 do
+    -- (pinfo's getters as the C functions, and the time read only for a new last record: on a
+    -- visited frame, which never is one, a single C call)
     local function other_frame(_, pinfo)
-        if settings.analysis then note_record(pinfo.number, pinfo.abs_ts) end
+        if not settings.analysis then return end
+        if not WS.number then WS.init(pinfo) end
+        local n = WS.number(pinfo)
+        if n > capture.number then note_record(n, WS.abs_ts(pinfo)) end
     end
     local tap = false
     function watch_other_frames()
