@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import random
+import re
 import subprocess
 import sys
 from collections import Counter, defaultdict
@@ -1061,3 +1062,64 @@ def test_expert_summaries_are_constant(tshark, tmp_path):
     rows = dissected(tshark, capture, tmp_path)
     gaps = sum(bool(r.get("vm110.analysis.serial_missing")) for r in rows)
     assert any(line.split()[0] == str(gaps) and "Serial gap" in line for line in lines), lines
+
+
+def expert_severities(text: str, protocol: str) -> dict[str, str]:
+    """Summary -> section ("Warns", "Notes", ...) of one protocol's lines in tshark -z expert."""
+    out, section = {}, None
+    for line in text.splitlines():
+        words = line.split()
+        if len(words) == 2 and words[1].startswith("("):
+            section = words[0]
+        elif len(words) > 3 and words[0].isdigit() and words[2] == protocol:
+            out[" ".join(words[3:])] = section
+    return out
+
+
+def readme_analysis_severities() -> dict[str, str]:
+    """Analysis expert code -> "Notes" or "Warns", as README's list of the analysis experts says
+    (a code marked "(note" is a note; the others are warnings)."""
+    text = (T.REPO / "README.md").read_text()
+    start = text.index("Experts (group sequence")
+    paragraph = text[start:text.index("\n\n", start)]
+    codes = re.findall(r"`([a-z_]+)`( \(note)?", paragraph)
+    return {code: "Notes" if note else "Warns" for code, note in codes if code != "vm110"}
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_analysis_expert_severities_as_readme_and_tcp(tshark, tmp_path):
+    """A spurious retransmission (after the acknowledgement) is a note, as Wireshark's own
+    tcp.analysis.spurious_retransmission (and its retransmissions and duplicate ACKs) are: the
+    TCP severity read from this tshark, on a TCP segment sent again after its ACK. And README's
+    list of the analysis experts gives each expert loss.pcapng raises the severity tshark shows
+    (it called the spurious retransmission and the duplicate acknowledgement warnings)."""
+    from scapy.layers.inet import IP, TCP
+    from scapy.layers.l2 import Ether
+    from scapy.packet import Raw
+    from scapy.utils import wrpcap
+    a, b = "10.0.0.1", "10.0.0.2"
+    segment = IP(src=a, dst=b) / TCP(sport=1000, dport=80, flags="PA", seq=101, ack=501) / Raw(b"x" * 10)
+    tcp = [Ether() / p for p in (IP(src=a, dst=b) / TCP(sport=1000, dport=80, flags="S", seq=100),
+                                 IP(src=b, dst=a) / TCP(sport=80, dport=1000, flags="SA", seq=500, ack=101),
+                                 IP(src=a, dst=b) / TCP(sport=1000, dport=80, flags="A", seq=101, ack=501), segment,
+                                 IP(src=b, dst=a) / TCP(sport=80, dport=1000, flags="A", seq=501, ack=111), segment)]
+    for i, p in enumerate(tcp):
+        p.time = 1 + i / 100
+    capture = CAPTURES / "loss.pcapng"
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            wrpcap(str(ws.dir / "tcp.pcap"), tcp)
+            (ws.dir / capture.name).write_bytes(capture.read_bytes())
+            tcp_text = ws.run(["-r", str(ws.dir / "tcp.pcap"), "-q", "-z", "expert"], plugin=False).stdout
+            text = ws.run(["-r", str(ws.dir / capture.name), "-2", *T.pref_args(ON), "-q", "-z", "expert"]).stdout
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    tcp_sev = expert_severities(tcp_text, "TCP")
+    ours = expert_severities(text, "VM110")
+    summaries = dict(re.findall(r'seq\("([a-z_]+)", "([^"]+)"', (T.REPO / "dissector" / "vm110.lua").read_text()))
+    assert tcp_sev["This frame is a (suspected) spurious retransmission"] == \
+        ours[summaries["spurious_retransmission"]] == "Notes", (tcp_sev, ours)
+    readme = readme_analysis_severities()
+    shown = {code: ours[summaries[code]] for code in summaries if summaries[code] in ours}
+    assert len(shown) >= 6, ours
+    assert {code: readme[code] for code in shown} == shown
