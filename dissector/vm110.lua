@@ -1901,7 +1901,8 @@ end
 
 -- Senders by (origin, port, direction) then source address: no string built per packet. A new
 -- sender from a host (direction, origin, address) heard before on another port restarts the
--- sender of that host heard last among those silent for at least 250 ms: returned as a record.
+-- sender of that host heard last among those silent for at least 250 ms and not restarted on a
+-- new port before: returned as a record.
 local function sender_of(r, pinfo, t, frame)
     local port = WS.src_port(pinfo)
     local direction = r.info.direction
@@ -1925,7 +1926,9 @@ local function sender_of(r, pinfo, t, frame)
     end
     local pred = false
     for _, other in ipairs(others) do
-        if ms(t - other.last) >= RULES.new_port_silence_ms and (not pred or other.last > pred.last) then
+        -- (one restarted on a new port already lives on in its successor: restarted no more)
+        if not other.taken_over and ms(t - other.last) >= RULES.new_port_silence_ms
+            and (not pred or other.last > pred.last) then
             pred = other
         end
     end
@@ -2209,7 +2212,8 @@ end
 -- recommendation is about; the packets of a split burst go back to back).
 local function add_burst_interval(bi, tvb, root)
     local item = generated(root, "burst_interval", tvb, 0, ID_LEN, bi)
-    if bi < settings.vrpo_min or bi > settings.vrpo_max then finding(item, "vrpo_interval") end
+    -- (a step back of the clock is time_backwards alone: one cause, one finding)
+    if bi >= 0 and (bi < settings.vrpo_min or bi > settings.vrpo_max) then finding(item, "vrpo_interval") end
 end
 
 local function add_command_analysis(res, tvb, root, visited)
@@ -2423,11 +2427,19 @@ end
 vm110.dissector = dissect
 vm110_handle = Dissector.get("vm110")
 
+-- On another port: a packet ID and a size that agrees with the length. On the EG-Link ports, any
+-- datagram: there the heuristic runs only when tried first (udp.try_heuristic_first, as analyze's
+-- tshark engine runs), and takes the datagram before Wireshark gives it to a lower port's
+-- dissector (a damaged source port of 5683: CoAP's), as the EG-Link ports' own reader does.
 local function heuristic(tvb, pinfo, tree)
     if not settings.heuristic then return false end
-    local n = tvb:len()
-    if n < OVERHEAD or n > OVERHEAD + MAX_PAYLOAD or not TYPES[tvb:raw(0, ID_LEN)] then return false end
-    if OVERHEAD + tvb(10, 2):le_uint() ~= n then return false end
+    local port, src, dst = settings.port, pinfo.src_port, pinfo.dst_port
+    local ours = src == port or dst == port or src == port + OUTPUT_PORT_OFFSET or dst == port + OUTPUT_PORT_OFFSET
+    if not ours then
+        local n = tvb:len()
+        if n < OVERHEAD or n > OVERHEAD + MAX_PAYLOAD or not TYPES[tvb:raw(0, ID_LEN)] then return false end
+        if OVERHEAD + tvb(10, 2):le_uint() ~= n then return false end
+    end
     dissect(tvb, pinfo, tree) -- not vm110.dissector: that is a handle, and would add the layer twice
     return true
 end

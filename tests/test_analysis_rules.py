@@ -215,15 +215,13 @@ def test_a_port_already_moved_from_is_never_restarted_again(tmp_path):
     assert [(v["frame"], v["until_end"]) for v in silent] == [(second, True)]
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="the dissector still restarts 5827 on 40002: sender_of should skip a sender taken over")
-def test_the_dissector_never_restarts_a_port_already_moved_from(tmp_path):
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_the_dissector_never_restarts_a_port_already_moved_from(tshark, tmp_path):
     """Where analyze and the dissector count the same thing they agree: in Wireshark too, the only
     restart is 5827 -> 40001."""
     tr = Traffic()
     _, second, _ = _moves(tr, 10.45)
-    runner = next(r for r in T.RUNNERS if r.root is None)
-    with runner.workspace(tmp_path / "ws") as ws:
+    with tshark.workspace(tmp_path / "ws") as ws:
         tr.write(ws.dir / "t.pcap")
         done = ws.run(["-r", str(ws.dir / "t.pcap"), "-Y", "vm110.analysis.restart_port_from", "-T", "fields",
                        "-e", "frame.number", "-e", "vm110.analysis.restart_port_from"])

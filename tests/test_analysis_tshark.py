@@ -122,6 +122,37 @@ def test_engines_count_the_same_packets_for_each_crc_candidate(tmp_path):
     assert_same(str(tmp_path / "heuristic.pcap"))
 
 
+def test_a_datagram_on_an_eglink_port_from_a_lower_port_is_eglink_in_both_engines(tmp_path):
+    """Wireshark gives a datagram to its lower port's dissector first: one from port 5683 (CoAP) to
+    the controller's 5827 went to CoAP when it was no legal EG-Link packet (the heuristic, tried
+    first, wants one), and the tshark engine lost it where the fast engine counts it truncated
+    (self-fuzz: a damaged source port). On every Wireshark: CoAP's without the plugin, EG-Link's
+    with it as the tshark engine runs it (the heuristic tried first)."""
+    from test_analysis_craft import CTRL, Traffic, payload
+    from vm110.layers import VRPO
+    tr = Traffic()
+    for i in range(8):
+        data = payload(VRPO, i, packet_number=0, periodic_data=b"a")
+        tr.add(i * 0.1, data[:-6] if i == 5 else data, src=CTRL, sport=C.OUTPUT_PORT if i != 5 else 5683,
+               dport=C.OUTPUT_PORT)
+    tr.write(tmp_path / "coap.pcap")
+    fast = analyze(str(tmp_path / "coap.pcap"))
+    assert (fast["illegal"]["total"], fast["capture"]["eglink_packets"]) == (1, 8)
+    assert comparable(analyze(str(tmp_path / "coap.pcap"), engine="tshark")) == comparable(fast)
+    for tshark in T.RUNNERS:
+        with tshark.workspace(tmp_path / tshark.name) as ws:
+            path = str(tr_copy(tmp_path / "coap.pcap", ws.dir))
+            shown = ["-r", path, "-Y", "frame.number == 6", "-T", "fields", "-e", "frame.protocols"]
+            plain = ws.run(shown, plugin=False).stdout.strip()
+            ours = ws.run(["-o", "udp.try_heuristic_first:TRUE", *shown]).stdout.strip()
+        assert plain.endswith(":coap") and ours.endswith(":vm110"), (tshark.name, plain, ours)
+
+
+def tr_copy(path, folder):
+    (folder / path.name).write_bytes(path.read_bytes())
+    return folder / path.name
+
+
 def test_engines_agree_on_mixed_traffic(tmp_path):
     from scapy.layers.inet import IP, TCP, UDP, fragment
     from scapy.layers.inet6 import IPv6
