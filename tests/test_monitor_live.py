@@ -3,6 +3,7 @@ simulated base unit and the reference controller talking unicast over it (nothin
 namespace); and the dashboard in tmux on a capture replayed at the pace of its timestamps."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -118,3 +119,74 @@ def test_dashboard_in_tmux(tmp_path):
     assert "ALARM watchdog 10.0.0.20:5827" in text
     assert "watchdog ! 10.0.0.20:5827 0x0000: VRPO watchdog" in text
     assert "relays OPEN" in text      # the BU opened the ES-Link relays: its own watchdog on VRPO
+
+
+def _dumpcap_under(pid: int) -> int | None:
+    """The pid of the dumpcap among the descendants of `pid`, if one runs yet."""
+    todo = [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            with open(f"/proc/{p}/task/{p}/children") as f:
+                todo += [int(c) for c in f.read().split()]
+            with open(f"/proc/{p}/comm") as f:
+                if f.read().strip() == "dumpcap":
+                    return p
+        except OSError:
+            continue
+    return None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ")[-1][0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(shutil.which("dumpcap") is None, reason="dumpcap not installed")
+@pytest.mark.parametrize("how", ["SIGTERM at start-up", "SIGINT at start-up", "SIGHUP", "SIGKILL"])
+def test_no_dumpcap_outlives_the_monitor(how, netns, tmp_path):
+    """Whatever ends the monitor, signalled alone (not its process group), its dumpcap ends with it.
+    "at start-up": the signal comes between dumpcap's start and the monitor's first read (held
+    there with SIGSTOP, as a loaded machine holds it), where it used to kill the monitor and leave
+    dumpcap capturing for ever. A monitor that can catch the signal ends with its report."""
+    report = tmp_path / "r.json"
+    monitor = subprocess.Popen(["ip", "netns", "exec", netns, *VM110, "monitor", "-i", "lo", "--no-dashboard",
+                                "--quiet", "--json", str(report)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        dumpcap = None
+        for _ in range(400):
+            dumpcap = _dumpcap_under(monitor.pid)
+            if dumpcap is not None or monitor.poll() is not None:
+                break
+            time.sleep(0.005)
+        if dumpcap is None:
+            pytest.skip(f"dumpcap did not start here: {monitor.communicate()[1].decode().strip()}")
+        sig = getattr(signal, how.split()[0])
+        if how.endswith("start-up"):
+            monitor.send_signal(signal.SIGSTOP)
+            time.sleep(1.0)               # dumpcap has written its header: the pipe no longer ends it
+            monitor.send_signal(sig)
+            monitor.send_signal(signal.SIGCONT)
+        else:
+            time.sleep(1.5)
+            monitor.send_signal(sig)
+        _, err = monitor.communicate(timeout=30)
+        for _ in range(100):
+            if not _alive(dumpcap):
+                break
+            time.sleep(0.05)
+        assert not _alive(dumpcap), f"dumpcap {dumpcap} outlived the monitor ({how})"
+        if sig != signal.SIGKILL:
+            assert monitor.returncode == 0, err.decode()
+            assert json.loads(report.read_text())["capture"]["packets"] == 0
+    finally:
+        if monitor.poll() is None:
+            monitor.kill()
+            monitor.wait()
+        pids = subprocess.run(["ip", "netns", "pids", netns], capture_output=True, text=True).stdout.split()
+        for pid in pids:
+            with contextlib.suppress(OSError):
+                os.kill(int(pid), signal.SIGKILL)

@@ -49,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
     from ..monitor.evidence import Evidence
     from ..monitor.session import Session, Settings
     from ..monitor.sources import FILE_READ_SIZE, PACED_READ_SIZE, READ_SIZE, Dumpcap, FollowFile, PipeSource, Source
+    from ..monitor.stopping import Signals
     options = analysis_options(args)
     fail_rules = report_rules(args)
     if args.realtime and args.read is None:
@@ -65,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--json-lines - and a report on standard output (--json - or --html -): only one can go there")
     name = args.read if args.read is not None else f"interface {args.interface}"
     with contextlib.ExitStack() as stack:
+        signals = stack.enter_context(Signals())     # before dumpcap starts, till it is stopped
         json_lines = None
         if args.json_lines == "-":
             json_lines = sys.stdout
@@ -92,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
                        live=args.read is None or args.read == "-", duration=args.duration, dashboard=on_terminal,
                        lines=args.json_lines != "-" and not args.quiet, lines_to_stderr=report_out,
                        json_lines=json_lines, evidence=evidence)
-        session = Session(source, options, cfg)
+        session = Session(source, options, cfg, signals)
         stack.callback(session.close)
         session.run()
         if session.failure and (not session.reader.format or session.no_capture):   # no interface, not a capture

@@ -13,7 +13,6 @@ import contextlib
 import json
 import math
 import os
-import signal
 import sys
 import tempfile
 import time
@@ -32,6 +31,7 @@ from .evidence import Evidence
 from .intake import Intake
 from .live import Live, finding, item
 from .sources import Source
+from .stopping import Signals
 
 TICK_S = 0.1                 # the loop looks at the time at least this often
 DRAW_S = 1.0
@@ -57,8 +57,9 @@ class Settings:
 
 
 class Session:
-    def __init__(self, source: Source, opt, cfg: Settings) -> None:
+    def __init__(self, source: Source, opt, cfg: Settings, signals: Optional[Signals] = None) -> None:
         self.source, self.opt, self.cfg = source, opt, cfg
+        self.signals = signals or Signals()      # (entered by the caller, before the source started)
         self.spool = tempfile.TemporaryFile(prefix="vm110-monitor-")   # noqa: SIM115 -- the session owns it; close()
         spool = self.spool
         self.analysis = Analysis(opt, floats=lambda: SpilledFloats(spool))
@@ -84,7 +85,7 @@ class Session:
         self.done = 0                       # frames processed (a paced replay parses ahead)
         self.rate = 0.0
         self.next_draw = 0.0
-        self.stop = False
+        self.ended = False                  # the run ended itself (--duration in a replay, stdout gone)
         self.input_ended = False
         self.failure: Optional[str] = None
         self.no_capture = False                # the input ended before a capture header was whole
@@ -121,9 +122,6 @@ class Session:
         started = time.monotonic()
         deadline = None if self.cfg.duration is None else started + self.cfg.duration
         self.deadline = deadline
-        previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-        signal.signal(signal.SIGINT, self._signal)
-        signal.signal(signal.SIGTERM, self._signal)
         try:
             while not self.stop:
                 data = self.source.read(TICK_S)
@@ -147,15 +145,12 @@ class Session:
             if self.board is not None:
                 self.board.close()
             raise
-        finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
         self._end()
 
-    def _signal(self, signum, frame) -> None:
-        if self.stop and signum == signal.SIGINT:
-            raise KeyboardInterrupt      # a second Ctrl-C: give up at once
-        self.stop = True
+    @property
+    def stop(self) -> bool:
+        """The run is to end: a signal asked (Ctrl-C, SIGTERM, SIGHUP), or the run itself."""
+        return self.ended or self.signals.asked is not None
 
     def _packets(self, packets: list) -> None:
         intake, evidence, reader = self.intake, self.cfg.evidence, self.reader
@@ -194,7 +189,7 @@ class Session:
             self._flush()
             self._periodic()
             if self.deadline is not None and time.monotonic() >= self.deadline:
-                self.stop = True
+                self.ended = True
 
     def _flush(self) -> None:
         """The analysis gets the records gathered (a chunk's worth: its cost is per batch)."""
@@ -323,7 +318,7 @@ class Session:
         self.cfg.lines = False
         if self.cfg.json_lines is sys.stdout:
             self.cfg.json_lines = None
-        self.stop = True
+        self.ended = True
 
     def _write_line(self, obj: dict) -> None:
         out = self.cfg.json_lines

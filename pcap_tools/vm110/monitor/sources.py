@@ -20,6 +20,14 @@ PACED_READ_SIZE = 1 << 12      # --realtime: read little ahead of the pace
 DUMPCAP_HINT = ("capturing needs rights: run as root, or let dumpcap capture (Debian: dpkg-reconfigure "
                 "wireshark-common, then join the wireshark group; elsewhere: "
                 "setcap cap_net_raw,cap_net_admin=ep dumpcap)")
+# dumpcap, the child of a shell that stops it when the shell ends or is asked to (SIGTERM), giving
+# dumpcap's exit status as its own. The kernel signals the shell when the monitor dies however it
+# dies (prctl PR_SET_PDEATHSIG, set by setpriv): set on dumpcap itself it would not hold, the exec
+# of a program with capabilities or setuid (dumpcap for a user of the wireshark group) clears it.
+# Should the monitor die before setpriv set it, dumpcap's first write (its pcapng header) to the
+# pipe no one reads ends dumpcap.
+TIED = ('trap \'kill -TERM "$c" 2>/dev/null\' HUP INT TERM; "$@" & c=$!; '
+        'while :; do wait "$c"; s=$?; kill -0 "$c" 2>/dev/null || exit "$s"; done')
 
 
 class Source:
@@ -119,9 +127,11 @@ class Dumpcap(Source):
             raise CliError("dumpcap not found: install Wireshark's capture engine (Debian: tshark or wireshark-common)")
         flt = "udp and (" + " or ".join(f"port {p}" for p in ports) + ")"
         self.errors = tempfile.TemporaryFile()   # noqa: SIM115 -- dumpcap's stderr while it runs; close()
+        setpriv = shutil.which("setpriv")
+        tie = [setpriv, "--pdeathsig", "TERM", "--"] if setpriv else []
         # -q: no packet counts on stderr; -w -: pcapng to the pipe, a block per packet as it comes.
-        self.proc = subprocess.Popen([exe, "-q", "-i", iface, "-f", flt, "-w", "-"], stdout=subprocess.PIPE,
-                                     stderr=self.errors, stdin=subprocess.DEVNULL)
+        self.proc = subprocess.Popen([*tie, "/bin/sh", "-c", TIED, "dumpcap", exe, "-q", "-i", iface, "-f", flt,
+                                      "-w", "-"], stdout=subprocess.PIPE, stderr=self.errors, stdin=subprocess.DEVNULL)
         assert self.proc.stdout is not None
         self.pipe = PipeSource(self.proc.stdout.fileno(), f"dumpcap on {iface}")
         self.got_data = False
