@@ -1,8 +1,10 @@
 """The live view of a link: what the dashboard shows each second, and the findings that cannot
 wait for the end of the capture.
 
-Everything here is bounded by the senders (a few numbers each, windows of a minute) and the
-commands still open; nothing is kept per packet.
+Everything here is bounded: at most MAX_SENDERS senders (a few numbers each, windows of a minute;
+beyond, the one heard least recently leaves the view: a controller restarting on a new port every
+few seconds for days, or spoofed senders, would grow it for ever) and the commands still open;
+nothing is kept per packet.
 
 Where the numbers come from:
 - serial verdicts (lost, duplicates, out of order, restarts) and commands (in flight, failed, ack
@@ -33,6 +35,7 @@ from ..analysis.state import _name as state_name
 from ..analysis.timing import JITTER_GAIN, interval_ms
 
 SILENT_S = 10.0            # a watchdog lasting longer than this shows as "silent"
+MAX_SENDERS = 1024         # senders in the live view (a mirror port of 20 pairs has 40)
 WINDOW_S = 60              # "last minute" numbers
 Emit = Callable[[dict], None]
 _INPUT = [t.direction is C.Direction.INPUT for t in TYPES]
@@ -45,6 +48,7 @@ class LiveSender:
 
     def __init__(self, key: tuple, sid: str, direction: str, opt) -> None:
         self.key, self.id, self.direction = key, sid, direction
+        self.akey = 0                                 # its key in the analysis (Live.feed)
         self.code = VRPI_CODE if direction == C.Direction.INPUT.value else VRPO_CODE
         self.ptype = TYPES[self.code].value
         limit = opt.vrpi_watchdog_ms if self.code == VRPI_CODE else opt.vrpo_watchdog_ms
@@ -64,6 +68,7 @@ class LiveSender:
         self.interval: Optional[float] = None         # the last interval (ms)
         self.outside = 0
         self.recent: collections.deque = collections.deque(maxlen=64)   # intervals, for the VRPO period
+        self.fresh = False                            # `recent` changed this second
         self.second: list = [None, None]              # min, max interval of the current second
         self.window: collections.deque = collections.deque(maxlen=WINDOW_S)   # per second: min, max
         self.marks: collections.deque = collections.deque(maxlen=WINDOW_S + 1)   # per second: totals
@@ -106,6 +111,7 @@ class LiveSender:
         self.second = [ms if lo is None else min(lo, ms), ms if hi is None else max(hi, ms)]
         if self.code == VRPO_CODE:
             self.recent.append(ms)
+            self.fresh = True
             if not self.low <= ms <= self.high:
                 self.outside += 1
         period = self.period or self.nominal or ms
@@ -135,8 +141,9 @@ class LiveSender:
 
     def close_second(self, totals: dict) -> None:
         """A second of capture time ended: push its window entries."""
-        if self.recent:
+        if self.fresh:                    # (a median a second for each sender heard, not each one kept)
             self.nominal = float(np.median(self.recent))
+            self.fresh = False
         self.window.append(tuple(self.second))
         self.second = [None, None]
         self.marks.append((totals.get("lost", 0), totals.get("duplicates", 0), self.outside))
@@ -176,10 +183,11 @@ SEVERITY = {"watchdog": "error", "lost": "error", "illegal": "error", "failed": 
 class Live:
     """The live view of `analysis` (options `opt`); findings go to `emit`."""
 
-    def __init__(self, analysis, opt, emit: Emit) -> None:
+    def __init__(self, analysis, opt, emit: Emit, sources: dict) -> None:
         self.analysis, self.opt, self.emit = analysis, opt, emit
-        self.senders: dict[tuple, LiveSender] = {}
-        self.ids: dict = {}                    # sender id -> the analysis' Sender
+        self.sources = sources                 # packed source address -> its index in the analysis' keys
+        self.senders: collections.OrderedDict[tuple, LiveSender] = collections.OrderedDict()   # heard last, last
+        self.dropped = 0                       # senders that left the view (more than MAX_SENDERS)
         self.gaps_seen: dict = {}              # (sender key, counter key) -> gaps and restarts reported
         self.links_seen: set = set()
         self.cmd_seen = dict.fromkeys(analysis.tracker.tallies, 0)
@@ -200,10 +208,15 @@ class Live:
             code = CODE_OF_ID[packet[:4]]
             key = (_INPUT[code], src, sport, packet[_ORIGIN] | packet[_ORIGIN + 1] << 8)
             snd = senders.get(key)
-            if snd is None:
+            if snd is not None:
+                senders.move_to_end(key)
+            else:
+                if len(senders) >= MAX_SENDERS:
+                    self._drop()
                 direction = C.Direction.INPUT.value if key[0] else C.Direction.OUTPUT.value
                 snd = senders[key] = LiveSender(key, sender_id(direction, key[3], address(src, sport)), direction,
                                                 self.opt)
+                snd.akey = key[0] << 48 | self.sources[src] << 32 | sport << 16 | key[3]   # (collect.sender_keys)
             snd.packets += 1
             if code == snd.code:
                 snd.periodic(ts, frame, packet, emit)
@@ -216,18 +229,27 @@ class Live:
                 "ru_state": state_name("ru_state", st["ru_state"]), "ru_battery": st["ru_battery"],
                 "ru_rssi": st["ru_rssi"], "relays_open": st["bu_state"] < C.ES_RELAYS_CLOSED_FROM}
 
-    def _by_id(self) -> dict:
-        if len(self.ids) != len(self.analysis.senders):
-            self.ids = {a.id: a for a in self.analysis.senders.values()}
-        return self.ids
+    def _drop(self) -> None:
+        """The sender heard least recently leaves the view; its watchdog alarm, if raised, is
+        cleared (no longer watched), so that the alarms told stay paired."""
+        _, old = self.senders.popitem(last=False)
+        self.dropped += 1
+        if old.alarm is not None and old.last_ts is not None:
+            self.emit(finding("watchdog", "cleared", item(old.last_frame, old.last_ts, old.id, type=old.ptype,
+                                                          dropped=True),
+                              f"{old.ptype}: no longer watched live (more than {MAX_SENDERS} senders)"))
+            old.alarm = None
+
+    def _totals(self, snd: LiveSender) -> dict:
+        a = self.analysis.senders.get(snd.akey)
+        return {} if a is None else a.serial_counts()
 
     # -- the current time ----------------------------------------------------------------------
     def tick(self, now: float, final: bool = False) -> None:
         """Judge what needs the time `now` (capture time) and what the analysis decided since
         (`final`: the input has ended)."""
-        ids = self._by_id()
         for snd in self.senders.values():
-            a = ids.get(snd.id)
+            a = self.analysis.senders.get(snd.akey)
             if a is not None and a.taken_over and not snd.replaced:
                 snd.replaced = True
                 if snd.alarm is not None and snd.last_ts is not None:
@@ -267,7 +289,8 @@ class Live:
                 for f, old, new, t in res.restarts[seen_restarts:]:
                     self.emit(finding("restarts", "found", item(f, t, a.id, **{"from": old, "to": new}),
                                       f"serial counter started afresh ({old} -> {new})"))
-                self.gaps_seen[(key, ckey)] = (seen_gaps, len(res.restarts))
+                if seen_gaps or res.restarts:          # (none kept for a counter with nothing to tell)
+                    self.gaps_seen[(key, ckey)] = (seen_gaps, len(res.restarts))
 
     def _commands(self, now: float) -> None:
         tracker = self.analysis.tracker
@@ -311,20 +334,18 @@ class Live:
         self.watch = keep
 
     def close_second(self) -> None:
-        totals = {s["id"]: s for s in self.analysis.snapshot()}
         for snd in self.senders.values():
-            snd.close_second(totals.get(snd.id, {}))
+            snd.close_second(self._totals(snd))
         self.latencies.append(self.latency_second)
         self.latency_second = None
 
     def view(self, now: float) -> dict:
         """The dashboard's numbers at `now`."""
-        totals = {s["id"]: s for s in self.analysis.snapshot()}
-        senders = [snd.view(now, totals.get(snd.id, {})) for snd in self.senders.values()]
+        senders = [snd.view(now, self._totals(snd)) for snd in self.senders.values()]
         senders.sort(key=lambda s: (s["role"] != "BU", s["sender"]))
         window = [x for x in self.latencies if x is not None]
         in_flight = sum(1 for _, c, flagged in self.watch if not flagged)
-        return {"senders": senders,
+        return {"senders": senders, "senders_dropped": self.dropped,
                 "commands": {**self.cmd, "in_flight": in_flight,
                              "unacked": sum(1 for _ in self.watch),
                              "ack_latency_ms": {"last": self.latency_last, "max_1m": max(window) if window else None}}}

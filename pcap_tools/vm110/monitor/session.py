@@ -38,6 +38,7 @@ DRAW_S = 1.0
 DECIDE_WAIT_S = 1.0          # a live link: the CRC variant is chosen after this at the latest
 FINDINGS_SHOWN = 200
 RATE_LIMITED = {"lost", "illegal", "restarts", "failed"}   # at most one line per second per sender
+LIMITED_MAX = 4096           # (rule, sender) pairs the rate limit keeps; beyond, the old ones' lines are told
 
 
 @dataclass
@@ -69,7 +70,7 @@ class Session:
         self.reader = StreamReader(named(cfg.name))
         self.intake = Intake(cfg.name, cfg.port, cfg.crc, cfg.crc_order, self)
         self.intake.got.on_illegal = self._illegal
-        self.live = Live(self.analysis, opt, self.emit)
+        self.live = Live(self.analysis, opt, self.emit, self.intake.got.sources)
         self.ticking: Optional[float] = None   # the time of the live view's judgement under way
         self.findings: collections.deque = collections.deque(maxlen=FINDINGS_SHOWN)
         self.active: dict = {}
@@ -217,6 +218,8 @@ class Session:
         self.rate = float(frames - self.frames_at_second) / max(1, second - (self.second or second))
         self.frames_at_second = frames
         self.second = second
+        if len(self.limited) > LIMITED_MAX:     # (many senders: spoofed, or a restart every few seconds)
+            self._held_back(older_than=ts - 1.0)
         if self.cfg.json_lines is not None:
             self._write_line(self.snapshot(float(second)))
         if self.cfg.evidence is not None:
@@ -280,14 +283,20 @@ class Session:
             now = self.now()
             self.cfg.evidence.alarm(f, f["time"] if now is None else max(now, f["time"]))
 
-    def _held_back(self) -> None:
+    def _held_back(self, older_than: Optional[float] = None) -> None:
         """What the rate limit held back after a sender's last line of a rule: one line each, so
-        that the lines and their `suppressed_before` add up to every finding."""
+        that the lines and their `suppressed_before` add up to every finding. `older_than`: only of
+        the pairs whose last line came before that time, which the limit then forgets."""
         at = self.now()
-        for (rule, sender), (_, suppressed) in self.limited.items():
+        for (rule, sender), (last, suppressed) in list(self.limited.items()):
+            if older_than is not None:
+                if last is None or last >= older_than:
+                    continue
+                del self.limited[(rule, sender)]
             if not suppressed:
                 continue
-            self.limited[(rule, sender)] = (None, 0)
+            if older_than is None:
+                self.limited[(rule, sender)] = (None, 0)
             if self.cfg.json_lines is not None:
                 self._write_line({"type": "suppressed", "rule": rule, "sender": sender, "count": suppressed,
                                   "at": at})
