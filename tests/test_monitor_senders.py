@@ -1,0 +1,62 @@
+"""`vm110 monitor` runs for days: what it keeps per sender is bounded, whatever the traffic (a
+controller restarting on a new port every few seconds, spoofed senders), and what it lets go is
+said (docs/monitor.md, "Memory for long runs")."""
+from __future__ import annotations
+
+import tracemalloc
+
+from vm110 import constants as C
+from vm110 import encode as E
+from vm110.analysis.report import Options
+from vm110.monitor.live import MAX_SENDERS
+from vm110.monitor.session import Session, Settings
+from vm110.monitor.sources import Source
+
+PER_SECOND = 1000               # new senders per second of capture time
+T0 = 1_700_000_000.0
+
+
+def _monitor_files(snapshot: tracemalloc.Snapshot) -> int:
+    return sum(s.size for s in snapshot.filter_traces([tracemalloc.Filter(True, "*vm110/monitor/*")]).statistics(
+        "filename"))
+
+
+def test_memory_stays_flat_with_100000_senders():
+    """100,000 senders, each heard once (a VRPO, then silent), through
+    the monitor's intake as from a capture: the monitor's own memory after 100,000 is that after
+    30,000; the live view keeps the MAX_SENDERS heard last, counts the others, and every watchdog
+    it raised is cleared or still active."""
+    session = Session(Source(), Options(), Settings(name="many", port=5825, crc="mpeg2", crc_order="little",
+                                                    lines=False))
+    told: list[dict] = []
+    emit = session.emit
+    session.live.emit = lambda f: (told.append(f), emit(f))[1]
+    payload = E.packet(C.PacketType.VRPO, E.vrpo_payload(0, bytes(16)))
+    sizes = {}
+    tracemalloc.start()
+    try:
+        frame = 0
+        for second in range(100):
+            batch = []          # (a second's packets read at once, as from a capture)
+            for i in range(second * PER_SECOND, (second + 1) * PER_SECOND):
+                frame += 1
+                ts = T0 + second + (i % PER_SECOND) / PER_SECOND
+                # 100 ports on each of 1000 hosts: restarts on new ports, and new hosts.
+                src = bytes((10, 1, (i // 100) >> 8 & 255, (i // 100) & 255))
+                batch.append((ts, frame, 1, b"", (src, 10000 + i % 100, 5825, payload)))
+            session._packets(batch)
+            session._periodic()
+            if second + 1 in (30, 100):
+                sizes[second + 1] = _monitor_files(tracemalloc.take_snapshot())
+    finally:
+        tracemalloc.stop()
+    live = session.live
+    assert len(live.senders) == MAX_SENDERS
+    assert live.dropped == 100 * PER_SECOND - MAX_SENDERS
+    view = session.snapshot(T0 + 100)
+    assert view["senders_dropped"] == live.dropped and len(view["senders"]) == MAX_SENDERS
+    assert sizes[100] - sizes[30] < 1 << 20, sizes      # (1 MiB: noise; it was ~10 KiB a sender)
+    raised = [f for f in told if f["rule"] == "watchdog" and f["event"] == "raised"]
+    cleared = [f for f in told if f["rule"] == "watchdog" and f["event"] == "cleared"]
+    assert len(raised) == len(cleared) + len(session.active) and len(session.active) <= MAX_SENDERS
+    session.close()
