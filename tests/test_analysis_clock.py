@@ -3,6 +3,9 @@ mid-way): the rules run on the analysis clock (docs/rules.md), but what the repo
 frame's own time, as Wireshark shows it."""
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -75,6 +78,24 @@ def first_late(tmp_path_factory) -> tuple[Path, list[float]]:
 @pytest.fixture(scope="module")
 def first_late_ng(tmp_path_factory) -> tuple[Path, list[float]]:
     return _first_late(tmp_path_factory.mktemp("clock"), "first-late.pcapng", wrpcapng)
+
+
+def test_the_monitor_names_each_frames_own_time(appended, tmp_path):
+    """The monitor's findings too (it named the analysis clock's time for gaps, restarts and
+    commands after the seam, as analyze did)."""
+    path, own = appended
+    lines = tmp_path / "lines.jsonl"
+    done = subprocess.run([sys.executable, "-m", "vm110", "monitor", "--read", str(path), "--idle", "0",
+                           "--no-dashboard", "--quiet", "--json-lines", str(lines)], capture_output=True, text=True)
+    assert done.returncode in (0, 1), done.stderr
+    found = [json.loads(line) for line in lines.read_text().splitlines()]
+    named = [(f["rule"], f["item"]["frame"], f["item"]["time"]) for f in found
+             if f.get("type") == "finding" and f["rule"] not in OTHER_MOMENT and "time" in f.get("item", {})]
+    seam = len(rdpcap(str(CAPTURES / "loss.pcapng")))
+    assert sum(frame > seam for _, frame, _ in named) > 5, named[-10:]
+    wrong = [(rule, frame, time, own[frame - 1]) for rule, frame, time in named
+             if time != pytest.approx(own[frame - 1], abs=1e-6)]
+    assert wrong == []
 
 
 @pytest.mark.parametrize("engine", ["fast", "tshark"])

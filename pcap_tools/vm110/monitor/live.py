@@ -189,7 +189,7 @@ class Live:
         self.senders: collections.OrderedDict[tuple, LiveSender] = collections.OrderedDict()   # heard last, last
         self.dropped = 0                       # senders that left the view (more than MAX_SENDERS)
         self.gaps_seen: dict = {}              # (sender key, counter key) -> gaps and restarts reported
-        self.links_seen: set = set()
+        self.senders_told = 0                   # the analysis' senders whose new-port link is told
         self.cmd_seen = dict.fromkeys(analysis.tracker.tallies, 0)
         self.watch: list = []                  # (code, command) not acknowledged yet
         self.cmd = {"commands": 0, "acked": 0, "failed": 0, "interrupted": 0}
@@ -267,9 +267,10 @@ class Live:
         """A gap is reported once no late packet can fill it any more (the duplicate window after
         it opened, or the end of the input), with its serials still missing: as analyze's items."""
         window = self.opt.dup_window_ms / 1000
-        for key, a in self.analysis.senders.items():
-            if a.link is not None and key not in self.links_seen:
-                self.links_seen.add(key)
+        # (a sender's link is made with it, and senders are only added: those past senders_told
+        # are new, and no set of every sender's key grows for days)
+        for i, (key, a) in enumerate(self.analysis.senders.items()):
+            if a.link is not None and i >= self.senders_told:
                 link = a.link
                 self.emit(finding("restarts", "found", item(link["frame"], link["time"], a.id, **{
                     k: v for k, v in link.items() if k not in ("frame", "time")}), "sender restarted on a new port"))
@@ -284,13 +285,14 @@ class Live:
                     what = serials.gap_lost(after, count, res.gap_late.get(f, 0))
                     if what is not None:
                         lost = count - what.get("late", 0)
-                        self.emit(finding("lost", "found", item(f, t, a.id, **what),
+                        self.emit(finding("lost", "found", item(f, res.time_of(f, t), a.id, **what),
                                           f"{lost} packet(s) lost before serial {what['serial']}"))
                 for f, old, new, t in res.restarts[seen_restarts:]:
-                    self.emit(finding("restarts", "found", item(f, t, a.id, **{"from": old, "to": new}),
+                    self.emit(finding("restarts", "found", item(f, res.time_of(f, t), a.id, **{"from": old, "to": new}),
                                       f"serial counter started afresh ({old} -> {new})"))
                 if seen_gaps or res.restarts:          # (none kept for a counter with nothing to tell)
                     self.gaps_seen[(key, ckey)] = (seen_gaps, len(res.restarts))
+        self.senders_told = len(self.analysis.senders)
 
     def _commands(self, now: float) -> None:
         tracker = self.analysis.tracker
@@ -305,6 +307,7 @@ class Live:
             flagged = was_flagged
             limit = tracker.fail_ms[code]
             kind = TYPES[code].value
+            began = tracker.tallies[code].time_of(cmd.frames[0], cmd.times[0])   # (its own time, as shown)
             if cmd.interrupted_frame is not None:
                 self.cmd["interrupted"] += 1
                 continue
@@ -315,7 +318,7 @@ class Live:
                 self.latency_second = latency if self.latency_second is None else max(self.latency_second, latency)
                 if latency > limit and not flagged:
                     self.cmd["failed"] += 1
-                    self.emit(finding("failed", "found", item(cmd.frames + [cmd.ack_frame], cmd.times[0], cmd.sender,
+                    self.emit(finding("failed", "found", item(cmd.frames + [cmd.ack_frame], began, cmd.sender,
                                                               type=kind, command_id=cmd.command_id,
                                                               latency_ms=latency, ack_frame=cmd.ack_frame),
                                       f"{kind} {cmd.command_id} acknowledged after {latency:.0f} ms "
@@ -325,7 +328,7 @@ class Live:
             if not flagged and settled and age > limit:
                 flagged = True
                 self.cmd["failed"] += 1
-                self.emit(finding("failed", "raised", item(cmd.frames, cmd.times[0], cmd.sender, type=kind,
+                self.emit(finding("failed", "raised", item(cmd.frames, began, cmd.sender, type=kind,
                                                            command_id=cmd.command_id, latency_ms=None, ack_frame=None),
                                   f"{kind} {cmd.command_id} not acknowledged within {limit:g} ms"))
             if flagged and (now - cmd.times[-1]) * 1000.0 > max(self.opt.reuse_gap_ms, limit):
