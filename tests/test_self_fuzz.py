@@ -94,7 +94,8 @@ def test_oracles_see_planted_failures(tmp_path):
 
 def test_oracle_holds_the_engines_to_one_report(tmp_path):
     """Reports that differ only in the engine's name agree; a count, a finding or an exit code apart
-    is a disagreement, named at its place in the report."""
+    is a disagreement, named at its place in the report; unless the fast engine says it left frames
+    unread (a tunnel it does not unwrap: the self-fuzz damaged a port into VXLAN's 4789)."""
     site = tools.Site(T.Workspace(T.HOST, tmp_path), "host")
     fast = {"tool": {"name": "vm110", "engine": "fast"}, "packets": {"VRPI": 40}, "findings": [{"rule": "gap"}]}
 
@@ -115,6 +116,9 @@ def test_oracle_holds_the_engines_to_one_report(tmp_path):
     assert "2 places" in problem and "/packets/VRPI: 40 / 39" in problem and "/findings: 1 items / 0 items" in problem
     [[problem]] = judged(writes("fast", fast), writes("tshark", same, code=2))
     assert problem == "exit 2 where fast exits 0"
+    # (frames the fast engine says it did not read, the tshark engine reads: no disagreement)
+    tunnels = {**fast, "capture": {"tunnelled_frames": 1}}
+    assert judged(writes("fast", tunnels), writes("tshark", {**fewer, "capture": {"tunnelled_frames": 0}})) == []
 
 
 def test_tools_read_an_unmutated_capture(session):
