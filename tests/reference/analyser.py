@@ -64,6 +64,10 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
      complete burst of 488-byte packets no size is inferred and this ending does not apply (so an
      out-of-order first burst stays one burst, as rules.md promises). An incomplete burst marks
      its last packet in capture order: frames[..]["burst_incomplete"].
+ R15 A sender restarted on a new port already lives on in its successor: it is restarted on a new
+     port no more (rules.md, "A sender on a new port").
+ R16 The rules run on the analysis clock, but the moments a report names (gaps, restart events)
+     are the frames' own timestamps (rules.md, "the analysis clock").
 """
 from __future__ import annotations
 
@@ -354,13 +358,15 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
                 o = senders[other_id]
                 if (o["direction"], o["origin"], o["ip"]) != (pkt["direction"], pkt["origin"], pkt["src"]):
                     continue
+                if o["taken_over"]:          # R15: restarted on a new port already, it lives on there
+                    continue
                 flags.near(pkt["t"] - o["last_legal_t"], silence, f"new-port silence {other_id}")
                 if pkt["t"] - o["last_legal_t"] >= silence and (best_t is None or o["last_legal_t"] > best_t):
                     pred, best_t = other_id, o["last_legal_t"]
             senders[sid] = {"id": sid, "direction": pkt["direction"], "origin": pkt["origin"],
                             "ip": pkt["src"], "port": pkt["sport"], "packets": [], "pred": pred,
                             "taken_over": False, "last_legal_t": pkt["t"], "last_accepted_t": pkt["t"],
-                            "first_frame": pkt["frame"], "first_t": pkt["t"]}
+                            "first_frame": pkt["frame"], "first_t": pkt["t"], "first_own": pkt["own"]}
             order.append(sid)
             if pred is not None:
                 senders[pred]["taken_over"] = True
@@ -384,7 +390,7 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
             restart_at[s["first_frame"]] = {"sender": p["id"], "t": s["first_t"]}
             # R12: "from" is the earlier counter's highest serial when the new sender starts
             h_then = [q["h_after"] for q in p["packets"] if q["frame"] < s["first_frame"]][-1]
-            ev = {"time": _sec(s["first_t"]), "frame": s["first_frame"], "from": h_then,
+            ev = {"time": _sec(s["first_own"]), "frame": s["first_frame"], "from": h_then,
                   "to": s["packets"][0]["serial"], "port_from": p["port"], "port_to": s["port"]}
             s["restart_events"].append(ev)
             s["restart_events"].sort(key=lambda e: e["frame"])
@@ -615,7 +621,7 @@ def _serials(s: dict, dup_w: int, flags: _Flags, frames: dict, restart_at: dict)
                 continue
             if (sv - pending["serial"]) % 65536 in (1, 2, 3, 4):
                 # confirmed: a restart at the candidate (R3)
-                events.append({"time": _sec(pending["t"]), "frame": pending["frame"], "from": ctr["h"],
+                events.append({"time": _sec(pending["own"]), "frame": pending["frame"], "from": ctr["h"],
                                "to": pending["serial"]})
                 frames.setdefault(pending["frame"], {})["restart"] = ctr["h"]
                 restart_at[pending["frame"]] = {"sender": s["id"], "t": pending["t"]}
@@ -656,14 +662,14 @@ def _serials(s: dict, dup_w: int, flags: _Flags, frames: dict, restart_at: dict)
         if 1 < d < 32768 and _plausible(d, ctr, t, flags, f"frame {fr}"):     # 4. gap
             for k in range(1, d):
                 ctr["missing"].append(((h + k) % 65536, t))
-            gaps.append({"after": h, "count": d - 1, "time": _sec(t), "frame": fr})
+            gaps.append({"after": h, "count": d - 1, "time": _sec(pkt["own"]), "frame": fr})
             frames.setdefault(fr, {})["serial_missing"] = d - 1
             if sv < h:
                 wraps += 1
             ctr["h"] = sv
             accept(pkt)
             continue
-        pending = {"serial": sv, "t": t, "frame": fr}                          # 5. candidate
+        pending = {"serial": sv, "t": t, "own": pkt["own"], "frame": fr}       # 5. candidate
         accept(pkt)
     if previous is not None:
         previous["h_after"] = ctr["h"] if ctr is not None else None
