@@ -500,3 +500,24 @@ def test_a_damaged_file_read_in_a_second_process(tmp_path, monkeypatch):
     (tmp_path / "junk.pcap").write_bytes(b"\xd4\xc3\xb2\xa1" + bytes(10))
     with pytest.raises(Exception, match="pcap file header cut short"):
         analyze(str(tmp_path / "junk.pcap"))
+
+
+def test_more_than_65536_source_addresses_each_name_their_sender():
+    """A capture of more than 65,536 source addresses (spoofed, or a whole site mirrored) ended in
+    "cannot analyse: OverflowError: Python integer 65536 out of bounds for uint16": the records held
+    the source index in 16 bits. Each record now names its source, and each key its sender."""
+    from vm110.analysis import collect
+    from vm110 import encode as E
+    got = collect.Collected(path="x", engine="fast")
+    packets = {C.Direction.INPUT: E.packet(C.PacketType.VRPI, E.payload(C.PacketType.VRPI, {}), origin=0x0101),
+               C.Direction.OUTPUT: E.packet(C.PacketType.VRPO, E.vrpo_payload(0, b"a"), origin=0x0202)}
+    for i in range(70_000):
+        direction = C.Direction.INPUT if i % 2 else C.Direction.OUTPUT
+        got.add_legal(float(i), i + 1, i.to_bytes(4, "big"), 40_000 + i % 7, packets[direction])
+    rec = np.frombuffer(bytes(got.records), dtype=collect.RECORD_DTYPE)
+    assert rec["src"].tolist() == list(range(70_000)) and rec["frame"][-1] == 70_000
+    keys = collect.sender_keys(rec, collect.code_of(rec["pid"]))
+    assert len(set(keys.tolist())) == 70_000
+    for i in (0, 65_535, 65_536, 69_999):
+        direction = C.Direction.INPUT if i % 2 else C.Direction.OUTPUT
+        assert collect.key_sender(int(keys[i])) == (direction.value, 0x0101 if i % 2 else 0x0202, i, 40_000 + i % 7)

@@ -42,15 +42,16 @@ def sender_id(direction: str, origin: int, src: str) -> str:
 # numpy view names the header fields at their declared offsets; `aux` is the first payload field of
 # the other types (packet number, command ID), `state` the VRPI state bytes.
 PREFIX = C.PREFIX_LEN + STATE_LEN
-RECORD = struct.Struct(f"<dIHH{PREFIX}s")
-_AT = struct.calcsize("<dIHH")                            # where the packet starts in a RECORD
+# (the source index in 32 bits: a capture may hold more than 65,536 source addresses, spoofed or not)
+RECORD = struct.Struct(f"<dIIH{PREFIX}s")
+_AT = struct.calcsize("<dIIH")                            # where the packet starts in a RECORD
 _KEYS = [f for f in P.HEADER_FIELDS if f.name in ("origin", "serial", "size")]   # what the analysis reads
 _NUMPY = {"H": "<u2", "I": "<u4"}
 RECORD_DTYPE = np.dtype({
     "names": ["ts", "frame", "src", "sport", "packet", "pid", *(f.name for f in _KEYS), "aux", "state"],
-    "formats": ["<f8", "<u4", "<u2", "<u2", f"V{PREFIX}", "<u4", *(_NUMPY[f.code] for f in _KEYS),
+    "formats": ["<f8", "<u4", "<u4", "<u2", f"V{PREFIX}", "<u4", *(_NUMPY[f.code] for f in _KEYS),
                 "<u2", f"V{STATE_LEN}"],
-    "offsets": [0, 8, 12, 14, _AT, _AT, *(_AT + P.HEADER_OFFSETS[f.name] for f in _KEYS),
+    "offsets": [0, 8, 12, 16, _AT, _AT, *(_AT + P.HEADER_OFFSETS[f.name] for f in _KEYS),
                 _AT + C.PREFIX_LEN, _AT + C.PREFIX_LEN],
     "itemsize": RECORD.size,
 })
@@ -99,16 +100,19 @@ def _groups(key: np.ndarray):
 _INPUT = np.array([t.direction is C.Direction.INPUT for t in TYPES])
 
 
+_SRC_BITS = 30           # source indexes: one per packet at most, 2**30 of them far beyond any capture
+
+
 def sender_keys(rec: np.ndarray, codes: np.ndarray) -> np.ndarray:
     """One integer per record naming its sender: direction, source index, port, origin."""
-    return ((_INPUT[codes].astype(np.int64) << 48) | (rec["src"].astype(np.int64) << 32)
+    return ((_INPUT[codes].astype(np.int64) << (32 + _SRC_BITS)) | (rec["src"].astype(np.int64) << 32)
             | (rec["sport"].astype(np.int64) << 16) | rec["origin"].astype(np.int64))
 
 
 def key_sender(key: int) -> tuple[str, int, int, int]:
     """(direction, origin, source index, port) of a sender key."""
-    direction = (C.Direction.INPUT if key >> 48 else C.Direction.OUTPUT).value
-    return direction, key & 0xFFFF, (key >> 32) & 0xFFFF, (key >> 16) & 0xFFFF
+    direction = (C.Direction.INPUT if key >> (32 + _SRC_BITS) else C.Direction.OUTPUT).value
+    return direction, key & 0xFFFF, (key >> 32) & ((1 << _SRC_BITS) - 1), (key >> 16) & 0xFFFF
 
 
 @dataclass
@@ -179,7 +183,7 @@ class Collected:
         out["sport"] = rows["sport"]
         out["packet"] = rows["packet"]
         values, which = np.unique(rows["src"], return_inverse=True)
-        index = np.array([self.source(int(v).to_bytes(4, "little")) for v in values.tolist()], dtype=np.uint16)
+        index = np.array([self.source(int(v).to_bytes(4, "little")) for v in values.tolist()], dtype=np.uint32)
         out["src"] = index[which.ravel()]
         return out
 
