@@ -141,16 +141,12 @@ def test_a_datagram_on_an_eglink_port_from_a_lower_port_is_eglink_in_both_engine
     assert comparable(analyze(str(tmp_path / "coap.pcap"), engine="tshark")) == comparable(fast)
     for tshark in T.RUNNERS:
         with tshark.workspace(tmp_path / tshark.name) as ws:
-            path = str(tr_copy(tmp_path / "coap.pcap", ws.dir))
+            tr.write(ws.dir / "coap.pcap")
+            path = str(ws.dir / "coap.pcap")
             shown = ["-r", path, "-Y", "frame.number == 6", "-T", "fields", "-e", "frame.protocols"]
             plain = ws.run(shown, plugin=False).stdout.strip()
             ours = ws.run(["-o", "udp.try_heuristic_first:TRUE", *shown]).stdout.strip()
         assert plain.endswith(":coap") and ours.endswith(":vm110"), (tshark.name, plain, ours)
-
-
-def tr_copy(path, folder):
-    (folder / path.name).write_bytes(path.read_bytes())
-    return folder / path.name
 
 
 def test_engines_agree_on_mixed_traffic(tmp_path):
