@@ -234,8 +234,13 @@ def test_a_resumed_corpus_restores_the_coverage_of_the_run_that_wrote_it(tmp_pat
     assert result.returncode == 0, result.stdout + result.stderr
     resumed = again["coverage"]["resumed"]
     assert resumed["cases"] == resumed["of"] == stored
-    assert resumed["edges"] >= first["coverage"]["edges"], (resumed, first["coverage"]["edges"])
+    # (the controller's timers make coverage vary by an edge or two run to run (CI: 89 of 90); the
+    # bug lost 12 of 69. A shortfall is said, with what the runs that kept the cases reached)
+    edges = first["coverage"]["edges"]
+    assert resumed["edges"] >= edges - 2, (resumed, edges)
     assert f"--corpus: its {stored} cases played again reached {resumed['edges']} edges" in result.stdout
+    if resumed["edges"] < resumed["stored_edges"]:
+        assert f"the runs that kept them {resumed['stored_edges']}" in result.stdout
     result, cut = fuzz(tmp_path / "cut", exe, "--coverage", "--corpus", str(corpus), "--cases", "2")
     assert cut["coverage"]["resumed"]["cases"] == 2
     now = len(list(corpus.glob("id-*.json")))
