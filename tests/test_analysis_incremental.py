@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
+from vm110 import constants as C
 from vm110.analysis import engine, serials, timing
 from vm110.analysis.incremental import Analysis
 from vm110.analysis.periodic import Floats
@@ -183,3 +184,34 @@ def test_copies_within_the_window_are_not_held(tmp_path, monkeypatch):
     assert _report(got, rec, sources, list(range(0, len(rec), 50)) + [len(rec)]) == whole
     assert max(held) == 1                                # the candidate alone
     assert json.loads(whole)["senders"][0]["serial"]["duplicates"] == 3000
+
+
+def test_a_sender_heard_once_holds_nothing_back(tmp_path):
+    """A sender heard once (a stray packet, a controller that crashed within seconds) never ended
+    its serial-scope warm-up, which only its own next packet ended: every command event after its
+    packet waited for the end of the input, so `vm110 monitor` told a command that failed at
+    +15 s at the end of the capture (+39.9 s). The warm-up ends once the analysis clock passes it."""
+    from test_analysis_craft import CTRL, Traffic, payload, vrpi
+    from vm110.cli import main
+    from vm110.layers import VRCO, VRPO
+    tr = Traffic()
+    tr.add(0.05, vrpi(7), sport=40000)                   # heard once, never again
+    for i in range(320):
+        tr.add(i * 0.125, vrpi(100 + i))
+    serial = 0
+    for i in range(400):
+        tr.add(0.01 + i * 0.1, payload(VRPO, serial, packet_number=0, periodic_data=b"x" * 10), src=CTRL,
+               sport=C.OUTPUT_PORT)
+        serial += 1
+        if i == 120:                                     # never acknowledged
+            tr.add(0.02 + i * 0.1, payload(VRCO, serial, command_id=9), src=CTRL, sport=C.OUTPUT_PORT)
+            serial += 1
+    tr.frames.sort(key=lambda f: f[0])
+    tr.write(tmp_path / "stray.pcap")
+    lines = tmp_path / "live.jsonl"
+    assert main(["monitor", "--read", str(tmp_path / "stray.pcap"), "--idle", "0", "--no-dashboard", "--quiet",
+                 "--json-lines", str(lines), "--crc", "mpeg2", "--crc-order", "little"]) == 0
+    [failed] = [o for o in map(json.loads, lines.read_text().splitlines())
+                if o["type"] == "finding" and o["rule"] == "failed"]
+    give_up = Options().vrco_give_up_ms / 1000
+    assert give_up <= failed["at"] - failed["item"]["time"] <= give_up + 1.5

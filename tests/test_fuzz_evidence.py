@@ -285,7 +285,8 @@ for _ in range(int(sys.argv[2])):
     try:
         timer.start()
         sup.start()
-        time.sleep(0.01)
+        while True:           # until the signal: a busy machine may start the timer late
+            time.sleep(0.001)
     except KeyboardInterrupt:
         interrupted += 1
     timer.join()

@@ -2,6 +2,7 @@
 they come, and bad input (one line, exit 2, the report of what was seen)."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -145,11 +146,15 @@ def test_findings_json_lines_and_evidence_of_a_silent_base_unit(tmp_path, capsys
     # The evidence: the frames of [alarm - 2 s, alarm + 1 s], named by time and rule, JSON beside.
     files = sorted(p for p in evidence.iterdir() if "-watchdog" in p.name)
     assert [f.suffix for f in files] == [".json", ".pcapng"]
-    # The controller's last two commands, never acknowledged by the stopped BU, are failed at the
-    # end of the input (as in the report's `failed` 2), with their evidence too.
+    # The controller's last two commands, never acknowledged by the stopped BU, are failed (as in
+    # the report's `failed` 2), each with its evidence. The first is told once its give-up time has
+    # passed, while the capture runs (it waited for the end of the input while the BU, silent
+    # before its first 10 s were over, had not chosen its serial scope), the second at the end.
     failed = [f for f in findings if f["rule"] == "failed"]
     assert [(f["item"]["type"], f["event"]) for f in failed] == [("VRCO", "raised")] * 2
-    assert len([p for p in evidence.iterdir() if "-failed" in p.name]) == 2
+    end = snapshots[-1]["time"]
+    assert failed[0]["at"] - failed[0]["item"]["time"] <= C.VRCO_GIVE_UP_MS / 1000 + 1 < end - failed[0]["item"]["time"]
+    assert len([p for p in evidence.iterdir() if "-failed" in p.name]) == 4      # .json and .pcapng each
     meta = json.loads(files[0].read_text())
     frames = list(CaptureReader(str(files[1])))
     assert meta["frames"]["count"] == len(frames) > 0 and meta["findings"][0]["rule"] == "watchdog"
@@ -510,6 +515,20 @@ def test_a_closed_standard_output_ends_the_run_with_its_report_and_verdict(tmp_p
     assert err.splitlines()[-1].endswith(f"lost={seen['totals']['lost']} (rule lost>0)")
 
 
+def _wait_read_to_its_end(proc: subprocess.Popen, path: Path, timeout: float = 60) -> None:
+    """Until `proc` has `path` open and has read all of it (a busy machine starts a monitor slowly)."""
+    size, deadline = path.stat().st_size, time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        for fd in os.listdir(f"/proc/{proc.pid}/fd"):
+            with contextlib.suppress(OSError):
+                if os.readlink(f"/proc/{proc.pid}/fd/{fd}") == str(path):
+                    pos = int(Path(f"/proc/{proc.pid}/fdinfo/{fd}").read_text().split()[1])
+                    if pos >= size:
+                        return
+        time.sleep(0.05)
+    raise AssertionError(f"the monitor did not read {path} to its end within {timeout} s")
+
+
 @pytest.mark.parametrize("how", ["replaced", "cut"])
 def test_a_followed_file_replaced_or_cut_shorter_ends_the_input(how, tmp_path):
     """Trial: a followed capture renamed over by another (a capture re-recorded, a rotation) was
@@ -521,7 +540,7 @@ def test_a_followed_file_replaced_or_cut_shorter_ends_the_input(how, tmp_path):
     shutil.copy(ROOT / "captures" / "loss.pcapng", other)
     proc = subprocess.Popen(VM110 + ["monitor", "--read", str(followed), "--no-dashboard", "--quiet",
                                      "--json", str(tmp_path / "m.json")], stderr=subprocess.PIPE)
-    time.sleep(2)                                  # the whole of it read (no --idle: followed for ever)
+    _wait_read_to_its_end(proc, followed)          # (no --idle: followed for ever)
     if how == "replaced":
         other.replace(followed)
         said = f"{followed} was replaced by another file while followed"
@@ -529,9 +548,10 @@ def test_a_followed_file_replaced_or_cut_shorter_ends_the_input(how, tmp_path):
         os.truncate(followed, 1000)
         said = f"{followed} was cut shorter (1000 bytes) than what was read ({(ROOT / 'captures' / 'normal.pcap').stat().st_size})"
     try:
-        _, err = proc.communicate(timeout=20)
+        _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()                                # (the old monitor followed the old file for ever)
+        proc.communicate()
     assert proc.returncode == 2
     assert err.decode().splitlines() == [f"vm110 monitor: {said}: the report is of what was read before"]
     assert main(["analyze", str(ROOT / "captures" / "normal.pcap"), "--quiet", "--json", str(tmp_path / "a.json")]) == 0

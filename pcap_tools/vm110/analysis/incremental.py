@@ -19,6 +19,7 @@ Order across senders matters twice:
 """
 from __future__ import annotations
 
+from heapq import heapify, heappop, heappush
 from typing import Optional
 
 import numpy as np
@@ -46,6 +47,10 @@ class Analysis:
         self.finished = False
         self.clock = -np.inf                          # the analysis clock (rules.md): latest time so far
         self.stamps: dict[int, float] = {}            # frame -> own time, where the clock is later
+        # Kept so that a batch costs what its own senders cost, not a look at every sender:
+        self.warming: list[tuple] = []                # heap of (first time, order, key) warming up
+        self.undecided: dict[int, int] = {}           # sender key -> its first undecided frame
+        self.held: list[tuple[int, int]] = []         # heap of (frame, key); stale where undecided differs
 
     def feed(self, rec: np.ndarray, sources: dict[bytes, int]) -> None:
         """Legal packets (collect.RECORD_DTYPE) in arrival order; `sources`: packed source
@@ -69,6 +74,11 @@ class Analysis:
                 continue
             for value, rows in _groups(key[a:b]):
                 self.senders[value].feed(part[rows], self.events)
+        touched = values.tolist()
+        while self.warming and self.senders[self.warming[0][2]].expire(self.clock, self.events):
+            touched.append(heappop(self.warming)[2])
+        for k in touched:
+            self._note(k)
         self._apply(self._horizon())
 
     def _clocked(self, rec: np.ndarray) -> np.ndarray:
@@ -93,6 +103,7 @@ class Analysis:
         self.finished = True
         for snd in self.senders.values():
             snd.finish(self.events)
+        self.warming, self.undecided, self.held = [], {}, []
         self._apply(None)
 
     def snapshot(self) -> list[dict]:
@@ -114,6 +125,8 @@ class Analysis:
         direction, origin, src, port = key_sender(key)
         new = self.senders[key] = Sender(direction, origin, address(self.names[src], port), first, self.opt,
                                          self.floats, self.stamps)
+        if new.scope is None:
+            heappush(self.warming, (new.first_ts, len(self.senders), key))
         # Only the senders of its host: a capture of many senders costs no scan of them all.
         same_host = self.hosts.setdefault((direction, origin, new.host), [])
         quiet = [(old.last_ts, old.last_frame, i, old) for i, old in same_host
@@ -128,9 +141,25 @@ class Analysis:
         old.probe(new)
         self.events.append((new.first_frame, new.first_ts, commands.RESTART, old.id, None, None))
 
+    def _note(self, key: int) -> None:
+        """Keep the sender's first undecided frame (it only moves when the sender is fed or decided)."""
+        frame = self.senders[key].undecided()
+        if frame == self.undecided.get(key):
+            return
+        if frame is None:
+            del self.undecided[key]
+            return
+        self.undecided[key] = frame
+        heappush(self.held, (frame, key))
+        if len(self.held) > 2 * len(self.undecided) + 64:      # stale entries stay few
+            self.held = [(f, k) for k, f in self.undecided.items()]
+            heapify(self.held)
+
     def _horizon(self) -> Optional[int]:
-        frames = [f for f in (s.undecided() for s in self.senders.values()) if f is not None]
-        return min(frames) if frames else None
+        held, undecided = self.held, self.undecided
+        while held and undecided.get(held[0][1]) != held[0][0]:
+            heappop(held)
+        return held[0][0] if held else None
 
     def _apply(self, horizon: Optional[int]) -> None:
         """Apply the command events before `horizon` (all when None), in capture order."""
