@@ -4,11 +4,14 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from test_analysis_craft import Traffic, vrpi
 from vm110.errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def vm110(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -49,6 +52,23 @@ def test_fail_on_violation_exits_one(files):
     assert result.returncode == EXIT_FINDINGS
     assert "VERDICT: FAIL" in result.stdout and "lost=1 (rule lost>0)" in result.stderr
     assert vm110(str(files / "lossy.pcapng"), "--fail-on", "lost>1,watchdog").returncode == EXIT_OK
+
+
+def test_notes_are_counted_and_fail_only_a_rule_that_names_them():
+    """captures/glink.pcapng (README of captures/: a G-Link fallback, VRPO every 400 ms, duplicate
+    VRAI) has nothing lost, duplicated, illegal or late: only duplicate acknowledgements and VRPO
+    intervals outside the recommended range, which Wireshark's experts call notes (as TCP's duplicate
+    ACKs). Analyze said "VERDICT: OK (0 errors, 2 warnings)": a capture of notes warned."""
+    capture = str(REPO / "captures" / "glink.pcapng")
+    truth = json.loads(Path(f"{capture}.truth.json").read_text())
+    result = vm110(capture)
+    assert result.returncode == EXIT_OK, result.stderr
+    assert "VERDICT: OK (0 errors, 0 warnings, 2 notes)" in result.stdout
+    assert f"  note    {sum(c['duplicate_acks'] for c in truth['commands'].values())} duplicate acknowledgements" \
+        in result.stdout
+    assert vm110(capture, "--quiet", "--fail-on", "duplicate_acks").returncode == EXIT_FINDINGS
+    html = vm110(capture, "--quiet", "--html", "-").stdout
+    assert "OK</span> (0 errors, 0 warnings, 2 notes)" in html and '<li class="note">note: ' in html
 
 
 @pytest.mark.parametrize("args", [
@@ -112,7 +132,7 @@ def test_json_and_html_of_several_captures_in_parallel(files, tmp_path):
     assert serial.returncode == parallel.returncode == EXIT_OK
     assert "Combined: 2 captures, FAIL" in serial.stdout
     a, b = (json.loads((tmp_path / n).read_text()) for n in ("a.json", "b.json"))
-    assert a["schema_version"] == 2 and a["errors"] == [] and [r["capture"]["file"] for r in a["reports"]] == caps
+    assert a["schema_version"] == 3 and a["errors"] == [] and [r["capture"]["file"] for r in a["reports"]] == caps
     assert a["combined"]["totals"]["lost"] == 1 and a["combined"]["ok"] is False
     assert a == b
     page = (tmp_path / "a.html").read_text()

@@ -58,7 +58,11 @@ TOTAL_NAMES = ("packets", "eglink_packets", "damaged", "lost", "duplicates", "ou
 MAX_TOTALS = frozenset({"jitter_max_ms", "interval_max_ms", "ack_latency_max_ms"})   # combined by max, not sum
 
 # (total, severity, message after the count: singular, plural) for each finding the verdict
-# reports when its total is above 0.
+# reports when its total is above 0, notes last. The severity is that of the dissector's experts of
+# the same finding (test_dissector_analysis holds them together), as Wireshark's expert infos have
+# it: an error fails the verdict; a note (TCP's retransmissions and duplicate ACKs are notes) is no
+# problem, and fails nothing unless a --fail-on rule names it.
+SEVERITIES = ("error", "warning", "note")
 FINDINGS = (
     ("lost", "error", "packet lost (serial gaps)", "packets lost (serial gaps)"),
     ("illegal", "error", "illegal packet", "illegal packets"),
@@ -68,20 +72,20 @@ FINDINGS = (
     ("unacked", "error", "command never acknowledged", "commands never acknowledged"),
     ("restarts", "warning", "sender restart (serial counter started afresh)",
      "sender restarts (serial counter started afresh)"),
-    ("interrupted", "warning", "command interrupted by its sender's restart",
-     "commands interrupted by their sender's restart"),
     ("relays_open", "warning", "episode with the ES-Link relays open", "episodes with the ES-Link relays open"),
     ("duplicates", "warning", "duplicated packet", "duplicated packets"),
     ("out_of_order", "warning", "packet out of order", "packets out of order"),
-    ("spurious", "warning", "retransmission after the acknowledgement", "retransmissions after the acknowledgement"),
     ("acks_without_command", "warning", "acknowledgement without a command", "acknowledgements without a command"),
-    ("duplicate_acks", "warning", "duplicate acknowledgement", "duplicate acknowledgements"),
     ("vrpo_incomplete", "warning", "incomplete VRPO burst", "incomplete VRPO bursts"),
-    ("vrpo_outside_recommended", "warning", "VRPO interval outside the recommended range",
-     "VRPO intervals outside the recommended range"),
     ("time_backwards", "warning", "timestamp going backwards", "timestamps going backwards"),
     ("snaplen_truncated", "warning", "datagram cut short by the capture's snaplen",
      "datagrams cut short by the capture's snaplen"),
+    ("interrupted", "note", "command interrupted by its sender's restart",
+     "commands interrupted by their sender's restart"),
+    ("spurious", "note", "retransmission after the acknowledgement", "retransmissions after the acknowledgement"),
+    ("duplicate_acks", "note", "duplicate acknowledgement", "duplicate acknowledgements"),
+    ("vrpo_outside_recommended", "note", "VRPO interval outside the recommended range",
+     "VRPO intervals outside the recommended range"),
 )
 
 # The dissector's experts that mark exactly the frames of a rule's items (tshark -2, or the GUI):

@@ -35,7 +35,7 @@ table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #ccc;padding:
 th{background:#f2f2f2}td:first-child,th:first-child{text-align:left}
 .ok{color:#fff;background:#2a8a2a;padding:4px 10px;border-radius:4px}
 .fail{color:#fff;background:#c62828;padding:4px 10px;border-radius:4px}
-.error{color:#c62828}.warning{color:#a66a00}
+.error{color:#c62828}.warning{color:#a66a00}.note{color:#1565c0}
 figure{display:inline-block;margin:8px 12px 8px 0;vertical-align:top}figcaption{font-weight:600}
 svg text{font:11px sans-serif}pre{background:#f6f6f6;padding:8px;overflow:auto}
 .findings td{text-align:left}code.filter{user-select:all;background:#f6f6f6;padding:0 4px}
@@ -489,7 +489,8 @@ def _section(report: dict) -> str:
     span = (t0, t1) if cap["earliest_time"] is None else (cap["earliest_time"], cap["latest_time"])
     out = [f"<h2>{_e(cap['file'])}</h2>",
            (f'<p><span class="{"ok" if verdict["ok"] else "fail"}">{"OK" if verdict["ok"] else "FAIL"}</span> '
-            f"{cap['packets']} packets, {cap['eglink_packets']} EG-Link, {_num(cap['duration_s'], 1)} s; "
+            f"({summary.counted(verdict['findings'])}) {cap['packets']} packets, {cap['eglink_packets']} EG-Link, "
+            f"{_num(cap['duration_s'], 1)} s; "
             f"CRC {_e(crc['variant'])}/{_e(crc['byte_order'])}: {crc['valid']} valid, {crc['invalid']} invalid"
             + (f"; {_e(summary.time_range(cap))}" if cap["first_time"] is not None else "") + "</p>")]
     if verdict["findings"]:

@@ -4,9 +4,11 @@ Times: the capture's start and end in ISO 8601 UTC, everything else in seconds f
 (the HTML report's tables use the same `since`)."""
 from __future__ import annotations
 
+from collections import Counter
 from typing import Optional
 
 from ..timefmt import since, stamp, utc_iso
+from .findings import SEVERITIES
 
 
 def _f(value: Optional[float], digits: int = 1) -> str:
@@ -85,6 +87,13 @@ def time_range(cap: dict) -> str:
             f"{utc_iso(earliest)} to {utc_iso(latest)} (UTC); times below in s from the first record")
 
 
+def counted(findings: list[dict]) -> str:
+    """`1 error, 0 warnings`, and the notes when there are any (they are no problem)."""
+    n = Counter(f["severity"] for f in findings)
+    return ", ".join(f"{n[sev]} {sev}{'' if n[sev] == 1 else 's'}" for sev in SEVERITIES
+                     if sev != "note" or n[sev])
+
+
 def render(report: dict, everything: bool = False) -> str:
     """The summary; `everything`: the located items of each finding the report keeps, not just the first few."""
     cap, crc, verdict = report["capture"], report["crc"], report["verdict"]
@@ -94,10 +103,7 @@ def render(report: dict, everything: bool = False) -> str:
     t0 = cap["first_time"] or 0.0
     if cap["first_time"] is not None:
         lines.append(f"Time: {time_range(cap)}")
-    errors = sum(1 for f in verdict["findings"] if f["severity"] == "error")
-    warnings = len(verdict["findings"]) - errors
-    lines.append(f"VERDICT: {'OK' if verdict['ok'] else 'FAIL'} ({errors} error{'' if errors == 1 else 's'}, "
-                 f"{warnings} warning{'' if warnings == 1 else 's'})")
+    lines.append(f"VERDICT: {'OK' if verdict['ok'] else 'FAIL'} ({counted(verdict['findings'])})")
     for f in verdict["findings"]:
         lines += _finding(f, everything, t0, in_wireshark(verdict))
     if report["illegal"]["total"]:
