@@ -795,15 +795,17 @@ local E = {
     es_relays_open = ProtoExpert.new("vm110.expert.es_relays_open", "ES-Link relays open",
         group.RESPONSE_CODE, severity.WARN),
 }
--- Stream analysis experts (section 7).
+-- Stream analysis experts (section 7). Each has the severity of `vm110 analyze`'s finding of the
+-- same rule: an error where TS-0006 has an end flag an error (watchdogs, a command not acknowledged
+-- in time or never), a note where Wireshark's TCP analysis has one (retransmissions, duplicate acks).
 local function seq(code, text, sev, grp)
     E[code] = ProtoExpert.new("vm110.expert." .. code, text, grp or group.SEQUENCE, sev or severity.WARN)
 end
 seq("serial_gap", "Serial gap: packets missing")
 seq("serial_duplicate", "Duplicate serial")
 seq("serial_out_of_order", "Out-of-order serial")
-seq("watchdog_vrpi", "VRPI interval above the controller watchdog")
-seq("watchdog_vrpo", "VRPO interval above the base unit watchdog")
+seq("watchdog_vrpi", "VRPI interval above the controller watchdog", severity.ERROR)
+seq("watchdog_vrpo", "VRPO interval above the base unit watchdog", severity.ERROR)
 seq("vrpo_interval", "VRPO interval outside the recommended range", severity.NOTE)
 seq("time_backwards", "Timestamp earlier than the stream's previous packet")
 seq("retransmission", "Command retransmission", severity.NOTE)
@@ -811,10 +813,10 @@ seq("resend_interval", "Resend interval far from nominal", severity.NOTE)
 seq("spurious_retransmission", "Retransmission after the acknowledgement", severity.NOTE)
 seq("ack_without_command", "Acknowledgement without a matching command")
 seq("duplicate_ack", "Duplicate acknowledgement", severity.NOTE)
-seq("ack_late", "Command not acknowledged in time")
-seq("never_acked", "Command never acknowledged in the capture")
+seq("ack_late", "Command not acknowledged in time", severity.ERROR)
+seq("never_acked", "Command never acknowledged in the capture", severity.ERROR)
 seq("restart", "Sender restarted: serial counter started afresh")
-seq("silent_until_end", "Periodic stream silent until the end of the capture (watchdog)")
+seq("silent_until_end", "Periodic stream silent until the end of the capture (watchdog)", severity.ERROR)
 seq("command_interrupted", "Command interrupted by its sender's restart", severity.NOTE)
 seq("burst_missing", "VRPO burst: packet number missing", severity.WARN, group.REASSEMBLE)
 seq("burst_incomplete", "Incomplete VRPO burst", severity.WARN, group.REASSEMBLE)

@@ -27,7 +27,7 @@ from scapy.utils import rdpcap
 import tshark_runner as T
 from vm110 import constants as C
 from vm110.analysis import analyze
-from vm110.analysis.findings import RULE_FILTERS
+from vm110.analysis.findings import FINDINGS, RULE_FILTERS
 from vm110.decode import decode
 
 pytestmark = pytest.mark.tshark
@@ -1077,13 +1077,16 @@ def expert_severities(text: str, protocol: str) -> dict[str, str]:
 
 
 def readme_analysis_severities() -> dict[str, str]:
-    """Analysis expert code -> "Notes" or "Warns", as README's list of the analysis experts says
-    (a code marked "(note" is a note; the others are warnings)."""
+    """Analysis expert code -> "Errors", "Notes" or "Warns", as README's list of the analysis
+    experts says where it first names each (a code marked "(error" is an error, "(note" a note; the
+    others are warnings)."""
     text = (T.REPO / "README.md").read_text()
     start = text.index("Experts (group sequence")
     paragraph = text[start:text.index("\n\n", start)]
-    codes = re.findall(r"`([a-z_]+)`( \(note)?", paragraph)
-    return {code: "Notes" if note else "Warns" for code, note in codes if code != "vm110"}
+    out: dict[str, str] = {}
+    for code, marked in re.findall(r"`([a-z_]+)`(?: \((error|note))?", paragraph):
+        out.setdefault(code, {"error": "Errors", "note": "Notes"}.get(marked, "Warns"))
+    return out
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
@@ -1091,8 +1094,8 @@ def test_analysis_expert_severities_as_readme_and_tcp(tshark, tmp_path):
     """A spurious retransmission (after the acknowledgement) is a note, as Wireshark's own
     tcp.analysis.spurious_retransmission (and its retransmissions and duplicate ACKs) are: the
     TCP severity read from this tshark, on a TCP segment sent again after its ACK. And README's
-    list of the analysis experts gives each expert loss.pcapng raises the severity tshark shows
-    (it called the spurious retransmission and the duplicate acknowledgement warnings)."""
+    list of the analysis experts gives each expert loss.pcapng and restart.pcapng raise the severity
+    tshark shows (it called the spurious retransmission and the duplicate acknowledgement warnings)."""
     from scapy.layers.inet import IP, TCP
     from scapy.layers.l2 import Ether
     from scapy.packet import Raw
@@ -1105,21 +1108,94 @@ def test_analysis_expert_severities_as_readme_and_tcp(tshark, tmp_path):
                                  IP(src=b, dst=a) / TCP(sport=80, dport=1000, flags="A", seq=501, ack=111), segment)]
     for i, p in enumerate(tcp):
         p.time = 1 + i / 100
-    capture = CAPTURES / "loss.pcapng"
+    ours = {}
     try:
         with tshark.workspace(tmp_path) as ws:
             wrpcap(str(ws.dir / "tcp.pcap"), tcp)
-            (ws.dir / capture.name).write_bytes(capture.read_bytes())
             tcp_text = ws.run(["-r", str(ws.dir / "tcp.pcap"), "-q", "-z", "expert"], plugin=False).stdout
-            text = ws.run(["-r", str(ws.dir / capture.name), "-2", *T.pref_args(ON), "-q", "-z", "expert"]).stdout
+            for capture in (CAPTURES / "loss.pcapng", CAPTURES / "restart.pcapng"):
+                (ws.dir / capture.name).write_bytes(capture.read_bytes())
+                ours |= expert_severities(ws.run(["-r", str(ws.dir / capture.name), "-2", *T.pref_args(ON), "-q",
+                                                  "-z", "expert"]).stdout, "VM110")
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
     tcp_sev = expert_severities(tcp_text, "TCP")
-    ours = expert_severities(text, "VM110")
     summaries = dict(re.findall(r'seq\("([a-z_]+)", "([^"]+)"', (T.REPO / "dissector" / "vm110.lua").read_text()))
     assert tcp_sev["This frame is a (suspected) spurious retransmission"] == \
         ours[summaries["spurious_retransmission"]] == "Notes", (tcp_sev, ours)
     readme = readme_analysis_severities()
     shown = {code: ours[summaries[code]] for code in summaries if summaries[code] in ours}
-    assert len(shown) >= 6, ours
+    assert len(shown) >= 12 and "Errors" in shown.values(), ours
     assert {code: readme[code] for code in shown} == shown
+
+
+# `vm110 analyze`'s rule -> the dissector's experts of the same finding: those of the rule's filter,
+# and the experts of the rules that have none. Two rules have no expert of their own: the dissector's
+# serial gap is seen at detection, also when a later packet fills it (a warning, as TCP's "previous
+# segment not captured"), where analyze's `lost` counts only serials never received; and a packet
+# cut short by the snaplen is the `illegal` rule's `truncated`.
+RULE_EXPERTS = {**{rule: tuple(re.findall(r"vm110\.expert\.([a-z_]+)", expression))
+                   for rule, expression in RULE_FILTERS.items()},
+                "failed": ("ack_late", "never_acked"), "vrpo_incomplete": ("burst_incomplete",), "relays_open": ("es_relays_open",)}
+NO_EXPERT_OF_THEIR_OWN = {"lost", "snaplen_truncated"}
+SEVERITY_LEVELS = {"Error": "error", "Warning": "warning", "Note": "note"}   # (PDML's "Severity level: ...")
+# Between them, every rule of RULE_EXPERTS (the crafted capture: a timestamp going backwards, an ack
+# without a command, a late one)
+SEVERITY_CAPTURES = ("restart.pcapng", "loss.pcapng", "vrpo-split.pcapng", "illegal.pcap", "crafted.pcap")
+
+
+def _crafted_severities(pcap: Path) -> None:
+    bu = {"origin": 0x0101}
+    from vm110.layers import VM110, VRAO, VRCI, VRPI
+    timeline = [(ms, VM110(serial=s, **bu) / VRPI()) for s, ms in enumerate((0, 100, 200, 150, 250), start=1)]
+    timeline += [(260, VM110(serial=1) / VRAO(command_id=7)), (300, VM110(serial=6, **bu) / VRCI(command_id=1)),
+                 (300 + C.VRCI_FAIL_MS + 100, VM110(serial=2) / VRAO(command_id=1))]
+    T.write_pcap(pcap, [bytes(p) for _, p in timeline], [ms * 1000 for ms, _ in timeline])
+
+
+def expert_levels(ws: T.Workspace, pcap: Path, codes: set[str]) -> dict[str, set[str]]:
+    """Expert code -> the severities tshark -2 gives it on this capture (those of `codes`)."""
+    from lxml import etree
+    shown = ws.run(["-r", str(pcap), "-2", *T.pref_args(ON), "-T", "pdml",
+                    "-Y", " || ".join(f"vm110.expert.{c}" for c in sorted(codes))]).stdout
+    out: dict[str, set[str]] = defaultdict(set)
+    for expert in etree.fromstring(shown.encode(), parser=etree.XMLParser(huge_tree=True)).iter("field"):
+        if expert.get("name") != "_ws.expert":
+            continue
+        children = {c.get("name"): c for c in expert}
+        code = next((n[len("vm110.expert."):] for n in children if n and n.startswith("vm110.expert.")), None)
+        level = children["_ws.expert.severity"].get("showname").split(": ", 1)[1]
+        if code in codes:
+            out[code].add(SEVERITY_LEVELS.get(level, level))
+    return out
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_each_finding_has_the_severity_of_its_dissector_experts(tshark, tmp_path):
+    """A finding is as severe in `vm110 analyze` as the dissector's experts of it are in Wireshark,
+    read from tshark's own expert infos on captures that raise them (analyze called a spurious
+    retransmission a warning, which the dissector and Wireshark's TCP call a note; the dissector
+    called a watchdog violation, a late and a never acknowledged command warnings, which analyze
+    and TS-0006 call errors)."""
+    assert set(RULE_EXPERTS) | NO_EXPERT_OF_THEIR_OWN == {rule for rule, *_ in FINDINGS}
+    codes = {c for experts in RULE_EXPERTS.values() for c in experts}
+    ours: dict[str, set[str]] = defaultdict(set)       # rule -> analyze's severities of it
+    theirs: dict[str, set[str]] = defaultdict(set)     # rule -> tshark's severities of its experts
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            for name in SEVERITY_CAPTURES:
+                pcap = ws.dir / name
+                if name == "crafted.pcap":
+                    _crafted_severities(pcap)
+                else:
+                    pcap.write_bytes((CAPTURES / name).read_bytes())
+                levels = expert_levels(ws, pcap, codes)
+                for f in analyze(str(pcap))["verdict"]["findings"]:
+                    shown = {lv for c in RULE_EXPERTS.get(f["rule"], ()) for lv in levels.get(c, ())}
+                    if shown:
+                        ours[f["rule"]].add(f["severity"])
+                        theirs[f["rule"]] |= shown
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert set(ours) == set(RULE_EXPERTS), sorted(set(RULE_EXPERTS) - set(ours))
+    assert ours == theirs
