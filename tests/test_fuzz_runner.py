@@ -2,6 +2,7 @@
 is built on two free loopback ports; nothing is sent."""
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Optional
@@ -242,3 +243,58 @@ def test_a_crash_made_by_a_case_s_stream_is_confirmed_among_several_suspects(run
     assert not runner.unreproduced
     [finding] = runner.findings
     assert finding.case_index == disarmed and finding.stream == M.DISARMED_VRPI
+
+
+def test_a_crash_that_needs_two_cases_keeps_each_case_s_stream_and_replays_it(runner, tmp_path):
+    """Review: a crash bisected to two cases (the disarmed stream of one, then another's packet)
+    was written with no case: its finding had no stream, and its replay sent the packets alone
+    under the armed stream, which did not crash the controller."""
+    from vm110.fuzz.findings import finding_from_json
+    from vm110.fuzz.runner import finding_replay
+    disarmed = next(i for i in range(len(K.sweep(1))) if K.generate(1, i).stream == M.DISARMED_VRPI)
+    later = next(i for i in range(disarmed + 1, disarmed + 40) if K.generate(1, i).steps)
+    suspects = list(range(disarmed - 3, later + 3))
+    for i in suspects:
+        case = K.generate(1, i)
+        runner.records[i] = (case, [Sent(0.0, *step.build(100 * i + n), step.delay_ms, step.expect_ack)
+                                    for n, step in enumerate(case.steps)])
+    fatal = runner.records[later][1][0].data
+
+    def controller(replay: Replay, trig: Trigger) -> Optional[Trigger]:
+        """Dies on `fatal` once the base unit has been disarmed (the stream of an earlier case)."""
+        played = replay.parts or [replay]
+        seen_disarmed = False
+        for part in played:
+            if seen_disarmed and fatal in [p.data for p in part.packets]:
+                return trig
+            seen_disarmed = seen_disarmed or part.stream == M.DISARMED_VRPI
+        return None
+    runner._trial = controller
+    runner.session.traffic = [(time.time(), True, p.data, ("127.0.0.1", 1)) for i in suspects for p in runner.records[i][1]]
+    trig = Trigger(CRASH, time.time(), "crash SIGSEGV in engage (ctl.c:9)", suspects=suspects, kind="SIGSEGV engage")
+    runner._investigate(trig)
+    [finding] = runner.findings
+    assert finding.family == "sequence-of-cases"
+    assert [(c["case_index"], c["stream"]) for c in finding.cases] == [(disarmed, M.DISARMED_VRPI), (later, None)]
+    path = runner.cfg.out / runner.files[0]
+    read = finding_from_json(json.loads(path.read_text()), str(path))
+    assert controller(finding_replay(read), trig) is trig, "the replay of the file crashes the controller again"
+    frames = [p[2] for p in runner.session.traffic]
+    both = {frames.index(p.data) + 1 for i in (disarmed, later) for p in runner.records[i][1]}
+    assert {int(n.split("== ")[1]) for n in read.display_filter.split(" || ")} == both, "each case's packets"
+
+
+def test_a_finding_whose_cases_do_not_add_up_to_its_steps_is_refused(tmp_path):
+    from vm110.errors import CliError
+    from vm110.fuzz.findings import Finding, finding_from_json
+    step = {"hex": "00" * 20, "valid_hex": "00" * 20, "delay_ms": 0.0, "expect_ack": True}
+    case = {"case_index": 1, "mutation": "x", "packets": 2, "pause_vrpi_ms": 0.0, "withhold_vrai_ms": 0.0,
+            "stream": None, "settle_ms": 0.0}
+    from dataclasses import asdict
+    raw = asdict(Finding("crash", 1, 5, "sequence-of-cases", "x", "d", "00" * 20, "00" * 20, "00" * 20, 0, False,
+                         [step], cases=[case]))
+    with pytest.raises(CliError, match="add up to 2, not the 1 steps"):
+        finding_from_json(raw, "f.json")
+    raw["cases"][0]["stream"] = {"ru_battery": 1 << 40}
+    with pytest.raises(CliError, match="does not fit"):
+        finding_from_json(raw, "f.json")

@@ -62,6 +62,9 @@ class Finding:
     frame: Optional[int] = None          # the case's packet in the pcap (None: not in its window)
     output_frame: Optional[int] = None   # the controller's packet judged, in the pcap
     display_filter: Optional[str] = None  # those frames, for Wireshark or tshark -Y
+    # A finding that needs several cases played in turn (bisected from a crash): each case's index,
+    # mutation, number of `steps` and what the base unit did meanwhile (its stream, pause, withholding).
+    cases: Optional[list[dict[str, Any]]] = None
 
     def name(self, number: int) -> str:
         return f"finding-{number:03d}-{self.oracle}"
@@ -74,7 +77,9 @@ def write_finding(out: Path, number: int, finding: Finding,
     finding.pcap = f"{base}.pcap"
     finding.frame = _frame_of(traffic, finding.original_hex, outbound=True)
     finding.output_frame = _frame_of(traffic, finding.output_hex, outbound=False)
-    shown = [n for n in (finding.frame, finding.output_frame) if n is not None]
+    # Several cases: each one's packets are part of the cause, not only the last one shown.
+    steps = [_frame_of(traffic, st["hex"], outbound=True) for st in finding.steps] if finding.cases else []
+    shown = sorted({n for n in (finding.frame, *steps, finding.output_frame) if n is not None})
     finding.display_filter = " || ".join(f"frame.number == {n}" for n in shown) or None
     write_pcap(out / finding.pcap, traffic, local)
     path = out / f"{base}.json"
@@ -228,7 +233,8 @@ class _Bad(Exception):
 _KINDS: dict[str, tuple[type, ...]] = {
     "str": (str,), "int": (int,), "float": (int, float), "bool": (bool,), "Optional[str]": (str, type(None)),
     "Optional[int]": (int, type(None)),
-    "list[dict[str, Any]]": (list,), "Optional[dict[str, Any]]": (dict, type(None)),
+    "list[dict[str, Any]]": (list,), "Optional[list[dict[str, Any]]]": (list, type(None)),
+    "Optional[dict[str, Any]]": (dict, type(None)),
 }
 
 
@@ -251,8 +257,10 @@ def _checked(raw: dict[str, Any]) -> Finding:
     for name in ("pause_vrpi_ms", "withhold_vrai_ms", "settle_ms"):
         _milliseconds(name, getattr(finding, name))
     _packet("packet_hex", finding.packet_hex)
-    if not finding.steps and finding.family != NO_CASE and not (
-            finding.pause_vrpi_ms or finding.withhold_vrai_ms or finding.stream):
+    if finding.cases is not None:
+        _cases(finding.cases, len(finding.steps))
+    if not finding.steps and finding.family != NO_CASE and not any(
+            c["pause_vrpi_ms"] or c["withhold_vrai_ms"] or c["stream"] for c in played(finding)):
         # Replaying nothing would say "does not trigger any more" of any bug.
         raise _Bad("steps is empty (only a finding no case caused, family 'none', or a case of the base "
                    "unit's doing, a VRPI pause, a VRAI withheld or a stream, has none)")
@@ -269,6 +277,39 @@ def _checked(raw: dict[str, Any]) -> Finding:
     if finding.stream is not None:
         _stream(finding.stream)
     return finding
+
+
+def played(finding: Finding) -> list[dict[str, Any]]:
+    """The cases a finding plays in turn: its `cases`, else its own one (all of its steps)."""
+    if finding.cases:
+        return finding.cases
+    return [{"case_index": finding.case_index, "mutation": finding.mutation, "packets": len(finding.steps),
+             "pause_vrpi_ms": finding.pause_vrpi_ms, "withhold_vrai_ms": finding.withhold_vrai_ms,
+             "stream": finding.stream, "settle_ms": finding.settle_ms}]
+
+
+def _cases(cases: list[Any], steps: int) -> None:
+    if not cases or len(cases) > MAX_STEPS:
+        raise _Bad(f"cases: {len(cases)} cases (1 to {MAX_STEPS})")
+    for n, case in enumerate(cases):
+        if not isinstance(case, dict):
+            raise _Bad(f"cases[{n}] is not an object")
+        if not isinstance(case.get("mutation"), str):
+            raise _Bad(f"cases[{n}].mutation is not a string")
+        for name, high in (("case_index", _MAX_INT), ("packets", MAX_STEPS)):
+            value = case.get(name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise _Bad(f"cases[{n}].{name} is not an integer")
+            _in_range(f"cases[{n}].{name}", value, 0, high)
+        for name in ("pause_vrpi_ms", "withhold_vrai_ms", "settle_ms"):
+            _milliseconds(f"cases[{n}].{name}", case.get(name))
+        if "stream" not in case or not isinstance(case["stream"], (dict, type(None))):
+            raise _Bad(f"cases[{n}].stream is not an object or null")
+        if case["stream"] is not None:
+            _stream(case["stream"])
+    if sum(case["packets"] for case in cases) != steps:
+        raise _Bad(f"cases: their packets add up to {sum(case['packets'] for case in cases)}, not the "
+                   f"{steps} steps")
 
 
 # The other numbers of a finding (its millisecond values are checked by _milliseconds).

@@ -446,7 +446,7 @@ class Runner:
         finding.steps = [{"hex": p.data.hex(), "valid_hex": p.twin.hex(),
                           "delay_ms": p.delay_ms if len(sent) > 1 else 0.0, "expect_ack": p.expect_ack} for p in sent]
         finding.pause_vrpi_ms, finding.withhold_vrai_ms = case.pause_vrpi_ms, case.withhold_vrai_ms
-        finding.stream, finding.settle_ms = _jsonable(case.stream), case.settle_ms
+        finding.stream, finding.settle_ms, finding.cases = _jsonable(case.stream), case.settle_ms, None
         traffic = [p for p in self.session.traffic if p[0] >= trig.time - 4.0]
         F.write_finding(self.cfg.out, bucket.number, finding, traffic, self.session.link.local)
         bucket.size, bucket.replaced = _size(sent), bucket.replaced + 1
@@ -486,8 +486,11 @@ class Runner:
         indexes = [int(i) for i in chosen]  # type: ignore[call-overload]
         sent = [p for i in indexes for p in self.records[i][1]]
         description = " then ".join(f"[{self.records[i][0].description}]" for i in indexes)
+        # Each case is kept with what the base unit did during it (its stream, a pause): the
+        # replay plays them in turn, as the bisection did.
+        cases = [_case_json(i, *self.records[i]) for i in indexes]
         self._write(trig, indexes[-1], indexes[-1], "sequence-of-cases", description, sent, _pick(sent, None), None,
-                    False, None, traffic)
+                    False, None, traffic, cases)
         return True
 
     def _suspects(self, trig: Trigger) -> list[int]:
@@ -570,7 +573,7 @@ class Runner:
 
     def _write(self, trig: Trigger, culprit: Optional[int], index: int, family: str, description: str,
                sent: list[Sent], shown: Optional[Sent], small: Optional[Sent], complete: bool,
-               case: Optional[K.Case], traffic: list[Any]) -> None:
+               case: Optional[K.Case], traffic: list[Any], cases: Optional[list[dict[str, Any]]] = None) -> None:
         st = self.cfg.settings
         packet = small or shown
         steps = [small] if small is not None else sent
@@ -590,7 +593,7 @@ class Runner:
             stream=_jsonable(case.stream if case else None), settle_ms=case.settle_ms if case else 0.0,
             output_hex=trig.output.hex() if trig.output else None,
             target="%s:%d" % st.target, listen="%s:%d" % st.listen, group=st.group, target_cmd=self.cfg.target_cmd,
-            signature=signature)
+            signature=signature, cases=cases)
         self.findings.append(finding)
         number = len(self.findings)
         if trig.crash is not None:
@@ -666,6 +669,29 @@ def _jsonable(stream: Optional[dict[str, Any]]) -> Optional[dict[str, Any]]:
     return None if stream is None else {k: int(v) for k, v in stream.items()}
 
 
+def _case_json(index: int, case: K.Case, sent: list[Sent]) -> dict[str, Any]:
+    """One of the cases of a finding that needs several (`Finding.cases`)."""
+    return {"case_index": index, "mutation": case.description, "packets": len(sent),
+            "pause_vrpi_ms": case.pause_vrpi_ms, "withhold_vrai_ms": case.withhold_vrai_ms,
+            "stream": _jsonable(case.stream), "settle_ms": case.settle_ms}
+
+
+def finding_replay(finding: F.Finding) -> Replay:
+    """What replaying `finding` sends (its minimised packet when there is one): each of its cases
+    in turn, with what the base unit did during it."""
+    steps = finding.steps
+    if len(steps) == 1 and finding.packet_hex:
+        steps = [dict(steps[0], hex=finding.packet_hex)]
+    packets = [Sent(0.0, bytes.fromhex(st["hex"]), bytes.fromhex(st["valid_hex"]),
+                    float(st["delay_ms"]), bool(st["expect_ack"])) for st in steps]
+    parts, at = [], 0
+    for case in F.played(finding):
+        parts.append(Replay(packets[at:at + case["packets"]], case["pause_vrpi_ms"], case["withhold_vrai_ms"],
+                            case["stream"], case["settle_ms"]))
+        at += case["packets"]
+    return parts[0] if len(parts) == 1 else Replay.sequence(parts)
+
+
 def finding_kind(finding: F.Finding) -> Optional[str]:
     """The kind of trigger a crash or malformed-output finding was (from its signature), else None."""
     head = f"{finding.oracle} "
@@ -694,14 +720,10 @@ def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[
     session = Session(settings, supervisor, scratch)
     try:
         start_target(session)
-        session.monitor.vrco_seen = bool(finding.withhold_vrai_ms)   # it had VRCO to withhold: wait for one
-        steps = finding.steps
-        if len(steps) == 1 and finding.packet_hex:
-            steps = [dict(steps[0], hex=finding.packet_hex)]
-        packets = [Sent(0.0, bytes.fromhex(st["hex"]), bytes.fromhex(st["valid_hex"]),
-                        float(st["delay_ms"]), bool(st["expect_ack"])) for st in steps]
-        return trial(session, Replay(packets, finding.pause_vrpi_ms, finding.withhold_vrai_ms, finding.stream,
-                                     finding.settle_ms), finding.oracle, finding_kind(finding), strict=False)
+        replay = finding_replay(finding)
+        # It had VRCO to withhold: wait for one.
+        session.monitor.vrco_seen = any(part.withhold_vrai_ms for part in replay.parts or [replay])
+        return trial(session, replay, finding.oracle, finding_kind(finding), strict=False)
     finally:
         _close(session)
         shutil.rmtree(scratch, ignore_errors=True)    # our own folder: cores of the replay, if any
