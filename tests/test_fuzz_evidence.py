@@ -320,10 +320,23 @@ def _cmdline(pid: str) -> list[str]:
 def test_sanitizer_defaults_unless_the_user_set_them(monkeypatch, tmp_path):
     monkeypatch.setenv("ASAN_OPTIONS", "detect_leaks=1")
     monkeypatch.delenv("UBSAN_OPTIONS", raising=False)
-    sup = Supervisor("true", cwd=tmp_path)
+    sup = Supervisor("sh -c true", cwd=tmp_path)     # (a shell may start a sanitizer build)
     env = sup.environment()
     assert env["ASAN_OPTIONS"] == "detect_leaks=1" and sup.sanitizer_options["ASAN_OPTIONS"] == "user"
     assert "abort_on_error=1" in env["UBSAN_OPTIONS"] and "halt_on_error=1" in env["UBSAN_OPTIONS"]
+
+
+def test_only_the_sanitizer_options_that_apply_to_the_program_are_reported(tmp_path):
+    """Review: the summary of a run against a controller in Python named ASAN_OPTIONS,
+    UBSAN_OPTIONS and LSAN_OPTIONS, which mean nothing to it."""
+    script = tmp_path / "ctl.py"
+    script.write_text("#!/usr/bin/env python3\n")
+    script.chmod(0o755)
+    assert Supervisor(f"{sys.executable} {script} 5825", cwd=tmp_path).sanitizer_options == {}
+    assert Supervisor(str(script), cwd=tmp_path).sanitizer_options == {}
+    # A shell may start anything: all are said, as before.
+    assert set(Supervisor("sh -c ./ctl", cwd=tmp_path).sanitizer_options) == {"ASAN_OPTIONS", "UBSAN_OPTIONS",
+                                                                              "LSAN_OPTIONS"}
 
 
 def test_no_core_turns_core_files_off_and_says_so(tmp_path):

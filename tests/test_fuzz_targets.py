@@ -88,6 +88,15 @@ def test_heap_overflow_finding_carries_the_asan_report(tmp_path, programs):
     assert fixed.returncode == 0 and "does not trigger" in fixed.stdout, fixed.stdout + fixed.stderr
 
 
+def test_the_sanitizer_options_said_are_those_the_build_reads(programs):
+    """Review: the summary named ASAN_OPTIONS for any program; a build without AddressSanitizer
+    reads none of them. `env` in front (a wrapper that execs the program) still finds them."""
+    asan, plain = programs("asan-correct"), programs("plain-correct")
+    assert set(Supervisor(f"{asan} 1 2").sanitizer_options) == {"ASAN_OPTIONS", "LSAN_OPTIONS"}
+    assert set(Supervisor(f"env A=1 {asan} 1 2").sanitizer_options) == {"ASAN_OPTIONS", "LSAN_OPTIONS"}
+    assert Supervisor(f"{plain} 1 2").sanitizer_options == {}
+
+
 def test_an_abort_in_an_asan_build_has_its_stack(tmp_path, programs):
     """Trial: abort() (a failed assert) in an AddressSanitizer build was `crash SIGABRT` with no
     frames (ASan leaves no core), so every abort of a program was one finding. handle_abort=1 by

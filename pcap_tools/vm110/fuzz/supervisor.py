@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import IO, Iterator, Optional
 
 from ..errors import CliError
-from . import cores
+from . import cores, program
 from .evidence import Crash, parse_python_traceback, parse_sanitizer
 
 _STOP_WAIT_S = 2.0
@@ -97,14 +97,16 @@ class Supervisor:
         self.started_at = 0.0
         self.ring = _Ring()
         self.reader: Optional[threading.Thread] = None
+        self.exe = shutil.which(self.argv[0], path=os.environ.get("PATH")) or str(self.cwd / self.argv[0])
+        self._check_program()      # now, before the run makes its files (and at each start)
+        # Those that mean something to the program (all when that cannot be told): the summary's.
+        applies = program.sanitizer_options(self.argv, self.exe, str(self.cwd))
         self.sanitizer_options = {name: ("user" if name in os.environ else value)
-                                  for name, value in SANITIZER_DEFAULTS.items()}
+                                  for name, value in SANITIZER_DEFAULTS.items() if applies is None or name in applies}
         self.core_hard = resource.getrlimit(resource.RLIMIT_CORE)[1]
         self.core_limit = self.core_hard if core else 0
         self.core_pattern = cores.read_pattern()
         self.no_core_reason = cores.why_no_core(self.core_pattern, self.core_limit)
-        self.exe = shutil.which(self.argv[0], path=os.environ.get("PATH")) or str(self.cwd / self.argv[0])
-        self._check_program()      # now, before the run makes its files (and at each start)
 
     def environment(self) -> dict[str, str]:
         env = dict(os.environ)
