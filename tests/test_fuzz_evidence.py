@@ -3,6 +3,7 @@ core_pattern as a glob, the supervisor's output ring (one per start)."""
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -140,7 +141,7 @@ def test_the_abort_of_a_ubsan_error_is_that_error():
     assert report.summary.startswith("ctl.c:73:17: runtime error: signed integer overflow")
     crash = Crash(-signal.SIGABRT, sanitizer=report)
     assert crash.headline() == "crash SIGABRT signed-integer-overflow in on_vrpi (ctl.c:73)"
-    assert crash.signature() == "SIGABRT ubsan:signed-integer-overflow on_vrpi main"
+    assert crash.signature() == "SIGABRT ubsan:signed-integer-overflow on_vrpi@ctl.c:73 main"
 
 
 def test_a_failed_assertion_is_named_in_the_controller_s_code():
@@ -148,7 +149,7 @@ def test_a_failed_assertion_is_named_in_the_controller_s_code():
     glibc's, and that frame was one of the three of its signature."""
     crash = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(ASSERT_ABRT))
     assert crash.headline() == "crash SIGABRT ABRT in on_vrci (ctl.c:96)"
-    assert crash.signature() == "SIGABRT asan:ABRT on_vrci main"
+    assert crash.signature() == "SIGABRT asan:ABRT on_vrci@ctl.c:96 main"
 
 
 # The `crash` objects of findings written before the signature's rules changed (SIGNATURE_VERSION
@@ -211,9 +212,56 @@ def test_a_new_finding_is_compared_by_its_whole_signature(tmp_path):
     from vm110.fuzz.findings import write_crash
     crash = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(ASSERT_ABRT))
     info = write_crash(tmp_path, "finding-001-crash", crash)
-    assert info["signature_version"] == 2 and crash.same_bug(info)
+    assert info["signature_version"] == 3 and crash.same_bug(info)
     other = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(ASSERT_ABRT.replace("in main", "in loop")))
     assert not other.same_bug(info), "a different third frame is another bug under today's rules"
+
+
+def test_two_crash_sites_in_one_function_are_two_bugs_and_a_moved_line_replays_as_the_same(tmp_path):
+    """Review: two failed assertions of one function (ctl.c:96 and ctl.c:99), and two bad reads of
+    one function, had one signature: one finding for two bugs. A replay against an edited build,
+    whose lines moved, is still the same bug (and says the line moved)."""
+    from vm110.fuzz.findings import write_crash
+    first = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(ASSERT_ABRT))
+    second = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(ASSERT_ABRT.replace("ctl.c:96", "ctl.c:99")))
+    assert first.signature() != second.signature()
+    info = write_crash(tmp_path, "finding-001-crash", first)
+    assert first.same_bug(info) and not first.site_moved(info)
+    assert second.same_bug(info) and second.site_moved(info)
+    elsewhere = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(ASSERT_ABRT.replace("on_vrci", "on_vrai")))
+    assert not elsewhere.same_bug(info) and not elsewhere.site_moved(info)
+    # The callers' lines are not the signature's: a call from another line of main is that bug.
+    assert Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(ASSERT_ABRT.replace("ctl.c:136", "ctl.c:140"))) \
+        .signature() == first.signature()
+
+
+def test_a_controller_function_named_str_is_the_controller_s_own():
+    """Review: every function whose name began with `str` was taken for libc's (strlen's rule):
+    a crash in the controller's `stream_decode` was headlined in its caller."""
+    crash = Crash(-signal.SIGSEGV, backtrace=[Frame("strlen", "../sysdeps/x86_64/multiarch/strlen-avx2.S:74"),
+                                              Frame("stream_decode", "/src/ctl.c:40"), Frame("main", "/src/ctl.c:90")])
+    assert crash.headline() == "crash SIGSEGV in stream_decode (ctl.c:40)"
+    assert Frame("strtoul").own() is False and Frame("strncmp").own() is False
+
+
+@pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
+def test_a_failed_assertion_without_a_stack_is_named_by_its_site(tmp_path):
+    """Review: a plain build's failed assertions, with no core to read (core_pattern a pipe to
+    apport, --no-core), were all `crash SIGABRT`: one finding for every assertion of the program.
+    glibc's own message names the site."""
+    from vm110.fuzz.evidence import parse_assertion
+    source = tmp_path / "ctl.c"
+    source.write_text('#include <assert.h>\n#include <stdlib.h>\nstatic void on_vrci(int id)\n{\n'
+                      '    assert(id != 1);\n    assert(id != 2);\n}\n'
+                      'int main(int argc, char **argv) { (void)argc; on_vrci(atoi(argv[1])); return 0; }\n')
+    subprocess.run(["gcc", "-g", "-O0", str(source), "-o", str(tmp_path / "ctl")], check=True)
+    crashes = []
+    for arg in ("1", "2"):
+        done = subprocess.run([str(tmp_path / "ctl"), arg], capture_output=True)
+        crashes.append(Crash(done.returncode, done.stderr, assertion=parse_assertion(done.stderr.decode())))
+    assert [c.signature() for c in crashes] == ["SIGABRT on_vrci@ctl.c:5", "SIGABRT on_vrci@ctl.c:6"]
+    assert crashes[0].headline() == "crash SIGABRT in on_vrci (ctl.c:5)"
+    assert parse_assertion("no assertion here\n") is None
 
 
 def test_gdb_backtrace_frames_with_and_without_addresses():
@@ -225,11 +273,11 @@ def test_gdb_backtrace_frames_with_and_without_addresses():
 
 def test_signature_uses_own_frames_and_headline_names_signal_type_and_function():
     crash = Crash(-signal.SIGABRT, sanitizer=parse_sanitizer(ASAN_HEAP))
-    assert crash.signature() == "SIGABRT asan:heap-buffer-overflow record_laps on_vrpi on_datagram"
+    assert crash.signature() == "SIGABRT asan:heap-buffer-overflow record_laps@controller.c:126 on_vrpi on_datagram"
     assert crash.headline() == "crash SIGABRT heap-buffer-overflow in record_laps (controller.c:126)"
     segv = Crash(-signal.SIGSEGV, backtrace=parse_gdb_backtrace(GDB))
     assert segv.headline() == "crash SIGSEGV in maintenance_engage (controller.c:181)"
-    assert segv.signature() == "SIGSEGV maintenance_engage execute on_vrci"
+    assert segv.signature() == "SIGSEGV maintenance_engage@controller.c:181 execute on_vrci"
     # Another path into the same function is another stack: another bug.
     other = Crash(-signal.SIGSEGV, backtrace=[Frame("maintenance_engage", "/src/c.c:1"), Frame("on_timer", "/src/c.c:9")])
     assert other.signature() != segv.signature()
@@ -398,7 +446,7 @@ def test_a_python_controller_s_exception_is_its_signature():
     assert [(f.function, f.location) for f in report.frames] == [
         ("lookup", "/srv/ctl/handlers.py:14"), ("on_vrci", "/srv/ctl/main.py:31"), ("<module>", "/srv/ctl/main.py:40")]
     crash = Crash(1, PY_CHAINED.encode(), sanitizer=report)
-    assert crash.signature() == "exit 1 python:UnknownCommand lookup on_vrci <module>"
+    assert crash.signature() == "exit 1 python:UnknownCommand lookup@handlers.py:14 on_vrci <module>"
     assert crash.headline() == "crash exit 1 UnknownCommand in lookup (handlers.py:14)"
     assert parse_python_traceback("no traceback here\n") is None
     assert parse_python_traceback("Traceback (most recent call last):\n  File \"x.py\", line 1, in f\n") is None

@@ -71,7 +71,9 @@ def test_heap_overflow_finding_carries_the_asan_report(tmp_path, programs):
     crash = finding["crash"]
     assert crash["signal_name"] == "SIGABRT" and crash["sanitizer"]["error_type"] == "heap-buffer-overflow"
     assert crash["top_frames"][0]["function"] == "record_laps"
-    assert finding["signature"] == "crash SIGABRT asan:heap-buffer-overflow record_laps on_vrpi on_datagram"
+    overflow = 1 + targets.SOURCE.read_text().splitlines().index("    memset(laps, 1, (size_t)vlaps + 1);")
+    assert finding["signature"] == (f"crash SIGABRT asan:heap-buffer-overflow record_laps@controller.c:{overflow} "
+                                    "on_vrpi on_datagram")
     output = (out / crash["output"]).read_text()
     assert output.count("ERROR: AddressSanitizer: heap-buffer-overflow") == 1, "the run that crashed, only"
     assert "AddressSanitizer" in crash["core_missing"] and crash["core"] is None

@@ -307,6 +307,9 @@ def _replay(args: argparse.Namespace) -> int:
     if trig is not None and kind is not None:
         verdict += (": the same signature" if same_bug(finding, trig) else
                     f": another signature ({_printable(trig.detail)}; the finding's: {_printable(finding.signature)})")
+        if trig.crash is not None and trig.crash.site_moved(finding.crash):
+            # (an edit of the controller moves its lines: the same function, kind and callers)
+            verdict += f" but for its line ({_printable(trig.detail)}; the finding's: {_printable(finding.detail)})"
     print(f"{args.replay}: {finding.oracle} ({_printable(finding.mutation)}): {verdict}")
     return EXIT_FINDINGS if trig else EXIT_OK
 

@@ -12,16 +12,20 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 TOP_FRAMES = 3
-# The rules a crash's signature was made by, kept in its finding: 2, a UBSan error's own type
-# (1: ASan's ABRT of the abort it made) and glibc's assert frames not the controller's own.
-SIGNATURE_VERSION = 2
+# The rules a crash's signature was made by, kept in its finding: 3, the crashing frame's file and
+# line (two crash sites in one function are two bugs), a failed assertion's site where there is no
+# stack, and the controller's functions named str... its own; 2, a UBSan error's own type (1:
+# ASan's ABRT of the abort it made) and glibc's assert frames not the controller's own.
+SIGNATURE_VERSION = 3
 _MAX_FRAMES = 64
 
 # Frames that are not the target's own code: libc start-up, the sanitizer runtimes, signal delivery.
 _FOREIGN_FUNCTIONS = re.compile(
     r"^(__asan|__ubsan|__lsan|__sanitizer|__interceptor_|__libc_|_start$|__GI_|__pthread|raise$|abort$|__assert|"
     r"gsignal$|__restore_rt|__kernel|__afl|___interceptor_|__wrap_|_dl_|__memset|__memcpy|__strlen|"
-    r"mem(cpy|set|move|cmp)$|str\w*$|malloc$|calloc$|realloc$|free$|operator (new|delete))")
+    r"mem(cpy|set|move|cmp|chr)$|str(n?(len|cpy|cat|cmp|dup)|chr|rchr|str|tok|tok_r|spn|cspn|pbrk|casecmp|ncasecmp|"
+    r"casestr|chrnul|error|sep|coll|xfrm|[fp]time|lcpy|lcat|signal|to[a-z]+)$|stpn?cpy$|"
+    r"malloc$|calloc$|realloc$|free$|operator (new|delete))")
 _FOREIGN_FILES = re.compile(r"(^|/)(sanitizer_common|asan|ubsan|lsan|libsanitizer|compiler-rt|sysdeps|csu|nptl|"
                             r"libc\.so|libasan|libubsan|ld-linux|glibc|\.\./sysdeps)(/|\.|$)")
 _ASAN_FRAME = re.compile(r"^\s*#(\d+)\s+0x[0-9a-fA-F]+\s+(?:in\s+(.+?)\s+)?(\S+|\(.*\))\s*$")
@@ -33,6 +37,9 @@ _PY_FRAME = re.compile(r'^  File "(.+)", line (\d+), in (.+)$')
 _PY_ERROR = re.compile(r"^([A-Za-z_][\w.]*)(?::|$)")
 _PY_LIBRARY = re.compile(r"(^<frozen |/lib/python\d[\d.]*/(?!site-packages/))")
 _SUMMARY = re.compile(r"^SUMMARY:\s*(\w+):\s*(.*)$")
+# glibc's `prog: file.c:96: on_vrci: Assertion `n < 4' failed.` (the function as the compiler names it)
+_ASSERTION = re.compile(r"^(?:.*?: )?([^:\s]+):(\d+): (.+?): Assertion `.*' failed\.$")
+_SITE = re.compile(r"@\S+")
 _TOOL_NAMES = {"AddressSanitizer": "asan", "LeakSanitizer": "lsan", "UndefinedBehaviorSanitizer": "ubsan",
                "ThreadSanitizer": "tsan", "MemorySanitizer": "msan"}
 
@@ -48,10 +55,13 @@ class Frame:
             return False
         return not _FOREIGN_FILES.search(self.location)
 
+    def place(self) -> str:
+        """`ctl.c:96` (no folder, no column), or "" when the frame has no line."""
+        where = re.sub(r"^(.+?:\d+):\d+$", r"\1", self.location.rsplit("/", 1)[-1])
+        return where if re.search(r":\d+$", where) else ""
+
     def short(self) -> str:
-        where = self.location.rsplit("/", 1)[-1]
-        where = re.sub(r"^(.+?:\d+):\d+$", r"\1", where)     # no column
-        return f"{self.function} ({where})" if ":" in where else self.function
+        return f"{self.function} ({self.place()})" if self.place() else self.function
 
 
 @dataclass
@@ -171,6 +181,15 @@ def _ubsan_type(message: str) -> str:
     return re.sub(r"[^a-z]+", "-", message.split(":")[0].lower()).strip("-")[:40] or "undefined-behavior"
 
 
+def parse_assertion(text: str) -> Optional[Frame]:
+    """The site of the last failed assertion glibc reported in the output, as a frame."""
+    for line in reversed(text.splitlines()):
+        m = _ASSERTION.match(line.strip())
+        if m:
+            return Frame(m.group(3)[:200], f"{m.group(1)}:{m.group(2)}")
+    return None
+
+
 def parse_gdb_backtrace(text: str) -> list[Frame]:
     """Frames of `gdb -batch -ex bt` output."""
     out: list[Frame] = []
@@ -194,14 +213,18 @@ class Crash:
     core_missing: Optional[str] = None    # why there is none
     backtrace: list[Frame] = field(default_factory=list)
     backtrace_text: str = ""
+    assertion: Optional[Frame] = None     # glibc's failed assertion: its site, where no stack names it
+
 
     @property
     def how(self) -> dict[str, Any]:
         return ended(self.returncode)
 
     def stack(self) -> list[Frame]:
-        """The crashing thread's frames: the sanitizer's, else gdb's."""
-        return self.sanitizer.frames if self.sanitizer and self.sanitizer.frames else self.backtrace
+        """The crashing thread's frames: the sanitizer's, else gdb's, else a failed assertion's site."""
+        if self.sanitizer and self.sanitizer.frames:
+            return self.sanitizer.frames
+        return self.backtrace or ([self.assertion] if self.assertion else [])
 
     def own_frames(self, count: int = TOP_FRAMES) -> list[Frame]:
         return [f for f in self.stack() if f.own()][:count]
@@ -211,11 +234,14 @@ class Crash:
         return how["signal_name"] if "signal" in how else f"exit {how['exit_code']}"
 
     def signature(self) -> str:
-        """Signal or exit code, sanitizer error type, the top frames of the target's own code."""
+        """Signal or exit code, sanitizer error type, the top frames of the target's own code, the
+        first with its file and line (`on_vrci@ctl.c:96`): two assertions, two bad reads in one
+        function are two bugs; the callers by name only, as a line of theirs moves with any edit."""
         parts = [self.ending()]
         if self.sanitizer is not None:
             parts.append(f"{self.sanitizer.tool}:{self.sanitizer.error_type}")
-        parts += [f.function for f in self.own_frames()]
+        frames = self.own_frames()
+        parts += [f"{f.function}@{f.place()}" if n == 0 and f.place() else f.function for n, f in enumerate(frames)]
         return " ".join(parts)
 
     def same_bug(self, stored: Any) -> bool:
@@ -226,7 +252,9 @@ class Crash:
         if not isinstance(stored, dict):
             return False
         if stored.get("signature_version") == SIGNATURE_VERSION:
-            return stored.get("signature") == self.signature()
+            theirs = stored.get("signature")
+            # (the crash site's line may have moved with an edit of the controller: site_moved says so)
+            return isinstance(theirs, str) and _SITE.sub("", theirs) == _SITE.sub("", self.signature())
         if {k: stored.get(k) for k in self.how} != self.how:
             return False
         tool = stored.get("sanitizer")
@@ -247,6 +275,11 @@ class Crash:
         old_own = [f["function"] for f in frames if Frame(f["function"], f.get("location", "")).own()][:TOP_FRAMES]
         own = [f.function for f in self.own_frames()]
         return old_own == own[:len(old_own)] and bool(old_own) == bool(own)
+
+    def site_moved(self, stored: Any) -> bool:
+        """The same bug as a finding's `crash` of today's rules, with its crash site at another line."""
+        return self.same_bug(stored) and stored.get("signature_version") == SIGNATURE_VERSION \
+            and stored.get("signature") != self.signature()
 
     def headline(self) -> str:
         """`crash SIGSEGV in dispatch_state (controller.c:141)`, with the sanitizer's error type."""

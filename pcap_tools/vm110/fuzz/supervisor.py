@@ -18,7 +18,7 @@ from typing import IO, Iterator, Optional
 
 from ..errors import CliError
 from . import cores, program
-from .evidence import Crash, parse_python_traceback, parse_sanitizer
+from .evidence import Crash, parse_assertion, parse_python_traceback, parse_sanitizer
 
 _STOP_WAIT_S = 2.0
 RING_BYTES = 256 * 1024
@@ -194,6 +194,7 @@ class Supervisor:
         crash = Crash(proc.returncode, self.output())
         text = crash.output.decode("utf-8", "replace")
         crash.sanitizer = parse_sanitizer(text) or parse_python_traceback(text)
+        crash.assertion = parse_assertion(text)
         if proc.returncode >= 0:
             crash.core_missing = "the controller exited, no signal: no core"
             return crash
