@@ -298,3 +298,30 @@ def test_a_finding_whose_cases_do_not_add_up_to_its_steps_is_refused(tmp_path):
     raw["cases"][0]["stream"] = {"ru_battery": 1 << 40}
     with pytest.raises(CliError, match="does not fit"):
         finding_from_json(raw, "f.json")
+
+
+def test_a_finding_made_by_a_case_s_stream_points_at_the_vrpi_streamed(runner):
+    """Trial (a Python controller that divides by the battery): the finding of 'VRCI while the base
+    unit is disarmed' pointed at its VRCI alone (frame.number == 192), a valid command; the VRPI with
+    a battery of 0 that killed the controller was named nowhere."""
+    from scapy.layers.inet import UDP
+    from scapy.utils import PcapReader
+    from vm110.decode import decode
+    disarmed = next(i for i in range(len(K.sweep(1))) if K.generate(1, i).stream == M.DISARMED_VRPI)
+    case = K.generate(1, disarmed)
+    sent = [Sent(0.0, *step.build(30 + n), step.delay_ms, step.expect_ack) for n, step in enumerate(case.steps)]
+    runner.records[disarmed] = (case, sent)
+    peer = ("127.0.0.1", 1)
+    now = time.time()
+    streams = [M.build(C.PacketType.VRPI, 29, M.ARMED_VRPI), sent[0].data,
+               M.build(C.PacketType.VRPI, 31, M.ARMED_VRPI), M.build(C.PacketType.VRPI, 32, M.DISARMED_VRPI),
+               M.build(C.PacketType.VRPI, 33, M.DISARMED_VRPI)]
+    runner.session.traffic = [(now, True, data, peer) for data in streams]
+    runner._trial = lambda replay, t: t
+    runner._investigate(Trigger(CRASH, now, "crash exit 1 ZeroDivisionError in on_vrpi (bugs.py:116)",
+                                suspects=[disarmed], kind="exit 1 python:ZeroDivisionError on_vrpi@bugs.py:116"))
+    [finding] = runner.findings
+    assert finding.display_filter == "frame.number == 2 || frame.number == 4"
+    with PcapReader(str(runner.cfg.out / finding.pcap)) as reader:
+        frames = [bytes(f[UDP].payload) for f in reader]
+    assert decode(frames[3])["bu_state"] == M.DISARMED_VRPI["bu_state"] and frames[1] == sent[0].data

@@ -12,6 +12,7 @@ from typing import Any, Optional
 
 from .. import constants as C
 from ..capture.writer import PcapWriter, UdpFlow
+from ..decode import decode
 from ..errors import CliError
 from ..fileio import atomic_writer, write_bytes, write_text
 from ..layers import PAYLOAD_CLASSES
@@ -79,7 +80,9 @@ def write_finding(out: Path, number: int, finding: Finding,
     finding.output_frame = _frame_of(traffic, finding.output_hex, outbound=False)
     # Several cases: each one's packets are part of the cause, not only the last one shown.
     steps = [_frame_of(traffic, st["hex"], outbound=True) for st in finding.steps] if finding.cases else []
-    shown = sorted({n for n in (finding.frame, *steps, finding.output_frame) if n is not None})
+    found = [n for n in (finding.frame, *steps) if n is not None]
+    streamed = _stream_frames(traffic, finding, min(found, default=1))
+    shown = sorted({n for n in (*found, *streamed, finding.output_frame) if n is not None})
     finding.display_filter = " || ".join(f"frame.number == {n}" for n in shown) or None
     write_pcap(out / finding.pcap, traffic, local)
     path = out / f"{base}.json"
@@ -98,6 +101,24 @@ def _frame_of(traffic: list[tuple[float, bool, bytes, tuple[str, int]]], packet_
         if traffic[n][1] == outbound and traffic[n][2] == packet:
             return n + 1
     return None
+
+
+def _stream_frames(traffic: list[tuple[float, bool, bytes, tuple[str, int]]], finding: Finding,
+                   start: int) -> list[int]:
+    """The first VRPI from frame `start` on that the base unit streamed with each case's own fields
+    (a disarmed base unit, a battery of 0): what a case changed may be that, not its packets."""
+    out = []
+    vrpi = C.PacketType.VRPI.value.encode()
+    for case in played(finding):
+        if not case["stream"]:
+            continue
+        for n in range(start - 1, len(traffic)):
+            _, outbound, data, _ = traffic[n]
+            if outbound and data[:C.ID_LEN] == vrpi and data == M.build(
+                    C.PacketType.VRPI, decode(data).get("serial", 0), case["stream"]):
+                out.append(n + 1)
+                break
+    return out
 
 
 def write_crash(out: Path, base: str, crash: Crash) -> dict[str, Any]:
