@@ -97,6 +97,9 @@ def test_the_sanitizer_options_said_are_those_the_build_reads(programs):
     assert set(Supervisor(f"{asan} 1 2").sanitizer_options) == {"ASAN_OPTIONS", "LSAN_OPTIONS"}
     assert set(Supervisor(f"env A=1 {asan} 1 2").sanitizer_options) == {"ASAN_OPTIONS", "LSAN_OPTIONS"}
     assert Supervisor(f"{plain} 1 2").sanitizer_options == {}
+    # Nor are core files "on" for a build whose AddressSanitizer turns them off (its findings say so).
+    assert Supervisor(f"{asan} 1 2").core_files().startswith("AddressSanitizer turns core files off")
+    assert Supervisor(f"{asan} 1 2", core=False).core_files().startswith("turned off (--no-core")
 
 
 def test_an_abort_in_an_asan_build_has_its_stack(tmp_path, programs):

@@ -228,7 +228,8 @@ def run(args: argparse.Namespace) -> int:
                   f"{_printable(cov['corpus_skipped'][0])} (all in findings.json)")
     if args.target_cmd:
         options = ", ".join(f"{k}={'(yours)' if v == 'user' else v}" for k, v in summary["sanitizer_options"].items())
-        print((f"sanitizer options: {options}; " if options else "") + f"core files: {summary['core_files']}")
+        cores = "core files: on" if summary["core_files"] == "on" else f"no core files: {summary['core_files']}"
+        print((f"sanitizer options: {options}; " if options else "") + cores)
     if summary["controller_lost"]:
         last = summary["unreproduced"][-1] if summary["unreproduced"] else None
         print(f"the controller stopped while being fuzzed ({_printable(last['detail']) if last else 'no VRPO'}) "

@@ -29,7 +29,7 @@ def read_pattern(path: Path = CORE_PATTERN) -> Optional[str]:
 def why_no_core(pattern: Optional[str], core_limit: int) -> Optional[str]:
     """Why no core can be had before the target even runs (None: one may appear)."""
     if core_limit == 0:
-        return "core files are turned off (--no-core, or the hard core size limit is 0)"
+        return "turned off (--no-core, or the hard core size limit is 0)"
     if pattern is None:
         return "cannot read /proc/sys/kernel/core_pattern"
     if pattern.startswith("|"):

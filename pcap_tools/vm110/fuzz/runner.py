@@ -325,7 +325,7 @@ class Runner:
             "buckets": [b.to_json() for b in self.buckets.values()],
             "controller_lost": self.controller_lost,
             "sanitizer_options": self.supervisor.sanitizer_options if self.supervisor else {},
-            "core_files": (self.supervisor.no_core_reason or "on") if self.supervisor else None,
+            "core_files": self.supervisor.core_files() if self.supervisor else None,
             "stopped_early": self.stopped_early,
             **({"coverage": self.guided.summary()} if self.guided else {}),
         }

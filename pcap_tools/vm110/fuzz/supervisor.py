@@ -36,6 +36,10 @@ SANITIZER_DEFAULTS = {
 }
 
 
+_ASAN_NO_CORE = ("AddressSanitizer turns core files off (its disable_coredump=1 on 64-bit, against a core of its "
+                 "whole shadow memory); its report has the stack")
+
+
 @contextlib.contextmanager
 def _interrupts_deferred() -> Iterator[None]:
     """Ctrl-C and SIGTERM wait until the block ends. A KeyboardInterrupt raised inside Popen after
@@ -101,12 +105,22 @@ class Supervisor:
         self._check_program()      # now, before the run makes its files (and at each start)
         # Those that mean something to the program (all when that cannot be told): the summary's.
         applies = program.sanitizer_options(self.argv, self.exe, str(self.cwd))
+        self.asan = applies is not None and "ASAN_OPTIONS" in applies
         self.sanitizer_options = {name: ("user" if name in os.environ else value)
                                   for name, value in SANITIZER_DEFAULTS.items() if applies is None or name in applies}
         self.core_hard = resource.getrlimit(resource.RLIMIT_CORE)[1]
         self.core_limit = self.core_hard if core else 0
         self.core_pattern = cores.read_pattern()
         self.no_core_reason = cores.why_no_core(self.core_pattern, self.core_limit)
+
+    def core_files(self) -> str:
+        """What the run's summary says of core files: "on", or why a crash will leave none."""
+        if self.no_core_reason:
+            return self.no_core_reason
+        return _ASAN_NO_CORE if self.asan and self._asan_without_core() else "on"
+
+    def _asan_without_core(self) -> bool:
+        return "disable_coredump=0" not in self.environment().get("ASAN_OPTIONS", "")
 
     def environment(self) -> dict[str, str]:
         env = dict(os.environ)
@@ -201,8 +215,7 @@ class Supervisor:
         if self.no_core_reason:
             crash.core_missing = self.no_core_reason
             return crash
-        if crash.sanitizer is not None and crash.sanitizer.tool == "asan" \
-                and "disable_coredump=0" not in self.environment().get("ASAN_OPTIONS", ""):
+        if crash.sanitizer is not None and crash.sanitizer.tool == "asan" and self._asan_without_core():
             crash.core_missing = self._why_missing(crash)
             return crash
         dest = folder / f"{name}.core"
@@ -234,8 +247,7 @@ class Supervisor:
     def _why_missing(self, crash: Crash) -> str:
         how = crash.how
         if crash.sanitizer is not None and crash.sanitizer.tool == "asan":
-            return ("AddressSanitizer turns core files off (its disable_coredump=1 on 64-bit, against a core of its "
-                    "whole shadow memory); its report has the stack")
+            return _ASAN_NO_CORE
         if how.get("signal") in (signal.SIGKILL, signal.SIGTERM, signal.SIGINT):
             return f"{how['signal_name']} does not dump core"
         return f"no core file found by core_pattern {self.core_pattern!r} in {self.cwd}"
