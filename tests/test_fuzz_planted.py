@@ -213,3 +213,23 @@ def test_two_exceptions_of_a_python_controller_are_two_findings(tmp_path):
     assert "crash exit 1 KeyError in on_vrci (bugs.py:" in result.stdout
     # Review: the summary printed ASAN_OPTIONS and the like, which mean nothing to Python.
     assert summary["sanitizer_options"] == {} and "_OPTIONS" not in result.stdout, result.stdout
+
+
+def test_a_controller_that_cannot_be_restarted_after_a_crash_is_no_pass(tmp_path):
+    """Trial: my controller died on a case and, restarted, refused to start (the lock file its dead
+    self left): the run said 0 findings, 1 unreproduced trigger, and exited 0, a pass for CI."""
+    rx, listen = free_ports(2)
+    lock = tmp_path / "controller.lock"
+    wrapper = tmp_path / "controller.sh"
+    wrapper.write_text(f"#!/bin/sh\ntest -e {lock} && exit 1\ntouch {lock}\n"
+                       f"exec {controller_cmd('crash-on-joystick', rx, listen)}\n")
+    wrapper.chmod(0o755)
+    out = tmp_path / "out"
+    result = vm110("fuzz", "--target", f"127.0.0.1:{rx}", "--listen", f"127.0.0.1:{listen}", "--target-cmd",
+                   str(wrapper), "--seed", str(SEED), "--duration", "60", "--startup", "2", "--out", str(out))
+    assert result.returncode == 1, result.stdout + result.stderr
+    summary = json.loads((out / "findings.json").read_text())
+    [lost] = summary["unreproduced"]
+    assert summary["controller_lost"] and lost["oracle"] == "crash" and "VRPI joystick1=-32768" in lost["suspect_cases"]
+    assert "the controller could not be restarted (controller restarted but sent no VRPO within 2 s (exit code 1))" \
+        in result.stdout

@@ -232,8 +232,10 @@ def run(args: argparse.Namespace) -> int:
         print((f"sanitizer options: {options}; " if options else "") + cores)
     if summary["controller_lost"]:
         last = summary["unreproduced"][-1] if summary["unreproduced"] else None
-        print(f"the controller stopped while being fuzzed ({_printable(last['detail']) if last else 'no VRPO'}) "
-              "and there is no --target-cmd to restart and replay it: the cases that may have caused it, "
+        seen = _printable(last["detail"]) if last else "no VRPO"
+        print((f"the controller could not be restarted ({_printable(summary['stopped_early'])}) to replay what it "
+               f"did ({seen})" if args.target_cmd else f"the controller stopped while being fuzzed ({seen}) and "
+               "there is no --target-cmd to restart and replay it") + ": the cases that may have caused it, "
               f"{', '.join(_printable(c) for c in last.get('suspect_cases', [])[:3]) if last else 'unknown'}, "
               f"... (most likely first) are in {out / 'findings.json'} (unreproduced)")
     if runner.interrupted:

@@ -230,7 +230,7 @@ class Runner:
         self._last_status = 0.0
         self.stopped_early: Optional[str] = None
         self.interrupted = False             # by Ctrl-C or SIGTERM (stopped_early says so too)
-        self.controller_lost = False         # an unsupervised controller stopped while being fuzzed
+        self.controller_lost = False         # the controller stopped while being fuzzed, for good
         self.judged_again: set[int] = set()   # cases played again after a crash cut their verdict short
 
     # --- the run ----------------------------------------------------------------------------------
@@ -268,7 +268,9 @@ class Runner:
                 self.stopped_early = f"--max-findings {cfg.max_findings} reached"
         except TargetLost as exc:
             self.stopped_early = str(exc)
-            self.controller_lost = self.cases_run > 0 and self.supervisor is None   # (nothing restarts it)
+            # Nothing restarts it, or --target-cmd could not (a lock file its dead self left): the
+            # trigger is unreproduced, but no pass.
+            self.controller_lost = self.cases_run > 0
         except KeyboardInterrupt:          # Ctrl-C, SIGTERM: what was found is still summarised
             self.stopped_early, self.interrupted = "interrupted", True
         finally:
