@@ -382,3 +382,16 @@ def test_acks_missed_while_the_controller_was_dying_are_the_crash(link):
     assert [t.case_index for t in link.mon.triggers] == [2]     # 3: silent since it came, held
     link.mon.on_exit(T0 + 1.5, -6)
     assert [(t.oracle, t.case_index) for t in link.mon.triggers] == [("missing_ack", 2), ("crash", None)]
+
+
+def test_an_ack_with_a_bad_crc_is_one_bug_not_a_missing_ack_too(link):
+    """Trial (a controller that breaks the CRC of its VRAO for command ID 65535): two findings for
+    one bug, `malformed_output: illegal VRAO ... bad_crc` and `missing_ack: no VRAO for command ID
+    65535`, the second pointing at a VRCI the controller did answer."""
+    link.mon.on_tx(T0, vrci(0xFFFF), vrci(0xFFFF), index=9)
+    link.rx(T0 + 0.01, "VRAO", encode.ack_payload(0xFFFF), corrupt=True)
+    for n in range(1, 16):                      # it goes on speaking past the ack timeout
+        link.vrpo(T0 + 0.1 * n)
+    link.mon.tick(T0 + 1.6)
+    assert link.oracles() == ["malformed_output"]
+    assert link.mon.triggers[0].command_id == 0xFFFF and link.mon.triggers[0].suspects[0] == 9

@@ -167,6 +167,9 @@ class Monitor:
             command_id = fields.get("command_id") if ptype == C.PacketType.VRAO.value else None
             self._malformed(t, data, f"{ptype} with {'+'.join(fields['problems'])}",
                             f"illegal {ptype} from the controller: {', '.join(fields['problems'])}", command_id)
+            if command_id is not None:
+                # The command was answered, illegally: that is the bug, not a missing ack as well.
+                self._answered(command_id)
             return fields
         if fields.get("direction") != C.Direction.OUTPUT.value:
             self._malformed(t, data, f"{ptype} direction", f"the controller sent an input packet {ptype}")
@@ -213,12 +216,18 @@ class Monitor:
         suspects = ([culprit] if culprit is not None else []) + [i for i in recent if i != culprit]
         self.fire(Trigger(MALFORMED_OUTPUT, t, detail, None, suspects, data, kind, command_id))
 
-    def _vrao(self, t: float, data: bytes, command_id: int) -> None:
+    def _answered(self, command_id: int) -> bool:
+        """The oldest pending command of that ID is answered; False when none was pending."""
         queue = self.pending.get(command_id)
-        if queue:
-            queue.popleft()
-            if not queue:
-                del self.pending[command_id]
+        if not queue:
+            return False
+        queue.popleft()
+        if not queue:
+            del self.pending[command_id]
+        return True
+
+    def _vrao(self, t: float, data: bytes, command_id: int) -> None:
+        if self._answered(command_id):
             return
         illegal = self.illegal_ids.get(command_id)
         if illegal is not None and t - illegal[0] < _HISTORY_S:
