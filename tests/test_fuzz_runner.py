@@ -252,22 +252,23 @@ def test_a_crash_that_needs_two_cases_keeps_each_case_s_stream_and_replays_it(ru
     from vm110.fuzz.findings import finding_from_json
     from vm110.fuzz.runner import finding_replay
     disarmed = next(i for i in range(len(K.sweep(1))) if K.generate(1, i).stream == M.DISARMED_VRPI)
-    later = next(i for i in range(disarmed + 1, disarmed + 40) if K.generate(1, i).steps)
+    later = next(i for i in range(disarmed + 1, disarmed + 40) if len(K.generate(1, i).steps) >= 2)
     suspects = list(range(disarmed - 3, later + 3))
     for i in suspects:
         case = K.generate(1, i)
         runner.records[i] = (case, [Sent(0.0, *step.build(100 * i + n), step.delay_ms, step.expect_ack)
                                     for n, step in enumerate(case.steps)])
-    fatal = runner.records[later][1][0].data
+    fatal, arming = runner.records[later][1][-1].data, runner.records[disarmed][1][0].data
 
     def controller(replay: Replay, trig: Trigger) -> Optional[Trigger]:
-        """Dies on `fatal` once the base unit has been disarmed (the stream of an earlier case)."""
+        """Dies on `fatal` once a command came while the base unit was disarmed (the stream of an
+        earlier case)."""
         played = replay.parts or [replay]
-        seen_disarmed = False
+        primed = False
         for part in played:
-            if seen_disarmed and fatal in [p.data for p in part.packets]:
+            if primed and fatal in [p.data for p in part.packets]:
                 return trig
-            seen_disarmed = seen_disarmed or part.stream == M.DISARMED_VRPI
+            primed = primed or (part.stream == M.DISARMED_VRPI and arming in [p.data for p in part.packets])
         return None
     runner._trial = controller
     runner.session.traffic = [(time.time(), True, p.data, ("127.0.0.1", 1)) for i in suspects for p in runner.records[i][1]]
@@ -275,12 +276,14 @@ def test_a_crash_that_needs_two_cases_keeps_each_case_s_stream_and_replays_it(ru
     runner._investigate(trig)
     [finding] = runner.findings
     assert finding.family == "sequence-of-cases"
-    assert [(c["case_index"], c["stream"]) for c in finding.cases] == [(disarmed, M.DISARMED_VRPI), (later, None)]
+    assert [(c["case_index"], c["stream"], c["packets"]) for c in finding.cases] == [
+        (disarmed, M.DISARMED_VRPI, 1), (later, None, 1)], "each case with its stream and the packets it needs"
+    assert [step["hex"] for step in finding.steps] == [arming.hex(), fatal.hex()] and finding.minimised
     path = runner.cfg.out / runner.files[0]
     read = finding_from_json(json.loads(path.read_text()), str(path))
     assert controller(finding_replay(read), trig) is trig, "the replay of the file crashes the controller again"
     frames = [p[2] for p in runner.session.traffic]
-    both = {frames.index(p.data) + 1 for i in (disarmed, later) for p in runner.records[i][1]}
+    both = {frames.index(p) + 1 for p in (arming, fatal)}
     assert {int(n.split("== ")[1]) for n in read.display_filter.split(" || ")} == both, "each case's packets"
 
 

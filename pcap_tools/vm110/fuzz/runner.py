@@ -486,14 +486,39 @@ class Runner:
             self._write(trig, index, index, case.family, case.description, kept, shown, small, complete, case, traffic)
             return True
         indexes = [int(i) for i in chosen]  # type: ignore[call-overload]
-        sent = [p for i in indexes for p in self.records[i][1]]
+        per_case, complete = self._fewest_packets(trig, [Replay.of(*self.records[i]) for i in indexes])
+        sent = [p for packets in per_case for p in packets]
         description = " then ".join(f"[{self.records[i][0].description}]" for i in indexes)
         # Each case is kept with what the base unit did during it (its stream, a pause): the
         # replay plays them in turn, as the bisection did.
-        cases = [_case_json(i, *self.records[i]) for i in indexes]
+        cases = [_case_json(i, self.records[i][0], packets) for i, packets in zip(indexes, per_case)]
         self._write(trig, indexes[-1], indexes[-1], "sequence-of-cases", description, sent, _pick(sent, None), None,
-                    False, None, traffic, cases)
+                    complete, None, traffic, cases)
         return True
+
+    def _fewest_packets(self, trig: Trigger, parts: list[Replay]) -> tuple[list[list[Sent]], bool]:
+        """The fewest packets of cases played in turn that still trigger, each case with its own
+        (none, it may be, when its stream or pause is what it adds); complete: within the budget."""
+        deadline = time.time() + self.cfg.minimize_budget_s
+        owner = [n for n, part in enumerate(parts) for _ in part.packets]
+        flat = [p for part in parts for p in part.packets]
+
+        def split(chosen: list[object]) -> list[list[Sent]]:
+            return [[flat[int(j)] for j in chosen if owner[int(j)] == n]  # type: ignore[call-overload]
+                    for n in range(len(parts))]
+
+        def test(chosen: list[object]) -> bool:
+            if time.time() > deadline:
+                raise _Budget
+            return self._trial(Replay.sequence([
+                Replay(packets, part.pause_vrpi_ms, part.withhold_vrai_ms, part.stream, part.settle_ms)
+                for part, packets in zip(parts, split(chosen))]), trig) is not None
+        chosen: list[object] = list(range(len(flat)))
+        try:
+            chosen = ddmin(chosen, test)
+        except _Budget:
+            return split(chosen), False
+        return split(chosen), True
 
     def _suspects(self, trig: Trigger) -> list[int]:
         """The cases that may have caused `trig` and are still kept."""
