@@ -648,6 +648,23 @@ def test_a_finding_names_the_frames_of_its_evidence_in_its_pcap(tmp_path):
     assert saved["frame"] is None and saved["output_frame"] is None and saved["display_filter"] is None
 
 
+def test_a_finding_of_several_packets_names_each_of_their_frames(tmp_path):
+    """Trial (tests/targets BUG_DEEP under --coverage): the finding kept VRCI "MAINT:" and VRCI
+    "ENGAGE", both needed, and its display filter named the second alone."""
+    bu = ("127.0.0.1", 5827)
+    maint, engage = (encode.packet("VRCI", encode.command_payload(n, text), origin=0x0101, serial=n)
+                     for n, text in ((7, b"MAINT:"), (8, b"ENGAGE")))
+    vrpi = encode.packet("VRPI", bytes(46), origin=0x0101, serial=9)
+    traffic = [(1.0, True, maint, ("127.0.0.1", 5825)), (1.1, True, vrpi, ("127.0.0.1", 5825)),
+               (1.2, True, engage, ("127.0.0.1", 5825))]
+    steps = [{"hex": p.hex(), "valid_hex": p.hex(), "delay_ms": 0.0, "expect_ack": True} for p in (maint, engage)]
+    finding = findings.Finding(**{**a_finding(oracle="crash"), "steps": steps, "original_hex": engage.hex(),
+                                  "packet_hex": engage.hex(), "pcap": ""})
+    findings.write_finding(tmp_path, 1, finding, traffic, bu)
+    saved = json.loads((tmp_path / "finding-001-crash.json").read_text())
+    assert saved["frame"] == 3 and saved["display_filter"] == "frame.number == 1 || frame.number == 3"
+
+
 def test_a_failed_finding_write_keeps_the_previous_files(tmp_path):
     finding = findings.Finding(**{k: v for k, v in a_finding().items() if k != "pcap"})
     good = [(1.0, True, b"VRPI", ("127.0.0.1", 5825))]

@@ -78,8 +78,8 @@ def write_finding(out: Path, number: int, finding: Finding,
     finding.pcap = f"{base}.pcap"
     finding.frame = _frame_of(traffic, finding.original_hex, outbound=True)
     finding.output_frame = _frame_of(traffic, finding.output_hex, outbound=False)
-    # Several cases: each one's packets are part of the cause, not only the last one shown.
-    steps = [_frame_of(traffic, st["hex"], outbound=True) for st in finding.steps] if finding.cases else []
+    # Several packets kept (MAINT: then ENGAGE): each is part of the cause, not only the one shown.
+    steps = [_frame_of(traffic, st["hex"], outbound=True) for st in finding.steps] if len(finding.steps) > 1 else []
     found = [n for n in (finding.frame, *steps) if n is not None]
     streamed = _stream_frames(traffic, finding, min(found, default=1))
     shown = sorted({n for n in (*found, *streamed, finding.output_frame) if n is not None})
