@@ -33,14 +33,17 @@ def _kind(path: str) -> str:
 def _linked(path: str) -> Optional[set[str]]:
     """The option variables of the runtimes in ELF file `path`; None when it is too large to tell."""
     found: set[str] = set()
-    with open(path, "rb") as f:
-        tail, read = b"", 0
-        while chunk := f.read(_CHUNK):
-            blob = tail + chunk
-            found.update(o for marker, options in _MARKERS.items() if marker in blob for o in options)
-            tail, read = blob[-_OVERLAP:], read + len(chunk)
-            if read >= _MAX_READ:
-                return None
+    try:
+        with open(path, "rb") as f:
+            tail, read = b"", 0
+            while chunk := f.read(_CHUNK):
+                blob = tail + chunk
+                found.update(o for marker, options in _MARKERS.items() if marker in blob for o in options)
+                tail, read = blob[-_OVERLAP:], read + len(chunk)
+                if read >= _MAX_READ:
+                    return None
+    except OSError:
+        return None
     return found
 
 
