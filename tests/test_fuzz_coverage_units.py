@@ -195,6 +195,10 @@ def test_coverage_report_says_where_each_bug_is_and_why_the_run_ended():
     assert "Stopped early: --max-findings 1 reached" in page
     assert "1 trigger(s) did not happen again" in page
     assert "Resumed 5 of the 21 cases of --corpus (the run ended first" in page
+    # Review: a trigger the lost controller could not replay was said not to happen again when replayed.
+    summary["unreproduced"] = [{"oracle": "crash", "not_replayed": "controller restarted but sent no VRPO"}]
+    page = render(summary)
+    assert "did not happen again" not in page and "1 trigger(s) could not be replayed" in page
 
 
 def test_a_resumed_corpus_says_when_it_reaches_fewer_edges_than_the_runs_that_kept_it(tmp_path):

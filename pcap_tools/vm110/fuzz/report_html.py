@@ -49,9 +49,15 @@ def _notes(summary: dict[str, Any], cov: dict[str, Any]) -> str:
     notes = []
     if summary.get("stopped_early"):
         notes.append(f"Stopped early: {_e(summary['stopped_early'])}.")
-    if summary.get("unreproduced"):
-        notes.append(f"{len(summary['unreproduced'])} trigger(s) did not happen again when replayed: not counted "
+    replayed = [u for u in summary.get("unreproduced", []) if "not_replayed" not in u]
+    if replayed:
+        notes.append(f"{len(replayed)} trigger(s) did not happen again when replayed: not counted "
                      "as bugs (listed in findings.json, unreproduced).")
+    lost = len(summary.get("unreproduced", [])) - len(replayed)
+    if lost:
+        # (the controller was gone for good, or the run interrupted: a bug may be among them)
+        notes.append(f"{lost} trigger(s) could not be replayed: listed in findings.json (unreproduced, "
+                     "not_replayed says why) with the cases that may have caused them.")
     resumed = cov.get("resumed")
     if resumed:
         stored = resumed.get("stored_edges")
