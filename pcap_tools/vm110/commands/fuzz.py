@@ -6,7 +6,8 @@ random byte changes) reproducible from --seed and the case index. Oracles: crash
 missing_ack, illegal_acked, malformed_output, vrco_retransmit. Each confirmed finding is saved in
 --out as JSON (with the minimised packet) and a pcap; --out/findings.json summarises the run.
 Sends only to --target (multicast TTL 1), and only on loopback unless --allow-remote; never to a
-broadcast address. Exit code 1 when there are findings, 0 when none, 2 on usage errors.
+broadcast address. Exit code 1 when there are findings or the controller was lost (it stopped and
+could not be restarted), 0 when none, 2 on usage errors.
 `--replay FINDING` sends a finding again and says whether it still triggers (a crash or a malformed
 output: with the same signature or another); the finding is data: its stored command is never run and its stored target
 obeys the --target rules. A crash finding keeps the controller's output, signal, sanitizer report,
