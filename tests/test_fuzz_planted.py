@@ -233,3 +233,22 @@ def test_a_controller_that_cannot_be_restarted_after_a_crash_is_no_pass(tmp_path
     assert summary["controller_lost"] and lost["oracle"] == "crash" and "VRPI joystick1=-32768" in lost["suspect_cases"]
     assert "the controller could not be restarted (controller restarted but sent no VRPO within 2 s (exit code 1))" \
         in result.stdout
+
+
+def test_the_replay_of_an_old_finding_of_several_cases_says_what_it_lacks(tmp_path):
+    """Review: a finding of several cases written before each case's stream was kept replays its
+    packets under the armed stream; its 'does not trigger any more' may only mean that."""
+    rx, listen = free_ports(2)
+    packet = mutate.build(C.PacketType.VRCI, 5, mutate.default_fields(C.PacketType.VRCI, 9))
+    step = {"hex": packet.hex(), "valid_hex": packet.hex(), "delay_ms": 0.0, "expect_ack": True}
+    finding = findings.Finding(
+        oracle="missing_ack", seed=SEED, case_index=3, family="sequence-of-cases", mutation="[a] then [b]",
+        detail="no VRAO", packet_hex=packet.hex(), original_hex=packet.hex(), valid_hex=packet.hex(),
+        differences=0, minimised=False, steps=[step, step], target=f"127.0.0.1:{rx}", listen=f"127.0.0.1:{listen}")
+    raw = asdict(finding)
+    del raw["cases"]                                  # as the version before wrote it
+    path = tmp_path / "finding.json"
+    path.write_text(json.dumps(raw))
+    result = vm110("fuzz", "--replay", str(path), "--target-cmd", controller_cmd("reference", rx, listen))
+    assert result.returncode == 0 and "does not trigger" in result.stdout, result.stdout + result.stderr
+    assert "its replay sends them under the armed stream" in result.stderr

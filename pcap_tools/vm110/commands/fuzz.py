@@ -299,6 +299,11 @@ def _replay(args: argparse.Namespace) -> int:
     if finding.group and not args.group:
         _progress(f"not joining the multicast group stored in {args.replay} (give --group to join it): "
                   f"{_printable(finding.group)}")
+    if finding.family == "sequence-of-cases" and finding.cases is None:
+        # (written before a finding of several cases kept each one's stream, pause and withholding)
+        _progress(f"{args.replay} keeps the packets of its cases, not what the base unit did during each (a "
+                  "disarmed stream, a pause): its replay sends them under the armed stream, and 'does not "
+                  "trigger' may only mean that")
     if finding.target_cmd and not args.target_cmd:
         _progress(f"not running the command stored in {args.replay} (give --target-cmd to start a "
                   f"controller): {_printable(finding.target_cmd)!r}")
