@@ -202,6 +202,19 @@ def test_a_controller_that_exits_at_once_is_told_at_once(tmp_path):
         assert result.returncode == 2 and f"{option} is empty" in result.stderr, result.stderr
 
 
+def test_a_controller_that_will_not_start_is_told_with_its_last_words(tmp_path):
+    """Trial: my Python controller could not open its serial port and exited; the fuzzer said only
+    'the controller exited with code 1 before sending any VRPO', the reason left in target.log."""
+    rx, listen = free_ports(2)
+    script = tmp_path / "ctl.py"
+    script.write_text('print("starting")\nraise SystemExit("controller: cannot open /dev/ttyS9: no such device")\n')
+    result = vm110("fuzz", "--target", f"127.0.0.1:{rx}", "--listen", f"127.0.0.1:{listen}", "--target-cmd",
+                   f"{sys.executable} {script}", "--cases", "3", "--out", str(tmp_path / "out"))
+    assert result.returncode == 2, result.stderr
+    assert ('the controller exited with code 1 before sending any VRPO to 127.0.0.1:'
+            f'{listen}: its last output line "controller: cannot open /dev/ttyS9: no such device"') in result.stderr
+
+
 def test_two_exceptions_of_a_python_controller_are_two_findings(tmp_path):
     """Trial: a KeyError and a ZeroDivisionError of one controller in Python were one finding,
     `crash exit 1` (the signature had the exit code alone)."""

@@ -171,8 +171,9 @@ def start_target(s: Session) -> None:
     if not s.wait_for_vrpo(0.0, s.settings.startup_s):
         where = f"{s.link.local[0]}:{s.link.local[1]}"
         code = s.supervisor.poll() if s.supervisor else None
-        if code is not None:
-            raise TargetLost(f"the controller exited with code {code} before sending any VRPO to {where}")
+        if code is not None and s.supervisor is not None:
+            raise TargetLost(f"the controller exited with code {code} before sending any VRPO to {where}"
+                             + s.supervisor.last_words())
         raise TargetLost(f"no VRPO from the controller on {where} within {s.settings.startup_s:.0f} s")
     s.pump(time.time() + 2 * C.VRPI_PERIOD_MS / 1000)
     s.monitor.triggers.clear()     # whatever happened before the first VRPI is not a case's doing

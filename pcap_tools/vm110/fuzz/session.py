@@ -212,7 +212,8 @@ class Session:
         if not self.wait_for_vrpo(now, self.settings.startup_s):
             code = self.supervisor.poll()
             raise TargetLost("controller restarted but sent no VRPO within "
-                             f"{self.settings.startup_s:.0f} s" + (f" (exit code {code})" if code is not None else ""))
+                             f"{self.settings.startup_s:.0f} s" + (f" (exit code {code})" if code is not None else "")
+                             + self.supervisor.last_words())
         self.pump(time.time() + C.VRPI_PERIOD_MS / 1000 + 0.01)   # let it see a VRPI first
 
     def healthy(self) -> bool:

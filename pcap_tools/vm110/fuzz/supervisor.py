@@ -199,6 +199,16 @@ class Supervisor:
             self.reader.join(_READ_WAIT_S)
         return self.ring.value()
 
+    def last_words(self) -> str:
+        """`: its last output line "..."` of a controller that ended (why it would not start), or ""."""
+        if self.poll() is None:
+            return ""
+        lines = [line.strip() for line in self.output().decode("utf-8", "replace").splitlines() if line.strip()]
+        if not lines:
+            return ""
+        text = "".join(c if c.isprintable() else "?" for c in lines[-1][:200])
+        return f': its last output line "{text}"'
+
     def evidence(self, folder: Path, name: str) -> Crash:
         """The crash of the process just ended: its output, sanitizer report, core (moved to
         `folder`/`name`.core) and the backtrace from it."""
