@@ -265,3 +265,22 @@ def test_the_replay_of_an_old_finding_of_several_cases_says_what_it_lacks(tmp_pa
     result = vm110("fuzz", "--replay", str(path), "--target-cmd", controller_cmd("reference", rx, listen))
     assert result.returncode == 0 and "does not trigger" in result.stdout, result.stdout + result.stderr
     assert "its replay sends them under the armed stream" in result.stderr
+
+
+def test_a_crash_no_replay_makes_again_is_no_pass(tmp_path):
+    """Trial: my controller crashed once (on a state its cases alone did not make again) and no
+    replay crashed it: the run said 0 findings, 1 unreproduced trigger and exited 0, a pass for CI."""
+    rx, listen = free_ports(2)
+    once = tmp_path / "crashed-once"
+    wrapper = tmp_path / "controller.sh"
+    wrapper.write_text(f"#!/bin/sh\ntest -e {once} && exec {controller_cmd('reference', rx, listen)}\n"
+                       f"touch {once}\nexec {controller_cmd('crash-on-joystick', rx, listen)}\n")
+    wrapper.chmod(0o755)
+    out = tmp_path / "out"
+    result = vm110("fuzz", "--target", f"127.0.0.1:{rx}", "--listen", f"127.0.0.1:{listen}", "--target-cmd",
+                   str(wrapper), "--seed", str(SEED), "--cases", "150", "--out", str(out))
+    assert result.returncode == 1, result.stdout + result.stderr
+    summary = json.loads((out / "findings.json").read_text())
+    assert not summary["findings"] and [u["oracle"] for u in summary["unreproduced"]] == ["crash"]
+    assert "the controller crashed 1 time where replaying its cases did not crash it again (crash exit 3)" \
+        in result.stdout

@@ -239,9 +239,16 @@ def run(args: argparse.Namespace) -> int:
                "there is no --target-cmd to restart and replay it") + ": the cases that may have caused it, "
               f"{', '.join(_printable(c) for c in last.get('suspect_cases', [])[:3]) if last else 'unknown'}, "
               f"... (most likely first) are in {out / 'findings.json'} (unreproduced)")
+    # A process that died is no hiccup of a loaded machine, as a late ack may be: a crash no replay
+    # made again (a race, a state its cases alone do not make) is no finding, but no pass either.
+    crashed = [u for u in summary["unreproduced"] if u["oracle"] == CRASH and "not_replayed" not in u]
+    if crashed:
+        print(f"the controller crashed {_n(len(crashed), 'time')} where replaying its cases did not crash it again "
+              f"({_printable(crashed[0]['detail'])}): no finding, no reproducer, but no pass; its output is in "
+              f"{out / 'target.log'}, the cases in {out / 'findings.json'} (unreproduced)")
     if runner.interrupted:
         return EXIT_INTERRUPTED
-    if summary["findings"] or summary["controller_lost"]:
+    if summary["findings"] or summary["controller_lost"] or crashed:
         return EXIT_FINDINGS
     if summary["cases_run"] == 0 and duration is not None:     # (nothing was tested: no pass for a CI gate)
         raise CliError(f"no case ran: --duration {duration:g} s ended before the first case (the controller's "
