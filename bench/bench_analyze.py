@@ -6,7 +6,10 @@ Prints, all measured in this run:
   (tshark with a Lua dissector needs minutes for the whole file);
 - peak memory of a child process running `vm110 analyze --json` on 1 M packets (target <= 300 MiB)
   and on 2 M, and their difference (target: about 24 MiB at most; the analysis keeps per packet
-  only the time of a periodic packet, everything else is bounded by senders, commands and findings).
+  only the time of a periodic packet, everything else is bounded by senders, commands and findings);
+- what a sender costs: `vm110 analyze --json` (the command, in a fresh process) of SENDERS VRPI
+  packets each from a sender of its own (a hostile or mirrored capture: every source address is
+  one), against the same packets from two senders; the ratio, and the cost of each sender above.
 Each timing is the median of REPEAT runs, interleaved, so that a busy machine hurts both sides alike.
 The capture is cached in out/bench/ (synthesis is deterministic; delete it to rebuild).
 """
@@ -25,7 +28,10 @@ from pathlib import Path
 
 from scapy.utils import RawPcapReader
 
+from vm110 import constants as C
+from vm110 import encode as E
 from vm110.analysis import analyze
+from vm110.capture.writer import UdpFlow, open_writer
 from vm110.plugin import plugin_path
 from vm110.synth import synthesize
 
@@ -34,6 +40,7 @@ OUT = ROOT / "out" / "bench"
 PACKETS_PER_S = 18.6          # of the `day` scenario
 REPEAT = 3
 TSHARK_PACKETS = 100_000
+SENDERS = 20_000
 
 
 def capture(packets: int) -> Path:
@@ -56,6 +63,21 @@ def prefix(path: Path, count: int) -> Path:
             pos += 16 + struct.unpack_from("<I", data, pos + 8)[0]
         out.write_bytes(data[:pos])
     return out
+
+
+def senders_capture(count: int, own: bool) -> Path:
+    """`count` VRPI packets 1 ms apart, each from a sender of its own (`own`), or from two."""
+    path = OUT / f"senders-{count}-{'own' if own else 'two'}.pcap"
+    if not path.exists():
+        OUT.mkdir(parents=True, exist_ok=True)
+        packet = E.packet(C.PacketType.VRPI, E.payload(C.PacketType.VRPI, {}), origin=0x0101)
+        with open(path, "wb") as out, open_writer(out, "pcap") as writer:
+            for i in range(count):
+                n = i if own else i % 2
+                source = f"10.{(n >> 16) & 255}.{(n >> 8) & 255}.{n & 255}"
+                flow = UdpFlow(source, C.INPUT_PORT, C.MULTICAST_GROUP, C.INPUT_PORT)
+                writer.write(1_700_000_000_000_000 + i * 1000, flow.frame(packet))
+    return path
 
 
 def best(fn, repeat: int = REPEAT) -> float:
@@ -108,10 +130,28 @@ def tshark_fields(path: Path) -> None:
                     "-e", "vm110.command_id"], check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
+def per_sender(count: int) -> None:
+    own, two = senders_capture(count, True), senders_capture(count, False)
+    times: dict[Path, list[float]] = {own: [], two: []}
+    for _ in range(REPEAT):
+        for path in times:
+            times[path].append(child_peak(path)[0])
+    own_s, two_s = statistics.median(times[own]), statistics.median(times[two])
+    print(f"vm110 analyze --json of {count} packets, each from a sender of its own: {own_s:.2f} s; "
+          f"from two senders: {two_s:.2f} s")
+    print(f"RATIO {count} senders / 2 senders = {own_s / two_s:.2f} "
+          f"({(own_s - two_s) / count * 1e6:.0f} us a sender)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--packets", type=int, default=1_000_000)
+    parser.add_argument("--senders", type=int, default=SENDERS, help="packets (and senders) of the per-sender row")
+    parser.add_argument("--senders-only", action="store_true", help="only the per-sender row")
     args = parser.parse_args()
+    per_sender(args.senders)
+    if args.senders_only:
+        return
     path = capture(args.packets)
     double = capture(2 * args.packets)
     peaks = [(n, *child_peak(p)) for n, p in ((args.packets, path), (2 * args.packets, double))]
