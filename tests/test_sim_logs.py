@@ -168,12 +168,12 @@ def test_command_data_cannot_forge_log_lines_or_reach_the_terminal():
     assert not any(c in line for line in lines for c in "\n\x1b")
 
 
-def test_sigterm_and_ctrl_c_end_a_run_as_interrupted():
+def test_sigterm_sighup_and_ctrl_c_end_a_run_as_interrupted():
     """A supervisor must tell an interrupted run from a clean end. SIGTERM ended `simulate` with
-    exit 0, as `--duration` does; now it is an interruption like Ctrl-C: the summary still comes
-    last on standard output, one line on stderr names the signal, and the exit code is the
-    README's "130 interrupted"."""
-    for sig in (signal.SIGTERM, signal.SIGINT):
+    exit 0, as `--duration` does, and SIGHUP (its terminal closed) killed it without its summary;
+    now each is an interruption like Ctrl-C: the summary still comes last on standard output, one
+    line on stderr names the signal, and the exit code is the README's "130 interrupted"."""
+    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
         run = [sys.executable, "-m", "vm110", "simulate", "bu", "--listen", f"{LOOPBACK}:0",
                "--peer", f"{LOOPBACK}:9", "--source", f"{LOOPBACK}:0", "--command-every", "0.2"]
         with subprocess.Popen(run, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:

@@ -133,10 +133,12 @@ def test_a_failure_half_way_leaves_the_old_files(capsys, monkeypatch, tmp_path, 
     assert leftovers(tmp_path) == []
 
 
-def test_sigterm_half_way_leaves_the_old_files_and_no_temporary_file(tmp_path):
-    """Before: SIGTERM (`timeout`, a cancelled CI job) killed the run and left its temporary file,
-    .run.pcap.<hex>.tmp, beside OUT (13 MB after 3 s of `day`); now it is an interruption as
-    Ctrl-C is: exit 130, the old files as they were, nothing left behind."""
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
+def test_sigterm_or_sighup_half_way_leaves_the_old_files_and_no_temporary_file(tmp_path, sig):
+    """Before: SIGTERM (`timeout`, a cancelled CI job) or SIGHUP (its terminal closed) killed the
+    run and left its temporary file, .run.pcap.<hex>.tmp, beside OUT (13 MB after 3 s of `day`);
+    now each is an interruption as Ctrl-C is: exit 130, the old files as they were, nothing left
+    behind."""
     out = old_files(tmp_path)
     with subprocess.Popen([sys.executable, "-m", "vm110", "synth", "day", "--duration", "200000", "--out", str(out)],
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
@@ -144,7 +146,7 @@ def test_sigterm_half_way_leaves_the_old_files_and_no_temporary_file(tmp_path):
         while not leftovers(tmp_path) and time.monotonic() < deadline:     # the capture is being written
             time.sleep(0.05)
         assert leftovers(tmp_path), "the run never started writing"
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         _, err = proc.communicate(timeout=30)
     assert proc.returncode == EXIT_INTERRUPTED and "Traceback" not in err, err
     assert out.read_bytes() == OLD_CAPTURE

@@ -4,8 +4,8 @@ Default network set-up is the specification's: multicast group 239.255.42.20, in
 (BU -> controller), outputs on 5827, TTL 1. `--peer`/`--listen` switch to unicast (for example two
 simulators on loopback: see captures/README.md). Logs what the node does and detects to stdout,
 and a summary line at the end; the sockets it uses go to stderr first, so that stdout is the log
-alone (JSON lines only with `--json`). Stops after `--duration` seconds (exit 0), on Ctrl-C or on SIGTERM
-(an interruption: the summary still comes, exit 130). `--crc`, `--crc-order`, `--serial-scope` and
+alone (JSON lines only with `--json`). Stops after `--duration` seconds (exit 0), on Ctrl-C, SIGTERM or
+SIGHUP (an interruption: the summary still comes, exit 130). `--crc`, `--crc-order`, `--serial-scope` and
 `--vrpo-start` speak another reading of TS-0006, as `analyze` reads one under the same options.
 """
 from __future__ import annotations
@@ -22,6 +22,7 @@ from typing import Any, Callable, Optional, Sequence
 
 from .. import constants as C
 from ..errors import EXIT_INTERRUPTED, EXIT_OK, CliError
+from ..monitor.stopping import STOPPING
 from ..numbers import fields, number, span
 from ..sim.bu import DEFAULT_ORIGIN, BaseUnit, BaseUnitConfig
 from ..sim.clock import WallClock, seconds
@@ -248,9 +249,10 @@ def sockets_line(role: str, transport: UdpTransport) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    # SIGTERM (systemd, `timeout`, a test harness) is an interruption like Ctrl-C: the loop ends at
-    # its next turn, the sockets close, the summary is printed, exit 130 (SIGTERM ended it 0, a
-    # clean end to a supervisor). Before the loop runs, and at a second signal, it stops at once.
+    # SIGTERM (systemd, `timeout`, a test harness) and SIGHUP (its terminal or SSH session closed)
+    # are interruptions like Ctrl-C: the loop ends at its next turn, the sockets close, the summary
+    # is printed, exit 130 (SIGTERM ended it 0, a clean end to a supervisor; SIGHUP killed it
+    # without its summary). Before the loop runs, and at a second signal, it stops at once.
     stopped_by: list[str] = []
     runner: Optional[RealtimeRunner] = None
 
@@ -260,7 +262,7 @@ def run(args: argparse.Namespace) -> int:
         stopped_by.append(signal.Signals(signum).name)
         runner.stop(timeout=0)
 
-    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, interrupt) for sig in STOPPING}
     try:
         node, runner = _prepare(args)
         _run(args, node, runner, stopped_by)

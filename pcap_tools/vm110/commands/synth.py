@@ -55,13 +55,15 @@ def _interrupt(signum: int, frame: Any) -> NoReturn:
 
 
 def run(args: argparse.Namespace) -> int:
-    # SIGTERM (`timeout`, a CI job cancelled) is an interruption like Ctrl-C: the temporary files
-    # are removed on the way out (killed by it, a run left them beside OUT, up to gigabytes).
-    previous = signal.signal(signal.SIGTERM, _interrupt)
+    # SIGTERM (`timeout`, a CI job cancelled) and SIGHUP (its terminal closed) are interruptions
+    # like Ctrl-C: the temporary files are removed on the way out (killed by either, a run left
+    # them beside OUT, up to gigabytes).
+    previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
         return _synth(args)
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _synth(args: argparse.Namespace) -> int:
