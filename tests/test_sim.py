@@ -247,7 +247,8 @@ def test_restart_and_stop_on_the_virtual_clock():
     assert after[0] == 7 and {e for t, e, _ in mine} == {1, 2}    # endpoint 2: the new port
     assert next(meta.serial for _, e, meta in mine if e == 2) == 0
     restarts = ctl.events("restart")
-    assert [(e["t"], e["serial"], e["port"]) for e in restarts] == [(1.5, 7, None), (2.3, 0, 50000)]
+    assert [(e["t"], e["serial"], e["port"], e.get("port_from")) for e in restarts] == [
+        (1.5, 7, C.OUTPUT_PORT, None), (2.3, 0, 50000, C.OUTPUT_PORT)]        # the port it sends from, and before
     assert [e["command_id"] for e in ctl.events("vrco_dropped")] == [2]     # the VRCO of 0.93 s
     assert ids(ctl, "vrco_sent")[3] == 100                        # IDs afresh from the restart's
     assert max(a[0] for a in arrivals if a[5].sender == "bu") < 3_000_000 and bu.events("stopped")

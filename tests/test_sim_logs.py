@@ -140,6 +140,26 @@ def test_events_logged_after_a_stall_keep_the_time_they_happened():
     assert 0 < restart["port"] <= 65535
 
 
+def test_a_restart_logs_the_port_it_sends_from():
+    """`--restart AT` (same port) logged `restart serial=0 port=None` (JSON `"port": null`). Now
+    the port it sends from, as the sockets line on stderr gives it, and `port_from` only when a
+    new port was taken."""
+    for extra in ((), ("--json",)):
+        same = simulate("bu", "--duration", "0.8", "--restart", "0.2", "--restart-silence", "0.2", *extra)
+        moved = simulate("bu", "--duration", "0.8", "--restart", "0.2:0", "--restart-silence", "0.2", *extra)
+        for done, new in ((same, False), (moved, True)):
+            sending = int(done.stderr.split("sending from ")[1].split(" ")[0].rsplit(":", 1)[1])
+            [line] = [line for line in done.stdout.splitlines() if " restart " in line or '"restart"' in line]
+            if extra:
+                entry = json.loads(line)
+                port, port_from = entry["port"], entry.get("port_from")
+            else:
+                fields = dict(f.split("=") for f in line.split(" restart ")[1].split())
+                port, port_from = int(fields["port"]), fields.get("port_from") and int(fields["port_from"])
+            assert (port == sending, port_from) == (not new, sending if new else None), line
+            assert 0 < port <= 65535 and "None" not in line and "null" not in line
+
+
 def test_a_log_that_cannot_be_written_ends_with_one_line():
     """Before: a log to a full disk (here /dev/full) ended in two tracebacks, exit 1. Now: one line
     naming standard output, exit 2, for text and JSON logs and the summary alone (--quiet)."""

@@ -341,9 +341,10 @@ def test_restarts_are_where_the_nodes_restarted(tmp_path):
         port = station.port
         for e in station.node.events("restart"):
             before = [a[5].serial for a in arrivals if a[5].sender == station.node.name and a[0] < seconds(e["t"])]
-            port = e["port"] or port
+            assert e.get("port_from", e["port"]) == port      # the port it sent from before
+            port = e["port"]
             logged.append((round(EPOCH_US / 1e6 + e["t"], 6), f"{station.ip}:{port}", before[-1], e["serial"],
-                           e["port"] is not None))
+                           "port_from" in e))
     assert sorted((t, src, e["from"], e["to"], "port_to" in e) for t, src, e in events) == sorted(logged)
     assert [s["serial"]["restarts"] for s in truth["senders"]] == [1, 1, 1]
     bu = next(s for s in truth["senders"] if s["direction"] == "Input")

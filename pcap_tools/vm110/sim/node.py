@@ -111,8 +111,9 @@ class Node:
         # (start, end, restart or None) in µs: neither sends nor receives (`sim.lifecycle`)
         self.stalls = tuple(sorted(windows, key=lambda w: (w[0], w[1])))
         self.restarts = tuple(r for _, _, r in self.stalls if r is not None)
-        # Told the new source port at a restart that changes it (the runner reopens the socket).
-        self.on_port_change: Optional[Callable[[int], Optional[int]]] = None
+        # Asked at each restart with its new port (None: the same one; the runner reopens the
+        # socket for a new one): the ports sent from before and after, for the log.
+        self.restart_source: Optional[Callable[[Optional[int]], tuple[int, int]]] = None
         self.crc, self.crc_order = crc, check_byte_order(crc_order)
         self._crc_fn = crc_function(crc)
         self._trailer = trailer_function(crc, self.crc_order)
@@ -309,10 +310,13 @@ class Node:
         self.serial = restart.serial & 0xFFFF
         if self.type_serials is not None:
             self.type_serials.clear()
-        port = restart.port
-        if port is not None and self.on_port_change is not None:
-            port = self.on_port_change(port) or port     # the port it took (asked for 0: a free one)
-        self.event(now, "restart", serial=self.serial, port=port)
+        # The port it sends from now (asked for 0: the free one it took), and the one before when
+        # it changed: a restart on the same port logged "port=None".
+        ports: dict[str, int] = {}
+        if self.restart_source is not None:
+            before, after = self.restart_source(restart.port)
+            ports = {"port": after} if after == before else {"port": after, "port_from": before}
+        self.event(now, "restart", serial=self.serial, **ports)
         self.on_restart(now, restart)
 
     def on_restart(self, now: int, restart: Restart) -> None:

@@ -35,7 +35,7 @@ class RealtimeRunner:
             if transport.rx is None:
                 transport.open()
             node.attach(transport.send)
-            node.on_port_change = transport.move_source
+            node.restart_source = transport.restart_source
             if transport.impairer is not None:
                 transport.impairer.set_origin(self.clock.now())
         now = self.clock.now()

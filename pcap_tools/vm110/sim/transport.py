@@ -5,7 +5,7 @@ sending socket (bound to `source`, so that packets leave from the node's port, e
 inputs from IP:5825) that sends to `dest`. Impairments are applied before sending; delayed
 copies wait in a queue that the runner flushes (`next_due`, `flush`). A mirror copy (meant for the
 tap only) goes out like a duplicate: on a socket there is no way to show it to a capture alone.
-A node restarting on a new source port gets a new sending socket (`move_source`).
+A node restarting on a new source port gets a new sending socket (`restart_source`).
 """
 from __future__ import annotations
 
@@ -127,9 +127,12 @@ class UdpTransport:
             raise
         return tx
 
-    def move_source(self, port: int) -> int:
-        """Send from `port` from now on (0: a new ephemeral port), as a restarted program would;
-        the port taken."""
+    def restart_source(self, port: Optional[int]) -> tuple[int, int]:
+        """At a restart: send from `port` from now on (0: a new ephemeral port), as a restarted
+        program would, or go on from the same one (None); the ports sent from before and after."""
+        before = self.tx_address[1]
+        if port is None:
+            return before, before
         self.config.source = (self.config.source[0], port)
         try:
             tx = self._sending_socket()
@@ -138,7 +141,7 @@ class UdpTransport:
         if self.tx is not None:
             self.tx.close()
         self.tx = tx
-        return tx.getsockname()[1]
+        return before, tx.getsockname()[1]
 
     @property
     def rx_address(self) -> Address:

@@ -80,10 +80,14 @@ class VirtualNetwork:
         apply = impairer.apply if impairer is not None else None
         wire_us: dict[int, int] = {}     # by packet length: time on the wire (rounded up)
         current = [endpoint]             # the endpoint it sends from, moved on by a new-port restart
+        ports = [port for _, port in self._endpoints]
 
-        def move(port: int) -> None:
-            current[0] += 1
-        self.stations[index].node.on_port_change = move
+        def restart_source(port: Optional[int]) -> tuple[int, int]:
+            before = ports[current[0]]
+            if port is not None:
+                current[0] += 1
+            return before, ports[current[0]]
+        self.stations[index].node.restart_source = restart_source
 
         def send(data: bytes, now: int, meta: Meta) -> None:
             start = wire_free[index]
