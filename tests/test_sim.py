@@ -321,8 +321,33 @@ def test_a_restart_onto_the_port_it_receives_on_is_refused_before_the_run(capsys
     code = cli.main(["simulate", "bu", "--listen", "127.0.0.10:15827", "--peer", "127.0.0.20:15825",
                      "--source", "127.0.0.10:15825", "--restart", "0.2:15827", "--duration", "1"])
     assert code == 2 and capsys.readouterr().err == (
-        "vm110 simulate: --restart 0.2:15827: the node receives on port 15827 (127.0.0.10); a restart on a new "
-        "port must send from another\n")
+        "vm110 simulate: --restart 0.2:15827: the node receives on port 15827 (127.0.0.10); it must send from "
+        "another\n")
+
+
+UNICAST = {"bu": ["--listen", "127.0.0.10:40007", "--peer", "127.0.0.20:5825"],
+           "controller": ["--listen", "127.0.0.20:40007", "--peer", "127.0.0.10:5827"]}
+
+
+@pytest.mark.parametrize("role, args, message", [
+    ("bu", ["--source", "127.0.0.10:5827"], "--source 127.0.0.10:5827: port 5827 is the controller's (--port 5825); "
+     "a base unit sends from its own, 5825, or a port that is neither"),
+    ("controller", ["--source", "127.0.0.20:5825"], "--source 127.0.0.20:5825: port 5825 is the base unit's "
+     "(--port 5825); a controller sends from its own, 5827, or a port that is neither"),
+    ("bu", ["--port", "6000", "--source", "127.0.0.10:6002"], "port 6002 is the controller's (--port 6000)"),
+    ("bu", ["--source", "127.0.0.10:0", "--restart", "0.5:5827"], "--restart 0.5:5827: port 5827 is the controller's"),
+    ("controller", ["--restart", "0.5:5825"], "--restart 0.5:5825: port 5825 is the base unit's"),
+    ("bu", ["--source", "127.0.0.10:40007"], "--source 127.0.0.10:40007: the node receives on port 40007 "
+     "(127.0.0.10); it must send from another"),
+])
+def test_a_node_cannot_send_from_the_other_sides_port_or_its_own_receiving_one(capsys, role, args, message):
+    """Before: a BU given the controller's port (--source, --restart AT:NEW_PORT; by --port) sent
+    its inputs from the output port, passing for the controller to a reader that goes by ports
+    (TS-0006 2.2), and a --source on its own receiving port failed blaming "another program".
+    Now each is refused before anything is sent, exit 2, naming the option and the ports."""
+    code = cli.main(["simulate", role, *UNICAST[role], *args, "--duration", "0.1"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("vm110 simulate: ") and message in err and err.count("\n") == 1, err
 
 
 def test_a_key_given_twice_is_refused(tmp_path):

@@ -60,7 +60,7 @@ def add_network_arguments(parser: argparse.ArgumentParser) -> None:
     net.add_argument("--iface", default="0.0.0.0", help="IPv4 address of the interface for multicast")
     net.add_argument("--peer", help="unicast HOST:PORT to send to instead of the group")
     net.add_argument("--listen", help="unicast HOST:PORT to receive on instead of joining the group")
-    net.add_argument("--source", help="HOST:PORT to send from (default: the interface and this side's port)")
+    net.add_argument("--source", help="HOST:PORT to send from (default: the interface and this side's port; not the other side's, nor the one it receives on)")
 
 
 def add_impairment_arguments(parser: argparse.ArgumentParser) -> None:
@@ -159,15 +159,27 @@ def udp_config(args: argparse.Namespace) -> UdpConfig:
     return cfg
 
 
-def _check_restart_ports(cfg: UdpConfig, restarts: Sequence[Restart]) -> None:
-    """A restart on a new port may not take the port the node receives on: that failed at the
-    restart, "Address already in use", hours into a run (a trial)."""
-    (rx_host, rx_port), tx_host = cfg.listen, cfg.source[0]
+def _check_source_ports(role: str, input_port: int, cfg: UdpConfig, restarts: Sequence[Restart]) -> None:
+    """The ports the node sends from (--source, a restart's new port) may be neither the other
+    side's EG-Link port (TS-0006 2.2: inputs from the input port, outputs from the output port; a
+    BU sending from the output port passed for the controller to every reader that goes by ports)
+    nor the port the node receives on (that failed with "Address already in use", at the restart
+    hours into a run, and blamed "another program")."""
+    (rx_host, rx_port), (tx_host, tx_port) = cfg.listen, cfg.source
     shared = rx_host == tx_host or "0.0.0.0" in (rx_host, tx_host) or ipaddress.IPv4Address(rx_host).is_multicast
-    for r in restarts:
-        if r.port and r.port == rx_port and shared:
-            raise CliError(f"--restart {r.at_s:g}:{r.port}: the node receives on port {rx_port} ({rx_host}); "
-                           "a restart on a new port must send from another")
+    own, other = (input_port, input_port + C.OUTPUT_PORT_OFFSET)
+    if role == "controller":
+        own, other = other, own
+    names = {"bu": "base unit", "controller": "controller"}
+    sources = [(f"--source {tx_host}:{tx_port}", tx_port)] + [(f"--restart {r.at_s:g}:{r.port}", r.port)
+                                                             for r in restarts if r.port is not None]
+    for option, port in sources:
+        if port == other:
+            peer = "controller" if role == "bu" else "bu"
+            raise CliError(f"{option}: port {port} is the {names[peer]}'s (--port {input_port}); a {names[role]} "
+                           f"sends from its own, {own}, or a port that is neither")
+        if port and port == rx_port and shared:
+            raise CliError(f"{option}: the node receives on port {rx_port} ({rx_host}); it must send from another")
 
 
 def _ipv4(option: str, text: str) -> ipaddress.IPv4Address:
@@ -283,7 +295,7 @@ def _prepare(args: argparse.Namespace) -> tuple[Any, RealtimeRunner]:
 
     sockets = udp_config(args)      # its errors before anything starts
     node = build_node(args, printer)
-    _check_restart_ports(sockets, node.restarts)
+    _check_source_ports(args.role, args.port, sockets, node.restarts)
     if args.json and not args.quiet:
         node.listeners.append(lambda entry: print(json.dumps({"time_utc": utc_iso(clock.wall(seconds(entry["t"]))),
                                                               **entry}), flush=True))
