@@ -330,15 +330,16 @@ UNICAST = {"bu": ["--listen", "127.0.0.10:40007", "--peer", "127.0.0.20:5825"],
 
 
 @pytest.mark.parametrize("role, args, message", [
-    ("bu", ["--source", "127.0.0.10:5827"], "--source 127.0.0.10:5827: port 5827 is the controller's (--port 5825); "
-     "a base unit sends from its own, 5825, or a port that is neither"),
-    ("controller", ["--source", "127.0.0.20:5825"], "--source 127.0.0.20:5825: port 5825 is the base unit's "
-     "(--port 5825); a controller sends from its own, 5827, or a port that is neither"),
+    ("bu", ["--source", "127.0.0.10:5827"], ("--source 127.0.0.10:5827: port 5827 is the controller's (--port 5825); "
+                                             "a base unit sends from its own, 5825, or a port that is neither")),
+    ("controller", ["--source", "127.0.0.20:5825"], ("--source 127.0.0.20:5825: port 5825 is the base unit's "
+                                                     "(--port 5825); a controller sends from its own, 5827, or a port "
+                                                     "that is neither")),
     ("bu", ["--port", "6000", "--source", "127.0.0.10:6002"], "port 6002 is the controller's (--port 6000)"),
     ("bu", ["--source", "127.0.0.10:0", "--restart", "0.5:5827"], "--restart 0.5:5827: port 5827 is the controller's"),
     ("controller", ["--restart", "0.5:5825"], "--restart 0.5:5825: port 5825 is the base unit's"),
-    ("bu", ["--source", "127.0.0.10:40007"], "--source 127.0.0.10:40007: the node receives on port 40007 "
-     "(127.0.0.10); it must send from another"),
+    ("bu", ["--source", "127.0.0.10:40007"], ("--source 127.0.0.10:40007: the node receives on port 40007 "
+                                             "(127.0.0.10); it must send from another")),
 ])
 def test_a_node_cannot_send_from_the_other_sides_port_or_its_own_receiving_one(capsys, role, args, message):
     """Before: a BU given the controller's port (--source, --restart AT:NEW_PORT; by --port) sent

@@ -60,7 +60,8 @@ def add_network_arguments(parser: argparse.ArgumentParser) -> None:
     net.add_argument("--iface", default="0.0.0.0", help="IPv4 address of the interface for multicast")
     net.add_argument("--peer", help="unicast HOST:PORT to send to instead of the group")
     net.add_argument("--listen", help="unicast HOST:PORT to receive on instead of joining the group")
-    net.add_argument("--source", help="HOST:PORT to send from (default: the interface and this side's port; not the other side's, nor the one it receives on)")
+    net.add_argument("--source", help="HOST:PORT to send from (default: the interface and this side's port; "
+                                      "not the other side's, nor the one it receives on)")
 
 
 def add_impairment_arguments(parser: argparse.ArgumentParser) -> None:
