@@ -78,16 +78,16 @@ def test_a_data_size_a_multiple_of_488_is_inferred(data_size, tmp_path):
     20 ms gap (bursts 100 ms apart), a group complete when it has all data_size / 488 packets."""
     from vm110.sim.controller import ControllerConfig
     from vm110.sim.impair import Impairment
-    from vm110.sim.scenario import Scenario, _armed, _pair
+    from vm110.sim.scenario import Reading, Scenario, _armed, _pair
     from vm110.synth import write_capture
     from scapy.utils import rdpcap
 
-    def build(seed: int, duration: float) -> list:
-        return _pair(seed, duration, _armed(duration), ctl=ControllerConfig(data_size=data_size),
+    def build(seed: int, duration: float, reading: Reading) -> list:
+        return _pair(seed, reading, _armed(duration), ctl=ControllerConfig(data_size=data_size),
                      ctl_imp=Impairment(loss=4.0, jitter_ms=2.0, only=("VRPO",), seed=seed))
     out = tmp_path / "full.pcap"
     with open(out, "wb") as stream:
-        truth = write_capture(stream, Scenario("full", "", 20.0, build), 3, 20.0, "pcap")
+        truth = write_capture(stream, Scenario("full", "", 20.0, build), 3, 20.0, "pcap", Reading())
     times = [float(p.time) for p in rdpcap(str(out)) if bytes(p)[42:46] == b"VRPO"]
     groups, last = [], None
     for t in times:

@@ -43,6 +43,7 @@ ACCEPTED: dict[tuple[str, str], set[str]] = {
     ("fleet build", "--vrpo-start"): {"0"},
     ("fleet build", "--vrpo-data-size"): {"0"},
     ("synth", "--seed"): {"0", "1e18"},
+    ("synth", "--vrpo-start"): {"0"},
     ("fuzz", "--seed"): {"0", "1e18"},
     **{("simulate bu", option): values for option, values in {
         **_SIMULATE, "--unarmed-rus": {"0"}, "--origin": {"0"}}.items()},

@@ -17,7 +17,7 @@ from . import constants as C
 from .capture.writer import ByteSink, Format, UdpFlow, open_writer
 from .fileio import atomic_writer, check_target, write_text
 from .sim.clock import seconds
-from .sim.scenario import EPOCH_US, SCENARIOS, Scenario
+from .sim.scenario import EPOCH_US, SCENARIOS, Reading, Scenario
 from .sim.truth import GroundTruth
 from .sim.virtual import Arrival, VirtualNetwork, endpoints
 
@@ -42,8 +42,9 @@ def scenario(name: str) -> Scenario:
 
 
 def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] = None,
-               fmt: Format = "pcap") -> dict[str, Any]:
-    """Write capture `out` and its truth next to it; returns the truth.
+               fmt: Format = "pcap", reading: Optional[Reading] = None) -> dict[str, Any]:
+    """Write capture `out` and its truth next to it; returns the truth. Both devices speak
+    `reading` (default: interpretation.md's), and the truth is the one `analyze` gives under it.
 
     Each file goes through a temporary file renamed into place when complete, the truth before the
     capture: a failure at any point leaves the files that were there as they were (CliError)."""
@@ -53,7 +54,7 @@ def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] =
         raise ValueError("duration must be positive and finite")
     check_target(truth_path(out))      # up front: not after the whole run
     with atomic_writer(out) as stream:
-        result = write_capture(stream, sc, seed, duration, fmt)
+        result = write_capture(stream, sc, seed, duration, fmt, reading or Reading())
         write_text(truth_path(out), _truth_text(result))
     return result
 
@@ -61,13 +62,14 @@ def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] =
 def output_rate(name: str, seed: int = 1, fmt: Format = "pcap") -> float:
     """Bytes per second of traffic that `synthesize` writes (capture and truth), from a short run."""
     sink = _Counter()
-    result = write_capture(sink, scenario(name), seed, RATE_SAMPLE_S, fmt)
+    result = write_capture(sink, scenario(name), seed, RATE_SAMPLE_S, fmt, Reading())
     return (sink.size + len(_truth_text(result))) / RATE_SAMPLE_S
 
 
-def write_capture(stream: ByteSink, sc: Scenario, seed: int, duration: float, fmt: Format) -> dict[str, Any]:
+def write_capture(stream: ByteSink, sc: Scenario, seed: int, duration: float, fmt: Format,
+                  reading: Reading) -> dict[str, Any]:
     """Run `sc` and write its capture to `stream`; returns the truth."""
-    stations = sc.build(seed, duration)
+    stations = sc.stations(seed, duration, reading)
     # One flow per endpoint (a station's port, then its new ports after restarts; to the group on
     # the station's own port), then the other traffic's: its arrivals carry that index.
     flows = [UdpFlow(stations[i].ip, port, C.MULTICAST_GROUP, stations[i].port, ttl=C.MULTICAST_TTL)
@@ -76,7 +78,7 @@ def write_capture(stream: ByteSink, sc: Scenario, seed: int, duration: float, fm
               for t in map(seconds, sc.other_traffic) if t < seconds(duration)]
     flows.append(UdpFlow(OTHER_SOURCE, MDNS_PORT, OTHER_GROUP, MDNS_PORT, ttl=255))
     frame = [flow.frame for flow in flows]
-    truth = GroundTruth(stations, EPOCH_US)
+    truth = GroundTruth(stations, EPOCH_US, reading)
     collecting = gc.isenabled()
     gc.disable()      # millions of short-lived tuples and no cycles: the collector would only cost time
     try:

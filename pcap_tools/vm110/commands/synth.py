@@ -3,6 +3,8 @@
 Runs the simulators on a virtual clock (no sleeping) and writes FILE (pcap or pcapng, as a network
 tap on the multicast group sees it) and FILE.truth.json (exact figures: loss, duplicates, order,
 commands, watchdogs, illegal packets, VRPO bursts). The same seed gives byte-identical files.
+`--crc`, `--crc-order`, `--serial-scope` and `--vrpo-start` make both devices speak another reading
+of TS-0006, as `simulate` does; the truth is then what `analyze` gives under the same options.
 Each file is written to a temporary file beside it and renamed into place when complete: a failure
 leaves what was there before. A target that is not a regular file is refused.
 """
@@ -15,10 +17,10 @@ from typing import Any, NoReturn
 from ..capture.writer import FORMATS, Format, format_of
 from ..errors import CliError
 from ..numbers import number
-from ..sim.scenario import SCENARIOS
+from ..sim.scenario import SCENARIOS, Reading
 from ..synth import output_rate, synthesize, truth_path
 from ..timefmt import utc_iso
-from .options import SEED
+from .options import SEED, VRPO_START, VRPO_START_HELP, add_reading_options
 
 GIB = 1 << 30
 MAX_OUTPUT_BYTES = 4 * GIB
@@ -36,6 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"{MAX_OUTPUT_BYTES // GIB} GiB of output (default: the scenario's)")
     parser.add_argument("--format", choices=FORMATS, help="capture format (default: from the extension, else pcap)")
     parser.add_argument("--list", action="store_true", help="list the scenarios and exit")
+    add_reading_options(parser, found=False)     # (another reading of TS-0006: analyze takes the same)
+    parser.add_argument("--vrpo-start", type=VRPO_START, default=0, metavar="N", help=VRPO_START_HELP)
 
 
 def check_size(name: str, duration: float, seed: int, fmt: Format) -> None:
@@ -80,7 +84,8 @@ def _synth(args: argparse.Namespace) -> int:
     fmt: Format = args.format or format_of(args.out)
     if args.duration is not None:
         check_size(args.scenario, args.duration, args.seed, fmt)
-    truth = synthesize(args.scenario, args.out, args.seed, args.duration, fmt)
+    reading = Reading(args.crc, args.crc_order, args.serial_scope, args.vrpo_start)
+    truth = synthesize(args.scenario, args.out, args.seed, args.duration, fmt, reading)
     cap = truth["capture"]
     span = "no packet" if cap["first_time"] is None else \
         f"{cap['duration_s']:.3f} s from {utc_iso(cap['first_time'])} to {utc_iso(cap['last_time'])}"

@@ -12,12 +12,11 @@ from collections import Counter
 from typing import Any, Callable, Optional, Sequence
 
 from .. import constants as C
-from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT
 from .clock import US_PER_S, ms
 from .ledger import REUSE_GAP_MS
-from .node import Meta
 from .peers import (CONFIRM, DUP_WINDOW_US, MIN_RATE, NEW_PORT_SILENCE_US, PLAUSIBLE_BASE, PLAUSIBLE_FACTOR,
                     RATE_WINDOW_US)
+from .scenario import Reading
 from .virtual import Arrival, Station, endpoints
 
 SCHEMA_VERSION = 2
@@ -28,6 +27,7 @@ _COMMAND_TYPES = (C.PacketType.VRCI, C.PacketType.VRCO)
 _VRPO = C.PacketType.VRPO
 _BAD_CRC = C.Problem.BAD_CRC.value
 _NAMES = {t: t.value for t in C.PacketType}
+_TYPE_ORDER = {t: i for i, t in enumerate(C.PacketType)}    # the analysis' order of per-type counters
 _MODULUS, _HALF, _VRPO_MAX_DATA = C.SERIAL_MODULUS, C.SERIAL_HALF, C.VRPO_MAX_DATA
 REUSE_GAP_US = ms(REUSE_GAP_MS)     # a command ID within this of its previous transmission: a retransmission
 
@@ -171,13 +171,23 @@ class _Counter:
             self.out_of_order.append(self.candidate.serial)
             self.candidate = None
 
-    def report(self, received: int) -> dict[str, Any]:
-        lost = self.lost_for_good + list(self.missing)
-        return {"scope": "sender", "received": received, "lost": len(lost),
-                "duplicates": len(self.duplicates), "out_of_order": len(self.out_of_order), "wraps": self.wraps,
-                "lost_serials": lost, "duplicate_serials": self.duplicates,
-                "out_of_order_serials": self.out_of_order, "gaps": self.gaps,
-                "restarts": len(self.restarts), "restart_events": self.restarts}
+    def lost(self) -> list[int]:
+        return self.lost_for_good + list(self.missing)
+
+
+def _serial_report(scope: str, counters: list[_Counter], link: Optional[dict[str, Any]],
+                   received: int) -> dict[str, Any]:
+    """The counters of a sender (one, or one per packet type in the analysis' order) as one:
+    serials listed counter by counter, gaps and restarts by frame, a new-port restart first."""
+    lost = [s for c in counters for s in c.lost()]
+    duplicates = [s for c in counters for s in c.duplicates]
+    out_of_order = [s for c in counters for s in c.out_of_order]
+    gaps = sorted((g for c in counters for g in c.gaps), key=lambda g: g["frame"])
+    restarts = ([link] if link else []) + sorted((r for c in counters for r in c.restarts), key=lambda r: r["frame"])
+    return {"scope": scope, "received": received, "lost": len(lost), "duplicates": len(duplicates),
+            "out_of_order": len(out_of_order), "wraps": sum(c.wraps for c in counters),
+            "lost_serials": lost, "duplicate_serials": duplicates, "out_of_order_serials": out_of_order,
+            "gaps": gaps, "restarts": len(restarts), "restart_events": restarts}
 
 
 class _Commands:
@@ -243,8 +253,8 @@ class _Commands:
 
 
 def _burst_shape(burst: list[tuple[int, int]]) -> Optional[bool]:
-    """A VRPO burst of (packet number, data length) numbered 0..n-1 each once with every packet but
-    the last by number carrying 488 data bytes: whether the last carries fewer (it ended the
+    """A VRPO burst of (packet number, counted from the first's, data length) numbered 0..n-1 each
+    once with every packet but the last by number carrying 488 data bytes: whether the last carries fewer (it ended the
     burst); None for any other burst (interpretation.md, 'VRPO split')."""
     if len(burst) == 1:                            # most bursts: one packet
         number, size = burst[0]
@@ -259,18 +269,22 @@ def _burst_shape(burst: list[tuple[int, int]]) -> Optional[bool]:
 class _Sender:
     """What the truth keeps per sender (one endpoint of a station), updated packet by packet."""
 
-    def __init__(self, sid: str, station: Station, port: int, epoch_us: int) -> None:
+    def __init__(self, sid: str, station: Station, port: int, epoch_us: int, reading: Reading) -> None:
         self.id, self.station, self.port = sid, station, port
         self.by_type: dict[C.PacketType, int] = {}     # legal packets (duplicates too), by type
-        self.counter = _Counter(epoch_us)
+        self.scope, self.epoch_us = reading.serial_scope, epoch_us
+        self.counters: dict[Optional[C.PacketType], _Counter] = {}   # None (scope sender) or type -> counter
+        self.link: Optional[dict[str, Any]] = None     # the restart of an earlier sender on another port
+        self.vrpo_start = reading.vrpo_start
         self.last_legal = 0
+        self.last_type: Optional[C.PacketType] = None  # of the latest legal packet (duplicates too)
         self.streams: dict[C.PacketType, int] = {}     # periodic type -> accepted packets
         # periodic type -> (time, frame) of its latest accepted packet
         self.last: dict[C.PacketType, tuple[int, int]] = {}
         self.inherited: dict[C.PacketType, tuple[int, int]] = {}   # the same of the sender it took over (new port)
         self.taken_over = False                        # a later sender on a new port took over
         self.violations: dict[C.PacketType, list[tuple[int, int, bool, int]]] = {}   # (start, end, until end, frame)
-        self.burst: list[Meta] = []                    # the VRPO burst being received
+        self.burst: list[tuple[int, int]] = []         # the VRPO burst being received (`_burst_shape`)
         self.burst_zero = False                        # it holds a packet numbered 0
         self.burst_t = 0
         self.complete = self.incomplete = 0
@@ -279,6 +293,14 @@ class _Sender:
         self.short_before = False
         self.full_most = 0
 
+    def counter(self, ptype: C.PacketType) -> _Counter:
+        """The counter of a packet of this type, started at its first packet."""
+        key = ptype if self.scope == "type" else None
+        counter = self.counters.get(key)
+        if counter is None:
+            counter = self.counters[key] = _Counter(self.epoch_us)
+        return counter
+
     def periodic(self, ptype: C.PacketType, t: int, frame: int) -> None:
         self.streams[ptype] = self.streams.get(ptype, 0) + 1
         last = self.last.get(ptype, self.inherited.get(ptype))
@@ -286,20 +308,20 @@ class _Sender:
             self.violations.setdefault(ptype, []).append((last[0], t, False, frame))
         self.last[ptype] = (t, frame)
 
-    def burst_over(self, meta: Meta) -> bool:
-        """The burst ended with a short last packet; or `meta` restarts the numbering (a second 0);
-        or the burst has the inferred size (full packets, as many as the longest complete such
-        burst) and `meta` does not go on from it."""
-        if meta.key == 0 and self.burst_zero:
+    def burst_over(self, number: int) -> bool:
+        """The burst ended with a short last packet; or packet `number` restarts the numbering (a
+        second 0); or the burst has the inferred size (full packets, as many as the longest
+        complete such burst) and `number` does not go on from it."""
+        if number == 0 and self.burst_zero:
             return True
-        shape = _burst_shape([(m.key, m.data_len) for m in self.burst])
+        shape = _burst_shape(self.burst)
         return shape is True or (shape is False and not self.short_before and 0 < self.full_most <= len(self.burst)
-                                 and meta.key != len(self.burst))
+                                 and number != len(self.burst))
 
     def close_burst(self) -> None:
         if not self.burst:
             return
-        parts = [(meta.key, meta.data_len) for meta in self.burst]
+        parts = self.burst
         shape = _burst_shape(parts)
         full = shape is False and not self.short_before and len(parts) >= self.full_most
         if shape or full:
@@ -316,15 +338,18 @@ class _Sender:
         return {"id": self.id, "direction": station.node.direction.value, "origin": station.node.origin,
                 "src": f"{station.ip}:{self.port}",
                 "by_type": {_NAMES[t]: n for t, n in sorted(self.by_type.items())},
-                "serial": self.counter.report(sum(self.by_type.values()))}
+                "serial": _serial_report(self.scope, [self.counters[k] for k in sorted(
+                    self.counters, key=lambda k: -1 if k is None else _TYPE_ORDER[k])], self.link,
+                    sum(self.by_type.values()))}
 
 
 class GroundTruth:
     """The truth of a capture, fed with the tap's arrivals in file order (`add`, batch by batch);
     an arrival whose endpoint index is past the last endpoint is a frame that is not EG-Link."""
 
-    def __init__(self, stations: Sequence[Station], epoch_us: int) -> None:
+    def __init__(self, stations: Sequence[Station], epoch_us: int, reading: Optional[Reading] = None) -> None:
         self.stations, self.epoch_us = stations, epoch_us
+        self.reading = reading or Reading()      # as every station speaks it, and analyze reads it
         self._endpoints = endpoints(list(stations))
         self._ids = [sid for s in stations for sid in s.sender_ids()]
         self._senders: dict[str, _Sender] = {}                   # by id, from the first legal packet
@@ -339,17 +364,19 @@ class GroundTruth:
         self._held: list[tuple[Callable[..., None], tuple[Any, ...]]] = []
         self._undecided: list[_Candidate] = []
 
-    def _sender(self, endpoint: int, t: int, frame: int, serial: int) -> _Sender:
+    def _sender(self, endpoint: int, t: int, frame: int, serial: int, ptype: C.PacketType) -> _Sender:
         sid = self._ids[endpoint]
         station, port = self._endpoints[endpoint]
-        sender = self._senders[sid] = _Sender(sid, self.stations[station], port, self.epoch_us)
+        sender = self._senders[sid] = _Sender(sid, self.stations[station], port, self.epoch_us, self.reading)
         self._by_endpoint[endpoint] = sender
-        self._new_port(sender, t, frame, serial)
+        self._new_port(sender, t, frame, serial, ptype)
         return sender
 
-    def _new_port(self, sender: _Sender, t: int, frame: int, serial: int) -> None:
-        """A sender's first legal packet: the restart of an earlier sender of the same direction,
-        origin and address on another port, silent at least 250 ms (the one heard last)."""
+    def _new_port(self, sender: _Sender, t: int, frame: int, serial: int, ptype: C.PacketType) -> None:
+        """A sender's first legal packet (of type `ptype`): the restart of an earlier sender of the
+        same direction, origin and address on another port, silent at least 250 ms (the one heard
+        last). `from` is the highest serial of the earlier sender's counter of that type, if it
+        had one, else of its last packet's type (per-type counters)."""
         node, ip = sender.station.node, sender.station.ip
         earlier = [s for s in self._senders.values() if s is not sender and s.station.ip == ip
                    and s.station.node.direction is node.direction and s.station.node.origin == node.origin
@@ -359,8 +386,10 @@ class GroundTruth:
         old = max(earlier, key=lambda s: s.last_legal)
         old.taken_over = True
         sender.inherited = dict(old.last)
-        sender.counter.restarts.append({"time": _time(self.epoch_us + t), "frame": frame, "from": old.counter.h,
-                                        "to": serial, "port_from": old.port, "port_to": sender.port})
+        key = None if old.scope == "sender" else ptype if ptype in old.counters else old.last_type
+        counter = old.counters.get(key)
+        sender.link = {"time": _time(self.epoch_us + t), "frame": frame, "from": counter.h if counter else 0,
+                       "to": serial, "port_from": old.port, "port_to": sender.port}
         self._command_event(self._restart, old.id, t)
 
     def _restart(self, sender: str, t: int) -> None:
@@ -406,11 +435,11 @@ class GroundTruth:
                 self.illegal.update(problems)
                 self.crc_bad += _BAD_CRC in problems
                 continue
-            sender = by_endpoint[endpoint] or self._sender(endpoint, t, frame, meta.serial)
-            sender.last_legal = t
             ptype = meta.ptype
+            sender = by_endpoint[endpoint] or self._sender(endpoint, t, frame, meta.serial, ptype)
+            sender.last_legal, sender.last_type = t, ptype
             sender.by_type[ptype] = sender.by_type.get(ptype, 0) + 1
-            accepted, cand = sender.counter.add(meta.serial, t, frame)
+            accepted, cand = sender.counter(ptype).add(meta.serial, t, frame)
             if self._undecided:
                 self._release()
             if not accepted:
@@ -421,13 +450,13 @@ class GroundTruth:
             if ptype in watchdogs:
                 sender.periodic(ptype, t, frame)
             if ptype is _VRPO:
-                burst = sender.burst
+                burst, number = sender.burst, meta.key - sender.vrpo_start
                 # (a burst that is over takes no more, even within the gap)
-                if burst and (t - sender.burst_t >= burst_gap or sender.burst_over(meta)):
+                if burst and (t - sender.burst_t >= burst_gap or sender.burst_over(number)):
                     sender.close_burst()
                     burst = sender.burst
-                burst.append(meta)
-                sender.burst_zero = sender.burst_zero or meta.key == 0
+                burst.append((number, meta.data_len))
+                sender.burst_zero = sender.burst_zero or number == 0
                 sender.burst_t = t
             elif ptype in commands:
                 self._command_event(commands[ptype].command, sender.id, meta.key, frame, t)
@@ -439,7 +468,8 @@ class GroundTruth:
         """The truth dict (docs/report.md, the keys marked ✓)."""
         senders = [self._senders[sid] for sid in sorted(self._senders)]
         for sender in senders:
-            sender.counter.finish()
+            for counter in sender.counters.values():
+                counter.finish()
             sender.close_burst()
         self._release()
         periodic = sorted(((ptype, sender) for sender in senders for ptype in sender.last),
@@ -452,7 +482,7 @@ class GroundTruth:
                         "first_time": None if first is None else _time(self.epoch_us + first),
                         "last_time": None if first is None else _time(self.epoch_us + self.last_t),
                         "duration_s": _time(duration)},
-            "crc": {"variant": DEFAULT_VARIANT, "byte_order": DEFAULT_BYTE_ORDER,
+            "crc": {"variant": self.reading.crc, "byte_order": self.reading.crc_order,
                     "valid": eglink - self.crc_bad, "invalid": self.crc_bad},
             "illegal": {"total": self.illegal_total, "by_reason": dict(sorted(self.illegal.items()))},
             "senders": [sender.report() for sender in senders],
