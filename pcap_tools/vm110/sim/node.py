@@ -126,6 +126,7 @@ class Node:
         self.illegal: Counter[str] = Counter()      # by reason; each packet counts once per reason
         self.illegal_packets = 0
         self._stall_index = 0
+        self._stall_told = False  # the window at `_stall_index` has been logged (it has begun)
         self._stall_passed = 0    # the end of the last window passed: nothing overdue runs before it
         self.stopped = False      # for good (a window without end)
         self._stalls_ahead = bool(self.stalls)
@@ -166,15 +167,23 @@ class Node:
         """Called once by the runner before the first tick."""
 
     def next_due(self) -> Optional[int]:
-        """When `tick` must run next (µs), None for nothing scheduled. Stalls postpone it."""
+        """When `tick` must run next (µs), None for nothing scheduled. Stalls postpone it; the
+        start of the next one is due too, to be logged when it begins."""
         due = self._due()
-        if due is None or not self._stalls_ahead:
+        if not self._stalls_ahead:
             return due
-        # An overdue event runs when the node runs again, at the end of the window it left: read at
-        # its own time, it lay in that window, whose end was `now`, and a window beginning there
-        # then kept the runners ticking at `now` for ever.
-        stall_end = self._stall_end(due if due > self._stall_passed else self._stall_passed)
-        return due if stall_end is None else stall_end
+        if due is not None:
+            # An overdue event runs when the node runs again, at the end of the window it left:
+            # read at its own time, it lay in that window, whose end was `now`, and a window
+            # beginning there then kept the runners ticking at `now` for ever.
+            stall_end = self._stall_end(due if due > self._stall_passed else self._stall_passed)
+            if stall_end is not None:
+                due = stall_end
+        if not self._stall_told:
+            start = self.stalls[self._stall_index][0]
+            if due is None or start < due:
+                return start
+        return due
 
     def tick(self, now: int) -> None:
         if self._stalls_ahead and self._stall_check(now):
@@ -279,18 +288,21 @@ class Node:
         return None
 
     def _stall_check(self, now: int) -> bool:
-        """True while stalled; logs each stall once and lets subclasses resynchronise after it."""
+        """True while stalled; logs each window as it begins and ends (a window logged only when
+        it was over went unlogged in a run that ended within it, or that stopped with a silent
+        peer) and lets subclasses resynchronise after it."""
         while self._stall_index < len(self.stalls):
             start, end, restart = self.stalls[self._stall_index]
             if now < start:
                 return False
+            if not self._stall_told:
+                self._stall_told = True
+                self.stopped = end == NEVER
+                self.event(start, "stopped" if self.stopped else "stall_start" if restart is None else "down")
             if now < end:
-                if end == NEVER and not self.stopped:
-                    self.stopped = True
-                    self.event(start, "stopped")
                 return True
-            self.event(start, "stall_start" if restart is None else "down")
             self._stall_index += 1
+            self._stall_told = False
             self._stall_passed = end
             self._stalls_ahead = self._stall_index < len(self.stalls)
             if not self._stalls_ahead:
