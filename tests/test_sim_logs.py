@@ -220,6 +220,24 @@ def test_sigterm_sighup_and_ctrl_c_end_a_run_as_interrupted():
         assert end["end"] == sig.name and end["summary"]["sent"]["VRPI"] >= 2
 
 
+def test_a_run_ended_by_a_failure_says_so_in_its_summary():
+    """A restart onto a port another program holds ended the run at the restart, exit 2, with a
+    summary saying `"end": "duration"`, as if it had run its course. Now `"error"`, and the one
+    line on stderr says that the restart failed."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind((LOOPBACK, 0))
+        port = taken.getsockname()[1]
+        run = [sys.executable, "-m", "vm110", "simulate", "bu", "--listen", f"{LOOPBACK}:0", "--peer",
+               f"{LOOPBACK}:9", "--source", f"{LOOPBACK}:0", "--restart", f"0.2:{port}", "--restart-silence", "0.1",
+               "--duration", "5", "--quiet"]
+        done = subprocess.run(run, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and json.loads(done.stdout.splitlines()[-1])["end"] == "error"
+    assert done.stderr.splitlines()[-1] == (f"vm110 simulate: cannot send from {LOOPBACK}:{port} after the restart: "
+                                            "Address already in use"), done.stderr
+
+
 def test_a_run_that_reaches_its_duration_ends_with_exit_0():
     done = simulate("controller", "--duration", "0.3")
     assert done.returncode == 0 and "stopped by" not in done.stderr

@@ -309,11 +309,13 @@ def _prepare(args: argparse.Namespace) -> tuple[Any, RealtimeRunner]:
 
 
 def _run(args: argparse.Namespace, node: Any, runner: RealtimeRunner, stopped_by: list[str]) -> None:
+    ended = "error"       # (a failure during the run, e.g. a restart's new port taken, said "duration")
     try:
         runner.run(args.duration)
+        ended = "duration"
     finally:
         if stopped_by:
             print(f"{utc_iso(time.time())} {args.role}: stopped by {stopped_by[0]}", file=sys.stderr, flush=True)
-        # How the run ended, in the log too (a log kept without stderr): its --duration or a signal.
-        end = stopped_by[0] if stopped_by else "duration"
+        # How the run ended, in the log too (a log kept without stderr): its --duration, a signal or an error.
+        end = stopped_by[0] if stopped_by else ended
         print(json.dumps({"time_utc": utc_iso(time.time()), "end": end, "summary": node.summary()}), flush=True)

@@ -137,7 +137,8 @@ class UdpTransport:
         try:
             tx = self._sending_socket()
         except OSError as exc:
-            raise CliError(f"cannot send from {self.config.source[0]}:{port}: {exc.strerror or exc}") from None
+            raise CliError(f"cannot send from {self.config.source[0]}:{port} after the restart: "
+                           f"{exc.strerror or exc}") from None
         if self.tx is not None:
             self.tx.close()
         self.tx = tx
