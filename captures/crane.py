@@ -27,7 +27,7 @@ from vm110.sim.bu import BaseUnit, BaseUnitConfig
 from vm110.sim.clock import US_PER_S
 from vm110.sim.controller import Controller, ControllerConfig
 from vm110.sim.remote import Remote
-from vm110.sim.scenario import BU_IP, CONTROLLER_IP, EPOCH_US, QUIET_TAIL_S, Scenario
+from vm110.sim.scenario import BU_IP, CONTROLLER_IP, EPOCH_US, QUIET_TAIL_S, Reading, Scenario
 from vm110.sim.virtual import Station
 from vm110.synth import truth_path, write_capture
 
@@ -83,13 +83,14 @@ class CraneController(Controller):
         return data
 
 
-def build(seed: int, duration: float) -> list[Station]:
+def build(seed: int, duration: float, reading: Reading) -> list[Station]:
     remote = Remote.from_script({
         "steps": [{"at": 0, "state": "armed", "motion": True}],
         "commands": [{"at": t, "data": chr(op) + chr(arg)} for t, op, arg in OPERATOR if t < duration - QUIET_TAIL_S]})
-    bu = BaseUnit(remote, BaseUnitConfig(seed=seed))
+    bu = BaseUnit(remote, BaseUnitConfig(seed=seed), **reading.node_options())
     messages = tuple((t, b"\x81" + text.encode()) for t, text in MESSAGES if t < duration - QUIET_TAIL_S)
-    controller = CraneController(ControllerConfig(commands=messages))
+    controller = CraneController(ControllerConfig(commands=messages, first_packet_number=reading.vrpo_start),
+                                 **reading.node_options())
     return [Station(bu, BU_IP, 5825), Station(controller, CONTROLLER_IP, 5827)]
 
 
@@ -109,8 +110,8 @@ def generate(out: str, duration: float = DURATION_S) -> dict[str, Any]:
     """Write the capture, its analysis truth and its machine truth; returns the machine truth."""
     built: list[list[Station]] = []
 
-    def keep(seed: int, length: float) -> list[Station]:
-        built.append(build(seed, length))
+    def keep(seed: int, length: float, reading: Reading) -> list[Station]:
+        built.append(build(seed, length, reading))
         return built[-1]
     scenario = Scenario("crane", "a crane's machine data (dissector/examples/crane.lua)", duration, keep)
     with atomic_writer(out) as stream:

@@ -87,7 +87,7 @@ def test_a_data_size_a_multiple_of_488_is_inferred(data_size, tmp_path):
                      ctl_imp=Impairment(loss=4.0, jitter_ms=2.0, only=("VRPO",), seed=seed))
     out = tmp_path / "full.pcap"
     with open(out, "wb") as stream:
-        truth = write_capture(stream, Scenario("full", "", 20.0, build), 3, 20.0, "pcap", Reading())
+        truth = write_capture(stream, Scenario("full", "", 20.0, build), 3, 20.0, "pcap")
     times = [float(p.time) for p in rdpcap(str(out)) if bytes(p)[42:46] == b"VRPO"]
     groups, last = [], None
     for t in times:

@@ -54,7 +54,7 @@ def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] =
         raise ValueError("duration must be positive and finite")
     check_target(truth_path(out))      # up front: not after the whole run
     with atomic_writer(out) as stream:
-        result = write_capture(stream, sc, seed, duration, fmt, reading or Reading())
+        result = write_capture(stream, sc, seed, duration, fmt, reading)
         write_text(truth_path(out), _truth_text(result))
     return result
 
@@ -62,13 +62,15 @@ def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] =
 def output_rate(name: str, seed: int = 1, fmt: Format = "pcap") -> float:
     """Bytes per second of traffic that `synthesize` writes (capture and truth), from a short run."""
     sink = _Counter()
-    result = write_capture(sink, scenario(name), seed, RATE_SAMPLE_S, fmt, Reading())
+    result = write_capture(sink, scenario(name), seed, RATE_SAMPLE_S, fmt)
     return (sink.size + len(_truth_text(result))) / RATE_SAMPLE_S
 
 
 def write_capture(stream: ByteSink, sc: Scenario, seed: int, duration: float, fmt: Format,
-                  reading: Reading) -> dict[str, Any]:
-    """Run `sc` and write its capture to `stream`; returns the truth."""
+                  reading: Optional[Reading] = None) -> dict[str, Any]:
+    """Run `sc` and write its capture to `stream`; returns the truth. Both devices speak `reading`
+    (default: interpretation.md's)."""
+    reading = reading or Reading()
     stations = sc.stations(seed, duration, reading)
     # One flow per endpoint (a station's port, then its new ports after restarts; to the group on
     # the station's own port), then the other traffic's: its arrivals carry that index.

@@ -37,6 +37,10 @@ class Reading:
     serial_scope: str = "sender"
     vrpo_start: int = 0
 
+    def node_options(self) -> dict[str, str]:
+        """The `Node` arguments of a device that speaks it (the controller's VRPO numbering aside)."""
+        return {"crc": self.crc, "crc_order": self.crc_order, "serial_scope": self.serial_scope}
+
 
 @dataclass(frozen=True)
 class Scenario:
@@ -54,10 +58,9 @@ class Scenario:
 def _pair(seed: int, reading: Reading, remote: Remote, bu: Optional[BaseUnitConfig] = None,
           ctl: Optional[ControllerConfig] = None, bu_imp: Optional[Impairment] = None,
           ctl_imp: Optional[Impairment] = None, bu_serial: int = 0) -> list[Station]:
-    wire = {"crc": reading.crc, "crc_order": reading.crc_order, "serial_scope": reading.serial_scope}
-    base_unit = BaseUnit(remote, bu or BaseUnitConfig(seed=seed), serial_start=bu_serial, **wire)
+    base_unit = BaseUnit(remote, bu or BaseUnitConfig(seed=seed), serial_start=bu_serial, **reading.node_options())
     controller = Controller(dataclasses.replace(ctl or ControllerConfig(), first_packet_number=reading.vrpo_start),
-                            **wire)
+                            **reading.node_options())
     return [Station(base_unit, BU_IP, C.INPUT_PORT, bu_imp or Impairment(seed=seed)),
             Station(controller, CONTROLLER_IP, C.OUTPUT_PORT, ctl_imp or Impairment(seed=seed))]
 
