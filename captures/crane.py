@@ -27,7 +27,8 @@ from vm110.sim.bu import BaseUnit, BaseUnitConfig
 from vm110.sim.clock import US_PER_S
 from vm110.sim.controller import Controller, ControllerConfig
 from vm110.sim.remote import Remote
-from vm110.sim.scenario import BU_IP, CONTROLLER_IP, EPOCH_US, QUIET_TAIL_S, Reading, Scenario
+from vm110.sim.reading import Reading
+from vm110.sim.scenario import BU_IP, CONTROLLER_IP, EPOCH_US, QUIET_TAIL_S, Scenario
 from vm110.sim.virtual import Station
 from vm110.synth import truth_path, write_capture
 

@@ -78,7 +78,8 @@ def test_a_data_size_a_multiple_of_488_is_inferred(data_size, tmp_path):
     20 ms gap (bursts 100 ms apart), a group complete when it has all data_size / 488 packets."""
     from vm110.sim.controller import ControllerConfig
     from vm110.sim.impair import Impairment
-    from vm110.sim.scenario import Reading, Scenario, _armed, _pair
+    from vm110.sim.reading import Reading
+    from vm110.sim.scenario import Scenario, _armed, _pair
     from vm110.synth import write_capture
     from scapy.utils import rdpcap
 

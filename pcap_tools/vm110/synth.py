@@ -17,7 +17,8 @@ from . import constants as C
 from .capture.writer import ByteSink, Format, UdpFlow, open_writer
 from .fileio import atomic_writer, check_target, write_text
 from .sim.clock import seconds
-from .sim.scenario import EPOCH_US, SCENARIOS, Reading, Scenario
+from .sim.reading import Reading
+from .sim.scenario import EPOCH_US, SCENARIOS, Scenario
 from .sim.truth import GroundTruth
 from .sim.virtual import Arrival, VirtualNetwork, endpoints
 

@@ -7,6 +7,7 @@ from .. import constants as C
 from ..analysis.report import SCOPES
 from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS
 from ..numbers import number, port
+from ..sim.reading import Reading
 
 # The input port; the output port is this + 2, so it must be a port too.
 INPUT_PORT = port(room_above=C.OUTPUT_PORT_OFFSET)
@@ -32,3 +33,9 @@ def add_reading_options(parser: argparse.ArgumentParser, found: bool) -> None:
     parser.add_argument("--serial-scope", choices=scopes, default=scopes[0],
                         help="one serial counter per sender or per packet type; auto picks per sender" if found
                         else f"one serial counter per sender or per packet type; default {scopes[0]}")
+
+
+def reading_of(args: argparse.Namespace) -> Reading:
+    """The reading the options of `add_reading_options(found=False)` and --vrpo-start give (a BU,
+    which numbers no VRPO, has no --vrpo-start)."""
+    return Reading(args.crc, args.crc_order, args.serial_scope, getattr(args, "vrpo_start", 0))

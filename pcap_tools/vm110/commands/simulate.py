@@ -33,7 +33,8 @@ from ..sim.realtime import RealtimeRunner
 from ..sim.remote import EVERY_LEAST_S, Remote
 from ..sim.transport import Address, UdpConfig, UdpTransport, multicast_config, parse_address
 from ..timefmt import utc_iso
-from .options import INPUT_PORT, INPUT_PORT_HELP, SEED, VRPO_START, VRPO_START_HELP, add_reading_options
+from .options import (INPUT_PORT, INPUT_PORT_HELP, SEED, VRPO_START, VRPO_START_HELP, add_reading_options,
+                      reading_of)
 
 
 # A run is at most 30 days (as the fuzzer's); every time in it (windows, stop, restarts) too.
@@ -250,8 +251,7 @@ def build_node(args: argparse.Namespace, printer: Callable[[int, str], None]) ->
 
 def wire(args: argparse.Namespace) -> dict[str, Any]:
     """How the node numbers and checks its packets (the `Node` arguments) from the options."""
-    return {"serial_start": args.serial_start, "serial_scope": args.serial_scope, "crc": args.crc,
-            "crc_order": args.crc_order}
+    return {"serial_start": args.serial_start, **reading_of(args).node_options()}
 
 
 def sockets_line(role: str, transport: UdpTransport) -> str:

@@ -17,10 +17,10 @@ from typing import Any, NoReturn
 from ..capture.writer import FORMATS, Format, format_of
 from ..errors import CliError
 from ..numbers import number
-from ..sim.scenario import SCENARIOS, Reading
+from ..sim.scenario import SCENARIOS
 from ..synth import output_rate, synthesize, truth_path
 from ..timefmt import utc_iso
-from .options import SEED, VRPO_START, VRPO_START_HELP, add_reading_options
+from .options import SEED, VRPO_START, VRPO_START_HELP, add_reading_options, reading_of
 
 GIB = 1 << 30
 MAX_OUTPUT_BYTES = 4 * GIB
@@ -84,8 +84,7 @@ def _synth(args: argparse.Namespace) -> int:
     fmt: Format = args.format or format_of(args.out)
     if args.duration is not None:
         check_size(args.scenario, args.duration, args.seed, fmt)
-    reading = Reading(args.crc, args.crc_order, args.serial_scope, args.vrpo_start)
-    truth = synthesize(args.scenario, args.out, args.seed, args.duration, fmt, reading)
+    truth = synthesize(args.scenario, args.out, args.seed, args.duration, fmt, reading_of(args))
     cap = truth["capture"]
     span = "no packet" if cap["first_time"] is None else \
         f"{cap['duration_s']:.3f} s from {utc_iso(cap['first_time'])} to {utc_iso(cap['last_time'])}"

@@ -13,33 +13,17 @@ from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
 from .. import constants as C
-from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT
 from .bu import BaseUnit, BaseUnitConfig
 from .controller import Controller, ControllerConfig
 from .impair import Impairment
 from .lifecycle import Restart
+from .reading import Reading
 from .remote import Remote
 from .virtual import Station
 
 BU_IP, CONTROLLER_IP = "10.0.0.10", "10.0.0.20"
 QUIET_TAIL_S = 2.5
 EPOCH_US = 1_750_000_000_000_000      # 2025-06-15 15:06:40 UTC: fixed, so captures are reproducible
-
-
-@dataclass(frozen=True)
-class Reading:
-    """The readings of TS-0006 that interpretation.md leaves open, as both devices speak them
-    (`analyze` and `simulate` take the same options): the CRC variant and its byte order, one
-    serial counter per sender or per packet type, the number of the first VRPO packet."""
-
-    crc: str = DEFAULT_VARIANT
-    crc_order: str = DEFAULT_BYTE_ORDER
-    serial_scope: str = "sender"
-    vrpo_start: int = 0
-
-    def node_options(self) -> dict[str, str]:
-        """The `Node` arguments of a device that speaks it (the controller's VRPO numbering aside)."""
-        return {"crc": self.crc, "crc_order": self.crc_order, "serial_scope": self.serial_scope}
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from .clock import US_PER_S, ms
 from .ledger import REUSE_GAP_MS
 from .peers import (CONFIRM, DUP_WINDOW_US, MIN_RATE, NEW_PORT_SILENCE_US, PLAUSIBLE_BASE, PLAUSIBLE_FACTOR,
                     RATE_WINDOW_US)
-from .scenario import Reading
+from .reading import Reading
 from .virtual import Arrival, Station, endpoints
 
 SCHEMA_VERSION = 2
