@@ -559,3 +559,42 @@ def test_a_copy_of_a_capture_is_counted_once(src, built):
     assert last.returncode == 0 and "1 replaced" in last.stdout and "1 copy not counted" in last.stdout, last
     files = sorted(r["file"] for r in rows(built) if "retransmit" in r["file"])
     assert files == [str(src / "archive" / "retransmit.pcap")]
+
+
+def _without_read_rights() -> list[str]:
+    """The prefix that runs a command without the right to read what its mode bits forbid (root
+    reads every folder: the command then runs without that capability)."""
+    return ["setpriv", "--bounding-set", "-dac_override,-dac_read_search", "--"] if os.geteuid() == 0 else []
+
+
+@pytest.mark.skipif(os.geteuid() == 0 and shutil.which("setpriv") is None, reason="as root, needs setpriv")
+def test_a_folder_that_cannot_be_read_is_said(src, tmp_path):
+    """A sub-folder the build may not list hid its captures in silence (rglob passes over it): it is
+    an unreadable row with the reason, exit 2; a SRC folder that cannot be read is one line. Once
+    it can be read, its captures are analysed."""
+    locked = src / "site-b"
+    locked.mkdir()
+    shutil.copy(BUNDLED / "loss.pcapng", locked / "loss.pcapng")
+    locked.chmod(0)
+    dataset = tmp_path / "ds"
+    try:
+        command = [*_without_read_rights(), sys.executable, "-m", "vm110", "fleet", "build", str(src), "--out",
+                   str(dataset), "-j", "1"]
+        result = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert result.returncode == 2, result.stderr
+        assert f"{len(NAMES) + 1} analysed (0 damaged, 1 unreadable)" in result.stdout, result.stdout
+        assert result.stderr.splitlines() == [(f"vm110 fleet: {locked}: a folder that cannot be read: Permission "
+                                               "denied; the captures in it are not seen")]
+        assert [(r["file"], r["kind"]) for r in rows(dataset, "errors")] == [(str(locked), "unreadable")]
+        command[-5] = str(locked)
+        command[-3] = str(tmp_path / "other")
+        alone = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=120)
+        one_line_error(alone, str(locked), "cannot be read")
+        assert not (tmp_path / "other").exists()
+    finally:
+        locked.chmod(0o755)
+    again = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "1")
+    assert again.returncode == 0, again.stderr
+    assert "1 analysed (0 damaged, 0 unreadable)" in again.stdout
+    assert str(locked / "loss.pcapng") in [r["file"] for r in rows(dataset)]
+

@@ -57,6 +57,8 @@ def find(sources: Iterable[str]) -> dict[str, Optional[str]]:
             hits = _walk(src)
             if not hits:
                 raise CliError(f"{src}: no captures in this folder (*{', *'.join(CAPTURE_SUFFIXES)})")
+            if src in hits:                  # the folder itself cannot be listed
+                raise CliError(f"{src}: {hits[src]}")
         elif os.path.exists(src):
             if not os.path.isfile(src):
                 raise CliError(f"{src}: not a file or folder")
@@ -89,10 +91,19 @@ def _once(found: dict[str, Optional[str]]) -> dict[str, Optional[str]]:
 
 def _walk(folder: str) -> dict[str, Optional[str]]:
     """Every entry below `folder` named as a capture that is not a folder (links to folders are
-    not walked, as by rglob), with why it is not read, if so."""
+    not walked), with why it is not read, if so; and every folder below it that cannot be listed,
+    with why (rglob passed over it in silence, and with it every capture inside)."""
     inside = os.path.realpath(folder)
-    return {str(p): not_a_capture(str(p), inside) for p in Path(folder).rglob("*")
-            if p.suffix.lower() in CAPTURE_SUFFIXES and not p.is_dir()}
+    found: dict[str, Optional[str]] = {}
+
+    def unlisted(exc: OSError) -> None:
+        found[exc.filename] = f"a folder that cannot be read: {exc.strerror}; the captures in it are not seen"
+    for top, _, files in os.walk(folder, onerror=unlisted):
+        for name in files:
+            if Path(name).suffix.lower() in CAPTURE_SUFFIXES:
+                path = os.path.join(top, name)
+                found[path] = not_a_capture(path, inside)
+    return found
 
 
 def not_a_capture(path: str, inside: Optional[str] = None) -> Optional[str]:
