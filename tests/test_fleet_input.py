@@ -571,7 +571,7 @@ def _without_read_rights() -> list[str]:
 def test_a_folder_that_cannot_be_read_is_said(src, tmp_path):
     """A sub-folder the build may not list hid its captures in silence (rglob passes over it): it is
     an unreadable row with the reason, exit 2; a SRC folder that cannot be read is one line. Once
-    it can be read, its captures are analysed."""
+    it can be read, its captures are analysed and the folder's row goes."""
     locked = src / "site-b"
     locked.mkdir()
     shutil.copy(BUNDLED / "loss.pcapng", locked / "loss.pcapng")
@@ -595,6 +595,33 @@ def test_a_folder_that_cannot_be_read_is_said(src, tmp_path):
         locked.chmod(0o755)
     again = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "1")
     assert again.returncode == 0, again.stderr
-    assert "1 analysed (0 damaged, 0 unreadable)" in again.stdout
-    assert str(locked / "loss.pcapng") in [r["file"] for r in rows(dataset)]
+    assert "1 analysed (0 damaged, 0 unreadable)" in again.stdout and "1 unreadable no longer there" in again.stdout
+    assert rows(dataset, "errors") == []
+    assert sorted(r["file"] for r in rows(dataset)) == sorted([*(str(src / n) for n in NAMES),
+                                                                str(locked / "loss.pcapng")])
 
+
+def test_an_unreadable_capture_that_is_gone_is_no_longer_counted(src, built):
+    """A capture that could not be read (removed while a build ran, a broken link) and is then gone
+    from the folder stayed an unreadable row for ever: a failing capture of its machine in every
+    ranking, with nothing left to try again. The next build of that folder removes it; an
+    unreadable row of a folder the build does not walk is kept, as everything of it is."""
+    (src / "gone.pcap").symlink_to(src / "nothing.pcap")
+    first = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert first.returncode == 2 and "1 unreadable" in first.stdout, first
+    (src / "gone.pcap").unlink()
+    other = src.parent / "other"
+    other.mkdir()
+    shutil.copy(BUNDLED / "loss.pcapng", other / "one.pcapng")
+    elsewhere = vm110("fleet", "build", str(other), "--out", str(built), "-j", "1")
+    assert elsewhere.returncode == 0 and "removed" not in elsewhere.stdout, elsewhere
+    assert [Path(r["file"]).name for r in rows(built, "errors")] == ["gone.pcap"]
+    last = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert last.returncode == 0 and "0 analysed" in last.stdout, last
+    assert "1 unreadable no longer there (removed)" in last.stdout
+    assert rows(built, "errors") == [] and all(r["status"] == "ok" for r in rows(built))
+    worst = json.loads(vm110("fleet", "query", str(built), "--worst", "machines", "--format", "json").stdout)
+    assert sum(m["unreadable"] for m in worst) == 0 and sum(m["captures"] for m in worst) == len(NAMES) + 1
+    manifest = json.loads((built / "manifest.json").read_text())
+    listed = {p for e in manifest["captures"].values() for p in e["parts"]}
+    assert {str(p.relative_to(built)) for p in built.rglob("*.parquet")} == listed

@@ -110,7 +110,8 @@ def _build(args: argparse.Namespace) -> int:
     print(f"{args.out}: {outcome.analysed} analysed ({len(outcome.damaged)} damaged, {len(outcome.unreadable)} "
           f"unreadable), {outcome.skipped} already in the dataset, {outcome.replaced} replaced"
           + (f", {len(outcome.copies)} {'copies' if len(outcome.copies) > 1 else 'copy'} not counted"
-             if outcome.copies else ""))
+             if outcome.copies else "")
+          + (f", {outcome.cleared} unreadable no longer there (removed)" if outcome.cleared else ""))
     return EXIT_USAGE if outcome.unreadable or outcome.damaged else EXIT_OK
 
 

@@ -33,6 +33,7 @@ class Outcome:
     unreadable: list[str] = field(default_factory=list)
     unmatched: list[str] = field(default_factory=list)     # captures whose path --meta does not match
     copies: list[str] = field(default_factory=list)        # "copy: the capture it copies", not analysed
+    cleared: int = 0         # unreadable entries of a folder walked that are there no longer
 
 
 def fingerprint(settings: Settings) -> dict:
@@ -84,14 +85,15 @@ def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern
     wanted = sources(srcs, pattern, jobs)
     if not dataset.exists():
         dataset.check_new()
+    walked = [os.path.abspath(s) for s in srcs if os.path.isdir(s)]
     with dataset.lock():
-        outcome = _build(dataset, wanted, settings, engine, jobs, scheduler, progress)
+        outcome = _build(dataset, wanted, walked, settings, engine, jobs, scheduler, progress)
     if pattern is not None:
         outcome.unmatched = [s.path for s in wanted if pattern.fields(s.path) is None]
     return outcome
 
 
-def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: str, jobs: int,
+def _build(dataset: Dataset, wanted: list[Source], walked: list[str], settings: Settings, engine: str, jobs: int,
            scheduler: Optional[str], progress: bool) -> Outcome:
     options = fingerprint(settings)
     if dataset.exists():
@@ -112,7 +114,9 @@ def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: s
     outcome.skipped = len(wanted) - len(todo)
     todo, outcome.copies = _without_copies(listed, wanted, todo)
     versions = Versions(listed, {s.path: s.capture_id for s in wanted}, _moved(listed, wanted))
-    stale = versions.stale()
+    cleared = _gone_unreadable(listed, wanted, walked)
+    outcome.cleared = len(cleared)
+    stale = versions.stale() | cleared
     bar = Progress(len(todo), outcome.skipped) if progress else None
     last = time.monotonic()
     try:
@@ -130,7 +134,7 @@ def _build(dataset: Dataset, wanted: list[Source], settings: Settings, engine: s
             if time.monotonic() - last > CHECKPOINT_S:
                 _commit(dataset, manifest, stale)
                 last = time.monotonic()
-        outcome.replaced = len(stale)
+        outcome.replaced = len(stale) - len(cleared)
     finally:
         if bar:
             bar.close()
@@ -177,6 +181,16 @@ def _without_copies(listed: dict, wanted: list[Source], todo: list[Source]) -> t
     copies = {s.path: held[s.sha256] for s in todo if s.sha256 and held.get(s.sha256, s.path) != s.path}
     lines = [f"{copy}: the same capture as {of}" for copy, of in copies.items()]
     return [s for s in todo if s.path not in copies], lines
+
+
+def _gone_unreadable(listed: dict, wanted: list[Source], walked: list[str]) -> set[str]:
+    """The unreadable entries inside a folder this build walked that the walk no longer finds (a
+    file removed or renamed, a folder that can be read now): there is nothing left to try again,
+    and kept, each would count as a failing capture for ever."""
+    current = {s.path for s in wanted}
+    return {cid for cid, entry in listed.items()
+            if entry["status"] == "unreadable" and entry["file"] not in current
+            and any(os.path.commonpath([entry["file"], root]) == root for root in walked)}
 
 
 def _moved(listed: dict, wanted: list[Source]) -> dict[str, set[str]]:
