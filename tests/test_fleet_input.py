@@ -625,3 +625,38 @@ def test_an_unreadable_capture_that_is_gone_is_no_longer_counted(src, built):
     manifest = json.loads((built / "manifest.json").read_text())
     listed = {p for e in manifest["captures"].values() for p in e["parts"]}
     assert {str(p.relative_to(built)) for p in built.rglob("*.parquet")} == listed
+
+
+def _mirrored(capture: Path, out: Path) -> None:
+    """`capture` (little-endian pcap) with every record twice, as a mirror port shows each packet."""
+    data = capture.read_bytes()
+    parts, at = [data[:24]], 24
+    while at < len(data):
+        length = int.from_bytes(data[at + 8:at + 12], "little")
+        record = data[at:at + 16 + length]
+        parts += [record, record]
+        at += 16 + length
+    out.write_bytes(b"".join(parts))
+
+
+def test_loss_share_is_of_the_packets_sent_whatever_the_copies(tmp_path):
+    """The loss share counted duplicates among the packets sent: a tap on a mirror port, which shows
+    every packet twice, halved it. Lost over sent (each serial once, and the lost ones), from the
+    ground truth, for the capture and its mirrored copy alike, in --worst links and --trend loss."""
+    name = "controller-watchdog.pcap"
+    folder = tmp_path / "src"
+    folder.mkdir()
+    shutil.copy(BUNDLED / name, folder / name)
+    _mirrored(BUNDLED / name, folder / "mirrored.pcap")
+    dataset = tmp_path / "ds"
+    assert vm110("fleet", "build", str(folder), "--out", str(dataset), "-j", "1").returncode == 0
+    truth = [s["serial"] for s in json.loads((BUNDLED / f"{name}.truth.json").read_text())["senders"]]
+    lost = sum(s["lost"] for s in truth)
+    share = round(100 * lost / sum(s["received"] - s["duplicates"] + s["lost"] for s in truth), 3)
+    assert lost > 0 and all(s["duplicates"] == 0 for s in truth)
+    links = json.loads(vm110("fleet", "query", str(dataset), "--worst", "links", "--format", "json").stdout)
+    assert {Path(r["file"]).name: (r["lost"], r["loss_pct"]) for r in links} == {
+        name: (lost, share), "mirrored.pcap": (lost, share)}
+    trend = json.loads(vm110("fleet", "query", str(dataset), "--trend", "loss", "--by", "month", "--format",
+                             "json").stdout)
+    assert [(r["captures"], r["lost"], r["loss_pct"]) for r in trend] == [(2, 2 * lost, share)]

@@ -133,6 +133,12 @@ def _same(left: str, right: str, keys: Sequence[str]) -> str:
     return " AND ".join(f"{left}.{k} IS NOT DISTINCT FROM {right}.{k}" for k in keys)
 
 
+# The packets a sender sent: each serial received once (`received` counts duplicates too: a
+# mirror port that shows every packet twice would halve the loss share) and those lost.
+def _sent(p: str = "") -> str:
+    return f"sum({p}received) - sum({p}duplicates) + sum({p}lost)"
+
+
 # Both rankings count every capture of a machine (`captures`) and, of those, the ones that could
 # not be read (`unreadable`): they give no link figures and count as failing, but are the machine's.
 _CAPTURE_COUNTS = "count(*) AS captures, count(*) FILTER (WHERE status = 'unreadable') AS unreadable"
@@ -142,12 +148,12 @@ def _worst_links(f: Fleet, a: Args) -> str:
     keys, w = machine_key(f)
     return f"""
 WITH c AS (SELECT {w}, {_CAPTURE_COUNTS} FROM captures GROUP BY ALL),
-s AS (SELECT {w}, sum(lost) AS lost, sum(received) AS received, sum(restarts) AS restarts FROM senders GROUP BY ALL),
+s AS (SELECT {w}, sum(lost) AS lost, {_sent()} AS sent, sum(restarts) AS restarts FROM senders GROUP BY ALL),
 t AS (SELECT {w}, sum(watchdog_violations) AS watchdog,
              max(jitter_max_ms) FILTER (WHERE type = 'VRPI') AS vrpi_jitter_max_ms,
              max(jitter_max_ms) FILTER (WHERE type = 'VRPO') AS vrpo_jitter_max_ms FROM streams GROUP BY ALL)
 SELECT {_cols('c', keys)}, c.captures, c.unreadable, coalesce(s.lost, 0) AS lost,
-       round(100.0 * coalesce(s.lost, 0) / nullif(s.received + s.lost, 0), 3) AS loss_pct,
+       round(100.0 * coalesce(s.lost, 0) / nullif(s.sent, 0), 3) AS loss_pct,
        coalesce(t.watchdog, 0) AS watchdog, t.vrpi_jitter_max_ms, t.vrpo_jitter_max_ms,
        coalesce(s.restarts, 0) AS restarts
 FROM c LEFT JOIN s ON {_same('c', 's', keys)} LEFT JOIN t ON {_same('c', 't', keys)}
@@ -212,7 +218,7 @@ _TREND = {   # metric -> (table, aggregates over it as t)
                            "round(avg(t.jitter_mean_ms) FILTER (WHERE t.type = 'VRPO'), 3) AS vrpo_jitter_mean_ms, "
                            "max(t.jitter_max_ms) FILTER (WHERE t.type = 'VRPO') AS vrpo_jitter_max_ms")),
     "loss": ("senders", ("sum(t.lost) AS lost, sum(t.received) AS received, "
-                         "round(100.0 * sum(t.lost) / nullif(sum(t.received) + sum(t.lost), 0), 3) AS loss_pct")),
+                         f"round(100.0 * sum(t.lost) / nullif({_sent('t.')}, 0), 3) AS loss_pct")),
     "latency": ("commands", ("count(*) AS commands, round(quantile_cont(t.latency_first_ms, 0.5), 3) AS ack_p50_ms, "
                              "round(quantile_cont(t.latency_first_ms, 0.95), 3) AS ack_p95_ms, "
                              "max(t.latency_first_ms) AS ack_max_ms, count(*) FILTER (WHERE t.failed) AS failed")),
