@@ -660,3 +660,29 @@ def test_loss_share_is_of_the_packets_sent_whatever_the_copies(tmp_path):
     trend = json.loads(vm110("fleet", "query", str(dataset), "--trend", "loss", "--by", "month", "--format",
                              "json").stdout)
     assert [(r["captures"], r["lost"], r["loss_pct"]) for r in trend] == [(2, 2 * lost, share)]
+
+
+def test_a_finding_of_the_whole_capture_is_listed(tmp_path):
+    """A finding without located items (no EG-Link packet at all: a dead link or the wrong
+    interface) was left out of `--named findings` and of the report's list of findings, which
+    showed the capture as if it had none. Every finding `vm110 analyze` gives is listed."""
+    folder = tmp_path / "src"
+    folder.mkdir()
+    shutil.copy(BUNDLED / "retransmit.pcap", folder / "retransmit.pcap")
+    arp = bytes.fromhex("ffffffffffff 020000000001 0806") + bytes(28)        # one frame, no UDP at all
+    header = bytes.fromhex("d4c3b2a1 0200 0400") + bytes(8) + (65535).to_bytes(4, "little") + (1).to_bytes(4, "little")
+    record = (1_750_000_000).to_bytes(4, "little") + bytes(4) + len(arp).to_bytes(4, "little") * 2
+    (folder / "dead.pcap").write_bytes(header + record + arp)
+    dataset = tmp_path / "ds"
+    assert vm110("fleet", "build", str(folder), "--out", str(dataset), "-j", "1").returncode == 0
+    expected = set()
+    for name in ("retransmit.pcap", "dead.pcap"):
+        report = json.loads(vm110("analyze", str(folder / name), "--json", "-").stdout)
+        expected |= {(name, f["rule"], f["severity"], f["message"]) for f in report["verdict"]["findings"]}
+    assert ("dead.pcap", "no_eglink", "error", "no EG-Link packets in the capture") in expected
+    listed = json.loads(vm110("fleet", "query", str(dataset), "--named", "findings", "--limit", "1000",
+                              "--format", "json").stdout)
+    assert {(Path(r["file"]).name, r["rule"], r["severity"], r["message"]) for r in listed} == expected
+    page = vm110("fleet", "report", str(dataset), "--html", "-").stdout
+    table = page[page.index('<table class="findings">'):]
+    assert "<td>" + str(folder / "dead.pcap") + '</td><td class="error">no_eglink</td>' in table

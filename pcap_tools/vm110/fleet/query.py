@@ -257,8 +257,8 @@ def _findings(f: Fleet, a: Args) -> str:
     who = [c for c in f.who("findings") if c != "file"]
     lead = ", ".join(who) + ", " if who else ""
     return f"""
-SELECT {lead}file, rule, severity, frame, time, sender, filter
-FROM findings WHERE item IS NOT NULL
+SELECT {lead}file, rule, severity, frame, time, sender, filter, message
+FROM findings
 ORDER BY severity = 'error' DESC, rule, file, item
 LIMIT {a.limit}"""
 
@@ -275,7 +275,8 @@ NAMED = {n.name: n for n in (
           _watchdog),
     Named("trend", f"--trend METRIC ({', '.join(METRICS)}) --by {'|'.join(PERIODS)}|COLUMN", _trend),
     Named("errors", "captures that could not be read, or only in part, and why", _errors),
-    Named("findings", "findings to open in Wireshark: file, frame, time, sender and display filter", _findings),
+    Named("findings", "findings to open in Wireshark: file, frame, time, sender and display filter (none for a "
+                      "finding of the whole capture: no EG-Link packet, frames not read), message", _findings),
 )}
 WORST = {"links": "worst-links", "machines": "worst-machines", "commands": "failing-commands"}
 

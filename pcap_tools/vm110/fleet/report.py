@@ -111,10 +111,10 @@ def _spread(fleet: Fleet, sql: str, caption: str, unit: str, name: str) -> str:
 def _findings(fleet: Fleet) -> str:
     who = [c for c in fleet.who("findings") if c != "file"]
     lead = "".join(f"{c}, " for c in who)
+    # (a finding of the whole capture, no_eglink or frames not read, has no item: a row all the same)
     res = fleet.run(f"SELECT {lead}file, rule, severity, message, frame, time, sender, filter FROM findings "
-                    "WHERE item IS NOT NULL "
                     f"ORDER BY severity = 'error' DESC, rule, {lead}file, item LIMIT {MAX_FINDINGS + 1}")
-    total = fleet.run("SELECT count(*) FROM findings WHERE item IS NOT NULL").rows[0][0]
+    total = fleet.run("SELECT count(*) FROM findings").rows[0][0]
     rows = []
     n = len(who)
     for row in res.rows[:MAX_FINDINGS]:
