@@ -25,6 +25,24 @@ def test_craft_then_decode_gives_every_type(tmp_path, name, magic):
     assert all(p["problems"] == [] and p["crc.status"] == "Good" for p in packets)
 
 
+def test_craft_to_standard_output(tmp_path):
+    """`--out -` wrote a file named "-" into the current folder (and nothing to the pipe), where
+    `-` means standard output everywhere else: now the pcap goes down the pipe, the line to
+    standard error; standard output that cannot be written is one line, exit 2."""
+    done = subprocess.run([sys.executable, "-m", "vm110", "craft", "--out", "-"], capture_output=True, cwd=tmp_path)
+    assert done.returncode == EXIT_OK and list(tmp_path.iterdir()) == []
+    assert done.stdout[:4] == b"\xd4\xc3\xb2\xa1" and done.stderr == b"wrote 6 packets to standard output\n"
+    decoded = subprocess.run([sys.executable, "-m", "vm110", "decode", "-", "--json"], input=done.stdout,
+                             capture_output=True)
+    packets = [json.loads(line) for line in decoded.stdout.splitlines()]
+    assert sorted(p["type"] for p in packets) == ["VRAI", "VRAO", "VRCI", "VRCO", "VRPI", "VRPO"]
+    with open("/dev/full", "wb") as full:
+        failed = subprocess.run([sys.executable, "-m", "vm110", "craft", "--out", "-"], stdout=full,
+                                stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    assert failed.returncode == EXIT_USAGE
+    assert failed.stderr == "vm110 craft: cannot write standard output: No space left on device\n"
+
+
 def test_decode_with_the_wrong_crc_variant_flags_every_packet(tmp_path):
     capture = tmp_path / "crafted.pcap"
     vm110("craft", "--out", str(capture))

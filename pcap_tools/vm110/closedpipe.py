@@ -56,6 +56,11 @@ class _Guarded:
         except OSError as exc:
             raise StdoutUnwritable(exc.strerror or str(exc)) from None
 
+    @property
+    def buffer(self) -> "_Guarded":
+        """The binary stream beneath, guarded alike (a capture written to standard output)."""
+        return _Guarded(self._stream.buffer)
+
     def __getattr__(self, name: str) -> Any:
         return getattr(self._stream, name)
 

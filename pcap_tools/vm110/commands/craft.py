@@ -7,6 +7,7 @@ acknowledgement. Nothing is sent anywhere.
 from __future__ import annotations
 
 import argparse
+import sys
 
 from scapy.layers.inet import IP, UDP
 from scapy.layers.l2 import Ether
@@ -59,12 +60,19 @@ def _frame(src: str, port: int, packet):
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True,
                         help="capture file to write (pcapng when it ends in .pcapng, else pcap), through a "
-                             "temporary file renamed into place")
+                             "temporary file renamed into place; - writes pcap to standard output "
+                             "(vm110 craft --out - | vm110 dissect -)")
 
 
 def run(args: argparse.Namespace) -> int:
     frames = sample_packets()
+    records = ((round(frame.time * 1_000_000), bytes(frame)) for frame in frames)
+    if args.out == "-":     # (as `-` everywhere else: a file named "-" is a surprise in the current folder)
+        with open_writer(sys.stdout.buffer, "pcap") as writer:
+            writer.write_many(records)
+        print(f"wrote {len(frames)} packets to standard output", file=sys.stderr)
+        return 0
     with atomic_writer(args.out) as stream, open_writer(stream, format_of(args.out)) as writer:
-        writer.write_many((round(frame.time * 1_000_000), bytes(frame)) for frame in frames)
+        writer.write_many(records)
     print(f"wrote {len(frames)} packets to {args.out}")
     return 0
