@@ -686,3 +686,27 @@ def test_a_finding_of_the_whole_capture_is_listed(tmp_path):
     page = vm110("fleet", "report", str(dataset), "--html", "-").stdout
     table = page[page.index('<table class="findings">'):]
     assert "<td>" + str(folder / "dead.pcap") + '</td><td class="error">no_eglink</td>' in table
+
+
+def test_query_prints_times_as_decode_and_analyze_do(src, built):
+    """A time in a query's output read `2025-06-15T15:06:51` (no zone, the µs dropped when zero),
+    where every other command prints `2025-06-15T15:06:51.000000Z` (vm110.timefmt): a finding's
+    time is printed as `vm110 decode` prints its frame's (a lost packet's item is its frame), in
+    every output format."""
+    from vm110.timefmt import utc_iso
+    capture = src / "controller-watchdog.pcap"
+    report = json.loads(vm110("analyze", str(capture), "--json", "-").stdout)
+    expected = [(i["frame"], utc_iso(i["time"])) for f in report["verdict"]["findings"] for i in f["items"]]
+    decoded = {p["frame"]: p["time_utc"] for p in map(json.loads, vm110("decode", str(capture), "--json")
+                                                          .stdout.splitlines())}
+    lost = [i["frame"] for f in report["verdict"]["findings"] if f["rule"] == "lost" for i in f["items"]]
+    assert lost and all(utc_iso(i["time"]) == decoded[i["frame"]] for f in report["verdict"]["findings"]
+                        if f["rule"] == "lost" for i in f["items"])
+    sql = f"SELECT frame, time FROM findings WHERE file = '{capture}' ORDER BY frame"
+    found = json.loads(vm110("fleet", "query", str(built), sql, "--format", "json").stdout)
+    assert [(r["frame"], r["time"]) for r in found] == sorted(expected)
+    assert any(time.endswith(":51.000000Z") for _, time in expected)
+    csv_lines = vm110("fleet", "query", str(built), sql, "--format", "csv").stdout.splitlines()
+    assert csv_lines[1:] == [f"{r['frame']},{r['time']}" for r in found]
+    table = vm110("fleet", "query", str(built), sql).stdout.splitlines()
+    assert [line.split()[1] for line in table[2:-1]] == [r["time"] for r in found]

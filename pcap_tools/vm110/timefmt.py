@@ -23,6 +23,13 @@ def utc_iso(seconds: float) -> str:
     return when.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
+def datetime_iso(when: datetime.datetime) -> str:
+    """A calendar time (a naive one is UTC) in the form of utc_iso: 2025-06-15T15:06:40.125000Z."""
+    if when.tzinfo is not None:
+        when = when.astimezone(datetime.timezone.utc).replace(tzinfo=None)
+    return when.isoformat(timespec="microseconds") + "Z"
+
+
 def since(seconds: float | None, start: float) -> str:
     """Seconds from `start`, e.g. "+12.345678"; "-" for an unknown (damaged) time."""
     if seconds is None or not math.isfinite(seconds):

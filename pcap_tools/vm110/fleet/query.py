@@ -20,6 +20,7 @@ import pyarrow as pa
 
 from ..errors import CliError
 from ..printable import escaped
+from ..timefmt import datetime_iso
 from .dataset import Dataset, view_files
 from .tables import TABLES, table_schema
 
@@ -287,8 +288,11 @@ def _quote(text: str) -> str:
 
 # -- output -------------------------------------------------------------------------------------------
 def _plain(value: Any) -> Any:
-    """A JSON / CSV friendly value."""
-    if isinstance(value, (dt.datetime, dt.date)):
+    """A JSON / CSV friendly value; a time as every command prints one (ISO 8601 UTC with µs and
+    Z: the columns hold UTC), so that it reads as `vm110 decode` and `analyze` print that frame's."""
+    if isinstance(value, dt.datetime):
+        return datetime_iso(value)
+    if isinstance(value, dt.date):
         return value.isoformat()
     if isinstance(value, decimal.Decimal):
         return float(value)
