@@ -710,3 +710,23 @@ def test_query_prints_times_as_decode_and_analyze_do(src, built):
     assert csv_lines[1:] == [f"{r['frame']},{r['time']}" for r in found]
     table = vm110("fleet", "query", str(built), sql).stdout.splitlines()
     assert [line.split()[1] for line in table[2:-1]] == [r["time"] for r in found]
+
+
+def test_a_folder_gone_while_walked_is_no_row(src, monkeypatch):
+    """A sub-folder removed between its listing and its walk (a rotating capture tool) hides no
+    capture: no unreadable row for it; one that cannot be read is one."""
+    from vm110.fleet.sources import find
+    (src / "gone").mkdir()
+    (src / "locked").mkdir()
+    scandir = os.scandir
+
+    def racing(path):
+        if os.path.basename(path) == "gone":
+            raise FileNotFoundError(2, "No such file or directory", path)
+        if os.path.basename(path) == "locked":
+            raise PermissionError(13, "Permission denied", path)
+        return scandir(path)
+    monkeypatch.setattr(os, "scandir", racing)
+    found = find([str(src)])
+    assert sorted(Path(p).name for p in found) == sorted([*NAMES, "locked"])
+    assert found[str(src / "locked")].startswith("a folder that cannot be read: Permission denied")

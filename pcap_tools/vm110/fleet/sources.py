@@ -97,7 +97,8 @@ def _walk(folder: str) -> dict[str, Optional[str]]:
     found: dict[str, Optional[str]] = {}
 
     def unlisted(exc: OSError) -> None:
-        found[exc.filename] = f"a folder that cannot be read: {exc.strerror}; the captures in it are not seen"
+        if not isinstance(exc, (FileNotFoundError, NotADirectoryError)):     # (gone while walked: nothing missed)
+            found[exc.filename] = f"a folder that cannot be read: {exc.strerror}; the captures in it are not seen"
     for top, _, files in os.walk(folder, onerror=unlisted):
         for name in files:
             if Path(name).suffix.lower() in CAPTURE_SUFFIXES:
