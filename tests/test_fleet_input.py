@@ -730,3 +730,16 @@ def test_a_folder_gone_while_walked_is_no_row(src, monkeypatch):
     found = find([str(src)])
     assert sorted(Path(p).name for p in found) == sorted([*NAMES, "locked"])
     assert found[str(src / "locked")].startswith("a folder that cannot be read: Permission denied")
+
+
+def test_the_report_is_never_written_over_the_dataset(built):
+    """`fleet report DATASET --html DATASET/manifest.json` wrote the page over the manifest (exit 0)
+    and the dataset was lost; over a part, that capture. Refused in one line, nothing changed; a
+    new file beside them is written."""
+    before = snapshot(built)
+    part = next(p for e in json.loads((built / "manifest.json").read_text())["captures"].values() for p in e["parts"])
+    for target in (built / "manifest.json", built / part):
+        one_line_error(vm110("fleet", "report", str(built), "--html", str(target)), "refusing to write over it")
+    assert snapshot(built) == before
+    assert vm110("fleet", "report", str(built), "--html", str(built / "report.html")).returncode == 0
+    assert vm110("fleet", "query", str(built), "SELECT 1").returncode == 0

@@ -15,7 +15,7 @@ from typing import Optional, Sequence
 
 from ..cli import Parser
 from ..errors import EXIT_OK, EXIT_USAGE, CliError
-from ..fileio import check_target, write_text
+from ..fileio import check_distinct, check_target, write_text
 from ..numbers import number
 from .analyze import add_analysis_options, analysis_options
 
@@ -147,7 +147,10 @@ def _report(args: argparse.Namespace) -> int:
     from ..fleet.report import render
     if args.html != "-":
         check_target(args.html)
-    page = render(Fleet(args.dataset))
+    fleet = Fleet(args.dataset)
+    if args.html != "-":        # (the page written over the manifest lost the whole dataset)
+        check_distinct({"--html": args.html}, fleet.dataset.own_files(fleet.manifest))
+    page = render(fleet)
     if args.html == "-":
         sys.stdout.write(page)
     else:

@@ -123,6 +123,13 @@ class Dataset:
                 raise CliError(f"{self.url}: another build is writing this dataset") from None
             yield
 
+    def own_files(self, manifest: dict) -> list[str]:
+        """The local files of the dataset (manifest, lock, listed parts): never an output's target."""
+        if not self.local:
+            return []
+        return [self.path(MANIFEST), self.path(LOCK),
+                *(self.path(part) for entry in manifest["captures"].values() for part in entry["parts"])]
+
     # -- parts --------------------------------------------------------------------------------------
     def write_part(self, table: str, capture_id: str, schema: pa.Schema, batches: Iterable[pa.Table]) -> str:
         """One part from `batches` (tables of `schema`), written as they come: memory holds one
