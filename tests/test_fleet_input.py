@@ -328,6 +328,11 @@ def test_query_takes_options_between_dataset_and_sql(built):
     ((), ("give SQL",)),
     (("-- nothing but a comment;",), ("query failed", "no statement")),                                    # the command's own check (CliError)
     (("SELECT 1", "--worst", "links"), ("give one of",)),
+    # An option the query does not take was passed over: a month's worst links were all months'.
+    (("--worst", "links", "--month", "2025-06"), ("--month does not apply to worst-links", "watchdog")),
+    (("--trend", "loss", "--limit", "3"), ("--limit does not apply to trend",)),
+    (("--named", "errors", "--by", "month"), ("--by does not apply to errors", "trend")),
+    (("SELECT 1", "--month", "2025-06"), ("--month does not apply to SQL",)),
 ])
 def test_query_errors_are_one_line_of_the_command(built, args, words):
     """`vm110 fleet: ...` (as every command's: `vm110 <command>: ...`), not the top-level `vm110: ...`."""
@@ -743,3 +748,12 @@ def test_the_report_is_never_written_over_the_dataset(built):
     assert snapshot(built) == before
     assert vm110("fleet", "report", str(built), "--html", str(built / "report.html")).returncode == 0
     assert vm110("fleet", "query", str(built), "SELECT 1").returncode == 0
+
+
+def test_the_options_a_named_query_takes(built):
+    month = vm110("fleet", "query", str(built), "--named", "watchdog", "--month", "2025-06", "--limit", "1",
+                  "--format", "json")
+    assert month.returncode == 0 and len(json.loads(month.stdout)) == 1, month.stderr
+    trend = vm110("fleet", "query", str(built), "--trend", "loss", "--by", "month", "--format", "json")
+    assert trend.returncode == 0 and [r["month"] for r in json.loads(trend.stdout)] == ["2025-06-01"], trend.stderr
+    assert vm110("fleet", "query", str(built), "--worst", "machines", "--limit", "2").stdout.endswith("(2 rows)\n")

@@ -73,9 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     query.add_argument("--named", metavar="NAME", help="a named query (see --list)")
     query.add_argument("--worst", choices=("links", "machines", "commands"), help="worst links, machines or commands")
     query.add_argument("--trend", metavar="METRIC", help="jitter, loss, latency, watchdog or findings over time")
-    query.add_argument("--by", default="week", help="for --trend: day, week, month or a metadata column; default week")
+    query.add_argument("--by", help="for --trend: day, week, month or a metadata column; default week")
     query.add_argument("--month", metavar="YYYY-MM", help="for watchdog: the month; default the latest in the data")
-    query.add_argument("--limit", type=LIMIT, default=20, metavar="N",
+    query.add_argument("--limit", type=LIMIT, metavar="N",
                        help=f"rows of a ranked query, {LIMIT.range_text}; default 20")
 
     report = sub.add_parser("report", help="one self-contained HTML page over a dataset")
@@ -131,12 +131,16 @@ def _query(args: argparse.Namespace) -> int:
     if not chosen:
         raise CliError("give SQL, --named NAME, --worst WHAT or --trend METRIC (--list shows them)")
     if args.sql:
+        given = [f"--{o}" for o in ("limit", "by", "month") if getattr(args, o) is not None]
+        if given:
+            raise CliError(f"{given[0]} does not apply to SQL (say it in the query)")
         sql = args.sql
     else:
         name = args.named or (WORST[args.worst] if args.worst else "trend")
         if name not in NAMED:
             raise CliError(f"--named {name[:30]!r}: choose from {', '.join(NAMED)}")
-        sql = NAMED[name].sql(fleet, Args(limit=args.limit, metric=args.trend or "jitter", by=args.by,
+        named = NAMED[name]
+        sql = named.sql(fleet, Args.given(named, args.trend or "jitter", limit=args.limit, by=args.by,
                                           month=args.month))
     sys.stdout.write(render(fleet.run(sql), args.format))
     return EXIT_OK

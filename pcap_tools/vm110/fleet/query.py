@@ -104,6 +104,7 @@ class Named:
     name: str
     help: str
     sql: Callable[[Fleet, "Args"], str]
+    options: tuple[str, ...] = ()       # of --limit, --by, --month: those it takes (others are refused)
 
 
 @dataclass
@@ -112,6 +113,16 @@ class Args:
     metric: str = "jitter"
     by: str = "week"
     month: Optional[str] = None
+
+    @classmethod
+    def given(cls, named: Named, metric: str, **options: Any) -> "Args":
+        """The arguments of `named` from the options given (None: not given); CliError for one it
+        does not take (`--worst links --month 2025-06` ranked over all months, saying nothing)."""
+        for option, value in options.items():
+            if value is not None and option not in named.options:
+                takers = [n.name for n in NAMED.values() if option in n.options]
+                raise CliError(f"--{option} does not apply to {named.name}; it goes with {', '.join(takers)}")
+        return cls(metric=metric, **{k: v for k, v in options.items() if v is not None})
 
 
 def _cols(prefix: str, cols: Sequence[str]) -> str:
@@ -266,18 +277,19 @@ LIMIT {a.limit}"""
 
 NAMED = {n.name: n for n in (
     Named("worst-links", "machines by lost packets (share), watchdog violations, then jitter (--worst links)",
-          _worst_links),
+          _worst_links, ("limit",)),
     Named("worst-machines", "machines ranked by findings: error findings, failing captures, others (--worst machines)",
-          _worst_machines),
+          _worst_machines, ("limit",)),
     Named("failing-commands", "commands that fail most, per machine and command ID, with failure share and ack "
                               "latency (--worst commands)",
-          _failing_commands),
+          _failing_commands, ("limit",)),
     Named("watchdog", "machines with watchdog violations in a month (--month YYYY-MM; default the latest in the data)",
-          _watchdog),
-    Named("trend", f"--trend METRIC ({', '.join(METRICS)}) --by {'|'.join(PERIODS)}|COLUMN", _trend),
+          _watchdog, ("limit", "month")),
+    Named("trend", f"--trend METRIC ({', '.join(METRICS)}) --by {'|'.join(PERIODS)}|COLUMN", _trend, ("by",)),
     Named("errors", "captures that could not be read, or only in part, and why", _errors),
     Named("findings", "findings to open in Wireshark: file, frame, time, sender and display filter (none for a "
-                      "finding of the whole capture: no EG-Link packet, frames not read), message", _findings),
+                      "finding of the whole capture: no EG-Link packet, frames not read), message", _findings,
+          ("limit",)),
 )}
 WORST = {"links": "worst-links", "machines": "worst-machines", "commands": "failing-commands"}
 
