@@ -6,7 +6,9 @@ Prints, all measured in this run:
   hour that makes on this machine;
 - the speed-up of `--engine dask` from one to two LocalCluster workers (the map only; the cluster's
   start is printed apart);
-- the time of a named query (`--worst links`) over the demo fleet (`make fleet-demo`'s 40 captures).
+- the time of a named query (`--worst links`) over the demo fleet (`make fleet-demo`'s 40 captures);
+- opening a dataset of many small captures and a named query, against DuckDB scanning the same
+  parts once (the ratio should stay flat from 250 to 1,000 captures).
 Each timing is the median of REPEAT runs, interleaved, so that a busy machine hurts both sides alike.
 Captures are cached in out/bench/fleet/ (synthesis is deterministic; delete it to rebuild).
 """
@@ -105,6 +107,51 @@ def named_query(work: Path) -> None:
           f"{statistics.median(runs) * 1000:.0f} ms (open + query), {cli:.2f} s as a command")
 
 
+def small_captures(count: int) -> list[str]:
+    """`count` captures of six packets each (craft's sampler, a day apart), in sites/machines:
+    many small files, where the per-file cost of reading the dataset shows."""
+    from vm110.capture.writer import open_writer
+    from vm110.commands.craft import sample_packets
+    folder = OUT / f"small-{count}"
+    if not folder.exists():
+        temp = Path(tempfile.mkdtemp(dir=OUT.parent if OUT.parent.exists() else None))
+        frames = [(f.time, bytes(f)) for f in sample_packets()]
+        for i in range(count):
+            where = temp / "sites" / f"s{i % 5}" / f"m{i % 50}"
+            where.mkdir(parents=True, exist_ok=True)
+            with open(where / f"c{i:05d}.pcap", "wb") as stream, open_writer(stream, "pcap") as writer:
+                writer.write_many((round((t + i * 86400) * 1e6), data) for t, data in frames)
+        OUT.mkdir(parents=True, exist_ok=True)
+        temp.rename(folder)
+    return [str(folder / "sites")]
+
+
+def many_captures(work: Path, count: int) -> None:
+    """Opening a dataset of many small captures and a named query, against DuckDB alone scanning
+    the same parts once (the floor): the ratio should not grow with the number of captures."""
+    import duckdb
+    from vm110.fleet.dataset import view_files
+    dataset = str(work / f"small-{count}")
+    build(small_captures(count), Settings(dataset=dataset), MetaPattern("sites/{site}/{machine}/*.pcap"), jobs=2)
+    runs, floor = [], []
+    for _ in range(REPEAT):
+        t0 = time.perf_counter()
+        fleet = Fleet(dataset)
+        fleet.run(NAMED["worst-links"].sql(fleet, Args()))
+        runs.append(time.perf_counter() - t0)
+        fleet.con.close()
+        files = view_files(fleet.manifest, fleet.dataset)
+        t0 = time.perf_counter()
+        with duckdb.connect() as con:
+            for table in ("captures", "senders", "streams"):            # what --worst links reads
+                paths = [f for group in files[table].values() for f in group]
+                con.execute(f"SELECT count(*) FROM read_parquet({paths!r})").fetchall()
+        floor.append(time.perf_counter() - t0)
+    a, b = statistics.median(runs), statistics.median(floor)
+    print(f"open + --worst links over {count} small captures: {a:.2f} s; DuckDB alone scanning its parts once: "
+          f"{b:.2f} s: {a / b:.1f}x")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--captures", type=int, default=24)
@@ -118,6 +165,8 @@ def main() -> None:
         throughput(paths, args.jobs, work)
         dask_speedup(paths, work)
         named_query(work)
+        for count in (250, 1000):
+            many_captures(work, count)
     finally:
         shutil.rmtree(work)          # made by this run
 

@@ -226,13 +226,16 @@ def _protocols(fs: Any) -> set[str]:
     return {protocol} if isinstance(protocol, str) else set(protocol)
 
 
-def view_files(manifest: dict, dataset: Dataset) -> dict[str, list[str]]:
-    """Table -> the part files (full paths or URLs) of the captures the manifest lists."""
-    files: dict[str, list[str]] = {t: [] for t in TABLES}
+def view_files(manifest: dict, dataset: Dataset) -> dict[str, dict[tuple[str, ...], list[str]]]:
+    """Table -> the part files (full paths or URLs) of the captures the manifest lists, by the
+    metadata fields of their capture: the parts of one set of fields have one schema, so that a
+    reader need not open every file to unite their columns by name."""
+    files: dict[str, dict[tuple[str, ...], list[str]]] = {t: {} for t in TABLES}
     for entry in manifest["captures"].values():
+        fields = tuple(sorted(entry.get("meta") or {}))
         for relative in entry.get("parts", []):
             table = relative.split("/", 1)[0]
             if table in files:
-                files[table].append(dataset.path(relative) if dataset.local else dataset.fs.unstrip_protocol(
-                    dataset.path(relative)))
+                files[table].setdefault(fields, []).append(
+                    dataset.path(relative) if dataset.local else dataset.fs.unstrip_protocol(dataset.path(relative)))
     return files

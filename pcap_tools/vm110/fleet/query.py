@@ -61,8 +61,11 @@ class Fleet:
         files = view_files(self.manifest, self.dataset)
         for table in TABLES:
             if files[table]:
-                listed = ", ".join(_quote(f) for f in files[table])
-                sql = f"SELECT * FROM read_parquet([{listed}], union_by_name = true)"
+                # One scan per schema, united by name (union_by_name over every part read each
+                # file's schema at every query: seconds per thousand captures).
+                sql = " UNION ALL BY NAME ".join(
+                    f"SELECT * FROM read_parquet([{', '.join(_quote(f) for f in paths)}])"
+                    for _, paths in sorted(files[table].items()))
             else:
                 empty = pa.Table.from_pylist([], schema=table_schema(table, self.meta_keys))
                 self.con.register(f"_empty_{table}", empty)
@@ -75,7 +78,7 @@ class Fleet:
             if missing:
                 nulls = ", ".join(f"CAST(NULL AS VARCHAR) AS {k}" for k in missing)
                 self.con.execute(f"CREATE OR REPLACE VIEW {table} AS SELECT *, {nulls} FROM ({sql})")
-        every = [f for t in TABLES for f in files[t]]
+        every = [f for t in TABLES for paths in files[t].values() for f in paths]
         self.con.execute(f"SET allowed_paths = [{', '.join(_quote(f) for f in every)}]")
         self.con.execute("SET enable_external_access = false")
         self.con.execute("SET lock_configuration = true")
