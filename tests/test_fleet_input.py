@@ -757,3 +757,26 @@ def test_the_options_a_named_query_takes(built):
     trend = vm110("fleet", "query", str(built), "--trend", "loss", "--by", "month", "--format", "json")
     assert trend.returncode == 0 and [r["month"] for r in json.loads(trend.stdout)] == ["2025-06-01"], trend.stderr
     assert vm110("fleet", "query", str(built), "--worst", "machines", "--limit", "2").stdout.endswith("(2 rows)\n")
+
+
+@pytest.mark.parametrize("schemas", [100, 2], ids=["read-per-schema", "united-file-by-file"])
+def test_captures_with_different_metadata_fields_read_together(tmp_path, monkeypatch, schemas):
+    """Parts are read per set of metadata fields, united by name (few sets), or file by file
+    (many): each capture's own fields and NULL for the others', in every table."""
+    import vm110.fleet.query as query
+    monkeypatch.setattr(query, "MAX_SCHEMAS", schemas)
+    folder = tmp_path / "src"
+    folder.mkdir()
+    names = ["normal.pcap", "retransmit.pcap", "vrco.pcap", "loss.pcapng"]
+    for n, name in enumerate(names):
+        shutil.copy(BUNDLED / name, folder / name)
+        if n:
+            (folder / f"{name}.meta.json").write_text(json.dumps({f"f{n}": str(n), "site": "north"}))
+    dataset = tmp_path / "ds"
+    assert vm110("fleet", "build", str(folder), "--out", str(dataset), "-j", "1").returncode == 0
+    for table in ("captures", "senders"):
+        got = json.loads(vm110("fleet", "query", str(dataset), f"SELECT file, site, f1, f2, f3 FROM {table}",
+                               "--format", "json").stdout)
+        want = {name: {"site": "north" if n else None, **{f"f{k}": str(k) if k == n else None for k in (1, 2, 3)}}
+                for n, name in enumerate(names)}
+        assert {Path(r["file"]).name: {k: v for k, v in r.items() if k != "file"} for r in got} == want

@@ -29,6 +29,7 @@ PERIODS = ("day", "week", "month")
 METRICS = ("jitter", "loss", "latency", "watchdog", "findings")
 WHO = ("site", "machine")               # metadata that names a machine, when the dataset has it
 COLUMN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+MAX_SCHEMAS = 8                         # sets of metadata fields read apart; more: united file by file
 
 
 @dataclass
@@ -62,10 +63,14 @@ class Fleet:
         for table in TABLES:
             if files[table]:
                 # One scan per schema, united by name (union_by_name over every part read each
-                # file's schema at every query: seconds per thousand captures).
+                # file's schema at every query: seconds per thousand captures); with many
+                # schemas (sidecars of many kinds) the unions cost more than that.
+                groups = [paths for _, paths in sorted(files[table].items())]
+                if len(groups) > MAX_SCHEMAS:
+                    groups = [[f for paths in groups for f in paths]]
+                union = ", union_by_name = true" if len(files[table]) > MAX_SCHEMAS else ""
                 sql = " UNION ALL BY NAME ".join(
-                    f"SELECT * FROM read_parquet([{', '.join(_quote(f) for f in paths)}])"
-                    for _, paths in sorted(files[table].items()))
+                    f"SELECT * FROM read_parquet([{', '.join(_quote(f) for f in paths)}]{union})" for paths in groups)
             else:
                 empty = pa.Table.from_pylist([], schema=table_schema(table, self.meta_keys))
                 self.con.register(f"_empty_{table}", empty)
