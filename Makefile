@@ -95,10 +95,12 @@ lua-tables: setup
 # The plugin (and the VM-110 profile: columns, filter buttons, colouring rules) where this user's
 # Wireshark looks, as `tshark -G folders` reports it: `vm110 wireshark install` (README, "Installing").
 # Files are replaced atomically; the user's own files in those folders are left alone.
-install-wireshark: setup
+# Only the command is needed (it finds tshark's folders, or takes Wireshark's defaults without one):
+# not the test tools that setup installs through apt and sudo.
+install-wireshark: $(STAMP)
 	$(VENV)/bin/vm110 wireshark install
 
-install-profile: setup
+install-profile: $(STAMP)
 	$(VENV)/bin/vm110 wireshark install --profile
 
 # dist/vm110-<version>-py3-none-any.whl: the package with the plugin, the profile, the examples and the

@@ -183,6 +183,18 @@ def test_make_install_wireshark(tmp_path):
     assert any(line.startswith("vm110.lua") and str(installed) in line for line in plugins.splitlines())
 
 
+@pytest.mark.parametrize("target", ["install-wireshark", "install-profile"])
+def test_make_install_needs_no_system_packages(target):
+    """`make install-wireshark` ran setup first: apt-get (through sudo) of the test tools (afl++,
+    clang, gdb, debootstrap, chromium...) to copy one file; on a machine without apt it failed.
+    It needs only the virtual environment with the command."""
+    done = subprocess.run(["make", "-n", "-C", str(T.REPO), "-o", ".venv/.installed", target],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "setup-system" not in done.stdout and "apt-get" not in done.stdout, done.stdout
+    assert "wireshark install" in done.stdout
+
+
 @pytest.mark.parametrize("lua", ["lua5.2", "lua5.4"])
 def test_plugin_compiles_on_lua_52_and_54(lua):
     """Lua 5.2 rejects 5.3 operators (& | ~ << >> //) at compile time; bit32 is not in Wireshark 4.4."""
