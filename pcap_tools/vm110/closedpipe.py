@@ -13,7 +13,7 @@ import contextlib
 import os
 import sys
 from collections.abc import Callable, Iterator
-from typing import Any, Optional, TextIO
+from typing import IO, Any, Optional
 
 
 def silence_stdout() -> None:
@@ -39,11 +39,11 @@ class _Guarded:
     writes to it in many places, and only here is such an error told from one of its input or
     files (it was a traceback)."""
 
-    def __init__(self, stream: TextIO) -> None:
+    def __init__(self, stream: IO[Any]) -> None:
         self._stream = stream
 
-    def write(self, text: str) -> int:
-        return self._call(self._stream.write, text)
+    def write(self, data: Any) -> int:          # (text, or bytes on the buffer)
+        return self._call(self._stream.write, data)
 
     def flush(self) -> None:
         self._call(self._stream.flush)
@@ -59,7 +59,7 @@ class _Guarded:
     @property
     def buffer(self) -> "_Guarded":
         """The binary stream beneath, guarded alike (a capture written to standard output)."""
-        return _Guarded(self._stream.buffer)
+        return _Guarded(self._stream.buffer)      # type: ignore[attr-defined]  # (a TextIO's)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._stream, name)
