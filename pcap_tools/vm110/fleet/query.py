@@ -54,8 +54,11 @@ class Fleet:
             self._views()
         except duckdb.Error as exc:     # a part damaged or gone since it was written
             self.con.close()
-            first = str(exc).splitlines()[0][:300]
-            raise CliError(f"{url}: the dataset cannot be read: {first} (build it again into a new folder)") from None
+            raise self._damaged(str(exc)) from None
+
+    def _damaged(self, error: str) -> CliError:
+        first = error.splitlines()[0][:300]
+        return CliError(f"{self.dataset.url}: the dataset cannot be read: {first} (build it again into a new folder)")
 
     def _views(self) -> None:
         """A view per table over its Parquet parts (the manifest's), locked to those files."""
@@ -84,6 +87,7 @@ class Fleet:
                 nulls = ", ".join(f"CAST(NULL AS VARCHAR) AS {k}" for k in missing)
                 self.con.execute(f"CREATE OR REPLACE VIEW {table} AS SELECT *, {nulls} FROM ({sql})")
         every = [f for t in TABLES for paths in files[t].values() for f in paths]
+        self.parts = frozenset(every)
         self.con.execute(f"SET allowed_paths = [{', '.join(_quote(f) for f in every)}]")
         self.con.execute("SET enable_external_access = false")
         self.con.execute("SET lock_configuration = true")
@@ -98,6 +102,10 @@ class Fleet:
             columns = [d[0] for d in cursor.description] if cursor.description else []
             return Result(columns, cursor.fetchall() if columns else [])
         except self.duckdb.Error as exc:
+            # A part damaged since it was written is found when a query reads it: the dataset's
+            # fault, not the query's.
+            if any(path in str(exc) for path in self.parts):
+                raise self._damaged(str(exc)) from None
             first = " ".join(str(exc).split("\n")[0].split())
             raise CliError(f"query failed: {first}") from None
 
