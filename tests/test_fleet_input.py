@@ -780,3 +780,42 @@ def test_captures_with_different_metadata_fields_read_together(tmp_path, monkeyp
         want = {name: {"site": "north" if n else None, **{f"f{k}": str(k) if k == n else None for k in (1, 2, 3)}}
                 for n, name in enumerate(names)}
         assert {Path(r["file"]).name: {k: v for k, v in r.items() if k != "file"} for r in got} == want
+
+
+_KILLER = """
+import os, signal, sys
+import vm110.fleet.engines as engines
+real = engines.build_one
+
+def build_one(source, settings):      # the worker given poison.pcap dies as the OOM killer ends it
+    if source.problem is None and source.path.endswith("poison.pcap"):
+        os.kill(os.getpid(), signal.SIGKILL)
+    return real(source, settings)
+
+engines.build_one = build_one
+from vm110.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_worker_that_dies_costs_its_capture_only(src, tmp_path):
+    """A worker process killed while it analysed a capture (the out-of-memory killer) left the
+    process pool waiting for its result for ever: the build hung, with no line. The capture is an
+    unreadable row that says why, every other capture is built, exit 2."""
+    shutil.copy(BUNDLED / "loss.pcapng", src / "poison.pcap")
+    dataset = tmp_path / "ds"
+    command = [sys.executable, "-c", _KILLER, "fleet", "build", str(src), "--out", str(dataset), "-j", "2"]
+    try:
+        done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=60)    # (3 s when well)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the build hung after a worker died")
+    assert done.returncode == 2, done.stderr
+    assert f"{len(NAMES) + 1} analysed (0 damaged, 1 unreadable)" in done.stdout
+    assert done.stderr.splitlines() == [(f"vm110 fleet: {src / 'poison.pcap'}: the process analysing it ended "
+                                         "before it was done: killed (SIGKILL: what the kernel's out-of-memory "
+                                         "killer sends)")]
+    status = {Path(r["file"]).name: r["status"] for r in rows(dataset)}
+    assert status == {**dict.fromkeys(NAMES, "ok"), "poison.pcap": "unreadable"}
+    again = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "2")      # tried again: it passes now
+    assert again.returncode == 0 and "1 analysed" in again.stdout, again
+    assert {r["status"] for r in rows(dataset)} == {"ok"}
