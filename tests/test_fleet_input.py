@@ -819,3 +819,50 @@ def test_a_worker_that_dies_costs_its_capture_only(src, tmp_path):
     again = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "2")      # tried again: it passes now
     assert again.returncode == 0 and "1 analysed" in again.stdout, again
     assert {r["status"] for r in rows(dataset)} == {"ok"}
+
+
+_DASK_KILLER = """
+import os, signal, sys
+from dataclasses import dataclass
+import vm110.fleet.build as build
+from vm110.fleet.sources import Source
+
+@dataclass(frozen=True)
+class Poison(Source):            # defined here: Dask pickles it by value, so its workers have it
+    @property
+    def capture_id(self):
+        if self.problem is None and self.path.endswith("poison.pcap"):
+            from distributed import get_worker
+            try:
+                get_worker()
+            except ValueError:
+                pass              # the driver
+            else:
+                os.kill(os.getpid(), signal.SIGKILL)      # as the out-of-memory killer ends a worker
+        return super().capture_id
+
+if __name__ == "__main__":
+    real = build._source
+    build._source = lambda *args: Poison(*vars(real(*args)).values())
+    from vm110.cli import main
+    sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_dask_task_whose_workers_die_is_an_unreadable_row(src, tmp_path):
+    """Dask gives up on a task whose workers all died (KilledWorker): the build ended in its
+    traceback, with the scheduler's log lines. The capture is an unreadable row that says why."""
+    pytest.importorskip("distributed")
+    shutil.copy(BUNDLED / "loss.pcapng", src / "poison.pcap")
+    dataset = tmp_path / "ds"
+    command = [sys.executable, "-c", _DASK_KILLER, "fleet", "build", str(src), "--out", str(dataset),
+               "--engine", "dask", "-j", "2"]
+    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr and all(line.startswith("vm110 fleet: ") for line in
+                                                  done.stderr.splitlines()), done.stderr
+    lines = [line for line in done.stderr.splitlines() if "poison.pcap" in line]
+    assert lines == [(f"vm110 fleet: {src / 'poison.pcap'}: every Dask worker that analysed it died before it "
+                      "was done (KilledWorker; the kernel's out-of-memory killer?)")]
+    status = {Path(r["file"]).name: r["status"] for r in rows(dataset)}
+    assert status["poison.pcap"] == "unreadable" and set(status) == {*NAMES, "poison.pcap"}

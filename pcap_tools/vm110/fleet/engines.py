@@ -111,6 +111,7 @@ def run_dask(todo: Sequence[Source], settings: Settings, jobs: int, scheduler: O
     or on a LocalCluster of `jobs` single-threaded worker processes on the loopback interface."""
     try:
         from distributed import Client, LocalCluster, as_completed
+        from distributed.scheduler import KilledWorker
     except ImportError as exc:
         raise CliError(f"--engine dask needs dask.distributed ({exc}); make setup installs it") from None
     with ExitStack() as stack:
@@ -129,7 +130,7 @@ def run_dask(todo: Sequence[Source], settings: Settings, jobs: int, scheduler: O
                 # second cluster on the machine then warns and moves)
                 cluster = stack.enter_context(LocalCluster(
                     n_workers=jobs, threads_per_worker=1, processes=True, host="127.0.0.1",
-                    dashboard_address=":0", silence_logs=logging.ERROR))
+                    dashboard_address=":0", silence_logs=logging.CRITICAL))    # (a task that fails is said once, below)
             finally:
                 if main:
                     signal.signal(signal.SIGINT, previous)
@@ -137,8 +138,23 @@ def run_dask(todo: Sequence[Source], settings: Settings, jobs: int, scheduler: O
         if not todo:
             return
         futures = client.map(build_one, list(todo), settings=settings, pure=False)
+        source = {future.key: s for future, s in zip(futures, todo)}
         try:
             for future in as_completed(futures):
-                yield future.result()
+                try:
+                    done = future.result()
+                except CliError:
+                    raise                       # the dataset cannot be written: that ends the build
+                except Exception as exc:        # its workers died, or it failed on a worker
+                    done = build_one(replace(source[future.key], problem=_task_failed(exc, KilledWorker)), settings)
+                yield done
         finally:
             client.cancel(futures)
+
+
+def _task_failed(exc: Exception, killed: type) -> str:
+    if isinstance(exc, killed):
+        return ("every Dask worker that analysed it died before it was done (KilledWorker; the kernel's "
+                "out-of-memory killer?)")
+    first = str(exc).splitlines()[0][:200] if str(exc) else ""
+    return f"the Dask task failed: {type(exc).__name__}" + (f": {first}" if first else "")
