@@ -95,3 +95,21 @@ def test_report_page(dataset, tmp_path):
     for plot in ("trend-loss", "trend-jitter", "trend-latency", "spread-vrpi-jitter", "spread-ack-latency"):
         assert f'data-plot="{plot}"' in page
     assert "frame.number" in page and "wireshark -r" in page
+
+
+def test_the_demo_builds_afresh_over_its_dataset_of_an_older_format(tmp_path, capsys):
+    """`make fleet-demo` after an upgrade that changed the dataset format failed: its build and
+    queries refused the demo's own dataset of before (exit 2). The demo now removes that one, and
+    nothing else: not a dataset of the current format, not a folder that is no dataset."""
+    from vm110.fleet.dataset import FORMAT, FORMAT_VERSION, MANIFEST
+    for name, doc in (("old", {"format": FORMAT, "format_version": FORMAT_VERSION - 1}),
+                      ("current", {"format": FORMAT, "format_version": FORMAT_VERSION}),
+                      ("other", {"format": "something else", "format_version": 0})):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / MANIFEST).write_text(json.dumps(doc))
+        (tmp_path / name / "part.parquet").write_bytes(b"x")
+        demo._drop_older_dataset(str(tmp_path / name))
+    (tmp_path / "none").mkdir()
+    demo._drop_older_dataset(str(tmp_path / "none"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["current", "none", "other"]
+    assert f"format version {FORMAT_VERSION - 1}" in capsys.readouterr().out

@@ -31,7 +31,7 @@ from .tables import TABLES
 from ..jsonin import loads
 
 FORMAT = "vm110-fleet"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2                 # 2: findings of report schema 3 (severity note); rows of 1 would mix
 MANIFEST = "manifest.json"
 MAX_MANIFEST_BYTES = 256 << 20
 LOCK = ".vm110-fleet.lock"         # held by a build (local datasets): one writer at a time

@@ -9,11 +9,14 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import struct
 import sys
 
 from ..fileio import write_bytes, write_text
+from ..jsonin import loads
 from ..synth import synthesize
+from .dataset import FORMAT, FORMAT_VERSION, MANIFEST
 
 # site, machine, scenario, duration (s; None: the scenario's), base unit firmware
 MACHINES = (
@@ -79,7 +82,21 @@ def main(argv: list[str]) -> int:
         return 2
     paths = captures(argv[0])
     print(f"wrote {len(paths)} captures of {len(MACHINES)} machines under {argv[0]}/sites")
+    _drop_older_dataset(os.path.join(argv[0], "dataset"))
     return 0
+
+
+def _drop_older_dataset(path: str) -> None:
+    """The demo's own dataset of an older format (a vm110 before) cannot take the new build: the
+    demo builds it afresh. Only a folder whose manifest says it is a fleet dataset goes."""
+    try:
+        with open(os.path.join(path, MANIFEST), "rb") as f:
+            doc = loads(f.read())
+    except (OSError, ValueError):
+        return
+    if isinstance(doc, dict) and doc.get("format") == FORMAT and doc.get("format_version") != FORMAT_VERSION:
+        shutil.rmtree(path)
+        print(f"removed the demo's dataset of format version {doc.get('format_version')!r} at {path}: built afresh")
 
 
 if __name__ == "__main__":
