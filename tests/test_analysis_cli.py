@@ -158,3 +158,41 @@ def test_thresholds_are_options(files, tmp_path):
     assert vm110(str(files / "lossy.pcapng"), "--vrpi-watchdog", "200", "--json", str(out), "--quiet").returncode == 0
     p = json.loads(out.read_text())["periodic"][0]
     assert p["watchdog"]["limit_ms"] == 200 and [round(v["gap_ms"]) for v in p["watchdog"]["violations"]] == [250]
+
+
+_KILLER = """
+import os, signal, sys
+import vm110.commands.analyze as analyze
+real = analyze._one
+
+def one(job):                          # the worker given poison.pcap dies as the OOM killer ends it
+    if job[0].endswith("poison.pcap"):
+        os.kill(os.getpid(), signal.SIGKILL)
+    return real(job)
+
+analyze._one = one
+from vm110.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_worker_that_dies_costs_its_capture_only(tmp_path):
+    """`--jobs`: a worker process killed while it analysed a capture (the out-of-memory killer)
+    left the process pool waiting for its result for ever: the command hung, with no line. That
+    capture is an error entry that says why, every other capture is reported, exit 2."""
+    names = ["normal.pcap", "poison.pcap", "loss.pcapng", "vrco.pcap"]
+    for name in names:
+        source = REPO / "captures" / ("restart.pcapng" if name == "poison.pcap" else name)
+        (tmp_path / name).write_bytes(source.read_bytes())
+    command = [sys.executable, "-c", _KILLER, "analyze", *(str(tmp_path / n) for n in names), "--jobs", "2",
+               "--quiet", "--json", str(tmp_path / "r.json")]
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, timeout=120)    # (a few s when well)
+    except subprocess.TimeoutExpired:
+        pytest.fail("vm110 analyze --jobs 2 hung after a worker died")
+    said = (f"{tmp_path / 'poison.pcap'}: the process analysing it ended before it was done: killed (SIGKILL: "
+            "what the kernel's out-of-memory killer sends)")
+    assert done.returncode == EXIT_USAGE and done.stderr.splitlines() == [f"vm110 analyze: {said}"]
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert [Path(r["capture"]["file"]).name for r in report["reports"]] == [n for n in names if n != "poison.pcap"]
+    assert report["errors"] == [{"file": str(tmp_path / "poison.pcap"), "error": said}]

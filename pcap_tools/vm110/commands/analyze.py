@@ -8,13 +8,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import multiprocessing
 import sys
 from typing import Optional, Union
 
 from .. import closedpipe
 from .. import constants as C
-from .. import resources
+from .. import resources, workers
 from ..analysis import analyze, report_html, report_json, rules, summary
 from ..analysis.commands import REUSE_GAP_MS
 from ..analysis.findings import MAX_TOTALS, TOTAL_NAMES
@@ -196,11 +195,9 @@ def run(args: argparse.Namespace) -> int:
     with contextlib.ExitStack() as stack:
         paths = [stdin_spool(stack) if p == "-" else p for p in args.captures]
         jobs = [(p, args.engine, args.port, args.crc, args.crc_order, options, args.jobs == 1) for p in paths]
-        if args.jobs > 1 and len(jobs) > 1:
-            with multiprocessing.Pool(min(args.jobs, len(jobs))) as pool:
-                results = pool.map(_one, jobs)
-        else:
-            results = [_one(job) for job in jobs]
+        results: list = [None] * len(jobs)
+        for index, result in workers.each(_one, jobs, args.jobs):
+            results[index] = f"{paths[index]}: {result}" if isinstance(result, workers.Died) else result
     for i, (name, path, result) in enumerate(zip(args.captures, paths, results)):
         if name == "-" and isinstance(result, dict):
             result["capture"]["file"] = "-"

@@ -1,109 +1,31 @@
 """Where the per-capture function runs: here and in worker processes (`local`), or on the workers
 of a Dask cluster (`dask`). Both only map `build_one` over the captures and hand back each
-`Done` as it completes; Dask schedules, retries and moves results itself, the local workers are
-given one capture at a time, so that a worker that dies costs that capture only.
+`Done` as it completes; Dask schedules, retries and moves results itself, the local workers
+(`vm110.workers`) are given one capture at a time, so that a worker that dies costs that capture only.
 """
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import signal
 import threading
 from contextlib import ExitStack
 from dataclasses import replace
-from multiprocessing.connection import Connection, wait
+from functools import partial
 from typing import Iterator, Optional, Sequence
 
 from ..errors import CliError
+from ..workers import Died, each
 from .sources import Source
 from .work import Done, Settings, build_one
 
 CONNECT_TIMEOUT_S = 10
 
 
-def _ignore_interrupt() -> None:
-    """Ctrl-C goes to the whole process group: the driver stops the pool and keeps what is done;
-    a worker that handled it too would print its own traceback."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _serve(conn: Connection, settings: Settings) -> None:
-    """A worker: build each capture the driver sends, until it sends None."""
-    _ignore_interrupt()
-    while (source := conn.recv()) is not None:
-        conn.send(build_one(source, settings))
-
-
-class _Worker:
-    """A worker process and the one capture it is building (the driver gives one at a time, so
-    that it knows which capture a worker that dies took with it)."""
-
-    def __init__(self, settings: Settings) -> None:
-        self.conn, theirs = multiprocessing.Pipe()
-        self.process = multiprocessing.Process(target=_serve, args=(theirs, settings), daemon=True)
-        self.process.start()
-        theirs.close()
-        self.source: Optional[Source] = None
-
-    def give(self, source: Optional[Source]) -> None:
-        self.source = source
-        try:
-            self.conn.send(source)
-        except OSError:           # dead already: its sentinel tells, and the capture is said
-            pass
-
-
 def run_local(todo: Sequence[Source], settings: Settings, jobs: int) -> Iterator[Done]:
-    """In this process for one job (as `vm110 analyze --jobs 1`), else `jobs` worker processes.
-    A worker that dies (the kernel's out-of-memory killer, a crash in a library) gives its capture
-    an unreadable row and is replaced; a process pool lost that capture and waited for it for ever."""
-    if jobs == 1 or len(todo) <= 1:
-        for source in todo:
-            yield build_one(source, settings)
-        return
-    queue = list(reversed(todo))
-    workers: list[_Worker] = []
-    try:
-        for _ in range(min(jobs, len(todo))):
-            worker = _Worker(settings)
-            workers.append(worker)
-            worker.give(queue.pop())
-        while any(w.source is not None for w in workers):
-            busy = [w for w in workers if w.source is not None]
-            ready = set(wait([w.conn for w in busy] + [w.process.sentinel for w in busy]))
-            for n, worker in enumerate(workers):
-                if worker.source is None or (worker.conn not in ready and worker.process.sentinel not in ready):
-                    continue
-                done = _result(worker)
-                if done is None:                # it died: a new worker in its place
-                    worker.process.join()
-                    done = build_one(replace(worker.source, problem=_death(worker.process.exitcode)), settings)
-                    workers[n] = _Worker(settings)
-                workers[n].give(queue.pop() if queue else None)
-                yield done
-    finally:
-        for worker in workers:          # (Ctrl-C, or the driver stopped: nothing half-done is kept)
-            worker.process.terminate()
-            worker.process.join()
-            worker.conn.close()
-
-
-def _result(worker: _Worker) -> Optional[Done]:
-    """The worker's Done, or None when it died without one."""
-    try:
-        if worker.conn.poll():
-            return worker.conn.recv()
-    except (EOFError, OSError):
-        pass
-    return None
-
-
-def _death(exitcode: Optional[int]) -> str:
-    if exitcode == -signal.SIGKILL:
-        how = "killed (SIGKILL: what the kernel's out-of-memory killer sends)"
-    else:
-        how = f"signal {-exitcode}" if exitcode is not None and exitcode < 0 else f"exit code {exitcode}"
-    return f"the process analysing it ended before it was done: {how}"
+    """In this process for one job (as `vm110 analyze --jobs 1`), else `jobs` worker processes
+    (`workers.each`): a worker that dies gives its capture an unreadable row that says why."""
+    for index, done in each(partial(build_one, settings=settings), todo, jobs):
+        yield build_one(replace(todo[index], problem=str(done)), settings) if isinstance(done, Died) else done
 
 
 def run_dask(todo: Sequence[Source], settings: Settings, jobs: int, scheduler: Optional[str]) -> Iterator[Done]:
