@@ -4,6 +4,7 @@ namespace); and the dashboard in tmux on a capture replayed at the pace of its t
 from __future__ import annotations
 
 import contextlib
+import copy
 import json
 import os
 import shutil
@@ -17,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from vm110.capture.reader import CaptureReader
+from vm110.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 VM110 = [sys.executable, "-m", "vm110"]
@@ -190,3 +192,88 @@ def test_no_dumpcap_outlives_the_monitor(how, netns, tmp_path):
         for pid in pids:
             with contextlib.suppress(OSError):
                 os.kill(int(pid), signal.SIGKILL)
+
+
+def _without_the_end(report: dict) -> tuple[dict, dict]:
+    """The report less what depends on when the watch ended (a live link is watched until the
+    monitor stops, a file ends at its last packet: docs/monitor.md, "Which clock"), and the
+    silences to the end apart: (sender, type) -> their starts."""
+    r = copy.deepcopy(report)
+    ends = {}
+    for p in r["periodic"]:
+        told = p["watchdog"]["violations"]
+        ends[(p["sender"], p["type"])] = [v["start"] for v in told if v["until_end"]]
+        p["watchdog"]["violations"] = [v for v in told if not v["until_end"]]
+    del r["capture"]["file"], r["capture"]["last_time"], r["totals"]["watchdog"]
+    r["verdict"]["findings"] = [f for f in r["verdict"]["findings"] if f["rule"] != "watchdog"]
+    return r, ends
+
+
+@pytest.mark.skipif(shutil.which("dumpcap") is None, reason="dumpcap not installed")
+def test_a_live_session_tells_what_analyze_of_the_same_traffic_tells(netns, tmp_path):
+    """Both simulators over the specification's multicast with impairments (loss, duplicates, bad
+    CRCs, a hung BU, a hung controller), the monitor on the namespace's loopback through dumpcap,
+    and beside it a dumpcap writing the same traffic to a file for `vm110 analyze`. The monitor's
+    report is analyze's but for the end of the watch; its finding lines, with those the rate
+    limit held back, are the report's items; each watchdog violation was raised and cleared live."""
+    ns = ["ip", "netns", "exec", netns]
+    ref, lines, report = tmp_path / "ref.pcapng", tmp_path / "live.jsonl", tmp_path / "monitor.json"
+    options = ["--vrci-fail", "300"]          # (the VRCIs the hung controller leaves waiting fail)
+    capture = subprocess.Popen(ns + ["dumpcap", "-q", "-i", "lo", "-f", "udp and (port 5825 or port 5827)",
+                                     "-w", str(ref)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    monitor = subprocess.Popen(ns + VM110 + ["monitor", "-i", "lo", "--no-dashboard", "--quiet", "--duration", "60",
+                                             "--json-lines", str(lines), "--json", str(report), *options],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        time.sleep(1.5)                     # both dumpcaps running before the traffic starts
+        if capture.poll() is not None or monitor.poll() is not None:
+            pytest.skip("dumpcap cannot capture here")
+        sim = [*ns, *VM110, "simulate"]
+        ctl = subprocess.Popen(sim + ["controller", "--iface", "127.0.0.1", "--duration", "6.5", "--quiet", "--seed",
+                                      "3", "--loss", "5", "--corrupt", "3", "--stall", "3:3.6"],
+                               stdout=subprocess.DEVNULL)
+        time.sleep(0.3)                     # the BU's commands all come while the controller runs
+        bu = subprocess.run(sim + ["bu", "--iface", "127.0.0.1", "--duration", "5", "--quiet", "--seed", "4",
+                                   "--loss", "5", "--duplicate", "5", "--command-every", "0.4", "--stall", "1.5:2.5"],
+                            stdout=subprocess.DEVNULL, timeout=30)
+        assert ctl.wait(timeout=30) == 0 and bu.returncode == 0
+        time.sleep(2.5)                     # both streams silent beyond their limits (500, 2000 ms)
+        monitor.send_signal(signal.SIGINT)
+        _, err = monitor.communicate(timeout=60)
+        assert monitor.returncode in (0, 1), err.decode()
+    finally:
+        for proc in (monitor, capture):
+            if proc.poll() is None:
+                proc.terminate()
+            proc.communicate(timeout=30)
+    assert main(["analyze", str(ref), "--quiet", "--json", str(tmp_path / "analyze.json"), *options]) in (0, 1)
+    live, ana = json.loads(report.read_text()), json.loads((tmp_path / "analyze.json").read_text())
+    assert live["capture"]["last_time"] >= ana["capture"]["last_time"] + 2.0
+    live_rest, live_ends = _without_the_end(live)
+    ana_rest, ana_ends = _without_the_end(ana)
+    assert live_rest == ana_rest
+    # Silent to the end: the BU as analyze says (it stopped 1.5 s before the controller), the
+    # controller too for the monitor, which watched on after the traffic.
+    assert {k: v for k, v in ana_ends.items() if v} == {k: v for k, v in live_ends.items() if k[1] == "VRPI"}
+    assert all(len(v) == 1 for v in live_ends.values()) and len(live_ends) == 2
+    # The scenario did what it is for.
+    totals = ana["totals"]
+    assert totals["lost"] and totals["duplicates"] and totals["illegal"] and totals["failed"]
+    assert [v for p in ana["periodic"] if p["type"] == "VRPI" for v in p["watchdog"]["violations"]
+            if not v["until_end"]]
+    # The lines told live, and those held back, are the report's items.
+    objects = [json.loads(line) for line in lines.read_text().splitlines()]
+    found = [o for o in objects if o["type"] == "finding"]
+    for rule in ("lost", "illegal", "failed"):
+        told = [f for f in found if f["rule"] == rule]
+        held = sum(f.get("suppressed_before", 0) for f in told)
+        held += sum(o["count"] for o in objects if o["type"] == "suppressed" and o["rule"] == rule)
+        items = [i for f in live["verdict"]["findings"] if f["rule"] == rule for i in f["items"]]
+        assert len(told) + held == len(items), rule
+    watchdog = [f for f in found if f["rule"] == "watchdog"]
+    for p in live["periodic"]:
+        starts = sorted(v["start"] for v in p["watchdog"]["violations"])
+        raised = sorted(f["item"]["time"] for f in watchdog if f["event"] == "raised"
+                        and (f["sender"], f["item"]["type"]) == (p["sender"], p["type"]))
+        cleared = [f for f in watchdog if f["event"] == "cleared" and f["sender"] == p["sender"]]
+        assert raised == pytest.approx(starts, abs=1e-6) and len(cleared) == len(starts) - 1, p["type"]
