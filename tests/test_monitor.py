@@ -345,6 +345,59 @@ def test_sigterm_ends_with_the_report_of_what_was_seen(tmp_path):
     assert report["capture"]["problem"] is None      # a stream stopped between records is not damage
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_a_full_standard_output_leaves_the_watch_and_its_report(tmp_path):
+    """Trial: `vm110 monitor ... > lines.txt` on a disk that filled: the first finding line that
+    could not be written ended the run, exit 2, without the --json report. Now it is said once,
+    the lines end and the watch goes on (as --json-lines on a full disk): the report is analyze's,
+    the --fail-on verdict said, and exit 2 (the output is incomplete)."""
+    capture = ROOT / "captures" / "loss.pcapng"
+    with open("/dev/full", "w") as full:
+        done = subprocess.run(VM110 + ["monitor", "--read", str(capture), "--idle", "0", "--no-dashboard", "--json",
+                                       str(tmp_path / "m.json"), "--fail-on", "lost>0"], stdout=full,
+                              stderr=subprocess.PIPE, text=True, timeout=120, check=False)
+    assert main(["analyze", str(capture), "--quiet", "--json", str(tmp_path / "a.json")]) == 0
+    assert (tmp_path / "a.json").read_bytes() == (tmp_path / "m.json").read_bytes()
+    lost = json.loads((tmp_path / "a.json").read_text())["totals"]["lost"]
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.splitlines() == ["vm110 monitor: cannot write standard output: No space left on device",
+                                        f"fail-on: {capture}: lost={lost} (rule lost>0)"]
+
+
+@pytest.mark.skipif(shutil.which("nohup") is None, reason="nohup not installed")
+def test_a_monitor_started_under_nohup_outlives_its_terminal(tmp_path):
+    """Trial: `nohup vm110 monitor ... &`, then the SSH session closed: the monitor put its own
+    handler over the SIGHUP that nohup had ignored, and ended with the session. A signal ignored
+    at the start stays ignored: the watch goes on to the end of its input (here: the whole capture,
+    analyze's report)."""
+    capture = ROOT / "captures" / "normal.pcap"
+    data = capture.read_bytes()
+    lines = tmp_path / "live.jsonl"
+    proc = subprocess.Popen(["nohup", *VM110, "monitor", "--read", "-", "--no-dashboard", "--quiet", "--json",
+                             str(tmp_path / "m.json"), "--json-lines", str(lines)],
+                            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    assert proc.stdin is not None
+    proc.stdin.write(data[:12000])
+    proc.stdin.flush()
+    for _ in range(200):                    # running (its handlers in place) once it logs
+        time.sleep(0.1)
+        if lines.exists() and lines.stat().st_size:
+            break
+    proc.send_signal(signal.SIGHUP)         # the session closed
+    with pytest.raises(subprocess.TimeoutExpired):
+        proc.wait(timeout=3)                # (it ended within a second of the signal)
+    proc.stdin.write(data[12000:])
+    proc.stdin.close()
+    assert proc.wait(timeout=30) == 0
+    with proc.stderr:
+        assert proc.stderr.read() == b""
+    assert main(["analyze", str(capture), "--quiet", "--json", str(tmp_path / "a.json")]) == 0
+    whole, seen = (json.loads((tmp_path / name).read_text()) for name in ("a.json", "m.json"))
+    assert seen["capture"].pop("file") == "-"
+    del whole["capture"]["file"]
+    assert seen == whole
+
+
 def test_spilled_times_stay_exact_and_out_of_memory():
     block = SpilledFloats.BLOCK
     values = np.cumsum(np.random.default_rng(1).uniform(0.05, 0.2, 3 * block + 123)) + 1.75e9

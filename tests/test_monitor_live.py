@@ -7,6 +7,8 @@ import contextlib
 import copy
 import json
 import os
+import pty
+import select
 import shutil
 import signal
 import subprocess
@@ -277,3 +279,80 @@ def test_a_live_session_tells_what_analyze_of_the_same_traffic_tells(netns, tmp_
                         and (f["sender"], f["item"]["type"]) == (p["sender"], p["type"]))
         cleared = [f for f in watchdog if f["event"] == "cleared" and f["sender"] == p["sender"]]
         assert raised == pytest.approx(starts, abs=1e-6) and len(cleared) == len(starts) - 1, p["type"]
+
+
+def _on_a_terminal(cmd: list[str], log: Path | None) -> tuple[subprocess.Popen, int]:
+    """`cmd` on a terminal of its own (a pty, its controlling terminal, as an SSH session gives),
+    standard error into `log` or on the terminal too; its master side (the SSH end) returned."""
+    master, slave = pty.openpty()
+    with open(log or os.devnull, "wb") as err:
+        proc = subprocess.Popen(["setsid", "--ctty", *cmd], stdin=slave, stdout=slave,
+                                stderr=slave if log is None else err, cwd=str(ROOT))
+    os.close(slave)
+    return proc, master
+
+
+def _screen_until(master: int, text: bytes, seconds: float) -> bytes:
+    screen, end = b"", time.monotonic() + seconds
+    while text not in screen and time.monotonic() < end:
+        if select.select([master], [], [], 0.2)[0]:
+            try:
+                screen += os.read(master, 1 << 16)
+            except OSError:                 # (the monitor gone: EIO)
+                break
+    return screen
+
+
+@pytest.mark.skipif(shutil.which("setsid") is None, reason="setsid (util-linux) not installed")
+@pytest.mark.parametrize("log", [True, False], ids=["stderr to a log", "stderr on the terminal"])
+def test_a_closed_terminal_ends_the_dashboard_s_run_with_its_report(log, tmp_path):
+    """Trial: with the dashboard on an SSH session's terminal, the session closing (the terminal
+    hangs up: SIGHUP, and every write to it fails with EIO) ended the monitor at its next write,
+    'cannot write standard output: Input/output error', exit 2: no --json report, no summary in
+    the log, the verdict lost. Now it ends as on SIGTERM: evidence and report written, the
+    summary on standard error when that still goes somewhere (a log), the verdict's exit code."""
+    evidence, report, err = tmp_path / "evidence", tmp_path / "r.json", tmp_path / "monitor.log"
+    evidence.mkdir()
+    capture = ROOT / "captures" / "bu-watchdog.pcap"     # controller silent 3.1 s from 4.9 s on
+    proc, master = _on_a_terminal(VM110 + ["monitor", "--read", str(capture), "--realtime", "--evidence",
+                                           str(evidence), "--before", "1", "--after", "0.5", "--json", str(report),
+                                           "--fail-on", "watchdog>0"], err if log else None)
+    try:
+        assert b"ALARM watchdog" in _screen_until(master, b"ALARM watchdog", 30)
+    finally:
+        os.close(master)                    # the SSH session closed
+    assert proc.wait(timeout=30) == 1       # the verdict (--fail-on watchdog>0), not 2
+    seen = json.loads(report.read_text())
+    assert seen["totals"]["watchdog"] >= 1 and 0 < seen["capture"]["packets"]
+    assert [p for p in evidence.iterdir() if p.name.endswith("-watchdog.pcapng")]
+    if log:
+        said = err.read_text()
+        assert "VERDICT: FAIL" in said and "Traceback" not in said and "cannot write" not in said, said
+        assert said.rstrip().endswith("(rule watchdog>0)")
+
+
+@pytest.mark.skipif(shutil.which("dumpcap") is None or shutil.which("setsid") is None,
+                    reason="dumpcap or setsid (util-linux) not installed")
+def test_a_closed_terminal_stops_dumpcap_with_the_monitor(netns, tmp_path):
+    """The dashboard of a live capture on an SSH session's terminal that closes: the monitor ends
+    with its report (exit 0), and its dumpcap with it."""
+    report, err = tmp_path / "r.json", tmp_path / "monitor.log"
+    proc, master = _on_a_terminal(["ip", "netns", "exec", netns, *VM110, "monitor", "-i", "lo", "--json",
+                                   str(report)], err)
+    try:
+        drawn = _screen_until(master, b"running", 30)
+        dumpcap = _dumpcap_under(proc.pid)
+        if dumpcap is None:
+            pytest.skip(f"dumpcap did not start here: {err.read_text().strip()}")
+        assert b"vm110 monitor  interface lo" in drawn
+    finally:
+        os.close(master)                    # the SSH session closed
+    assert proc.wait(timeout=30) == 0, (proc.returncode, err.read_text())
+    for _ in range(100):
+        if not _alive(dumpcap):
+            break
+        time.sleep(0.05)
+    assert not _alive(dumpcap)
+    assert json.loads(report.read_text())["capture"]["packets"] == 0
+    said = err.read_text()
+    assert "VERDICT: " in said and "Traceback" not in said and "cannot write" not in said, said

@@ -16,10 +16,10 @@ from collections.abc import Callable, Iterator
 from typing import IO, Any, Optional
 
 
-def silence_stdout() -> None:
-    """Point standard output's file descriptor at /dev/null (nothing to do without one)."""
+def silence_stdout(stream: Optional[TextIO] = None) -> None:
+    """Point standard output's (or `stream`'s) file descriptor at /dev/null (nothing to do without one)."""
     try:
-        fd = sys.stdout.fileno()
+        fd = (sys.stdout if stream is None else stream).fileno()
     except (AttributeError, ValueError, OSError):     # replaced by a test's capture, or closed
         return
     devnull = os.open(os.devnull, os.O_WRONLY)

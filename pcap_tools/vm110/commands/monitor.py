@@ -114,7 +114,11 @@ def run(args: argparse.Namespace) -> int:
                   file=sys.stderr)
         if evidence is not None and evidence.written and not args.quiet:
             print(f"evidence: {len(evidence.written)} file(s) in {args.evidence}", file=sys.stderr)
-        code = deliver(args, [name], [report], fail_rules, "monitor")
+        # The terminal hung up (the SSH session closed): the summary goes to standard error, a log
+        # when it was sent to one (else nowhere); a report on standard output is lost with it.
+        with contextlib.redirect_stdout(sys.stderr) if session.hung_up and not report_out else \
+                contextlib.nullcontext():
+            code = deliver(args, [name], [report], fail_rules, "monitor")
         if session.failure:        # (a capture damaged partway is the report's: deliver says it)
             print(f"vm110 monitor: {session.failure}", file=sys.stderr)
             return EXIT_USAGE

@@ -91,10 +91,10 @@ def render(header: dict, view: dict, findings: list[dict], width: int, height: i
 
 
 class Dashboard:
-    """Draws on `out` (a terminal)."""
+    """Draws on `out` (a terminal; standard output as it is when made)."""
 
-    def __init__(self, out: IO[str] = sys.stdout) -> None:
-        self.out = out
+    def __init__(self, out: Optional[IO[str]] = None) -> None:
+        self.out = sys.stdout if out is None else out
         self.on = False
 
     def draw(self, lines: list[str]) -> None:
@@ -112,6 +112,6 @@ class Dashboard:
 
     def close(self) -> None:
         if self.on:
+            self.on = False                # (once, should the terminal be gone)
             self.out.write(_LEAVE)
             self.out.flush()
-            self.on = False

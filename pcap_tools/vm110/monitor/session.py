@@ -31,12 +31,13 @@ from .evidence import Evidence
 from .intake import Intake
 from .live import Live, finding, item
 from .sources import Source
-from .stopping import Signals
+from .stopping import Signals, hung_up
 
 TICK_S = 0.1                 # the loop looks at the time at least this often
 DRAW_S = 1.0
 DECIDE_WAIT_S = 1.0          # a live link: the CRC variant is chosen after this at the latest
 FINDINGS_SHOWN = 200
+UNWRITABLE = (OSError, closedpipe.StdoutUnwritable)   # standard output's write errors (cli.py wraps it)
 RATE_LIMITED = {"lost", "illegal", "restarts", "failed"}   # at most one line per second per sender
 LIMITED_MAX = 4096           # (rule, sender) pairs the rate limit keeps; beyond, the old ones' lines are told
 
@@ -91,6 +92,7 @@ class Session:
         self.failure: Optional[str] = None
         self.no_capture = False                # the input ended before a capture header was whole
         self.unsaid: list[str] = []            # warnings kept from the dashboard's screen till its end
+        self.hung_up = False                   # the terminal hung up: the summary goes to standard error
         if cfg.evidence is not None:
             cfg.evidence.warn = self.warn
 
@@ -144,7 +146,8 @@ class Session:
             self.failure = str(exc)
         except KeyboardInterrupt:         # a second Ctrl-C: leave the terminal as it was
             if self.board is not None:
-                self.board.close()
+                with contextlib.suppress(*UNWRITABLE):
+                    self.board.close()
             raise
         self._end()
 
@@ -311,23 +314,50 @@ class Session:
         if self.board is not None and self.board.on:
             self.unsaid.append(message)
         else:
-            print(f"vm110 monitor: {message}", file=sys.stderr, flush=True)
+            try:
+                print(f"vm110 monitor: {message}", file=sys.stderr, flush=True)
+            except OSError:                 # its terminal hung up: nowhere to say it
+                self._hang_up()
 
     def _say(self, line: str) -> None:
         """A finding line: on stdout, or on stderr where a report goes to stdout."""
+        if self.cfg.lines_to_stderr:
+            try:
+                print(line, flush=True, file=sys.stderr)
+            except OSError:                # (its terminal hung up: the end's check says so)
+                self.cfg.lines = False
+            return
         try:
-            print(line, flush=True, file=sys.stderr if self.cfg.lines_to_stderr else sys.stdout)
-        except BrokenPipeError:
-            self._reader_gone()
+            print(line, flush=True)
+        except UNWRITABLE as exc:
+            self._stdout_failed(exc)
 
-    def _reader_gone(self) -> None:
-        """Standard output's reader went away (`| head -1`): the run ends as at Ctrl-C, and the
-        report files and the --fail-on exit code still follow (cli.py, closedpipe)."""
+    def _stdout_failed(self, exc: BaseException) -> None:
+        """Standard output cannot be written any more. Its reader went away (`| head -1`) or its
+        terminal hung up (the SSH session closed): the run ends as at Ctrl-C, the report files and
+        the --fail-on exit code still follow (cli.py, closedpipe), the summary of a hung-up terminal
+        on standard error (a log, when it goes to one). It is full (a disk): said once, and what
+        went there ends; the watch goes on, as for --json-lines, and the exit code is 2."""
+        gone = isinstance(exc, BrokenPipeError) or self._hang_up()
+        if not gone and closedpipe.said.unwritable is None:
+            closedpipe.said.unwritable = getattr(exc, "strerror", None) or str(exc)
+            self.warn(f"cannot write standard output: {closedpipe.said.unwritable}")
         closedpipe.silence_stdout()
-        self.cfg.lines = False
+        if not self.cfg.lines_to_stderr:
+            self.cfg.lines = False
         if self.cfg.json_lines is sys.stdout:
             self.cfg.json_lines = None
-        self.ended = True
+        self.board = None                   # (nothing more drawn, nor the screen left: it is gone)
+        self.ended = self.ended or gone
+
+    def _hang_up(self) -> bool:
+        """Whether the terminal hung up: standard output and error on it go to /dev/null from now
+        on, so that nothing fails writing to it (a traceback at the end, the report lost)."""
+        for stream in (sys.stdout, sys.stderr):
+            if hung_up(stream):
+                closedpipe.silence_stdout(stream)
+                self.hung_up = True
+        return self.hung_up
 
     def _write_line(self, obj: dict) -> None:
         out = self.cfg.json_lines
@@ -339,12 +369,11 @@ class Session:
         try:
             out.write(text + "\n")
             out.flush()
-        except OSError as exc:
+        except UNWRITABLE as exc:
             if out is sys.stdout:
-                if not isinstance(exc, BrokenPipeError):
-                    raise
-                self._reader_gone()
+                self._stdout_failed(exc)
                 return
+            assert isinstance(exc, OSError)
             # A full disk: the lines end (after a torn one, none would parse), the watch goes on.
             self.cfg.json_lines = None
             with contextlib.suppress(OSError):
@@ -369,7 +398,10 @@ class Session:
                   "rate": self.rate, "eglink": got.eglink, "illegal": got.illegal,
                   "alarms": [a["item"] | {"rule": a["rule"]} for a in self.active.values()]}
         width, height = self.board.size()
-        self.board.draw(dash.render(header, self.live.view(now or 0.0), list(self.findings), width, height))
+        try:
+            self.board.draw(dash.render(header, self.live.view(now or 0.0), list(self.findings), width, height))
+        except UNWRITABLE as exc:
+            self._stdout_failed(exc)
 
     # -- the end -------------------------------------------------------------------------------
     def _end(self) -> None:
@@ -397,8 +429,12 @@ class Session:
         self.intake.got.analysis = self.analysis     # the report is built from it (report.build)
         if self.cfg.evidence is not None:
             self.cfg.evidence.tick(None)
+        self._hang_up()                      # (SIGHUP: the SSH session closed, nothing failed yet)
         if self.board is not None:
-            self.board.close()
+            try:
+                self.board.close()
+            except UNWRITABLE as exc:
+                self._stdout_failed(exc)
         for message in self.unsaid:
             print(f"vm110 monitor: {message}", file=sys.stderr)
 
