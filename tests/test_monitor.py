@@ -173,6 +173,25 @@ def test_findings_json_lines_and_evidence_of_a_silent_base_unit(tmp_path, capsys
     assert item["evidence_filter"] == f"frame.number == {item['evidence_frames'][0]}" != item["filter"]
 
 
+def test_the_live_view_counts_each_sender_s_serials_as_the_report(tmp_path):
+    """Trial: the dashboard showed a base unit's lost, duplicated and out-of-order packets as 0
+    (the controller's were right): the live view named the BU by a key the analysis no longer
+    used (its source index had grown to 30 bits), so nothing of the BU was found, nor its restart
+    on a new port. Each sender's numbers at the end are now the report's."""
+    lines, report = tmp_path / "live.jsonl", tmp_path / "m.json"
+    assert main(["monitor", "--read", str(ROOT / "captures" / "loss.pcapng"), "--idle", "0", "--no-dashboard",
+                 "--quiet", "--json-lines", str(lines), "--json", str(report)]) == 0
+    last = [json.loads(line) for line in lines.read_text().splitlines()
+            if json.loads(line)["type"] == "snapshot"][-1]
+    shown = {s["sender"]: (s["lost"], s["duplicates"], s["out_of_order"]) for s in last["senders"]}
+    told = {s["id"]: (s["serial"]["lost"], s["serial"]["duplicates"], s["serial"]["out_of_order"])
+            for s in json.loads(report.read_text())["senders"]}
+    assert {s.split()[0] for s in shown} == {"Input", "Output"}
+    assert all(lost for lost, _, _ in told.values())
+    for sender, (lost, dups, late) in shown.items():     # (the last snapshot: the last whole second)
+        assert 0 < lost <= told[sender][0] and dups <= told[sender][1] and late <= told[sender][2], sender
+
+
 def test_live_lost_findings_are_analyze_s_items(tmp_path, capsys):
     """A gap is reported live once no late packet can fill it (a duplicate window after it
     opened), with what analyze's `lost` items say of it: gaps filled later are out of order, not

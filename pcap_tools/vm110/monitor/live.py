@@ -28,7 +28,8 @@ from .. import constants as C
 from .. import protocol as P
 from ..analysis import serials
 from ..analysis.bursts import DATA_OFFSET, Open
-from ..analysis.collect import CODE_OF_ID, STATE, STATE_FIELDS, TYPES, VRPI_CODE, VRPO_CODE, sender_id
+from ..analysis.collect import (CODE_OF_ID, RECORD, RECORD_DTYPE, STATE, STATE_FIELDS, TYPES, VRPI_CODE, VRPO_CODE,
+                                code_of, sender_id, sender_keys)
 from ..capture.reader import address
 from ..analysis.findings import located_item as item
 from ..analysis.state import _name as state_name
@@ -170,6 +171,13 @@ class LiveSender:
         return out
 
 
+def analysis_key(src: int, sport: int, packet: bytes) -> int:
+    """The analysis' key of the sender of `packet` from source index `src`, port `sport`: the
+    record the analysis gets of it, keyed as it keys it (collect.sender_keys, its one definition)."""
+    rec = np.frombuffer(RECORD.pack(0.0, 0, src, sport, packet), dtype=RECORD_DTYPE)
+    return int(sender_keys(rec, code_of(rec["pid"]))[0])
+
+
 def finding(rule: str, event: str, where: dict, message: str, severity: Optional[str] = None) -> dict:
     """A live finding: `event` raised / cleared (an alarm's state) or found (a one-off)."""
     return {"type": "finding", "rule": rule, "severity": severity or SEVERITY.get(rule, "warning"), "event": event,
@@ -216,7 +224,7 @@ class Live:
                 direction = C.Direction.INPUT.value if key[0] else C.Direction.OUTPUT.value
                 snd = senders[key] = LiveSender(key, sender_id(direction, key[3], address(src, sport)), direction,
                                                 self.opt)
-                snd.akey = key[0] << 48 | self.sources[src] << 32 | sport << 16 | key[3]   # (collect.sender_keys)
+                snd.akey = analysis_key(self.sources[src], sport, packet)
             snd.packets += 1
             if code == snd.code:
                 snd.periodic(ts, frame, packet, emit)
