@@ -9,6 +9,7 @@ from collections import Counter
 from vm110 import constants as C
 from vm110 import encode as E
 from vm110.analysis.report import Options
+from vm110.analysis.sender import Sender
 from vm110.monitor import live as L
 from vm110.monitor.session import Session, Settings
 from vm110.monitor.sources import Source
@@ -66,4 +67,50 @@ def test_memory_stays_flat_with_many_senders(monkeypatch):
     assert view["senders_dropped"] == live.dropped and len(view["senders"]) == CAP
     assert sizes[SECONDS] - sizes[MEASURED] < 1 << 20, sizes     # (1 MiB: noise; 4,000 senders were ~40 MiB)
     assert told["raised"] == told["cleared"] + len(session.active) and len(session.active) <= CAP
+    session.close()
+
+
+def test_each_second_looks_at_the_senders_in_view_not_at_every_sender(monkeypatch):
+    """Trial: each look at the time (up to ten a second) asked the analysis about every sender
+    ever heard (whether it had settled, and each one's serial verdicts): with 20,000 senders a
+    look took 50 ms, and it grew with every new one. Now a look, and the end of a second, touch
+    only the senders in the live view and those heard since the last look; a gap waiting for
+    its duplicate window is still told once the window has passed."""
+    monkeypatch.setattr(L, "MAX_SENDERS", CAP)
+    session = Session(Source(), Options(serial_scope="sender"),
+                      Settings(name="many", port=5825, crc="mpeg2", crc_order="little", lines=False))
+    told: list = []
+    emit = session.emit
+    session.live.emit = lambda f: (told.append(f), emit(f))
+    payload = [E.packet(C.PacketType.VRPO, E.vrpo_payload(0, bytes(16)), serial=n) for n in (1, 2, 5)]
+    senders, frame = 2000, 0
+    for second in range(senders // PER_SECOND):
+        batch = []
+        for i in range(second * PER_SECOND, (second + 1) * PER_SECOND):
+            frame += 1
+            src = bytes((10, 2, (i // 100) >> 8 & 255, (i // 100) & 255))
+            batch.append((T0 + second + (i % PER_SECOND) / PER_SECOND, frame, 1, b"",
+                          (src, 10000 + i % 100, 5825, payload[0])))
+        session._packets(batch)
+        session._periodic()
+    # One more sender, whose serials 3 and 4 go missing: a gap told once its window has passed.
+    last = T0 + senders // PER_SECOND
+    session._packets([(last + k * 0.1, frame + 1 + k, 1, b"", (bytes((10, 3, 0, 1)), 20000, 5825, p))
+                      for k, p in enumerate(payload)])
+    touched: set = set()
+    look = Sender.__getattribute__
+
+    def spy(self, name):
+        touched.add(id(self))
+        return look(self, name)
+    monkeypatch.setattr(Sender, "__getattribute__", spy)
+    for t in (last + 0.5, last + 1.0, last + 1.5, last + 2.5):
+        session._tick(t)
+        session._second(t, int(t))
+        assert len(touched) <= CAP + 1, t        # (the view, and the sender heard last)
+        touched.clear()
+    monkeypatch.undo()
+    assert len(session.analysis.senders) == senders + 1
+    lost = [f for f in told if f["rule"] == "lost"]
+    assert [(f["item"]["serial"], f["item"]["count"]) for f in lost] == [(5, 2)]
     session.close()

@@ -19,6 +19,7 @@ Where the numbers come from:
 from __future__ import annotations
 
 import collections
+import itertools
 import math
 from typing import Callable, Optional
 
@@ -198,6 +199,11 @@ class Live:
         self.dropped = 0                       # senders that left the view (more than MAX_SENDERS)
         self.gaps_seen: dict = {}              # (sender key, counter key) -> gaps and restarts reported
         self.senders_told = 0                   # the analysis' senders whose new-port link is told
+        # The analysis' senders whose serial verdicts may have grown since the last look: those fed
+        # packets since (a verdict comes with a sender's own packets, or at the end), and those with
+        # a gap still within its duplicate window. Only these are looked at each tick, not every
+        # sender ever heard (spoofed senders, a restart on a new port every few seconds for days).
+        self.to_look: dict[int, None] = {}
         self.cmd_seen = dict.fromkeys(analysis.tracker.tallies, 0)
         self.watch: list = []                  # (code, command) not acknowledged yet
         self.cmd = {"commands": 0, "acked": 0, "failed": 0, "interrupted": 0}
@@ -226,6 +232,7 @@ class Live:
                                                 self.opt)
                 snd.akey = analysis_key(self.sources[src], sport, packet)
             snd.packets += 1
+            self.to_look[snd.akey] = None
             if code == snd.code:
                 snd.periodic(ts, frame, packet, emit)
                 if code == VRPI_CODE:
@@ -275,13 +282,19 @@ class Live:
         """A gap is reported once no late packet can fill it any more (the duplicate window after
         it opened, or the end of the input), with its serials still missing: as analyze's items."""
         window = self.opt.dup_window_ms / 1000
+        senders = self.analysis.senders
         # (a sender's link is made with it, and senders are only added: those past senders_told
-        # are new, and no set of every sender's key grows for days)
-        for i, (key, a) in enumerate(self.analysis.senders.items()):
-            if a.link is not None and i >= self.senders_told:
+        # are new, the last ones, and no set of every sender's key grows for days)
+        joined = list(itertools.islice(reversed(senders.values()), len(senders) - self.senders_told))
+        for a in reversed(joined):
+            if a.link is not None:
                 link = a.link
                 self.emit(finding("restarts", "found", item(link["frame"], link["time"], a.id, **{
                     k: v for k, v in link.items() if k not in ("frame", "time")}), "sender restarted on a new port"))
+        self.senders_told = len(senders)
+        look, self.to_look = (senders if final else self.to_look), {}
+        for key in look:
+            a = senders[key]
             for ckey, counter in a.counters.items():
                 seen_gaps, seen_restarts = self.gaps_seen.get((key, ckey), (0, 0))
                 res = counter.res
@@ -300,7 +313,8 @@ class Live:
                                       f"serial counter started afresh ({old} -> {new})"))
                 if seen_gaps or res.restarts:          # (none kept for a counter with nothing to tell)
                     self.gaps_seen[(key, ckey)] = (seen_gaps, len(res.restarts))
-        self.senders_told = len(self.analysis.senders)
+                if seen_gaps < len(res.gaps):          # (a gap still within its window: look again)
+                    self.to_look[key] = None
 
     def _commands(self, now: float) -> None:
         tracker = self.analysis.tracker
@@ -309,7 +323,9 @@ class Live:
             self.cmd_seen[code] = len(tally.commands)
             self.cmd["commands"] += len(new)
             self.watch += [(code, c, False) for c in new]
-        settled = self.analysis.settled()          # every event up to now applied: silence is known
+        # Every event up to now applied: silence is known. (Asked only of a command past its limit:
+        # the analysis looks at every sender ever heard for it.)
+        settled: Optional[bool] = None
         keep = []
         for code, cmd, was_flagged in self.watch:
             flagged = was_flagged
@@ -333,7 +349,9 @@ class Live:
                                       f"(limit {limit:g} ms)"))
                 continue
             age = (now - cmd.times[0]) * 1000.0
-            if not flagged and settled and age > limit:
+            if not flagged and age > limit and settled is None:
+                settled = self.analysis.settled()
+            if not flagged and age > limit and settled:
                 flagged = True
                 self.cmd["failed"] += 1
                 self.emit(finding("failed", "raised", item(cmd.frames, began, cmd.sender, type=kind,

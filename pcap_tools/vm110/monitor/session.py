@@ -215,8 +215,12 @@ class Session:
         self._flush()
         self._tick(ts)
         self.live.close_second()
-        if self.analysis.settled():       # every event applied: what is finished stays finished
-            self.retiring.retire(self.fed_until, self.live.cmd_seen)
+        # Every event applied: what is finished stays finished. (Asked only with commands to retire:
+        # the analysis looks at every sender ever heard for it.)
+        retiring = self.retiring
+        if any(retiring.pending[code] or seen > retiring.seen[code] for code, seen in self.live.cmd_seen.items()) \
+                and self.analysis.settled():
+            retiring.retire(self.fed_until, self.live.cmd_seen)
         frames = self.done
         self.rate = float(frames - self.frames_at_second) / max(1, second - (self.second or second))
         self.frames_at_second = frames
