@@ -161,13 +161,13 @@ def test_no_dumpcap_outlives_the_monitor(how, netns, tmp_path):
                                 "--quiet", "--json", str(report)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         dumpcap = None
-        for _ in range(400):
+        for _ in range(6000):            # (a loaded machine takes seconds to start the monitor)
             dumpcap = _dumpcap_under(monitor.pid)
             if dumpcap is not None or monitor.poll() is not None:
                 break
             time.sleep(0.005)
-        if dumpcap is None:
-            pytest.skip(f"dumpcap did not start here: {monitor.communicate()[1].decode().strip()}")
+        if dumpcap is None:              # (it waited for ever on a monitor still starting after 2 s)
+            pytest.skip(f"dumpcap did not start here: {monitor.communicate(timeout=30)[1].decode().strip()}")
         sig = getattr(signal, how.split()[0])
         if how.endswith("start-up"):
             monitor.send_signal(signal.SIGSTOP)
