@@ -119,6 +119,22 @@ def test_the_dashboard_gives_each_latest_finding_its_filter(tmp_path):
     assert last and f"#{findings[-1]['frame']} " in last[0]
 
 
+def test_the_dashboard_says_the_day_and_the_zone_of_its_times():
+    """Field trial: a dashboard left running for days said '09:48:13.001' alone: which day, and
+    in which zone (the times are UTC, as analyze's)? Its first line now gives the UTC date too,
+    before the source (a long path is cut at the terminal's width, not the status)."""
+    from vm110.monitor import dashboard
+    header = {"source": "interface eth1", "now": 1_700_000_000.25, "status": "running", "packets": 0, "rate": 0.0,
+              "eglink": 0, "illegal": 0, "alarms": []}
+    view = {"senders": [], "senders_dropped": 0, "commands": {"commands": 0, "in_flight": 0, "unacked": 0,
+                                                               "failed": 0, "ack_latency_ms": {"last": None,
+                                                                                              "max_1m": None}}}
+    first = dashboard.render(header, view, [], 80, 24)[0]
+    assert first == "vm110 monitor  running  2023-11-14 22:13:20.250 UTC  interface eth1"
+    header["source"] = "/a/path/longer/than/the/room/left/on/an/80/column/terminal/capture.pcapng"
+    assert dashboard.render(header, view, [], 80, 24)[0].startswith(first[:-len("interface eth1")])
+
+
 def test_findings_json_lines_and_evidence_of_a_silent_base_unit(tmp_path, capsys):
     capture = str(ROOT / "captures" / "bu-stops.pcap")
     lines, evidence = tmp_path / "live.jsonl", tmp_path / "evidence"

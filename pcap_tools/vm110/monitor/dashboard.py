@@ -11,11 +11,13 @@ from typing import IO, Optional
 _ENTER, _LEAVE = "\033[?1049h\033[?25l", "\033[?25h\033[?1049l"
 
 
-def clock(t: Optional[float]) -> str:
+def clock(t: Optional[float], date: bool = False) -> str:
+    """The UTC time of `t` to the millisecond (with its date: a run of days), as analyze's times."""
     if t is None:
         return "--:--:--.---"
     try:
-        return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).strftime("%H:%M:%S.%f")[:-3]
+        return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).strftime(
+            "%Y-%m-%d %H:%M:%S.%f" if date else "%H:%M:%S.%f")[:-3]
     except (OverflowError, OSError, ValueError):
         return f"{t:.3f}"
 
@@ -68,7 +70,8 @@ def render(header: dict, view: dict, findings: list[dict], width: int, height: i
     width, height = max(width, 20), max(height, 5)
     c = view["commands"]
     lat = c["ack_latency_ms"]
-    lines = [f"vm110 monitor  {header['source']}  {clock(header['now'])}  {header['status']}",
+    # (the source last: a long path is cut, never the status or the time)
+    lines = [f"vm110 monitor  {header['status']}  {clock(header['now'], date=True)} UTC  {header['source']}",
              (f"packets {header['packets']} ({header['rate']:.0f}/s)  EG-Link {header['eglink']}  "
               f"illegal {header['illegal']}  alarms {len(header['alarms'])}")]
     lines += [f"  ALARM {a['rule']} {short(a.get('sender') or '')} since {clock(a['time'])} #{a['frame']}"
