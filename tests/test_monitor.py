@@ -235,15 +235,13 @@ def test_live_lost_findings_are_analyze_s_items(tmp_path, capsys):
     assert any("late" in i for i in items.values())
 
 
-@pytest.mark.xfail(strict=True, reason="analysis: a sender silent before its serial scope is chosen (auto: 10 s "
-                   "or 4096 packets) holds every command event until the end (Sender.undecided, Analysis._horizon)")
 def test_a_sender_heard_only_briefly_does_not_hold_the_live_commands(tmp_path):
     """Field trial: a BU restarted on a new port 5 s after the monitor started (or any sender heard
     for less than 10 s: a stray packet) left the live view at 'commands 0' and told no failed
     command for the whole run: its old sender never chose its serial scope, so no command event
-    after its first packet was ever applied before the end (and they all stayed in memory). Here
-    one stray VRPO, then a BU whose VRCIs are acknowledged: the live view counts them once the
-    BU and the controller have chosen their scope."""
+    after its first packet was ever applied before the end (and they all stayed in memory). The
+    warm-up now ends once the analysis clock passes it. Here one stray VRPO, then a BU whose VRCIs
+    are acknowledged: the live view counts them once the BU and the controller have chosen their scope."""
     from test_analysis_craft import CTRL, Traffic, payload, vrpi
     from vm110.layers import VRAO, VRCI, VRPO
     tr = Traffic()
