@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from typing import IO, Any, Optional
 
 
-def silence_stdout(stream: Optional[TextIO] = None) -> None:
+def silence_stdout(stream: Optional[IO[Any]] = None) -> None:
     """Point standard output's (or `stream`'s) file descriptor at /dev/null (nothing to do without one)."""
     try:
         fd = (sys.stdout if stream is None else stream).fileno()

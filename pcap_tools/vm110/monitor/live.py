@@ -32,6 +32,7 @@ from ..analysis.bursts import DATA_OFFSET, Open
 from ..analysis.collect import (CODE_OF_ID, RECORD, RECORD_DTYPE, STATE, STATE_FIELDS, TYPES, VRPI_CODE, VRPO_CODE,
                                 code_of, sender_id, sender_keys)
 from ..capture.reader import address
+from ..analysis.findings import FINDINGS
 from ..analysis.findings import located_item as item
 from ..analysis.state import _name as state_name
 from ..analysis.timing import JITTER_GAIN, interval_ms
@@ -179,14 +180,14 @@ def analysis_key(src: int, sport: int, packet: bytes) -> int:
     return int(sender_keys(rec, code_of(rec["pid"]))[0])
 
 
-def finding(rule: str, event: str, where: dict, message: str, severity: Optional[str] = None) -> dict:
+def finding(rule: str, event: str, where: dict, message: str) -> dict:
     """A live finding: `event` raised / cleared (an alarm's state) or found (a one-off)."""
-    return {"type": "finding", "rule": rule, "severity": severity or SEVERITY.get(rule, "warning"), "event": event,
+    return {"type": "finding", "rule": rule, "severity": SEVERITY[rule], "event": event,
             "time": where["time"], "frame": where["frame"], "sender": where.get("sender"), "message": message,
             "item": where}
 
 
-SEVERITY = {"watchdog": "error", "lost": "error", "illegal": "error", "failed": "error", "unacked": "error"}
+SEVERITY = {rule: severity for rule, severity, *_ in FINDINGS}      # the report's, by its rule
 
 
 class Live:
