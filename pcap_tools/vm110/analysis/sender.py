@@ -3,10 +3,11 @@ they have not decided yet, its periodic streams, VRPO bursts and state timeline.
 
 A counter may leave packets undecided at the end of a batch (a restart candidate waits for its
 next packet); they are kept here and handed in again with the sender's next rows. With
-`--serial-scope auto` the sender's first WARMUP_PACKETS packets (those of its first WARMUP_S
-seconds, at most) are kept as they came, the scope is chosen on them as `choose_scope` says once
-they are known (the analysis clock passed WARMUP_S, or the count is full), and they are then
-judged as every later packet is: a stream cannot wait for the end of the capture to choose.
+`--serial-scope auto` the sender's first WARMUP_PACKETS packets (or WARMUP_S seconds: those of
+the batch that reaches either) are kept as they came, the scope is chosen on them as
+`choose_scope` says, and they are then judged as every later packet is: a stream cannot wait for
+the end of the capture to choose. A sender heard no more chooses once the analysis clock has
+passed WARMUP_S (`expire`): it cannot hold the command events after it for ever.
 
 A sender that restarts on a new port asks its predecessor (`probe`) for the predecessor's state
 just before the new sender's first frame: its counter's highest serial and its last accepted
@@ -96,20 +97,13 @@ class Sender:
         last = rows[-1]
         self.last_ts, self.last_frame, self.last_code = float(last["ts"]), int(last["frame"]), int(code_of(last["pid"]))
         self.counts += np.bincount(code_of(rows["pid"]), minlength=len(TYPES))
-        if self.scope is None:
-            # The warm-up rows: the first WARMUP_PACKETS, those less than WARMUP_S after the first
-            # (`ts` is the analysis clock, so ascending): the same rows however the batches are cut.
-            warm = min(WARMUP_PACKETS - self.warm_count,
-                       int(np.searchsorted(rows["ts"] - self.first_ts, WARMUP_S, "left")))
-            if warm:
-                self.warm.append(rows[:warm].copy())         # not a view: the batch itself is not kept
-                self.warm_count += warm
-            if warm == len(rows) and self.warm_count < WARMUP_PACKETS:
-                return
-            self._decide(events, False)
-            rows = rows[warm:]
-        if len(rows):
+        if self.scope is not None:
             self._dispatch(rows, events, False)
+            return
+        self.warm.append(rows.copy())         # not a view: the batch itself is not kept
+        self.warm_count += len(rows)
+        if self.warm_count >= WARMUP_PACKETS or self.last_ts - self.first_ts >= WARMUP_S:
+            self._decide(events, False)
 
     def expire(self, clock: float, events: list) -> bool:
         """Whether the warm-up is over at `clock` (the analysis clock): a sender heard no more
