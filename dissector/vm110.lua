@@ -597,8 +597,10 @@ local function new_record()
 end
 local record = new_record()
 
--- `cut`: the capture holds less of the datagram than was sent (snaplen): a packet it shortened
--- is illegal as truncated, and nothing else of it is judged (its CRC and size are not there).
+-- `cut`: the capture holds less of the datagram than was sent: "snaplen" (the capture's snaplen
+-- cut it) or "fragment" (the first IP fragment of a datagram not reassembled, as with
+-- ip.defragment off). A packet so shortened is illegal as truncated, and nothing else of it is
+-- judged (its CRC and size are not there).
 local function decode(s, variant, big_endian, known_crc, cut)
     local n = #s
     local r = record
@@ -620,7 +622,7 @@ local function decode(s, variant, big_endian, known_crc, cut)
             if h.off + h[2] > n then break end
             r[h[1]] = h[2] == 2 and u16(s, h.off) or u32(s, h.off)
         end
-        if cut then r.cut, r.problems = true, EMPTY end -- (cut by the snaplen: truncated, and for that alone)
+        if cut then r.cut, r.problems = cut, EMPTY end -- (cut short: truncated, and for that alone)
         problem(r, "truncated")
         return r
     end
@@ -630,7 +632,7 @@ local function decode(s, variant, big_endian, known_crc, cut)
     r.revision, r.origin, r.serial, r.size, r.spare = revision, origin, s1 + s2 * 256, size, spare
     if cut and n < OVERHEAD + size then
         r.crc_off, r.pay_end, r.crc, r.crc_calc, r.crc_status = false, false, false, false, false
-        r.cut, r.problems = true, EMPTY
+        r.cut, r.problems = cut, EMPTY
         problem(r, "truncated")
         return r
     end
@@ -928,7 +930,7 @@ local WS = { raw = Tvb.raw, offset = Tvb.offset, number = false }
 function WS.init(pinfo)
     local mt = getmetatable(pinfo)
     local getters = type(mt) == "table" and rawget(mt, "__getters")
-    for _, name in ipairs({ "number", "abs_ts", "src_port", "src", "visited", "in_error_pkt" }) do
+    for _, name in ipairs({ "number", "abs_ts", "src_port", "src", "visited", "in_error_pkt", "fragmented" }) do
         local f = type(getters) == "table" and rawget(getters, name)
         WS[name] = type(f) == "function" and f or function(p) return p[name] end
     end
@@ -1216,7 +1218,7 @@ local function add_header(r, tvb, root)
         end
         if info then
             generated(item, "direction", tvb, 0, ID_LEN, info.direction)
-        elseif not r.cut then -- (cut by the snaplen: truncated, and for that alone, as decode() says)
+        elseif not r.cut then -- (cut short: truncated, and for that alone, as decode() says)
             add_expert(item, E.unknown_id, "Unknown packet ID: the payload is not decoded")
         end
     else
@@ -1331,6 +1333,11 @@ local function add_flat(r, root)
     return true
 end
 
+-- A datagram cut short (decode()'s `cut`): the undecoded bytes' label, the expert's message.
+local CUT_SHORT = {
+    snaplen = { "cut short by the capture", "Truncated: cut short by the capture (snaplen)" },
+    fragment = { "cut short: an IP fragment", "Truncated: the first IP fragment of a datagram not reassembled" },
+}
 local function add_tree(r, tvb, tree)
     local root
     if want.visible then
@@ -1348,8 +1355,8 @@ local function add_tree(r, tvb, tree)
         return root
     end
     if r.cut then
-        local item = add_undecoded(root, tvb, PREFIX_LEN, n - PREFIX_LEN, "cut short by the capture") or root
-        add_expert(item, E.truncated, "Truncated: cut short by the capture (snaplen)")
+        local item = add_undecoded(root, tvb, PREFIX_LEN, n - PREFIX_LEN, CUT_SHORT[r.cut][1]) or root
+        add_expert(item, E.truncated, CUT_SHORT[r.cut][2])
         return root
     end
     if not r.crc_off then
@@ -2378,8 +2385,9 @@ local function dissect(tvb, pinfo, tree)
         end
     end
     local r = decode(s, settings.variant, settings.big_endian, known)
-    if r.problems ~= EMPTY and tvb:reported_len() > r.n then -- (only then: a C call)
-        r = decode(s, settings.variant, settings.big_endian, known, true)
+    if r.problems ~= EMPTY then -- (only then: C calls)
+        local cut = tvb:reported_len() > r.n and "snaplen" or WS.fragmented(pinfo) and "fragment"
+        if cut then r = decode(s, settings.variant, settings.big_endian, known, cut) end
     end
     local legal = r.problems == EMPTY -- (own() replaces EMPTY at the first problem)
     if r.crc_calc and not known and not (settings.analysis and legal) then

@@ -105,3 +105,38 @@ def test_malformed_packets(tshark, packets, tmp_path):
         if errors:
             failures[number] = errors
     assert not failures, f"{len(failures)} of {len(packets)} frames fail, e.g. {list(failures.items())[:3]}"
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_a_first_ip_fragment_is_truncated_not_a_bad_crc(tshark, tmp_path):
+    """With ip.defragment off (as `analyze --engine tshark` runs it), UDP hands the dissector the
+    first IP fragment of a 420-byte VRPO: the dissector judged it as a whole datagram, "bad CRC,
+    size mismatch", though its CRC and the rest of its payload are in later fragments. It is
+    `truncated` alone, as a datagram the snaplen cut; reassembled, a bad CRC is still one."""
+    from scapy.layers.inet import IP, UDP, fragment
+    from scapy.layers.l2 import Ether
+    from scapy.packet import Raw
+    from scapy.utils import wrpcap
+    from vm110 import encode
+    frames = []
+    for serial, crc in ((3, 0), (4, None)):
+        datagram = IP(src="10.0.0.20", dst=C.MULTICAST_GROUP, id=serial) / UDP(sport=C.OUTPUT_PORT, dport=C.OUTPUT_PORT) \
+            / Raw(encode.packet("VRPO", bytes(400), serial=serial, crc=crc))
+        frames += [Ether() / f for f in fragment(datagram, fragsize=200)]
+    codes = sorted(T.PROBLEM_CODES)
+    fields = ["-T", "fields", "-e", "vm110.serial", "-e", "vm110.crc.status",
+              *(a for code in codes for a in ("-e", f"vm110.expert.{code}")), "-e", "_ws.expert.message"]
+    with tshark.workspace(tmp_path) as ws:
+        pcap = ws.dir / "fragments.pcap"
+        wrpcap(str(pcap), frames)
+        for defragment, want in (("FALSE", [("3", [C.Problem.TRUNCATED.value]), ("4", [C.Problem.TRUNCATED.value])]),
+                                 ("TRUE", [("3", [C.Problem.BAD_CRC.value]), ("4", [])])):
+            for passes in ([], ["-2"]):
+                proc = ws.run(["-r", str(pcap), *passes, "-o", f"ip.defragment:{defragment}", *T.pref_args(None),
+                               "-Y", "vm110", *fields])
+                assert T.LUA_ERROR not in proc.stdout + proc.stderr
+                rows = [line.split("\t") for line in proc.stdout.splitlines()]
+                got = [(r[0], sorted(c for c, v in zip(codes, r[2:]) if v)) for r in rows]
+                assert got == want, (defragment, passes, rows)
+                if defragment == "FALSE":
+                    assert all("IP fragment" in r[-1] and r[1] == "" for r in rows), rows
