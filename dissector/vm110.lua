@@ -1073,8 +1073,11 @@ end
 
 -- What is referenced changes only when Wireshark primes other fields (a new display filter,
 -- column, tap, or tshark's second pass), and it then dissects frames again (pinfo.visited):
--- so one view serves a run of first-pass dissections, and visited ones ask per packet.
+-- so one view serves a run of first-pass dissections, and visited ones ask per packet (about 90
+-- referenced() calls: some 8 us a packet), but in tshark, whose second pass primes every frame
+-- alike (its display filter, columns, -e fields and taps): one view serves that pass too.
 local first_pass_view = false
+local second_pass_view = false -- (tshark -2's, with an invisible tree)
 local want = EVERY -- the view of the packet being dissected
 local cmdline_view = false -- command_line_view(), once asked: a view, or nil
 
@@ -1094,7 +1097,10 @@ local function choose_view(tree, pinfo, visited)
     if visited then
         first_pass_view = false
         if visible then return visible_view(pinfo) end
-        return referenced(tree, vm110_handle) and referenced_view(tree, true) or NOTHING
+        if second_pass_view then return second_pass_view end
+        local view = referenced(tree, vm110_handle) and referenced_view(tree, true) or NOTHING
+        if TSHARK_OPTIONS then second_pass_view = view end
+        return view
     end
     if not first_pass_view or first_pass_view.tree_visible ~= visible then
         first_pass_view = visible and visible_view(pinfo)
@@ -2362,7 +2368,7 @@ end
 
 function vm110.init()
     crc_memo = new_memo()
-    first_pass_view = false
+    first_pass_view, second_pass_view = false, false
     reset_analysis()
     read_settings()
 end
@@ -2469,7 +2475,7 @@ end
 
 function vm110.prefs_changed()
     crc_memo = new_memo()
-    first_pass_view = false
+    first_pass_view, second_pass_view = false, false
     cmdline_view = false
     reset_analysis()
     read_settings()
