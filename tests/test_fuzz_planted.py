@@ -228,18 +228,24 @@ def test_two_exceptions_of_a_python_controller_are_two_findings(tmp_path):
     assert summary["sanitizer_options"] == {} and "_OPTIONS" not in result.stdout, result.stdout
 
 
+def _fuzz_wrapped(tmp_path: Path, script: str, rx: int, listen: int, out: Path, *extra: str):
+    """`vm110 fuzz` of a controller started by a shell `script` (a file of its keeps state between starts)."""
+    wrapper = tmp_path / "controller.sh"
+    wrapper.write_text("#!/bin/sh\n" + script)
+    wrapper.chmod(0o755)
+    return vm110("fuzz", "--target", f"127.0.0.1:{rx}", "--listen", f"127.0.0.1:{listen}", "--target-cmd",
+                 str(wrapper), "--seed", str(SEED), "--out", str(out), *extra)
+
+
 def test_a_controller_that_cannot_be_restarted_after_a_crash_is_no_pass(tmp_path):
     """Trial: my controller died on a case and, restarted, refused to start (the lock file its dead
     self left): the run said 0 findings, 1 unreproduced trigger, and exited 0, a pass for CI."""
     rx, listen = free_ports(2)
     lock = tmp_path / "controller.lock"
-    wrapper = tmp_path / "controller.sh"
-    wrapper.write_text(f"#!/bin/sh\ntest -e {lock} && exit 1\ntouch {lock}\n"
-                       f"exec {controller_cmd('crash-on-joystick', rx, listen)}\n")
-    wrapper.chmod(0o755)
     out = tmp_path / "out"
-    result = vm110("fuzz", "--target", f"127.0.0.1:{rx}", "--listen", f"127.0.0.1:{listen}", "--target-cmd",
-                   str(wrapper), "--seed", str(SEED), "--duration", "60", "--startup", "2", "--out", str(out))
+    result = _fuzz_wrapped(tmp_path, f"test -e {lock} && exit 1\ntouch {lock}\n"
+                           f"exec {controller_cmd('crash-on-joystick', rx, listen)}\n", rx, listen, out,
+                           "--duration", "60", "--startup", "2")
     assert result.returncode == 1, result.stdout + result.stderr
     summary = json.loads((out / "findings.json").read_text())
     [lost] = summary["unreproduced"]
@@ -272,13 +278,10 @@ def test_a_crash_no_replay_makes_again_is_no_pass(tmp_path):
     replay crashed it: the run said 0 findings, 1 unreproduced trigger and exited 0, a pass for CI."""
     rx, listen = free_ports(2)
     once = tmp_path / "crashed-once"
-    wrapper = tmp_path / "controller.sh"
-    wrapper.write_text(f"#!/bin/sh\ntest -e {once} && exec {controller_cmd('reference', rx, listen)}\n"
-                       f"touch {once}\nexec {controller_cmd('crash-on-joystick', rx, listen)}\n")
-    wrapper.chmod(0o755)
     out = tmp_path / "out"
-    result = vm110("fuzz", "--target", f"127.0.0.1:{rx}", "--listen", f"127.0.0.1:{listen}", "--target-cmd",
-                   str(wrapper), "--seed", str(SEED), "--cases", "150", "--out", str(out))
+    result = _fuzz_wrapped(tmp_path, f"test -e {once} && exec {controller_cmd('reference', rx, listen)}\n"
+                           f"touch {once}\nexec {controller_cmd('crash-on-joystick', rx, listen)}\n", rx, listen, out,
+                           "--cases", "150")
     assert result.returncode == 1, result.stdout + result.stderr
     summary = json.loads((out / "findings.json").read_text())
     assert not summary["findings"] and [u["oracle"] for u in summary["unreproduced"]] == ["crash"]
