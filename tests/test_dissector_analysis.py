@@ -1026,6 +1026,40 @@ def test_a_findings_filter_with_other_options_names_the_preferences_it_needs(tsh
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_the_illegal_filter_finds_an_empty_datagram_on_the_ports_analysed(tshark, tmp_path):
+    """`analyze --port 6825`: the illegal rule's filter found an empty datagram (which Wireshark
+    gives no dissector) by the default ports 5825/5827, so it missed the one on 6827 and would
+    have marked one on 5827. It names the analysis' ports, and under the report's preferences it
+    shows exactly the illegal items."""
+    from test_analysis_craft import CTRL, Traffic, payload, vrpi
+    from vm110.layers import VRPO
+    tr = Traffic()
+    for k in range(40):
+        tr.add(k * 0.125, vrpi(k), sport=6825)
+        tr.add(0.01 + k * 0.1, payload(VRPO, k, packet_number=0, periodic_data=b"x" * 10), src=CTRL, sport=6827)
+    tr.add(2.05, b"", src=CTRL, sport=6827)                       # empty: illegal on this port pair
+    tr.add(2.06, b"", src=CTRL, sport=C.OUTPUT_PORT)              # empty on 5827: not EG-Link here
+    tr.frames.sort(key=lambda f: f[0])
+    capture = tmp_path / "ports.pcap"
+    tr.write(capture)
+    done = subprocess.run([sys.executable, "-m", "vm110", "analyze", str(capture), "--port", "6825", "--json", "-",
+                           "--quiet"], capture_output=True, text=True, timeout=300)
+    report = json.loads(done.stdout)
+    [illegal] = [f for f in report["verdict"]["findings"] if f["rule"] == "illegal"]
+    assert "udp.port in {6825, 6827}" in illegal["filter"] and len(illegal["items"]) == 1
+    prefs = [arg for p in report["verdict"]["wireshark_prefs"] for arg in ("-o", p)]
+    assert prefs == ["-o", "vm110.input_port:6825"]
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            (ws.dir / capture.name).write_bytes(capture.read_bytes())
+            shown = ws.run(["-r", str(ws.dir / capture.name), "-2", *prefs, "-Y", illegal["filter"], "-T", "fields",
+                            "-e", "frame.number"]).stdout.split()
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert [int(n) for n in shown] == [illegal["items"][0]["frame"]]
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 def test_the_findings_filters_are_wireshark_filters(tshark, tmp_path):
     """Each rule's filter compiles, and shows every duplicate of overlap.pcapng: 107, of which the
     report keeps 100."""

@@ -93,10 +93,15 @@ FINDINGS = (
 # rules have none: lost (the dissector also marks a gap whose packets all came later), failed (also
 # a command still in flight at the end), vrpo_incomplete (marked on the burst's last packet),
 # relays_open (marked on every packet of an episode) and snaplen_truncated (with other truncations).
+def illegal_filter(input_port: int) -> str:
+    """Wireshark gives an empty datagram no dissector ("UDP Len=0", a truncated EG-Link packet
+    here): it is found by the EG-Link ports, those of the analysis."""
+    return (" || ".join(f"vm110.expert.{problem.value}" for problem in C.Problem)
+            + f" || (udp.length == 8 && udp.port in {{{input_port}, {input_port + C.OUTPUT_PORT - C.INPUT_PORT}}})")
+
+
 RULE_FILTERS = {
-    # (Wireshark gives an empty datagram no dissector: "UDP Len=0", a truncated EG-Link packet here)
-    "illegal": " || ".join(f"vm110.expert.{problem.value}" for problem in C.Problem)
-               + f" || (udp.length == 8 && udp.port in {{{C.INPUT_PORT}, {C.OUTPUT_PORT}}})",
+    "illegal": illegal_filter(C.INPUT_PORT),
     "watchdog": "vm110.expert.watchdog_vrpi || vm110.expert.watchdog_vrpo || vm110.expert.silent_until_end",
     "unacked": "vm110.expert.never_acked",
     "restarts": "vm110.expert.restart",
@@ -245,7 +250,7 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]]) -> dict:
     judges as the report did, so that each rule's filter (RULE_FILTERS) is given with them; None:
     no preferences do, no rule filters."""
     tot = report["totals"]
-    filters = RULE_FILTERS if prefs is not None else {}
+    filters = {**RULE_FILTERS, "illegal": illegal_filter(report["capture"]["ports"][0])} if prefs is not None else {}
     findings = [{"rule": key, "severity": sev, "count": tot[key],
                  "message": f"{tot[key]} {one if tot[key] == 1 else many}",
                  **({"filter": filters[key]} if key in filters else {}), **_items(located.get(key, Kept()))}
