@@ -215,3 +215,24 @@ def test_a_sender_heard_once_holds_nothing_back(tmp_path):
                 if o["type"] == "finding" and o["rule"] == "failed"]
     give_up = Options().vrco_give_up_ms / 1000
     assert give_up <= failed["at"] - failed["item"]["time"] <= give_up + 1.5
+
+
+def test_the_serial_scope_is_chosen_alike_however_the_batches_are_cut(tmp_path, monkeypatch):
+    """A base unit counting each packet type on its own, with one VRCI in its first 10 s: too few
+    anomalies there to tell the scopes apart. The warm-up took the rows of the batch that reached
+    10 s: one batch (analyze of a small file) chose per-type counters on all 20 s, batches of 20
+    (as the monitor feeds) chose one counter on 10 s and found the VRPIs out of order. A look that
+    cannot tell is made again on twice the time, on the same rows whatever the batches."""
+    from test_analysis_craft import Traffic, payload, vrpi
+    from vm110.layers import VRCI
+    tr = Traffic()
+    for k in range(160):                                  # 20 s of VRPI, serials of their own
+        tr.add(k * 0.125, vrpi(k))
+    for n, t in enumerate((5.0, 12.0, 14.0, 16.0, 18.0)):  # and VRCIs counted on their own
+        tr.add(t + 0.06, payload(VRCI, n, 0x0101, command_id=n + 1))
+    tr.frames.sort(key=lambda f: f[0])
+    tr.write(tmp_path / "types.pcap")
+    got, rec, sources = _records(tmp_path / "types.pcap", monkeypatch)
+    whole = _report(got, rec, sources, [0, len(rec)])
+    assert json.loads(whole)["senders"][0]["serial"]["scope"] == "type"
+    assert _report(got, rec, sources, list(range(0, len(rec), 20)) + [len(rec)]) == whole

@@ -19,7 +19,7 @@ Order across senders matters twice:
 """
 from __future__ import annotations
 
-from heapq import heapify, heappop, heappush
+from heapq import heapify, heappop, heappush, heapreplace
 from typing import Optional
 
 import numpy as np
@@ -48,7 +48,7 @@ class Analysis:
         self.clock = -np.inf                          # the analysis clock (rules.md): latest time so far
         self.stamps: dict[int, float] = {}            # frame -> own time, where the clock is later
         # Kept so that a batch costs what its own senders cost, not a look at every sender:
-        self.warming: list[tuple] = []                # heap of (first time, order, key) warming up
+        self.warming: list[tuple] = []                # heap of (time of its next look, order, key) warming up
         self.undecided: dict[int, int] = {}           # sender key -> its first undecided frame
         self.held: list[tuple[int, int]] = []         # heap of (frame, key); stale where undecided differs
 
@@ -75,8 +75,15 @@ class Analysis:
             for value, rows in _groups(key[a:b]):
                 self.senders[value].feed(part[rows], self.events)
         touched = values.tolist()
-        while self.warming and self.senders[self.warming[0][2]].expire(self.clock, self.events):
-            touched.append(heappop(self.warming)[2])
+        while self.warming:
+            due, order, k = self.warming[0]
+            snd = self.senders[k]
+            if snd.expire(self.clock, self.events):
+                touched.append(heappop(self.warming)[2])
+            elif snd.first_ts + snd.look_s != due:      # it looked and could not tell: later
+                heapreplace(self.warming, (snd.first_ts + snd.look_s, order, k))
+            else:
+                break
         for k in touched:
             self._note(k)
         self._apply(self._horizon())
@@ -126,7 +133,7 @@ class Analysis:
         new = self.senders[key] = Sender(direction, origin, address(self.names[src], port), first, self.opt,
                                          self.floats, self.stamps)
         if new.scope is None:
-            heappush(self.warming, (new.first_ts, len(self.senders), key))
+            heappush(self.warming, (new.first_ts + new.look_s, len(self.senders), key))
         # Only the senders of its host: a capture of many senders costs no scan of them all.
         same_host = self.hosts.setdefault((direction, origin, new.host), [])
         quiet = [(old.last_ts, old.last_frame, i, old) for i, old in same_host

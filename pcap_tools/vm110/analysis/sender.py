@@ -3,11 +3,13 @@ they have not decided yet, its periodic streams, VRPO bursts and state timeline.
 
 A counter may leave packets undecided at the end of a batch (a restart candidate waits for its
 next packet); they are kept here and handed in again with the sender's next rows. With
-`--serial-scope auto` the sender's first WARMUP_PACKETS packets (or WARMUP_S seconds: those of
-the batch that reaches either) are kept as they came, the scope is chosen on them as
-`choose_scope` says, and they are then judged as every later packet is: a stream cannot wait for
-the end of the capture to choose. A sender heard no more chooses once the analysis clock has
-passed WARMUP_S (`expire`): it cannot hold the command events after it for ever.
+`--serial-scope auto` the sender's packets of its first WARMUP_S seconds are kept as they came,
+the scope is chosen on them as `choose_scope` says, and they are then judged as every later
+packet is: a stream cannot wait for the end of the capture to choose. When they cannot tell (too
+few anomalies yet), the look is made again on the packets of twice the time, up to WARMUP_MAX_S
+or WARMUP_PACKETS packets. A look is made once the analysis clock has passed its time (`expire`:
+a sender heard no more cannot hold the command events after it for ever), always on the same
+rows however the batches are cut.
 
 A sender that restarts on a new port asks its predecessor (`probe`) for the predecessor's state
 just before the new sender's first frame: its counter's highest serial and its last accepted
@@ -32,26 +34,30 @@ from .periodic import Floats, FloatsFactory, Stream
 from .state import Timeline
 
 WARMUP_PACKETS = 4096
-WARMUP_S = 10.0
+WARMUP_S = 10.0           # the first look at a sender's scope, then at 20, 40, ... s while it cannot tell
+WARMUP_MAX_S = 320.0
 TYPE_SCOPE_MARGIN = 4     # auto: type scope needs at most half the anomalies, and 4 fewer
 COMMAND_CODES = np.array(sorted(CODE[t] for t in (C.PacketType.VRCI, C.PacketType.VRCO, *C.ACK_OF)))
 
 
-def choose_scope(rows: np.ndarray, opt) -> str:
+def choose_scope(rows: np.ndarray, opt) -> tuple[str, bool]:
     """`auto`: per-type counters only when they explain the packets clearly better: with one
     counter per sender, a type's stream can look clean only by accident (say, a loss just before
-    its first packet)."""
+    its first packet). And whether the rows tell: not when per-type counters explain them better,
+    but not by the margin (too few anomalies yet)."""
     codes, window = code_of(rows["pid"]), opt.dup_window_ms
     if (codes == codes[0]).all():
-        return "sender"
+        return "sender", True
     by_sender = serials.classify(rows["serial"], rows["ts"], dup_window_ms=window)
     if by_sender.anomalies == 0:
-        return "sender"
-    by_type = serials.classify_sender(rows["serial"], rows["ts"], codes, "type", limit=by_sender.anomalies // 2,
+        return "sender", True
+    by_type = serials.classify_sender(rows["serial"], rows["ts"], codes, "type", limit=by_sender.anomalies - 1,
                                       dup_window_ms=window)
-    if not by_type.aborted and 2 * by_type.anomalies + TYPE_SCOPE_MARGIN <= by_sender.anomalies:
-        return "type"
-    return "sender"
+    if by_type.aborted:
+        return "sender", True
+    if 2 * by_type.anomalies + TYPE_SCOPE_MARGIN <= by_sender.anomalies:
+        return "type", True
+    return "sender", False
 
 
 @dataclass
@@ -82,6 +88,7 @@ class Sender:
         self.scope: Optional[str] = None if opt.serial_scope == "auto" else opt.serial_scope
         self.warm: list[np.ndarray] = []
         self.warm_count = 0
+        self.look_s = WARMUP_S                   # when the scope is looked at next (from the first packet)
         self.counters: dict = {}                 # None (scope sender) or type code -> serials.Counter
         self.pending: dict = {}                  # counter key -> its undecided rows (arrays)
         self.streams: dict[int, Stream] = {}
@@ -97,23 +104,35 @@ class Sender:
         last = rows[-1]
         self.last_ts, self.last_frame, self.last_code = float(last["ts"]), int(last["frame"]), int(code_of(last["pid"]))
         self.counts += np.bincount(code_of(rows["pid"]), minlength=len(TYPES))
-        if self.scope is not None:
+        while self.scope is None and len(rows):
+            # The rows before the next look (`ts` is the analysis clock, so ascending).
+            k = min(WARMUP_PACKETS - self.warm_count, int(np.searchsorted(rows["ts"] - self.first_ts, self.look_s)))
+            if k:
+                self.warm.append(rows[:k].copy())         # not a view: the batch itself is not kept
+                self.warm_count += k
+                rows = rows[k:]
+            if len(rows) or self.warm_count >= WARMUP_PACKETS:
+                self._look(events)
+        if len(rows):
             self._dispatch(rows, events, False)
-            return
-        self.warm.append(rows.copy())         # not a view: the batch itself is not kept
-        self.warm_count += len(rows)
-        if self.warm_count >= WARMUP_PACKETS or self.last_ts - self.first_ts >= WARMUP_S:
-            self._decide(events, False)
 
     def expire(self, clock: float, events: list) -> bool:
-        """Whether the warm-up is over at `clock` (the analysis clock): a sender heard no more
-        since cannot hold its packets and everything after them for ever; decided here if so."""
-        if self.scope is not None:
-            return True
-        if clock - self.first_ts < WARMUP_S:
-            return False
-        self._decide(events, False)
-        return True
+        """Whether the scope is chosen by `clock` (the analysis clock): looks due by then are made
+        (a sender heard no more cannot hold its packets and the command events after them)."""
+        while self.scope is None and clock - self.first_ts >= self.look_s:
+            self._look(events)
+        return self.scope is not None
+
+    def _look(self, events: list) -> None:
+        """Choose the scope on the warm-up rows, or look again later when they cannot tell (the
+        last look, or a full count, chooses anyway)."""
+        rows = np.concatenate(self.warm)
+        self.warm = [rows]
+        scope, tells = choose_scope(rows, self.opt)
+        if not tells and self.warm_count < WARMUP_PACKETS and self.look_s < WARMUP_MAX_S:
+            self.look_s *= 2
+            return
+        self._decide(events, False, scope)
 
     def finish(self, events: list) -> None:
         """The capture ended: decide what is left."""
@@ -131,10 +150,10 @@ class Sender:
             frames.append(int(self.warm[0]["frame"][0]))
         return min(frames) if frames else None
 
-    def _decide(self, events: list, final: bool) -> None:
+    def _decide(self, events: list, final: bool, scope: Optional[str] = None) -> None:
         rows = np.concatenate(self.warm)
         self.warm, self.warm_count = [], 0
-        self.scope = choose_scope(rows, self.opt)
+        self.scope = scope or choose_scope(rows, self.opt)[0]
         # Probes that came while warming up: their moment lies inside these rows.
         for probe in sorted(self.probes, key=lambda p: p.frame):
             cut = int(np.searchsorted(rows["frame"], probe.frame))
