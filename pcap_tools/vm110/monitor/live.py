@@ -324,9 +324,7 @@ class Live:
             self.cmd_seen[code] = len(tally.commands)
             self.cmd["commands"] += len(new)
             self.watch += [(code, c, False) for c in new]
-        # Every event up to now applied: silence is known. (Asked only of a command past its limit:
-        # the analysis looks at every sender ever heard for it.)
-        settled: Optional[bool] = None
+        settled = self.analysis.settled()          # every event up to now applied: silence is known
         keep = []
         for code, cmd, was_flagged in self.watch:
             flagged = was_flagged
@@ -350,8 +348,6 @@ class Live:
                                       f"(limit {limit:g} ms)"))
                 continue
             age = (now - cmd.times[0]) * 1000.0
-            if not flagged and age > limit and settled is None:
-                settled = self.analysis.settled()
             if not flagged and age > limit and settled:
                 flagged = True
                 self.cmd["failed"] += 1

@@ -215,8 +215,7 @@ class Session:
         self._flush()
         self._tick(ts)
         self.live.close_second()
-        # Every event applied: what is finished stays finished. (Asked only with commands to retire:
-        # the analysis looks at every sender ever heard for it.)
+        # Every event applied: what is finished stays finished (asked only with commands to retire).
         retiring = self.retiring
         if any(retiring.pending[code] or seen > retiring.seen[code] for code, seen in self.live.cmd_seen.items()) \
                 and self.analysis.settled():
