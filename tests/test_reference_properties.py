@@ -6,7 +6,9 @@ decides the numbers; then
   a. the fast engine (`vm110.analysis.analyze`, the API `vm110 analyze` uses),
   b. the tshark engine (`analyze(..., engine="tshark")`),
   c. the dissector's per-frame analysis fields under `tshark -2` (host 4.0 and the 4.4 chroot)
-must give the same. A mismatch fails with a diff naming the key, the sender and the frame; the
+must give the same: a. with each serial scope (`sender`; `type`; `auto`, the default, which
+chooses per sender; some generated devices number per packet type), b. with `auto`, c. with
+`sender`, the dissector's default, and `type`. A mismatch fails with a diff naming the key, the sender and the frame; the
 capture is kept in out/reference-failures/ for a re-run.
 
 `make test` runs a few examples per property (VM110_REF_EXAMPLES overrides), `make test-long`
@@ -32,6 +34,7 @@ from typing import Any, Optional
 
 import pytest
 from hypothesis import HealthCheck, Phase, assume, given, settings
+from hypothesis import strategies as st
 
 from reference.analyser import analyse
 from reference.generator import IN_PORT, OUT_PORT, packet, scenarios, stepped_scenarios, vrpi_payload, \
@@ -79,6 +82,7 @@ def normal_form(report: dict) -> dict:
         p = f"senders[{s['id']}].serial"
         for key in SERIAL_KEYS:
             out[f"{p}.{key}"] = ser.get(key, MISSING)
+        out[f"{p}.scope"] = ser.get("scope", MISSING)
         gaps = ser.get("gaps", [])
         out[f"{p}.gaps"] = [{"after": g.get("after"), "count": g.get("count"), "time": round(g.get("time", 0), 4),
                              "frame": g.get("frame", MISSING)} for g in gaps]
@@ -147,28 +151,29 @@ def fail_report(path: str, ref: dict, lines: list[str], what: str, tag: str) -> 
             + "\n".join(lines[:40]) + ("\n  ..." if len(lines) > 40 else "") + "\n" + frame_context(ref, lines))
 
 
-def generated(sc: dict, directory: str) -> tuple[str, dict]:
+def generated(sc: dict, directory: str, scope: str = "sender") -> tuple[str, dict]:
     suffix = ".pcapng" if sc["format"] == "pcapng" else ".pcap"
     path = os.path.join(directory, "gen" + suffix)
     write_scenario(path, sc)
-    ref = analyse(path)
+    ref = analyse(path, serial_scope=scope)
     assume(not ref["ambiguous"])
     return path, ref
 
 
 # --- a. the fast engine ---------------------------------------------------------------------------
-def engine_report(path: str, engine: str = "fast") -> dict:
+def engine_report(path: str, engine: str = "fast", scope: str = "sender") -> dict:
     from vm110.analysis import Options, analyze
-    report = analyze(path, engine=engine, crc="mpeg2", crc_order="little", options=Options(serial_scope="sender"))
+    report = analyze(path, engine=engine, crc="mpeg2", crc_order="little", options=Options(serial_scope=scope))
     return json.loads(json.dumps(report))
 
 
-def check_engine(sc: dict, engine: str) -> None:
+def check_engine(sc: dict, engine: str, scope: str = "sender") -> None:
     with tempfile.TemporaryDirectory() as d:
-        path, ref = generated(sc, d)
-        got = engine_report(path, engine)
+        path, ref = generated(sc, d, scope)
+        got = engine_report(path, engine, scope)
         lines = diff(normal_form(ref), normal_form(got), f"engine {engine}")
-        assert not lines, fail_report(path, ref, lines, f"the {engine} engine's report", engine)
+        assert not lines, fail_report(path, ref, lines, f"the {engine} engine's report (--serial-scope {scope})",
+                                      f"{engine}-{scope}")
 
 
 LONG_RUN = (pytest.mark.slow, pytest.mark.skipif(not LONG, reason="long run: make test-long"))
@@ -186,6 +191,22 @@ def test_fast_engine_equals_the_reference(sc):
 @_settings(_examples(2000))
 def test_fast_engine_equals_the_reference_long(sc):
     check_engine(sc, "fast")
+
+
+@given(scenarios(), st.sampled_from(["auto", "type"]))
+@_settings(_examples(40))
+def test_fast_engine_equals_the_reference_by_scope(sc, scope):
+    """--serial-scope auto (the default: the scope each sender's first seconds ask for, rules.md
+    "Choosing the scope") and type, on traffic where some devices number per packet type."""
+    check_engine(sc, "fast", scope)
+
+
+@LONG_RUN[0]
+@LONG_RUN[1]
+@given(scenarios(), st.sampled_from(["auto", "type"]))
+@_settings(_examples(1000))
+def test_fast_engine_equals_the_reference_by_scope_long(sc, scope):
+    check_engine(sc, "fast", scope)
 
 
 @given(stepped_scenarios())
@@ -209,7 +230,7 @@ def _host_tshark() -> None:
 @_settings(_examples(5))
 def test_tshark_engine_equals_the_reference(sc):
     _host_tshark()
-    check_engine(sc, "tshark")
+    check_engine(sc, "tshark", "auto")
 
 
 @pytest.mark.tshark
@@ -263,13 +284,14 @@ def expected_frames(ref: dict) -> dict[int, dict]:
     return out
 
 
-def run_dissector(ws: Any, path: Path) -> tuple[dict[int, dict], dict[int, str], list[str]]:
+def run_dissector(ws: Any, path: Path, scope: str = "sender") -> tuple[dict[int, dict], dict[int, str], list[str]]:
     """Per frame: the analysis fields present ({name: text}), the frame's sender label; and the
     fields this dissector does not know (left out of the run, reported by the test)."""
     fields = dict(ANALYSIS_FIELDS)
     unknown: list[str] = []
     for _ in range(3):
-        args = ["-r", str(path), "-2", "-T", "fields", "-E", "occurrence=f", "-E", "separator=\t"]
+        args = ["-r", str(path), "-2", "-o", f"vm110.serial_scope:{scope}", "-T", "fields", "-E", "occurrence=f",
+                "-E", "separator=\t"]
         for name in (*ID_FIELDS, *fields.values()):
             args += ["-e", name]
         proc = ws.run(args, check=False)
@@ -371,9 +393,9 @@ def compare_never_acked(ref: dict, got: dict[int, dict], who: dict[int, str]) ->
     return lines
 
 
-def check_dissector(runner: Tshark, sc: dict) -> None:
+def check_dissector(runner: Tshark, sc: dict, scope: str = "sender") -> None:
     with tempfile.TemporaryDirectory() as d:
-        path, ref = generated(sc, d)
+        path, ref = generated(sc, d, scope)
         try:
             ctx = runner.workspace(Path(d) / "ws")
             ws = ctx.__enter__()
@@ -382,7 +404,7 @@ def check_dissector(runner: Tshark, sc: dict) -> None:
         try:
             local = ws.dir / Path(path).name
             shutil.copyfile(path, local)
-            got, who, unknown = run_dissector(ws, local)
+            got, who, unknown = run_dissector(ws, local, scope)
         finally:
             ctx.__exit__(None, None, None)
         known = {k for k, v in ANALYSIS_FIELDS.items() if v not in unknown}
@@ -393,21 +415,23 @@ def check_dissector(runner: Tshark, sc: dict) -> None:
             lines += compare_never_acked(ref, got, who)
         if unknown:
             lines.insert(0, f"  the dissector ({runner.name}) has no field(s): {', '.join(unknown)}")
-        assert not lines, fail_report(path, ref, lines, f"the dissector's fields (tshark {runner.name}, -2)",
-                                      f"dissector-{runner.name}")
+        assert not lines, fail_report(path, ref, lines, f"the dissector's fields (tshark {runner.name}, -2, "
+                                      f"serial scope {scope})", f"dissector-{runner.name}-{scope}")
 
 
 @pytest.mark.tshark
 @pytest.mark.parametrize("runner", RUNNERS, ids=lambda r: r.name)
-@pytest.mark.parametrize("traffic, examples", [(scenarios, 10), (stepped_scenarios, 4)],
-                         ids=["forward", "steps-back"])
-def test_dissector_fields_equal_the_reference(runner, traffic, examples):
-    """The dissector's per-frame fields equal the reference's, on ordinary traffic and where the
-    capture's clock steps back (rules.md, "the analysis clock")."""
+@pytest.mark.parametrize("traffic, examples, scope", [(scenarios, 10, "sender"), (stepped_scenarios, 4, "sender"),
+                                                     (scenarios, 4, "type")],
+                         ids=["forward", "steps-back", "per-type"])
+def test_dissector_fields_equal_the_reference(runner, traffic, examples, scope):
+    """The dissector's per-frame fields equal the reference's, on ordinary traffic, where the
+    capture's clock steps back (rules.md, "the analysis clock"), and with the preference
+    vm110.serial_scope at `type`."""
     @given(traffic())
     @_settings(_examples(examples))
     def prop(sc):
-        check_dissector(runner, sc)
+        check_dissector(runner, sc, scope)
     prop()
 
 

@@ -68,6 +68,19 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
      port no more (rules.md, "A sender on a new port").
  R16 The rules run on the analysis clock, but the moments a report names (gaps, restart events)
      are the frames' own timestamps (rules.md, "the analysis clock").
+ R17 Serial scope `auto` (docs/rules.md, "Choosing the scope"), per sender, on its legal packets
+     (duplicates included) by their analysis-clock times: the looks at 10, 20, 40, ... 320 s after
+     its first packet each take the packets before that moment and classify them from scratch,
+     once with one counter and once with one per type (a candidate still open at the end is out of
+     order, missing serials are lost); anomalies = lost + duplicates + out of order + restarts.
+     Per-type counters when they have at most half the anomalies and 4 fewer; one counter when
+     they have as many or more; otherwise the packets cannot tell and the next look decides (the
+     last look decides for one counter). A sender's 4096th packet decides on its first 4096
+     packets; the end of the capture on all. Whether a look happens before the capture ends does
+     not matter: without more packets it sees the same ones.
+ R18 Scope `type`, a new-port restart's `from`: the earlier sender's counter of the new sender's
+     first packet type, when the earlier sender had packets of that type before it; else the
+     counter of the earlier sender's last legal packet before it.
 """
 from __future__ import annotations
 
@@ -302,8 +315,10 @@ class _Flags:
 def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
             vrci_fail_ms: float = 2000, vrco_give_up_ms: float = 2000,
             vrpi_watchdog_ms: float = 500, vrpo_watchdog_ms: float = 2000,
-            ports: tuple[int, int] = (5825, 5827), new_port_silence_ms: float = 250) -> dict[str, Any]:
-    """The reference result of one capture (key names as in the JSON report, docs/report.md)."""
+            ports: tuple[int, int] = (5825, 5827), new_port_silence_ms: float = 250,
+            serial_scope: str = "sender") -> dict[str, Any]:
+    """The reference result of one capture (key names as in the JSON report, docs/report.md);
+    `serial_scope` is `sender`, `type` or `auto` (R17)."""
     dup_w = int(dup_window_ms * MS)
     reuse = int(reuse_gap_ms * MS)
     fail_limit = {"VRCI": int(vrci_fail_ms * MS), "VRCO": int(vrco_give_up_ms * MS)}
@@ -365,7 +380,7 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
                     pred, best_t = other_id, o["last_legal_t"]
             senders[sid] = {"id": sid, "direction": pkt["direction"], "origin": pkt["origin"],
                             "ip": pkt["src"], "port": pkt["sport"], "packets": [], "pred": pred,
-                            "taken_over": False, "last_legal_t": pkt["t"], "last_accepted_t": pkt["t"],
+                            "taken_over": False, "last_legal_t": pkt["t"],
                             "first_frame": pkt["frame"], "first_t": pkt["t"], "first_own": pkt["own"]}
             order.append(sid)
             if pred is not None:
@@ -374,12 +389,11 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
         s["packets"].append(pkt)
         s["last_legal_t"] = pkt["t"]
 
-    # 3. serial numbers, per sender (scope "sender")
+    # 3. serial numbers, per sender (by the counter(s) of its scope)
     frames: dict[int, dict] = {}          # frame -> expected per-frame analysis (dissector fields)
     restart_at: dict[int, dict] = {}      # frame of a restart -> {"sender", "t"} (for commands)
     for sid in order:
-        s = senders[sid]
-        _serials(s, dup_w, flags, frames, restart_at)
+        _serials(senders[sid], serial_scope, dup_w, flags, frames, restart_at)
     # R1: flag captures where counting duplicates as the last legal packet decides a new-port restart
     _check_accepted_silence(order, senders, legal, silence, flags)
 
@@ -389,7 +403,7 @@ def analyse(path: str, dup_window_ms: float = 1000, reuse_gap_ms: float = 2000,
             p = senders[s["pred"]]
             restart_at[s["first_frame"]] = {"sender": p["id"], "t": s["first_t"]}
             # R12: "from" is the earlier counter's highest serial when the new sender starts
-            h_then = [q["h_after"] for q in p["packets"] if q["frame"] < s["first_frame"]][-1]
+            h_then = _highest_before(p, s["first_frame"], s["packets"][0]["type"])
             ev = {"time": _sec(s["first_own"]), "frame": s["first_frame"], "from": h_then,
                   "to": s["packets"][0]["serial"], "port_from": p["port"], "port_to": s["port"]}
             s["restart_events"].append(ev)
@@ -584,32 +598,35 @@ def _plausible(d: int, ctr: dict, t: int, flags: _Flags, where: str) -> bool:
     return ok
 
 
-def _serials(s: dict, dup_w: int, flags: _Flags, frames: dict, restart_at: dict) -> None:
+def _classify(packets: list[dict], dup_w: int, flags: _Flags) -> dict:
+    """One counter over its packets in arrival order (rules.md "Serial numbers"), touching none of
+    them: per packet (by position) whether it is accepted, the per-frame marks and the counter's
+    highest serial as the packet after it finds it; the counts; the restarts (by the candidate's
+    position)."""
     received = lost_frozen = duplicates = out_of_order = wraps = 0
     gaps: list[dict] = []
-    events: list[dict] = []
+    restarts: list[dict] = []
+    marks: list[tuple[int, str, int]] = []             # (position, frame field, value)
+    accepted = [False] * len(packets)
+    h_after: list[Optional[int]] = [None] * len(packets)
     ctr: Optional[dict] = None
     pending: Optional[dict] = None
 
-    def accept(pkt: dict) -> None:
+    def accept(i: int) -> None:
         assert ctr is not None
-        ctr["accepted"][pkt["serial"]] = pkt["t"]
-        ctr["prev_t"] = pkt["t"]
-        ctr["acc_times"].append(pkt["t"])
-        pkt["accepted"] = True
-        s["last_accepted_t"] = pkt["t"]
+        ctr["accepted"][packets[i]["serial"]] = packets[i]["t"]
+        ctr["prev_t"] = packets[i]["t"]
+        ctr["acc_times"].append(packets[i]["t"])
+        accepted[i] = True
 
-    previous: Optional[dict] = None
-    for pkt in s["packets"]:
-        if previous is not None:
-            previous["h_after"] = ctr["h"] if ctr is not None else None
-        previous = pkt
+    for i, pkt in enumerate(packets):
+        if i:
+            h_after[i - 1] = ctr["h"] if ctr is not None else None
         received += 1
         sv, t, fr = pkt["serial"], pkt["t"], pkt["frame"]
-        pkt["accepted"] = False
         if ctr is None:
             ctr = {"h": sv, "start": t, "accepted": {}, "missing": [], "prev_t": t, "acc_times": []}
-            accept(pkt)
+            accept(i)
             continue
         if pending is not None:
             if sv == pending["serial"]:
@@ -617,20 +634,18 @@ def _serials(s: dict, dup_w: int, flags: _Flags, frames: dict, restart_at: dict)
                 if t - pending["t"] >= dup_w:
                     flags.items.append(f"copy of a restart candidate after the window, frame {fr}")
                 duplicates += 1
-                frames.setdefault(fr, {})["serial_duplicate"] = 1
+                marks.append((i, "serial_duplicate", 1))
                 continue
             if (sv - pending["serial"]) % 65536 in (1, 2, 3, 4):
                 # confirmed: a restart at the candidate (R3)
-                events.append({"time": _sec(pending["own"]), "frame": pending["frame"], "from": ctr["h"],
-                               "to": pending["serial"]})
-                frames.setdefault(pending["frame"], {})["restart"] = ctr["h"]
-                restart_at[pending["frame"]] = {"sender": s["id"], "t": pending["t"]}
+                restarts.append({"at": pending["at"], "from": ctr["h"], "to": pending["serial"]})
+                marks.append((pending["at"], "restart", ctr["h"]))
                 lost_frozen += len(ctr["missing"])
                 ctr = {"h": pending["serial"], "start": pending["t"], "accepted": {pending["serial"]: pending["t"]},
                        "missing": [], "prev_t": pending["t"], "acc_times": [pending["t"]]}
             else:
                 out_of_order += 1
-                frames.setdefault(pending["frame"], {})["serial_out_of_order"] = 1
+                marks.append((pending["at"], "serial_out_of_order", 1))
             pending = None
         h = ctr["h"]
         d = (sv - h) % 65536
@@ -639,47 +654,123 @@ def _serials(s: dict, dup_w: int, flags: _Flags, frames: dict, restart_at: dict)
             flags.near(t - last_acc, dup_w, f"duplicate window, frame {fr}")
         if last_acc is not None and t - last_acc < dup_w:                       # 1. duplicate
             duplicates += 1
-            frames.setdefault(fr, {})["serial_duplicate"] = 1
+            marks.append((i, "serial_duplicate", 1))
             continue
         if d == 1:                                                             # 2. in order
             if sv < h:
                 wraps += 1
             ctr["h"] = sv
-            accept(pkt)
+            accept(i)
             continue
         late = None
-        for i, (ms_serial, opened) in enumerate(ctr["missing"]):
+        for k, (ms_serial, opened) in enumerate(ctr["missing"]):
             if ms_serial == sv:
                 flags.near(t - opened, dup_w, f"late window, frame {fr}")
                 if t - opened < dup_w:
-                    late = i
+                    late = k
         if late is not None:                                                   # 3. late
             del ctr["missing"][late]
             out_of_order += 1
-            frames.setdefault(fr, {})["serial_out_of_order"] = 1
-            accept(pkt)
+            marks.append((i, "serial_out_of_order", 1))
+            accept(i)
             continue
         if 1 < d < 32768 and _plausible(d, ctr, t, flags, f"frame {fr}"):     # 4. gap
             for k in range(1, d):
                 ctr["missing"].append(((h + k) % 65536, t))
             gaps.append({"after": h, "count": d - 1, "time": _sec(pkt["own"]), "frame": fr})
-            frames.setdefault(fr, {})["serial_missing"] = d - 1
+            marks.append((i, "serial_missing", d - 1))
             if sv < h:
                 wraps += 1
             ctr["h"] = sv
-            accept(pkt)
+            accept(i)
             continue
-        pending = {"serial": sv, "t": t, "own": pkt["own"], "frame": fr}       # 5. candidate
-        accept(pkt)
-    if previous is not None:
-        previous["h_after"] = ctr["h"] if ctr is not None else None
+        pending = {"serial": sv, "t": t, "at": i}                              # 5. candidate
+        accept(i)
+    if packets:
+        h_after[-1] = ctr["h"] if ctr is not None else None
     if pending is not None:
         out_of_order += 1
-        frames.setdefault(pending["frame"], {})["serial_out_of_order"] = 1
-    s["h_final"] = ctr["h"] if ctr is not None else None
+        marks.append((pending["at"], "serial_out_of_order", 1))
+    lost = lost_frozen + (len(ctr["missing"]) if ctr else 0)
+    return {"received": received, "lost": lost, "duplicates": duplicates, "out_of_order": out_of_order,
+            "wraps": wraps, "gaps": gaps, "restarts": restarts, "marks": marks, "accepted": accepted,
+            "h_after": h_after, "anomalies": lost + duplicates + out_of_order + len(restarts)}
+
+
+def _counters(packets: list[dict], scope: str) -> dict[Optional[str], list[dict]]:
+    """The sender's packets by counter: one (None) for scope `sender`, one per packet type for `type`."""
+    out: dict[Optional[str], list[dict]] = {}
+    for pkt in packets:
+        out.setdefault(pkt["type"] if scope == "type" else None, []).append(pkt)
+    return out
+
+
+LOOKS_S = (10, 20, 40, 80, 160, 320)     # R17
+LOOK_PACKETS = 4096
+
+
+def _verdict(packets: list[dict], dup_w: int, flags: _Flags) -> tuple[str, bool]:
+    """R17: the scope these packets ask for, and whether they tell (not when per-type counters
+    explain them better but not by the margin: at most half the anomalies and 4 fewer)."""
+    one = _classify(packets, dup_w, flags)["anomalies"]
+    per_type = sum(_classify(part, dup_w, flags)["anomalies"] for part in _counters(packets, "type").values())
+    if per_type >= one:
+        return "sender", True
+    if 2 * per_type + 4 <= one:
+        return "type", True
+    return "sender", False
+
+
+def _auto_scope(packets: list[dict], dup_w: int, flags: _Flags) -> str:
+    """R17: the look at 10 s from the sender's first packet, on the packets before it; while they
+    cannot tell, again at 20, 40, ... 320 s; on the first 4096 packets once as many have come; at
+    the end of the capture, on all."""
+    first = packets[0]["t"]
+    for look in LOOKS_S:
+        limit = look * NS
+        for pkt in packets:
+            flags.near(pkt["t"] - first, limit, f"scope look at {look} s, frame {pkt['frame']}")
+        inside = [p for p in packets if p["t"] - first < limit]
+        if len(inside) >= LOOK_PACKETS:
+            return _verdict(packets[:LOOK_PACKETS], dup_w, flags)[0]
+        scope, tells = _verdict(inside, dup_w, flags)
+        if tells or look == LOOKS_S[-1] or len(inside) == len(packets):
+            return scope
+    raise AssertionError("the last look decides")
+
+
+def _serials(s: dict, scope: str, dup_w: int, flags: _Flags, frames: dict, restart_at: dict) -> None:
+    """The sender's serial verdicts, by the counter(s) of its scope (auto: chosen, R17)."""
+    if scope == "auto":
+        scope = _auto_scope(s["packets"], dup_w, flags)
+    s["scope"] = scope
+    total = {"received": 0, "lost": 0, "duplicates": 0, "out_of_order": 0, "wraps": 0, "gaps": []}
+    events = []
+    for part in _counters(s["packets"], scope).values():
+        res = _classify(part, dup_w, flags)
+        for key in total:
+            total[key] += res[key]
+        for i, pkt in enumerate(part):
+            pkt["accepted"], pkt["h_after"] = res["accepted"][i], res["h_after"][i]
+        for i, field, value in res["marks"]:
+            frames.setdefault(part[i]["frame"], {})[field] = value
+        for r in res["restarts"]:
+            cand = part[r["at"]]
+            events.append({"time": _sec(cand["own"]), "frame": cand["frame"], "from": r["from"], "to": r["to"]})
+            restart_at[cand["frame"]] = {"sender": s["id"], "t": cand["t"]}
+    total["gaps"].sort(key=lambda g: g["frame"])
+    events.sort(key=lambda e: e["frame"])
     s["restart_events"] = events
-    s["serial"] = {"received": received, "lost": lost_frozen + (len(ctr["missing"]) if ctr else 0),
-                   "duplicates": duplicates, "out_of_order": out_of_order, "wraps": wraps, "gaps": gaps}
+    s["serial"] = {**total, "scope": scope}
+
+
+def _highest_before(s: dict, frame: int, first_type: str) -> int:
+    """R12, R18: the sender's highest serial just before `frame`: of its counter of `first_type`
+    when it has one then (scope `type`), else of the counter of its last legal packet before it."""
+    before = [q for q in s["packets"] if q["frame"] < frame]
+    if s["scope"] == "type" and any(q["type"] == first_type for q in before):
+        before = [q for q in before if q["type"] == first_type]
+    return before[-1]["h_after"]
 
 
 def _commands(legal: list[dict], senders: dict, restart_at: dict, reuse: int, fail_limit: dict, latest_t: int,

@@ -2,8 +2,9 @@
 no `vm110` code at all (not the simulator, not the encoder, not the capture writer).
 
 A scenario (drawn by Hypothesis: the structure, plus a seed for the jitter and the per-packet dice)
-has base units and controllers. Each device keeps one serial counter for everything it sends:
-base units send VRPI every ~125 ms, VRCI commands (resent every ~100 ms until a VRAO arrives,
+has base units and controllers. Each device keeps one serial counter for everything it sends
+(or, one device in four, one counter per packet type, as some devices number: interpretation.md,
+"Serial numbers"): base units send VRPI every ~125 ms, VRCI commands (resent every ~100 ms until a VRAO arrives,
 given up after 2 s) and VRAI acks; controllers send VRPO every 15-200 ms (unsplit; or split into
 bursts of 488-byte parts and a shorter last one; or, for a periodic data size that is a multiple of
 488, 1-3 parts of exactly 488 bytes, a fixed number per device), VRCO commands and VRAO acks.
@@ -125,6 +126,7 @@ def _device(draw: Any, kind: str, duration: int, index: int) -> dict:
            "start": draw(st.sampled_from([0, 0, 0, 300])),
            "restarts": draw(st.lists(_restart(duration, True), max_size=2)),
            "mirror": draw(st.integers(0, 5)) == 0,        # every packet of the device seen twice
+           "numbering": draw(st.sampled_from(["sender", "sender", "sender", "type"])),
            }
     dev["restarts"].sort(key=lambda r: r["at"])
     return dev
@@ -301,22 +303,26 @@ def build(sc: dict) -> tuple[list[tuple[int, bytes]], dict]:
     for i, dev in enumerate(devs):
         pk = sorted(sends[i], key=lambda p: p["t"])
         epoch = -1
-        serial = 0
+        first = 0
+        serials: dict[str, int] = {}       # counter ("" for the device's one) -> its next serial
         mirror_dup = dev.d["mirror"]
         for p in pk:
             e = dev.epoch(p["t"])
             if e != epoch:
                 if e == 0:
-                    serial = dev.d["serial"]
+                    first = dev.d["serial"]
                 else:
                     r = dev.restarts[e - 1]
                     # "wrap": the new counter wraps right after the restart
-                    serial = 65535 - rng.randint(0, 3) if r["serial"] == "wrap" else r["serial"]
-                    notes["restarts"].append({"device": i, "at": r["at"], "serial": serial,
+                    first = 65535 - rng.randint(0, 3) if r["serial"] == "wrap" else r["serial"]
+                    notes["restarts"].append({"device": i, "at": r["at"], "serial": first,
                                               "port": r["port"]})
+                serials = {}                       # every counter afresh, each at the same serial
                 epoch = e
+            counter = p["type"] if dev.d["numbering"] == "type" else ""
+            serial = serials.get(counter, first)
+            serials[counter] = (serial + 1) % 65536
             data = packet(p["type"], dev.d["origin"], serial, p["payload"])
-            serial = (serial + 1) % 65536
             ok = p.get("net_ok")
             if ok is None:
                 ok = delivered(dev, p["t"])
