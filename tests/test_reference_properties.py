@@ -468,10 +468,10 @@ class Capture:
         data = packet(ptype, origin, serial, payload)
         self.frames.append((int(ms * 1000), _udp_frame(who[0], who[1], dport, data, "eth")))
 
-    def write(self, path: Path) -> dict:
+    def write(self, path: Path, scope: str = "sender") -> dict:
         assert all(a[0] < b[0] for a, b in zip(self.frames, self.frames[1:]))
         write_capture(str(path), self.frames)
-        return analyse(str(path))
+        return analyse(str(path), serial_scope=scope)
 
 
 def cmd(cid: int) -> bytes:
@@ -743,6 +743,65 @@ def test_reference_a_full_burst_is_over_when_the_next_number_does_not_follow(tmp
     ref = _bursts(tmp_path / "full-first-no-size-yet.pcap", [(0, FULL2), (15, FULL2[1:]), (100, FULL2)])
     assert ref["vrpo_bursts"] == {"complete": 1, "incomplete": 1}
     assert _incomplete_frames(ref) == [3]                        # frames 1 2 3 | 4 5
+
+
+def _per_type_bu(seconds: float, vrci_at: list[float]) -> Capture:
+    """A base unit numbering each packet type on its own: VRPI every 125 ms, VRCI (acked) at the
+    given seconds. With one counter, each VRCI is out of order (one anomaly); per type, none."""
+    c = Capture()
+    vrpi = vrci = 0
+    events = sorted([(k * 125, "VRPI") for k in range(int(seconds * 8))] + [(t * 1000 + 50, "VRCI") for t in vrci_at])
+    for ms, ptype in events:
+        if ptype == "VRPI":
+            c.add(ms, BU, "VRPI", vrpi)
+            vrpi += 1
+        else:
+            c.add(ms + 1, BU, "VRCI", vrci, cmd(vrci))
+            c.add(ms + 5, CTL, "VRAO", vrci, ack(vrci))
+            vrci += 1
+    return c
+
+
+@pytest.mark.parametrize("seconds, vrci_at, scope, why", [
+    (25, [3, 6, 12, 14, 16], "type", "10 s: 2 anomalies against 0 cannot tell; 20 s: 5 against 0 tells"),
+    (25, [1, 2, 3, 4, 24], "type", "10 s: 4 against 0 tells"),
+    (25, [3, 6, 22, 23, 24], "type", "10, 20 s cannot tell; the end, on all packets: 5 against 0"),
+    (25, [3, 6], "sender", "no look can tell; the end cannot either: one counter"),
+    (335, [3, 6, 325, 327, 329], "sender", "10 ... 320 s cannot tell; the look at 320 s decides"),
+])
+def test_scope_auto_looks_again_while_the_packets_cannot_tell(tmp_path, seconds, vrci_at, scope, why):
+    """rules.md, "Choosing the scope": the looks at 10, 20, 40 ... s, worked by hand; the fast
+    engine agrees."""
+    path = tmp_path / "auto.pcap"
+    ref = _per_type_bu(seconds, vrci_at).write(path, "auto")
+    assert sender(ref, BU_ID)["scope"] == scope, why
+    assert sender(ref, CTL_ID)["scope"] == "sender"                  # one type only: one counter
+    lines = diff(normal_form(ref), normal_form(engine_report(str(path), scope="auto")), "engine fast")
+    assert not lines, "\n".join(lines)
+
+
+def test_scope_auto_decides_at_the_4096th_packet(tmp_path):
+    """A sender's 4096th packet decides, on its first 4096 packets: VRPI every 2 ms numbered on
+    their own with 4 VRCI (one counter: 4 anomalies, per type none: type). After them, still
+    before 10 s, the sender numbers VRPI and VRAI on one counter: the first 10 s would ask for one
+    counter (per type, each of those packets leaves a gap)."""
+    c = Capture()
+    for k in range(4092):
+        c.add(2 * k, BU, "VRPI", k)
+        if k % 1000 == 500:
+            c.add(2 * k + 1, BU, "VRCI", k // 1000, cmd(k))
+    for k in range(20):
+        c.add(8200 + 20 * k, BU, "VRAI" if k % 2 else "VRPI", 4092 + k, ack(k) if k % 2 else None)
+    path = tmp_path / "cap.pcap"
+    ref = c.write(path, "auto")
+    assert sender(ref, BU_ID)["scope"] == "type"
+    lines = diff(normal_form(ref), normal_form(engine_report(str(path), scope="auto")), "engine fast")
+    assert not lines, "\n".join(lines)
+
+    def anomalies(scope: str) -> int:
+        serial = sender(analyse(str(path), serial_scope=scope), BU_ID)
+        return sum(serial[k] for k in ("lost", "duplicates", "out_of_order", "restarts"))
+    assert anomalies("type") >= anomalies("sender") == 4      # all the packets ask for one counter
 
 
 def test_fast_engine_on_the_hand_built_captures(tmp_path):
