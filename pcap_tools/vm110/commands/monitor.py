@@ -22,6 +22,9 @@ from .analyze import add_analysis_arguments, analysis_options, deliver, report_o
 
 SECONDS = number(0, 30 * 86400, "s", allow_zero=False)
 WINDOW = number(0, 3600, "s")
+EVIDENCE_FILES = number(1, 1_000_000, integer=True)
+EVIDENCE_MIB = number(0, 1 << 20, "MiB", allow_zero=False)
+MAX_FILES, MAX_MIB = 1000, 1024        # a weekend of alarms fills no disk (docs/monitor.md, "Evidence")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,6 +44,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"evidence: seconds before the alarm, {WINDOW.range_text}; default 10")
     parser.add_argument("--after", type=WINDOW, default=5.0, metavar="S",
                         help=f"evidence: seconds after the alarm, {WINDOW.range_text}; default 5")
+    parser.add_argument("--evidence-max-files", type=EVIDENCE_FILES, default=MAX_FILES, metavar="N",
+                        help=f"evidence: at most N alarm windows (a pcapng and a JSON each) this run, "
+                             f"{EVIDENCE_FILES.range_text}; default {MAX_FILES}")
+    parser.add_argument("--evidence-max-size", type=EVIDENCE_MIB, default=MAX_MIB, metavar="MIB",
+                        help=f"evidence: at most MIB MiB of files this run, {EVIDENCE_MIB.range_text}; default "
+                             f"{MAX_MIB}. At either limit the first evidence is kept and no more is written")
     parser.add_argument("--no-dashboard", action="store_true", help="one line per finding instead of the dashboard")
     add_analysis_arguments(parser)
 
@@ -79,8 +88,10 @@ def run(args: argparse.Namespace) -> int:
         evidence = None
         if args.evidence is not None:
             evidence = Evidence(args.evidence, args.before, args.after,
-                                {"before_s": args.before, "after_s": args.after, "port": args.port,
-                                 "source": name, "analysis": vars(options)})
+                                {"before_s": args.before, "after_s": args.after, "max_files": args.evidence_max_files,
+                                 "max_size_mib": args.evidence_max_size, "port": args.port,
+                                 "source": name, "analysis": vars(options)},
+                                args.evidence_max_files, args.evidence_max_size)
         source: Source
         if args.read == "-":
             source = PipeSource(sys.stdin.fileno(), "standard input", PACED_READ_SIZE if args.realtime else READ_SIZE)
@@ -112,8 +123,11 @@ def run(args: argparse.Namespace) -> int:
         if evidence is not None and evidence.failed:       # (said when it happened; again here, with the report)
             print(f"vm110 monitor: evidence: {evidence.failed} alarm window(s) not written, the last: {evidence.error}",
                   file=sys.stderr)
-        if evidence is not None and evidence.written and not args.quiet:
-            print(f"evidence: {len(evidence.written)} file(s) in {args.evidence}", file=sys.stderr)
+        if evidence is not None and (evidence.written or evidence.over_limit) and not args.quiet:
+            print(f"evidence: {len(evidence.written)} file(s) in {args.evidence}" +
+                  (f"; {evidence.over_limit} alarm(s) without evidence ({evidence.full} reached)"
+                   if evidence.over_limit else ""),
+                  file=sys.stderr)
         # The terminal hung up (the SSH session closed): the summary goes to standard error, a log
         # when it was sent to one (else nowhere); a report on standard output is lost with it.
         with contextlib.redirect_stdout(sys.stderr) if session.hung_up and not report_out else \

@@ -8,6 +8,10 @@ window of the same rule and sender is still collecting joins that window instead
 another, extending it up to MAX_SPAN_S in all. Files are written atomically (vm110.fileio) and
 never over an existing file. A window that cannot be written (disk full, folder gone) is counted
 and told to `warn`, and the monitoring goes on: evidence is a by-product of the watch.
+
+Disk: this run's files are bounded by `max_files` windows and `max_mib` MiB in all. The first
+evidence is kept: the window that would pass a limit is not written, nor any after it (told to
+`warn` once, its alarms and those after counted in `over_limit`), and nothing is ever deleted.
 """
 from __future__ import annotations
 
@@ -71,13 +75,18 @@ class Window:
 class Evidence:
     """Writes evidence files into `folder` (an existing directory)."""
 
-    def __init__(self, folder: str, before: float, after: float, options: dict) -> None:
+    def __init__(self, folder: str, before: float, after: float, options: dict, max_files: int,
+                 max_mib: float) -> None:
         self.folder, self.before, self.after, self.options = folder, before, after, options
+        self.max_files, self.max_mib = max_files, max_mib
         self.ts_digits = 9          # the input's timestamp resolution (the session sets it)
         self.ring: collections.deque = collections.deque()
         self.ring_bytes = 0
         self.open: list[Window] = []
         self.written: list[str] = []
+        self.written_bytes = 0
+        self.full: Optional[str] = None    # the limit reached (then nothing more is collected)
+        self.over_limit = 0                # alarms without evidence for it
         self.skipped = 0                # alarms beyond MAX_OPEN windows
         self.failed = 0                 # windows that could not be written
         self.error: Optional[str] = None   # why the last one could not
@@ -85,6 +94,8 @@ class Evidence:
 
     def frame(self, ts: float, number: int, link: int, data: bytes) -> None:
         """Every frame of the capture, in order."""
+        if self.full is not None:
+            return
         entry = (ts, number, link, data)
         self.ring.append(entry)
         self.ring_bytes += len(data)
@@ -100,6 +111,9 @@ class Evidence:
 
     def alarm(self, finding: dict, now: float) -> None:
         """An alarm raised at capture time `now`: open a window (or join the open one)."""
+        if self.full is not None:
+            self.over_limit += 1
+            return
         for w in self.open:
             if w.rule == finding["rule"] and w.sender == finding.get("sender"):
                 w.findings.append(finding)
@@ -122,13 +136,25 @@ class Evidence:
         self.open = [w for w in self.open if w not in done]
         for w in done:
             try:
-                self._write(w)
+                if self.full is None:
+                    self._write(w)
             except CliError as exc:
                 self.failed += 1
                 self.error = str(exc)
                 self.warn(f"evidence not written: {exc}")
+            if self.full is not None:
+                self.over_limit += len(w.findings)
+        if self.full is not None:         # (the windows still collecting will not be written either)
+            self.over_limit += sum(len(w.findings) for w in self.open)
+            self.open = []
+            self.ring.clear()
+            self.ring_bytes = 0
 
     def _write(self, w: Window) -> None:
+        """Write the window's files, unless that would pass a limit (then `full` says which)."""
+        if len(self.written) >= self.max_files:
+            self._reached(f"--evidence-max-files {self.max_files}")
+            return
         stamp = datetime.datetime.fromtimestamp(w.time, datetime.timezone.utc).strftime("%Y%m%dT%H%M%S.%f")[:-3]
         base = os.path.join(self.folder, f"{stamp}Z-{w.rule}")
         name, n = base, 1
@@ -143,9 +169,20 @@ class Evidence:
                            "numbers": frames if len(frames) <= MAX_NUMBERS else None,
                            "cut_at_bytes": WINDOW_BYTES if w.cut else None},
                 "options": self.options}
-        write_bytes(name + ".pcapng", pcapng(w.frames, self.ts_digits))
-        write_text(name + ".json", json.dumps(meta, indent=1, default=str) + "\n")
+        data, text = pcapng(w.frames, self.ts_digits), json.dumps(meta, indent=1, default=str) + "\n"
+        size = len(data) + len(text.encode())
+        if self.written_bytes + size > self.max_mib * (1 << 20):
+            self._reached(f"--evidence-max-size {self.max_mib:g} MiB")
+            return
+        write_bytes(name + ".pcapng", data)
+        write_text(name + ".json", text)
         self.written.append(name + ".pcapng")
+        self.written_bytes += size
+
+    def _reached(self, limit: str) -> None:
+        self.full = limit
+        self.warn(f"evidence: {limit} reached in {self.folder}: the first {len(self.written)} window(s) kept, "
+                  "no more evidence is written")
 
 
 def _in_file(findings: list[dict], numbers: list[int]) -> list[dict]:

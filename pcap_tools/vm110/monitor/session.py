@@ -391,7 +391,8 @@ class Session:
                 "eglink_packets": got.eglink, "illegal": got.illegal,
                 "alarms": [a["item"] | {"rule": a["rule"]} for a in self.active.values()],
                 "findings": dict(sorted(self.counts.items())), **view, "memory_kb": rss_kb(),
-                "evidence_files": len(self.cfg.evidence.written) if self.cfg.evidence else None}
+                "evidence_files": len(self.cfg.evidence.written) if self.cfg.evidence else None,
+                "evidence_over_limit": self.cfg.evidence.over_limit if self.cfg.evidence else None}
 
     def draw(self, status: str) -> None:
         assert self.board is not None
