@@ -135,6 +135,35 @@ def test_the_dashboard_says_the_day_and_the_zone_of_its_times():
     assert dashboard.render(header, view, [], 80, 24)[0].startswith(first[:-len("interface eth1")])
 
 
+def test_finding_lines_give_the_date_of_their_time(tmp_path, capsys):
+    """Trial: a monitor left running for days printed its finding lines as '15:06:42.700 #56 ERROR
+    lost ...': which day? Each line (and each line of findings held back by the rate limit, and the
+    dashboard's) now gives its capture time in ISO 8601 UTC with its date, as `vm110 decode` gives
+    each packet's."""
+    import datetime
+    from vm110.monitor import dashboard
+    lines = tmp_path / "live.jsonl"
+    assert main(["monitor", "--read", str(ROOT / "captures" / "loss.pcapng"), "--idle", "0", "--no-dashboard",
+                 "--json-lines", str(lines), "--crc", "mpeg2", "--crc-order", "little"]) == 0
+    out = [line for line in capsys.readouterr().out.splitlines() if line.startswith("20")]
+    objects = [json.loads(line) for line in lines.read_text().splitlines()]
+    told = [o for o in objects if o["type"] in ("finding", "suppressed")]
+    assert len(out) == len(told) and any(o["type"] == "suppressed" for o in told)
+
+    def iso(t: float) -> str:
+        return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+    assert [line.split()[0] for line in out] == [iso(o["time"] if o["type"] == "finding" else o["at"]) for o in told]
+    # A day later at the same time of day, a line and the dashboard's alarm say so.
+    f = next(o for o in told if o["type"] == "finding")
+    later = {**f, "time": f["time"] + 86400, "item": {**f["item"], "time": f["time"] + 86400}}
+    assert dashboard.finding_line(later).startswith(iso(f["time"] + 86400) + f" #{f['frame']} ")
+    assert dashboard.finding_line(later)[10:] == dashboard.finding_line(f)[10:]
+    header = {"source": "eth1", "now": later["time"], "status": "running", "packets": 0, "rate": 0.0, "eglink": 0,
+              "illegal": 0, "alarms": [later["item"] | {"rule": "watchdog"}]}
+    shown = dashboard.render(header, [o for o in objects if o["type"] == "snapshot"][-1], [later], 200, 40)
+    assert f"  ALARM watchdog {dashboard.short(later['sender'])} since {iso(later['time'])} #{f['frame']}" in shown
+
+
 def test_findings_json_lines_and_evidence_of_a_silent_base_unit(tmp_path, capsys):
     capture = str(ROOT / "captures" / "bu-stops.pcap")
     lines, evidence = tmp_path / "live.jsonl", tmp_path / "evidence"

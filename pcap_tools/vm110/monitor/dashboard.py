@@ -8,16 +8,17 @@ import shutil
 import sys
 from typing import IO, Optional
 
+from ..timefmt import utc_iso
+
 _ENTER, _LEAVE = "\033[?1049h\033[?25l", "\033[?25h\033[?1049l"
 
 
-def clock(t: Optional[float], date: bool = False) -> str:
-    """The UTC time of `t` to the millisecond (with its date: a run of days), as analyze's times."""
+def clock(t: Optional[float]) -> str:
+    """The header's UTC date and time of `t` to the millisecond (it changes every second)."""
     if t is None:
         return "--:--:--.---"
     try:
-        return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).strftime(
-            "%Y-%m-%d %H:%M:%S.%f" if date else "%H:%M:%S.%f")[:-3]
+        return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
     except (OverflowError, OSError, ValueError):
         return f"{t:.3f}"
 
@@ -61,7 +62,7 @@ def finding_line(f: dict) -> str:
     event = {"raised": "!", "cleared": "ok", "found": ""}.get(f["event"], "")
     who = f" {short(f['sender'])}" if f.get("sender") else ""
     where = (f.get("item") or {}).get("filter")
-    return (f"{clock(f['time'])} #{f['frame']} {sev} {f['rule']}{(' ' + event) if event else ''}{who}: {f['message']}"
+    return (f"{utc_iso(f['time'])} #{f['frame']} {sev} {f['rule']}{(' ' + event) if event else ''}{who}: {f['message']}"
             + (f"  [{where}]" if where else ""))
 
 
@@ -71,10 +72,10 @@ def render(header: dict, view: dict, findings: list[dict], width: int, height: i
     c = view["commands"]
     lat = c["ack_latency_ms"]
     # (the source last: a long path is cut, never the status or the time)
-    lines = [f"vm110 monitor  {header['status']}  {clock(header['now'], date=True)} UTC  {header['source']}",
+    lines = [f"vm110 monitor  {header['status']}  {clock(header['now'])} UTC  {header['source']}",
              (f"packets {header['packets']} ({header['rate']:.0f}/s)  EG-Link {header['eglink']}  "
               f"illegal {header['illegal']}  alarms {len(header['alarms'])}")]
-    lines += [f"  ALARM {a['rule']} {short(a.get('sender') or '')} since {clock(a['time'])} #{a['frame']}"
+    lines += [f"  ALARM {a['rule']} {short(a.get('sender') or '')} since {utc_iso(a['time'])} #{a['frame']}"
               for a in header["alarms"][:3]]
     lines.append("")
     senders = view["senders"]

@@ -25,6 +25,7 @@ from ..analysis.incremental import Analysis
 from ..errors import CliError
 from ..analysis.periodic import SpilledFloats
 from ..capture.spool import named
+from ..timefmt import utc_iso
 from ..capture.stream import StreamReader
 from . import dashboard as dash
 from .evidence import Evidence
@@ -308,7 +309,8 @@ class Session:
                                   "at": at})
             if self.cfg.lines and self.board is None:
                 who = f" of {dash.short(sender)}" if sender else ""
-                self._say(f"{dash.clock(at)} {rule}: {suppressed} more line{'s' if suppressed > 1 else ''}{who} "
+                when = "-" if at is None else utc_iso(at)
+                self._say(f"{when} {rule}: {suppressed} more line{'s' if suppressed > 1 else ''}{who} "
                           "not shown (at most one a second)")
 
     def warn(self, message: str) -> None:
