@@ -153,15 +153,18 @@ def test_finding_lines_give_the_date_of_their_time(tmp_path, capsys):
     def iso(t: float) -> str:
         return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
     assert [line.split()[0] for line in out] == [iso(o["time"] if o["type"] == "finding" else o["at"]) for o in told]
-    # A day later at the same time of day, a line and the dashboard's alarm say so.
+    # A day later at the same time of day, a line says so. The dashboard, whose first line gives
+    # the date, gives it again only for what is of another day (an 80-column line keeps room).
     f = next(o for o in told if o["type"] == "finding")
     later = {**f, "time": f["time"] + 86400, "item": {**f["item"], "time": f["time"] + 86400}}
     assert dashboard.finding_line(later).startswith(iso(f["time"] + 86400) + f" #{f['frame']} ")
     assert dashboard.finding_line(later)[10:] == dashboard.finding_line(f)[10:]
-    header = {"source": "eth1", "now": later["time"], "status": "running", "packets": 0, "rate": 0.0, "eglink": 0,
-              "illegal": 0, "alarms": [later["item"] | {"rule": "watchdog"}]}
-    shown = dashboard.render(header, [o for o in objects if o["type"] == "snapshot"][-1], [later], 200, 40)
-    assert f"  ALARM watchdog {dashboard.short(later['sender'])} since {iso(later['time'])} #{f['frame']}" in shown
+    header = {"source": "eth1", "now": later["time"] + 1, "status": "running", "packets": 0, "rate": 0.0,
+              "eglink": 0, "illegal": 0, "alarms": [f["item"] | {"rule": "watchdog"}]}
+    shown = dashboard.render(header, [o for o in objects if o["type"] == "snapshot"][-1], [f, later], 200, 40)
+    assert shown[0].startswith(f"vm110 monitor  running  {iso(later['time'] + 1)[:10]} ")
+    assert f"  ALARM watchdog {dashboard.short(f['sender'])} since {iso(f['time'])} #{f['frame']}" in shown
+    assert shown[-2:] == [dashboard.finding_line(f), dashboard.finding_line(later)[11:]]
 
 
 def test_findings_json_lines_and_evidence_of_a_silent_base_unit(tmp_path, capsys):

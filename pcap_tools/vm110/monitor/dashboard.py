@@ -57,12 +57,20 @@ def sender_lines(s: dict) -> list[str]:
     return [head, loss, second]
 
 
-def finding_line(f: dict) -> str:
+def when(t: float, today: Optional[str] = None) -> str:
+    """A finding's time: ISO 8601 UTC with its date (a run of days), as the project's times; on
+    the dashboard, whose header gives the date (`today`, YYYY-MM-DD), the time alone on that day
+    (an 80-column line keeps room for the message)."""
+    stamp = utc_iso(t)
+    return stamp[11:] if stamp[:10] == today else stamp
+
+
+def finding_line(f: dict, today: Optional[str] = None) -> str:
     sev = "ERROR" if f["severity"] == "error" else "warn "
     event = {"raised": "!", "cleared": "ok", "found": ""}.get(f["event"], "")
     who = f" {short(f['sender'])}" if f.get("sender") else ""
     where = (f.get("item") or {}).get("filter")
-    return (f"{utc_iso(f['time'])} #{f['frame']} {sev} {f['rule']}{(' ' + event) if event else ''}{who}: {f['message']}"
+    return (f"{when(f['time'], today)} #{f['frame']} {sev} {f['rule']}{(' ' + event) if event else ''}{who}: {f['message']}"
             + (f"  [{where}]" if where else ""))
 
 
@@ -72,10 +80,12 @@ def render(header: dict, view: dict, findings: list[dict], width: int, height: i
     c = view["commands"]
     lat = c["ack_latency_ms"]
     # (the source last: a long path is cut, never the status or the time)
-    lines = [f"vm110 monitor  {header['status']}  {clock(header['now'])} UTC  {header['source']}",
+    now = clock(header["now"])
+    today = now[:10]
+    lines = [f"vm110 monitor  {header['status']}  {now} UTC  {header['source']}",
              (f"packets {header['packets']} ({header['rate']:.0f}/s)  EG-Link {header['eglink']}  "
               f"illegal {header['illegal']}  alarms {len(header['alarms'])}")]
-    lines += [f"  ALARM {a['rule']} {short(a.get('sender') or '')} since {utc_iso(a['time'])} #{a['frame']}"
+    lines += [f"  ALARM {a['rule']} {short(a.get('sender') or '')} since {when(a['time'], today)} #{a['frame']}"
               for a in header["alarms"][:3]]
     lines.append("")
     senders = view["senders"]
@@ -90,7 +100,7 @@ def render(header: dict, view: dict, findings: list[dict], width: int, height: i
     room = height - len(lines) - 1
     if room > 0:
         lines.append("findings (latest last):")
-        lines += [finding_line(f) for f in findings[-room:]] if findings else ["  none"]
+        lines += [finding_line(f, today) for f in findings[-room:]] if findings else ["  none"]
     return [ln[:width] for ln in lines[:height]]
 
 
