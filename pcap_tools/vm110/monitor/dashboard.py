@@ -70,8 +70,9 @@ def finding_line(f: dict, today: Optional[str] = None) -> str:
     event = {"raised": "!", "cleared": "ok", "found": ""}.get(f["event"], "")
     who = f" {short(f['sender'])}" if f.get("sender") else ""
     where = (f.get("item") or {}).get("filter")
-    return (f"{when(f['time'], today)} #{f['frame']} {sev} {f['rule']}{(' ' + event) if event else ''}{who}: {f['message']}"
-            + (f"  [{where}]" if where else ""))
+    rule = f"{f['rule']} {event}" if event else f["rule"]
+    return f"{when(f['time'], today)} #{f['frame']} {sev} {rule}{who}: {f['message']}" + (
+        f"  [{where}]" if where else "")
 
 
 def render(header: dict, view: dict, findings: list[dict], width: int, height: int) -> list[str]:
