@@ -85,3 +85,18 @@ def test_evidence_limits_are_validated(option, value, tmp_path, capsys):
     assert stop.value.code == 2 and len(err) == 1
     assert err[0].startswith(f"vm110 monitor: argument {option}: {value!r} is ") and "must be" in err[0]
     assert not list(tmp_path.iterdir())
+
+
+def test_alarms_beyond_the_open_windows_are_counted(tmp_path):
+    """Trial: an alarm while 64 windows were collecting (64 senders alarming at once on a mirror
+    port) got no evidence, and nothing said so. The end's line now counts them."""
+    from vm110.monitor.evidence import MAX_OPEN, Evidence
+    evidence = Evidence(str(tmp_path), 1.0, 1.0, {}, 1000, 1024)
+    t = 1_700_000_000.0
+    evidence.frame(t, 1, 1, bytes(60))
+    for n in range(MAX_OPEN + 2):
+        evidence.alarm({"rule": "lost", "sender": f"Input 10.0.0.{n}:5825 origin 0x0101", "item": {"frame": 1}}, t)
+    evidence.tick(None)
+    assert len(list(tmp_path.glob("*.pcapng"))) == len(evidence.written) == MAX_OPEN
+    assert evidence.told() == (f"evidence: {MAX_OPEN} file(s) in {tmp_path}; 2 alarm(s) without evidence "
+                               f"(more than {MAX_OPEN} windows at once)")

@@ -123,11 +123,8 @@ def run(args: argparse.Namespace) -> int:
         if evidence is not None and evidence.failed:       # (said when it happened; again here, with the report)
             print(f"vm110 monitor: evidence: {evidence.failed} alarm window(s) not written, the last: {evidence.error}",
                   file=sys.stderr)
-        if evidence is not None and (evidence.written or evidence.over_limit) and not args.quiet:
-            print(f"evidence: {len(evidence.written)} file(s) in {args.evidence}" +
-                  (f"; {evidence.over_limit} alarm(s) without evidence ({evidence.full} reached)"
-                   if evidence.over_limit else ""),
-                  file=sys.stderr)
+        if evidence is not None and (evidence.written or evidence.over_limit or evidence.skipped) and not args.quiet:
+            print(evidence.told(), file=sys.stderr)
         # The terminal hung up (the SSH session closed): the summary goes to standard error, a log
         # when it was sent to one (else nowhere); a report on standard output is lost with it.
         with contextlib.redirect_stdout(sys.stderr) if session.hung_up and not report_out else \

@@ -150,6 +150,15 @@ class Evidence:
             self.ring.clear()
             self.ring_bytes = 0
 
+    def told(self) -> str:
+        """The end's line: the files written, and the alarms left without evidence, and why."""
+        parts = [f"evidence: {len(self.written)} file(s) in {self.folder}"]
+        if self.over_limit:
+            parts.append(f"{self.over_limit} alarm(s) without evidence ({self.full} reached)")
+        if self.skipped:
+            parts.append(f"{self.skipped} alarm(s) without evidence (more than {MAX_OPEN} windows at once)")
+        return "; ".join(parts)
+
     def _write(self, w: Window) -> None:
         """Write the window's files, unless that would pass a limit (then `full` says which)."""
         if len(self.written) >= self.max_files:
