@@ -147,3 +147,21 @@ def test_frames_cut_by_the_snaplen_are_counted_not_kept(tmp_path):
     session.intake.sync(session.reader)
     assert session.intake.got.snap_truncated == expected > 300
     session.close()
+
+
+def test_warnings_held_behind_the_dashboard_are_bounded(capsys):
+    """Trial: each warning that came while the dashboard was up (an evidence window that could not
+    be written, every few minutes of a disk full for a weekend) was kept until the dashboard ended,
+    then all said at once. Now the first hundred are kept and the rest counted."""
+    session = Session(Source(), Options(), Settings(name="x", port=5825, crc="mpeg2", crc_order="little",
+                                                    dashboard=True))
+    assert session.board is not None
+    session.board.on = True             # (as after its first drawing)
+    for n in range(1000):
+        session.warn(f"evidence not written: cannot write w{n}.pcapng: No space left on device")
+    capsys.readouterr()
+    session._end()
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"vm110 monitor: evidence not written: cannot write w{n}.pcapng: No space left on device"
+                   for n in range(100)] + ["vm110 monitor: and 900 more warning(s), not kept"]
+    session.close()

@@ -41,6 +41,7 @@ FINDINGS_SHOWN = 200
 UNWRITABLE = (OSError, closedpipe.StdoutUnwritable)   # standard output's write errors (cli.py wraps it)
 RATE_LIMITED = {"lost", "illegal", "restarts", "failed"}   # at most one line per second per sender
 LIMITED_MAX = 4096           # (rule, sender) pairs the rate limit keeps; beyond, the old ones' lines are told
+UNSAID_MAX = 100             # warnings kept for after the dashboard (a disk full for days fails every window)
 
 
 @dataclass
@@ -93,6 +94,7 @@ class Session:
         self.failure: Optional[str] = None
         self.no_capture = False                # the input ended before a capture header was whole
         self.unsaid: list[str] = []            # warnings kept from the dashboard's screen till its end
+        self.unsaid_more = 0                   # ... and those beyond UNSAID_MAX, counted
         self.hung_up = False                   # the terminal hung up: the summary goes to standard error
         if cfg.evidence is not None:
             cfg.evidence.warn = self.warn
@@ -317,7 +319,10 @@ class Session:
         """A trouble of our own output (the watch goes on): on standard error at once, or after the
         dashboard, which it would garble."""
         if self.board is not None and self.board.on:
-            self.unsaid.append(message)
+            if len(self.unsaid) < UNSAID_MAX:
+                self.unsaid.append(message)
+            else:
+                self.unsaid_more += 1
         else:
             try:
                 print(f"vm110 monitor: {message}", file=sys.stderr, flush=True)
@@ -443,6 +448,8 @@ class Session:
                 self._stdout_failed(exc)
         for message in self.unsaid:
             print(f"vm110 monitor: {message}", file=sys.stderr)
+        if self.unsaid_more:
+            print(f"vm110 monitor: and {self.unsaid_more} more warning(s), not kept", file=sys.stderr)
 
     def close(self) -> None:
         self.spool.close()
