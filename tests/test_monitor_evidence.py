@@ -100,3 +100,26 @@ def test_alarms_beyond_the_open_windows_are_counted(tmp_path):
     assert len(list(tmp_path.glob("*.pcapng"))) == len(evidence.written) == MAX_OPEN
     assert evidence.told() == (f"evidence: {MAX_OPEN} file(s) in {tmp_path}; 2 alarm(s) without evidence "
                                f"(more than {MAX_OPEN} windows at once)")
+
+
+def test_evidence_of_a_capture_beyond_year_9999_is_named_by_its_seconds(tmp_path, capsys):
+    """Trial: a pcapng whose times lie past the year 9999 (a hostile or broken capture) ended the
+    monitor with a traceback at its first alarm's evidence: the file's name is its UTC date. Such a
+    time is now named by its raw seconds, as timefmt shows it, and the watch ends with its report."""
+    from test_analysis_craft import Traffic, vrpi
+    tr = Traffic()
+    far = 1e12                          # some 31,700 years after the crafted captures' start
+    for i in range(16):                 # a BU heard for 2 s, then silent: its watchdog alarms
+        tr.add(far + i * 0.125, vrpi(i))
+    tr.add(far + 4.0, vrpi(16))
+    capture = tmp_path / "far.pcapng"
+    tr.write(capture, "pcapng")
+    folder = tmp_path / "evidence"
+    folder.mkdir()
+    code = main(["monitor", "--read", str(capture), "--idle", "0", "--no-dashboard", "--quiet", "--evidence",
+                 str(folder), "--crc", "mpeg2", "--crc-order", "little"])
+    assert code == 0 and "Traceback" not in capsys.readouterr().err
+    [meta] = [json.loads(p.read_text()) for p in folder.glob("*.json")]
+    assert meta["rule"] == "watchdog" and meta["time"] > far
+    assert sorted(p.name for p in folder.iterdir()) == [f"{meta['time']!r}s-watchdog.json",
+                                                        f"{meta['time']!r}s-watchdog.pcapng"]

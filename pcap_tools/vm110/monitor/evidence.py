@@ -16,7 +16,6 @@ evidence is kept: the window that would pass a limit is not written, nor any aft
 from __future__ import annotations
 
 import collections
-import datetime
 import json
 import os
 import struct
@@ -27,6 +26,7 @@ from ..capture.writer import build_block, build_option
 from ..analysis.findings import frame_filter
 from ..errors import CliError
 from ..fileio import write_bytes, write_text
+from ..timefmt import utc_iso
 
 RING_BYTES = 64 << 20
 WINDOW_BYTES = 64 << 20
@@ -164,8 +164,7 @@ class Evidence:
         if len(self.written) >= self.max_files:
             self._reached(f"--evidence-max-files {self.max_files}")
             return
-        stamp = datetime.datetime.fromtimestamp(w.time, datetime.timezone.utc).strftime("%Y%m%dT%H%M%S.%f")[:-3]
-        base = os.path.join(self.folder, f"{stamp}Z-{w.rule}")
+        base = os.path.join(self.folder, f"{_stamp(w.time)}-{w.rule}")
         name, n = base, 1
         while os.path.exists(name + ".pcapng") or os.path.exists(name + ".json"):
             n += 1
@@ -192,6 +191,13 @@ class Evidence:
         self.full = limit
         self.warn(f"evidence: {limit} reached in {self.folder}: the first {len(self.written)} window(s) kept, "
                   "no more evidence is written")
+
+
+def _stamp(t: float) -> str:
+    """A file name's time: UTC to the ms (20250615T150652.902Z); the raw seconds (1e+16s) for a
+    time no calendar date can hold (a hostile capture's)."""
+    iso = utc_iso(t)
+    return iso[:23].replace("-", "").replace(":", "") + "Z" if iso.endswith("Z") else f"{t!r}s"
 
 
 def _in_file(findings: list[dict], numbers: list[int]) -> list[dict]:
