@@ -186,6 +186,32 @@ def test_copies_within_the_window_are_not_held(tmp_path, monkeypatch):
     assert json.loads(whole)["senders"][0]["serial"]["duplicates"] == 3000
 
 
+def test_a_sender_stuck_on_one_serial_keeps_one_row(tmp_path, monkeypatch):
+    """A device stuck on one serial (a monitor runs for days): the candidate's copies after the
+    duplicate window are duplicates too (rules.md rule 5), judged at once; they were kept, one
+    row each, for as long as the candidate stayed undecided."""
+    from test_analysis_craft import Traffic, vrpi
+    from vm110.analysis import sender
+    tr = Traffic()
+    for i in range(96):
+        tr.add(i * 0.125, vrpi(500 + i))
+    for k in range(2000):
+        tr.add(15.0 + k * 0.125, vrpi(0))               # the candidate, then copies for 250 s
+    tr.write(tmp_path / "stuck.pcap")
+    got, rec, sources = _records(tmp_path / "stuck.pcap", monkeypatch)
+    held = []
+    real = sender.Sender._dispatch
+
+    def watch(self, rows, events, final):
+        real(self, rows, events, final)
+        held.append(sum(len(h) for rows_ in self.pending.values() for h in rows_))
+    monkeypatch.setattr(sender.Sender, "_dispatch", watch)
+    report = json.loads(_report(got, rec, sources, list(range(0, len(rec), 50)) + [len(rec)]))
+    assert max(held) == 1
+    serial = report["senders"][0]["serial"]
+    assert (serial["duplicates"], serial["out_of_order"], serial["restarts"]) == (1999, 1, 0)
+
+
 def test_a_sender_heard_once_holds_nothing_back(tmp_path):
     """A sender heard once (a stray packet, a controller that crashed within seconds) never ended
     its serial-scope warm-up, which only its own next packet ended: every command event after its

@@ -569,6 +569,28 @@ def test_reference_mirror_copies_and_a_copy_after_the_window(tmp_path):
     assert vrpi["interval_ms"]["max"] == 125.0
 
 
+def test_reference_copies_of_a_candidate_long_after_it_are_duplicates(tmp_path):
+    """rules.md rule 5: copies of a restart candidate before the packet that decides it are
+    duplicates, whenever they come. The fast engine held those after the duplicate window and
+    then judged each a restart candidate of its own (three restarts here), and kept every one in
+    memory while undecided: a device stuck on one serial grew the monitor without bound."""
+    c = Capture()
+    for k in range(10):
+        c.add(125 * k, BU, "VRPI", 100 + k)                      # frames 1-10
+    c.add(1250, BU, "VRPI", 5000)                                # frame 11: candidate
+    for ms in (1300, 2400, 3500):                                # copies, the last two after the window
+        c.add(ms, BU, "VRPI", 5000)
+    c.add(3600, BU, "VRPI", 5001)                                # confirms: a restart at frame 11
+    c.add(3725, BU, "VRPI", 5002)
+    ref = c.write(tmp_path / "copies.pcap")
+    s = sender(ref, BU_ID)
+    assert (s["received"], s["duplicates"], s["out_of_order"], s["lost"], s["restarts"]) == (16, 3, 0, 0, 1)
+    assert [(e["frame"], e["from"], e["to"]) for e in s["restart_events"]] == [(11, 109, 5000)]
+    vrpi = next(p for p in ref["periodic"] if p["type"] == "VRPI")
+    assert vrpi["count"] == 13                                    # the copies are no arrivals
+    assert vrpi["interval_ms"]["max"] == 2350.0
+
+
 def test_reference_overlapping_commands_acked_in_reverse_order(tmp_path):
     c = Capture()
     c.add(100, BU, "VRCI", 0, cmd(7))

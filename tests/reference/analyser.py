@@ -14,7 +14,7 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
      only accepted packets would decide differently the capture is flagged ambiguous.
   R2 A restart candidate is decided by the counter's next legal packet whose serial is not the
      candidate's, whatever that packet is (also a copy of an older serial).  Copies of the candidate
-     in between are duplicates (rules.md says so explicitly).
+     in between are duplicates, also those after the duplicate window (rules.md says so explicitly).
   R3 The candidate is accepted when it arrives (it counts for dt and r either way); a confirmed
      restart then resets the counter to: h = s, start = t_candidate, only s accepted, no open gaps;
      serials lost before the restart stay lost and can no longer be filled.
@@ -630,9 +630,7 @@ def _classify(packets: list[dict], dup_w: int, flags: _Flags) -> dict:
             continue
         if pending is not None:
             if sv == pending["serial"]:
-                # R2: a copy of the candidate is a duplicate
-                if t - pending["t"] >= dup_w:
-                    flags.items.append(f"copy of a restart candidate after the window, frame {fr}")
+                # R2: a copy of the candidate is a duplicate, whenever it comes
                 duplicates += 1
                 marks.append((i, "serial_duplicate", 1))
                 continue

@@ -15,8 +15,8 @@ A sender that restarts on a new port asks its predecessor (`probe`) for the pred
 just before the new sender's first frame: its counter's highest serial and its last accepted
 packet of each periodic type. Every packet of the predecessor before that frame has been handed
 to it by then; a candidate still undecided is out of order as far as that moment can tell (as
-it would be in a capture that ended there), and whether it or a copy of it was accepted does not
-depend on its decision.
+it would be in a capture that ended there), and it is accepted whatever its decision (copies of
+it are duplicates).
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from typing import Optional
 import numpy as np
 
 from .. import constants as C
-from . import serials, timing
+from . import serials
 from .bursts import Bursts
 from .collect import CODE, RECORD_DTYPE, TYPES, VRPI_CODE, VRPO_CODE, code_of, sender_id
 from .commands import RESTART
@@ -182,22 +182,12 @@ class Sender:
         probe.successor.before = {code: self._last_accepted(code) for code in (VRPI_CODE, VRPO_CODE)}
 
     def _last_accepted(self, code: int) -> Optional[float]:
-        """Time of the last accepted packet of that type so far, undecided ones included."""
-        edge = timing.edge_us(self.opt.dup_window_ms)
+        """Time of the last accepted packet of that type so far, an undecided candidate included
+        (accepted whatever its decision)."""
         for held in self.pending.values():
-            if not held:
-                continue
-            rows = np.concatenate(held)
-            # A candidate and copies of it: the candidate is accepted, a copy when the one
-            # accepted before it lies at least the duplicate window back.
-            accepted, at = np.zeros(len(rows), dtype=bool), float(rows["ts"][0])
-            accepted[0] = True
-            for i, t in enumerate(rows["ts"][1:].tolist(), 1):
-                if (t - at) * 1e6 >= edge:
-                    accepted[i], at = True, t
-            mine = rows[accepted & (code_of(rows["pid"]) == code)]
-            if len(mine):
-                return self.stamps.get(int(mine["frame"][-1]), float(mine["ts"][-1]))
+            if held and code_of(held[0]["pid"][:1])[0] == code:
+                frame = int(held[0]["frame"][0])
+                return self.stamps.get(frame, float(held[0]["ts"][0]))
         stream = self.streams.get(code)
         return stream.times.last() if stream is not None and len(stream.times) else None
 
@@ -246,18 +236,11 @@ class Sender:
         return np.array([get(f, t) for f, t in zip(rows["frame"].tolist(), rows["ts"].tolist())], dtype=np.float64)
 
     def _hold(self, key, held: list, copies: np.ndarray) -> None:
-        """Copies of the undecided candidate held[0][0]: those within its duplicate window are
-        duplicates whatever it turns out to be, judged now (a flood of them costs nothing kept);
-        later ones wait with it."""
-        if not len(copies):
-            return
-        inside = (copies["ts"] - held[0]["ts"][0]) * 1e6 < timing.edge_us(self.opt.dup_window_ms)
-        if inside.any():
-            judged = copies[inside]
-            self.counters[key].copies(int(copies["serial"][0]), judged["ts"], judged["frame"].tolist(),
-                                      self._own_times(judged).tolist())
-        if not inside.all():
-            held.append(copies[~inside].copy())
+        """Copies of the undecided candidate held[0][0]: duplicates whatever it turns out to be
+        (rules.md, rule 5), judged at once (a flood of them costs nothing kept)."""
+        if len(copies):
+            self.counters[key].copies(int(copies["serial"][0]), copies["ts"], copies["frame"].tolist(),
+                                      self._own_times(copies).tolist())
 
     def _accept(self, rows: np.ndarray, own: np.ndarray, events: list) -> None:
         """Accepted packets (not duplicates) of one counter, in arrival order; `own`: their own

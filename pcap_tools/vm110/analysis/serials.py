@@ -243,6 +243,14 @@ class Counter:
                     del missing[x]
                     lost_for_good.append(x)
 
+        def duplicate(k: int, s: int, t: float) -> None:
+            dup.append(s)
+            dup_pos.append(off + k)
+            fed.append(where[k])
+            if len(res.duplicates_located) < LOCATED:
+                res.duplicates_located.append((where[k], t, s))
+                show(k)
+
         while i < n:
             s, t = int(arr[i]), float(ts[i])
             d = (s - self.h) & MASK
@@ -265,12 +273,7 @@ class Counter:
                 i = j
                 continue
             if (t - accepted_at[s]) * 1e6 < edge:
-                dup.append(s)
-                dup_pos.append(off + i)
-                fed.append(where[i])
-                if len(res.duplicates_located) < LOCATED:
-                    res.duplicates_located.append((where[i], t, s))
-                    show(i)
+                duplicate(i, s, t)
             elif gap_at[s] > NEVER and (t - gap_at[s]) * 1e6 < edge:
                 ooo.append(s)                 # late: fills its gap
                 if self._locate(where[i], t, s):
@@ -293,7 +296,8 @@ class Counter:
                 self.h, self.prev = s, t
                 accepted_at[s] = t
             else:
-                # The next packet that is not a copy of the candidate (copies confirm nothing).
+                # The next packet that is not a copy of the candidate decides; the copies in
+                # between are duplicates, whenever they come (they confirm nothing).
                 if changes is None:
                     changes = np.flatnonzero(arr[1:] != arr[:-1]) + 1
                 k = int(np.searchsorted(changes, i, "right"))
@@ -310,6 +314,9 @@ class Counter:
                     if self._locate(where[i], t, s):
                         show(i)
                     accepted_at[s], self.prev = t, t
+                for k in range(i + 1, nxt):
+                    duplicate(k, s, float(ts[k]))
+                i = nxt - 1
             i += 1
             if limit is not None and len(dup) + len(ooo) + len(missing) + len(lost_for_good) > limit:
                 res.aborted = True
