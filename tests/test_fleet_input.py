@@ -161,6 +161,51 @@ def test_stopped_build_continues_where_it_stopped(src, built, tmp_path, stop, jo
             assert have == want, (table, name)
 
 
+def test_a_running_build_writes_what_it_adds_not_the_whole_manifest(src, built):
+    """The manifest was rewritten whole every 2 s while a build ran: a cost that grew with the
+    dataset (quadratic over a build of many thousands). Each update is now a journal batch of the
+    captures completed since the last; query sees them; a kill keeps them; the next build writes
+    the manifest whole. (Checkpoints after every capture here, to see each one.)"""
+    manifest = (built / "manifest.json").read_bytes()
+    for n in range(40):                 # (not the same bytes: a copy is not analysed again)
+        data = bytearray((BUNDLED / "normal.pcap").read_bytes())
+        data[12:16] = (n + 1).to_bytes(4, "little")
+        (src / f"more{n:02d}.pcap").write_bytes(data)
+    run = ("import sys, vm110.fleet.build as b; from vm110.cli import main; b.CHECKPOINT_S = 0; "
+           "sys.exit(main(sys.argv[1:]))")
+    proc = subprocess.Popen([sys.executable, "-c", run, "fleet", "build", str(src), "--out", str(built), "-j", "1"],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            env={**os.environ, "PYTHONPATH": str(ROOT / "pcap_tools")})
+    journal = built / "journal"
+    deadline = time.monotonic() + 60
+    while proc.poll() is None and time.monotonic() < deadline and len(list(journal.glob("*.json"))) < 3:
+        time.sleep(0.005)
+    proc.kill()
+    proc.communicate(timeout=60)
+    batches = sorted(journal.glob("*.json"))
+    assert proc.returncode == -signal.SIGKILL and len(batches) >= 3
+    assert (built / "manifest.json").read_bytes() == manifest          # not rewritten while it ran
+    added = [json.loads(b.read_text())["captures"] for b in batches]
+    assert all(len(batch) == 1 for batch in added)                      # each batch: one capture, not all
+    files = {e["file"] for batch in added for e in batch.values()}
+    assert len(files) == len(batches) and all(Path(f).name.startswith("more") for f in files)
+    seen = vm110("fleet", "query", str(built), "--format", "json", "SELECT file FROM captures")
+    assert {r["file"] for r in json.loads(seen.stdout)} >= files | {str(src / n) for n in NAMES}
+    resumed = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert resumed.returncode == 0, resumed.stderr
+    assert int(resumed.stdout.split(": ")[1].split()[0]) <= 40 - len(batches)      # the journal's are kept
+    assert list(journal.glob("*")) == []
+    listed = json.loads((built / "manifest.json").read_text())["captures"]
+    assert sorted(Path(e["file"]).name for e in listed.values()) == sorted([*NAMES, *(f"more{n:02d}.pcap"
+                                                                                      for n in range(40))])
+    want = [{k: v for k, v in r.items() if k not in ("capture_id", "file", "sha256")}
+            for r in rows(built) if r["file"] == str(src / "normal.pcap")]
+    for name in ("more00.pcap", "more39.pcap"):
+        got = [{k: v for k, v in r.items() if k not in ("capture_id", "file", "sha256")}
+               for r in rows(built) if r["file"] == str(src / name)]
+        assert got == want, name
+
+
 def test_unreadable_capture_is_an_error_row(src, built):
     (src / "broken.pcap").write_bytes(b"\xd4\xc3\xb2\xa1" + b"\x00" * 3)       # a pcap magic, then nothing
     before = rows(built)
@@ -491,19 +536,24 @@ def test_a_renamed_capture_is_counted_once(src, built):
     assert {str(p.relative_to(built)) for p in built.rglob("*.parquet")} == listed     # the old parts are gone
 
 
-@pytest.mark.parametrize("entry", ["not an entry", "parts outside"])
-def test_a_damaged_manifest_is_one_line_and_nothing_outside_is_removed(src, built, tmp_path, entry):
-    """A manifest whose capture entry is not one a build writes: a traceback (query), or parts
-    outside the dataset that a build removed as a replaced capture's (build)."""
+@pytest.mark.parametrize("entry, where", [("not an entry", "manifest.json"), ("parts outside", "manifest.json"),
+                                          ("parts outside", "journal/000000000.json")])
+def test_a_damaged_manifest_is_one_line_and_nothing_outside_is_removed(src, built, tmp_path, entry, where):
+    """A manifest (or a batch of its journal) whose capture entry is not one a build writes: a
+    traceback (query), or parts outside the dataset that a build removed as a replaced capture's
+    (build)."""
     victim = tmp_path / "victim.txt"
     victim.write_text("not the tool's")
     manifest = json.loads((built / "manifest.json").read_text())
+    if where != "manifest.json":
+        manifest = {"captures": {}, "dropped": []}
+        (built / "journal").mkdir()
     manifest["captures"]["0" * 24] = 5 if entry == "not an entry" else {
         "file": str(src / "normal.pcap"), "size": 1, "sha256": "0" * 64, "status": "ok", "message": None,
         "meta": {}, "parts": ["../victim.txt"]}
-    (built / "manifest.json").write_text(json.dumps(manifest))
-    one_line_error(vm110("fleet", "query", str(built), "--worst", "links"), "manifest.json")
-    one_line_error(vm110("fleet", "build", str(src), "--out", str(built), "-j", "1"), "manifest.json")
+    (built / where).write_text(json.dumps(manifest))
+    one_line_error(vm110("fleet", "query", str(built), "--worst", "links"), where)
+    one_line_error(vm110("fleet", "build", str(src), "--out", str(built), "-j", "1"), where)
     assert victim.read_text() == "not the tool's"
 
 

@@ -21,7 +21,7 @@ from .tables import SCHEMAS, check_meta_keys
 from .work import Done, Settings
 
 HASH_THREADS = 8             # files hashed at once (reading is the limit, not the CPU)
-CHECKPOINT_S = 2.0           # the manifest is rewritten at most this often while a build runs
+CHECKPOINT_S = 2.0           # the journal gets a batch at most this often while a build runs
 
 
 @dataclass
@@ -99,14 +99,17 @@ def _build(dataset: Dataset, wanted: list[Source], walked: list[str], settings: 
     if dataset.exists():
         manifest = dataset.read_manifest()
         _check_options(dataset, manifest, options)
+        if dataset.journal_batches():           # a stopped build's: in the manifest, the journal afresh
+            dataset.write_manifest(manifest)
     else:
         manifest = Dataset.new_manifest(options)
         dataset.write_manifest(manifest)        # first: a build stopped at once is still ours to resume
     dataset.remove_temporaries()
     listed = manifest["captures"]
+    journal = Journal(dataset, listed)
     for cid, row in dataset.complete_captures(skip=set(listed)).items():     # a stopped build's finished work
-        listed[cid] = _entry(row["file"], row["size"], row["sha256"], row["status"], dataset.parts_on_disk(cid),
-                             None, {k: v for k, v in row.items() if k not in _CAPTURE_COLUMNS})
+        journal.add(cid, _entry(row["file"], row["size"], row["sha256"], row["status"], dataset.parts_on_disk(cid),
+                                None, {k: v for k, v in row.items() if k not in _CAPTURE_COLUMNS}))
     outcome = Outcome()
     # An unreadable capture is tried again every time: what failed may have been passing (a file
     # still being copied, a worker that could not see the share).
@@ -121,8 +124,8 @@ def _build(dataset: Dataset, wanted: list[Source], walked: list[str], settings: 
     last = time.monotonic()
     try:
         for done in _engine(engine, todo, settings, jobs, scheduler):
-            listed[done.capture_id] = _entry(done.path, done.size, done.sha256, done.status, list(done.parts),
-                                             done.message, dict(done.meta))
+            journal.add(done.capture_id, _entry(done.path, done.size, done.sha256, done.status, list(done.parts),
+                                                done.message, dict(done.meta)))
             outcome.analysed += 1
             if done.status == "unreadable":
                 outcome.unreadable.append(f"{done.path}: {done.message}")
@@ -132,13 +135,13 @@ def _build(dataset: Dataset, wanted: list[Source], walked: list[str], settings: 
             if bar:
                 bar.step(outcome)
             if time.monotonic() - last > CHECKPOINT_S:
-                _commit(dataset, manifest, stale)
+                journal.commit(stale)
                 last = time.monotonic()
         outcome.replaced = len(stale) - len(cleared)
     finally:
         if bar:
             bar.close()
-        _commit(dataset, manifest, stale)
+        journal.commit(stale, whole=manifest)
     return outcome
 
 
@@ -230,13 +233,30 @@ class Versions:
         return {c for c in cids | self.moved.get(path, set()) if c != now} if now in cids else set()
 
 
-def _commit(dataset: Dataset, manifest: dict, stale: set[str]) -> None:
-    """Write the manifest without the stale entries, then remove their parts (after: a stop in
-    between leaves unlisted parts, never listed parts missing)."""
-    gone = [manifest["captures"].pop(cid) for cid in sorted(stale) if cid in manifest["captures"]]
-    dataset.write_manifest(manifest)
-    for entry in gone:
-        dataset.remove_parts(entry["parts"])
+class Journal:
+    """The build's updates to the manifest's captures (`listed`, changed in place): written as a
+    journal batch of what changed since the last one (a cost that does not grow with the dataset),
+    or as the whole manifest at the end."""
+
+    def __init__(self, dataset: Dataset, listed: dict) -> None:
+        self.dataset, self.listed = dataset, listed
+        self.added: dict[str, dict] = {}
+
+    def add(self, cid: str, entry: dict) -> None:
+        self.listed[cid] = self.added[cid] = entry
+
+    def commit(self, stale: set[str], whole: Optional[dict] = None) -> None:
+        """Record the captures added and the stale entries gone (the whole manifest `whole`, if
+        given), then remove the stale entries' parts (after: a stop in between leaves unlisted
+        parts, never listed parts missing)."""
+        gone = {cid: self.listed.pop(cid) for cid in sorted(stale) if cid in self.listed}
+        if whole is not None:
+            self.dataset.write_manifest(whole)
+        else:
+            self.dataset.journal({c: e for c, e in self.added.items() if c in self.listed}, gone)
+        self.added = {}
+        for entry in gone.values():
+            self.dataset.remove_parts(entry["parts"])
 
 
 def _difference(old: Optional[dict], new: dict) -> str:

@@ -1,13 +1,17 @@
 """The dataset on disk (a local folder or any fsspec URL):
 
     DATASET/manifest.json                      format, version, options, the captures it holds
+    DATASET/journal/<n>.json                   while a build runs: the captures it listed and dropped
     DATASET/<table>/part-<capture_id>.parquet  one part per capture and table (when it has rows)
 
 A capture's parts are written one by one, each to a temporary name and renamed when complete,
-its `captures` part last: a `captures` part on disk means the capture is complete. The manifest
-is rewritten (atomically) as captures complete and at the end; a build that was stopped adopts the
-complete captures it finds that the manifest does not list yet, so no finished work is lost.
-Readers see only the parts of the captures the manifest lists.
+its `captures` part last: a `captures` part on disk means the capture is complete. While a build
+runs, the captures completed (and replaced) since its last look go to a new journal batch, written
+atomically, so that an update costs what it adds, not the size of the dataset; the manifest is the
+manifest file with its batches applied in order, and the build writes it whole (and removes the
+batches) at its start and end. A build that was stopped adopts the complete captures it finds
+that the manifest does not list yet, so no finished work is lost. Readers see only the parts of
+the captures the manifest lists.
 """
 from __future__ import annotations
 
@@ -16,8 +20,9 @@ import fcntl
 import json
 import os
 import posixpath
+import re
 import secrets
-from typing import Any, Callable, Collection, Iterable, Iterator
+from typing import Any, Callable, Collection, Iterable, Iterator, Optional
 
 import fsspec
 import pyarrow as pa
@@ -31,11 +36,15 @@ from .tables import TABLES
 from ..jsonin import loads
 
 FORMAT = "vm110-fleet"
-FORMAT_VERSION = 2                 # 2: findings of report schema 3 (severity note); rows of 1 would mix
+# 2: findings of report schema 3 (severity note); rows of 1 would mix. 3: the journal (a build of
+# 2 would not see it, and a later one would apply its stale batches).
+FORMAT_VERSION = 3
 MANIFEST = "manifest.json"
+JOURNAL = "journal"                # batches of a running build's updates to the manifest
 MAX_MANIFEST_BYTES = 256 << 20
 LOCK = ".vm110-fleet.lock"         # held by a build (local datasets): one writer at a time
 COMMIT_TABLE = "captures"          # written last: its part marks a capture complete
+_BATCH = re.compile(r"[0-9]{9}\.json\Z")
 
 
 def part_name(table: str, capture_id: str) -> str:
@@ -52,6 +61,7 @@ class Dataset:
         except (ValueError, ImportError) as exc:
             raise CliError(f"{url}: cannot open this location: {exc}") from None
         self.local = "file" in _protocols(self.fs)
+        self._journal_next: Optional[int] = None      # the number of the next batch (None: not known)
 
     def path(self, relative: str) -> str:
         return posixpath.join(self.root, relative)
@@ -61,7 +71,19 @@ class Dataset:
 
     # -- the manifest -------------------------------------------------------------------------------
     def read_manifest(self) -> dict:
-        """The manifest; CliError when there is none or it is of another format or version."""
+        """The manifest with the journal of a build applied; CliError when there is none or it is
+        of another format or version."""
+        for _ in range(3):
+            doc = self._read_manifest_file()
+            try:
+                for batch in self.journal_batches():
+                    self._apply(doc, batch)
+                return doc
+            except FileNotFoundError:       # a build wrote the manifest whole meanwhile: read it again
+                continue
+        raise CliError(f"{self.url}: the dataset changed while it was read; try again")
+
+    def _read_manifest_file(self) -> dict:
         where = self.path(MANIFEST)
         try:
             with self.fs.open(where, "rb") as f:
@@ -87,7 +109,53 @@ class Dataset:
         return doc
 
     def write_manifest(self, doc: dict) -> None:
+        """The whole manifest, then no journal: its batches are in it."""
+        batches = self.journal_batches()
         self._write_bytes(MANIFEST, (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode())
+        for name in batches:
+            self.fs.rm(name)
+        self._journal_next = 0
+
+    # -- the journal --------------------------------------------------------------------------------
+    def journal_batches(self) -> list[str]:
+        """The journal's batches (full paths), in the order written."""
+        folder = self.path(JOURNAL)
+        if not self.fs.exists(folder):
+            return []
+        names = [n for n in self.fs.ls(folder, detail=False) if _BATCH.match(posixpath.basename(n))]
+        return sorted(names, key=posixpath.basename)
+
+    def journal(self, captures: dict[str, dict], dropped: Collection[str]) -> None:
+        """A batch of updates to the manifest: `captures` listed (by id), `dropped` no longer.
+        Written atomically; one cut short by a stop is never seen."""
+        if not captures and not dropped:
+            return
+        if self._journal_next is None:
+            batches = self.journal_batches()
+            self._journal_next = int(posixpath.basename(batches[-1])[:9]) + 1 if batches else 0
+        seq = self._journal_next
+        self._journal_next += 1
+        doc = {"captures": captures, "dropped": sorted(dropped)}
+        self._write_bytes(f"{JOURNAL}/{seq:09d}.json", json.dumps(doc, sort_keys=True).encode())
+
+    def _apply(self, doc: dict, name: str) -> None:
+        with self.fs.open(name, "rb") as f:
+            raw = f.read(MAX_MANIFEST_BYTES + 1)
+        try:
+            batch = loads(raw)
+        except ValueError:
+            batch = None
+        ok = (isinstance(batch, dict) and isinstance(batch.get("captures"), dict)
+              and isinstance(batch.get("dropped"), list) and all(isinstance(c, str) for c in batch["dropped"]))
+        bad = None if ok else "?"
+        if ok:
+            bad = next((cid for cid, entry in batch["captures"].items() if not _entry_ok(cid, entry)), None)
+        if bad is not None:
+            raise CliError(f"{self.url}: {JOURNAL}/{posixpath.basename(name)} is damaged (capture {bad[:40]!r}); "
+                           "rebuild into a new folder")
+        for cid in batch["dropped"]:
+            doc["captures"].pop(cid, None)
+        doc["captures"].update(batch["captures"])
 
     @staticmethod
     def new_manifest(options: dict) -> dict:
@@ -127,7 +195,7 @@ class Dataset:
         """The local files of the dataset (manifest, lock, listed parts): never an output's target."""
         if not self.local:
             return []
-        return [self.path(MANIFEST), self.path(LOCK),
+        return [self.path(MANIFEST), self.path(LOCK), *self.journal_batches(),
                 *(self.path(part) for entry in manifest["captures"].values() for part in entry["parts"])]
 
     # -- parts --------------------------------------------------------------------------------------
