@@ -191,6 +191,7 @@ def test_a_running_build_writes_what_it_adds_not_the_whole_manifest(src, built):
     assert len(files) == len(batches) and all(Path(f).name.startswith("more") for f in files)
     seen = vm110("fleet", "query", str(built), "--format", "json", "SELECT file FROM captures")
     assert {r["file"] for r in json.loads(seen.stdout)} >= files | {str(src / n) for n in NAMES}
+    (journal / f".{len(batches):09d}.json.0123abcd.tmp").write_text("{")     # a batch the kill cut short
     resumed = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
     assert resumed.returncode == 0, resumed.stderr
     assert int(resumed.stdout.split(": ")[1].split()[0]) <= 40 - len(batches)      # the journal's are kept

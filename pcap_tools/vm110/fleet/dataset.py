@@ -45,6 +45,7 @@ MAX_MANIFEST_BYTES = 256 << 20
 LOCK = ".vm110-fleet.lock"         # held by a build (local datasets): one writer at a time
 COMMIT_TABLE = "captures"          # written last: its part marks a capture complete
 _BATCH = re.compile(r"[0-9]{9}\.json\Z")
+_TEMPORARY = (re.compile(r"part-.*\.parquet\..*\.tmp\Z"), re.compile(r"[0-9]{9}\.json\..*\.tmp\Z"))   # part, batch
 
 
 def part_name(table: str, capture_id: str) -> str:
@@ -241,15 +242,14 @@ class Dataset:
                 pass
 
     def remove_temporaries(self) -> None:
-        """Temporary files of part writes that a stopped build left (named by us: `.part-*.tmp`
-        from fileio, `part-*.tmp` from the fsspec path)."""
-        for table in TABLES:
-            folder = self.path(table)
-            if not self.fs.exists(folder):
+        """Temporary files of part and journal writes that a stopped build left (named by us:
+        `.part-*.tmp`, `.NNN.json.*.tmp` from fileio, without the dot from the fsspec path)."""
+        for folder in (*TABLES, JOURNAL):
+            if not self.fs.exists(self.path(folder)):
                 continue
-            for name in self.fs.ls(folder, detail=False):
-                base = posixpath.basename(name)
-                if base.endswith(".tmp") and base.lstrip(".").startswith("part-") and ".parquet." in base:
+            for name in self.fs.ls(self.path(folder), detail=False):
+                base = posixpath.basename(name).lstrip(".")
+                if _TEMPORARY[folder == JOURNAL].match(base):
                     self.fs.rm(name)
 
     def _write_bytes(self, relative: str, data: bytes) -> None:
