@@ -659,6 +659,38 @@ def test_a_folder_that_cannot_be_read_is_said(src, tmp_path):
                                                                 str(locked / "loss.pcapng")])
 
 
+@pytest.mark.skipif(os.geteuid() == 0 and shutil.which("setpriv") is None, reason="as root, needs setpriv")
+@pytest.mark.parametrize("pattern", ["**/*.pcap*", "*/*.pcap*", "*/loss.pcapng"])
+def test_a_folder_a_glob_cannot_look_into_is_said(src, tmp_path, pattern):
+    """glob passed over a folder it may not list (`*`, `**` below it) or search (a name below it)
+    in silence: exit 0, the fleet seemingly complete without the folder's captures. It is an
+    unreadable row with the reason, exit 2, as a folder the walk cannot list; once the glob can look
+    into it, its captures are analysed and the folder's row goes."""
+    locked = src / "site-b"
+    locked.mkdir()
+    shutil.copy(BUNDLED / "loss.pcapng", locked / "loss.pcapng")
+    (src / "site-a").mkdir()
+    shutil.copy(BUNDLED / "restart.pcapng", src / "site-a" / "loss.pcapng")     # (another capture of that name)
+    dataset = tmp_path / "ds"
+    build = ["fleet", "build", str(src / pattern), "--out", str(dataset), "-j", "1"]
+    locked.chmod(0)
+    try:
+        result = subprocess.run([*_without_read_rights(), sys.executable, "-m", "vm110", *build], cwd=ROOT,
+                                capture_output=True, text=True, timeout=120)
+    finally:
+        locked.chmod(0o755)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.splitlines() == [(f"vm110 fleet: {locked}: a folder that cannot be read: Permission "
+                                           "denied; the captures in it are not seen")]
+    assert [(r["file"], r["kind"]) for r in rows(dataset, "errors")] == [(str(locked), "unreadable")]
+    assert str(src / "site-a" / "loss.pcapng") in {r["file"] for r in rows(dataset)}
+    again = vm110(*build)
+    assert again.returncode == 0, again.stderr
+    assert "1 analysed (0 damaged, 0 unreadable)" in again.stdout and "1 unreadable no longer there" in again.stdout
+    assert rows(dataset, "errors") == []
+    assert str(locked / "loss.pcapng") in {r["file"] for r in rows(dataset)}
+
+
 def test_an_unreadable_capture_that_is_gone_is_no_longer_counted(src, built):
     """A capture that could not be read (removed while a build ran, a broken link) and is then gone
     from the folder stayed an unreadable row for ever: a failing capture of its machine in every

@@ -33,7 +33,7 @@ class Outcome:
     unreadable: list[str] = field(default_factory=list)
     unmatched: list[str] = field(default_factory=list)     # captures whose path --meta does not match
     copies: list[str] = field(default_factory=list)        # "copy: the capture it copies", not analysed
-    cleared: int = 0         # unreadable entries of a folder walked that are there no longer
+    cleared: int = 0         # unreadable entries of a folder walked (or globbed) that are there no longer
 
 
 def fingerprint(settings: Settings) -> dict:
@@ -53,13 +53,15 @@ def _hash(source: Source) -> Source:
     return replace(source, size=size, sha256=digest)
 
 
-def sources(srcs: Sequence[str], pattern: Optional[MetaPattern], threads: int = 1) -> list[Source]:
+def sources(srcs: Sequence[str], pattern: Optional[MetaPattern], threads: int = 1,
+            read: Optional[set[str]] = None) -> list[Source]:
     """The captures SRC names, each hashed (`threads` at a time: hashlib lets go of the GIL), with
     its metadata. A capture that cannot be hashed, or is not to be read (a FIFO, a broken link, a
-    bad sidecar), still becomes a Source: it gives an unreadable row and a line, one each."""
+    bad sidecar, a folder a glob cannot look into), still becomes a Source: it gives an unreadable
+    row and a line, one each. `read` gets the folders the globs looked into."""
     if pattern is not None:
         check_meta_keys(set(pattern.keys))          # the command line's mistake: before any work
-    found = [_source(path, pattern, problem) for path, problem in find(srcs).items()]
+    found = [_source(path, pattern, problem) for path, problem in find(srcs, read).items()]
     with ThreadPoolExecutor(max(1, min(threads, HASH_THREADS))) as pool:
         return list(pool.map(_hash, found))
 
@@ -82,18 +84,19 @@ def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern
         _check_options(dataset, dataset.read_manifest(), fingerprint(settings))
     else:
         dataset.check_new()
-    wanted = sources(srcs, pattern, jobs)
+    globbed: set[str] = set()
+    wanted = sources(srcs, pattern, jobs, globbed)
     if not dataset.exists():
         dataset.check_new()
     walked = [os.path.abspath(s) for s in srcs if os.path.isdir(s)]
     with dataset.lock():
-        outcome = _build(dataset, wanted, walked, settings, engine, jobs, scheduler, progress)
+        outcome = _build(dataset, wanted, Walked(walked, globbed), settings, engine, jobs, scheduler, progress)
     if pattern is not None:
         outcome.unmatched = [s.path for s in wanted if pattern.fields(s.path) is None]
     return outcome
 
 
-def _build(dataset: Dataset, wanted: list[Source], walked: list[str], settings: Settings, engine: str, jobs: int,
+def _build(dataset: Dataset, wanted: list[Source], walked: "Walked", settings: Settings, engine: str, jobs: int,
            scheduler: Optional[str], progress: bool) -> Outcome:
     options = fingerprint(settings)
     if dataset.exists():
@@ -186,14 +189,25 @@ def _without_copies(listed: dict, wanted: list[Source], todo: list[Source]) -> t
     return [s for s in todo if s.path not in copies], lines
 
 
-def _gone_unreadable(listed: dict, wanted: list[Source], walked: list[str]) -> set[str]:
+@dataclass(frozen=True)
+class Walked:
+    """Where this build looked: the SRC folders walked (all below them seen) and the folders its
+    glob patterns looked into and could."""
+
+    roots: list[str]
+    globbed: set[str]
+
+
+def _gone_unreadable(listed: dict, wanted: list[Source], walked: Walked) -> set[str]:
     """The unreadable entries inside a folder this build walked that the walk no longer finds (a
-    file removed or renamed, a folder that can be read now): there is nothing left to try again,
-    and kept, each would count as a failing capture for ever."""
+    file removed or renamed, a folder that can be read now), and the folders a glob could not look
+    into that it now can: there is nothing left to try again, and kept, each would count as a
+    failing capture for ever."""
     current = {s.path for s in wanted}
     return {cid for cid, entry in listed.items()
             if entry["status"] == "unreadable" and entry["file"] not in current
-            and any(os.path.commonpath([entry["file"], root]) == root for root in walked)}
+            and (entry["file"] in walked.globbed
+                 or any(os.path.commonpath([entry["file"], root]) == root for root in walked.roots))}
 
 
 def _moved(listed: dict, wanted: list[Source]) -> dict[str, set[str]]:

@@ -3,7 +3,8 @@
 SRC arguments are files (taken whatever their name), folders (every capture below them, by
 extension) or glob patterns. Metadata becomes string columns on every table of the dataset.
 An entry a build cannot take (a broken link, a FIFO, a link out of the folder walked, a bad
-sidecar) is still a capture: it carries the reason, and becomes an `unreadable` row.
+sidecar, a folder the walk or a glob cannot look into) is still a capture: it carries the reason,
+and becomes an `unreadable` row.
 """
 from __future__ import annotations
 
@@ -48,9 +49,10 @@ class Source:
         return hashlib.sha256(text.encode()).hexdigest()[:24]
 
 
-def find(sources: Iterable[str]) -> dict[str, Optional[str]]:
+def find(sources: Iterable[str], read: Optional[set[str]] = None) -> dict[str, Optional[str]]:
     """The capture files named by SRC arguments, absolute, sorted, each once: path -> None to read
-    it, or why it is not read. CliError for a SRC that names nothing."""
+    it, or why it is not read. CliError for a SRC that names nothing. `read` gets the folders the
+    glob patterns looked into (absolute), when they could."""
     found: dict[str, Optional[str]] = {}
     for src in sources:
         if os.path.isdir(src):
@@ -68,6 +70,10 @@ def find(sources: Iterable[str]) -> dict[str, Optional[str]]:
             # goes round a link to a folder above it until the path is too long to resolve).
             hits = {p: not_a_capture(p) for p in glob.glob(src, recursive=True)
                     if not os.path.isdir(os.path.realpath(p))}
+            looked = _looked_into(src)
+            hits.update((folder, problem) for folder, problem in looked.items() if problem is not None)
+            if read is not None:
+                read.update(os.path.abspath(folder) for folder, problem in looked.items() if problem is None)
             if not hits:
                 raise CliError(f"{src}: no file matches")
         else:
@@ -105,6 +111,35 @@ def _walk(folder: str) -> dict[str, Optional[str]]:
                 path = os.path.join(top, name)
                 found[path] = not_a_capture(path, inside)
     return found
+
+
+def _looked_into(pattern: str) -> dict[str, Optional[str]]:
+    """The folders glob looks into for `pattern`, each with why it cannot (None: it can). glob
+    passes over a folder it may not list (a `*` or `**` below it) or search (a name below it) in
+    silence, and with it every capture inside: such a folder is an unreadable entry, as the walk's.
+    Only what glob needs is asked (a folder named on the way need not be listed)."""
+    parts = pattern.split(os.sep)
+    out: dict[str, Optional[str]] = {}
+    for k in range(1, len(parts)):
+        prefix, below = os.sep.join(parts[:k]) or os.sep, parts[k]
+        if not below:
+            continue
+        matches = glob.glob(prefix, recursive=True) if glob.has_magic(prefix) else [prefix]
+        for folder in map(os.path.normpath, matches):
+            if out.get(folder) is not None or not os.path.isdir(folder):
+                continue
+            try:
+                if glob.has_magic(below):
+                    with os.scandir(folder):
+                        pass
+                else:
+                    os.lstat(os.path.join(folder, below))
+                out[folder] = None
+            except (FileNotFoundError, NotADirectoryError):     # (nothing there to miss)
+                out[folder] = None
+            except OSError as exc:
+                out[folder] = f"a folder that cannot be read: {exc.strerror}; the captures in it are not seen"
+    return out
 
 
 def not_a_capture(path: str, inside: Optional[str] = None) -> Optional[str]:
