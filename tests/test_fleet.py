@@ -50,7 +50,19 @@ def make_fleet(root: Path) -> dict[str, Path]:
     junk.write_bytes(b"this is not a capture at all\n" * 4)
     files["junk"] = junk
     (root / "sites" / "north" / "m1" / "normal.pcap.meta.json").write_text(json.dumps({"bu_firmware": "3.2"}))
+    files["orphan"] = root / "sites" / "north" / "m2" / "orphan-ack.pcap"
+    without_first_command(BUNDLED / "normal.pcap", files["orphan"])
     return files
+
+
+def without_first_command(source: Path, target: Path) -> None:
+    """`source` without the transmissions of its first VRCI command: its acknowledgement is one
+    without a command."""
+    from scapy.all import rdpcap, wrpcap
+    report = json.loads(vm110("analyze", str(source), "--json", "-", "--quiet", check=False).stdout)
+    first = report["commands"]["VRCI"]["list"][0]
+    assert first["ack_frame"] is not None
+    wrpcap(str(target), [p for n, p in enumerate(rdpcap(str(source)), 1) if n not in first["frames"]])
 
 
 def read_table(dataset: Path, table: str) -> list[dict]:
@@ -105,7 +117,7 @@ def test_build_reports_the_unreadable_file_and_goes_on(fleet):
     assert any("junk.pcap" in line and "not a pcap or pcapng capture" in line for line in lines)
     assert any("damaged" in line and "cut.pcap" in line for line in lines)
     assert "Traceback" not in built.stderr
-    assert "12 analysed" in built.stdout
+    assert f"{len(fleet['files'])} analysed" in built.stdout
 
 
 def test_captures_rows_equal_the_json_reports(fleet):
@@ -203,6 +215,22 @@ def test_findings_equal_the_json_reports(fleet):
         assert sorted(got, key=repr) == sorted(expected, key=repr), path
 
 
+def test_acknowledgement_findings_name_their_sender(fleet):
+    """The rows of acks_without_command and duplicate_acks had no sender (every other located
+    finding names one): each is the sender of the acknowledgement's packet, as the packets table
+    (read apart from the analysis) and the senders table have it."""
+    packets = {(r["capture_id"], r["frame"]): r for r in read_table(fleet["dataset"], "packets")}
+    senders = {(r["capture_id"], r["sender"]): r for r in read_table(fleet["dataset"], "senders")}
+    seen = set()
+    for row in read_table(fleet["dataset"], "findings"):
+        if row["rule"] in ("acks_without_command", "duplicate_acks"):
+            packet = packets[(row["capture_id"], row["frame"])]
+            sender = senders[(row["capture_id"], row["sender"])]
+            assert (sender["src"], sender["origin"], packet["type"]) == (packet["src"], packet["origin"], row["type"])
+            seen.add(row["rule"])
+    assert seen == {"acks_without_command", "duplicate_acks"}
+
+
 def test_report_names_each_findings_frame_time_and_sender(fleet):
     """Every finding on the page says where it is as the capture's report does: its capture,
     frame, time, sender and display filter (the time and the sender were not on the page)."""
@@ -257,7 +285,7 @@ def test_dask_local_cluster_builds_the_same_rows(fleet, tmp_path):
     dataset = tmp_path / "dask"
     built = vm110("fleet", "build", str(fleet["root"] / "sites"), "--out", f"file://{dataset}", "--packets",
                   "--engine", "dask", "-j", "2", "--meta", "sites/{site}/{machine}/*", check=False)
-    assert built.returncode == 2 and "12 analysed" in built.stdout, built.stderr
+    assert built.returncode == 2 and f"{len(fleet['files'])} analysed" in built.stdout, built.stderr
     for table in TABLES:
         local = sorted(read_table(fleet["dataset"], table), key=repr)
         remote = sorted(read_table(dataset, table), key=repr)

@@ -63,8 +63,8 @@ class Command:
 class Tally:
     commands: list = field(default_factory=list)
     id_wraps: int = 0
-    orphan_acks: list = field(default_factory=list)       # (frame, time, command_id)
-    duplicate_acks: list = field(default_factory=list)    # (frame, time, command_id, command's first frame)
+    orphan_acks: list = field(default_factory=list)       # (frame, time, command_id, its sender)
+    duplicate_acks: list = field(default_factory=list)    # (frame, time, command_id, command's first frame, its sender)
     # The times above are the analysis clock's (rules.md); a frame's own timestamp where it differs
     # (a step back of the capture's clock), which is what the report names.
     shown: dict = field(default_factory=dict)
@@ -132,9 +132,9 @@ class Tracker:
                 live = by_id.get((target, cid))
                 cmd = live[-1] if live else None
                 if cmd is None:
-                    tally.orphan_acks.append((frame, ts, cid))
+                    tally.orphan_acks.append((frame, ts, cid, sender))
                 elif cmd.ack_frame is not None:
-                    tally.duplicate_acks.append((frame, ts, cid, cmd.frames[0]))
+                    tally.duplicate_acks.append((frame, ts, cid, cmd.frames[0], sender))
                 else:
                     cmd.ack_frame, cmd.ack_time, cmd.last_before_ack = frame, ts, cmd.times[-1]
 
@@ -248,7 +248,7 @@ def report(tally: Tally, fail_ms: float, resend_ms: float, end: Optional[float])
                   "failed": f}
                  for c, f in zip(cmds, failed)],
         "acks_without_command_list": [{"frame": f, "time": round_s(tally.time_of(f, t)), "command_id": i}
-                                      for f, t, i in tally.orphan_acks],
+                                      for f, t, i, _ in tally.orphan_acks],
         "duplicate_acks_list": [{"frame": f, "time": round_s(tally.time_of(f, t)), "command_id": i,
-                                 "command_frame": c} for f, t, i, c in tally.duplicate_acks],
+                                 "command_frame": c} for f, t, i, c, _ in tally.duplicate_acks],
     }

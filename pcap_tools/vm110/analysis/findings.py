@@ -188,10 +188,10 @@ def locate_report(report: dict, tallies: dict[int, Tally], located: Located) -> 
                 if f in c.spurious_frames:
                     where.add("spurious", f, tally.time_of(f, t), c.sender, ack_frame=c.ack_frame, **what)
         ack = TYPES[_ACK_CODE[code]].value
-        for f, t, cid in tally.orphan_acks:
-            where.add("acks_without_command", f, tally.time_of(f, t), None, type=ack, command_id=cid)
-        for f, t, cid, first in tally.duplicate_acks:
-            where.add("duplicate_acks", f, tally.time_of(f, t), None, type=ack, command_id=cid, command_frame=first)
+        for f, t, cid, sender in tally.orphan_acks:
+            where.add("acks_without_command", f, tally.time_of(f, t), sender, type=ack, command_id=cid)
+        for f, t, cid, first, sender in tally.duplicate_acks:
+            where.add("duplicate_acks", f, tally.time_of(f, t), sender, type=ack, command_id=cid, command_frame=first)
     for ex in report["illegal"]["examples"]:
         where.add("illegal", ex["frame"], ex["time"], ex["src"], type=ex["type"], reasons=ex["reasons"])
         if ex["reasons"] == ["truncated"]:
