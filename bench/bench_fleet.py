@@ -8,7 +8,8 @@ Prints, all measured in this run:
   start is printed apart);
 - the time of a named query (`--worst links`) over the demo fleet (`make fleet-demo`'s 40 captures);
 - opening a dataset of many small captures and a named query, against DuckDB scanning the same
-  parts once (the ratio should stay flat from 250 to 1,000 captures).
+  parts once (the ratio should stay flat from 250 to 1,000 captures); and `vm110 fleet report`'s
+  page over it, against DuckDB scanning once the parts of every table the report reads.
 Each timing is the median of REPEAT runs, interleaved, so that a busy machine hurts both sides alike.
 Captures are cached in out/bench/fleet/ (synthesis is deterministic; delete it to rebuild).
 """
@@ -150,6 +151,33 @@ def many_captures(work: Path, count: int) -> None:
     a, b = statistics.median(runs), statistics.median(floor)
     print(f"open + --worst links over {count} small captures: {a:.2f} s; DuckDB alone scanning its parts once: "
           f"{b:.2f} s: {a / b:.1f}x")
+    report_page(dataset, count)
+
+
+def report_page(dataset: str, count: int) -> None:
+    """The report's page (about 15 queries over six tables) against DuckDB alone scanning the parts
+    of those tables once: the ratio is what the queries cost beyond one look at the data."""
+    import duckdb
+    from vm110.fleet.dataset import view_files
+    from vm110.fleet.report import render
+    runs, floor = [], []
+    for _ in range(REPEAT):
+        t0 = time.perf_counter()
+        fleet = Fleet(dataset)
+        render(fleet)
+        runs.append(time.perf_counter() - t0)
+        fleet.con.close()
+        files = view_files(fleet.manifest, fleet.dataset)
+        t0 = time.perf_counter()
+        with duckdb.connect() as con:
+            for table in ("captures", "senders", "streams", "commands", "findings", "errors"):
+                paths = [f for group in files[table].values() for f in group]
+                if paths:
+                    con.execute(f"SELECT count(*) FROM read_parquet({paths!r})").fetchall()
+        floor.append(time.perf_counter() - t0)
+    a, b = statistics.median(runs), statistics.median(floor)
+    print(f"open + report page over {count} small captures: {a:.2f} s; DuckDB alone scanning its tables' parts "
+          f"once: {b:.2f} s: {a / b:.1f}x")
 
 
 def main() -> None:

@@ -89,6 +89,7 @@ class Fleet:
         every = [f for t in TABLES for paths in files[t].values() for f in paths]
         self.parts = frozenset(every)
         self.con.execute(f"SET allowed_paths = [{', '.join(_quote(f) for f in every)}]")
+        self.con.execute("SET parquet_metadata_cache = true")     # (each query opens every part again)
         self.con.execute("SET enable_external_access = false")
         self.con.execute("SET lock_configuration = true")
         self.columns = {t: [r[0] for r in self.con.execute(f"DESCRIBE {t}").fetchall()] for t in TABLES}
@@ -108,6 +109,14 @@ class Fleet:
                 raise self._damaged(str(exc)) from None
             first = " ".join(str(exc).split("\n")[0].split())
             raise CliError(f"query failed: {first}") from None
+
+    def in_memory(self, tables: Sequence[str]) -> None:
+        """`tables` read once, into memory, for a caller that queries them many times (the report):
+        a scan of a view opens every part, a cost that grows with the captures. For tables of a
+        few rows per capture only (not commands, findings, packets: memory)."""
+        for table in tables:
+            self.run(f"CREATE TEMP TABLE _kept_{table} AS SELECT * FROM {table}")
+            self.run(f"CREATE OR REPLACE VIEW {table} AS SELECT * FROM _kept_{table}")
 
     def who(self, table: str = "captures") -> list[str]:
         """The columns that name a machine: site and machine when the metadata has them, else the file."""

@@ -16,6 +16,7 @@ from ..analysis.report_html import COLORS, CSS, Chart
 from .query import NAMED, Args, Fleet, Result, machine_key
 
 MAX_FINDINGS = 500           # finding rows on the page (the dataset holds them all)
+SHARED = ("captures", "senders", "streams")     # read by several sections: once, into memory
 ROW_H, LABEL_W, PLOT_W = 18, 190, 420
 LABEL_CHARS = 30            # of a machine's name beside its row (the label column holds about this)
 
@@ -132,6 +133,7 @@ def _findings(fleet: Fleet) -> str:
 
 
 def render(fleet: Fleet) -> str:
+    fleet.in_memory(SHARED)
     # A machine as the rankings have it: a capture without site and machine is one of its own
     # (by its file), not one blank machine of all such captures.
     keys, who = machine_key(fleet)
