@@ -207,6 +207,34 @@ def test_a_running_build_writes_what_it_adds_not_the_whole_manifest(src, built):
         assert got == want, name
 
 
+def test_a_reader_of_the_manifest_a_build_writes_whole_meanwhile_reads_it_again(built, monkeypatch):
+    """A query read manifest.json, then the build wrote it whole (its journal folded in) and went
+    on with a new batch: the new batch applied to the old file would lose the captures folded in
+    (and list parts the build has since removed). The reader sees the batch does not follow its
+    file and reads the manifest again."""
+    from vm110.fleet.dataset import Dataset
+    entry = {"size": 1, "sha256": "0" * 64, "status": "ok", "parts": [], "message": None, "meta": {}}
+    builder = Dataset(str(built))
+    doc = builder.read_manifest()
+    gone = sorted(doc["captures"])[0]
+    old = (built / "manifest.json").read_bytes()                   # what the reader reads first
+    builder.journal({"y" * 24: {**entry, "file": "/y.pcap"}}, [])
+    doc["captures"]["y" * 24] = {**entry, "file": "/y.pcap"}
+    builder.write_manifest(doc)
+    builder.journal({"z" * 24: {**entry, "file": "/z.pcap"}}, [gone])
+    reader = Dataset(str(built))
+    real_open, opened = reader.fs.open, []
+
+    def stale_once(path, mode="rb", **kwargs):
+        if path.endswith("manifest.json") and not opened:
+            opened.append(path)
+            return io.BytesIO(old)
+        return real_open(path, mode, **kwargs)
+    monkeypatch.setattr(reader.fs, "open", stale_once)
+    got = reader.read_manifest()["captures"]
+    assert opened and set(got) == (set(doc["captures"]) - {gone}) | {"z" * 24}
+
+
 def test_unreadable_capture_is_an_error_row(src, built):
     (src / "broken.pcap").write_bytes(b"\xd4\xc3\xb2\xa1" + b"\x00" * 3)       # a pcap magic, then nothing
     before = rows(built)

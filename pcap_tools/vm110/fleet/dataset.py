@@ -8,8 +8,8 @@ A capture's parts are written one by one, each to a temporary name and renamed w
 its `captures` part last: a `captures` part on disk means the capture is complete. While a build
 runs, the captures completed (and replaced) since its last look go to a new journal batch, written
 atomically, so that an update costs what it adds, not the size of the dataset; the manifest is the
-manifest file with its batches applied in order, and the build writes it whole (and removes the
-batches) at its start and end. A build that was stopped adopts the complete captures it finds
+manifest file with the batches from its `journal` number on applied in order, and the build writes
+it whole (and removes the batches) at its start and end. A build that was stopped adopts the complete captures it finds
 that the manifest does not list yet, so no finished work is lost. Readers see only the parts of
 the captures the manifest lists.
 """
@@ -75,15 +75,21 @@ class Dataset:
     def read_manifest(self) -> dict:
         """The manifest with the journal of a build applied; CliError when there is none or it is
         of another format or version."""
-        for _ in range(3):
+        for _ in range(5):
             doc = self._read_manifest_file()
+            start = doc.get("journal", 0)          # the first batch not in the file
+            batches = [(n, name) for n, name in self._batches() if n >= start]
+            if [n for n, _ in batches] != list(range(start, start + len(batches))):
+                continue       # a build wrote the manifest whole meanwhile (and went on): read it again
             try:
-                for batch in self.journal_batches():
-                    self._apply(doc, batch)
-                return doc
-            except FileNotFoundError:       # a build wrote the manifest whole meanwhile: read it again
+                for _, name in batches:
+                    self._apply(doc, name)
+            except FileNotFoundError:
                 continue
-        raise CliError(f"{self.url}: the dataset changed while it was read; try again")
+            doc["journal"] = self._journal_next = start + len(batches)
+            return doc
+        raise CliError(f"{self.url}: the dataset changed while it was read, or a batch of its {JOURNAL} is gone; "
+                       "try again")
 
     def _read_manifest_file(self) -> dict:
         where = self.path(MANIFEST)
@@ -104,6 +110,9 @@ class Dataset:
         bad = next((cid for cid, entry in doc["captures"].items() if not _entry_ok(cid, entry)), None)
         if bad is not None:
             raise CliError(f"{self.url}: {MANIFEST} is damaged (capture {bad[:40]!r}); rebuild into a new folder")
+        start = doc.get("journal", 0)
+        if not isinstance(start, int) or isinstance(start, bool) or start < 0:
+            raise CliError(f"{self.url}: {MANIFEST} is damaged (journal); rebuild into a new folder")
         if doc.get("format_version") != FORMAT_VERSION:
             raise CliError(f"{self.url}: dataset format version {doc.get('format_version')!r} "
                            f"(written by vm110 {doc.get('tool_version', '?')}); this vm110 {__version__} reads "
@@ -111,30 +120,34 @@ class Dataset:
         return doc
 
     def write_manifest(self, doc: dict) -> None:
-        """The whole manifest, then no journal: its batches are in it."""
-        batches = self.journal_batches()
+        """The whole manifest, then without the journal batches it holds."""
+        doc["journal"] = self._journal_next = self._journal_next or 0
         self._write_bytes(MANIFEST, (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode())
-        for name in batches:
-            self.fs.rm(name)
-        self._journal_next = 0
+        for n, name in self._batches():
+            if n < doc["journal"]:
+                self.fs.rm(name)
 
     # -- the journal --------------------------------------------------------------------------------
-    def journal_batches(self) -> list[str]:
-        """The journal's batches (full paths), in the order written."""
+    def _batches(self) -> list[tuple[int, str]]:
+        """The journal's batches (number, full path), in the order written."""
         folder = self.path(JOURNAL)
         if not self.fs.exists(folder):
             return []
         names = [n for n in self.fs.ls(folder, detail=False) if _BATCH.match(posixpath.basename(n))]
-        return sorted(names, key=posixpath.basename)
+        return sorted((int(posixpath.basename(n)[:9]), n) for n in names)
+
+    def journal_batches(self) -> list[str]:
+        """The journal's batches (full paths), in the order written."""
+        return [name for _, name in self._batches()]
 
     def journal(self, captures: dict[str, dict], dropped: Collection[str]) -> None:
-        """A batch of updates to the manifest: `captures` listed (by id), `dropped` no longer.
-        Written atomically; one cut short by a stop is never seen."""
+        """A batch of updates to the manifest read or written last: `captures` listed (by id),
+        `dropped` no longer. Written atomically; one cut short by a stop is never seen. Numbered on
+        from the manifest's `journal`, so that a reader finds a manifest written whole meanwhile."""
         if not captures and not dropped:
             return
         if self._journal_next is None:
-            batches = self.journal_batches()
-            self._journal_next = int(posixpath.basename(batches[-1])[:9]) + 1 if batches else 0
+            raise ValueError("the journal follows a manifest read or written")
         seq = self._journal_next
         self._journal_next += 1
         doc = {"captures": captures, "dropped": sorted(dropped)}
