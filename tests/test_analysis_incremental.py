@@ -160,11 +160,23 @@ def test_many_senders_cost_little_each(tmp_path, monkeypatch):
     assert len(counters) == 3000 and all(c.accepted_at.all is None and c.gap_at.all is None for c in counters)
 
 
+def _held_rows(monkeypatch) -> list[int]:
+    """The rows the senders hold undecided after each dispatch, from now on."""
+    from vm110.analysis import sender
+    held: list[int] = []
+    real = sender.Sender._dispatch
+
+    def watch(self, rows, events, final):
+        real(self, rows, events, final)
+        held.append(sum(len(h) for rows_ in self.pending.values() for h in rows_))
+    monkeypatch.setattr(sender.Sender, "_dispatch", watch)
+    return held
+
+
 def test_copies_within_the_window_are_not_held(tmp_path, monkeypatch):
     """Copies of an undecided candidate within its duplicate window are judged at once in a
     stream too: the same report as one pass, and nothing of them waits with the candidate."""
     from test_analysis_craft import Traffic, vrpi
-    from vm110.analysis import sender
     tr = Traffic()
     for i in range(96):                                  # 12 s: past the scope's warm-up
         tr.add(i * 0.125, vrpi(500 + i))
@@ -174,13 +186,7 @@ def test_copies_within_the_window_are_not_held(tmp_path, monkeypatch):
     tr.write(tmp_path / "flood.pcap")
     got, rec, sources = _records(tmp_path / "flood.pcap", monkeypatch)
     whole = _report(got, rec, sources, [0, len(rec)])
-    held = []
-    real = sender.Sender._dispatch
-
-    def watch(self, rows, events, final):
-        real(self, rows, events, final)
-        held.append(sum(len(h) for rows_ in self.pending.values() for h in rows_))
-    monkeypatch.setattr(sender.Sender, "_dispatch", watch)
+    held = _held_rows(monkeypatch)
     assert _report(got, rec, sources, list(range(0, len(rec), 50)) + [len(rec)]) == whole
     assert max(held) == 1                                # the candidate alone
     assert json.loads(whole)["senders"][0]["serial"]["duplicates"] == 3000
@@ -191,7 +197,6 @@ def test_a_sender_stuck_on_one_serial_keeps_one_row(tmp_path, monkeypatch):
     duplicate window are duplicates too (rules.md rule 5), judged at once; they were kept, one
     row each, for as long as the candidate stayed undecided."""
     from test_analysis_craft import Traffic, vrpi
-    from vm110.analysis import sender
     tr = Traffic()
     for i in range(96):
         tr.add(i * 0.125, vrpi(500 + i))
@@ -199,13 +204,7 @@ def test_a_sender_stuck_on_one_serial_keeps_one_row(tmp_path, monkeypatch):
         tr.add(15.0 + k * 0.125, vrpi(0))               # the candidate, then copies for 250 s
     tr.write(tmp_path / "stuck.pcap")
     got, rec, sources = _records(tmp_path / "stuck.pcap", monkeypatch)
-    held = []
-    real = sender.Sender._dispatch
-
-    def watch(self, rows, events, final):
-        real(self, rows, events, final)
-        held.append(sum(len(h) for rows_ in self.pending.values() for h in rows_))
-    monkeypatch.setattr(sender.Sender, "_dispatch", watch)
+    held = _held_rows(monkeypatch)
     report = json.loads(_report(got, rec, sources, list(range(0, len(rec), 50)) + [len(rec)]))
     assert max(held) == 1
     serial = report["senders"][0]["serial"]

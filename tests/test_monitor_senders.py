@@ -3,11 +3,11 @@ controller restarting on a new port every few seconds, spoofed senders, a captur
 snaplen), and what it lets go is said (docs/monitor.md, "Memory for long runs")."""
 from __future__ import annotations
 
-import struct
 import tracemalloc
 from collections import Counter
 from pathlib import Path
 
+from test_analysis_tshark import snapped
 from vm110 import constants as C
 from vm110 import encode as E
 from vm110.analysis import analyze
@@ -119,24 +119,12 @@ def test_each_second_looks_at_the_senders_in_view_not_at_every_sender(monkeypatc
     session.close()
 
 
-def _cut(pcap: bytes, snaplen: int) -> bytes:
-    """A pcap (little-endian, as the bundled ones) whose records keep their first `snaplen` bytes,
-    as `tcpdump -s SNAPLEN` writes them: the original length stays in each record's header."""
-    out, pos = [pcap[:16] + struct.pack("<I", snaplen) + pcap[20:24]], 24
-    while pos < len(pcap):
-        sec, usec, incl, orig = struct.unpack_from("<IIII", pcap, pos)
-        keep = min(incl, snaplen)
-        out.append(struct.pack("<IIII", sec, usec, keep, orig) + pcap[pos + 16:pos + 16 + keep])
-        pos += 16 + incl
-    return b"".join(out)
-
-
 def test_frames_cut_by_the_snaplen_are_counted_not_kept(tmp_path):
     """Trial: a link watched through `tcpdump -s 64 -w - | vm110 monitor --read -` (each EG-Link
     datagram cut short) kept the number of every such frame for as long as it ran. Now the monitor
     counts each once judged and lets it go; the report's `snaplen_truncated` is still analyze's."""
     path = tmp_path / "cut.pcap"
-    path.write_bytes(_cut((Path(__file__).resolve().parent.parent / "captures" / "normal.pcap").read_bytes(), 60))
+    snapped(Path(__file__).resolve().parent.parent / "captures" / "normal.pcap", path, 60)
     expected = analyze(str(path))["capture"]["snaplen_truncated"]
     session = Session(Source(), Options(), Settings(name=str(path), port=5825, crc="mpeg2", crc_order="little",
                                                     lines=False))
