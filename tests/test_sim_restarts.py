@@ -3,13 +3,16 @@
 reboot is a new command, even within the 2000 ms reuse gap; without a reboot it is a repeat.
 
 The BU's packets are written by hand here (serials, times, source ports as the rule's examples
-give them), not by our simulated BU, and fed straight to the controller.
+give them), not by our simulated BU, and fed straight to the controller. After a restart of the
+controller itself, or a silence of VRPI, a command waits for a VRPI to tell the RU's state (TS-0006
+4.3); the last test runs that end to end with the simulated BU on the virtual clock.
 """
 from __future__ import annotations
 
 from vm110 import constants as C
 from vm110 import encode
-from vm110.sim.controller import Controller
+from vm110.sim.controller import Controller, ControllerConfig
+from vm110.sim.lifecycle import Restart
 
 ORIGIN, BU = 0x0101, ("10.0.0.10", C.INPUT_PORT)
 ARMED = {"bu_state": int(C.BuState.ARMED), "armed_ru": 0x0C07, "ru_state": int(C.RuState.ENABLED),
@@ -86,6 +89,7 @@ def test_the_restarting_packet_itself_may_carry_the_reused_id():
     bu = Bu(ctl)
     bu.running(0.0, 1.0)
     bu.vrci(1.0, 5)
+    bu.vrpi(1.05)                                # (the last VRPI before the reboot: 450 ms, within the VRPI timeout)
     bu.vrci(1.5, 5, serial=0)
     assert executed(ctl) == [5] and ctl.sent["VRAO"] == 2       # not decided yet, but acknowledged
     bu.vrpi(1.55)
@@ -98,6 +102,7 @@ def test_a_stray_packet_that_no_next_packet_confirms_restarts_nothing():
     bu = Bu(ctl)
     bu.running(0.0, 1.0)
     bu.vrci(1.0, 5)
+    bu.vrpi(1.05)
     end = bu.serial
     bu.vrci(1.5, 5, serial=30000)                # far from the counter, and not followed by 30001…30004
     bu.vrpi(1.55, serial=end)                    # the counter goes on where it was
@@ -153,3 +158,63 @@ def test_the_base_unit_delivers_an_id_a_restarted_controller_reuses():
     send(C.PacketType.VRPO, encode.vrpo_payload(0, b"x" * 8), 1.4, 0)            # restarted
     send(C.PacketType.VRCO, encode.command_payload(3, b"SET"), 1.5, 1)
     assert [e["command_id"] for e in bu.events("vrco_delivered")] == [3, 3]
+
+
+def acks(sent: list) -> list[int]:
+    return [meta.key for meta in sent if meta.ptype is C.PacketType.VRAO]
+
+
+def test_a_command_heard_after_the_controller_restarted_waits_for_a_vrpi():
+    """TS-0006 4.3: the controller checks that the RU is armed before executing a command; 4.4: it
+    acknowledges a command it has processed; 5.1.3: the BU resends it every 100 ms until then.
+    Before: the controller back from a restart refused (and acknowledged) the first VRCI it heard
+    when it came before the first VRPI, though the RU was armed all along: the command was lost
+    and the operator told it went through. Now it is left unacknowledged, and the BU's
+    retransmission after the VRPI is executed."""
+    sent: list = []
+    ctl = Controller(ControllerConfig(restarts=(Restart(1.0, 0.5),)))
+    ctl.attach(lambda data, now, meta: sent.append(meta))
+    ctl.start(0)
+    bu = Bu(ctl)
+    bu.running(0.0, 1.0)
+    bu.vrci(1.55, 7)                   # the controller is back at 1.5: no VRPI heard since
+    assert not ctl.events("refused") and not executed(ctl) and acks(sent) == []
+    assert [(e["command_id"], e["last_vrpi"]) for e in ctl.events("deferred")] == [(7, None)]
+    bu.vrpi(1.6)
+    bu.vrci(1.65, 7)                   # the BU's retransmission
+    assert executed(ctl) == [7] and acks(sent) == [7] and not ctl.events("repeat")
+
+
+def test_a_command_after_a_vrpi_silence_waits_for_a_vrpi():
+    """The same after 800 ms without VRPI (the input path down, the VRCI through first): the RU's
+    state of 800 ms ago is no longer known (5.1.1, watchdog 500 ms). Before: executed on it."""
+    sent: list = []
+    ctl = controller()
+    ctl.attach(lambda data, now, meta: sent.append(meta))
+    bu = Bu(ctl)
+    bu.running(0.0, 1.0)
+    bu.serial += 6                     # (6 packets lost in the silence)
+    bu.vrci(1.675, 3)
+    assert not executed(ctl) and acks(sent) == [] and len(ctl.events("deferred")) == 1
+    bu.vrpi(1.68)
+    bu.vrci(1.775, 3)
+    assert executed(ctl) == [3] and acks(sent) == [3]
+
+
+def test_every_command_acknowledged_across_a_controller_restart_was_executed():
+    """End to end on the virtual clock: the simulated BU presses keys before, during and just after
+    the controller's restart (RU armed throughout); every command the BU saw acknowledged was
+    executed, once. Before: those whose first copy after the restart beat the first VRPI were
+    refused, yet acknowledged."""
+    from vm110.sim.bu import BaseUnit
+    from vm110.sim.remote import Remote
+    from vm110.sim.virtual import Station, VirtualNetwork
+
+    keys = [{"at": t, "data": f"KEY {i}"} for i, t in enumerate((1.0, 2.2, 3.0, 3.45, 3.5, 3.52, 4.0))]
+    bu = BaseUnit(Remote.from_script({"steps": [{"at": 0, "state": "armed"}], "commands": keys}))
+    ctl = Controller(ControllerConfig(restarts=(Restart(2.0, 1.5),)))
+    for _ in VirtualNetwork([Station(bu, "10.0.0.10", C.INPUT_PORT), Station(ctl, "10.0.0.20", C.OUTPUT_PORT)]).run(6.0):
+        pass
+    acked = sorted(e["command_id"] for e in bu.events("command_acked"))
+    assert acked == list(range(len(keys))) and not bu.events("command_failed")
+    assert sorted(executed(ctl)) == acked and not ctl.events("refused")

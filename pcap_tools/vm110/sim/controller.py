@@ -5,7 +5,9 @@
 - Every VRCI is acknowledged with a VRAO, retransmissions too, in the order they arrive; each
   command is executed once (a command ID heard again within the reuse gap is a retransmission,
   unless the BU rebooted in between: its serials tell, `sim.peers`), and only while the last VRPI
-  showed an armed RU (section 4.3).
+  showed an armed RU (section 4.3). A VRCI heard while no VRPI tells the RU's state (none since
+  start-up or a restart, or none within the VRPI timeout) is left unacknowledged, logged
+  `deferred`: the BU's next retransmission after a VRPI is decided on it (section 4.4, 5.1.3).
 - Own commands (VRCO), several in flight at once, are each resent every 100 ms until the VRAI, and
   given up after `vrco_timeout_ms`.
 - Restarts (`sim.lifecycle`): back with VRPO from cycle 0, serials and command IDs afresh.
@@ -170,9 +172,23 @@ class Controller(CommandOutbox, Node):
         bu_state, armed_ru, ru_state = _VRPI_STATE.unpack_from(rx.payload)
         self.ru_armed = bu_state == _BU_ARMED and armed_ru != 0 and ru_state in _RU_ARMED
 
+    def ru_state_known(self, now: int) -> bool:
+        """Does a VRPI within the VRPI timeout tell the RU's state? Not after start-up or a restart
+        before the first one, nor after a silence of VRPI longer than the timeout."""
+        return self.last_vrpi is not None and now - self.last_vrpi <= self._vrpi_timeout_us
+
     def on_vrci(self, rx: Rx, now: int) -> None:
         self.follow(rx, now)
         command_id = _CMD_ID.unpack_from(rx.payload)[0]
+        if self.config.require_armed and not self.ru_state_known(now):
+            # It cannot be checked against the RU's state (4.3), so it is not processed and not
+            # acknowledged (4.4): the BU resends it every 100 ms (5.1.3), and the first copy after a
+            # VRPI is decided on that VRPI. Refused and acknowledged, a command of an armed RU was
+            # lost while the operator was told it went through; with no VRPI for 2000 ms, the BU
+            # tells the operator it failed.
+            self.event(now, "deferred", command_id=command_id, origin=f"0x{rx.origin:04x}", serial=rx.serial,
+                       last_vrpi=log_seconds(self.last_vrpi))
+            return
         self.acknowledge(command_id, now)
         new = self.handled.command(rx, command_id, rx.payload[_DATA], now)
         if new:
@@ -200,6 +216,7 @@ class Controller(CommandOutbox, Node):
         """Counters for logs and tests."""
         return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
                 "illegal": dict(self.illegal), "executed": len(self.events("executed")),
-                "refused": len(self.events("refused")), "vrpi_timeouts": len(self.events("vrpi_timeout")),
+                "refused": len(self.events("refused")), "deferred": len(self.events("deferred")),
+                "vrpi_timeouts": len(self.events("vrpi_timeout")),
                 # its own commands' outcomes, as the base unit's summary has them (they were missing)
                 "commands_acked": len(self.events("vrco_acked")), "commands_gave_up": len(self.events("vrco_gave_up"))}
