@@ -260,3 +260,15 @@ def test_the_first_illegal_packet_of_each_reason_is_logged():
     assert [(e["reasons"], e["src"]) for e in ctl.events("illegal_first")] == [
         ("bad_crc", f"10.0.0.10:{C.INPUT_PORT}"), ("unknown_id", f"10.0.0.10:{C.INPUT_PORT}")]
     assert ctl.illegal["bad_crc"] == 6 and not ctl.received
+
+
+def test_a_peer_the_kernel_will_not_send_to_ends_the_run_in_one_line():
+    """A broadcast --peer (here loopback's, 127.255.255.255: nothing leaves the machine) is refused
+    by the kernel at the first send (EACCES). Before: a Python traceback, exit 1. Now the summary
+    says `"end": "error"` and one line names the address, exit 2."""
+    run = [sys.executable, "-m", "vm110", "simulate", "controller", "--listen", f"{LOOPBACK}:0", "--peer",
+           "127.255.255.255:9", "--source", f"{LOOPBACK}:0", "--duration", "5", "--quiet"]
+    done = subprocess.run(run, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and json.loads(done.stdout.splitlines()[-1])["end"] == "error"
+    assert done.stderr.splitlines()[-1] == "vm110 simulate: cannot send to 127.255.255.255:9: Permission denied", \
+        done.stderr

@@ -184,7 +184,9 @@ class UdpTransport:
         except OSError as exc:   # a full buffer or an unreachable peer loses the packet, like UDP does
             if exc.errno not in (errno.EAGAIN, errno.ECONNREFUSED, errno.ENOBUFS, errno.EHOSTUNREACH,
                                  errno.ENETUNREACH):
-                raise
+                # (any other, e.g. a broadcast --peer: EACCES; a traceback ended the run before)
+                host, port = self.config.dest
+                raise CliError(f"cannot send to {host}:{port}: {exc.strerror or exc}") from None
 
     # --- receiving ----------------------------------------------------------------------------
     def recv_all(self) -> list[tuple[bytes, Address]]:
