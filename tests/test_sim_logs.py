@@ -272,3 +272,25 @@ def test_a_peer_the_kernel_will_not_send_to_ends_the_run_in_one_line():
     assert done.returncode == 2 and json.loads(done.stdout.splitlines()[-1])["end"] == "error"
     assert done.stderr.splitlines()[-1] == "vm110 simulate: cannot send to 127.255.255.255:9: Permission denied", \
         done.stderr
+
+
+def test_the_first_illegal_packet_is_named_by_its_packet_id_and_serial():
+    """A controller whose VRAO alone has a wrong CRC: the BU logged `illegal_first reasons=bad_crc
+    src=...` and nothing said which packet. Now its packet ID and serial, as its header gives them
+    (none for a datagram too short to hold one); the printed line escapes an ID that is not text."""
+    from vm110 import encode
+
+    lines: list[str] = []
+    bu = BaseUnit(printer=lambda now, line: lines.append(line))
+    bu.attach(lambda data, now, meta: None)
+    bu.start(0)
+    src = ("10.0.0.20", C.OUTPUT_PORT)
+    bu.receive(encode.packet(C.PacketType.VRPO, encode.vrpo_payload(0, b"x"), serial=7), 0, src)
+    vrao = bytearray(encode.packet(C.PacketType.VRAO, encode.ack_payload(3), serial=8))
+    vrao[-1] ^= 0xFF
+    bu.receive(bytes(vrao), 1000, src)
+    bu.receive(b"VR\nX" + bytes(16), 2000, src)
+    bu.receive(b"VRP", 3000, src)
+    assert [(e["reasons"], e.get("packet"), e.get("serial")) for e in bu.events("illegal_first")] == [
+        ("bad_crc", "VRAO", 8), ("unknown_id", "VR\nX", 0), ("truncated", None, None)]
+    assert lines[1].endswith("illegal_first reasons=unknown_id src=10.0.0.20:5827 packet=VR\\nX serial=0")

@@ -254,11 +254,16 @@ class Node:
     def on_illegal(self, data: bytes, problems: list[str], now: int, src: Any) -> None:
         """An illegal packet, already counted; the specification says: ignore it. The first of each
         reason is logged: a peer given another --crc had every packet ignored with nothing in the
-        log but a watchdog."""
+        log but a watchdog. With its packet ID and serial when its header is there: a peer wrong
+        on one packet type only was otherwise left to be found in a capture."""
         first = [p for p in problems if self.illegal[p] == 1]
         if first:
             where = f"{src[0]}:{src[1]}" if isinstance(src, tuple) else src
-            self.event(now, "illegal_first", reasons=",".join(first), src=where)
+            header: dict[str, Any] = {}
+            if len(data) >= _PREFIX_LEN:
+                raw_id, _origin, serial, _size = _RX_HEADER.unpack_from(data)
+                header = {"packet": raw_id.decode("latin-1"), "serial": serial}
+            self.event(now, "illegal_first", reasons=",".join(first), src=where, **header)
 
     def _due(self) -> Optional[int]:
         return None
