@@ -185,6 +185,11 @@ def test_cli_usage_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
                  ["bu", "--restart", "soon"],
                  ["controller", "--restart", "3:70000"],
                  ["controller", "--restart", "3", "--restart-silence", "0", "--duration", "1"],
+                 # (the restart's options without a restart: taken without a word, and nothing restarted)
+                 ["controller", "--restart-silence", "3", "--duration", "1", "--listen", f"{LOOPBACK}:0", "--peer",
+                  f"{LOOPBACK}:9"],
+                 ["bu", "--restart-serial", "40000", "--duration", "1", "--listen", f"{LOOPBACK}:0", "--peer",
+                  f"{LOOPBACK}:9"],
                  ["bu", "--script", str(bad_script), "--listen", f"{LOOPBACK}:0", "--peer", f"{LOOPBACK}:9"],
                  # (a script and the flags it replaces: the flags were ignored without a word)
                  ["bu", "--script", str(good_script), "--no-motion", "--listen", f"{LOOPBACK}:0", "--peer",

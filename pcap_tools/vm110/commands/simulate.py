@@ -94,9 +94,9 @@ def add_impairment_arguments(parser: argparse.ArgumentParser) -> None:
                       help="go down at AT s and come back after --restart-silence with serials and command IDs "
                            "afresh, sending from NEW_PORT if given (0: a new ephemeral port), "
                            f"{RESTART.range_text}; repeatable")
-    life.add_argument("--restart-silence", type=DURATION, default=DEFAULT_SILENCE_S, metavar="S",
+    life.add_argument("--restart-silence", type=DURATION, metavar="S",
                       help=f"seconds down at each restart, {DURATION.range_text} (default {DEFAULT_SILENCE_S:g})")
-    life.add_argument("--restart-serial", type=WORD, default=0, metavar="N",
+    life.add_argument("--restart-serial", type=WORD, metavar="N",
                       help=f"first serial after a restart, {WORD.range_text}")
     life.add_argument("--serial-start", type=WORD, default=0, metavar="N",
                       help=f"first serial (e.g. above 32767, to reboot from there), {WORD.range_text}")
@@ -210,8 +210,15 @@ def impairment(args: argparse.Namespace) -> Impairment:
 
 def life(args: argparse.Namespace) -> dict[str, Any]:
     """The `Life` fields of the node's configuration from the options."""
-    restarts = tuple(sorted((Restart(at, args.restart_silence, args.restart_serial, 0, port)
-                             for at, port in args.restart), key=lambda r: r.at_s))
+    if not args.restart:      # (they were taken without a word, and nothing restarted)
+        given = [name for name, value in (("--restart-silence", args.restart_silence),
+                                          ("--restart-serial", args.restart_serial)) if value is not None]
+        if given:
+            raise CliError(f"{given[0]} is for a --restart AT[:NEW_PORT]; none was given")
+    silence = DEFAULT_SILENCE_S if args.restart_silence is None else args.restart_silence
+    serial = 0 if args.restart_serial is None else args.restart_serial
+    restarts = tuple(sorted((Restart(at, silence, serial, 0, port) for at, port in args.restart),
+                            key=lambda r: r.at_s))
     # (start, end, option, what it is): a node that hangs, is down or has stopped cannot begin
     # another of them (a restart lost in another; a stall ending after the stall it began in, its
     # log going back in time).
