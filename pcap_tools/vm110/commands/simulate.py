@@ -236,6 +236,14 @@ def life(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def build_node(args: argparse.Namespace, printer: Callable[[int, str], None]) -> Any:
+    """The node of the options; its log goes to `printer` (and the JSON listener), none is kept:
+    a run goes on for days, and the summary needs only the counts."""
+    node = _node(args, printer)
+    node.keep_log = False
+    return node
+
+
+def _node(args: argparse.Namespace, printer: Callable[[int, str], None]) -> Any:
     if args.role == "bu":
         if args.script:
             given = [name for name, on in (("--disarmed", args.disarmed), ("--unarmed-rus", args.unarmed_rus),

@@ -185,7 +185,7 @@ class BaseUnit(CommandOutbox, Node):
             self.send(C.PacketType.VRAI, encode.ack_payload(command_id), now, key=command_id)
 
     def summary(self) -> dict[str, Any]:
+        counts = self.counts
         return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
-                "illegal": dict(self.illegal), "commands_acked": len(self.events("command_acked")),
-                "commands_failed": len(self.events("command_failed")),
-                "vrpo_watchdog": len(self.events("vrpo_watchdog"))}
+                "illegal": dict(self.illegal), "commands_acked": counts["command_acked"],
+                "commands_failed": counts["command_failed"], "vrpo_watchdog": counts["vrpo_watchdog"]}

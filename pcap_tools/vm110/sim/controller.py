@@ -214,9 +214,9 @@ class Controller(CommandOutbox, Node):
 
     def summary(self) -> dict[str, Any]:
         """Counters for logs and tests."""
+        counts = self.counts
         return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
-                "illegal": dict(self.illegal), "executed": len(self.events("executed")),
-                "refused": len(self.events("refused")), "deferred": len(self.events("deferred")),
-                "vrpi_timeouts": len(self.events("vrpi_timeout")),
+                "illegal": dict(self.illegal), "executed": counts["executed"], "refused": counts["refused"],
+                "deferred": counts["deferred"], "vrpi_timeouts": counts["vrpi_timeout"],
                 # its own commands' outcomes, as the base unit's summary has them (they were missing)
-                "commands_acked": len(self.events("vrco_acked")), "commands_gave_up": len(self.events("vrco_gave_up"))}
+                "commands_acked": counts["vrco_acked"], "commands_gave_up": counts["vrco_gave_up"]}

@@ -121,6 +121,10 @@ class Node:
         self.printer = printer
         self.listeners: list[Callable[[dict[str, Any]], None]] = []   # called with every log entry
         self.log: list[dict[str, Any]] = []
+        # False: entries go to the printer and listeners only (a run of days kept every one of
+        # them, some 400 bytes each); `counts` has them by kind either way, for summaries.
+        self.keep_log = True
+        self.counts: Counter[str] = Counter()
         self._sent: dict[C.PacketType, int] = {}         # counted per packet: plain dicts, see `sent`
         self._received: dict[bytes, int] = {}
         self.illegal: Counter[str] = Counter()      # by reason; each packet counts once per reason
@@ -274,7 +278,9 @@ class Node:
     def event(self, now: int, kind: str, **details: Any) -> None:
         """Record (and, with a printer, print) something the node did or detected."""
         entry = {"t": now / US_PER_S, "node": self.name, "event": kind, **details}
-        self.log.append(entry)
+        self.counts[kind] += 1
+        if self.keep_log:
+            self.log.append(entry)
         for listener in self.listeners:
             listener(entry)
         if self.printer is not None:
@@ -283,6 +289,7 @@ class Node:
             self.printer(now, f"{now / US_PER_S:10.3f} {self.name} {kind} {extra}".rstrip())
 
     def events(self, kind: str) -> list[dict[str, Any]]:
+        """The entries of one kind (none kept without `keep_log`)."""
         return [e for e in self.log if e["event"] == kind]
 
     def _stall_end(self, now: int) -> Optional[int]:
