@@ -135,7 +135,8 @@ def test_a_bu_back_on_a_new_source_port_is_a_new_sender():
         bu.vrci(1.0, 5)
         Bu(ctl, serial=bu.serial, src=(BU[0], 40000)).vrci(1.0 + silence, 5)
         assert executed(ctl) == [5, 5] and not ctl.events("repeat")
-        assert bool(ctl.events("bu_restart")) is restarted
+        # (logged with the source it came back on: the log said nothing of the new port)
+        assert [e["src"] for e in ctl.events("bu_restart")] == ([f"{BU[0]}:40000"] if restarted else [])
 
 
 def test_the_base_unit_delivers_an_id_a_restarted_controller_reuses():
@@ -158,6 +159,7 @@ def test_the_base_unit_delivers_an_id_a_restarted_controller_reuses():
     send(C.PacketType.VRPO, encode.vrpo_payload(0, b"x" * 8), 1.4, 0)            # restarted
     send(C.PacketType.VRCO, encode.command_payload(3, b"SET"), 1.5, 1)
     assert [e["command_id"] for e in bu.events("vrco_delivered")] == [3, 3]
+    assert [(e["src"], e["serial"]) for e in bu.events("controller_restart")] == [(f"{ctl[0]}:{ctl[1]}", 0)]
 
 
 def acks(sent: list) -> list[int]:

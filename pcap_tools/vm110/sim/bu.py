@@ -26,7 +26,7 @@ from .. import protocol as P
 from .clock import log_seconds, ms, seconds
 from .ledger import PeerCommands
 from .lifecycle import Life, Restart
-from .node import Node, Rx
+from .node import Node, Rx, source_text
 from .outbox import CommandOutbox, OutboxEvents
 from .remote import VRPI_INDEX, Remote
 
@@ -138,7 +138,8 @@ class BaseUnit(CommandOutbox, Node):
         stream (an ID it reuses within the reuse gap was a repeat, never delivered: interpretation.md)."""
         restart, held, new = self.delivered.follow(rx, now)
         if restart is not None:
-            self.event(now, "controller_restart", at=log_seconds(restart[1]), serial=restart[0])
+            self.event(now, "controller_restart", src=source_text(rx.src), at=log_seconds(restart[1]),
+                       serial=restart[0])
         if held is not None and new:
             self.deliver(held.command_id, held.data, now)
 

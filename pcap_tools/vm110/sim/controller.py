@@ -29,7 +29,7 @@ from .. import encode
 from .clock import log_seconds, ms, seconds
 from .ledger import PeerCommands
 from .lifecycle import Life, Restart
-from .node import Node, Rx
+from .node import Node, Rx, source_text
 from .outbox import CommandOutbox, OutboxEvents
 
 _CMD_ID = struct.Struct("<" + P.FIELDS["command_id"].code)
@@ -155,7 +155,8 @@ class Controller(CommandOutbox, Node):
         restart, held, new = self.handled.follow(rx, now)
         if restart is not None:
             # (logged when the next packet confirms it: the restart's own time and first serial)
-            self.event(now, "bu_restart", origin=f"0x{rx.origin:04x}", at=log_seconds(restart[1]), serial=restart[0])
+            self.event(now, "bu_restart", origin=f"0x{rx.origin:04x}", src=source_text(rx.src),
+                       at=log_seconds(restart[1]), serial=restart[0])
         if held is not None:
             if new:
                 self.execute(held.origin, held.command_id, held.data, now)

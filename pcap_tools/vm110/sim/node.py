@@ -79,6 +79,11 @@ def inspect(data: bytes, crc_fn: Callable[[bytes], int],
     return problems, ptype
 
 
+def source_text(src: Any) -> Any:
+    """A packet's source as a log names it: "HOST:PORT" (as given when not an address pair)."""
+    return f"{src[0]}:{src[1]}" if isinstance(src, tuple) else src
+
+
 _TABLES: dict[type, Optional[dict[C.PacketType, Optional[Callable[..., None]]]]] = {}
 
 
@@ -262,7 +267,7 @@ class Node:
         on one packet type only was otherwise left to be found in a capture."""
         first = [p for p in problems if self.illegal[p] == 1]
         if first:
-            where = f"{src[0]}:{src[1]}" if isinstance(src, tuple) else src
+            where = source_text(src)
             header: dict[str, Any] = {}
             if len(data) >= _PREFIX_LEN:
                 raw_id, _origin, serial, _size = _RX_HEADER.unpack_from(data)
