@@ -18,6 +18,7 @@ import pytest
 from loopback import free_ports
 from vm110 import constants as C
 from vm110.fuzz import mutate as M
+from vm110.fuzz.evidence import Crash
 from vm110.fuzz.runner import start_target
 from vm110.fuzz.session import Session, Settings
 from vm110.fuzz.supervisor import Supervisor
@@ -374,3 +375,72 @@ def test_an_interrupt_while_a_crash_is_confirmed_keeps_it(tmp_path, programs):
     summary = json.loads((out / "findings.json").read_text())
     kept = [u for u in summary["unreproduced"] if u.get("not_replayed") == "interrupted"]
     assert summary["findings"] or (kept and kept[0]["oracle"] == "crash" and kept[0]["suspect_cases"]), summary
+
+
+def _crash_of(exe: Path, tmp_path: Path, name: str, *packets: bytes, core: bool = False):
+    """The crash evidence of `exe` (started by a Supervisor) sent `packets` once it speaks."""
+    import socket
+    rx, listen = free_ports(2)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", listen))
+    sock.settimeout(30)
+    sup = Supervisor(f"{exe} {rx} {listen}", core=core, cwd=tmp_path)
+    sup.start()
+    try:
+        sock.recv(2048)                         # its first VRPO: it listens
+        for serial, packet in enumerate(packets):
+            sock.sendto(packet(serial) if callable(packet) else packet, ("127.0.0.1", rx))
+        deadline = time.time() + 30
+        while sup.poll() is None and time.time() < deadline:
+            time.sleep(0.02)
+        return sup, sup.evidence(tmp_path, name)
+    finally:
+        sup.stop()
+        sock.close()
+
+
+def _vrpi(**fields: Any):
+    return lambda serial: M.build(C.PacketType.VRPI, serial, dict(M.ARMED_VRPI, **fields))
+
+
+def test_two_segfault_bugs_with_no_core_are_two_signatures_and_one_bug_by_two_inputs_one(tmp_path, programs):
+    """Review: a build without a sanitizer, with no core to read (--no-core here; core_pattern a
+    pipe to apport on Ubuntu's default), had the signature `SIGSEGV` for every segfault: its two
+    bugs were one finding. gdb runs such a controller and its stack at the signal is the signature."""
+    if shutil.which("gdb") is None:
+        pytest.skip("gdb not installed (make setup installs it)")
+    exe = programs("plain-two-segv")
+    sup, null_call = _crash_of(exe, tmp_path, ".crash-1", _vrpi(bu_state=0xFF))
+    _, null_call_again = _crash_of(exe, tmp_path, ".crash-2", _vrpi(bu_state=0x12))
+    _, lap_slot = _crash_of(exe, tmp_path, ".crash-3", _vrpi(vlaps=4))
+    source = targets.SOURCE.read_text().splitlines()
+    handler_line = 1 + source.index("    handler();")
+    slot_line = 1 + source.index("    *lap_slot(vlaps) = 2;            /* the last VLAP seen: NULL unchecked */")
+    assert null_call.how == lap_slot.how == {"signal": 11, "signal_name": "SIGSEGV"}
+    assert null_call.signature() == f"SIGSEGV dispatch_state@controller.c:{handler_line} on_vrpi on_datagram"
+    assert null_call_again.signature() == null_call.signature(), "one bug, two inputs: one finding"
+    assert lap_slot.signature() == f"SIGSEGV record_laps@controller.c:{slot_line} on_vrpi on_datagram"
+    assert null_call.core is None and "--no-core" in null_call.core_missing and null_call.stack_missing is None
+    assert "Program received signal SIGSEGV" in null_call.backtrace_text
+    assert "gdb runs the controller" in sup.core_files()
+    # gdb's own lines are not the controller's output
+    assert null_call.output.decode().strip() == "controller: listening on 127.0.0.1:" + \
+        sup.argv[1], null_call.output
+
+
+def test_a_segfault_with_no_stack_says_that_findings_may_be_merged(tmp_path, programs, monkeypatch):
+    """With no core and no gdb, a segfault's signature is its signal alone: the finding says so,
+    and a replay compared by the signal alone says it may be another bug."""
+    from vm110.fuzz.findings import write_crash
+    exe = programs("plain-two-segv")
+    with_stack = _crash_of(exe, tmp_path, ".crash-1", _vrpi(bu_state=0xFF))[1]
+    monkeypatch.setenv("PATH", str(tmp_path / "no-tools-here"))
+    _, crash = _crash_of(exe, tmp_path, ".crash-2", _vrpi(vlaps=4))
+    assert crash.signature() == "SIGSEGV" and crash.stack_missing.startswith("gdb is not installed (core: ")
+    assert crash.headline() == "crash SIGSEGV (no stack: every such crash is one finding, though it may be several bugs)"
+    info = write_crash(tmp_path, "finding-001-crash", crash)
+    assert info["stack_missing"] == crash.stack_missing and info["top_frames"] == []
+    # Either side without a stack: the signal is all that can be compared.
+    assert crash.signal_only(write_crash(tmp_path, "finding-002-crash", with_stack)) and with_stack.signal_only(info)
+    assert with_stack.same_bug(info) and crash.same_bug(write_crash(tmp_path, "finding-003-crash", with_stack))
+    assert not Crash(-signal.SIGBUS).same_bug(info)

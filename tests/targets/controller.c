@@ -5,6 +5,7 @@
  * Correct unless built with one planted bug:
  *   -DBUG_HEAP_OVERFLOW  a VRPI with vlaps above 3 clears past a heap array (record_laps)
  *   -DBUG_NULL_CALL      a VRPI with an unknown bu_state calls through a NULL handler (dispatch_state)
+ *   -DBUG_LAP_SLOT       a VRPI with vlaps above 3 writes through the NULL its lap slot lookup gave (record_laps)
  *   -DBUG_DEEP           VRCI "MAINT:" then VRCI "ENGAGE" writes through a NULL pointer (maintenance_engage):
  *                        two multi-byte comparisons and a state, out of reach of blind mutation
  *   -DBUG_ABORT          a VRCI with command ID 65535 fails an assertion-like abort() (on_vrci)
@@ -120,6 +121,8 @@ static void send_vrco(void)
 /* --- VRPI ----------------------------------------------------------------------------------- */
 static uint8_t *laps;               /* one flag per VLAP seen: VLAPS counts 0..3 */
 
+static uint8_t *lap_slot(int vlaps) { return vlaps < 4 ? laps + vlaps : NULL; }
+
 static void record_laps(int vlaps)
 {
     if (!laps && !(laps = malloc(4)))
@@ -128,6 +131,13 @@ static void record_laps(int vlaps)
     memset(laps, 1, (size_t)vlaps + 1);
 #else
     memset(laps, 1, vlaps < 4 ? (size_t)vlaps + 1 : 4);
+#endif
+#ifdef BUG_LAP_SLOT
+    *lap_slot(vlaps) = 2;            /* the last VLAP seen: NULL unchecked */
+#else
+    uint8_t *last = lap_slot(vlaps);
+    if (last)
+        *last = 2;
 #endif
 }
 

@@ -321,7 +321,10 @@ def _replay(args: argparse.Namespace) -> int:
     verdict = "still triggers" if trig else "does not trigger any more"
     kind = finding_kind(finding)
     if trig is not None and kind is not None:
-        verdict += (": the same signature" if same_bug(finding, trig) else
+        signal_only = trig.crash is not None and trig.kind != kind and trig.crash.signal_only(finding.crash)
+        same = ": the same signal (with no stack to compare, it may be another bug)" if signal_only else \
+            ": the same signature"
+        verdict += (same if same_bug(finding, trig) else
                     f": another signature ({_printable(trig.detail)}; the finding's: {_printable(finding.signature)})")
         if trig.crash is not None and trig.crash.site_moved(finding.crash):
             # (an edit of the controller moves its lines: the same function, kind and callers)

@@ -15,7 +15,7 @@ from .evidence import Frame, parse_gdb_backtrace
 
 CORE_PATTERN = Path("/proc/sys/kernel/core_pattern")
 CORE_USES_PID = Path("/proc/sys/kernel/core_uses_pid")
-_GDB_TIMEOUT_S = 60.0
+GDB_TIMEOUT_S = 60.0
 _MAX_BACKTRACE = 64 * 1024
 
 
@@ -76,7 +76,7 @@ def coredumpctl_core(pid: int, dest: Path) -> Optional[Path]:
     """The core of `pid` from systemd-coredump, written to `dest`."""
     try:
         subprocess.run(["coredumpctl", "--no-pager", "-q", "-o", str(dest), "dump", str(pid)],
-                       stdin=subprocess.DEVNULL, capture_output=True, timeout=_GDB_TIMEOUT_S, check=False)
+                       stdin=subprocess.DEVNULL, capture_output=True, timeout=GDB_TIMEOUT_S, check=False)
     except (OSError, subprocess.TimeoutExpired):
         return None
     return dest if dest.is_file() and dest.stat().st_size > 0 else None
@@ -89,7 +89,7 @@ def backtrace(exe: str, core: Path) -> tuple[str, list[Frame]]:
         return "", []
     try:
         done = subprocess.run([gdb, "-batch", "-nx", "-ex", "set pagination off", "-ex", "bt", exe, str(core)],
-                              stdin=subprocess.DEVNULL, capture_output=True, timeout=_GDB_TIMEOUT_S, check=False)
+                              stdin=subprocess.DEVNULL, capture_output=True, timeout=GDB_TIMEOUT_S, check=False)
     except (OSError, subprocess.TimeoutExpired):
         return "", []
     text = done.stdout.decode("utf-8", "replace")[:_MAX_BACKTRACE]

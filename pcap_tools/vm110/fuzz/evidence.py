@@ -16,6 +16,8 @@ TOP_FRAMES = 3
 # line (two crash sites in one function are two bugs), a failed assertion's site where there is no
 # stack, and the controller's functions named str... its own; 2, a UBSan error's own type (1:
 # ASan's ABRT of the abort it made) and glibc's assert frames not the controller's own.
+# (A crash by a signal with no stack, in a finding of any version, is compared by how it ended
+# alone: without a stack, it cannot be told from another bug of that signal.)
 SIGNATURE_VERSION = 3
 _MAX_FRAMES = 64
 
@@ -214,7 +216,7 @@ class Crash:
     backtrace: list[Frame] = field(default_factory=list)
     backtrace_text: str = ""
     assertion: Optional[Frame] = None     # glibc's failed assertion: its site, where no stack names it
-
+    stack_missing: Optional[str] = None   # why a crash by a signal has no stack (its signature is the signal's)
 
     @property
     def how(self) -> dict[str, Any]:
@@ -251,6 +253,9 @@ class Crash:
         those today's rules call the controller's own. Not an object of either form: False."""
         if not isinstance(stored, dict):
             return False
+        if self.signal_only(stored):
+            return {k: stored.get(k) for k in self.how} == self.how and self.sanitizer is None \
+                and stored.get("sanitizer") is None
         if stored.get("signature_version") == SIGNATURE_VERSION:
             theirs = stored.get("signature")
             # (the crash site's line may have moved with an edit of the controller: site_moved says so)
@@ -276,6 +281,11 @@ class Crash:
         own = [f.function for f in self.own_frames()]
         return old_own == own[:len(old_own)] and bool(old_own) == bool(own)
 
+    def signal_only(self, stored: Any) -> bool:
+        """Whether this crash or a finding's `crash` is one by a signal with no stack of the
+        controller's: it cannot be told from another bug of that signal, which is all to compare."""
+        return ("signal" in self.how and self.sanitizer is None and not self.own_frames()) or _stackless(stored)
+
     def site_moved(self, stored: Any) -> bool:
         """The same bug as a finding's `crash` of today's rules, with its crash site at another line."""
         return self.same_bug(stored) and stored.get("signature_version") == SIGNATURE_VERSION \
@@ -289,4 +299,12 @@ class Crash:
         top = self.own_frames(1)
         if top:
             text += f" in {top[0].short()}"
+        elif self.stack_missing:
+            text += " (no stack: every such crash is one finding, though it may be several bugs)"
         return text
+
+
+def _stackless(stored: Any) -> bool:
+    """A finding's `crash` of a signal with no stack of the controller's (nor a sanitizer's report)."""
+    return isinstance(stored, dict) and "signal" in stored and stored.get("sanitizer") is None \
+        and not stored.get("top_frames")

@@ -138,6 +138,7 @@ def write_crash(out: Path, base: str, crash: Crash) -> dict[str, Any]:
         except OSError as exc:
             crash.core_missing = f"cannot keep the core: {exc.strerror}"
     info["core_missing"] = None if info["core"] else crash.core_missing
+    info["stack_missing"] = crash.stack_missing
     info["backtrace"] = None
     if crash.backtrace_text:
         info["backtrace"] = f"{base}.backtrace.txt"

@@ -30,6 +30,13 @@ def _kind(path: str) -> str:
     return ""
 
 
+def native(argv: list[str], exe: str, cwd: str) -> bool:
+    """A compiled program, whose crash gdb can show the stack of: not Python (its own traceback
+    says where), nor one run through it (`env python3 ctl.py`), nor a script."""
+    python = any(os.path.basename(w).startswith("python") or _kind(os.path.join(cwd, w)) == "python" for w in argv)
+    return _kind(exe) == "elf" and not python
+
+
 def _linked(path: str) -> Optional[set[str]]:
     """The option variables of the runtimes in ELF file `path`; None when it is too large to tell."""
     found: set[str] = set()

@@ -11,13 +11,14 @@ import shlex
 import shutil
 import signal
 import subprocess
+import tempfile
 import threading
 import time
 from pathlib import Path
 from typing import IO, Iterator, Optional
 
 from ..errors import CliError
-from . import cores, program
+from . import cores, debugger, program
 from .evidence import Crash, parse_assertion, parse_python_traceback, parse_sanitizer
 
 _STOP_WAIT_S = 2.0
@@ -112,11 +113,16 @@ class Supervisor:
         self.core_limit = self.core_hard if core else 0
         self.core_pattern = cores.read_pattern()
         self.no_core_reason = cores.why_no_core(self.core_pattern, self.core_limit)
+        # No core to read a native build's stack from, nor a sanitizer to write it: gdb runs it.
+        gdb = shutil.which("gdb")
+        self.gdb = gdb if self.no_core_reason and applies == set() \
+            and program.native(self.argv, self.exe, str(self.cwd)) else None
+        self.gdb_log: Optional[Path] = None
 
     def core_files(self) -> str:
         """What the run's summary says of core files: "on", or why a crash will leave none."""
         if self.no_core_reason:
-            return self.no_core_reason
+            return self.no_core_reason + ("; gdb runs the controller, for the stack of a crash" if self.gdb else "")
         return _ASAN_NO_CORE if self.asan and self._asan_without_core() else "on"
 
     def _asan_without_core(self) -> bool:
@@ -127,11 +133,20 @@ class Supervisor:
         for name, value in SANITIZER_DEFAULTS.items():
             env.setdefault(name, value)
         env.update(self.extra_env)
+        if self.gdb:
+            # gdb's startup shell, one that reads the arguments as gdb quoted them (the
+            # controller's own SHELL is given back to it)
+            env["SHELL"] = "/bin/sh"
         return env
 
     def start(self) -> None:
         self.ring = _Ring()
         self._check_program()
+        self._drop_gdb_log()
+        if self.gdb:
+            fd, name = tempfile.mkstemp(prefix="vm110-gdb-", suffix=".log")
+            os.close(fd)
+            self.gdb_log = Path(name)
         try:
             with _interrupts_deferred():
                 self.proc = subprocess.Popen(self._with_core_limit(), stdin=subprocess.DEVNULL,
@@ -163,7 +178,10 @@ class Supervisor:
         # in its own session, holding the target port: setpriv has the kernel kill it too.
         setpriv = shutil.which("setpriv")
         tie = [setpriv, "--pdeathsig", "KILL", "--"] if setpriv else []
-        return ["/bin/sh", "-c", 'ulimit -S -c "$0" && exec "$@"', limit, *tie, *self.argv]
+        argv = self.argv
+        if self.gdb and self.gdb_log:
+            argv = debugger.command(self.gdb, self.gdb_log, argv)
+        return ["/bin/sh", "-c", 'ulimit -S -c "$0" && exec "$@"', limit, *tie, *argv]
 
     def _read(self, stream: IO[bytes], ring: _Ring) -> None:
         fd = stream.fileno()
@@ -191,7 +209,13 @@ class Supervisor:
 
     def poll(self) -> Optional[int]:
         """The exit code once the controller has exited (negative: the signal that ended it), else None."""
-        return None if self.proc is None else self.proc.poll()
+        code = None if self.proc is None else self.proc.poll()
+        if self.proc is None or not self.gdb:
+            return code
+        # gdb says the signal at once, before its backtrace and its own exit: the crash is seen
+        # then, not after cases that went on to a controller stopped in gdb
+        said = debugger.returncode(debugger.read_log(self.gdb_log))
+        return code if said is None else said
 
     def output(self) -> bytes:
         """What this start of the controller wrote (its last RING_BYTES), once its output has ended."""
@@ -204,6 +228,8 @@ class Supervisor:
         if self.poll() is None:
             return ""
         lines = [line.strip() for line in self.output().decode("utf-8", "replace").splitlines() if line.strip()]
+        if not lines:       # (gdb's, when it could not run the controller)
+            lines = [line.strip() for line in debugger.read_log(self.gdb_log).splitlines() if line.strip()]
         if not lines:
             return ""
         text = "".join(c if c.isprintable() else "?" for c in lines[-1][:200])
@@ -213,17 +239,23 @@ class Supervisor:
         """The crash of the process just ended: its output, sanitizer report, core (moved to
         `folder`/`name`.core) and the backtrace from it."""
         proc = self.proc
-        assert proc is not None and proc.returncode is not None
+        returncode = self.poll()
+        assert proc is not None and returncode is not None
+        if self.gdb:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(cores.GDB_TIMEOUT_S)        # (writing the backtrace)
         self._kill_group(proc)
-        crash = Crash(proc.returncode, self.output())
+        crash = Crash(returncode, self.output())
         text = crash.output.decode("utf-8", "replace")
         crash.sanitizer = parse_sanitizer(text) or parse_python_traceback(text)
         crash.assertion = parse_assertion(text)
-        if proc.returncode >= 0:
+        if returncode >= 0:
             crash.core_missing = "the controller exited, no signal: no core"
             return crash
         if self.no_core_reason:
             crash.core_missing = self.no_core_reason
+            crash.backtrace_text, crash.backtrace = debugger.stack(debugger.read_log(self.gdb_log))
+            crash.stack_missing = self._why_no_stack(crash)
             return crash
         if crash.sanitizer is not None and crash.sanitizer.tool == "asan" and self._asan_without_core():
             crash.core_missing = self._why_missing(crash)
@@ -232,12 +264,26 @@ class Supervisor:
         core = self._core(proc.pid, dest)
         if core is None:
             crash.core_missing = self._why_missing(crash)
+            crash.stack_missing = self._why_no_stack(crash)
             return crash
         crash.core = dest.name
         crash.backtrace_text, crash.backtrace = cores.backtrace(self.exe, dest)
         if not crash.backtrace_text and shutil.which("gdb") is None:
             crash.backtrace_text = "(gdb is not installed: no backtrace from the core)"
+        crash.stack_missing = self._why_no_stack(crash)
         return crash
+
+    def _why_no_stack(self, crash: Crash) -> Optional[str]:
+        """Why a crash by a signal has no stack to tell it from others of that signal (None: it has one)."""
+        if crash.own_frames() or crash.sanitizer is not None:
+            return None
+        if crash.stack():
+            return "its stack names none of the controller's functions (a build without symbols?)"
+        if self.gdb:
+            return "gdb, which ran the controller, wrote no frames"
+        if shutil.which("gdb") is None:
+            return f"gdb is not installed (core: {crash.core or crash.core_missing})"
+        return "gdb found no frames in the core" if crash.core else f"no core: {crash.core_missing}"
 
     def _core(self, pid: int, dest: Path) -> Optional[Path]:
         pattern = self.core_pattern or ""
@@ -270,8 +316,15 @@ class Supervisor:
         except (ProcessLookupError, PermissionError):
             pass
 
+    def _drop_gdb_log(self) -> None:
+        if self.gdb_log is not None:
+            with contextlib.suppress(OSError):
+                self.gdb_log.unlink()
+            self.gdb_log = None
+
     def stop(self) -> None:
         proc, self.proc = self.proc, None
+        self._drop_gdb_log()
         if proc is None:
             return
         if proc.poll() is not None:
