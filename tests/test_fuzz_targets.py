@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import resource
 import shutil
 import signal
 import subprocess
@@ -442,5 +443,29 @@ def test_a_segfault_with_no_stack_says_that_findings_may_be_merged(tmp_path, pro
     assert info["stack_missing"] == crash.stack_missing and info["top_frames"] == []
     # Either side without a stack: the signal is all that can be compared.
     assert crash.signal_only(write_crash(tmp_path, "finding-002-crash", with_stack)) and with_stack.signal_only(info)
-    assert with_stack.same_bug(info) and crash.same_bug(write_crash(tmp_path, "finding-003-crash", with_stack))
+    stored = write_crash(tmp_path, "finding-003-crash", with_stack)
+    assert with_stack.same_bug(info) and crash.same_bug(stored)
+    assert not crash.site_moved(stored), "no line to have moved: `--replay` said `but for its line` (review)"
     assert not Crash(-signal.SIGBUS).same_bug(info)
+
+
+def test_replay_with_no_core_starts_the_controller_with_core_files_off(tmp_path, programs):
+    """Review: `--replay ... --no-core` was accepted and ignored: the replayed controller could dump
+    core (a pipe to apport made a crash report of every replay)."""
+    exe = programs("plain-null-call")
+    vrpi = M.build(C.PacketType.VRPI, 0, dict(M.ARMED_VRPI, bu_state=0xFF))
+    case = tmp_path / "id-000000.json"
+    case.write_text(json.dumps({"vm110_corpus_entry": 1, "origin": "seed", "packets": [
+        {"hex": vrpi.hex(), "delay_ms": 0, "raw": False, "expect_ack": False}]}))
+    if resource.getrlimit(resource.RLIMIT_CORE)[1] == 0:
+        pytest.skip("core files are off here whatever the flag (hard limit 0)")
+    rx, listen = free_ports(2)
+    for flag, limit in (["--no-core"], "0"), ([], "unlimited" if resource.getrlimit(resource.RLIMIT_CORE)[1] ==
+                                               resource.RLIM_INFINITY else ""):
+        done = subprocess.run([sys.executable, "-m", "vm110", "fuzz", "--replay", str(case), *flag, "--target",
+                               f"127.0.0.1:{rx}", "--listen", f"127.0.0.1:{listen}", "--target-cmd",
+                               f"/bin/sh -c 'echo core limit $(ulimit -c) >&2; exec {exe} {rx} {listen}'"],
+                              capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        said = re.search(r"core limit (\S+)", done.stderr)
+        assert "crash: crash SIGSEGV" in done.stdout and said and (said[1] == limit or (not limit and said[1] != "0")), \
+            (flag, done.stdout + done.stderr)

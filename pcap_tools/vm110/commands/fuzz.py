@@ -315,7 +315,7 @@ def _replay(args: argparse.Namespace) -> int:
         _progress(f"not running the command stored in {args.replay} (give --target-cmd to start a "
                   f"controller): {_printable(finding.target_cmd)!r}")
     try:
-        trig = replay_finding(finding, settings, args.target_cmd, sys.stderr.buffer)
+        trig = replay_finding(finding, settings, args.target_cmd, sys.stderr.buffer, not args.no_core)
     except TargetLost as exc:
         raise CliError(str(exc)) from None
     verdict = "still triggers" if trig else "does not trigger any more"
@@ -339,7 +339,7 @@ def _replay_corpus(args: argparse.Namespace, entry: Entry) -> int:
         raise CliError(f"--target HOST:PORT is needed to replay {args.replay} (a corpus case stores none)")
     settings = _settings(args, args.target, args.listen, args.group)
     try:
-        triggers = replay_corpus_case(entry, settings, args.target_cmd, sys.stderr.buffer)
+        triggers = replay_corpus_case(entry, settings, args.target_cmd, sys.stderr.buffer, not args.no_core)
     except TargetLost as exc:
         raise CliError(str(exc)) from None
     for trig in triggers:

@@ -289,7 +289,7 @@ class Crash:
     def site_moved(self, stored: Any) -> bool:
         """The same bug as a finding's `crash` of today's rules, with its crash site at another line."""
         return self.same_bug(stored) and stored.get("signature_version") == SIGNATURE_VERSION \
-            and stored.get("signature") != self.signature()
+            and stored.get("signature") != self.signature() and not self.signal_only(stored)
 
     def headline(self) -> str:
         """`crash SIGSEGV in dispatch_state (controller.c:141)`, with the sanitizer's error type."""

@@ -738,12 +738,12 @@ def same_bug(finding: F.Finding, trig: Trigger) -> bool:
 
 
 def replay_finding(finding: F.Finding, settings: Settings, target_cmd: Optional[str],
-                   log: Optional[IO[bytes]] = None) -> Optional[Trigger]:
+                   log: Optional[IO[bytes]] = None, core: bool = True) -> Optional[Trigger]:
     """Send the finding again (minimised packet when there is one); the trigger when it still
     triggers (a crash's or malformed output's carries its kind: the finding's first, else another
     bug's), else None. The controller's output goes to `log` (the terminal), not into a file
     beside the finding."""
-    supervisor = Supervisor(target_cmd, log) if target_cmd else None
+    supervisor = Supervisor(target_cmd, log, core=core) if target_cmd else None
     scratch = Path(tempfile.mkdtemp(prefix="vm110-replay-"))
     session = Session(settings, supervisor, scratch)
     try:
@@ -765,11 +765,11 @@ def _close(session: Session) -> None:
 
 
 def replay_corpus_case(entry: Any, settings: Settings, target_cmd: Optional[str],
-                       log: Optional[IO[bytes]] = None) -> list[Trigger]:
+                       log: Optional[IO[bytes]] = None, core: bool = True) -> list[Trigger]:
     """Play one corpus case (`--corpus` file) and wait out the oracles' windows: what fired (the
     controller's output goes to `log`)."""
     from .guided import case_of
-    supervisor = Supervisor(target_cmd, log) if target_cmd else None
+    supervisor = Supervisor(target_cmd, log, core=core) if target_cmd else None
     scratch = Path(tempfile.mkdtemp(prefix="vm110-replay-"))
     session = Session(settings, supervisor, scratch)
     try:
