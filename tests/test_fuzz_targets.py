@@ -66,6 +66,10 @@ def test_heap_overflow_finding_carries_the_asan_report(tmp_path, programs):
     [bucket] = summary["buckets"]
     assert bucket["headline"].startswith("crash SIGABRT heap-buffer-overflow in record_laps (controller.c:")
     assert bucket["headline"] in result.stdout
+    # The progress line names the finding where the summary does (trial: `finding finding-001-crash.json`,
+    # a file not where the run was started)
+    assert f"vm110 fuzz: finding {out / bucket['file']}: crash SIGABRT" in result.stderr, result.stderr
+    assert f"; in {out / bucket['file'].replace('.json', '.pcap')}: frame.number == " in result.stderr, result.stderr
     # Why it stopped, and how to replay it (trial: neither was said).
     assert summary["stopped_early"] == "--max-findings 1 reached"
     assert f"replay one: vm110 fuzz --replay {out / bucket['file']} --target-cmd '{exe} " in result.stdout

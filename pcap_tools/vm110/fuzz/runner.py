@@ -631,11 +631,13 @@ class Runner:
         headline = _headline(trig)
         self.buckets[signature] = F.Bucket(signature, trig.oracle, path.name, trig.time, trig.time, headline=headline,
                                            number=number, size=_size([small] if small is not None else sent))
-        self.cfg.progress(f"finding {path.name}: {trig.detail if trig.oracle == CRASH else trig.oracle} "
+        # (paths as the summary's lines give them: the --out folder's files, where the run was started)
+        self.cfg.progress(f"finding {self.cfg.out / path.name}: {trig.detail if trig.oracle == CRASH else trig.oracle} "
                           f"at case {index} ({description})"
                           + ("; its valid twin triggers too: not the fields it changed" if finding.valid_triggers
                              else "")
-                          + (f"; in {finding.pcap}: {finding.display_filter}" if finding.display_filter else ""))
+                          + (f"; in {self.cfg.out / finding.pcap}: {finding.display_filter}"
+                             if finding.display_filter else ""))
 
 
 class _Budget(Exception):
