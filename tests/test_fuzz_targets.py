@@ -473,3 +473,19 @@ def test_replay_with_no_core_starts_the_controller_with_core_files_off(tmp_path,
         said = re.search(r"core limit (\S+)", done.stderr)
         assert "crash: crash SIGSEGV" in done.stdout and said and (said[1] == limit or (not limit and said[1] != "0")), \
             (flag, done.stdout + done.stderr)
+
+
+def test_a_crash_whose_bisection_the_budget_cuts_short_is_still_a_finding(tmp_path, programs):
+    """Review: with a small --minimize-budget, a crash whose cases (80 since the controller last
+    spoke) replayed together crashed it again, but whose bisection the budget cut, was said to be
+    'a crash no replay made again' with no finding. The fewest cases seen to crash it are its
+    reproducer now, not minimised."""
+    exe = programs("plain-null-call")
+    out = tmp_path / "out"
+    result, summary = fuzz(out, exe, "--cases", "200", "--rate", "1000", "--minimize-budget", "0.5")
+    assert result.returncode == 1 and not summary["unreproduced"], result.stdout + result.stderr
+    [finding] = summary["findings"]
+    data = json.loads((out / finding["file"]).read_text())
+    assert "VRPI bu_state=255" in data["mutation"] and data["crash"]["signal_name"] == "SIGSEGV"
+    again = replay(out / finding["file"], exe)
+    assert again.returncode == 1 and "still triggers" in again.stdout, again.stdout + again.stderr

@@ -24,6 +24,9 @@ SCHEMA = 1
 # What a finding file may hold, beyond its types: it is data from anywhere, never trusted.
 MAX_FILE = 16 << 20
 MAX_STEPS = 64                   # packets a case may send (the longest made here has 20)
+# Cases a run keeps for replays: a crash's suspects, and so the cases a finding may play in turn
+# (all of them when the budget cut its bisection short)
+MAX_CASES = 2000
 _MAX_PACKET = 65_507             # the largest UDP payload over IPv4
 _MAX_MS = 60_000.0               # delays, pauses and withholding
 _MAX_INT = (1 << 63) - 1
@@ -286,8 +289,9 @@ def _checked(raw: dict[str, Any]) -> Finding:
         # Replaying nothing would say "does not trigger any more" of any bug.
         raise _Bad("steps is empty (only a finding no case caused, family 'none', or a case of the base "
                    "unit's doing, a VRPI pause, a VRAI withheld or a stream, has none)")
-    if len(finding.steps) > MAX_STEPS:
-        raise _Bad(f"{len(finding.steps)} steps (at most {MAX_STEPS})")
+    most = MAX_STEPS * (MAX_CASES if finding.cases else 1)
+    if len(finding.steps) > most:
+        raise _Bad(f"{len(finding.steps)} steps (at most {most})")
     for n, step in enumerate(finding.steps):
         if not isinstance(step, dict):
             raise _Bad(f"steps[{n}] is not an object")
@@ -311,8 +315,8 @@ def played(finding: Finding) -> list[dict[str, Any]]:
 
 
 def _cases(cases: list[Any], steps: int) -> None:
-    if not cases or len(cases) > MAX_STEPS:
-        raise _Bad(f"cases: {len(cases)} cases (1 to {MAX_STEPS})")
+    if not cases or len(cases) > MAX_CASES:
+        raise _Bad(f"cases: {len(cases)} cases (1 to {MAX_CASES})")
     for n, case in enumerate(cases):
         if not isinstance(case, dict):
             raise _Bad(f"cases[{n}] is not an object")

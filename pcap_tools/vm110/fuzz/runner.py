@@ -37,7 +37,6 @@ TRIAL = -1               # the case index of replayed packets
 _MAX_SUSPECTS = 12       # replayed one by one (a stall's replay takes over 2 s)
 _MAX_BISECTED = 400      # a stall's suspects bisected when none of those replayed triggers it
 _MAX_LISTED = 100         # suspects listed when none could be replayed (the controller is gone)
-_RECORDS_KEPT = 2000
 _STATUS_EVERY_S = 0.5
 _DYING_WAIT_S = 10.0      # for a sanitizer's report to be written
 _SMALLER_TRIES = 3        # replays per bug of smaller cases that hit it again
@@ -254,7 +253,7 @@ class Runner:
                 sent = self._play(index, case)
                 if self.guided is not None:
                     self.guided.after_case(s, case, sent)
-                while len(self.records) > _RECORDS_KEPT:
+                while len(self.records) > F.MAX_CASES:
                     self.records.popitem(last=False)
                 self.cases_run = index = index + 1
                 if s.monitor.triggers:
@@ -473,14 +472,18 @@ class Runner:
             if key not in cache:
                 cache[key] = self._trial(replay_of(chosen), trig) is not None
             return cache[key]
+        cut = False
         try:
             chosen = _culprits(list(suspects), test)
         except _Budget:
-            chosen = None
+            # The budget ran out, not the crash: the fewest cases seen to crash it are the
+            # reproducer, not minimised (it was said to be a crash no replay made again)
+            crashed = [list(key) for key, hit in cache.items() if hit]
+            chosen, cut = min(crashed, key=len) if crashed else None, True
         if not chosen:
             self._unreproduced(trig, suspects)
             return True
-        if len(chosen) == 1:
+        if len(chosen) == 1 and not cut:
             index = int(chosen[0])  # type: ignore[call-overload]
             case, sent = self.records[index]
             kept, shown, small, complete = self._minimize(trig, case, sent)
@@ -488,6 +491,7 @@ class Runner:
             return True
         indexes = [int(i) for i in chosen]  # type: ignore[call-overload]
         per_case, complete = self._fewest_packets(trig, [Replay.of(*self.records[i]) for i in indexes])
+        complete = complete and not cut
         sent = [p for packets in per_case for p in packets]
         description = " then ".join(f"[{self.records[i][0].description}]" for i in indexes)
         # Each case is kept with what the base unit did during it (its stream, a pause): the
