@@ -453,6 +453,24 @@ def test_a_segfault_with_no_stack_says_that_findings_may_be_merged(tmp_path, pro
     assert not Crash(-signal.SIGBUS).same_bug(info)
 
 
+def test_a_gdb_that_may_not_trace_leaves_the_controller_to_run_alone(tmp_path, programs, monkeypatch):
+    """Review: in a container that forbids ptrace, gdb could not start the controller, and the
+    run ended at once with gdb's error as the controller's last line. gdb is tried first; when it
+    cannot run a program the controller runs alone, and the summary and the crash say why there
+    is no stack."""
+    exe = programs("plain-two-segv")
+    fake = tmp_path / "bin"
+    fake.mkdir()
+    (fake / "gdb").write_text("#!/bin/sh\necho 'ptrace: Operation not permitted.' >&2\nexit 1\n")
+    (fake / "gdb").chmod(0o755)
+    monkeypatch.setenv("PATH", str(fake))
+    sup, crash = _crash_of(exe, tmp_path, ".crash-1", _vrpi(vlaps=4))
+    assert sup.gdb is None and "gdb cannot run the controller here (ptrace: Operation not permitted.)" \
+        in sup.core_files()
+    assert crash.how == {"signal": 11, "signal_name": "SIGSEGV"} and crash.signature() == "SIGSEGV"
+    assert crash.stack_missing.startswith("gdb cannot run the controller here (ptrace: Operation not permitted.)")
+
+
 def test_replay_with_no_core_starts_the_controller_with_core_files_off(tmp_path, programs):
     """Review: `--replay ... --no-core` was accepted and ignored: the replayed controller could dump
     core (a pipe to apport made a crash report of every replay)."""

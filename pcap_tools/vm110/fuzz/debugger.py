@@ -6,9 +6,11 @@ gdb's own lines go to a log file of its own, not into the controller's output; h
 ended is read from that log (gdb itself exits 0 whatever the controller did)."""
 from __future__ import annotations
 
+import functools
 import os
 import re
 import signal
+import subprocess
 from pathlib import Path
 from typing import Optional
 
@@ -35,6 +37,22 @@ def command(gdb: str, log: Path, argv: list[str]) -> list[str]:
     early = ["set auto-load gdb-scripts off", "set auto-load python-scripts off", "set auto-load local-gdbinit off"]
     return [gdb, "-q", "-batch", "-nx", *(a for line in early for a in ("-iex", line)),
             *(a for line in script for a in ("-ex", line)), "--args", *argv]
+
+
+@functools.lru_cache(maxsize=None)
+def cannot_trace(gdb: str) -> Optional[str]:
+    """Why `gdb` cannot run a program here (a container that forbids ptrace, a broken install),
+    tried once on /bin/true; None when it can."""
+    try:
+        done = subprocess.run([gdb, "-q", "-batch", "-nx", "-ex", "set debuginfod enabled off", "-ex", "run",
+                               "--args", "/bin/true"], stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                              errors="replace", timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"{gdb}: {exc}"
+    if returncode(done.stdout) == 0:
+        return None
+    said = [line.strip() for line in (done.stderr + done.stdout).splitlines() if line.strip()]
+    return "".join(c if c.isprintable() else "?" for c in said[-1][:160]) if said else f"{gdb} ran no program"
 
 
 def read_log(log: Optional[Path]) -> str:

@@ -114,14 +114,19 @@ class Supervisor:
         self.core_pattern = cores.read_pattern()
         self.no_core_reason = cores.why_no_core(self.core_pattern, self.core_limit)
         # No core to read a native build's stack from, nor a sanitizer to write it: gdb runs it.
+        # Unless gdb may not trace here (a container without ptrace): then the controller runs alone.
         gdb = shutil.which("gdb")
-        self.gdb = gdb if self.no_core_reason and applies == set() \
-            and program.native(self.argv, self.exe, str(self.cwd)) else None
+        wanted = gdb is not None and bool(self.no_core_reason) and applies == set() \
+            and program.native(self.argv, self.exe, str(self.cwd))
+        self.untraced = debugger.cannot_trace(gdb) if wanted and gdb else None
+        self.gdb = gdb if wanted and self.untraced is None else None
         self.gdb_log: Optional[Path] = None
 
     def core_files(self) -> str:
         """What the run's summary says of core files: "on", or why a crash will leave none."""
         if self.no_core_reason:
+            if self.untraced:
+                return f"{self.no_core_reason}; gdb cannot run the controller here ({self.untraced})"
             return self.no_core_reason + ("; gdb runs the controller, for the stack of a crash" if self.gdb else "")
         return _ASAN_NO_CORE if self.asan and self._asan_without_core() else "on"
 
@@ -281,6 +286,8 @@ class Supervisor:
             return "its stack names none of the controller's functions (a build without symbols?)"
         if self.gdb:
             return "gdb, which ran the controller, wrote no frames"
+        if self.untraced:
+            return f"gdb cannot run the controller here ({self.untraced}); no core: {crash.core_missing}"
         if shutil.which("gdb") is None:
             return f"gdb is not installed (core: {crash.core or crash.core_missing})"
         return "gdb found no frames in the core" if crash.core else f"no core: {crash.core_missing}"
