@@ -168,7 +168,7 @@ def _held_rows(monkeypatch) -> list[int]:
 
     def watch(self, rows, events, final):
         real(self, rows, events, final)
-        held.append(sum(len(h) for rows_ in self.pending.values() for h in rows_))
+        held.append(sum(len(rows_) for rows_ in self.pending.values()))
     monkeypatch.setattr(sender.Sender, "_dispatch", watch)
     return held
 

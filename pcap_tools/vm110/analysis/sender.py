@@ -90,7 +90,7 @@ class Sender:
         self.warm_count = 0
         self.look_s = WARMUP_S                   # when the scope is looked at next (from the first packet)
         self.counters: dict = {}                 # None (scope sender) or type code -> serials.Counter
-        self.pending: dict = {}                  # counter key -> its undecided rows (arrays)
+        self.pending: dict = {}                  # counter key -> its undecided candidate (a row)
         self.streams: dict[int, Stream] = {}
         self.bursts: Optional[Bursts] = None
         self.timeline: Optional[Timeline] = None
@@ -145,7 +145,7 @@ class Sender:
 
     def undecided(self) -> Optional[int]:
         """The first frame not decided yet (its events and any restart before them wait)."""
-        frames = [int(r[0]["frame"][0]) for r in self.pending.values() if r]
+        frames = [int(r["frame"][0]) for r in self.pending.values()]
         if self.warm:
             frames.append(int(self.warm[0]["frame"][0]))
         return min(frames) if frames else None
@@ -185,9 +185,9 @@ class Sender:
         """Time of the last accepted packet of that type so far, an undecided candidate included
         (accepted whatever its decision)."""
         for held in self.pending.values():
-            if held and code_of(held[0]["pid"][:1])[0] == code:
-                frame = int(held[0]["frame"][0])
-                return self.stamps.get(frame, float(held[0]["ts"][0]))
+            if code_of(held["pid"])[0] == code:
+                frame = int(held["frame"][0])
+                return self.stamps.get(frame, float(held["ts"][0]))
         stream = self.streams.get(code)
         return stream.times.last() if stream is not None and len(stream.times) else None
 
@@ -201,11 +201,12 @@ class Sender:
         if final:
             parts.update({k: rows[:0] for k in self.pending if k not in parts})
         for key, new in parts.items():
-            held = self.pending.get(key, [])
-            if held and not final and len(new) and (new["serial"] == held[0]["serial"][0]).all():
-                self._hold(key, held, new)    # more copies of the undecided candidate
+            held = self.pending.pop(key, None)
+            if held is not None and not final and len(new) and (new["serial"] == held["serial"][0]).all():
+                self.pending[key] = held
+                self._hold(key, new)          # more copies of the undecided candidate
                 continue
-            todo = np.concatenate((*held, new)) if held else new
+            todo = new if held is None else np.concatenate((held, new))
             if not len(todo):
                 continue
             counter = self.counters.get(key)
@@ -215,10 +216,9 @@ class Sender:
             done = counter.feed(todo["serial"], todo["ts"], todo["frame"].tolist(), final,
                                 own=self._own_times(todo, take=False))
             decided = todo[:done]
-            self.pending[key] = []
             if done < len(todo):                   # an undecided candidate, then copies of it only
-                self.pending[key] = [todo[done:done + 1].copy()]          # a copy: not the batch
-                self._hold(key, self.pending[key], todo[done + 1:])
+                self.pending[key] = todo[done:done + 1].copy()            # a copy: not the batch
+                self._hold(key, todo[done + 1:])
             for frame, _, _, t in counter.res.restarts[restarts:]:
                 events.append((frame, t, RESTART, self.id, None, None))
             own = self._own_times(decided)
@@ -235,8 +235,8 @@ class Sender:
         get = self.stamps.pop if take else self.stamps.get
         return np.array([get(f, t) for f, t in zip(rows["frame"].tolist(), rows["ts"].tolist())], dtype=np.float64)
 
-    def _hold(self, key, held: list, copies: np.ndarray) -> None:
-        """Copies of the undecided candidate held[0][0]: duplicates whatever it turns out to be
+    def _hold(self, key, copies: np.ndarray) -> None:
+        """Copies of the counter's undecided candidate: duplicates whatever it turns out to be
         (rules.md, rule 5), judged at once (a flood of them costs nothing kept)."""
         if len(copies):
             self.counters[key].copies(int(copies["serial"][0]), copies["ts"], copies["frame"].tolist(),
