@@ -73,6 +73,8 @@ def write_capture(stream: ByteSink, sc: Scenario, seed: int, duration: float, fm
     (default: interpretation.md's)."""
     reading = reading or Reading()
     stations = sc.stations(seed, duration, reading)
+    for station in stations:          # (the truth is made of the packets; a log grows with the run)
+        station.node.keep_log = False
     # One flow per endpoint (a station's port, then its new ports after restarts; to the group on
     # the station's own port), then the other traffic's: its arrivals carry that index.
     flows = [UdpFlow(stations[i].ip, port, C.MULTICAST_GROUP, stations[i].port, ttl=C.MULTICAST_TTL)
