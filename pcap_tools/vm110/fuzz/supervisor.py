@@ -121,6 +121,7 @@ class Supervisor:
         self.untraced = debugger.cannot_trace(gdb) if wanted and gdb else None
         self.gdb = gdb if wanted and self.untraced is None else None
         self.gdb_log: Optional[Path] = None
+        self._gdb_read: tuple[int, Optional[int]] = (-1, None)   # (its size when read, what it said of the end)
 
     def core_files(self) -> str:
         """What the run's summary says of core files: "on", or why a crash will leave none."""
@@ -219,8 +220,19 @@ class Supervisor:
             return code
         # gdb says the signal at once, before its backtrace and its own exit: the crash is seen
         # then, not after cases that went on to a controller stopped in gdb
-        said = debugger.returncode(debugger.read_log(self.gdb_log))
+        said = self._gdb_said()
         return code if said is None else said
+
+    def _gdb_said(self) -> Optional[int]:
+        """How gdb's log says the controller ended (None: not yet); read again only when it has
+        grown (poll() is asked every few milliseconds)."""
+        size, said = self._gdb_read
+        if said is None and self.gdb_log is not None:
+            with contextlib.suppress(OSError):
+                now = self.gdb_log.stat().st_size
+                if now != size:
+                    self._gdb_read = (now, debugger.returncode(debugger.read_log(self.gdb_log)))
+        return self._gdb_read[1]
 
     def output(self) -> bytes:
         """What this start of the controller wrote (its last RING_BYTES), once its output has ended."""
@@ -324,6 +336,7 @@ class Supervisor:
             pass
 
     def _drop_gdb_log(self) -> None:
+        self._gdb_read = (-1, None)
         if self.gdb_log is not None:
             with contextlib.suppress(OSError):
                 self.gdb_log.unlink()
