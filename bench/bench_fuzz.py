@@ -9,7 +9,9 @@ Prints, measured in this run:
 - for information, the whole random phase including its timing sequences (VRPI gaps, withheld
   VRAI, retransmissions), whose waiting is part of the case, not overhead.
 The real run is rate-limited (default 100 case packets/s).
-Then, against the C controller of tests/targets: cases/s blind and with --coverage, and --rate 5000.
+Then, against the C controller of tests/targets: cases/s blind and with --coverage, and --rate 5000;
+and blind against its build without a sanitizer, with core files on and with none (--no-core, as
+where core_pattern pipes to apport), when gdb runs it for the stack of a crash: what gdb costs.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "targets"))
 
 from loopback import free_ports
 from vm110 import constants as C
@@ -89,7 +92,6 @@ def c_target(seconds: float) -> None:
     not crashing): cases/s of the random phase (blind) and of the guided loop (clear the map, send,
     wait until the map settles, read and classify it), rate limit lifted; then whether --rate 5000
     is honoured (packets/s reached, never above)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "targets"))
     import build as targets
     if targets.missing_tools("afl-correct"):
         print("C target: afl-clang-fast or gdb missing (make setup installs them): skipped")
@@ -108,22 +110,7 @@ def c_target(seconds: float) -> None:
             guided.sweep = 0
             guided.corpus.append(Entry([Packet(M.build(C.PacketType.VRCI, 0, M.default_fields(C.PacketType.VRCI)))]))
         start_target(session)
-        first = len(cases.sweep(SEED))
-        n, end = 0, time.time() + seconds
-        while time.time() < end:
-            index = first + n
-            case = guided.next_case(index) if guided else cases.generate(SEED, index)
-            if case.family == "random-sequence":
-                n += 1
-                continue
-            if guided:
-                guided.before_case()
-            sent = session.run_steps(index, [(st.build, st.delay_ms, st.expect_ack) for st in case.steps],
-                                     case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream, case.settle_ms)
-            if guided:
-                guided.after_case(session, case, sent)
-            session.monitor.triggers.clear()
-            n += 1
+        n = _cases(session, guided, seconds)
         results[mode] = n / seconds
         extra = f", {guided.edges()} edges, corpus {len(guided.corpus)}" if guided else ""
         print(f"C target {mode:8s}: {n} cases in {seconds:.0f} s = {n / seconds:,.0f} cases/s{extra}")
@@ -140,6 +127,51 @@ def c_target(seconds: float) -> None:
     print(f"coverage/blind cases/s: {results['coverage'] / results['blind']:.2f}")
 
 
+def _cases(session: Session, guided, seconds: float) -> int:
+    """Cases of the random phase (or the guided loop) run for `seconds`."""
+    first = len(cases.sweep(SEED))
+    n, end = 0, time.time() + seconds
+    while time.time() < end:
+        index = first + n
+        case = guided.next_case(index) if guided else cases.generate(SEED, index)
+        if case.family == "random-sequence":
+            n += 1
+            continue
+        if guided:
+            guided.before_case()
+        sent = session.run_steps(index, [(st.build, st.delay_ms, st.expect_ack) for st in case.steps],
+                                 case.pause_vrpi_ms, case.withhold_vrai_ms, case.stream, case.settle_ms)
+        if guided:
+            guided.after_case(session, case, sent)
+        session.monitor.triggers.clear()
+        n += 1
+    return n
+
+
+def gdb_cost(seconds: float) -> None:
+    """Blind cases/s against the plain build with core files on (it runs alone) and with none (gdb
+    runs it), interleaved, best of 2."""
+    import build as targets
+    if targets.missing_tools("plain-correct"):
+        print("gdb: gcc or gdb missing (make setup installs them): skipped")
+        return
+    exe = targets.build("plain-correct", Path(tempfile.gettempdir()) / "vm110-bench-targets")
+    rates: dict[bool, float] = {}
+    for core in (True, False, True, False):
+        rx, listen = free_ports(2)
+        settings = Settings(target=("127.0.0.1", rx), listen=("127.0.0.1", listen), rate=1e9, limits=Limits())
+        out = Path(tempfile.mkdtemp(prefix="vm110-bench-"))
+        runner = Runner(RunConfig(settings=settings, duration_s=seconds, out=out, target_cmd=f"{exe} {rx} {listen}",
+                                  core=core))
+        assert runner.supervisor is not None and bool(runner.supervisor.gdb) != core, runner.supervisor.core_files()
+        start_target(runner.session)
+        rates[core] = max(rates.get(core, 0.0), _cases(runner.session, None, seconds) / seconds)
+        runner.session.close()
+    print(f"plain build, core files on: {rates[True]:,.0f} cases/s; --no-core, under gdb: {rates[False]:,.0f} cases/s")
+    print(f"gdb/alone cases/s: {rates[False] / rates[True]:.2f}")
+
+
 if __name__ == "__main__":
     main()
     c_target(5.0)
+    gdb_cost(5.0)
