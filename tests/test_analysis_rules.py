@@ -345,8 +345,8 @@ def test_copies_of_an_undecided_candidate_cost_no_memory(tmp_path):
     stays cheap and flat."""
     tr = Traffic()
     _counter(tr, [k * 0.125 for k in range(8)], range(500, 508))
-    copies = 30_000
-    _counter(tr, [3.0 + k * 0.00002 for k in range(copies + 1)], [0] * (copies + 1))    # 0.6 s of copies
+    copies = 3_000
+    _counter(tr, [3.0 + k * 0.0002 for k in range(copies + 1)], [0] * (copies + 1))     # 0.6 s of copies
     _counter(tr, [3.7, 3.8], [1, 2])                                                    # confirmed
     report = _report(tr, tmp_path)
     ser = _sender(report, f"{BU}:5825")["serial"]

@@ -27,6 +27,7 @@ from scapy.utils import rdpcap
 import tshark_runner as T
 from vm110 import constants as C
 from vm110.analysis import analyze
+from vm110.analysis.report import Options
 from vm110.analysis.findings import FINDINGS, RULE_FILTERS
 from vm110.decode import decode
 
@@ -843,14 +844,14 @@ def test_limits_are_judged_to_the_microsecond_in_analyze_as_in_the_dissector(tsh
 ALL_CAPTURES = sorted(p for p in CAPTURES.iterdir() if p.suffix in (".pcap", ".pcapng"))
 
 
-def analyze_json(capture: Path, tmp_path: Path) -> dict:
-    import subprocess
-    import sys
-    out = tmp_path / f"{capture.name}.json"
-    proc = subprocess.run([sys.executable, "-m", "vm110", "analyze", str(capture), "--json", str(out), "--quiet",
-                           "--serial-scope", "sender"], capture_output=True, text=True)
-    assert proc.returncode == 0 and out.exists(), proc.stderr[-2000:]
-    return json.loads(out.read_text())
+_SENDER_REPORTS: dict = {}
+
+
+def sender_report(capture: Path) -> dict:
+    """`vm110 analyze --serial-scope sender` (the dissector's default scope), once per capture."""
+    if capture.name not in _SENDER_REPORTS:
+        _SENDER_REPORTS[capture.name] = analyze(str(capture), options=Options(serial_scope="sender"))
+    return _SENDER_REPORTS[capture.name]
 
 
 def dissector_counts(rows: list[Row]) -> dict:
@@ -907,7 +908,7 @@ def test_counts_equal_vm110_analyze(tshark, capture, tmp_path):
     restarts, watchdog violations (with the silences to the end), commands, retransmissions,
     unacknowledged and interrupted commands, VRPO burst intervals outside the recommended range."""
     rows = dissected(tshark, capture, tmp_path)
-    got, want = dissector_counts(rows), report_counts(analyze_json(capture, tmp_path))
+    got, want = dissector_counts(rows), report_counts(sender_report(capture))
     keys = sorted(set(got) | set(want), key=str)
     differ = [k for k in keys if got[k] != want[k]]
     assert {k: got[k] for k in differ} == {k: want[k] for k in differ}
@@ -987,6 +988,8 @@ def _serials_per_type(data: bytes, serials, frame) -> list[bytes]:
     return [data, data] if data[:4] == b"VRPO" and serial == 12 else [data]
 
 
+_OPTION_REPORTS: dict = {}
+
 # Options other than the defaults, each with the preferences the report must name for them.
 OTHER_OPTIONS = [
     ("loss.pcapng", None, ["--dup-window", "500", "--vrpo-range", "90", "110", "--vrpi-watchdog", "300"],
@@ -1007,9 +1010,12 @@ def test_a_findings_filter_with_other_options_names_the_preferences_it_needs(tsh
     all (trial): Wireshark at its defaults would mark other frames. It now names the preferences
     under which the dissector judges as it did, and under them each filter marks exactly its items."""
     capture = CAPTURES / name if change is None else _rewritten(CAPTURES / name, tmp_path / f"x-{name}", change)
-    done = subprocess.run([sys.executable, "-m", "vm110", "analyze", str(capture), "--json", "-", "--quiet", *options],
-                          capture_output=True, text=True, timeout=300)
-    report = json.loads(done.stdout)
+    key = (name, change and change.__name__, tuple(options))     # (the same report for every tshark)
+    if key not in _OPTION_REPORTS:
+        done = subprocess.run([sys.executable, "-m", "vm110", "analyze", str(capture), "--json", "-", "--quiet",
+                               *options], capture_output=True, text=True, timeout=300)
+        _OPTION_REPORTS[key] = json.loads(done.stdout)
+    report = _OPTION_REPORTS[key]
     assert report["verdict"]["wireshark_prefs"] == prefs
     filtered = [f for f in report["verdict"]["findings"] if "filter" in f]
     assert filtered and all(f["rule"] in RULE_FILTERS for f in filtered)
