@@ -211,13 +211,14 @@ def test_a_minimised_missing_ack_names_the_command_its_packets_leave_unacknowled
     assert (trig.command_id, trig.detail) == (1, "no VRAO for command ID 1 within 1000 ms")
 
 
-def test_status_line_counts_one_bug_and_one_hit_in_the_singular(capsys):
-    """Trial: the status line read '1 bugs (1 hits)', the summary '1 findings (1 triggers)'."""
+def test_status_line_counts_as_the_summary_does_in_the_singular(capsys):
+    """Trial: the status line read '1 bugs (1 hits)', the summary '1 findings (1 triggers)': two
+    names for one count. Both now say findings and triggers."""
     from vm110.commands.fuzz import _StatusLine
-    _StatusLine()({"cases": 1, "rate": 1.0, "buckets": 1, "hits": 1, "left_s": None})
-    assert "1 case, 1/s, 1 bug (1 hit)" in capsys.readouterr().err
-    _StatusLine()({"cases": 2, "rate": 1.0, "buckets": 2, "hits": 0, "left_s": None})
-    assert "2 cases, 1/s, 2 bugs (0 hits)" in capsys.readouterr().err
+    _StatusLine()({"cases": 1, "rate": 1.0, "findings": 1, "triggers": 1, "left_s": None})
+    assert "1 case, 1/s, 1 finding (1 trigger)" in capsys.readouterr().err
+    _StatusLine()({"cases": 2, "rate": 1.0, "findings": 2, "triggers": 0, "left_s": None})
+    assert "2 cases, 1/s, 2 findings (0 triggers)" in capsys.readouterr().err
 
 
 def test_a_crash_made_by_a_case_s_stream_is_confirmed_among_several_suspects(runner):

@@ -257,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _n(count: int, word: str) -> str:
-    """`1 bug`, `2 bugs`: the status and summary lines counted '1 bugs (1 hits)'."""
+    """`1 finding`, `2 findings`: the status and summary lines counted '1 bugs (1 hits)'."""
     return f"{count} {word}{'' if count == 1 else 's'}"
 
 
@@ -269,7 +269,7 @@ class _StatusLine:
 
     def __call__(self, line: dict[str, Any]) -> None:
         parts = [_n(line["cases"], "case"), f"{line['rate']:.0f}/s",
-                 f"{_n(line['buckets'], 'bug')} ({_n(line['hits'], 'hit')})"]
+                 f"{_n(line['findings'], 'finding')} ({_n(line['triggers'], 'trigger')})"]
         if "edges" in line:
             parts += [f"{line['edges']} edges", f"corpus {line['corpus']}"]
         if line["left_s"] is not None:

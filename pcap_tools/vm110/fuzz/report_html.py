@@ -83,8 +83,8 @@ def render(summary: dict[str, Any]) -> str:
          f"edges of a {cov.get('map_size', 0)}-byte map; corpus {cov.get('corpus', 0)} cases.</p>"),
         _notes(summary, cov),
         _edges_plot(cov.get("edges_over_time", [])),
-        "<h2>Bugs (one row per signature)</h2>",
-        ("<table class='findings'><tr><th>bug</th><th>hits</th><th>first seen (UTC, from the run's start)</th>"
+        "<h2>Findings (one row per signature)</h2>",
+        ("<table class='findings'><tr><th>finding</th><th>triggers</th><th>first seen (UTC, from the run's start)</th>"
          f"<th>case</th><th>finding, pcap, display filter</th></tr>{rows}</table>") if rows
         else "<p>none</p>",
         f"<p>vm110 {_e(__version__)}</p></body></html>"])

@@ -304,9 +304,9 @@ class Runner:
         self._last_status = now
         elapsed = max(1e-6, now - self.started)
         left = None if self.end is None else max(0.0, self.end - now)
-        line: dict[str, Any] = {"cases": self.cases_run, "rate": self.cases_run / elapsed, "buckets": len(self.buckets),
-                                "findings": len(self.findings), "hits": sum(b.count for b in self.buckets.values()),
-                                "left_s": left}
+        line: dict[str, Any] = {"cases": self.cases_run, "rate": self.cases_run / elapsed,
+                                "findings": len(self.findings),
+                                "triggers": sum(b.count for b in self.buckets.values()), "left_s": left}
         if self.guided is not None:
             line.update(edges=self.guided.edges(), corpus=len(self.guided.corpus))
         self.cfg.status(line)
