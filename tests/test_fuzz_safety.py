@@ -638,7 +638,7 @@ def test_a_finding_names_the_frames_of_its_evidence_in_its_pcap(tmp_path):
     findings.write_finding(tmp_path, 1, finding, traffic, bu)
     saved = json.loads((tmp_path / "finding-001-malformed_output.json").read_text())
     assert (saved["frame"], saved["output_frame"]) == (2, 3)
-    assert saved["display_filter"] == "frame.number == 2 || frame.number == 3"
+    assert saved["display_filter"] == "frame.number in {2..3}"
     with PcapReader(str(tmp_path / saved["pcap"])) as reader:
         frames = [bytes(frame[UDP].payload) for frame in reader]
     assert frames[saved["frame"] - 1] == case and frames[saved["output_frame"] - 1] == vrao
@@ -662,7 +662,7 @@ def test_a_finding_of_several_packets_names_each_of_their_frames(tmp_path):
                                   "packet_hex": engage.hex(), "pcap": ""})
     findings.write_finding(tmp_path, 1, finding, traffic, bu)
     saved = json.loads((tmp_path / "finding-001-crash.json").read_text())
-    assert saved["frame"] == 3 and saved["display_filter"] == "frame.number == 1 || frame.number == 3"
+    assert saved["frame"] == 3 and saved["display_filter"] == "frame.number in {1, 3}"
 
 
 def test_a_failed_finding_write_keeps_the_previous_files(tmp_path):

@@ -313,7 +313,7 @@ def test_progress_line_on_a_terminal(tmp_path, programs):
     lines = [part for part in text.split("\r") if "vm110 fuzz:" in part and "cases" in part]
     assert len(lines) >= 2, text
     last = lines[-1]
-    for piece in ("cases", "/s", "bugs", "edges", "corpus", "s left"):
+    for piece in ("cases", "/s", "findings (", "triggers)", "edges", "corpus", "s left"):
         assert piece in last, last
     assert proc.returncode == 0
 

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 from .. import constants as C
+from ..analysis.findings import frame_filter
 from ..capture.writer import PcapWriter, UdpFlow
 from ..decode import decode
 from ..errors import CliError
@@ -86,7 +87,7 @@ def write_finding(out: Path, number: int, finding: Finding,
     found = [n for n in (finding.frame, *steps) if n is not None]
     streamed = _stream_frames(traffic, finding, min(found, default=1))
     shown = sorted({n for n in (*found, *streamed, finding.output_frame) if n is not None})
-    finding.display_filter = " || ".join(f"frame.number == {n}" for n in shown) or None
+    finding.display_filter = frame_filter(shown) if shown else None     # (runs as ranges: a short line)
     write_pcap(out / finding.pcap, traffic, local)
     path = out / f"{base}.json"
     write_text(path, json.dumps(asdict(finding), indent=2) + "\n")
