@@ -639,6 +639,7 @@ def test_a_finding_names_the_frames_of_its_evidence_in_its_pcap(tmp_path):
     saved = json.loads((tmp_path / "finding-001-malformed_output.json").read_text())
     assert (saved["frame"], saved["output_frame"]) == (2, 3)
     assert saved["display_filter"] == "frame.number in {2..3}"
+    assert _shown_by_tshark(tmp_path / saved["pcap"], saved["display_filter"]) == [2, 3]
     with PcapReader(str(tmp_path / saved["pcap"])) as reader:
         frames = [bytes(frame[UDP].payload) for frame in reader]
     assert frames[saved["frame"] - 1] == case and frames[saved["output_frame"] - 1] == vrao
@@ -663,6 +664,16 @@ def test_a_finding_of_several_packets_names_each_of_their_frames(tmp_path):
     findings.write_finding(tmp_path, 1, finding, traffic, bu)
     saved = json.loads((tmp_path / "finding-001-crash.json").read_text())
     assert saved["frame"] == 3 and saved["display_filter"] == "frame.number in {1, 3}"
+    assert _shown_by_tshark(tmp_path / saved["pcap"], saved["display_filter"]) == [1, 3]
+
+
+def _shown_by_tshark(pcap: Path, display_filter: str) -> list[int]:
+    """The frames Wireshark (the host's tshark) shows under a finding's display filter."""
+    if shutil.which("tshark") is None:
+        pytest.fail("tshark is not installed: run `make setup`")
+    shown = subprocess.run(["tshark", "-n", "-r", str(pcap), "-Y", display_filter, "-T", "fields", "-e", "frame.number"],
+                           capture_output=True, text=True, timeout=60, check=True)
+    return [int(n) for n in shown.stdout.split()]
 
 
 def test_a_failed_finding_write_keeps_the_previous_files(tmp_path):
