@@ -720,6 +720,24 @@ def test_a_folder_a_glob_cannot_look_into_is_said(src, tmp_path, pattern):
     assert str(locked / "loss.pcapng") in {r["file"] for r in rows(dataset)}
 
 
+def test_an_unreadable_capture_a_glob_found_that_is_gone_is_no_longer_counted(src, tmp_path):
+    """As for a folder walked: a file a glob pattern found, unreadable, then removed, kept its
+    unreadable row for ever (the pattern no longer names it). The next build of that pattern removes
+    it; another pattern's build keeps it."""
+    (src / "gone.pcap").symlink_to(src / "nothing.pcap")
+    dataset, pattern = tmp_path / "ds", str(src / "*.pcap")
+    first = vm110("fleet", "build", pattern, "--out", str(dataset), "-j", "1")
+    assert first.returncode == 2 and "1 unreadable" in first.stdout, first
+    (src / "gone.pcap").unlink()
+    other = vm110("fleet", "build", str(src / "normal.pcap*"), "--out", str(dataset), "-j", "1")
+    assert other.returncode == 0 and "removed" not in other.stdout, other
+    assert [Path(r["file"]).name for r in rows(dataset, "errors")] == ["gone.pcap"]
+    last = vm110("fleet", "build", pattern, "--out", str(dataset), "-j", "1")
+    assert last.returncode == 0 and "0 analysed" in last.stdout, last
+    assert "1 unreadable no longer there (removed)" in last.stdout
+    assert rows(dataset, "errors") == [] and sorted(Path(r["file"]).name for r in rows(dataset)) == sorted(NAMES)
+
+
 def test_an_unreadable_capture_that_is_gone_is_no_longer_counted(src, built):
     """A capture that could not be read (removed while a build ran, a broken link) and is then gone
     from the folder stayed an unreadable row for ever: a failing capture of its machine in every

@@ -6,6 +6,8 @@ manifest no longer lists them; complete captures of a build that was stopped are
 """
 from __future__ import annotations
 
+import fnmatch
+import glob
 import os
 import sys
 import time
@@ -89,8 +91,10 @@ def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern
     if not dataset.exists():
         dataset.check_new()
     walked = [os.path.abspath(s) for s in srcs if os.path.isdir(s)]
+    patterns = [os.path.abspath(s) for s in srcs if glob.has_magic(s) and not os.path.exists(s)]
     with dataset.lock():
-        outcome = _build(dataset, wanted, Walked(walked, globbed), settings, engine, jobs, scheduler, progress)
+        outcome = _build(dataset, wanted, Walked(walked, globbed, patterns), settings, engine, jobs, scheduler,
+                         progress)
     if pattern is not None:
         outcome.unmatched = [s.path for s in wanted if pattern.fields(s.path) is None]
     return outcome
@@ -191,23 +195,27 @@ def _without_copies(listed: dict, wanted: list[Source], todo: list[Source]) -> t
 
 @dataclass(frozen=True)
 class Walked:
-    """Where this build looked: the SRC folders walked (all below them seen) and the folders its
-    glob patterns looked into and could."""
+    """Where this build looked: the SRC folders walked (all below them seen), the folders its
+    glob patterns looked into and could, and the patterns (absolute)."""
 
     roots: list[str]
     globbed: set[str]
+    patterns: list[str]
 
 
 def _gone_unreadable(listed: dict, wanted: list[Source], walked: Walked) -> set[str]:
     """The unreadable entries inside a folder this build walked that the walk no longer finds (a
-    file removed or renamed, a folder that can be read now), and the folders a glob could not look
-    into that it now can: there is nothing left to try again, and kept, each would count as a
-    failing capture for ever."""
+    file removed or renamed, a folder that can be read now), the folders a glob could not look
+    into that it now can, and the files a pattern of this build names that are gone: there is
+    nothing left to try again, and kept, each would count as a failing capture for ever. (fnmatch
+    is looser than glob, `*` crossing folders: only for a path that is not there.)"""
     current = {s.path for s in wanted}
     return {cid for cid, entry in listed.items()
             if entry["status"] == "unreadable" and entry["file"] not in current
             and (entry["file"] in walked.globbed
-                 or any(os.path.commonpath([entry["file"], root]) == root for root in walked.roots))}
+                 or any(os.path.commonpath([entry["file"], root]) == root for root in walked.roots)
+                 or (not os.path.lexists(entry["file"])
+                     and any(fnmatch.fnmatchcase(entry["file"], p) for p in walked.patterns)))}
 
 
 def _moved(listed: dict, wanted: list[Source]) -> dict[str, set[str]]:
