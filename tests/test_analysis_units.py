@@ -240,6 +240,30 @@ def test_serial_scope_auto_detects_per_type_counters(tmp_path):
     assert forced["scope"] == "sender" and (forced["duplicates"], forced["out_of_order"], forced["restarts"]) == (3, 7, 0)
 
 
+
+def test_a_sender_of_one_packet_type_leaves_the_scope_preference_to_the_others(tmp_path):
+    """A base unit counting per type and a second one sending VRPI alone: the report gave no
+    Wireshark preferences and no rule filters (trial: "scopes differ"), though the VRPI-only unit
+    has one counter under either scope and `vm110.serial_scope:type` judges both as the report."""
+    tr = Traffic()
+    for i in range(40):
+        if i != 20:                                                           # one VRPI lost
+            tr.add(i * 0.125, vrpi(i))
+        if i % 8 == 1:
+            tr.add(i * 0.125 + 0.01, payload(VRCI, 300 + i // 8, BU_ORIGIN, command_id=i // 8))   # own counter
+        tr.add(i * 0.125 + 0.05, vrpi(7000 + i, origin=0x0202), src="10.0.0.11")
+    tr.write(tmp_path / "t.pcap")
+    report = analyze(str(tmp_path / "t.pcap"))
+    assert [s["serial"]["scope"] for s in report["senders"]] == ["type", "sender"]
+    assert report["verdict"]["wireshark_prefs"] == ["vm110.serial_scope:type"]
+    unacked = next(f for f in report["verdict"]["findings"] if f["rule"] == "unacked")
+    assert unacked["filter"] == "vm110.expert.never_acked"
+    # What the preference asks for: every sender counted per type judges as the report did.
+    typed = analyze(str(tmp_path / "t.pcap"), options=Options(serial_scope="type"))
+    assert ([{**s["serial"], "scope": None} for s in typed["senders"]]
+            == [{**s["serial"], "scope": None} for s in report["senders"]])
+
+
 def _vrpi_traffic(n: int = 12) -> Traffic:
     tr = Traffic()
     for i in range(n):

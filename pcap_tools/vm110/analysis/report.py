@@ -129,8 +129,9 @@ def wireshark_prefs(report: dict, opt: Options) -> Optional[list[str]]:
     """The dissector's preferences (`-o` values, `vm110.NAME:VALUE`) under which Wireshark judges
     the capture as the report did, those not at their defaults; None when no preferences do: some
     senders' serials counted per sender and others' per type, or a time of a fraction of a
-    millisecond (the preferences are whole milliseconds)."""
-    scopes = {s["serial"]["scope"] for s in report["senders"]}
+    millisecond (the preferences are whole milliseconds). A sender of one packet type has one
+    counter under either scope: its scope does not decide the preference."""
+    scopes = {s["serial"]["scope"] for s in report["senders"] if len(s["by_type"]) > 1}
     if len(scopes) > 1:
         return None
     prefs = ["vm110.serial_scope:type"] if scopes == {"type"} else []
