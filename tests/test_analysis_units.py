@@ -238,6 +238,31 @@ def test_serial_scope_auto_detects_per_type_counters(tmp_path):
     # One counter: VRCI k repeats VRPI k's serial 0.375 k + 0.135 s later: a duplicate within the
     # 1000 ms window (k <= 2), an unconfirmed restart candidate (out of order) after it.
     assert forced["scope"] == "sender" and (forced["duplicates"], forced["out_of_order"], forced["restarts"]) == (3, 7, 0)
+    # Why, in the report's words: the anomalies of each reading (rules.md), the one counter's
+    # those of the forced report (5 s of packets: the end of the capture decided on all 50).
+    one = sum(forced[k] for k in ("lost", "duplicates", "out_of_order", "restarts"))
+    assert ser["scope_reason"] == f"auto, on all its 50 packets: {one} anomalies with one counter, 0 with one per type"
+    assert forced["scope_reason"] == "set by --serial-scope"
+
+
+def test_the_report_says_a_scope_was_chosen_on_one_packet_type(tmp_path):
+    """A base unit sending VRPI alone for its first 15 s, then commands on their own counter: the
+    look at 10 s sees VRPI only and takes one counter (rules.md, T >= S), so the commands show as
+    out of order. The report said only "serial scope sender" (trial): it now says what it was
+    chosen on, so that the reader knows the out-of-order packets may be its choice."""
+    from vm110.analysis import report_html, summary
+    tr = Traffic()
+    for i in range(160):
+        tr.add(i * 0.125, vrpi(i))
+        if i >= 120 and i % 8 == 1:
+            tr.add(i * 0.125 + 0.01, payload(VRCI, i // 8, BU_ORIGIN, command_id=i // 8))   # own counter
+    tr.write(tmp_path / "t.pcap")
+    report = analyze(str(tmp_path / "t.pcap"))
+    ser = report["senders"][0]["serial"]
+    why = "auto, on the 80 packets of its first 10 s: all VRPI: one type cannot tell, one counter assumed"
+    assert (ser["scope"], ser["scope_reason"]) == ("sender", why) and ser["out_of_order"] == 5
+    assert f"(serial scope sender: {why})" in summary.render(report)
+    assert f"sender ({why})" in report_html.render([report])
 
 
 
@@ -260,8 +285,9 @@ def test_a_sender_of_one_packet_type_leaves_the_scope_preference_to_the_others(t
     assert unacked["filter"] == "vm110.expert.never_acked"
     # What the preference asks for: every sender counted per type judges as the report did.
     typed = analyze(str(tmp_path / "t.pcap"), options=Options(serial_scope="type"))
-    assert ([{**s["serial"], "scope": None} for s in typed["senders"]]
-            == [{**s["serial"], "scope": None} for s in report["senders"]])
+    judged = [[{k: v for k, v in s["serial"].items() if not k.startswith("scope")} for s in r["senders"]]
+              for r in (typed, report)]
+    assert judged[0] == judged[1]
 
 
 def _vrpi_traffic(n: int = 12) -> Traffic:

@@ -179,7 +179,8 @@ def _sender_report(snd: Sender, where: findings.Where) -> dict:
         "id": name, "direction": snd.direction, "origin": snd.origin, "src": snd.src,
         "by_type": {TYPES[c].value: counts[c] for c in sorted(counts, key=lambda c: TYPES[c].value)},
         "serial": {
-            "scope": snd.scope, "received": res.received, "lost": res.lost, "duplicates": res.duplicates,
+            "scope": snd.scope, "scope_reason": snd.scope_reason,
+            "received": res.received, "lost": res.lost, "duplicates": res.duplicates,
             "out_of_order": res.out_of_order, "wraps": res.wraps, "restarts": len(restarts),
             "lost_serials": res.lost_serials, "duplicate_serials": res.duplicate_serials,
             "out_of_order_serials": res.out_of_order_serials, "gaps": gaps, "restart_events": restarts,

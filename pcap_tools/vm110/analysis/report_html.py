@@ -503,7 +503,8 @@ def _section(report: dict) -> str:
     out.append("<h3>Senders</h3>")
     out.append(_table(["sender", "packets by type", "scope", "received", "lost", "gaps", "duplicates",
                        "out of order", "wraps", "restarts"],
-                      [[s["id"], ", ".join(f"{k} {v}" for k, v in s["by_type"].items()), s["serial"]["scope"],
+                      [[s["id"], ", ".join(f"{k} {v}" for k, v in s["by_type"].items()),
+                        f'{s["serial"]["scope"]} ({s["serial"]["scope_reason"]})',
                         s["serial"]["received"], s["serial"]["lost"], summary.open_gaps(s["serial"]["gaps"]),
                         s["serial"]["duplicates"], s["serial"]["out_of_order"], s["serial"]["wraps"],
                         "; ".join([str(s["serial"]["restarts"])] + [

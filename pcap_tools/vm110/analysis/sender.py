@@ -40,24 +40,26 @@ TYPE_SCOPE_MARGIN = 4     # auto: type scope needs at most half the anomalies, a
 COMMAND_CODES = np.array(sorted(CODE[t] for t in (C.PacketType.VRCI, C.PacketType.VRCO, *C.ACK_OF)))
 
 
-def choose_scope(rows: np.ndarray, opt) -> tuple[str, bool]:
+def choose_scope(rows: np.ndarray, opt) -> tuple[str, bool, str]:
     """`auto`: per-type counters only when they explain the packets clearly better: with one
     counter per sender, a type's stream can look clean only by accident (say, a loss just before
     its first packet). And whether the rows tell: not when per-type counters explain them better,
-    but not by the margin (too few anomalies yet)."""
+    but not by the margin (too few anomalies yet). Last, why, in words for the report."""
     codes, window = code_of(rows["pid"]), opt.dup_window_ms
     if (codes == codes[0]).all():
-        return "sender", True
+        return "sender", True, f"all {TYPES[int(codes[0])].value}: one type cannot tell, one counter assumed"
     by_sender = serials.classify(rows["serial"], rows["ts"], dup_window_ms=window)
     if by_sender.anomalies == 0:
-        return "sender", True
+        return "sender", True, "one counter explains them without an anomaly"
+    one = f"{by_sender.anomalies} anomalies with one counter"
     by_type = serials.classify_sender(rows["serial"], rows["ts"], codes, "type", limit=by_sender.anomalies - 1,
                                       dup_window_ms=window)
     if by_type.aborted:
-        return "sender", True
+        return "sender", True, f"{one}, as many or more with one per type"
+    two = f"{one}, {by_type.anomalies} with one per type"
     if 2 * by_type.anomalies + TYPE_SCOPE_MARGIN <= by_sender.anomalies:
-        return "type", True
-    return "sender", False
+        return "type", True, two
+    return "sender", False, f"{two} (not half and {TYPE_SCOPE_MARGIN} fewer: cannot tell, one counter assumed)"
 
 
 @dataclass
@@ -86,6 +88,7 @@ class Sender:
         self.last_ts, self.last_frame, self.last_code = self.first_ts, self.first_frame, self.first_code
         self.counts = np.zeros(len(TYPES), dtype=np.int64)
         self.scope: Optional[str] = None if opt.serial_scope == "auto" else opt.serial_scope
+        self.scope_reason = "set by --serial-scope"    # (auto: how the packets chose it)
         self.warm: list[np.ndarray] = []
         self.warm_count = 0
         self.look_s = WARMUP_S                   # when the scope is looked at next (from the first packet)
@@ -128,11 +131,13 @@ class Sender:
         last look, or a full count, chooses anyway)."""
         rows = np.concatenate(self.warm)
         self.warm = [rows]
-        scope, tells = choose_scope(rows, self.opt)
+        scope, tells, why = choose_scope(rows, self.opt)
         if not tells and self.warm_count < WARMUP_PACKETS and self.look_s < WARMUP_MAX_S:
             self.look_s *= 2
             return
-        self._decide(events, False, scope)
+        which = (f"its first {len(rows)} packets" if self.warm_count >= WARMUP_PACKETS
+                 else f"the {len(rows)} packets of its first {self.look_s:g} s")
+        self._decide(events, False, (scope, f"auto, on {which}: {why}"))
 
     def finish(self, events: list) -> None:
         """The capture ended: decide what is left."""
@@ -150,10 +155,14 @@ class Sender:
             frames.append(int(self.warm[0]["frame"][0]))
         return min(frames) if frames else None
 
-    def _decide(self, events: list, final: bool, scope: Optional[str] = None) -> None:
+    def _decide(self, events: list, final: bool, chosen: Optional[tuple[str, str]] = None) -> None:
+        """`chosen`: the scope and why; None at the end of the capture, chosen here on all rows."""
         rows = np.concatenate(self.warm)
         self.warm, self.warm_count = [], 0
-        self.scope = scope or choose_scope(rows, self.opt)[0]
+        if chosen is None:
+            scope, _, why = choose_scope(rows, self.opt)
+            chosen = scope, f"auto, on all its {len(rows)} packets: {why}"
+        self.scope, self.scope_reason = chosen
         # Probes that came while warming up: their moment lies inside these rows.
         for probe in sorted(self.probes, key=lambda p: p.frame):
             cut = int(np.searchsorted(rows["frame"], probe.frame))

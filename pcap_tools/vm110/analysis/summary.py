@@ -113,7 +113,7 @@ def render(report: dict, everything: bool = False) -> str:
     for snd in report["senders"]:
         ser = snd["serial"]
         lines.append("")
-        lines.append(f"Sender {snd['id']}  (serial scope {ser['scope']})")
+        lines.append(f"Sender {snd['id']}  (serial scope {ser['scope']}: {ser['scope_reason']})")
         types = ", ".join(f"{t} {n}" for t, n in snd["by_type"].items())
         lines.append(f"  packets: {types}")
         lines.append(f"  serials: received {ser['received']}, lost {ser['lost']} in {open_gaps(ser['gaps'])} gaps, "
