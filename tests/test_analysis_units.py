@@ -265,7 +265,6 @@ def test_the_report_says_a_scope_was_chosen_on_one_packet_type(tmp_path):
     assert f"sender ({why})" in report_html.render([report])
 
 
-
 def test_a_sender_of_one_packet_type_leaves_the_scope_preference_to_the_others(tmp_path):
     """A base unit counting per type and a second one sending VRPI alone: the report gave no
     Wireshark preferences and no rule filters (trial: "scopes differ"), though the VRPI-only unit

@@ -16,7 +16,7 @@ from .report_json import normalise
 from .bursts import Bursts
 from .sender import Sender
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 SCOPES = ("auto", "sender", "type")
 
 
