@@ -51,7 +51,7 @@ def choose_scope(rows: np.ndarray, opt) -> tuple[str, bool, str]:
     by_sender = serials.classify(rows["serial"], rows["ts"], dup_window_ms=window)
     if by_sender.anomalies == 0:
         return "sender", True, "one counter explains them without an anomaly"
-    one = f"{by_sender.anomalies} anomalies with one counter"
+    one = f"{by_sender.anomalies} anomal{'y' if by_sender.anomalies == 1 else 'ies'} with one counter"
     by_type = serials.classify_sender(rows["serial"], rows["ts"], codes, "type", limit=by_sender.anomalies - 1,
                                       dup_window_ms=window)
     if by_type.aborted:
