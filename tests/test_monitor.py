@@ -119,6 +119,34 @@ def test_the_dashboard_gives_each_latest_finding_its_filter(tmp_path):
     assert last and f"#{findings[-1]['frame']} " in last[0]
 
 
+def test_the_live_view_says_each_sender_s_serial_scope(tmp_path):
+    """A base unit numbering VRPI and VRCI on counters of their own: the live view gave its serial
+    verdicts with no word of the scope they were judged in (only the end's report had it). Each
+    snapshot now names it, null while `auto` is still choosing (its first 10 s), and the
+    dashboard says it; at the end, the report's."""
+    from test_analysis_craft import BU_ORIGIN, Traffic, payload, vrpi
+    from vm110.layers import VRCI
+    from vm110.monitor import dashboard
+    tr = Traffic()
+    for i in range(160):                                                  # 20 s of VRPI
+        tr.add(i * 0.125, vrpi(i))
+        if i % 8 == 1:
+            tr.add(i * 0.125 + 0.01, payload(VRCI, i // 8, BU_ORIGIN, command_id=i // 8))   # its own counter
+    tr.write(tmp_path / "t.pcap")
+    lines, report = tmp_path / "live.jsonl", tmp_path / "m.json"
+    main(["monitor", "--read", str(tmp_path / "t.pcap"), "--idle", "0", "--no-dashboard", "--quiet",
+          "--crc", "mpeg2", "--crc-order", "little", "--json-lines", str(lines), "--json", str(report)])
+    snapshots = [o for o in map(json.loads, lines.read_text().splitlines()) if o["type"] == "snapshot"]
+    [told] = json.loads(report.read_text())["senders"]
+    assert told["serial"]["scope"] == "type"
+    scopes = [s["serial_scope"] for o in snapshots for s in o["senders"]]
+    assert scopes[0] is None and scopes[-1] == "type" and set(scopes) == {None, "type"}
+    header = {"source": "t.pcap", "now": 0.0, "status": "done", "packets": 0, "rate": 0.0, "eglink": 0,
+              "illegal": 0, "alarms": []}
+    assert any("serials per type" in line for line in dashboard.render(header, snapshots[-1], [], 100, 40))
+    assert any("serials choosing" in line for line in dashboard.render(header, snapshots[0], [], 100, 40))
+
+
 def test_the_dashboard_says_the_day_and_the_zone_of_its_times():
     """Field trial: a dashboard left running for days said '09:48:13.001' alone: which day, and
     in which zone (the times are UTC, as analyze's)? Its first line now gives the UTC date too,

@@ -291,7 +291,8 @@ class Sender:
                 "lost": sum(len(c.lost_for_good) + len(c.missing) for c in counters),
                 "duplicates": sum(len(c.res.duplicate_serials) for c in counters),
                 "out_of_order": sum(len(c.res.out_of_order_serials) for c in counters),
-                "restarts": sum(len(c.res.restarts) for c in counters) + (self.link is not None)}
+                "restarts": sum(len(c.res.restarts) for c in counters) + (self.link is not None),
+                "scope": self.scope}
 
     def serial_result(self) -> serials.SerialResult:
         """The counters' results together, as one counter (scope sender) or per type."""

@@ -162,6 +162,7 @@ class LiveSender:
                "limit_ms": self.limit * 1000.0, "packets": self.packets,
                "lost": lost, "lost_1m": lost - first[0], "duplicates": dups, "duplicates_1m": dups - first[1],
                "out_of_order": totals.get("out_of_order", 0), "restarts": totals.get("restarts", 0),
+               "serial_scope": totals.get("scope"),
                "jitter_ms": self.jitter, "interval_ms": self.interval,
                "interval_1m_ms": [min(lows), max(highs)] if lows else None}
         if self.code == VRPO_CODE:
