@@ -10,6 +10,7 @@ expected bytes re-derived from the capture with `vm110.decode`).
 """
 from __future__ import annotations
 
+import functools
 import json
 import random
 import re
@@ -844,14 +845,11 @@ def test_limits_are_judged_to_the_microsecond_in_analyze_as_in_the_dissector(tsh
 ALL_CAPTURES = sorted(p for p in CAPTURES.iterdir() if p.suffix in (".pcap", ".pcapng"))
 
 
-_SENDER_REPORTS: dict = {}
-
-
-def sender_report(capture: Path) -> dict:
-    """`vm110 analyze --serial-scope sender` (the dissector's default scope), once per capture."""
-    if capture.name not in _SENDER_REPORTS:
-        _SENDER_REPORTS[capture.name] = analyze(str(capture), options=Options(serial_scope="sender"))
-    return _SENDER_REPORTS[capture.name]
+@functools.lru_cache(maxsize=None)
+def report_of(capture: Path, scope: str = "auto") -> dict:
+    """`vm110 analyze` of a bundled capture, once per capture and serial scope: `auto` (its
+    default, as a user runs it) or `sender` (the dissector's default scope)."""
+    return analyze(str(capture), options=Options(serial_scope=scope))
 
 
 def dissector_counts(rows: list[Row]) -> dict:
@@ -908,21 +906,11 @@ def test_counts_equal_vm110_analyze(tshark, capture, tmp_path):
     restarts, watchdog violations (with the silences to the end), commands, retransmissions,
     unacknowledged and interrupted commands, VRPO burst intervals outside the recommended range."""
     rows = dissected(tshark, capture, tmp_path)
-    got, want = dissector_counts(rows), report_counts(sender_report(capture))
+    got, want = dissector_counts(rows), report_counts(report_of(capture, "sender"))
     keys = sorted(set(got) | set(want), key=str)
     differ = [k for k in keys if got[k] != want[k]]
     assert {k: got[k] for k in differ} == {k: want[k] for k in differ}
     assert sum(want.values()) > 0
-
-
-_DEFAULT_REPORTS: dict = {}
-
-
-def default_report(capture: Path) -> dict:
-    """`vm110 analyze` with its default options, as a user runs it (once per capture)."""
-    if capture.name not in _DEFAULT_REPORTS:
-        _DEFAULT_REPORTS[capture.name] = analyze(str(capture))
-    return _DEFAULT_REPORTS[capture.name]
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
@@ -930,7 +918,7 @@ def default_report(capture: Path) -> dict:
 def test_a_findings_filter_shows_its_items_and_no_other_frame(tshark, capture, tmp_path):
     """A finding's `filter` (the report with default options, as a user runs it) is the dissector's
     experts that mark exactly the frames of its items, and beyond them as many as `more` says."""
-    report = default_report(capture)
+    report = report_of(capture)
     rows = dissected(tshark, capture, tmp_path)
     per_sender = all(s["serial"]["scope"] == "sender" for s in report["senders"])
     for f in report["verdict"]["findings"]:
@@ -1070,7 +1058,7 @@ def test_the_findings_filters_are_wireshark_filters(tshark, tmp_path):
     """Each rule's filter compiles, and shows every duplicate of overlap.pcapng: 107, of which the
     report keeps 100."""
     capture = CAPTURES / "overlap.pcapng"
-    report = default_report(capture)
+    report = report_of(capture)
     dup = next(f for f in report["verdict"]["findings"] if f["rule"] == "duplicates")
     assert (dup["count"], dup.get("more")) == (107, 7)
     try:
