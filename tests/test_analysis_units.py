@@ -240,16 +240,20 @@ def test_serial_scope_auto_detects_per_type_counters(tmp_path):
     assert forced["scope"] == "sender" and (forced["duplicates"], forced["out_of_order"], forced["restarts"]) == (3, 7, 0)
     # Why, in the report's words: the anomalies of each reading (rules.md), the one counter's
     # those of the forced report (5 s of packets: the end of the capture decided on all 50).
-    one = sum(forced[k] for k in ("lost", "duplicates", "out_of_order", "restarts"))
-    assert ser["scope_reason"] == f"auto, on all its 50 packets: {one} anomalies with one counter, 0 with one per type"
+    # The choice starts at the first VRCI (frame 3): its 48 packets from there, by hand, with one
+    # counter started afresh at it: VRCI 1 late (fills the gap VRPI 2 opened), VRCI 2 a duplicate
+    # of VRPI 2 (0.885 s), VRCI 3 ... 9 unconfirmed candidates: 9 anomalies.
+    assert ser["scope_reason"] == ("auto, on all its 48 packets from its first VRCI (frame 3): "
+                                   "9 anomalies with one counter, 0 with one per type")
     assert forced["scope_reason"] == "set by --serial-scope"
 
 
-def test_the_report_says_a_scope_was_chosen_on_one_packet_type(tmp_path):
-    """A base unit sending VRPI alone for its first 15 s, then commands on their own counter: the
-    look at 10 s sees VRPI only and takes one counter (rules.md, T >= S), so the commands show as
-    out of order. The report said only "serial scope sender" (trial): it now says what it was
-    chosen on, so that the reader knows the out-of-order packets may be its choice."""
+def test_a_per_type_sender_first_heard_with_one_type_is_counted_per_type(tmp_path):
+    """A base unit numbering per type that sends VRPI alone for its first 15 s, then commands:
+    the look at 10 s saw VRPI only and took one counter for good (trial), so each command showed
+    as out of order (and a VRAI could pass for a duplicate: a false failed command). One type has
+    one counter under either scope: the choice starts at the first VRCI (frame 123), and the
+    report says so."""
     from vm110.analysis import report_html, summary
     tr = Traffic()
     for i in range(160):
@@ -259,10 +263,20 @@ def test_the_report_says_a_scope_was_chosen_on_one_packet_type(tmp_path):
     tr.write(tmp_path / "t.pcap")
     report = analyze(str(tmp_path / "t.pcap"))
     ser = report["senders"][0]["serial"]
-    why = "auto, on the 80 packets of its first 10 s: all VRPI: one type cannot tell, one counter assumed"
-    assert (ser["scope"], ser["scope_reason"]) == ("sender", why) and ser["out_of_order"] == 5
-    assert f"(serial scope sender: {why})" in summary.render(report)
-    assert f"sender ({why})" in report_html.render([report])
+    # From frame 123 on (5 VRCI, VRPI 122 ... 159), one counter started afresh at VRCI 15: a
+    # restart at VRPI 122, then VRCI 16 ... 19 each an unconfirmed candidate; per type none. The
+    # capture ends before the look at 10 s: the end decides.
+    why = "auto, on all its 43 packets from its first VRCI (frame 123): 5 anomalies with one counter, 0 with one per type"
+    assert (ser["scope"], ser["scope_reason"]) == ("type", why)
+    assert (ser["out_of_order"], ser["duplicates"], ser["lost"], ser["restarts"]) == (0, 0, 0, 0)
+    assert f"(serial scope type: {why})" in summary.render(report)
+    assert f"type ({why})" in report_html.render([report])
+    vrpi_only = Traffic()
+    for i in range(40):
+        vrpi_only.add(i * 0.125, vrpi(i))
+    vrpi_only.write(tmp_path / "one.pcap")
+    ser = analyze(str(tmp_path / "one.pcap"))["senders"][0]["serial"]
+    assert (ser["scope"], ser["scope_reason"]) == ("sender", "auto: VRPI only, one counter under either scope")
 
 
 def test_a_sender_of_one_packet_type_leaves_the_scope_preference_to_the_others(tmp_path):

@@ -122,8 +122,9 @@ def test_the_dashboard_gives_each_latest_finding_its_filter(tmp_path):
 def test_the_live_view_says_each_sender_s_serial_scope(tmp_path):
     """A base unit numbering VRPI and VRCI on counters of their own: the live view gave its serial
     verdicts with no word of the scope they were judged in (only the end's report had it). Each
-    snapshot now names it, null while `auto` is still choosing (its first 10 s), and the
-    dashboard says it; at the end, the report's."""
+    snapshot now names it, null while `auto` has not chosen it (with `serial_choosing` while it
+    chooses, from the first VRCI; a VRPI-only unit beside it has one type, no choice to make), and
+    the dashboard says it; at the end, the report's."""
     from test_analysis_craft import BU_ORIGIN, Traffic, payload, vrpi
     from vm110.layers import VRCI
     from vm110.monitor import dashboard
@@ -132,19 +133,24 @@ def test_the_live_view_says_each_sender_s_serial_scope(tmp_path):
         tr.add(i * 0.125, vrpi(i))
         if i % 8 == 1:
             tr.add(i * 0.125 + 0.01, payload(VRCI, i // 8, BU_ORIGIN, command_id=i // 8))   # its own counter
+        tr.add(i * 0.125 + 0.05, vrpi(7000 + i, origin=0x0202), src="10.0.0.11")
     tr.write(tmp_path / "t.pcap")
     lines, report = tmp_path / "live.jsonl", tmp_path / "m.json"
     main(["monitor", "--read", str(tmp_path / "t.pcap"), "--idle", "0", "--no-dashboard", "--quiet",
           "--crc", "mpeg2", "--crc-order", "little", "--json-lines", str(lines), "--json", str(report)])
     snapshots = [o for o in map(json.loads, lines.read_text().splitlines()) if o["type"] == "snapshot"]
-    [told] = json.loads(report.read_text())["senders"]
-    assert told["serial"]["scope"] == "type"
-    scopes = [s["serial_scope"] for o in snapshots for s in o["senders"]]
-    assert scopes[0] is None and scopes[-1] == "type" and set(scopes) == {None, "type"}
+    assert [s["serial"]["scope"] for s in json.loads(report.read_text())["senders"]] == ["type", "sender"]
+    per_type, one_type = ([(s["serial_scope"], s["serial_choosing"]) for o in snapshots for s in o["senders"]
+                           if s["sender"].split()[1].startswith(host)] for host in ("10.0.0.10:", "10.0.0.11:"))
+    assert per_type[0] == (None, True) and per_type[-1] == ("type", False)
+    assert set(per_type) == {(None, True), ("type", False)}
+    assert set(one_type) == {(None, False)}
     header = {"source": "t.pcap", "now": 0.0, "status": "done", "packets": 0, "rate": 0.0, "eglink": 0,
               "illegal": 0, "alarms": []}
-    assert any("serials per type" in line for line in dashboard.render(header, snapshots[-1], [], 100, 40))
-    assert any("serials choosing" in line for line in dashboard.render(header, snapshots[0], [], 100, 40))
+    last, first = (dashboard.render(header, snapshots[k], [], 100, 40) for k in (-1, 0))
+    assert any("serials per type" in line for line in last)
+    assert any("serials choosing" in line for line in first)
+    assert sum("serials one type so far" in line for line in last + first) == 2
 
 
 def test_the_dashboard_says_the_day_and_the_zone_of_its_times():
@@ -300,12 +306,13 @@ def test_a_sender_heard_only_briefly_does_not_hold_the_live_commands(tmp_path):
     for less than 10 s: a stray packet) left the live view at 'commands 0' and told no failed
     command for the whole run: its old sender never chose its serial scope, so no command event
     after its first packet was ever applied before the end (and they all stayed in memory). The
-    warm-up now ends once the analysis clock passes it. Here one stray VRPO, then a BU whose VRCIs
+    choice now ends once the analysis clock passes its look. Here one stray VRPO and VRCO, then a BU whose VRCIs
     are acknowledged: the live view counts them once the BU and the controller have chosen their scope."""
     from test_analysis_craft import CTRL, Traffic, payload, vrpi
-    from vm110.layers import VRAO, VRCI, VRPO
+    from vm110.layers import VRAO, VRCI, VRCO, VRPO
     tr = Traffic()
     tr.add(0.0, payload(VRPO, 1), src="10.0.0.99", sport=C.OUTPUT_PORT)        # heard once, never again
+    tr.add(0.001, payload(VRCO, 2, command_id=1), src="10.0.0.99", sport=C.OUTPUT_PORT)
     for k in range(int(20 / 0.125)):
         tr.add(0.01 + k * 0.125, vrpi(100 + k))
         tr.add(0.02 + k * 0.125, payload(VRPO, 100 + k), src=CTRL, sport=C.OUTPUT_PORT)
@@ -320,7 +327,7 @@ def test_a_sender_heard_only_briefly_does_not_hold_the_live_commands(tmp_path):
                  "--crc-order", "little", "--json-lines", str(lines)]) == 0
     shown = [o["commands"]["commands"] for o in map(json.loads, lines.read_text().splitlines())
              if o["type"] == "snapshot"]
-    assert shown[-1] >= 8                     # (the BU's first 10 s decided by 10.01 s)
+    assert shown[-1] >= 8                     # (the BU chose 10 s after its first VRCI, by 10.5 s)
 
 
 def test_a_capture_ended_before_the_serial_scope_was_chosen_tells_its_findings(tmp_path):

@@ -69,15 +69,18 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
  R16 The rules run on the analysis clock, but the moments a report names (gaps, restart events)
      are the frames' own timestamps (rules.md, "the analysis clock").
  R17 Serial scope `auto` (docs/rules.md, "Choosing the scope"), per sender, on its legal packets
-     (duplicates included) by their analysis-clock times: the looks at 10, 20, 40, ... 320 s after
-     its first packet each take the packets before that moment and classify them from scratch,
+     (duplicates included) by their analysis-clock times. A sender of one packet type has one
+     counter under either scope: `sender`. Otherwise the choice is made on its packets from its
+     first packet of a type other than its first packet's (P): the looks at 10, 20, 40, ... 320 s
+     after P each take the packets from P on before that moment and classify them from scratch,
      once with one counter and once with one per type (a candidate still open at the end is out of
      order, missing serials are lost); anomalies = lost + duplicates + out of order + restarts.
      Per-type counters when they have at most half the anomalies and 4 fewer; one counter when
      they have as many or more; otherwise the packets cannot tell and the next look decides (the
-     last look decides for one counter). A sender's 4096th packet decides on its first 4096
-     packets; the end of the capture on all. Whether a look happens before the capture ends does
-     not matter: without more packets it sees the same ones.
+     last look decides for one counter). The 4096th packet from P on decides on those 4096
+     packets; the end of the capture on all from P on. Whether a look happens before the capture
+     ends does not matter: without more packets it sees the same ones. The scope chosen holds for
+     all the sender's packets (before P, of one type, both scopes judge alike).
  R18 Scope `type`, a new-port restart's `from`: the earlier sender's counter of the new sender's
      first packet type, when the earlier sender had packets of that type before it; else the
      counter of the earlier sender's last legal packet before it.
@@ -720,9 +723,13 @@ def _verdict(packets: list[dict], dup_w: int, flags: _Flags) -> tuple[str, bool]
 
 
 def _auto_scope(packets: list[dict], dup_w: int, flags: _Flags) -> str:
-    """R17: the look at 10 s from the sender's first packet, on the packets before it; while they
-    cannot tell, again at 20, 40, ... 320 s; on the first 4096 packets once as many have come; at
-    the end of the capture, on all."""
+    """R17: from the sender's first packet of a second type (P) on: the look at 10 s from P, on
+    the packets before it; while they cannot tell, again at 20, 40, ... 320 s; on the first 4096
+    packets once as many have come; at the end of the capture, on all. One type only: `sender`."""
+    second = [i for i, p in enumerate(packets) if p["type"] != packets[0]["type"]]
+    if not second:
+        return "sender"
+    packets = packets[second[0]:]
     first = packets[0]["t"]
     for look in LOOKS_S:
         limit = look * NS

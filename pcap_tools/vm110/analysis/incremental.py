@@ -14,7 +14,7 @@ Order across senders matters twice:
   packet of each new sender, so that the earlier senders have been fed exactly the packets
   before it when it is linked.
 - Commands are applied in capture order, a restart's marker before the packet of its frame. A
-  sender may not have decided its latest packets yet (a restart candidate, the scope warm-up);
+  sender may not have decided its latest packets yet (a restart candidate, the scope's choice);
   the events at or after the first undecided frame of any sender wait until it is decided.
 """
 from __future__ import annotations
@@ -48,7 +48,8 @@ class Analysis:
         self.clock = -np.inf                          # the analysis clock (rules.md): latest time so far
         self.stamps: dict[int, float] = {}            # frame -> own time, where the clock is later
         # Kept so that a batch costs what its own senders cost, not a look at every sender:
-        self.warming: list[tuple] = []                # heap of (time of its next look, order, key) warming up
+        self.warming: list[tuple[float, int]] = []    # heap of (time of its next look, key): auto choosing
+        self.looking: set[int] = set()                # the keys in `warming`
         self.undecided: dict[int, int] = {}           # sender key -> its first undecided frame
         self.held: list[tuple[int, int]] = []         # heap of (frame, key); stale where undecided differs
 
@@ -75,13 +76,22 @@ class Analysis:
             for value, rows in _groups(key[a:b]):
                 self.senders[value].feed(part[rows], self.events)
         touched = values.tolist()
+        for k in touched:
+            first_look = self.senders[k].due()
+            if first_look is not None and k not in self.looking:     # its second packet type came: choosing
+                self.looking.add(k)
+                heappush(self.warming, (first_look, k))
         while self.warming:
-            due, order, k = self.warming[0]
+            due, k = self.warming[0]
             snd = self.senders[k]
-            if snd.expire(self.clock, self.events):
-                touched.append(heappop(self.warming)[2])
-            elif snd.first_ts + snd.look_s != due:      # it looked and could not tell: later
-                heapreplace(self.warming, (snd.first_ts + snd.look_s, order, k))
+            snd.expire(self.clock, self.events)
+            later = snd.due()
+            if later is None:                           # chosen
+                heappop(self.warming)
+                self.looking.discard(k)
+                touched.append(k)
+            elif later != due:                          # it looked and could not tell: later
+                heapreplace(self.warming, (later, k))
             else:
                 break
         for k in touched:
@@ -110,7 +120,7 @@ class Analysis:
         self.finished = True
         for snd in self.senders.values():
             snd.finish(self.events)
-        self.warming, self.undecided, self.held = [], {}, []
+        self.warming, self.looking, self.undecided, self.held = [], set(), {}, []
         self._apply(None)
 
     def snapshot(self) -> list[dict]:
@@ -132,8 +142,6 @@ class Analysis:
         direction, origin, src, port = key_sender(key)
         new = self.senders[key] = Sender(direction, origin, address(self.names[src], port), first, self.opt,
                                          self.floats, self.stamps)
-        if new.scope is None:
-            heappush(self.warming, (new.first_ts + new.look_s, len(self.senders), key))
         # Only the senders of its host: a capture of many senders costs no scan of them all.
         same_host = self.hosts.setdefault((direction, origin, new.host), [])
         quiet = [(old.last_ts, old.last_frame, i, old) for i, old in same_host

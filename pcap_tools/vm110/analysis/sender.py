@@ -3,13 +3,16 @@ they have not decided yet, its periodic streams, VRPO bursts and state timeline.
 
 A counter may leave packets undecided at the end of a batch (a restart candidate waits for its
 next packet); they are kept here and handed in again with the sender's next rows. With
-`--serial-scope auto` the sender's packets of its first WARMUP_S seconds are kept as they came,
-the scope is chosen on them as `choose_scope` says, and they are then judged as every later
-packet is: a stream cannot wait for the end of the capture to choose. When they cannot tell (too
-few anomalies yet), the look is made again on the packets of twice the time, up to WARMUP_MAX_S
-or WARMUP_PACKETS packets. A look is made once the analysis clock has passed its time (`expire`:
-a sender heard no more cannot hold the command events after it for ever), always on the same
-rows however the batches are cut.
+`--serial-scope auto`, while the sender has sent one packet type its one counter is both
+readings' (rules.md, "Choosing the scope"), and its packets are judged at once. From its first
+packet of a second type on, its packets of WARMUP_S seconds are kept as they came, the scope is
+chosen on them as `choose_scope` says, and they are then judged as every later packet is: a
+stream cannot wait for the end of the capture to choose. When they cannot tell (too few
+anomalies yet), the look is made again on the packets of twice the time, up to WARMUP_MAX_S or
+WARMUP_PACKETS packets. A look is made once the analysis clock has passed its time (`expire`: a
+sender heard no more cannot hold the command events after it for ever), always on the same rows
+however the batches are cut. When the choice is `type`, the one counter becomes the counter of
+the sender's first type.
 
 A sender that restarts on a new port asks its predecessor (`probe`) for the predecessor's state
 just before the new sender's first frame: its counter's highest serial and its last accepted
@@ -34,7 +37,7 @@ from .periodic import Floats, FloatsFactory, Stream
 from .state import Timeline
 
 WARMUP_PACKETS = 4096
-WARMUP_S = 10.0           # the first look at a sender's scope, then at 20, 40, ... s while it cannot tell
+WARMUP_S = 10.0           # the first look at a sender's scope (from its second type), then at 20, 40, ... s
 WARMUP_MAX_S = 320.0
 TYPE_SCOPE_MARGIN = 4     # auto: type scope needs at most half the anomalies, and 4 fewer
 COMMAND_CODES = np.array(sorted(CODE[t] for t in (C.PacketType.VRCI, C.PacketType.VRCO, *C.ACK_OF)))
@@ -91,7 +94,10 @@ class Sender:
         self.scope_reason = "set by --serial-scope"    # (auto: how the packets chose it)
         self.warm: list[np.ndarray] = []
         self.warm_count = 0
-        self.look_s = WARMUP_S                   # when the scope is looked at next (from the first packet)
+        # auto: the sender's first packet of a second type (the choice starts there): analysis
+        # time, frame, type code; the next look is look_s after it.
+        self.second: Optional[tuple[float, int, int]] = None
+        self.look_s = WARMUP_S
         self.counters: dict = {}                 # None (scope sender) or type code -> serials.Counter
         self.pending: dict = {}                  # counter key -> its undecided candidate (a row)
         self.streams: dict[int, Stream] = {}
@@ -104,27 +110,42 @@ class Sender:
 
     def feed(self, rows: np.ndarray, events: list) -> None:
         """The sender's next legal packets, in arrival order; command events go to `events`."""
-        last = rows[-1]
-        self.last_ts, self.last_frame, self.last_code = float(last["ts"]), int(last["frame"]), int(code_of(last["pid"]))
-        self.counts += np.bincount(code_of(rows["pid"]), minlength=len(TYPES))
+        codes = code_of(rows["pid"])
+        self.last_ts, self.last_frame, self.last_code = float(rows["ts"][-1]), int(rows["frame"][-1]), int(codes[-1])
+        self.counts += np.bincount(codes, minlength=len(TYPES))
         while self.scope is None and len(rows):
+            if self.second is None:
+                # One type so far: one counter under either scope, judged at once.
+                other = np.flatnonzero(codes != self.first_code)
+                k = int(other[0]) if len(other) else len(rows)
+                if k:
+                    self._dispatch(rows[:k], events, False)
+                    rows, codes = rows[k:], codes[k:]
+                if not len(rows):
+                    break
+                self.second = float(rows["ts"][0]), int(rows["frame"][0]), int(codes[0])
             # The rows before the next look (`ts` is the analysis clock, so ascending).
-            k = min(WARMUP_PACKETS - self.warm_count, int(np.searchsorted(rows["ts"] - self.first_ts, self.look_s)))
+            k = min(WARMUP_PACKETS - self.warm_count,
+                    int(np.searchsorted(rows["ts"] - self.second[0], self.look_s)))
             if k:
                 self.warm.append(rows[:k].copy())         # not a view: the batch itself is not kept
                 self.warm_count += k
-                rows = rows[k:]
+                rows, codes = rows[k:], codes[k:]
             if len(rows) or self.warm_count >= WARMUP_PACKETS:
                 self._look(events)
         if len(rows):
             self._dispatch(rows, events, False)
 
-    def expire(self, clock: float, events: list) -> bool:
-        """Whether the scope is chosen by `clock` (the analysis clock): looks due by then are made
-        (a sender heard no more cannot hold its packets and the command events after them)."""
-        while self.scope is None and clock - self.first_ts >= self.look_s:
+    def due(self) -> Optional[float]:
+        """auto: the analysis time of the next look; None when none is to come (the scope is
+        chosen, or the sender has sent one type so far)."""
+        return None if self.scope is not None or self.second is None else self.second[0] + self.look_s
+
+    def expire(self, clock: float, events: list) -> None:
+        """Make the looks due by `clock` (the analysis clock): a sender heard no more cannot hold
+        its packets and the command events after them."""
+        while self.scope is None and self.second is not None and clock - self.second[0] >= self.look_s:
             self._look(events)
-        return self.scope is not None
 
     def _look(self, events: list) -> None:
         """Choose the scope on the warm-up rows, or look again later when they cannot tell (the
@@ -135,9 +156,13 @@ class Sender:
         if not tells and self.warm_count < WARMUP_PACKETS and self.look_s < WARMUP_MAX_S:
             self.look_s *= 2
             return
-        which = (f"its first {len(rows)} packets" if self.warm_count >= WARMUP_PACKETS
-                 else f"the {len(rows)} packets of its first {self.look_s:g} s")
-        self._decide(events, False, (scope, f"auto, on {which}: {why}"))
+        which = (f"its {len(rows)} packets" if self.warm_count >= WARMUP_PACKETS
+                 else f"the {len(rows)} packets of {self.look_s:g} s")
+        self._decide(events, False, (scope, f"auto, on {which} {self._from()}: {why}"))
+
+    def _from(self) -> str:
+        assert self.second is not None
+        return f"from its first {TYPES[self.second[2]].value} (frame {self.second[1]})"
 
     def finish(self, events: list) -> None:
         """The capture ended: decide what is left."""
@@ -157,12 +182,20 @@ class Sender:
 
     def _decide(self, events: list, final: bool, chosen: Optional[tuple[str, str]] = None) -> None:
         """`chosen`: the scope and why; None at the end of the capture, chosen here on all rows."""
-        rows = np.concatenate(self.warm)
+        rows = np.concatenate(self.warm) if self.warm else np.empty(0, dtype=RECORD_DTYPE)
         self.warm, self.warm_count = [], 0
-        if chosen is None:
+        if chosen is None and self.second is None:
+            chosen = "sender", f"auto: {TYPES[self.first_code].value} only, one counter under either scope"
+        elif chosen is None:
             scope, _, why = choose_scope(rows, self.opt)
-            chosen = scope, f"auto, on all its {len(rows)} packets: {why}"
+            chosen = scope, f"auto, on all its {len(rows)} packets {self._from()}: {why}"
         self.scope, self.scope_reason = chosen
+        if self.scope == "type":
+            # The one counter so far is its first type's (it had no other).
+            for store in (self.counters, self.pending):
+                if None in store:
+                    store[self.first_code] = store.pop(None)
+            self.counters[self.first_code].key = self.first_code
         # Probes that came while warming up: their moment lies inside these rows.
         for probe in sorted(self.probes, key=lambda p: p.frame):
             cut = int(np.searchsorted(rows["frame"], probe.frame))
@@ -176,13 +209,13 @@ class Sender:
         """`successor` restarted this sender on a new port at its first frame (see the module doc)."""
         self.taken_over = True
         probe = Probe(successor.first_frame, successor, self.last_code)
-        if self.scope is None:
+        if self.warm:
             self.probes.append(probe)
         else:
             self._resolve(probe)
 
     def _resolve(self, probe: Probe) -> None:
-        key = None if self.scope == "sender" else (
+        key = None if self.scope != "type" else (
             probe.successor.first_code if probe.successor.first_code in self.counters else probe.last_code)
         counter = self.counters.get(key)
         link = probe.successor.link
@@ -201,8 +234,9 @@ class Sender:
         return stream.times.last() if stream is not None and len(stream.times) else None
 
     def _dispatch(self, rows: np.ndarray, events: list, final: bool) -> None:
-        """Judge rows (and the undecided ones before them) by the counter(s) of the scope."""
-        if self.scope == "sender":
+        """Judge rows (and the undecided ones before them) by the counter(s) of the scope (one,
+        while auto has not chosen: the sender has sent one type so far)."""
+        if self.scope != "type":
             parts = {None: rows}
         else:
             codes = code_of(rows["pid"])
@@ -292,7 +326,7 @@ class Sender:
                 "duplicates": sum(len(c.res.duplicate_serials) for c in counters),
                 "out_of_order": sum(len(c.res.out_of_order_serials) for c in counters),
                 "restarts": sum(len(c.res.restarts) for c in counters) + (self.link is not None),
-                "scope": self.scope}
+                "scope": self.scope, "choosing": self.due() is not None}
 
     def serial_result(self) -> serials.SerialResult:
         """The counters' results together, as one counter (scope sender) or per type."""

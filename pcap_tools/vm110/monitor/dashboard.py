@@ -35,8 +35,8 @@ def short(sid: str) -> str:
     return f"{parts[1]} {parts[3]}" if len(parts) == 4 else sid
 
 
-# A sender's serial scope (`auto` chooses it on its first seconds: None until then).
-_SCOPES = {"sender": "one counter", "type": "per type", None: "choosing"}
+# A sender's serial scope; None until `auto` has chosen it: choosing, or one packet type so far.
+_SCOPES = {"sender": "one counter", "type": "per type", None: "one type so far"}
 
 
 def sender_lines(s: dict) -> list[str]:
@@ -44,7 +44,7 @@ def sender_lines(s: dict) -> list[str]:
     head = (f"{role} {short(s['sender']):<28} {s['state'].upper():<8} {s['type']} {_ms(s['age_ms'])} ago  "
             f"jitter {'-' if s['jitter_ms'] is None else format(s['jitter_ms'], '.1f') + ' ms'}")
     loss = (f"    loss {s['lost_1m']}/{s['lost']}  dup {s['duplicates_1m']}/{s['duplicates']} (1m/all)"
-            f"  restarts {s['restarts']}  serials {_SCOPES[s['serial_scope']]}")
+            f"  restarts {s['restarts']}  serials {'choosing' if s['serial_choosing'] else _SCOPES[s['serial_scope']]}")
     if s["role"] == "BU":
         if "bu_state" in s:
             relays = "OPEN" if s["relays_open"] else "closed"

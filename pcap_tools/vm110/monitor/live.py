@@ -9,8 +9,8 @@ nothing is kept per packet.
 Where the numbers come from:
 - serial verdicts (lost, duplicates, out of order, restarts) and commands (in flight, failed, ack
   latency) are those of the `Analysis` itself, as it decides them: the same rules as the report.
-  A sender still choosing its serial scope (`--serial-scope auto`, its first 10 s) has decided
-  nothing yet, so its findings come when the choice is made;
+  A sender still choosing its serial scope (`--serial-scope auto`, 10 s from its first packet of
+  a second type) has decided nothing since, so those findings come when the choice is made;
 - what needs the current time is judged here, from the legal packets as they arrive: a periodic
   stream silent beyond its watchdog limit raises the watchdog alarm while it is still silent
   (cleared by its next packet, or by its sender's restart on a new port); link state, ages of
@@ -162,7 +162,7 @@ class LiveSender:
                "limit_ms": self.limit * 1000.0, "packets": self.packets,
                "lost": lost, "lost_1m": lost - first[0], "duplicates": dups, "duplicates_1m": dups - first[1],
                "out_of_order": totals.get("out_of_order", 0), "restarts": totals.get("restarts", 0),
-               "serial_scope": totals.get("scope"),
+               "serial_scope": totals.get("scope"), "serial_choosing": totals.get("choosing", False),
                "jitter_ms": self.jitter, "interval_ms": self.interval,
                "interval_1m_ms": [min(lows), max(highs)] if lows else None}
         if self.code == VRPO_CODE:
