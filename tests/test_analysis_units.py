@@ -241,10 +241,10 @@ def test_serial_scope_auto_detects_per_type_counters(tmp_path):
     # Why, in the report's words: the anomalies of each reading (rules.md), the one counter's
     # those of the forced report (5 s of packets: the end of the capture decided on all 50).
     # The choice starts at the first VRCI (frame 3): its 48 packets from there, by hand, with one
-    # counter started afresh at it: VRCI 1 late (fills the gap VRPI 2 opened), VRCI 2 a duplicate
-    # of VRPI 2 (0.885 s), VRCI 3 ... 9 unconfirmed candidates: 9 anomalies.
+    # counter started afresh at it: VRPI 2 opens a gap, VRCI 1 comes late into it, VRCI 2 is a
+    # duplicate of VRPI 2 (0.885 s), VRCI 3 ... 9 unconfirmed candidates: 10 anomalies.
     assert ser["scope_reason"] == ("auto, on all its 48 packets from its first VRCI (frame 3): "
-                                   "9 anomalies with one counter, 0 with one per type")
+                                   "10 anomalies with one counter, 0 with one per type")
     assert forced["scope_reason"] == "set by --serial-scope"
 
 

@@ -74,8 +74,9 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
      first packet of a type other than its first packet's (P): the looks at 10, 20, 40, ... 320 s
      after P each take the packets from P on before that moment and classify them from scratch,
      once with one counter and once with one per type (a candidate still open at the end is out of
-     order, missing serials are lost); anomalies = lost + duplicates + out of order + restarts.
-     Per-type counters when they have at most half the anomalies and 4 fewer; one counter when
+     order); anomalies = gaps (one each, however many serials) + duplicates + out of order +
+     restarts.
+     Per-type counters when they have 4 anomalies fewer; one counter when
      they have as many or more; otherwise the packets cannot tell and the next look decides (the
      last look decides for one counter). The 4096th packet from P on decides on those 4096
      packets; the end of the capture on all from P on. Whether a look happens before the capture
@@ -695,7 +696,7 @@ def _classify(packets: list[dict], dup_w: int, flags: _Flags) -> dict:
     lost = lost_frozen + (len(ctr["missing"]) if ctr else 0)
     return {"received": received, "lost": lost, "duplicates": duplicates, "out_of_order": out_of_order,
             "wraps": wraps, "gaps": gaps, "restarts": restarts, "marks": marks, "accepted": accepted,
-            "h_after": h_after, "anomalies": lost + duplicates + out_of_order + len(restarts)}
+            "h_after": h_after, "anomalies": len(gaps) + duplicates + out_of_order + len(restarts)}
 
 
 def _counters(packets: list[dict], scope: str) -> dict[Optional[str], list[dict]]:
@@ -712,12 +713,12 @@ LOOK_PACKETS = 4096
 
 def _verdict(packets: list[dict], dup_w: int, flags: _Flags) -> tuple[str, bool]:
     """R17: the scope these packets ask for, and whether they tell (not when per-type counters
-    explain them better but not by the margin: at most half the anomalies and 4 fewer)."""
+    explain them better but not by the margin: 4 anomalies fewer)."""
     one = _classify(packets, dup_w, flags)["anomalies"]
     per_type = sum(_classify(part, dup_w, flags)["anomalies"] for part in _counters(packets, "type").values())
     if per_type >= one:
         return "sender", True
-    if 2 * per_type + 4 <= one:
+    if per_type + 4 <= one:
         return "type", True
     return "sender", False
 

@@ -39,7 +39,7 @@ from .state import Timeline
 WARMUP_PACKETS = 4096
 WARMUP_S = 10.0           # the first look at a sender's scope (from its second type), then at 20, 40, ... s
 WARMUP_MAX_S = 320.0
-TYPE_SCOPE_MARGIN = 4     # auto: type scope needs at most half the anomalies, and 4 fewer
+TYPE_SCOPE_MARGIN = 4     # auto: type scope needs 4 anomalies fewer
 COMMAND_CODES = np.array(sorted(CODE[t] for t in (C.PacketType.VRCI, C.PacketType.VRCO, *C.ACK_OF)))
 
 
@@ -60,9 +60,9 @@ def choose_scope(rows: np.ndarray, opt) -> tuple[str, bool, str]:
     if by_type.aborted:
         return "sender", True, f"{one}, as many or more with one per type"
     two = f"{one}, {by_type.anomalies} with one per type"
-    if 2 * by_type.anomalies + TYPE_SCOPE_MARGIN <= by_sender.anomalies:
+    if by_type.anomalies + TYPE_SCOPE_MARGIN <= by_sender.anomalies:
         return "type", True, two
-    return "sender", False, f"{two} (not half and {TYPE_SCOPE_MARGIN} fewer: cannot tell, one counter assumed)"
+    return "sender", False, f"{two} (not {TYPE_SCOPE_MARGIN} fewer: cannot tell, one counter assumed)"
 
 
 @dataclass

@@ -72,7 +72,9 @@ class SerialResult:
 
     @property
     def anomalies(self) -> int:
-        return self.lost + self.duplicates + self.out_of_order + len(self.restarts)
+        """What `auto` weighs the scopes by (rules.md, "Choosing the scope"): a gap is one,
+        however many serials it lost (a burst of lost acks is one event, as a restart is)."""
+        return len(self.gaps) + self.duplicates + self.out_of_order + len(self.restarts)
 
     def merge(self, other: "SerialResult") -> None:
         for name in ("received", "duplicates", "out_of_order", "wraps"):
@@ -318,7 +320,7 @@ class Counter:
                     duplicate(k, s, float(ts[k]))
                 i = nxt - 1
             i += 1
-            if limit is not None and len(dup) + len(ooo) + len(missing) + len(lost_for_good) > limit:
+            if limit is not None and len(dup) + len(ooo) + len(gaps) + len(res.restarts) > limit:
                 res.aborted = True
                 break
         res.received += i
