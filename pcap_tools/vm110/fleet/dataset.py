@@ -38,8 +38,9 @@ from ..jsonin import loads
 FORMAT = "vm110-fleet"
 # 2: findings of report schema 3 (severity note); rows of 1 would mix. 3: the journal (a build of
 # 2 would not see it, and a later one would apply its stale batches), and the sender of
-# acknowledgement findings (rows of 2 have none).
-FORMAT_VERSION = 3
+# acknowledgement findings (rows of 2 have none). 4: the revised `auto` serial scope (rows of 3
+# judged some per-type devices with one counter: false out-of-order packets, losses missed).
+FORMAT_VERSION = 4
 MANIFEST = "manifest.json"
 JOURNAL = "journal"                # batches of a running build's updates to the manifest
 MAX_MANIFEST_BYTES = 256 << 20
