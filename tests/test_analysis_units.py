@@ -279,6 +279,35 @@ def test_a_per_type_sender_first_heard_with_one_type_is_counted_per_type(tmp_pat
     assert (ser["scope"], ser["scope_reason"]) == ("sender", "auto: VRPI only, one counter under either scope")
 
 
+def test_the_scope_reason_names_the_packets_the_choice_was_made_on(tmp_path):
+    """Trial: a controller of some 100 000 packets read "auto, on its 4096 packets from its first
+    VRCO", as if it had sent no more; and a capture cut just after a base unit's first VRCI read
+    "on all its 1 packets ...: all VRCI: one type cannot tell", of a sender of two types."""
+    from vm110 import encode
+    tr = Traffic()
+    # VRPI every 2 ms, a VRCI (its own counter) after every 1000th from the 500th: from the first
+    # VRCI (frame 502) the 4096th packet decides, on VRCI 0 ... 4 among them. One counter from
+    # VRCI 0: VRPI 501 a restart (confirmed by 502), VRCI 1 ... 4 unconfirmed candidates; per type none.
+    for k in range(4700):
+        tr.add(0.002 * k, encode.packet(C.PacketType.VRPI, encode.vrpi_payload({}), origin=BU_ORIGIN, serial=k))
+        if k % 1000 == 500:
+            tr.add(0.002 * k + 0.001, encode.packet(C.PacketType.VRCI, encode.command_payload(k // 1000),
+                                                    origin=BU_ORIGIN, serial=k // 1000))
+    tr.write(tmp_path / "many.pcap")
+    ser = analyze(str(tmp_path / "many.pcap"))["senders"][0]["serial"]
+    assert (ser["scope"], ser["received"]) == ("type", 4705)
+    assert ser["scope_reason"] == ("auto, on the first 4096 packets from its first VRCI (frame 502): "
+                                   "5 anomalies with one counter, 0 with one per type")
+    cut = Traffic()
+    for k in range(8):
+        cut.add(0.125 * k, vrpi(100 + k))
+    cut.add(1.0, payload(VRCI, 0, BU_ORIGIN, command_id=1))               # the last packet
+    cut.write(tmp_path / "cut.pcap")
+    ser = analyze(str(tmp_path / "cut.pcap"))["senders"][0]["serial"]
+    assert (ser["scope"], ser["scope_reason"]) == (
+        "sender", "auto, on its 1 packet from its first VRCI (frame 9): VRCI only from there: one counter under either scope")
+
+
 def test_a_sender_of_one_packet_type_leaves_the_scope_preference_to_the_others(tmp_path):
     """A base unit counting per type and a second one sending VRPI alone: the report gave no
     Wireshark preferences and no rule filters (trial: "scopes differ"), though the VRPI-only unit

@@ -50,7 +50,8 @@ def choose_scope(rows: np.ndarray, opt) -> tuple[str, bool, str]:
     but not by the margin (too few anomalies yet). Last, why, in words for the report."""
     codes, window = code_of(rows["pid"]), opt.dup_window_ms
     if (codes == codes[0]).all():
-        return "sender", True, f"all {TYPES[int(codes[0])].value}: one type cannot tell, one counter assumed"
+        # (the rows from the second type on: a sender of two types, one counter either way)
+        return "sender", True, f"{TYPES[int(codes[0])].value} only from there: one counter under either scope"
     by_sender = serials.classify(rows["serial"], rows["ts"], dup_window_ms=window)
     if by_sender.anomalies == 0:
         return "sender", True, "one counter explains them without an anomaly"
@@ -63,6 +64,11 @@ def choose_scope(rows: np.ndarray, opt) -> tuple[str, bool, str]:
     if by_type.anomalies + TYPE_SCOPE_MARGIN <= by_sender.anomalies:
         return "type", True, two
     return "sender", False, f"{two} (not {TYPE_SCOPE_MARGIN} fewer: cannot tell, one counter assumed)"
+
+
+def _packets(n: int) -> str:
+    """n packets, in words."""
+    return f"{n} packet{'' if n == 1 else 's'}"
 
 
 @dataclass
@@ -156,8 +162,8 @@ class Sender:
         if not tells and self.warm_count < WARMUP_PACKETS and self.look_s < WARMUP_MAX_S:
             self.look_s *= 2
             return
-        which = (f"its {len(rows)} packets" if self.warm_count >= WARMUP_PACKETS
-                 else f"the {len(rows)} packets of {self.look_s:g} s")
+        which = (f"the first {len(rows)} packets" if self.warm_count >= WARMUP_PACKETS
+                 else f"the {_packets(len(rows))} of {self.look_s:g} s")
         self._decide(events, False, (scope, f"auto, on {which} {self._from()}: {why}"))
 
     def _from(self) -> str:
@@ -188,7 +194,7 @@ class Sender:
             chosen = "sender", f"auto: {TYPES[self.first_code].value} only, one counter under either scope"
         elif chosen is None:
             scope, _, why = choose_scope(rows, self.opt)
-            chosen = scope, f"auto, on all its {len(rows)} packets {self._from()}: {why}"
+            chosen = scope, f"auto, on {'all ' if len(rows) > 1 else ''}its {_packets(len(rows))} {self._from()}: {why}"
         self.scope, self.scope_reason = chosen
         if self.scope == "type":
             # The one counter so far is its first type's (it had no other).
