@@ -279,6 +279,67 @@ def test_a_per_type_sender_first_heard_with_one_type_is_counted_per_type(tmp_pat
     assert (ser["scope"], ser["scope_reason"]) == ("sender", "auto: VRPI only, one counter under either scope")
 
 
+def _serial_counts(ser: dict) -> tuple:
+    return ser["scope"], ser["lost"], ser["duplicates"], ser["out_of_order"], ser["restarts"]
+
+
+def test_auto_finds_a_per_type_base_unit_on_a_lossy_mirror(tmp_path):
+    """Trial: a base unit numbering per type (TS-0006 read as interpretation.md allows), VRPI
+    alone for its first 10 s, then a command every 2 s sent three times (its acks lost), seen
+    through a mirror port that loses, repeats and reorders: per-type counters, and the real
+    losses, copies and the late packet, nothing more."""
+    from vm110 import encode
+    lost_vrpi, lost_vrci = {100, 101, 102, 150}, {13}            # a burst of 3, then one; a retry
+    copies, swapped = {("VRPI", 90), ("VRPI", 120), ("VRCI", 6)}, 180   # VRPI 181 comes before 180
+    sent = [(0.125 * k, "VRPI", k) for k in range(240)]
+    sent += [(10.01 + 2 * j + 0.1 * r, "VRCI", 3 * j + r) for j in range(10) for r in range(3)]
+    tr = Traffic()
+    for when, kind, n in sorted(sent):
+        if n in (lost_vrpi if kind == "VRPI" else lost_vrci):
+            continue
+        t = when
+        if kind == "VRPI":
+            data = encode.packet(C.PacketType.VRPI, encode.vrpi_payload({}), origin=BU_ORIGIN, serial=5000 + n)
+            t += {swapped: 0.126, swapped + 1: -0.124}.get(n, 0.0)
+        else:
+            data = encode.packet(C.PacketType.VRCI, encode.command_payload(n // 3 + 1), origin=BU_ORIGIN, serial=n)
+        tr.add(t, data)
+        if (kind, n) in copies:
+            tr.add(t + 0.0002, data)
+    tr.frames.sort(key=lambda f: f[0])
+    tr.write(tmp_path / "lossy.pcap")
+    ser = analyze(str(tmp_path / "lossy.pcap"))["senders"][0]["serial"]
+    assert _serial_counts(ser) == ("type", len(lost_vrpi) + len(lost_vrci), len(copies), 1, 0)
+    assert ser["scope_reason"].startswith("auto, on the ") and "from its first VRCI" in ser["scope_reason"]
+
+
+def test_auto_keeps_one_counter_for_a_controller_losing_around_each_command(tmp_path):
+    """Trial: a controller numbering every packet on one counter, VRPO in bursts of 4 every
+    100 ms and a VRCO every second sent three times, that loses the packet before and after each
+    VRCO and every tenth besides. Per type, the two losses around a VRCO are one gap of the VRPO
+    counter, and each VRCO but the first opens a gap of its own counter: one anomaly fewer than
+    with one counter, not the 4 fewer that per-type counters need. One counter, and the real
+    losses."""
+    from vm110 import encode
+    kinds = sorted([(0.1 * b + 0.0005 * i, "VRPO", i) for b in range(300) for i in range(4)]
+                   + [(5.03 + j + 0.1 * r, "VRCO", j + 1) for j in range(25) for r in range(3)])
+    serial = {k: 100 + n for n, k in enumerate(kinds)}
+    lost = {serial[k] + d for k in kinds if k[1] == "VRCO" for d in (-1, 1)}
+    lost |= {s for s in serial.values() if s % 10 == 7}
+    tr = Traffic()
+    for k in kinds:
+        t, kind, n = k
+        if serial[k] in lost:
+            continue
+        body = encode.vrpo_payload(n, b"x" * 10) if kind == "VRPO" else encode.command_payload(n)
+        tr.add(t, encode.packet(C.PacketType(kind), body, serial=serial[k]), src="10.0.0.20", sport=C.OUTPUT_PORT)
+    tr.write(tmp_path / "ctl.pcap")
+    ser = analyze(str(tmp_path / "ctl.pcap"))["senders"][0]["serial"]
+    kept = sorted(set(serial.values()) - lost)
+    assert _serial_counts(ser) == ("sender", sum(kept[0] < s < kept[-1] for s in lost), 0, 0, 0)
+    assert ser["scope_reason"].endswith("(not 4 fewer: cannot tell, one counter assumed)")
+
+
 def test_the_scope_reason_names_the_packets_the_choice_was_made_on(tmp_path):
     """Trial: a controller of some 100 000 packets read "auto, on its 4096 packets from its first
     VRCO", as if it had sent no more; and a capture cut just after a base unit's first VRCI read
