@@ -366,7 +366,7 @@ def test_the_scope_reason_names_the_packets_the_choice_was_made_on(tmp_path):
     cut.write(tmp_path / "cut.pcap")
     ser = analyze(str(tmp_path / "cut.pcap"))["senders"][0]["serial"]
     assert (ser["scope"], ser["scope_reason"]) == (
-        "sender", "auto, on its 1 packet from its first VRCI (frame 9): VRCI only from there: one counter under either scope")
+        "sender", "auto, on its 1 packet from its first VRCI (frame 9): VRCI only from there: cannot tell, one counter assumed")
 
 
 def test_a_sender_of_one_packet_type_leaves_the_scope_preference_to_the_others(tmp_path):

@@ -50,8 +50,8 @@ def choose_scope(rows: np.ndarray, opt) -> tuple[str, bool, str]:
     but not by the margin (too few anomalies yet). Last, why, in words for the report."""
     codes, window = code_of(rows["pid"]), opt.dup_window_ms
     if (codes == codes[0]).all():
-        # (the rows from the second type on: a sender of two types, one counter either way)
-        return "sender", True, f"{TYPES[int(codes[0])].value} only from there: one counter under either scope"
+        # (the rows from the second type on: one type there cannot tell whether the jump to it was one)
+        return "sender", True, f"{TYPES[int(codes[0])].value} only from there: cannot tell, one counter assumed"
     by_sender = serials.classify(rows["serial"], rows["ts"], dup_window_ms=window)
     if by_sender.anomalies == 0:
         return "sender", True, "one counter explains them without an anomaly"
