@@ -132,7 +132,7 @@ def test_json_and_html_of_several_captures_in_parallel(files, tmp_path):
     assert serial.returncode == parallel.returncode == EXIT_OK
     assert "Combined: 2 captures, FAIL" in serial.stdout
     a, b = (json.loads((tmp_path / n).read_text()) for n in ("a.json", "b.json"))
-    assert a["schema_version"] == 5 and a["errors"] == [] and [r["capture"]["file"] for r in a["reports"]] == caps
+    assert a["schema_version"] == 6 and a["errors"] == [] and [r["capture"]["file"] for r in a["reports"]] == caps
     assert a["combined"]["totals"]["lost"] == 1 and a["combined"]["ok"] is False
     assert a == b
     page = (tmp_path / "a.html").read_text()

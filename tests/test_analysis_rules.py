@@ -2,6 +2,7 @@
 crafted captures whose expected numbers are worked out by hand from the rules."""
 from __future__ import annotations
 
+import html
 import re
 
 import pytest
@@ -294,6 +295,10 @@ def test_a_finding_beyond_the_kept_items_says_where_all_of_them_are(tmp_path):
     fraction = _report(tr, tmp_path, dup_window_ms=500.5)
     assert "filter" not in _finding(fraction, "duplicates") and "wireshark_prefs" not in fraction["verdict"]
     assert "... 50 more (the report keeps the first 100)" in summary.render(fraction, True)
+    why = "dup_window_ms is 500.5, and the dissector's vm110.dup_window_ms takes whole milliseconds"
+    assert fraction["verdict"]["no_filters"] == why and "no_filters" not in other["verdict"]
+    assert f"  No Wireshark filter for the rules: {why}" in summary.render(fraction).splitlines()
+    assert f"<p>No Wireshark filter for the rules: {html.escape(why)}</p>" in report_html.render([fraction])
     # Other ports: the dissector's input port preference.
     moved = Traffic()
     for t, _, sport, _, data in tr.frames:

@@ -245,10 +245,10 @@ def _items(kept: Kept) -> dict:
     return out
 
 
-def verdict(report: dict, located: Located, prefs: Optional[list[str]]) -> dict:
+def verdict(report: dict, located: Located, prefs: Optional[list[str]], no_filters: Optional[str] = None) -> dict:
     """The findings; `prefs`: the dissector's preferences (not at their defaults) under which it
     judges as the report did, so that each rule's filter (RULE_FILTERS) is given with them; None:
-    no preferences do, no rule filters."""
+    no preferences do, no rule filters (`no_filters` says why)."""
     tot = report["totals"]
     filters = {**RULE_FILTERS, "illegal": illegal_filter(report["capture"]["ports"][0])} if prefs is not None else {}
     findings = [{"rule": key, "severity": sev, "count": tot[key],
@@ -280,5 +280,6 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]]) -> dict:
         findings.insert(0, {"rule": "no_eglink", "severity": "error", "count": 0,
                             "message": "no EG-Link packets in the capture", "items": []})
     return {"ok": not any(f["severity"] == "error" for f in findings), "findings": findings,
-            **({"wireshark_prefs": prefs} if prefs else {})}
+            **({"wireshark_prefs": prefs} if prefs else {}),
+            **({"no_filters": no_filters} if prefs is None and no_filters else {})}
 

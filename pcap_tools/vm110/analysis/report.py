@@ -16,7 +16,7 @@ from .report_json import normalise
 from .bursts import Bursts
 from .sender import Sender
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 SCOPES = ("auto", "sender", "type")
 
 
@@ -114,7 +114,7 @@ def _build(got: Collected) -> dict:
     findings.locate_report(report, tallies, located)
     report = normalise(report)
     report["totals"] = findings.totals(report)
-    report["verdict"] = normalise(findings.verdict(report, located, wireshark_prefs(report, opt)))
+    report["verdict"] = normalise(findings.verdict(report, located, *wireshark_prefs(report, opt)))
     return report
 
 
@@ -125,15 +125,16 @@ _PREFS = ("vrpi_watchdog_ms", "vrpo_watchdog_ms", "vrpo_min_ms", "vrpo_max_ms", 
 _PREF_NAMES = {"vrpo_start": "vrpo_number_start"}
 
 
-def wireshark_prefs(report: dict, opt: Options) -> Optional[list[str]]:
+def wireshark_prefs(report: dict, opt: Options) -> tuple[Optional[list[str]], Optional[str]]:
     """The dissector's preferences (`-o` values, `vm110.NAME:VALUE`) under which Wireshark judges
-    the capture as the report did, those not at their defaults; None when no preferences do: some
-    senders' serials counted per sender and others' per type, or a time of a fraction of a
-    millisecond (the preferences are whole milliseconds). A sender of one packet type has one
+    the capture as the report did, those not at their defaults; None when no preferences do, and
+    why: some senders' serials counted per sender and others' per type, or a time of a fraction
+    of a millisecond (the preferences are whole milliseconds). A sender of one packet type has one
     counter under either scope: its scope does not decide the preference."""
     scopes = {s["serial"]["scope"] for s in report["senders"] if len(s["by_type"]) > 1}
     if len(scopes) > 1:
-        return None
+        return None, ("some senders' serials are counted per sender and others' per type, and the dissector's "
+                      "vm110.serial_scope is one for all (--serial-scope sender or type gives the filters)")
     prefs = ["vm110.serial_scope:type"] if scopes == {"type"} else []
     if report["capture"]["ports"][0] != C.INPUT_PORT:
         prefs.append(f"vm110.input_port:{report['capture']['ports'][0]}")
@@ -147,10 +148,11 @@ def wireshark_prefs(report: dict, opt: Options) -> Optional[list[str]]:
         value = getattr(opt, name)
         if value == getattr(default, name):
             continue
+        pref = f"vm110.{_PREF_NAMES.get(name, name)}"
         if value != int(value):
-            return None
-        prefs.append(f"vm110.{_PREF_NAMES.get(name, name)}:{int(value)}")
-    return prefs
+            return None, f"{name} is {value:g}, and the dissector's {pref} takes whole milliseconds"
+        prefs.append(f"{pref}:{int(value)}")
+    return prefs, None
 
 
 def _sender_report(snd: Sender, where: findings.Where) -> dict:

@@ -478,7 +478,9 @@ def _findings_table(verdict: dict, t0: float) -> str:
     if not rows:
         return ""
     head = "".join(f"<th>{h}</th>" for h in ("finding", "frames", "time (s)", "sender", "what", "display filter"))
-    return f'<h3>Findings</h3><table class="findings"><tr>{head}</tr>{"".join(rows)}</table>'
+    why = (f'<p>No Wireshark filter for the rules: {_e(verdict["no_filters"])}</p>' if "no_filters" in verdict
+           else "")
+    return f'<h3>Findings</h3><table class="findings"><tr>{head}</tr>{"".join(rows)}</table>{why}'
 
 
 def _section(report: dict) -> str:

@@ -106,6 +106,8 @@ def render(report: dict, everything: bool = False) -> str:
     lines.append(f"VERDICT: {'OK' if verdict['ok'] else 'FAIL'} ({counted(verdict['findings'])})")
     for f in verdict["findings"]:
         lines += _finding(f, everything, t0, in_wireshark(verdict))
+    if verdict["findings"] and "no_filters" in verdict:
+        lines.append(f"  No Wireshark filter for the rules: {verdict['no_filters']}")
     if report["illegal"]["total"]:
         reasons = ", ".join(f"{k} {v}" for k, v in report["illegal"]["by_reason"].items())
         lines.append(f"Illegal packets: {report['illegal']['total']} ({reasons})")
