@@ -7,7 +7,7 @@ import math
 import random
 import struct
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import pytest
@@ -369,22 +369,32 @@ def test_the_scope_reason_names_the_packets_the_choice_was_made_on(tmp_path):
         "sender", "auto, on its 1 packet from its first VRCI (frame 9): VRCI only from there: cannot tell, one counter assumed")
 
 
+def _per_type_bu_beside(tmp_path: Path, other: Callable[[Traffic, int], object]) -> str:
+    """5 s of a base unit numbering VRPI and VRCI each on its own (VRPI 20 lost), and beside it
+    what `other` adds every 125 ms (`i`: the 125 ms step): the capture's path."""
+    tr = Traffic()
+    for i in range(40):
+        if i != 20:
+            tr.add(i * 0.125, vrpi(i))
+        if i % 8 == 1:
+            tr.add(i * 0.125 + 0.01, payload(VRCI, 300 + i // 8, BU_ORIGIN, command_id=i // 8))
+        other(tr, i)
+    tr.write(tmp_path / "t.pcap")
+    return str(tmp_path / "t.pcap")
+
+
 def test_the_report_says_why_its_findings_have_no_filter(tmp_path):
     """A base unit counting per type and another on one counter: no dissector preference judges
     both (its serial scope is one for all), so the findings carry no filter; the report gave no
     word of why (trial). `verdict.no_filters` says it, and the summary."""
     from vm110.analysis import summary
-    tr = Traffic()
-    for i in range(40):
-        if i != 20:                                                           # one VRPI lost
-            tr.add(i * 0.125, vrpi(i))
-        if i % 8 == 1:
-            tr.add(i * 0.125 + 0.01, payload(VRCI, 300 + i // 8, BU_ORIGIN, command_id=i // 8))   # own counter
+
+    def one_counter(tr: Traffic, i: int) -> None:
         tr.add(i * 0.125 + 0.05, vrpi(7000 + 2 * i, origin=0x0202), src="10.0.0.11")
         if i % 8 == 3:                                                        # one counter: VRPI's next serial
             tr.add(i * 0.125 + 0.06, payload(VRCI, 7001 + 2 * i, 0x0202, command_id=i // 8), src="10.0.0.11")
-    tr.write(tmp_path / "t.pcap")
-    report = analyze(str(tmp_path / "t.pcap"))
+    path = _per_type_bu_beside(tmp_path, one_counter)
+    report = analyze(path)
     assert [s["serial"]["scope"] for s in report["senders"]] == ["type", "sender"]
     assert "wireshark_prefs" not in report["verdict"]
     assert not [f["rule"] for f in report["verdict"]["findings"] if "filter" in f]
@@ -392,7 +402,7 @@ def test_the_report_says_why_its_findings_have_no_filter(tmp_path):
            "vm110.serial_scope is one for all (--serial-scope sender or type gives the filters)")
     assert report["verdict"]["no_filters"] == why
     assert f"  No Wireshark filter for the rules: {why}" in summary.render(report).splitlines()
-    typed = analyze(str(tmp_path / "t.pcap"), options=Options(serial_scope="type"))
+    typed = analyze(path, options=Options(serial_scope="type"))
     assert "no_filters" not in typed["verdict"] and typed["verdict"]["wireshark_prefs"] == ["vm110.serial_scope:type"]
 
 
@@ -400,21 +410,15 @@ def test_a_sender_of_one_packet_type_leaves_the_scope_preference_to_the_others(t
     """A base unit counting per type and a second one sending VRPI alone: the report gave no
     Wireshark preferences and no rule filters (trial: "scopes differ"), though the VRPI-only unit
     has one counter under either scope and `vm110.serial_scope:type` judges both as the report."""
-    tr = Traffic()
-    for i in range(40):
-        if i != 20:                                                           # one VRPI lost
-            tr.add(i * 0.125, vrpi(i))
-        if i % 8 == 1:
-            tr.add(i * 0.125 + 0.01, payload(VRCI, 300 + i // 8, BU_ORIGIN, command_id=i // 8))   # own counter
-        tr.add(i * 0.125 + 0.05, vrpi(7000 + i, origin=0x0202), src="10.0.0.11")
-    tr.write(tmp_path / "t.pcap")
-    report = analyze(str(tmp_path / "t.pcap"))
+    path = _per_type_bu_beside(tmp_path, lambda tr, i: tr.add(i * 0.125 + 0.05, vrpi(7000 + i, origin=0x0202),
+                                                                src="10.0.0.11"))
+    report = analyze(path)
     assert [s["serial"]["scope"] for s in report["senders"]] == ["type", "sender"]
     assert report["verdict"]["wireshark_prefs"] == ["vm110.serial_scope:type"]
     unacked = next(f for f in report["verdict"]["findings"] if f["rule"] == "unacked")
     assert unacked["filter"] == "vm110.expert.never_acked"
     # What the preference asks for: every sender counted per type judges as the report did.
-    typed = analyze(str(tmp_path / "t.pcap"), options=Options(serial_scope="type"))
+    typed = analyze(path, options=Options(serial_scope="type"))
     judged = [[{k: v for k, v in s["serial"].items() if not k.startswith("scope")} for s in r["senders"]]
               for r in (typed, report)]
     assert judged[0] == judged[1]
