@@ -127,7 +127,7 @@ class Analysis:
         """Per sender, in order of appearance: its key, id, direction, packets and serial verdicts
         so far (decided packets; a sender still choosing its serial scope has none yet)."""
         return [{"key": key, "id": snd.id, "direction": snd.direction, "packets": int(snd.counts.sum()),
-                 "scope": snd.scope, "taken_over": snd.taken_over, **snd.serial_counts()}
+                 "taken_over": snd.taken_over, **snd.serial_counts()}
                 for key, snd in self.senders.items()]
 
     def settled(self) -> bool:

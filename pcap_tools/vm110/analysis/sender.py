@@ -29,6 +29,7 @@ from typing import Optional
 import numpy as np
 
 from .. import constants as C
+from ..words import plural
 from . import serials
 from .bursts import Bursts
 from .collect import CODE, RECORD_DTYPE, TYPES, VRPI_CODE, VRPO_CODE, code_of, sender_id
@@ -55,7 +56,7 @@ def choose_scope(rows: np.ndarray, opt) -> tuple[str, bool, str]:
     by_sender = serials.classify(rows["serial"], rows["ts"], dup_window_ms=window)
     if by_sender.anomalies == 0:
         return "sender", True, "one counter explains them without an anomaly"
-    one = f"{by_sender.anomalies} anomal{'y' if by_sender.anomalies == 1 else 'ies'} with one counter"
+    one = f"{plural(by_sender.anomalies, 'anomaly', 'anomalies')} with one counter"
     by_type = serials.classify_sender(rows["serial"], rows["ts"], codes, "type", limit=by_sender.anomalies - 1,
                                       dup_window_ms=window)
     if by_type.aborted:
@@ -64,11 +65,6 @@ def choose_scope(rows: np.ndarray, opt) -> tuple[str, bool, str]:
     if by_type.anomalies + TYPE_SCOPE_MARGIN <= by_sender.anomalies:
         return "type", True, two
     return "sender", False, f"{two} (not {TYPE_SCOPE_MARGIN} fewer: cannot tell, one counter assumed)"
-
-
-def _packets(n: int) -> str:
-    """n packets, in words."""
-    return f"{n} packet{'' if n == 1 else 's'}"
 
 
 @dataclass
@@ -163,7 +159,7 @@ class Sender:
             self.look_s *= 2
             return
         which = (f"the first {len(rows)} packets" if self.warm_count >= WARMUP_PACKETS
-                 else f"the {_packets(len(rows))} of {self.look_s:g} s")
+                 else f"the {plural(len(rows), 'packet')} of {self.look_s:g} s")
         self._decide(events, False, (scope, f"auto, on {which} {self._from()}: {why}"))
 
     def _from(self) -> str:
@@ -194,7 +190,8 @@ class Sender:
             chosen = "sender", f"auto: {TYPES[self.first_code].value} only, one counter under either scope"
         elif chosen is None:
             scope, _, why = choose_scope(rows, self.opt)
-            chosen = scope, f"auto, on {'all ' if len(rows) > 1 else ''}its {_packets(len(rows))} {self._from()}: {why}"
+            every = "all its" if len(rows) > 1 else "its"
+            chosen = scope, f"auto, on {every} {plural(len(rows), 'packet')} {self._from()}: {why}"
         self.scope, self.scope_reason = chosen
         if self.scope == "type":
             # The one counter so far is its first type's (it had no other).

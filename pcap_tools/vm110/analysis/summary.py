@@ -8,6 +8,7 @@ from collections import Counter
 from typing import Optional
 
 from ..timefmt import since, stamp, utc_iso
+from ..words import plural
 from .findings import SEVERITIES
 
 
@@ -90,7 +91,7 @@ def time_range(cap: dict) -> str:
 def counted(findings: list[dict]) -> str:
     """`1 error, 0 warnings`, and the notes when there are any (they are no problem)."""
     n = Counter(f["severity"] for f in findings)
-    return ", ".join(f"{n[sev]} {sev}{'' if n[sev] == 1 else 's'}" for sev in SEVERITIES
+    return ", ".join(plural(n[sev], sev) for sev in SEVERITIES
                      if sev != "note" or n[sev])
 
 

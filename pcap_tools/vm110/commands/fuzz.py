@@ -40,6 +40,7 @@ from ..fuzz.runner import RunConfig, Runner, finding_kind, replay_corpus_case, r
 from ..fuzz.session import Settings, TargetLost
 from ..jsonin import load_file
 from ..numbers import number
+from ..words import plural
 from .options import SEED
 
 DEFAULT_RATE = 100.0
@@ -201,9 +202,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"replay one: vm110 fuzz --replay {first}"
               + (f" --target-cmd {shlex.quote(args.target_cmd)}" if args.target_cmd else ""))
     rate = summary["cases_run"] / max(summary["duration_s"], 1e-6)
-    print(f"{_n(summary['cases_run'], 'case')} in {summary['duration_s']:.1f} s ({rate:.0f}/s), "
-          f"{_n(len(summary['findings']), 'finding')} ({_n(sum(b['count'] for b in summary['buckets']), 'trigger')}), "
-          f"{_n(len(summary['unreproduced']), 'unreproduced trigger')}, {_n(summary['restarts'], 'restart')}"
+    triggers = sum(b["count"] for b in summary["buckets"])
+    print(f"{plural(summary['cases_run'], 'case')} in {summary['duration_s']:.1f} s ({rate:.0f}/s), "
+          f"{plural(len(summary['findings']), 'finding')} ({plural(triggers, 'trigger')}), "
+          f"{plural(len(summary['unreproduced']), 'unreproduced trigger')}, {plural(summary['restarts'], 'restart')}"
           + (f"; stopped early: {summary['stopped_early']}" if summary["stopped_early"] else ""))
     if "coverage" in summary:
         cov = summary["coverage"]
@@ -243,7 +245,7 @@ def run(args: argparse.Namespace) -> int:
     # made again (a race, a state its cases alone do not make) is no finding, but no pass either.
     crashed = [u for u in summary["unreproduced"] if u["oracle"] == CRASH and "not_replayed" not in u]
     if crashed:
-        print(f"the controller crashed {_n(len(crashed), 'time')} where replaying its cases did not crash it again "
+        print(f"the controller crashed {plural(len(crashed), 'time')} where replaying its cases did not crash it again "
               f"({_printable(crashed[0]['detail'])}): no finding, no reproducer, but no pass; its output is in "
               f"{out / 'target.log'}, the cases in {out / 'findings.json'} (unreproduced)")
     if runner.interrupted:
@@ -256,11 +258,6 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _n(count: int, word: str) -> str:
-    """`1 finding`, `2 findings`: the status and summary lines counted '1 bugs (1 hits)'."""
-    return f"{count} {word}{'' if count == 1 else 's'}"
-
-
 class _StatusLine:
     """One line on the terminal, rewritten in place: cases, rate, findings, coverage, time left."""
 
@@ -268,8 +265,8 @@ class _StatusLine:
         self.shown = False
 
     def __call__(self, line: dict[str, Any]) -> None:
-        parts = [_n(line["cases"], "case"), f"{line['rate']:.0f}/s",
-                 f"{_n(line['findings'], 'finding')} ({_n(line['triggers'], 'trigger')})"]
+        parts = [plural(line["cases"], "case"), f"{line['rate']:.0f}/s",
+                 f"{plural(line['findings'], 'finding')} ({plural(line['triggers'], 'trigger')})"]
         if "edges" in line:
             parts += [f"{line['edges']} edges", f"corpus {line['corpus']}"]
         if line["left_s"] is not None:
