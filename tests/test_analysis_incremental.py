@@ -68,7 +68,7 @@ def test_a_counter_fed_in_pieces_equals_one_pass(steps, seed):
     rng = random.Random(seed)
     seq, times, s, t = [], [], rng.randrange(serials.MOD), 0.0
     for step in steps:
-        t += rng.choice([0.001, 0.01, 0.5, 1.5])
+        t += rng.choice([0.001, 0.01, 0.5, 1.5, 1.5, 10.0, 12.0])    # (10 s and more: a candidate waited out)
         if step < 0 and seq:
             seq.append(seq[rng.randrange(len(seq))])
         elif step > 30:
@@ -83,7 +83,9 @@ def test_a_counter_fed_in_pieces_equals_one_pass(steps, seed):
     cuts = sorted({0, len(seq), *(rng.randrange(len(seq)) for _ in range(5))})
     held = 0
     for _a, b in itertools.pairwise(cuts):
-        done = counter.feed(seq[held:b], times[held:b], list(range(held, b)), final=b == len(seq))
+        # (the clock as far as it may go: up to the next packet not handed in)
+        clock = times[b] if b < len(seq) else times[-1]
+        done = counter.feed(seq[held:b], times[held:b], list(range(held, b)), final=b == len(seq), clock=clock)
         held += done
     got = counter.result()
     assert held == len(seq)
@@ -166,8 +168,8 @@ def _held_rows(monkeypatch) -> list[int]:
     held: list[int] = []
     real = sender.Sender._dispatch
 
-    def watch(self, rows, events, final):
-        real(self, rows, events, final)
+    def watch(self, rows, events, final, clock):
+        real(self, rows, events, final, clock)
         held.append(sum(len(rows_) for rows_ in self.pending.values()))
     monkeypatch.setattr(sender.Sender, "_dispatch", watch)
     return held
@@ -194,8 +196,9 @@ def test_copies_within_the_window_are_not_held(tmp_path, monkeypatch):
 
 def test_a_sender_stuck_on_one_serial_keeps_one_row(tmp_path, monkeypatch):
     """A device stuck on one serial (a monitor runs for days): the candidate's copies after the
-    duplicate window are duplicates too (rules.md rule 5), judged at once; they were kept, one
-    row each, for as long as the candidate stayed undecided."""
+    duplicate window, and less than 10 s after it, are duplicates too (rules.md rule 5), judged
+    at once; they were kept, one row each, for as long as the candidate stayed undecided. The
+    copy 10 s after it is judged afresh: another candidate, every 10 s (k = 0, 80, ... 1920)."""
     from test_analysis_craft import Traffic, vrpi
     tr = Traffic()
     for i in range(96):
@@ -208,7 +211,7 @@ def test_a_sender_stuck_on_one_serial_keeps_one_row(tmp_path, monkeypatch):
     report = json.loads(_report(got, rec, sources, list(range(0, len(rec), 50)) + [len(rec)]))
     assert max(held) == 1
     serial = report["senders"][0]["serial"]
-    assert (serial["duplicates"], serial["out_of_order"], serial["restarts"]) == (1999, 1, 0)
+    assert (serial["duplicates"], serial["out_of_order"], serial["restarts"]) == (2000 - 25, 25, 0)
 
 
 def test_a_sender_heard_once_holds_nothing_back(tmp_path):
@@ -242,6 +245,62 @@ def test_a_sender_heard_once_holds_nothing_back(tmp_path):
                 if o["type"] == "finding" and o["rule"] == "failed" and o["item"]["command_id"] == 9]
     give_up = Options().vrco_give_up_ms / 1000
     assert give_up <= failed["at"] - failed["item"]["time"] <= give_up + 1.5
+
+
+def test_a_sender_silent_after_a_restart_candidate_holds_nothing_back(tmp_path):
+    """A base unit whose last packet is a restart candidate (a serial no rule explains), silent
+    for good after it: the candidate waited for the counter's next packet, and every command event
+    after it, any sender's, with it, so `vm110 monitor` told the controller's VRCO that failed at
+    +14 s at the end of the input (+40 s), and a monitor running for days never. The candidate
+    is out of order once the analysis clock is 10 s past it (rules.md rule 5)."""
+    from test_analysis_craft import CTRL, Traffic, payload, vrpi
+    from vm110.cli import main
+    from vm110.layers import VRCO, VRPO
+    tr = Traffic()
+    for i in range(8):
+        tr.add(i * 0.125, vrpi(100 + i))
+    tr.add(1.0, vrpi(5000))                              # the candidate, then silence for good
+    serial = 0
+    for i in range(400):
+        tr.add(0.01 + i * 0.1, payload(VRPO, serial, packet_number=0, periodic_data=b"x" * 10), src=CTRL,
+               sport=C.OUTPUT_PORT)
+        serial += 1
+        if i in (0, 120):                                # never acknowledged
+            tr.add(0.02 + i * 0.1, payload(VRCO, serial, command_id=i // 120 + 8), src=CTRL, sport=C.OUTPUT_PORT)
+            serial += 1
+    tr.frames.sort(key=lambda f: f[0])
+    tr.write(tmp_path / "candidate.pcap")
+    lines = tmp_path / "live.jsonl"
+    assert main(["monitor", "--read", str(tmp_path / "candidate.pcap"), "--idle", "0", "--no-dashboard", "--quiet",
+                 "--json-lines", str(lines), "--crc", "mpeg2", "--crc-order", "little"]) == 0
+    events = [json.loads(line) for line in lines.read_text().splitlines()]
+    [failed] = [o for o in events if o["type"] == "finding" and o["rule"] == "failed" and o["item"]["command_id"] == 9]
+    give_up = Options().vrco_give_up_ms / 1000
+    assert give_up <= failed["at"] - failed["item"]["time"] <= give_up + 1.5
+    [bu] = [s for s in events[-1]["senders"] if s["sender"].endswith(":5825 origin 0x0101")]
+    assert (bu["out_of_order"], bu["restarts"]) == (1, 0)
+
+
+def test_a_candidate_decided_after_the_scope_look_however_the_batches_are_cut(tmp_path, monkeypatch):
+    """A per-type base unit whose VRCI counter restarts just before its scope look (10.56 s; the
+    look at 11.06 s, which chooses `type`) and is confirmed after it (12.06 s). Judging the look's
+    rows with the clock at the end of the batch made the candidate look waited out in one batch
+    (analyze of a small file), though its decider was in the batch, not yet handed to the counter."""
+    from test_analysis_craft import BU_ORIGIN, Traffic, payload, vrpi
+    from vm110.layers import VRCI
+    tr = Traffic()
+    for k in range(240):                                 # 30 s of VRPI, serials of their own
+        tr.add(k * 0.125, vrpi(k))
+    for n, (t, serial) in enumerate([*((1.0 + k * 0.5, k) for k in range(18)), (10.5, 0), (12.0, 1), (14.0, 2)]):
+        tr.add(t + 0.06, payload(VRCI, serial, BU_ORIGIN, command_id=n + 1))
+    tr.frames.sort(key=lambda f: f[0])
+    tr.write(tmp_path / "restart.pcap")
+    got, rec, sources = _records(tmp_path / "restart.pcap", monkeypatch)
+    whole = _report(got, rec, sources, [0, len(rec)])
+    serial = json.loads(whole)["senders"][0]["serial"]
+    assert (serial["scope"], serial["out_of_order"], serial["restarts"]) == ("type", 0, 1)
+    for size in (1, 7, 100):
+        assert _report(got, rec, sources, list(range(0, len(rec), size)) + [len(rec)]) == whole, size
 
 
 def test_the_serial_scope_is_chosen_alike_however_the_batches_are_cut(tmp_path, monkeypatch):

@@ -13,8 +13,11 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
      legal packet is latest. "Last legal packet" includes duplicates (they are legal); when counting
      only accepted packets would decide differently the capture is flagged ambiguous.
   R2 A restart candidate is decided by the counter's next legal packet whose serial is not the
-     candidate's, whatever that packet is (also a copy of an older serial).  Copies of the candidate
-     in between are duplicates, also those after the duplicate window (rules.md says so explicitly).
+     candidate's, whatever that packet is (also a copy of an older serial), if it comes less than
+     10 s after the candidate (analysis clock).  Copies of the candidate in between are duplicates,
+     also those after the duplicate window (rules.md says so explicitly).  The counter's first
+     packet 10 s or more after the candidate, a copy or not, finds it out of order and is judged
+     by rules 1-5 like any other (the candidate then is h's past, accepted at its time).
   R3 The candidate is accepted when it arrives (it counts for dt and r either way); a confirmed
      restart then resets the counter to: h = s, start = t_candidate, only s accepted, no open gaps;
      serials lost before the restart stay lost and can no longer be filled.
@@ -100,6 +103,7 @@ MAX_PAYLOAD = 492
 ACK_OF = {"VRAO": "VRCI", "VRAI": "VRCO"}
 TIE_NS = 3_000                   # 3 us: comparisons this close to a limit are flagged ambiguous
 NS = 1_000_000_000
+CANDIDATE_WAIT = 10 * NS         # rules.md rule 5: a candidate's decider comes less than 10 s after it
 MS = 1_000_000
 
 
@@ -632,7 +636,13 @@ def _classify(packets: list[dict], dup_w: int, flags: _Flags) -> dict:
             ctr = {"h": sv, "start": t, "accepted": {}, "missing": [], "prev_t": t, "acc_times": []}
             accept(i)
             continue
+        if pending is not None and t - pending["t"] >= CANDIDATE_WAIT:
+            flags.near(t - pending["t"], CANDIDATE_WAIT, f"candidate wait, frame {fr}")
+            out_of_order += 1                                                   # waited out (R2)
+            marks.append((pending["at"], "serial_out_of_order", 1))
+            pending = None
         if pending is not None:
+            flags.near(t - pending["t"], CANDIDATE_WAIT, f"candidate wait, frame {fr}")
             if sv == pending["serial"]:
                 # R2: a copy of the candidate is a duplicate, whenever it comes
                 duplicates += 1

@@ -121,7 +121,10 @@ def _device(draw: Any, kind: str, duration: int, index: int) -> dict:
            "commands": sorted(draw(st.lists(st.integers(0, duration - 200), max_size=8))),
            "reuse_p": draw(st.sampled_from([0.0, 0.0, 0.3])),
            "silences": draw(st.lists(st.tuples(st.integers(200, duration), st.integers(100, 4000)), max_size=2)),
-           "outages": draw(st.lists(st.tuples(st.integers(200, duration), st.integers(300, 6000)), max_size=1)),
+           # (10 s or more: a restart candidate before one waits out its 10 s, rules.md rule 5)
+           "outages": draw(st.lists(st.tuples(st.integers(200, duration),
+                                              st.one_of(st.integers(300, 6000), st.integers(9500, 12000))),
+                                    max_size=1)),
            "stop": draw(st.one_of(st.none(), st.integers(duration // 2, duration))),
            "start": draw(st.sampled_from([0, 0, 0, 300])),
            "restarts": draw(st.lists(_restart(duration, True), max_size=2)),

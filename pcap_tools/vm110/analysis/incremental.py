@@ -15,7 +15,9 @@ Order across senders matters twice:
   before it when it is linked.
 - Commands are applied in capture order, a restart's marker before the packet of its frame. A
   sender may not have decided its latest packets yet (a restart candidate, the scope's choice);
-  the events at or after the first undecided frame of any sender wait until it is decided.
+  the events at or after the first undecided frame of any sender wait until it is decided. Both
+  end on the analysis clock, whether the sender is heard again or not (a look when its time has
+  come, a candidate out of order serials.CANDIDATE_WAIT_MS after it).
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ import numpy as np
 
 from .. import constants as C
 from ..capture.reader import address
-from . import commands, timing
+from . import commands, serials, timing
 from .collect import CODE, _groups, code_of, key_sender, sender_keys
 from .periodic import Floats, FloatsFactory
 from .sender import Sender
@@ -50,6 +52,8 @@ class Analysis:
         # Kept so that a batch costs what its own senders cost, not a look at every sender:
         self.warming: list[tuple[float, int]] = []    # heap of (time of its next look, key): auto choosing
         self.looking: set[int] = set()                # the keys in `warming`
+        self.candidates: list[tuple[float, int]] = [] # heap of (time of its oldest candidate, key)
+        self.waiting: set[int] = set()                # the keys in `candidates`
         self.undecided: dict[int, int] = {}           # sender key -> its first undecided frame
         self.held: list[tuple[int, int]] = []         # heap of (frame, key); stale where undecided differs
 
@@ -70,11 +74,12 @@ class Analysis:
             if new and new[0][0] == a:
                 self._join(new.pop(0)[1], rec[a])
             part = rec[a:b]
+            clock = float(part["ts"][-1])         # (each sender has had all its rows up to here)
             if len(self.senders) == 1 or (b - a) == 1:
-                self.senders[int(key[a])].feed(part, self.events)
+                self.senders[int(key[a])].feed(part, self.events, clock)
                 continue
             for value, rows in _groups(key[a:b]):
-                self.senders[value].feed(part[rows], self.events)
+                self.senders[value].feed(part[rows], self.events, clock)
         touched = values.tolist()
         for k in touched:
             first_look = self.senders[k].due()
@@ -94,9 +99,32 @@ class Analysis:
                 heapreplace(self.warming, (later, k))
             else:
                 break
+        self._time_out(touched)
         for k in touched:
             self._note(k)
         self._apply(self._horizon())
+
+    def _time_out(self, touched: list[int]) -> None:
+        """Decide the restart candidates the analysis clock has waited out (their senders join
+        `touched`)."""
+        for k in list(touched):
+            since = self.senders[k].waiting()
+            if since is not None and k not in self.waiting:
+                self.waiting.add(k)
+                heappush(self.candidates, (since, k))
+        while self.candidates:
+            since, k = self.candidates[0]
+            if timing.shorter(self.clock - since, serials.CANDIDATE_WAIT_MS):
+                break
+            snd = self.senders[k]
+            snd.timeout(self.clock, self.events)
+            later = snd.waiting()
+            if later is None:
+                heappop(self.candidates)
+                self.waiting.discard(k)
+            else:
+                heapreplace(self.candidates, (later, k))
+            touched.append(k)
 
     def _clocked(self, rec: np.ndarray) -> np.ndarray:
         """The records with `ts` on the analysis clock; the own times it replaces go to `stamps`
@@ -121,6 +149,7 @@ class Analysis:
         for snd in self.senders.values():
             snd.finish(self.events)
         self.warming, self.looking, self.undecided, self.held = [], set(), {}, []
+        self.candidates, self.waiting = [], set()
         self._apply(None)
 
     def snapshot(self) -> list[dict]:

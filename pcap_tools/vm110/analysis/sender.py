@@ -2,7 +2,8 @@
 they have not decided yet, its periodic streams, VRPO bursts and state timeline.
 
 A counter may leave packets undecided at the end of a batch (a restart candidate waits for its
-next packet); they are kept here and handed in again with the sender's next rows. With
+next packet, at most serials.CANDIDATE_WAIT_MS on the analysis clock); they are kept here and
+handed in again with the sender's next rows, or once the clock has passed the wait (`timeout`). With
 `--serial-scope auto`, while the sender has sent one packet type its one counter is both
 readings' (rules.md, "Choosing the scope"), and its packets are judged at once. From its first
 packet of a second type on, its packets of WARMUP_S seconds are kept as they came, the scope is
@@ -30,7 +31,7 @@ import numpy as np
 
 from .. import constants as C
 from ..words import plural
-from . import serials
+from . import serials, timing
 from .bursts import Bursts
 from .collect import CODE, RECORD_DTYPE, TYPES, VRPI_CODE, VRPO_CODE, code_of, sender_id
 from .commands import RESTART
@@ -110,8 +111,9 @@ class Sender:
         self.link: Optional[dict] = None         # the restart on a new port that began it
         self.before: dict[int, Optional[float]] = {}   # the predecessor's last packet per periodic type
 
-    def feed(self, rows: np.ndarray, events: list) -> None:
-        """The sender's next legal packets, in arrival order; command events go to `events`."""
+    def feed(self, rows: np.ndarray, events: list, clock: float) -> None:
+        """The sender's next legal packets, in arrival order, all of them up to the analysis time
+        `clock`; command events go to `events`."""
         codes = code_of(rows["pid"])
         self.last_ts, self.last_frame, self.last_code = float(rows["ts"][-1]), int(rows["frame"][-1]), int(codes[-1])
         self.counts += np.bincount(codes, minlength=len(TYPES))
@@ -121,7 +123,7 @@ class Sender:
                 other = np.flatnonzero(codes != self.first_code)
                 k = int(other[0]) if len(other) else len(rows)
                 if k:
-                    self._dispatch(rows[:k], events, False)
+                    self._dispatch(rows[:k], events, False, self._next(rows, k, clock))
                     rows, codes = rows[k:], codes[k:]
                 if not len(rows):
                     break
@@ -134,9 +136,15 @@ class Sender:
                 self.warm_count += k
                 rows, codes = rows[k:], codes[k:]
             if len(rows) or self.warm_count >= WARMUP_PACKETS:
-                self._look(events)
+                self._look(events, self._next(rows, 0, clock))
         if len(rows):
-            self._dispatch(rows, events, False)
+            self._dispatch(rows, events, False, clock)
+
+    @staticmethod
+    def _next(rows: np.ndarray, k: int, clock: float) -> float:
+        """The analysis time up to which the counters have had all the sender's rows once those
+        before rows[k] are handed to them: that of rows[k] (the next it has not had), else `clock`."""
+        return float(rows["ts"][k]) if k < len(rows) else clock
 
     def due(self) -> Optional[float]:
         """auto: the analysis time of the next look; None when none is to come (the scope is
@@ -147,11 +155,11 @@ class Sender:
         """Make the looks due by `clock` (the analysis clock): a sender heard no more cannot hold
         its packets and the command events after them."""
         while self.scope is None and self.second is not None and clock - self.second[0] >= self.look_s:
-            self._look(events)
+            self._look(events, clock)
 
-    def _look(self, events: list) -> None:
+    def _look(self, events: list, clock: float) -> None:
         """Choose the scope on the warm-up rows, or look again later when they cannot tell (the
-        last look, or a full count, chooses anyway)."""
+        last look, or a full count, chooses anyway). `clock`: as for _dispatch."""
         rows = np.concatenate(self.warm)
         self.warm = [rows]
         scope, tells, why = choose_scope(rows, self.opt)
@@ -160,7 +168,7 @@ class Sender:
             return
         which = (f"the first {len(rows)} packets" if self.warm_count >= WARMUP_PACKETS
                  else f"the {plural(len(rows), 'packet')} of {self.look_s:g} s")
-        self._decide(events, False, (scope, f"auto, on {which} {self._from()}: {why}"))
+        self._decide(events, False, (scope, f"auto, on {which} {self._from()}: {why}"), clock)
 
     def _from(self) -> str:
         assert self.second is not None
@@ -169,11 +177,23 @@ class Sender:
     def finish(self, events: list) -> None:
         """The capture ended: decide what is left."""
         if self.scope is None:
-            self._decide(events, True)
+            self._decide(events, True, None, np.inf)
         else:
-            self._dispatch(np.empty(0, dtype=RECORD_DTYPE), events, True)
+            self._dispatch(np.empty(0, dtype=RECORD_DTYPE), events, True, np.inf)
         if self.bursts is not None:
             self.bursts.finish()
+
+    def waiting(self) -> Optional[float]:
+        """The analysis time of its oldest undecided restart candidate (None: none), while no
+        look is to come (a look decides them with the rest)."""
+        if self.warm or not self.pending:
+            return None
+        return min(float(r["ts"][0]) for r in self.pending.values())
+
+    def timeout(self, clock: float, events: list) -> None:
+        """The analysis clock is at `clock`: candidates waited for long enough are out of order."""
+        if self.waiting() is not None:
+            self._dispatch(np.empty(0, dtype=RECORD_DTYPE), events, False, clock)
 
     def undecided(self) -> Optional[int]:
         """The first frame not decided yet (its events and any restart before them wait)."""
@@ -182,8 +202,9 @@ class Sender:
             frames.append(int(self.warm[0]["frame"][0]))
         return min(frames) if frames else None
 
-    def _decide(self, events: list, final: bool, chosen: Optional[tuple[str, str]] = None) -> None:
-        """`chosen`: the scope and why; None at the end of the capture, chosen here on all rows."""
+    def _decide(self, events: list, final: bool, chosen: Optional[tuple[str, str]], clock: float) -> None:
+        """`chosen`: the scope and why; None at the end of the capture, chosen here on all rows.
+        `clock`: as for _dispatch."""
         rows = np.concatenate(self.warm) if self.warm else np.empty(0, dtype=RECORD_DTYPE)
         self.warm, self.warm_count = [], 0
         if chosen is None and self.second is None:
@@ -202,11 +223,11 @@ class Sender:
         # Probes that came while warming up: their moment lies inside these rows.
         for probe in sorted(self.probes, key=lambda p: p.frame):
             cut = int(np.searchsorted(rows["frame"], probe.frame))
-            self._dispatch(rows[:cut], events, False)
+            self._dispatch(rows[:cut], events, False, self._next(rows, cut, clock))
             rows = rows[cut:]
             self._resolve(probe)
         self.probes = []
-        self._dispatch(rows, events, final)
+        self._dispatch(rows, events, final, clock)
 
     def probe(self, successor: "Sender") -> None:
         """`successor` restarted this sender on a new port at its first frame (see the module doc)."""
@@ -236,19 +257,21 @@ class Sender:
         stream = self.streams.get(code)
         return stream.times.last() if stream is not None and len(stream.times) else None
 
-    def _dispatch(self, rows: np.ndarray, events: list, final: bool) -> None:
+    def _dispatch(self, rows: np.ndarray, events: list, final: bool, clock: float) -> None:
         """Judge rows (and the undecided ones before them) by the counter(s) of the scope (one,
-        while auto has not chosen: the sender has sent one type so far)."""
+        while auto has not chosen: the sender has sent one type so far). `clock`: the analysis
+        time up to which the counters then have all the sender's packets (a candidate waited out
+        by then is out of order; not later than the sender's next row not handed in yet)."""
         if self.scope != "type":
             parts = {None: rows}
         else:
             codes = code_of(rows["pid"])
             parts = {c: rows[codes == c] for c in np.unique(codes).tolist()}
-        if final:
-            parts.update({k: rows[:0] for k in self.pending if k not in parts})
+        parts.update({k: rows[:0] for k in self.pending if k not in parts})   # (the clock may decide them)
         for key, new in parts.items():
             held = self.pending.pop(key, None)
-            if held is not None and not final and len(new) and (new["serial"] == held["serial"][0]).all():
+            if held is not None and not final and len(new) and (new["serial"] == held["serial"][0]).all() \
+                    and timing.shorter(clock - float(held["ts"][0]), serials.CANDIDATE_WAIT_MS):
                 self.pending[key] = held
                 self._hold(key, new)          # more copies of the undecided candidate
                 continue
@@ -260,7 +283,7 @@ class Sender:
                 counter = self.counters[key] = serials.Counter(self.opt.dup_window_ms, key)
             restarts = len(counter.res.restarts)
             done = counter.feed(todo["serial"], todo["ts"], todo["frame"].tolist(), final,
-                                own=self._own_times(todo, take=False))
+                                own=self._own_times(todo, take=False), clock=clock)
             decided = todo[:done]
             if done < len(todo):                   # an undecided candidate, then copies of it only
                 self.pending[key] = todo[done:done + 1].copy()            # a copy: not the batch

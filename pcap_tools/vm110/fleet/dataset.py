@@ -39,8 +39,9 @@ FORMAT = "vm110-fleet"
 # 2: findings of report schema 3 (severity note); rows of 1 would mix. 3: the journal (a build of
 # 2 would not see it, and a later one would apply its stale batches), and the sender of
 # acknowledgement findings (rows of 2 have none). 4: the revised `auto` serial scope (rows of 3
-# judged some per-type devices with one counter: false out-of-order packets, losses missed).
-FORMAT_VERSION = 4
+# judged some per-type devices with one counter: false out-of-order packets, losses missed). 5: a
+# restart candidate waits at most 10 s for its decider (rules.md rule 5; rows of 4 waited for ever).
+FORMAT_VERSION = 5
 MANIFEST = "manifest.json"
 JOURNAL = "journal"                # batches of a running build's updates to the manifest
 MAX_MANIFEST_BYTES = 256 << 20

@@ -14,8 +14,8 @@ from typing import Any, Callable, Optional, Sequence
 from .. import constants as C
 from .clock import US_PER_S, ms
 from .ledger import REUSE_GAP_MS
-from .peers import (CONFIRM, DUP_WINDOW_US, MIN_RATE, NEW_PORT_SILENCE_US, PLAUSIBLE_BASE, PLAUSIBLE_FACTOR,
-                    RATE_WINDOW_US)
+from .peers import (CANDIDATE_WAIT_US, CONFIRM, DUP_WINDOW_US, MIN_RATE, NEW_PORT_SILENCE_US, PLAUSIBLE_BASE,
+                    PLAUSIBLE_FACTOR, RATE_WINDOW_US)
 from .reading import Reading
 from .virtual import Arrival, Station, endpoints
 
@@ -70,8 +70,12 @@ class _Counter:
 
     def add(self, s: int, t: int, frame: int) -> tuple[bool, Optional[_Candidate]]:
         """Classify a legal packet: (accepted, the candidate it opened if any). A pending candidate
-        is decided first by any other serial."""
+        is decided first by any other serial less than CANDIDATE_WAIT_US after it (later, it was
+        out of order, and this packet is judged afresh, a copy of it too)."""
         cand = self.candidate
+        if cand is not None and t - cand.t >= CANDIDATE_WAIT_US:
+            self.finish()
+            cand = None
         if cand is not None:
             if s == cand.serial:
                 self.duplicates.append(s)            # copies of the candidate confirm nothing
@@ -165,7 +169,7 @@ class _Counter:
         self._accept(s, t)
 
     def finish(self) -> None:
-        """The capture ended: a pending candidate stays unconfirmed."""
+        """The capture ended, or the candidate's wait: a pending candidate stays unconfirmed."""
         if self.candidate is not None:
             self.candidate.restart = False
             self.out_of_order.append(self.candidate.serial)
