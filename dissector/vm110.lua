@@ -177,9 +177,9 @@ local COMMAND_RESEND_MS, VRCI_FAIL_MS, VRCO_GIVE_UP_MS, VRPO_BURST_GAP_MS = 100,
 local SERIAL_MODULUS, SERIAL_HALF = 65536, 32768
 -- docs/rules.md: duplicate window, command ID reuse gap, restart on a new port after this silence,
 -- the rate window of the plausible-gap test and its constants (d - 1 <= 64 + 4 max(r, 20) dt), a
--- restart confirmed by the next serial s + 1 ... s + 4.
+-- restart confirmed by the next serial s + 1 ... s + 4 less than 10 s after the candidate.
 local RULES = { dup_window_ms = 1000, reuse_gap_ms = 2000, new_port_silence_ms = 250, rate_window_s = 10,
-    gap_slack = 64, gap_rate_factor = 4, gap_min_rate = 20, confirm_span = 4 }
+    gap_slack = 64, gap_rate_factor = 4, gap_min_rate = 20, confirm_span = 4, candidate_wait_ms = 10000 }
 local ACK_OF = { VRAO = "VRCI", VRAI = "VRCO" }
 local ES_RELAYS_CLOSED_FROM = 0x10
 
@@ -1505,9 +1505,13 @@ local by_id = {}        -- command kind -> command ID -> its commands (any sende
 -- Command events (and restarts) wait here, in capture order, while a restart candidate before
 -- them is undecided: a restart interrupts its sender's commands as of the candidate's time.
 local queue, qhead, qtail = {}, 1, 0
--- The capture so far: its last record (any frame: number, time) and the analysis clock (rules.md:
--- the latest time of a legal packet).
-local capture = { number = 0, last = false, clock = -math.huge }
+-- The capture so far: its last record (any frame: number, time), the analysis clock (rules.md:
+-- the latest time of a legal packet), and the restart candidates not yet expired, a list from the
+-- oldest (`waiting`, linked by `next_waiting`) to the newest (`waiting_last`), made in clock order:
+-- one still undecided when the clock reaches RULES.candidate_wait_ms after it is out of order, so
+-- a sender silent for good after one holds the queue no longer. (Fields: the main chunk's locals
+-- are limited to 200.)
+local capture = { number = 0, last = false, clock = -math.huge, waiting = false, waiting_last = false }
 local dirty = false     -- packets analysed since the last finalize()
 local silent_marks = {} -- results finalize() marked silent until the end
 
@@ -1518,7 +1522,8 @@ local function reset_analysis()
     results, senders, sender_list, hosts, counters = new_memo(), {}, {}, {}, {}
     by_id = { VRCI = {}, VRCO = {} }
     queue, qhead, qtail = {}, 1, 0
-    capture, dirty, silent_marks = { number = 0, last = false, clock = -math.huge }, false, {}
+    capture = { number = 0, last = false, clock = -math.huge, waiting = false, waiting_last = false }
+    dirty, silent_marks = false, {}
 end
 reset_analysis()
 
@@ -1644,9 +1649,9 @@ end
 -- counts itself in that result's `filled`), the previous accepted packet's time (`prev`), and the
 -- accepted times of the last RATE_WINDOW_S seconds in a ring (the rate of the plausible-gap
 -- test, counted exactly: by binary search while the times are in order).
-local new_counter, classify, decide
+local new_counter, classify, expire
 do
-    local RATE_WINDOW_S, CONFIRM_SPAN = RULES.rate_window_s, RULES.confirm_span
+    local RATE_WINDOW_S, CONFIRM_SPAN, WAIT_MS = RULES.rate_window_s, RULES.confirm_span, RULES.candidate_wait_ms
     local GAP_SLACK, GAP_RATE_FACTOR, GAP_MIN_RATE = RULES.gap_slack, RULES.gap_rate_factor, RULES.gap_min_rate
 
     function new_counter(snd, s, t)
@@ -1697,7 +1702,7 @@ do
     end
 
     -- A candidate decided: confirmed, the counter starts afresh at it; else it stays out of order.
-    function decide(c, confirmed)
+    local function decide(c, confirmed)
         local rec, snd = c.cand, c.snd
         c.cand, rec.decided = false, true
         if confirmed then
@@ -1712,9 +1717,22 @@ do
         flush()
     end
 
+    -- The waiting candidates made WAIT_MS or more before the analysis clock `now` (all when
+    -- false) leave the list; those their counters have not decided are out of order.
+    function expire(now)
+        local rec = capture.waiting
+        while rec and not (now and ms(now - rec.t) < WAIT_MS) do
+            if not rec.decided then decide(rec.counter, false) end
+            rec = rec.next_waiting
+        end
+        capture.waiting = rec
+        if not rec then capture.waiting_last = false end
+    end
+
     -- Rules 1-5 for serial s at time t: returns the serials missing before it (>= 0), DUPLICATE,
     -- LATE or CANDIDATE. A candidate pending on the counter is decided first by the first packet
-    -- with another serial (copies of it are duplicates).
+    -- with another serial (copies of it are duplicates); it is less than WAIT_MS before t, as
+    -- analyse() expired the older ones at t (a later copy of it is judged afresh).
     function classify(c, s, t)
         local cand = c.cand
         if cand then
@@ -1964,6 +1982,7 @@ local function analyse(r, s, pinfo, frame, offset)
     local now = capture.clock -- (senders', serials' and commands': rules.md, "the analysis clock")
     if t > now then
         now, capture.clock = t, t
+        if capture.waiting then expire(now) end -- (before this packet is judged)
     end
     local snd, restart = sender_of(r, pinfo, now, frame)
     snd.count[id] = (snd.count[id] or 0) + 1
@@ -2004,9 +2023,12 @@ local function analyse(r, s, pinfo, frame, offset)
             elseif missing == LATE then
                 snd.late = snd.late + 1
             elseif missing == CANDIDATE then
-                local rec = { of = snd, frame = frame, t = now, from = c.h, to = serial, decided = false,
-                    confirmed = false }
+                local rec = { of = snd, counter = c, frame = frame, t = now, from = c.h, to = serial,
+                    decided = false, confirmed = false }
                 c.cand, res.cand = rec, rec
+                local last = capture.waiting_last
+                if last then last.next_waiting = rec else capture.waiting = rec end
+                capture.waiting_last = rec
                 restart_event(rec)
             end
         end
@@ -2089,11 +2111,7 @@ end
 -- on a new port took over).
 local function finalize()
     dirty = false
-    for _, snd in ipairs(sender_list) do
-        for _, c in ipairs(snd.states) do
-            if c.cand then decide(c, false) end
-        end
-    end
+    expire(false)
     flush()
     for _, res in ipairs(silent_marks) do res.silent = nil end
     silent_marks = {}

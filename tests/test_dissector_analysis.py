@@ -748,6 +748,66 @@ def test_rules_unconfirmed_candidate_is_out_of_order(tshark, tmp_path):
     assert rows[6].float("vm110.analysis.interval") == 125.0
 
 
+def _candidate_timeline(*later):
+    """VRPI 10-13 at 8/s, then serial 5000 at 500 ms (at most 74 lost is plausible: a candidate),
+    then `later` [(ms, serial)]: 13 stays h while the candidate is undecided or out of order."""
+    return [(125 * k, _bu(10 + k, _vrpi())) for k in range(4)] + [(500, _bu(5000, _vrpi()))] + [
+        (ms, _bu(serial, _vrpi())) for ms, serial in later]
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_candidate_is_decided_within_10_s(tshark, tmp_path):
+    """rules.md rule 5: serial 5001 1 us less than 10 s after the candidate 5000 confirms it; exactly
+    10 s after, the candidate is out of order and 5001 is judged afresh: 4987 lost after 10 s of
+    silence is not plausible (at most 64 + 4 * 20 * 10 = 864), so 5001 is a candidate itself, from
+    13, confirmed by 5002."""
+    rows = _crafted(tshark, tmp_path / "in-time", _candidate_timeline((10_499.999, 5001), (10_625, 5002)))
+    assert rows[5].int("vm110.analysis.restart") == 13 and not rows[5].get("vm110.analysis.serial_out_of_order")
+    assert not rows[6].get("vm110.analysis.restart") and not rows[6].get("vm110.analysis.serial_missing")
+    rows = _crafted(tshark, tmp_path / "late", _candidate_timeline((10_500, 5001), (10_625, 5002)))
+    assert rows[5].int("vm110.analysis.serial_out_of_order") == 1 and not rows[5].get("vm110.analysis.restart")
+    assert rows[6].int("vm110.analysis.restart") == 13 and rows[6].has("restart")
+    assert not any(rows[n].get(f"vm110.analysis.serial_{k}") for n in (6, 7) for k in ("missing", "out_of_order"))
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_copy_of_candidate_is_a_duplicate_within_10_s(tshark, tmp_path):
+    """A copy of the candidate 5 s after it is a duplicate (rule 5, beyond the 1 s window); 11 s
+    after it, the candidate is out of order and the copy is judged afresh: a candidate again (4986
+    lost after 11 s is not plausible), out of order at the end of the capture."""
+    rows = _crafted(tshark, tmp_path, _candidate_timeline((5500, 5000), (11_500, 5000)))
+    assert rows[5].int("vm110.analysis.serial_out_of_order") == 1
+    assert rows[6].int("vm110.analysis.serial_duplicate") == 1 and rows[6].has("serial_duplicate")
+    assert not rows[7].get("vm110.analysis.serial_duplicate") and not rows[7].has("serial_duplicate")
+    assert rows[7].int("vm110.analysis.serial_out_of_order") == 1 and rows[7].float("vm110.analysis.interval") == 11_000.0
+
+
+def _silent_candidate_timeline():
+    """Frames 1-5: the base unit's serial 5000 is a candidate at 500 ms, and it falls silent for
+    good. The controller: VRPO at 1000 ms (6), VRCO 9 at 1050 (7) resent at 1150 (8), VRPO each
+    second from 2000 to 11000 ms (9-18), VRCO 7 at 11050 (19) resent at 11150 (20); none acked."""
+    controller = [(1000, _vrpo()), (1050, _cmd("VRCO", 9)), (1150, _cmd("VRCO", 9))]
+    controller += [(1000 * k, _vrpo()) for k in range(2, 12)] + [(11_050, _cmd("VRCO", 7)), (11_150, _cmd("VRCO", 7))]
+    return _candidate_timeline() + [(ms, _ctl(serial, p)) for serial, (ms, p) in enumerate(controller, start=1)]
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_silent_sender_candidate_holds_commands_for_10_s_only(tshark, tmp_path):
+    """The controller's command events wait behind the base unit's candidate until the analysis
+    clock (the controller's VRPO at 11 s) reaches 10 s after it: then it is out of order and they
+    run, so a single pass links the VRCO 7 resent after that (before: held to the capture's end)."""
+    timeline = _silent_candidate_timeline()
+    vrco9, resent9, vrco7, resent7 = 7, 8, 19, 20
+    rows = _crafted(tshark, tmp_path / "two", timeline)
+    assert rows[5].int("vm110.analysis.serial_out_of_order") == 1
+    assert rows[resent9].int("vm110.analysis.retransmission_of") == vrco9
+    assert rows[resent7].int("vm110.analysis.retransmission_of") == vrco7
+    assert rows[vrco9].has("never_acked") and rows[vrco7].has("never_acked")
+    single = _crafted(tshark, tmp_path / "one", timeline, passes=())
+    assert not single[resent9].get("vm110.analysis.retransmission_of")   # (held while the candidate was)
+    assert single[resent7].int("vm110.analysis.retransmission_of") == vrco7 and single[resent7].has("retransmission")
+
+
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 def test_rules_long_outage_is_loss_and_restart_from_above_32767(tshark, tmp_path):
     """8/s for 10 s, then 60 s of silence and a jump of 481: 480 lost is plausible (up to
