@@ -281,6 +281,35 @@ def test_a_sender_silent_after_a_restart_candidate_holds_nothing_back(tmp_path):
     assert (bu["out_of_order"], bu["restarts"]) == (1, 0)
 
 
+def test_a_sender_stuck_on_one_serial_holds_no_failed_command_to_the_end(tmp_path):
+    """A base unit stuck on one serial: a restart candidate every 10 s (rules.md rule 5), so some
+    packet is always undecided. `vm110 monitor` told a failed command only once every packet was
+    decided, which with such a sender is never: the controller's VRCO that failed at +27 s was
+    told at the end of the input (+60 s). The candidates hold the events 10 s at most, so it is
+    told then (+31 s, the candidate at +21 s waited out)."""
+    from test_analysis_craft import CTRL, Traffic, payload, vrpi
+    from vm110.cli import main
+    from vm110.layers import VRCO, VRPO
+    tr = Traffic()
+    for i in range(480):
+        tr.add(i * 0.125, vrpi(777))
+    for i in range(600):
+        tr.add(0.01 + i * 0.1, payload(VRPO, i, packet_number=0, periodic_data=b"x" * 10), src=CTRL,
+               sport=C.OUTPUT_PORT)
+    tr.add(25.02, payload(VRCO, 600, command_id=3), src=CTRL, sport=C.OUTPUT_PORT)      # never acknowledged
+    tr.frames.sort(key=lambda f: f[0])
+    tr.write(tmp_path / "stuck.pcap")
+    lines = tmp_path / "live.jsonl"
+    assert main(["monitor", "--read", str(tmp_path / "stuck.pcap"), "--idle", "0", "--no-dashboard", "--quiet",
+                 "--json-lines", str(lines), "--crc", "mpeg2", "--crc-order", "little", "--serial-scope", "sender"]) == 0
+    events = [json.loads(line) for line in lines.read_text().splitlines()]
+    [failed] = [o for o in events if o["type"] == "finding" and o["rule"] == "failed"]
+    wait = serials.CANDIDATE_WAIT_MS / 1000
+    assert Options().vrco_give_up_ms / 1000 <= failed["at"] - failed["item"]["time"] <= wait + 1.5
+    [bu] = [s for s in events[-1]["senders"] if s["sender"].endswith(":5825 origin 0x0101")]
+    assert (bu["out_of_order"], bu["restarts"]) == (5, 0)       # +1, +11, ... +41 s (+51 s's waits past the end)
+
+
 def test_a_candidate_decided_after_the_scope_look_however_the_batches_are_cut(tmp_path, monkeypatch):
     """A per-type base unit whose VRCI counter restarts just before its scope look (10.56 s; the
     look at 11.06 s, which chooses `type`) and is confirmed after it (12.06 s). Judging the look's

@@ -132,3 +132,37 @@ def test_retired_commands_give_the_same_report(capture, monkeypatch):
     got = analyze(path, crc="mpeg2", crc_order="little", options=options)
     assert made and made[-1].retiring.retired > 0          # it did retire commands
     assert got == expected
+
+
+def test_monitor_retires_commands_beside_a_sender_stuck_on_one_serial(tmp_path, monkeypatch):
+    """A base unit stuck on one serial is never all decided (a restart candidate every 10 s,
+    rules.md rule 5): `vm110 monitor` retired finished commands only once every packet was, so
+    beside it a run of days kept every command in memory. It retires what is finished before the
+    first undecided packet; the report is analyze's all the same."""
+    from test_analysis_craft import CTRL, Traffic, payload, vrpi
+    from vm110 import constants as C
+    from vm110.layers import VRAI, VRCO
+    tr = Traffic()
+    bu = [(i * 0.125 + 0.06, None) for i in range(480)]
+    for k in range(20):                                      # a VRCO every 2.5 s, acknowledged
+        tr.add(1.0 + k * 2.5, payload(VRCO, k, command_id=k + 1), src=CTRL, sport=C.OUTPUT_PORT)
+        bu.append((1.05 + k * 2.5, k + 1))
+    for serial, (t, acked) in enumerate(sorted(bu)):
+        tr.add(t, vrpi(serial) if acked is None else payload(VRAI, serial, 0x0101, command_id=acked))
+    for i in range(480):
+        tr.add(i * 0.125, vrpi(777, origin=0x0102), src="10.0.0.11")         # stuck on serial 777
+    tr.frames.sort(key=lambda f: f[0])
+    path = tmp_path / "stuck.pcap"
+    tr.write(path)
+    retired: list[int] = []
+    real = Retiring.retire
+
+    def watch(self, now, upto=None):
+        real(self, now, upto)
+        retired.append(self.retired)
+    monkeypatch.setattr(Retiring, "retire", watch)
+    a, m = tmp_path / "a.json", tmp_path / "m.json"
+    assert main(["analyze", str(path), "--quiet", "--json", str(a)]) == 0
+    assert main(["monitor", "--read", str(path), "--idle", "0", "--quiet", "--no-dashboard", "--json", str(m)]) == 0
+    assert max(retired, default=0) >= 10
+    assert a.read_bytes() == m.read_bytes()

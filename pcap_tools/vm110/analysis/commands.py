@@ -150,8 +150,8 @@ class Retiring:
     the command goes to `spool`; what an acknowledgement still needs of it (its first frame, that
     it is acknowledged) stays as a stub in `by_id`, and the commands before it there, which no
     acknowledgement can reach any more, go. `restore()` puts every command back in its place.
-    The caller retires only when every event so far has been applied (`Analysis.settled`), with
-    the time of the latest packet applied."""
+    The caller retires at a time before which every event has been applied
+    (`Analysis.applied_until`, at most the latest packet's): any event still to come is later."""
 
     def __init__(self, tracker: Tracker, spool) -> None:
         self.tracker, self.spool = tracker, spool

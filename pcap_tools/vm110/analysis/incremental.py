@@ -163,6 +163,18 @@ class Analysis:
         """Whether every packet fed so far is decided (and so every command event applied)."""
         return not self.events and self._horizon() is None
 
+    def applied_until(self) -> float:
+        """The analysis time before which every command event has been applied (inf: all): the
+        first undecided packet's, as the events at or after it wait. A command unacknowledged
+        then was so at every time before it (a sender stuck on one serial, a restart candidate
+        every 10 s, is never settled, yet its candidates hold the events 10 s at most)."""
+        frame = self._horizon()
+        if frame is None:
+            return np.inf if not self.events else self.clock
+        since = self.senders[self.held[0][1]].undecided_since()
+        assert since is not None
+        return since
+
     def _join(self, key: int, first: np.void) -> None:
         """A new sender: a restart on a new port of the earlier sender of its address, direction
         and origin heard last among those silent for NEW_PORT_SILENCE_MS and not restarted on a

@@ -202,6 +202,11 @@ class Sender:
             frames.append(int(self.warm[0]["frame"][0]))
         return min(frames) if frames else None
 
+    def undecided_since(self) -> Optional[float]:
+        """The analysis time of the first packet not decided yet (None: none)."""
+        rows = [*self.pending.values(), *self.warm[:1]]
+        return min(float(r["ts"][0]) for r in rows) if rows else None
+
     def _decide(self, events: list, final: bool, chosen: Optional[tuple[str, str]], clock: float) -> None:
         """`chosen`: the scope and why; None at the end of the capture, chosen here on all rows.
         `clock`: as for _dispatch."""

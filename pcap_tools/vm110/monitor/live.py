@@ -325,7 +325,7 @@ class Live:
             self.cmd_seen[code] = len(tally.commands)
             self.cmd["commands"] += len(new)
             self.watch += [(code, c, False) for c in new]
-        settled = self.analysis.settled()          # every event up to now applied: silence is known
+        known = min(now, self.analysis.applied_until())   # every event before it applied: silence is known
         keep = []
         for code, cmd, was_flagged in self.watch:
             flagged = was_flagged
@@ -348,8 +348,7 @@ class Live:
                                       f"{kind} {cmd.command_id} acknowledged after {latency:.0f} ms "
                                       f"(limit {limit:g} ms)"))
                 continue
-            age = (now - cmd.times[0]) * 1000.0
-            if not flagged and age > limit and settled:
+            if not flagged and (known - cmd.times[0]) * 1000.0 > limit:
                 flagged = True
                 self.cmd["failed"] += 1
                 self.emit(finding("failed", "raised", item(cmd.frames, began, cmd.sender, type=kind,

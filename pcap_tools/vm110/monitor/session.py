@@ -218,11 +218,11 @@ class Session:
         self._flush()
         self._tick(ts)
         self.live.close_second()
-        # Every event applied: what is finished stays finished (asked only with commands to retire).
+        # What is finished by the time every event before is applied stays finished (asked only
+        # with commands to retire; a sender stuck on one serial is never all decided).
         retiring = self.retiring
-        if any(retiring.pending[code] or seen > retiring.seen[code] for code, seen in self.live.cmd_seen.items()) \
-                and self.analysis.settled():
-            retiring.retire(self.fed_until, self.live.cmd_seen)
+        if any(retiring.pending[code] or seen > retiring.seen[code] for code, seen in self.live.cmd_seen.items()):
+            retiring.retire(min(self.fed_until, self.analysis.applied_until()), self.live.cmd_seen)
         frames = self.done
         self.rate = float(frames - self.frames_at_second) / max(1, second - (self.second or second))
         self.frames_at_second = frames
