@@ -531,43 +531,26 @@ def test_reference_unconfirmed_candidate_and_implausible_jump(tmp_path):
     assert ref["frames"][11] == {"serial_out_of_order": 1}
 
 
-def _after_a_candidate(later: list[tuple[float, int]]) -> Capture:
-    """VRPI 100..109 125 ms apart, the candidate 5000 at 1250 ms (frame 11: d - 1 = 4890 > 64 + 4
-    x 20 x 0.125), then `later` (ms after the candidate, serial)."""
-    c = Capture()
-    for k in range(10):
-        c.add(125 * k, BU, "VRPI", 100 + k)
-    c.add(1250, BU, "VRPI", 5000)
-    for after, serial in later:
-        c.add(1250 + after, BU, "VRPI", serial)
-    return c
-
-
-def test_reference_a_candidate_waits_10_s_for_its_decider(tmp_path):
-    """rules.md rule 5: the counter's next packet decides a candidate when it comes less than 10 s
-    after it; a stream cannot hold the command events behind a candidate for ever. (The fast
-    engine is held to these captures by test_fast_engine_on_the_hand_built_captures.)"""
-    for after, out_of_order, restart in [
-        (9500, 0, (11, 109, 5000)),     # 5001 less than 10 s after it: a restart at the candidate
-        # 10 s or more: the candidate is out of order; 5001 is judged afresh against h = 109: d - 1
-        # = 4891 > 64 + 4 x 20 x 10 (no packet in its last 10 s: r = 0), a candidate; 5002 confirms it.
-        (10000, 1, (12, 109, 5001)),
-        (10500, 1, (12, 109, 5001)),
-    ]:
-        ref = _after_a_candidate([(after, 5001), (after + 125, 5002)]).write(tmp_path / f"wait{after}.pcap")
+def test_reference_a_restart_confirmed_10_s_late_changes_no_command(tmp_path):
+    """rules.md rule 5: the counter's next packet decides a candidate whenever it comes, but the
+    command events behind it wait 10 s at most, so a restart confirmed 10 s or more after its
+    candidate changes no command: the sender's command outstanding at the candidate is
+    interrupted when 5001 comes 9.5 s after it, and fails when it comes 10 s or 10.5 s after it.
+    (The fast engine is held to these captures by test_fast_engine_on_the_hand_built_captures.)"""
+    for after, interrupted, failed in [(9500, 1, 0), (10000, 0, 1), (10500, 0, 1)]:
+        c = Capture()
+        for k in range(10):                                      # VRPI 100..109, frames 1-10
+            c.add(125 * k, BU, "VRPI", 100 + k)
+        c.add(1200, BU, "VRCI", 110, cmd(5))                      # frame 11: never acknowledged
+        c.add(1250, BU, "VRPI", 5000)                             # frame 12: candidate (d - 1 = 4889)
+        c.add(1250 + after, BU, "VRPI", 5001)                     # confirms it, 9.5 / 10 / 10.5 s later
+        c.add(1375 + after, BU, "VRPI", 5002)
+        ref = c.write(tmp_path / f"late{after}.pcap")
         s = sender(ref, BU_ID)
-        assert (s["received"], s["duplicates"], s["out_of_order"], s["restarts"]) == (13, 0, out_of_order, 1)
-        assert [(e["frame"], e["from"], e["to"]) for e in s["restart_events"]] == [restart]
-
-
-def test_reference_a_copy_of_a_candidate_10_s_after_it_is_judged_afresh(tmp_path):
-    """Copies of a candidate less than 10 s after it are duplicates (rule 5); one 11 s after it
-    finds the candidate out of order and is a candidate itself (5000 was accepted 11 s before, past
-    the duplicate window; d - 1 = 4890 > 64 + 4 x 20 x 11), which 5001 confirms."""
-    ref = _after_a_candidate([(5000, 5000), (11000, 5000), (11125, 5001)]).write(tmp_path / "copy.pcap")
-    s = sender(ref, BU_ID)
-    assert (s["received"], s["duplicates"], s["out_of_order"], s["restarts"]) == (14, 1, 1, 1)
-    assert [(e["frame"], e["from"], e["to"]) for e in s["restart_events"]] == [(13, 109, 5000)]
+        assert (s["received"], s["duplicates"], s["out_of_order"], s["restarts"]) == (14, 0, 0, 1)
+        assert [(e["frame"], e["from"], e["to"]) for e in s["restart_events"]] == [(12, 110, 5000)]
+        v = ref["commands"]["VRCI"]
+        assert (v["commands"], v["interrupted"], v["failed"]) == (1, interrupted, failed), after
 
 
 def test_reference_long_outage_is_loss_short_silence_is_not(tmp_path):

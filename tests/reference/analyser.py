@@ -13,11 +13,8 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
      legal packet is latest. "Last legal packet" includes duplicates (they are legal); when counting
      only accepted packets would decide differently the capture is flagged ambiguous.
   R2 A restart candidate is decided by the counter's next legal packet whose serial is not the
-     candidate's, whatever that packet is (also a copy of an older serial), if it comes less than
-     10 s after the candidate (analysis clock).  Copies of the candidate in between are duplicates,
-     also those after the duplicate window (rules.md says so explicitly).  The counter's first
-     packet 10 s or more after the candidate, a copy or not, finds it out of order and is judged
-     by rules 1-5 like any other (the candidate then is h's past, accepted at its time).
+     candidate's, whatever that packet is (also a copy of an older serial).  Copies of the candidate
+     in between are duplicates, also those after the duplicate window (rules.md says so explicitly).
   R3 The candidate is accepted when it arrives (it counts for dt and r either way); a confirmed
      restart then resets the counter to: h = s, start = t_candidate, only s accepted, no open gaps;
      serials lost before the restart stay lost and can no longer be filled.
@@ -34,6 +31,9 @@ Readings chosen where docs/rules.md leaves room (interpretation.md decides; see 
      command with its ID.
   R8 A restart of the sender (same port) happens at the candidate's frame: the candidate itself,
      if it is a VRCI/VRCO, already belongs to the new life (a new command even within the reuse gap).
+     Only a restart confirmed less than 10 s after its candidate (the confirming packet's time minus
+     the candidate's, analysis clock) does so (rules.md rule 5): one confirmed later is counted
+     and located, but interrupts nothing and starts no new command.
   R9 Silence to the end: a stream whose sender was taken over by a new-port sender has no
      silence to the end, whether or not the new sender sends that periodic type.
  R11 A new-port restart also counts as a restart of the earlier sender for its own commands: a
@@ -103,7 +103,7 @@ MAX_PAYLOAD = 492
 ACK_OF = {"VRAO": "VRCI", "VRAI": "VRCO"}
 TIE_NS = 3_000                   # 3 us: comparisons this close to a limit are flagged ambiguous
 NS = 1_000_000_000
-CANDIDATE_WAIT = 10 * NS         # rules.md rule 5: a candidate's decider comes less than 10 s after it
+CANDIDATE_WAIT = 10 * NS         # rules.md rule 5: a restart confirmed this long after changes no command
 MS = 1_000_000
 
 
@@ -636,13 +636,7 @@ def _classify(packets: list[dict], dup_w: int, flags: _Flags) -> dict:
             ctr = {"h": sv, "start": t, "accepted": {}, "missing": [], "prev_t": t, "acc_times": []}
             accept(i)
             continue
-        if pending is not None and t - pending["t"] >= CANDIDATE_WAIT:
-            flags.near(t - pending["t"], CANDIDATE_WAIT, f"candidate wait, frame {fr}")
-            out_of_order += 1                                                   # waited out (R2)
-            marks.append((pending["at"], "serial_out_of_order", 1))
-            pending = None
         if pending is not None:
-            flags.near(t - pending["t"], CANDIDATE_WAIT, f"candidate wait, frame {fr}")
             if sv == pending["serial"]:
                 # R2: a copy of the candidate is a duplicate, whenever it comes
                 duplicates += 1
@@ -650,7 +644,9 @@ def _classify(packets: list[dict], dup_w: int, flags: _Flags) -> dict:
                 continue
             if (sv - pending["serial"]) % 65536 in (1, 2, 3, 4):
                 # confirmed: a restart at the candidate (R3)
-                restarts.append({"at": pending["at"], "from": ctr["h"], "to": pending["serial"]})
+                flags.near(t - pending["t"], CANDIDATE_WAIT, f"candidate wait, frame {fr}")
+                restarts.append({"at": pending["at"], "from": ctr["h"], "to": pending["serial"],
+                                 "commands": t - pending["t"] < CANDIDATE_WAIT})        # R8
                 marks.append((pending["at"], "restart", ctr["h"]))
                 lost_frozen += len(ctr["missing"])
                 ctr = {"h": pending["serial"], "start": pending["t"], "accepted": {pending["serial"]: pending["t"]},
@@ -773,7 +769,8 @@ def _serials(s: dict, scope: str, dup_w: int, flags: _Flags, frames: dict, resta
         for r in res["restarts"]:
             cand = part[r["at"]]
             events.append({"time": _sec(cand["own"]), "frame": cand["frame"], "from": r["from"], "to": r["to"]})
-            restart_at[cand["frame"]] = {"sender": s["id"], "t": cand["t"]}
+            if r["commands"]:
+                restart_at[cand["frame"]] = {"sender": s["id"], "t": cand["t"]}
     total["gaps"].sort(key=lambda g: g["frame"])
     events.sort(key=lambda e: e["frame"])
     s["restart_events"] = events

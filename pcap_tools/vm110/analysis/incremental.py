@@ -17,7 +17,7 @@ Order across senders matters twice:
   sender may not have decided its latest packets yet (a restart candidate, the scope's choice);
   the events at or after the first undecided frame of any sender wait until it is decided. Both
   end on the analysis clock, whether the sender is heard again or not (a look when its time has
-  come, a candidate out of order serials.CANDIDATE_WAIT_MS after it).
+  come; a candidate released serials.CANDIDATE_WAIT_MS after it, its serial verdict still to come).
 """
 from __future__ import annotations
 
@@ -74,12 +74,11 @@ class Analysis:
             if new and new[0][0] == a:
                 self._join(new.pop(0)[1], rec[a])
             part = rec[a:b]
-            clock = float(part["ts"][-1])         # (each sender has had all its rows up to here)
             if len(self.senders) == 1 or (b - a) == 1:
-                self.senders[int(key[a])].feed(part, self.events, clock)
+                self.senders[int(key[a])].feed(part, self.events)
                 continue
             for value, rows in _groups(key[a:b]):
-                self.senders[value].feed(part[rows], self.events, clock)
+                self.senders[value].feed(part[rows], self.events)
         touched = values.tolist()
         for k in touched:
             first_look = self.senders[k].due()
@@ -105,7 +104,7 @@ class Analysis:
         self._apply(self._horizon())
 
     def _time_out(self, touched: list[int]) -> None:
-        """Decide the restart candidates the analysis clock has waited out (their senders join
+        """Release the restart candidates the analysis clock has waited out (their senders join
         `touched`)."""
         for k in list(touched):
             since = self.senders[k].waiting()
@@ -166,8 +165,8 @@ class Analysis:
     def applied_until(self) -> float:
         """The analysis time before which every command event has been applied (inf: all): the
         first undecided packet's, as the events at or after it wait. A command unacknowledged
-        then was so at every time before it (a sender stuck on one serial, a restart candidate
-        every 10 s, is never settled, yet its candidates hold the events 10 s at most)."""
+        then was so at every time before it (while a sender chooses its serial scope, or a
+        candidate waits, the commands before are told without waiting for it)."""
         frame = self._horizon()
         if frame is None:
             return np.inf if not self.events else self.clock

@@ -2,8 +2,11 @@
 they have not decided yet, its periodic streams, VRPO bursts and state timeline.
 
 A counter may leave packets undecided at the end of a batch (a restart candidate waits for its
-next packet, at most serials.CANDIDATE_WAIT_MS on the analysis clock); they are kept here and
-handed in again with the sender's next rows, or once the clock has passed the wait (`timeout`). With
+next packet); they are kept here and handed in again with the sender's next rows. The command
+events after a candidate wait for it serials.CANDIDATE_WAIT_MS at most on the analysis clock
+(rules.md rule 5): then it is released (`timeout`), accepted as a packet (its periodic arrival,
+its own command event) with no command change, and only its serial verdict waits on; a restart
+confirmed after that changes no command. With
 `--serial-scope auto`, while the sender has sent one packet type its one counter is both
 readings' (rules.md, "Choosing the scope"), and its packets are judged at once. From its first
 packet of a second type on, its packets of WARMUP_S seconds are kept as they came, the scope is
@@ -103,6 +106,7 @@ class Sender:
         self.look_s = WARMUP_S
         self.counters: dict = {}                 # None (scope sender) or type code -> serials.Counter
         self.pending: dict = {}                  # counter key -> its undecided candidate (a row)
+        self.released: set[int] = set()          # frames of the undecided candidates released
         self.streams: dict[int, Stream] = {}
         self.bursts: Optional[Bursts] = None
         self.timeline: Optional[Timeline] = None
@@ -111,9 +115,8 @@ class Sender:
         self.link: Optional[dict] = None         # the restart on a new port that began it
         self.before: dict[int, Optional[float]] = {}   # the predecessor's last packet per periodic type
 
-    def feed(self, rows: np.ndarray, events: list, clock: float) -> None:
-        """The sender's next legal packets, in arrival order, all of them up to the analysis time
-        `clock`; command events go to `events`."""
+    def feed(self, rows: np.ndarray, events: list) -> None:
+        """The sender's next legal packets, in arrival order; command events go to `events`."""
         codes = code_of(rows["pid"])
         self.last_ts, self.last_frame, self.last_code = float(rows["ts"][-1]), int(rows["frame"][-1]), int(codes[-1])
         self.counts += np.bincount(codes, minlength=len(TYPES))
@@ -123,7 +126,7 @@ class Sender:
                 other = np.flatnonzero(codes != self.first_code)
                 k = int(other[0]) if len(other) else len(rows)
                 if k:
-                    self._dispatch(rows[:k], events, False, self._next(rows, k, clock))
+                    self._dispatch(rows[:k], events, False)
                     rows, codes = rows[k:], codes[k:]
                 if not len(rows):
                     break
@@ -136,15 +139,9 @@ class Sender:
                 self.warm_count += k
                 rows, codes = rows[k:], codes[k:]
             if len(rows) or self.warm_count >= WARMUP_PACKETS:
-                self._look(events, self._next(rows, 0, clock))
+                self._look(events)
         if len(rows):
-            self._dispatch(rows, events, False, clock)
-
-    @staticmethod
-    def _next(rows: np.ndarray, k: int, clock: float) -> float:
-        """The analysis time up to which the counters have had all the sender's rows once those
-        before rows[k] are handed to them: that of rows[k] (the next it has not had), else `clock`."""
-        return float(rows["ts"][k]) if k < len(rows) else clock
+            self._dispatch(rows, events, False)
 
     def due(self) -> Optional[float]:
         """auto: the analysis time of the next look; None when none is to come (the scope is
@@ -155,11 +152,11 @@ class Sender:
         """Make the looks due by `clock` (the analysis clock): a sender heard no more cannot hold
         its packets and the command events after them."""
         while self.scope is None and self.second is not None and clock - self.second[0] >= self.look_s:
-            self._look(events, clock)
+            self._look(events)
 
-    def _look(self, events: list, clock: float) -> None:
+    def _look(self, events: list) -> None:
         """Choose the scope on the warm-up rows, or look again later when they cannot tell (the
-        last look, or a full count, chooses anyway). `clock`: as for _dispatch."""
+        last look, or a full count, chooses anyway)."""
         rows = np.concatenate(self.warm)
         self.warm = [rows]
         scope, tells, why = choose_scope(rows, self.opt)
@@ -168,7 +165,7 @@ class Sender:
             return
         which = (f"the first {len(rows)} packets" if self.warm_count >= WARMUP_PACKETS
                  else f"the {plural(len(rows), 'packet')} of {self.look_s:g} s")
-        self._decide(events, False, (scope, f"auto, on {which} {self._from()}: {why}"), clock)
+        self._decide(events, False, (scope, f"auto, on {which} {self._from()}: {why}"))
 
     def _from(self) -> str:
         assert self.second is not None
@@ -177,39 +174,48 @@ class Sender:
     def finish(self, events: list) -> None:
         """The capture ended: decide what is left."""
         if self.scope is None:
-            self._decide(events, True, None, np.inf)
+            self._decide(events, True)
         else:
-            self._dispatch(np.empty(0, dtype=RECORD_DTYPE), events, True, np.inf)
+            self._dispatch(np.empty(0, dtype=RECORD_DTYPE), events, True)
         if self.bursts is not None:
             self.bursts.finish()
 
     def waiting(self) -> Optional[float]:
-        """The analysis time of its oldest undecided restart candidate (None: none), while no
-        look is to come (a look decides them with the rest)."""
-        if self.warm or not self.pending:
+        """The analysis time of its oldest undecided candidate not released (None: none), while
+        no look is to come (a look decides them with the rest)."""
+        if self.warm:
             return None
-        return min(float(r["ts"][0]) for r in self.pending.values())
+        times = [float(r["ts"][0]) for r in self._holding()]
+        return min(times) if times else None
 
     def timeout(self, clock: float, events: list) -> None:
-        """The analysis clock is at `clock`: candidates waited for long enough are out of order."""
-        if self.waiting() is not None:
-            self._dispatch(np.empty(0, dtype=RECORD_DTYPE), events, False, clock)
+        """The analysis clock is at `clock`: the candidates it has waited for long enough are
+        released (the sender has had all its rows up to it, none deciding them)."""
+        if self.warm:
+            return
+        for row in self._holding():
+            if not timing.shorter(clock - float(row["ts"][0]), serials.CANDIDATE_WAIT_MS):
+                self.released.add(int(row["frame"][0]))
+                self._accept(row, self._own_times(row, take=False), events)
+
+    def _holding(self) -> list[np.ndarray]:
+        """The undecided candidates that hold the command events after them."""
+        return [r for r in self.pending.values() if int(r["frame"][0]) not in self.released]
 
     def undecided(self) -> Optional[int]:
         """The first frame not decided yet (its events and any restart before them wait)."""
-        frames = [int(r["frame"][0]) for r in self.pending.values()]
+        frames = [int(r["frame"][0]) for r in self._holding()]
         if self.warm:
             frames.append(int(self.warm[0]["frame"][0]))
         return min(frames) if frames else None
 
     def undecided_since(self) -> Optional[float]:
         """The analysis time of the first packet not decided yet (None: none)."""
-        rows = [*self.pending.values(), *self.warm[:1]]
+        rows = [*self._holding(), *self.warm[:1]]
         return min(float(r["ts"][0]) for r in rows) if rows else None
 
-    def _decide(self, events: list, final: bool, chosen: Optional[tuple[str, str]], clock: float) -> None:
-        """`chosen`: the scope and why; None at the end of the capture, chosen here on all rows.
-        `clock`: as for _dispatch."""
+    def _decide(self, events: list, final: bool, chosen: Optional[tuple[str, str]] = None) -> None:
+        """`chosen`: the scope and why; None at the end of the capture, chosen here on all rows."""
         rows = np.concatenate(self.warm) if self.warm else np.empty(0, dtype=RECORD_DTYPE)
         self.warm, self.warm_count = [], 0
         if chosen is None and self.second is None:
@@ -228,11 +234,11 @@ class Sender:
         # Probes that came while warming up: their moment lies inside these rows.
         for probe in sorted(self.probes, key=lambda p: p.frame):
             cut = int(np.searchsorted(rows["frame"], probe.frame))
-            self._dispatch(rows[:cut], events, False, self._next(rows, cut, clock))
+            self._dispatch(rows[:cut], events, False)
             rows = rows[cut:]
             self._resolve(probe)
         self.probes = []
-        self._dispatch(rows, events, final, clock)
+        self._dispatch(rows, events, final)
 
     def probe(self, successor: "Sender") -> None:
         """`successor` restarted this sender on a new port at its first frame (see the module doc)."""
@@ -262,21 +268,19 @@ class Sender:
         stream = self.streams.get(code)
         return stream.times.last() if stream is not None and len(stream.times) else None
 
-    def _dispatch(self, rows: np.ndarray, events: list, final: bool, clock: float) -> None:
+    def _dispatch(self, rows: np.ndarray, events: list, final: bool) -> None:
         """Judge rows (and the undecided ones before them) by the counter(s) of the scope (one,
-        while auto has not chosen: the sender has sent one type so far). `clock`: the analysis
-        time up to which the counters then have all the sender's packets (a candidate waited out
-        by then is out of order; not later than the sender's next row not handed in yet)."""
+        while auto has not chosen: the sender has sent one type so far)."""
         if self.scope != "type":
             parts = {None: rows}
         else:
             codes = code_of(rows["pid"])
             parts = {c: rows[codes == c] for c in np.unique(codes).tolist()}
-        parts.update({k: rows[:0] for k in self.pending if k not in parts})   # (the clock may decide them)
+        if final:
+            parts.update({k: rows[:0] for k in self.pending if k not in parts})
         for key, new in parts.items():
             held = self.pending.pop(key, None)
-            if held is not None and not final and len(new) and (new["serial"] == held["serial"][0]).all() \
-                    and timing.shorter(clock - float(held["ts"][0]), serials.CANDIDATE_WAIT_MS):
+            if held is not None and not final and len(new) and (new["serial"] == held["serial"][0]).all():
                 self.pending[key] = held
                 self._hold(key, new)          # more copies of the undecided candidate
                 continue
@@ -288,16 +292,19 @@ class Sender:
                 counter = self.counters[key] = serials.Counter(self.opt.dup_window_ms, key)
             restarts = len(counter.res.restarts)
             done = counter.feed(todo["serial"], todo["ts"], todo["frame"].tolist(), final,
-                                own=self._own_times(todo, take=False), clock=clock)
+                                own=self._own_times(todo, take=False))
             decided = todo[:done]
             if done < len(todo):                   # an undecided candidate, then copies of it only
                 self.pending[key] = todo[done:done + 1].copy()            # a copy: not the batch
                 self._hold(key, todo[done + 1:])
             for frame, _, _, t in counter.res.restarts[restarts:]:
-                events.append((frame, t, RESTART, self.id, None, None))
+                if frame not in counter.fed_late:              # (late: it changes no command)
+                    events.append((frame, t, RESTART, self.id, None, None))
             own = self._own_times(decided)
-            if counter.fed_duplicates:
-                kept = ~np.isin(decided["frame"], counter.fed_duplicates)
+            if counter.fed_duplicates or self.released:
+                # (a released candidate was accepted when released)
+                kept = ~np.isin(decided["frame"], [*counter.fed_duplicates, *self.released])
+                self.released.difference_update(decided["frame"].tolist())
                 decided, own = decided[kept], own[kept]
             self._accept(decided, own, events)
 

@@ -6,16 +6,15 @@ that holds decides: a duplicate (s accepted less than the duplicate window ago);
 late (s missing in a gap opened within the window: it fills it); a gap (a forward jump the
 counter's rate can explain in the time since its previous packet); otherwise a restart
 candidate, a restart when the counter's next packet that is not a copy of it follows it
-(s + 1 .. s + 4) less than CANDIDATE_WAIT_MS after it, out of order when not.
+(s + 1 .. s + 4), out of order when not. A restart confirmed CANDIDATE_WAIT_MS or more after its
+candidate changes no command (rules.md rule 5): `fed_late` names those of the last feed.
 
 `Counter` is fed a counter's packets a batch at a time and carries everything rules.md says a
 counter keeps from batch to batch; for the rate it keeps the times of its packets of the last
 RATE_WINDOW_S only. A restart candidate whose deciding packet has not arrived yet stays
 undecided: `feed` returns how many of the given packets it decided, and the caller hands the
 rest in again with the next batch (or with `final=True` at the end of the capture, where an
-undecided candidate is out of order). `clock`, the analysis clock up to which the counter has been
-given every packet, decides a candidate out of order once it is CANDIDATE_WAIT_MS past it: a
-counter heard no more cannot hold the command events after its candidate for ever.
+undecided candidate is out of order).
 """
 from __future__ import annotations
 
@@ -37,7 +36,7 @@ PLAUSIBLE_BASE = 64            # d - 1 <= BASE + FACTOR * max(r, MIN_RATE) * dt 
 PLAUSIBLE_FACTOR = 4
 MIN_RATE = 20.0
 CONFIRM = 4                    # a restart's next packet is s + 1 .. s + CONFIRM
-CANDIDATE_WAIT_MS = 10000.0    # ... less than this after the candidate
+CANDIDATE_WAIT_MS = 10000.0    # the command events behind a candidate wait this long at most
 NEVER = -np.inf
 LOCATED = 100                  # duplicates and out-of-order packets located (findings.MAX_ITEMS)
 
@@ -175,6 +174,7 @@ class Counter:
         self.start_pos = 0
         self.dup_pos: list[int] = []
         self.fed_duplicates: list = []             # where of the duplicates of the last feed
+        self.fed_late: list = []                   # where of the restarts of the last feed confirmed late
 
     def _restart(self, s: int, t: float, pos: int) -> None:
         if self.missing:
@@ -185,23 +185,22 @@ class Counter:
         self.accepted_at[s] = t
 
     def feed(self, serials: IntSeq, times: FloatSeq, where: IntSeq, final: bool = False,
-             limit: Optional[int] = None, own: Optional[FloatSeq] = None, clock: Optional[float] = None) -> int:
+             limit: Optional[int] = None, own: Optional[FloatSeq] = None) -> int:
         """Judge packets in arrival order; returns how many were decided (all when `final`).
         `where` names each packet in the results; `limit` stops once the anomalies exceed it;
-        `own`: the packets' own timestamps where `times` is the analysis clock (default: the same);
-        `clock`: the analysis clock up to which these are all the counter's packets."""
+        `own`: the packets' own timestamps where `times` is the analysis clock (default: the same)."""
         n = len(serials)
         if not n:
             return 0
         res = self.res
         fed = self.fed_duplicates = []
+        self.fed_late = []
         arr = np.asarray(serials, dtype=np.int64)
         ts = np.asarray(times, dtype=np.float64)
         base = self.recent_base
         off = base + len(self.recent)               # number of the first packet given here
         all_ts = np.concatenate((self.recent, ts)) if len(self.recent) else ts
         edge = timing.edge_us(self.window_ms)     # t - a within the window: (t - a) * 1e6 < edge
-        wait = timing.edge_us(CANDIDATE_WAIT_MS)
         breaks = (np.flatnonzero((np.diff(arr) & MASK) != 1) + 1).tolist()   # where s[i] != s[i-1] + 1
         dup, ooo, gaps = res.duplicate_serials, res.out_of_order_serials, res.gaps
         own_ts = ts if own is None else np.asarray(own, dtype=np.float64)
@@ -303,18 +302,18 @@ class Counter:
                 self.h, self.prev = s, t
                 accepted_at[s] = t
             else:
-                # The next packet that is not a copy of the candidate decides, when it comes
-                # within the wait; the copies in between are duplicates (they confirm nothing).
-                # A packet past the wait, a copy too, is judged afresh.
+                # The next packet that is not a copy of the candidate decides; the copies in
+                # between are duplicates, whenever they come (they confirm nothing).
                 if changes is None:
                     changes = np.flatnonzero(arr[1:] != arr[:-1]) + 1
                 k = int(np.searchsorted(changes, i, "right"))
-                nxt = self._wait_end(ts, i, int(changes[k]) if k < len(changes) else n, wait)
-                waited = nxt < n and (float(ts[nxt]) - t) * 1e6 >= wait
-                if nxt == n and not final and (clock is None or (clock - t) * 1e6 < wait):
+                nxt = int(changes[k]) if k < len(changes) else n
+                if nxt == n and not final:
                     break                                 # undecided until its next packet comes
-                if nxt < n and not waited and 1 <= (int(arr[nxt]) - s) & MASK <= CONFIRM:
+                if nxt < n and 1 <= (int(arr[nxt]) - s) & MASK <= CONFIRM:
                     res.restarts.append((where[i], self.h, s, t))
+                    if not timing.shorter(float(ts[nxt]) - t, CANDIDATE_WAIT_MS):
+                        self.fed_late.append(where[i])
                     show(i)
                     lost_for_good.extend(missing)         # serials lost before stay lost
                     self._restart(s, t, off + i)
@@ -333,18 +332,6 @@ class Counter:
         res.received += i
         self._keep_recent(all_ts[:len(all_ts) - n + i])
         return i
-
-    @staticmethod
-    def _wait_end(ts: np.ndarray, i: int, nxt: int, wait: float) -> int:
-        """The first position after candidate i that is `nxt` or a copy of it at the end of the
-        wait or later (times ascend: a binary search, made exact to the microsecond edge)."""
-        t = float(ts[i])
-        j = i + 1 + int(np.searchsorted(ts[i + 1:nxt], t + wait / 1e6, "left"))
-        while j > i + 1 and (float(ts[j - 1]) - t) * 1e6 >= wait:
-            j -= 1
-        while j < nxt and (float(ts[j]) - t) * 1e6 < wait:
-            j += 1
-        return j
 
     def copies(self, serial: int, times: Sequence[float], where: Sequence, own: Sequence[float]) -> None:
         """Copies of the undecided candidate `serial` within the duplicate window of it: duplicates

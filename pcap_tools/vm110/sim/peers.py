@@ -3,7 +3,8 @@
 A receiver must know when its peer rebooted: the peer's command stream starts afresh there, so a
 command ID it reuses afterwards is a new command even within the reuse gap. A counter restarts at
 a serial that is none of in order, a duplicate, late or a plausible gap, once the counter's next
-packet that is not a copy of it confirms it (serial + 1 … + 4) less than 10 s after it; a sender that appears on a new
+packet that is not a copy of it confirms it (serial + 1 … + 4), changing the commands only when
+that comes less than 10 s after it (rules.md rule 5); a sender that appears on a new
 source port of the same origin and address after 250 ms of silence of the old one restarted too.
 """
 from __future__ import annotations
@@ -20,7 +21,7 @@ NEW_PORT_SILENCE_US = ms(250)       # an earlier sender silent this long may rea
 RATE_WINDOW_US = 10 * US_PER_S      # the counter's rate: its packets in the 10 s before
 PLAUSIBLE_BASE, PLAUSIBLE_FACTOR, MIN_RATE = 64, 4, 20     # plausible loss: d - 1 <= 64 + 4 max(r, 20) dt
 CONFIRM = 4                         # a restart candidate s is confirmed by s + 1 .. s + 4
-CANDIDATE_WAIT_US = 10 * US_PER_S   # ... less than this after it
+CANDIDATE_WAIT_US = 10 * US_PER_S   # a restart confirmed this long after its candidate changes no command
 _HALF = C.SERIAL_HALF
 
 
@@ -45,11 +46,9 @@ class SerialCounter:
 
     def feed(self, serial: int, now: int) -> Optional[tuple[int, int]]:
         """Note a legal packet; (serial, time) of the packet that restarted the counter when this one
-        confirms a restart, else None."""
+        confirms a restart that changes the commands, else None."""
         self._expire(now)
         candidate = self._candidate
-        if candidate is not None and now - candidate[1] >= CANDIDATE_WAIT_US:
-            candidate = self._candidate = None   # waited out: out of order
         if candidate is not None:
             if serial == candidate[0]:
                 return None                      # a copy of it confirms nothing
@@ -57,7 +56,7 @@ class SerialCounter:
             if 1 <= (serial - candidate[0]) & 0xFFFF <= CONFIRM:
                 self._reset(*candidate)
                 self._advance(serial, now)
-                return candidate
+                return candidate if now - candidate[1] < CANDIDATE_WAIT_US else None
         if serial in self._seen:
             return None                          # a duplicate (within the window: `_expire`)
         d = (serial - self.high) & 0xFFFF

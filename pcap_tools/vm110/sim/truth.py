@@ -43,11 +43,12 @@ def _ms(delta_us: int) -> float:
 class _Candidate:
     """A packet that may start a restart of its counter, until the counter's next other serial decides."""
 
-    __slots__ = ("frame", "restart", "serial", "t")
+    __slots__ = ("commands", "frame", "restart", "serial", "t")
 
     def __init__(self, serial: int, t: int, frame: int) -> None:
         self.serial, self.t, self.frame = serial, t, frame
         self.restart: Optional[bool] = None          # the decision, once made
+        self.commands = False                        # a restart that changes commands (rules.md rule 5)
 
 
 class _Counter:
@@ -70,17 +71,13 @@ class _Counter:
 
     def add(self, s: int, t: int, frame: int) -> tuple[bool, Optional[_Candidate]]:
         """Classify a legal packet: (accepted, the candidate it opened if any). A pending candidate
-        is decided first by any other serial less than CANDIDATE_WAIT_US after it (later, it was
-        out of order, and this packet is judged afresh, a copy of it too)."""
+        is decided first by any other serial."""
         cand = self.candidate
-        if cand is not None and t - cand.t >= CANDIDATE_WAIT_US:
-            self.finish()
-            cand = None
         if cand is not None:
             if s == cand.serial:
                 self.duplicates.append(s)            # copies of the candidate confirm nothing
                 return False, None
-            self._decide(cand, s)
+            self._decide(cand, s, t)
         if self.h is None:
             self._restart_state(s, t)
             return True, None
@@ -150,9 +147,10 @@ class _Counter:
             count -= 1
         return count / (window / US_PER_S)
 
-    def _decide(self, cand: _Candidate, s: int) -> None:
+    def _decide(self, cand: _Candidate, s: int, t: int) -> None:
         self.candidate = None
         cand.restart = 1 <= (s - cand.serial) % _MODULUS <= CONFIRM
+        cand.commands = cand.restart and t - cand.t < CANDIDATE_WAIT_US
         if not cand.restart:
             self.out_of_order.append(cand.serial)    # unconfirmed: accepted, moves nothing
             return
@@ -169,7 +167,7 @@ class _Counter:
         self._accept(s, t)
 
     def finish(self) -> None:
-        """The capture ended, or the candidate's wait: a pending candidate stays unconfirmed."""
+        """The capture ended: a pending candidate stays unconfirmed."""
         if self.candidate is not None:
             self.candidate.restart = False
             self.out_of_order.append(self.candidate.serial)
@@ -401,7 +399,7 @@ class GroundTruth:
             commands.restart(sender, t)
 
     def _maybe_restart(self, cand: _Candidate, sender: str) -> None:
-        if cand.restart:
+        if cand.commands:
             self._restart(sender, cand.t)
 
     def _command_event(self, fn: Callable[..., None], *args: Any) -> None:
