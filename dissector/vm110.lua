@@ -177,7 +177,8 @@ local COMMAND_RESEND_MS, VRCI_FAIL_MS, VRCO_GIVE_UP_MS, VRPO_BURST_GAP_MS = 100,
 local SERIAL_MODULUS, SERIAL_HALF = 65536, 32768
 -- docs/rules.md: duplicate window, command ID reuse gap, restart on a new port after this silence,
 -- the rate window of the plausible-gap test and its constants (d - 1 <= 64 + 4 max(r, 20) dt), a
--- restart confirmed by the next serial s + 1 ... s + 4 less than 10 s after the candidate.
+-- restart confirmed by the next serial s + 1 ... s + 4, which changes commands only when it comes
+-- less than 10 s after the candidate (the command events behind a candidate wait that long at most).
 local RULES = { dup_window_ms = 1000, reuse_gap_ms = 2000, new_port_silence_ms = 250, rate_window_s = 10,
     gap_slack = 64, gap_rate_factor = 4, gap_min_rate = 20, confirm_span = 4, candidate_wait_ms = 10000 }
 local ACK_OF = { VRAO = "VRCI", VRAI = "VRCO" }
@@ -1503,14 +1504,15 @@ local hosts = {}        -- "direction origin address" -> that host's senders on 
 local counters = {}     -- sender -> serial counter (per-type scope: sender -> type -> counter)
 local by_id = {}        -- command kind -> command ID -> its commands (any sender), in the order they began
 -- Command events (and restarts) wait here, in capture order, while a restart candidate before
--- them is undecided: a restart interrupts its sender's commands as of the candidate's time.
+-- them is undecided and not released: a restart interrupts its sender's commands as of the
+-- candidate's time.
 local queue, qhead, qtail = {}, 1, 0
 -- The capture so far: its last record (any frame: number, time), the analysis clock (rules.md:
--- the latest time of a legal packet), and the restart candidates not yet expired, a list from the
+-- the latest time of a legal packet), and the restart candidates not yet released, a list from the
 -- oldest (`waiting`, linked by `next_waiting`) to the newest (`waiting_last`), made in clock order:
--- one still undecided when the clock reaches RULES.candidate_wait_ms after it is out of order, so
--- a sender silent for good after one holds the queue no longer. (Fields: the main chunk's locals
--- are limited to 200.)
+-- one still undecided when the clock reaches RULES.candidate_wait_ms after it is released (the
+-- queue runs past it as no restart; its counter still decides it), so a sender silent for good
+-- after one holds the queue no longer. (Fields: the main chunk's locals are limited to 200.)
 local capture = { number = 0, last = false, clock = -math.huge, waiting = false, waiting_last = false }
 local dirty = false     -- packets analysed since the last finalize()
 local silent_marks = {} -- results finalize() marked silent until the end
@@ -1614,13 +1616,15 @@ local function run_command(kind, cid, snd, t, frame, res)
     end
 end
 
--- Runs the queue up to the first undecided restart candidate.
+-- Runs the queue up to the first restart candidate neither decided nor released. A released one
+-- runs as no restart: expire() runs the queue past it at once (the candidates before it in the
+-- queue are older, released or decided too), so it changes no command even if confirmed later.
 local function flush()
     while qhead <= qtail do
         local ev = queue[qhead]
         local rec = ev.restart
         if rec then
-            if not rec.decided then return end
+            if not (rec.decided or rec.released) then return end
             if rec.confirmed then interrupt(rec.of, rec.t, rec.frame) end
         else
             run_command(ev.kind, ev.cid, ev.snd, ev.t, ev.frame, ev.res)
@@ -1701,7 +1705,8 @@ do
         return d - 1 <= GAP_SLACK + GAP_RATE_FACTOR * rate * (t - c.prev)
     end
 
-    -- A candidate decided: confirmed, the counter starts afresh at it; else it stays out of order.
+    -- A candidate decided: confirmed, the counter starts afresh at it (a restart, counted even when
+    -- released: flush() skips its command effect); else it stays out of order.
     local function decide(c, confirmed)
         local rec, snd = c.cand, c.snd
         c.cand, rec.decided = false, true
@@ -1717,22 +1722,34 @@ do
         flush()
     end
 
-    -- The waiting candidates made WAIT_MS or more before the analysis clock `now` (all when
-    -- false) leave the list; those their counters have not decided are out of order.
+    -- The waiting candidates made WAIT_MS or more before the analysis clock `now` leave the list,
+    -- those their counters have not decided released, and the queue runs past them. `now` false:
+    -- the capture's end, every candidate still pending is out of order.
     function expire(now)
-        local rec = capture.waiting
-        while rec and not (now and ms(now - rec.t) < WAIT_MS) do
-            if not rec.decided then decide(rec.counter, false) end
+        if not now then
+            for _, snd in ipairs(sender_list) do
+                for _, c in ipairs(snd.states) do
+                    if c.cand then decide(c, false) end
+                end
+            end
+            capture.waiting, capture.waiting_last = false, false
+            return
+        end
+        local first = capture.waiting
+        local rec = first
+        while rec and ms(now - rec.t) >= WAIT_MS do
+            if not rec.decided then rec.released = true end
             rec = rec.next_waiting
         end
+        if rec == first then return end
         capture.waiting = rec
         if not rec then capture.waiting_last = false end
+        flush()
     end
 
     -- Rules 1-5 for serial s at time t: returns the serials missing before it (>= 0), DUPLICATE,
     -- LATE or CANDIDATE. A candidate pending on the counter is decided first by the first packet
-    -- with another serial (copies of it are duplicates); it is less than WAIT_MS before t, as
-    -- analyse() expired the older ones at t (a later copy of it is judged afresh).
+    -- with another serial, whenever it comes (copies of it are duplicates, whenever they come).
     function classify(c, s, t)
         local cand = c.cand
         if cand then
@@ -2023,8 +2040,8 @@ local function analyse(r, s, pinfo, frame, offset)
             elseif missing == LATE then
                 snd.late = snd.late + 1
             elseif missing == CANDIDATE then
-                local rec = { of = snd, counter = c, frame = frame, t = now, from = c.h, to = serial,
-                    decided = false, confirmed = false }
+                local rec = { of = snd, frame = frame, t = now, from = c.h, to = serial,
+                    decided = false, confirmed = false, released = false }
                 c.cand, res.cand = rec, rec
                 local last = capture.waiting_last
                 if last then last.next_waiting = rec else capture.waiting = rec end

@@ -755,31 +755,51 @@ def _candidate_timeline(*later):
         (ms, _bu(serial, _vrpi())) for ms, serial in later]
 
 
-@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
-def test_rules_candidate_is_decided_within_10_s(tshark, tmp_path):
-    """rules.md rule 5: serial 5001 1 us less than 10 s after the candidate 5000 confirms it; exactly
-    10 s after, the candidate is out of order and 5001 is judged afresh: 4987 lost after 10 s of
-    silence is not plausible (at most 64 + 4 * 20 * 10 = 864), so 5001 is a candidate itself, from
-    13, confirmed by 5002."""
-    rows = _crafted(tshark, tmp_path / "in-time", _candidate_timeline((10_499.999, 5001), (10_625, 5002)))
-    assert rows[5].int("vm110.analysis.restart") == 13 and not rows[5].get("vm110.analysis.serial_out_of_order")
-    assert not rows[6].get("vm110.analysis.restart") and not rows[6].get("vm110.analysis.serial_missing")
-    rows = _crafted(tshark, tmp_path / "late", _candidate_timeline((10_500, 5001), (10_625, 5002)))
-    assert rows[5].int("vm110.analysis.serial_out_of_order") == 1 and not rows[5].get("vm110.analysis.restart")
-    assert rows[6].int("vm110.analysis.restart") == 13 and rows[6].has("restart")
-    assert not any(rows[n].get(f"vm110.analysis.serial_{k}") for n in (6, 7) for k in ("missing", "out_of_order"))
+def _released_timeline(confirm_ms):
+    """VRPI 10-13 at 8/s, the base unit's VRCI 5 (serial 14) at 450 ms, never acknowledged, then
+    the candidate 5000 at 500 ms (at most 68 lost is plausible) and serial 5001 at `confirm_ms`."""
+    return [(125 * k, _bu(10 + k, _vrpi())) for k in range(4)] + [
+        (450, _bu(14, _cmd("VRCI", 5))), (500, _bu(5000, _vrpi())), (confirm_ms, _bu(5001, _vrpi()))]
 
 
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
-def test_rules_copy_of_candidate_is_a_duplicate_within_10_s(tshark, tmp_path):
-    """A copy of the candidate 5 s after it is a duplicate (rule 5, beyond the 1 s window); 11 s
-    after it, the candidate is out of order and the copy is judged afresh: a candidate again (4986
-    lost after 11 s is not plausible), out of order at the end of the capture."""
-    rows = _crafted(tshark, tmp_path, _candidate_timeline((5500, 5000), (11_500, 5000)))
-    assert rows[5].int("vm110.analysis.serial_out_of_order") == 1
-    assert rows[6].int("vm110.analysis.serial_duplicate") == 1 and rows[6].has("serial_duplicate")
-    assert not rows[7].get("vm110.analysis.serial_duplicate") and not rows[7].has("serial_duplicate")
-    assert rows[7].int("vm110.analysis.serial_out_of_order") == 1 and rows[7].float("vm110.analysis.interval") == 11_000.0
+def test_rules_restart_confirmed_10_s_late_changes_no_command(tshark, tmp_path):
+    """rules.md rule 5: 5001 confirms the candidate 5000 whenever it comes, a restart from 14 on
+    frame 6. Confirmed 1 us less than 10 s after it, the restart interrupts the VRCI sent 50 ms
+    before it (within its 2000 ms limit); exactly 10 s after it, the command events had stopped
+    waiting for it: the VRCI is not interrupted but never acknowledged (failed)."""
+    vrci, cand, confirm = 5, 6, 7
+    rows = _crafted(tshark, tmp_path / "in-time", _released_timeline(10_499.999))
+    assert rows[cand].int("vm110.analysis.restart") == 14 and rows[cand].has("restart")
+    assert rows[vrci].int("vm110.analysis.interrupted_by") == cand and rows[vrci].has("command_interrupted")
+    assert not rows[vrci].has("never_acked")
+    timeline = _released_timeline(10_500)
+    rows = _crafted(tshark, tmp_path / "late", timeline)
+    assert rows[cand].int("vm110.analysis.restart") == 14 and rows[cand].has("restart")
+    assert not rows[cand].get("vm110.analysis.serial_out_of_order")
+    assert not any(rows[confirm].get(f"vm110.analysis.{k}") for k in ("restart", "serial_missing", "serial_out_of_order"))
+    assert not rows[vrci].get("vm110.analysis.interrupted_by") and not rows[vrci].has("command_interrupted")
+    assert rows[vrci].has("never_acked")
+    stat = _stat(tshark, tmp_path / "stat", timeline)
+    assert "restarts 1\n  Restart in frame 6: serial 14 -> 5000\n" in stat
+    assert "Commands: 1, acked 0, unacknowledged 1, interrupted 0, retransmissions 0" in stat
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_rules_copies_of_a_pending_candidate_are_duplicates(tshark, tmp_path):
+    """Copies of the candidate 5 s and 11 s after it are duplicates (rule 5, beyond the 1 s window,
+    whenever they come); the capture ending first, it is out of order; 5001 at 12 s confirms it."""
+    copies = ((5500, 5000), (11_500, 5000))
+    for name, later, restart in (("end", copies, False), ("confirmed", (*copies, (12_000, 5001)), True)):
+        rows = _crafted(tshark, tmp_path / name, _candidate_timeline(*later))
+        if restart:
+            assert rows[5].int("vm110.analysis.restart") == 13 and not rows[5].get("vm110.analysis.serial_out_of_order")
+            assert not any(rows[8].get(f"vm110.analysis.{k}") for k in ("restart", "serial_missing", "serial_out_of_order"))
+        else:
+            assert rows[5].int("vm110.analysis.serial_out_of_order") == 1 and not rows[5].get("vm110.analysis.restart")
+        for n in (6, 7):
+            assert rows[n].int("vm110.analysis.serial_duplicate") == 1 and rows[n].has("serial_duplicate"), (name, n)
+            assert not rows[n].get("vm110.analysis.interval"), (name, n)
 
 
 def _silent_candidate_timeline():
@@ -794,8 +814,9 @@ def _silent_candidate_timeline():
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 def test_rules_silent_sender_candidate_holds_commands_for_10_s_only(tshark, tmp_path):
     """The controller's command events wait behind the base unit's candidate until the analysis
-    clock (the controller's VRPO at 11 s) reaches 10 s after it: then it is out of order and they
-    run, so a single pass links the VRCO 7 resent after that (before: held to the capture's end)."""
+    clock (the controller's VRPO at 11 s) reaches 10 s after it: then they run past it (it is still
+    pending, out of order at the capture's end), so a single pass links the VRCO 7 resent after
+    that (before: held to the capture's end)."""
     timeline = _silent_candidate_timeline()
     vrco9, resent9, vrco7, resent7 = 7, 8, 19, 20
     rows = _crafted(tshark, tmp_path / "two", timeline)
