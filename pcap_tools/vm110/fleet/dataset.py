@@ -40,7 +40,8 @@ FORMAT = "vm110-fleet"
 # 2 would not see it, and a later one would apply its stale batches), and the sender of
 # acknowledgement findings (rows of 2 have none). 4: the revised `auto` serial scope (rows of 3
 # judged some per-type devices with one counter: false out-of-order packets, losses missed). 5: a
-# restart candidate waits at most 10 s for its decider (rules.md rule 5; rows of 4 waited for ever).
+# restart confirmed 10 s or more after its candidate changes no command (rules.md rule 5; rows of 4
+# counted the commands it interrupted).
 FORMAT_VERSION = 5
 MANIFEST = "manifest.json"
 JOURNAL = "journal"                # batches of a running build's updates to the manifest
