@@ -211,37 +211,58 @@ def test_a_sender_stuck_on_one_serial_keeps_one_row(tmp_path, monkeypatch):
     assert (serial["duplicates"], serial["out_of_order"], serial["restarts"]) == (1999, 1, 0)
 
 
+def _controller(tr, seconds: float, vrcos: dict[float, int]) -> None:
+    """A controller sending VRPO every 100 ms and, at the given times, VRCOs never acknowledged."""
+    from test_analysis_craft import CTRL, payload
+    from vm110.layers import VRCO, VRPO
+    serial = 0
+    for i in range(round(seconds * 10)):
+        tr.add(0.01 + i * 0.1, payload(VRPO, serial, packet_number=0, periodic_data=b"x" * 10), src=CTRL,
+               sport=C.OUTPUT_PORT)
+        serial += 1
+        cid = vrcos.get(round(0.02 + i * 0.1, 2))
+        if cid is not None:
+            tr.add(0.02 + i * 0.1, payload(VRCO, serial, command_id=cid), src=CTRL, sport=C.OUTPUT_PORT)
+            serial += 1
+    tr.frames.sort(key=lambda f: f[0])
+
+
+def _monitor_tells_at_the_limit(tmp_path, tr, command_id: int, *options: str) -> dict:
+    """`vm110 monitor --read` tells the VRCO `command_id` failed within 1.5 s of its limit; its
+    final report."""
+    from vm110.cli import main
+    tr.write(tmp_path / "capture.pcap")
+    lines, report = tmp_path / "live.jsonl", tmp_path / "report.json"
+    assert main(["monitor", "--read", str(tmp_path / "capture.pcap"), "--idle", "0", "--no-dashboard", "--quiet",
+                 "--json-lines", str(lines), "--json", str(report), "--crc", "mpeg2", "--crc-order", "little",
+                 *options]) == 0
+    [failed] = [o for o in map(json.loads, lines.read_text().splitlines())
+                if o["type"] == "finding" and o["rule"] == "failed" and o["item"]["command_id"] == command_id]
+    give_up = Options().vrco_give_up_ms / 1000
+    assert give_up <= failed["at"] - failed["item"]["time"] <= give_up + 1.5
+    return json.loads(report.read_text())
+
+
+def _bu_serial(report: dict) -> dict:
+    [bu] = [s["serial"] for s in report["senders"] if s["id"].endswith(":5825 origin 0x0101")]
+    return bu
+
+
 def test_a_sender_heard_once_holds_nothing_back(tmp_path):
     """A sender heard once (a stray packet, a controller that crashed within seconds) never ended
     its serial-scope choice, which only its own next packet ended: every command event after its
     packets waited for the end of the input, so `vm110 monitor` told a command that failed at
     +15 s at the end of the capture (+39.9 s). The choice ends once the analysis clock passes its
     look (10 s after the stray's second packet type; the controller's, 10 s after its first VRCO)."""
-    from test_analysis_craft import BU_ORIGIN, CTRL, Traffic, payload, vrpi
-    from vm110.cli import main
-    from vm110.layers import VRCI, VRCO, VRPO
+    from test_analysis_craft import BU_ORIGIN, Traffic, payload, vrpi
+    from vm110.layers import VRCI
     tr = Traffic()
     tr.add(0.05, vrpi(7), sport=40000)                   # heard once, never again
     tr.add(0.06, payload(VRCI, 8, BU_ORIGIN, command_id=3), sport=40000)
     for i in range(320):
         tr.add(i * 0.125, vrpi(100 + i))
-    serial = 0
-    for i in range(400):
-        tr.add(0.01 + i * 0.1, payload(VRPO, serial, packet_number=0, periodic_data=b"x" * 10), src=CTRL,
-               sport=C.OUTPUT_PORT)
-        serial += 1
-        if i in (0, 120):                                # never acknowledged
-            tr.add(0.02 + i * 0.1, payload(VRCO, serial, command_id=i // 120 + 8), src=CTRL, sport=C.OUTPUT_PORT)
-            serial += 1
-    tr.frames.sort(key=lambda f: f[0])
-    tr.write(tmp_path / "stray.pcap")
-    lines = tmp_path / "live.jsonl"
-    assert main(["monitor", "--read", str(tmp_path / "stray.pcap"), "--idle", "0", "--no-dashboard", "--quiet",
-                 "--json-lines", str(lines), "--crc", "mpeg2", "--crc-order", "little"]) == 0
-    [failed] = [o for o in map(json.loads, lines.read_text().splitlines())
-                if o["type"] == "finding" and o["rule"] == "failed" and o["item"]["command_id"] == 9]
-    give_up = Options().vrco_give_up_ms / 1000
-    assert give_up <= failed["at"] - failed["item"]["time"] <= give_up + 1.5
+    _controller(tr, 40, {0.02: 8, 12.02: 9})
+    _monitor_tells_at_the_limit(tmp_path, tr, 9)
 
 
 def test_a_sender_silent_after_a_restart_candidate_holds_nothing_back(tmp_path):
@@ -250,32 +271,13 @@ def test_a_sender_silent_after_a_restart_candidate_holds_nothing_back(tmp_path):
     after it, any sender's, with it, so `vm110 monitor` told the controller's VRCO that failed at
     +14 s at the end of the input (+40 s), and a monitor running for days never. They wait for it
     10 s at most on the analysis clock (rules.md rule 5); it is out of order at the end."""
-    from test_analysis_craft import CTRL, Traffic, payload, vrpi
-    from vm110.cli import main
-    from vm110.layers import VRCO, VRPO
+    from test_analysis_craft import Traffic, vrpi
     tr = Traffic()
     for i in range(8):
         tr.add(i * 0.125, vrpi(100 + i))
     tr.add(1.0, vrpi(5000))                              # the candidate, then silence for good
-    serial = 0
-    for i in range(400):
-        tr.add(0.01 + i * 0.1, payload(VRPO, serial, packet_number=0, periodic_data=b"x" * 10), src=CTRL,
-               sport=C.OUTPUT_PORT)
-        serial += 1
-        if i in (0, 120):                                # never acknowledged
-            tr.add(0.02 + i * 0.1, payload(VRCO, serial, command_id=i // 120 + 8), src=CTRL, sport=C.OUTPUT_PORT)
-            serial += 1
-    tr.frames.sort(key=lambda f: f[0])
-    tr.write(tmp_path / "candidate.pcap")
-    lines = tmp_path / "live.jsonl"
-    report = tmp_path / "report.json"
-    assert main(["monitor", "--read", str(tmp_path / "candidate.pcap"), "--idle", "0", "--no-dashboard", "--quiet",
-                 "--json-lines", str(lines), "--json", str(report), "--crc", "mpeg2", "--crc-order", "little"]) == 0
-    events = [json.loads(line) for line in lines.read_text().splitlines()]
-    [failed] = [o for o in events if o["type"] == "finding" and o["rule"] == "failed" and o["item"]["command_id"] == 9]
-    give_up = Options().vrco_give_up_ms / 1000
-    assert give_up <= failed["at"] - failed["item"]["time"] <= give_up + 1.5
-    [bu] = [s["serial"] for s in json.loads(report.read_text())["senders"] if s["id"].endswith(":5825 origin 0x0101")]
+    _controller(tr, 40, {0.02: 8, 12.02: 9})
+    bu = _bu_serial(_monitor_tells_at_the_limit(tmp_path, tr, 9))
     assert (bu["out_of_order"], bu["restarts"]) == (1, 0)                # (the candidate, undecided to the end)
 
 
@@ -285,28 +287,12 @@ def test_a_sender_stuck_on_one_serial_holds_no_failed_command_to_the_end(tmp_pat
     candidate waits to the end. Its command events, any sender's, waited with it: `vm110 monitor`
     told the controller's VRCO that failed at +27 s at the end of the input (+60 s). They wait
     10 s at most (until +11 s), so it is told at its limit."""
-    from test_analysis_craft import CTRL, Traffic, payload, vrpi
-    from vm110.cli import main
-    from vm110.layers import VRCO, VRPO
+    from test_analysis_craft import Traffic, vrpi
     tr = Traffic()
     for i in range(480):
         tr.add(i * 0.125, vrpi(777))
-    for i in range(600):
-        tr.add(0.01 + i * 0.1, payload(VRPO, i, packet_number=0, periodic_data=b"x" * 10), src=CTRL,
-               sport=C.OUTPUT_PORT)
-    tr.add(25.02, payload(VRCO, 600, command_id=3), src=CTRL, sport=C.OUTPUT_PORT)      # never acknowledged
-    tr.frames.sort(key=lambda f: f[0])
-    tr.write(tmp_path / "stuck.pcap")
-    lines = tmp_path / "live.jsonl"
-    report = tmp_path / "report.json"
-    assert main(["monitor", "--read", str(tmp_path / "stuck.pcap"), "--idle", "0", "--no-dashboard", "--quiet",
-                 "--json-lines", str(lines), "--json", str(report), "--crc", "mpeg2", "--crc-order", "little",
-                 "--serial-scope", "sender"]) == 0
-    events = [json.loads(line) for line in lines.read_text().splitlines()]
-    [failed] = [o for o in events if o["type"] == "finding" and o["rule"] == "failed"]
-    give_up = Options().vrco_give_up_ms / 1000
-    assert give_up <= failed["at"] - failed["item"]["time"] <= give_up + 1.5
-    [bu] = [s["serial"] for s in json.loads(report.read_text())["senders"] if s["id"].endswith(":5825 origin 0x0101")]
+    _controller(tr, 60, {25.02: 3})
+    bu = _bu_serial(_monitor_tells_at_the_limit(tmp_path, tr, 3, "--serial-scope", "sender"))
     assert (bu["out_of_order"], bu["duplicates"], bu["restarts"]) == (1, 478, 0)
 
 
