@@ -121,7 +121,8 @@ def _device(draw: Any, kind: str, duration: int, index: int) -> dict:
            "commands": sorted(draw(st.lists(st.integers(0, duration - 200), max_size=8))),
            "reuse_p": draw(st.sampled_from([0.0, 0.0, 0.3])),
            "silences": draw(st.lists(st.tuples(st.integers(200, duration), st.integers(100, 4000)), max_size=2)),
-           # (10 s or more: a restart candidate before one waits out its 10 s, rules.md rule 5)
+           # (10 s or more: a restart candidate just before one is released after 10 s, and a
+           # restart it hides is confirmed late, changing no command: rules.md rule 5)
            "outages": draw(st.lists(st.tuples(st.integers(200, duration),
                                               st.one_of(st.integers(300, 6000), st.integers(9500, 12000))),
                                     max_size=1)),
