@@ -740,3 +740,31 @@ def test_a_followed_file_replaced_or_cut_shorter_ends_the_input(how, tmp_path):
     assert main(["analyze", str(ROOT / "captures" / "normal.pcap"), "--quiet", "--json", str(tmp_path / "a.json")]) == 0
     a, m = json.loads((tmp_path / "a.json").read_text()), json.loads((tmp_path / "m.json").read_text())
     assert m == {**a, "capture": {**a["capture"], "file": str(followed)}}
+
+
+def test_a_link_gone_silent_after_a_restart_candidate_holds_no_failed_command(tmp_path):
+    """On a live link (and with --realtime) the analysis clock moves only with packets: when the
+    whole link fell silent just after a base unit's restart candidate, the command events behind
+    the candidate waited until traffic came back, so the controller's VRCO that failed at +2.6 s
+    was told only at the end (+15 s), though the watchdogs came on time. The wait ends on the
+    wall clock too (rules.md rule 5: 10 s after the candidate; 2 s later, for packets in flight)."""
+    from test_analysis_craft import CTRL, T0, Traffic, payload, vrpi
+    from vm110.layers import VRCO, VRPO
+    tr = Traffic()
+    for i in range(8):
+        tr.add(i * 0.125, vrpi(100 + i))
+    tr.add(1.0, vrpi(5000))                                     # the candidate; then the link is silent
+    for i in range(11):
+        tr.add(0.01 + i * 0.1, payload(VRPO, i, packet_number=0, periodic_data=b"x" * 10), src=CTRL,
+               sport=C.OUTPUT_PORT)
+    tr.add(0.6, payload(VRCO, 11, command_id=4), src=CTRL, sport=C.OUTPUT_PORT)       # never acknowledged
+    tr.frames.sort(key=lambda f: f[0])
+    tr.write(tmp_path / "silent.pcap")
+    lines = tmp_path / "lines.jsonl"
+    out = _run(["monitor", "--read", str(tmp_path / "silent.pcap"), "--realtime", "--duration", "15",
+                "--no-dashboard", "--quiet", "--json-lines", str(lines), "--crc", "mpeg2", "--crc-order", "little",
+                "--serial-scope", "sender"])
+    assert out.returncode in (0, 1), out.stderr
+    [failed] = [o for o in map(json.loads, lines.read_text().splitlines())
+                if o["type"] == "finding" and o["rule"] == "failed"]
+    assert failed["at"] - T0 < 14.0                              # released at +13 s (the end: +15 s)

@@ -79,7 +79,18 @@ class Analysis:
                 continue
             for value, rows in _groups(key[a:b]):
                 self.senders[value].feed(part[rows], self.events)
-        touched = values.tolist()
+        self._settle(values.tolist(), self.clock)
+
+    def advance(self, clock: float) -> None:
+        """A live link's time has reached `clock` with every packet before it fed (the caller
+        keeps a margin): the looks and the candidates' waits due by then end as if the analysis
+        clock were there, which only packets move, and a link gone silent would not."""
+        if clock > self.clock:
+            self._settle([], clock)
+
+    def _settle(self, touched: list[int], clock: float) -> None:
+        """After the senders `touched` were fed, at analysis time `clock`: make the looks and
+        release the candidates due, then apply the command events no undecided packet holds."""
         for k in touched:
             first_look = self.senders[k].due()
             if first_look is not None and k not in self.looking:     # its second packet type came: choosing
@@ -88,7 +99,7 @@ class Analysis:
         while self.warming:
             due, k = self.warming[0]
             snd = self.senders[k]
-            snd.expire(self.clock, self.events)
+            snd.expire(clock, self.events)
             later = snd.due()
             if later is None:                           # chosen
                 heappop(self.warming)
@@ -98,12 +109,12 @@ class Analysis:
                 heapreplace(self.warming, (later, k))
             else:
                 break
-        self._time_out(touched)
+        self._time_out(touched, clock)
         for k in touched:
             self._note(k)
         self._apply(self._horizon())
 
-    def _time_out(self, touched: list[int]) -> None:
+    def _time_out(self, touched: list[int], clock: float) -> None:
         """Release the restart candidates the analysis clock has waited out (their senders join
         `touched`)."""
         for k in list(touched):
@@ -113,10 +124,10 @@ class Analysis:
                 heappush(self.candidates, (since, k))
         while self.candidates:
             since, k = self.candidates[0]
-            if timing.shorter(self.clock - since, serials.CANDIDATE_WAIT_MS):
+            if timing.shorter(clock - since, serials.CANDIDATE_WAIT_MS):
                 break
             snd = self.senders[k]
-            snd.timeout(self.clock, self.events)
+            snd.timeout(clock, self.events)
             later = snd.waiting()
             if later is None:
                 heappop(self.candidates)

@@ -37,6 +37,7 @@ from .stopping import Signals, hung_up
 TICK_S = 0.1                 # the loop looks at the time at least this often
 DRAW_S = 1.0
 DECIDE_WAIT_S = 1.0          # a live link: the CRC variant is chosen after this at the latest
+LATE_S = 2.0                 # a live link: no packet comes this much later than its timestamp
 FINDINGS_SHOWN = 200
 UNWRITABLE = (OSError, closedpipe.StdoutUnwritable)   # standard output's write errors (cli.py wraps it)
 RATE_LIMITED = {"lost", "illegal", "restarts", "failed"}   # at most one line per second per sender
@@ -242,6 +243,9 @@ class Session:
             self._flush()
         now = self.now()
         if now is not None and not self.intake.deciding:
+            if self.cfg.live or self.cfg.realtime:
+                # (the analysis clock moves with packets: on a silent link its waits end on this one)
+                self.analysis.advance(now - LATE_S)
             self._tick(now)
             second = math.floor(now) if math.isfinite(now) else None
             if second is not None and self.second is not None and second > self.second:
