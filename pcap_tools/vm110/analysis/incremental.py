@@ -54,7 +54,7 @@ class Analysis:
         self.looking: set[int] = set()                # the keys in `warming`
         self.candidates: list[tuple[float, int]] = [] # heap of (time of its oldest candidate, key)
         self.waiting: set[int] = set()                # the keys in `candidates`
-        self.undecided: dict[int, int] = {}           # sender key -> its first undecided frame
+        self.undecided: dict[int, tuple[int, float]] = {}   # sender key -> its first undecided frame, time
         self.held: list[tuple[int, int]] = []         # heap of (frame, key); stale where undecided differs
 
     def feed(self, rec: np.ndarray, sources: dict[bytes, int]) -> None:
@@ -169,21 +169,14 @@ class Analysis:
                  "taken_over": snd.taken_over, **snd.serial_counts()}
                 for key, snd in self.senders.items()]
 
-    def settled(self) -> bool:
-        """Whether every packet fed so far is decided (and so every command event applied)."""
-        return not self.events and self._horizon() is None
-
     def applied_until(self) -> float:
         """The analysis time before which every command event has been applied (inf: all): the
         first undecided packet's, as the events at or after it wait. A command unacknowledged
         then was so at every time before it (while a sender chooses its serial scope, or a
         candidate waits, the commands before are told without waiting for it)."""
-        frame = self._horizon()
-        if frame is None:
+        if self._horizon() is None:
             return np.inf if not self.events else self.clock
-        since = self.senders[self.held[0][1]].undecided_since()
-        assert since is not None
-        return since
+        return self.undecided[self.held[0][1]][1]
 
     def _join(self, key: int, first: np.void) -> None:
         """A new sender: a restart on a new port of the earlier sender of its address, direction
@@ -208,22 +201,23 @@ class Analysis:
         self.events.append((new.first_frame, new.first_ts, commands.RESTART, old.id, None, None))
 
     def _note(self, key: int) -> None:
-        """Keep the sender's first undecided frame (it only moves when the sender is fed or decided)."""
-        frame = self.senders[key].undecided()
-        if frame == self.undecided.get(key):
+        """Keep the sender's first undecided frame and its time (they only move when the sender is
+        fed or decided)."""
+        first = self.senders[key].undecided()
+        if first == self.undecided.get(key):
             return
-        if frame is None:
+        if first is None:
             del self.undecided[key]
             return
-        self.undecided[key] = frame
-        heappush(self.held, (frame, key))
+        self.undecided[key] = first
+        heappush(self.held, (first[0], key))
         if len(self.held) > 2 * len(self.undecided) + 64:      # stale entries stay few
-            self.held = [(f, k) for k, f in self.undecided.items()]
+            self.held = [(f, k) for k, (f, _) in self.undecided.items()]
             heapify(self.held)
 
     def _horizon(self) -> Optional[int]:
         held, undecided = self.held, self.undecided
-        while held and undecided.get(held[0][1]) != held[0][0]:
+        while held and undecided.get(held[0][1], (None,))[0] != held[0][0]:
             heappop(held)
         return held[0][0] if held else None
 

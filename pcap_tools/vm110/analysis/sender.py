@@ -202,17 +202,11 @@ class Sender:
         """The undecided candidates that hold the command events after them."""
         return [r for r in self.pending.values() if int(r["frame"][0]) not in self.released]
 
-    def undecided(self) -> Optional[int]:
-        """The first frame not decided yet (its events and any restart before them wait)."""
-        frames = [int(r["frame"][0]) for r in self._holding()]
-        if self.warm:
-            frames.append(int(self.warm[0]["frame"][0]))
-        return min(frames) if frames else None
-
-    def undecided_since(self) -> Optional[float]:
-        """The analysis time of the first packet not decided yet (None: none)."""
+    def undecided(self) -> Optional[tuple[int, float]]:
+        """The frame and analysis time of the first packet not decided yet (its events and any
+        restart before them wait)."""
         rows = [*self._holding(), *self.warm[:1]]
-        return min(float(r["ts"][0]) for r in rows) if rows else None
+        return min((int(r["frame"][0]), float(r["ts"][0])) for r in rows) if rows else None
 
     def _decide(self, events: list, final: bool, chosen: Optional[tuple[str, str]] = None) -> None:
         """`chosen`: the scope and why; None at the end of the capture, chosen here on all rows."""
