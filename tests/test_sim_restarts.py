@@ -220,3 +220,38 @@ def test_every_command_acknowledged_across_a_controller_restart_was_executed():
     acked = sorted(e["command_id"] for e in bu.events("command_acked"))
     assert acked == list(range(len(keys))) and not bu.events("command_failed")
     assert sorted(executed(ctl)) == acked and not ctl.events("refused")
+
+
+def test_a_rebooted_base_unit_is_initial_then_disarmed_until_the_ru_is_armed_again():
+    """TS-0006 4.1.1 and 4.3 across a BU reboot (down at 1 s, back at 1.5 s): its VRPI say "Initial,
+    not fully operative yet" for boot_ms, then "Disarmed" with the RU among the unarmed RUs, until
+    the operator arms it again rearm_ms after the BU came back; meanwhile the controller refuses the
+    operator's keys (still acknowledged) and executes those after. Before: back armed at once."""
+    from vm110.decode import decode
+    from vm110.sim.bu import BaseUnit, BaseUnitConfig
+    from vm110.sim.remote import Remote
+    from vm110.sim.virtual import Station, VirtualNetwork
+
+    keys = [{"at": t, "data": f"KEY {i}"} for i, t in enumerate((0.5, 4.0, 6.0))]
+    bu = BaseUnit(Remote.from_script({"steps": [{"at": 0, "state": "armed", "unarmed_rus": 1}], "commands": keys}),
+                  BaseUnitConfig(restarts=(Restart(1.0, 0.5),), boot_ms=800, rearm_ms=3000))
+    ctl = Controller()
+    states = []
+    for batch in VirtualNetwork([Station(bu, "10.0.0.10", C.INPUT_PORT), Station(ctl, "10.0.0.20", C.OUTPUT_PORT)]).run(7.0):
+        for t, _, index, data, *_ in batch:
+            p = decode(data)
+            if index == 0 and p["type"] == "VRPI":
+                states.append((t / 1e6, p["bu_state"], p["armed_ru"], p["unarmed_rus"], p["es_relays_open"]))
+    INITIAL, DISARMED, ARMED = int(C.BuState.INITIAL), int(C.BuState.DISARMED), int(C.BuState.ARMED)
+
+    def state_at(t):
+        return [s[1:] for s in states if s[0] <= t][-1]
+    assert state_at(0.9) == (ARMED, 0x0C07, 1, False)
+    assert [s[0] for s in states if 0.9 < s[0] < 1.5] == []                  # down
+    # (a VRPI every 125 ms from 1.5 s: the last before 2.3 s at 2.25 s, the last before 4.5 s at 4.375 s)
+    assert state_at(1.5) == state_at(2.25) == (INITIAL, 0, 0, True)          # back at 1.5 s
+    assert state_at(2.375) == state_at(4.375) == (DISARMED, 0, 2, False)     # the RU on, unarmed
+    assert state_at(4.5) == (ARMED, 0x0C07, 1, False)                        # armed again
+    assert [e["data"] for e in ctl.events("executed")] == ["KEY 0", "KEY 2"]
+    assert [e["data"] for e in ctl.events("refused")] == ["KEY 1"]
+    assert sorted(e["command_id"] for e in bu.events("command_acked")) == [0, 0, 1]

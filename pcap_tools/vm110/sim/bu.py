@@ -10,7 +10,10 @@
   BU state "External link error" (ES-Link relays open) until VRPO comes back.
 - G-Link fallback windows: the RU application answers over the slower C-Link, so each VRAI leaves
   later (`glink_ack_delay_ms`), and the reported C-Link RSSI drops.
-- Restarts (`sim.lifecycle`): a reboot, back with VRPI, serials and command IDs afresh.
+- Restarts (`sim.lifecycle`): a reboot, back with VRPI, serials and command IDs afresh. The reboot
+  loses the arming: VRPI say BU state "Initial" for `boot_ms`, then "Disarmed" with the RU among the
+  unarmed ones until the operator arms it again `rearm_ms` after the BU came back (the script's
+  state from then on; the script's commands go out as scripted, refused while no RU is armed).
 One serial counter for everything it sends (interpretation.md).
 """
 from __future__ import annotations
@@ -28,7 +31,7 @@ from .ledger import PeerCommands
 from .lifecycle import Life, Restart
 from .node import Node, Rx, source_text
 from .outbox import CommandOutbox, OutboxEvents
-from .remote import VRPI_INDEX, Remote
+from .remote import VRPI_INDEX, Remote, rebooted_values
 
 _CMD_ID = struct.Struct("<" + P.FIELDS["command_id"].code)
 _DATA = P.PACKETS[C.PacketType.VRCO].span("command_data")
@@ -50,6 +53,8 @@ class BaseUnitConfig(Life):
     glink: tuple[tuple[float, float], ...] = ()          # G-Link fallback windows (s)
     glink_ack_delay_ms: tuple[float, float] = (250.0, 650.0)
     glink_rssi: int = 25
+    boot_ms: float = 1000.0          # after a reboot: "Initial", not fully operative yet (TS-0006 4.1.1)
+    rearm_ms: float = 5000.0         # after a reboot: no RU armed until the operator arms it again
     seed: int = 0
 
 
@@ -76,6 +81,7 @@ class BaseUnit(CommandOutbox, Node):
         self.last_vrpo: Optional[int] = None     # when the last VRPO arrived; None: none since start-up
         self._vrpo_since: Optional[int] = None   # the watchdog counts from here (last VRPO, start, resume)
         self.watchdog_tripped = False
+        self._rebooted: Optional[tuple[int, int]] = None   # after a reboot: (operative at, rearmed at)
         self._outbox_init(cfg.command_id_start, ms(cfg.vrci_resend_ms), ms(cfg.vrci_fail_ms))
         self._acks: list[tuple[int, int]] = []            # delayed VRAI: (due, command ID)
         # VRCO heard, to hand each to the RU app once; the controller numbers as this node does
@@ -114,7 +120,7 @@ class BaseUnit(CommandOutbox, Node):
     # --- VRPI and the VRPO watchdog -----------------------------------------------------------
     def vrpi_values(self, now: int) -> list[Any]:
         """This VRPI's payload values (payload order): the remote's, with the BU's own state on top."""
-        values = self.remote.values(now - self._t0)
+        values = self._remote_values(now)
         armed = values[_ARMED_RU]
         if self._vrpo_since is not None and now - self._vrpo_since > self._watchdog_us:
             self._check_watchdog(now, bool(armed))
@@ -125,6 +131,17 @@ class BaseUnit(CommandOutbox, Node):
         if armed and self._glink and self.in_glink_fallback(now):
             values[_RSSI] = self.config.glink_rssi
         return values
+
+    def _remote_values(self, now: int) -> list[Any]:
+        """The remote's state as this BU knows it: the script's, unless a reboot lost the arming."""
+        values = self.remote.values(now - self._t0)
+        if self._rebooted is None:
+            return values
+        operative, rearmed = self._rebooted
+        if now >= rearmed:
+            self._rebooted = None
+            return values
+        return rebooted_values(values, now >= operative)
 
     def _check_watchdog(self, now: int, armed: bool) -> None:
         since = self._vrpo_since
@@ -150,7 +167,7 @@ class BaseUnit(CommandOutbox, Node):
     def on_vrpo(self, rx: Rx, now: int) -> None:
         self.follow(rx, now)
         if self._vrpo_since is not None and now - self._vrpo_since > self._watchdog_us:
-            self._check_watchdog(now, bool(self.remote.values(now - self._t0)[_ARMED_RU]))
+            self._check_watchdog(now, bool(self._remote_values(now)[_ARMED_RU]))
         if self.watchdog_tripped:
             self.watchdog_tripped = False
             self.event(now, "vrpo_restored")
@@ -163,6 +180,7 @@ class BaseUnit(CommandOutbox, Node):
         self._next_vrpi = self._vrpo_since = now
         self.last_vrpo = None
         self.watchdog_tripped = False
+        self._rebooted = (now + ms(self.config.boot_ms), now + ms(self.config.rearm_ms))
         self._acks.clear()
         self.delivered = PeerCommands(self.type_serials is not None)
         self._outbox_restart(now, restart.command_id)

@@ -41,6 +41,8 @@ _MAX_ENTRIES = 100_000   # steps, commands: a 16 MiB script of 1.5 M steps took 
 EVERY_LEAST_S = 1e-6     # the clock's step: a shorter interval would be 0, which means none
 _RU_FIELDS = tuple(f.name for f in P.PACKETS[C.PacketType.VRPI].fields if f.ru)
 _ARMED_RU, _BATTERY, _RU_STATE = VRPI_INDEX["armed_ru"], VRPI_INDEX["ru_battery"], VRPI_INDEX["ru_state"]
+_UNARMED = VRPI_INDEX["unarmed_rus"]
+_UNARMED_MAX = P.FIELDS["unarmed_rus"].limits[1]
 _JOYSTICKS = tuple(VRPI_INDEX[f"joystick{i}"] for i in range(1, C.JOYSTICKS + 1))
 _SWITCHES = tuple(VRPI_INDEX[f"switch{i}"] for i in range(1, C.SWITCHES + 1))
 _ENCODER, _ENCODER_SWITCH = VRPI_INDEX["encoder"], VRPI_INDEX["encoder_switch"]
@@ -153,6 +155,15 @@ def disarmed_fields(unarmed_rus: int = 0) -> dict[str, int]:
             "eg_link": C.LinkStatus.OPERATIONAL, "ec_link": C.LinkStatus.OPERATIONAL,
             "c_link": C.LinkStatus.OPERATIONAL if unarmed_rus else C.LinkStatus.PASSIVE, "armed_ru": 0,
             **dict.fromkeys(_RU_FIELDS, 0)}
+
+
+def rebooted_values(values: list[Any], operative: bool) -> list[Any]:
+    """What a base unit back from a reboot reports instead of the script's `values`: "Initial, not
+    fully operative yet" (TS-0006 4.1.1, no RU data), then, once `operative`, "Disarmed" with the
+    RU that was armed among the unarmed ones (a reboot loses the arming: the operator arms it again)."""
+    if not operative:
+        return _values({**disarmed_fields(), "bu_state": C.BuState.INITIAL})
+    return _values(disarmed_fields(min(values[_UNARMED] + (1 if values[_ARMED_RU] else 0), _UNARMED_MAX)))
 
 
 @dataclass
