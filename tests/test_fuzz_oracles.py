@@ -395,3 +395,37 @@ def test_an_ack_with_a_bad_crc_is_one_bug_not_a_missing_ack_too(link):
     link.mon.tick(T0 + 1.6)
     assert link.oracles() == ["malformed_output"]
     assert link.mon.triggers[0].command_id == 0xFFFF and link.mon.triggers[0].suspects[0] == 9
+
+
+
+@pytest.mark.parametrize("sent_before", [False, True])
+def test_an_ack_with_a_wrong_command_id_is_one_bug_not_a_missing_ack_too(link, sent_before):
+    """Trial (a controller that acknowledges command ID 65534 as 2, a signed 16-bit ID negated):
+    two findings for one bug, `malformed_output: VRAO for command ID 2, never sent` and
+    `missing_ack: no VRAO for command ID 65534`, both replaying the same VRCI; and with command ID
+    2 sent long before in a long run (every ID is, sooner or later), the missing ack alone."""
+    if sent_before:
+        link.mon.on_tx(T0 - 20, vrci(2), vrci(2), index=1)
+        link.rx(T0 - 19.99, "VRAO", encode.ack_payload(2))
+    link.mon.on_tx(T0, vrci(3), vrci(3), index=8)
+    link.rx(T0 + 0.01, "VRAO", encode.ack_payload(3))
+    link.mon.on_tx(T0 + 0.1, vrci(0xFFFE), vrci(0xFFFE), index=9)
+    link.rx(T0 + 0.11, "VRAO", encode.ack_payload(2))
+    for n in range(2, 17):                      # it goes on speaking past the ack timeout
+        link.vrpo(T0 + 0.1 * n)
+    link.mon.tick(T0 + 1.7)
+    assert link.oracles() == ["malformed_output"]
+    assert link.mon.triggers[0].command_id == 2 and link.mon.triggers[0].suspects[0] == 9
+
+
+def test_another_ack_of_a_recent_command_answers_no_other(link):
+    """Command 5 acknowledged twice (a controller sending each ack twice against loss) is no wrong
+    ack: command 6, open, still owes its own."""
+    link.mon.on_tx(T0, vrci(5), vrci(5), index=1)
+    link.mon.on_tx(T0 + 0.02, vrci(6), vrci(6), index=2)
+    for n in range(2):
+        link.rx(T0 + 0.05 + n * 0.01, "VRAO", encode.ack_payload(5))
+    for n in range(1, 16):
+        link.vrpo(T0 + 0.1 * n)
+    link.mon.tick(T0 + 1.6)
+    assert link.oracles() == ["missing_ack"] and link.mon.triggers[0].command_id == 6

@@ -10,10 +10,11 @@ from typing import Optional
 import pytest
 from loopback import free_ports
 from vm110 import constants as C
+from vm110 import encode
 from vm110.fuzz import cases as K
 from vm110.fuzz import mutate as M
 from vm110.fuzz.oracles import CRASH, MALFORMED_OUTPUT, MISSING_ACK, STALL, Limits, Monitor, Trigger
-from vm110.fuzz.runner import Replay, RunConfig, Runner, _open_log, trial
+from vm110.fuzz.runner import TRIAL, Replay, RunConfig, Runner, _open_log, trial
 from vm110.fuzz.session import Sent, Settings
 
 
@@ -82,6 +83,39 @@ def test_a_malformed_output_is_confirmed_only_by_its_own_kind():
     assert trial(_Echo("VRAO unknown"), replay, MALFORMED_OUTPUT, "serial") is None    # type: ignore[arg-type]
     again = trial(_Echo("serial"), replay, MALFORMED_OUTPUT, "serial")                 # type: ignore[arg-type]
     assert again is not None and again.kind == "serial"
+
+
+class _WrongAck:
+    """A session whose controller acknowledges command ID 65535 as 1 (a signed 16-bit ID negated)."""
+
+    def __init__(self, sent_before: bool) -> None:
+        self.supervisor, self.evidence_dir = None, Path(".")
+        self.settings = Settings(("127.0.0.1", 1), ("127.0.0.1", 2), limits=Limits(ack_timeout_ms=50.0))
+        self.monitor = Monitor(self.settings.limits, 0.0)
+        if sent_before:                 # the run had sent command ID 1 lately; a replay may not have
+            one = M.build(C.PacketType.VRCI, 1, M.default_fields(C.PacketType.VRCI, 1))
+            self.monitor.on_tx(time.time(), one, one, 1)
+
+    def run_steps(self, *args: object) -> list[Sent]:
+        now = time.time()
+        vrci = M.build(C.PacketType.VRCI, 2, M.default_fields(C.PacketType.VRCI, 0xFFFF))
+        self.monitor.on_tx(now, vrci, vrci, TRIAL)
+        self.monitor.on_rx(now, encode.packet("VRAO", encode.ack_payload(1), origin=0, serial=0), ("127.0.0.1", 3))
+        return []
+
+    def pump(self, until: float) -> None:
+        time.sleep(max(0.0, min(until, time.time() + 0.02) - time.time()))
+        self.monitor.tick(time.time())
+
+
+@pytest.mark.parametrize("sent_before", [True, False])
+def test_a_missing_ack_whose_replay_draws_an_ack_with_a_wrong_id_still_triggers(sent_before):
+    """Trial (a controller acknowledging 65535 as 1): the run, having sent command ID 1 lately, saw
+    a missing ack; its --replay, which had not, saw a VRAO for a command never sent in its place
+    and said "does not trigger any more", exit 0, of a bug still there."""
+    replay = Replay([Sent(0.0, b"VRCI", b"VRCI", 0.0, True)])
+    again = trial(_WrongAck(sent_before), replay, MISSING_ACK)    # type: ignore[arg-type]
+    assert again is not None
 
 
 class _SlowDeath:

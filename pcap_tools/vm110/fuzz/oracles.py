@@ -53,6 +53,7 @@ class Trigger:
     command_id: Optional[int] = None              # the command concerned, if any
     packet: Optional[bytes] = None                # a base-unit packet that is not a case's (a VRAI)
     crash: Optional[Crash] = None                 # the evidence of a crash
+    answered: Optional[int] = None                # the open command an ack with a wrong ID answered
 
 
 @dataclass
@@ -73,7 +74,7 @@ class Monitor:
         self.notes: collections.deque[tuple[float, int]] = collections.deque()   # (time, case index)
         self.pending: dict[int, collections.deque[tuple[float, int]]] = {}      # id -> (deadline, case)
         self.illegal_ids: dict[int, tuple[float, int]] = {}     # IDs whose latest VRCI was illegal
-        self.sent_ids: set[int] = set()
+        self.sent_at: dict[int, float] = {}      # command ID -> when it was last sent
         self.id_case: dict[int, int] = {}        # command ID -> last case that sent it
         self.withholding = False
         self.vrco_seen = False                    # has this controller ever sent a VRCO?
@@ -101,7 +102,7 @@ class Monitor:
         """A monitor for a trial: what is known of the controller, none of the expectations."""
         other = Monitor(self.limits, 0.0)
         other.adopt(self)
-        other.sent_ids = set(self.sent_ids)
+        other.sent_at = dict(self.sent_at)
         other.id_case = dict(self.id_case)
         return other
 
@@ -113,7 +114,7 @@ class Monitor:
         self.vrco = copy.deepcopy(other.vrco)
         self.vrco_seen = other.vrco_seen
         self.exited = other.exited
-        self.sent_ids |= other.sent_ids
+        self.sent_at.update(other.sent_at)         # a trial's copy is the newer
 
     def fire(self, trigger: Trigger) -> None:
         self.triggers.append(trigger)
@@ -137,7 +138,7 @@ class Monitor:
             return
         fields = decode(data)
         command_id = int.from_bytes(data[_CMD_ID_AT], "little")
-        self.sent_ids.add(command_id)
+        self.sent_at[command_id] = t
         self.id_case[command_id] = index
         if fields.get("type") != _VRCI:
             return
@@ -209,12 +210,15 @@ class Monitor:
                               f"{(t - last) * 1000:.0f} ms: the controller restarted on its own", None,
                               self._around(last), data, "restart"))
 
-    def _malformed(self, t: float, data: bytes, kind: str, detail: str, command_id: Optional[int] = None) -> None:
-        """Blame the case that sent `command_id` (an ack's), then the cases of the last 500 ms."""
-        culprit = None if command_id is None else self.id_case.get(command_id)
+    def _malformed(self, t: float, data: bytes, kind: str, detail: str, command_id: Optional[int] = None,
+                   answered: Optional[int] = None) -> None:
+        """Blame the case that sent the command answered (`answered`, else `command_id`, an ack's),
+        then the cases of the last 500 ms."""
+        blamed_id = command_id if answered is None else answered
+        culprit = None if blamed_id is None else self.id_case.get(blamed_id)
         recent = list(reversed(self._between(t - 0.5, t)))
         suspects = ([culprit] if culprit is not None else []) + [i for i in recent if i != culprit]
-        self.fire(Trigger(MALFORMED_OUTPUT, t, detail, None, suspects, data, kind, command_id))
+        self.fire(Trigger(MALFORMED_OUTPUT, t, detail, None, suspects, data, kind, command_id, answered=answered))
 
     def _answered(self, command_id: int) -> bool:
         """The oldest pending command of that ID is answered; False when none was pending."""
@@ -233,8 +237,19 @@ class Monitor:
         if illegal is not None and t - illegal[0] < _HISTORY_S:
             self.fire(Trigger(ILLEGAL_ACKED, t, f"VRAO for command ID {command_id} of an illegal VRCI",
                               illegal[1], [illegal[1]], data, "acked", command_id))
-        elif command_id not in self.sent_ids:
-            self._malformed(t, data, "VRAO unknown", f"VRAO for command ID {command_id}, never sent", command_id)
+            return
+        sent = self.sent_at.get(command_id)
+        if sent is not None and t - sent <= _HISTORY_S:
+            return          # one more ack of a command sent lately (a duplicate frame's, a second copy)
+        # An ack of no command sent lately has a wrong ID (a sign or width error): it answers, wrongly,
+        # the oldest command still open, so that command's missing ack is no second finding.
+        meant = min(self.pending, key=lambda c: self.pending[c][0][0], default=None)
+        if meant is not None:
+            self._answered(meant)
+        awaited = "" if meant is None else f" (command ID {meant} awaited its ack)"
+        never = "never sent" if sent is None else f"not sent in the last {_HISTORY_S:.0f} s"
+        self._malformed(t, data, "VRAO unknown", f"VRAO for command ID {command_id}, {never}{awaited}",
+                        command_id, meant)
 
     def _vrco(self, t: float, command_id: int) -> None:
         self.vrco_seen = True

@@ -116,9 +116,11 @@ _BY_KIND = (CRASH, MALFORMED_OUTPUT)    # oracles whose kinds are different bugs
 
 
 def _counts_as(trig: Trigger, oracle: str) -> bool:
-    """`trig` is a trigger of `oracle`: a stall that holds an unacknowledged command is a missing
-    ack as well (the controller hung on it; the monitor reports the one bug once, as the stall)."""
-    return trig.oracle == oracle or (oracle == MISSING_ACK and trig.oracle == STALL and trig.command_id is not None)
+    """`trig` is a trigger of `oracle`: a stall that holds an unacknowledged command, or an ack with
+    a wrong ID that answered one, is a missing ack as well (the monitor reports the one bug once, as
+    the stall or the malformed output; which the run saw may depend on the IDs it had sent before)."""
+    return trig.oracle == oracle or (oracle == MISSING_ACK and (
+        (trig.oracle == STALL and trig.command_id is not None) or trig.answered is not None))
 
 
 def _observe(session: Session, mon: Monitor, oracle: str, t_end: float) -> None:
