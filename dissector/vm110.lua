@@ -937,6 +937,16 @@ function WS.init(pinfo)
     end
 end
 
+-- The UDP payload's length as its header gives it (the last udp.length of the frame so far: this
+-- datagram's). Wireshark keeps it as the tvb's reported length when the snaplen cut the datagram,
+-- but not for the first IP fragment of one not reassembled, nor in an ICMP error's quote.
+WS.udp_length = Field.new("udp.length") -- (a field of WS: the main chunk may have at most 200 locals)
+function WS.sent_len(tvb)
+    local all = { WS.udp_length() }
+    local last = all[#all]
+    return last and last.value - 8 or tvb:reported_len()
+end
+
 -- A view: field name -> true when it is built; `visible` for labels and subtrees; `layouts`:
 -- per packet type, the payload layout entries that are built (made when first asked for: a
 -- view of a visited dissection serves one packet).
@@ -2486,10 +2496,10 @@ local function heuristic(tvb, pinfo, tree)
     if not settings.heuristic then return false end
     local port, src, dst = settings.port, pinfo.src_port, pinfo.dst_port
     local ours = src == port or dst == port or src == port + OUTPUT_PORT_OFFSET or dst == port + OUTPUT_PORT_OFFSET
-    if not ours then
-        local n = tvb:len()
-        if n < OVERHEAD or n > OVERHEAD + MAX_PAYLOAD or not TYPES[tvb:raw(0, ID_LEN)] then return false end
-        if OVERHEAD + tvb(10, 2):le_uint() ~= n then return false end
+    if not ours then -- (the length sent, not the length captured: a datagram cut short is truncated here too)
+        if tvb:len() < PREFIX_LEN or not TYPES[tvb:raw(0, ID_LEN)] then return false end
+        local n = WS.sent_len(tvb)
+        if n > OVERHEAD + MAX_PAYLOAD or OVERHEAD + tvb(10, 2):le_uint() ~= n then return false end
     end
     dissect(tvb, pinfo, tree) -- not vm110.dissector: that is a handle, and would add the layer twice
     return true

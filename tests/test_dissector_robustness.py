@@ -140,3 +140,49 @@ def test_a_first_ip_fragment_is_truncated_not_a_bad_crc(tshark, tmp_path):
                 assert got == want, (defragment, passes, rows)
                 if defragment == "FALSE":
                     assert all("IP fragment" in r[-1] and r[1] == "" for r in rows), rows
+
+
+def _problems_per_frame(ws: T.Workspace, pcap, *extra: str) -> list[tuple[str, list[str], str]]:
+    """Per frame with EG-Link, in both pass modes alike: (serial, problem codes, the truncated expert's message)."""
+    codes = sorted(T.PROBLEM_CODES)
+    fields = ["-T", "fields", "-E", "aggregator=|", "-e", "vm110.serial",
+              *(a for code in codes for a in ("-e", f"vm110.expert.{code}")), "-e", "_ws.expert.message"]
+    runs = []
+    for passes in ([], ["-2"]):
+        proc = ws.run(["-r", str(pcap), *passes, *extra, *T.pref_args(None), "-Y", "vm110", *fields])
+        assert T.LUA_ERROR not in proc.stdout + proc.stderr
+        rows = [line.split("\t") for line in proc.stdout.splitlines()]
+        runs.append([(r[0], [c for c, v in zip(codes, r[1:]) if v],
+                      "".join(m for m in r[-1].split("|") if m.startswith("Truncated"))) for r in rows])
+    assert runs[0] == runs[1]
+    return runs[0]
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_a_datagram_cut_short_on_another_port_is_truncated(tshark, tmp_path):
+    """On a port only the heuristic finds EG-Link on, a datagram the snaplen cut, or the first IP
+    fragment of one not reassembled, is EG-Link and `truncated`, as on the EG-Link ports: the
+    heuristic compared `size` with the bytes captured, not with the UDP length, and left it plain
+    UDP (trial: BU on port 6000 captured with snaplen 100: no VRPI and no VRPO at all, and the commands
+    between them with serial gaps and no cause in sight)."""
+    from scapy.layers.inet import IP, UDP, fragment
+    from scapy.layers.l2 import Ether
+    from scapy.packet import Raw
+    from scapy.utils import wrpcap
+    from test_analysis_tshark import snapped
+    from vm110 import encode
+    whole = tmp_path / "whole.pcap"
+    T.write_pcap(whole, [T.Datagram(encode.packet("VRPI", bytes(46), origin=1, serial=7), 6000, 6000),
+                         T.Datagram(encode.packet("VRAO", bytes(2), serial=8), 6002, 6002)])
+    vrpo = IP(src=T.CONTROLLER_ADDR, dst=C.MULTICAST_GROUP, id=9) / UDP(sport=6002, dport=6002) \
+        / Raw(encode.packet("VRPO", bytes(400), serial=9))
+    with tshark.workspace(tmp_path / "ws") as ws:
+        cut, fragments = ws.dir / "snap70.pcap", ws.dir / "fragments.pcap"
+        snapped(whole, cut, 70)                            # the VRPI's 66-byte datagram keeps 28 bytes, the VRAO all
+        wrpcap(str(fragments), [Ether() / f for f in fragment(vrpo, fragsize=200)])
+        assert _problems_per_frame(ws, cut) == [("7", [C.Problem.TRUNCATED.value], "Truncated: cut short by the capture (snaplen)"),
+                                                ("8", [], "")]
+        assert _problems_per_frame(ws, fragments, "-o", "ip.defragment:FALSE") == [
+            ("9", [C.Problem.TRUNCATED.value], "Truncated: the first IP fragment of a datagram not reassembled")]
+        assert _problems_per_frame(ws, fragments) == [("9", [], "")]
+
