@@ -599,9 +599,9 @@ end
 local record = new_record()
 
 -- `cut`: the capture holds less of the datagram than was sent: "snaplen" (the capture's snaplen
--- cut it) or "fragment" (the first IP fragment of a datagram not reassembled, as with
--- ip.defragment off). A packet so shortened is illegal as truncated, and nothing else of it is
--- judged (its CRC and size are not there).
+-- cut it), "fragment" (the first IP fragment of a datagram not reassembled, as with
+-- ip.defragment off) or "quote" (an ICMP error quoted only its beginning). A packet so shortened
+-- is illegal as truncated, and nothing else of it is judged (its CRC and size are not there).
 local function decode(s, variant, big_endian, known_crc, cut)
     local n = #s
     local r = record
@@ -1354,6 +1354,7 @@ end
 local CUT_SHORT = {
     snaplen = { "cut short by the capture", "Truncated: cut short by the capture (snaplen)" },
     fragment = { "cut short: an IP fragment", "Truncated: the first IP fragment of a datagram not reassembled" },
+    quote = { "cut short by an ICMP error's quote", "Truncated: cut short by an ICMP error's quote" },
 }
 local function add_tree(r, tvb, tree)
     local root
@@ -2438,6 +2439,7 @@ local function dissect(tvb, pinfo, tree)
     local r = decode(s, settings.variant, settings.big_endian, known)
     if r.problems ~= EMPTY then -- (only then: C calls)
         local cut = tvb:reported_len() > r.n and "snaplen" or WS.fragmented(pinfo) and "fragment"
+            or WS.in_error_pkt(pinfo) and WS.sent_len(tvb) > r.n and "quote"
         if cut then r = decode(s, settings.variant, settings.big_endian, known, cut) end
     end
     local legal = r.problems == EMPTY -- (own() replaces EMPTY at the first problem)

@@ -186,3 +186,26 @@ def test_a_datagram_cut_short_on_another_port_is_truncated(tshark, tmp_path):
             ("9", [C.Problem.TRUNCATED.value], "Truncated: the first IP fragment of a datagram not reassembled")]
         assert _problems_per_frame(ws, fragments) == [("9", [], "")]
 
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_a_datagram_an_icmp_error_quotes_in_part_is_truncated_not_a_bad_crc(tshark, tmp_path):
+    """An ICMP error quotes the datagram it answers, often only its beginning (RFC 792: 8 bytes;
+    many stacks a few dozen). The dissector judged such a quote as a whole datagram, "bad CRC, size
+    mismatch" (with "truncated" where it ended in the payload), though the CRC was never quoted:
+    it is `truncated` alone, on the EG-Link ports and elsewhere; a quote of all of it decodes whole."""
+    from scapy.layers.inet import ICMP, IP, UDP
+    from scapy.layers.l2 import Ether
+    from scapy.utils import wrpcap
+    from vm110 import encode
+    frames = []
+    for port in (C.OUTPUT_PORT, 6002):
+        datagram = bytes(IP(src=T.CONTROLLER_ADDR, dst=T.BU_ADDR) / UDP(sport=port, dport=port)
+                         / encode.packet("VRPO", bytes(100), serial=port))
+        for quoted in (28 + 20, 28 + 60, len(datagram) - 2, len(datagram)):   # (IP and UDP headers: 28 bytes)
+            frames.append(Ether() / IP(src=T.BU_ADDR, dst=T.CONTROLLER_ADDR) / ICMP(type=3, code=3) / datagram[:quoted])
+    cut = [C.Problem.TRUNCATED.value], "Truncated: cut short by an ICMP error's quote"
+    with tshark.workspace(tmp_path) as ws:
+        pcap = ws.dir / "quotes.pcap"
+        wrpcap(str(pcap), frames)
+        got = _problems_per_frame(ws, pcap)
+    assert got == [(str(port), *want) for port in (C.OUTPUT_PORT, 6002) for want in (cut, cut, cut, ([], ""))]
