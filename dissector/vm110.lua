@@ -937,16 +937,6 @@ function WS.init(pinfo)
     end
 end
 
--- The UDP payload's length as its header gives it (the last udp.length of the frame so far: this
--- datagram's). Wireshark keeps it as the tvb's reported length when the snaplen cut the datagram,
--- but not for the first IP fragment of one not reassembled, nor in an ICMP error's quote.
-WS.udp_length = Field.new("udp.length") -- (a field of WS: the main chunk may have at most 200 locals)
-function WS.sent_len(tvb)
-    local all = { WS.udp_length() }
-    local last = all[#all]
-    return last and last.value - 8 or tvb:reported_len()
-end
-
 -- A view: field name -> true when it is built; `visible` for labels and subtrees; `layouts`:
 -- per packet type, the payload layout entries that are built (made when first asked for: a
 -- view of a visited dissection serves one packet).
@@ -2438,8 +2428,9 @@ local function dissect(tvb, pinfo, tree)
     end
     local r = decode(s, settings.variant, settings.big_endian, known)
     if r.problems ~= EMPTY then -- (only then: C calls)
+        -- (a quote is cut where its header's size says more: decode() tells)
         local cut = tvb:reported_len() > r.n and "snaplen" or WS.fragmented(pinfo) and "fragment"
-            or WS.in_error_pkt(pinfo) and WS.sent_len(tvb) > r.n and "quote"
+            or WS.in_error_pkt(pinfo) and "quote"
         if cut then r = decode(s, settings.variant, settings.big_endian, known, cut) end
     end
     local legal = r.problems == EMPTY -- (own() replaces EMPTY at the first problem)
@@ -2498,10 +2489,15 @@ local function heuristic(tvb, pinfo, tree)
     if not settings.heuristic then return false end
     local port, src, dst = settings.port, pinfo.src_port, pinfo.dst_port
     local ours = src == port or dst == port or src == port + OUTPUT_PORT_OFFSET or dst == port + OUTPUT_PORT_OFFSET
-    if not ours then -- (the length sent, not the length captured: a datagram cut short is truncated here too)
+    if not ours then
+        -- The length sent, not the length captured (a datagram the snaplen cut is truncated here
+        -- too); a first IP fragment or an ICMP error's quote holds only the beginning of one.
         if tvb:len() < PREFIX_LEN or not TYPES[tvb:raw(0, ID_LEN)] then return false end
-        local n = WS.sent_len(tvb)
-        if n > OVERHEAD + MAX_PAYLOAD or OVERHEAD + tvb(10, 2):le_uint() ~= n then return false end
+        local n, sent = tvb:reported_len(), OVERHEAD + tvb(10, 2):le_uint()
+        if sent > OVERHEAD + MAX_PAYLOAD or sent ~= n
+            and not (n < sent and (pinfo.fragmented or pinfo.in_error_pkt)) then -- (rare: no WS)
+            return false
+        end
     end
     dissect(tvb, pinfo, tree) -- not vm110.dissector: that is a handle, and would add the layer twice
     return true
