@@ -15,7 +15,10 @@ from .commands import Tally
 from .collect import CODE, TYPES
 
 MAX_ITEMS = 100
-FRAGMENT_FILTER = "ip.flags.mf == 1 || ip.frag_offset > 0 || ipv6.fragment"   # (shows IP fragments)
+# Every IP fragment frame, reassembled or not (`ipv6.fragment` is only on the frame a datagram is
+# reassembled in); an IPv6 atomic fragment (offset 0, no more) is a whole datagram, as the reader has it.
+FRAGMENT_FILTER = ("ip.flags.mf == 1 || ip.frag_offset > 0 "
+                   "|| ipv6.fraghdr.more == 1 || ipv6.fraghdr.offset > 0")
 _PROTOCOLS = ", ".join(map(str, sorted(TUNNEL_PROTOCOLS)))
 TUNNEL_FILTER = (f"ip.proto in {{{_PROTOCOLS}}} || ipv6.nxt in {{{_PROTOCOLS}}} || "
                  f"udp.dstport in {{{', '.join(map(str, sorted(TUNNEL_PORTS)))}}}")   # (shows the tunnels)

@@ -93,16 +93,28 @@ def _raw_type(layer) -> str:
         return str(field)
 
 
+def _fragment(pkt, layers: set) -> bool:
+    """An IPv4 or IPv6 fragment, as the reader counts them (an IPv6 atomic fragment, offset 0 and no
+    more, is a whole datagram). get_field: a damaged IP header may lack a field (self-fuzz found
+    the AttributeError)."""
+    if "ip" in layers and (pkt.ip.get_field("flags_mf") in ("1", "True")
+                           or pkt.ip.get_field("frag_offset") not in (None, "0")):
+        return True
+    return "ipv6" in layers and (pkt.ipv6.get_field("fraghdr_more") in ("1", "True")
+                                 or pkt.ipv6.get_field("fraghdr_offset") not in (None, "0"))
+
+
 class TsharkEngine:
     def __init__(self, port: int = C.INPUT_PORT, crc: str = "auto", crc_order: str = "auto") -> None:
         self.port, self.crc, self.crc_order = port, crc, crc_order
         self.stopped: Optional[str] = None     # tshark's last error line when it stopped early
 
     def _params(self, variant: str, order: str) -> list[str]:
-        # IP fragments stay fragments, as the fast engine counts them (no reassembly). The heuristic
+        # IP fragments stay fragments, IPv4 and IPv6, as the fast engine counts them (no reassembly). The heuristic
         # first: EG-Link on a port Wireshark gives another protocol (7000: AFS) is found, as the
         # fast engine finds it.
-        return ["-X", f"lua_script:{plugin_path()}", "-o", "ip.defragment:FALSE", "-o", "udp.try_heuristic_first:TRUE",
+        return ["-X", f"lua_script:{plugin_path()}", "-o", "ip.defragment:FALSE", "-o", "ipv6.defragment:FALSE",
+                "-o", "udp.try_heuristic_first:TRUE",
                 "-o", f"vm110.input_port:{self.port}",
                 "-o", f"vm110.crc_variant:{variant}", "-o", f"vm110.crc_byte_order:{order}"]
 
@@ -172,9 +184,7 @@ class TsharkEngine:
             if when is not None and pkt.frame_info.get_field("encap_type") is not None:
                 ts = _epoch(when, pcap)
             layers = {layer.layer_name for layer in pkt.layers}
-            # get_field: a damaged IP header may lack either field (self-fuzz found the AttributeError).
-            fragment = "ip" in layers and (pkt.ip.get_field("flags_mf") in ("1", "True")
-                                           or pkt.ip.get_field("frag_offset") not in (None, "0"))
+            fragment = _fragment(pkt, layers)
             if fragment or "udp" not in layers:
                 got.non_udp += 1
                 got.fragments += fragment
