@@ -1,6 +1,7 @@
 """`vm110 analyze`: summary, JSON and HTML files, several captures, --jobs, --fail-on, exit codes."""
 from __future__ import annotations
 
+import gzip
 import json
 import subprocess
 import sys
@@ -107,6 +108,29 @@ def test_report_on_standard_output_stands_alone(files):
 def test_unreadable_inputs(files):
     one_line_error(vm110(str(files / "text.pcap")))
     one_line_error(vm110(str(files / "missing.pcap")))
+
+
+def test_gzip_compressed_captures(files, tmp_path):
+    """A `.pcapng.gz` (tcpdump -z gzip, dumpcap --compress gzip), which Wireshark opens as it is:
+    analyze said "not a pcap or pcapng capture (magic 0x1f8b0800)", exit 2 (trial). It gives the
+    plain file's report; one cut short is analysed up to the cut, said, and exits 2."""
+    data = (files / "lossy.pcapng").read_bytes()
+    packed = tmp_path / "lossy.pcapng.gz"
+    packed.write_bytes(gzip.compress(data))
+    plain = vm110(str(files / "lossy.pcapng"), "--json", str(tmp_path / "p.json"), "--quiet")
+    unpacked = vm110(str(packed), "--json", str(tmp_path / "g.json"), "--quiet")
+    assert plain.returncode == unpacked.returncode == EXIT_OK and unpacked.stderr == ""
+    want, got = (json.loads((tmp_path / n).read_text()) for n in ("p.json", "g.json"))
+    assert got["capture"].pop("file") == str(packed)
+    del want["capture"]["file"]
+    assert got == want
+    packed.write_bytes(gzip.compress(data)[:-40])
+    cut = vm110(str(packed), "--json", str(tmp_path / "c.json"))
+    one_line_error(subprocess.CompletedProcess(cut.args, cut.returncode, "", cut.stderr))
+    assert "gzip data cut short" in cut.stderr and "VERDICT: FAIL" in cut.stdout
+    report = json.loads((tmp_path / "c.json").read_text())
+    assert report["verdict"]["findings"][0]["rule"] == "damaged"
+    assert 0 < report["capture"]["packets"] < want["capture"]["packets"]
 
 
 def test_tshark_engine_without_its_dissector(files, tmp_path):

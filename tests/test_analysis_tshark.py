@@ -2,6 +2,7 @@
 (the Lua dissector through pyshark), on every bundled capture and on crafted and synthesised ones."""
 from __future__ import annotations
 
+import gzip
 import json
 import shutil
 import signal
@@ -44,6 +45,14 @@ def assert_same(path: str) -> None:
 @pytest.mark.parametrize("capture", ALL_CAPTURES, ids=lambda p: p.name)
 def test_engines_agree_on_bundled_captures(capture):
     assert_same(str(capture))
+
+
+def test_engines_agree_on_a_gzip_compressed_capture(tmp_path):
+    """tshark reads a gzip-compressed capture itself; the fast engine now too."""
+    path = tmp_path / "normal.pcap.gz"
+    path.write_bytes(gzip.compress((CAPTURES / "normal.pcap").read_bytes()))
+    assert analyze(str(path))["capture"]["eglink_packets"] > 0
+    assert_same(str(path))
 
 
 @pytest.mark.parametrize("wrap", ["sll2-vlan", "ipv6-atomic-fragment", "port-7000", "radiotap"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import gzip
 import io
 import json
 import os
@@ -249,6 +250,25 @@ def test_unreadable_capture_is_an_error_row(src, built):
     again = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")      # tried again, every time
     assert again.returncode == 2 and "1 analysed" in again.stdout and f"{len(NAMES)} already" in again.stdout
     assert rows(built, "errors") == errors and len(rows(built)) == len(NAMES) + 1
+
+
+def test_gzip_compressed_captures_in_a_folder_are_built(tmp_path):
+    """A folder of `.pcap.gz` files (tcpdump -z gzip): the build passed over them in silence, or
+    said "no captures in this folder" (trial). Each is analysed as its plain capture is."""
+    folder = tmp_path / "caps"
+    folder.mkdir()
+    data = (BUNDLED / "retransmit.pcap").read_bytes()
+    (folder / "plain.pcap").write_bytes(data)
+    (folder / "packed.pcap.gz").write_bytes(gzip.compress(data))
+    result = vm110("fleet", "build", str(folder), "--out", str(tmp_path / "ds"), "-j", "1")
+    assert result.returncode == 0, result.stderr
+    for table in ("captures", "senders", "commands", "findings"):
+        got = by_name(rows(tmp_path / "ds", table))
+        if table == "captures":
+            for name in got:
+                for r in got[name]:
+                    del r["size"], r["sha256"]
+        assert got["packed.pcap.gz"] == got["plain.pcap"] != [], table
 
 
 def test_folder_without_captures(tmp_path):

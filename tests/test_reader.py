@@ -4,8 +4,11 @@ Frames are built with scapy and written with struct here, so the expectations do
 the reader's own code."""
 from __future__ import annotations
 
+import gzip
+import itertools
 import os
 import struct
+import zlib
 
 import pytest
 from scapy.layers.inet import IP, TCP, UDP, fragment
@@ -240,6 +243,67 @@ def test_empty_capture_and_backwards_time(tmp_path):
     assert got == [] and reader.frames == 0 and reader.problem is None and reader.first_ts is None
     _, got = read(tmp_path, pcap([(5.0, Ether() / udp_ip()), (4.0, Ether() / udp_ip())]))
     assert [g[0] for g in got] == [5.0, 4.0]
+
+
+def _gzip_members(data: bytes, *cuts: int) -> bytes:
+    """`data` gzip-compressed, one member per part between the cuts (as `cat a.gz b.gz` makes)."""
+    bounds = [0, *cuts, len(data)]
+    return b"".join(gzip.compress(data[a:b]) for a, b in itertools.pairwise(bounds))
+
+
+def test_gzip_compressed_captures_are_read_as_the_plain_file(tmp_path):
+    """Wireshark opens a `.pcap.gz` (tcpdump -z gzip, dumpcap --compress gzip) as it is; the reader
+    said "not a pcap or pcapng capture (magic 0x1f8b0800)" (trial)."""
+    frames = [(1.0 + i / 8, Ether() / udp_ip(bytes([i]) * (i + 4))) for i in range(30)]
+    shb = block(0x0A0D0D0A, struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1))
+    idb = block(1, struct.pack("<HHI", 1, 0, 65535))
+    epbs = b"".join(block(6, struct.pack("<IIIII", 0, 0, 1000 + i, len(bytes(f)), len(bytes(f))) + bytes(f))
+                    for i, (_, f) in enumerate(frames))
+    for name, data in (("c.pcap", pcap(frames)), ("c.pcapng", shb + idb + epbs)):
+        plain, want = read(tmp_path, data, name)
+        for gz in (gzip.compress(data), _gzip_members(data, 100, 333)):
+            reader, got = read(tmp_path, gz, name + ".gz")
+            assert got == want and len(got) == 30
+            assert (reader.format, reader.frames, reader.problem) == (plain.format, 30, None)
+
+
+def test_gzip_cut_short_or_corrupt_keeps_the_records_before_and_says_why(tmp_path):
+    frames = [(1.0 + i, Ether() / udp_ip(bytes([i]) * 20)) for i in range(6)]
+    data = pcap(frames)
+    _, want = read(tmp_path, data)
+    # Cut where three whole records end (flushed there): nothing is cut in a record, and yet the
+    # file is incomplete.
+    whole3 = 24 + 3 * (16 + len(bytes(frames[0][1])))
+    pack = zlib.compressobj(wbits=31)
+    head = pack.compress(data[:whole3]) + pack.flush(zlib.Z_FULL_FLUSH)
+    reader, got = read(tmp_path, head, "cut.pcap.gz")
+    assert got == want[:3]
+    assert reader.problem == (f"gzip data cut short after {whole3} bytes of capture: records read up to "
+                              f"byte {whole3} of it") and reader.damage == whole3
+    reader, got = read(tmp_path, head + pack.compress(data[whole3:whole3 + 30]) + pack.flush(zlib.Z_FULL_FLUSH),
+                       "cut.pcap.gz")
+    assert got == want[:3] and reader.problem.endswith("of it, 30 bytes of a record after it ignored")
+    whole = gzip.compress(data)
+    bad_check = whole[:-8] + bytes(4) + whole[-4:]          # the CRC-32 of the trailer zeroed
+    reader, got = read(tmp_path, bad_check, "bad.pcap.gz")
+    assert got == want and reader.problem.startswith(f"gzip data corrupt after {len(data)} bytes of capture")
+    with pytest.raises(CaptureError, match="gzip data cut short after 0 bytes of capture"):
+        read(tmp_path, whole[:10], "early.pcap.gz")          # the gzip header alone
+
+
+@pytest.mark.parametrize("content,message", [
+    (gzip.compress(b"hello, this is text\n"), "not a pcap or pcapng"),
+    (gzip.compress(gzip.compress(pcap([]))), "not a pcap or pcapng"),       # one layer, as Wireshark
+    (b"\x28\xb5\x2f\xfd" + bytes(20), "compressed with zstd, which is not read here: decompress it first"),
+    (b"\x04\x22\x4d\x18" + bytes(20), "compressed with lz4"),
+], ids=["gzip-text", "gzip-twice", "zstd", "lz4"])
+def test_compressed_files_that_are_not_read(tmp_path, content, message):
+    path = tmp_path / "x.pcap.gz"
+    path.write_bytes(content)
+    before = _open_fds()
+    with pytest.raises(CaptureError, match=message):
+        CaptureReader(str(path))
+    assert _open_fds() == before
 
 
 @pytest.mark.parametrize("content,message", [

@@ -7,7 +7,7 @@ seconds, source address as packed bytes (4 or 16), ports, the UDP payload cut to
 The file is read in large chunks; the common frame (Ethernet + IPv4 without options + UDP) is
 decoded by one `struct` call, every other layout by `udp_of`. A file that ends in the middle of a
 record keeps what was read and says so in `problem`; a file that is not a capture raises
-`CaptureError` (exit code 2 in the CLI).
+`CaptureError` (exit code 2 in the CLI). A gzip-compressed capture is read decompressed (`compressed`).
 """
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ from typing import BinaryIO, Generator, Iterator, NamedTuple, Optional
 
 from ..errors import CliError
 from . import linktypes as L
+from .compressed import OTHER_COMPRESSIONS, decompress, is_gzip
 
 Datagram = tuple  # (ts: float, src: bytes, sport: int, dport: int, payload: bytes or None (see udp_of), frame: int)
 
@@ -68,6 +69,10 @@ def format_of(head: bytes, path: str) -> str:
         return "pcapng"
     if PCAP_MAGIC_US in (magic_le, magic_be) or PCAP_MAGIC_NS in (magic_le, magic_be):
         return "pcap"
+    if head[:4] in OTHER_COMPRESSIONS:
+        kind = OTHER_COMPRESSIONS[head[:4]]
+        raise CaptureError(f"{path}: compressed with {kind}, which is not read here: decompress it first "
+                           f"({kind} -d), or give it to --engine tshark (Wireshark 4.2 or later)")
     raise CaptureError(f"{path}: not a pcap or pcapng capture (magic 0x{magic_be:08x})")
 
 
@@ -108,6 +113,8 @@ class CaptureReader:
     """One capture file; iterate it (or its `batches()`) once. A walk closes the file when it
     ends; use the reader as a context manager (`with CaptureReader(path) as reader:`) so that the
     file is closed also when a walk stops early or never starts."""
+
+    gunzipped: Optional[str] = None     # a gzip file: why decompression stopped early, or ""
 
     def __init__(self, path: str, chunk_size: int = CHUNK) -> None:
         self.path = path
@@ -159,6 +166,17 @@ class CaptureReader:
             raise CaptureError(f"cannot read {path}: {exc.strerror or exc}") from None
         if not head:
             raise CaptureError(f"{path}: empty file, not a pcap or pcapng capture")
+        if is_gzip(head) and self.gunzipped is None:     # (one layer, as Wireshark reads)
+            try:
+                plain, problem = decompress(self._file)
+            except OSError as exc:
+                raise CaptureError(f"cannot decompress {path}: {exc.strerror or exc}") from None
+            self._file.close()
+            self._file, self.gunzipped = plain, problem or ""
+            if problem and len(plain.read(PCAP_HEADER_LEN)) < PCAP_HEADER_LEN:
+                raise CaptureError(f"{path}: {problem}")
+            plain.seek(0)
+            return self._identify(path)
         if len(head) < 4:
             raise CaptureError(f"{path}: not a pcap or pcapng capture (too short)")
         return size, format_of(head, path)
@@ -232,14 +250,20 @@ class CaptureReader:
         finally:
             self._file.close()
         self.bytes_read = offset + len(leftover)
+        if self.gunzipped and stop is None:      # (the cause of a cut record below)
+            cut = f", {len(leftover)} bytes of a record after it ignored" if leftover else ""
+            self.damaged(offset, f"{self.gunzipped}: records read up to byte {offset} of it{cut}")
         if leftover and not offset:      # (a pcap's records start after its header)
             raise CaptureError(f"{self.path}: pcapng section header block cut short")
         if leftover:
             self.damaged(offset, f"file cut in the middle of a record at byte {offset} ({len(leftover)} bytes ignored)")
 
     def damaged(self, offset: int, message: str) -> None:
-        """Reading stops at `offset` for this reason (the first one counts)."""
+        """Reading stops at `offset` for this reason (the first one counts); in a gzip file whose
+        decompression stopped early, that is said too (corrupt data decompress into garbage first)."""
         if self.damage is None:
+            if self.gunzipped and not message.startswith(self.gunzipped):
+                message = f"{message} ({self.gunzipped})"
             self.damage, self.problem = offset, message
 
     def corrupt(self, pos: int, length: int) -> None:

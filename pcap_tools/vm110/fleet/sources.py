@@ -15,7 +15,6 @@ import os
 import re
 import stat
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Iterable, Optional
 
 from ..errors import CliError
@@ -23,7 +22,7 @@ from ..fileio import read_at_most
 from .tables import COLUMNS
 from ..jsonin import loads
 
-CAPTURE_SUFFIXES = (".pcap", ".pcapng", ".cap")
+CAPTURE_SUFFIXES = (".pcap", ".pcapng", ".cap", ".pcap.gz", ".pcapng.gz", ".cap.gz")   # (gzip: as Wireshark reads)
 SIDECAR_SUFFIX = ".meta.json"
 MAX_SIDECAR_BYTES = 64 << 10
 KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,62}\Z")
@@ -107,7 +106,7 @@ def _walk(folder: str) -> dict[str, Optional[str]]:
             found[exc.filename] = f"a folder that cannot be read: {exc.strerror}; the captures in it are not seen"
     for top, _, files in os.walk(folder, onerror=unlisted):
         for name in files:
-            if Path(name).suffix.lower() in CAPTURE_SUFFIXES:
+            if name.lower().endswith(CAPTURE_SUFFIXES):
                 path = os.path.join(top, name)
                 found[path] = not_a_capture(path, inside)
     return found
