@@ -107,7 +107,8 @@ def test_an_item_must_carry_the_details_of_its_rule(report):
 def test_enumerations_follow_the_code():
     """Rules and their severities, totals and options: the schema lists exactly what the code makes."""
     severity = {rule: sev for rule, sev, *_ in FINDINGS} | {"damaged": "error", "no_eglink": "error", "ip_fragments": "warning",
-                                                            "unread_link_type": "warning", "tunnels": "warning"}
+                                                            "unread_link_type": "warning", "tunnels": "warning",
+                                                            "not_in_time_order": "warning"}
     assert set(DEFS["finding"]["properties"]["rule"]["enum"]) == set(severity)
     assert {c["if"]["properties"]["rule"]["const"]: c["then"]["properties"]["severity"]["const"]
             for c in DEFS["finding"]["allOf"]} == severity

@@ -265,6 +265,15 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]], no_filte
                   "filter": frame_filter([cap["packets"]])}] if cap["packets"] else []
         findings.insert(0, {"rule": "damaged", "severity": "error", "count": 1,
                             "message": f"capture damaged: {cap['problem']}", "items": where})
+    # Packets behind the analysis clock (rules.md), whose latencies and windows are that clock's: said
+    # where no stream steps back in time, which time_backwards says (one cause, one finding).
+    if cap["behind_clock"] and not cap["time_backwards"]:
+        findings.insert(0, {"rule": "not_in_time_order", "severity": "warning", "count": cap["behind_clock"],
+                            "message": f"{cap['behind_clock']} EG-Link packets earlier than a packet before them "
+                                       "(captures appended, taps merged unsorted, a clock set back): latencies, "
+                                       "fail limits and windows across them run on a clock that does not go back "
+                                       "(docs/rules.md); where the time steps back: frame.time_delta < 0; records "
+                                       "of several taps into time order: reordercap IN OUT", "items": []})
     if cap["fragments"]:      # (not reassembled: what they carry is missing from everything above)
         findings.insert(0, {"rule": "ip_fragments", "severity": "warning", "count": cap["fragments"],
                             "message": f"{cap['fragments']} IP fragments not analysed (EG-Link packets in them "

@@ -49,6 +49,7 @@ class Analysis:
         self.finished = False
         self.clock = -np.inf                          # the analysis clock (rules.md): latest time so far
         self.stamps: dict[int, float] = {}            # frame -> own time, where the clock is later
+        self.behind = 0                               # packets whose own time was behind the clock
         # Kept so that a batch costs what its own senders cost, not a look at every sender:
         self.warming: list[tuple[float, int]] = []    # heap of (time of its next look, key): auto choosing
         self.looking: set[int] = set()                # the keys in `warming`
@@ -146,6 +147,7 @@ class Analysis:
         behind = clock != rec["ts"]
         if not behind.any():
             return rec
+        self.behind += int(behind.sum())
         self.stamps.update(zip(rec["frame"][behind].tolist(), rec["ts"][behind].tolist()))
         rec = rec.copy()
         rec["ts"] = clock
