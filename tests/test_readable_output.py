@@ -194,3 +194,22 @@ def test_simulate_logs_wall_clock_utc_beside_the_node_s_seconds():
     assert before <= stamps[0] <= datetime.datetime.now(datetime.timezone.utc)
     wall, node = (stamps[1] - stamps[0]).total_seconds(), float(events[1][1]) - float(events[0][1])
     assert node == pytest.approx(0.5, abs=0.01) and wall == pytest.approx(node, abs=0.4), lines   # a busy machine
+
+
+def test_the_crc_line_says_how_many_packets_carried_no_crc(capsys, tmp_path):
+    """A capture taken with a short snaplen (tcpdump -s 96): the summary said "3 valid, 0 invalid"
+    of three VRPI of which two were cut before their CRC and never checked (trial); the report's
+    crc.valid counts them (they do not fail), crc.unchecked says so, and now the summary and the
+    HTML report too."""
+    from scapy.layers.inet import IP, UDP
+    from scapy.layers.l2 import Ether
+    from test_analysis_craft import vrpi
+    from test_reader import pcap
+    frames = [bytes(Ether() / IP(src="10.0.0.10", dst="239.255.42.20") / UDP(sport=5825, dport=5825) / vrpi(i))
+              for i in range(3)]
+    path = tmp_path / "snap96.pcap"
+    path.write_bytes(pcap([(1.0, frames[0][:96], len(frames[0])), (1.125, frames[1]),
+                           (1.25, frames[2][:96], len(frames[2]))], snaplen=96))
+    out = vm110(capsys, "analyze", str(path), "--html", str(tmp_path / "r.html"))
+    assert "CRC mpeg2/little (auto): 3 valid, 0 invalid (2 of them unchecked: too short to carry a CRC)" in out
+    assert "3 valid, 0 invalid (2 of them unchecked: too short to carry a CRC)" in (tmp_path / "r.html").read_text()
