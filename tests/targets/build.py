@@ -22,6 +22,7 @@ VARIANTS: dict[str, list[str]] = {
     "plain-correct": _PLAIN,
     "plain-null-call": _PLAIN + ["-DBUG_NULL_CALL"],
     "plain-deep": _PLAIN + ["-DBUG_DEEP"],
+    "plain-leak": _PLAIN + ["-DBUG_LEAK"],
     "plain-two-segv": _PLAIN + ["-DBUG_NULL_CALL", "-DBUG_LAP_SLOT"],      # two bugs, both SIGSEGV
     "afl-correct": _AFL,
     "afl-deep": _AFL + ["-DBUG_DEEP"],

@@ -9,6 +9,7 @@
  *   -DBUG_DEEP           VRCI "MAINT:" then VRCI "ENGAGE" writes through a NULL pointer (maintenance_engage):
  *                        two multi-byte comparisons and a state, out of reach of blind mutation
  *   -DBUG_ABORT          a VRCI with command ID 65535 fails an assertion-like abort() (on_vrci)
+ *   -DBUG_LEAK           every legal VRCI leaks a 64 KiB buffer it wrote (on_vrci): no crash, the RSS grows
  *
  * VRPO every 100 ms, a VRCO every second (resent every 100 ms until its VRAI, given up after
  * 2 s), a VRAO for every legal VRCI; a command ID heard again within 2 s is a retransmission
@@ -218,6 +219,12 @@ static void on_vrci(const uint8_t *p)
 #ifdef BUG_ABORT
     if (id == 0xFFFF)
         abort();
+#endif
+#ifdef BUG_LEAK
+    static void *volatile command_log;       /* each command's log buffer, never freed */
+    command_log = malloc(64 * 1024);
+    if (command_log)
+        memset(command_log, 1, 64 * 1024);   /* written: resident */
 #endif
     uint8_t ack[ACK_SIZE];
     put16(ack, id);

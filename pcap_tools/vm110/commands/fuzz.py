@@ -3,7 +3,8 @@
 Keeps a valid VRPI stream going (every 125 ms) so the controller stays in normal operation,
 answers its VRCO with VRAI, and sends cases (field boundary values, structural defects, sequences,
 random byte changes) reproducible from --seed and the case index. Oracles: crash, stall,
-missing_ack, illegal_acked, malformed_output, vrco_retransmit. Each confirmed finding is saved in
+missing_ack, illegal_acked, malformed_output, vrco_retransmit, and with --target-cmd memory (the
+controller's RSS beyond --target-memory, or rising well past its warm-up level). Each confirmed finding is saved in
 --out as JSON (with the minimised packet) and a pcap; --out/findings.json summarises the run.
 Sends only to --target (multicast TTL 1), and only on loopback unless --allow-remote; never to a
 broadcast address. Exit code 1 when there are findings or the controller was lost (it stopped and
@@ -34,7 +35,8 @@ from ..fuzz.destination import check
 from ..fuzz.findings import MAX_FILE, check_out, finding_from_json, write_summary
 from ..fuzz.guided import GuidedConfig
 from ..fuzz.link import parse_endpoint
-from ..fuzz.oracles import CRASH, Limits
+from ..fuzz.memory import Rule
+from ..fuzz.oracles import CRASH, MEMORY, Limits
 from ..fuzz.report_html import write_coverage_html
 from ..fuzz.runner import RunConfig, Runner, finding_kind, replay_corpus_case, replay_finding, same_bug
 from ..fuzz.session import Settings, TargetLost
@@ -52,6 +54,9 @@ RATE = number(0.01, 10_000, "packets/s")
 MAX_FINDINGS = number(1, 1000, integer=True)
 MINIMIZE_BUDGET = number(0, 3600, "s", allow_zero=False)
 STARTUP = number(0, 600, "s", allow_zero=False)
+TARGET_MEMORY = number(1, 1 << 20, "MiB")
+MEMORY_GROWTH = number(0, 1 << 20, "MiB", least=1)
+DEFAULT_GROWTH_MIB = 16
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -85,6 +90,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default 30)")
     parser.add_argument("--startup", type=STARTUP, default=10.0, metavar="S",
                         help=f"seconds allowed for the controller's first VRPO, {STARTUP.range_text} (default 10)")
+    parser.add_argument("--target-memory", type=TARGET_MEMORY, metavar="MIB",
+                        help=f"with --target-cmd: a finding when the controller's resident memory (its process "
+                             f"group's RSS, sampled every second) exceeds this, {TARGET_MEMORY.range_text} "
+                             "(default: no limit)")
+    parser.add_argument("--memory-growth", type=MEMORY_GROWTH, default=DEFAULT_GROWTH_MIB, metavar="MIB",
+                        help="with --target-cmd: a finding when the RSS stays this much and half again its warm-up "
+                             "level (its highest in the first 5 s) above it for 5 samples while still rising, "
+                             f"{MEMORY_GROWTH.range_text}; 0 turns it off (default {DEFAULT_GROWTH_MIB})")
     parser.add_argument("--no-core", action="store_true",
                         help="start the controller with core files off (default: allowed, kept with a crash "
                              "finding, with a gdb backtrace when gdb is installed)")
@@ -178,11 +191,15 @@ def run(args: argparse.Namespace) -> int:
         guided = GuidedConfig(map_size(), Path(args.corpus) if args.corpus else None, args.dict)
     elif args.corpus or args.dict:
         raise CliError("--corpus and --dict go with --coverage")
+    if args.target_memory is not None and not args.target_cmd:
+        raise CliError("--target-memory needs --target-cmd (only a controller the fuzzer starts is measured)")
+    memory = Rule(limit_kib=None if args.target_memory is None else args.target_memory * 1024,
+                  growth_kib=args.memory_growth * 1024 or None)
     status = _StatusLine() if sys.stderr.isatty() else None
     cfg = RunConfig(settings=settings, seed=args.seed, duration_s=duration, cases=args.cases, out=out,
                     target_cmd=args.target_cmd, minimize_budget_s=args.minimize_budget,
                     max_findings=args.max_findings, progress=status.message if status else _progress,
-                    status=status, core=not args.no_core, coverage=guided, stop=_STOP.is_set)
+                    status=status, core=not args.no_core, coverage=guided, stop=_STOP.is_set, memory=memory)
     runner = Runner(cfg)
     try:
         summary = runner.run()
@@ -197,10 +214,15 @@ def run(args: argparse.Namespace) -> int:
     for bucket in summary["buckets"]:
         seen = f"{bucket['count']} time{'s' if bucket['count'] != 1 else ''}"
         print(f"{_printable(bucket['headline'])} [{seen}] -> {out / bucket['file']}")
-    if summary["buckets"]:
-        first = shlex.quote(str(out / summary["buckets"][0]["file"]))
+    replayable = [b for b in summary["buckets"] if b["oracle"] != MEMORY]
+    if replayable:
+        first = shlex.quote(str(out / replayable[0]["file"]))
         print(f"replay one: vm110 fuzz --replay {first}"
               + (f" --target-cmd {shlex.quote(args.target_cmd)}" if args.target_cmd else ""))
+    for finding in summary["findings"]:
+        if finding["oracle"] == MEMORY:     # no case of its own to replay: the same cases again
+            print(f"the memory finding comes of many cases, not one (no --replay): rerun them with "
+                  f"{_printable(finding['rerun'], 2000)}")
     rate = summary["cases_run"] / max(summary["duration_s"], 1e-6)
     triggers = sum(b["count"] for b in summary["buckets"])
     print(f"{plural(summary['cases_run'], 'case')} in {summary['duration_s']:.1f} s ({rate:.0f}/s), "
@@ -233,6 +255,7 @@ def run(args: argparse.Namespace) -> int:
         options = ", ".join(f"{k}={'(yours)' if v == 'user' else v}" for k, v in summary["sanitizer_options"].items())
         cores = "core files: on" if summary["core_files"] == "on" else f"no core files: {summary['core_files']}"
         print((f"sanitizer options: {options}; " if options else "") + cores)
+    print(_memory_line(summary["memory"]))
     if summary["controller_lost"]:
         last = summary["unreproduced"][-1] if summary["unreproduced"] else None
         seen = _printable(last["detail"]) if last else "no VRPO"
@@ -258,6 +281,15 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _memory_line(memory: dict[str, Any]) -> str:
+    """What the memory oracle watched: the RSS at the end and at most, or why it was off."""
+    if memory["oracle"] == "off":
+        return f"memory oracle off: {memory['why']}"
+    seen = (f"RSS {memory['rss_kib'] / 1024:.1f} MiB at the last sample, {memory['peak_kib'] / 1024:.1f} MiB at most"
+            if memory["rss_kib"] is not None else "no sample taken")
+    return f"memory: {seen} ({memory['rule']})"
+
+
 class _StatusLine:
     """One line on the terminal, rewritten in place: cases, rate, findings, coverage, time left."""
 
@@ -269,6 +301,8 @@ class _StatusLine:
                  f"{plural(line['findings'], 'finding')} ({plural(line['triggers'], 'trigger')})"]
         if "edges" in line:
             parts += [f"{line['edges']} edges", f"corpus {line['corpus']}"]
+        if "rss_kib" in line:
+            parts.append(f"RSS {line['rss_kib'] / 1024:.1f} MiB")
         if line["left_s"] is not None:
             parts.append(f"{line['left_s']:.0f} s left")
         sys.stderr.write("\r\x1b[Kvm110 fuzz: " + ", ".join(parts))
@@ -292,6 +326,12 @@ def _replay(args: argparse.Namespace) -> int:
     if is_entry(raw):
         return _replay_corpus(args, checked_entry(raw, args.replay))
     finding = finding_from_json(raw, args.replay)
+    if finding.oracle == MEMORY:
+        # No case of its own to send: what it measured came of many, over seconds.
+        rerun = (finding.memory or {}).get("rerun")
+        raise CliError(f"{args.replay} is a memory finding: a leak grows over many cases, and one case played "
+                       "again shows none; run the fuzzer again instead"
+                       + (f": {_printable(str(rerun), 2000)}" if rerun else f" (--seed {finding.seed})"))
     if finding.oracle == CRASH and not args.target_cmd:
         # Only a controller the fuzzer started can be seen to exit: "fixed" would be a guess.
         raise CliError(f"{args.replay} is a crash finding: give --target-cmd (a crash is seen only in a "

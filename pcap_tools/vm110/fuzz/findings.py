@@ -70,6 +70,7 @@ class Finding:
     # A finding that needs several cases played in turn (bisected from a crash): each case's index,
     # mutation, number of `steps` and what the base unit did meanwhile (its stream, pause, withholding).
     cases: Optional[list[dict[str, Any]]] = None
+    memory: Optional[dict[str, Any]] = None  # the memory oracle's evidence: RSS series, growth per case, rerun
 
     def name(self, number: int) -> str:
         return f"finding-{number:03d}-{self.oracle}"

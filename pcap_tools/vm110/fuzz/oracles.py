@@ -20,8 +20,8 @@ from ..sim.ledger import REUSE_GAP_MS
 from .evidence import Crash
 from .fields import COMMAND_ID_AT
 
-CRASH, STALL, MISSING_ACK, ILLEGAL_ACKED, MALFORMED_OUTPUT, VRCO_RETRANSMIT = ORACLES = (
-    "crash", "stall", "missing_ack", "illegal_acked", "malformed_output", "vrco_retransmit")
+CRASH, STALL, MISSING_ACK, ILLEGAL_ACKED, MALFORMED_OUTPUT, VRCO_RETRANSMIT, MEMORY = ORACLES = (
+    "crash", "stall", "missing_ack", "illegal_acked", "malformed_output", "vrco_retransmit", "memory")
 _CMD_ID_AT = slice(COMMAND_ID_AT, COMMAND_ID_AT + 2)
 _VRCI = C.PacketType.VRCI.value
 _HISTORY_S = 10.0
@@ -54,6 +54,7 @@ class Trigger:
     packet: Optional[bytes] = None                # a base-unit packet that is not a case's (a VRAI)
     crash: Optional[Crash] = None                 # the evidence of a crash
     answered: Optional[int] = None                # the open command an ack with a wrong ID answered
+    memory: Optional[dict[str, Any]] = None       # the memory oracle's evidence (memory.Watch)
 
 
 @dataclass

@@ -14,6 +14,7 @@ from the schedule (blind) or from `guided.Guided` (`--coverage`).
 from __future__ import annotations
 
 import collections
+import shlex
 import shutil
 import tempfile
 import time
@@ -26,10 +27,11 @@ from ..errors import CliError
 from ..fileio import check_target
 from . import cases as K
 from . import findings as F
+from . import memory as MEM
 from .guided import Guided, GuidedConfig
 from .link import taken
 from .minimize import ddmin, difference, minimize
-from .oracles import CRASH, MALFORMED_OUTPUT, MISSING_ACK, STALL, VRCO_RETRANSMIT, Monitor, Trigger
+from .oracles import CRASH, MALFORMED_OUTPUT, MEMORY, MISSING_ACK, STALL, VRCO_RETRANSMIT, Monitor, Trigger
 from .session import Sent, Session, Settings, TargetLost
 from .supervisor import Supervisor
 
@@ -79,6 +81,7 @@ class RunConfig:
     core: bool = True
     coverage: Optional[GuidedConfig] = None
     stop: Callable[[], bool] = field(default=lambda: False)   # Ctrl-C or SIGTERM came (KeyboardInterrupt may not)
+    memory: MEM.Rule = field(default_factory=MEM.Rule)      # the memory oracle's (with --target-cmd)
 
 
 def _const(data: bytes, twin: bytes) -> K.Builder:
@@ -204,6 +207,10 @@ class Runner:
         # What can be refused (the command, the dictionary, the corpus folder, the map) before --out
         # is made and the socket opened: a bad option leaves no files.
         self.supervisor = Supervisor(cfg.target_cmd, core=cfg.core) if cfg.target_cmd else None
+        # Only a controller the fuzzer started has a process to measure.
+        self.memory_off = "no --target-cmd: only a controller the fuzzer starts is measured" \
+            if self.supervisor is None else MEM.unavailable()
+        memory = MEM.Watch(cfg.memory) if self.memory_off is None else None
         self._log: Optional[IO[bytes]] = None
         self.guided: Optional[Guided] = None
         try:
@@ -213,7 +220,7 @@ class Runner:
             F.make_folder(cfg.out, "--out")
             if self.supervisor is not None:
                 self._log = self.supervisor.log = _open_log(cfg.out, self.supervisor.command)
-            self.session = Session(cfg.settings, self.supervisor, cfg.out)
+            self.session = Session(cfg.settings, self.supervisor, cfg.out, memory)
         except BaseException:
             if self._log is not None:
                 self._log.close()
@@ -311,6 +318,8 @@ class Runner:
                                 "triggers": sum(b.count for b in self.buckets.values()), "left_s": left}
         if self.guided is not None:
             line.update(edges=self.guided.edges(), corpus=len(self.guided.corpus))
+        if self.session.memory is not None and self.session.memory.last is not None:
+            line.update(rss_kib=self.session.memory.last)
         self.cfg.status(line)
 
     def summary(self) -> dict[str, Any]:
@@ -323,7 +332,8 @@ class Runner:
             "started": round(self.started, 6),
             "findings": [{"oracle": f.oracle, "case_index": f.case_index, "mutation": f.mutation,
                           "detail": f.detail, "signature": f.signature, "file": name, "time": f.time,
-                          "pcap": f.pcap, "frame": f.frame, "display_filter": f.display_filter}
+                          "pcap": f.pcap, "frame": f.frame, "display_filter": f.display_filter,
+                          **({"rerun": f.memory["rerun"]} if f.memory else {})}
                          for f, name in zip(self.findings, self.files)],
             "counts": dict(counts), "repeats": dict(self.repeats), "unreproduced": self.unreproduced,
             "buckets": [b.to_json() for b in self.buckets.values()],
@@ -331,6 +341,8 @@ class Runner:
             "sanitizer_options": self.supervisor.sanitizer_options if self.supervisor else {},
             "core_files": self.supervisor.core_files() if self.supervisor else None,
             "stopped_early": self.stopped_early,
+            "memory": self.session.memory.summary() if self.session.memory is not None else
+            {"oracle": "off", "why": self.memory_off},
             **({"coverage": self.guided.summary()} if self.guided else {}),
         }
 
@@ -385,6 +397,9 @@ class Runner:
 
     def _investigate(self, trig: Trigger) -> bool:
         """Confirm `trig` by replaying its suspects; save a finding. True if replays were run."""
+        if trig.oracle == MEMORY:
+            self._memory(trig)
+            return True        # restarted: a leaking controller is not left to grow
         suspects = self._suspects(trig)
         spontaneous = not trig.suspects and trig.case_index is None
         # A trigger whose signature has a bucket is that bug again: counted, not replayed.
@@ -428,6 +443,34 @@ class Runner:
             return self._bisect(trig, chosen, traffic)
         self._unreproduced(trig, suspects[:_MAX_SUSPECTS])
         return True
+
+    def _memory(self, trig: Trigger) -> None:
+        """A memory finding is its evidence, not a case: memory grows over many cases and no replay
+        of one would show it. Its rerun is the run's own seed and cases."""
+        bucket = self.buckets.get(self._signature(trig, None))
+        if bucket is not None:
+            bucket.hit(trig.time)
+            self.repeats[trig.oracle] += 1
+            return
+        assert trig.memory is not None
+        cases = trig.memory["cases"]
+        trig.memory.update(seed=self.cfg.seed, cases_run=self.cases_run, rerun=self._rerun(cases["last"] + 1))
+        traffic = [p for p in self.session.traffic if p[0] >= trig.time - 4.0]
+        description = f"the {cases['count']} cases sent meanwhile, {cases['first']} to {cases['last']}"
+        self._write(trig, None, max(0, cases["last"]), F.NO_CASE, description, [], None, None, False, None, traffic)
+
+    def _rerun(self, cases: int) -> str:
+        """The command line that sends the same cases again (blind: from the seed; --coverage's
+        depend on its corpus too), with the memory oracle as it was."""
+        st, rule = self.cfg.settings, self.cfg.memory
+        words = ["vm110", "fuzz", "--target", "%s:%d" % st.target, "--listen", "%s:%d" % st.listen,
+                 "--target-cmd", self.cfg.target_cmd or "", "--seed", str(self.cfg.seed), "--cases", str(cases),
+                 "--rate", f"{st.rate:g}", "--memory-growth", f"{(rule.growth_kib or 0) / 1024:g}"]
+        if rule.limit_kib is not None:
+            words += ["--target-memory", f"{rule.limit_kib / 1024:g}"]
+        if self.guided is not None:
+            words += ["--coverage"]
+        return shlex.join(words + ["--out", "fuzz-rerun"])
 
     def _smaller(self, trig: Trigger, bucket: F.Bucket, index: Optional[int]) -> bool:
         """A known bug hit by a smaller case than its reproducer: when a replay confirms it, that
@@ -627,7 +670,7 @@ class Runner:
             stream=_jsonable(case.stream if case else None), settle_ms=case.settle_ms if case else 0.0,
             output_hex=trig.output.hex() if trig.output else None,
             target="%s:%d" % st.target, listen="%s:%d" % st.listen, group=st.group, target_cmd=self.cfg.target_cmd,
-            signature=signature, cases=cases)
+            signature=signature, cases=cases, memory=trig.memory)
         self.findings.append(finding)
         number = len(self.findings)
         if trig.crash is not None:

@@ -16,7 +16,8 @@ from typing import Any, Optional
 from .. import constants as C
 from . import mutate as M
 from .link import Link
-from .oracles import Limits, Monitor
+from .memory import Watch
+from .oracles import MEMORY, Limits, Monitor, Trigger
 from .supervisor import Supervisor
 
 _TICK_S = 0.005
@@ -54,7 +55,7 @@ class TargetLost(Exception):
 
 class Session:
     def __init__(self, settings: Settings, supervisor: Optional[Supervisor] = None,
-                 evidence_dir: Path = Path(".")) -> None:
+                 evidence_dir: Path = Path("."), memory: Optional[Watch] = None) -> None:
         self.settings = settings
         self.supervisor = supervisor
         self.link = Link(settings.target, settings.listen, settings.group, settings.allow_remote)
@@ -71,6 +72,9 @@ class Session:
         self.exit_reported = False
         self.crashes = 0
         self.evidence_dir = evidence_dir
+        self.memory = memory          # the supervised controller's RSS (None: not watched)
+        self.last_case = -1           # of the run's cases (not replays): what a memory sample counts
+        self.case_packets = 0
 
     # --- the loop ---------------------------------------------------------------------------------
     def pump(self, until: float) -> None:
@@ -92,12 +96,21 @@ class Session:
                     self.crashes += 1
                     crash = self.supervisor.evidence(self.evidence_dir, f".crash-{self.crashes}")
                     self.monitor.on_exit(t, code, crash)
+                elif self.memory is not None and self.supervisor.proc is not None:
+                    self._sample_memory(self.supervisor.proc.pid)
             self.monitor.tick(time.time())
             now = time.time()
             if now >= until:
                 return
             wait = max(0.0, min(until, self.next_vrpi, now + _TICK_S) - now)
             select.select([self.link], [], [], wait)
+
+    def _sample_memory(self, pid: int) -> None:
+        assert self.memory is not None
+        now = time.time()
+        evidence = self.memory.sample(now, pid, self.last_case, self.case_packets)
+        if evidence is not None:
+            self.monitor.fire(Trigger(MEMORY, now, evidence["detail"], kind="rss", memory=evidence))
 
     def _take_serial(self) -> int:
         serial, self.serial = self.serial, (self.serial + 1) % C.SERIAL_MODULUS
@@ -144,6 +157,8 @@ class Session:
         credit = _RATE_CREDIT_S if self.settings.rate >= _AVERAGE_FROM else 0.0
         self.next_case_send = max(self.next_case_send, t - credit) + interval
         self.monitor.on_tx(t, data, twin, index, expect_ack)
+        if index >= 0:
+            self.case_packets += 1
         return Sent(t, data, twin, delay_ms, expect_ack)
 
     def run_steps(self, index: int, steps: list[tuple[Any, float, bool]], pause_vrpi_ms: float = 0.0,
@@ -151,6 +166,8 @@ class Session:
                   settle_ms: float = 0.0) -> list[Sent]:
         """Play one case: (builder, delay ms, expect ack) steps, then its stream pause or VRAI withholding."""
         self.monitor.note_case(time.time(), index)
+        if index >= 0:
+            self.last_case = index
         if stream is not None:
             self.stream = dict(stream)
         sent = [self.send_case_packet(index, build, delay, expect) for build, delay, expect in steps]

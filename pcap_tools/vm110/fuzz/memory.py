@@ -1,0 +1,174 @@
+"""The memory oracle: the resident memory (RSS) of the controller `--target-cmd` started, sampled
+about once a second, as AFL++'s `-m` and boofuzz's process monitor watch their targets. A PLC
+program runs for days: memory it leaks per packet ends it in the end, long after a short run.
+
+The controller's process group counts whole (a controller run under gdb, one with workers). A
+finding when the RSS exceeds `--target-memory` (a hard limit), or when it keeps rising well past
+its warm-up level (`Rule`): one per controller life, the runner restarts it then. Linux only
+(/proc); elsewhere the oracle is off and the summary says so.
+"""
+from __future__ import annotations
+
+import collections
+import os
+from dataclasses import dataclass
+from typing import Any, Optional
+
+MAX_SERIES = 240          # samples kept for the evidence: thinned, older ones further apart
+_PROC = "/proc"
+_PAGE_KIB = os.sysconf("SC_PAGE_SIZE") // 1024 if hasattr(os, "sysconf") else 4
+
+
+def unavailable() -> Optional[str]:
+    """Why the oracle cannot run here (None: it can)."""
+    return None if os.path.exists(f"{_PROC}/self/stat") else "no /proc to read a process's memory from (Linux only)"
+
+
+def group_rss_kib(pgid: int) -> Optional[int]:
+    """The resident memory of the processes of group `pgid`, in KiB (None: none is left)."""
+    total, found = 0, False
+    try:
+        names = os.listdir(_PROC)
+    except OSError:
+        return None
+    for name in names:
+        if not name.isdigit():
+            continue
+        try:
+            with open(f"{_PROC}/{name}/stat", "rb") as f:
+                stat = f.read()
+        except OSError:          # gone meanwhile, or not ours to read
+            continue
+        # After the command name (which may hold spaces and parentheses): state, ppid, pgrp, ... rss (24th)
+        rest = stat[stat.rfind(b")") + 2:].split()
+        if len(rest) > 21 and int(rest[2]) == pgid:
+            total += int(rest[21]) * _PAGE_KIB
+            found = True
+    return total if found else None
+
+
+@dataclass(frozen=True)
+class Rule:
+    """When the RSS is a finding. Growth: after `warmup` samples (their highest RSS is the warm-up
+    level, the working set the cases made), `sustain` samples in a row each at least the warm-up
+    level plus max(`growth_kib`, `share` of that level), and rising across them (the last above the
+    first: a cache that filled and stays full is not a leak). A controller's steady state and its
+    allocator's noise (a few pages, a trimmed heap) stay far below."""
+
+    limit_kib: Optional[float] = None       # --target-memory (None: no limit)
+    growth_kib: Optional[float] = 16 * 1024   # --memory-growth (None: growth not judged)
+    share: float = 0.5
+    warmup: int = 5
+    sustain: int = 5
+    period_s: float = 1.0
+
+    def text(self) -> str:
+        parts = []
+        if self.growth_kib is not None:
+            parts.append(f"growth: {self.sustain} samples in a row at least max({self.growth_kib / 1024:g} MiB, "
+                         f"{self.share:.0%}) above the highest of the first {self.warmup} and still rising")
+        if self.limit_kib is not None:
+            parts.append(f"limit: above {self.limit_kib / 1024:g} MiB")
+        return "; ".join(parts) or "off"
+
+
+@dataclass
+class Sample:
+    t: float
+    rss_kib: int
+    case: int             # the last case played (-1: none yet)
+    packets: int          # case packets sent so far in the run
+
+
+class Watch:
+    """One controller life's RSS series and the rule's verdict on it."""
+
+    def __init__(self, rule: Rule) -> None:
+        self.rule = rule
+        self.pid: Optional[int] = None
+        self.started = 0.0
+        self.next_at = 0.0
+        self.series: list[Sample] = []                 # bounded: see _keep
+        self.recent: collections.deque[Sample] = collections.deque(maxlen=rule.sustain)
+        self.count = 0
+        self.warm: Optional[Sample] = None             # the last warm-up sample
+        self.level = 0                                 # the warm-up level (KiB)
+        self.reported = False
+        self.last: Optional[int] = None                # of the run, across restarts
+        self.peak = 0
+
+    def sample(self, now: float, pid: int, case: int, packets: int) -> Optional[dict[str, Any]]:
+        """Read the RSS of `pid`'s group when a sample is due; the evidence when the rule fires."""
+        if pid != self.pid:
+            self._restart(pid, now)
+        if now < self.next_at:
+            return None
+        self.next_at = now + self.rule.period_s
+        rss = group_rss_kib(pid)
+        return None if rss is None else self.add(Sample(now, rss, case, packets))
+
+    def _restart(self, pid: int, now: float) -> None:
+        self.pid, self.started, self.next_at = pid, now, now
+        self.series, self.count, self.warm, self.level, self.reported = [], 0, None, 0, False
+        self.recent.clear()
+
+    def add(self, s: Sample) -> Optional[dict[str, Any]]:
+        """Take one sample; the evidence when the rule fires (once per controller life)."""
+        rule = self.rule
+        self.count += 1
+        self.last, self.peak = s.rss_kib, max(self.peak, s.rss_kib)
+        self._keep(s)
+        self.recent.append(s)
+        if self.count <= rule.warmup:
+            self.level = max(self.level, s.rss_kib)
+            self.warm = s
+        if self.reported:
+            return None
+        if rule.limit_kib is not None and s.rss_kib > rule.limit_kib:
+            return self._fire("limit", f"RSS {_mib(s.rss_kib)} above --target-memory {rule.limit_kib / 1024:g} MiB")
+        if rule.growth_kib is None or self.count < rule.warmup + rule.sustain:
+            return None
+        threshold = self.level + max(rule.growth_kib, rule.share * self.level)
+        if all(x.rss_kib >= threshold for x in self.recent) and self.recent[-1].rss_kib > self.recent[0].rss_kib:
+            return self._fire("growth", f"RSS grew from {_mib(self.level)} (warm-up) to {_mib(s.rss_kib)}, "
+                              "still rising")
+        return None
+
+    def _keep(self, s: Sample) -> None:
+        """The series stays bounded on a run of days: every other sample dropped when full (the
+        first and, MAX_SERIES being even, the newest kept)."""
+        self.series.append(s)
+        if len(self.series) > MAX_SERIES:
+            self.series = self.series[:1] + self.series[2::2]
+
+    def _fire(self, kind: str, what: str) -> dict[str, Any]:
+        """The evidence: the series, and the growth since the warm-up ended per case and per packet
+        sent meanwhile (a limit hit during the warm-up: since the first sample)."""
+        self.reported = True
+        s = self.series[-1]
+        since = self.warm if self.warm is not None and self.warm is not s else self.series[0]
+        per_case = _rate(s.rss_kib - since.rss_kib, s.case - since.case)
+        rate = "" if per_case is None else (f"; {per_case:.1f} KiB per case over the {s.case - since.case} "
+                                            f"cases of the last {s.t - since.t:.0f} s")
+        return {
+            "kind": kind, "detail": what + rate, "rule": self.rule.text(), "period_s": self.rule.period_s,
+            "warmup_kib": self.level, "rss_kib": s.rss_kib, "limit_kib": self.rule.limit_kib,
+            "since_s": round(s.t - since.t, 3), "growth_kib": s.rss_kib - since.rss_kib,
+            "cases": {"first": since.case + 1, "last": s.case, "count": max(0, s.case - since.case)},
+            "packets": max(0, s.packets - since.packets),
+            "kib_per_case": per_case,
+            "kib_per_packet": _rate(s.rss_kib - since.rss_kib, s.packets - since.packets),
+            "series": [{"s": round(x.t - self.started, 3), "rss_kib": x.rss_kib, "case": x.case,
+                        "packets": x.packets} for x in self.series],
+        }
+
+    def summary(self) -> dict[str, Any]:
+        return {"oracle": "on", "rule": self.rule.text(), "rss_kib": self.last, "peak_kib": self.peak or None}
+
+
+def _rate(kib: int, count: int) -> Optional[float]:
+    return round(kib / count, 3) if count > 0 else None
+
+
+def _mib(kib: float) -> str:
+    return f"{kib / 1024:.1f} MiB"
