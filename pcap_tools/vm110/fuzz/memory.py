@@ -51,9 +51,11 @@ def group_rss_kib(pgid: int) -> Optional[int]:
 class Rule:
     """When the RSS is a finding. Growth: after `warmup` samples (their highest RSS is the warm-up
     level, the working set the cases made), `sustain` samples in a row each at least the warm-up
-    level plus max(`growth_kib`, `share` of that level), and rising across them (the last above the
-    first: a cache that filled and stays full is not a leak). A controller's steady state and its
-    allocator's noise (a few pages, a trimmed heap) stay far below."""
+    level plus max(`growth_kib`, `share` of that level), the newest the highest of them (still
+    rising: a cache that filled and stays full is not a leak, however large). A controller's steady
+    state and its allocator's noise (pages in and out, a trimmed heap) stay far below. A false
+    finding costs its user a hunt for a leak that is not there: the growth asked is large, for a
+    leak of a few KiB per packet that is seconds at fuzzing rates."""
 
     limit_kib: Optional[float] = None       # --target-memory (None: no limit)
     growth_kib: Optional[float] = 16 * 1024   # --memory-growth (None: growth not judged)
@@ -66,7 +68,7 @@ class Rule:
         parts = []
         if self.growth_kib is not None:
             parts.append(f"growth: {self.sustain} samples in a row at least max({self.growth_kib / 1024:g} MiB, "
-                         f"{self.share:.0%}) above the highest of the first {self.warmup} and still rising")
+                         f"{self.share:.0%}) above the highest of the first {self.warmup}, the newest the highest")
         if self.limit_kib is not None:
             parts.append(f"limit: above {self.limit_kib / 1024:g} MiB")
         return "; ".join(parts) or "off"
@@ -129,7 +131,8 @@ class Watch:
         if rule.growth_kib is None or self.count < rule.warmup + rule.sustain:
             return None
         threshold = self.level + max(rule.growth_kib, rule.share * self.level)
-        if all(x.rss_kib >= threshold for x in self.recent) and self.recent[-1].rss_kib > self.recent[0].rss_kib:
+        *before, newest = self.recent
+        if all(x.rss_kib >= threshold for x in self.recent) and newest.rss_kib > max(x.rss_kib for x in before):
             return self._fire("growth", f"RSS grew from {_mib(self.level)} (warm-up) to {_mib(s.rss_kib)}, "
                               "still rising")
         return None

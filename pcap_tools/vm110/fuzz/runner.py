@@ -180,7 +180,13 @@ def start_target(s: Session) -> None:
                              + s.supervisor.last_words())
         raise TargetLost(f"no VRPO from the controller on {where} within {s.settings.startup_s:.0f} s")
     s.pump(time.time() + 2 * C.VRPI_PERIOD_MS / 1000)
-    s.monitor.triggers.clear()     # whatever happened before the first VRPI is not a case's doing
+    _forget_triggers(s.monitor)     # whatever happened before the first VRPI is not a case's doing
+
+
+def _forget_triggers(monitor: Monitor) -> None:
+    """Drop the triggers judged or not the cases' doing; not the memory oracle's, which fires once
+    per controller life, on no case (a controller over --target-memory from its start)."""
+    monitor.triggers = [t for t in monitor.triggers if t.oracle == MEMORY]
 
 
 _PACKET_TYPES = frozenset(t.value for t in C.PacketType)
@@ -375,7 +381,7 @@ class Runner:
         if investigated or not s.healthy():
             self._recover()
         s.monitor.pending.clear()
-        s.monitor.triggers.clear()    # what happened during replays was judged there
+        _forget_triggers(s.monitor)    # what happened during replays was judged there
 
     def _recover(self) -> None:
         """Back to a clean controller: restart it, or wait for it to come back on its own."""

@@ -1,0 +1,151 @@
+"""The fuzzer's memory oracle: its rule on RSS series made here (a leak, a cache that fills, an
+allocator's noise, a large controller), and end to end against tests/targets/controller.c built
+with a leak of 64 KiB per VRCI (-DBUG_LEAK) and without. Everything over loopback."""
+from __future__ import annotations
+
+import concurrent.futures
+import json
+import random
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from loopback import free_ports
+from test_fuzz_targets import fuzz, programs  # noqa: F401  (the fixture builds the targets)
+from vm110.fuzz.memory import MAX_SERIES, Rule, Sample, Watch
+from vm110.fuzz.runner import RunConfig, Runner
+from vm110.fuzz.session import Settings
+
+MIB = 1024
+
+
+def feed(watch: Watch, series: list[float], cases_per_sample: int = 10) -> list[tuple[int, dict]]:
+    """The samples (one a second) given to `watch`: (sample number, evidence) of each that fired."""
+    fired = []
+    for n, rss in enumerate(series):
+        evidence = watch.add(Sample(float(n), int(rss), n * cases_per_sample, 2 * n * cases_per_sample))
+        if evidence is not None:
+            fired.append((n, evidence))
+    return fired
+
+
+def test_a_steady_leak_is_one_finding_with_its_growth_per_case():
+    # 10 MiB warm, then 16 cases a second leaking 64 KiB each: 1 MiB a second.
+    series = [10 * MIB] * 5 + [10 * MIB + 1 * MIB * k for k in range(1, 60)]
+    fired = feed(Watch(Rule(growth_kib=16 * MIB)), series, cases_per_sample=16)
+    # The rule: 5 samples in a row at least 10 + max(16, 5) = 26 MiB: from the 26 MiB sample (n=20) on.
+    first = series.index(26 * MIB)
+    assert [n for n, _ in fired] == [first + 4], "once, when the fifth sample over the threshold came"
+    evidence = fired[0][1]
+    assert evidence["kind"] == "growth" and evidence["warmup_kib"] == 10 * MIB
+    assert evidence["kib_per_case"] == 64 and evidence["kib_per_packet"] == 32
+    assert evidence["cases"] == {"first": 4 * 16 + 1, "last": (first + 4) * 16, "count": (first + 4 - 4) * 16}
+    assert [s["rss_kib"] for s in evidence["series"]] == series[:first + 5]
+
+
+def test_a_cache_that_fills_and_stays_full_is_no_leak():
+    """Past the threshold while it filled, but not rising across the last samples."""
+    series = [10 * MIB] * 5 + [10 * MIB + 10 * MIB * k for k in range(1, 5)] + [50 * MIB] * 200
+    assert feed(Watch(Rule()), series) == []
+    # The same fill going on is one
+    assert feed(Watch(Rule()), series[:9] + [50 * MIB + MIB * k for k in range(1, 6)])
+
+
+def test_allocator_noise_and_a_trimmed_heap_are_no_leak():
+    rng = random.Random(7)
+    series = [40 * MIB + rng.randint(-3 * MIB, 3 * MIB) for _ in range(3000)]
+    assert feed(Watch(Rule()), series) == []
+
+
+def test_growth_must_be_a_share_of_a_large_controller_too():
+    """+40 MiB on 200 MiB is below half of it; from +100 MiB (the sample n=104) on it is past it."""
+    warm = [200 * MIB] * 5
+    assert feed(Watch(Rule()), warm + [200 * MIB + MIB * k for k in range(1, 41)]) == []
+    assert [n for n, _ in feed(Watch(Rule()), warm + [200 * MIB + MIB * k for k in range(1, 106)])] == [104 + 4]
+
+
+def test_the_hard_limit_fires_at_its_first_sample_above_once_per_controller():
+    watch = Watch(Rule(limit_kib=20 * MIB, growth_kib=None))
+    fired = feed(watch, [10 * MIB, 15 * MIB, 20 * MIB, 21 * MIB, 30 * MIB])
+    assert [(n, e["kind"]) for n, e in fired] == [(3, "limit")]
+    assert "above --target-memory 20 MiB" in fired[0][1]["detail"]
+
+
+def test_the_series_of_a_long_run_stays_bounded():
+    watch = Watch(Rule(growth_kib=None))
+    feed(watch, [MIB + n for n in range(100_000)])
+    assert len(watch.series) <= MAX_SERIES
+    assert watch.series[0].rss_kib == MIB and watch.series[-1].rss_kib == MIB + 99_999
+    assert watch.peak == MIB + 99_999
+
+
+def _run(tmp_path: Path, exe: Path, rule: Rule, duration: float) -> dict:
+    rx, listen = free_ports(2)
+    cfg = RunConfig(settings=Settings(("127.0.0.1", rx), ("127.0.0.1", listen), rate=2000), duration_s=duration,
+                    out=tmp_path / f"out-{exe.name}", target_cmd=f"{exe} {rx} {listen}", memory=rule, max_findings=1)
+    return Runner(cfg).run()
+
+
+def test_a_leaking_controller_is_found_and_a_correct_one_is_not(tmp_path, programs):  # noqa: F811
+    # The rule on a faster clock (samples every 0.1 s), for a short test: at 2000 packets/s the
+    # leaking one sends some 12 legal VRCI a second, 0.75 MiB.
+    rule = Rule(growth_kib=1 * MIB, period_s=0.1)
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:      # side by side: the test takes one run's time
+        runs = [pool.submit(_run, tmp_path, programs(name), rule, seconds)
+                for name, seconds in (("plain-leak", 10.0), ("plain-correct", 3.0))]
+        leaky, clean = (run.result() for run in runs)
+    [finding] = [f for f in leaky["findings"] if f["oracle"] == "memory"]
+    assert leaky["counts"] == {"memory": 1} and finding["rerun"].startswith("vm110 fuzz --target 127.0.0.1:")
+    saved = json.loads((tmp_path / f"out-controller-plain-leak/{finding['file']}").read_text())
+    evidence = saved["memory"]
+    assert evidence["kind"] == "growth" and evidence["rss_kib"] >= evidence["warmup_kib"] + MIB
+    # 64 KiB per legal VRCI, and fewer legal VRCI than cases and packets
+    assert 0 < evidence["kib_per_packet"] < 64 and 0 < evidence["kib_per_case"] < 64
+    assert f"--seed 0 --cases {evidence['cases']['last'] + 1} " in evidence["rerun"]
+    assert "memory" not in clean["counts"] and clean["memory"]["oracle"] == "on"
+    assert clean["memory"]["rss_kib"] > 0
+
+
+def test_the_hard_limit_is_a_finding_that_replay_refuses(tmp_path, programs):  # noqa: F811
+    """A correct controller over --target-memory from its start (its first sample came before the
+    first case, whose triggers are forgotten: the oracle, which fires once, must not be)."""
+    exe = programs("plain-correct")
+    rss = _vm_rss_mib(exe)
+    if rss < 1.2:
+        pytest.skip(f"the controller's RSS is {rss:.2f} MiB: no --target-memory (1 MiB at least) below it")
+    out = tmp_path / "out"
+    result, summary = fuzz(out, exe, "--target-memory", "1", "--max-findings", "1", "--duration", "30")
+    assert result.returncode == 1, result.stdout + result.stderr
+    [bucket] = summary["buckets"]
+    assert bucket["headline"].startswith("memory: RSS ") and "above --target-memory 1 MiB" in bucket["headline"]
+    assert bucket["headline"] in result.stdout and "replay one" not in result.stdout
+    assert "rerun them with vm110 fuzz --target" in result.stdout and "--target-memory 1 " in result.stdout
+    assert json.loads((out / bucket["file"]).read_text())["memory"]["kind"] == "limit"
+    again = subprocess.run([sys.executable, "-m", "vm110", "fuzz", "--replay", str(out / bucket["file"]),
+                            "--target-cmd", str(exe)], capture_output=True, text=True, timeout=60)
+    assert again.returncode == 2 and "is a memory finding" in again.stderr and "--seed 0 --cases " in again.stderr
+
+
+def _vm_rss_mib(exe: Path) -> float:
+    """The controller's VmRSS as the kernel gives it, once it is listening."""
+    rx, listen = free_ports(2)
+    with subprocess.Popen([str(exe), str(rx), str(listen)], stderr=subprocess.PIPE, text=True) as proc:
+        try:
+            assert proc.stderr is not None and "listening" in proc.stderr.readline()
+            status = Path(f"/proc/{proc.pid}/status").read_text()
+            return int(status.split("VmRSS:")[1].split()[0]) / 1024
+        finally:
+            proc.terminate()
+
+
+@pytest.mark.parametrize("option", [["--target-memory", "nan"], ["--target-memory", "0"], ["--target-memory", "inf"],
+                                    ["--memory-growth", "0.5"], ["--memory-growth", "-1"], ["--target-memory", "1"]])
+def test_bad_memory_options_are_refused(tmp_path, option):
+    """(the last: a limit without --target-cmd, which only a started controller has)"""
+    rx, listen = free_ports(2)
+    result = subprocess.run([sys.executable, "-m", "vm110", "fuzz", "--target", f"127.0.0.1:{rx}", "--listen",
+                             f"127.0.0.1:{listen}", "--out", str(tmp_path / "out"), *option],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and option[0] in result.stderr and "Traceback" not in result.stderr, result.stderr
+    assert not (tmp_path / "out").exists()
