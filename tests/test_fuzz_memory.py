@@ -121,7 +121,10 @@ def test_the_hard_limit_is_a_finding_that_replay_refuses(tmp_path, programs):  #
     assert bucket["headline"].startswith("memory: RSS ") and "above --target-memory 1 MiB" in bucket["headline"]
     assert bucket["headline"] in result.stdout and "replay one" not in result.stdout
     assert "rerun them with vm110 fuzz --target" in result.stdout and "--target-memory 1 " in result.stdout
-    assert json.loads((out / bucket["file"]).read_text())["memory"]["kind"] == "limit"
+    evidence = json.loads((out / bucket["file"]).read_text())["memory"]
+    assert evidence["kind"] == "limit" and evidence["limit_kib"] == MIB and evidence["rss_kib"] > MIB
+    # Its rerun is a command line the fuzzer takes (--cases 1 at least, though it came before any case)
+    assert int(evidence["rerun"].split(" --cases ")[1].split()[0]) >= 1
     again = subprocess.run([sys.executable, "-m", "vm110", "fuzz", "--replay", str(out / bucket["file"]),
                             "--target-cmd", str(exe)], capture_output=True, text=True, timeout=60)
     assert again.returncode == 2 and "is a memory finding" in again.stderr and "--seed 0 --cases " in again.stderr

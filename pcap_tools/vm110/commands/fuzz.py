@@ -95,8 +95,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"group's RSS, sampled every second) exceeds this, {TARGET_MEMORY.range_text} "
                              "(default: no limit)")
     parser.add_argument("--memory-growth", type=MEMORY_GROWTH, default=DEFAULT_GROWTH_MIB, metavar="MIB",
-                        help="with --target-cmd: a finding when the RSS stays this much and half again its warm-up "
-                             "level (its highest in the first 5 s) above it for 5 samples while still rising, "
+                        help="with --target-cmd: a finding when the RSS is at least this much, and half its warm-up "
+                             "level (its highest in the first 5 s), above that level for 5 samples while still rising, "
                              f"{MEMORY_GROWTH.range_text}; 0 turns it off (default {DEFAULT_GROWTH_MIB})")
     parser.add_argument("--no-core", action="store_true",
                         help="start the controller with core files off (default: allowed, kept with a crash "

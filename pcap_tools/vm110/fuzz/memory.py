@@ -87,7 +87,7 @@ class Watch:
 
     def __init__(self, rule: Rule) -> None:
         self.rule = rule
-        self.pid: Optional[int] = None
+        self.life: Optional[tuple[int, int]] = None    # (pid, start number) of the controller
         self.started = 0.0
         self.next_at = 0.0
         self.series: list[Sample] = []                 # bounded: see _keep
@@ -99,18 +99,19 @@ class Watch:
         self.last: Optional[int] = None                # of the run, across restarts
         self.peak = 0
 
-    def sample(self, now: float, pid: int, case: int, packets: int) -> Optional[dict[str, Any]]:
-        """Read the RSS of `pid`'s group when a sample is due; the evidence when the rule fires."""
-        if pid != self.pid:
-            self._restart(pid, now)
+    def sample(self, now: float, pid: int, start: int, case: int, packets: int) -> Optional[dict[str, Any]]:
+        """Read the RSS of `pid`'s group (the controller's `start`th start) when a sample is due;
+        the evidence when the rule fires."""
+        if (pid, start) != self.life:
+            self._restart((pid, start), now)
         if now < self.next_at:
             return None
         self.next_at = now + self.rule.period_s
         rss = group_rss_kib(pid)
         return None if rss is None else self.add(Sample(now, rss, case, packets))
 
-    def _restart(self, pid: int, now: float) -> None:
-        self.pid, self.started, self.next_at = pid, now, now
+    def _restart(self, life: tuple[int, int], now: float) -> None:
+        self.life, self.started, self.next_at = life, now, now
         self.series, self.count, self.warm, self.level, self.reported = [], 0, None, 0, False
         self.recent.clear()
 

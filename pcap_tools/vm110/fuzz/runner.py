@@ -460,9 +460,10 @@ class Runner:
             return
         assert trig.memory is not None
         cases = trig.memory["cases"]
-        trig.memory.update(seed=self.cfg.seed, cases_run=self.cases_run, rerun=self._rerun(cases["last"] + 1))
+        trig.memory.update(seed=self.cfg.seed, cases_run=self.cases_run, rerun=self._rerun(max(1, cases["last"] + 1)))
         traffic = [p for p in self.session.traffic if p[0] >= trig.time - 4.0]
-        description = f"the {cases['count']} cases sent meanwhile, {cases['first']} to {cases['last']}"
+        description = f"the {cases['count']} cases sent meanwhile, {cases['first']} to {cases['last']}" \
+            if cases["count"] else "none: no case was sent meanwhile"
         self._write(trig, None, max(0, cases["last"]), F.NO_CASE, description, [], None, None, False, None, traffic)
 
     def _rerun(self, cases: int) -> str:

@@ -108,7 +108,8 @@ class Session:
     def _sample_memory(self, pid: int) -> None:
         assert self.memory is not None
         now = time.time()
-        evidence = self.memory.sample(now, pid, self.last_case, self.case_packets)
+        assert self.supervisor is not None
+        evidence = self.memory.sample(now, pid, self.supervisor.starts, self.last_case, self.case_packets)
         if evidence is not None:
             self.monitor.fire(Trigger(MEMORY, now, evidence["detail"], kind="rss", memory=evidence))
 
