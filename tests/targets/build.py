@@ -19,6 +19,7 @@ VARIANTS: dict[str, list[str]] = {
     "asan-correct": _ASAN,
     "asan-heap-overflow": _ASAN + ["-DBUG_HEAP_OVERFLOW"],
     "asan-abort": _ASAN + ["-DBUG_ABORT"],
+    "asan-churn": _ASAN + ["-DCHURN"],        # correct: a buffer per command, freed (ASan's quarantine keeps it)
     "plain-correct": _PLAIN,
     "plain-null-call": _PLAIN + ["-DBUG_NULL_CALL"],
     "plain-deep": _PLAIN + ["-DBUG_DEEP"],

@@ -10,6 +10,7 @@
  *                        two multi-byte comparisons and a state, out of reach of blind mutation
  *   -DBUG_ABORT          a VRCI with command ID 65535 fails an assertion-like abort() (on_vrci)
  *   -DBUG_LEAK           every legal VRCI leaks a 64 KiB buffer it wrote (on_vrci): no crash, the RSS grows
+ * and with -DCHURN (no bug) every legal VRCI writes a 64 KiB buffer and frees it.
  *
  * VRPO every 100 ms, a VRCO every second (resent every 100 ms until its VRAI, given up after
  * 2 s), a VRAO for every legal VRCI; a command ID heard again within 2 s is a retransmission
@@ -220,11 +221,14 @@ static void on_vrci(const uint8_t *p)
     if (id == 0xFFFF)
         abort();
 #endif
-#ifdef BUG_LEAK
-    static void *volatile command_log;       /* each command's log buffer, never freed */
+#if defined(BUG_LEAK) || defined(CHURN)
+    static void *volatile command_log;       /* each command's log buffer */
     command_log = malloc(64 * 1024);
     if (command_log)
         memset(command_log, 1, 64 * 1024);   /* written: resident */
+#ifdef CHURN
+    free(command_log);
+#endif
 #endif
     uint8_t ack[ACK_SIZE];
     put16(ack, id);

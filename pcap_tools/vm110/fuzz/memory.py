@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import collections
 import os
+import re
 from dataclasses import dataclass
 from typing import Any, Optional
 
@@ -47,6 +48,25 @@ def group_rss_kib(pgid: int) -> Optional[int]:
     return total if found else None
 
 
+def asan_allowance_kib(options: str) -> int:
+    """What AddressSanitizer keeps resident of memory the controller freed: its quarantine
+    (`quarantine_size_mb` of ASAN_OPTIONS, 256 MiB when unset on 64-bit Linux; one thread's 1 MiB
+    `thread_local_quarantine_size_kb`) and its shadow (an eighth). It fills as a correct controller
+    frees buffers: a rising RSS up to that much is no leak."""
+    values = dict(p.split("=", 1) for p in re.split(r"[\s,:]+", options) if "=" in p)
+
+    def value(name: str) -> int:
+        try:
+            return int(values.get(name, "-1"))
+        except ValueError:
+            return -1
+    mb = value("quarantine_size_mb")
+    if mb < 0 and value("quarantine_size") >= 0:      # (the older option, in bytes)
+        mb = value("quarantine_size") >> 20
+    thread_kb = value("thread_local_quarantine_size_kb")
+    return ((256 if mb < 0 else mb) * 1024 + (1024 if thread_kb < 0 else thread_kb)) * 9 // 8
+
+
 @dataclass(frozen=True)
 class Rule:
     """When the RSS is a finding. Growth: after `warmup` samples (their highest RSS is the warm-up
@@ -55,7 +75,8 @@ class Rule:
     rising: a cache that filled and stays full is not a leak, however large). A controller's steady
     state and its allocator's noise (pages in and out, a trimmed heap) stay far below. A false
     finding costs its user a hunt for a leak that is not there: the growth asked is large, for a
-    leak of a few KiB per packet that is seconds at fuzzing rates."""
+    leak of a few KiB per packet that is seconds at fuzzing rates. `allowance_kib` is added to the
+    growth asked: what a sanitizer keeps of freed memory (`asan_allowance_kib`)."""
 
     limit_kib: Optional[float] = None       # --target-memory (None: no limit)
     growth_kib: Optional[float] = 16 * 1024   # --memory-growth (None: growth not judged)
@@ -63,15 +84,20 @@ class Rule:
     warmup: int = 5
     sustain: int = 5
     period_s: float = 1.0
+    allowance_kib: float = 0.0
 
     def text(self) -> str:
         parts = []
         if self.growth_kib is not None:
             parts.append(f"growth: {self.sustain} samples in a row at least max({self.growth_kib / 1024:g} MiB, "
-                         f"{self.share:.0%}) above the highest of the first {self.warmup}, the newest the highest")
+                         f"{self.share:.0%}){self._allowed()} above the highest of the first {self.warmup}, "
+                         "the newest the highest")
         if self.limit_kib is not None:
             parts.append(f"limit: above {self.limit_kib / 1024:g} MiB")
         return "; ".join(parts) or "off"
+
+    def _allowed(self) -> str:
+        return f" + {self.allowance_kib / 1024:g} MiB of AddressSanitizer's quarantine" if self.allowance_kib else ""
 
 
 @dataclass
@@ -131,7 +157,7 @@ class Watch:
             return self._fire("limit", f"RSS {_mib(s.rss_kib)} above --target-memory {rule.limit_kib / 1024:g} MiB")
         if rule.growth_kib is None or self.count < rule.warmup + rule.sustain:
             return None
-        threshold = self.level + max(rule.growth_kib, rule.share * self.level)
+        threshold = self.level + max(rule.growth_kib, rule.share * self.level) + rule.allowance_kib
         *before, newest = self.recent
         if all(x.rss_kib >= threshold for x in self.recent) and newest.rss_kib > max(x.rss_kib for x in before):
             return self._fire("growth", f"RSS grew from {_mib(self.level)} (warm-up) to {_mib(s.rss_kib)}, "

@@ -14,6 +14,7 @@ from the schedule (blind) or from `guided.Guided` (`--coverage`).
 from __future__ import annotations
 
 import collections
+import dataclasses
 import shlex
 import shutil
 import tempfile
@@ -216,7 +217,11 @@ class Runner:
         # Only a controller the fuzzer started has a process to measure.
         self.memory_off = "no --target-cmd: only a controller the fuzzer starts is measured" \
             if self.supervisor is None else MEM.unavailable()
-        memory = MEM.Watch(cfg.memory) if self.memory_off is None else None
+        rule = cfg.memory
+        if self.supervisor is not None and self.supervisor.asan:
+            options = self.supervisor.environment().get("ASAN_OPTIONS", "")
+            rule = dataclasses.replace(rule, allowance_kib=MEM.asan_allowance_kib(options))
+        memory = MEM.Watch(rule) if self.memory_off is None else None
         self._log: Optional[IO[bytes]] = None
         self.guided: Optional[Guided] = None
         try:
