@@ -524,6 +524,8 @@ def test_a_hostile_finding_file_through_the_command(tmp_path):
     ("--cases", "0"), ("--cases", "-1"), ("--cases", "1.5"), ("--cases", "1e18"),
     ("--max-findings", "0"), ("--max-findings", "nan"), ("--minimize-budget", "nan"), ("--minimize-budget", "-1"),
     ("--startup", "nan"), ("--startup", "inf"), ("--startup", "0"), ("--seed", "-1"), ("--seed", "nan"),
+    ("--target-memory", "nan"), ("--target-memory", "inf"), ("--target-memory", "0"), ("--target-memory", "1e9"),
+    ("--memory-growth", "nan"), ("--memory-growth", "-1"), ("--memory-growth", "0.5"),
 ])
 def test_bad_numbers_are_refused(capsys, nothing_leaves, option, value):
     with pytest.raises(SystemExit) as info:
@@ -532,6 +534,13 @@ def test_bad_numbers_are_refused(capsys, nothing_leaves, option, value):
     last = err.strip().splitlines()[-1]
     assert info.value.code == 2 and "Traceback" not in err
     assert f"argument {option}:" in last and repr(value) in last and "must be" in last, last
+
+
+def test_a_memory_limit_needs_a_controller_the_fuzzer_starts(tmp_path, capsys, nothing_leaves):
+    code, err = fuzz_in_process(capsys, "--target", "127.0.0.1:5825", "--target-memory", "64", "--out",
+                                str(tmp_path / "out"))
+    assert code == 2 and "--target-memory needs --target-cmd" in one_line(err)
+    assert not (tmp_path / "out").exists()
 
 
 def test_rate_nan_ends_at_once():
