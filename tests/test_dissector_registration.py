@@ -4,6 +4,7 @@ and the `vm110 dissect` command. Every check runs on both tshark versions."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
@@ -168,6 +169,19 @@ def test_readme_filters_are_valid(ws):
         proc = ws.run(["-r", str(pcap), "-Y", expression], check=False)
         assert proc.returncode == 0, f"{expression!r}: {proc.stderr.strip()}"
         assert proc.stdout.strip(), f"{expression!r} matches nothing in the golden capture"
+
+
+def test_documented_preferences_path_names_the_protocol(ws):
+    """Wireshark's Preferences > Protocols tree lists a protocol by its short name, the one `tshark
+    -G protocols` gives (TCP, UDP, ...): every such path in the documents names it so. Trial: the
+    README sent the user to Protocols > VM-110 EG-Link (the full name), captures/README.md to VM110."""
+    proc = ws.run(["-G", "protocols", "-X", f"lua_script:{ws.plugin()}"], plugin=False)
+    short = next(row[1] for row in (line.split("\t") for line in proc.stdout.splitlines()) if row[2:3] == ["vm110"])
+    docs = [T.REPO / "README.md", T.REPO / "captures" / "README.md", *(T.REPO / "docs").glob("*.md")]
+    named = [name for doc in docs
+             for name in re.findall(r"Preferences [\u203a\u2192] Protocols [\u203a\u2192] ([^,\u203a\u2192)]+?)(?: [\u203a\u2192]|,|\)|$)",
+                                    " ".join(doc.read_text().split()))]
+    assert len(named) >= 3 and set(named) == {short}
 
 
 def test_make_install_wireshark(tmp_path):
