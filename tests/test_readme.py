@@ -91,15 +91,14 @@ def test_options_exist():
     assert checked > 50
 
 
-def _long_options(parser: argparse.ArgumentParser, path: str) -> Iterator[tuple[str, str]]:
-    """(command, --option) for every long option of the command `path` and its subcommands."""
+def _option_actions(parser: argparse.ArgumentParser, path: str) -> Iterator[tuple[str, argparse.Action]]:
+    """(command, action) for every option but --help of the command `path` and its subcommands."""
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             for name, sub in action.choices.items():
-                yield from _long_options(sub, f"{path} {name}")
-        for option in action.option_strings:
-            if option.startswith("--") and option != "--help":
-                yield path, option
+                yield from _option_actions(sub, f"{path} {name}")
+        elif action.option_strings and "--help" not in action.option_strings:
+            yield path, action
 
 
 def test_every_option_is_documented():
@@ -107,7 +106,8 @@ def test_every_option_is_documented():
     the only place to learn of it. Trial: `simulate --origin`, `--command-id-start`, `--data-size`,
     `monitor --interface` and `vm110 --version` were in --help alone."""
     text = "\n".join(doc.read_text() for doc in DOCS)
-    missing = [f"{command} {option}" for command, option in _long_options(build_parser(), "vm110")
+    missing = [f"{command} {option}" for command, action in _option_actions(build_parser(), "vm110")
+               for option in action.option_strings if option.startswith("--")
                if not re.search(rf"(?<![\w-]){re.escape(option)}(?![\w-])", text)]
     assert not missing, f"options no document names: {missing}"
 
@@ -121,3 +121,14 @@ def test_cited_versions_are_current():
              for key, number in re.findall(r"\b(schema_version|format_version)`?(?: ✓)?(?: \|)? (\d+)\b", doc.read_text())]
     assert {key for _, key, _ in cited} == set(current)
     assert [c for c in cited if c[2] != current[c[1]]] == []
+
+
+def test_every_option_help_says_what_it_is():
+    """An option's --help line says what it does, not only the range of its value. Trial: `simulate
+    controller --help` gave `--vrco-timeout MS  0.001 to 3600000 ms (default 2000)` (give up a VRCO
+    after it? stop sending?), `--vrpi-timeout`, `--delay` and `--seed` alike, `fleet query --format`
+    nothing."""
+    bare = [f"{command} {action.option_strings[-1]}: {action.help!r}"
+            for command, action in _option_actions(build_parser(), "vm110")
+            if not action.help or re.match(r"[\d(]", action.help)]
+    assert not bare, f"options whose help is only a range: {bare}"

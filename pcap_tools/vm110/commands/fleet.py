@@ -68,7 +68,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                        "findings, errors, packets as views.")
     query.add_argument("dataset", metavar="DATASET")
     query.add_argument("sql", nargs="?", metavar="SQL", help="a query over the views")
-    query.add_argument("--format", choices=("table", "csv", "json"), default="table")
+    query.add_argument("--format", choices=("table", "csv", "json"), default="table",
+                       help="how the rows are printed; default table")
     query.add_argument("--list", action="store_true", help="list the named queries and the tables' columns")
     query.add_argument("--named", metavar="NAME", help="a named query (see --list)")
     query.add_argument("--worst", choices=("links", "machines", "commands"), help="worst links, machines or commands")

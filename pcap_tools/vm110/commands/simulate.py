@@ -67,7 +67,8 @@ def add_network_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_impairment_arguments(parser: argparse.ArgumentParser) -> None:
     imp = parser.add_argument_group("impairments (of what this node sends; reproducible with --seed)")
-    imp.add_argument("--seed", type=SEED, default=0, help=f"{SEED.range_text} (default 0)")
+    imp.add_argument("--seed", type=SEED, default=0,
+                     help=f"seed of the impairments' random choices, {SEED.range_text} (default 0)")
     imp.add_argument("--loss", type=PCT, default=0.0, metavar="PCT", help=f"PCT lost, {PCT.range_text}")
     imp.add_argument("--duplicate", type=PCT, default=0.0, metavar="PCT",
                      help=f"PCT delivered twice, {PCT.range_text}")
@@ -75,7 +76,8 @@ def add_impairment_arguments(parser: argparse.ArgumentParser) -> None:
                      help="PCT seen twice 0.05-3 ms apart, as a switch mirror port shows them to a capture "
                           f"(over sockets the peer gets the copy too), {PCT.range_text}")
     imp.add_argument("--reorder", type=PCT, default=0.0, metavar="PCT", help=f"PCT held back, {PCT.range_text}")
-    imp.add_argument("--delay", type=DELAY, default=0.0, metavar="MS", help=DELAY.range_text)
+    imp.add_argument("--delay", type=DELAY, default=0.0, metavar="MS",
+                     help=f"every packet sent MS later, {DELAY.range_text}")
     imp.add_argument("--jitter", type=DELAY, default=0.0, metavar="MS",
                      help=f"extra delay up to MS, {DELAY.range_text}")
     imp.add_argument("--corrupt", type=PCT, default=0.0, metavar="PCT",
@@ -124,9 +126,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     ctl.add_argument("--data-size", type=DATA_SIZE, default=64, metavar="BYTES",
                      help=f"periodic data bytes (>488: bursts), {DATA_SIZE.range_text} (default 64)")
     ctl.add_argument("--vrco-timeout", type=TIMEOUT, default=float(C.VRCO_GIVE_UP_MS), metavar="MS",
-                     help=f"{TIMEOUT.range_text} (default {C.VRCO_GIVE_UP_MS})")
+                     help=f"give a VRCO up when not acknowledged within MS, {TIMEOUT.range_text} "
+                          f"(default {C.VRCO_GIVE_UP_MS})")
     ctl.add_argument("--vrpi-timeout", type=TIMEOUT, default=float(C.VRPI_WATCHDOG_MS), metavar="MS",
-                     help=f"{TIMEOUT.range_text} (default {C.VRPI_WATCHDOG_MS})")
+                     help=f"flag a VRPI timeout after MS without VRPI, {TIMEOUT.range_text} "
+                          f"(default {C.VRPI_WATCHDOG_MS})")
     ctl.add_argument("--command-every", type=EVERY, default=0.0, metavar="S",
                      help=f"a VRCO every S s, {EVERY.range_text} (0, the default: none)")
     ctl.add_argument("--command-id-start", type=WORD, default=0, metavar="N",
