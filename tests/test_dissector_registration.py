@@ -184,6 +184,15 @@ def test_documented_preferences_path_names_the_protocol(ws):
     assert len(named) >= 3 and set(named) == {short}
 
 
+def test_documented_plugin_type_is_the_one_listed(ws):
+    """The README tells the user to find vm110.lua in About > Plugins by its type, which is the one
+    `tshark -G plugins` lists (trial: it said "lua"; Wireshark lists "lua script", 4.6 "Lua script")."""
+    proc = ws.run(["-G", "plugins", "-X", f"lua_script:{ws.plugin()}"], plugin=False)
+    listed = {row[2].lower() for row in (line.split("\t") for line in proc.stdout.splitlines()) if row[0].endswith("vm110.lua")}
+    documented = re.findall(r"lists `vm110\.lua` \(type \"([^\"]+)\"\)", (T.REPO / "README.md").read_text())
+    assert len(documented) == 1 and listed == set(documented)
+
+
 def test_make_install_wireshark(tmp_path):
     """`make install-wireshark` puts the plugin where tshark finds it without -X."""
     T.HOST.check()
