@@ -2,7 +2,7 @@
 
 Default network set-up is the specification's: multicast group 239.255.42.20, inputs on port 5825
 (BU -> controller), outputs on 5827, TTL 1. `--peer`/`--listen` switch to unicast (for example two
-simulators on loopback: see captures/README.md). Logs what the node does and detects to stdout,
+simulators on loopback: see README.md, "Simulators and synthesis"). Logs what the node does and detects to stdout,
 and a summary line at the end; the sockets it uses go to stderr first, so that stdout is the log
 alone (JSON lines only with `--json`). Stops after `--duration` seconds (exit 0), on Ctrl-C, SIGTERM or
 SIGHUP (an interruption: the summary still comes, exit 130). `--crc`, `--crc-order`, `--serial-scope` and
