@@ -7,6 +7,8 @@ Prints, all measured in this run:
 - peak memory of a child process running `vm110 analyze --json` on 1 M packets (target <= 300 MiB)
   and on 2 M, and their difference (target: about 24 MiB at most; the analysis keeps per packet
   only the time of a periodic packet, everything else is bounded by senders, commands and findings);
+- a gzip-compressed capture (`.pcap.gz`, as dumpcap --compress gzip writes): analysis time of the
+  same capture compressed / uncompressed (the reader decompresses it into a temporary file first);
 - what a sender costs: `vm110 analyze --json` (the command, in a fresh process) of SENDERS VRPI
   packets each from a sender of its own (a hostile or mirrored capture: every source address is
   one), against the same packets from two senders; the ratio, and the cost of each sender above.
@@ -16,6 +18,7 @@ The capture is cached in out/bench/ (synthesis is deterministic; delete it to re
 from __future__ import annotations
 
 import argparse
+import gzip
 import os
 import shutil
 import statistics
@@ -78,6 +81,14 @@ def senders_capture(count: int, own: bool) -> Path:
                 flow = UdpFlow(source, C.INPUT_PORT, C.MULTICAST_GROUP, C.INPUT_PORT)
                 writer.write(1_700_000_000_000_000 + i * 1000, flow.frame(packet))
     return path
+
+
+def gzipped(path: Path) -> Path:
+    out = path.with_name(path.name + ".gz")
+    if not out.exists():
+        with open(path, "rb") as src, gzip.open(out, "wb", compresslevel=6) as dst:
+            shutil.copyfileobj(src, dst, 1 << 20)
+    return out
 
 
 def best(fn, repeat: int = REPEAT) -> float:
@@ -168,6 +179,15 @@ def main() -> None:
     print(f"vm110 analyze, fast engine:        {analysis_s:.2f} s ({analysis_s / packets * 1e6:.2f} us/packet, "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
     print(f"RATIO analysis / scapy iterate = {analysis_s / scapy_s:.2f} (target <= 1.0)")
+    packed = gzipped(path)
+    plain_times, gzip_times = [], []
+    for _ in range(REPEAT):
+        plain_times.append(best(lambda: analyze(str(path)), 1))
+        gzip_times.append(best(lambda: analyze(str(packed)), 1))
+    plain_s, gzip_s = statistics.median(plain_times), statistics.median(gzip_times)
+    print(f"vm110 analyze of it gzip-compressed ({packed.stat().st_size / 2**20:.1f} MiB): {gzip_s:.2f} s, "
+          f"uncompressed {plain_s:.2f} s")
+    print(f"RATIO analysis gzip / uncompressed = {gzip_s / plain_s:.2f}")
     for n, wall, peak, reader in peaks:
         print(f"PEAK MEMORY of `vm110 analyze --json` on {n} packets = {peak:.0f} MiB, reading child included "
               f"({reader:.0f} MiB of it; {wall:.2f} s wall)")

@@ -8,6 +8,7 @@ import gzip
 import itertools
 import os
 import struct
+import tempfile
 import zlib
 
 import pytest
@@ -289,6 +290,34 @@ def test_gzip_cut_short_or_corrupt_keeps_the_records_before_and_says_why(tmp_pat
     assert got == want and reader.problem.startswith(f"gzip data corrupt after {len(data)} bytes of capture")
     with pytest.raises(CaptureError, match="gzip data cut short after 0 bytes of capture"):
         read(tmp_path, whole[:10], "early.pcap.gz")          # the gzip header alone
+
+
+def test_gzip_is_decompressed_as_it_is_read_with_no_temporary_file(tmp_path, monkeypatch):
+    """A .pcap.gz of several GiB decompressed into a temporary file filled /tmp, which is memory on
+    Debian 13 (tmpfs), a second time in analyze's reading process: it is decompressed as
+    it is read. A file inflating 200-fold and more (29 MB from 0.1 MB) reads record by record; a
+    damaged member in the middle keeps what came before it."""
+    frame = bytes(Ether() / udp_ip(bytes(1400)))
+    data = pcap([]) + b"".join(struct.pack("<IIII", 1 + i // 8, i % 8 * 125_000, len(frame), len(frame)) + frame
+                               for i in range(20_000))
+    packed = gzip.compress(data, compresslevel=9)
+    assert len(data) > 200 * len(packed)
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    monkeypatch.setenv("TMPDIR", str(temporary))
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    path = tmp_path / "big.pcap.gz"
+    path.write_bytes(packed)
+    with CaptureReader(str(path)) as reader:
+        held = [os.readlink(f"/proc/self/fd/{fd}") for fd in os.listdir("/proc/self/fd")
+                if os.path.exists(f"/proc/self/fd/{fd}")]
+        count = sum(1 for _ in reader)
+    assert (count, reader.problem) == (20_000, None)
+    assert not [name for name in held if name.startswith(str(temporary))], held     # (deleted ones too)
+    middle = gzip.compress(data[:24 + 1000 * 1458])
+    damaged = middle[:len(middle) // 2] + bytes(64) + middle[len(middle) // 2 + 64:] + gzip.compress(data[24:])
+    reader, got = read(tmp_path, damaged, "damaged.pcap.gz")
+    assert 0 < len(got) < 1000 and reader.problem and "gzip data corrupt after" in reader.problem
 
 
 @pytest.mark.parametrize("content,message", [

@@ -7,7 +7,8 @@ seconds, source address as packed bytes (4 or 16), ports, the UDP payload cut to
 The file is read in large chunks; the common frame (Ethernet + IPv4 without options + UDP) is
 decoded by one `struct` call, every other layout by `udp_of`. A file that ends in the middle of a
 record keeps what was read and says so in `problem`; a file that is not a capture raises
-`CaptureError` (exit code 2 in the CLI). A gzip-compressed capture is read decompressed (`compressed`).
+`CaptureError` (exit code 2 in the CLI). A gzip-compressed capture is decompressed as it is read
+(`compressed`).
 """
 from __future__ import annotations
 
@@ -16,11 +17,12 @@ import math
 import os
 import stat
 import struct
+import sys
 from typing import BinaryIO, Generator, Iterator, NamedTuple, Optional
 
 from ..errors import CliError
 from . import linktypes as L
-from .compressed import OTHER_COMPRESSIONS, decompress, is_gzip
+from .compressed import OTHER_COMPRESSIONS, Gunzip, is_gzip
 
 Datagram = tuple  # (ts: float, src: bytes, sport: int, dport: int, payload: bytes or None (see udp_of), frame: int)
 
@@ -114,7 +116,7 @@ class CaptureReader:
     ends; use the reader as a context manager (`with CaptureReader(path) as reader:`) so that the
     file is closed also when a walk stops early or never starts."""
 
-    gunzipped: Optional[str] = None     # a gzip file: why decompression stopped early, or ""
+    _gunzip: Optional[Gunzip] = None      # a gzip file's decompression
 
     def __init__(self, path: str, chunk_size: int = CHUNK) -> None:
         self.path = path
@@ -123,11 +125,12 @@ class CaptureReader:
             if stat.S_ISFIFO(os.stat(path).st_mode):   # (opening one waits for a writer)
                 raise CaptureError(f"{path} is a named pipe: give it on standard input (- < {path}), "
                                    "which is read as it comes")
-            self._file: BinaryIO = open(path, "rb")   # noqa: SIM115 -- the reader owns it; close()/with
+            raw = open(path, "rb")   # noqa: SIM115 -- the reader owns it; close()/with
         except OSError as exc:
             raise CaptureError(f"cannot read {path}: {exc.strerror or exc}") from None
+        self._file: BinaryIO | Gunzip = raw
         try:
-            self.size, self.format = self._identify(path)
+            self.size, self.format = self._identify(path, raw)
         except BaseException:
             self._file.close()
             raise
@@ -156,27 +159,27 @@ class CaptureReader:
         self.spb_snaplen = 0                    # pcapng: the section's first interface's snaplen (0: none)
         self.ts_digits = 6                      # decimal digits of the finest timestamps (9: ns)
 
-    def _identify(self, path: str) -> tuple[int, str]:
+    def _identify(self, path: str, raw: BinaryIO) -> tuple[int, str]:
         """The file's size and format ("pcap" or "pcapng") from its magic, or CaptureError."""
         try:
-            size = os.fstat(self._file.fileno()).st_size
-            head = self._file.read(4)
-            self._file.seek(0)
+            size = os.fstat(raw.fileno()).st_size
+            head = raw.read(4)
+            raw.seek(0)
         except OSError as exc:
             raise CaptureError(f"cannot read {path}: {exc.strerror or exc}") from None
         if not head:
             raise CaptureError(f"{path}: empty file, not a pcap or pcapng capture")
-        if is_gzip(head) and self.gunzipped is None:     # (one layer, as Wireshark reads)
+        if is_gzip(head):       # (one layer, as Wireshark reads; its size is not known before the end)
+            self._file = self._gunzip = stream = Gunzip(raw)
             try:
-                plain, problem = decompress(self._file)
+                size, head = sys.maxsize, stream.read(PCAP_HEADER_LEN)
+                stream.seek(0)
             except OSError as exc:
-                raise CaptureError(f"cannot decompress {path}: {exc.strerror or exc}") from None
-            self._file.close()
-            self._file, self.gunzipped = plain, problem or ""
-            if problem and len(plain.read(PCAP_HEADER_LEN)) < PCAP_HEADER_LEN:
-                raise CaptureError(f"{path}: {problem}")
-            plain.seek(0)
-            return self._identify(path)
+                raise CaptureError(f"cannot read {path}: {exc.strerror or exc}") from None
+            if stream.problem and len(head) < PCAP_HEADER_LEN:
+                raise CaptureError(f"{path}: {stream.problem}")
+            if not head:
+                raise CaptureError(f"{path}: gzip-compressed empty file, not a pcap or pcapng capture")
         if len(head) < 4:
             raise CaptureError(f"{path}: not a pcap or pcapng capture (too short)")
         return size, format_of(head, path)
@@ -250,9 +253,10 @@ class CaptureReader:
         finally:
             self._file.close()
         self.bytes_read = offset + len(leftover)
-        if self.gunzipped and stop is None:      # (the cause of a cut record below)
+        stream = self._gunzip
+        if stream is not None and stream.problem and stop is None:   # (the cause of a cut record below)
             cut = f", {len(leftover)} bytes of a record after it ignored" if leftover else ""
-            self.damaged(offset, f"{self.gunzipped}: records read up to byte {offset} of it{cut}")
+            self.damaged(offset, f"{stream.problem}: records read up to byte {offset} of it{cut}")
         if leftover and not offset:      # (a pcap's records start after its header)
             raise CaptureError(f"{self.path}: pcapng section header block cut short")
         if leftover:
@@ -260,10 +264,14 @@ class CaptureReader:
 
     def damaged(self, offset: int, message: str) -> None:
         """Reading stops at `offset` for this reason (the first one counts); in a gzip file whose
-        decompression stopped early, that is said too (corrupt data decompress into garbage first)."""
+        decompression stopped early, that is said too (corrupt data decompress into garbage first:
+        the rest is decompressed, unread, to know)."""
         if self.damage is None:
-            if self.gunzipped and not message.startswith(self.gunzipped):
-                message = f"{message} ({self.gunzipped})"
+            stream = self._gunzip
+            if stream is not None:
+                stream.drain()
+                if stream.problem and not message.startswith(stream.problem):
+                    message = f"{message} ({stream.problem})"
             self.damage, self.problem = offset, message
 
     def corrupt(self, pos: int, length: int) -> None:
