@@ -768,3 +768,32 @@ def test_a_link_gone_silent_after_a_restart_candidate_holds_no_failed_command(tm
     [failed] = [o for o in map(json.loads, lines.read_text().splitlines())
                 if o["type"] == "finding" and o["rule"] == "failed"]
     assert failed["at"] - T0 < 14.0                              # released at +13 s (the end: +15 s)
+
+
+def test_a_live_watch_stopped_after_its_last_record_spans_until_it_stopped(tmp_path):
+    """Trial: every live run stopped by a signal (the link watched on past its last packet) had its
+    report say "first record ..., last ...: not in time order, they span ..." of records in time
+    order, and a duration that ended at the last packet, not when the watch did. The span watched
+    ends where the watch ended: last and latest time alike, the duration between first and last."""
+    data = (ROOT / "captures" / "normal.pcap").read_bytes()
+    lines = tmp_path / "live.jsonl"
+    proc = subprocess.Popen(VM110 + ["monitor", "--read", "-", "--no-dashboard", "--json", str(tmp_path / "r.json"),
+                                     "--json-lines", str(lines)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdin is not None
+    proc.stdin.write(data[:12000])          # the pipe stays open: the link is watched on
+    proc.stdin.flush()
+    for _ in range(200):
+        time.sleep(0.1)
+        if lines.exists() and lines.stat().st_size:
+            break
+    time.sleep(0.5)                         # watched past the last record
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    cap = json.loads((tmp_path / "r.json").read_text())["capture"]
+    records = [ts for ts, *_ in CaptureReader(str(ROOT / "captures" / "normal.pcap"))]
+    assert cap["first_time"] == cap["earliest_time"] == records[0]
+    assert cap["last_time"] == cap["latest_time"] > records[cap["packets"] - 1] + 0.4
+    assert cap["duration_s"] == pytest.approx(cap["last_time"] - cap["first_time"])
+    assert b"not in time order" not in out and b"Time: 20" in out

@@ -206,7 +206,9 @@ def _without_the_end(report: dict) -> tuple[dict, dict]:
         told = p["watchdog"]["violations"]
         ends[(p["sender"], p["type"])] = [v["start"] for v in told if v["until_end"]]
         p["watchdog"]["violations"] = [v for v in told if not v["until_end"]]
-    del r["capture"]["file"], r["capture"]["last_time"], r["totals"]["watchdog"]
+    for key in ("file", "last_time", "latest_time", "duration_s"):
+        del r["capture"][key]
+    del r["totals"]["watchdog"]
     r["verdict"]["findings"] = [f for f in r["verdict"]["findings"] if f["rule"] != "watchdog"]
     return r, ends
 

@@ -439,9 +439,11 @@ class Session:
             self._tick(end, final=True)        # what the end of the input can tell
         self._held_back()
         self.intake.sync(self.reader)
-        if end is not None and self.intake.got.last_ts is not None:
-            self.intake.got.last_ts = max(self.intake.got.last_ts, end)
-        self.intake.got.analysis = self.analysis     # the report is built from it (report.build)
+        got = self.intake.got
+        if end is not None and got.last_ts is not None and end > got.last_ts:
+            # (the span watched too: else the report says records out of time order, its duration short)
+            got.last_ts, got.latest_ts = end, max(got.latest_ts, end)
+        got.analysis = self.analysis     # the report is built from it (report.build)
         if self.cfg.evidence is not None:
             self.cfg.evidence.tick(None)
         self._hang_up()                      # (SIGHUP: the SSH session closed, nothing failed yet)
