@@ -797,3 +797,56 @@ def test_a_live_watch_stopped_after_its_last_record_spans_until_it_stopped(tmp_p
     assert cap["last_time"] == cap["latest_time"] > records[cap["packets"] - 1] + 0.4
     assert cap["duration_s"] == pytest.approx(cap["last_time"] - cap["first_time"])
     assert b"not in time order" not in out and b"Time: 20" in out
+
+
+def _illegal_from_many_ports(n: int) -> bytes:
+    """A pcap of `n` datagrams on the input port that are no EG-Link packet (an ID and nothing
+    else), each from another source port: `n` illegal findings no rate limit holds back."""
+    import io
+
+    from vm110.capture.writer import PcapWriter, UdpFlow
+    out = io.BytesIO()
+    with PcapWriter(out) as w:
+        w.write_many((1_750_000_000_000_000 + i * 1000, UdpFlow("10.0.0.10", 20000 + i, "239.255.42.20", 5825)
+                      .frame(b"VRPI" + bytes(30))) for i in range(n))
+    return out.getvalue()
+
+
+def test_a_reader_that_stops_reading_stops_neither_the_watch_nor_its_end(tmp_path):
+    """Trial: `vm110 monitor ... | less` left at a full screen (or a terminal paused by Ctrl-S):
+    once the pipe was full the monitor stood still in a finding line, its watch with it, and
+    SIGTERM did not end it (no report, no exit code) until the reader read. Now what the reader does
+    not take waits in a bounded backlog and the watch goes on: every finding is in --json-lines,
+    SIGTERM gives the report, and a reader still stalled at the end is left as one gone away."""
+    n = 2000                                # some 300 kB of finding lines: more than a pipe holds
+    capture, lines, report = tmp_path / "many.pcap", tmp_path / "live.jsonl", tmp_path / "r.json"
+    capture.write_bytes(_illegal_from_many_ports(n))
+    stalled_r, stalled_w = os.pipe()       # read by no one until the end
+    proc = subprocess.Popen(VM110 + ["monitor", "--read", str(capture), "--no-dashboard", "--crc", "mpeg2",
+                                     "--crc-order", "little", "--json", str(report), "--json-lines", str(lines),
+                                     "--fail-on", "illegal>0"],      # (followed until the signal)
+                            stdout=stalled_w, stderr=subprocess.PIPE)
+    os.close(stalled_w)
+    try:
+        for _ in range(100):
+            time.sleep(0.1)
+            if lines.exists() and lines.read_text().count('"rule": "illegal"') == n:
+                break
+        proc.send_signal(signal.SIGTERM)
+        err = proc.communicate(timeout=30)[1].decode()
+        assert proc.returncode == 1, err                     # the verdict of what was seen
+        assert json.loads(report.read_text())["totals"]["illegal"] == n
+        assert lines.read_text().count('"rule": "illegal"') == n
+        assert "vm110 monitor: standard output not read for 5 s: the rest of it is left out" in err
+        os.set_blocking(stalled_r, False)
+        told = b""
+        with contextlib.suppress(BlockingIOError):
+            while chunk := os.read(stalled_r, 1 << 16):
+                told += chunk
+        text = told.decode()
+        assert text.count(" illegal ") > 100 and text.endswith("\n")     # what it took: whole lines
+    finally:
+        os.close(stalled_r)
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()

@@ -6,5 +6,6 @@ evidence (docs/monitor.md).
   the link is silent, lost packets, failed commands, illegal packets);
 - `evidence`: a bounded ring of recent frames, written around each alarm as pcapng;
 - `dashboard`: the terminal view; `sources`: dumpcap, a followed file, standard input;
+- `outlet`: standard output written without waiting for its reader;
 - `session`: the loop that ties them together and ends with the report of `analyze`.
 """

@@ -6,7 +6,7 @@ from __future__ import annotations
 import datetime
 import shutil
 import sys
-from typing import IO, Optional
+from typing import Optional, Protocol
 
 from ..timefmt import utc_iso
 
@@ -109,10 +109,16 @@ def render(header: dict, view: dict, findings: list[dict], width: int, height: i
     return [ln[:width] for ln in lines[:height]]
 
 
+class Writer(Protocol):
+    def write(self, text: str) -> object: ...
+
+    def flush(self) -> object: ...
+
+
 class Dashboard:
     """Draws on `out` (a terminal; standard output as it is when made)."""
 
-    def __init__(self, out: Optional[IO[str]] = None) -> None:
+    def __init__(self, out: Optional[Writer] = None) -> None:
         self.out = sys.stdout if out is None else out
         self.on = False
 

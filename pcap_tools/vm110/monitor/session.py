@@ -31,6 +31,7 @@ from . import dashboard as dash
 from .evidence import Evidence
 from .intake import Intake
 from .live import Live, finding, item
+from .outlet import Outlet
 from .sources import Source
 from .stopping import Signals, hung_up
 
@@ -43,6 +44,7 @@ UNWRITABLE = (OSError, closedpipe.StdoutUnwritable)   # standard output's write 
 RATE_LIMITED = {"lost", "illegal", "restarts", "failed"}   # at most one line per second per sender
 LIMITED_MAX = 4096           # (rule, sender) pairs the rate limit keeps; beyond, the old ones' lines are told
 UNSAID_MAX = 100             # warnings kept for after the dashboard (a disk full for days fails every window)
+END_WAIT_S = 5.0             # at the end, standard output's reader has this long to take what waits
 
 
 @dataclass
@@ -80,7 +82,8 @@ class Session:
         self.active: dict = {}
         self.limited: dict = {}             # (rule, sender) -> (time of last line, suppressed since)
         self.counts: collections.Counter = collections.Counter()
-        self.board = dash.Dashboard() if cfg.dashboard else None
+        self.out = Outlet(sys.stdout, self._left_out)   # lines, JSON lines, the dashboard: never waited on
+        self.board = dash.Dashboard(self.out) if cfg.dashboard else None
         self.last_ts: Optional[float] = None
         self.last_mono = 0.0
         self.first_mono: Optional[float] = None
@@ -152,6 +155,7 @@ class Session:
             if self.board is not None:
                 with contextlib.suppress(*UNWRITABLE):
                     self.board.close()
+                    self.out.flush(TICK_S)
             raise
         self._end()
 
@@ -236,6 +240,10 @@ class Session:
             self.cfg.evidence.tick(ts)
 
     def _periodic(self) -> None:
+        try:
+            self.out.flush()                # (what waits for a reader that stalled and goes on)
+        except UNWRITABLE as exc:
+            self._stdout_failed(exc)
         mono = time.monotonic()
         if self.intake.deciding and self.first_mono is not None and (self.cfg.live or self.cfg.realtime) \
                 and mono - self.first_mono >= DECIDE_WAIT_S:
@@ -342,7 +350,7 @@ class Session:
                 self.cfg.lines = False
             return
         try:
-            print(line, flush=True)
+            self.out.write(line + "\n")
         except UNWRITABLE as exc:
             self._stdout_failed(exc)
 
@@ -357,6 +365,7 @@ class Session:
             closedpipe.said.unwritable = getattr(exc, "strerror", None) or str(exc)
             self.warn(f"cannot write standard output: {closedpipe.said.unwritable}")
         closedpipe.silence_stdout()
+        self.out.drop()
         if not self.cfg.lines_to_stderr:
             self.cfg.lines = False
         if self.cfg.json_lines is sys.stdout:
@@ -381,8 +390,11 @@ class Session:
         except ValueError:                 # inf/nan from damaged timestamps: as null
             text = json.dumps(_finite(obj), default=_plain)
         try:
-            out.write(text + "\n")
-            out.flush()
+            if out is sys.stdout:
+                self.out.write(text + "\n")
+            else:
+                out.write(text + "\n")
+                out.flush()
         except UNWRITABLE as exc:
             if out is sys.stdout:
                 self._stdout_failed(exc)
@@ -407,6 +419,8 @@ class Session:
 
     def draw(self, status: str) -> None:
         assert self.board is not None
+        if self.out.busy:                 # (the last screen is not shown yet: no stale ones queued behind it)
+            return
         now = self.now()
         got = self.intake.got
         header = {"source": self.cfg.name, "now": now, "status": status, "packets": self.done,
@@ -452,14 +466,48 @@ class Session:
                 self.board.close()
             except UNWRITABLE as exc:
                 self._stdout_failed(exc)
+        self._caught_up()
         for message in self.unsaid:
             print(f"vm110 monitor: {message}", file=sys.stderr)
         if self.unsaid_more:
             print(f"vm110 monitor: and {self.unsaid_more} more warning(s), not kept", file=sys.stderr)
 
+    def _left_out(self, count: int) -> str:
+        """What the reader of standard output is told of the lines it missed while it read nothing."""
+        at = self.now()
+        if self.cfg.json_lines is sys.stdout:
+            return json.dumps({"type": "left_out", "count": count, "at": at}) + "\n"
+        return (f"{'-' if at is None else utc_iso(at)} standard output was not read: {count} "
+                f"line{'s' if count > 1 else ''} left out\n")
+
+    def _caught_up(self) -> None:
+        """The reader of standard output takes what waits, or, still stalled after END_WAIT_S, is
+        left as one gone away (`| head`): the summary, report files and exit code follow, not a
+        hang until it reads."""
+        try:
+            if self.out.flush(END_WAIT_S):
+                return
+        except UNWRITABLE as exc:
+            self._stdout_failed(exc)
+            return
+        shared = _same_file(sys.stdout, sys.stderr)      # (`2>&1 | less`: the warning would wait too)
+        closedpipe.silence_stdout()
+        if shared:
+            closedpipe.silence_stdout(sys.stderr)
+        self.out.drop()
+        self.warn(f"standard output not read for {END_WAIT_S:g} s: the rest of it is left out")
+
     def close(self) -> None:
         self.spool.close()
         self.command_spool.close()
+
+
+def _same_file(a: IO[str], b: IO[str]) -> bool:
+    try:
+        x, y = os.fstat(a.fileno()), os.fstat(b.fileno())
+    except (AttributeError, ValueError, OSError):
+        return False
+    return (x.st_dev, x.st_ino) == (y.st_dev, y.st_ino)
 
 
 def rss_kb() -> Optional[int]:
