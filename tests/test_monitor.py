@@ -674,8 +674,10 @@ def test_json_lines_that_cannot_be_written_leave_the_watch_and_its_report(tmp_pa
         f"vm110 monitor: --json-lines {lines}: cannot write: File too large; no more lines are written",
         f"fail-on: {ROOT / 'captures' / 'loss.pcapng'}: lost=34 (rule lost>0)"]
     assert b"VERDICT: FAIL" in done.stdout and b"error   34 packets lost" in done.stdout
+    # Whole lines only: the one that did not fit is taken back (a torn last line broke every reader).
     written = lines.read_bytes()
-    assert len(written) == limit and [json.loads(line) for line in written.splitlines()[:-1]]
+    assert limit - 2000 < len(written) < limit and written.endswith(b"\n")
+    assert all(json.loads(line)["type"] in ("snapshot", "finding") for line in written.splitlines())
 
 
 def test_a_closed_standard_output_ends_the_run_with_its_report_and_verdict(tmp_path):

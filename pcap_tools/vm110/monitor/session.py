@@ -389,10 +389,12 @@ class Session:
             text = json.dumps(obj, allow_nan=False, default=_plain)
         except ValueError:                 # inf/nan from damaged timestamps: as null
             text = json.dumps(_finite(obj), default=_plain)
+        before = None
         try:
             if out is sys.stdout:
                 self.out.write(text + "\n")
             else:
+                before = _size(out)
                 out.write(text + "\n")
                 out.flush()
         except UNWRITABLE as exc:
@@ -400,10 +402,10 @@ class Session:
                 self._stdout_failed(exc)
                 return
             assert isinstance(exc, OSError)
-            # A full disk: the lines end (after a torn one, none would parse), the watch goes on.
+            # A full disk: the lines end, the watch goes on. The line written in part is taken back:
+            # a reader of the file (jq, a log shipper) gets whole lines only.
             self.cfg.json_lines = None
-            with contextlib.suppress(OSError):
-                out.close()
+            _close_at(out, before)
             self.warn(f"--json-lines {out.name}: cannot write: {exc.strerror or exc}; no more lines are written")
 
     # -- views ---------------------------------------------------------------------------------
@@ -500,6 +502,30 @@ class Session:
     def close(self) -> None:
         self.spool.close()
         self.command_spool.close()
+
+
+def _size(out: IO[str]) -> Optional[int]:
+    """The size of the file `out` writes to (appends: where its next line begins), None without one."""
+    try:
+        return os.fstat(out.fileno()).st_size
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _close_at(out: IO[str], size: Optional[int]) -> None:
+    """Close `out`, its file cut back to `size` bytes (None: as it is). Its buffer, written at the
+    close if it can be, is cut too; a file cut shorter meanwhile (logrotate's copytruncate) is left."""
+    fd = None
+    with contextlib.suppress(AttributeError, ValueError, OSError):
+        fd = os.dup(out.fileno())
+    with contextlib.suppress(OSError):
+        out.close()
+    if fd is None:
+        return
+    with contextlib.suppress(OSError):
+        if size is not None and os.fstat(fd).st_size > size:
+            os.ftruncate(fd, size)
+    os.close(fd)
 
 
 def _same_file(a: IO[str], b: IO[str]) -> bool:
