@@ -852,3 +852,31 @@ def test_a_reader_that_stops_reading_stops_neither_the_watch_nor_its_end(tmp_pat
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
+
+
+def test_packet_ids_off_the_network_reach_no_terminal_as_escape_sequences(tmp_path, capsys):
+    """Trial: a datagram on the input port whose first bytes were ESC [ 2 J (any host on the link
+    can send one) was told as `illegal \\x1b[2J: ...` with the ESC itself: the terminal of the
+    finding lines cleared its screen, the dashboard's likewise (and ESC ] 0 ; set its title).
+    The lines give such characters as their escapes."""
+    from vm110.capture.writer import PcapWriter, UdpFlow
+    from vm110.monitor import dashboard as dash
+    capture = tmp_path / "esc.pcap"
+    flow = UdpFlow("10.0.0.10", 5825, "239.255.42.20", 5825)
+    with open(capture, "wb") as f, PcapWriter(f) as w:
+        w.write_many([(1_750_000_000_000_000, flow.frame(b"\x1b[2J" + bytes(30))),
+                      (1_750_000_002_000_000, flow.frame(b"\x1b]0;" + bytes(30)))])
+    assert main(["monitor", "--read", str(capture), "--idle", "0", "--no-dashboard", "--crc", "mpeg2",
+                 "--crc-order", "little", "--json-lines", str(tmp_path / "l.jsonl")]) == 0
+    told = [ln for ln in capsys.readouterr().out.splitlines() if " ERROR illegal " in ln]
+    assert [ln.split(": ")[1] for ln in told] == ["illegal \\x1b[2J", "illegal \\x1b]0;"]
+    findings = [json.loads(ln) for ln in (tmp_path / "l.jsonl").read_text().splitlines()]
+    findings = [f for f in findings if f["type"] == "finding"]
+    assert [f["item"]["type"] for f in findings] == ["\x1b[2J", "\x1b]0;"]      # (the JSON keeps them as they came)
+    view = {"commands": {"commands": 0, "in_flight": 0, "unacked": 0, "failed": 0,
+                         "ack_latency_ms": {"last": None, "max_1m": None}}, "senders": []}
+    header = {"now": findings[0]["time"], "status": "running", "source": "cap\x1b[2J.pcap", "packets": 2,
+              "rate": 0.0, "eglink": 2, "illegal": 2, "alarms": []}
+    screen = dash.render(header, view, findings, 120, 24)
+    assert all(ln.isprintable() for ln in screen) and "\\x1b[2J" in screen[0]
+    assert "illegal \\x1b[2J" in screen[-2] and "illegal \\x1b]0;" in screen[-1]

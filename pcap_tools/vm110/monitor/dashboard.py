@@ -8,6 +8,7 @@ import shutil
 import sys
 from typing import Optional, Protocol
 
+from ..printable import escaped
 from ..timefmt import utc_iso
 
 _ENTER, _LEAVE = "\033[?1049h\033[?25l", "\033[?25h\033[?1049l"
@@ -75,8 +76,9 @@ def finding_line(f: dict, today: Optional[str] = None) -> str:
     who = f" {short(f['sender'])}" if f.get("sender") else ""
     where = (f.get("item") or {}).get("filter")
     rule = f"{f['rule']} {event}" if event else f["rule"]
-    return f"{when(f['time'], today)} #{f['frame']} {sev} {rule}{who}: {f['message']}" + (
-        f"  [{where}]" if where else "")
+    # (a message may quote the network: an illegal packet's ID "\x1b[2J" would clear the screen)
+    return escaped(f"{when(f['time'], today)} #{f['frame']} {sev} {rule}{who}: {f['message']}" + (
+        f"  [{where}]" if where else ""))
 
 
 def render(header: dict, view: dict, findings: list[dict], width: int, height: int) -> list[str]:
@@ -106,7 +108,7 @@ def render(header: dict, view: dict, findings: list[dict], width: int, height: i
     if room > 0:
         lines.append("findings (latest last):")
         lines += [finding_line(f, today) for f in findings[-room:]] if findings else ["  none"]
-    return [ln[:width] for ln in lines[:height]]
+    return [escaped(ln)[:width] for ln in lines[:height]]      # (the source: a file name of any bytes)
 
 
 class Writer(Protocol):
