@@ -880,3 +880,31 @@ def test_packet_ids_off_the_network_reach_no_terminal_as_escape_sequences(tmp_pa
     screen = dash.render(header, view, findings, 120, 24)
     assert all(ln.isprintable() for ln in screen) and "\\x1b[2J" in screen[0]
     assert "illegal \\x1b[2J" in screen[-2] and "illegal \\x1b]0;" in screen[-1]
+
+
+def test_a_followed_file_of_dumpcap_s_ring_buffer_goes_on_in_the_next_one(tmp_path):
+    """Trial: `dumpcap -b filesize:... -w ring/r.pcapng` with `vm110 monitor --read
+    ring/r_00001_...pcapng`: once dumpcap went on in r_00002_..., the monitor sat on the first file
+    for ever, its dashboard saying the link alive. It reads on in the ring's next file (made once
+    the one before is closed), as one stream: the report is analyze's of the files one after the
+    other. A BU losing every 20th VRPI, over three ring files."""
+    from vm110 import encode as E
+    from vm110.capture.writer import PcapngWriter, UdpFlow
+    flow = UdpFlow("10.0.0.10", 5825, "239.255.42.20", 5825)
+    vrpi = E.vrpi_payload({"bu_state": 0x10})
+    stamps = ["20250615150640", "20250615150643", "20250615150647"]
+    names = [tmp_path / f"r_{i + 1:05d}_{stamp}.pcapng" for i, stamp in enumerate(stamps)]
+    for i, name in enumerate(names):
+        with open(name, "wb") as f, PcapngWriter(f) as w:
+            w.write_many((1_750_000_000_000_000 + serial * 125_000,
+                          flow.frame(E.packet(C.PacketType.VRPI, vrpi, origin=0x101, serial=serial)))
+                         for serial in range(i * 30, (i + 1) * 30) if serial % 20 != 7)
+    (tmp_path / "all.pcapng").write_bytes(b"".join(n.read_bytes() for n in names))
+    expected, seen = tmp_path / "a.json", tmp_path / "m.json"
+    assert main(["analyze", str(tmp_path / "all.pcapng"), "--quiet", "--json", str(expected)]) == 0
+    assert main(["monitor", "--read", str(names[0]), "--idle", "0", "--quiet", "--json", str(seen)]) == 0
+    a, m = json.loads(expected.read_text()), json.loads(seen.read_text())
+    assert m["totals"]["packets"] == 85 and m["totals"]["lost"] == 5
+    assert m["capture"].pop("file") == str(names[0])
+    del a["capture"]["file"]
+    assert m == a

@@ -3,7 +3,9 @@ standard input. `read(timeout)` returns the next bytes, b"" when none came withi
 seconds, None at the end of the input."""
 from __future__ import annotations
 
+import glob
 import os
+import re
 import select
 import shutil
 import stat
@@ -26,6 +28,9 @@ DUMPCAP_HINT = ("capturing needs rights: run as root, or let dumpcap capture (De
 # of a program with capabilities or setuid (dumpcap for a user of the wireshark group) clears it.
 # Should the monitor die before setpriv set it, dumpcap's first write (its pcapng header) to the
 # pipe no one reads ends dumpcap.
+# A file of dumpcap's ring buffer (-b filesize:/duration:/files:): PREFIX_NNNNN_YYYYMMDDhhmmss.EXT
+RING = re.compile(r"^(?P<head>.*_)(?P<n>\d{5,})_\d{14}(?P<ext>\.[^./]*)?$")
+PCAPNG = b"\x0a\x0d\x0d\x0a"     # a section header block: sections may follow one another in a stream
 TIED = ('trap \'kill -TERM "$c" 2>/dev/null\' HUP INT TERM; "$@" & c=$!; '
         'while :; do wait "$c"; s=$?; kill -0 "$c" 2>/dev/null || exit "$s"; done')
 
@@ -68,7 +73,9 @@ class FollowFile(Source):
     """A capture file read as it grows (tail -f); the input ends when it has not grown for `idle`
     seconds (None: never, until interrupted), or when its path leads elsewhere: another file renamed
     over it, or this one cut shorter than what was read (what comes then is another capture, not the
-    rest of this one). A file removed is still read through what was opened: its writer may go on."""
+    rest of this one). A file removed is still read through what was opened: its writer may go on.
+    A pcapng file of dumpcap's ring buffer goes on in the ring's next file once that exists (dumpcap
+    makes it after closing this one): read on there, as one stream of pcapng sections."""
 
     def __init__(self, path: str, idle: Optional[float], size: int = FILE_READ_SIZE) -> None:
         self.name, self.idle, self.size = path, idle, size
@@ -80,6 +87,8 @@ class FollowFile(Source):
         self.identity = (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) else None   # (a FIFO has no size)
         self.grew = time.monotonic()
         self.gone: Optional[str] = None
+        self.ring = self.identity is not None and RING.match(os.path.basename(path)) is not None \
+            and os.pread(self.file.fileno(), 4, 0) == PCAPNG
 
     def read(self, timeout: float) -> Optional[bytes]:
         try:
@@ -89,11 +98,35 @@ class FollowFile(Source):
         if data:
             self.grew = time.monotonic()
             return data
+        if self.ring and self._next_in_ring():
+            return b""
         self.gone = self._gone()
         if self.gone is not None or (self.idle is not None and time.monotonic() - self.grew >= self.idle):
             return None
         time.sleep(timeout if self.idle is None else min(timeout, max(0.0, self.idle)))
         return b""
+
+    def _next_in_ring(self) -> bool:
+        """Whether the ring's next file is now the one read (this one read to its end)."""
+        m = RING.match(os.path.basename(self.name))
+        assert m is not None
+        folder = os.path.dirname(self.name)
+        later = sorted(glob.glob(os.path.join(glob.escape(folder), glob.escape(f"{m['head']}{int(m['n']) + 1:05d}_")
+                                              + "[0-9]" * 14 + glob.escape(m["ext"] or ""))))
+        if not later:
+            return False
+        if self.file.read(1):                   # (this one was still written meanwhile: to its end first)
+            self.file.seek(-1, os.SEEK_CUR)
+            return False
+        try:
+            nxt = open(later[0], "rb")          # noqa: SIM115 -- the source owns it; close()
+        except OSError:                         # (removed already by -b files:N: read on where we are)
+            return False
+        self.file.close()
+        self.file, self.name = nxt, later[0]
+        st = os.fstat(nxt.fileno())
+        self.identity, self.grew = (st.st_dev, st.st_ino), time.monotonic()
+        return True
 
     def _gone(self) -> Optional[str]:
         """Why the path no longer leads to the rest of what was read (None: it still may)."""
