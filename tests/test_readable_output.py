@@ -216,3 +216,18 @@ def test_the_crc_line_says_how_many_packets_carried_no_crc(capsys, tmp_path):
     out = vm110(capsys, "analyze", str(path), "--html", str(tmp_path / "r.html"))
     assert "CRC mpeg2/little (auto): 3 valid, 0 invalid (2 of them unchecked: too short to carry a CRC)" in out
     assert "3 valid, 0 invalid (2 of them unchecked: too short to carry a CRC)" in (tmp_path / "r.html").read_text()
+
+
+def test_packet_ids_off_the_network_reach_no_terminal_in_the_summary(capsys, tmp_path):
+    """Any host on the link can send a datagram whose packet ID is ESC [ 2 J: analyze's summary
+    (and the monitor's, the same code) printed it as it came, and the terminal cleared its screen.
+    It gives such characters as their escapes; the JSON keeps the bytes as they came."""
+    from vm110.capture.writer import PcapWriter, UdpFlow
+    capture = tmp_path / "esc.pcap"
+    flow = UdpFlow("10.0.0.10", 5825, "239.255.42.20", 5825)
+    with open(capture, "wb") as f, PcapWriter(f) as w:
+        w.write_many([(1_750_000_000_000_000, flow.frame(b"\x1b[2J" + bytes(30)))])
+    out = vm110(capsys, "analyze", str(capture), "--json", str(tmp_path / "r.json"))
+    assert "type \\x1b[2J," in out and all(line.isprintable() for line in out.splitlines())
+    items = json.loads((tmp_path / "r.json").read_text())["verdict"]["findings"][0]["items"]
+    assert items[0]["type"] == "\x1b[2J"

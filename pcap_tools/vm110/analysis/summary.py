@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections import Counter
 from typing import Optional
 
+from ..printable import escaped
 from ..timefmt import since, stamp, utc_iso
 from ..words import plural
 from .findings import SEVERITIES
@@ -163,7 +164,7 @@ def render(report: dict, everything: bool = False) -> str:
                 f"{stamp(e['start'], t0)} for {_f(e['duration_s'], 3)} s {'/'.join(e['states'])}"
                 + (", still open at the end" if e["open_at_end"] else "") for e in eps[:5])
                 + (f" ... {len(eps)} in all" if len(eps) > 5 else ""))
-    return "\n".join(lines)
+    return "\n".join(map(escaped, lines))      # (packet IDs, file names: bytes from anywhere)
 
 
 def render_combined(combined: dict) -> str:
@@ -172,5 +173,5 @@ def render_combined(combined: dict) -> str:
         t = c["totals"]
         rows.append([c["file"], "OK" if c["ok"] else "FAIL", *(str(t[k]) for k in ("packets", "lost", "illegal",
                                                                                    "watchdog", "unacked", "failed"))])
-    return "\n".join([(f"Combined: {len(combined['captures'])} captures, "
-                       f"{'all OK' if combined['ok'] else 'FAIL'}"), *_table(rows)])
+    return "\n".join(map(escaped, [(f"Combined: {len(combined['captures'])} captures, "
+                                    f"{'all OK' if combined['ok'] else 'FAIL'}"), *_table(rows)]))
