@@ -14,6 +14,7 @@ import tempfile
 import time
 from typing import Optional
 
+from ..capture.reader import PCAPNG_SHB
 from ..errors import CliError
 
 READ_SIZE = 1 << 16            # a pipe's worth
@@ -30,7 +31,6 @@ DUMPCAP_HINT = ("capturing needs rights: run as root, or let dumpcap capture (De
 # pipe no one reads ends dumpcap.
 # A file of dumpcap's ring buffer (-b filesize:/duration:/files:): PREFIX_NNNNN_YYYYMMDDhhmmss.EXT
 RING = re.compile(r"^(?P<head>.*_)(?P<n>\d{5,})_\d{14}(?P<ext>\.[^./]*)?$")
-PCAPNG = b"\x0a\x0d\x0d\x0a"     # a section header block: sections may follow one another in a stream
 TIED = ('trap \'kill -TERM "$c" 2>/dev/null\' HUP INT TERM; "$@" & c=$!; '
         'while :; do wait "$c"; s=$?; kill -0 "$c" 2>/dev/null || exit "$s"; done')
 
@@ -88,7 +88,7 @@ class FollowFile(Source):
         self.grew = time.monotonic()
         self.gone: Optional[str] = None
         self.ring = self.identity is not None and RING.match(os.path.basename(path)) is not None \
-            and os.pread(self.file.fileno(), 4, 0) == PCAPNG
+            and int.from_bytes(os.pread(self.file.fileno(), 4, 0), "little") == PCAPNG_SHB  # (pcapng)
 
     def read(self, timeout: float) -> Optional[bytes]:
         try:
