@@ -108,7 +108,7 @@ def test_enumerations_follow_the_code():
     """Rules and their severities, totals and options: the schema lists exactly what the code makes."""
     severity = {rule: sev for rule, sev, *_ in FINDINGS} | {"damaged": "error", "no_eglink": "error", "ip_fragments": "warning",
                                                             "unread_link_type": "warning", "tunnels": "warning",
-                                                            "not_in_time_order": "warning"}
+                                                            "not_in_time_order": "warning", "capture_dropped": "warning"}
     assert set(DEFS["finding"]["properties"]["rule"]["enum"]) == set(severity)
     assert {c["if"]["properties"]["rule"]["const"]: c["then"]["properties"]["severity"]["const"]
             for c in DEFS["finding"]["allOf"]} == severity

@@ -132,6 +132,7 @@ class Collected:
     snap_truncated: int = 0
     problem: Optional[str] = None
     damage: Optional[int] = None          # file offset where reading stopped for `problem`
+    dropped: Optional[dict] = None        # what the capture says it dropped (capture.drops); None: nothing
     first_ts: Optional[float] = None
     last_ts: Optional[float] = None
     earliest_ts: float = math.inf         # the span of the records' times, in any order (capinfos')

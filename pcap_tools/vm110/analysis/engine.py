@@ -262,6 +262,7 @@ class FastEngine:
         got.frames, got.non_udp, got.fragments = reader.frames, reader.non_udp, reader.fragments
         got.unread, got.tunnelled = reader.unknown_link, reader.tunnelled
         got.snap_truncated, got.problem, got.damage = len(reader.snap_truncated), reader.problem, reader.damage
+        got.dropped = reader.drops.report()
         got.first_ts, got.last_ts = reader.first_ts, reader.last_ts
         got.earliest_ts, got.latest_ts = reader.earliest, reader.latest
         got.link_types = sorted(reader.link_types)

@@ -56,8 +56,8 @@ _ACK_CODE = {CODE[cmd]: CODE[ack] for ack, cmd in C.ACK_OF.items()}
 TOTAL_NAMES = ("packets", "eglink_packets", "damaged", "lost", "duplicates", "out_of_order", "restarts", "illegal",
                "crc_invalid", "watchdog", "vrpo_outside_recommended", "commands", "retransmissions", "unacked",
                "failed", "interrupted", "spurious", "acks_without_command", "duplicate_acks", "relays_open",
-               "vrpo_incomplete", "time_backwards", "snaplen_truncated", "jitter_max_ms", "interval_max_ms",
-               "ack_latency_max_ms")
+               "vrpo_incomplete", "time_backwards", "snaplen_truncated", "capture_dropped", "jitter_max_ms",
+               "interval_max_ms", "ack_latency_max_ms")
 MAX_TOTALS = frozenset({"jitter_max_ms", "interval_max_ms", "ack_latency_max_ms"})   # combined by max, not sum
 
 # (total, severity, message after the count: singular, plural) for each finding the verdict
@@ -235,6 +235,7 @@ def totals(report: dict) -> dict:
         "vrpo_incomplete": report["vrpo_bursts"]["incomplete"],
         "time_backwards": report["capture"]["time_backwards"],
         "snaplen_truncated": report["capture"]["snaplen_truncated"],
+        "capture_dropped": (report["capture"]["dropped"] or {}).get("total", 0),
         "jitter_max_ms": max(jitters) if jitters else 0.0,
         "interval_max_ms": max(maxes) if maxes else 0.0,
         "ack_latency_max_ms": max(lat) if lat else 0.0,
@@ -246,6 +247,24 @@ def _items(kept: Kept) -> dict:
     if kept.total > MAX_ITEMS:
         out["more"] = kept.total - MAX_ITEMS
     return out
+
+
+# The pcapng names of the capture's drop counts (capture.dropped), as the message gives them.
+_DROP_NAMES = {"ifdrop": "isb_ifdrop", "osdrop": "isb_osdrop", "dropcount": "epb_dropcount"}
+
+
+def capture_dropped(dropped: dict, lost: int, ports: list[int]) -> str:
+    """The warning that the capture itself dropped packets, which a serial gap cannot tell from
+    packets the link lost: how many, against how many are counted lost, what helps, and where
+    Wireshark shows them (frame.drop_count: the packets after a drop, where the packet blocks say)."""
+    said = ", ".join(f"{_DROP_NAMES[k]} {dropped[k]}" for k in _DROP_NAMES if dropped[k] is not None)
+    after = "; the packets after a drop: frame.drop_count > 0" if dropped["dropcount"] else ""
+    share = (f"up to {min(dropped['total'], lost)} of the {lost} packets counted lost (serial gaps) may be the "
+             f"capture's, not the link's" if lost else "no packet is counted lost")
+    return (f"the capture dropped {dropped['total']} packets itself (pcapng {said}): {share}; capture with "
+            f"a bigger buffer (dumpcap -B), a capture filter on the EG-Link ports "
+            f"(-f \"udp port {ports[0]} or udp port {ports[1]}\"), a faster disk; Wireshark: Statistics > "
+            f"Capture File Properties, Dropped packets{after}")
 
 
 def verdict(report: dict, located: Located, prefs: Optional[list[str]], no_filters: Optional[str] = None) -> dict:
@@ -274,6 +293,9 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]], no_filte
                                        "fail limits and windows across them run on a clock that does not go back "
                                        "(docs/rules.md); where the time steps back: frame.time_delta < 0; records "
                                        "of several taps into time order: reordercap IN OUT", "items": []})
+    if tot["capture_dropped"]:
+        findings.insert(0, {"rule": "capture_dropped", "severity": "warning", "count": tot["capture_dropped"],
+                            "message": capture_dropped(cap["dropped"], tot["lost"], cap["ports"]), "items": []})
     if cap["fragments"]:      # (not reassembled: what they carry is missing from everything above)
         findings.insert(0, {"rule": "ip_fragments", "severity": "warning", "count": cap["fragments"],
                             "message": f"{cap['fragments']} IP fragments not analysed (EG-Link packets in them "

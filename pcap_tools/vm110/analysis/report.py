@@ -95,7 +95,7 @@ def _build(got: Collected) -> dict:
             "earliest_time": got.earliest_ts if got.earliest_ts <= got.latest_ts else None,
             "latest_time": got.latest_ts if got.earliest_ts <= got.latest_ts else None,
             "time_backwards": stepped_back, "behind_clock": analysis.behind,
-            "problem": got.problem, "ports": list(got.ports),
+            "problem": got.problem, "ports": list(got.ports), "dropped": got.dropped,
             "damage": None if got.problem is None else {"offset": got.damage, "message": got.problem},
         },
         "crc": {"variant": got.crc_variant, "byte_order": got.crc_order, "auto": got.crc_auto,

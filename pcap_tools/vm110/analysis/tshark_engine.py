@@ -172,7 +172,8 @@ class TsharkEngine:
                         link_types=sorted(reader.link_types),
                         ports=(self.port, self.port + C.OUTPUT_PORT_OFFSET), crc_variant=variant,
                         crc_order=order, crc_auto=self.crc == "auto" or self.crc_order == "auto",
-                        problem=reader.problem, first_ts=reader.first_ts, last_ts=reader.last_ts,
+                        problem=reader.problem, dropped=reader.drops.report(),
+                        first_ts=reader.first_ts, last_ts=reader.last_ts,
                         earliest_ts=reader.earliest, latest_ts=reader.latest)
         frames, ports, ts, pcap = 0, frozenset(got.ports), 0.0, reader.format == "pcap"
         for pkt in self._packets(path, variant, order):

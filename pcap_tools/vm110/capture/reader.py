@@ -23,6 +23,7 @@ from typing import BinaryIO, Generator, Iterator, NamedTuple, Optional
 from ..errors import CliError
 from . import linktypes as L
 from .compressed import OTHER_COMPRESSIONS, Gunzip, is_gzip
+from .drops import Drops
 
 Datagram = tuple  # (ts: float, src: bytes, sport: int, dport: int, payload: bytes or None (see udp_of), frame: int)
 
@@ -157,6 +158,7 @@ class CaptureReader:
         self.endian = "<"                       # pcapng: of the current section
         self.interfaces: list[tuple] = []       # pcapng: (link, ticks/s or 0, s/tick, offset, Ethernet?)
         self.spb_snaplen = 0                    # pcapng: the section's first interface's snaplen (0: none)
+        self.drops = Drops()                    # pcapng: what the capture says it dropped
         self.ts_digits = 6                      # decimal digits of the finest timestamps (9: ns)
 
     def _identify(self, path: str, raw: BinaryIO) -> tuple[int, str]:
@@ -364,6 +366,8 @@ class CaptureReader:
                 iface, _, tsh, tsl, incl, orig = struct.unpack_from(e + "HHIIII", data, pos + 8)
             if iface >= len(self.interfaces) or incl > blen - 28:
                 return (self.last_ts or 0.0, None, pos + 28, 0, 0)
+            if btype == PCAPNG_EPB and blen > 32 + padded(incl):       # (options: rare)
+                self.drops.packet(data, iface, pos + 28 + padded(incl), pos + blen - 4, e)
             link, div, scale, tsoff, _ = self.interfaces[iface]
             ticks = (tsh << 32) | tsl
             if div:
@@ -387,8 +391,11 @@ class CaptureReader:
             div, scale, tsoff = self._idb_options(data, pos + 16, pos + blen - 4, e)
             self.link_types.add(L.NAMES.get(link, str(link)))
             self.interfaces.append((link, div, scale, tsoff, link == L.LINKTYPE_ETHERNET))
+            self.drops.interface(data, pos, blen, e)
             digits = len(str(div)) - 1 if div else 9       # (binary fractions: in nanoseconds)
             self.ts_digits = max(self.ts_digits, min(digits, 9))
+        elif btype == PCAPNG_ISB:
+            self.drops.statistics(data, pos, blen, e)
         return None
 
     def pcapng_section(self, data: bytes, pos: int) -> None:
@@ -404,6 +411,7 @@ class CaptureReader:
             # A later section: what came before it is kept (bad_block stops the walk here).
             self.damaged(at, f"bad pcapng byte-order magic in the section at byte {at}")
         self.interfaces = []
+        self.drops.section()
 
     def bad_trailer(self, data: bytes, pos: int, blen: int) -> bool:
         """Whether a whole block's trailing length differs from its leading one (damage)."""

@@ -153,6 +153,7 @@ class Intake:
         got.udp = reader.frames - reader.non_udp
         got.snap_truncated = self.cut + len(reader.snap_truncated)
         got.problem, got.damage = reader.problem, reader.damage
+        got.dropped = reader.drops.report()
         got.first_ts, got.last_ts = reader.first_ts, reader.last_ts
         got.earliest_ts, got.latest_ts = reader.earliest, reader.latest
         got.link_types = sorted(reader.link_types)
