@@ -94,6 +94,10 @@ def test_watchdog_alarm_evidence_and_recovery_on_a_live_link(netns, tmp_path):
     assert [v for v in violations if v["until_end"] and v["gap_ms"] > 1000]
     assert rep["capture"]["last_time"] - rep["capture"]["first_time"] > 7.5
     assert [f for f in raised if f["item"].get("until_end") and f["time"] > back["time"]]
+    # Stopped, dumpcap ends its capture with its statistics of the interface (what it dropped), which
+    # the report gives as analyze gives them from dumpcap's file (the monitor stopped reading before).
+    [lo] = rep["capture"]["dropped"]["interfaces"]
+    assert lo["name"] == "lo" and lo["ifdrop"] is not None
 
 
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux not installed")

@@ -366,7 +366,7 @@ class CaptureReader:
                 iface, _, tsh, tsl, incl, orig = struct.unpack_from(e + "HHIIII", data, pos + 8)
             if iface >= len(self.interfaces) or incl > blen - 28:
                 return (self.last_ts or 0.0, None, pos + 28, 0, 0)
-            if btype == PCAPNG_EPB and blen > 32 + padded(incl):       # (options: rare)
+            if blen > 32 + ((incl + 3) & ~3) and btype == PCAPNG_EPB:       # (options: rare)
                 self.drops.packet(data, iface, pos + 28 + padded(incl), pos + blen - 4, e)
             link, div, scale, tsoff, _ = self.interfaces[iface]
             ticks = (tsh << 32) | tsl

@@ -45,6 +45,7 @@ RATE_LIMITED = {"lost", "illegal", "restarts", "failed"}   # at most one line pe
 LIMITED_MAX = 4096           # (rule, sender) pairs the rate limit keeps; beyond, the old ones' lines are told
 UNSAID_MAX = 100             # warnings kept for after the dashboard (a disk full for days fails every window)
 END_WAIT_S = 5.0             # at the end, standard output's reader has this long to take what waits
+REST_S = 2.0                 # at the end, dumpcap has this long to give its last blocks (what it dropped)
 
 
 @dataclass
@@ -441,6 +442,8 @@ class Session:
             if self.input_ended:
                 self.reader.close()
             else:                              # stopped by us: a record still arriving is not damage
+                if self.failure is None:       # (dumpcap's last blocks: its statistics say what it dropped)
+                    self._packets(self.reader.feed(self.source.rest(REST_S)))
                 self.reader.buf = b""
         except CliError as exc:            # not a capture at all: said at the end
             self.failure = self.failure or str(exc)

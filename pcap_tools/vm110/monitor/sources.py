@@ -44,6 +44,11 @@ class Source:
     def close(self) -> None:
         """Stop reading (the process or file of the source is let go)."""
 
+    def rest(self, timeout: float) -> bytes:
+        """What the source still gives, within `timeout` seconds, when the run stops before its
+        input ended: nothing, but for dumpcap."""
+        return b""
+
     def failure(self) -> Optional[str]:
         """Why the input ended, when it was not the end of the data."""
         return None
@@ -193,6 +198,19 @@ class Dumpcap(Source):
         if "permission" in message.lower():
             message = f"{message}; {DUMPCAP_HINT}"
         return f"{message} (interface {self.name})"
+
+    def rest(self, timeout: float) -> bytes:
+        """dumpcap stopped (the shell passes SIGTERM on), and what it writes until it ends: the last
+        packets and its statistics of each interface, which say what it dropped."""
+        if self.proc.poll() is None:
+            self.proc.terminate()
+        out, deadline = [], time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            data = self.pipe.read(left)
+            if not data:                  # (None: dumpcap ended; b"": the time is up)
+                break
+            out.append(data)
+        return b"".join(out)
 
     def close(self) -> None:
         if self.proc.poll() is None:
