@@ -5,6 +5,7 @@ import pytest
 from scapy.layers.inet import IP, UDP
 from scapy.layers.l2 import Ether
 from scapy.packet import Raw
+from scapy.plist import PacketList
 
 from vectorlib import expected_fields, load_vectors, packet_bytes, vector_ids
 from vm110 import constants as C
@@ -159,6 +160,17 @@ def test_ack_answers_command_with_same_id():
     assert vrao.hashret() == vrci.hashret() != vrai.hashret()
     dissected = [VM110(bytes(p)) for p in (vrci, vrao)]
     assert dissected[1].answers(dissected[0])
+
+
+def test_only_the_acknowledgement_answers_its_command():
+    # TS-0006 5.1.3: the BU resends a VRCI (same command ID, new serial) until a VRAO comes, and
+    # sends VRPI all along. PacketList.sr() pairs what answers what: it paired each VRCI with its
+    # own retransmission and each VRPI with the next (scapy's default answers() for one class).
+    traffic = PacketList([VM110(bytes(VM110(serial=s) / p)) for s, p in enumerate([
+        VRCI(command_id=17), VRPI(), VRCI(command_id=17), VRPI(), VRAO(command_id=17),
+        VRPO(), VRPO(), VRCO(command_id=3), VRCO(command_id=3), VRAI(command_id=3)])])
+    answered, unanswered = traffic.sr()
+    assert [(q[VM110].serial, a[VM110].serial) for q, a in answered] == [(0, 4), (7, 9)]
 
 
 def test_vrpo_data_fills_the_rest_of_the_payload():

@@ -220,6 +220,11 @@ class _Payload(Packet):
             self.fields[f.name] = None
         return rest
 
+    def answers(self, other: Packet) -> int:
+        # Only an acknowledgement answers, its command: scapy's default would pair any two packets
+        # of one class (a VRCI with its own retransmission, a VRPI with the next).
+        return 0
+
     def _summary(self, text: str) -> str:
         """`text` after the type and the header's serial: scapy shows only the top layer's summary,
         and the serial is what a capture's packets are followed by."""
