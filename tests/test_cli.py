@@ -85,3 +85,27 @@ def test_usage_errors_exit_2():
     assert vm110("decode").returncode == EXIT_USAGE
     assert vm110("no-such-command").returncode == EXIT_USAGE
     assert vm110("--version").stdout.startswith("vm110 ")
+
+
+
+def test_decode_shows_packet_ids_off_the_network_escaped(tmp_path, capsys):
+    """Trial: a datagram on port 5825 with the packet ID ESC [ 2 J cleared the terminal, and one
+    with "VR\\r\\n" broke its line in two; the JSON keeps the characters (json escapes them)."""
+    import struct
+    from test_reader import pcap, udp_ip
+    from scapy.layers.l2 import Ether
+    from vm110.cli import main
+    ids = [b"\x1b[2J", b"VR\r\n"]
+    frames = [(1.0 + k, Ether() / udp_ip(struct.pack("<4sHHHHI", raw, 0, 0, 5, 0, 0) + bytes(4)))
+              for k, raw in enumerate(ids)]
+    capture = tmp_path / "ids.pcap"
+    capture.write_bytes(pcap(frames))
+    assert main(["decode", str(capture)]) == EXIT_OK
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    assert len(lines) == 3 and lines[-1] == "2 EG-Link packets"
+    assert " \\x1b[2J serial=5 ILLEGAL(unknown_id" in lines[0] and " VR\\r\\n serial=5 ILLEGAL(unknown_id" in lines[1]
+    assert not any(c in out for c in "\x1b\r")
+    assert main(["decode", str(capture), "--json"]) == EXIT_OK
+    decoded = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [d["type"].encode("latin-1") for d in decoded] == ids

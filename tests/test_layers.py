@@ -169,7 +169,7 @@ def test_only_the_acknowledgement_answers_its_command():
     traffic = PacketList([VM110(bytes(VM110(serial=s) / p)) for s, p in enumerate([
         VRCI(command_id=17), VRPI(), VRCI(command_id=17), VRPI(), VRAO(command_id=17),
         VRPO(), VRPO(), VRCO(command_id=3), VRCO(command_id=3), VRAI(command_id=3)])])
-    answered, unanswered = traffic.sr()
+    answered, _ = traffic.sr()
     assert [(q[VM110].serial, a[VM110].serial) for q, a in answered] == [(0, 4), (7, 9)]
 
 

@@ -21,6 +21,7 @@ from ..capture.spool import as_given, stdin_spool
 from ..crc import BYTE_ORDERS, VARIANTS
 from ..decode import decode
 from ..errors import CliError
+from ..printable import escaped
 from ..timefmt import since, utc_iso
 from .options import INPUT_PORT, INPUT_PORT_HELP
 
@@ -69,7 +70,8 @@ def _value(name: str, value: Any) -> str:
 
 def _line(number: int, when: float, start: float, src: str, fields: dict[str, Any]) -> str:
     names = _SUMMARY_FIELDS.get(fields.get("type", ""), ())
-    parts = [(f"{number:>6} {utc_iso(when)} {since(when, start):>12} {src:<21} {fields.get('type', '?'):<4} "
+    ptype = escaped(fields.get("type", "?"))   # off the network: ESC [ 2 J cleared the screen, a CR LF forged a line
+    parts = [(f"{number:>6} {utc_iso(when)} {since(when, start):>12} {src:<21} {ptype:<4} "
               f"serial={fields.get('serial', '?')}")]
     parts += [f"{name}={_value(name, fields[name])}" for name in names if name in fields]
     if fields["problems"]:
