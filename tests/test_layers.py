@@ -150,6 +150,20 @@ def test_bind_other_input_port():
             bind_ports(port)
 
 
+def test_unbinding_an_input_port_keeps_the_ports_another_one_covers():
+    # A second base unit on input port 5823 sends its output to 5825 (TS-0006 2.2: input + 2), the
+    # first one's input port: unbind_ports(5823) unbound 5825 too, and the first one's traffic
+    # dissected as Raw from then on (5827 likewise after bind_ports(5827), unbind_ports(5827)).
+    def dissected(port):
+        return VM110 in Ether(bytes(Ether() / IP() / UDP(sport=40000, dport=port) / Raw(bytes(VM110() / VRAO()))))
+    for other in (C.INPUT_PORT - C.OUTPUT_PORT_OFFSET, C.OUTPUT_PORT):
+        bind_ports(other)
+        unbind_ports(other)
+        ports = {other, other + C.OUTPUT_PORT_OFFSET}
+        assert [dissected(p) for p in sorted(ports - {C.INPUT_PORT, C.OUTPUT_PORT})] == [False]
+        assert dissected(C.INPUT_PORT) and dissected(C.OUTPUT_PORT)
+
+
 def test_ack_answers_command_with_same_id():
     vrci, vrco = VM110() / VRCI(command_id=17), VM110() / VRCO(command_id=17)
     vrao, vrai = VM110() / VRAO(command_id=17), VM110() / VRAI(command_id=17)

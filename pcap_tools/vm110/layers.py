@@ -304,7 +304,11 @@ PAYLOAD_CLASSES: dict[C.PacketType, type[Packet]] = {
 for _ptype, _cls in PAYLOAD_CLASSES.items():
     bind_layers(VM110, _cls, type=_ptype.value.encode(), revision=C.SUPPORTED_REVISION)
 
-_bound_ports: list[int] = []
+_bound_inputs: list[int] = []   # a UDP port stays bound while an input port bound here covers it
+
+
+def _covered() -> set[int]:
+    return {port for first in _bound_inputs for port in (first, first + C.OUTPUT_PORT_OFFSET)}
 
 
 def bind_ports(input_port: int = C.INPUT_PORT) -> None:
@@ -313,21 +317,24 @@ def bind_ports(input_port: int = C.INPUT_PORT) -> None:
     if isinstance(input_port, bool) or not isinstance(input_port, int) or not (
             0 < input_port <= 0xFFFF - C.OUTPUT_PORT_OFFSET):
         raise ValueError(f"input port {input_port!r}: an integer from 1 to {0xFFFF - C.OUTPUT_PORT_OFFSET}")
-    ports = (input_port, input_port + C.OUTPUT_PORT_OFFSET)
-    for port in ports:
-        if port not in _bound_ports:
-            bind_layers(UDP, VM110, sport=port)
-            bind_layers(UDP, VM110, dport=port)
-            _bound_ports.append(port)
+    before = _covered()
+    if input_port not in _bound_inputs:
+        _bound_inputs.append(input_port)
+    for port in sorted(_covered() - before):
+        bind_layers(UDP, VM110, sport=port)
+        bind_layers(UDP, VM110, dport=port)
 
 
 def unbind_ports(input_port: int) -> None:
-    """Undo `bind_ports` for one input port and its output port."""
-    for port in (input_port, input_port + C.OUTPUT_PORT_OFFSET):
-        if port in _bound_ports:
-            split_layers(UDP, VM110, sport=port)
-            split_layers(UDP, VM110, dport=port)
-            _bound_ports.remove(port)
+    """Undo `bind_ports` for one input port and its output port, except a port that another bound
+    input port also covers (a second base unit on 5823 sends its output to 5825)."""
+    if input_port not in _bound_inputs:
+        return
+    before = _covered()
+    _bound_inputs.remove(input_port)
+    for port in sorted(before - _covered()):
+        split_layers(UDP, VM110, sport=port)
+        split_layers(UDP, VM110, dport=port)
 
 
 bind_ports()
