@@ -1,6 +1,8 @@
 """The scapy layers against the shared vectors, round trips, port binding and answers()."""
 from __future__ import annotations
 
+import struct
+
 import pytest
 from scapy.layers.inet import IP, UDP
 from scapy.layers.l2 import Ether
@@ -122,6 +124,18 @@ def test_payload_cut_short_carries_the_fields_that_fit_whole(vector):
     if layer:   # changed, it is built as it was read: the fields it lacked stay out
         layer.setfieldval(cls.fields_desc[0].name, layer.getfieldval(cls.fields_desc[0].name))
         assert bytes(pkt) == packet_bytes(vector)
+
+
+def test_a_field_set_to_none_moves_no_field_after_it():
+    # scapy builds a field set to None as 0 (IP(ttl=None)); here it was left out and every field
+    # after it moved: armed_ru=0x0C07 went out as 0x000C (show() still said 0xc07), and a VRPO's
+    # data became its packet number. Layouts: TS-0006 4.1, 4.2, 4.3.
+    vrpi = VM110() / VRPI(bu_state=0x11, vlaps=None, armed_ru=0x0C07)
+    assert bytes(vrpi)[C.PREFIX_LEN:-C.CRC_LEN] == struct.pack("<6BH", 0x11, 0, 0, 0, 0, 0, 0x0C07).ljust(46, b"\0")
+    assert bytes(VM110() / VRPO(packet_number=None, periodic_data=b"abc"))[C.PREFIX_LEN:-C.CRC_LEN] == b"\0\0abc"
+    # None to the end is the cut end of a payload: crafted as a dissected one is built
+    cut = VM110() / VRCI(command_id=5, command_spare=None, command_data=None)
+    assert bytes(cut)[C.PREFIX_LEN:-C.CRC_LEN] == struct.pack("<H", 5)
 
 
 def test_show_prints_enum_names_and_numbers_for_unknown():

@@ -122,13 +122,16 @@ def _length(n: int) -> Callable[[Packet], int]:
 
 class CondWholeField(ConditionalField):
     """A payload field that a payload cut short (illegal: truncated) may lack: dissected when its
-    bytes are all there, else None, and a field that is None is neither shown nor built."""
+    bytes are all there, else None. None here and in every field after it is the cut end of a
+    payload, neither shown nor built (a dissected one builds as it was read; set by hand, it
+    crafts a payload cut short); a None before a field that is set builds as scapy builds None, 0,
+    so that no field after it moves."""
 
-    def __init__(self, fld: Field, size: int) -> None:
-        name = fld.name
+    def __init__(self, fld: Field, size: int, later: tuple[str, ...]) -> None:
         # A payload field's default is never None: None is a value set, by dissection or by hand.
-        super().__init__(fld, lambda pkt: pkt.fields.get(name, 0) is not None)
-        self.name, self.size = name, size   # (name: read on every build, not through the delegation)
+        names = (fld.name, *later)
+        super().__init__(fld, lambda pkt: any(pkt.fields.get(n, 0) is not None for n in names))
+        self.name, self.size = fld.name, size   # (name: read on every build, not through the delegation)
 
     def getfield(self, pkt: Packet, s: bytes) -> tuple[bytes, Any]:
         return (s, None) if len(s) < self.size else super().getfield(pkt, s)
@@ -137,11 +140,12 @@ class CondWholeField(ConditionalField):
 def fields_of(ptype: C.PacketType) -> list[Any]:
     """`fields_desc` of a payload layer, from the declaration."""
     packet = P.PACKETS[ptype]
-    out: list[Any] = [CondWholeField(scapy_field(f), f.size) for f in packet.fields]
-    if packet.tail is not None:
-        # Bytes beyond the layout's maximum are not part of the tail: they dissect as a Raw payload.
-        out.append(CondWholeField(XStrLenField(packet.tail.name, b"", length_from=_length(packet.tail.size)), 0))
-    return out
+    # Bytes beyond the layout's maximum are not part of the tail: they dissect as a Raw payload.
+    tail = [] if packet.tail is None else [
+        (XStrLenField(packet.tail.name, b"", length_from=_length(packet.tail.size)), 0)]
+    fields = [(scapy_field(f), f.size) for f in packet.fields] + tail
+    names = tuple(fld.name for fld, _ in fields)
+    return [CondWholeField(fld, size, names[i + 1:]) for i, (fld, size) in enumerate(fields)]
 
 
 def _header_fields() -> list[Any]:
