@@ -4,6 +4,7 @@ from __future__ import annotations
 import struct
 
 import pytest
+from scapy.config import conf
 from scapy.layers.inet import IP, UDP
 from scapy.layers.l2 import Ether
 from scapy.packet import Raw
@@ -190,13 +191,21 @@ def test_ack_answers_command_with_same_id():
     assert dissected[1].answers(dissected[0])
 
 
-def test_only_the_acknowledgement_answers_its_command():
+def test_only_the_acknowledgement_answers_its_command(monkeypatch):
     # TS-0006 5.1.3: the BU resends a VRCI (same command ID, new serial) until a VRAO comes, and
     # sends VRPI all along. PacketList.sr() pairs what answers what: it paired each VRCI with its
     # own retransmission and each VRPI with the next (scapy's default answers() for one class).
-    traffic = PacketList([VM110(bytes(VM110(serial=s) / p)) for s, p in enumerate([
-        VRCI(command_id=17), VRPI(), VRCI(command_id=17), VRPI(), VRAO(command_id=17),
-        VRPO(), VRPO(), VRCO(command_id=3), VRCO(command_id=3), VRAI(command_id=3)])])
+    # The acknowledgement goes to the group and the output port (2.2), not back to the command's
+    # source: scapy pairs it once its address checks are off (README).
+    monkeypatch.setattr(conf, "checkIPsrc", False)
+    monkeypatch.setattr(conf, "checkIPaddr", False)
+    base, controller = ("10.0.0.10", C.INPUT_PORT), ("10.0.0.20", C.OUTPUT_PORT)
+    traffic = PacketList([
+        Ether(bytes(Ether() / IP(src=addr, dst=C.MULTICAST_GROUP) / UDP(sport=port, dport=port) / VM110(serial=s) / p))
+        for s, ((addr, port), p) in enumerate([
+            (base, VRCI(command_id=17)), (base, VRPI()), (base, VRCI(command_id=17)), (base, VRPI()),
+            (controller, VRAO(command_id=17)), (controller, VRPO()), (controller, VRPO()),
+            (controller, VRCO(command_id=3)), (controller, VRCO(command_id=3)), (base, VRAI(command_id=3))])])
     answered, _ = traffic.sr()
     assert [(q[VM110].serial, a[VM110].serial) for q, a in answered] == [(0, 4), (7, 9)]
 
