@@ -109,3 +109,13 @@ def test_decode_shows_packet_ids_off_the_network_escaped(tmp_path, capsys):
     assert main(["decode", str(capture), "--json"]) == EXIT_OK
     decoded = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert [d["type"].encode("latin-1") for d in decoded] == ids
+
+
+def test_dissect_without_a_capture_asks_for_the_capture_only(capsys):
+    """`vm110 dissect` said "the following arguments are required: capture, TSHARK_ARGS", though
+    the tshark arguments are optional (`vm110 dissect cap.pcap` runs tshark on it)."""
+    from vm110.cli import main
+    with pytest.raises(SystemExit) as done:
+        main(["dissect"])
+    assert done.value.code == EXIT_USAGE
+    assert capsys.readouterr().err.splitlines()[-1] == "vm110 dissect: the following arguments are required: capture"

@@ -19,8 +19,9 @@ from ..plugin import PLUGIN_ENV, ROOT_HINT, list_protocols, lua_errors, plugin_p
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", help="pcap or pcapng file, - for standard input")
-    parser.add_argument("tshark_args", nargs=argparse.REMAINDER, metavar="TSHARK_ARGS",
-                        help="passed to tshark, e.g. -V, -T fields -e vm110.serial, -Y FILTER")
+    rest = parser.add_argument("tshark_args", nargs=argparse.REMAINDER, metavar="TSHARK_ARGS",
+                               help="passed to tshark, e.g. -V, -T fields -e vm110.serial, -Y FILTER")
+    rest.required = False   # (argparse marks a REMAINDER required: "required: capture, TSHARK_ARGS" misled)
 
 
 def _check_loads(tshark: str, plugin: Path) -> None:
