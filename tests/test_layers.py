@@ -139,6 +139,13 @@ def test_a_field_set_to_none_moves_no_field_after_it():
     assert bytes(cut)[C.PREFIX_LEN:-C.CRC_LEN] == struct.pack("<H", 5)
 
 
+def test_a_vrpo_crafted_without_data_has_a_summary():
+    # sniff(prn=lambda p: p.summary()) on crafted traffic ended in a TypeError (len(None))
+    cut = VM110(serial=4) / VRPO(packet_number=3, periodic_data=None)
+    assert bytes(cut)[C.PREFIX_LEN:-C.CRC_LEN] == struct.pack("<H", 3)
+    assert cut.summary() == "VM110 / VRPO serial=4 #3 0 bytes"
+
+
 def test_show_prints_enum_names_and_numbers_for_unknown():
     text = (VM110() / VRPI(bu_state=0x11, eg_link=6, ru_state=0x42)).show(dump=True)
     assert "bu_state  = Armed" in text and "eg_link   = Passive" in text and "ru_state  = 66" in text

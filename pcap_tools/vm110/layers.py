@@ -263,7 +263,8 @@ class VRPO(_Payload):
     fields_desc = fields_of(ptype)
 
     def mysummary(self) -> str:
-        return self._summary(self.sprintf("#%packet_number%") + f" {len(self.periodic_data)} bytes")
+        data = self.periodic_data or b""     # (None: crafted cut short)
+        return self._summary(self.sprintf("#%packet_number%") + f" {len(data)} bytes")
 
 
 class VRCI(_CommandPair):
