@@ -160,6 +160,9 @@ def _header_fields() -> list[Any]:
     ]
 
 
+_WIDTHS = (C.ID_LEN, *(f.size for f in P.HEADER_FIELDS), C.CRC_LEN)   # of VM110's fields, in its order
+
+
 class VM110(Packet):
     name = "VM-110 EG-Link"
     fields_desc = _header_fields()
@@ -170,12 +173,29 @@ class VM110(Packet):
         end = crc_span(s, P.SIZE.unpack_from(s, P.SIZE_OFFSET)[0])
         return s[:C.PREFIX_LEN] + s[end:end + C.CRC_LEN] + s[C.PREFIX_LEN:end] + s[end + C.CRC_LEN:]
 
+    def do_dissect(self, s: bytes) -> bytes:
+        if len(s) >= C.OVERHEAD:
+            return super().do_dissect(s)
+        # Cut short before a CRC (illegal: truncated): the fields that fit whole, as vm110.decode and
+        # the dissector show them, the others None; the rest is padding. It builds as it was read
+        # until a field is changed, then whole. Without a whole packet ID it is no EG-Link: Raw.
+        whole = sum(1 for end in itertools.accumulate(_WIDTHS) if end <= len(s))
+        if not whole:
+            raise struct.error(f"{len(s)} bytes: no packet ID")
+        read = s[:sum(_WIDTHS[:whole])]
+        for f in self.fields_desc[:whole]:
+            s, self.fields[f.name] = f.getfield(self, s)
+        self.fields.update((f.name, None) for f in self.fields_desc[whole:])
+        self.raw_packet_cache, self.raw_packet_cache_fields, self.explicit = read, {}, 1
+        return s
+
     def post_dissect(self, s: bytes) -> bytes:
-        self.raw_packet_cache = None  # the cached bytes are in dissection order, not wire order
+        if self.crc is not None:
+            self.raw_packet_cache = None  # the cached bytes are in dissection order, not wire order
         return s
 
     def extract_padding(self, s: bytes) -> tuple[bytes, bytes]:
-        size = self.size or 0
+        size = (self.size or 0) if self.crc is not None else 0    # no CRC: cut short, no payload
         return s[:size], s[size:]
 
     def post_build(self, p: bytes, pay: bytes) -> bytes:
@@ -190,6 +210,8 @@ class VM110(Packet):
     def crc_ok(self) -> bool:
         """Whether the stored CRC matches the packet under the configured variant."""
         raw = bytes(self)
+        if len(raw) < C.OVERHEAD:
+            return False    # no CRC to match
         end = crc_span(raw, P.SIZE.unpack_from(raw, P.SIZE_OFFSET)[0])
         variant, order = _settings()
         stored = int.from_bytes(raw[end:end + C.CRC_LEN], check_byte_order(order))
