@@ -13,9 +13,10 @@ def vm110(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "vm110", *args], capture_output=True, text=True)
 
 
-@pytest.mark.parametrize("name, magic", [("crafted.pcap", b"\xd4\xc3\xb2\xa1"), ("crafted.pcapng", b"\n\r\r\n")])
+@pytest.mark.parametrize("name, magic", [("crafted.pcap", b"\xd4\xc3\xb2\xa1"), ("crafted.pcapng", b"\n\r\r\n"),
+                                         ("CRAFTED.PCAPNG", b"\n\r\r\n")])
 def test_craft_then_decode_gives_every_type(tmp_path, name, magic):
-    capture = tmp_path / name            # (a .pcapng was written as pcap)
+    capture = tmp_path / name            # (a .pcapng was written as pcap; a .PCAPNG too)
     assert vm110("craft", "--out", str(capture)).returncode == EXIT_OK
     assert capture.read_bytes()[:4] == magic
     result = vm110("decode", str(capture), "--json")

@@ -197,8 +197,8 @@ class PcapngWriter(_Writer):
 
 
 def format_of(path: str) -> Format:
-    """The format a file name asks for: pcapng when it ends in .pcapng, else pcap."""
-    return "pcapng" if path.endswith(".pcapng") else "pcap"
+    """The format a file name asks for: pcapng when it ends in .pcapng (any case), else pcap."""
+    return "pcapng" if path.lower().endswith(".pcapng") else "pcap"
 
 
 def open_writer(stream: ByteSink, fmt: Format = "pcap") -> _Writer:
