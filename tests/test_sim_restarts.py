@@ -22,18 +22,19 @@ ARMED = {"bu_state": int(C.BuState.ARMED), "armed_ru": 0x0C07, "ru_state": int(C
 class Bu:
     """A base unit written by hand: each packet with the serial and source given."""
 
-    def __init__(self, ctl: Controller, serial: int = 1000, src: tuple[str, int] = BU) -> None:
-        self.ctl, self.serial, self.src = ctl, serial, src
+    def __init__(self, ctl: Controller, serial: int = 1000, src: tuple[str, int] = BU, origin: int = ORIGIN,
+                 state: dict | None = None) -> None:
+        self.ctl, self.serial, self.src, self.origin, self.state = ctl, serial, src, origin, state or ARMED
 
     def send(self, ptype: C.PacketType, payload: bytes, t: float, serial: int | None = None) -> None:
         if serial is not None:
             self.serial = serial
-        data = encode.packet(ptype, payload, origin=ORIGIN, serial=self.serial)
+        data = encode.packet(ptype, payload, origin=self.origin, serial=self.serial)
         self.serial = (self.serial + 1) & 0xFFFF
         self.ctl.receive(data, round(t * 1e6), self.src)
 
     def vrpi(self, t: float, serial: int | None = None) -> None:
-        self.send(C.PacketType.VRPI, encode.vrpi_payload(ARMED), t, serial)
+        self.send(C.PacketType.VRPI, encode.vrpi_payload(self.state), t, serial)
 
     def vrci(self, t: float, command_id: int, serial: int | None = None) -> None:
         self.send(C.PacketType.VRCI, encode.command_payload(command_id, b"GO"), t, serial)
@@ -255,3 +256,24 @@ def test_a_rebooted_base_unit_is_initial_then_disarmed_until_the_ru_is_armed_aga
     assert [e["data"] for e in ctl.events("executed")] == ["KEY 0", "KEY 2"]
     assert [e["data"] for e in ctl.events("refused")] == ["KEY 1"]
     assert sorted(e["command_id"] for e in bu.events("command_acked")) == [0, 0, 1]
+
+
+def test_a_command_is_judged_by_the_ru_of_the_bu_that_sent_it():
+    """Two BUs on the group (each its own origin, TS-0006 3.2), one armed, one disarmed: each
+    command is checked against the RU of its own BU (4.3). Trial: the disarmed BU's VRPI, sent just
+    before the armed one's command, had that command refused; and a BU heard from for the first
+    time had its command decided on the other BU's VRPI, not deferred."""
+    ctl = controller()
+    armed = Bu(ctl)
+    disarmed = Bu(ctl, serial=7, src=("10.0.0.11", C.INPUT_PORT), origin=0x0202,
+                  state={"bu_state": int(C.BuState.DISARMED), "unarmed_rus": 1})
+    for n in range(8):
+        armed.vrpi(n * 0.125)
+        disarmed.vrpi(n * 0.125 + 0.01)          # always the last VRPI before a command
+        armed.vrci(n * 0.125 + 0.02, n)
+        disarmed.vrci(n * 0.125 + 0.03, 100 + n)
+    assert executed(ctl) == list(range(8))
+    assert [e["command_id"] for e in ctl.events("refused")] == [100 + n for n in range(8)]
+    silent = Bu(ctl, serial=50, src=("10.0.0.12", C.INPUT_PORT), origin=0x0303)
+    silent.vrci(1.01, 200)                        # no VRPI of its own yet: its RU's state is unknown
+    assert [e["command_id"] for e in ctl.events("deferred")] == [200] and 200 not in executed(ctl)

@@ -5,9 +5,10 @@
 - Every VRCI is acknowledged with a VRAO, retransmissions too, in the order they arrive; each
   command is executed once (a command ID heard again within the reuse gap is a retransmission,
   unless the BU rebooted in between: its serials tell, `sim.peers`), and only while the last VRPI
-  showed an armed RU (section 4.3). A VRCI heard while no VRPI tells the RU's state (none since
-  start-up or a restart, or none within the VRPI timeout) is left unacknowledged, logged
-  `deferred`: the BU's next retransmission after a VRPI is decided on it (section 4.4, 5.1.3).
+  of the BU that sent it (its origin) showed an armed RU (section 4.3). A VRCI heard while no VRPI
+  of its BU tells the RU's state (none since start-up or a restart, or none within the VRPI
+  timeout) is left unacknowledged, logged `deferred`: the BU's next retransmission after a VRPI is
+  decided on it (section 4.4, 5.1.3).
 - Own commands (VRCO), several in flight at once, are each resent every 100 ms until the VRAI, and
   given up after `vrco_timeout_ms`.
 - Restarts (`sim.lifecycle`): back with VRPO from cycle 0, serials and command IDs afresh.
@@ -82,7 +83,9 @@ class Controller(CommandOutbox, Node):
         self.last_vrpi: Optional[int] = None     # when the last VRPI arrived; None: none since start-up
         self._vrpi_since: Optional[int] = None   # the watchdog counts from here (last VRPI, start, resume)
         self.vrpi_alarm = False
-        self.ru_armed = False
+        # Each BU's (origin's) last VRPI: (when, its RU armed). A command is judged by its own BU's
+        # RU: another BU on the group, disarmed, had an armed one's commands refused.
+        self.bus: dict[int, tuple[int, bool]] = {}
         # operator commands heard, to execute each once; the BU numbers as this node does
         self.handled = PeerCommands(self.type_serials is not None)
         self._outbox_init(cfg.command_id_start, ms(cfg.vrco_resend_ms), ms(cfg.vrco_timeout_ms))
@@ -130,7 +133,8 @@ class Controller(CommandOutbox, Node):
 
     def on_restart(self, now: int, restart: Restart) -> None:
         self._next_vrpo, self.cycle = now, 0
-        self.last_vrpi, self._vrpi_since, self.vrpi_alarm, self.ru_armed = None, now, False, False
+        self.last_vrpi, self._vrpi_since, self.vrpi_alarm = None, now, False
+        self.bus.clear()
         self.handled = PeerCommands(self.type_serials is not None)
         self._outbox_restart(now, restart.command_id)
 
@@ -171,24 +175,31 @@ class Controller(CommandOutbox, Node):
             self.event(now, "vrpi_restored", gap_ms=gap)
         self.last_vrpi = self._vrpi_since = now
         bu_state, armed_ru, ru_state = _VRPI_STATE.unpack_from(rx.payload)
-        self.ru_armed = bu_state == _BU_ARMED and armed_ru != 0 and ru_state in _RU_ARMED
+        self.bus[rx.origin] = (now, bu_state == _BU_ARMED and armed_ru != 0 and ru_state in _RU_ARMED)
 
-    def ru_state_known(self, now: int) -> bool:
-        """Does a VRPI within the VRPI timeout tell the RU's state? Not after start-up or a restart
-        before the first one, nor after a silence of VRPI longer than the timeout."""
-        return self.last_vrpi is not None and now - self.last_vrpi <= self._vrpi_timeout_us
+    def ru_state_known(self, origin: int, now: int) -> bool:
+        """Does a VRPI of BU `origin` within the VRPI timeout tell its RU's state? Not after start-up
+        or a restart before its first one, nor after a silence of its VRPI longer than the timeout."""
+        heard = self.bus.get(origin)
+        return heard is not None and now - heard[0] <= self._vrpi_timeout_us
+
+    def ru_armed(self, origin: int) -> bool:
+        """Did the last VRPI of BU `origin` show an armed RU?"""
+        heard = self.bus.get(origin)
+        return heard is not None and heard[1]
 
     def on_vrci(self, rx: Rx, now: int) -> None:
         self.follow(rx, now)
         command_id = _CMD_ID.unpack_from(rx.payload)[0]
-        if self.config.require_armed and not self.ru_state_known(now):
+        if self.config.require_armed and not self.ru_state_known(rx.origin, now):
+            heard = self.bus.get(rx.origin)
             # It cannot be checked against the RU's state (4.3), so it is not processed and not
             # acknowledged (4.4): the BU resends it every 100 ms (5.1.3), and the first copy after a
             # VRPI is decided on that VRPI. Refused and acknowledged, a command of an armed RU was
             # lost while the operator was told it went through; with no VRPI for 2000 ms, the BU
             # tells the operator it failed.
             self.event(now, "deferred", command_id=command_id, origin=f"0x{rx.origin:04x}", serial=rx.serial,
-                       last_vrpi=log_seconds(self.last_vrpi))
+                       last_vrpi=log_seconds(None if heard is None else heard[0]))
             return
         self.acknowledge(command_id, now)
         new = self.handled.command(rx, command_id, rx.payload[_DATA], now)
@@ -203,7 +214,7 @@ class Controller(CommandOutbox, Node):
     def execute(self, origin: int, command_id: int, data: bytes, now: int) -> None:
         """Carry out an operator command (here: log it); refused while no RU is armed."""
         text = data.rstrip(b"\0").decode("ascii", "replace")
-        if self.config.require_armed and not self.ru_armed:
+        if self.config.require_armed and not self.ru_armed(origin):
             self.event(now, "refused", command_id=command_id, origin=f"0x{origin:04x}", data=text)
         else:
             self.event(now, "executed", command_id=command_id, origin=f"0x{origin:04x}", data=text)
