@@ -3,7 +3,9 @@ TTL 1), inside a network namespace this test creates: its only interface is its 
 the multicast never reaches a real interface. Skipped without root or `ip netns`."""
 from __future__ import annotations
 
+import errno
 import json
+import os
 import subprocess
 import sys
 
@@ -24,3 +26,20 @@ def test_multicast_defaults_inside_a_namespace(netns):
     assert bu_log[-1]["summary"]["received"]["VRPO"] >= 15 and ctl_log[-1]["summary"]["received"]["VRPI"] >= 12
     acked = [e["command_id"] for e in bu_log if e.get("event") == "command_acked"]
     assert len(acked) >= 3 and acked == [e["command_id"] for e in ctl_log if e.get("event") == "executed"]
+
+
+def test_a_peer_out_of_reach_is_said_not_sent_to_in_silence(netns):
+    """The namespace routes nothing but its loopback and multicast: the kernel refuses every packet
+    to 10.0.0.5. Trial: the BU ran its whole --duration with nothing said, its summary counting the
+    refused packets as sent, and the user looked for the fault in the controller."""
+    ip = ["ip", "netns", "exec", netns]
+    assert subprocess.run(ip + ["ip", "route", "get", "10.0.0.5"], capture_output=True).returncode != 0
+    bu = subprocess.run(ip + [sys.executable, "-m", "vm110", "simulate", "bu", "--peer", "10.0.0.5:5825",
+                              "--listen", "127.0.0.1:5827", "--duration", "0.4", "--json"],
+                        capture_output=True, text=True, timeout=30)
+    assert bu.returncode == 0, bu.stderr
+    log = [json.loads(line) for line in bu.stdout.splitlines()]
+    unreachable = os.strerror(errno.ENETUNREACH)
+    assert [(e["error"], e["to"]) for e in log if e.get("event") == "send_failed"] == [(unreachable, "10.0.0.5:5825")]
+    summary = log[-1]["summary"]
+    assert summary["send_errors"] == {unreachable: summary["sent"]["VRPI"]} and summary["sent"]["VRPI"] >= 3

@@ -206,5 +206,6 @@ class BaseUnit(CommandOutbox, Node):
     def summary(self) -> dict[str, Any]:
         counts = self.counts
         return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
-                "illegal": dict(self.illegal), "commands_acked": counts["command_acked"],
+                "illegal": dict(self.illegal), "send_errors": dict(self.send_errors),
+                "commands_acked": counts["command_acked"],
                 "commands_failed": counts["command_failed"], "vrpo_watchdog": counts["vrpo_watchdog"]}

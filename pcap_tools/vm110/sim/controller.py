@@ -228,7 +228,8 @@ class Controller(CommandOutbox, Node):
         """Counters for logs and tests."""
         counts = self.counts
         return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
-                "illegal": dict(self.illegal), "executed": counts["executed"], "refused": counts["refused"],
+                "illegal": dict(self.illegal), "send_errors": dict(self.send_errors),
+                "executed": counts["executed"], "refused": counts["refused"],
                 "deferred": counts["deferred"], "vrpi_timeouts": counts["vrpi_timeout"],
                 # its own commands' outcomes, as the base unit's summary has them (they were missing)
                 "commands_acked": counts["vrco_acked"], "commands_gave_up": counts["vrco_gave_up"]}

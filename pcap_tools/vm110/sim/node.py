@@ -134,6 +134,7 @@ class Node:
         self._received: dict[bytes, int] = {}
         self.illegal: Counter[str] = Counter()      # by reason; each packet counts once per reason
         self.illegal_packets = 0
+        self.send_errors: Counter[str] = Counter()   # packets the network refused, by reason
         self._stall_index = 0
         self._stall_told = False  # the window at `_stall_index` has been logged (it has begun)
         self._stall_passed = 0    # the end of the last window passed: nothing overdue runs before it
@@ -246,6 +247,14 @@ class Node:
             self._sent[ptype] = 1
         self.transmit(data, now, _new(Meta, (self.name, ptype, serial, key, data_len)))
         return data
+
+    def send_failed(self, reason: str, now: int, dest: Any = None) -> None:
+        """The network refused a packet (no route to the peer, a full buffer): lost, as UDP loses
+        it. The first of each reason is logged and all are counted: a --peer out of reach was sent
+        to for the whole run with nothing said, and its packets counted as sent."""
+        self.send_errors[reason] += 1
+        if self.send_errors[reason] == 1:
+            self.event(now, "send_failed", error=reason, to=source_text(dest))
 
     def transmit(self, data: bytes, now: int, meta: Meta) -> None:
         """Last hook before the wire (override to alter bytes on purpose)."""

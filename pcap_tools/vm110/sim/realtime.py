@@ -36,6 +36,7 @@ class RealtimeRunner:
                 transport.open()
             node.attach(transport.send)
             node.restart_source = transport.restart_source
+            transport.on_send_error = node.send_failed
             if transport.impairer is not None:
                 transport.impairer.set_origin(self.clock.now())
         now = self.clock.now()

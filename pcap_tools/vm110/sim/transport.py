@@ -14,7 +14,7 @@ import heapq
 import ipaddress
 import socket
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Optional
 
 from .. import constants as C
 from ..errors import CliError
@@ -78,6 +78,8 @@ class UdpTransport:
         self.tx: Optional[socket.socket] = None
         self._queue: list[tuple[int, int, bytes]] = []
         self._seq = 0
+        # Told of every packet the network refused (reason, µs, destination): lost, as UDP loses it, but said.
+        self.on_send_error: Optional[Callable[[str, int, Address], None]] = None
 
     def open(self) -> "UdpTransport":
         """Bind both sockets; CliError naming the one that failed (a message naming the listening
@@ -161,11 +163,11 @@ class UdpTransport:
     # --- sending ------------------------------------------------------------------------------
     def send(self, data: bytes, now: int, meta: Meta) -> None:
         if self.impairer is None:
-            self._sendto(data)
+            self._sendto(data, now)
             return
         for due, copy, _problems, _delivered in self.impairer.apply(data, now, meta.ptype.value):
             if due <= now:
-                self._sendto(copy)
+                self._sendto(copy, now)
             else:
                 heapq.heappush(self._queue, (due, self._seq, copy))
                 self._seq += 1
@@ -175,9 +177,9 @@ class UdpTransport:
 
     def flush(self, now: int) -> None:
         while self._queue and self._queue[0][0] <= now:
-            self._sendto(heapq.heappop(self._queue)[2])
+            self._sendto(heapq.heappop(self._queue)[2], now)
 
-    def _sendto(self, data: bytes) -> None:
+    def _sendto(self, data: bytes, now: int) -> None:
         assert self.tx is not None, "open() first"
         try:
             self.tx.sendto(data, self.config.dest)
@@ -187,6 +189,8 @@ class UdpTransport:
                 # (any other, e.g. a broadcast --peer: EACCES; a traceback ended the run before)
                 host, port = self.config.dest
                 raise CliError(f"cannot send to {host}:{port}: {exc.strerror or exc}") from None
+            if self.on_send_error is not None:
+                self.on_send_error(exc.strerror or str(exc), now, self.config.dest)
 
     # --- receiving ----------------------------------------------------------------------------
     def recv_all(self) -> list[tuple[bytes, Address]]:
