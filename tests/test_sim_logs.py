@@ -319,3 +319,17 @@ def test_a_simulate_run_keeps_no_log_in_memory_yet_prints_and_counts_it_all():
     assert bu.summary()["commands_acked"] == lines("bu", "command_acked") >= 140
     assert ctl.summary()["executed"] == lines("controller", "executed") == lines("bu", "command_acked")
     assert ctl.summary()["commands_acked"] == lines("controller", "vrco_acked") >= 140
+
+
+def test_controller_watches_each_bu_on_its_own():
+    """Two BUs on the group (origins 0x0101, 0x0202); the second stops at 1 s. Trial: the first
+    one's VRPI kept the controller's one watchdog fed, and the BU gone silent was never flagged
+    (TS-0006 5.1.1). Now each BU has its own, named in the log."""
+    live = BaseUnit(Remote.simple(armed=True))
+    gone = BaseUnit(Remote.simple(armed=True), BaseUnitConfig(origin=0x0202, stop_at_s=1.0), name="bu2")
+    ctl = Controller()
+    stations = [Station(live, *BU_STATION), Station(gone, "10.0.0.11", C.INPUT_PORT), Station(ctl, *CTL_STATION)]
+    arrivals = [a for batch in VirtualNetwork(stations).run(2.0) for a in batch]
+    last = max(a[0] for a in arrivals if a[5].ptype is C.PacketType.VRPI and a[5].sender == "bu2") / 1e6
+    [timeout] = ctl.events("vrpi_timeout")
+    assert (timeout["origin"], timeout["last_vrpi"], timeout["t"]) == ("0x0202", last, last + 0.5)

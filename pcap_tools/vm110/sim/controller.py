@@ -12,7 +12,8 @@
 - Own commands (VRCO), several in flight at once, are each resent every 100 ms until the VRAI, and
   given up after `vrco_timeout_ms`.
 - Restarts (`sim.lifecycle`): back with VRPO from cycle 0, serials and command IDs afresh.
-- No VRPI for 500 ms is flagged (and logged) until VRPI comes back (section 5.1.1).
+- No VRPI for 500 ms is flagged (and logged) until VRPI comes back (section 5.1.1), for each BU
+  (origin) on its own, and before any BU is heard, for the link.
 - Illegal packets are ignored and counted by reason (section 5.1.5).
 
 Subclasses (the fuzzer's planted bugs) override the hooks: `on_vrci`, `on_vrai`, `on_vrpi`,
@@ -31,7 +32,7 @@ from .clock import log_seconds, ms, seconds
 from .ledger import PeerCommands
 from .lifecycle import Life, Restart
 from .node import Node, Rx, source_text
-from .outbox import CommandOutbox, OutboxEvents
+from .outbox import NEVER, CommandOutbox, OutboxEvents
 
 _CMD_ID = struct.Struct("<" + P.FIELDS["command_id"].code)
 _DATA = P.PACKETS[C.PacketType.VRCI].span("command_data")
@@ -42,6 +43,24 @@ _BU_ARMED = int(C.BuState.ARMED)
 _RU_ARMED = frozenset((int(C.RuState.ARMED), int(C.RuState.ENABLED)))
 _VRPI_STATE = struct.Struct("<B5xHB")  # bu_state, (vlaps..c_link), armed_ru, ru_state
 _VRPO_HEADER_SIZE, _VRPO_MAX_DATA = P.PAYLOAD_BOUNDS[C.PacketType.VRPO][0], C.VRPO_MAX_DATA
+
+
+class HeardBu:
+    """What the controller knows of one BU from its VRPI: its watchdog (TS-0006 5.1.1) and its RU's
+    state (4.3). Also the link's watchdog until a BU is heard."""
+
+    __slots__ = ("alarm", "armed", "last", "since")
+
+    def __init__(self, since: int) -> None:
+        self.since = since                  # the watchdog counts from here (the last VRPI, start-up, a resume)
+        self.last: Optional[int] = None     # when the last VRPI arrived; None: none
+        self.alarm = False
+        self.armed = False                  # its last VRPI showed an armed RU
+
+
+def _origin(origin: Optional[int]) -> dict[str, str]:
+    """The BU a watchdog event is about, for the log (none for the link's)."""
+    return {} if origin is None else {"origin": f"0x{origin:04x}"}
 
 
 @dataclass
@@ -80,12 +99,11 @@ class Controller(CommandOutbox, Node):
         self._glink = tuple((seconds(a), seconds(b)) for a, b in cfg.glink)
         self._next_vrpo = 0
         self.cycle = 0
-        self.last_vrpi: Optional[int] = None     # when the last VRPI arrived; None: none since start-up
-        self._vrpi_since: Optional[int] = None   # the watchdog counts from here (last VRPI, start, resume)
-        self.vrpi_alarm = False
-        # Each BU's (origin's) last VRPI: (when, its RU armed). A command is judged by its own BU's
-        # RU: another BU on the group, disarmed, had an armed one's commands refused.
-        self.bus: dict[int, tuple[int, bool]] = {}
+        # The BUs heard, by origin: each has its own watchdog and RU (one BU's VRPI hid another gone
+        # silent, and a disarmed BU's had an armed one's commands refused). Key None until a BU is
+        # heard (since start-up or a restart): no VRPI at all is an error too.
+        self.bus: dict[Optional[int], HeardBu] = {}
+        self._vrpi_due = NEVER              # the first µs past the timeout of one not tripped yet
         # operator commands heard, to execute each once; the BU numbers as this node does
         self.handled = PeerCommands(self.type_serials is not None)
         self._outbox_init(cfg.command_id_start, ms(cfg.vrco_resend_ms), ms(cfg.vrco_timeout_ms))
@@ -94,7 +112,7 @@ class Controller(CommandOutbox, Node):
     # --- schedule -----------------------------------------------------------------------------
     def start(self, now: int) -> None:
         self._next_vrpo = now
-        self._vrpi_since = now   # the watchdog runs from start-up: no VRPI at all is an error too
+        self._watch_afresh(now)
         cfg = self.config
         every = seconds(cfg.command_every_s)
         self._outbox_start(((seconds(c[0]) + now, c[1], c[2] if len(c) > 2 else None) for c in cfg.commands),
@@ -103,15 +121,13 @@ class Controller(CommandOutbox, Node):
 
     def _due(self) -> Optional[int]:
         due = self._next_vrpo
-        if not self.vrpi_alarm and self._vrpi_since is not None:
-            t = self._vrpi_since + self._vrpi_alarm_after     # the first µs past the timeout
-            due = t if t < due else due
+        if self._vrpi_due < due:  # noqa: PLR1730 (per packet: an if is cheaper than min())
+            due = self._vrpi_due
         return self._command_due if self._command_due < due else due
 
     def _tick(self, now: int) -> None:
-        if not self.vrpi_alarm and self._vrpi_since is not None and now - self._vrpi_since > self._vrpi_timeout_us:
-            self.vrpi_alarm = True
-            self.event(self._vrpi_since + self._vrpi_timeout_us, "vrpi_timeout", last_vrpi=log_seconds(self.last_vrpi))
+        if now >= self._vrpi_due:
+            self._trip_watchdogs(now)
         if now >= self._command_due:
             self._tick_commands(now)
         if now >= self._next_vrpo:
@@ -129,14 +145,48 @@ class Controller(CommandOutbox, Node):
         return self._period
 
     def on_resume(self, now: int) -> None:
-        self._vrpi_since = now   # it was not listening: judge VRPI from here on
+        for watch in self.bus.values():
+            watch.since = now    # it was not listening: judge VRPI from here on
+        self._rewatch()
 
     def on_restart(self, now: int, restart: Restart) -> None:
         self._next_vrpo, self.cycle = now, 0
-        self.last_vrpi, self._vrpi_since, self.vrpi_alarm = None, now, False
-        self.bus.clear()
+        self._watch_afresh(now)
         self.handled = PeerCommands(self.type_serials is not None)
         self._outbox_restart(now, restart.command_id)
+
+    # --- VRPI watchdogs ------------------------------------------------------------------------
+    def _watch_afresh(self, now: int) -> None:
+        """From start-up or a restart: no BU known, the link's watchdog running from `now`."""
+        self.bus = {None: HeardBu(now)}
+        self._rewatch()
+
+    def _rewatch(self) -> None:
+        after = self._vrpi_alarm_after
+        self._vrpi_due = min((w.since + after for w in self.bus.values() if not w.alarm), default=NEVER)
+
+    def _trip_watchdogs(self, now: int) -> None:
+        for origin, watch in self.bus.items():
+            if not watch.alarm and now - watch.since > self._vrpi_timeout_us:
+                watch.alarm = True
+                self.event(watch.since + self._vrpi_timeout_us, "vrpi_timeout", **_origin(origin),
+                           last_vrpi=log_seconds(watch.last))
+        self._rewatch()
+
+    def _vrpi_heard(self, origin: int, now: int) -> HeardBu:
+        """A VRPI of BU `origin`: its watchdog (the link's, at the first) restarts, restored if tripped."""
+        link = self.bus.pop(None, None)
+        watch = self.bus.get(origin)
+        if watch is None:
+            watch = self.bus[origin] = HeardBu(now)
+            watch.alarm = link is not None and link.alarm
+        if watch.alarm:
+            gap = None if watch.last is None else (now - watch.last) / 1000
+            self.event(now, "vrpi_restored", **_origin(origin), gap_ms=gap)
+        watch.since = watch.last = now
+        watch.alarm = False
+        self._rewatch()
+        return watch
 
     # --- VRPO ---------------------------------------------------------------------------------
     def periodic_data(self, now: int) -> bytes:
@@ -169,37 +219,37 @@ class Controller(CommandOutbox, Node):
 
     def on_vrpi(self, rx: Rx, now: int) -> None:
         self.follow(rx, now)
-        if self.vrpi_alarm:
-            self.vrpi_alarm = False
-            gap = None if self.last_vrpi is None else (now - self.last_vrpi) / 1000
-            self.event(now, "vrpi_restored", gap_ms=gap)
-        self.last_vrpi = self._vrpi_since = now
+        bu = self._vrpi_heard(rx.origin, now)
         bu_state, armed_ru, ru_state = _VRPI_STATE.unpack_from(rx.payload)
-        self.bus[rx.origin] = (now, bu_state == _BU_ARMED and armed_ru != 0 and ru_state in _RU_ARMED)
+        bu.armed = bu_state == _BU_ARMED and armed_ru != 0 and ru_state in _RU_ARMED
 
     def ru_state_known(self, origin: int, now: int) -> bool:
         """Does a VRPI of BU `origin` within the VRPI timeout tell its RU's state? Not after start-up
         or a restart before its first one, nor after a silence of its VRPI longer than the timeout."""
-        heard = self.bus.get(origin)
-        return heard is not None and now - heard[0] <= self._vrpi_timeout_us
+        last = self.last_vrpi(origin)
+        return last is not None and now - last <= self._vrpi_timeout_us
 
     def ru_armed(self, origin: int) -> bool:
         """Did the last VRPI of BU `origin` show an armed RU?"""
         heard = self.bus.get(origin)
-        return heard is not None and heard[1]
+        return heard is not None and heard.armed
+
+    def last_vrpi(self, origin: int) -> Optional[int]:
+        """When the last VRPI of BU `origin` arrived; None: none since start-up or a restart."""
+        heard = self.bus.get(origin)
+        return None if heard is None else heard.last
 
     def on_vrci(self, rx: Rx, now: int) -> None:
         self.follow(rx, now)
         command_id = _CMD_ID.unpack_from(rx.payload)[0]
         if self.config.require_armed and not self.ru_state_known(rx.origin, now):
-            heard = self.bus.get(rx.origin)
             # It cannot be checked against the RU's state (4.3), so it is not processed and not
             # acknowledged (4.4): the BU resends it every 100 ms (5.1.3), and the first copy after a
             # VRPI is decided on that VRPI. Refused and acknowledged, a command of an armed RU was
             # lost while the operator was told it went through; with no VRPI for 2000 ms, the BU
             # tells the operator it failed.
             self.event(now, "deferred", command_id=command_id, origin=f"0x{rx.origin:04x}", serial=rx.serial,
-                       last_vrpi=log_seconds(None if heard is None else heard[0]))
+                       last_vrpi=log_seconds(self.last_vrpi(rx.origin)))
             return
         self.acknowledge(command_id, now)
         new = self.handled.command(rx, command_id, rx.payload[_DATA], now)
