@@ -333,3 +333,28 @@ def test_controller_watches_each_bu_on_its_own():
     last = max(a[0] for a in arrivals if a[5].ptype is C.PacketType.VRPI and a[5].sender == "bu2") / 1e6
     [timeout] = ctl.events("vrpi_timeout")
     assert (timeout["origin"], timeout["last_vrpi"], timeout["t"]) == ("0x0202", last, last + 0.5)
+
+
+def test_the_summary_accounts_for_every_command_sent():
+    """The BU's operator commands, from the wire: the controller answers until it stops at 1.3 s,
+    the BU restarts at 4.0 s (down 0.3 s), the run ends at 6.5 s. Trial: the summary said
+    "commands_acked 0, commands_failed 0" for a BU with four commands sent and unanswered."""
+    end, down = 6.5, 4.0
+    bu = BaseUnit(Remote.simple(armed=True, command_every=0.6),
+                  BaseUnitConfig(restarts=(Restart(down, 0.3),)))
+    ctl = Controller(ControllerConfig(stop_at_s=1.3))
+    arrivals = run_virtual(end, bu, ctl)
+    first: dict = {}                 # (life, command ID) -> first transmission (s)
+    for a in arrivals:
+        if a[5].ptype is C.PacketType.VRCI:
+            first.setdefault((a[0] / 1e6 >= down, a[5].key), a[0] / 1e6)
+    acked = {a[5].key for a in arrivals if a[5].ptype is C.PacketType.VRAO}
+    open_ = {k: t for k, t in first.items() if k[1] not in acked or k[0]}
+    limit = C.VRCI_FAIL_MS / 1000                 # TS-0006 5.1.3: failed 2000 ms after the first
+    summary = bu.summary()
+    assert summary["commands_sent"] == len(first) and summary["commands_acked"] == len(acked) == 2
+    assert summary["commands_failed"] == sum(not life and t + limit <= down for (life, _), t in open_.items()) >= 1
+    assert summary["commands_dropped"] == sum(not life and t + limit > down for (life, _), t in open_.items()) >= 1
+    assert summary["commands_in_flight"] == sum(life and t + limit > end for (life, _), t in open_.items()) >= 1
+    assert (summary["commands_acked"] + summary["commands_failed"] + summary["commands_dropped"]
+            + summary["commands_in_flight"]) == summary["commands_sent"]

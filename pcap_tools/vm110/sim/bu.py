@@ -207,5 +207,5 @@ class BaseUnit(CommandOutbox, Node):
         counts = self.counts
         return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
                 "illegal": dict(self.illegal), "send_errors": dict(self.send_errors),
-                "commands_acked": counts["command_acked"],
-                "commands_failed": counts["command_failed"], "vrpo_watchdog": counts["vrpo_watchdog"]}
+                **self.outbox_summary("commands_failed"), "vrco_delivered": counts["vrco_delivered"],
+                "vrpo_watchdog": counts["vrpo_watchdog"]}

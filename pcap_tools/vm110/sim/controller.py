@@ -280,6 +280,6 @@ class Controller(CommandOutbox, Node):
         return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
                 "illegal": dict(self.illegal), "send_errors": dict(self.send_errors),
                 "executed": counts["executed"], "refused": counts["refused"],
-                "deferred": counts["deferred"], "vrpi_timeouts": counts["vrpi_timeout"],
+                "deferred": counts["deferred"], "repeats": counts["repeat"], "vrpi_timeouts": counts["vrpi_timeout"],
                 # its own commands' outcomes, as the base unit's summary has them (they were missing)
-                "commands_acked": counts["vrco_acked"], "commands_gave_up": counts["vrco_gave_up"]}
+                **self.outbox_summary("commands_gave_up")}

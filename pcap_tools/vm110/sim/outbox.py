@@ -49,6 +49,7 @@ class CommandOutbox:
     command_label: str
     send: Callable[..., bytes]          # Node's
     event: Callable[..., None]          # Node's
+    counts: collections.Counter[str]    # Node's
 
     def _outbox_init(self, command_id_start: int, resend_us: int, give_up_us: int) -> None:
         self.next_command_id = command_id_start & 0xFFFF
@@ -136,6 +137,16 @@ class CommandOutbox:
         command["next"] = now + self._resend_us
         if command["count"] == 1:
             self.event(now, self.command_events.sent, command_id=command["id"])
+
+    def outbox_summary(self, gave_up: str) -> dict[str, int]:
+        """The node's own commands for its summary, `gave_up` naming that outcome: how many were sent,
+        and how each ended (acknowledged, given up, dropped at a restart) or is still in flight: the
+        four add up to the first (a summary of acknowledged and failed alone did not say how many
+        were sent and were still unanswered when the run ended)."""
+        counts, events = self.counts, self.command_events
+        return {"commands_sent": counts[events.sent], "commands_acked": counts[events.acked],
+                gave_up: counts[events.gave_up], "commands_dropped": counts[events.dropped],
+                "commands_in_flight": len(self.in_flight)}
 
     def on_command_ack(self, rx: Rx, now: int) -> None:
         """An acknowledgement (BU: VRAO, controller: VRAI): completes the command in flight with its ID."""
