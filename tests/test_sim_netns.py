@@ -43,3 +43,18 @@ def test_a_peer_out_of_reach_is_said_not_sent_to_in_silence(netns):
     assert [(e["error"], e["to"]) for e in log if e.get("event") == "send_failed"] == [(unreachable, "10.0.0.5:5825")]
     summary = log[-1]["summary"]
     assert summary["send_errors"] == {unreachable: summary["sent"]["VRPI"]} and summary["sent"]["VRPI"] >= 3
+
+
+def test_a_group_that_cannot_be_joined_says_why(netns):
+    """Joining the group failed with "No such device" alone, for an --iface that is no address of
+    the machine and for a machine with no route for multicast: the user was sent to look for a
+    device. Now the line says which of the two, and the way out."""
+    run = ["ip", "netns", "exec", netns, sys.executable, "-m", "vm110", "simulate", "bu", "--duration", "0.2"]
+    wrong = subprocess.run(run + ["--iface", "10.9.9.9"], capture_output=True, text=True, timeout=30)
+    subprocess.run(["ip", "-n", netns, "route", "del", "224.0.0.0/4"], check=True, capture_output=True)
+    unrouted = subprocess.run(run, capture_output=True, text=True, timeout=30)
+    for done in (wrong, unrouted):
+        assert done.returncode == 2 and not done.stdout and len(done.stderr.splitlines()) == 1, done.stderr
+        assert done.stderr.startswith("vm110 simulate: cannot receive on 0.0.0.0:5827 (group 239.255.42.20): ")
+    assert "--iface 10.9.9.9 is not the address of an interface of this machine" in wrong.stderr
+    assert "no route for multicast: give --iface" in unrouted.stderr and "ip route add 224.0.0.0/4" in unrouted.stderr

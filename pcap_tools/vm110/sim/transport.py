@@ -68,6 +68,17 @@ def _in_use_hint(exc: OSError) -> str:
             "the README's \"Simulators and synthesis\": 127.0.0.10 and 127.0.0.20)")
 
 
+def _no_device_hint(exc: OSError, iface: str) -> str:
+    """Joining the group names no interface to join it on ("No such device"): an --iface that is no
+    address of this machine, or, without one, no route for multicast to pick one by."""
+    if exc.errno != errno.ENODEV:
+        return ""
+    if iface != "0.0.0.0":
+        return f" (--iface {iface} is not the address of an interface of this machine)"
+    return (" (no route for multicast: give --iface with the address of the EG-Link interface, "
+            "or add a route, e.g. ip route add 224.0.0.0/4 dev IFACE)")
+
+
 class UdpTransport:
     """The sockets of one node. `open()` binds them; `rx_address` is where peers must send."""
 
@@ -102,7 +113,7 @@ class UdpTransport:
             self.close()
             group = f" (group {cfg.group})" if cfg.group else ""
             raise CliError(f"cannot receive on {cfg.listen[0]}:{cfg.listen[1]}{group}: {exc.strerror or exc}"
-                           + _in_use_hint(exc)) from None
+                           + _in_use_hint(exc) + _no_device_hint(exc, cfg.iface)) from None
         try:
             self.tx = self._sending_socket()
         except OSError as exc:
