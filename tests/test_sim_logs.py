@@ -358,3 +358,26 @@ def test_the_summary_accounts_for_every_command_sent():
     assert summary["commands_in_flight"] == sum(life and t + limit > end for (life, _), t in open_.items()) >= 1
     assert (summary["commands_acked"] + summary["commands_failed"] + summary["commands_dropped"]
             + summary["commands_in_flight"]) == summary["commands_sent"]
+
+
+def test_a_bad_crc_right_under_another_reading_names_it():
+    """TS-0006 3.3 reads as several CRC-32s (interpretation.md): a PLC of another reading had every
+    packet logged `bad_crc`, and its engineer had to try the eight --crc/--crc-order pairs. The
+    first one now says which one validates it. The CRCs here are zlib's (iso-hdlc), not vm110's."""
+    import struct
+    import zlib
+
+    bu = BaseUnit()
+    bu.attach(lambda data, now, meta: None)
+    bu.start(0)
+    src = ("10.0.0.20", C.OUTPUT_PORT)
+    body = b"VRPO" + struct.pack("<HHHHI", 0, 0, 7, 3, 0) + b"\0\0x"
+    bu.receive(body + zlib.crc32(body).to_bytes(4, "big"), 0, src)        # iso-hdlc, stored big-endian
+    [named] = bu.events("illegal_first")
+    assert (named["reasons"], named["valid_crc"]) == ("bad_crc", "iso-hdlc/big")
+    other = BaseUnit()
+    other.attach(lambda data, now, meta: None)
+    other.start(0)
+    other.receive(body + (zlib.crc32(body) ^ 0x5A).to_bytes(4, "big"), 0, src)   # right under none
+    [unnamed] = other.events("illegal_first")
+    assert unnamed["reasons"] == "bad_crc" and "valid_crc" not in unnamed

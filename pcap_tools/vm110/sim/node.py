@@ -14,7 +14,9 @@ from typing import Any, Callable, NamedTuple, Optional, Sequence
 
 from .. import constants as C
 from .. import protocol as P
-from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, ByteOrder, check_byte_order, crc_function, trailer_function
+from ..analysis.engine import crc_matches
+from ..crc import (BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS, ByteOrder, check_byte_order,
+                   crc_function, trailer_function)
 from ..decode import crc_span, decode
 from ..printable import escaped
 from .clock import US_PER_S
@@ -273,14 +275,21 @@ class Node:
         """An illegal packet, already counted; the specification says: ignore it. The first of each
         reason is logged: a peer given another --crc had every packet ignored with nothing in the
         log but a watchdog. With its packet ID and serial when its header is there: a peer wrong
-        on one packet type only was otherwise left to be found in a capture."""
+        on one packet type only was otherwise left to be found in a capture. A bad CRC that is right
+        under another reading of TS-0006 says which (`valid_crc=VARIANT/ORDER`): the peer's, to give
+        this node (a user saw "bad_crc" and had to guess among the eight)."""
         first = [p for p in problems if self.illegal[p] == 1]
         if first:
             where = source_text(src)
             header: dict[str, Any] = {}
             if len(data) >= _PREFIX_LEN:
-                raw_id, _origin, serial, _size = _RX_HEADER.unpack_from(data)
+                raw_id, _origin, serial, size = _RX_HEADER.unpack_from(data)
                 header = {"packet": raw_id.decode("latin-1"), "serial": serial}
+                if C.Problem.BAD_CRC.value in first and len(data) >= C.OVERHEAD:
+                    readings = crc_matches(data, crc_span(data, size))
+                    if readings:
+                        header["valid_crc"] = ",".join(f"{v}/{o}" for v in VARIANTS for o in BYTE_ORDERS
+                                                       if (v, o) in readings)
             self.event(now, "illegal_first", reasons=",".join(first), src=where, **header)
 
     def _due(self) -> Optional[int]:
