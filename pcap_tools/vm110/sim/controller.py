@@ -174,19 +174,30 @@ class Controller(CommandOutbox, Node):
         self._rewatch()
 
     def _vrpi_heard(self, origin: int, now: int) -> HeardBu:
-        """A VRPI of BU `origin`: its watchdog (the link's, at the first) restarts, restored if tripped."""
+        """A VRPI of BU `origin`: its watchdog starts afresh."""
+        heard = self.bus.get(origin)
+        if heard is None or heard.alarm:
+            heard = self._vrpi_back(origin, now)
+        heard.since = heard.last = now
+        if len(self.bus) == 1:     # (per VRPI: the usual single BU needs no look at the others)
+            self._vrpi_due = now + self._vrpi_alarm_after
+        else:
+            self._rewatch()
+        return heard
+
+    def _vrpi_back(self, origin: int, now: int) -> HeardBu:
+        """The first VRPI of BU `origin` since start-up or a restart, or its first after its timeout:
+        restored when its watchdog (for a BU's first, the link's) had tripped."""
         link = self.bus.pop(None, None)
-        watch = self.bus.get(origin)
-        if watch is None:
-            watch = self.bus[origin] = HeardBu(now)
-            watch.alarm = link is not None and link.alarm
-        if watch.alarm:
-            gap = None if watch.last is None else (now - watch.last) / 1000
+        heard = self.bus.get(origin)
+        if heard is None:
+            heard = self.bus[origin] = HeardBu(now)
+            heard.alarm = link is not None and link.alarm
+        if heard.alarm:
+            gap = None if heard.last is None else (now - heard.last) / 1000
             self.event(now, "vrpi_restored", **_origin(origin), gap_ms=gap)
-        watch.since = watch.last = now
-        watch.alarm = False
-        self._rewatch()
-        return watch
+            heard.alarm = False
+        return heard
 
     # --- VRPO ---------------------------------------------------------------------------------
     def periodic_data(self, now: int) -> bytes:
