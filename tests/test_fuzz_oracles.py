@@ -12,8 +12,8 @@ CTL = ("127.0.0.1", 40000)
 T0 = 1000.0
 
 
-def vrci(command_id: int, serial: int = 1) -> bytes:
-    return encode.packet("VRCI", encode.command_payload(command_id), origin=0x0101, serial=serial)
+def vrci(command_id: int, serial: int = 1, origin: int = 0x0101) -> bytes:
+    return encode.packet("VRCI", encode.command_payload(command_id), origin=origin, serial=serial)
 
 
 def out(ptype: str, payload: bytes, serial: int, origin: int = 0) -> bytes:
@@ -66,6 +66,16 @@ def test_missing_ack_for_a_retransmission(link):
     link.mon.tick(T0 + 0.1 + 1.01)
     assert link.oracles() == ["missing_ack"]
     assert link.mon.triggers[0].case_index == 3 and link.mon.triggers[0].command_id == 9
+
+
+def test_a_command_of_a_base_unit_the_controller_hears_no_vrpi_of_needs_no_ack(link):
+    """The fuzzer's VRPI come from origin 0x0101; a case's VRCI from another origin is a base unit
+    whose RU state the controller cannot know (TS-0006 4.3): the reference controller leaves it
+    unacknowledged until that unit's VRPI come: the oracle made that a missing_ack finding."""
+    link.mon.on_tx(T0, vrci(4, origin=0x0202), vrci(4), index=1)
+    link.mon.on_tx(T0 + 0.1, vrci(5), vrci(5), index=2)
+    link.mon.tick(T0 + 5)
+    assert [(t.oracle, t.command_id) for t in link.mon.triggers] == [("missing_ack", 5)]
 
 
 def test_duplicate_frames_need_no_ack(link):

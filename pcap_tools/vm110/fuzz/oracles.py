@@ -5,7 +5,9 @@ sends (`on_rx`), the exit of a supervised controller (`on_exit`) and the passing
 (`tick`); it appends a `Trigger` for each oracle that fires. Tolerances (documented in the
 README) make the timing oracles robust on a loaded machine. Commands are judged one by one: a
 controller may have several VRCO in flight and must acknowledge every VRCI, in any order
-(interpretation.md, "Commands").
+(interpretation.md, "Commands"), of the base unit whose VRPI it hears: a VRCI of another origin
+comes from a base unit whose RU state it has no VRPI of (TS-0006 4.3), which it may leave
+unacknowledged until it has (as the reference controller, `sim.controller`, does).
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from ..decode import decode
 from ..sim.ledger import REUSE_GAP_MS
 from .evidence import Crash
 from .fields import COMMAND_ID_AT
+from .mutate import BU_ORIGIN
 
 CRASH, STALL, MISSING_ACK, ILLEGAL_ACKED, MALFORMED_OUTPUT, VRCO_RETRANSMIT, MEMORY = ORACLES = (
     "crash", "stall", "missing_ack", "illegal_acked", "malformed_output", "vrco_retransmit", "memory")
@@ -145,7 +148,7 @@ class Monitor:
             return
         if not fields["problems"]:
             self.illegal_ids.pop(command_id, None)      # an ack of this ID is now this VRCI's
-            if expect_ack and not self.exited:
+            if expect_ack and not self.exited and fields["origin"] == BU_ORIGIN:
                 deadline = t + self.limits.ack_timeout_ms / 1000
                 self.pending.setdefault(command_id, collections.deque()).append((deadline, index))
         else:

@@ -21,6 +21,8 @@ Subclasses (the fuzzer's planted bugs) override the hooks: `on_vrci`, `on_vrai`,
 """
 from __future__ import annotations
 
+import heapq
+import itertools
 import struct
 from dataclasses import dataclass, field
 from typing import Any, Optional
@@ -104,6 +106,8 @@ class Controller(CommandOutbox, Node):
         # heard (since start-up or a restart): no VRPI at all is an error too.
         self.bus: dict[Optional[int], HeardBu] = {}
         self._vrpi_due = NEVER              # the first µs past the timeout of one not tripped yet
+        self._watches: list[tuple[int, int, Optional[int]]] = []    # (due, order, origin): `_watch`
+        self._watch_order = itertools.count()
         # operator commands heard, to execute each once; the BU numbers as this node does
         self.handled = PeerCommands(self.type_serials is not None)
         self._outbox_init(cfg.command_id_start, ms(cfg.vrco_resend_ms), ms(cfg.vrco_timeout_ms))
@@ -145,9 +149,10 @@ class Controller(CommandOutbox, Node):
         return self._period
 
     def on_resume(self, now: int) -> None:
-        for watch in self.bus.values():
+        for origin, watch in self.bus.items():
             watch.since = now    # it was not listening: judge VRPI from here on
-        self._rewatch()
+            if not watch.alarm:
+                self._watch(origin, watch)
 
     def on_restart(self, now: int, restart: Restart) -> None:
         self._next_vrpo, self.cycle = now, 0
@@ -156,22 +161,38 @@ class Controller(CommandOutbox, Node):
         self._outbox_restart(now, restart.command_id)
 
     # --- VRPI watchdogs ------------------------------------------------------------------------
+    # Each watch's due time (the first µs past its timeout) waits in a heap, an entry going stale
+    # when its BU's VRPI comes again or its watchdog trips: the cost per VRPI stays flat however
+    # many origins a network or a fuzzer makes up.
     def _watch_afresh(self, now: int) -> None:
         """From start-up or a restart: no BU known, the link's watchdog running from `now`."""
         self.bus = {None: HeardBu(now)}
+        self._watches = []
+        self._watch(None, self.bus[None])
+
+    def _watch(self, origin: Optional[int], watch: HeardBu) -> None:
+        heapq.heappush(self._watches, (watch.since + self._vrpi_alarm_after, next(self._watch_order), origin))
         self._rewatch()
 
     def _rewatch(self) -> None:
-        after = self._vrpi_alarm_after
-        self._vrpi_due = min((w.since + after for w in self.bus.values() if not w.alarm), default=NEVER)
+        heap, after = self._watches, self._vrpi_alarm_after
+        while heap:
+            due, _, origin = heap[0]
+            watch = self.bus.get(origin)
+            if watch is not None and not watch.alarm and watch.since + after == due:
+                self._vrpi_due = due
+                return
+            heapq.heappop(heap)
+        self._vrpi_due = NEVER
 
     def _trip_watchdogs(self, now: int) -> None:
-        for origin, watch in self.bus.items():
-            if not watch.alarm and now - watch.since > self._vrpi_timeout_us:
-                watch.alarm = True
-                self.event(watch.since + self._vrpi_timeout_us, "vrpi_timeout", **_origin(origin),
-                           last_vrpi=log_seconds(watch.last))
-        self._rewatch()
+        while self._vrpi_due <= now:
+            origin = heapq.heappop(self._watches)[2]
+            watch = self.bus[origin]
+            watch.alarm = True
+            self.event(watch.since + self._vrpi_timeout_us, "vrpi_timeout", **_origin(origin),
+                       last_vrpi=log_seconds(watch.last))
+            self._rewatch()
 
     def _vrpi_heard(self, origin: int, now: int) -> HeardBu:
         """A VRPI of BU `origin`: its watchdog starts afresh."""
@@ -179,10 +200,7 @@ class Controller(CommandOutbox, Node):
         if heard is None or heard.alarm:
             heard = self._vrpi_back(origin, now)
         heard.since = heard.last = now
-        if len(self.bus) == 1:     # (per VRPI: the usual single BU needs no look at the others)
-            self._vrpi_due = now + self._vrpi_alarm_after
-        else:
-            self._rewatch()
+        self._watch(origin, heard)
         return heard
 
     def _vrpi_back(self, origin: int, now: int) -> HeardBu:
