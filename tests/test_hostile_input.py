@@ -748,3 +748,27 @@ def test_a_named_pipe_is_told_to_come_on_standard_input(tmp_path, command):
     os.mkfifo(fifo)
     done = vm110(command, str(fifo))
     assert done.returncode == 2 and b"is a named pipe: give it on standard input" in done.stderr, done.stderr
+
+
+def test_file_names_of_any_bytes_reach_the_reports_valid_and_the_terminal_escaped(tmp_path):
+    """A file name is any bytes but / and NUL: one that is no UTF-8 made the JSON and HTML writers
+    raise (a traceback, exit 1, no report) after the whole analysis; an escape sequence, a newline or
+    an RTL override in it reached the terminal on the error, damage and --fail-on lines, and the
+    HTML's heading, raw. Each is shown as its escape there, as the summary shows it."""
+    cap = tmp_path / os.fsdecode(b'a<script>\xff\xe2\x80\xae\x1b[31m\n".pcap')
+    _traffic(cap)
+    junk = tmp_path / os.fsdecode(b"junk\x1b[2J\n\xfe.pcap")
+    junk.write_bytes(b"no capture at all")
+    out, page = tmp_path / "r.json", tmp_path / "r.html"
+    done = vm110("analyze", str(cap), str(junk), "--json", str(out), "--html", str(page), "--quiet",
+                 "--fail-on", "packets>0")
+    assert done.returncode == 2 and b"Traceback" not in done.stderr, done.stderr
+    unreadable, violated = done.stderr.decode().splitlines()
+    assert unreadable.startswith(f"vm110 analyze: {tmp_path}/junk\\x1b[2J\\n\\udcfe.pcap: not a pcap or pcapng capture")
+    assert violated == f'fail-on: {tmp_path}/a<script>\\udcff\\u202e\\x1b[31m\\n".pcap: packets=12 (rule packets>0)'
+    doc = json.loads(out.read_text(encoding="utf-8"))
+    assert doc["reports"][0]["capture"]["file"] == f'{tmp_path}/a<script>\\udcff\u202e\x1b[31m\n".pcap'
+    assert doc["errors"][0]["file"] == f"{tmp_path}/junk\x1b[2J\n\\udcfe.pcap"
+    text = page.read_text(encoding="utf-8")
+    assert "<script>" not in text and not {"\u202e", "\x1b"} & set(text)
+    assert f"<h2>{tmp_path}/a&lt;script&gt;\\udcff\\u202e\\x1b[31m\\n&quot;.pcap</h2>" in text

@@ -10,6 +10,7 @@ import numpy as np
 from .. import __version__
 from .. import constants as C
 from .. import crc
+from ..printable import unicode_text
 from . import commands, findings, serials, timing
 from .collect import CODE, TYPES, VRPO_CODE, Collected
 from .report_json import normalise
@@ -83,7 +84,7 @@ def _build(got: Collected) -> dict:
         "schema_version": SCHEMA_VERSION,
         "tool": {"name": "vm110", "version": __version__, "engine": got.engine},
         "capture": {
-            "file": got.path, "format": got.format or None, "link_types": got.link_types,
+            "file": unicode_text(got.path), "format": got.format or None, "link_types": got.link_types,
             "packets": got.frames, "udp_packets": got.udp, "eglink_packets": got.eglink,
             "other_udp_packets": got.other_udp, "non_udp_packets": got.non_udp,
             "fragments": got.fragments, "unread_frames": got.unread,

@@ -12,6 +12,7 @@ from typing import Iterable, Optional, Sequence
 
 from .. import __version__
 from ..fileio import write_text
+from ..printable import escaped
 from ..timefmt import since
 from . import summary
 
@@ -489,7 +490,8 @@ def _section(report: dict) -> str:
     t1 = cap["last_time"] or t0 + 1
     # The plots cover every record: the last need not be the latest (appended captures).
     span = (t0, t1) if cap["earliest_time"] is None else (cap["earliest_time"], cap["latest_time"])
-    out = [f"<h2>{_e(cap['file'])}</h2>",
+    # (file names: any characters; an RTL override or a newline shown as its escape, as on the terminal)
+    out = [f"<h2>{_e(escaped(cap['file']))}</h2>",
            (f'<p><span class="{"ok" if verdict["ok"] else "fail"}">{"OK" if verdict["ok"] else "FAIL"}</span> '
             f"({summary.counted(verdict['findings'])}) {cap['packets']} packets, {cap['eglink_packets']} EG-Link, "
             f"{_num(cap['duration_s'], 1)} s; "
@@ -559,7 +561,7 @@ def render(reports: list[dict], combined: Optional[dict] = None, errors: Sequenc
              f"<p>vm110 {_e(__version__)}, engine {_e(reports[0]['tool']['engine'])}</p>"]
     if errors:
         parts.append("<h2>Captures that could not be read</h2><ul>"
-                     + "".join(f'<li class="error">{_e(e["file"])}: {_e(e["error"])}</li>' for e in errors) + "</ul>")
+                     + "".join(f'<li class="error">{_e(escaped(e["error"]))}</li>' for e in errors) + "</ul>")
     if combined:
         parts.append("<pre>" + _e(summary.render_combined(combined)) + "</pre>")
     parts += [_section(r) for r in reports]

@@ -23,6 +23,7 @@ from ..capture.spool import as_given, named, stdin_spool
 from ..fileio import check_distinct, check_report_target
 from ..errors import EXIT_FINDINGS, EXIT_OK, EXIT_USAGE, CliError
 from ..numbers import number
+from ..printable import escaped, unicode_text
 from .options import INPUT_PORT, INPUT_PORT_HELP, VRPO_START, VRPO_START_HELP, add_reading_options
 
 # Times in ms: above 0 (a zero watchdog or period flags everything) and at most an hour.
@@ -212,13 +213,16 @@ def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rule
     # Every readable capture is reported; an unreadable one is an error entry beside them, and one
     # damaged partway is reported up to the damage: either is exit 2 (README, "Exit codes").
     reports = [r for r in results if isinstance(r, dict)]
-    errors = [{"file": name, "error": r} for name, r in zip(names, results) if isinstance(r, str)]
+    # File names are any bytes: valid Unicode in the reports, escaped on the terminal (an escape
+    # sequence or a newline in a name must not reach it), as the summary has them.
+    errors = [{"file": unicode_text(name), "error": unicode_text(r)} for name, r in zip(names, results)
+              if isinstance(r, str)]
     for e in errors:
-        print(f"vm110 {command}: {e['error']}", file=sys.stderr)
+        print(f"vm110 {command}: {escaped(e['error'])}", file=sys.stderr)
     damaged = [f"{named(name)}: {r['capture']['problem']}"
                for name, r in zip(names, results) if isinstance(r, dict) and r["capture"]["problem"]]
     for line in damaged:
-        print(f"vm110 {command}: {line}", file=sys.stderr)
+        print(f"vm110 {command}: {escaped(line)}", file=sys.stderr)
     if not reports:
         return EXIT_USAGE
     combined: Optional[dict] = combine(reports) if len(names) > 1 else None
@@ -245,7 +249,7 @@ def deliver(args: argparse.Namespace, names: list[str], results: list, fail_rule
         report_html.write(args.html, reports, combined, errors)
     broken = [f"{r['capture']['file']}: {v}" for r in reports for v in rules.violations(fail_rules, r["totals"])]
     for line in broken:
-        print(f"fail-on: {line}", file=sys.stderr)
+        print(f"fail-on: {escaped(line)}", file=sys.stderr)
     if errors or damaged:
         return EXIT_USAGE
     return EXIT_FINDINGS if broken else EXIT_OK
