@@ -472,6 +472,28 @@ def test_timestamps_going_backwards(tmp_path):
     assert report["senders"][0]["serial"]["lost"] == 0
 
 
+def test_findings_come_errors_first_then_warnings_then_notes(tmp_path, capsys):
+    """A packet lost in an IP fragment (the fast engine does not reassemble): the warning that
+    fragments were not analysed, a note of the capture as a whole, came before the error that the
+    packet was lost, in the JSON, the summary and the HTML; a reader stopping at the first lines of
+    a long list saw warnings and took the capture for sound. Errors come first, as report.md says."""
+    from scapy.layers.inet import IP, UDP, fragment
+    from scapy.layers.l2 import Ether
+    from test_reader import pcap
+    from vm110.analysis import summary
+    frames = [Ether() / IP(src="10.0.0.10", dst=C.MULTICAST_GROUP) / UDP(sport=C.INPUT_PORT, dport=C.INPUT_PORT)
+              / vrpi(i) for i in range(12)]
+    records = [(T0 + i * 0.125, f) for i, f in enumerate(frames) if i != 5]
+    records[5:5] = [(T0 + 5 * 0.125, Ether() / part) for part in fragment(frames[5][IP], fragsize=24)]
+    path = tmp_path / "fragment.pcap"
+    path.write_bytes(pcap(records))
+    report = analyze(str(path))
+    findings = report["verdict"]["findings"]
+    assert [(f["rule"], f["severity"]) for f in findings] == [("lost", "error"), ("ip_fragments", "warning")]
+    lines = summary.render(report).splitlines()
+    assert lines[3].startswith("  error   1 packet lost") and lines[5].startswith("  warning ")
+
+
 def test_empty_capture(tmp_path):
     Traffic().write(tmp_path / "empty.pcap")
     report = analyze(str(tmp_path / "empty.pcap"))

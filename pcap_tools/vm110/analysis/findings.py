@@ -313,6 +313,9 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]], no_filte
         # (a link silent from the start is no clean verdict either: README, "Silence")
         findings.insert(0, {"rule": "no_eglink", "severity": "error", "count": 0,
                             "message": "no EG-Link packets in the capture", "items": []})
+    # Errors first, then warnings, then notes (a reader stopping early sees the worst), the capture's
+    # own findings first among their severity (stable: the order above within each).
+    findings.sort(key=lambda f: SEVERITIES.index(f["severity"]))
     return {"ok": not any(f["severity"] == "error" for f in findings), "findings": findings,
             **({"wireshark_prefs": prefs} if prefs else {}),
             **({"no_filters": no_filters} if prefs is None and no_filters else {})}
