@@ -158,3 +158,23 @@ def test_a_watchdog_row_says_its_frame_ends_the_silence(tmp_path):
     header, *rows = next(t for t in tables.tables if t[0][:3] == ["finding", "frames", "time (s)"])
     [row] = [dict(zip(header, r)) for r in rows if r[0] == "watchdog"]
     assert (row["frames"], row["time (s)"]) == ("10", "silence from +1.000000")
+
+
+def test_the_findings_table_reads_an_item_as_words_as_the_summary_does():
+    """restart.pcapng's relays-open episodes and illegal.pcap's packets: the HTML's findings table
+    showed Python's `states ['External link error']`, `reasons ['bad_crc']` and unrounded seconds
+    (`duration_s 0.249991`) where the summary says `states External link error` and `0.250`, and it
+    left out what the summary's items have in a different order. Both read every item alike."""
+    for name, rule in (("restart.pcapng", "relays_open"), ("illegal.pcap", "illegal")):
+        report = analyze(str(CAPTURES / name))
+        tables = Tables()
+        tables.feed(report_html.render([report]))
+        header, *rows = next(t for t in tables.tables if t[0][:3] == ["finding", "frames", "time (s)"])
+        shown = [dict(zip(header, r)) for r in rows if r[0] == rule]
+        [finding] = [f for f in report["verdict"]["findings"] if f["rule"] == rule]
+        assert len(shown) == len(finding["items"]) > 0
+        for row, item in zip(shown, finding["items"]):
+            if rule == "relays_open":
+                assert row["what"] == f"duration_s {item['duration_s']:.3f}, states {'/'.join(item['states'])}"
+            else:
+                assert row["what"] == f"type {item['type']}, reasons {'/'.join(item['reasons'])}"

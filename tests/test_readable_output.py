@@ -231,3 +231,30 @@ def test_packet_ids_off_the_network_reach_no_terminal_in_the_summary(capsys, tmp
     assert "type \\x1b[2J," in out and all(line.isprintable() for line in out.splitlines())
     items = json.loads((tmp_path / "r.json").read_text())["verdict"]["findings"][0]["items"]
     assert items[0]["type"] == "\x1b[2J"
+
+
+def test_the_summary_gives_every_detail_of_an_item(capsys, tmp_path):
+    """A VRCI acknowledged 2.5 s after it was sent has failed; the summary's item left out its
+    latency and the acknowledgement's frame (the JSON and the HTML had them), so it read as one never
+    acknowledged. The damage's item left out its byte offset and read `frame 34 at +3.875000 s: `."""
+    from test_analysis_craft import BU, CTRL, Traffic, payload, vrpi
+    from vm110 import constants as C
+    from vm110.layers import VRAO, VRCI
+    tr = Traffic()
+    for k in range(33):
+        tr.add(k * 0.125, vrpi(k))
+    tr.add(0.5 + 0.0001, payload(VRCI, 100, 0x0101, command_id=7), src=BU)
+    tr.add(3.0 + 0.0001, payload(VRAO, 1, command_id=7), src=CTRL, sport=C.OUTPUT_PORT)
+    tr.frames.sort(key=lambda f: f[0])
+    path = tmp_path / "late.pcap"
+    tr.write(path)
+    data = path.read_bytes()
+    last = len(data) - 16 - (len(tr.frames[-1][4]) + 42)         # the last record: header, Ether/IP/UDP, EG-Link
+    path.write_bytes(data[:last + 20])                            # cut in its frame
+    assert cli.main(["analyze", str(path)]) == 2
+    lines = capsys.readouterr().out.splitlines()
+    ack = 1 + 25 + 1                              # after the VRCI and the 25 VRPI up to 3.0 s
+    failed = lines[lines.index("  error   1 command failed (no acknowledgement within the limit)") + 1]
+    assert f", type VRCI, command_id 7, latency_ms 2500.000, ack_frame {ack}  [" in failed, failed
+    damaged = next(line for line in lines if line.startswith("            frame 34 at"))   # the last one read
+    assert damaged == f"            frame 34 at +3.875000 s: offset {last}  [frame.number == 34]"

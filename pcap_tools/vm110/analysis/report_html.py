@@ -461,9 +461,7 @@ def _findings_table(verdict: dict, t0: float) -> str:
     rows = []
     for f in findings:
         for item in f.get("items", []):
-            what = ", ".join(f"{k} {v}" for k, v in item.items()
-                             if k not in ("frame", "frames", "time", "sender", "filter")
-                             and v is not None and v is not False)
+            what = summary.details(item, skip=("sender",))
             frames = item.get("frames", [item["frame"]])
             # A watchdog item names the packet that ended the silence, and the time the silence began.
             when = ("silence from " if item.get("until_end") is False else "") + since(item["time"], t0)

@@ -29,9 +29,10 @@ def open_gaps(gaps: list[dict]) -> int:
 
 
 SHOWN_ITEMS = 3           # located items printed per finding without --list
+# Every key an item may have besides where and when it lies (findings.located_item), in this order.
 _ITEM_KEYS = ("sender", "type", "command_id", "serial", "after", "count", "late", "from", "to", "port_from",
-              "port_to", "gap_ms", "until_end", "interval_ms", "reasons", "interrupted_frame", "duration_s", "states",
-              "open_at_end")
+              "port_to", "gap_ms", "until_end", "interval_ms", "latency_ms", "ack_frame", "command_frame", "reasons",
+              "interrupted_frame", "duration_s", "states", "open_at_end", "offset")
 
 
 def _value(value: object) -> str:
@@ -43,12 +44,17 @@ def _value(value: object) -> str:
     return _f(value, 3) if isinstance(value, float) else str(value)
 
 
+def details(item: dict, skip: tuple[str, ...] = ()) -> str:
+    """What an item of a finding says besides its frames and time, in words (the HTML's too)."""
+    return ", ".join(f"{k} {_value(item[k])}" for k in _ITEM_KEYS
+                     if k in item and k not in skip and item[k] is not None and item[k] is not False)
+
+
 def _item(item: dict, t0: float) -> str:
     frames = item.get("frames", [item["frame"]])
     where = f"frame {frames[0]}" if len(frames) == 1 else f"frames {', '.join(map(str, frames[:8]))}" + (
         ", ..." if len(frames) > 8 else "")
-    what = ", ".join(f"{k} {_value(item[k])}" for k in _ITEM_KEYS
-                     if k in item and item[k] is not None and item[k] is not False)
+    what = details(item)
     # A watchdog item names the packet that ended the silence, and the time the silence began.
     when = "ends a silence from" if item.get("until_end") is False else "at"
     return f"{where} {when} {since(item['time'], t0)} s: {what}  [{item['filter']}]"
