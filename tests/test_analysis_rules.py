@@ -295,6 +295,8 @@ def test_a_finding_beyond_the_kept_items_says_where_all_of_them_are(tmp_path):
     fraction = _report(tr, tmp_path, dup_window_ms=500.5)
     assert "filter" not in _finding(fraction, "duplicates") and "wireshark_prefs" not in fraction["verdict"]
     assert "... 50 more (the report keeps the first 100)" in summary.render(fraction, True)
+    # (without --list the first 100 are named once: it said "...: the first 100; the report keeps the first 100")
+    assert "            ... 147 more (--list, or the JSON report: the first 100)" in summary.render(fraction).splitlines()
     why = "dup_window_ms is 500.5, and the dissector's vm110.dup_window_ms takes whole milliseconds"
     assert fraction["verdict"]["no_filters"] == why and "no_filters" not in other["verdict"]
     assert f"  No Wireshark filter for the rules: {why}" in summary.render(fraction).splitlines()

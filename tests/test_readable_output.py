@@ -258,3 +258,27 @@ def test_the_summary_gives_every_detail_of_an_item(capsys, tmp_path):
     assert f", type VRCI, command_id 7, latency_ms 2500.000, ack_frame {ack}  [" in failed, failed
     damaged = next(line for line in lines if line.startswith("            frame 34 at"))   # the last one read
     assert damaged == f"            frame 34 at +3.875000 s: offset {last}  [frame.number == 34]"
+
+
+def test_one_of_a_kind_is_said_in_the_singular(tmp_path):
+    """One packet lost, one frame of a tunnel, one IP fragment: the summary said `lost 1 in 1 gaps`
+    and the findings `1 frames of tunnels`, `1 IP fragments`."""
+    from scapy.layers.inet import GRE, IP, UDP
+    from scapy.layers.l2 import Ether
+    from test_reader import pcap
+    from vm110 import constants as C
+    from vm110.analysis import analyze, summary
+    from test_analysis_craft import vrpi
+    udp = IP(src="10.0.0.10", dst=C.MULTICAST_GROUP) / UDP(sport=C.INPUT_PORT, dport=C.INPUT_PORT)
+    records = [(1_700_000_000 + k * 0.125, Ether() / udp / vrpi(k)) for k in range(8) if k != 4]
+    records.append((1_700_000_001.0, Ether() / IP(src="10.0.0.30", dst="10.0.0.40") / GRE() / udp / vrpi(0)))
+    records.append((1_700_000_001.1, Ether() / IP(src="10.0.0.10", dst=C.MULTICAST_GROUP, flags="MF", proto=17)
+                    / bytes(16)))
+    path = tmp_path / "ones.pcap"
+    path.write_bytes(pcap(records))
+    report = analyze(str(path))
+    messages = {f["rule"]: f["message"] for f in report["verdict"]["findings"]}
+    assert messages["tunnels"].startswith("1 frame of tunnels not unwrapped")
+    assert messages["ip_fragments"].startswith("1 IP fragment not analysed")
+    [serials] = [line for line in summary.render(report).splitlines() if line.startswith("  serials: ")]
+    assert serials.startswith("  serials: received 7, lost 1 in 1 gap, duplicates 0")

@@ -12,6 +12,7 @@ from typing import Any, Optional
 from .. import constants as C
 from ..capture.linktypes import TUNNEL_PORTS, TUNNEL_PROTOCOLS, unread
 from .commands import Tally
+from ..words import plural
 from .collect import CODE, TYPES
 
 MAX_ITEMS = 100
@@ -259,9 +260,9 @@ def capture_dropped(dropped: dict, lost: int, ports: list[int]) -> str:
     Wireshark shows them (frame.drop_count: the packets after a drop, where the packet blocks say)."""
     said = ", ".join(f"{_DROP_NAMES[k]} {dropped[k]}" for k in _DROP_NAMES if dropped[k] is not None)
     after = "; the packets after a drop: frame.drop_count > 0" if dropped["dropcount"] else ""
-    share = (f"up to {min(dropped['total'], lost)} of the {lost} packets counted lost (serial gaps) may be the "
-             f"capture's, not the link's" if lost else "no packet is counted lost")
-    return (f"the capture dropped {dropped['total']} packets itself (pcapng {said}): {share}; capture with "
+    share = (f"up to {min(dropped['total'], lost)} of the {plural(lost, 'packet')} counted lost (serial gaps) may "
+             f"be the capture's, not the link's" if lost else "no packet is counted lost")
+    return (f"the capture dropped {plural(dropped['total'], 'packet')} itself (pcapng {said}): {share}; capture with "
             f"a bigger buffer (dumpcap -B), a capture filter on the EG-Link ports "
             f"(-f \"udp port {ports[0]} or udp port {ports[1]}\"), a faster disk; Wireshark: Statistics > "
             f"Capture File Properties, Dropped packets{after}")
@@ -288,7 +289,8 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]], no_filte
     # where no stream steps back in time, which time_backwards says (one cause, one finding).
     if cap["behind_clock"] and not cap["time_backwards"]:
         findings.insert(0, {"rule": "not_in_time_order", "severity": "warning", "count": cap["behind_clock"],
-                            "message": f"{cap['behind_clock']} EG-Link packets earlier than a packet before them "
+                            "message": f"{plural(cap['behind_clock'], 'EG-Link packet')} earlier than a packet "
+                                       f"before {'it' if cap['behind_clock'] == 1 else 'them'} "
                                        "(captures appended, taps merged unsorted, a clock set back): latencies, "
                                        "fail limits and windows across them run on a clock that does not go back "
                                        "(docs/rules.md); where the time steps back: frame.time_delta < 0; records "
@@ -298,17 +300,17 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]], no_filte
                             "message": capture_dropped(cap["dropped"], tot["lost"], cap["ports"]), "items": []})
     if cap["fragments"]:      # (not reassembled: what they carry is missing from everything above)
         findings.insert(0, {"rule": "ip_fragments", "severity": "warning", "count": cap["fragments"],
-                            "message": f"{cap['fragments']} IP fragments not analysed (EG-Link packets in them "
-                                       f"count as lost): {FRAGMENT_FILTER}", "items": []})
+                            "message": f"{plural(cap['fragments'], 'IP fragment')} not analysed (EG-Link packets "
+                                       f"in them count as lost): {FRAGMENT_FILTER}", "items": []})
     if cap["unread_frames"]:  # (what they carry is missing from everything above, as with fragments)
         findings.insert(0, {"rule": "unread_link_type", "severity": "warning", "count": cap["unread_frames"],
                             "message": unread(cap["unread_frames"], cap["link_types"],
                                               "--engine tshark reads what Wireshark reads"), "items": []})
     if cap["tunnelled_frames"]:  # (what they carry is missing from everything above, as with fragments)
         findings.insert(0, {"rule": "tunnels", "severity": "warning", "count": cap["tunnelled_frames"],
-                            "message": f"{cap['tunnelled_frames']} frames of tunnels not unwrapped (IP in IP, GRE "
-                                       f"with ERSPAN, VXLAN, GENEVE): EG-Link packets in them are not analysed; "
-                                       f"--engine tshark unwraps them: {TUNNEL_FILTER}", "items": []})
+                            "message": f"{plural(cap['tunnelled_frames'], 'frame')} of tunnels not unwrapped (IP in "
+                                       f"IP, GRE with ERSPAN, VXLAN, GENEVE): EG-Link packets in them are not "
+                                       f"analysed; --engine tshark unwraps them: {TUNNEL_FILTER}", "items": []})
     if not report["capture"]["eglink_packets"]:
         # (a link silent from the start is no clean verdict either: README, "Silence")
         findings.insert(0, {"rule": "no_eglink", "severity": "error", "count": 0,

@@ -79,7 +79,7 @@ def _finding(f: dict, everything: bool, t0: float, wireshark: str) -> list[str]:
             where.append("--list, or the JSON report" + (f": the first {len(items)}" if more else ""))
         if f.get("filter"):
             where.append(f"{wireshark}: [{f['filter']}]")
-        elif more:
+        elif more and len(shown) == len(items):      # (else said with --list above)
             where.append(f"the report keeps the first {len(items)}")
         lines.append(f"            ... {rest} more" + (f" ({'; '.join(where)})" if where else ""))
     return lines
@@ -133,7 +133,8 @@ def render(report: dict, everything: bool = False) -> str:
         lines.append(f"Sender {snd['id']}  (serial scope {ser['scope']}: {ser['scope_reason']})")
         types = ", ".join(f"{t} {n}" for t, n in snd["by_type"].items())
         lines.append(f"  packets: {types}")
-        lines.append(f"  serials: received {ser['received']}, lost {ser['lost']} in {open_gaps(ser['gaps'])} gaps, "
+        gaps = plural(open_gaps(ser["gaps"]), "gap")
+        lines.append(f"  serials: received {ser['received']}, lost {ser['lost']} in {gaps}, "
                      f"duplicates {ser['duplicates']}, out of order {ser['out_of_order']}, wraps {ser['wraps']}, "
                      f"restarts {ser['restarts']}")
         for r in ser["restart_events"]:
