@@ -55,6 +55,20 @@ def test_fail_on_violation_exits_one(files):
     assert vm110(str(files / "lossy.pcapng"), "--fail-on", "lost>1,watchdog").returncode == EXIT_OK
 
 
+def test_a_violation_gives_its_numbers_in_full(tmp_path):
+    """VRPI silent for 1000 s: `interval_max_ms=1.00012e+06 (rule interval_max_ms>1e+06)` read as a
+    rule broken by a rounded value and a threshold the user did not give (999999.5)."""
+    tr = Traffic()
+    for i, t in enumerate((0.0, 0.125, 1000.25)):
+        tr.add(t, vrpi(i))
+    tr.write(tmp_path / "silent.pcap")
+    result = vm110(str(tmp_path / "silent.pcap"), "--quiet", "--fail-on", "interval_max_ms>999999.5,packets>=3")
+    assert result.returncode == EXIT_FINDINGS
+    assert result.stderr.splitlines() == [
+        f"fail-on: {tmp_path / 'silent.pcap'}: interval_max_ms=1000125 (rule interval_max_ms>999999.5)",
+        f"fail-on: {tmp_path / 'silent.pcap'}: packets=3 (rule packets>=3)"]
+
+
 def test_notes_are_counted_and_fail_only_a_rule_that_names_them():
     """captures/glink.pcapng (README of captures/: a G-Link fallback, VRPO every 400 ms, duplicate
     VRAI) has nothing lost, duplicated, illegal or late: only duplicate acknowledgements and VRPO

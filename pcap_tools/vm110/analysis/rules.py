@@ -33,11 +33,16 @@ def parse(text: str, names: tuple) -> list[Rule]:
     return rules
 
 
+def _number(value: float) -> str:
+    """A total or a rule's number in full (`:g` kept 6 digits: 1234567 read 1.23457e+06)."""
+    return f"{value:.15g}"
+
+
 def violations(rules: list[Rule], totals: dict) -> list[str]:
     """Each violated rule, as `name=value (rule name OP number)`."""
     out = []
     for name, op, number in rules:
         value = totals[name]
         if OPS[op](value, number):
-            out.append(f"{name}={value:g} (rule {name}{op}{number:g})")
+            out.append(f"{name}={_number(value)} (rule {name}{op}{_number(number)})")
     return out
