@@ -171,11 +171,24 @@ def test_the_summary_names_ms_for_ack_latency(capsys):
     truth = json.loads((CAPTURES / "retransmit.pcap.truth.json").read_text())
     latencies = [c["latency_first_ms"] for c in truth["commands"]["VRCI"]["list"] if c["latency_first_ms"] is not None]
     lines = vm110(capsys, "analyze", str(CAPTURES / "retransmit.pcap")).splitlines()
-    at = next(i for i, line in enumerate(lines) if line.startswith("commands "))
+    at = next(i for i, line in enumerate(lines) if line.startswith("acks "))
     header = re.split(r"\s{2,}", lines[at].strip())
     assert header[-3:] == ["lat p50 ms", "lat p95 ms", "lat max ms"]
     vrci = dict(zip(header, re.split(r"\s{2,}", next(line for line in lines[at:] if line.startswith("VRCI")).strip())))
     assert vrci["lat max ms"] == f"{max(latencies):.1f}" == "1600.0"
+
+
+def test_the_commands_tables_fit_an_80_column_terminal(capsys):
+    """The field engineer's terminal: the commands table was 135 columns wide and wrapped, its
+    numbers under no heading. overlap.pcapng has 100 VRCI transmissions (its truth file)."""
+    truth = json.loads((CAPTURES / "overlap.pcapng.truth.json").read_text())
+    lines = vm110(capsys, "analyze", str(CAPTURES / "overlap.pcapng")).splitlines()
+    at, end = lines.index(next(ln for ln in lines if ln.startswith("commands "))), len(lines) - 1
+    tables = lines[at:end]
+    assert lines[end].startswith("VRPO bursts: ") and len(tables) == 6 and max(map(len, tables)) <= 80, tables
+    heads = [re.split(r"\s{2,}", tables[i].strip()) for i in (0, 3)]
+    vrci = {**dict(zip(heads[0], tables[1].split())), **dict(zip(heads[1], tables[4].split()))}
+    assert (vrci["tx"], vrci["orphan acks"]) == (str(truth["commands"]["VRCI"]["transmissions"]), "0")
 
 
 def test_synth_says_when_its_capture_lies(capsys, tmp_path):
