@@ -270,6 +270,23 @@ def test_a_datagram_the_snaplen_cut_is_truncated_alone(tshark, tmp_path):
     assert decoded.count("ILLEGAL(truncated)") == report["illegal"]["total"] and "bad_crc" not in decoded
 
 
+def test_only_eg_link_datagrams_the_snaplen_cut_are_counted(tmp_path):
+    """capture.snaplen_truncated counts EG-Link datagrams (docs/report.md): the fast engine and the
+    monitor counted every UDP datagram the snaplen cut (318 on illegal.pcap cut at 50 bytes, 4 of
+    them mDNS, where the finding's items and the tshark engine gave 314)."""
+    whole, cut = tmp_path / "whole.pcap", tmp_path / "snap50.pcap"
+    other = [T.Datagram(bytes(60), sport=5353, dport=5353), T.Datagram(b"VRPI" + bytes(60), sport=6000, dport=6001)]
+    T.write_pcap(whole, [b"VRPI" + bytes(60), *other, b"VRCO" + bytes(60), *other])
+    snapped(whole, cut, 50)
+    fast, slow = analyze(str(cut)), analyze(str(cut), engine="tshark")
+    assert fast["capture"]["snaplen_truncated"] == slow["capture"]["snaplen_truncated"] == 2
+    assert fast["illegal"]["by_reason"] == {"truncated": 2}
+    live = tmp_path / "monitor.json"
+    subprocess.run([*VM110, "monitor", "--read", str(cut), "--idle", "0", "--no-dashboard", "--json", str(live)],
+                   capture_output=True, check=True, timeout=60)
+    assert json.loads(live.read_text())["capture"]["snaplen_truncated"] == 2
+
+
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 def test_a_datagram_cut_inside_its_header_is_truncated_alone(tshark, tmp_path):
     """The same below 16 bytes: an unknown packet ID cut to 8 bytes is truncated only. The dissector

@@ -261,7 +261,7 @@ class FastEngine:
         got.crc_counts[(variant, order)] += valid
         got.frames, got.non_udp, got.fragments = reader.frames, reader.non_udp, reader.fragments
         got.unread, got.tunnelled = reader.unknown_link, reader.tunnelled
-        got.snap_truncated, got.problem, got.damage = len(reader.snap_truncated), reader.problem, reader.damage
+        got.problem, got.damage = reader.problem, reader.damage
         got.dropped = reader.drops.report()
         got.first_ts, got.last_ts = reader.first_ts, reader.last_ts
         got.earliest_ts, got.latest_ts = reader.earliest, reader.latest
@@ -542,6 +542,7 @@ class FastEngine:
         fields = decode(payload, variant, order)
         problems = list(fields["problems"])
         cut = frame in reader.snap_truncated
+        got.snap_truncated += cut               # (EG-Link only: the reader marks any datagram it cut)
         if n >= C.OVERHEAD and not cut:          # (a packet the capture cut has no whole CRC to check)
             got.crc_checked += 1
             end = min(C.PREFIX_LEN + fields["size"], n - C.CRC_LEN)

@@ -63,7 +63,6 @@ class Intake:
         self.sniffed: Counter = Counter()
         self.sniff_seen = 0
         self.held: list[tuple] = []
-        self.cut = 0                       # frames cut by the snaplen judged and let go (_judge)
         if not self.auto:
             self._set(crc, crc_order)
 
@@ -140,9 +139,7 @@ class Intake:
         self.engine._slow(got, reader, self.variant, self.order, ts, src, sport, dport, payload, frame)
         # Judged: counted and let go (the reader keeps the number of each frame the snaplen cut,
         # millions on a link watched for days through `tcpdump -s 64`).
-        if frame in reader.snap_truncated:
-            reader.snap_truncated.discard(frame)
-            self.cut += 1
+        reader.snap_truncated.discard(frame)
 
     def sync(self, reader) -> None:
         """The file-level facts of the reader so far, as the engine sets them at the end."""
@@ -151,7 +148,6 @@ class Intake:
         got.frames, got.non_udp, got.fragments = reader.frames, reader.non_udp, reader.fragments
         got.unread, got.tunnelled = reader.unknown_link, reader.tunnelled
         got.udp = reader.frames - reader.non_udp
-        got.snap_truncated = self.cut + len(reader.snap_truncated)
         got.problem, got.damage = reader.problem, reader.damage
         got.dropped = reader.drops.report()
         got.first_ts, got.last_ts = reader.first_ts, reader.last_ts
