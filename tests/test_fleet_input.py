@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import gzip
+import hashlib
 import io
 import json
 import os
@@ -253,22 +254,35 @@ def test_unreadable_capture_is_an_error_row(src, built):
 
 
 def test_gzip_compressed_captures_in_a_folder_are_built(tmp_path):
-    """A folder of `.pcap.gz` files (tcpdump -z gzip): the build passed over them in silence, or
-    said "no captures in this folder" (trial). Each is analysed as its plain capture is."""
+    """A `.pcap.gz` (tcpdump -z gzip) is analysed as its plain capture is (the build passed over
+    them in silence, trial), and is that capture: `gzip plain.pcap` (which removes plain.pcap)
+    moves it, and a .pcap.gz beside its .pcap is a copy. Both were a second capture, counted
+    twice in every sum (trial-fleet)."""
     folder = tmp_path / "caps"
     folder.mkdir()
     data = (BUNDLED / "retransmit.pcap").read_bytes()
     (folder / "plain.pcap").write_bytes(data)
+    dataset = tmp_path / "ds"
+    assert vm110("fleet", "build", str(folder), "--out", str(dataset), "-j", "1").returncode == 0
+    plain = {t: by_name(rows(dataset, t))["plain.pcap"] for t in ("captures", "senders", "commands", "findings")}
     (folder / "packed.pcap.gz").write_bytes(gzip.compress(data))
-    result = vm110("fleet", "build", str(folder), "--out", str(tmp_path / "ds"), "-j", "1")
-    assert result.returncode == 0, result.stderr
-    for table in ("captures", "senders", "commands", "findings"):
-        got = by_name(rows(tmp_path / "ds", table))
+    (folder / "plain.pcap").unlink()
+    result = vm110("fleet", "build", str(folder), "--out", str(dataset), "-j", "1")
+    assert result.returncode == 0 and "1 analysed" in result.stdout and "1 replaced" in result.stdout, result
+    assert [Path(r["file"]).name for r in rows(dataset)] == ["packed.pcap.gz"]
+    assert rows(dataset)[0]["sha256"] == hashlib.sha256(data).hexdigest()
+    for table, want in plain.items():
+        got = by_name(rows(dataset, table))["packed.pcap.gz"]
         if table == "captures":
-            for name in got:
-                for r in got[name]:
-                    del r["size"], r["sha256"]
-        assert got["packed.pcap.gz"] == got["plain.pcap"] != [], table
+            for r in got + want:
+                del r["size"]
+        assert got == want != [], table
+    (folder / "plain.pcap").write_bytes(data)        # the plain capture back beside it: a copy
+    again = vm110("fleet", "build", str(folder), "--out", str(dataset), "-j", "1")
+    assert again.returncode == 0 and "1 copy not counted" in again.stdout, again
+    assert again.stderr == (f"vm110 fleet: copy, counted once: {folder / 'plain.pcap'}: the same capture as "
+                            f"{folder / 'packed.pcap.gz'}\n")
+    assert [Path(r["file"]).name for r in rows(dataset)] == ["packed.pcap.gz"]
 
 
 def test_folder_without_captures(tmp_path):

@@ -15,8 +15,9 @@ import os
 import re
 import stat
 from dataclasses import dataclass, field
-from typing import Iterable, Optional
+from typing import Any, Iterable, Optional
 
+from ..capture.compressed import GZIP_MAGIC, Gunzip, is_gzip
 from ..errors import CliError
 from ..fileio import read_at_most
 from .tables import COLUMNS
@@ -268,13 +269,15 @@ def metadata(path: str, pattern: Optional[MetaPattern]) -> dict[str, Optional[st
 
 
 def content_hash(path: str) -> tuple[int, str]:
-    """(size, sha256 hex) of the file as read now."""
+    """(size of the file, sha256 hex of the capture in it) as read now. A gzip-compressed file's
+    is the hash of the capture it holds: `gzip w1.pcap` (which removes w1.pcap) is the capture
+    moved, and a .pcap.gz beside its .pcap a copy, not a second capture counted in every sum."""
     h = hashlib.sha256()
-    size = 0
     with open(path, "rb") as f:
-        while True:
-            block = f.read(HASH_CHUNK)
-            if not block:
-                return size, h.hexdigest()
-            size += len(block)
+        size = os.fstat(f.fileno()).st_size
+        head = f.read(len(GZIP_MAGIC))
+        f.seek(0)
+        stream: Any = Gunzip(f) if is_gzip(head) else f
+        while block := stream.read(HASH_CHUNK):
             h.update(block)
+    return size, h.hexdigest()
