@@ -1032,3 +1032,17 @@ def test_a_dask_task_whose_workers_die_is_an_unreadable_row(src, tmp_path):
                       "was done (KilledWorker; the kernel's out-of-memory killer?)")]
     status = {Path(r["file"]).name: r["status"] for r in rows(dataset)}
     assert status["poison.pcap"] == "unreadable" and set(status) == {*NAMES, "poison.pcap"}
+
+
+def test_a_file_overwritten_with_a_copy_of_another_capture_no_longer_counts_what_it_held(src, built):
+    """A capture file overwritten with another capture already in (copied over it by mistake, or a
+    .pcap.gz a vm110 before knew by its compressed bytes): the copy is not counted, and neither
+    any more is what the file held. Its old rows stayed, figures of a capture no file holds."""
+    shutil.copy(src / "normal.pcap", src / "retransmit.pcap")
+    again = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert again.returncode == 0 and "1 replaced" in again.stdout and "1 copy not counted" in again.stdout, again
+    assert sorted(Path(r["file"]).name for r in rows(built)) == sorted(n for n in NAMES if n != "retransmit.pcap")
+    manifest = json.loads((built / "manifest.json").read_text())
+    listed = {p for e in manifest["captures"].values() for p in e["parts"]}
+    assert {str(p.relative_to(built)) for p in built.rglob("*.parquet")} == listed     # its old parts are gone
+

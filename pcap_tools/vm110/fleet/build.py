@@ -122,11 +122,12 @@ def _build(dataset: Dataset, wanted: list[Source], walked: "Walked", settings: S
     # still being copied, a worker that could not see the share).
     todo = [s for s in wanted if s.capture_id not in listed or listed[s.capture_id]["status"] == "unreadable"]
     outcome.skipped = len(wanted) - len(todo)
-    todo, outcome.copies = _without_copies(listed, wanted, todo)
+    todo, copies = _without_copies(listed, wanted, todo)
+    outcome.copies = [f"{copy}: the same capture as {of}" for copy, of in copies.items()]
     versions = Versions(listed, {s.path: s.capture_id for s in wanted}, _moved(listed, wanted))
     cleared = _gone_unreadable(listed, wanted, walked)
     outcome.cleared = len(cleared)
-    stale = versions.stale() | cleared
+    stale = versions.stale() | versions.copied(copies) | cleared
     bar = Progress(len(todo), outcome.skipped) if progress else None
     last = time.monotonic()
     try:
@@ -174,8 +175,8 @@ def _entry(path: str, size: Optional[int], sha256: Optional[str], status: str, p
             "message": message, "meta": meta}
 
 
-def _without_copies(listed: dict, wanted: list[Source], todo: list[Source]) -> tuple[list[Source], list[str]]:
-    """`todo` without copies, and a line for each: a capture whose content the dataset holds, or
+def _without_copies(listed: dict, wanted: list[Source], todo: list[Source]) -> tuple[list[Source], dict[str, str]]:
+    """`todo` without copies, and the capture each copies: a capture whose content the dataset holds, or
     an earlier path of this build holds, under another path that is still there (an archive
     folder, a file copied into two machines' folders). Analysed, a copy is counted again in
     every sum of the fleet."""
@@ -189,8 +190,7 @@ def _without_copies(listed: dict, wanted: list[Source], todo: list[Source]) -> t
         if s.sha256 and s.problem is None:
             held.setdefault(s.sha256, s.path)
     copies = {s.path: held[s.sha256] for s in todo if s.sha256 and held.get(s.sha256, s.path) != s.path}
-    lines = [f"{copy}: the same capture as {of}" for copy, of in copies.items()]
-    return [s for s in todo if s.path not in copies], lines
+    return [s for s in todo if s.path not in copies], copies
 
 
 @dataclass(frozen=True)
@@ -243,6 +243,12 @@ class Versions:
 
     def stale(self) -> set[str]:
         return {cid for path in self.current for cid in self._stale(path)}
+
+    def copied(self, copies: dict[str, str]) -> set[str]:
+        """The entries of paths that now hold a copy of another capture: what they held is gone
+        (overwritten; a gzip-compressed capture a vm110 before did not know as one), and the
+        copy is counted under the other path."""
+        return {c for path in copies for c in self.by_path.get(path, set()) if c != self.current.get(path)}
 
     def add(self, path: str, cid: str) -> set[str]:
         """Record a completed capture; the entries it makes stale."""
