@@ -10,6 +10,7 @@ import json
 import os
 import shutil
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -1046,3 +1047,36 @@ def test_a_file_overwritten_with_a_copy_of_another_capture_no_longer_counts_what
     listed = {p for e in manifest["captures"].values() for p in e["parts"]}
     assert {str(p.relative_to(built)) for p in built.rglob("*.parquet")} == listed     # its old parts are gone
 
+
+def _with_dropped(pcapng: bytes, dropped: int) -> bytes:
+    """`pcapng` and an Interface Statistics Block of its first interface: `dropped` (isb_ifdrop)."""
+    options = struct.pack("<HHQ", 5, 8, dropped) + struct.pack("<HH", 0, 0)
+    body = struct.pack("<III", 0, 0, 0) + options
+    return pcapng + struct.pack("<II", 5, 12 + len(body)) + body + struct.pack("<I", 12 + len(body))
+
+
+def test_parts_of_an_older_vm110_are_read_with_the_new_ones(src, built):
+    """A dataset built by a vm110 before the column capture_dropped, built on with this one: each
+    query failed (`the dataset cannot be read ... schema mismatch`, or capture_dropped not found
+    when an old part came first: the scan takes its first file's columns). Old parts are read by
+    name, their capture_dropped NULL (not known); the new ones give it as analyze does."""
+    manifest_path = built / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    for entry in manifest["captures"].values():          # as a vm110 before capture_dropped wrote them
+        entry.pop("schema", None)
+        part = built / next(p for p in entry["parts"] if p.startswith("captures/"))
+        pq.write_table(pq.read_table(part).drop_columns(["capture_dropped"]), part)
+    manifest_path.write_text(json.dumps(manifest))
+    (src / "dropping.pcapng").write_bytes(_with_dropped((BUNDLED / "loss.pcapng").read_bytes(), 7))
+    again = vm110("fleet", "build", str(src), "--out", str(built), "-j", "1")
+    assert again.returncode == 0 and "1 analysed" in again.stdout, again
+    got = vm110("fleet", "query", str(built), "--format", "json",
+                "SELECT file, lost, capture_dropped FROM captures ORDER BY file")
+    assert got.returncode == 0, got.stderr
+    want = []
+    for name in sorted([*NAMES, "dropping.pcapng"]):
+        totals = json.loads(vm110("analyze", str(src / name), "--json", "-").stdout)["totals"]
+        want.append({"file": str(src / name), "lost": totals["lost"],
+                     "capture_dropped": totals["capture_dropped"] if name == "dropping.pcapng" else None})
+    assert json.loads(got.stdout) == want and {w["capture_dropped"] for w in want} == {None, 7}
+    assert vm110("fleet", "query", str(built), "--worst", "links").returncode == 0

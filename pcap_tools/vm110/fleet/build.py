@@ -19,7 +19,7 @@ from ..errors import CliError
 from .dataset import Dataset
 from .engines import run_dask, run_local
 from .sources import MetadataError, MetaPattern, Source, content_hash, find, metadata, path_fields
-from .tables import SCHEMAS, check_meta_keys
+from .tables import SCHEMA_ID, SCHEMAS, check_meta_keys
 from .work import Done, Settings
 
 HASH_THREADS = 8             # files hashed at once (reading is the limit, not the CPU)
@@ -116,7 +116,8 @@ def _build(dataset: Dataset, wanted: list[Source], walked: "Walked", settings: S
     journal = Journal(dataset, listed)
     for cid, row in dataset.complete_captures(skip=set(listed)).items():     # a stopped build's finished work
         journal.add(cid, _entry(row["file"], row["size"], row["sha256"], row["status"], dataset.parts_on_disk(cid),
-                                None, {k: v for k, v in row.items() if k not in _CAPTURE_COLUMNS}))
+                                None, {k: v for k, v in row.items() if k not in _CAPTURE_COLUMNS},
+                                SCHEMA_ID if _CAPTURE_COLUMNS <= set(row) else ""))
     outcome = Outcome()
     # An unreadable capture is tried again every time: what failed may have been passing (a file
     # still being copied, a worker that could not see the share).
@@ -170,9 +171,10 @@ def _engine(engine: str, todo: list[Source], settings: Settings, jobs: int, sche
 
 
 def _entry(path: str, size: Optional[int], sha256: Optional[str], status: str, parts: list[str],
-           message: Optional[str], meta: dict) -> dict:
+           message: Optional[str], meta: dict, schema: str = SCHEMA_ID) -> dict:
+    """A capture of the manifest; `schema` the columns of its parts ("": an older vm110's, not known)."""
     return {"file": path, "size": size, "sha256": sha256, "status": status, "parts": sorted(parts),
-            "message": message, "meta": meta}
+            "message": message, "meta": meta, "schema": schema}
 
 
 def _without_copies(listed: dict, wanted: list[Source], todo: list[Source]) -> tuple[list[Source], dict[str, str]]:

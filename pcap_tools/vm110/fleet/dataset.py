@@ -295,7 +295,8 @@ def _entry_ok(cid: str, entry: Any) -> bool:
     traceback, name parts outside the dataset (a build removes those it replaces) nor metadata
     that is no column name (the views are made with them)."""
     return (isinstance(entry, dict) and isinstance(entry.get("file"), str) and isinstance(entry.get("status"), str)
-            and isinstance(entry.get("meta", {}), dict) and all(KEY.match(k) for k in entry.get("meta", {}))
+            and isinstance(entry.get("schema", ""), str) and isinstance(entry.get("meta", {}), dict)
+            and all(KEY.match(k) for k in entry.get("meta", {}))
             and isinstance(entry.get("parts"), list)
             and all(p in {part_name(t, cid) for t in TABLES} for p in entry["parts"]))
 
@@ -311,13 +312,14 @@ def _protocols(fs: Any) -> set[str]:
     return {protocol} if isinstance(protocol, str) else set(protocol)
 
 
-def view_files(manifest: dict, dataset: Dataset) -> dict[str, dict[tuple[str, ...], list[str]]]:
+def view_files(manifest: dict, dataset: Dataset) -> dict[str, dict[tuple[str, tuple[str, ...]], list[str]]]:
     """Table -> the part files (full paths or URLs) of the captures the manifest lists, by the
-    metadata fields of their capture: the parts of one set of fields have one schema, so that a
-    reader need not open every file to unite their columns by name."""
-    files: dict[str, dict[tuple[str, ...], list[str]]] = {t: {} for t in TABLES}
+    columns of their parts (`schema`, "" when not known) and the metadata fields of their capture:
+    the parts of one such group have one schema, so that a reader need not open every file to
+    unite their columns by name (but in the group "": an older vm110 wrote its parts)."""
+    files: dict[str, dict[tuple[str, tuple[str, ...]], list[str]]] = {t: {} for t in TABLES}
     for entry in manifest["captures"].values():
-        fields = tuple(sorted(entry.get("meta") or {}))
+        fields = entry.get("schema", ""), tuple(sorted(entry.get("meta") or {}))
         for relative in entry.get("parts", []):
             table = relative.split("/", 1)[0]
             if table in files:

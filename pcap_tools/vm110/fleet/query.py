@@ -64,28 +64,21 @@ class Fleet:
         """A view per table over its Parquet parts (the manifest's), locked to those files."""
         files = view_files(self.manifest, self.dataset)
         for table in TABLES:
-            if files[table]:
-                # One scan per schema, united by name (union_by_name over every part read each
-                # file's schema at every query: seconds per thousand captures); with many
-                # schemas (sidecars of many kinds) the unions cost more than that.
-                groups = [paths for _, paths in sorted(files[table].items())]
-                if len(groups) > MAX_SCHEMAS:
-                    groups = [[f for paths in groups for f in paths]]
-                union = ", union_by_name = true" if len(files[table]) > MAX_SCHEMAS else ""
-                sql = " UNION ALL BY NAME ".join(
-                    f"SELECT * FROM read_parquet([{', '.join(_quote(f) for f in paths)}]{union})" for paths in groups)
-            else:
-                empty = pa.Table.from_pylist([], schema=table_schema(table, self.meta_keys))
-                self.con.register(f"_empty_{table}", empty)
-                sql = f"SELECT * FROM _empty_{table}"
-            self.con.execute(f"CREATE VIEW {table} AS {sql}")
-            # A metadata field is a column of every table, also of one whose rows all come from
-            # captures without it (`errors` of captures without a sidecar): NULL there.
-            have = {r[0] for r in self.con.execute(f"DESCRIBE {table}").fetchall()}
-            missing = [k for k in self.meta_keys if k not in have]     # (names checked: \w+)
-            if missing:
-                nulls = ", ".join(f"CAST(NULL AS VARCHAR) AS {k}" for k in missing)
-                self.con.execute(f"CREATE OR REPLACE VIEW {table} AS SELECT *, {nulls} FROM ({sql})")
+            # One scan per group of parts of one schema, united by name (union_by_name over every
+            # part read each file's schema at every query: seconds per thousand captures); with
+            # many groups (sidecars of many kinds) the unions cost more than that. The parts of an
+            # older vm110 (schema not known) are read by name: another group's columns may be
+            # missing from some of them, and a scan takes its first file's columns.
+            groups = sorted(files[table].items())
+            if len(groups) > MAX_SCHEMAS:
+                groups = [(("", ()), [f for _, paths in groups for f in paths])]
+            scans = [f"SELECT * FROM read_parquet([{', '.join(_quote(f) for f in paths)}]"
+                     f"{'' if schema else ', union_by_name = true'})" for (schema, _), paths in groups]
+            # Every column of this vm110 and every metadata field, also where no part has it (an
+            # older vm110's parts; `errors` of captures without a sidecar): NULL there.
+            self.con.register(f"_empty_{table}", pa.Table.from_pylist([], schema=table_schema(table, self.meta_keys)))
+            scans.append(f"SELECT * FROM _empty_{table}")
+            self.con.execute(f"CREATE VIEW {table} AS {' UNION ALL BY NAME '.join(scans)}")
         every = [f for t in TABLES for paths in files[t].values() for f in paths]
         self.parts = frozenset(every)
         self.con.execute(f"SET allowed_paths = [{', '.join(_quote(f) for f in every)}]")

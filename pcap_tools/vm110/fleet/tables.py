@@ -6,6 +6,7 @@ uses, so that a total added to the report is a column here too.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 from typing import Any, Iterable, Optional
 
@@ -56,6 +57,11 @@ SCHEMAS: dict[str, pa.Schema] = {
         ("type", pa.string()), ("origin", pa.int64()), ("serial", pa.int64()), ("size", pa.int64()),
         ("command_id", pa.int64()), ("legal", pa.bool_()), ("problems", pa.string())]),
 }
+# Names the tables' columns (a total added to the report adds one): the manifest gives it with
+# each capture, so that the parts of one set of columns are read together, and parts an older
+# vm110 wrote (no mark) by name.
+SCHEMA_ID = hashlib.sha256(repr([(t, [(f.name, str(f.type)) for f in s]) for t, s in SCHEMAS.items()]).encode()
+                           ).hexdigest()[:12]
 COLUMNS = frozenset(f.name for schema in SCHEMAS.values() for f in schema)     # no metadata field may take one
 # Item keys that have a column of their own in `findings`; the rest go to `details` (JSON).
 _ITEM_COLUMNS = ("frame", "frames", "time", "sender", "type", "command_id", "filter")
