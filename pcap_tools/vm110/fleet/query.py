@@ -177,13 +177,13 @@ _CAPTURE_COUNTS = "count(*) AS captures, count(*) FILTER (WHERE status = 'unread
 def _worst_links(f: Fleet, a: Args) -> str:
     keys, w = machine_key(f)
     return f"""
-WITH c AS (SELECT {w}, {_CAPTURE_COUNTS} FROM captures GROUP BY ALL),
+WITH c AS (SELECT {w}, {_CAPTURE_COUNTS}, sum(capture_dropped) AS capture_dropped FROM captures GROUP BY ALL),
 s AS (SELECT {w}, sum(lost) AS lost, {_sent()} AS sent, sum(restarts) AS restarts FROM senders GROUP BY ALL),
 t AS (SELECT {w}, sum(watchdog_violations) AS watchdog,
              max(jitter_max_ms) FILTER (WHERE type = 'VRPI') AS vrpi_jitter_max_ms,
              max(jitter_max_ms) FILTER (WHERE type = 'VRPO') AS vrpo_jitter_max_ms FROM streams GROUP BY ALL)
 SELECT {_cols('c', keys)}, c.captures, c.unreadable, coalesce(s.lost, 0) AS lost,
-       round(100.0 * coalesce(s.lost, 0) / nullif(s.sent, 0), 3) AS loss_pct,
+       round(100.0 * coalesce(s.lost, 0) / nullif(s.sent, 0), 3) AS loss_pct, c.capture_dropped,
        coalesce(t.watchdog, 0) AS watchdog, t.vrpi_jitter_max_ms, t.vrpo_jitter_max_ms,
        coalesce(s.restarts, 0) AS restarts
 FROM c LEFT JOIN s ON {_same('c', 's', keys)} LEFT JOIN t ON {_same('c', 't', keys)}
@@ -294,7 +294,8 @@ LIMIT {a.limit}"""
 
 
 NAMED = {n.name: n for n in (
-    Named("worst-links", "machines by lost packets (share), watchdog violations, then jitter (--worst links)",
+    Named("worst-links", "machines by lost packets (share; beside it what the captures dropped themselves), "
+                         "watchdog violations, then jitter (--worst links)",
           _worst_links, ("limit",)),
     Named("worst-machines", "machines ranked by findings: error findings, failing captures, others (--worst machines)",
           _worst_machines, ("limit",)),
