@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import glob
 import gzip
 import hashlib
 import io
@@ -379,6 +380,23 @@ def test_metadata_from_path_and_sidecar(tmp_path):
     for bad_pattern in ("{site", "sites/*.pcap", "{a}/{a}"):
         with pytest.raises(CliError):
             MetaPattern(bad_pattern)
+
+
+def test_a_meta_pattern_s_double_star_is_no_folder_or_many_as_in_glob(tmp_path):
+    """`sites/{site}/**/{machine}/*.pcap` matched no capture right in its machine's folder below its
+    site (`**` between slashes wanted a folder at least), and left its site and machine empty
+    (trial). The captures it matches are those glob matches with each field a `*`."""
+    from vm110.fleet.sources import MetaPattern
+    for where in ("north/crane-01", "south/yard/crane-02", "east/a/b/crane-03", "crane-04"):
+        (tmp_path / "sites" / where).mkdir(parents=True)
+        (tmp_path / "sites" / where / "w1.pcap").write_bytes(b"")
+    pattern = MetaPattern("sites/{site}/**/{machine}/*.pcap")
+    globbed = set(glob.glob(str(tmp_path / "sites/*/**/*/*.pcap"), recursive=True))
+    assert len(globbed) == 3
+    for path in map(str, tmp_path.rglob("*.pcap")):
+        fields = pattern.fields(path)
+        parts = Path(path).relative_to(tmp_path / "sites").parts
+        assert fields == ({"site": parts[0], "machine": parts[-2]} if path in globbed else None), path
 
 
 def test_a_meta_pattern_that_matches_no_capture_path_is_said(src, tmp_path):

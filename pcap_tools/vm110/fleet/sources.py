@@ -179,7 +179,7 @@ class MetaPattern:
         self.keys: list[str] = []
         out = []
         previous = ""
-        for piece in re.split(r"(\{[^{}]*\}|\*\*|\*|\?)", pattern.replace(os.sep, "/")):
+        for piece in _pieces(pattern.replace(os.sep, "/")):
             if not piece:
                 continue
             if piece.startswith("{") and piece.endswith("}"):
@@ -192,6 +192,8 @@ class MetaPattern:
                                    "where one ends; put a separator, e.g. {site}_{machine}")
                 self.keys.append(key)
                 out.append(f"(?P<{key}>[^/]+)")
+            elif piece == "/**/":
+                out.append("/(?:.*/)?")
             elif piece == "**":
                 out.append(".*")
             elif piece == "*":
@@ -209,6 +211,16 @@ class MetaPattern:
         """The fields of `path`, or None when the pattern does not match it."""
         m = self.regex.search(path.replace(os.sep, "/"))
         return None if m is None else dict(m.groupdict())
+
+
+def _pieces(pattern: str) -> list[str]:
+    """`pattern` split into fields, wildcards and text; `/**/` one piece: no folder or any number
+    of them, as glob has it (`.*` between the slashes wanted one folder at least)."""
+    pieces = re.split(r"(\{[^{}]*\}|\*\*|\*|\?)", pattern)
+    for n in range(1, len(pieces) - 1):
+        if pieces[n] == "**" and pieces[n - 1].endswith("/") and pieces[n + 1].startswith("/"):
+            pieces[n - 1], pieces[n], pieces[n + 1] = pieces[n - 1][:-1], "/**/", pieces[n + 1][1:]
+    return pieces
 
 
 class MetadataError(CliError):
