@@ -1009,6 +1009,51 @@ def test_a_worker_that_dies_costs_its_capture_only(src, tmp_path):
     assert {r["status"] for r in rows(dataset)} == {"ok"}
 
 
+_HOLDER = """
+import os, sys, time
+import vm110.fleet.engines as engines
+real = engines.build_one
+
+def build_one(source, settings):      # each capture held until the test lets it go
+    open(os.path.join(os.environ["HOLD"], f"started-{os.getpid()}"), "w").close()
+    while not os.path.exists(os.path.join(os.environ["HOLD"], "go")):
+        time.sleep(0.01)
+    return real(source, settings)
+
+engines.build_one = build_one
+from vm110.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_the_workers_of_a_build_killed_alone_end(src, tmp_path):
+    """SIGTERM to the build alone (`kill PID`, a job scheduler), not its process group: its worker
+    processes waited for ever, holding its standard output and error open, so that whatever read
+    them (cron, CI, a script) hung too (trial-fleet). They finish their capture and end; the next
+    build adopts what they finished."""
+    hold, dataset = tmp_path / "hold", tmp_path / "ds"
+    hold.mkdir()
+    command = [sys.executable, "-c", _HOLDER, "fleet", "build", str(src), "--out", str(dataset), "-j", "2"]
+    proc = subprocess.Popen(command, cwd=ROOT, env={**os.environ, "HOLD": str(hold)}, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        while len(list(hold.glob("started-*"))) < 2 and proc.poll() is None:
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == -signal.SIGTERM
+        (hold / "go").touch()
+        try:
+            proc.communicate(timeout=60)        # the end of its output: no process of the build is left
+        except subprocess.TimeoutExpired:
+            pytest.fail("the workers of a build killed alone went on, holding its output open")
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    again = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "1")
+    assert again.returncode == 0 and f": {len(NAMES) - 2} analysed" in again.stdout, again
+    assert "2 already in the dataset" in again.stdout and len(rows(dataset)) == len(NAMES)
+
+
 _DASK_KILLER = """
 import os, signal, sys
 from dataclasses import dataclass

@@ -35,7 +35,15 @@ def ignore_interrupt() -> None:
 
 def _serve(conn: Connection, fn: Callable[[Any], Any]) -> None:
     ignore_interrupt()
-    while (item := conn.recv()) is not None:
+    # A driver killed alone (`kill PID`, a job scheduler's SIGTERM) closes no pipe of ours: the
+    # workers forked after us hold its end. Its death is the sign to end: the workers waited for
+    # ever, holding the driver's standard output and error open (a caller reading them hung too).
+    parent = multiprocessing.parent_process()
+    gone = [parent.sentinel] if parent is not None else []
+    while not set(gone) & set(wait([conn, *gone])):
+        item = conn.recv()
+        if item is None:
+            return
         conn.send(fn(item[0]))
 
 
