@@ -1054,6 +1054,32 @@ def test_the_workers_of_a_build_killed_alone_end(src, tmp_path):
     assert "2 already in the dataset" in again.stdout and len(rows(dataset)) == len(NAMES)
 
 
+_FULL = """
+import errno, sys
+import vm110.fleet.dataset as dataset
+real = dataset.atomic_writer
+
+def atomic_writer(path, *args, **kwargs):      # a disk full once the manifest is written
+    if "/part-" in str(path):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    return real(path, *args, **kwargs)
+
+dataset.atomic_writer = atomic_writer
+from vm110.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_full_disk_ends_a_build_with_one_line(src, tmp_path):
+    """A dataset on a full disk, built with worker processes: each worker ended with a traceback
+    on standard error (trial-fleet). The build ends with one line that says why, exit 2."""
+    command = [sys.executable, "-c", _FULL, "fleet", "build", str(src), "--out", str(tmp_path / "ds"), "-j", "2"]
+    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done
+    [line] = done.stderr.splitlines()
+    assert line.startswith(f"vm110 fleet: cannot write {tmp_path / 'ds'}/") and "No space left on device" in line
+
+
 _DASK_KILLER = """
 import os, signal, sys
 from dataclasses import dataclass

@@ -24,8 +24,19 @@ CONNECT_TIMEOUT_S = 10
 def run_local(todo: Sequence[Source], settings: Settings, jobs: int) -> Iterator[Done]:
     """In this process for one job (as `vm110 analyze --jobs 1`), else `jobs` worker processes
     (`workers.each`): a worker that dies gives its capture an unreadable row that says why."""
-    for index, done in each(partial(build_one, settings=settings), todo, jobs):
+    for index, done in each(partial(_build_one, settings=settings), todo, jobs):
+        if isinstance(done, CliError):
+            raise done                  # the dataset cannot be written (a full disk): that ends the build
         yield build_one(replace(todo[index], problem=str(done)), settings) if isinstance(done, Died) else done
+
+
+def _build_one(source: Source, settings: Settings) -> "Done | CliError":
+    """`build_one`, its CliError handed back to the driver to say in one line: raised, it ended the
+    worker process with a traceback on standard error (a full disk: one per worker)."""
+    try:
+        return build_one(source, settings)
+    except CliError as exc:
+        return exc
 
 
 def run_dask(todo: Sequence[Source], settings: Settings, jobs: int, scheduler: Optional[str]) -> Iterator[Done]:
