@@ -286,10 +286,10 @@ def content_hash(path: str) -> tuple[int, str]:
     moved, and a .pcap.gz beside its .pcap a copy, not a second capture counted in every sum."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
-        size = os.fstat(f.fileno()).st_size
         head = f.read(len(GZIP_MAGIC))
         f.seek(0)
         stream: Any = Gunzip(f) if is_gzip(head) else f
         while block := stream.read(HASH_CHUNK):
             h.update(block)
-    return size, h.hexdigest()
+        # (the bytes hashed, of a file still growing; gzip may leave trailing bytes unread)
+        return f.tell() if stream is f else os.fstat(f.fileno()).st_size, h.hexdigest()
