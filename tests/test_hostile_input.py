@@ -750,6 +750,17 @@ def test_a_named_pipe_is_told_to_come_on_standard_input(tmp_path, command):
     assert done.returncode == 2 and b"is a named pipe: give it on standard input" in done.stderr, done.stderr
 
 
+@pytest.mark.parametrize("args", [["decode", "NAME"], ["synth", "--out", "NAME/x.pcap", "day"],
+                                  ["fleet", "query", "NAME", "--worst", "links"]], ids=lambda a: a[0])
+def test_a_file_name_in_any_command_s_error_reaches_the_terminal_escaped(tmp_path, args):
+    """Every command's one-line error names the file it could not use: the name's escape sequences
+    and newlines reached the terminal raw (report trial: analyze's were fixed alone)."""
+    name = str(tmp_path / os.fsdecode(b"no\x1b[2J\n\xff"))
+    done = vm110(*(a.replace("NAME", name) for a in args))
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count(b"\n") == 1 and b"\x1b" not in done.stderr and b"\\x1b[2J\\n\\udcff" in done.stderr
+
+
 def test_file_names_of_any_bytes_reach_the_reports_valid_and_the_terminal_escaped(tmp_path):
     """A file name is any bytes but / and NUL: one that is no UTF-8 made the JSON and HTML writers
     raise (a traceback, exit 1, no report) after the whole analysis; an escape sequence, a newline or

@@ -12,6 +12,7 @@ import sys
 from typing import NoReturn, Optional, Sequence
 
 from . import __version__, closedpipe
+from .printable import escaped
 from .errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, CliError
 
 # The analyses keep many small objects (per sender, command and finding) that live for the whole
@@ -85,7 +86,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         try:
             code = int(args.run(args) or EXIT_OK)
         except CliError as exc:
-            print(f"vm110 {args.command}: {exc}", file=sys.stderr)
+            # (its file names and values may come from anywhere: a terminal's escapes as text)
+            print(f"vm110 {args.command}: {escaped(str(exc))}", file=sys.stderr)
             code = EXIT_USAGE
         except KeyboardInterrupt:
             code = EXIT_INTERRUPTED
