@@ -651,6 +651,13 @@ def test_frames_of_a_link_type_the_reader_does_not_read_are_said(tmp_path):
     assert unread["message"].startswith("8 frames of link type 192 not read") and "--engine tshark" in unread["message"]
 
 
+def test_frames_of_link_types_not_read_are_told_in_words():
+    """Report trial: "1 frames of link type 192", and "link type 147, 192" for two of them."""
+    from vm110.capture.linktypes import unread
+    assert unread(1, {"192"}, "x").startswith("1 frame of link type 192 not read")
+    assert unread(3, {"192", "Ethernet", "147", "1000"}, "x").startswith("3 frames of link types 147, 192 and 1000 not")
+
+
 @pytest.mark.parametrize("fmt", ["pcap", "pcapng"])
 def test_damaged_files_never_raise(tmp_path, fmt):
     """Random byte damage and cuts: a report (that renders as JSON, HTML and summary) or a

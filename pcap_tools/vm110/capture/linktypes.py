@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from typing import Iterable
 
+from ..words import plural
+
 LINKTYPE_NULL = 0            # BSD loopback: 4-byte address family in the writer's byte order
 LINKTYPE_ETHERNET = 1
 LINKTYPE_IEEE802_11 = 105    # 802.11 frames without a radio header
@@ -29,8 +31,10 @@ NAMES = {
 def unread(count: int, link_types: Iterable[str], instead: str) -> str:
     """What to say of `count` frames of the link types (of a reader's `link_types`) not read, and
     what reads them `instead`."""
-    numbers = ", ".join(sorted((t for t in link_types if t.isdigit()), key=int))
-    return f"{count} frames of link type {numbers} not read (this reader reads {READ}; {instead})"
+    numbers = sorted((t for t in link_types if t.isdigit()), key=int)
+    kinds = f"link types {', '.join(numbers[:-1])} and {numbers[-1]}" if len(numbers) > 1 else \
+        f"link type {''.join(numbers) or 'unknown'}"
+    return f"{plural(count, 'frame')} of {kinds} not read (this reader reads {READ}; {instead})"
 
 
 ETHERTYPE_IPV4 = 0x0800
