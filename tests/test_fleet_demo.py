@@ -8,6 +8,7 @@ import json
 import re
 from pathlib import Path
 
+import numpy
 import pytest
 from fleetlib import once
 from vm110.cli import main
@@ -78,6 +79,24 @@ def test_trend_errors_and_sql(dataset):
     assert csv.splitlines()[0] == "machine,lost" and len(csv.splitlines()) == 2
     table = vm110("fleet", "query", str(dataset), "--list")
     assert "worst-links" in table and "captures:" in table
+
+
+def test_the_latency_trend_gives_each_device_s_acks_apart(dataset):
+    """Fleet trial: "which BU firmware acks slowest" (--trend latency --by bu_firmware) mixed the
+    controller's acks of VRCI with the base unit's of VRCO in one p95. Each is held to the commands
+    table's own latencies, the quantile interpolated here (numpy's linear, as quantile_cont)."""
+    rows = query(dataset, "--trend", "latency", "--by", "bu_firmware")
+    commands = query(dataset, "SELECT c.bu_firmware, t.type, t.latency_first_ms, t.failed FROM commands t "
+                              "JOIN captures c USING (capture_id)")
+    for row in rows:
+        for kind in ("VRCI", "VRCO"):
+            mine = [c for c in commands if c["bu_firmware"] == row["bu_firmware"] and c["type"] == kind]
+            latencies = [c["latency_first_ms"] for c in mine if c["latency_first_ms"] is not None]
+            key = kind.lower()
+            assert row[f"{key}_commands"] == len(mine) > 0
+            assert row[f"{key}_failed"] == sum(c["failed"] for c in mine)
+            assert row[f"{key}_ack_p95_ms"] == pytest.approx(round(float(numpy.quantile(latencies, 0.95)), 3), abs=1e-3)
+            assert row[f"{key}_ack_max_ms"] == max(latencies)
 
 
 def test_report_page(dataset, tmp_path):

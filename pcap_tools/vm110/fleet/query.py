@@ -249,9 +249,14 @@ _TREND = {   # metric -> (table, aggregates over it as t)
                            "max(t.jitter_max_ms) FILTER (WHERE t.type = 'VRPO') AS vrpo_jitter_max_ms")),
     "loss": ("senders", ("sum(t.lost) AS lost, sum(t.received) AS received, "
                          f"round(100.0 * sum(t.lost) / nullif({_sent('t.')}, 0), 3) AS loss_pct")),
-    "latency": ("commands", ("count(*) AS commands, round(quantile_cont(t.latency_first_ms, 0.5), 3) AS ack_p50_ms, "
-                             "round(quantile_cont(t.latency_first_ms, 0.95), 3) AS ack_p95_ms, "
-                             "max(t.latency_first_ms) AS ack_max_ms, count(*) FILTER (WHERE t.failed) AS failed")),
+    # VRCI acked by the controller (VRAO), VRCO by the base unit (VRAI): two devices' latencies,
+    # apart ("which BU firmware acks slowest" mixed the controller's acks in).
+    "latency": ("commands", ", ".join(
+        f"count(*) FILTER (WHERE t.type = '{k}') AS {k.lower()}_commands, "
+        f"round(quantile_cont(t.latency_first_ms, 0.5) FILTER (WHERE t.type = '{k}'), 3) AS {k.lower()}_ack_p50_ms, "
+        f"round(quantile_cont(t.latency_first_ms, 0.95) FILTER (WHERE t.type = '{k}'), 3) AS {k.lower()}_ack_p95_ms, "
+        f"max(t.latency_first_ms) FILTER (WHERE t.type = '{k}') AS {k.lower()}_ack_max_ms, "
+        f"count(*) FILTER (WHERE t.type = '{k}' AND t.failed) AS {k.lower()}_failed" for k in ("VRCI", "VRCO"))),
     "watchdog": ("captures", ("sum(t.watchdog) AS watchdog, "
                               "count(*) FILTER (WHERE t.watchdog > 0) AS captures_with_watchdog")),
     "findings": ("captures", ("sum(t.findings) AS findings, "
