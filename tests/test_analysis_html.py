@@ -86,6 +86,26 @@ def test_report_renders_with_every_plot(tmp_path):
     assert dom.count('data-plot="interval-time"') == periodic
 
 
+def test_the_report_fits_a_phone_s_width(tmp_path):
+    """Report trial: the report mailed to an engineer is read on a phone too; its plots (900 px)
+    and wide tables made the page twice a phone's width, its text tiny once fitted. On a narrow
+    screen it now lays out within it (plots scaled, tables scrolled on their own) and says so to a
+    phone's browser (the viewport meta). The page's width is measured in the page itself."""
+    build_mixed(tmp_path / "mixed.pcap")
+    page = tmp_path / "report.html"
+    report_html.write(str(page), [analyze(str(tmp_path / "mixed.pcap"))])
+    text = page.read_text()
+    assert '<meta name="viewport" content="width=device-width, initial-scale=1">' in text
+    measured = tmp_path / "measured.html"
+    measured.write_text(text.replace("</body>", "<script>document.title = 'width ' + document.documentElement"
+                                     ".scrollWidth + ' of ' + window.innerWidth</script></body>"))
+    done = subprocess.run([browser(), *FLAGS, "--window-size=390,844", f"--user-data-dir={tmp_path / 'profile'}",
+                           "--dump-dom", measured.as_uri()], capture_output=True, text=True, timeout=120)
+    # (a desktop Chromium keeps its window at least about 500 px wide: the window's width is the screen's)
+    width, screen = map(int, re.search(r"<title>width (\d+) of (\d+)</title>", done.stdout).groups())
+    assert screen < 600 and width <= screen, (width, screen)
+
+
 class Tables(HTMLParser):
     """The page's tables as rows of cell texts (header row included)."""
 

@@ -32,15 +32,24 @@ COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e3
 CSS = """
 body{font:14px/1.4 system-ui,sans-serif;margin:24px;color:#222;max-width:1400px}
 h1{font-size:22px}h2{font-size:18px;margin-top:28px;border-bottom:1px solid #ccc}h3{font-size:15px}
-table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
+table{border-collapse:collapse;margin:8px 0;display:block;overflow-x:auto;max-width:100%}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
 th{background:#f2f2f2}td:first-child,th:first-child{text-align:left}
 .ok{color:#fff;background:#2a8a2a;padding:4px 10px;border-radius:4px}
 .fail{color:#fff;background:#c62828;padding:4px 10px;border-radius:4px}
 .error{color:#c62828}.warning{color:#a66a00}.note{color:#1565c0}
 figure{display:inline-block;margin:8px 12px 8px 0;vertical-align:top}figcaption{font-weight:600}
-svg text{font:11px sans-serif}pre{background:#f6f6f6;padding:8px;overflow:auto}
+svg{max-width:100%;height:auto}svg text{font:11px sans-serif}pre{background:#f6f6f6;padding:8px;overflow:auto}
 .findings td{text-align:left}code.filter{user-select:all;background:#f6f6f6;padding:0 4px}
+@media (max-width:700px){body{margin:8px}}
 """
+
+
+def page_head(title: str) -> str:
+    """A self-contained page's start, to its <body>: laid out for the screen it is read on (a
+    phone took it for a desktop page 980 px wide, its text too small to read)."""
+    return ('<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+            '<meta name="viewport" content="width=device-width, initial-scale=1">'
+            f"\n<title>{html.escape(title)}</title>\n<style>{CSS}</style></head><body>")
 
 
 def _e(value: object) -> str:
@@ -552,8 +561,7 @@ def _section(report: dict) -> str:
 
 def render(reports: list[dict], combined: Optional[dict] = None, errors: Sequence[dict] = ()) -> str:
     ok = all(r["verdict"]["ok"] for r in reports) and not errors
-    parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
-             "<title>VM-110 EG-Link capture analysis</title>", f"<style>{CSS}</style></head><body>",
+    parts = [page_head("VM-110 EG-Link capture analysis"),
              ("<h1>VM-110 EG-Link capture analysis "
               f'<span class="{"ok" if ok else "fail"}">{"OK" if ok else "FAIL"}</span></h1>'),
              f"<p>vm110 {_e(__version__)}, engine {_e(reports[0]['tool']['engine'])}</p>"]

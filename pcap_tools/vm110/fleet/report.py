@@ -12,7 +12,7 @@ import shlex
 from typing import Sequence
 
 from .. import __version__
-from ..analysis.report_html import COLORS, CSS, Chart
+from ..analysis.report_html import COLORS, Chart, page_head
 from .query import NAMED, Args, Fleet, Result, machine_key
 
 MAX_FINDINGS = 500           # finding rows on the page (the dataset holds them all)
@@ -148,8 +148,7 @@ def render(fleet: Fleet) -> str:
     latency_sql = (f"SELECT {w}, min(l), median(l), max(l) FROM (SELECT {who}, capture_id, "
                    "quantile_cont(latency_first_ms, 0.95) AS l FROM commands WHERE acked GROUP BY ALL) "
                    f"GROUP BY ALL ORDER BY max(l) DESC, {w}")
-    out = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
-           "<title>VM-110 EG-Link fleet report</title>", f"<style>{CSS}</style></head><body>",
+    out = [page_head("VM-110 EG-Link fleet report"),
            "<h1>VM-110 EG-Link fleet report</h1>",
            (f"<p>{captures} captures of {machines} machines, {_e(span)} (capture time, UTC); "
             f"{bad} damaged or unreadable. Dataset {_e(fleet.dataset.url)}, vm110 {_e(__version__)}.</p>"),
