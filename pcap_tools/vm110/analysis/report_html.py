@@ -30,9 +30,10 @@ Bar = tuple[float, float, float]          # a histogram bar: left, width, count 
 COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
           "#bcbd22", "#17becf")
 CSS = """
-body{font:14px/1.4 system-ui,sans-serif;margin:24px;color:#222;max-width:1400px}
+body{font:14px/1.4 system-ui,sans-serif;margin:24px;color:#222;max-width:1400px;overflow-wrap:anywhere}
 h1{font-size:22px}h2{font-size:18px;margin-top:28px;border-bottom:1px solid #ccc}h3{font-size:15px}
-table{border-collapse:collapse;margin:8px 0;display:block;overflow-x:auto;max-width:100%}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
+table{border-collapse:collapse;margin:8px 0;display:block;overflow-x:auto;max-width:100%}
+td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}
 th{background:#f2f2f2}td:first-child,th:first-child{text-align:left}
 .ok{color:#fff;background:#2a8a2a;padding:4px 10px;border-radius:4px}
 .fail{color:#fff;background:#c62828;padding:4px 10px;border-radius:4px}
