@@ -58,3 +58,19 @@ def test_a_group_that_cannot_be_joined_says_why(netns):
         assert done.stderr.startswith("vm110 simulate: cannot receive on 0.0.0.0:5827 (group 239.255.42.20): ")
     assert "--iface 10.9.9.9 is not the address of an interface of this machine" in wrong.stderr
     assert "no route for multicast: give --iface" in unrouted.stderr and "ip route add 224.0.0.0/4" in unrouted.stderr
+
+
+def test_a_log_whose_reader_goes_away_ends_the_run_interrupted_with_its_summary(netns):
+    """Sim trial: `simulate bu | head -1` ended at the next log line with exit 0 and no summary
+    (README: simulate exits 0 only when its --duration ran out). A closed pipe now ends the run as
+    a pipe's writer ends: exit 130, the summary on stderr, `end` closed_pipe."""
+    run = subprocess.Popen(["ip", "netns", "exec", netns, sys.executable, "-m", "vm110", "simulate", "bu",
+                            "--duration", "60", "--command-every", "0.2"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert run.stdout is not None
+    assert b"command_sent" in run.stdout.readline()
+    run.stdout.close()
+    _, err = run.communicate(timeout=30)
+    assert run.returncode == 130, err
+    summary = json.loads(err.splitlines()[-1])
+    assert summary["end"] == "closed_pipe" and summary["summary"]["commands_sent"] >= 1

@@ -21,6 +21,7 @@ import time
 from typing import Any, Callable, Optional, Sequence
 
 from .. import constants as C
+from ..closedpipe import silence_stdout
 from ..errors import EXIT_INTERRUPTED, EXIT_OK, CliError
 from ..monitor.stopping import STOPPING
 from ..numbers import fields, number, span
@@ -332,9 +333,19 @@ def _run(args: argparse.Namespace, node: Any, runner: RealtimeRunner, stopped_by
     try:
         runner.run(args.duration)
         ended = "duration"
+    except BrokenPipeError:
+        # The log's reader went away (`| head`): the run ends there, as a pipe's writer does, and
+        # is no run that reached its --duration (exit 130); the summary goes to stderr.
+        silence_stdout()
+        stopped_by.append("closed_pipe")
     finally:
         if stopped_by:
             print(f"{utc_iso(time.time())} {args.role}: stopped by {stopped_by[0]}", file=sys.stderr, flush=True)
         # How the run ended, in the log too (a log kept without stderr): its --duration, a signal or an error.
         end = stopped_by[0] if stopped_by else ended
-        print(json.dumps({"time_utc": utc_iso(time.time()), "end": end, "summary": node.summary()}), flush=True)
+        summary = json.dumps({"time_utc": utc_iso(time.time()), "end": end, "summary": node.summary()})
+        try:
+            print(summary, file=sys.stderr if "closed_pipe" in stopped_by else sys.stdout, flush=True)
+        except BrokenPipeError:     # (gone as the run ended: its summary is not lost either)
+            silence_stdout()
+            print(summary, file=sys.stderr, flush=True)
