@@ -68,6 +68,20 @@ def test_missing_ack_for_a_retransmission(link):
     assert link.mon.triggers[0].case_index == 3 and link.mon.triggers[0].command_id == 9
 
 
+def test_one_ack_answers_a_burst_of_retransmissions_sent_before_it(link):
+    """A PLC acks at the end of its 100 ms scan cycle: the storm case's 20 transmissions of one
+    command ID, 5 ms apart, got one VRAO per cycle; the oracle took each VRAO as the ack of one
+    transmission and reported a correct controller's missing_ack."""
+    for n in range(5):
+        link.mon.on_tx(T0 + n * 0.005, vrci(7, n), vrci(7, n), index=2)
+    link.rx(T0 + 0.08, "VRAO", encode.ack_payload(7))
+    link.mon.on_tx(T0 + 0.09, vrci(7, 5), vrci(7, 5), index=2)      # sent after the ack: owed one
+    link.mon.tick(T0 + 1.05)            # the burst's deadlines passed, not the last one's
+    assert link.oracles() == []
+    link.mon.tick(T0 + 0.09 + 1.01)
+    assert [(t.oracle, t.command_id) for t in link.mon.triggers] == [("missing_ack", 7)]
+
+
 def test_a_command_of_a_base_unit_the_controller_hears_no_vrpi_of_needs_no_ack(link):
     """The fuzzer's VRPI come from origin 0x0101; a case's VRCI from another origin is a base unit
     whose RU state the controller cannot know (TS-0006 4.3): the reference controller leaves it

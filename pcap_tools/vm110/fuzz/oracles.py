@@ -174,7 +174,7 @@ class Monitor:
                             f"illegal {ptype} from the controller: {', '.join(fields['problems'])}", command_id)
             if command_id is not None:
                 # The command was answered, illegally: that is the bug, not a missing ack as well.
-                self._answered(command_id)
+                self._answered(command_id, t)
             return fields
         if fields.get("direction") != C.Direction.OUTPUT.value:
             self._malformed(t, data, f"{ptype} direction", f"the controller sent an input packet {ptype}")
@@ -224,18 +224,24 @@ class Monitor:
         suspects = ([culprit] if culprit is not None else []) + [i for i in recent if i != culprit]
         self.fire(Trigger(MALFORMED_OUTPUT, t, detail, None, suspects, data, kind, command_id, answered=answered))
 
-    def _answered(self, command_id: int) -> bool:
-        """The oldest pending command of that ID is answered; False when none was pending."""
+    def _answered(self, command_id: int, t: float) -> bool:
+        """The oldest pending command of that ID is answered, and with it every transmission of the
+        ID sent by `t`: an ack answers the command ID, not one transmission (a controller that
+        acks once per scan cycle answers a burst of retransmissions with one VRAO). False when
+        none was pending."""
         queue = self.pending.get(command_id)
         if not queue:
             return False
         queue.popleft()
+        answered_by = t + self.limits.ack_timeout_ms / 1000       # deadline of a transmission at t
+        while queue and queue[0][0] <= answered_by:
+            queue.popleft()
         if not queue:
             del self.pending[command_id]
         return True
 
     def _vrao(self, t: float, data: bytes, command_id: int) -> None:
-        if self._answered(command_id):
+        if self._answered(command_id, t):
             return
         illegal = self.illegal_ids.get(command_id)
         if illegal is not None and t - illegal[0] < _HISTORY_S:
@@ -249,7 +255,7 @@ class Monitor:
         # the oldest command still open, so that command's missing ack is no second finding.
         meant = min(self.pending, key=lambda c: self.pending[c][0][0], default=None)
         if meant is not None:
-            self._answered(meant)
+            self._answered(meant, t)
         awaited = "" if meant is None else f" (command ID {meant} awaited its ack)"
         never = "never sent" if sent is None else f"not sent in the last {_HISTORY_S:.0f} s"
         self._malformed(t, data, "VRAO unknown", f"VRAO for command ID {command_id}, {never}{awaited}",
