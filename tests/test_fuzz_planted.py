@@ -124,6 +124,25 @@ def test_a_malformed_output_replay_says_whether_it_is_the_same_kind(tmp_path):
         assert again.returncode == 1 and verdict in again.stdout, again.stdout + again.stderr
 
 
+def test_replay_plays_the_case_as_early_as_the_run_confirmed_it(tmp_path):
+    """The run confirms a trigger 135 ms after the restarted controller's first VRPO; --replay
+    waited 250 ms: a bug of the controller's first 225 ms (or of the early part of its scan cycle)
+    was confirmed by the run and then said fixed by --replay (exit 0)."""
+    rx, listen = free_ports(2)
+    packet = mutate.build(C.PacketType.VRCI, 5, mutate.default_fields(C.PacketType.VRCI, 7))
+    finding = findings.Finding(
+        oracle="missing_ack", seed=SEED, case_index=3, family="sweep-vrci", mutation="a VRCI",
+        detail="no VRAO for command ID 7 within 1000 ms", packet_hex=packet.hex(), original_hex=packet.hex(),
+        valid_hex=packet.hex(), differences=0, minimised=True,
+        steps=[{"hex": packet.hex(), "valid_hex": packet.hex(), "delay_ms": 0.0, "expect_ack": True}],
+        stream=dict(mutate.ARMED_VRPI), target=f"127.0.0.1:{rx}", listen=f"127.0.0.1:{listen}",
+        signature="missing_ack no ack (VRCI)")
+    path = tmp_path / "finding.json"
+    path.write_text(json.dumps(asdict(finding)))
+    again = vm110("fuzz", "--replay", str(path), "--target-cmd", controller_cmd("no-ack-while-loading", rx, listen))
+    assert again.returncode == 1 and "still triggers" in again.stdout, again.stdout + again.stderr
+
+
 def _clean_run(tmp_path: Path, seconds: str) -> None:
     result, summary = fuzz(tmp_path, "reference", "--duration", seconds)
     assert result.returncode == 0, result.stdout + result.stderr

@@ -9,6 +9,7 @@ import os
 
 from vm110 import constants as C
 from vm110.decode import decode
+from vm110.sim.clock import ms
 from vm110.sim.controller import Controller
 from vm110.sim.impair import mangle
 from vm110.sim.node import Meta, Rx
@@ -131,6 +132,24 @@ class CrashOnEmptyCommand(Controller):
         super().on_vrci(rx, now)
 
 
+class NoAckWhileLoading(Controller):
+    """Executes but does not acknowledge the commands that come in the first 225 ms after its
+    first VRPO, while it loads its recipe (the ack flag is cleared by the loader): a bug that
+    replays only when a command comes as early in its life as in the run's confirming replay."""
+
+    ORACLE = "missing_ack"
+    LOADING_US = ms(225)
+    started = 0
+
+    def start(self, now: int) -> None:
+        self.started = now
+        super().start(now)
+
+    def acknowledge(self, command_id: int, now: int) -> None:
+        if now - self.started >= self.LOADING_US:
+            super().acknowledge(command_id, now)
+
+
 BUGS: dict[str, type[Controller]] = {
     "reference": Controller,
     "crash-on-joystick": CrashOnJoystick,
@@ -142,4 +161,5 @@ BUGS: dict[str, type[Controller]] = {
     "no-vrco-resend": NoVrcoResend,
     "two-exceptions": TwoExceptions,
     "crash-on-empty-command": CrashOnEmptyCommand,
+    "no-ack-while-loading": NoAckWhileLoading,
 }

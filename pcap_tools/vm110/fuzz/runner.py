@@ -180,7 +180,7 @@ def start_target(s: Session) -> None:
             raise TargetLost(f"the controller exited with code {code} before sending any VRPO to {where}"
                              + s.supervisor.last_words())
         raise TargetLost(f"no VRPO from the controller on {where} within {s.settings.startup_s:.0f} s")
-    s.pump(time.time() + 2 * C.VRPI_PERIOD_MS / 1000)
+    s.settle()
     _forget_triggers(s.monitor)     # whatever happened before the first VRPI is not a case's doing
 
 

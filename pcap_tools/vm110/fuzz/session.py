@@ -232,7 +232,14 @@ class Session:
             raise TargetLost("controller restarted but sent no VRPO within "
                              f"{self.settings.startup_s:.0f} s" + (f" (exit code {code})" if code is not None else "")
                              + self.supervisor.last_words())
-        self.pump(time.time() + C.VRPI_PERIOD_MS / 1000 + 0.01)   # let it see a VRPI first
+        self.settle()
+
+    def settle(self) -> None:
+        """After the controller's first VRPO: let it see a VRPI first. Every start waits the same,
+        so that a replay (`--replay` included) plays its case as far into the controller's life,
+        and its cycle, as the run's confirming replay did: a bug that needs a command to come
+        early in a scan cycle replays there too."""
+        self.pump(time.time() + C.VRPI_PERIOD_MS / 1000 + 0.01)
 
     def healthy(self) -> bool:
         """Alive and sending VRPO."""
