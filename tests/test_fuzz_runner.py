@@ -37,6 +37,24 @@ def test_a_lost_controller_keeps_more_suspects_than_are_replayed(runner):
     assert entry["suspect_cases"] == [K.generate(1, i).description for i in range(30)]
 
 
+def test_a_kind_of_trigger_that_keeps_not_replaying_is_replayed_only_now_and_then(runner, monkeypatch):
+    """Trial: a controller that acks at most 16 commands per scan cycle dropped acks at --coverage's
+    5000 packets/s; each missing_ack was replayed alone (acked), and a 40 s run spent 90 s and more
+    on 83 such replays. After 3 in a row, every 10th is replayed; the rest are listed."""
+    trials: list[int] = []
+    monkeypatch.setattr(runner, "_trial", lambda replay, trig: trials.append(trig.case_index))
+    for i in range(30):
+        runner.records[i] = (K.generate(1, i), [])
+        runner._investigate(Trigger(MISSING_ACK, float(i), "no VRAO", i, [i], None, "no ack", i))
+    assert trials == [0, 1, 2, 12, 22]
+    assert len(runner.unreproduced) == 30 and runner.findings == []
+    assert [u["suspects"] for u in runner.unreproduced if "not_replayed" in u] == \
+        [[i] for i in range(30) if i not in trials]
+    crash = Trigger(CRASH, 31.0, "crash", None, [3], None, "SIGSEGV")
+    runner._investigate(crash)
+    assert trials[-1:] == [None], "a crash is replayed all the same"
+
+
 def test_each_run_appends_to_target_log_under_its_own_header(tmp_path):
     """A run that could not start leaves target.log; the next one must not mix into it unmarked."""
     (tmp_path / "target.log").write_bytes(b"the first run's controller output\n")

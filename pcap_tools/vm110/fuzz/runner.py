@@ -43,6 +43,8 @@ _MAX_LISTED = 100         # suspects listed when none could be replayed (the con
 _STATUS_EVERY_S = 0.5
 _DYING_WAIT_S = 10.0      # for a sanitizer's report to be written
 _SMALLER_TRIES = 3        # replays per bug of smaller cases that hit it again
+_MISSES_IN_A_ROW = 3      # triggers of one kind that did not replay, then only every ...
+_SAMPLE_EVERY = 10        # ... 10th of its triggers is replayed (a crash's always are)
 
 
 @dataclass
@@ -252,6 +254,7 @@ class Runner:
         self.interrupted = False             # by Ctrl-C or SIGTERM (stopped_early says so too)
         self.controller_lost = False         # the controller stopped while being fuzzed, for good
         self.judged_again: set[int] = set()   # cases played again after a crash cut their verdict short
+        self.misses: collections.Counter[str] = collections.Counter()   # kind -> triggers since one replayed
 
     # --- the run ----------------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -423,6 +426,8 @@ class Runner:
                 F.discard_core(self.cfg.out, trig.crash)
                 culprit = i if i is not None else (suspects[0] if len(suspects) == 1 else None)
                 return self._smaller(trig, bucket, culprit)
+        if self._sampled_out(trig, suspects):
+            return False
         replayed = len(suspects) if trig.oracle == CRASH else min(len(suspects), _MAX_SUSPECTS)
         what = "observing the controller again" if spontaneous else f"replaying {replayed} suspect case(s)"
         self.cfg.progress(f"{_headline(trig)}; {what}")
@@ -444,6 +449,7 @@ class Runner:
                 kept, shown, small, complete = self._minimize(trig, case, sent)
                 self._write(trig, index, index, case.family, case.description, kept, shown, small, complete, case,
                             traffic)
+                self.misses[f"{trig.oracle} {trig.kind}"] = 0
                 return True
         if trig.oracle == STALL and len(suspects) > _MAX_SUSPECTS:
             # At 100 cases/s and more, the VRPO cycles around a silence hold more cases than are
@@ -452,7 +458,25 @@ class Runner:
             self.cfg.progress(f"{trig.oracle}: no single case of the {_MAX_SUSPECTS} nearest; "
                               f"bisecting {len(chosen)} case(s)")
             return self._bisect(trig, chosen, traffic)
+        self.misses[f"{trig.oracle} {trig.kind}"] += 1
         self._unreproduced(trig, suspects[:_MAX_SUSPECTS])
+        return True
+
+    def _sampled_out(self, trig: Trigger, suspects: list[int]) -> bool:
+        """A kind of trigger that keeps not replaying (a controller that drops acks when a case rate
+        overloads it, and acks the same command alone) is replayed only every `_SAMPLE_EVERY`th
+        time: each replay takes seconds and a restart, and a run spent on them fuzzed nothing. A
+        bug of that kind triggers again and is still found; a crash is always replayed."""
+        key = f"{trig.oracle} {trig.kind}"
+        missed = self.misses[key]
+        if trig.oracle == CRASH or missed < _MISSES_IN_A_ROW or (missed - _MISSES_IN_A_ROW + 1) % _SAMPLE_EVERY == 0:
+            return False
+        if missed == _MISSES_IN_A_ROW:
+            self.cfg.progress(f"{trig.oracle}: {missed} triggers in a row did not replay: from now on every "
+                              f"{_SAMPLE_EVERY}th is replayed, the others listed (unreproduced, not_replayed)")
+        self.misses[key] += 1
+        self._unreproduced(trig, suspects, f"{missed} {key} triggers in a row did not replay: only every "
+                           f"{_SAMPLE_EVERY}th is replayed")
         return True
 
     def _memory(self, trig: Trigger) -> None:
