@@ -126,7 +126,7 @@ def test_a_malformed_output_replay_says_whether_it_is_the_same_kind(tmp_path):
 
 def test_replay_plays_the_case_as_early_as_the_run_confirmed_it(tmp_path):
     """The run confirms a trigger 135 ms after the restarted controller's first VRPO; --replay
-    waited 250 ms: a bug of the controller's first 225 ms (or of the early part of its scan cycle)
+    waited 250 ms: a bug of the controller's first 240 ms (or of the early part of its scan cycle)
     was confirmed by the run and then said fixed by --replay (exit 0)."""
     rx, listen = free_ports(2)
     packet = mutate.build(C.PacketType.VRCI, 5, mutate.default_fields(C.PacketType.VRCI, 7))
