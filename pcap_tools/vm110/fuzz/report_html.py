@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 from .. import __version__
-from ..analysis.report_html import COLORS, CSS, Chart
+from ..analysis.report_html import COLORS, Chart, page_head
 from ..fileio import write_text
 from ..timefmt import stamp
 
@@ -77,8 +77,8 @@ def render(summary: dict[str, Any]) -> str:
     rows = "".join(_bug_row(b, found.get(b["file"], {}), summary.get("started"))
                    for b in summary.get("buckets", []))
     return "".join([
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>VM-110 fuzz coverage</title>",
-        f"<style>{CSS}</style></head><body><h1>vm110 fuzz --coverage: {_e(summary.get('target', ''))}</h1>",
+        page_head("VM-110 fuzz coverage"),
+        f"<h1>vm110 fuzz --coverage: {_e(summary.get('target', ''))}</h1>",
         (f"<p>{summary.get('cases_run', 0)} cases in {summary.get('duration_s', 0):.1f} s; {cov.get('edges', 0)} "
          f"edges of a {cov.get('map_size', 0)}-byte map; corpus {cov.get('corpus', 0)} cases.</p>"),
         _notes(summary, cov),
