@@ -8,7 +8,7 @@ Prints, all measured in this run:
   and on 2 M, and their difference (target: about 24 MiB at most; the analysis keeps per packet
   only the time of a periodic packet, everything else is bounded by senders, commands and findings);
 - a gzip-compressed capture (`.pcap.gz`, as dumpcap --compress gzip writes): analysis time of the
-  same capture compressed / uncompressed (the reader decompresses it into a temporary file first);
+  same capture compressed / uncompressed (the reader decompresses it as it reads, nothing on disk);
 - what a sender costs: `vm110 analyze --json` (the command, in a fresh process) of SENDERS VRPI
   packets each from a sender of its own (a hostile or mirrored capture: every source address is
   one), against the same packets from two senders; the ratio, and the cost of each sender above.
