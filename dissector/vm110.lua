@@ -1052,15 +1052,16 @@ end
 -- referenced() says yes to every field, and every field would be built with its bytes and label
 -- for output that prints a few values. There, the fields named on tshark's command line (-e,
 -- -Y, -R, -z, -o; read from /proc/self/cmdline, so Linux only) are what is referenced, as a
--- later tshark works out by itself. Not where a display filter macro (${...}) could name more;
--- the preference vm110.fields_from_command_line turns it off (for a Lua script of your own that
--- reads vm110 fields with Field.new under tshark 4.0 -T fields).
+-- later tshark works out by itself. Not where a display filter macro (${...}) could name more,
+-- nor with --color, whose colouring rules (frame.coloring_rule.name) test fields the command line
+-- does not name; the preference vm110.fields_from_command_line turns it off (for a Lua script of
+-- your own that reads vm110 fields with Field.new under tshark 4.0 -T fields).
 -- Returns the view, or nil when this is not such a command line.
 local function command_line_view()
     local opts = TSHARK_OPTIONS
     if not opts or opts.T ~= "fields" or opts.V or opts.O or opts.P or opts.x then return nil end -- (details printed)
     local words = opts.words
-    if words:find("${", 1, true) then return nil end
+    if words:find("${", 1, true) or words:find(" --color ", 1, true) then return nil end
     local view = { visible = false, any = false, columns = false }
     for name, f in pairs(F) do
         local abbr = tostring(f):match("(%S+) ftypes%.")

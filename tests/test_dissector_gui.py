@@ -7,6 +7,7 @@ load), and every Wireshark name the documentation mentions exists."""
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import re
 import shutil
@@ -200,6 +201,19 @@ def test_profile_filters_compile(ws):
                 f"{source}: {expression!r} matches nothing in {sorted(pcaps)}"
 
 
+def with_profile(ws: T.Workspace, args: list[str]) -> subprocess.CompletedProcess:
+    """tshark with the plugin and `-C VM-110`, the profile in a personal configuration folder of
+    its own."""
+    config = ws.dir / "config"
+    shutil.copytree(PROFILE, config / "profiles" / "VM-110")
+    env = dict(os.environ, WIRESHARK_CONFIG_DIR=ws.tshark.inner(config))
+    args = ["-X", f"lua_script:{ws.plugin()}", "-C", "VM-110",
+            *(a.replace(str(ws.dir), ws.tshark.inner(ws.dir)) for a in args)]
+    proc = subprocess.run(ws.tshark.command(args), capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0 and T.LUA_ERROR not in proc.stdout + proc.stderr, proc.stderr[-1000:]
+    return proc
+
+
 def test_profile_illegal_filters_select_the_illegal_packets(ws):
     """The Illegal button, and the colouring rules for bad CRCs and illegal packets, select the
     packets `vm110 analyze` counts illegal, an empty datagram on an EG-Link port among them (the
@@ -224,16 +238,26 @@ def test_profile_illegal_filters_select_the_illegal_packets(ws):
         assert [int(n) for n in proc.stdout.split()] == want, expression
 
 
+def test_profile_colours_in_tshark_fields_output(ws):
+    """`tshark --color -T fields -e frame.coloring_rule.name` with the profile names the rule the
+    GUI uses: every EG-Link packet one of the VM-110 rules, the restarts (the truth's frames) the
+    restart rule. Trial: tshark 4.0 coloured every EG-Link packet "UDP" (its -T fields builds only
+    the vm110 fields the command line names, and the colouring rules name others)."""
+    pcap = copy_in(ws, "restart.pcapng")
+    truth = json.loads((CAPTURES / "restart.pcapng.truth.json").read_text())
+    restarts = sorted(e["frame"] for s in truth["senders"] for e in s["serial"]["restart_events"])
+    assert restarts == [187, 440, 517]
+    rows = with_profile(ws, ["-r", str(pcap), "-2", "--color", "-T", "fields", "-e", "frame.number",
+                             "-e", "frame.coloring_rule.name"]).stdout
+    rules = [line.split("\t") for line in rows.splitlines()]
+    assert len(rules) == 781 and all(rule.startswith("VM-110 ") for _, rule in rules), rules[:3]
+    assert [int(n) for n, rule in rules if rule == "VM-110 restart"] == restarts
+
+
 def test_profile_loads(ws):
     """`-C VM-110` with the profile in the personal configuration folder: the packet list has its
     columns (type, serial, command ID, interval) and the Info column its markers."""
-    config = ws.dir / "config"
-    shutil.copytree(PROFILE, config / "profiles" / "VM-110")
-    pcap = copy_in(ws, "retransmit.pcap")
-    env = dict(os.environ, WIRESHARK_CONFIG_DIR=ws.tshark.inner(config))
-    args = ["-X", f"lua_script:{ws.plugin()}", "-C", "VM-110", "-r", ws.tshark.inner(pcap), "-2", "-T", "tabs"]
-    proc = subprocess.run(ws.tshark.command(args), capture_output=True, text=True, env=env, timeout=300)
-    assert proc.returncode == 0 and T.LUA_ERROR not in proc.stdout + proc.stderr, proc.stderr[-1000:]
+    proc = with_profile(ws, ["-r", str(copy_in(ws, "retransmit.pcap")), "-2", "-T", "tabs"])
     # (tshark puts an arrow between consecutive source and destination columns)
     rows = [[c for c in line.split("\t") if c != "\u2192"] for line in proc.stdout.splitlines()]
     assert rows and all(len(r) == 11 for r in rows), rows[:3]
