@@ -218,24 +218,39 @@ def test_profile_illegal_filters_select_the_illegal_packets(ws):
     """The Illegal button, and the colouring rules for bad CRCs and illegal packets, select the
     packets `vm110 analyze` counts illegal, an empty datagram on an EG-Link port among them (the
     README's `truncated`; Wireshark calls no dissector for it, "UDP Len=0"). Trial: the button
-    showed none of them, while analyze counted each one illegal."""
+    showed none of them, while analyze counted each one illegal. An ICMP error quoting an EG-Link
+    datagram (a port unreachable) is coloured as Wireshark colours ICMP errors, and is not illegal
+    (analyze reads no ICMP): trial: a whole quote was coloured as plain EG-Link input, hiding the
+    error, and a quote of only the beginning as an illegal packet, and the Illegal button showed it."""
+    from scapy.layers.inet import ICMP, IP
+    from scapy.layers.l2 import Ether
+    from scapy.utils import wrpcap
     from vm110 import encode
     from vm110.analysis import analyze
     vrpi = [encode.encode({"type": "VRPI", "serial": n, "origin": 0x0101}) for n in range(6)]
     bad_crc = encode.packet("VRPO", b"\0\0", serial=0, crc=0)
+    quoted = IP(T.frame(T.Datagram(vrpi[4]))[14:])                # (the multicast VRPI, 66 bytes of UDP payload)
+    unreachable = Ether() / IP(src=T.CONTROLLER_ADDR, dst=T.BU_ADDR) / ICMP(type=3, code=3)
     datagrams = [vrpi[0], T.Datagram(b""), vrpi[1], bad_crc, vrpi[2], T.Datagram(b"", sport=5827, dport=5827),
-                 vrpi[3], T.Datagram(b"", sport=6000, dport=6000), vrpi[4], vrpi[5]]
+                 vrpi[3], T.Datagram(b"", sport=6000, dport=6000)]
+    frames = [Ether(T.frame(d if isinstance(d, T.Datagram) else T.Datagram(d))) for d in datagrams]
+    frames += [unreachable / bytes(quoted), unreachable / bytes(quoted)[:48], Ether(T.frame(T.Datagram(vrpi[5])))]
+    for n, frame in enumerate(frames):
+        frame.time = 1_700_000_000 + n / 8
     capture = ws.dir / "empty.pcap"
-    T.write_pcap(capture, datagrams, [n * 125_000 for n in range(len(datagrams))])
+    wrpcap(str(capture), frames)
     [illegal] = [f for f in analyze(str(capture))["verdict"]["findings"] if f["rule"] == "illegal"]
     want = sorted(i["frame"] for i in illegal["items"])
     assert want == [2, 4, 6]
     filters = dict(profile_filters())
-    colour = f"({filters['colorfilters VM-110 bad CRC']}) || ({filters['colorfilters VM-110 illegal packet']})"
-    for expression in (filters["button Illegal"], colour):
-        proc = ws.run(["-r", str(capture), "-2", *T.pref_args(ON), "-Y", expression, "-T", "fields",
-                       "-e", "frame.number"])
-        assert [int(n) for n in proc.stdout.split()] == want, expression
+    proc = ws.run(["-r", str(capture), "-2", *T.pref_args(ON), "-Y", filters["button Illegal"], "-T", "fields",
+                   "-e", "frame.number"])
+    assert [int(n) for n in proc.stdout.split()] == want
+    rows = with_profile(ws, ["-r", str(capture), "-2", "--color", "-T", "fields", "-e", "frame.number",
+                             "-e", "frame.coloring_rule.name"]).stdout
+    rules = dict(line.split("\t") for line in rows.splitlines())
+    assert [int(n) for n, rule in rules.items() if rule in ("VM-110 bad CRC", "VM-110 illegal packet")] == want
+    assert rules["9"] == rules["10"] == "ICMP errors"
 
 
 def test_profile_colours_in_tshark_fields_output(ws):
