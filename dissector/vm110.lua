@@ -876,8 +876,10 @@ do
         "A serial received again within this is a duplicate; a late packet fills a gap opened within it", 1, MS)
     uint("reuse_gap_ms", "Command ID reuse gap (ms)", RULES.reuse_gap_ms,
         "The same command ID again after a longer silence starts a new command", 1, MS)
-    uint("vrpi_watchdog_ms", "VRPI watchdog (ms)", VRPI_WATCHDOG_MS, "Warn above this VRPI interval", 1, MS)
-    uint("vrpo_watchdog_ms", "VRPO watchdog (ms)", VRPO_WATCHDOG_MS, "Warn above this VRPO interval", 1, MS)
+    uint("vrpi_watchdog_ms", "VRPI watchdog (ms)", VRPI_WATCHDOG_MS,
+        "Error above this VRPI interval (a watchdog violation)", 1, MS)
+    uint("vrpo_watchdog_ms", "VRPO watchdog (ms)", VRPO_WATCHDOG_MS,
+        "Error above this VRPO interval (a watchdog violation)", 1, MS)
     uint("vrpo_min_ms", "VRPO recommended minimum interval (ms)", VRPO_PERIOD_MIN_MS, "Note below this", 1, MS)
     uint("vrpo_max_ms", "VRPO recommended maximum interval (ms)", VRPO_PERIOD_MAX_MS, "Note above this", 1, MS)
     uint("resend_ms", "Command resend interval (ms)", COMMAND_RESEND_MS, "Nominal resend interval", 1, MS)

@@ -54,6 +54,24 @@ def test_every_field_has_a_description(ws):
     assert not missing, f"fields without a description: {missing}"
 
 
+# Preferences whose description names the severity of an expert they set, and a capture with it.
+PREF_SEVERITY = {"vrpi_watchdog_ms": ("controller-watchdog.pcap", "VRPI interval above the controller watchdog"),
+                 "vrpo_watchdog_ms": ("bu-watchdog.pcap", "VRPO interval above the base unit watchdog"),
+                 "vrpo_max_ms": ("glink.pcapng", "VRPO interval outside the recommended range")}
+
+
+def test_preference_descriptions_name_the_severity(ws):
+    """The preferences dialog's tooltip (`tshark -G defaultprefs`) of a limit says what a packet
+    beyond it gets, with the severity Expert Information shows. Trial: the watchdogs said "Warn
+    above this" of what is an Error."""
+    prefs = ws.run(["-G", "defaultprefs", "-X", f"lua_script:{ws.plugin()}"], plugin=False).stdout
+    for name, (capture, summary) in PREF_SEVERITY.items():
+        description = re.search(rf"^# (.*)\n(?:# .*\n)*#vm110\.{name}:", prefs, re.M)[1]
+        out = ws.run(["-r", str(copy_in(ws, capture)), "-2", "-q", "-z", "expert", *T.pref_args(ON)]).stdout
+        section = re.search(rf"^(Error|Warn|Note)s \(\d+\)\n(?:(?!\n\n).)*{re.escape(summary)}", out, re.M | re.S)
+        assert section and description.split()[0] == section[1], (name, description, section and section[1])
+
+
 def test_glossary_order_is_deterministic(ws):
     """Fields and experts are registered in a fixed order (Lua 5.4's pairs() order changes from run to
     run), so `tshark -G fields` is the same every time."""
