@@ -242,13 +242,13 @@ def test_profile_filters_compile(ws):
                 f"{source}: {expression!r} matches nothing in {sorted(pcaps)}"
 
 
-def with_profile(ws: T.Workspace, args: list[str]) -> subprocess.CompletedProcess:
-    """tshark with the plugin and `-C VM-110`, the profile in a personal configuration folder of
+def with_profile(ws: T.Workspace, args: list[str], plugin: bool = True) -> subprocess.CompletedProcess:
+    """tshark with `-C VM-110` (and the plugin), the profile in a personal configuration folder of
     its own."""
     config = ws.dir / "config"
     shutil.copytree(PROFILE, config / "profiles" / "VM-110")
     env = dict(os.environ, WIRESHARK_CONFIG_DIR=ws.tshark.inner(config))
-    args = ["-X", f"lua_script:{ws.plugin()}", "-C", "VM-110",
+    args = [*(["-X", f"lua_script:{ws.plugin()}"] if plugin else []), "-C", "VM-110",
             *(a.replace(str(ws.dir), ws.tshark.inner(ws.dir)) for a in args)]
     proc = subprocess.run(ws.tshark.command(args), capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0 and T.LUA_ERROR not in proc.stdout + proc.stderr, proc.stderr[-1000:]
@@ -308,6 +308,14 @@ def test_profile_colours_in_tshark_fields_output(ws):
     rules = [line.split("\t") for line in rows.splitlines()]
     assert len(rules) == 781 and all(rule.startswith("VM-110 ") for _, rule in rules), rules[:3]
     assert [int(n) for n, rule in rules if rule == "VM-110 restart"] == restarts
+
+
+def test_profile_reads_cleanly_without_the_plugin(ws):
+    """A Wireshark that has not loaded the plugin (not installed yet, or 4.4 and later as root)
+    reads the profile without a warning. Trial: "No such preference vm110.analysis ... (save
+    preferences to remove this warning)" on every start."""
+    proc = with_profile(ws, ["-r", str(copy_in(ws, "normal.pcap")), "-c", "1"], plugin=False)
+    assert proc.stdout and "WARNING" not in proc.stderr, proc.stderr
 
 
 def test_profile_loads(ws):
