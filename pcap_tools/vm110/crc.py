@@ -9,6 +9,8 @@ from __future__ import annotations
 import zlib
 from typing import Callable, Literal
 
+from . import constants as C
+
 Variant = Literal["mpeg2", "iso-hdlc", "bzip2", "jamcrc"]
 ByteOrder = Literal["little", "big"]
 
@@ -62,6 +64,18 @@ def check_byte_order(order: str) -> ByteOrder:
 def crc32(data: bytes, variant: str = DEFAULT_VARIANT) -> int:
     """CRC of `data` in the given variant."""
     return crc_function(variant)(data)
+
+
+def crc_matches(data: bytes, end: int) -> set[tuple[str, str]]:
+    """Every (variant, byte order) under which the CRC stored at `end` validates `data[:end]`."""
+    stored = data[end:end + C.CRC_LEN]
+    got: set[tuple[str, str]] = set()
+    for variant in VARIANTS:
+        value = crc32(data[:end], variant)
+        for order in BYTE_ORDERS:
+            if value == int.from_bytes(stored, order):
+                got.add((variant, order))
+    return got
 
 
 def crc_bytes(data: bytes, variant: str = DEFAULT_VARIANT, order: str = DEFAULT_BYTE_ORDER) -> bytes:

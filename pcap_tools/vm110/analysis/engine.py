@@ -33,7 +33,7 @@ from .. import constants as C
 from .. import protocol as P
 from ..capture import linktypes as L
 from ..capture.reader import CHUNK, PCAP_HEADER_LEN, PCAPNG_EPB, PCAPNG_SHB, CaptureReader, address
-from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, VARIANTS, crc32, zlib_form
+from ..crc import BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, VARIANTS, crc_matches, zlib_form
 from ..decode import decode
 from ..errors import CliError
 from .collect import CODE_OF_ID, RECORD, RECORD_DTYPE, Collected
@@ -79,18 +79,6 @@ _SNIFF = 256                                       # EG-Link packets looked at t
 _SNIFF_CHUNK = 1 << 16
 TRUNCATED = C.Problem.TRUNCATED.value
 Progress = Callable[[int, int], None]
-
-
-def crc_matches(data: bytes, end: int) -> set[tuple[str, str]]:
-    """Every (variant, byte order) under which the CRC at `end` validates `data[:end]`."""
-    stored = data[end:end + C.CRC_LEN]
-    got: set[tuple[str, str]] = set()
-    for variant in VARIANTS:
-        value = crc32(data[:end], variant)
-        for order in BYTE_ORDERS:
-            if value == int.from_bytes(stored, order):
-                got.add((variant, order))
-    return got
 
 
 def looks_like_eglink(payload: bytes) -> bool:

@@ -21,8 +21,8 @@ from typing import Callable, Optional
 from .. import constants as C
 from ..analysis.collect import Collected
 from .. import protocol as P
-from ..analysis.engine import _HDR, _LOW, _SNIFF, _U32, FastEngine, best_candidate, crc_matches
-from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, zlib_form
+from ..analysis.engine import _HDR, _LOW, _SNIFF, _U32, FastEngine, best_candidate
+from ..crc import DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, REVERSE_BITS, crc_matches, zlib_form
 
 HOLD_MAX = 1 << 16                                 # datagrams held at most while choosing the CRC
 Illegal = Callable[[int, float, str, str, list], None]

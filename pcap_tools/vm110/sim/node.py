@@ -14,9 +14,8 @@ from typing import Any, Callable, NamedTuple, Optional, Sequence
 
 from .. import constants as C
 from .. import protocol as P
-from ..analysis.engine import crc_matches
 from ..crc import (BYTE_ORDERS, DEFAULT_BYTE_ORDER, DEFAULT_VARIANT, VARIANTS, ByteOrder, check_byte_order,
-                   crc_function, trailer_function)
+                   crc_function, crc_matches, trailer_function)
 from ..decode import crc_span, decode
 from ..printable import escaped
 from .clock import US_PER_S
