@@ -23,7 +23,7 @@ from typing import BinaryIO, Generator, Iterator, NamedTuple, Optional
 from ..errors import CliError
 from . import linktypes as L
 from .compressed import OTHER_COMPRESSIONS, Gunzip, is_gzip
-from .drops import Drops
+from .drops import Drops, options
 
 Datagram = tuple  # (ts: float, src: bytes, sport: int, dport: int, payload: bytes or None (see udp_of), frame: int)
 
@@ -590,20 +590,15 @@ class CaptureReader:
     def _idb_options(data: bytes, pos: int, end: int, e: str) -> tuple[int, float, int]:
         """(ticks per second when a power of ten else 0, seconds per tick, offset) of an interface."""
         div, scale, tsoff = 1_000_000, 1e-6, 0
-        while pos + 4 <= end:
-            code, length = struct.unpack_from(e + "HH", data, pos)
-            value = data[pos + 4:pos + 4 + length]
-            pos += 4 + padded(length)
-            if code == OPT_END:
-                break
-            if code == OPT_TSRESOL and length == 1:     # (wiretap ignores one of another length)
+        for code, value in options(data, pos, end, e):
+            if code == OPT_TSRESOL and len(value) == 1:     # (wiretap ignores one of another length)
                 v = value[0]
                 if v & 0x80:
                     div, scale = 0, 2.0 ** -(v & 0x7F)
                 else:
                     div, scale = 10 ** v, 10.0 ** -v
-            elif code == OPT_TSOFFSET and length == 8:
-                tsoff = struct.unpack(e + "q", value[:8])[0]
+            elif code == OPT_TSOFFSET and len(value) == 8:
+                tsoff = struct.unpack(e + "q", value)[0]
         return div, scale, tsoff
 
     # -- every layout but the fast one ---------------------------------------------------------

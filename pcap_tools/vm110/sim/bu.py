@@ -205,7 +205,6 @@ class BaseUnit(CommandOutbox, Node):
 
     def summary(self) -> dict[str, Any]:
         counts = self.counts
-        return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
-                "illegal": dict(self.illegal), "send_errors": dict(self.send_errors),
+        return {**self.traffic_summary(),
                 **self.outbox_summary("commands_failed"), "vrco_delivered": counts["vrco_delivered"],
                 "vrpo_watchdog": counts["vrpo_watchdog"]}

@@ -306,8 +306,7 @@ class Controller(CommandOutbox, Node):
     def summary(self) -> dict[str, Any]:
         """Counters for logs and tests."""
         counts = self.counts
-        return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
-                "illegal": dict(self.illegal), "send_errors": dict(self.send_errors),
+        return {**self.traffic_summary(),
                 "executed": counts["executed"], "refused": counts["refused"],
                 "deferred": counts["deferred"], "repeats": counts["repeat"], "vrpi_timeouts": counts["vrpi_timeout"],
                 # its own commands' outcomes, as the base unit's summary has them (they were missing)

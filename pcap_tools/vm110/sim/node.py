@@ -249,6 +249,12 @@ class Node:
         self.transmit(data, now, _new(Meta, (self.name, ptype, serial, key, data_len)))
         return data
 
+    def traffic_summary(self) -> dict[str, Any]:
+        """What every node's summary begins with: packets sent and received by type, illegal ones by
+        reason, and packets the network refused."""
+        return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
+                "illegal": dict(self.illegal), "send_errors": dict(self.send_errors)}
+
     def send_failed(self, reason: str, now: int, dest: Any = None) -> None:
         """The network refused a packet (no route to the peer, a full buffer): lost, as UDP loses
         it. The first of each reason is logged and all are counted: a --peer out of reach was sent
