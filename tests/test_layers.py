@@ -215,6 +215,16 @@ def test_ack_answers_command_with_same_id():
     assert dissected[1].answers(dissected[0])
 
 
+def test_a_command_id_left_unset_pairs_with_nothing():
+    # scapy calls hashret() on every packet sr() sees: a crafted VRCI(command_id=None) raised
+    # struct.error there, and two packets with no ID answered each other.
+    vrci, vrao = VM110() / VRCI(command_id=None), VM110() / VRAO(command_id=None)
+    assert vrci.hashret() == vrao.hashret() == b"CI"
+    assert not vrao.answers(vrci)
+    assert not vrao.answers(VM110() / VRCI(command_id=0))
+    assert not (VM110() / VRAO(command_id=0)).answers(vrci)
+
+
 def test_only_the_acknowledgement_answers_its_command(monkeypatch):
     # TS-0006 5.1.3: the BU resends a VRCI (same command ID, new serial) until a VRAO comes, and
     # sends VRPI all along. PacketList.sr() pairs what answers what: it paired each VRCI with its

@@ -258,12 +258,20 @@ class _Payload(Packet):
         return f"{self.ptype.value}{serial} {text}"
 
 
+def _same_id(ack: Packet, command: Packet) -> bool:
+    """An acknowledgement's ID names its command; an ID left unset (crafted None) names none."""
+    return ack.command_id is not None and ack.command_id == command.command_id
+
+
 class _CommandPair(_Payload):
     """Commands and their acknowledgements pair up by command ID (TS-0006 4.3 to 4.6)."""
 
     pair = b""
 
     def hashret(self) -> bytes:
+        # A command ID left unset (crafted None) pairs with nothing: no ack names it.
+        if self.command_id is None:
+            return self.pair
         return self.pair + struct.pack("<H", self.command_id)
 
     def mysummary(self) -> str:
@@ -310,7 +318,7 @@ class VRAO(_CommandPair):
     fields_desc = fields_of(ptype)
 
     def answers(self, other: Packet) -> int:
-        return isinstance(other, VRCI) and other.command_id == self.command_id
+        return isinstance(other, VRCI) and _same_id(self, other)
 
 
 class VRAI(_CommandPair):
@@ -320,7 +328,7 @@ class VRAI(_CommandPair):
     fields_desc = fields_of(ptype)
 
     def answers(self, other: Packet) -> int:
-        return isinstance(other, VRCO) and other.command_id == self.command_id
+        return isinstance(other, VRCO) and _same_id(self, other)
 
 
 PAYLOAD_CLASSES: dict[C.PacketType, type[Packet]] = {
