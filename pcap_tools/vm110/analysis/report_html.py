@@ -503,7 +503,7 @@ def _section(report: dict) -> str:
            (f'<p><span class="{"ok" if verdict["ok"] else "fail"}">{"OK" if verdict["ok"] else "FAIL"}</span> '
             f"({summary.counted(verdict['findings'])}) {cap['packets']} packets, {cap['eglink_packets']} EG-Link, "
             f"{_num(cap['duration_s'], 1)} s; "
-            f"CRC {_e(crc['variant'])}/{_e(crc['byte_order'])}: {_e(summary.crc_counts(crc))}"
+            f"{_e(summary.crc_words(crc))}"
             + (f"; {_e(summary.time_range(cap))}" if cap["first_time"] is not None else "") + "</p>")]
     if verdict["findings"]:
         out.append("<ul>" + "".join(f'<li class="{_e(f["severity"])}">{_e(f["severity"])}: {_e(f["message"])}</li>'

@@ -102,19 +102,20 @@ def counted(findings: list[dict]) -> str:
                      if sev != "note" or n[sev])
 
 
-def crc_counts(crc: dict) -> str:
-    """The CRC check in words: packets cut short (snaplen) carry no CRC, and count as valid (they
-    do not fail it), which "all valid" alone would hide."""
+def crc_words(crc: dict) -> str:
+    """The CRC check in words: the variant, "(auto)" when the capture chose it, and the counts.
+    Packets cut short (snaplen) carry no CRC, and count as valid (they do not fail it), which
+    "all valid" alone would hide."""
     unchecked = f" ({crc['unchecked']} of them unchecked: too short to carry a CRC)" if crc["unchecked"] else ""
-    return f"{crc['valid']} valid, {crc['invalid']} invalid{unchecked}"
+    return (f"CRC {crc['variant']}/{crc['byte_order']}{' (auto)' if crc['auto'] else ''}: "
+            f"{crc['valid']} valid, {crc['invalid']} invalid{unchecked}")
 
 
 def render(report: dict, everything: bool = False) -> str:
     """The summary; `everything`: the located items of each finding the report keeps, not just the first few."""
     cap, crc, verdict = report["capture"], report["crc"], report["verdict"]
     lines = [(f"{cap['file']}: {cap['packets']} packets, {cap['eglink_packets']} EG-Link, "
-              f"{_f(cap['duration_s'])} s; CRC {crc['variant']}/{crc['byte_order']}"
-              f"{' (auto)' if crc['auto'] else ''}: {crc_counts(crc)}")]
+              f"{_f(cap['duration_s'])} s; {crc_words(crc)}")]
     t0 = cap["first_time"] or 0.0
     if cap["first_time"] is not None:
         lines.append(f"Time: {time_range(cap)}")
