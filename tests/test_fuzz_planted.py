@@ -306,3 +306,54 @@ def test_a_crash_no_replay_makes_again_is_no_pass(tmp_path):
     assert not summary["findings"] and [u["oracle"] for u in summary["unreproduced"]] == ["crash"]
     assert "the controller crashed 1 time where replaying its cases did not crash it again (crash exit 3)" \
         in result.stdout
+
+
+# The first cases of seed 1 send valid VRCI twice (case 1) and once (cases 4 and 9).
+RESEND_CASES = "10"
+
+
+def test_a_controller_that_acknowledges_the_resend_of_a_command_has_no_missing_ack(tmp_path):
+    """TS-0006 5.1.3: the base unit resends an unacknowledged VRCI every 100 ms. The fuzzer sent
+    each once: a controller that missed one (busy, between the reads of its scan cycle) and
+    acknowledged the resend was a missing_ack finding."""
+    result, summary = fuzz(tmp_path, "acks-resends-only", "--cases", RESEND_CASES, "--max-findings", "1",
+                           "--minimize-budget", "2")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert summary["findings"] == [] and summary["unreproduced"] == [], summary
+
+
+def test_a_controller_that_never_acknowledges_is_one_missing_ack_finding_with_its_resends(tmp_path):
+    """Resends do not hide a controller that acknowledges nothing, nor make more findings of it: one
+    finding for all its missing acks; its pcap holds the resends, valid, on new serials, none after
+    the ack timeout; its replay resends as the run did (one that acknowledges only resends passes),
+    and with --no-resend does not."""
+    result, summary = fuzz(tmp_path, "never-ack", "--cases", RESEND_CASES, "--minimize-budget", "2")
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert [f["oracle"] for f in summary["findings"]] == ["missing_ack"], summary
+    assert summary["buckets"][0]["count"] >= 2, "several commands unacknowledged, one finding"
+    finding = json.loads((tmp_path / summary["findings"][0]["file"]).read_text())
+    assert finding["resend_ms"] == C.COMMAND_RESEND_MS
+    shown = bytes.fromhex(finding["original_hex"])
+    steps = [bytes.fromhex(s["hex"]) for s in finding["steps"]]
+    vrci = [p for p in payloads(tmp_path / finding["pcap"])
+            if decode(p).get("type") == "VRCI" and command_id(p) == command_id(shown)]
+    resends = [p for p in vrci if p not in steps]
+    assert len(resends) >= 2, "resent while unacknowledged"
+    for packet in resends:
+        fields = decode(packet)
+        assert not fields["problems"] and fields["origin"] == mutate.BU_ORIGIN
+        assert packet[C.PREFIX_LEN:-C.CRC_LEN] == shown[C.PREFIX_LEN:-C.CRC_LEN], "same command, same data"
+    serials = [decode(p)["serial"] for p in vrci]
+    assert serials == sorted(set(serials)), "each transmission on a new serial"
+    # Every 100 ms within the 1000 ms ack timeout: at most 10 resends of each of the case's own.
+    case = cases.generate(SEED, finding["case_index"])
+    own = sum(command_id(st.build(0)[0]) == command_id(shown) for st in case.steps)
+    assert len(vrci) <= 11 * own, "no resend after the ack timeout"
+
+    rx, listen = (int(finding[k].rsplit(":", 1)[1]) for k in ("target", "listen"))
+    path = str(tmp_path / summary["findings"][0]["file"])
+    conformant = controller_cmd("acks-resends-only", rx, listen)
+    again = vm110("fuzz", "--replay", path, "--target-cmd", conformant)
+    assert again.returncode == 0 and "does not trigger" in again.stdout, again.stdout + again.stderr
+    strict = vm110("fuzz", "--replay", path, "--no-resend", "--target-cmd", conformant)
+    assert strict.returncode == 1 and "still triggers" in strict.stdout, strict.stdout + strict.stderr

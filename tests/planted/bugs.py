@@ -6,11 +6,12 @@ controller only through its documented hooks (see vm110.sim.controller).
 from __future__ import annotations
 
 import os
+from typing import Optional
 
 from vm110 import constants as C
 from vm110.decode import decode
 from vm110.sim.clock import ms
-from vm110.sim.controller import Controller
+from vm110.sim.controller import Controller, ControllerConfig
 from vm110.sim.impair import mangle
 from vm110.sim.node import Meta, Rx
 
@@ -150,6 +151,34 @@ class NoAckWhileLoading(Controller):
             super().acknowledge(command_id, now)
 
 
+class AcksResendsOnly(Controller):
+    """Not a bug: ignores the first transmission of each command ID (one that came while it was
+    busy, or that its scan cycle did not read) and acknowledges the base unit's resend of it, which
+    comes 100 ms later (TS-0006 5.1.3)."""
+
+    ORACLE = None
+
+    def __init__(self, config: Optional[ControllerConfig] = None) -> None:
+        super().__init__(config)
+        self.missed: set[int] = set()
+
+    def on_vrci(self, rx: Rx, now: int) -> None:
+        command_id = int.from_bytes(rx.payload[:2], "little")
+        if command_id not in self.missed:
+            self.missed.add(command_id)
+            return
+        super().on_vrci(rx, now)
+
+
+class NeverAck(Controller):
+    """Executes every command and acknowledges none, however often the base unit resends it."""
+
+    ORACLE = "missing_ack"
+
+    def acknowledge(self, command_id: int, now: int) -> None:
+        pass
+
+
 BUGS: dict[str, type[Controller]] = {
     "reference": Controller,
     "crash-on-joystick": CrashOnJoystick,
@@ -162,4 +191,6 @@ BUGS: dict[str, type[Controller]] = {
     "two-exceptions": TwoExceptions,
     "crash-on-empty-command": CrashOnEmptyCommand,
     "no-ack-while-loading": NoAckWhileLoading,
+    "acks-resends-only": AcksResendsOnly,
+    "never-ack": NeverAck,
 }

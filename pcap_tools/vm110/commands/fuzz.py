@@ -98,6 +98,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --target-cmd: a finding when the RSS is at least this much, and half its warm-up "
                              "level (its highest in the first 5 s), above that level for 5 samples while still rising, "
                              f"{MEMORY_GROWTH.range_text}; 0 turns it off (default {DEFAULT_GROWTH_MIB})")
+    parser.add_argument("--no-resend", action="store_true",
+                        help=f"do not resend an unacknowledged VRCI (default: resent every {C.COMMAND_RESEND_MS} ms "
+                             "on a new serial until its VRAO comes or the ack timeout passes, as the base unit "
+                             "does); a missing ack is then any transmission not acknowledged. --replay: resend as "
+                             "the finding says it did, unless given")
     parser.add_argument("--no-core", action="store_true",
                         help="start the controller with core files off (default: allowed, kept with a crash "
                              "finding, with a gdb backtrace when gdb is installed)")
@@ -146,7 +151,8 @@ def _settings(args: argparse.Namespace, target: str, listen: str | None, group: 
         _progress(f"sending to {host_port[0]}:{host_port[1]} only ({what} {_printable(target)})")
     rate = args.rate or (COVERAGE_RATE if getattr(args, "coverage", False) else DEFAULT_RATE)
     return Settings(target=host_port, listen=listen_at, group=group, rate=rate, limits=Limits(),
-                    startup_s=args.startup, allow_remote=args.allow_remote)
+                    startup_s=args.startup, allow_remote=args.allow_remote,
+                    resend_ms=0.0 if args.no_resend else float(C.COMMAND_RESEND_MS))
 
 
 def _printable(text: str, limit: int = 200) -> str:
@@ -340,6 +346,8 @@ def _replay(args: argparse.Namespace) -> int:
     # Joining a group sends IGMP out of an interface: only when the command line says so.
     settings = _settings(args, args.target or finding.target, args.listen or finding.listen, args.group, stored_in,
                          None if args.listen else args.replay)
+    if not args.no_resend:
+        settings.resend_ms = finding.resend_ms     # the base unit as it was when the finding was made
     if finding.group and not args.group:
         _progress(f"not joining the multicast group stored in {args.replay} (give --group to join it): "
                   f"{_printable(finding.group)}")

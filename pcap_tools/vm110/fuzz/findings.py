@@ -71,6 +71,9 @@ class Finding:
     # mutation, number of `steps` and what the base unit did meanwhile (its stream, pause, withholding).
     cases: Optional[list[dict[str, Any]]] = None
     memory: Optional[dict[str, Any]] = None  # the memory oracle's evidence: RSS series, growth per case, rerun
+    # How often the base unit resent an unacknowledged VRCI (its replay does the same); 0: never
+    # (--no-resend, and findings written before the fuzzer resent).
+    resend_ms: float = 0.0
 
     def name(self, number: int) -> str:
         return f"finding-{number:03d}-{self.oracle}"
@@ -281,7 +284,7 @@ def _checked(raw: dict[str, Any]) -> Finding:
         raise _Bad(f"schema {_short(finding.schema)} (this version reads {SCHEMA})")
     for name, (low, high) in _RANGES.items():
         _in_range(name, getattr(finding, name), low, high)
-    for name in ("pause_vrpi_ms", "withhold_vrai_ms", "settle_ms"):
+    for name in ("pause_vrpi_ms", "withhold_vrai_ms", "settle_ms", "resend_ms"):
         _milliseconds(name, getattr(finding, name))
     _packet("packet_hex", finding.packet_hex)
     if finding.cases is not None:

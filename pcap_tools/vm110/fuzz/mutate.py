@@ -146,6 +146,13 @@ def set_u16(data: bytes, offset: int, value: int) -> bytes:
 
 
 SIZE_OFFSET = P.SIZE_OFFSET
+SERIAL_OFFSET = P.HEADER_OFFSETS["serial"]
+
+
+def reserial(valid: bytes, serial: int) -> bytes:
+    """A valid packet sent again on another serial (the base unit's resend): the same bytes, that
+    serial and the CRC over them."""
+    return recrc(set_u16(valid[:-C.CRC_LEN], SERIAL_OFFSET, serial))
 
 
 def structural(valid: bytes, rng: random.Random) -> Iterator[tuple[str, bytes]]:

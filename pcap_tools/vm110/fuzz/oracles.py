@@ -8,6 +8,12 @@ controller may have several VRCO in flight and must acknowledge every VRCI, in a
 (interpretation.md, "Commands"), of the base unit whose VRPI it hears: a VRCI of another origin
 comes from a base unit whose RU state it has no VRPI of (TS-0006 4.3), which it may leave
 unacknowledged until it has (as the reference controller, `sim.controller`, does).
+
+The base unit resends an unacknowledged VRCI every 100 ms (TS-0006 5.1.3), as the session does
+(`Session`, unless --no-resend): a controller may ignore a VRCI that came while it was busy and
+acknowledge a resend. A resend is shown to `on_tx` as no transmission of its own to acknowledge
+(`expect_ack` False): the missing ack is reported when no VRAO of the command ID came within
+`ack_timeout_ms` of its first transmission, whichever transmission that VRAO answered.
 """
 from __future__ import annotations
 
@@ -37,7 +43,7 @@ class Limits:
     """Oracle thresholds in milliseconds."""
 
     stall_ms: float = C.VRPO_WATCHDOG_MS          # the base unit's VRPO watchdog
-    ack_timeout_ms: float = 1000.0                # VRAO must follow each valid VRCI within this
+    ack_timeout_ms: float = 1000.0                # VRAO must follow each valid VRCI within this (resends too)
     resend_max_ms: float = 250.0                  # "about 100 ms": a resend interval up to this is fine
     after_ack_grace_ms: float = 300.0             # a VRCO in flight when the VRAI went out is fine
     vrco_give_up_ms: float = C.VRCO_GIVE_UP_MS    # no resends are expected past this
@@ -136,23 +142,27 @@ class Monitor:
         return seen
 
     # --- base unit -> controller ---------------------------------------------------------------
-    def on_tx(self, t: float, data: bytes, twin: bytes, index: int, expect_ack: bool = True) -> None:
+    def on_tx(self, t: float, data: bytes, twin: bytes, index: int, expect_ack: bool = True) -> Optional[int]:
+        """A packet of case `index` went out. When it is a VRCI whose ack is now awaited (valid, of
+        our origin, to a live controller), its command ID: the base unit resends it while `pending`."""
         self.note_case(t, index)
         if len(data) < _CMD_ID_AT.stop or _VRCI.encode() not in (data[:C.ID_LEN], twin[:C.ID_LEN]):
-            return
+            return None
         fields = decode(data)
         command_id = int.from_bytes(data[_CMD_ID_AT], "little")
         self.sent_at[command_id] = t
         self.id_case[command_id] = index
         if fields.get("type") != _VRCI:
-            return
-        if not fields["problems"]:
-            self.illegal_ids.pop(command_id, None)      # an ack of this ID is now this VRCI's
-            if expect_ack and not self.exited and fields["origin"] == BU_ORIGIN:
-                deadline = t + self.limits.ack_timeout_ms / 1000
-                self.pending.setdefault(command_id, collections.deque()).append((deadline, index))
-        else:
+            return None
+        if fields["problems"]:
             self.illegal_ids[command_id] = (t, index)
+            return None
+        self.illegal_ids.pop(command_id, None)      # an ack of this ID is now this VRCI's
+        if not expect_ack or self.exited or fields["origin"] != BU_ORIGIN:
+            return None
+        deadline = t + self.limits.ack_timeout_ms / 1000
+        self.pending.setdefault(command_id, collections.deque()).append((deadline, index))
+        return command_id
 
     def on_vrai(self, t: float, command_id: int, data: bytes) -> None:
         entry = self.vrco.get(command_id)

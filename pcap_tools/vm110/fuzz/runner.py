@@ -504,6 +504,8 @@ class Runner:
                  "--rate", f"{st.rate:g}", "--memory-growth", f"{(rule.growth_kib or 0) / 1024:g}"]
         if rule.limit_kib is not None:
             words += ["--target-memory", f"{rule.limit_kib / 1024:g}"]
+        if not st.resend_ms:
+            words += ["--no-resend"]
         if self.guided is not None:
             words += ["--coverage"]
         return shlex.join(words + ["--out", "fuzz-rerun"])
@@ -706,7 +708,7 @@ class Runner:
             stream=_jsonable(case.stream if case else None), settle_ms=case.settle_ms if case else 0.0,
             output_hex=trig.output.hex() if trig.output else None,
             target="%s:%d" % st.target, listen="%s:%d" % st.listen, group=st.group, target_cmd=self.cfg.target_cmd,
-            signature=signature, cases=cases, memory=trig.memory)
+            signature=signature, cases=cases, memory=trig.memory, resend_ms=st.resend_ms)
         self.findings.append(finding)
         number = len(self.findings)
         if trig.crash is not None:

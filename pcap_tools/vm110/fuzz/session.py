@@ -2,7 +2,12 @@
 cases' packets at a limited rate, and every packet shown to the oracles.
 
 One thread, one socket: `pump` runs the stream, reads the controller, polls the supervised
-process and ticks the oracles until a given time.
+process, ticks the oracles and resends the unacknowledged VRCI until a given time.
+
+As the base unit does (TS-0006 5.1.3), each valid VRCI of ours a case sends is resent every
+`Settings.resend_ms` (100 ms) on the next serial until its VRAO comes or the oracle's ack timeout
+passes (while the monitor holds it pending); a mutated or illegal one, or a duplicate frame, is
+not. A replay plays its packets through the same session, and so resends as the run did.
 """
 from __future__ import annotations
 
@@ -36,6 +41,7 @@ class Settings:
     startup_s: float = 10.0                 # time allowed for the first VRPO
     vrco_wait_s: float = 3.0                # withhold cases wait this long for a fresh VRCO
     allow_remote: bool = False              # a target other than loopback (never a broadcast address)
+    resend_ms: float = float(C.COMMAND_RESEND_MS)   # unacknowledged VRCI resent this often (0: never)
 
 
 @dataclass
@@ -75,6 +81,7 @@ class Session:
         self.memory = memory          # the supervised controller's RSS (None: not watched)
         self.last_case = -1           # of the run's cases (not replays): what a memory sample counts
         self.case_packets = 0
+        self.resends: dict[int, tuple[float, bytes, int]] = {}   # command ID -> (next resend, VRCI, case)
 
     # --- the loop ---------------------------------------------------------------------------------
     def pump(self, until: float) -> None:
@@ -99,6 +106,8 @@ class Session:
                 elif self.memory is not None and self.supervisor.proc is not None:
                     self._sample_memory(self.supervisor.proc.pid)
             self.monitor.tick(time.time())
+            if self.resends:
+                self._resend()
             now = time.time()
             if now >= until:
                 return
@@ -112,6 +121,20 @@ class Session:
         evidence = self.memory.sample(now, pid, self.supervisor.starts, self.last_case, self.case_packets)
         if evidence is not None:
             self.monitor.fire(Trigger(MEMORY, now, evidence["detail"], kind="rss", memory=evidence))
+
+    def _resend(self) -> None:
+        """Resend the VRCI due, on the next serial, while their acks are awaited: one acknowledged
+        (or given up on, or owed by a controller since restarted, or by the run while a replay has
+        the monitor) is dropped."""
+        now = time.time()
+        for command_id, (due, data, index) in list(self.resends.items()):
+            if command_id not in self.monitor.pending:
+                del self.resends[command_id]
+            elif now >= due:
+                again = M.reserial(data, self._take_serial())
+                t = self._send(again)
+                self.monitor.on_tx(t, again, again, index, expect_ack=False)
+                self.resends[command_id] = (t + self.settings.resend_ms / 1000, data, index)
 
     def _take_serial(self) -> int:
         serial, self.serial = self.serial, (self.serial + 1) % C.SERIAL_MODULUS
@@ -157,7 +180,9 @@ class Session:
         interval = 1.0 / self.settings.rate
         credit = _RATE_CREDIT_S if self.settings.rate >= _AVERAGE_FROM else 0.0
         self.next_case_send = max(self.next_case_send, t - credit) + interval
-        self.monitor.on_tx(t, data, twin, index, expect_ack)
+        awaited = self.monitor.on_tx(t, data, twin, index, expect_ack)
+        if awaited is not None and self.settings.resend_ms:
+            self.resends[awaited] = (t + self.settings.resend_ms / 1000, data, index)
         if index >= 0:
             self.case_packets += 1
         return Sent(t, data, twin, delay_ms, expect_ack)
