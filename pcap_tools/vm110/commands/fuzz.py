@@ -1,7 +1,8 @@
 """Fuzz a machine controller: play the base unit, inject odd packets, judge what it does.
 
 Keeps a valid VRPI stream going (every 125 ms) so the controller stays in normal operation,
-answers its VRCO with VRAI, and sends cases (field boundary values, structural defects, sequences,
+answers its VRCO with VRAI, resends an unacknowledged valid VRCI every 100 ms as the base unit does
+(not with --no-resend), and sends cases (field boundary values, structural defects, sequences,
 random byte changes) reproducible from --seed and the case index. Oracles: crash, stall,
 missing_ack, illegal_acked, malformed_output, vrco_retransmit, and with --target-cmd memory (the
 controller's RSS beyond --target-memory, or rising well past its warm-up level). Each confirmed finding is saved in
