@@ -146,7 +146,9 @@ class CorpusDir:
             self.next = max(self.next, int(m.group(1)) + 1)
             try:
                 entries.append(entry_from_json(loads(read_at_most(path, _MAX_ENTRY_FILE))))
-            except (OSError, ValueError, _Bad) as exc:
+            except OSError as exc:      # (the name is said once, not again in the full path that may not fit)
+                self.skipped.append(f"{path.name}: {exc.strerror or exc}")
+            except (ValueError, _Bad) as exc:
                 self.skipped.append(f"{path.name}: {str(exc)[:100]}")
         return entries
 
