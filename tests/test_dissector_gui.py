@@ -332,3 +332,42 @@ def test_profile_loads(ws):
     assert vrci[7].strip().isdigit() and vrci[8].strip().isdigit() and f"cmd {vrci[8].strip()}" in vrci[10]
     assert float(by_type["VRPI"][9] or "0") >= 0
     assert any(r[10].startswith("[VRCI Retransmission] ") for r in rows)
+
+
+def test_profile_buttons_leave_out_icmp_quotes(ws):
+    """No filter button selects an ICMP error that quotes an EG-Link datagram, and every such error
+    (a parameter problem too) is coloured as an ICMP error: the quote carries the vm110 fields of a
+    packet that was not received. The Relays open button selects the VRPI itself. Trial: Relays
+    open listed the port unreachable quoting a VRPI with the relays open beside the VRPI, and a
+    parameter problem quoting it was coloured "VM-110 ES-Link relays open"."""
+    from scapy.layers.inet import ICMP, IP, UDP
+    from scapy.layers.inet6 import ICMPv6DestUnreach, IPv6
+    from scapy.layers.l2 import Ether
+    from scapy.packet import Raw
+    from scapy.utils import wrpcap
+    from vm110 import constants as C
+    from vm110 import encode
+    open_state = min(s for s in C.BU_STATE_NAMES if s < C.ES_RELAYS_CLOSED_FROM)
+    vrpi = Ether(T.frame(T.Datagram(encode.encode({"type": "VRPI", "serial": 1, "bu_state": open_state}))))
+    v6 = IPv6(src="fe80::1", dst="ff02::42") / UDP(sport=C.INPUT_PORT, dport=C.INPUT_PORT) / vrpi[Raw]
+    frames = [vrpi] + [Ether(src="02:00:0a:00:00:14", dst="02:00:0a:00:00:0a") / error / bytes(quoted) for error, quoted in (
+        (IP(src=T.CONTROLLER_ADDR, dst=T.BU_ADDR) / ICMP(type=3, code=3), vrpi[IP]),     # port unreachable
+        (IP(src=T.CONTROLLER_ADDR, dst=T.BU_ADDR) / ICMP(type=12, code=0), vrpi[IP]),    # parameter problem
+        (IPv6(src="fe80::2", dst="fe80::1") / ICMPv6DestUnreach(code=4), v6))]
+    for n, frame in enumerate(frames):
+        frame.time = 1_700_000_000 + n / 8
+    capture = ws.dir / "quoted.pcap"
+    wrpcap(str(capture), frames)
+    both = ws.run(["-r", str(capture), "-2", *T.pref_args(ON), "-Y", "vm110.es_relays_open == 1", "-T", "fields",
+                   "-e", "frame.number"]).stdout.split()
+    assert both == ["1", "2", "3", "4"]   # (each quote is dissected as VM-110)
+    buttons = {source: expression for source, expression in profile_filters() if source.startswith("button ")}
+
+    def matches(expression: str) -> list[str]:
+        return ws.run(["-r", str(capture), "-2", *T.pref_args(ON), "-Y", expression, "-T", "fields",
+                       "-e", "frame.number"]).stdout.split()
+    assert matches(buttons["button Relays open"]) == ["1"]
+    assert matches(" || ".join(f"({e})" for e in buttons.values())) == ["1"]
+    rows = with_profile(ws, ["-r", str(capture), "-2", "--color", "-T", "fields", "-e", "frame.number",
+                             "-e", "frame.coloring_rule.name"]).stdout
+    assert [line.split("\t")[1] for line in rows.splitlines()] == ["VM-110 ES-Link relays open"] + ["ICMP errors"] * 3
