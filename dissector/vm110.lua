@@ -774,12 +774,16 @@ do
     vm110.fields = field_list
 end
 
--- One expert per problem and warning code of vm110.decode(): abbrev "vm110.expert.<code>".
+-- One expert per problem and warning code of vm110.decode(): abbrev "vm110.expert.<code>". An item
+-- added with the registered summary reads the same in Analyze > Expert Information (which groups by
+-- expert and shows that summary) and in tshark -z expert (which groups by the item's text).
 local group, severity = expert.group, expert.severity
 local E = {
-    unknown_id = ProtoExpert.new("vm110.expert.unknown_id", "Unknown packet ID", group.PROTOCOL, severity.ERROR),
+    unknown_id = ProtoExpert.new("vm110.expert.unknown_id", "Unknown packet ID: the payload is not decoded",
+        group.PROTOCOL, severity.ERROR),
     bad_crc = ProtoExpert.new("vm110.expert.bad_crc", "Bad CRC", group.CHECKSUM, severity.ERROR),
-    revision = ProtoExpert.new("vm110.expert.revision", "Unsupported revision", group.PROTOCOL, severity.ERROR),
+    revision = ProtoExpert.new("vm110.expert.revision", "Unsupported revision: only the header is decoded",
+        group.PROTOCOL, severity.ERROR),
     size_mismatch = ProtoExpert.new("vm110.expert.size_mismatch", "Size does not match the UDP length",
         group.MALFORMED, severity.ERROR),
     size_too_large = ProtoExpert.new("vm110.expert.size_too_large", "Size above 492", group.MALFORMED, severity.ERROR),
@@ -795,7 +799,7 @@ local E = {
         group.PROTOCOL, severity.WARN),
     extra_payload = ProtoExpert.new("vm110.expert.extra_payload", "Payload longer than the packet type's layout",
         group.UNDECODED, severity.WARN),
-    es_relays_open = ProtoExpert.new("vm110.expert.es_relays_open", "ES-Link relays open",
+    es_relays_open = ProtoExpert.new("vm110.expert.es_relays_open", "ES-Link relays open: BU state below Disarmed",
         group.RESPONSE_CODE, severity.WARN),
 }
 -- Stream analysis experts (section 7). Each has the severity of `vm110 analyze`'s finding of the
@@ -1229,7 +1233,7 @@ local function add_header(r, tvb, root)
         if info then
             generated(item, "direction", tvb, 0, ID_LEN, info.direction)
         elseif not r.cut then -- (cut short: truncated, and for that alone, as decode() says)
-            add_expert(item, E.unknown_id, "Unknown packet ID: the payload is not decoded")
+            add_expert(item, E.unknown_id)
         end
     else
         add_undecoded(root, tvb, 0, n, "shorter than a packet ID")
@@ -1250,7 +1254,7 @@ local function add_header(r, tvb, root)
         end
         field_experts(r, item, name)
         if name == "revision" and r.problems.revision then
-            add_expert(item, E.revision, "Unsupported revision: only the header is decoded")
+            add_expert(item, E.revision)
         elseif name == "size" then
             if r.problems.size_mismatch then
                 add_expert(item, E.size_mismatch) -- (the numbers: vm110.size, udp.length)
@@ -1267,7 +1271,7 @@ end
 local function add_relays(r, tvb, parent)
     local item = generated(parent, "es_relays_open", tvb, PREFIX_LEN, 1, r.es_relays_open)
     if r.es_relays_open then
-        add_expert(item, E.es_relays_open, "ES-Link relays open: BU state below Disarmed")
+        add_expert(item, E.es_relays_open)
     end
 end
 
