@@ -1421,6 +1421,13 @@ end
 -- (settings: the preferences as plain values, above)
 local function read_settings()
     local prefs = setmetatable({}, { __index = vm110.prefs }) -- (the values refused replaced)
+    -- A refused value goes back to the default in Wireshark's own preferences too (reset_preference,
+    -- Wireshark 3.5 and later), so that the preferences dialog shows the value used and the next save
+    -- of the preferences does not write the refused one again (it stayed in the file, refused anew on
+    -- every start).
+    local function reset_refused(name)
+        if reset_preference then reset_preference("vm110." .. name) end
+    end
     local refused = {}
     for _, r in ipairs(PREF_RANGES) do
         local name, min, max, default = r[1], r[2], r[3], r[4]
@@ -1429,12 +1436,15 @@ local function read_settings()
             refused[#refused + 1] = fmt("vm110.%s = %d is outside %d to %d; %d is used", name, value, min, max,
                 default)
             prefs[name] = default
+            reset_refused(name)
         end
     end
     if prefs.vrpo_min_ms > prefs.vrpo_max_ms then -- (analyze: --vrpo-range MIN at most MAX)
         refused[#refused + 1] = fmt("vm110.vrpo_min_ms = %d is above vm110.vrpo_max_ms = %d; %d and %d are used",
             prefs.vrpo_min_ms, prefs.vrpo_max_ms, VRPO_PERIOD_MIN_MS, VRPO_PERIOD_MAX_MS)
         prefs.vrpo_min_ms, prefs.vrpo_max_ms = VRPO_PERIOD_MIN_MS, VRPO_PERIOD_MAX_MS
+        reset_refused("vrpo_min_ms")
+        reset_refused("vrpo_max_ms")
     end
     -- (said once: Wireshark applies the preferences more than once, tshark once per -o)
     local text = concat(refused, "\nvm110: preference ")

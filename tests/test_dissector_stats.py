@@ -405,3 +405,27 @@ def test_a_preference_analyze_would_refuse_is_said_and_the_default_used(tshark, 
                     "vm110.vrpo_min_ms = 300 is above vm110.vrpo_max_ms = 200; 50 and 200 are used"], refused.stderr
     assert refused.stdout == plain.stdout and parse(plain.stdout)
     assert "vm110: preference" not in fine.stderr     # (the limits themselves are taken)
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_a_refused_preference_is_reset_in_wireshark(tshark, tmp_path):
+    """A refused value goes back to the default in Wireshark's own preferences, which the
+    preferences dialog shows and saves. Trial: Edit > Preferences showed the refused 0 while 1000
+    was used, and its OK wrote `vm110.dup_window_ms: 0` to the preferences file again, refused anew
+    on every start. A second Lua script reads the values through Wireshark (get_preference) once
+    the capture is read."""
+    bad = {"vm110.dup_window_ms": ("0", 1000), "vm110.input_port": ("65534", 5825),
+           "vm110.vrpo_min_ms": ("300", 50), "vm110.vrpo_max_ms": ("200", 200),
+           "vm110.resend_tolerance_ms": ("0", 0)}   # (a value taken stays)
+    with tshark.workspace(tmp_path) as ws:
+        probe = ws.dir / "probe.lua"
+        probe.write_text("local tap = Listener.new('frame')\nfunction tap.draw()\n"
+                         + "".join(f"    print('{name}=' .. tostring(get_preference('{name}')))\n" for name in bad)
+                         + "end\n")
+        capture = ws.dir / "normal.pcap"
+        shutil.copyfile(T.REPO / "captures" / capture.name, capture)
+        proc = ws.run(["-X", f"lua_script:{probe}", "-r", str(capture), "-q",
+                       *(a for key, (value, _) in bad.items() for a in ("-o", f"{key}:{value}"))])
+    assert "vm110.dup_window_ms = 0 is outside" in proc.stderr
+    shown = dict(line.split("=") for line in proc.stdout.splitlines() if line.startswith("vm110."))
+    assert shown == {name: str(default) for name, (_, default) in bad.items()}
