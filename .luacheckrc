@@ -10,7 +10,7 @@ stds.wireshark = {
         "Proto", "ProtoField", "ProtoExpert", "Pref", "Field", "DissectorTable", "Dissector", "Listener",
         "TreeItem", "Tvb", "TvbRange", "ByteArray", "TextWindow", "base", "ftypes", "expert", "frametype",
         "set_plugin_info", "register_postdissector", "register_stat_cmd_arg", "register_menu", "new_dialog",
-        "retap_packets", "gui_enabled", "get_filter", "MENU_STAT_UNSORTED", "MENU_TOOLS_UNSORTED",
+        "retap_packets", "gui_enabled", "get_filter", "reset_preference", "MENU_STAT_UNSORTED", "MENU_TOOLS_UNSORTED",
         "bit", -- LuaBitOp, which Wireshark ships for Lua 5.2 (the CRC uses it there only)
     },
 }
