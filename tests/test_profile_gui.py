@@ -81,7 +81,8 @@ def test_profile_columns_show_their_titles_and_values(tmp_path, display):
     shutil.copytree(PROFILE, config / "profiles" / "VM-110")
     (config / "profiles" / "VM-110" / "recent").write_text(
         "gui.geometry_main_width: 1500\ngui.geometry_main_height: 500\n")
-    env = dict(os.environ, DISPLAY=display, WIRESHARK_CONFIG_DIR=str(config))
+    # (HOME: no plugin installed for this user, which would make the -X copy stand aside)
+    env = dict(os.environ, DISPLAY=display, WIRESHARK_CONFIG_DIR=str(config), HOME=str(tmp_path))
     gui = subprocess.Popen(["wireshark", "-C", "VM-110", "-X", f"lua_script:{T.PLUGIN}",
                             "-r", str(T.REPO / "captures" / "restart.pcapng")], env=env,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
