@@ -855,6 +855,42 @@ def test_loss_share_is_of_the_packets_sent_whatever_the_copies(tmp_path):
     assert [(r["captures"], r["lost"], r["loss_pct"]) for r in trend] == [(2, 2 * lost, share)]
 
 
+def _without_eglink(path: Path) -> None:
+    """A capture of one frame and no UDP at all (a dead link, the wrong interface)."""
+    arp = bytes.fromhex("ffffffffffff 020000000001 0806") + bytes(28)
+    header = bytes.fromhex("d4c3b2a1 0200 0400") + bytes(8) + (65535).to_bytes(4, "little") + (1).to_bytes(4, "little")
+    record = (1_750_000_000).to_bytes(4, "little") + bytes(4) + len(arp).to_bytes(4, "little") * 2
+    path.write_bytes(header + record + arp)
+
+
+def test_a_capture_without_eglink_traffic_is_listed_apart_not_ranked_failing(src, built):
+    """Trial: a capture without one EG-Link packet (its verdict fails: `no_eglink`, an error) made
+    its machine the worst of `--worst machines`, above machines with real failures, though it says
+    nothing of the link. It is counted apart (`no_eglink`) in both rankings, not as a failing
+    capture nor an error finding, and `--named no-eglink` lists it."""
+    _without_eglink(src / "dead.pcap")
+    assert vm110("fleet", "build", str(src), "--out", str(built), "-j", "1").returncode == 0
+    verdicts = {name: json.loads(vm110("analyze", str(src / name), "--json", "-").stdout)["verdict"]
+                for name in (*NAMES, "dead.pcap")}
+    assert [f["rule"] for f in verdicts["dead.pcap"]["findings"]] == ["no_eglink"]
+
+    def ranked(what: str) -> dict:
+        out = json.loads(vm110("fleet", "query", str(built), "--worst", what, "--format", "json").stdout)
+        return {Path(r["file"]).name: r for r in out}
+    machines, links = ranked("machines"), ranked("links")
+    dead = machines["dead.pcap"]
+    assert (dead["captures"], dead["no_eglink"], dead["failing_captures"], dead["error_findings"]) == (1, 1, 0, 0)
+    assert links["dead.pcap"]["no_eglink"] == 1 and links["dead.pcap"]["loss_pct"] is None
+    # the machines that do fail (an error finding of the analysis) rank above it, each as analyze says
+    failing = {n: not v["ok"] for n, v in verdicts.items() if n != "dead.pcap"}
+    assert any(failing.values())
+    assert {n: r["failing_captures"] == 1 for n, r in machines.items() if n != "dead.pcap"} == failing
+    order = list(machines)
+    assert all(order.index(n) < order.index("dead.pcap") for n, bad in failing.items() if bad)
+    apart = json.loads(vm110("fleet", "query", str(built), "--named", "no-eglink", "--format", "json").stdout)
+    assert [r["file"] for r in apart] == [str(src / "dead.pcap")]
+
+
 def test_a_finding_of_the_whole_capture_is_listed(tmp_path):
     """A finding without located items (no EG-Link packet at all: a dead link or the wrong
     interface) was left out of `--named findings` and of the report's list of findings, which
@@ -862,10 +898,7 @@ def test_a_finding_of_the_whole_capture_is_listed(tmp_path):
     folder = tmp_path / "src"
     folder.mkdir()
     shutil.copy(BUNDLED / "retransmit.pcap", folder / "retransmit.pcap")
-    arp = bytes.fromhex("ffffffffffff 020000000001 0806") + bytes(28)        # one frame, no UDP at all
-    header = bytes.fromhex("d4c3b2a1 0200 0400") + bytes(8) + (65535).to_bytes(4, "little") + (1).to_bytes(4, "little")
-    record = (1_750_000_000).to_bytes(4, "little") + bytes(4) + len(arp).to_bytes(4, "little") * 2
-    (folder / "dead.pcap").write_bytes(header + record + arp)
+    _without_eglink(folder / "dead.pcap")
     dataset = tmp_path / "ds"
     assert vm110("fleet", "build", str(folder), "--out", str(dataset), "-j", "1").returncode == 0
     expected = set()

@@ -169,9 +169,15 @@ def _sent(p: str = "") -> str:
     return f"sum({p}received) - sum({p}duplicates) + sum({p}lost)"
 
 
+# A capture read whole or in part without one EG-Link packet (a dead link, the wrong interface):
+# it says nothing of the link, good or bad, so the rankings list it apart rather than as failing.
+_NO_EGLINK = "status <> 'unreadable' AND eglink_packets = 0"
+
 # Both rankings count every capture of a machine (`captures`) and, of those, the ones that could
-# not be read (`unreadable`): they give no link figures and count as failing, but are the machine's.
-_CAPTURE_COUNTS = "count(*) AS captures, count(*) FILTER (WHERE status = 'unreadable') AS unreadable"
+# not be read (`unreadable`: they give no link figures and count as failing, but are the machine's)
+# and the ones without EG-Link traffic (`no_eglink`: no link figures, not failing).
+_CAPTURE_COUNTS = ("count(*) AS captures, count(*) FILTER (WHERE status = 'unreadable') AS unreadable, "
+                   f"count(*) FILTER (WHERE {_NO_EGLINK}) AS no_eglink")
 
 
 def _worst_links(f: Fleet, a: Args) -> str:
@@ -182,7 +188,7 @@ s AS (SELECT {w}, sum(lost) AS lost, {_sent()} AS sent, sum(restarts) AS restart
 t AS (SELECT {w}, sum(watchdog_violations) AS watchdog,
              max(jitter_max_ms) FILTER (WHERE type = 'VRPI') AS vrpi_jitter_max_ms,
              max(jitter_max_ms) FILTER (WHERE type = 'VRPO') AS vrpo_jitter_max_ms FROM streams GROUP BY ALL)
-SELECT {_cols('c', keys)}, c.captures, c.unreadable, coalesce(s.lost, 0) AS lost,
+SELECT {_cols('c', keys)}, c.captures, c.unreadable, c.no_eglink, coalesce(s.lost, 0) AS lost,
        round(100.0 * coalesce(s.lost, 0) / nullif(s.sent, 0), 3) AS loss_pct, c.capture_dropped,
        coalesce(t.watchdog, 0) AS watchdog, t.vrpi_jitter_max_ms, t.vrpo_jitter_max_ms,
        coalesce(s.restarts, 0) AS restarts
@@ -196,12 +202,14 @@ def _worst_machines(f: Fleet, a: Args) -> str:
     k = ", ".join(keys)
     return f"""
 WITH c AS (SELECT {w}, {_CAPTURE_COUNTS},
-                  count(*) FILTER (WHERE status <> 'ok' OR NOT verdict_ok) AS failing_captures
+                  count(*) FILTER (WHERE status <> 'ok' OR (NOT verdict_ok AND NOT ({_NO_EGLINK})))
+                      AS failing_captures
            FROM captures GROUP BY ALL),
-r AS (SELECT {w}, capture_id, rule, any_value(severity) AS severity, any_value(count) AS n FROM findings GROUP BY ALL),
+r AS (SELECT {w}, capture_id, rule, any_value(severity) AS severity, any_value(count) AS n FROM findings
+      WHERE rule <> 'no_eglink' GROUP BY ALL),
 f AS (SELECT {k}, count(*) FILTER (WHERE severity = 'error') AS error_findings,
              count(*) FILTER (WHERE severity <> 'error') AS other_findings, sum(n) AS items FROM r GROUP BY ALL)
-SELECT {_cols('c', keys)}, c.captures, c.unreadable, c.failing_captures,
+SELECT {_cols('c', keys)}, c.captures, c.unreadable, c.no_eglink, c.failing_captures,
        coalesce(f.error_findings, 0) AS error_findings, coalesce(f.other_findings, 0) AS other_findings,
        coalesce(f.items, 0) AS counted
 FROM c LEFT JOIN f ON {_same('c', 'f', keys)}
@@ -282,6 +290,13 @@ WHERE c.status <> 'unreadable'
 GROUP BY 1 ORDER BY 1 NULLS LAST"""
 
 
+def _no_eglink(f: Fleet, a: Args) -> str:
+    lead = "".join(f"{c}, " for c in f.who() if c != "file")
+    return f"""
+SELECT {lead}file, status, first_time, duration_s, packets FROM captures
+WHERE {_NO_EGLINK} ORDER BY {lead}file"""
+
+
 def _errors(f: Fleet, a: Args) -> str:
     who = f.who("errors")
     columns = who + ([] if "file" in who else ["file"])
@@ -310,6 +325,8 @@ NAMED = {n.name: n for n in (
     Named("watchdog", "machines with watchdog violations in a month (--month YYYY-MM; default the latest in the data)",
           _watchdog, ("limit", "month")),
     Named("trend", f"--trend METRIC ({', '.join(METRICS)}) --by {'|'.join(PERIODS)}|COLUMN", _trend, ("by",)),
+    Named("no-eglink", "captures without one EG-Link packet (a dead link, the wrong interface): listed apart, "
+                       "neither failing nor ranked by --worst", _no_eglink),
     Named("errors", "captures that could not be read, or only in part, and why", _errors),
     Named("findings", "findings to open in Wireshark: file, frame, time, sender and display filter (none for a "
                       "finding of the whole capture: no EG-Link packet, frames not read), message", _findings,

@@ -172,6 +172,10 @@ def render(fleet: Fleet) -> str:
                    "spread-ack-latency"),
            "<h2>Failing commands</h2>",
            _table(fleet.run(NAMED["failing-commands"].sql(fleet, Args(limit=50)))),
+           "<h2>Captures without EG-Link traffic</h2>",
+           ("<p>Not one EG-Link packet (a dead link, the wrong interface): nothing said of the link, so apart "
+            "from the rankings.</p>"),
+           _table(fleet.run(NAMED["no-eglink"].sql(fleet, Args()))),
            "<h2>Captures with errors</h2>",
            _table(fleet.run(NAMED["errors"].sql(fleet, Args()))),
            "<h2>Findings</h2>",
