@@ -1180,6 +1180,23 @@ def _with_dropped(pcapng: bytes, dropped: int) -> bytes:
     return pcapng + struct.pack("<II", 5, 12 + len(body)) + body + struct.pack("<I", 12 + len(body))
 
 
+def test_the_loss_trend_says_what_the_captures_dropped_themselves(tmp_path):
+    """Trial: `--trend loss` showed a capture whose host dropped packets (pcapng statistics) as a
+    lossy link, with nothing of the drops that `--worst links` gives beside its loss. The trend
+    gives `capture_dropped` beside `lost`, as analyze counts both: once per capture, not per sender."""
+    folder = tmp_path / "src"
+    folder.mkdir()
+    (folder / "dropping.pcapng").write_bytes(_with_dropped((BUNDLED / "loss.pcapng").read_bytes(), 7))
+    assert vm110("fleet", "build", str(folder), "--out", str(tmp_path / "ds"), "-j", "1").returncode == 0
+    report = json.loads(vm110("analyze", str(folder / "dropping.pcapng"), "--json", "-").stdout)
+    assert len(report["senders"]) > 1 and report["totals"]["lost"] > 0
+    trend = json.loads(vm110("fleet", "query", str(tmp_path / "ds"), "--trend", "loss", "--by", "month",
+                             "--format", "json").stdout)
+    assert [(r["captures"], r["lost"], r["capture_dropped"]) for r in trend] == [
+        (1, report["totals"]["lost"], report["totals"]["capture_dropped"])]
+    assert report["totals"]["capture_dropped"] == 7
+
+
 def test_parts_of_an_older_vm110_are_read_with_the_new_ones(src, built):
     """A dataset built by a vm110 before the column capture_dropped, built on with this one: each
     query failed (`the dataset cannot be read ... schema mismatch`, or capture_dropped not found

@@ -250,13 +250,21 @@ GROUP BY ALL ORDER BY violations DESC, max_gap_ms DESC
 LIMIT {a.limit}"""
 
 
-_TREND = {   # metric -> (table, aggregates over it as t)
+# A capture's senders summed, one row per capture: joined to `captures`, a value of the capture
+# (capture_dropped) is then summed once, not once per sender.
+_SENDERS_PER_CAPTURE = ("(SELECT capture_id, sum(lost) AS lost, sum(received) AS received, "
+                        "sum(duplicates) AS duplicates FROM senders GROUP BY capture_id)")
+
+_TREND = {   # metric -> (table, aggregates over it as t and captures as c)
     "jitter": ("streams", ("round(avg(t.jitter_mean_ms) FILTER (WHERE t.type = 'VRPI'), 3) AS vrpi_jitter_mean_ms, "
                            "max(t.jitter_max_ms) FILTER (WHERE t.type = 'VRPI') AS vrpi_jitter_max_ms, "
                            "round(avg(t.jitter_mean_ms) FILTER (WHERE t.type = 'VRPO'), 3) AS vrpo_jitter_mean_ms, "
                            "max(t.jitter_max_ms) FILTER (WHERE t.type = 'VRPO') AS vrpo_jitter_max_ms")),
-    "loss": ("senders", ("sum(t.lost) AS lost, sum(t.received) AS received, "
-                         f"round(100.0 * sum(t.lost) / nullif({_sent('t.')}, 0), 3) AS loss_pct")),
+    # Beside the loss, what the captures dropped themselves (as --worst links: up to that many of
+    # the lost may be the capture host's, not the link's; blank where not known).
+    "loss": (_SENDERS_PER_CAPTURE, ("sum(t.lost) AS lost, sum(t.received) AS received, "
+                                    f"round(100.0 * sum(t.lost) / nullif({_sent('t.')}, 0), 3) AS loss_pct, "
+                                    "sum(c.capture_dropped) AS capture_dropped")),
     # VRCI acked by the controller (VRAO), VRCO by the base unit (VRAI): two devices' latencies,
     # apart ("which BU firmware acks slowest" mixed the controller's acks in).
     "latency": ("commands", ", ".join(
