@@ -675,6 +675,30 @@ def test_a_file_name_with_control_characters_stays_on_its_row(tmp_path):
     assert "\x1b" not in done.stdout
 
 
+def test_csv_cells_from_metadata_are_no_formulas_and_no_line_breaks(tmp_path):
+    """Trial: `--format csv` wrote metadata as it came: a folder named `@SUM(1+1)` or a sidecar's
+    `=HYPERLINK(...)` became a formula when the CSV was opened in Excel or LibreOffice, and a newline
+    in a value broke the row (CSV injection). Text cells that begin with = + - @ begin with a single
+    quote (OWASP), control characters are escaped as in the table; numbers stay numbers; JSON keeps
+    the values as they are."""
+    import csv
+    folder = tmp_path / "@SUM(1+1)"
+    folder.mkdir()
+    shutil.copy(BUNDLED / "disarmed.pcap", folder / "disarmed.pcap")
+    site = '=HYPERLINK("http://example.invalid","x")'
+    (folder / "disarmed.pcap.meta.json").write_text(json.dumps({"site": site, "note": "-1\r\n+2,\tthree"}))
+    built = vm110("fleet", "build", str(folder), "--out", str(tmp_path / "ds"), "--meta", "{machine}/*.pcap")
+    assert built.returncode == 0, built.stderr
+    sql = "SELECT site, machine, note, -1 AS minus_one, file FROM captures"
+    given = json.loads(vm110("fleet", "query", str(tmp_path / "ds"), sql, "--format", "json").stdout)
+    assert [(r["site"], r["machine"], r["note"]) for r in given] == [(site, "@SUM(1+1)", "-1\r\n+2,\tthree")]
+    out = vm110("fleet", "query", str(tmp_path / "ds"), sql, "--format", "csv").stdout
+    assert len(out.splitlines()) == 2 and "\r" not in out and "\t" not in out, out
+    assert list(csv.reader(io.StringIO(out))) == [
+        ["site", "machine", "note", "minus_one", "file"],
+        ["'" + site, "'@SUM(1+1)", "'-1\\r\\n+2,\\tthree", "-1", str(folder / "disarmed.pcap")]]
+
+
 def test_a_copy_of_a_capture_is_counted_once(src, built):
     """The same capture under a second path (an archive folder, a file copied to two machines'
     folders) is not analysed again: each copy added every one of its packets and findings to the

@@ -378,6 +378,24 @@ def _cell(value: Any) -> str:
     return escaped(str(value))
 
 
+# A spreadsheet (Excel, LibreOffice) opening a CSV takes a cell that begins with one of these as a
+# formula (`=HYPERLINK(...)` in a sidecar's value, a folder named `@SUM(...)`): such a text cell
+# begins with a single quote, as OWASP (CSV Injection) recommends. Control characters, which
+# OWASP also lists (tab, carriage return), are escaped before (as the table shows them).
+_FORMULA_START = ("=", "+", "-", "@")
+
+
+def _csv_cell(value: Any) -> Any:
+    """A CSV cell: numbers as they are, text escaped and never a formula."""
+    value = _plain(value)
+    if value is None:
+        return ""
+    if not isinstance(value, str):
+        return value
+    text = escaped(value)
+    return "'" + text if text.startswith(_FORMULA_START) else text
+
+
 def render(result: Result, fmt: str) -> str:
     if fmt == "json":
         # A value JSON has no type for (an INTERVAL, TIME or UUID of a query) as the text the
@@ -387,9 +405,9 @@ def render(result: Result, fmt: str) -> str:
     if fmt == "csv":
         out = io.StringIO()
         writer = csv.writer(out, lineterminator="\n")
-        writer.writerow(result.columns)
+        writer.writerow([_csv_cell(c) for c in result.columns])
         for row in result.rows:
-            writer.writerow(["" if v is None else _plain(v) for v in row])
+            writer.writerow([_csv_cell(v) for v in row])
         return out.getvalue()
     heads, cells = [escaped(c) for c in result.columns], [[_cell(v) for v in row] for row in result.rows]
     widths = [max([len(c)] + [len(r[i]) for r in cells]) for i, c in enumerate(heads)]
