@@ -728,6 +728,32 @@ def test_a_copy_of_a_capture_is_counted_once(src, built):
     assert files == [str(src / "archive" / "retransmit.pcap")]
 
 
+def test_which_copy_is_kept_does_not_depend_on_which_build_saw_it_first(tmp_path):
+    """Trial: of two copies of a capture the one kept was the one a build had first, else the first
+    in path order: the archive folder built before the machines' folders kept the capture there,
+    without the machine --meta gives it (and `archive` sorts before `sites` too), and the same files
+    built in one go or in two gave two datasets. The copy kept is the one whose metadata gives the
+    most fields, then the one in the fewest folders, then the first path: whatever the history."""
+    archive, machine = tmp_path / "data" / "archive" / "w1.pcap", tmp_path / "data" / "sites" / "n" / "m1" / "w1.pcap"
+    for path in (archive, machine):
+        path.parent.mkdir(parents=True)
+        shutil.copy(BUNDLED / "disarmed.pcap", path)
+    meta = ("--meta", "sites/{site}/{machine}/*.pcap")
+    sql = "SELECT file, site, machine FROM captures"
+    kept = [{"file": str(machine), "site": "n", "machine": "m1"}]
+    said = f"vm110 fleet: copy, counted once: {archive}: the same capture as {machine}"
+    for first in ([], [str(archive.parent)]):           # in one go; the archive alone first
+        dataset = tmp_path / f"ds{len(first)}"
+        for sources in (first, [str(tmp_path / "data")]):
+            if sources:
+                done = vm110("fleet", "build", *sources, "--out", str(dataset), "-j", "1", *meta)
+                assert done.returncode == 0, done.stderr
+        assert said in done.stderr.splitlines() and "1 copy not counted" in done.stdout, done
+        assert json.loads(vm110("fleet", "query", str(dataset), sql, "--format", "json").stdout) == kept
+        again = vm110("fleet", "build", str(tmp_path / "data"), "--out", str(dataset), "-j", "1", *meta)
+        assert "0 analysed" in again.stdout and "1 already in the dataset" in again.stdout and said in again.stderr
+
+
 def _without_read_rights() -> list[str]:
     """The prefix that runs a command without the right to read what its mode bits forbid (root
     reads every folder: the command then runs without that capability)."""

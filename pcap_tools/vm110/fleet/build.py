@@ -121,14 +121,15 @@ def _build(dataset: Dataset, wanted: list[Source], walked: "Walked", settings: S
     outcome = Outcome()
     # An unreadable capture is tried again every time: what failed may have been passing (a file
     # still being copied, a worker that could not see the share).
-    todo = [s for s in wanted if s.capture_id not in listed or listed[s.capture_id]["status"] == "unreadable"]
-    outcome.skipped = len(wanted) - len(todo)
-    todo, copies = _without_copies(listed, wanted, todo)
-    outcome.copies = [f"{copy}: the same capture as {of}" for copy, of in copies.items()]
-    versions = Versions(listed, {s.path: s.capture_id for s in wanted}, _moved(listed, wanted))
+    copies = _copies(listed, wanted)
+    outcome.copies = [f"{copy}: the same capture as {of}" for copy, of in sorted(copies.items())]
+    kept = [s for s in wanted if s.path not in copies]
+    todo = [s for s in kept if s.capture_id not in listed or listed[s.capture_id]["status"] == "unreadable"]
+    outcome.skipped = len(kept) - len(todo)
+    versions = Versions(listed, {s.path: s.capture_id for s in wanted}, _moved(listed, wanted), copies)
     cleared = _gone_unreadable(listed, wanted, walked)
     outcome.cleared = len(cleared)
-    stale = versions.stale() | versions.copied(copies) | cleared
+    stale = versions.stale() | cleared
     bar = Progress(len(todo), outcome.skipped) if progress else None
     last = time.monotonic()
     try:
@@ -177,22 +178,32 @@ def _entry(path: str, size: Optional[int], sha256: Optional[str], status: str, p
             "message": message, "meta": meta, "schema": schema}
 
 
-def _without_copies(listed: dict, wanted: list[Source], todo: list[Source]) -> tuple[list[Source], dict[str, str]]:
-    """`todo` without copies, and the capture each copies: a capture whose content the dataset holds, or
-    an earlier path of this build holds, under another path that is still there (an archive
-    folder, a file copied into two machines' folders). Analysed, a copy is counted again in
-    every sum of the fleet."""
-    current = {s.path: s.sha256 for s in wanted}
-    held: dict[str, str] = {}
-    for entry in sorted(listed.values(), key=lambda e: e["file"]):
+def _copies(listed: dict, wanted: list[Source]) -> dict[str, str]:
+    """Copy -> the original it copies, among the captures of this build and those of the dataset
+    still there: the same content under several paths (an archive folder, a file copied into two
+    machines' folders, its `.pcap.gz`). Analysed, a copy is counted again in every sum of the
+    fleet. The original is the one whose metadata gives the most fields (the copy in a machine's
+    folder, not the archive's that --meta does not match), then the one in the fewest folders (a
+    file beside its copy in a sub-folder), then the first in path order: a choice of the paths
+    alone, the same whichever build saw which first."""
+    current = {s.path for s in wanted}
+    holders: dict[str, dict[str, int]] = {}         # content -> path -> metadata fields it gives
+    for entry in listed.values():
         sha, path = entry.get("sha256"), entry["file"]
-        if sha and entry["status"] != "unreadable" and current.get(path, sha) == sha and os.path.lexists(path):
-            held.setdefault(sha, path)
-    for s in wanted:                                     # (sorted by path: the first is the original)
+        if sha and entry["status"] != "unreadable" and path not in current and os.path.lexists(path):
+            holders.setdefault(sha, {})[path] = _given(entry.get("meta") or {})
+    for s in wanted:
         if s.sha256 and s.problem is None:
-            held.setdefault(s.sha256, s.path)
-    copies = {s.path: held[s.sha256] for s in todo if s.sha256 and held.get(s.sha256, s.path) != s.path}
-    return [s for s in todo if s.path not in copies], copies
+            holders.setdefault(s.sha256, {})[s.path] = _given(dict(s.meta))
+    copies: dict[str, str] = {}
+    for paths in holders.values():
+        original = min(paths, key=lambda p: (-paths[p], p.count(os.sep), p))
+        copies.update((p, original) for p in paths if p != original)
+    return copies
+
+
+def _given(meta: dict) -> int:
+    return sum(value is not None for value in meta.values())
 
 
 @dataclass(frozen=True)
@@ -232,25 +243,26 @@ def _moved(listed: dict, wanted: list[Source]) -> dict[str, set[str]]:
 
 class Versions:
     """The captures listed per path, to find those a changed file's new capture replaces: an
-    entry for a path of this build whose capture id is no longer the file's, or the entry of its
-    content's old path if the file was moved there, once the file's current capture is complete
-    (never before: a stop in between keeps the old rows)."""
+    entry for a path of this build whose capture id is no longer the file's, the entry of its
+    content's old path if the file was moved there, and the entries of the paths that are copies of
+    it now (what they held is gone, overwritten, or is counted under this path), once the file's
+    current capture is complete (never before: a stop in between keeps the old rows)."""
 
-    def __init__(self, listed: dict, current: dict[str, str], moved: Optional[dict[str, set[str]]] = None) -> None:
+    def __init__(self, listed: dict, current: dict[str, str], moved: Optional[dict[str, set[str]]] = None,
+                 copies: Optional[dict[str, str]] = None) -> None:
         self.current = current
-        self.moved = moved or {}
+        self.moved = {path: set(cids) for path, cids in (moved or {}).items()}
         self.by_path: dict[str, set[str]] = {}
         for cid, entry in listed.items():
             self.by_path.setdefault(entry["file"], set()).add(cid)
+        for copy, original in (copies or {}).items():
+            self.moved.setdefault(original, set()).update(self.by_path.get(copy, set()))
 
     def stale(self) -> set[str]:
-        return {cid for path in self.current for cid in self._stale(path)}
-
-    def copied(self, copies: dict[str, str]) -> set[str]:
-        """The entries of paths that now hold a copy of another capture: what they held is gone
-        (overwritten; a gzip-compressed capture a vm110 before did not know as one), and the
-        copy is counted under the other path."""
-        return {c for path in copies for c in self.by_path.get(path, set()) if c != self.current.get(path)}
+        """The entries stale now: of the paths of this build whose capture is complete, and the
+        copies of an original that is not of this build (the dataset's, complete)."""
+        return ({cid for path in self.current for cid in self._stale(path)}
+                | {cid for path, cids in self.moved.items() if path not in self.current for cid in cids})
 
     def add(self, path: str, cid: str) -> set[str]:
         """Record a completed capture; the entries it makes stale."""
