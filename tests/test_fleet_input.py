@@ -941,6 +941,53 @@ def test_a_capture_without_eglink_traffic_is_listed_apart_not_ranked_failing(tmp
     assert [r["file"] for r in apart] == [str(folder / "dead.pcap")]
 
 
+def _first_half(source: Path, target: Path) -> list[float]:
+    """The first half of the records of the pcap `source` (little-endian, µs) as `target`, as a
+    ring buffer's file of the same period holds them; their times."""
+    data = source.read_bytes()
+    assert data[:4] == bytes.fromhex("d4c3b2a1")
+    records, at = [], 24
+    while at < len(data):
+        seconds, micros, length = struct.unpack_from("<III", data, at)
+        records.append((at, seconds + micros / 1e6))
+        at += 16 + length
+    end = records[len(records) // 2][0]
+    target.write_bytes(data[:end])
+    return [t for start, t in records if start < end]
+
+
+def test_two_captures_of_one_link_at_once_are_said(tmp_path):
+    """Trial: two captures of one machine's link that overlap in time (a ring-buffer file and the
+    merged file of the same period: other content, so no copy) were both counted in the machine's
+    totals, in silence. Every query that sums says each such pair on standard error, with both
+    files and the overlap (from the capture's own packet times), and `--named overlaps` lists them;
+    another machine's capture of the same addresses at the same time is no overlap."""
+    from vm110.timefmt import utc_iso
+    m1, m2 = tmp_path / "sites" / "n" / "m1", tmp_path / "sites" / "n" / "m2"
+    m1.mkdir(parents=True)
+    m2.mkdir(parents=True)
+    shutil.copy(BUNDLED / "controller-watchdog.pcap", m1 / "merged.pcap")
+    shutil.copy(BUNDLED / "bu-watchdog.pcap", m2 / "other.pcap")      # the same addresses, the same time
+    ring = _first_half(m1 / "merged.pcap", m1 / "ring-1.pcap")
+    dataset = tmp_path / "ds"
+    built = vm110("fleet", "build", str(tmp_path / "sites"), "--out", str(dataset), "-j", "1",
+                  "--meta", "sites/{site}/{machine}/*.pcap")
+    assert built.returncode == 0 and "3 analysed" in built.stdout, built
+    start, end = utc_iso(ring[0]), utc_iso(ring[-1])
+    senders = "; ".join(sorted(s["id"] for s in json.loads(vm110("analyze", str(m1 / "ring-1.pcap"), "--json", "-")
+                                                            .stdout)["senders"]))
+    ranked = vm110("fleet", "query", str(dataset), "--worst", "machines")
+    said = [line for line in ranked.stderr.splitlines() if "counted twice" in line]
+    assert ranked.returncode == 0 and said == [(
+        f"vm110 fleet: overlap, counted twice: {m1 / 'merged.pcap'} and {m1 / 'ring-1.pcap'} hold the same link "
+        f"({senders}) from {start} to {end} "
+        f"({round(ring[-1] - ring[0], 3):g} s)")], ranked.stderr
+    listed = json.loads(vm110("fleet", "query", str(dataset), "--named", "overlaps", "--format", "json").stdout)
+    assert [(r["machine"], r["file"], r["other_file"], r["overlap_from"], r["overlap_to"]) for r in listed] == [
+        ("m1", str(m1 / "merged.pcap"), str(m1 / "ring-1.pcap"), start, end)]
+    assert "overlap" not in vm110("fleet", "query", str(dataset), "--named", "errors").stderr
+
+
 def test_a_finding_of_the_whole_capture_is_listed(tmp_path):
     """A finding without located items (no EG-Link packet at all: a dead link or the wrong
     interface) was left out of `--named findings` and of the report's list of findings, which

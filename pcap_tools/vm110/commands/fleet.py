@@ -118,7 +118,7 @@ def _build(args: argparse.Namespace) -> int:
 
 
 def _query(args: argparse.Namespace) -> int:
-    from ..fleet.query import NAMED, WORST, Args, Fleet, render
+    from ..fleet.query import NAMED, WORST, Args, Fleet, overlap_warnings, render
     chosen = [x for x in (args.sql, args.named, args.worst, args.trend) if x]
     if len(chosen) > 1:
         raise CliError("give one of SQL, --named, --worst, --trend")
@@ -145,6 +145,9 @@ def _query(args: argparse.Namespace) -> int:
         sql = named.sql(fleet, Args.given(named, args.trend or "jitter", limit=args.limit, by=args.by,
                                           month=args.month))
     sys.stdout.write(render(fleet.run(sql), args.format))
+    if not args.sql and named.sums:
+        for line in overlap_warnings(fleet):
+            print(f"vm110 fleet: {line}", file=sys.stderr)
     return EXIT_OK
 
 

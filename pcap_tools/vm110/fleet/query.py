@@ -123,6 +123,7 @@ class Named:
     help: str
     sql: Callable[[Fleet, "Args"], str]
     options: tuple[str, ...] = ()       # of --limit, --by, --month: those it takes (others are refused)
+    sums: bool = False                  # adds up captures: two captures of one link at once count twice
 
 
 @dataclass
@@ -305,6 +306,46 @@ SELECT {lead}file, status, first_time, duration_s, packets FROM captures
 WHERE {_NO_EGLINK} ORDER BY {lead}file"""
 
 
+def _overlaps(f: Fleet, a: Args) -> str:
+    """Pairs of captures of one named machine (site and machine) that share a sender and overlap in
+    time: one link captured twice (a tap and a mirror port at once, a ring-buffer file and a merged
+    file of the same period), whose packets, losses and findings every sum counts twice. A capture
+    without site and machine is a machine of its own, as in the rankings: paired by addresses
+    alone, every machine's capture would pair with every other's taken at the same time where all
+    machines have the same addresses."""
+    who = [c for c in f.who() if c != "file"]
+    lead = "".join(f"a.{c}, " for c in who)
+    same = (" AND ".join(f"a.{c} IS NOT DISTINCT FROM b.{c}" for c in who)
+            + " AND NOT (" + " AND ".join(f"a.{c} IS NULL" for c in who) + ")") if who else "false"
+    return f"""
+WITH c AS (SELECT * FROM captures WHERE status <> 'unreadable'),
+s AS (SELECT DISTINCT capture_id, sender FROM senders)
+SELECT {lead}a.file, b.file AS other_file, greatest(a.first_time, b.first_time) AS overlap_from,
+       least(a.last_time, b.last_time) AS overlap_to,
+       round(date_diff('microsecond', greatest(a.first_time, b.first_time), least(a.last_time, b.last_time)) / 1e6, 3)
+           AS overlap_s,
+       string_agg(DISTINCT sa.sender, '; ' ORDER BY sa.sender) AS senders
+FROM c a JOIN c b ON a.file < b.file AND {same} AND a.first_time < b.last_time AND b.first_time < a.last_time
+JOIN s sa ON sa.capture_id = a.capture_id JOIN s sb ON sb.capture_id = b.capture_id AND sa.sender = sb.sender
+GROUP BY ALL ORDER BY {lead}a.file, other_file
+LIMIT {a.limit}"""
+
+
+def overlap_warnings(f: Fleet, most: int = 5) -> list[str]:
+    """A line per overlap (up to `most`, then how many more): said beside every query that sums."""
+    res = f.run(_overlaps(f, Args(limit=most + 1)))
+    if not res.rows:
+        return []
+    total = f.run(f"SELECT count(*) FROM ({_overlaps(f, Args(limit=1_000_000_000))})").rows[0][0]
+    at = {c: i for i, c in enumerate(res.columns)}
+    lines = [f"overlap, counted twice: {_cell(r[at['file']])} and {_cell(r[at['other_file']])} hold the same link "
+             f"({_cell(r[at['senders']])}) from {_cell(r[at['overlap_from']])} to {_cell(r[at['overlap_to']])} "
+             f"({_cell(r[at['overlap_s']])} s)" for r in res.rows[:most]]
+    if total > most:
+        lines.append(f"overlap, counted twice: {total - most} more pairs of captures")
+    return lines + ["overlap: --named overlaps lists them; remove or move the second capture of each pair"]
+
+
 def _errors(f: Fleet, a: Args) -> str:
     who = f.who("errors")
     columns = who + ([] if "file" in who else ["file"])
@@ -324,17 +365,20 @@ LIMIT {a.limit}"""
 NAMED = {n.name: n for n in (
     Named("worst-links", "machines by lost packets (share; beside it what the captures dropped themselves), "
                          "watchdog violations, then jitter (--worst links)",
-          _worst_links, ("limit",)),
+          _worst_links, ("limit",), sums=True),
     Named("worst-machines", "machines ranked by findings: error findings, failing captures, others (--worst machines)",
-          _worst_machines, ("limit",)),
+          _worst_machines, ("limit",), sums=True),
     Named("failing-commands", "commands that fail most, per machine and command ID, with failure share and ack "
                               "latency (--worst commands)",
-          _failing_commands, ("limit",)),
+          _failing_commands, ("limit",), sums=True),
     Named("watchdog", "machines with watchdog violations in a month (--month YYYY-MM; default the latest in the data)",
-          _watchdog, ("limit", "month")),
-    Named("trend", f"--trend METRIC ({', '.join(METRICS)}) --by {'|'.join(PERIODS)}|COLUMN", _trend, ("by",)),
+          _watchdog, ("limit", "month"), sums=True),
+    Named("trend", f"--trend METRIC ({', '.join(METRICS)}) --by {'|'.join(PERIODS)}|COLUMN", _trend, ("by",),
+          sums=True),
     Named("no-eglink", "captures without one EG-Link packet (a dead link, the wrong interface): listed apart, "
                        "neither failing nor ranked by --worst", _no_eglink),
+    Named("overlaps", "pairs of captures of one machine that share a sender and overlap in time: the same link "
+                      "captured twice, counted twice in every sum", _overlaps, ("limit",)),
     Named("errors", "captures that could not be read, or only in part, and why", _errors),
     Named("findings", "findings to open in Wireshark: file, frame, time, sender and display filter (none for a "
                       "finding of the whole capture: no EG-Link packet, frames not read), message", _findings,

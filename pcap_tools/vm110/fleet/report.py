@@ -172,6 +172,10 @@ def render(fleet: Fleet) -> str:
                    "spread-ack-latency"),
            "<h2>Failing commands</h2>",
            _table(fleet.run(NAMED["failing-commands"].sql(fleet, Args(limit=50)))),
+           "<h2>Overlapping captures</h2>",
+           ("<p>Two captures of one machine that share a sender and overlap in time: the same link captured twice "
+            "(a tap and a mirror port, a ring-buffer file and a merged file), counted twice in every sum above.</p>"),
+           _table(fleet.run(NAMED["overlaps"].sql(fleet, Args(limit=1_000_000)))),
            "<h2>Captures without EG-Link traffic</h2>",
            ("<p>Not one EG-Link packet (a dead link, the wrong interface): nothing said of the link, so apart "
             "from the rankings.</p>"),
