@@ -734,24 +734,29 @@ def test_which_copy_is_kept_does_not_depend_on_which_build_saw_it_first(tmp_path
     without the machine --meta gives it (and `archive` sorts before `sites` too), and the same files
     built in one go or in two gave two datasets. The copy kept is the one whose metadata gives the
     most fields, then the one in the fewest folders, then the first path: whatever the history."""
-    archive, machine = tmp_path / "data" / "archive" / "w1.pcap", tmp_path / "data" / "sites" / "n" / "m1" / "w1.pcap"
+    data = tmp_path / "data"
+    archive, machine = data / "archive" / "w1.pcap", data / "sites" / "n" / "m1" / "w1.pcap"
     for path in (archive, machine):
         path.parent.mkdir(parents=True)
         shutil.copy(BUNDLED / "disarmed.pcap", path)
+    shutil.copy(BUNDLED / "bu-watchdog.pcap", data / "sites" / "n" / "w0.pcap")      # --meta does not match it
     meta = ("--meta", "sites/{site}/{machine}/*.pcap")
-    sql = "SELECT file, site, machine FROM captures"
+    sql = "SELECT file, site, machine FROM captures WHERE file LIKE '%w1.pcap'"
     kept = [{"file": str(machine), "site": "n", "machine": "m1"}]
     said = f"vm110 fleet: copy, counted once: {archive}: the same capture as {machine}"
-    for first in ([], [str(archive.parent)]):           # in one go; the archive alone first
-        dataset = tmp_path / f"ds{len(first)}"
-        for sources in (first, [str(tmp_path / "data")]):
-            if sources:
-                done = vm110("fleet", "build", *sources, "--out", str(dataset), "-j", "1", *meta)
-                assert done.returncode == 0, done.stderr
+    # in one go; the archive alone first, then all; the archive alone first, then the machines' folders
+    for n, builds in enumerate(([data], [archive.parent, data], [archive.parent, data / "sites"])):
+        dataset = tmp_path / f"ds{n}"
+        for src in builds:
+            done = vm110("fleet", "build", str(src), "--out", str(dataset), "-j", "1", *meta)
+            assert done.returncode == 0, done.stderr
         assert said in done.stderr.splitlines() and "1 copy not counted" in done.stdout, done
+        unmatched = [p for p in src.rglob("*.pcap") if p.parent.parent.parent.name != "sites"]
+        assert f"does not match the path of {len(unmatched)} of {len(list(src.rglob('*.pcap')))} captures" \
+            in done.stderr, done.stderr
         assert json.loads(vm110("fleet", "query", str(dataset), sql, "--format", "json").stdout) == kept
-        again = vm110("fleet", "build", str(tmp_path / "data"), "--out", str(dataset), "-j", "1", *meta)
-        assert "0 analysed" in again.stdout and "1 already in the dataset" in again.stdout and said in again.stderr
+        again = vm110("fleet", "build", str(data), "--out", str(dataset), "-j", "1", *meta)
+        assert "0 analysed" in again.stdout and "2 already in the dataset" in again.stdout and said in again.stderr
 
 
 def _without_read_rights() -> list[str]:

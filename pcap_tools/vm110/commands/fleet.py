@@ -106,7 +106,7 @@ def _build(args: argparse.Namespace) -> int:
         print(f"vm110 fleet: copy, counted once: {line}", file=sys.stderr)
     if outcome.unmatched and pattern is not None:      # (a typo in the pattern: fields empty, silently)
         print(f"vm110 fleet: --meta {args.meta!r} does not match the path of {len(outcome.unmatched)} of "
-              f"{outcome.analysed + outcome.skipped + len(outcome.copies)} captures (the first: "
+              f"{outcome.given} captures (the first: "
               f"{outcome.unmatched[0]}); their {', '.join(pattern.keys)} are empty unless a sidecar gives them",
               file=sys.stderr)
     print(f"{args.out}: {outcome.analysed} analysed ({len(outcome.damaged)} damaged, {len(outcome.unreadable)} "

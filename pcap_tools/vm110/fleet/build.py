@@ -34,6 +34,7 @@ class Outcome:
     damaged: list[str] = field(default_factory=list)
     unreadable: list[str] = field(default_factory=list)
     unmatched: list[str] = field(default_factory=list)     # captures whose path --meta does not match
+    given: int = 0           # captures the SRCs name (copies among them too)
     copies: list[str] = field(default_factory=list)        # "copy: the capture it copies", not analysed
     cleared: int = 0         # unreadable entries of a folder walked (or globbed) that are there no longer
 
@@ -97,6 +98,7 @@ def build(srcs: Sequence[str], settings: Settings, pattern: Optional[MetaPattern
                          progress)
     if pattern is not None:
         outcome.unmatched = [s.path for s in wanted if pattern.fields(s.path) is None]
+    outcome.given = len(wanted)
     return outcome
 
 
