@@ -944,6 +944,9 @@ def test_a_capture_without_eglink_traffic_is_listed_apart_not_ranked_failing(tmp
     assert links["dead.pcap"]["no_eglink"] == 1 and links["dead.pcap"]["loss_pct"] is None
     apart = json.loads(vm110("fleet", "query", str(dataset), "--named", "no-eglink", "--format", "json").stdout)
     assert [r["file"] for r in apart] == [str(folder / "dead.pcap")]
+    trend = json.loads(vm110("fleet", "query", str(dataset), "--trend", "findings", "--by", "month", "--format",
+                             "json").stdout)
+    assert [(r["captures"], r["failing_captures"], r["no_eglink"]) for r in trend] == [(2, 1, 1)]
 
 
 def _first_half(source: Path, target: Path) -> list[float]:

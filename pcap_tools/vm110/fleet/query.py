@@ -276,8 +276,9 @@ _TREND = {   # metric -> (table, aggregates over it as t and captures as c)
         f"count(*) FILTER (WHERE t.type = '{k}' AND t.failed) AS {k.lower()}_failed" for k in ("VRCI", "VRCO"))),
     "watchdog": ("captures", ("sum(t.watchdog) AS watchdog, "
                               "count(*) FILTER (WHERE t.watchdog > 0) AS captures_with_watchdog")),
-    "findings": ("captures", ("sum(t.findings) AS findings, "
-                              "count(*) FILTER (WHERE NOT t.verdict_ok) AS failing_captures")),
+    "findings": ("captures", ("sum(t.findings) AS findings, count(*) FILTER (WHERE NOT t.verdict_ok AND "
+                              "t.eglink_packets > 0) AS failing_captures, "
+                              "count(*) FILTER (WHERE t.eglink_packets = 0) AS no_eglink")),
 }
 
 
