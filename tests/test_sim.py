@@ -425,3 +425,31 @@ def test_a_script_nested_too_deeply_is_one_line(tmp_path):
     done = subprocess.run([sys.executable, "-m", "vm110", "simulate", "bu", "--script", str(path), "--listen",
                            f"{LOOPBACK}:0", "--peer", f"{LOOPBACK}:9"], capture_output=True, text=True, timeout=20)
     assert done.returncode == 2 and "nested too deeply" in done.stderr and done.stderr.count("\n") == 1
+
+
+def test_the_summary_says_sent_apart_from_what_the_impairment_dropped(capsys):
+    """Sim trial: `sent` counted the packets --loss dropped on purpose, so the peer's received
+    count fell short of it with no way to tell the network from the option. Now `sent` is what
+    went on the wire (once each), `impaired_dropped` what the option dropped and `impaired_copies`
+    its extra copies: checked against the datagrams a socket of the test received, and against
+    the serials (one counter from 0: every packet made has one)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as peer:
+        peer.bind((LOOPBACK, 0))
+        peer.setblocking(False)
+        code = cli.main(["simulate", "bu", "--listen", f"{LOOPBACK}:0", "--source", f"{LOOPBACK}:0",
+                         "--peer", f"{LOOPBACK}:{peer.getsockname()[1]}", "--loss", "40", "--duplicate", "30",
+                         "--seed", "3", "--command-every", "0.05", "--duration", "0.6", "--quiet"])
+        wire = []
+        with contextlib.suppress(BlockingIOError):
+            while True:
+                wire.append(peer.recv(65535))
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out.splitlines()[-1])["summary"]
+    on_wire = Counter(decode(d)["type"] for d in wire)
+    copies, dropped = Counter(summary["impaired_copies"]), Counter(summary["impaired_dropped"])
+    assert dropped["VRPI"] and dropped["VRCI"] and copies["VRPI"]
+    assert Counter(summary["sent"]) + copies == on_wire
+    serials = {decode(d)["serial"] for d in wire}
+    assert len(serials) == sum(summary["sent"].values())          # each sent once, its copies beside
+    # (the packets made are at least those up to the last serial on the wire: the last ones may be dropped)
+    assert sum(summary["sent"].values()) + sum(dropped.values()) >= max(serials) + 1 > len(serials)

@@ -136,6 +136,10 @@ class Node:
         self.illegal: Counter[str] = Counter()      # by reason; each packet counts once per reason
         self.illegal_packets = 0
         self.send_errors: Counter[str] = Counter()   # packets the network refused, by reason
+        # What the node's own impairment (`simulate --loss` ...) did to what it sent, by type name:
+        # packets dropped on purpose (never on the wire) and extra copies (duplicates, mirror copies).
+        self.impaired_dropped: Counter[str] = Counter()
+        self.impaired_copies: Counter[str] = Counter()
         self._stall_index = 0
         self._stall_told = False  # the window at `_stall_index` has been logged (it has begun)
         self._stall_passed = 0    # the end of the last window passed: nothing overdue runs before it
@@ -150,8 +154,11 @@ class Node:
 
     @property
     def sent(self) -> Counter[str]:
-        """Packets sent, by type name."""
-        return Counter({_NAMES[ptype]: n for ptype, n in self._sent.items()})
+        """Packets sent, by type name: each once (its extra copies are `impaired_copies`), none
+        that the node's own impairment dropped on purpose (`impaired_dropped`)."""
+        sent = Counter({_NAMES[ptype]: n for ptype, n in self._sent.items()})
+        sent.subtract(self.impaired_dropped)
+        return +sent
 
     @property
     def received(self) -> Counter[str]:
@@ -250,10 +257,21 @@ class Node:
         return data
 
     def traffic_summary(self) -> dict[str, Any]:
-        """What every node's summary begins with: packets sent and received by type, illegal ones by
-        reason, and packets the network refused."""
-        return {"sent": dict(self.sent), "received": dict(self.received), "illegal_packets": self.illegal_packets,
-                "illegal": dict(self.illegal), "send_errors": dict(self.send_errors)}
+        """What every node's summary begins with: packets sent, dropped on purpose by the impairment and
+        its extra copies, by type (the summary counted the dropped ones as sent: they never reached
+        the peer, whose received count fell short of it); received by type, illegal ones by reason,
+        and packets the network refused."""
+        return {"sent": dict(self.sent), "impaired_dropped": dict(self.impaired_dropped),
+                "impaired_copies": dict(self.impaired_copies), "received": dict(self.received),
+                "illegal_packets": self.illegal_packets, "illegal": dict(self.illegal),
+                "send_errors": dict(self.send_errors)}
+
+    def impaired(self, ptype: str, copies: int) -> None:
+        """The node's impairment let `copies` copies of a packet of type `ptype` go (0: dropped)."""
+        if copies == 0:
+            self.impaired_dropped[ptype] += 1
+        elif copies > 1:
+            self.impaired_copies[ptype] += copies - 1
 
     def send_failed(self, reason: str, now: int, dest: Any = None) -> None:
         """The network refused a packet (no route to the peer, a full buffer): lost, as UDP loses

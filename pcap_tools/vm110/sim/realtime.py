@@ -37,6 +37,7 @@ class RealtimeRunner:
             node.attach(transport.send)
             node.restart_source = transport.restart_source
             transport.on_send_error = node.send_failed
+            transport.on_impaired = node.impaired
             if transport.impairer is not None:
                 transport.impairer.set_origin(self.clock.now())
         now = self.clock.now()

@@ -91,6 +91,8 @@ class UdpTransport:
         self._seq = 0
         # Told of every packet the network refused (reason, µs, destination): lost, as UDP loses it, but said.
         self.on_send_error: Optional[Callable[[str, int, Address], None]] = None
+        # Told how many copies of each packet the impairment let go (type name, copies; 0: dropped on purpose).
+        self.on_impaired: Optional[Callable[[str, int], None]] = None
 
     def open(self) -> "UdpTransport":
         """Bind both sockets; CliError naming the one that failed (a message naming the listening
@@ -176,7 +178,10 @@ class UdpTransport:
         if self.impairer is None:
             self._sendto(data, now)
             return
-        for due, copy, _problems, _delivered in self.impairer.apply(data, now, meta.ptype.value):
+        copies = self.impairer.apply(data, now, meta.ptype.value)
+        if self.on_impaired is not None and len(copies) != 1:
+            self.on_impaired(meta.ptype.value, len(copies))
+        for due, copy, _problems, _delivered in copies:
             if due <= now:
                 self._sendto(copy, now)
             else:
