@@ -28,7 +28,7 @@ from ..numbers import fields, number, span
 from ..sim.bu import DEFAULT_ORIGIN, BaseUnit, BaseUnitConfig
 from ..sim.clock import WallClock, seconds
 from ..sim.controller import Controller, ControllerConfig
-from ..sim.impair import Impairer, Impairment
+from ..sim.impair import REORDER_SPREAD, Impairer, Impairment
 from ..sim.lifecycle import DEFAULT_SILENCE_S, Restart
 from ..sim.realtime import RealtimeRunner
 from ..sim.remote import EVERY_LEAST_S, Remote
@@ -46,6 +46,9 @@ EVERY = number(0, MAX_S, "s", least=EVERY_LEAST_S)   # 0: never
 WINDOW = span(TIME)
 RESTART = fields(("AT", "NEW_PORT"), (TIME, number(0, 0xFFFF, integer=True)), required=1)
 PCT = number(0, 100, "percent")
+# Packets held back overtake each other less the more are held: out of order most at 50 (about a
+# sixth of VRPI), and 100, a delay of every packet, reordered as few as 2 does.
+REORDER = number(0, 50, "percent")
 DELAY = number(0, 60_000, "ms")
 # From the clock's step, 1 µs: a shorter one is 0 µs (a period of 0 sent VRPO back to back, 200,000 a second).
 PERIOD = number(0.001, 60_000, "ms")
@@ -76,7 +79,11 @@ def add_impairment_arguments(parser: argparse.ArgumentParser) -> None:
     imp.add_argument("--mirror", type=PCT, default=0.0, metavar="PCT",
                      help="PCT seen twice 0.05-3 ms apart, as a switch mirror port shows them to a capture "
                           f"(over sockets the peer gets the copy too), {PCT.range_text}")
-    imp.add_argument("--reorder", type=PCT, default=0.0, metavar="PCT", help=f"PCT held back, {PCT.range_text}")
+    low, high = (f * Impairment.reorder_ms for f in REORDER_SPREAD)
+    imp.add_argument("--reorder", type=REORDER, default=0.0, metavar="PCT",
+                     help=f"PCT held back {low:g}-{high:g} ms, so that packets sent meanwhile overtake them, "
+                          f"{REORDER.range_text} (held back together they overtake each other less: 100 only "
+                          "delayed all)")
     imp.add_argument("--delay", type=DELAY, default=0.0, metavar="MS",
                      help=f"every packet sent MS later, {DELAY.range_text}")
     imp.add_argument("--jitter", type=DELAY, default=0.0, metavar="MS",

@@ -23,6 +23,7 @@ from .clock import ms, seconds
 REASON_ORDER = tuple(p.value for p in C.Problem)
 OVERSIZE = C.MAX_PAYLOAD + 8
 MIRROR_DELAY_MS = (0.05, 3.0)
+REORDER_SPREAD = (0.5, 1.5)    # a packet held back waits this many times `reorder_ms`
 # What arrives: (arrival time µs, bytes, illegal reasons, delivered to the receivers (False: a
 # mirror copy only the tap sees)).
 Copy = tuple[int, bytes, tuple[str, ...], bool]
@@ -134,7 +135,7 @@ class Impairer:
             if imp.jitter_ms:
                 delay += ms(rng.uniform(0, imp.jitter_ms))
             if imp.reorder and rng.random() * 100 < imp.reorder:
-                delay += ms(rng.uniform(0.5, 1.5) * imp.reorder_ms)
+                delay += ms(rng.uniform(*REORDER_SPREAD) * imp.reorder_ms)
         if duplicate and rng.random() * 100 < duplicate:
             return [(now + delay, data, problems, True),
                     (now + delay + ms(rng.uniform(0.05, 2.0)), data, problems, True)]
