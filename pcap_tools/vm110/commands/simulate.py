@@ -16,6 +16,7 @@ import itertools
 import json
 import math
 import signal
+import socket
 import sys
 import time
 from typing import Any, Callable, Optional, Sequence
@@ -26,6 +27,7 @@ from ..errors import EXIT_INTERRUPTED, EXIT_OK, CliError
 from ..monitor.stopping import STOPPING
 from ..numbers import fields, number, span
 from ..sim.bu import DEFAULT_ORIGIN, BaseUnit, BaseUnitConfig
+from ..sim.claim import claim_origin
 from ..sim.clock import WallClock, seconds
 from ..sim.controller import Controller, ControllerConfig
 from ..sim.impair import REORDER_SPREAD, Impairer, Impairment
@@ -303,18 +305,22 @@ def run(args: argparse.Namespace) -> int:
         runner.stop(timeout=0)
 
     previous = {sig: signal.signal(sig, interrupt) for sig in STOPPING}
+    claims: list[Optional[socket.socket]] = []
     try:
-        node, runner = _prepare(args)
+        node, runner = _prepare(args, claims)
         _run(args, node, runner, stopped_by)
     finally:
+        for claim in claims:
+            if claim is not None:
+                claim.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return EXIT_INTERRUPTED if stopped_by else EXIT_OK
 
 
-def _prepare(args: argparse.Namespace) -> tuple[Any, RealtimeRunner]:
-    """The node and its runner, sockets open; each log line carries the wall-clock time in ISO 8601
-    UTC, then the node's own seconds from its start."""
+def _prepare(args: argparse.Namespace, claims: list[Optional[socket.socket]]) -> tuple[Any, RealtimeRunner]:
+    """The node and its runner, sockets open, a BU's origin claimed (in `claims`: `sim.claim`); each
+    log line carries the wall-clock time in ISO 8601 UTC, then the node's own seconds from its start."""
     clock = WallClock()
 
     def printer(now: int, line: str) -> None:
@@ -330,6 +336,8 @@ def _prepare(args: argparse.Namespace) -> tuple[Any, RealtimeRunner]:
     imp = impairment(args)
     # (--corrupt spoils the CRC of the variant sent: one of another variant could be right by chance)
     impairer = Impairer(imp, args.role, args.crc, args.crc_order) if imp.active() else None
+    if args.role == "bu":       # (closed by `run`, or by the kernel however the process ends)
+        claims.append(claim_origin(sockets.dest, sockets.iface, args.origin))
     transport = UdpTransport(sockets, impairer).open()
     print(f"{utc_iso(time.time())} {sockets_line(args.role, transport)}", file=sys.stderr, flush=True)
     return node, RealtimeRunner([(node, transport)], clock)

@@ -1,0 +1,35 @@
+"""One simulated base unit per origin on an EG-Link, on this machine.
+
+Two `simulate bu` of one origin sending to one group (or one unicast peer) share its port (a group's
+port is shared with its other listeners) and start without a word, but to the controller they are
+one BU whose serials interleave and whose state flips between the two: a misconfiguration. Each BU
+claims its (destination, interface, origin) with a Linux abstract Unix socket, which the kernel
+frees when the process ends however it ends (no lock file left behind), and which is private to the
+network namespace, as the EG-Link's sockets are.
+"""
+from __future__ import annotations
+
+import errno
+import socket
+from typing import Optional
+
+from ..errors import CliError
+from .transport import Address
+
+
+def claim_origin(dest: Address, iface: str, origin: int) -> Optional[socket.socket]:
+    """The claim to send as `origin` to `dest` from this machine, held until the socket is closed;
+    CliError when another simulated BU holds it. None where abstract sockets do not exist (not Linux):
+    nothing is checked there."""
+    name = f"\0vm110 simulate bu to {dest[0]}:{dest[1]} on {iface} as origin 0x{origin:04x}"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    try:
+        sock.bind(name)
+    except OSError as exc:
+        sock.close()
+        if exc.errno != errno.EADDRINUSE:
+            return None
+        raise CliError(f"another simulated base unit on this machine already sends as origin 0x{origin:04x} to "
+                       f"{dest[0]}:{dest[1]}: the controller cannot tell two BUs of one origin apart (their "
+                       "serials interleave); give each its own --origin") from None
+    return sock
