@@ -14,6 +14,7 @@ import time
 
 from loopback import LOOPBACK
 from vm110 import constants as C
+from vm110 import encode
 from vm110.sim.bu import BaseUnit, BaseUnitConfig
 from vm110.sim.controller import Controller, ControllerConfig
 from vm110.sim.lifecycle import Restart
@@ -381,3 +382,35 @@ def test_a_bad_crc_right_under_another_reading_names_it():
     other.receive(body + (zlib.crc32(body) ^ 0x5A).to_bytes(4, "big"), 0, src)   # right under none
     [unnamed] = other.events("illegal_first")
     assert unnamed["reasons"] == "bad_crc" and "valid_crc" not in unnamed
+
+
+class SplittingController(Controller):
+    """Sends 1200 bytes of periodic data a cycle, 3 VRPO packets numbered from `first_packet_number`,
+    but for two cycles: packet 1 left out in cycle 3 (a burst with a gap), the numbers 0, 2, 3 in
+    cycle 6 (a bad sequence)."""
+
+    def vrpo_payloads(self, now):
+        payloads = super().vrpo_payloads(now)
+        first = self.config.first_packet_number
+        if self.cycle == 3:
+            return payloads[:1] + payloads[2:]
+        if self.cycle == 6:
+            return [encode.vrpo_payload(first + n, p[2:]) for n, p in zip((0, 2, 3), payloads)]
+        return payloads
+
+
+def test_the_bu_logs_and_counts_incomplete_vrpo_bursts():
+    """Sim trial: the BU took every VRPO packet alone; a burst with a packet missing or numbered
+    out of sequence (interpretation.md, "VRPO split into several packets") went unnoticed. Now
+    each is logged `vrpo_incomplete` with when it began and the numbers it had, and counted, also
+    with the controller numbering from 1 (the BU given the same --vrpo-start)."""
+    for start in (0, 1):
+        bu = BaseUnit(config=BaseUnitConfig(vrpo_start=start))
+        ctl = SplittingController(ControllerConfig(data_size=1200, first_packet_number=start))
+        run_virtual(1.0, bu, ctl)
+        assert ctl.sent["VRPO"] == 10 * 3 - 1
+        cycle_s = ctl.config.period_ms / 1000
+        got = [(round(e["at"] / cycle_s, 3), e["packets"], e["numbers"], e["data"]) for e in bu.events("vrpo_incomplete")]
+        assert got == [(3.0, 2, f"{start},{start + 2}", 488 + 224),
+                       (6.0, 3, f"{start},{start + 2},{start + 3}", 1200)], start
+        assert bu.summary()["vrpo_incomplete"] == 2 and not ctl.events("vrpi_timeout")

@@ -27,78 +27,11 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from .. import constants as C
-from .. import protocol as P
+from ..vrpo_burst import DATA_OFFSET, Open
 from . import timing
 from .periodic import Floats
 
-DATA_OFFSET = P.PAYLOAD_BOUNDS[C.PacketType.VRPO][0]
-
-
-class Open:
-    """The burst being received, judged in constant time per packet: `bad` (a number below the
-    start, or seen before), `top` (the highest number) and its data length, `short` (packets of
-    fewer than 488 data bytes). n distinct numbers from the start whose highest is start + n - 1
-    are exactly start ... start + n - 1. What the sender's earlier packets tell about its data size
-    outlives each burst: `short_seen` (a packet of fewer than 488 bytes) and `full` (the most
-    packets of a complete burst of full packets)."""
-
-    def __init__(self, start: int, data_size: int) -> None:
-        self.start, self.data_size = start, data_size
-        self.short_seen = False
-        self.full = 0
-        self.clear()
-
-    def clear(self) -> None:
-        self.seen: set[int] = set()                 # (at most 65,536 numbers)
-        self.bad = False
-        self.top, self.top_data = -1, 0
-        self.n = self.short = self.total = 0
-
-    def add(self, number: int, data: int) -> None:
-        if number < self.start or number in self.seen:
-            self.bad = True
-        else:
-            self.seen.add(number)
-        if number > self.top:
-            self.top, self.top_data = number, data
-        short = data != C.VRPO_MAX_DATA
-        self.short += short
-        self.short_seen |= short                    # (a burst with a short packet is judged by its own)
-        self.n += 1
-        self.total += data
-
-    def _numbered(self) -> bool:
-        """Numbers start ... start + n - 1, each once."""
-        return self.n > 0 and not self.bad and self.top - self.start == self.n - 1
-
-    def ended(self) -> bool:
-        """Complete by its own packets: the data add up to the configured size, or (infer) the last is short."""
-        if not self._numbered() or self.short != int(self.top_data != C.VRPO_MAX_DATA):
-            return False                             # (a packet other than the last is short)
-        return self.total == self.data_size if self.data_size else self.top_data != C.VRPO_MAX_DATA
-
-    def over(self, number: int) -> bool:
-        """A packet of this number, within the gap, begins the next burst: this one ended, or the
-        number restarts the numbering, or (infer) the inferred size is reached and the number does
-        not go on from it (if it does, the size was inferred too small)."""
-        if self.ended() or (number == self.start and number in self.seen):
-            return True
-        return (not self.data_size and 0 < self.full <= self.n and not self.short_seen
-                and number != self.top + 1 and self._numbered())
-
-    def complete(self) -> bool:
-        """Ended; or (infer) full packets numbered from the start, no shorter packet before them
-        (`short_seen` counts none of theirs) and at least as many as the longest complete such burst."""
-        return self.ended() or (not self.data_size and not self.short and self._numbered()
-                                and not self.short_seen and self.n >= self.full)
-
-    def close(self) -> bool:
-        """The burst has ended: whether complete, learnt from, and cleared for the next one."""
-        complete = self.complete()
-        if complete and not self.short:
-            self.full = max(self.full, self.n)
-        self.clear()
-        return complete
+__all__ = ["DATA_OFFSET", "Bursts", "Open"]
 
 
 class Bursts:

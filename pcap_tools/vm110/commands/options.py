@@ -36,6 +36,5 @@ def add_reading_options(parser: argparse.ArgumentParser, found: bool) -> None:
 
 
 def reading_of(args: argparse.Namespace) -> Reading:
-    """The reading the options of `add_reading_options(found=False)` and --vrpo-start give (a BU,
-    which numbers no VRPO, has no --vrpo-start)."""
-    return Reading(args.crc, args.crc_order, args.serial_scope, getattr(args, "vrpo_start", 0))
+    """The reading the options of `add_reading_options(found=False)` and --vrpo-start give."""
+    return Reading(args.crc, args.crc_order, args.serial_scope, args.vrpo_start)

@@ -145,8 +145,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help=f"a VRCO every S s, {EVERY.range_text} (0, the default: none)")
     ctl.add_argument("--command-id-start", type=WORD, default=0, metavar="N",
                      help=f"first command ID, {WORD.range_text}")
-    ctl.add_argument("--vrpo-start", type=VRPO_START, default=0, metavar="N", help=VRPO_START_HELP)
-    for p in (bu, ctl):
+    for p in (bu, ctl):       # (the BU judges the controller's VRPO bursts by it)
+        p.add_argument("--vrpo-start", type=VRPO_START, default=0, metavar="N", help=VRPO_START_HELP)
         add_reading_options(p, found=False)     # (another reading of TS-0006: analyze takes the same)
         add_network_arguments(p)
         add_impairment_arguments(p)
@@ -269,7 +269,7 @@ def _node(args: argparse.Namespace, printer: Callable[[int, str], None]) -> Any:
             armed=not args.disarmed, unarmed_rus=args.unarmed_rus, motion=not args.no_motion,
             command_every=args.command_every)
         bu_cfg = BaseUnitConfig(origin=args.origin, command_id_start=args.command_id_start,
-                                glink=tuple(args.glink), seed=args.seed, **life(args))
+                                glink=tuple(args.glink), seed=args.seed, vrpo_start=args.vrpo_start, **life(args))
         return BaseUnit(remote, bu_cfg, printer=printer, **wire(args))
     cfg = ControllerConfig(period_ms=args.period, data_size=args.data_size, vrco_timeout_ms=args.vrco_timeout,
                            vrpi_timeout_ms=args.vrpi_timeout, command_every_s=args.command_every,

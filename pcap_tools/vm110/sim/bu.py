@@ -6,6 +6,9 @@
 - Every VRCO is acknowledged with a VRAI (retransmissions too) and handed to the RU application
   once per command (a command ID heard again within the reuse gap is a retransmission, unless the
   controller restarted in between: its serials tell, `sim.peers`).
+- VRPO bursts (a VRPO split into several packets, TS-0006 4.2, 5.1.2) are judged by the rule of
+  `vrpo_burst` as they arrive: an incomplete one (a packet missing, numbers out of sequence) is
+  logged `vrpo_incomplete` and counted, as the analysis reports it (its data cannot be reassembled).
 - VRPO watchdog: no VRPO for 2000 ms shows in VRPI as EG-Link "No link" and, with an RU armed,
   BU state "External link error" (ES-Link relays open) until VRPO comes back.
 - G-Link fallback windows: the RU application answers over the slower C-Link, so each VRAI leaves
@@ -26,6 +29,7 @@ from typing import Any, Optional
 from .. import constants as C
 from .. import encode
 from .. import protocol as P
+from ..vrpo_burst import DATA_OFFSET, BurstWatch
 from .clock import log_seconds, ms, seconds
 from .ledger import PeerCommands
 from .lifecycle import Life, Restart
@@ -34,6 +38,8 @@ from .outbox import CommandOutbox, OutboxEvents
 from .remote import VRPI_INDEX, Remote, rebooted_values
 
 _CMD_ID = struct.Struct("<" + P.FIELDS["command_id"].code)
+_VRPO_NUMBER = struct.Struct("<" + P.FIELDS["packet_number"].code)
+_SHOWN_NUMBERS = 16      # of an incomplete burst's packet numbers, in its log line
 _DATA = P.PACKETS[C.PacketType.VRCO].span("command_data")
 _VRPI = C.PacketType.VRPI
 _VRPI_STRUCT = P.PACKETS[_VRPI].struct
@@ -56,6 +62,7 @@ class BaseUnitConfig(Life):
     boot_ms: float = 1000.0          # after a reboot: "Initial", not fully operative yet (TS-0006 4.1.1)
     rearm_ms: float = 5000.0         # after a reboot: no RU armed until the operator arms it again
     seed: int = 0
+    vrpo_start: int = 0              # the controller's first VRPO packet number (interpretation.md: 0, or 1)
 
 
 class BaseUnit(CommandOutbox, Node):
@@ -86,6 +93,7 @@ class BaseUnit(CommandOutbox, Node):
         self._acks: list[tuple[int, int]] = []            # delayed VRAI: (due, command ID)
         # VRCO heard, to hand each to the RU app once; the controller numbers as this node does
         self.delivered = PeerCommands(self.type_serials is not None)
+        self.bursts = BurstWatch(cfg.vrpo_start)     # (the data size inferred, as the analysis does by default)
 
     def start(self, now: int) -> None:
         self._t0 = self._next_vrpi = now
@@ -166,6 +174,12 @@ class BaseUnit(CommandOutbox, Node):
 
     def on_vrpo(self, rx: Rx, now: int) -> None:
         self.follow(rx, now)
+        ended = self.bursts.add(now, _VRPO_NUMBER.unpack_from(rx.payload)[0], len(rx.payload) - DATA_OFFSET)
+        if ended is not None and not ended.complete:
+            numbers = ",".join(map(str, ended.numbers[:_SHOWN_NUMBERS])) + (
+                ",..." if len(ended.numbers) > _SHOWN_NUMBERS else "")
+            self.event(now, "vrpo_incomplete", at=log_seconds(ended.first_us), packets=ended.packets,
+                       numbers=numbers, data=ended.data)
         if self._vrpo_since is not None and now - self._vrpo_since > self._watchdog_us:
             self._check_watchdog(now, bool(self._remote_values(now)[_ARMED_RU]))
         if self.watchdog_tripped:
@@ -183,6 +197,7 @@ class BaseUnit(CommandOutbox, Node):
         self._rebooted = (now + ms(self.config.boot_ms), now + ms(self.config.rearm_ms))
         self._acks.clear()
         self.delivered = PeerCommands(self.type_serials is not None)
+        self.bursts = BurstWatch(self.config.vrpo_start)
         self._outbox_restart(now, restart.command_id)
 
     # --- operator commands (VRCI): `CommandOutbox` ---------------------------------------------
@@ -207,4 +222,4 @@ class BaseUnit(CommandOutbox, Node):
         counts = self.counts
         return {**self.traffic_summary(),
                 **self.outbox_summary("commands_failed"), "vrco_delivered": counts["vrco_delivered"],
-                "vrpo_watchdog": counts["vrpo_watchdog"]}
+                "vrpo_watchdog": counts["vrpo_watchdog"], "vrpo_incomplete": counts["vrpo_incomplete"]}

@@ -42,7 +42,8 @@ class Scenario:
 def _pair(seed: int, reading: Reading, remote: Remote, bu: Optional[BaseUnitConfig] = None,
           ctl: Optional[ControllerConfig] = None, bu_imp: Optional[Impairment] = None,
           ctl_imp: Optional[Impairment] = None, bu_serial: int = 0) -> list[Station]:
-    base_unit = BaseUnit(remote, bu or BaseUnitConfig(seed=seed), serial_start=bu_serial, **reading.node_options())
+    base_unit = BaseUnit(remote, dataclasses.replace(bu or BaseUnitConfig(seed=seed), vrpo_start=reading.vrpo_start),
+                         serial_start=bu_serial, **reading.node_options())
     controller = Controller(dataclasses.replace(ctl or ControllerConfig(), first_packet_number=reading.vrpo_start),
                             **reading.node_options())
     return [Station(base_unit, BU_IP, C.INPUT_PORT, bu_imp or Impairment(seed=seed)),
