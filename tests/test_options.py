@@ -47,7 +47,7 @@ ACCEPTED: dict[tuple[str, str], set[str]] = {
     ("fuzz", "--seed"): {"0", "1e18"},
     ("fuzz", "--memory-growth"): {"0"},     # (its help: 0 turns the growth rule off)
     **{("simulate bu", option): values for option, values in {
-        **_SIMULATE, "--unarmed-rus": {"0"}, "--origin": {"0"}}.items()},
+        **_SIMULATE, "--unarmed-rus": {"0"}, "--origin": {"0"}, "--vrpo-start": {"0"}}.items()},
     **{("simulate controller", option): values
        for option, values in {**_SIMULATE, "--data-size": {"0"}, "--vrpo-start": {"0"}}.items()},
 }
