@@ -414,3 +414,21 @@ def test_the_bu_logs_and_counts_incomplete_vrpo_bursts():
         assert got == [(3.0, 2, f"{start},{start + 2}", 488 + 224),
                        (6.0, 3, f"{start},{start + 2},{start + 3}", 1200)], start
         assert bu.summary()["vrpo_incomplete"] == 2 and not ctl.events("vrpi_timeout")
+
+
+def test_the_controller_says_two_bus_of_one_origin_apart_by_source():
+    """Sim trial: two BUs of origin 0x0101 on two machines were one BU to the controller, their
+    serials interleaved, and nothing was said. Now their VRPI alternating between two sources is
+    logged `origin_shared` once, naming both; a BU restarted on a new port is no such pair."""
+    ctl = Controller(ControllerConfig())
+    stations = [Station(BaseUnit(), "10.0.0.10", C.INPUT_PORT), Station(BaseUnit(name="bu2"), "10.0.0.11", C.INPUT_PORT),
+                Station(ctl, *CTL_STATION)]
+    list(VirtualNetwork(stations).run(1.0))
+    shared = ctl.events("origin_shared")
+    assert [(e["origin"], {e["src"], e["other"]}) for e in shared] == [
+        ("0x0101", {f"10.0.0.10:{C.INPUT_PORT}", f"10.0.0.11:{C.INPUT_PORT}"})]
+    assert ctl.summary()["origin_shared"] == 1
+    restarted = BaseUnit(config=BaseUnitConfig(restarts=(Restart(0.5, 0.1, 0, 0, 6000),)))
+    ctl = Controller(ControllerConfig())
+    run_virtual(1.5, restarted, ctl)
+    assert ctl.bus[restarted.origin].src == (BU_STATION[0], 6000) and not ctl.events("origin_shared")

@@ -14,6 +14,11 @@
 - Restarts (`sim.lifecycle`): back with VRPO from cycle 0, serials and command IDs afresh.
 - No VRPI for 500 ms is flagged (and logged) until VRPI comes back (section 5.1.1), for each BU
   (origin) on its own, and before any BU is heard, for the link.
+- Two BUs of one origin (a misconfiguration: their serials interleave, their states alternate)
+  are told apart where they can be, by source: VRPI of one origin from a source heard within the
+  VRPI timeout, after another source was heard, is logged `origin_shared` (once per origin). A BU
+  restarted on a new port leaves its old one for good and is no such pair. (Two on one machine
+  send from one address; `sim.claim` refuses the second of them.)
 - Illegal packets are ignored and counted by reason (section 5.1.5).
 
 Subclasses (the fuzzer's planted bugs) override the hooks: `on_vrci`, `on_vrai`, `on_vrpi`,
@@ -51,13 +56,16 @@ class HeardBu:
     """What the controller knows of one BU from its VRPI: its watchdog (TS-0006 5.1.1) and its RU's
     state (4.3). Also the link's watchdog until a BU is heard."""
 
-    __slots__ = ("alarm", "armed", "last", "since")
+    __slots__ = ("alarm", "armed", "last", "shared", "since", "sources", "src")
 
     def __init__(self, since: int) -> None:
         self.since = since                  # the watchdog counts from here (the last VRPI, start-up, a resume)
         self.last: Optional[int] = None     # when the last VRPI arrived; None: none
         self.alarm = False
         self.armed = False                  # its last VRPI showed an armed RU
+        self.src: Any = None                # where its last VRPI came from
+        self.sources: dict[Any, int] = {}   # the sources its VRPI came from lately: the last VRPI of each
+        self.shared = False                 # `origin_shared` logged
 
 
 def _origin(origin: Optional[int]) -> dict[str, str]:
@@ -249,8 +257,22 @@ class Controller(CommandOutbox, Node):
     def on_vrpi(self, rx: Rx, now: int) -> None:
         self.follow(rx, now)
         bu = self._vrpi_heard(rx.origin, now)
+        if rx.src != bu.src:
+            self._source_changed(rx.origin, bu, rx.src, now)
+        bu.sources[rx.src] = now
         bu_state, armed_ru, ru_state = _VRPI_STATE.unpack_from(rx.payload)
         bu.armed = bu_state == _BU_ARMED and armed_ru != 0 and ru_state in _RU_ARMED
+
+    def _source_changed(self, origin: int, bu: HeardBu, src: Any, now: int) -> None:
+        """A VRPI of BU `origin` from another source than its last: back to one heard within the
+        VRPI timeout is a second BU of the origin (a restarted BU does not go back)."""
+        timeout = self._vrpi_timeout_us
+        back = bu.sources.get(src)
+        if back is not None and now - back <= timeout and not bu.shared:
+            bu.shared = True
+            self.event(now, "origin_shared", **_origin(origin), src=source_text(src), other=source_text(bu.src))
+        bu.sources = {s: t for s, t in bu.sources.items() if now - t <= timeout}   # (a BU's old ports go)
+        bu.src = src
 
     def ru_state_known(self, origin: int, now: int) -> bool:
         """Does a VRPI of BU `origin` within the VRPI timeout tell its RU's state? Not after start-up
@@ -309,5 +331,6 @@ class Controller(CommandOutbox, Node):
         return {**self.traffic_summary(),
                 "executed": counts["executed"], "refused": counts["refused"],
                 "deferred": counts["deferred"], "repeats": counts["repeat"], "vrpi_timeouts": counts["vrpi_timeout"],
+                "origin_shared": counts["origin_shared"],
                 # its own commands' outcomes, as the base unit's summary has them (they were missing)
                 **self.outbox_summary("commands_gave_up")}
