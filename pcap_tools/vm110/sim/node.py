@@ -140,6 +140,7 @@ class Node:
         # packets dropped on purpose (never on the wire) and extra copies (duplicates, mirror copies).
         self.impaired_dropped: Counter[str] = Counter()
         self.impaired_copies: Counter[str] = Counter()
+        self.impaired_held: Counter[str] = Counter()   # copies delayed past the end of the run: never sent
         self._stall_index = 0
         self._stall_told = False  # the window at `_stall_index` has been logged (it has begun)
         self._stall_passed = 0    # the end of the last window passed: nothing overdue runs before it
@@ -257,14 +258,14 @@ class Node:
         return data
 
     def traffic_summary(self) -> dict[str, Any]:
-        """What every node's summary begins with: packets sent, dropped on purpose by the impairment and
-        its extra copies, by type (the summary counted the dropped ones as sent: they never reached
-        the peer, whose received count fell short of it); received by type, illegal ones by reason,
-        and packets the network refused."""
+        """What every node's summary begins with: packets sent, dropped on purpose by the impairment,
+        its extra copies and the copies it still held back when the run ended, by type (the summary
+        counted the dropped ones as sent: they never reached the peer, whose received count fell
+        short of it); received by type, illegal ones by reason, and packets the network refused."""
         return {"sent": dict(self.sent), "impaired_dropped": dict(self.impaired_dropped),
-                "impaired_copies": dict(self.impaired_copies), "received": dict(self.received),
-                "illegal_packets": self.illegal_packets, "illegal": dict(self.illegal),
-                "send_errors": dict(self.send_errors)}
+                "impaired_copies": dict(self.impaired_copies), "impaired_held": dict(self.impaired_held),
+                "received": dict(self.received), "illegal_packets": self.illegal_packets,
+                "illegal": dict(self.illegal), "send_errors": dict(self.send_errors)}
 
     def impaired(self, ptype: str, copies: int) -> None:
         """The node's impairment let `copies` copies of a packet of type `ptype` go (0: dropped)."""

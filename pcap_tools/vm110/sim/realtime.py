@@ -73,7 +73,8 @@ class RealtimeRunner:
                     for data, src in transport.recv_all():
                         node.receive(data, self.clock.now(), src)
         finally:
-            for _, transport in self.pairs:
+            for node, transport in self.pairs:
+                node.impaired_held.update(transport.held())    # (never sent: the summary says so)
                 transport.close()
 
     def start_thread(self, duration_s: Optional[float] = None) -> threading.Thread:

@@ -13,6 +13,7 @@ import errno
 import heapq
 import ipaddress
 import socket
+from collections import Counter
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -190,6 +191,10 @@ class UdpTransport:
 
     def next_due(self) -> Optional[int]:
         return self._queue[0][0] if self._queue else None
+
+    def held(self) -> Counter[str]:
+        """The copies the impairment holds back (--delay, --jitter, --reorder) not sent yet, by packet ID."""
+        return Counter(data[:C.ID_LEN].decode("latin-1") for _, _, data in self._queue)
 
     def flush(self, now: int) -> None:
         while self._queue and self._queue[0][0] <= now:
