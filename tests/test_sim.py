@@ -480,21 +480,22 @@ def test_reorder_is_refused_where_more_would_reorder_less(capsys):
         assert f"argument --reorder: '{value}' is out of range: must be 0 to 50 percent" in capsys.readouterr().err
 
 
-def test_a_second_bu_of_one_origin_to_one_controller_is_refused(capsys):
+def test_a_second_bu_of_one_origin_from_one_address_is_refused(capsys):
     """Sim trial: two `simulate bu` of one origin to one group shared its port and ran without a
     word; the controller took them for one BU whose serials interleaved. The second now ends before
     it starts (exit 2, one line saying why); another origin runs beside it, and the claim goes with
     the process that held it (killed: nothing left behind)."""
-    peer = f"{LOOPBACK}:{free_ports(1)[0]}"
-    bu = ["simulate", "bu", "--listen", f"{LOOPBACK}:0", "--source", f"{LOOPBACK}:0", "--peer", peer, "--quiet"]
+    peer, source = (f"{LOOPBACK}:{port}" for port in free_ports(2))
+    bu = ["simulate", "bu", "--listen", f"{LOOPBACK}:0", "--source", source, "--peer", peer, "--quiet"]
     with subprocess.Popen([sys.executable, "-m", "vm110", *bu, "--duration", "30"], stdout=subprocess.DEVNULL,
                           stderr=subprocess.PIPE, text=True) as first:
         assert "receiving on" in first.stderr.readline()
         assert cli.main([*bu, "--duration", "0.1"]) == 2
         out, err = capsys.readouterr()
         assert not out and err == (f"vm110 simulate: another simulated base unit on this machine already sends as "
-                                   f"origin 0x0101 to {peer}: the controller cannot tell two BUs of one origin apart "
-                                   "(their serials interleave); give each its own --origin\n")
+                                   f"origin 0x0101 from {source} to {peer}: the controller cannot tell two BUs of one "
+                                   "origin from one address apart (their serials interleave); give each its own "
+                                   "--origin\n")
         assert cli.main([*bu, "--origin", "0x0102", "--duration", "0.1"]) == 0
         first.kill()
     assert cli.main([*bu, "--duration", "0.1"]) == 0

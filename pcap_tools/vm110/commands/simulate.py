@@ -336,8 +336,8 @@ def _prepare(args: argparse.Namespace, claims: list[Optional[socket.socket]]) ->
     imp = impairment(args)
     # (--corrupt spoils the CRC of the variant sent: one of another variant could be right by chance)
     impairer = Impairer(imp, args.role, args.crc, args.crc_order) if imp.active() else None
-    if args.role == "bu":       # (closed by `run`, or by the kernel however the process ends)
-        claims.append(claim_origin(sockets.dest, sockets.iface, args.origin))
+    if args.role == "bu" and sockets.source[1]:   # (closed by `run`, or by the kernel however the process ends)
+        claims.append(claim_origin(sockets.dest, sockets.source, args.origin))
     transport = UdpTransport(sockets, impairer).open()
     print(f"{utc_iso(time.time())} {sockets_line(args.role, transport)}", file=sys.stderr, flush=True)
     return node, RealtimeRunner([(node, transport)], clock)

@@ -1,11 +1,13 @@
-"""One simulated base unit per origin on an EG-Link, on this machine.
+"""One simulated base unit per origin and source address on an EG-Link, on this machine.
 
-Two `simulate bu` of one origin sending to one group (or one unicast peer) share its port (a group's
-port is shared with its other listeners) and start without a word, but to the controller they are
-one BU whose serials interleave and whose state flips between the two: a misconfiguration. Each BU
-claims its (destination, interface, origin) with a Linux abstract Unix socket, which the kernel
-frees when the process ends however it ends (no lock file left behind), and which is private to the
-network namespace, as the EG-Link's sockets are.
+Two `simulate bu` of one origin sending from one address and port (the specification's set-up:
+the interface's port 5825, shared with the controller's group socket on one machine) to one group
+or peer start without a word, but to the controller they are one BU whose serials interleave and
+whose state flips between the two: a misconfiguration it cannot even see (BUs of one origin from
+two sources it tells apart: `origin_shared`). Each BU sending from a fixed port claims its
+(destination, source, origin) with a Linux abstract Unix socket, which the kernel frees when the
+process ends however it ends (no lock file left behind), and which is private to the network
+namespace, as the EG-Link's sockets are.
 """
 from __future__ import annotations
 
@@ -17,11 +19,11 @@ from ..errors import CliError
 from .transport import Address
 
 
-def claim_origin(dest: Address, iface: str, origin: int) -> Optional[socket.socket]:
-    """The claim to send as `origin` to `dest` from this machine, held until the socket is closed;
+def claim_origin(dest: Address, source: Address, origin: int) -> Optional[socket.socket]:
+    """The claim to send as `origin` from `source` to `dest`, held until the socket is closed;
     CliError when another simulated BU holds it. None where abstract sockets do not exist (not Linux):
     nothing is checked there."""
-    name = f"\0vm110 simulate bu to {dest[0]}:{dest[1]} on {iface} as origin 0x{origin:04x}"
+    name = f"\0vm110 simulate bu from {source[0]}:{source[1]} to {dest[0]}:{dest[1]} as origin 0x{origin:04x}"
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     try:
         sock.bind(name)
@@ -29,7 +31,7 @@ def claim_origin(dest: Address, iface: str, origin: int) -> Optional[socket.sock
         sock.close()
         if exc.errno != errno.EADDRINUSE:
             return None
-        raise CliError(f"another simulated base unit on this machine already sends as origin 0x{origin:04x} to "
-                       f"{dest[0]}:{dest[1]}: the controller cannot tell two BUs of one origin apart (their "
-                       "serials interleave); give each its own --origin") from None
+        raise CliError(f"another simulated base unit on this machine already sends as origin 0x{origin:04x} from "
+                       f"{source[0]}:{source[1]} to {dest[0]}:{dest[1]}: the controller cannot tell two BUs of one "
+                       "origin from one address apart (their serials interleave); give each its own --origin") from None
     return sock
