@@ -81,10 +81,9 @@ class Open:
 
 
 
-class Ended(NamedTuple):
-    """A burst as `BurstWatch` judged it when it ended."""
+class Incomplete(NamedTuple):
+    """An incomplete burst, as `BurstWatch` found it when it ended."""
 
-    complete: bool
     first_us: int            # when its first packet arrived
     packets: int
     numbers: tuple[int, ...]  # the distinct packet numbers received, in order
@@ -93,7 +92,8 @@ class Ended(NamedTuple):
 
 class BurstWatch:
     """The VRPO bursts of one sender as its packets arrive (µs): a burst ends at the burst gap, at
-    a step back of the clock, or once over (`Open.over`), and is judged then."""
+    a step back of the clock, or once over (`Open.over`), and is judged then (per VRPO of a
+    simulated BU: nothing is built for a complete one)."""
 
     def __init__(self, start: int = 0, data_size: int = 0, gap_ms: float = C.VRPO_BURST_GAP_MS) -> None:
         self.open = Open(start, data_size)
@@ -101,14 +101,15 @@ class BurstWatch:
         self.last_us: Optional[int] = None
         self.first_us = 0
 
-    def add(self, now_us: int, number: int, data: int) -> Optional[Ended]:
-        """One VRPO packet (its packet number and data bytes); the burst it ended, if any."""
+    def add(self, now_us: int, number: int, data: int) -> Optional[Incomplete]:
+        """One VRPO packet (its packet number and data bytes); the burst it ended, if incomplete."""
         last, burst = self.last_us, self.open
         ended = None
         if last is None or not 0 <= now_us - last < self.gap_us or burst.over(number):
             if burst.n:
-                numbers, packets, data_in = tuple(sorted(burst.seen)), burst.n, burst.total
-                ended = Ended(burst.close(), self.first_us, packets, numbers, data_in)
+                seen, packets, data_in = burst.seen, burst.n, burst.total    # (`close` makes a new set)
+                if not burst.close():
+                    ended = Incomplete(self.first_us, packets, tuple(sorted(seen)), data_in)
             self.first_us = now_us
         self.last_us = now_us
         burst.add(number, data)

@@ -175,7 +175,7 @@ class BaseUnit(CommandOutbox, Node):
     def on_vrpo(self, rx: Rx, now: int) -> None:
         self.follow(rx, now)
         ended = self.bursts.add(now, _VRPO_NUMBER.unpack_from(rx.payload)[0], len(rx.payload) - DATA_OFFSET)
-        if ended is not None and not ended.complete:
+        if ended is not None:
             numbers = ",".join(map(str, ended.numbers[:_SHOWN_NUMBERS])) + (
                 ",..." if len(ended.numbers) > _SHOWN_NUMBERS else "")
             self.event(now, "vrpo_incomplete", at=log_seconds(ended.first_us), packets=ended.packets,
