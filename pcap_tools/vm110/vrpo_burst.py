@@ -79,8 +79,6 @@ class Open:
         return complete
 
 
-
-
 class Incomplete(NamedTuple):
     """An incomplete burst, as `BurstWatch` found it when it ended."""
 

@@ -12,6 +12,7 @@ namespace, as the EG-Link's sockets are.
 from __future__ import annotations
 
 import errno
+import hashlib
 import socket
 from typing import Optional
 
@@ -23,7 +24,9 @@ def claim_origin(dest: Address, source: Address, origin: int) -> Optional[socket
     """The claim to send as `origin` from `source` to `dest`, held until the socket is closed;
     CliError when another simulated BU holds it. None where abstract sockets do not exist (not Linux):
     nothing is checked there."""
-    name = f"\0vm110 simulate bu from {source[0]}:{source[1]} to {dest[0]}:{dest[1]} as origin 0x{origin:04x}"
+    # (hashed: an abstract name has at most 107 bytes, two IPv6 addresses may not fit)
+    what = f"from {source[0]}:{source[1]} to {dest[0]}:{dest[1]} as origin 0x{origin:04x}"
+    name = "\0vm110 simulate bu " + hashlib.sha256(what.encode()).hexdigest()
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     try:
         sock.bind(name)
