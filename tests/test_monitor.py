@@ -908,3 +908,28 @@ def test_a_followed_file_of_dumpcap_s_ring_buffer_goes_on_in_the_next_one(tmp_pa
     assert m["capture"].pop("file") == str(names[0])
     del a["capture"]["file"]
     assert m == a
+
+
+def test_a_followed_file_whose_writer_stopped_mid_record_is_said_to_have(tmp_path, monkeypatch, capsys):
+    """Trial: a followed capture whose writer died (the file no longer grows, cut in the middle of
+    a record) was waited on in silence for ever, and at Ctrl-C the record cut short was dropped
+    without a word. Now, once the file has not grown for a while, the monitor says so and where the
+    record cut short begins (standard error, --json-lines), and at the end that it was not read."""
+    from vm110.monitor import session
+    monkeypatch.setattr(session, "STALL_S", 0.2, raising=False)     # (60 s: a tcpdump without -U writes in blocks)
+    data = (ROOT / "captures" / "normal.pcap").read_bytes()
+    starts, pos = [], 24                               # pcap: a 24-byte header, records of 16 + incl_len
+    while pos < len(data):
+        starts.append(pos)
+        pos += 16 + int.from_bytes(data[pos + 8:pos + 12], "little")
+    cut = tmp_path / "died.pcap"
+    cut.write_bytes(data[:starts[-1] + 20])            # the writer died 20 bytes into the last record
+    lines = tmp_path / "l.jsonl"
+    assert main(["monitor", "--read", str(cut), "--duration", "1", "--no-dashboard", "--quiet",
+                 "--json-lines", str(lines)]) == 0
+    where = f"a record cut short at byte {starts[-1]} (20 bytes)"
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith(f"vm110 monitor: {cut} has not grown for ") and err[0].endswith(f"it ends in {where}")
+    assert err[1] == f"vm110 monitor: {cut}: {where}, not read (still being written, or its writer stopped there)"
+    said = [json.loads(ln) for ln in lines.read_text().splitlines() if '"input"' in ln]
+    assert [(s["event"], s["message"]) for s in said] == [("stalled", err[0].removeprefix("vm110 monitor: "))]

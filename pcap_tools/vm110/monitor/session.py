@@ -46,6 +46,8 @@ LIMITED_MAX = 4096           # (rule, sender) pairs the rate limit keeps; beyond
 UNSAID_MAX = 100             # warnings kept for after the dashboard (a disk full for days fails every window)
 END_WAIT_S = 5.0             # at the end, standard output's reader has this long to take what waits
 REST_S = 2.0                 # at the end, dumpcap has this long to give its last blocks (what it dropped)
+STALL_S = 60.0               # a followed file not grown this long is said to have stopped (tcpdump without
+                             # -U writes a block of 64 KiB: a minute of one BU and its controller)
 
 
 @dataclass
@@ -101,6 +103,7 @@ class Session:
         self.unsaid: list[str] = []            # warnings kept from the dashboard's screen till its end
         self.unsaid_more = 0                   # ... and those beyond UNSAID_MAX, counted
         self.hung_up = False                   # the terminal hung up: the summary goes to standard error
+        self.stalled = False                   # the followed file has not grown for STALL_S (said)
         if cfg.evidence is not None:
             cfg.evidence.warn = self.warn
 
@@ -147,6 +150,7 @@ class Session:
                     self._flush()
                 if self.reader.stopped:
                     break
+                self._still()
                 self._periodic()
                 if deadline is not None and time.monotonic() >= deadline:
                     break
@@ -263,7 +267,29 @@ class Session:
                 self.cfg.evidence.tick(now)
         if self.board is not None and mono >= self.next_draw:
             self.next_draw = mono + DRAW_S
-            self.draw("running")
+            self.draw("input stalled" if self.stalled else "running")
+
+    def _still(self) -> None:
+        """A followed file that stopped growing is said to have (its writer may have died: else the
+        watch would wait in silence for ever), with a record it ends in the middle of; and when it
+        grows again. On standard error, in --json-lines (`"type": "input"`) and the dashboard's status."""
+        quiet = self.source.quiet()
+        if quiet is None or (quiet >= STALL_S) == self.stalled:
+            return
+        self.stalled = not self.stalled
+        if self.stalled:
+            cut = f"; it ends in {self._cut()}" if self.reader.buf and not self.reader.stopped else ""
+            message = f"{self.cfg.name} has not grown for {quiet:.0f} s (its writer stopped?){cut}"
+        else:
+            message = f"{self.cfg.name} grows again"
+        if self.cfg.json_lines is not None:
+            self._write_line({"type": "input", "event": "stalled" if self.stalled else "growing",
+                              "message": message, "at": self.now()})
+        self.warn(message)
+
+    def _cut(self) -> str:
+        """The record the input ends in the middle of."""
+        return f"a record cut short at byte {self.reader.bytes_read} ({len(self.reader.buf)} bytes)"
 
     # -- findings ------------------------------------------------------------------------------
     def _illegal(self, frame: int, ts: float, src: str, ptype: str, reasons: list) -> None:
@@ -444,6 +470,9 @@ class Session:
             else:                              # stopped by us: a record still arriving is not damage
                 if self.failure is None:       # (dumpcap's last blocks: its statistics say what it dropped)
                     self._packets(self.reader.feed(self.source.rest(REST_S)))
+                if self.reader.buf and self.source.quiet() is not None and not self.reader.stopped:
+                    self.warn(f"{self.cfg.name}: {self._cut()}, not read (still being written, or its writer "
+                              "stopped there)")
                 self.reader.buf = b""
         except CliError as exc:            # not a capture at all: said at the end
             self.failure = self.failure or str(exc)

@@ -53,6 +53,10 @@ class Source:
         """Why the input ended, when it was not the end of the data."""
         return None
 
+    def quiet(self) -> Optional[float]:
+        """Seconds since a followed file last grew (None: not a followed file)."""
+        return None
+
 
 class PipeSource(Source):
     """A pipe or standard input (file descriptor `fd`, not closed here)."""
@@ -149,6 +153,9 @@ class FollowFile(Source):
 
     def failure(self) -> Optional[str]:
         return None if self.gone is None else f"{self.gone}: the report is of what was read before"
+
+    def quiet(self) -> Optional[float]:
+        return time.monotonic() - self.grew
 
     def close(self) -> None:
         self.file.close()
