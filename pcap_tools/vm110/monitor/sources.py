@@ -95,6 +95,7 @@ class FollowFile(Source):
         st = os.fstat(self.file.fileno())
         self.identity = (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) else None   # (a FIFO has no size)
         self.grew = time.monotonic()
+        self.at_end = False                # the last read found nothing new
         self.gone: Optional[str] = None
         self.ring = self.identity is not None and RING.match(os.path.basename(path)) is not None \
             and int.from_bytes(os.pread(self.file.fileno(), 4, 0), "little") == PCAPNG_SHB  # (pcapng)
@@ -104,6 +105,7 @@ class FollowFile(Source):
             data = self.file.read(self.size)
         except OSError as exc:
             raise CliError(f"cannot read {self.name}: {exc.strerror or exc}") from None
+        self.at_end = not data
         if data:
             self.grew = time.monotonic()
             return data
@@ -155,7 +157,8 @@ class FollowFile(Source):
         return None if self.gone is None else f"{self.gone}: the report is of what was read before"
 
     def quiet(self) -> Optional[float]:
-        return time.monotonic() - self.grew
+        # (at its end only: a monitor busy with what it read long ago has not seen the file since)
+        return time.monotonic() - self.grew if self.at_end else 0.0
 
     def close(self) -> None:
         self.file.close()
