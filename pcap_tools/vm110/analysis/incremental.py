@@ -188,15 +188,16 @@ class Analysis:
         direction, origin, src, port = key_sender(key)
         new = self.senders[key] = Sender(direction, origin, address(self.names[src], port), first, self.opt,
                                          self.floats, self.stamps)
-        # Only the senders of its host: a capture of many senders costs no scan of them all.
+        # Only the senders of its host not taken over yet: a capture of many senders, or a sender
+        # on a new port after every pause (for days), costs no scan of them all.
         same_host = self.hosts.setdefault((direction, origin, new.host), [])
         quiet = [(old.last_ts, old.last_frame, i, old) for i, old in same_host
-                 if old.src != new.src and not old.taken_over
-                 and not timing.shorter(new.first_ts - old.last_ts, NEW_PORT_SILENCE_MS)]
+                 if old.src != new.src and not timing.shorter(new.first_ts - old.last_ts, NEW_PORT_SILENCE_MS)]
         same_host.append((len(self.senders) - 1, new))
         if not quiet:
             return
-        old = max(quiet, key=lambda q: q[:3])[3]
+        _, _, i, old = max(quiet, key=lambda q: q[:3])
+        same_host.remove((i, old))               # (taken over: never linked again)
         new.link = {"time": self.stamps.get(new.first_frame, new.first_ts), "frame": new.first_frame, "from": 0,
                     "to": new.first_serial, "port_from": old.port, "port_to": new.port}   # (the frame's own time)
         old.probe(new)
