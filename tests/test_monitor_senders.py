@@ -153,3 +153,35 @@ def test_warnings_held_behind_the_dashboard_are_bounded(capsys):
     assert err == [f"vm110 monitor: evidence not written: cannot write w{n}.pcapng: No space left on device"
                    for n in range(100)] + ["vm110 monitor: and 900 more warning(s), not kept"]
     session.close()
+
+
+def test_many_senders_heard_are_counted_and_said(tmp_path, monkeypatch, capsys):
+    """Trial: every sender heard is kept to the end for the report (some 10 kB each): a fuzzer or
+    a device on a new port for every packet grew the monitor's memory, the snapshots' `memory_kb`
+    rising with nothing to say why. Now each snapshot counts the senders heard, as many as the
+    report lists, and passing SENDERS_SAID (then each tenfold) is said on standard error."""
+    import json
+
+    from test_analysis_craft import Traffic, vrpi
+    from vm110.cli import main
+    from vm110.monitor import session
+    monkeypatch.setattr(session, "SENDERS_SAID", 10, raising=False)
+    tr = Traffic()
+    for k in range(40):
+        tr.add(k * 0.01, vrpi(0, origin=k + 1))          # 40 base units (origins) in the first second
+    tr.add(1.5, vrpi(1, origin=1))
+    tr.add(2.5, vrpi(2, origin=1))
+    tr.write(tmp_path / "many.pcap")
+    lines, report = tmp_path / "l.jsonl", tmp_path / "a.json"
+    main(["monitor", "--read", str(tmp_path / "many.pcap"), "--idle", "0", "--no-dashboard", "--quiet",
+          "--crc", "mpeg2", "--crc-order", "little", "--json-lines", str(lines)])
+    err = capsys.readouterr().err.splitlines()
+    main(["analyze", str(tmp_path / "many.pcap"), "--quiet", "--json", str(report)])
+    heard = len(json.loads(report.read_text())["senders"])
+    assert heard == 40
+    snaps = [json.loads(ln) for ln in lines.read_text().splitlines() if '"snapshot"' in ln]
+    assert [s["senders_heard"] for s in snaps] == [heard, heard]
+    said = (f"vm110 monitor: {heard} senders heard (an address, port and origin each: a fuzzer, spoofed packets, "
+            "or a device on a new port for every packet?): each is kept for the report, some 10 kB of memory each "
+            "(docs/monitor.md, \"Memory for long runs\")")
+    assert [ln for ln in err if "senders heard" in ln] == [said]

@@ -46,6 +46,7 @@ LIMITED_MAX = 4096           # (rule, sender) pairs the rate limit keeps; beyond
 UNSAID_MAX = 100             # warnings kept for after the dashboard (a disk full for days fails every window)
 END_WAIT_S = 5.0             # at the end, standard output's reader has this long to take what waits
 REST_S = 2.0                 # at the end, dumpcap has this long to give its last blocks (what it dropped)
+SENDERS_SAID = 10_000        # senders heard: said at this many, and at each tenfold (docs/monitor.md, "Memory")
 STALL_S = 60.0               # a followed file not grown this long is said to have stopped (tcpdump without
                              # -U writes a block of 64 KiB: a minute of one BU and its controller)
 
@@ -104,6 +105,7 @@ class Session:
         self.unsaid_more = 0                   # ... and those beyond UNSAID_MAX, counted
         self.hung_up = False                   # the terminal hung up: the summary goes to standard error
         self.stalled = False                   # the followed file has not grown for STALL_S (said)
+        self.senders_said = SENDERS_SAID       # the next number of senders heard that is said
         if cfg.evidence is not None:
             cfg.evidence.warn = self.warn
 
@@ -239,6 +241,13 @@ class Session:
         self.second = second
         if len(self.limited) > LIMITED_MAX:     # (many senders: spoofed, or a restart every few seconds)
             self._held_back(older_than=ts - 1.0)
+        heard = len(self.analysis.senders)
+        if heard >= self.senders_said:           # (each is kept to the end, for the report: said, not hidden)
+            while self.senders_said <= heard:
+                self.senders_said *= 10
+            self.warn(f"{heard} senders heard (an address, port and origin each: a fuzzer, spoofed packets, or a "
+                      "device on a new port for every packet?): each is kept for the report, some 10 kB of "
+                      "memory each (docs/monitor.md, \"Memory for long runs\")")
         if self.cfg.json_lines is not None:
             self._write_line(self.snapshot(float(second)))
         if self.cfg.evidence is not None:
@@ -442,7 +451,8 @@ class Session:
         return {"type": "snapshot", "time": now, "packets": self.done, "rate_pps": self.rate,
                 "eglink_packets": got.eglink, "illegal": got.illegal,
                 "alarms": [a["item"] | {"rule": a["rule"]} for a in self.active.values()],
-                "findings": dict(sorted(self.counts.items())), **view, "memory_kb": rss_kb(),
+                "findings": dict(sorted(self.counts.items())), **view,
+                "senders_heard": len(self.analysis.senders), "memory_kb": rss_kb(),
                 "evidence_files": len(self.cfg.evidence.written) if self.cfg.evidence else None,
                 "evidence_over_limit": self.cfg.evidence.over_limit if self.cfg.evidence else None}
 
