@@ -910,7 +910,8 @@ def test_a_followed_file_of_dumpcap_s_ring_buffer_goes_on_in_the_next_one(tmp_pa
     assert m == a
 
 
-def test_a_followed_file_whose_writer_stopped_mid_record_is_said_to_have(tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize("cut_in", ["record", "header"])
+def test_a_followed_file_whose_writer_stopped_mid_record_is_said_to_have(cut_in, tmp_path, monkeypatch, capsys):
     """Trial: a followed capture whose writer died (the file no longer grows, cut in the middle of
     a record) was waited on in silence for ever, and at Ctrl-C the record cut short was dropped
     without a word. Now, once the file has not grown for a while, the monitor says so and where the
@@ -923,11 +924,13 @@ def test_a_followed_file_whose_writer_stopped_mid_record_is_said_to_have(tmp_pat
         starts.append(pos)
         pos += 16 + int.from_bytes(data[pos + 8:pos + 12], "little")
     cut = tmp_path / "died.pcap"
-    cut.write_bytes(data[:starts[-1] + 20])            # the writer died 20 bytes into the last record
+    # The writer died 20 bytes into the last record, or into the capture's header (24 bytes).
+    at, what = (starts[-1], "a record") if cut_in == "record" else (0, "the capture's header")
+    cut.write_bytes(data[:at + 20])
     lines = tmp_path / "l.jsonl"
     assert main(["monitor", "--read", str(cut), "--duration", "1", "--no-dashboard", "--quiet",
                  "--json-lines", str(lines)]) == 0
-    where = f"a record cut short at byte {starts[-1]} (20 bytes)"
+    where = f"{what} cut short at byte {at} (20 bytes)"
     err = capsys.readouterr().err.splitlines()
     assert err[0].startswith(f"vm110 monitor: {cut} has not grown for ") and err[0].endswith(f"it ends in {where}")
     assert err[1] == f"vm110 monitor: {cut}: {where}, not read (still being written, or its writer stopped there)"

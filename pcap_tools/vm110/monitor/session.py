@@ -297,8 +297,9 @@ class Session:
         self.warn(message)
 
     def _cut(self) -> str:
-        """The record the input ends in the middle of."""
-        return f"a record cut short at byte {self.reader.bytes_read} ({len(self.reader.buf)} bytes)"
+        """The record (or the capture's header) the input ends in the middle of."""
+        what = "a record" if self.reader.bytes_read else "the capture's header"
+        return f"{what} cut short at byte {self.reader.bytes_read} ({len(self.reader.buf)} bytes)"
 
     # -- findings ------------------------------------------------------------------------------
     def _illegal(self, frame: int, ts: float, src: str, ptype: str, reasons: list) -> None:
