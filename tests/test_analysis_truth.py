@@ -1,4 +1,4 @@
-"""Report == ground truth on every key of the truth contract (/work/notes/truth-contract.md):
+"""Report == ground truth on every key of the truth contract (the keys marked ✓ in docs/report.md):
 the bundled captures/ and freshly synthesised ones (`vm110 synth` computes its truth from the
 simulators' event log, not by analysing the file)."""
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Frames are Ethernet/IPv4/UDP from each station to the multicast group (TTL 1, valid checksums,
 the group's multicast MAC), timestamps in microseconds from a fixed epoch. The ground truth
-(`truth_path(out)`, JSON, see /work/notes/truth-contract.md and captures/README.md) is computed
+(`truth_path(out)`, JSON, the keys marked ✓ in docs/report.md, see captures/README.md) is computed
 while the frames are written, from the event log, in one pass: memory stays small for long runs.
 The same scenario, seed and duration give byte-identical files.
 """
