@@ -208,3 +208,22 @@ def test_the_library_refuses_durations_that_are_not_finite(tmp_path):
         with pytest.raises(ValueError):
             synth.synthesize("normal", str(tmp_path / "x.pcap"), duration_s=duration)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("link", ["truth", "capture"])
+def test_a_capture_and_truth_that_are_one_file_through_a_link_are_refused(capsys, monkeypatch, tmp_path, link):
+    """OUT.truth.json a link to OUT (or OUT a link to OUT.truth.json, not there yet): the second file
+    written replaced the first, and synth said it wrote both (exit 0)."""
+    out = tmp_path / "run.pcap"
+    truth = Path(synth.truth_path(str(out)))
+    if link == "truth":
+        out.write_bytes(OLD_CAPTURE)
+        truth.symlink_to(out.name)
+    else:
+        out.symlink_to(truth.name)
+    monkeypatch.setattr(synth, "write_capture", lambda *args: pytest.fail("the scenario was run"))
+    assert cli.main(["synth", "normal", "--out", str(out), "--duration", "1"]) == EXIT_USAGE
+    assert "name the same file" in one_line(capsys.readouterr().err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.pcap", "run.pcap.truth.json"][:1 + (link == "truth")]
+    if link == "truth":
+        assert out.read_bytes() == OLD_CAPTURE

@@ -15,7 +15,7 @@ from typing import Any, Optional
 
 from . import constants as C
 from .capture.writer import ByteSink, Format, UdpFlow, open_writer
-from .fileio import atomic_writer, check_target, write_text
+from .fileio import atomic_writer, check_distinct, check_target, write_text
 from .sim.clock import seconds
 from .sim.reading import Reading
 from .sim.scenario import EPOCH_US, SCENARIOS, Scenario
@@ -54,6 +54,8 @@ def synthesize(name: str, out: str, seed: int = 1, duration_s: Optional[float] =
     if not 0 < duration < math.inf:
         raise ValueError("duration must be positive and finite")
     check_target(truth_path(out))      # up front: not after the whole run
+    # (both names one file through a link: the second written would replace the first)
+    check_distinct({"--out": out, "its truth": truth_path(out)}, [])
     with atomic_writer(out) as stream:
         result = write_capture(stream, sc, seed, duration, fmt, reading)
         write_text(truth_path(out), _truth_text(result))
