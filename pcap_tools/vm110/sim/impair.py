@@ -50,6 +50,7 @@ class Impairment:
     drops: tuple[tuple[float, float, tuple[str, ...]], ...] = ()  # (start, end, types): those lost
     mangles: tuple[tuple[float, str, Optional[str]], ...] = ()    # (at s, reason[+reason], type or None)
     only: tuple[str, ...] = ()   # random loss/duplication/reordering/delay/corruption hit only these types
+    loss_from: float = 0.0       # s: random loss spares what is sent before (its draws are made all the same)
     seed: int = 0
 
     def active(self) -> bool:
@@ -103,6 +104,7 @@ class Impairer:
         self._drops = [(t0 + seconds(a), t0 + seconds(b), frozenset(types)) for a, b, types in imp.drops]
         self._mangles = sorted((t0 + seconds(at), reason, ptype) for at, reason, ptype in imp.mangles)
         self._scheduled = bool(self._outages or self._drops or self._mangles)
+        self._loss_from = t0 + seconds(imp.loss_from)
 
     def apply(self, data: bytes, now: int, ptype: str) -> list[Copy]:
         """Every copy that arrives (`Copy`); [] when lost."""
@@ -125,7 +127,7 @@ class Impairer:
         if self._only and ptype not in self._only:
             return [(now, data, problems, True)]
         rng, loss, duplicate = self._rng, self._loss, self._duplicate
-        if loss and rng.random() * 100 < loss:
+        if loss and rng.random() * 100 < loss and now >= self._loss_from:
             return []
         delay = self._delay
         if self._rare:
