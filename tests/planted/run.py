@@ -25,6 +25,7 @@ def main() -> int:
     parser.add_argument("--command-every", type=float, default=0.5)
     args = parser.parse_args()
     controller = BUGS[args.bug](ControllerConfig(command_every_s=args.command_every))
+    controller.keep_log = False      # as `vm110 simulate controller`: a log kept grows the RSS (the memory oracle)
     transport = UdpTransport(UdpConfig(listen=parse_address(args.listen), dest=parse_address(args.peer),
                                        source=("127.0.0.1", 0))).open()
     runner = RealtimeRunner([(controller, transport)])

@@ -24,6 +24,7 @@ VARIANTS: dict[str, list[str]] = {
     "plain-null-call": _PLAIN + ["-DBUG_NULL_CALL"],
     "plain-deep": _PLAIN + ["-DBUG_DEEP"],
     "plain-leak": _PLAIN + ["-DBUG_LEAK"],
+    "plain-leak-unknown": _PLAIN + ["-DBUG_LEAK_UNKNOWN"],
     "plain-two-segv": _PLAIN + ["-DBUG_NULL_CALL", "-DBUG_LAP_SLOT"],      # two bugs, both SIGSEGV
     "afl-correct": _AFL,
     "afl-deep": _AFL + ["-DBUG_DEEP"],

@@ -10,6 +10,8 @@
  *                        two multi-byte comparisons and a state, out of reach of blind mutation
  *   -DBUG_ABORT          a VRCI with command ID 65535 fails an assertion-like abort() (on_vrci)
  *   -DBUG_LEAK           every legal VRCI leaks a 64 KiB buffer it wrote (on_vrci): no crash, the RSS grows
+ *   -DBUG_LEAK_UNKNOWN   every packet with an unknown ID (and a right CRC) leaks 64 KiB (on_datagram): a
+ *                        leak on a rare packet kind, one case in some 14
  * and with -DCHURN (no bug) every legal VRCI writes a 64 KiB buffer and frees it.
  *
  * VRPO every 100 ms, a VRCO every second (resent every 100 ms until its VRAI, given up after
@@ -214,6 +216,17 @@ static void execute(const uint8_t *data)
         state.executed++;
 }
 
+#if defined(BUG_LEAK) || defined(CHURN) || defined(BUG_LEAK_UNKNOWN)
+static void *leak_64k(void)
+{
+    static void *volatile kept;
+    kept = malloc(64 * 1024);
+    if (kept)
+        memset(kept, 1, 64 * 1024);           /* written: resident */
+    return kept;
+}
+#endif
+
 static void on_vrci(const uint8_t *p)
 {
     uint16_t id = get16(p);
@@ -221,14 +234,10 @@ static void on_vrci(const uint8_t *p)
     if (id == 0xFFFF)
         abort();
 #endif
-#if defined(BUG_LEAK) || defined(CHURN)
-    static void *volatile command_log;       /* each command's log buffer */
-    command_log = malloc(64 * 1024);
-    if (command_log)
-        memset(command_log, 1, 64 * 1024);   /* written: resident */
-#ifdef CHURN
-    free(command_log);
-#endif
+#ifdef BUG_LEAK
+    leak_64k();                               /* each command's log buffer */
+#elif defined(CHURN)
+    free(leak_64k());
 #endif
     uint8_t ack[ACK_SIZE];
     put16(ack, id);
@@ -263,6 +272,11 @@ static void on_datagram(const uint8_t *buf, ssize_t len)
         on_vrci(payload);
     else if (memcmp(buf, "VRAI", 4) == 0 && size >= ACK_SIZE)
         on_vrai(payload);
+#ifdef BUG_LEAK_UNKNOWN
+    else if (memcmp(buf, "VRPI", 4) && memcmp(buf, "VRCI", 4) && memcmp(buf, "VRAI", 4) && memcmp(buf, "VRPO", 4)
+             && memcmp(buf, "VRCO", 4) && memcmp(buf, "VRAO", 4))
+        leak_64k();                          /* the packet kept for a handler no ID has */
+#endif
 }
 
 static void on_term(int sig) { (void)sig; stopping = 1; }

@@ -57,7 +57,7 @@ MINIMIZE_BUDGET = number(0, 3600, "s", allow_zero=False)
 STARTUP = number(0, 600, "s", allow_zero=False)
 TARGET_MEMORY = number(1, 1 << 20, "MiB")
 MEMORY_GROWTH = number(0, 1 << 20, "MiB", least=1)
-DEFAULT_GROWTH_MIB = 16
+DEFAULT_GROWTH_MIB = int((Rule().growth_kib or 0) // 1024)     # the rule's (README: what it finds)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

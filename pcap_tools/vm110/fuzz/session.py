@@ -185,6 +185,8 @@ class Session:
             self.resends[awaited] = (t + self.settings.resend_ms / 1000, data, index)
         if index >= 0:
             self.case_packets += 1
+            if self.memory is not None:
+                self.memory.note(data)
         return Sent(t, data, twin, delay_ms, expect_ack)
 
     def run_steps(self, index: int, steps: list[tuple[Any, float, bool]], pause_vrpi_ms: float = 0.0,
