@@ -31,6 +31,7 @@ class Open:
         self.bad = False
         self.top, self.top_data = -1, 0
         self.n = self.short = self.total = 0
+        self.done = False                           # `ended()`, kept by `add` (asked of every packet)
 
     def add(self, number: int, data: int) -> None:
         if number < self.start or number in self.seen:
@@ -44,16 +45,18 @@ class Open:
         self.short_seen |= short                    # (a burst with a short packet is judged by its own)
         self.n += 1
         self.total += data
+        last_short = self.top_data != C.VRPO_MAX_DATA
+        self.done = (not self.bad and self.top - self.start == self.n - 1 and self.short == last_short
+                     and (self.total == self.data_size if self.data_size else last_short))
 
     def _numbered(self) -> bool:
         """Numbers start ... start + n - 1, each once."""
         return self.n > 0 and not self.bad and self.top - self.start == self.n - 1
 
     def ended(self) -> bool:
-        """Complete by its own packets: the data add up to the configured size, or (infer) the last is short."""
-        if not self._numbered() or self.short != int(self.top_data != C.VRPO_MAX_DATA):
-            return False                             # (a packet other than the last is short)
-        return self.total == self.data_size if self.data_size else self.top_data != C.VRPO_MAX_DATA
+        """Complete by its own packets: numbered from the start, no packet but the last short, and
+        the data add up to the configured size, or (infer) the last is short."""
+        return self.done
 
     def over(self, number: int) -> bool:
         """A packet of this number, within the gap, begins the next burst: this one ended, or the
