@@ -918,17 +918,23 @@ def _without_eglink(path: Path) -> None:
     path.write_bytes(header + record + arp)
 
 
+def _built_with_a_dead_capture(tmp_path: Path, bundled: str) -> tuple[Path, Path]:
+    """A dataset of a bundled capture and `dead.pcap`, without EG-Link traffic: (sources, dataset)."""
+    folder = tmp_path / "src"
+    folder.mkdir()
+    shutil.copy(BUNDLED / bundled, folder / bundled)
+    _without_eglink(folder / "dead.pcap")
+    dataset = tmp_path / "ds"
+    assert vm110("fleet", "build", str(folder), "--out", str(dataset), "-j", "1").returncode == 0
+    return folder, dataset
+
+
 def test_a_capture_without_eglink_traffic_is_listed_apart_not_ranked_failing(tmp_path):
     """Trial: a capture without one EG-Link packet (its verdict fails: `no_eglink`, an error) made
     its machine the worst of `--worst machines`, above machines with real failures, though it says
     nothing of the link. It is counted apart (`no_eglink`) in both rankings, not as a failing
     capture nor an error finding, and `--named no-eglink` lists it."""
-    folder = tmp_path / "src"
-    folder.mkdir()
-    shutil.copy(BUNDLED / "bu-watchdog.pcap", folder / "bu-watchdog.pcap")
-    _without_eglink(folder / "dead.pcap")
-    dataset = tmp_path / "ds"
-    assert vm110("fleet", "build", str(folder), "--out", str(dataset), "-j", "1").returncode == 0
+    folder, dataset = _built_with_a_dead_capture(tmp_path, "bu-watchdog.pcap")
     verdicts = {name: json.loads(vm110("analyze", str(folder / name), "--json", "-").stdout)["verdict"]
                 for name in ("bu-watchdog.pcap", "dead.pcap")}
     assert [f["rule"] for f in verdicts["dead.pcap"]["findings"]] == ["no_eglink"]
@@ -1000,12 +1006,7 @@ def test_a_finding_of_the_whole_capture_is_listed(tmp_path):
     """A finding without located items (no EG-Link packet at all: a dead link or the wrong
     interface) was left out of `--named findings` and of the report's list of findings, which
     showed the capture as if it had none. Every finding `vm110 analyze` gives is listed."""
-    folder = tmp_path / "src"
-    folder.mkdir()
-    shutil.copy(BUNDLED / "retransmit.pcap", folder / "retransmit.pcap")
-    _without_eglink(folder / "dead.pcap")
-    dataset = tmp_path / "ds"
-    assert vm110("fleet", "build", str(folder), "--out", str(dataset), "-j", "1").returncode == 0
+    folder, dataset = _built_with_a_dead_capture(tmp_path, "retransmit.pcap")
     expected = set()
     for name in ("retransmit.pcap", "dead.pcap"):
         report = json.loads(vm110("analyze", str(folder / name), "--json", "-").stdout)
