@@ -119,6 +119,23 @@ def test_each_second_looks_at_the_senders_in_view_not_at_every_sender(monkeypatc
     session.close()
 
 
+def test_more_base_units_in_one_read_than_the_live_view_holds(monkeypatch):
+    """Trial: a read of more base units than the live view holds (a fuzzer's burst of spoofed VRPI,
+    a capture file read at once) ended the monitor with a KeyError: the state of each one's last
+    VRPI was put on senders that had left the view later in the same read."""
+    monkeypatch.setattr(L, "MAX_SENDERS", CAP)
+    session = Session(Source(), Options(), Settings(name="burst", port=5825, crc="mpeg2", crc_order="little",
+                                                    lines=False))
+    vrpi = E.vrpi_payload({"bu_state": 0x11})
+    session._packets([(T0 + i / 1000, i + 1, 1, b"", (bytes((10, 4, i >> 8, i & 255)), 7000,
+                                                     5825, E.packet(C.PacketType.VRPI, vrpi, serial=i)))
+                      for i in range(CAP + 10)])
+    live = session.live
+    assert len(live.senders) == CAP and live.dropped == 10
+    assert {s.state["bu_state"] for s in live.senders.values()} == {C.BuState(0x11).name.replace("_", " ").title()}
+    session.close()
+
+
 def test_frames_cut_by_the_snaplen_are_counted_not_kept(tmp_path):
     """Trial: a link watched through `tcpdump -s 64 -w - | vm110 monitor --read -` (each EG-Link
     datagram cut short) kept the number of every such frame for as long as it ran. Now the monitor

@@ -240,8 +240,11 @@ class Live:
                 if code == VRPI_CODE:
                     last_vrpi[key] = packet
         for key, packet in last_vrpi.items():
+            snd = senders.get(key)
+            if snd is None:                     # (left the view later in the batch: more senders than it holds)
+                continue
             st = dict(zip(STATE_FIELDS, STATE.unpack_from(packet, C.PREFIX_LEN), strict=True))
-            senders[key].state = {
+            snd.state = {
                 "bu_state": state_name("bu_state", st["bu_state"]), "armed_ru": state_name("armed_ru", st["armed_ru"]),
                 "ru_state": state_name("ru_state", st["ru_state"]), "ru_battery": st["ru_battery"],
                 "ru_rssi": st["ru_rssi"], "relays_open": st["bu_state"] < C.ES_RELAYS_CLOSED_FROM}
