@@ -57,6 +57,9 @@ class Bursts:
         self.open = Open(start, data_size)
         self.last_time: Optional[float] = None
 
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "floats"}    # (the analysis' own: Sender.attach)
+
     def _close(self) -> None:
         if self.open.n:
             if self.open.close():

@@ -5,7 +5,8 @@ The state is bounded by the senders, the open commands and the findings, not by 
 per sender its counters and streams (`sender.Sender`), the commands (`commands.Tracker`), and
 the command events not yet applied. Per periodic packet one float64 time is kept for the exact
 interval statistics (`periodic`); `floats` chooses where (in memory by default; `vm110 monitor`
-spills them to a file, `periodic.SpilledFloats`, so that its memory stays flat for days).
+spills them to a file, `periodic.SpilledFloats`, so that its memory stays flat for days; it sets
+the senders heard least recently aside in that file too, `shelf`: `sender(key)` reads one back).
 `snapshot()` gives the verdicts so far at any moment, without disturbing the state.
 
 Order across senders matters twice:
@@ -21,27 +22,29 @@ Order across senders matters twice:
 """
 from __future__ import annotations
 
+from collections import OrderedDict
 from heapq import heapify, heappop, heappush, heapreplace
-from typing import Optional
+from typing import BinaryIO, Optional, Union
 
 import numpy as np
 
 from .. import constants as C
 from ..capture.reader import address
-from . import commands, serials, timing
+from . import commands, serials, shelf, timing
 from .collect import CODE, _groups, code_of, key_sender, sender_keys
 from .periodic import Floats, FloatsFactory
 from .sender import Sender
+from .shelf import Shelf, Shelved
 
 NEW_PORT_SILENCE_MS = 250.0
 
 
 class Analysis:
-    def __init__(self, opt, floats: FloatsFactory = Floats) -> None:
+    def __init__(self, opt, floats: FloatsFactory = Floats, spool: Optional[BinaryIO] = None) -> None:
         self.opt = opt
         self.floats = floats
-        self.senders: dict[int, Sender] = {}          # sender key -> its state, in order of appearance
-        self.hosts: dict[tuple, list] = {}            # (direction, origin, host) -> [(order, sender)]
+        self.senders: dict[int, Union[Sender, Shelved]] = {}   # sender key -> its state, in order of appearance
+        self.hosts: dict[tuple, list] = {}            # (direction, origin, host) -> [(order, sender key)]
         self.names: list[bytes] = []                  # source index -> packed address
         fail = {CODE[C.PacketType.VRCI]: opt.vrci_fail_ms, CODE[C.PacketType.VRCO]: opt.vrco_give_up_ms}
         self.tracker = commands.Tracker(fail, opt.reuse_gap_ms)
@@ -57,6 +60,10 @@ class Analysis:
         self.waiting: set[int] = set()                # the keys in `candidates`
         self.undecided: dict[int, tuple[int, float]] = {}   # sender key -> its first undecided frame, time
         self.held: list[tuple[int, int]] = []         # heap of (frame, key); stale where undecided differs
+        # `spool`: a file for the senders heard least recently (shelf.py); `heard`: the keys of
+        # those in memory, heard last last.
+        self.shelf = None if spool is None else Shelf(spool)
+        self.heard: OrderedDict[int, None] = OrderedDict()
 
     def feed(self, rec: np.ndarray, sources: dict[bytes, int]) -> None:
         """Legal packets (collect.RECORD_DTYPE) in arrival order; `sources`: packed source
@@ -76,11 +83,48 @@ class Analysis:
                 self._join(new.pop(0)[1], rec[a])
             part = rec[a:b]
             if len(self.senders) == 1 or (b - a) == 1:
-                self.senders[int(key[a])].feed(part, self.events)
+                self.sender(int(key[a])).feed(part, self.events)
                 continue
             for value, rows in _groups(key[a:b]):
-                self.senders[value].feed(part[rows], self.events)
-        self._settle(values.tolist(), self.clock)
+                self.sender(value).feed(part[rows], self.events)
+        heard = values.tolist()
+        self._settle(heard, self.clock)
+        if self.shelf is not None:
+            self._shelve(heard)
+
+    def sender(self, key: int, keep: bool = True) -> Sender:
+        """The sender's state: one in the file comes back to memory (`keep`), or is read as a copy
+        (finished when the analysis is) for a look that changes nothing."""
+        snd = self.senders[key]
+        if not isinstance(snd, Shelved):
+            return snd
+        assert self.shelf is not None
+        back: Sender = self.shelf.get(snd)
+        back.attach(self.opt, self.floats, self.stamps)
+        if keep:
+            self.senders[key] = back
+            self.heard[key] = None
+        elif self.finished:
+            back.finish([])                     # (nothing pending: no event)
+        return back
+
+    def _shelve(self, heard: list[int]) -> None:
+        """The senders just `heard` are the latest; those beyond the KEEP latest go to the file,
+        but for those with something pending (they stay, as if heard now)."""
+        assert self.shelf is not None
+        latest = self.heard
+        for k in heard:
+            latest[k] = None
+            latest.move_to_end(k)
+        for _ in range(len(latest) - shelf.KEEP):
+            k = next(iter(latest))
+            snd = self.senders[k]
+            assert isinstance(snd, Sender)
+            if k in self.looking or k in self.waiting or k in self.undecided or not snd.settled():
+                latest.move_to_end(k)
+                continue
+            del latest[k]
+            self.senders[k] = self.shelf.put(self, k, snd)
 
     def advance(self, clock: float) -> None:
         """A live link's time has reached `clock` with every packet before it fed (the caller
@@ -93,13 +137,13 @@ class Analysis:
         """After the senders `touched` were fed, at analysis time `clock`: make the looks and
         release the candidates due, then apply the command events no undecided packet holds."""
         for k in touched:
-            first_look = self.senders[k].due()
+            first_look = self.sender(k).due()
             if first_look is not None and k not in self.looking:     # its second packet type came: choosing
                 self.looking.add(k)
                 heappush(self.warming, (first_look, k))
         while self.warming:
             due, k = self.warming[0]
-            snd = self.senders[k]
+            snd = self.sender(k)
             snd.expire(clock, self.events)
             later = snd.due()
             if later is None:                           # chosen
@@ -119,7 +163,7 @@ class Analysis:
         """Release the restart candidates the analysis clock has waited out (their senders join
         `touched`)."""
         for k in list(touched):
-            since = self.senders[k].waiting()
+            since = self.sender(k).waiting()
             if since is not None and k not in self.waiting:
                 self.waiting.add(k)
                 heappush(self.candidates, (since, k))
@@ -127,7 +171,7 @@ class Analysis:
             since, k = self.candidates[0]
             if timing.shorter(clock - since, serials.CANDIDATE_WAIT_MS):
                 break
-            snd = self.senders[k]
+            snd = self.sender(k)
             snd.timeout(clock, self.events)
             later = snd.waiting()
             if later is None:
@@ -159,7 +203,8 @@ class Analysis:
             return
         self.finished = True
         for snd in self.senders.values():
-            snd.finish(self.events)
+            if not isinstance(snd, Shelved):    # (a shelved one has nothing pending: finished as read)
+                snd.finish(self.events)
         self.warming, self.looking, self.undecided, self.held = [], set(), {}, []
         self.candidates, self.waiting = [], set()
         self._apply(None)
@@ -191,13 +236,15 @@ class Analysis:
         # Only the senders of its host not taken over yet: a capture of many senders, or a sender
         # on a new port after every pause (for days), costs no scan of them all.
         same_host = self.hosts.setdefault((direction, origin, new.host), [])
-        quiet = [(old.last_ts, old.last_frame, i, old) for i, old in same_host
-                 if old.src != new.src and not timing.shorter(new.first_ts - old.last_ts, NEW_PORT_SILENCE_MS)]
-        same_host.append((len(self.senders) - 1, new))
+        quiet = [(old.last_ts, old.last_frame, i, k) for i, k in same_host
+                 if (old := self.senders[k]).port != new.port
+                 and not timing.shorter(new.first_ts - old.last_ts, NEW_PORT_SILENCE_MS)]
+        same_host.append((len(self.senders) - 1, key))
         if not quiet:
             return
-        _, _, i, old = max(quiet, key=lambda q: q[:3])
-        same_host.remove((i, old))               # (taken over: never linked again)
+        _, _, i, k = max(quiet, key=lambda q: q[:3])
+        same_host.remove((i, k))               # (taken over: never linked again)
+        old = self.sender(k)
         new.link = {"time": self.stamps.get(new.first_frame, new.first_ts), "frame": new.first_frame, "from": 0,
                     "to": new.first_serial, "port_from": old.port, "port_to": new.port}   # (the frame's own time)
         old.probe(new)
@@ -206,7 +253,7 @@ class Analysis:
     def _note(self, key: int) -> None:
         """Keep the sender's first undecided frame and its time (they only move when the sender is
         fed or decided)."""
-        first = self.senders[key].undecided()
+        first = self.sender(key).undecided()
         if first == self.undecided.get(key):
             return
         if first is None:

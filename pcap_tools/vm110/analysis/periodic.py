@@ -77,6 +77,16 @@ class Floats:
         return out
 
 
+def spill(fd: int, data: bytes) -> int:
+    """Append `data` to the file `fd` (shared by appenders that each keep where theirs lie, read
+    back with os.pread); its offset."""
+    at = os.lseek(fd, 0, os.SEEK_END)
+    done = 0
+    while done < len(data):
+        done += os.pwrite(fd, data[done:], at + done)
+    return at
+
+
 class SpooledBlocks:
     """The blocks of a SpilledFloats, as a sequence: the full ones in `spool` (an anonymous file
     of the caller's; where each lies is kept), the last one in memory. A spilled block is read
@@ -92,11 +102,7 @@ class SpooledBlocks:
 
     def append(self, block: np.ndarray) -> None:
         if self.tail is not None:                    # full: to the spool
-            data = np.ascontiguousarray(self.tail, dtype="<f8").tobytes()
-            at = os.lseek(self.fd, 0, os.SEEK_END)
-            done = 0
-            while done < len(data):
-                done += os.pwrite(self.fd, data[done:], at + done)
+            at = spill(self.fd, np.ascontiguousarray(self.tail, dtype="<f8").tobytes())
             self.where.append((at, len(self.tail)))
         self.tail = block
 

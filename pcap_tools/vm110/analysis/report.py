@@ -51,11 +51,12 @@ def _build(got: Collected) -> dict:
     analysis = got.analysis
     analysis.finish()
     opt = analysis.opt
-    senders = sorted(analysis.senders.values(), key=lambda s: s.id)
+    order = sorted(analysis.senders, key=lambda k: analysis.senders[k].id)
     sender_reports, periodic, burst_rows, states = [], [], [], []
     located: findings.Located = {}
     where = findings.Where(located)
-    for snd in senders:
+    for key in order:
+        snd = analysis.sender(key, keep=False)      # (one in the monitor's file: a copy, one at a time)
         sender_reports.append(_sender_report(snd, where))
         end = None if snd.taken_over else got.last_ts
         for code, stream in sorted(snd.streams.items()):

@@ -81,6 +81,8 @@ class Probe:
 class Sender:
     """(direction, origin, source address, source port) and everything judged of it so far."""
 
+    SHARED = ("opt", "floats", "stamps")     # the analysis' own: not pickled with it (shelf.py), `attach`ed
+
     def __init__(self, direction: str, origin: int, src: str, first: np.void, opt,
                  floats: FloatsFactory = Floats, stamps: Optional[dict[int, float]] = None) -> None:
         self.direction, self.origin, self.src = direction, origin, src
@@ -114,6 +116,15 @@ class Sender:
         self.taken_over = False                  # a later sender on a new port followed it
         self.link: Optional[dict] = None         # the restart on a new port that began it
         self.before: dict[int, Optional[float]] = {}   # the predecessor's last packet per periodic type
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k not in self.SHARED}
+
+    def attach(self, opt, floats: FloatsFactory, stamps: dict[int, float]) -> None:
+        """Back from a pickle: the analysis' shared objects in place again."""
+        self.opt, self.floats, self.stamps = opt, floats, stamps
+        if self.bursts is not None:
+            self.bursts.floats = floats
 
     def feed(self, rows: np.ndarray, events: list) -> None:
         """The sender's next legal packets, in arrival order; command events go to `events`."""
@@ -201,6 +212,11 @@ class Sender:
     def _holding(self) -> list[np.ndarray]:
         """The undecided candidates that hold the command events after them."""
         return [r for r in self.pending.values() if int(r["frame"][0]) not in self.released]
+
+    def settled(self) -> bool:
+        """Nothing pending: no packet undecided or waiting for the scope's choice, no probe of a
+        successor to resolve, no predecessor's state still to come (shelf.py: it may leave memory)."""
+        return not (self.warm or self.pending or self.probes or (self.link is not None and not self.before))
 
     def undecided(self) -> Optional[tuple[int, float]]:
         """The frame and analysis time of the first packet not decided yet (its events and any

@@ -299,7 +299,7 @@ class Live:
         self.senders_told = len(senders)
         look, self.to_look = (senders if final else self.to_look), {}
         for key in look:
-            a = senders[key]
+            a = self.analysis.sender(key, keep=False)     # (one in the file: a copy, looked at only)
             for ckey, counter in a.counters.items():
                 seen_gaps, seen_restarts = self.gaps_seen.get((key, ckey), (0, 0))
                 res = counter.res

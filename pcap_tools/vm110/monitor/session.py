@@ -73,7 +73,7 @@ class Session:
         self.signals = signals or Signals()      # (entered by the caller, before the source started)
         self.spool = tempfile.TemporaryFile(prefix="vm110-monitor-")   # noqa: SIM115 -- the session owns it; close()
         spool = self.spool
-        self.analysis = Analysis(opt, floats=lambda: SpilledFloats(spool))
+        self.analysis = Analysis(opt, floats=lambda: SpilledFloats(spool), spool=spool)
         self.command_spool = tempfile.TemporaryFile(prefix="vm110-monitor-")   # noqa: SIM115 -- as the spool
         self.retiring = Retiring(self.analysis.tracker, self.command_spool)
         self.fed_until = -math.inf            # the latest time the analysis has been fed
@@ -246,8 +246,9 @@ class Session:
             while self.senders_said <= heard:
                 self.senders_said *= 10
             self.warn(f"{heard} senders heard (an address, port and origin each: a fuzzer, spoofed packets, or a "
-                      "device on a new port for every packet?): each is kept for the report, some 10 kB of "
-                      "memory each (docs/monitor.md, \"Memory for long runs\")")
+                      "device on a new port for every packet?): each is kept for the report, those heard least "
+                      "recently in a temporary file, some 2 kB of disk each (docs/monitor.md, \"Memory for long "
+                      "runs\")")
         if self.cfg.json_lines is not None:
             self._write_line(self.snapshot(float(second)))
         if self.cfg.evidence is not None:
