@@ -64,6 +64,7 @@ class Analysis:
         # those in memory, heard last last.
         self.shelf = None if spool is None else Shelf(spool)
         self.heard: OrderedDict[int, None] = OrderedDict()
+        self.rooms: dict[int, tuple[int, int]] = {}   # key -> its place in the file, of those back from it
 
     def feed(self, rec: np.ndarray, sources: dict[bytes, int]) -> None:
         """Legal packets (collect.RECORD_DTYPE) in arrival order; `sources`: packed source
@@ -104,6 +105,7 @@ class Analysis:
         if keep:
             self.senders[key] = back
             self.heard[key] = None
+            self.rooms[key] = snd.at, snd.space
         elif self.finished:
             back.finish([])                     # (nothing pending: no event)
         return back
@@ -124,7 +126,7 @@ class Analysis:
                 latest.move_to_end(k)
                 continue
             del latest[k]
-            self.senders[k] = self.shelf.put(self, k, snd)
+            self.senders[k] = self.shelf.put(self, k, snd, self.rooms.pop(k, None))
 
     def advance(self, clock: float) -> None:
         """A live link's time has reached `clock` with every packet before it fed (the caller

@@ -81,10 +81,14 @@ def spill(fd: int, data: bytes) -> int:
     """Append `data` to the file `fd` (shared by appenders that each keep where theirs lie, read
     back with os.pread); its offset."""
     at = os.lseek(fd, 0, os.SEEK_END)
+    write_at(fd, data, at)
+    return at
+
+
+def write_at(fd: int, data: bytes, at: int) -> None:
     done = 0
     while done < len(data):
         done += os.pwrite(fd, data[done:], at + done)
-    return at
 
 
 class SpooledBlocks:

@@ -247,7 +247,7 @@ class Session:
                 self.senders_said *= 10
             self.warn(f"{heard} senders heard (an address, port and origin each: a fuzzer, spoofed packets, or a "
                       "device on a new port for every packet?): each is kept for the report, those heard least "
-                      "recently in a temporary file, some 2 kB of disk each (docs/monitor.md, \"Memory for long "
+                      "recently in a temporary file, some 4 kB of disk each (docs/monitor.md, \"Memory for long "
                       "runs\")")
         if self.cfg.json_lines is not None:
             self._write_line(self.snapshot(float(second)))
