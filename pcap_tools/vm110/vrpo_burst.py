@@ -106,7 +106,12 @@ class BurstWatch:
         """One VRPO packet (its packet number and data bytes); the burst it ended, if incomplete."""
         last, burst = self.last_us, self.open
         ended = None
-        if last is None or not 0 <= now_us - last < self.gap_us or burst.over(number):
+        if burst.done and burst.short:
+            # (most VRPO: a burst of one short packet. Ended and complete, its close would learn
+            # nothing: `full` counts bursts of full packets only)
+            burst.clear()
+            self.first_us = now_us
+        elif last is None or not 0 <= now_us - last < self.gap_us or burst.over(number):
             if burst.n:
                 seen, packets, data_in = burst.seen, burst.n, burst.total    # (`close` makes a new set)
                 if not burst.close():
