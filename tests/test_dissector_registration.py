@@ -12,6 +12,7 @@ import pytest
 
 import tshark_runner as T
 from vm110 import constants as C
+from vm110.cli import main
 from vm110.layers import VM110, VRAO, VRCI, VRPI, VRPO
 
 pytestmark = pytest.mark.tshark
@@ -155,6 +156,26 @@ def test_dissect_command_errors(sample_capture, tmp_path):
     elsewhere = dict(os.environ, VM110_DISSECTOR=str(tmp_path / "none.lua"))
     done = _vm110("dissect", str(sample_capture), env=elsewhere)
     assert done.returncode == 2 and "dissector is not at" in done.stderr
+
+
+def test_dissect_command_refuses_an_empty_capture_and_reads_a_named_pipe(sample_capture, tmp_path, capfd):
+    """README, "Exit codes": an empty input is exit 2 with one line. tshark passes over an empty file
+    or pipe with status 0 and no word, as over a capture without packets (Wireshark 4.0 to 4.6);
+    and a named pipe (`vm110 dissect <(tcpdump -w - ...)`), which tshark reads, was refused as
+    "cannot read"."""
+    T.HOST.check()
+    empty = tmp_path / "empty.pcap"
+    empty.write_bytes(b"")
+    assert main(["dissect", str(empty)]) == 2
+    assert capfd.readouterr().err.splitlines() == [f"vm110 dissect: {empty}: empty, not a capture"]
+    piped = subprocess.run([sys.executable, "-m", "vm110", "dissect", "-"], input="", capture_output=True, text=True)
+    assert (piped.returncode, piped.stderr.splitlines()) == (2, ["vm110 dissect: standard input: empty, not a capture"])
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    writer = subprocess.Popen(["sh", "-c", f"cat '{sample_capture}' > '{fifo}'"])
+    assert main(["dissect", str(fifo), "-T", "fields", "-e", "vm110.type"]) == 0
+    writer.wait(timeout=60)
+    assert capfd.readouterr().out.splitlines() == ["VRPI", "VRCI", "VRAO"]
 
 
 def test_readme_filters_are_valid(ws):

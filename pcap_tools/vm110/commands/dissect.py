@@ -2,18 +2,28 @@
 
 For people who have not installed the plugin: everything after the capture goes to tshark
 unchanged, e.g. `vm110 dissect cap.pcap -V -Y "vm110.command_id == 17"`; `-` reads the capture
-from standard input (`tcpdump -w - ... | vm110 dissect -`). The exit status is tshark's; 2 when
-tshark or the dissector cannot be used.
+from standard input (`tcpdump -w - ... | vm110 dissect -`), and a named pipe is read as well
+(`vm110 dissect <(tcpdump -w - ...)`). The exit status is tshark's; 2 when tshark or the
+dissector cannot be used, or the capture is empty.
 """
 from __future__ import annotations
 
 import argparse
+import array
+import contextlib
+import fcntl
 import os
+import select
 import shutil
+import stat
 import subprocess
+import termios
 from pathlib import Path
+from typing import IO, Iterator, Optional
 
+from ..capture.spool import named
 from ..errors import CliError
+from ..fileio import open_input
 from ..plugin import PLUGIN_ENV, ROOT_HINT, list_protocols, lua_errors, plugin_path, skips_lua_as_root
 
 
@@ -39,6 +49,54 @@ def _check_loads(tshark: str, plugin: Path) -> None:
     raise CliError(f"tshark did not load the dissector {plugin}{why}")
 
 
+def _empty(fd: int) -> bool:
+    """Whether the file or pipe on `fd` ends before its first byte, without reading it (tshark reads
+    it after): a regular file by its size; a pipe or socket once it holds data or its writer is gone
+    (POLLIN either way: nothing to read then is its end). A terminal is tshark's to read."""
+    mode = os.fstat(fd).st_mode
+    if stat.S_ISREG(mode):
+        return os.fstat(fd).st_size <= os.lseek(fd, 0, os.SEEK_CUR)
+    if not (stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)):
+        return False
+    poller = select.poll()
+    poller.register(fd, select.POLLIN)
+    poller.poll()
+    waiting = array.array("i", [0])
+    fcntl.ioctl(fd, termios.FIONREAD, waiting)
+    return waiting[0] == 0
+
+
+def _check_readable(given: str) -> None:
+    """CliError for a capture file tshark cannot open: missing, unreadable, a folder or a device.
+    A named pipe is read (`<(tcpdump -w - ...)`: it was refused as unreadable)."""
+    try:
+        mode = os.stat(given).st_mode if given != "-" else stat.S_IFIFO
+    except OSError:
+        mode = 0
+    if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)) or (given != "-" and not os.access(given, os.R_OK)):
+        raise CliError(f"cannot read {given}")
+
+
+@contextlib.contextmanager
+def _capture(given: str) -> Iterator[tuple[str, Optional[IO[bytes]]]]:
+    """What tshark reads the capture `given` from: (its -r argument, its standard input); CliError
+    when it is empty, which tshark passes over with exit status 0 as if it held a capture without
+    packets (README, "Exit codes": exit 2). A named pipe is opened here, so that what is looked
+    at is what tshark reads, and given to tshark as its standard input."""
+    with contextlib.ExitStack() as stack:
+        try:
+            stream = None if given == "-" else stack.enter_context(open_input(given))
+            empty = _empty(stream.fileno() if stream else 0)
+        except OSError as exc:
+            raise CliError(f"cannot read {named(given)}: {exc.strerror or exc}") from None
+        if empty:
+            raise CliError(f"{named(given)}: empty, not a capture")
+        if stream is not None and os.path.isfile(given):
+            yield given, None
+        else:
+            yield "-", stream
+
+
 def run(args: argparse.Namespace) -> int:
     tshark = shutil.which("tshark")
     if tshark is None:
@@ -47,8 +105,8 @@ def run(args: argparse.Namespace) -> int:
     plugin = plugin_path()
     if not plugin.is_file():
         raise CliError(f"the dissector is not at {plugin} (set {PLUGIN_ENV} to its path)")
-    if args.capture != "-" and (not os.access(args.capture, os.R_OK) or not os.path.isfile(args.capture)):
-        raise CliError(f"cannot read {args.capture}")
-    _check_loads(tshark, plugin)
+    _check_readable(args.capture)
     extra = args.tshark_args[1:] if args.tshark_args[:1] == ["--"] else args.tshark_args
-    return subprocess.call([tshark, "-X", f"lua_script:{plugin}", "-r", args.capture, *extra])
+    with _capture(args.capture) as (source, stdin):
+        _check_loads(tshark, plugin)
+        return subprocess.call([tshark, "-X", f"lua_script:{plugin}", "-r", source, *extra], stdin=stdin)
