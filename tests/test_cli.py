@@ -66,6 +66,32 @@ def test_decode_says_which_frames_it_could_not_read(tmp_path):
                              "cooked, raw IP, loopback and 802.11; `vm110 dissect` reads what Wireshark reads)\n")
 
 
+def test_decode_says_which_frames_may_carry_packets_it_did_not_decode(tmp_path, capsys):
+    """An EG-Link packet in IP fragments, in IP in IP or in VXLAN: decode printed "0 EG-Link
+    packets" and nothing else, where `vm110 dissect` shows each (Wireshark reassembles and unwraps;
+    `analyze` warns ip_fragments and tunnels)."""
+    from scapy.layers.inet import IP, UDP, fragment
+    from scapy.layers.l2 import Ether
+    from scapy.layers.vxlan import VXLAN
+    from scapy.utils import wrpcap
+    from vm110.cli import main
+    from vm110.layers import VM110, VRAO, VRPO
+    inner = IP(src="10.0.0.20", dst="239.255.42.20") / UDP(sport=5827, dport=5827) / VM110() / VRAO(command_id=4)
+    frames = [*fragment(Ether() / IP(src="10.0.0.20", dst="239.255.42.20") / UDP(sport=5827, dport=5827)
+                        / VM110() / VRPO(periodic_data=bytes(400)), fragsize=200),
+              Ether() / IP(src="10.0.0.1", dst="10.0.0.2") / inner,
+              Ether() / IP(src="10.0.0.1", dst="10.0.0.2") / UDP(sport=40000, dport=4789) / VXLAN() / Ether() / inner]
+    capture = tmp_path / "wrapped.pcap"
+    wrpcap(str(capture), frames)
+    assert main(["decode", str(capture)]) == EXIT_OK
+    out, err = capsys.readouterr()
+    assert out == "0 EG-Link packets\n"
+    assert err == ("vm110 decode: 3 IP fragments not reassembled: EG-Link packets in them are not decoded "
+                   "(`vm110 dissect` reads what Wireshark reads)\n"
+                   "vm110 decode: 2 frames of tunnels not unwrapped (IP in IP, GRE with ERSPAN, VXLAN, GENEVE): "
+                   "EG-Link packets in them are not decoded (`vm110 dissect` reads what Wireshark reads)\n")
+
+
 def test_not_a_capture_is_one_line_and_exit_2(tmp_path):
     bogus = tmp_path / "notes.txt"
     bogus.write_text("hello\n")

@@ -15,6 +15,7 @@ from typing import Any, Iterator, Optional
 
 from .. import constants as C
 from .. import protocol as P
+from ..capture import linktypes as L
 from ..capture.linktypes import unread
 from ..capture.reader import CaptureError, CaptureReader, address
 from ..capture.spool import as_given, stdin_spool
@@ -23,6 +24,7 @@ from ..decode import decode
 from ..errors import CliError
 from ..printable import escaped
 from ..timefmt import since, utc_iso
+from ..words import plural
 from .options import INPUT_PORT, INPUT_PORT_HELP
 
 _IDS = frozenset(t.value.encode() for t in C.PacketType)
@@ -44,11 +46,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def eglink_datagrams(reader: CaptureReader, port: int) -> Iterator[tuple[int, float, str, bytes]]:
-    """(frame number, time, source "ip:port", UDP payload) of each EG-Link datagram."""
+    """(frame number, time, source "ip:port", UDP payload) of each EG-Link datagram; UDP tunnels
+    are counted in the reader's `tunnelled`, as the analysis counts them."""
     ports = {port, port + C.OUTPUT_PORT_OFFSET}
     for ts, src, sport, dport, payload, frame in reader:
         if payload is not None and (sport in ports or dport in ports or payload[:C.ID_LEN] in _IDS):
             yield frame, ts, address(src, sport), payload
+        else:
+            reader.tunnelled += dport in L.TUNNEL_PORTS
+
+
+def unread_notes(reader: CaptureReader) -> list[str]:
+    """What the reader passed over that may carry EG-Link packets, which `vm110 dissect` reads: frames
+    of link types it does not read, IP fragments (not reassembled) and tunnels (not unwrapped)."""
+    instead = "`vm110 dissect` reads what Wireshark reads"
+    notes = [unread(reader.unknown_link, reader.link_types, instead)] if reader.unknown_link else []
+    if reader.fragments:
+        notes.append(f"{plural(reader.fragments, 'IP fragment')} not reassembled: EG-Link packets in them are "
+                     f"not decoded ({instead})")
+    if reader.tunnelled:
+        notes.append(f"{plural(reader.tunnelled, 'frame')} of tunnels not unwrapped (IP in IP, GRE with ERSPAN, "
+                     f"VXLAN, GENEVE): EG-Link packets in them are not decoded ({instead})")
+    return notes
 
 
 def enum_name(name: str, value: int) -> str:
@@ -112,9 +131,8 @@ def run(args: argparse.Namespace) -> int:
             print((_json if args.json else _line)(number, when, start, src, fields))
     if not args.json:
         print(f"{count} EG-Link packets")
-    if reader.unknown_link:     # (else "0 EG-Link packets" would read as a capture without any)
-        said = unread(reader.unknown_link, reader.link_types, "`vm110 dissect` reads what Wireshark reads")
-        print(f"vm110 decode: {said}", file=sys.stderr)
+    for note in unread_notes(reader):    # (else "0 EG-Link packets" would read as a capture without any)
+        print(f"vm110 decode: {note}", file=sys.stderr)
     if reader.problem is not None:
         # Everything before the damage was printed; the damage is never passed over in silence.
         raise CliError(as_given(f"{path}: damaged, read up to byte {reader.damage}: {reader.problem}", path,
