@@ -86,6 +86,18 @@ def test_dev_null_is_refused():
         check_target("/dev/null")
 
 
+def test_standard_output_named_by_its_path_is_refused_as_a_pipe():
+    # `vm110 craft --out /dev/stdout | ...` said "cannot write /dev/stdout: No such file or directory"
+    # (its link leads to "pipe:[...]", no file); it is refused as any pipe is (`--out -` writes there)
+    read, write = os.pipe()
+    try:
+        with pytest.raises(CliError, match=f"refusing to write /dev/fd/{write}: it exists and is not a regular file"):
+            check_target(f"/dev/fd/{write}")
+    finally:
+        os.close(read)
+        os.close(write)
+
+
 def test_a_symbolic_link_stays_a_link(tmp_path):
     real = tmp_path / "real.json"
     real.write_text("old")

@@ -44,7 +44,9 @@ def check_target(path: PathLike) -> Path:
         raise CliError("refusing to write a file with an empty name")
     real = Path(os.path.realpath(path))
     try:
-        mode = real.stat().st_mode
+        # (the path itself: /dev/stdout on a pipe resolves to "/proc/<pid>/fd/pipe:[...]", no file,
+        # and was taken for a new one, then "No such file or directory")
+        mode = os.stat(path).st_mode
     except FileNotFoundError:
         return real
     except OSError as exc:
