@@ -71,6 +71,16 @@ def test_explicit_size_and_crc_are_kept():
     assert not VM110(raw).crc_ok()
 
 
+@pytest.mark.parametrize("crc", [2**32, -1, "7", 1.5])
+def test_a_crc_beyond_32_bits_is_the_value_error_of_every_field(crc):
+    # scapy raises ValueError for a value its field cannot carry (serial=65536, as below); the CRC
+    # raised a bare struct.error, which a crafting loop catching ValueError let through
+    with pytest.raises(ValueError, match="serial"):
+        bytes(VM110(serial=65536) / VRAO())
+    with pytest.raises(ValueError, match="Incorrect type of value for field crc"):
+        bytes(VM110(crc=crc) / VRAO())
+
+
 def test_crc_found_from_size_not_frame_end():
     raw = bytes(VM110() / VRAO(command_id=5))
     padded = VM110(raw + b"\x00" * 12)  # Ethernet padding after the CRC

@@ -79,7 +79,10 @@ class CRCField(Field[Optional[int], bytes]):
 
     def addfield(self, pkt: Packet, s: bytes, val: Optional[int]) -> bytes:
         order = val.order if isinstance(val, StoredCRC) else _settings()[1]
-        return s + self._struct(order).pack(self.i2m(pkt, val) or 0)
+        # Packed by scapy's own Field ("<I"), so that a value beyond 32 bits is the ValueError of
+        # every other field (it was a bare struct.error); reversed for a big-endian trailer.
+        packed = super().addfield(pkt, b"", 0 if val is None else val)
+        return s + (packed if order == "little" else packed[::-1])
 
     def getfield(self, pkt: Packet, s: bytes) -> tuple[bytes, int]:
         order = _settings()[1]
