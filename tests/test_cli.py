@@ -92,6 +92,25 @@ def test_decode_says_which_frames_may_carry_packets_it_did_not_decode(tmp_path, 
                    "EG-Link packets in them are not decoded (`vm110 dissect` reads what Wireshark reads)\n")
 
 
+def test_dissect_tells_an_empty_input_without_reading_it(tmp_path):
+    """What `vm110 dissect` looks at before tshark reads the same input (tshark passes over an empty
+    one with exit 0): a pipe whose writer is gone with nothing in it and /dev/null are empty; a pipe
+    with data keeps every byte for tshark; a terminal is tshark's to read."""
+    import os
+    from vm110.commands.dissect import _empty
+    read, write = os.pipe()
+    os.write(write, b"\xd4\xc3\xb2\xa1")
+    assert not _empty(read) and os.read(read, 8) == b"\xd4\xc3\xb2\xa1"
+    os.close(write)
+    assert _empty(read)
+    os.close(read)
+    with open(os.devnull, "rb") as null, open(tmp_path / "empty", "wb+") as empty, open(tmp_path / "one", "wb+") as one:
+        one.write(b"x")
+        one.flush()
+        one.seek(0)
+        assert _empty(null.fileno()) and _empty(empty.fileno()) and not _empty(one.fileno())
+
+
 def test_not_a_capture_is_one_line_and_exit_2(tmp_path):
     bogus = tmp_path / "notes.txt"
     bogus.write_text("hello\n")

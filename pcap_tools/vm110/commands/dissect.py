@@ -52,12 +52,12 @@ def _check_loads(tshark: str, plugin: Path) -> None:
 def _empty(fd: int) -> bool:
     """Whether the file or pipe on `fd` ends before its first byte, without reading it (tshark reads
     it after): a regular file by its size; a pipe or socket once it holds data or its writer is gone
-    (POLLIN either way: nothing to read then is its end). A terminal is tshark's to read."""
-    mode = os.fstat(fd).st_mode
-    if stat.S_ISREG(mode):
-        return os.fstat(fd).st_size <= os.lseek(fd, 0, os.SEEK_CUR)
-    if not (stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)):
-        return False
+    (POLLIN either way: nothing to read then is its end); /dev/null. A terminal is tshark's to read."""
+    st = os.fstat(fd)
+    if stat.S_ISREG(st.st_mode):
+        return st.st_size <= os.lseek(fd, 0, os.SEEK_CUR)
+    if not (stat.S_ISFIFO(st.st_mode) or stat.S_ISSOCK(st.st_mode)):
+        return stat.S_ISCHR(st.st_mode) and os.path.samestat(st, os.stat(os.devnull))
     poller = select.poll()
     poller.register(fd, select.POLLIN)
     poller.poll()
