@@ -111,6 +111,54 @@ def test_dissect_tells_an_empty_input_without_reading_it(tmp_path):
         assert _empty(null.fileno()) and _empty(empty.fileno()) and not _empty(one.fileno())
 
 
+def _decode_hex(argv, stdin=b""):
+    """`vm110 decode --hex ...` in this process: (exit code, standard output, standard error)."""
+    import io
+    from unittest import mock
+    from vm110.cli import main
+    out, err = io.StringIO(), io.StringIO()
+    with mock.patch("sys.stdin", io.TextIOWrapper(io.BytesIO(stdin))), mock.patch("sys.stdout", out), \
+            mock.patch("sys.stderr", err):
+        code = main(["decode", "--hex", *argv])
+    return code, out.getvalue(), err.getvalue()
+
+
+def test_decode_hex_gives_the_fields_of_the_shared_vectors():
+    """A datagram in hex (Wireshark's Copy as Hex Stream, a fuzzer finding's `hex`) decodes as a
+    capture's do: every vector's fields, problems and warnings, the CRC setting it names."""
+    from vectorlib import load_vectors
+    settings = {}
+    for vector in load_vectors():
+        if vector["hex"]:
+            settings.setdefault((vector["crc_variant"], vector["crc_byte_order"]), []).append(vector)
+    for (variant, order), vectors in settings.items():
+        lines = "".join(v["hex"] + "\n" for v in vectors).encode()
+        code, out, err = _decode_hex(["-", "--json", "--crc", variant, "--crc-order", order], lines)
+        assert (code, err) == (EXIT_OK, "")
+        for number, (vector, got) in enumerate(zip(vectors, map(json.loads, out.splitlines()), strict=True), 1):
+            assert got["datagram"] == number
+            assert {k: got[k] for k in vector["fields"]} == vector["fields"], vector["name"]
+            assert (sorted(got["problems"]), sorted(got["warnings"])) == (vector["problems"], vector["warnings"])
+    spaced = "56:52:41:4f 00 00 00 00 03 00 02 00 00 00 00 00 04 00 bf 66 3c fc"    # VRAO 4, serial 3
+    assert _decode_hex([spaced]) == (EXIT_OK, "     1 VRAO serial=3 command_id=4\n1 EG-Link packets\n", "")
+    lines = f"{spaced.replace(':', '')}\n\n{spaced[:20]}\n".encode()      # a blank line is none; one cut short
+    assert _decode_hex(["-"], lines) == (EXIT_OK, ("     1 VRAO serial=3 command_id=4\n"
+                                                   "     2 VRAO serial=? ILLEGAL(truncated)\n2 EG-Link packets\n"), "")
+
+
+@pytest.mark.parametrize("argv, stdin, said", [
+    (["5652414"], b"", "--hex: '5652414' is not hex (an odd number of digits, 7: half a byte)"),
+    (["0x5652"], b"", "--hex: '0x5652' is not hex ('x' is no hex digit)"),
+    (["56\x1b[2J"], b"", "--hex: '56\\x1b[2J' is not hex ('\\x1b' is no hex digit)"),
+    ([""], b"", "--hex: no bytes given"),
+    (["-"], b"", "standard input: empty, no datagram in hex"),
+    (["-"], b"5652\n\xff\xfe\x00garbage\n", "standard input, line 2: '\u00ff\u00fe\\x00garbage' is not hex ('\u00ff' is no hex digit)"),
+])
+def test_decode_hex_refuses_what_is_not_hex_in_one_line(argv, stdin, said):
+    code, _, err = _decode_hex(argv, stdin)
+    assert (code, err) == (EXIT_USAGE, f"vm110 decode: {said}\n")
+
+
 def test_not_a_capture_is_one_line_and_exit_2(tmp_path):
     bogus = tmp_path / "notes.txt"
     bogus.write_text("hello\n")

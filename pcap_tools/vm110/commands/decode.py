@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import string
 import sys
 from typing import Any, Iterator, Optional
 
@@ -38,6 +39,9 @@ _SUMMARY_FIELDS = {
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", help="pcap or pcapng file; - reads standard input")
+    parser.add_argument("--hex", action="store_true",
+                        help="CAPTURE is one UDP payload in hex instead (Wireshark's Copy as Hex Stream; spaces "
+                             "and colons between bytes allowed); - reads one payload a line from standard input")
     parser.add_argument("--port", type=INPUT_PORT, default=C.INPUT_PORT, help=INPUT_PORT_HELP)
     parser.add_argument("--crc", choices=VARIANTS, default=VARIANTS[0], help="CRC variant")
     parser.add_argument("--crc-order", choices=BYTE_ORDERS, default=BYTE_ORDERS[0],
@@ -87,11 +91,11 @@ def _value(name: str, value: Any) -> str:
     return f"0x{value:04X}" if name == "armed_ru" else str(value)
 
 
-def _line(number: int, when: float, start: float, src: str, fields: dict[str, Any]) -> str:
+def _text(fields: dict[str, Any]) -> str:
+    """A decoded datagram in words: type, serial, the type's main fields, why it is illegal, warnings."""
     names = _SUMMARY_FIELDS.get(fields.get("type", ""), ())
     ptype = escaped(fields.get("type", "?"))   # off the network: ESC [ 2 J cleared the screen, a CR LF forged a line
-    parts = [(f"{number:>6} {utc_iso(when)} {since(when, start):>12} {src:<21} {ptype:<4} "
-              f"serial={fields.get('serial', '?')}")]
+    parts = [f"{ptype:<4} serial={fields.get('serial', '?')}"]
     parts += [f"{name}={_value(name, fields[name])}" for name in names if name in fields]
     if fields["problems"]:
         parts.append("ILLEGAL(" + ",".join(fields["problems"]) + ")")
@@ -100,19 +104,73 @@ def _line(number: int, when: float, start: float, src: str, fields: dict[str, An
     return " ".join(parts)
 
 
+def _line(number: int, when: float, start: float, src: str, fields: dict[str, Any]) -> str:
+    return f"{number:>6} {utc_iso(when)} {since(when, start):>12} {src:<21} {_text(fields)}"
+
+
 def _jsonable(value: Any) -> Any:
     return value.hex() if isinstance(value, bytes) else value
 
 
+def _decoded(fields: dict[str, Any]) -> dict[str, Any]:
+    """The decoded fields as JSON takes them, and each enum's name (`names`)."""
+    names = {k: enum_name(k, v) for k, v in fields.items() if k in P.ENUM_FIELDS}
+    return {**{k: _jsonable(v) for k, v in fields.items()}, "names": names}
+
+
 def _json(number: int, when: float, start: float, src: str, fields: dict[str, Any]) -> str:
     """The decoded fields, plus the time in both readable forms and each enum's name (`names`)."""
-    names = {k: enum_name(k, v) for k, v in fields.items() if k in P.ENUM_FIELDS}
     return json.dumps({"frame": number, "time": when, "time_utc": utc_iso(when),
-                       "time_relative": round(when - start, 6), "src": src,
-                       **{k: _jsonable(v) for k, v in fields.items()}, "names": names})
+                       "time_relative": round(when - start, 6), "src": src, **_decoded(fields)})
+
+
+def datagram_of(text: str, where: str) -> bytes:
+    """The bytes a line of hex gives (Wireshark's Copy as Hex Stream, or bytes apart by spaces or
+    colons); CliError naming `where` for anything else, since a datagram is never guessed at (the
+    texts are shown through repr: a control character in them reaches no terminal)."""
+    digits = "".join(text.replace(":", " ").split())
+    shown = repr(text.strip() if len(text.strip()) <= 40 else text.strip()[:40] + "...")
+    bad = next((c for c in digits if c not in string.hexdigits), None)
+    if bad is not None:
+        raise CliError(f"{where}: {shown} is not hex ({bad!r} is no hex digit)")
+    if len(digits) % 2:
+        raise CliError(f"{where}: {shown} is not hex (an odd number of digits, {len(digits)}: half a byte)")
+    if not digits:
+        raise CliError(f"{where}: no bytes given")
+    return bytes.fromhex(digits)
+
+
+def _hex_lines(given: str) -> Iterator[tuple[str, str]]:
+    """(where, text) of each datagram given in hex: the argument, or each line of standard input
+    that is not blank (bytes that are no text are no hex digits: said, not a traceback)."""
+    if given != "-":
+        yield "--hex", given
+        return
+    lines = 0
+    for number, raw in enumerate(sys.stdin.buffer, 1):
+        text = raw.decode("latin-1")
+        if text.strip():
+            lines += 1
+            yield f"standard input, line {number}", text
+    if not lines:
+        raise CliError("standard input: empty, no datagram in hex")
+
+
+def run_hex(args: argparse.Namespace) -> int:
+    """`--hex`: each datagram given in hex, decoded and printed as a capture's are, numbered."""
+    count = 0
+    for where, text in _hex_lines(args.capture):
+        fields = decode(datagram_of(text, where), args.crc, args.crc_order)
+        count += 1
+        print(json.dumps({"datagram": count, **_decoded(fields)}) if args.json else f"{count:>6} {_text(fields)}")
+    if not args.json:
+        print(f"{count} EG-Link packets")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.hex:
+        return run_hex(args)
     count = 0
     start: Optional[float] = None
     with contextlib.ExitStack() as stack:
