@@ -69,11 +69,13 @@ def _empty(fd: int) -> bool:
 def _check_readable(given: str) -> None:
     """CliError for a capture file tshark cannot open: missing, unreadable, a folder or a device.
     A named pipe is read (`<(tcpdump -w - ...)`: it was refused as unreadable)."""
+    if given == "-":
+        return
     try:
-        mode = os.stat(given).st_mode if given != "-" else stat.S_IFIFO
+        mode = os.stat(given).st_mode
     except OSError:
         mode = 0
-    if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)) or (given != "-" and not os.access(given, os.R_OK)):
+    if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)) or not os.access(given, os.R_OK):
         raise CliError(f"cannot read {given}")
 
 
