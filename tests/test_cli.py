@@ -146,6 +146,21 @@ def test_decode_hex_gives_the_fields_of_the_shared_vectors():
                                                    "     2 VRAO serial=? ILLEGAL(truncated)\n2 EG-Link packets\n"), "")
 
 
+def test_decode_shows_enumerated_values_as_the_vectors_name_them():
+    """The line's states in the dissector's form, the vectors' `names` (vectors README): a value
+    beyond the enumeration was "Unknown (0xFF)", where the dissector, the vectors and the analysis
+    report say "Unknown (0xff)"."""
+    from vectorlib import load_vectors
+    named = [v for v in load_vectors() if v["fields"].get("type") == "VRPI" and "ru_state" in v["names"]
+             and v["crc_variant"] == "mpeg2" and v["crc_byte_order"] == "little"]
+    assert any("Unknown (0xff)" in v["names"].values() for v in named)
+    code, out, _ = _decode_hex(["-"], "".join(v["hex"] + "\n" for v in named).encode())
+    assert code == EXIT_OK
+    for vector, line in zip(named, out.splitlines()[:-1], strict=True):
+        for name in ("bu_state", "ru_state"):
+            assert f"{name}={vector['names'][name]} " in line + " ", vector["name"]
+
+
 @pytest.mark.parametrize("argv, stdin, said", [
     (["5652414"], b"", "--hex: '5652414' is not hex (an odd number of digits, 7: half a byte)"),
     (["0x5652"], b"", "--hex: '0x5652' is not hex ('x' is no hex digit)"),

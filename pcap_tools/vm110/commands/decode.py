@@ -82,7 +82,7 @@ def enum_name(name: str, value: int) -> str:
 
 def enum_text(name: str, value: int) -> str:
     """The dissector's form of an enumerated value: "Armed (0x11)", "Unknown (0x07)"."""
-    return f"{enum_name(name, value)} (0x{value:02X})"
+    return f"{enum_name(name, value)} (0x{value:02x})"
 
 
 def _value(name: str, value: Any) -> str:
