@@ -81,6 +81,15 @@ def test_a_crc_beyond_32_bits_is_the_value_error_of_every_field(crc):
         bytes(VM110(crc=crc) / VRAO())
 
 
+@pytest.mark.parametrize("cut", [None, 30, 12])
+def test_a_memoryview_dissects_as_its_bytes(cut):
+    # a buffer socket.recv_into filled, as vm110.decode takes it: VM110(memoryview(...)) raised a
+    # TypeError (memoryview + memoryview) where a bytearray or bytes dissected
+    data = bytes(VM110(serial=7) / VRPI(bu_state=0x11, armed_ru=0x0C07))[:cut]
+    pkt = VM110(memoryview(data))
+    assert bytes(pkt) == data and pkt.summary() == VM110(data).summary() and pkt.serial == 7
+
+
 def test_crc_found_from_size_not_frame_end():
     raw = bytes(VM110() / VRAO(command_id=5))
     padded = VM110(raw + b"\x00" * 12)  # Ethernet padding after the CRC

@@ -171,6 +171,7 @@ class VM110(Packet):
     fields_desc = _header_fields()
 
     def pre_dissect(self, s: bytes) -> bytes:
+        s = bytes(s)    # (a memoryview, as socket.recv_into fills one, cannot be joined: vm110.decode takes it too)
         if len(s) < C.OVERHEAD:
             return s
         end = crc_span(s, P.SIZE.unpack_from(s, P.SIZE_OFFSET)[0])
