@@ -1333,3 +1333,27 @@ def test_parts_of_an_older_vm110_are_read_with_the_new_ones(src, built):
     assert links.returncode == 0, links.stderr
     assert ({r["file"]: (r["lost"], r["capture_dropped"]) for r in json.loads(links.stdout)}
             == {w["file"]: (w["lost"], w["capture_dropped"]) for w in want})
+
+
+_WITHOUT = """
+import sys
+for name in sys.argv[1].split(","):      # as in a plain `pip install vm110`: the fleet extra left out
+    sys.modules[name] = None
+from vm110.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.parametrize(("missing", "action"), [
+    ("fsspec,pyarrow,duckdb", ["build", "SRC", "--out", "DS"]),
+    ("pyarrow,duckdb", ["query", "DS", "--worst", "links"]),
+    ("pyarrow,duckdb", ["report", "DS", "--html", "DS.html"]),
+    ("distributed", ["build", "SRC", "--out", "DS", "--engine", "dask", "-j", "1"]),
+])
+def test_without_the_fleet_extra_one_line_says_how_to_install_it(src, tmp_path, missing, action):
+    """A wheel installed without its `fleet` extra: each `vm110 fleet` action ended with a
+    ModuleNotFoundError traceback, exit 1 (trial-readme). One line names the extra, exit 2."""
+    given = [str(src) if a == "SRC" else a.replace("DS", str(tmp_path / "ds")) for a in action]
+    command = [sys.executable, "-c", _WITHOUT, missing, "fleet", *given]
+    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    one_line_error(done, "fleet extra", "vm110[fleet]", "is missing")

@@ -84,8 +84,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     report.add_argument("--html", required=True, metavar="FILE", help="the page to write; - for standard output")
 
 
+# The fleet extra's modules (pyproject.toml): `pip install vm110` alone, from a wheel say, has none of them.
+FLEET_MODULES = frozenset({"pyarrow", "duckdb", "dask", "distributed", "fsspec"})
+
+
 def run(args: argparse.Namespace) -> int:
-    return {"build": _build, "query": _query, "report": _report}[args.fleet_command](args)
+    try:
+        return {"build": _build, "query": _query, "report": _report}[args.fleet_command](args)
+    except ModuleNotFoundError as exc:
+        if (exc.name or "").partition(".")[0] not in FLEET_MODULES:
+            raise
+        raise CliError(f"needs the package's fleet extra, which is not installed ({exc.name} is missing): "
+                       "pip install 'vm110[fleet]' (or pipx install --force 'PATH[fleet]')") from None
 
 
 def _build(args: argparse.Namespace) -> int:

@@ -42,11 +42,8 @@ def _build_one(source: Source, settings: Settings) -> "Done | CliError":
 def run_dask(todo: Sequence[Source], settings: Settings, jobs: int, scheduler: Optional[str]) -> Iterator[Done]:
     """`build_one` mapped over the captures with dask.distributed: on the cluster at `scheduler`,
     or on a LocalCluster of `jobs` single-threaded worker processes on the loopback interface."""
-    try:
-        from distributed import Client, LocalCluster, as_completed
-        from distributed.scheduler import KilledWorker
-    except ImportError as exc:
-        raise CliError(f"--engine dask needs dask.distributed ({exc}); make setup installs it") from None
+    from distributed import Client, LocalCluster, as_completed      # (missing: said by commands.fleet)
+    from distributed.scheduler import KilledWorker
     with ExitStack() as stack:
         if scheduler:
             try:
