@@ -114,4 +114,4 @@ wheel: setup
 	$(PY) -m pip wheel --no-deps --no-build-isolation -w dist .
 
 clean:
-	rm -rf $(VENV) out .pytest_cache .hypothesis
+	rm -rf $(VENV) out dist build .pytest_cache .hypothesis
