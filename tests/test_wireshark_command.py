@@ -157,6 +157,17 @@ def test_check_names_the_version_when_another_plugin_prints(user, capsys):
     assert first.startswith("tshark: ") and ": TShark (Wireshark) " in first, first
 
 
+def test_check_says_that_a_plugin_gives_no_version(user, capsys):
+    """A vm110.lua that sets no version in its plugin info (an old copy, another project's): check
+    printed `(version ; differs ...)` (trial-readme). It says `no version`, exit 2 (no protocol)."""
+    plugins = user / ".local" / "lib" / "wireshark" / "plugins"
+    plugins.mkdir(parents=True)
+    (plugins / "vm110.lua").write_text("-- an old copy")
+    assert cli.main(["wireshark", "check"]) == 2
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("plugin: "))
+    assert line.startswith(f"plugin: {plugins / 'vm110.lua'} (no version; differs from this package's"), line
+
+
 def test_install_leaves_a_linked_plugin_alone(user, tmp_path, capsys):
     """A developer's link to a checkout is not written through: nothing is installed, exit 2."""
     plugins = user / ".local" / "lib" / "wireshark" / "plugins"

@@ -129,7 +129,8 @@ def check(explicit: Optional[str]) -> int:
     folders = locate(tshark)
     broken = []
     if listed:
-        print(f"plugin: {listed[0][-1]} (version {listed[0][1]}; {_compare(Path(listed[0][-1]))})")
+        given = f"version {listed[0][1]}" if listed[0][1] else "no version"     # (one without `version`)
+        print(f"plugin: {listed[0][-1]} ({given}; {_compare(Path(listed[0][-1]))})")
     else:
         expected = Path(folders.plugins) / resources.PLUGIN_NAME
         if expected.is_file():
