@@ -371,6 +371,21 @@ def test_garbage_on_stdin_is_one_line_and_exit_2(tmp_path):
     assert not (tmp_path / "r.json").exists()      # (as analyze: no report of what is not a capture)
 
 
+@pytest.mark.parametrize("content", [b"this is no capture\n", "gzip"])
+def test_a_file_that_is_no_capture_is_one_line_and_exit_2(tmp_path, content):
+    """--read FILE of a text file, or of a gzip-compressed capture (which analyze reads): a first
+    line said that the capture's header was cut short at byte 0, still being written (trial-readme),
+    before the one that says what it is. That one line alone, exit 2."""
+    path = tmp_path / "file"
+    path.write_bytes(content if content != "gzip" else
+                     subprocess.run(["gzip", "-c", str(ROOT / "captures" / "normal.pcap")], capture_output=True,
+                                    check=True).stdout)
+    out = _run(["monitor", "--read", str(path), "--idle", "0", "--no-dashboard"])
+    assert out.returncode == 2
+    err = out.stderr.decode().strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"vm110 monitor: {path}: not a pcap or pcapng capture (magic "), err
+
+
 def test_a_pipe_that_closes_mid_record_keeps_what_was_seen(tmp_path):
     data = (ROOT / "captures" / "normal.pcap").read_bytes()
     cut = data[:5000]

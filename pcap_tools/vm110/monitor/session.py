@@ -480,11 +480,13 @@ class Session:
             if self.input_ended:
                 self.reader.close()
             else:                              # stopped by us: a record still arriving is not damage
-                if self.failure is None:       # (dumpcap's last blocks: its statistics say what it dropped)
+                # (dumpcap's last blocks: its statistics say what it dropped; after a failure, input that
+                # is no capture say, what the reader holds is no capture header still being written)
+                if self.failure is None:
                     self._packets(self.reader.feed(self.source.rest(REST_S)))
-                if self.reader.buf and self.source.quiet() is not None and not self.reader.stopped:
-                    self.warn(f"{self.cfg.name}: {self._cut()}, not read (still being written, or its writer "
-                              "stopped there)")
+                    if self.reader.buf and self.source.quiet() is not None and not self.reader.stopped:
+                        self.warn(f"{self.cfg.name}: {self._cut()}, not read (still being written, or its writer "
+                                  "stopped there)")
                 self.reader.buf = b""
         except CliError as exc:            # not a capture at all: said at the end
             self.failure = self.failure or str(exc)
