@@ -375,7 +375,7 @@ def test_garbage_on_stdin_is_one_line_and_exit_2(tmp_path):
 def test_a_file_that_is_no_capture_is_one_line_and_exit_2(tmp_path, content):
     """--read FILE of a text file, or of a gzip-compressed capture (which analyze reads): a first
     line said that the capture's header was cut short at byte 0, still being written (trial-readme),
-    before the one that says what it is. That one line alone, exit 2."""
+    before the one that says what it is (a gzip file's only by its magic). That one line alone, exit 2."""
     path = tmp_path / "file"
     path.write_bytes(content if content != "gzip" else
                      subprocess.run(["gzip", "-c", str(ROOT / "captures" / "normal.pcap")], capture_output=True,
@@ -383,7 +383,8 @@ def test_a_file_that_is_no_capture_is_one_line_and_exit_2(tmp_path, content):
     out = _run(["monitor", "--read", str(path), "--idle", "0", "--no-dashboard"])
     assert out.returncode == 2
     err = out.stderr.decode().strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(f"vm110 monitor: {path}: not a pcap or pcapng capture (magic "), err
+    said = "compressed with gzip, which is not read here" if content == "gzip" else "not a pcap or pcapng capture"
+    assert len(err) == 1 and err[0].startswith(f"vm110 monitor: {path}: {said}"), err
 
 
 def test_a_pipe_that_closes_mid_record_keeps_what_was_seen(tmp_path):

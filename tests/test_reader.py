@@ -322,7 +322,7 @@ def test_gzip_is_decompressed_as_it_is_read_with_no_temporary_file(tmp_path, mon
 
 @pytest.mark.parametrize("content,message", [
     (gzip.compress(b"hello, this is text\n"), "not a pcap or pcapng"),
-    (gzip.compress(gzip.compress(pcap([]))), "not a pcap or pcapng"),       # one layer, as Wireshark
+    (gzip.compress(gzip.compress(pcap([]))), "compressed with gzip, which is not read here"),  # one layer, as Wireshark
     (b"\x28\xb5\x2f\xfd" + bytes(20), "compressed with zstd, which is not read here: decompress it first"),
     (b"\x04\x22\x4d\x18" + bytes(20), "compressed with lz4"),
 ], ids=["gzip-text", "gzip-twice", "zstd", "lz4"])

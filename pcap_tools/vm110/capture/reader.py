@@ -72,6 +72,8 @@ def format_of(head: bytes, path: str) -> str:
         return "pcapng"
     if PCAP_MAGIC_US in (magic_le, magic_be) or PCAP_MAGIC_NS in (magic_le, magic_be):
         return "pcap"
+    if is_gzip(head):       # (a stream, which is not decompressed, or a file's second layer)
+        raise CaptureError(f"{path}: compressed with gzip, which is not read here: decompress it first (gzip -d)")
     if head[:4] in OTHER_COMPRESSIONS:
         kind = OTHER_COMPRESSIONS[head[:4]]
         raise CaptureError(f"{path}: compressed with {kind}, which is not read here: decompress it first "
