@@ -1356,4 +1356,4 @@ def test_without_the_fleet_extra_one_line_says_how_to_install_it(src, tmp_path, 
     given = [str(src) if a == "SRC" else a.replace("DS", str(tmp_path / "ds")) for a in action]
     command = [sys.executable, "-c", _WITHOUT, missing, "fleet", *given]
     done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=60)
-    one_line_error(done, "fleet extra", "vm110[fleet]", "is missing")
+    one_line_error(done, "fleet extra", "'PATH[fleet]'", "is missing")

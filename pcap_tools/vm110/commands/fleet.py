@@ -94,8 +94,9 @@ def run(args: argparse.Namespace) -> int:
     except ModuleNotFoundError as exc:
         if (exc.name or "").partition(".")[0] not in FLEET_MODULES:
             raise
-        raise CliError(f"needs the package's fleet extra, which is not installed ({exc.name} is missing): "
-                       "pip install 'vm110[fleet]' (or pipx install --force 'PATH[fleet]')") from None
+        raise CliError(f"needs the package's fleet extra, which is not installed ({exc.name} is missing): install "
+                       "vm110 again with it, pip install 'PATH[fleet]' or pipx install --force 'PATH[fleet]' "
+                       "(PATH: the vm110 folder or wheel)") from None
 
 
 def _build(args: argparse.Namespace) -> int:
