@@ -55,6 +55,19 @@ def test_engines_agree_on_a_gzip_compressed_capture(tmp_path):
     assert_same(str(path))
 
 
+def test_the_user_s_wireshark_preferences_change_no_number(tmp_path, monkeypatch):
+    """A user who switched the CRC check and the heuristic off in Wireshark (its preferences file):
+    the tshark engine then counted no bad CRC and no packet on another port, 14 illegal packets
+    in illegal.pcap instead of 22 (trial-readme). It pins them: the numbers are the fast engine's."""
+    config = tmp_path / ".config" / "wireshark"
+    config.mkdir(parents=True)
+    (config / "preferences").write_text("vm110.check_crc: FALSE\nvm110.heuristic: FALSE\n")
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.delenv("XDG_CONFIG_HOME", raising=False)
+    monkeypatch.delenv("WIRESHARK_CONFIG_DIR", raising=False)
+    assert_same(str(CAPTURES / "illegal.pcap"))
+
+
 @pytest.mark.parametrize("wrap", ["sll2-vlan", "ipv6-atomic-fragment", "port-7000", "radiotap"])
 def test_engines_agree_on_unusual_wrappings(wrap, tmp_path):
     """The bundled traffic as a cooked capture of a tagged interface, over IPv6 in atomic fragments

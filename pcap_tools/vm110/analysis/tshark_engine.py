@@ -116,7 +116,9 @@ class TsharkEngine:
         return ["-X", f"lua_script:{plugin_path()}", "-o", "ip.defragment:FALSE", "-o", "ipv6.defragment:FALSE",
                 "-o", "udp.try_heuristic_first:TRUE",
                 "-o", f"vm110.input_port:{self.port}",
-                "-o", f"vm110.crc_variant:{variant}", "-o", f"vm110.crc_byte_order:{order}"]
+                "-o", f"vm110.crc_variant:{variant}", "-o", f"vm110.crc_byte_order:{order}",
+                # (the user's Wireshark preferences would otherwise decide: no CRC checked, no other ports)
+                "-o", "vm110.check_crc:TRUE", "-o", "vm110.heuristic:TRUE"]
 
     def _packets(self, path: str, variant: str, order: str) -> Iterator:
         from .tshark_packets import TsharkStopped, packets     # pyshark: the CLI starts without it
