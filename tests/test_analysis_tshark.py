@@ -68,6 +68,25 @@ def test_the_user_s_wireshark_preferences_change_no_number(tmp_path, monkeypatch
     assert_same(str(CAPTURES / "illegal.pcap"))
 
 
+def test_an_installed_plugin_that_differs_is_not_used_silently(tmp_path, monkeypatch):
+    """The user's installed vm110.lua loads first and the package's stands aside (its line on
+    tshark's standard error, which the engine hid): an older installed copy decoded the capture,
+    unsaid (trial-readme). A copy that differs is one line, exit 2; the same copy is used."""
+    plugins = tmp_path / ".local" / "lib" / "wireshark" / "plugins"
+    plugins.mkdir(parents=True)
+    ours = (CAPTURES.parent / "dissector" / "vm110.lua").read_text()
+    monkeypatch.setenv("HOME", str(tmp_path))
+    capture = str(CAPTURES / "normal.pcap")
+    command = [*VM110, "analyze", capture, "--engine", "tshark", "--quiet"]
+    (plugins / "vm110.lua").write_text(ours.replace('PLUGIN_VERSION = "', 'PLUGIN_VERSION = "0.0.1-old-'))
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert f"the plugin tshark loads first, {plugins / 'vm110.lua'} (version 0.0.1-old-" in done.stderr
+    (plugins / "vm110.lua").write_text(ours)
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+
+
 @pytest.mark.parametrize("wrap", ["sll2-vlan", "ipv6-atomic-fragment", "port-7000", "radiotap"])
 def test_engines_agree_on_unusual_wrappings(wrap, tmp_path):
     """The bundled traffic as a cooked capture of a tagged interface, over IPv6 in atomic fragments

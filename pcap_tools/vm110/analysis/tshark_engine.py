@@ -15,6 +15,7 @@ import re
 import shutil
 import struct
 import tempfile
+from pathlib import Path
 from typing import Iterator, Optional
 
 from .. import constants as C
@@ -44,6 +45,22 @@ def check_available() -> None:
     if not loaded:
         lines = [ln for ln in done.stderr.splitlines() if "dangerous" not in ln]
         raise CliError(f"the Lua dissector {plugin} did not load in tshark: {(lines or ['no vm110 protocol'])[0]}")
+    # A plugin in the user's plugin folder loads first, and this one stands aside (it says so on
+    # tshark's standard error, which the analysis does not show): an older copy would decode.
+    first = _LOADED_ALREADY.search(done.stderr)
+    if first is not None and not _same_file(Path(first[1]), plugin):
+        raise CliError(f"--engine tshark would decode with the plugin tshark loads first, {first[1]} (version "
+                       f"{first[2]}), not {plugin}: they differ; `vm110 wireshark install` updates it (or remove it)")
+
+
+_LOADED_ALREADY = re.compile(r"the VM-110 dissector is loaded already from (.+) \(version ([^)]*)\)")
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.read_bytes() == b.read_bytes()
+    except OSError:
+        return False
 
 
 def _int(value: str) -> int:
