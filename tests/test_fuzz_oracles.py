@@ -453,3 +453,17 @@ def test_another_ack_of_a_recent_command_answers_no_other(link):
         link.vrpo(T0 + 0.1 * n)
     link.mon.tick(T0 + 1.6)
     assert link.oracles() == ["missing_ack"] and link.mon.triggers[0].command_id == 6
+
+
+def test_a_wrong_ack_of_a_resend_is_the_same_finding_again(link):
+    """The base unit goes on resending a command answered with a wrong ID (`resending`, until its
+    ack is due): the controller's wrong ack of a resend blames the same command and case, not the
+    cases of the moment, so it is the one finding again."""
+    link.mon.on_tx(T0, vrci(0xFFFE), vrci(0xFFFE), index=9)
+    link.rx(T0 + 0.01, "VRAO", encode.ack_payload(2))
+    assert link.mon.resending(0xFFFE, T0 + 0.1)
+    link.mon.note_case(T0 + 0.05, 10)
+    link.mon.on_tx(T0 + 0.1, vrci(0xFFFE, 2), vrci(0xFFFE, 2), index=9, expect_ack=False)
+    link.rx(T0 + 0.11, "VRAO", encode.ack_payload(2))
+    assert [(t.answered, t.suspects[0], t.kind) for t in link.mon.triggers] == [(0xFFFE, 9, "VRAO unknown")] * 2
+    assert not link.mon.resending(0xFFFE, T0 + 1.01), "given up when its ack was due"

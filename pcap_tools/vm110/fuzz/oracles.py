@@ -83,6 +83,9 @@ class Monitor:
         self.triggers: list[Trigger] = []
         self.notes: collections.deque[tuple[float, int]] = collections.deque()   # (time, case index)
         self.pending: dict[int, collections.deque[tuple[float, int]]] = {}      # id -> (deadline, case)
+        # Commands answered only by a wrong or illegal VRAO: id -> when their ack was due. The base
+        # unit ignores such an ack (TS-0006 5.1.5) and goes on resending until then (`resending`).
+        self.unacked: dict[int, float] = {}
         self.illegal_ids: dict[int, tuple[float, int]] = {}     # IDs whose latest VRCI was illegal
         self.sent_at: dict[int, float] = {}      # command ID -> when it was last sent
         self.id_case: dict[int, int] = {}        # command ID -> last case that sent it
@@ -106,6 +109,7 @@ class Monitor:
         # (time, command ID, case, time sent) of the acks owed by a silent controller
         self.held: list[tuple[float, int, int, float]] = []
         self.pending.clear()
+        self.unacked.clear()
         self.illegal_ids.clear()
 
     def fork(self) -> "Monitor":
@@ -184,7 +188,7 @@ class Monitor:
                             f"illegal {ptype} from the controller: {', '.join(fields['problems'])}", command_id)
             if command_id is not None:
                 # The command was answered, illegally: that is the bug, not a missing ack as well.
-                self._answered(command_id, t)
+                self._answered(command_id, t, own=False)
             return fields
         if fields.get("direction") != C.Direction.OUTPUT.value:
             self._malformed(t, data, f"{ptype} direction", f"the controller sent an input packet {ptype}")
@@ -234,15 +238,28 @@ class Monitor:
         suspects = ([culprit] if culprit is not None else []) + [i for i in recent if i != culprit]
         self.fire(Trigger(MALFORMED_OUTPUT, t, detail, None, suspects, data, kind, command_id, answered=answered))
 
-    def _answered(self, command_id: int, t: float) -> bool:
+    def resending(self, command_id: int, now: float) -> bool:
+        """Whether the base unit still resends the command: its ack is awaited, or only a wrong or
+        illegal VRAO came for it and its ack is not yet overdue."""
+        if command_id in self.pending:
+            return True
+        if self.unacked.get(command_id, now) > now:
+            return True
+        self.unacked.pop(command_id, None)
+        return False
+
+    def _answered(self, command_id: int, t: float, own: bool = True) -> bool:
         """The oldest pending command of that ID is answered, and with it every transmission of the
         ID sent by `t`: an ack answers the command ID, not one transmission (a controller that
-        acks once per scan cycle answers a burst of retransmissions with one VRAO). False when
-        none was pending."""
+        acks once per scan cycle answers a burst of retransmissions with one VRAO). An ack not
+        `own` (a wrong ID's, an illegal one) is its one finding, but no ack to the base unit: the
+        command stays `unacked`, resent. False when none was pending."""
         queue = self.pending.get(command_id)
         if not queue:
             return False
-        queue.popleft()
+        deadline, _ = queue.popleft()
+        if not own:
+            self.unacked[command_id] = deadline
         answered_by = t + self.limits.ack_timeout_ms / 1000       # deadline of a transmission at t
         while queue and queue[0][0] <= answered_by:
             queue.popleft()
@@ -251,6 +268,7 @@ class Monitor:
         return True
 
     def _vrao(self, t: float, data: bytes, command_id: int) -> None:
+        self.unacked.pop(command_id, None)         # its own ack at last: no more resends
         if self._answered(command_id, t):
             return
         illegal = self.illegal_ids.get(command_id)
@@ -262,10 +280,13 @@ class Monitor:
         if sent is not None and t - sent <= _HISTORY_S:
             return          # one more ack of a command sent lately (a duplicate frame's, a second copy)
         # An ack of no command sent lately has a wrong ID (a sign or width error): it answers, wrongly,
-        # the oldest command still open, so that command's missing ack is no second finding.
+        # the oldest command still open, so that command's missing ack is no second finding; else
+        # (an ack of its resend) the oldest one still resent, the same finding again.
         meant = min(self.pending, key=lambda c: self.pending[c][0][0], default=None)
         if meant is not None:
-            self._answered(meant, t)
+            self._answered(meant, t, own=False)
+        else:
+            meant = min(self.unacked, key=self.unacked.__getitem__, default=None)
         awaited = "" if meant is None else f" (command ID {meant} awaited its ack)"
         never = "never sent" if sent is None else f"not sent in the last {_HISTORY_S:.0f} s"
         self._malformed(t, data, "VRAO unknown", f"VRAO for command ID {command_id}, {never}{awaited}",
@@ -301,6 +322,7 @@ class Monitor:
         self.cut_short += sorted(owed - set(suspects) - set(self.cut_short))
         self.exited = True
         self.pending.clear()
+        self.unacked.clear()
         self.held = []
         self.triggers = [x for x in self.triggers if x.oracle != MISSING_ACK or x.case_index not in suspects]
         crash = crash or Crash(returncode)

@@ -389,6 +389,7 @@ class Runner:
         if investigated or not s.healthy():
             self._recover()
         s.monitor.pending.clear()
+        s.monitor.unacked.clear()
         _forget_triggers(s.monitor)    # what happened during replays was judged there
 
     def _recover(self) -> None:

@@ -6,8 +6,8 @@ process, ticks the oracles and resends the unacknowledged VRCI until a given tim
 
 As the base unit does (TS-0006 5.1.3), each valid VRCI of ours a case sends is resent every
 `Settings.resend_ms` (100 ms) on the next serial until its VRAO comes or the oracle's ack timeout
-passes (while the monitor holds it pending); a mutated or illegal one, or a duplicate frame, is
-not. A replay plays its packets through the same session, and so resends as the run did.
+passes (while `Monitor.resending`: a VRAO with a wrong ID, or an illegal one, does not stop it);
+a mutated or illegal one, or a duplicate frame, is not. A replay plays its packets through the same session, and so resends as the run did.
 """
 from __future__ import annotations
 
@@ -128,7 +128,7 @@ class Session:
         the monitor) is dropped."""
         now = time.time()
         for command_id, (due, data, index) in list(self.resends.items()):
-            if command_id not in self.monitor.pending:
+            if not self.monitor.resending(command_id, now):
                 del self.resends[command_id]
             elif now >= due:
                 again = M.reserial(data, self._take_serial())
