@@ -265,7 +265,7 @@ def _vm_rss_mib(exe: Path) -> float:
 
 def test_the_status_line_shows_the_rss_and_the_summary_why_the_oracle_is_off(tmp_path, capsys):
     from vm110.commands.fuzz import _memory_line, _StatusLine
-    _StatusLine()({"cases": 3, "rate": 1.0, "findings": 0, "triggers": 0, "left_s": None, "rss_kib": 12 * MIB})
+    _StatusLine()({"cases": 3, "rate": 1.0, "rate_now": 1.0, "findings": 0, "triggers": 0, "left_s": None, "rss_kib": 12 * MIB})
     assert "RSS 12.0 MiB" in capsys.readouterr().err
     rx, listen = free_ports(2)
     runner = Runner(RunConfig(settings=Settings(("127.0.0.1", rx), ("127.0.0.1", listen)), out=tmp_path / "out"))

@@ -267,10 +267,10 @@ def test_status_line_counts_as_the_summary_does_in_the_singular(capsys):
     """Trial: the status line read '1 bugs (1 hits)', the summary '1 findings (1 triggers)': two
     names for one count. Both now say findings and triggers."""
     from vm110.commands.fuzz import _StatusLine
-    _StatusLine()({"cases": 1, "rate": 1.0, "findings": 1, "triggers": 1, "left_s": None})
-    assert "1 case, 1/s, 1 finding (1 trigger)" in capsys.readouterr().err
-    _StatusLine()({"cases": 2, "rate": 1.0, "findings": 2, "triggers": 0, "left_s": None})
-    assert "2 cases, 1/s, 2 findings (0 triggers)" in capsys.readouterr().err
+    _StatusLine()({"cases": 1, "rate": 1.0, "rate_now": 1.0, "findings": 1, "triggers": 1, "left_s": None})
+    assert "1 case, 1/s (average 1/s), 1 finding (1 trigger)" in capsys.readouterr().err
+    _StatusLine()({"cases": 2, "rate": 1.0, "rate_now": 1.0, "findings": 2, "triggers": 0, "left_s": None})
+    assert "2 cases, 1/s (average 1/s), 2 findings (0 triggers)" in capsys.readouterr().err
 
 
 def _filtered_frames(display_filter: str) -> set[int]:
@@ -392,3 +392,24 @@ def test_a_finding_made_by_a_case_s_stream_points_at_the_vrpi_streamed(runner):
     with PcapReader(str(runner.cfg.out / finding.pcap)) as reader:
         frames = [bytes(f[UDP].payload) for f in reader]
     assert decode(frames[3])["bu_state"] == M.DISARMED_VRPI["bu_state"] and frames[1] == sent[0].data
+
+
+def test_the_status_line_shows_the_current_rate_beside_the_average(runner, monkeypatch, capsys):
+    """Review: the status line's cases/s was the average since the start; a controller that slowed
+    to 5 cases/s after a minute at 100 still showed 86/s. It shows the last 5 s' rate first."""
+    import types
+
+    from vm110.commands.fuzz import _StatusLine
+    from vm110.fuzz import runner as R
+    clock = [0.0]
+    monkeypatch.setattr(R, "time", types.SimpleNamespace(time=lambda: clock[0]))
+    lines: list[dict] = []
+    runner.cfg.status = lines.append
+    runner.started, runner.recent = 0.0, R.RecentRate(5.0, 0.0)
+    for step in range(1, 141):       # a status every 0.5 s: 100 cases/s for 60 s, then 5/s for 10 s
+        clock[0] = step * 0.5
+        runner.cases_run += 50 if step <= 120 else 2 + step % 2
+        runner._status()
+    assert lines[-1]["rate_now"] == pytest.approx(5.0) and lines[-1]["rate"] == pytest.approx(6050 / 70)
+    _StatusLine()(lines[-1])
+    assert "6050 cases, 5/s (average 86/s)" in capsys.readouterr().err

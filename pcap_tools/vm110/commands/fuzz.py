@@ -304,7 +304,7 @@ class _StatusLine:
         self.shown = False
 
     def __call__(self, line: dict[str, Any]) -> None:
-        parts = [plural(line["cases"], "case"), f"{line['rate']:.0f}/s",
+        parts = [plural(line["cases"], "case"), f"{line['rate_now']:.0f}/s (average {line['rate']:.0f}/s)",
                  f"{plural(line['findings'], 'finding')} ({plural(line['triggers'], 'trigger')})"]
         if "edges" in line:
             parts += [f"{line['edges']} edges", f"corpus {line['corpus']}"]

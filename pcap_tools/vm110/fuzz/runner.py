@@ -41,6 +41,7 @@ _MAX_SUSPECTS = 12       # replayed one by one (a stall's replay takes over 2 s)
 _MAX_BISECTED = 400      # a stall's suspects bisected when none of those replayed triggers it
 _MAX_LISTED = 100         # suspects listed when none could be replayed (the controller is gone)
 _STATUS_EVERY_S = 0.5
+_RATE_WINDOW_S = 5.0      # the status line's current rate: cases over about the last 5 s
 _DYING_WAIT_S = 10.0      # for a sanitizer's report to be written
 _SMALLER_TRIES = 3        # replays per bug of smaller cases that hit it again
 _MISSES_IN_A_ROW = 3      # triggers of one kind that did not replay, then only every ...
@@ -210,6 +211,23 @@ def case_kind(case: Optional[K.Case], shown: Optional[Sent] = None) -> str:
     return sent_as if sent_as in _PACKET_TYPES else case.family
 
 
+class RecentRate:
+    """Cases per second over about the last `window_s` (AFL++'s exec speed): the average since the
+    start hides a controller, or a fuzzer busy replaying, that has slowed down an hour into a run."""
+
+    def __init__(self, window_s: float, now: float) -> None:
+        self.window_s = window_s
+        self.samples: collections.deque[tuple[float, int]] = collections.deque([(now, 0)])
+
+    def update(self, now: float, count: int) -> float:
+        """The rate from the newest sample at least `window_s` old (else the first) to `count` now."""
+        self.samples.append((now, count))
+        while len(self.samples) > 2 and self.samples[1][0] <= now - self.window_s:
+            self.samples.popleft()
+        then, before = self.samples[0]
+        return (count - before) / max(1e-6, now - then)
+
+
 class Runner:
     def __init__(self, cfg: RunConfig) -> None:
         self.cfg = cfg
@@ -250,6 +268,7 @@ class Runner:
         self.started = time.time()
         self.end: Optional[float] = None
         self._last_status = 0.0
+        self.recent = RecentRate(_RATE_WINDOW_S, self.started)
         self.stopped_early: Optional[str] = None
         self.interrupted = False             # by Ctrl-C or SIGTERM (stopped_early says so too)
         self.controller_lost = False         # the controller stopped while being fuzzed, for good
@@ -260,6 +279,7 @@ class Runner:
     def run(self) -> dict[str, Any]:
         cfg, s = self.cfg, self.session
         self.started = time.time()
+        self.recent = RecentRate(_RATE_WINDOW_S, self.started)
         end = None if cfg.duration_s is None else self.started + cfg.duration_s
         index = 0
         self.end = end
@@ -328,6 +348,7 @@ class Runner:
         elapsed = max(1e-6, now - self.started)
         left = None if self.end is None else max(0.0, self.end - now)
         line: dict[str, Any] = {"cases": self.cases_run, "rate": self.cases_run / elapsed,
+                                "rate_now": self.recent.update(now, self.cases_run),
                                 "findings": len(self.findings),
                                 "triggers": sum(b.count for b in self.buckets.values()), "left_s": left}
         if self.guided is not None:
