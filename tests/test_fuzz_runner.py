@@ -413,3 +413,32 @@ def test_the_status_line_shows_the_current_rate_beside_the_average(runner, monke
     assert lines[-1]["rate_now"] == pytest.approx(5.0) and lines[-1]["rate"] == pytest.approx(6050 / 70)
     _StatusLine()(lines[-1])
     assert "6050 cases, 5/s (average 86/s)" in capsys.readouterr().err
+
+
+def test_restarts_count_the_fuzzed_controller_s_not_the_replays(runner, monkeypatch):
+    """Review: `restarts` was every start of the controller but the first, so a run whose controller
+    never crashed said '3 restarts' (the starts of its replays). It now counts the restarts of the
+    controller the run fuzzed (it died, hung or leaked), and `replay_starts` the others."""
+    from types import SimpleNamespace
+
+    from vm110.fuzz import runner as R
+    supervisor = SimpleNamespace(starts=1, sanitizer_options={}, core_files=lambda: None)
+    state = {"healthy": True}
+
+    def restart() -> None:
+        supervisor.starts += 1
+        state["healthy"] = True
+
+    runner.supervisor = supervisor
+    monkeypatch.setattr(runner.session, "restart_target", restart)
+    monkeypatch.setattr(runner.session, "healthy", lambda: state["healthy"])
+    monkeypatch.setattr(R, "trial", lambda *args: None)
+    replays = {MISSING_ACK: 2, CRASH: 1}
+    monkeypatch.setattr(runner, "_investigate", lambda trig: [runner._trial(None, trig) for _ in
+                                                               range(replays[trig.oracle])] != [])
+    for oracle, healthy in ((MISSING_ACK, True), (CRASH, False)):   # a missing ack, then a crash
+        state["healthy"] = healthy
+        runner.session.monitor.triggers = [Trigger(oracle, 0.0, "x")]
+        runner._investigate_all()
+    summary = runner.summary()
+    assert (summary["restarts"], summary["replay_starts"]) == (1, 4), "the crash; 3 replays and a clean start"

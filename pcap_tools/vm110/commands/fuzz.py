@@ -235,6 +235,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"{plural(summary['cases_run'], 'case')} in {summary['duration_s']:.1f} s ({rate:.0f}/s), "
           f"{plural(len(summary['findings']), 'finding')} ({plural(triggers, 'trigger')}), "
           f"{plural(len(summary['unreproduced']), 'unreproduced trigger')}, {plural(summary['restarts'], 'restart')}"
+          + (f", {plural(summary['replay_starts'], 'start')} for replays" if summary["replay_starts"] else "")
           + (f"; stopped early: {summary['stopped_early']}" if summary["stopped_early"] else ""))
     if "coverage" in summary:
         cov = summary["coverage"]

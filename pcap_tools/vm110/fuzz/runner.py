@@ -265,6 +265,8 @@ class Runner:
         self.repeats: collections.Counter[str] = collections.Counter()
         self.buckets: dict[str, F.Bucket] = {}
         self.cases_run = 0
+        self.restarts = 0          # the fuzzed controller restarted: it crashed, hung or leaked
+        self.replay_starts = 0     # controllers started for replays, and a clean one after them
         self.started = time.time()
         self.end: Optional[float] = None
         self._last_status = 0.0
@@ -363,7 +365,7 @@ class Runner:
         return {
             "schema": F.SCHEMA, "seed": cfg.seed, "target": "%s:%d" % cfg.settings.target,
             "cases_run": self.cases_run, "duration_s": round(time.time() - self.started, 3),
-            "restarts": max(0, (self.supervisor.starts - 1) if self.supervisor else 0),
+            "restarts": self.restarts, "replay_starts": self.replay_starts,
             "started": round(self.started, 6),
             "findings": [{"oracle": f.oracle, "case_index": f.case_index, "mutation": f.mutation,
                           "detail": f.detail, "signature": f.signature, "file": name, "time": f.time,
@@ -393,6 +395,8 @@ class Runner:
         s = self.session
         self._settle()
         queue, s.monitor.triggers = s.monitor.triggers, []
+        # A controller that died or hung in the cases, or leaks, needs a restart whatever is replayed.
+        needed = not s.healthy() or any(t.oracle == MEMORY for t in queue)
         investigated = False
         for n, trig in enumerate(queue):
             if len(self.findings) >= self.cfg.max_findings:
@@ -408,15 +412,20 @@ class Runner:
                     self._unreproduced(left, self._suspects(left), why)
                 raise
         if investigated or not s.healthy():
-            self._recover()
+            self._recover(needed)
         s.monitor.pending.clear()
         s.monitor.unacked.clear()
         _forget_triggers(s.monitor)    # what happened during replays was judged there
 
-    def _recover(self) -> None:
-        """Back to a clean controller: restart it, or wait for it to come back on its own."""
+    def _recover(self, needed: bool) -> None:
+        """Back to a clean controller: restart it (a restart of the run's when `needed`, else one
+        for the replays), or wait for it to come back on its own."""
         s = self.session
         if self.supervisor is not None:
+            if needed:
+                self.restarts += 1
+            else:
+                self.replay_starts += 1
             s.restart_target()
         elif not s.healthy() and not s.wait_for_vrpo(time.time(), s.settings.startup_s):
             raise TargetLost("the controller stopped sending VRPO and there is no --target-cmd to restart it")
@@ -653,6 +662,7 @@ class Runner:
         self._check_stop()
         s = self.session
         if self.supervisor is not None:
+            self.replay_starts += 1
             s.restart_target()
         elif not s.healthy() and not s.wait_for_vrpo(time.time(), s.settings.startup_s):
             raise TargetLost("the controller stopped sending VRPO and there is no --target-cmd to restart it")
