@@ -721,3 +721,24 @@ def test_a_finding_from_a_pipe_is_replayed(tmp_path):
                                "vm110", "fuzz", "--target", f"127.0.0.1:{rx}", "--startup", "1"],
                               capture_output=True, text=True, timeout=60, cwd=tmp_path)
         assert said in done.stdout + done.stderr and "not a vm110 fuzz finding" not in done.stderr, done.stderr
+
+
+def test_a_finding_s_display_filter_shows_the_resends_of_its_command(tmp_path):
+    """Review: the filter showed the case's VRCI but not the resends the base unit sent of it on
+    later serials (every 100 ms until acknowledged), which are part of what the controller saw; a
+    copy sent well after the resends stopped (a later case's) is not one of them."""
+    bu, ctl, target = ("127.0.0.1", 5827), ("127.0.0.1", 40000), ("127.0.0.1", 5825)
+    case = bytes.fromhex(a_finding()["original_hex"])
+    again = [mutate.reserial(case, serial) for serial in (6, 8, 9)]
+    vrpi = encode.packet("VRPI", bytes(46), origin=0x0101, serial=7)
+    vrpo = encode.packet("VRPO", encode.vrpo_payload(0, b"x"), serial=1)
+    traffic = [(1.0, True, case, target), (1.05, False, vrpo, ctl), (1.1, True, again[0], target),
+               (1.15, True, vrpi, target), (1.2, True, again[1], target), (3.0, True, again[2], target)]
+    finding = findings.Finding(**{**a_finding(), "resend_ms": 100.0, "pcap": ""})
+    findings.write_finding(tmp_path, 1, finding, traffic, bu)
+    saved = json.loads((tmp_path / "finding-001-missing_ack.json").read_text())
+    assert saved["frame"] == 1 and saved["display_filter"] == "frame.number in {1, 3, 5}"
+    assert _shown_by_tshark(tmp_path / saved["pcap"], saved["display_filter"]) == [1, 3, 5]
+    unsent = findings.Finding(**{**a_finding(), "resend_ms": 0.0, "pcap": ""})    # --no-resend: none are
+    findings.write_finding(tmp_path, 2, unsent, traffic, bu)
+    assert json.loads((tmp_path / "finding-002-missing_ack.json").read_text())["display_filter"] == "frame.number == 1"

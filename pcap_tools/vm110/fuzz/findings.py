@@ -30,6 +30,7 @@ MAX_STEPS = 64                   # packets a case may send (the longest made her
 MAX_CASES = 2000
 _MAX_PACKET = 65_507             # the largest UDP payload over IPv4
 _MAX_MS = 60_000.0               # delays, pauses and withholding
+_RESEND_GAPS = 5                 # a VRCI copy this many resend intervals after the last is a new send
 _MAX_INT = (1 << 63) - 1
 NO_CASE = "none"                 # the family of a finding that the controller made on its own
 _STREAM_FIELDS = frozenset(f.name for f in PAYLOAD_CLASSES[C.PacketType.VRPI].fields_desc)
@@ -90,7 +91,8 @@ def write_finding(out: Path, number: int, finding: Finding,
     steps = [_frame_of(traffic, st["hex"], outbound=True) for st in finding.steps] if len(finding.steps) > 1 else []
     found = [n for n in (finding.frame, *steps) if n is not None]
     streamed = _stream_frames(traffic, finding, min(found, default=1))
-    shown = sorted({n for n in (*found, *streamed, finding.output_frame) if n is not None})
+    resent = _resend_frames(traffic, found, finding.resend_ms)
+    shown = sorted({n for n in (*found, *streamed, *resent, finding.output_frame) if n is not None})
     finding.display_filter = frame_filter(shown) if shown else None     # (runs as ranges: a short line)
     write_pcap(out / finding.pcap, traffic, local)
     path = out / f"{base}.json"
@@ -109,6 +111,25 @@ def _frame_of(traffic: list[tuple[float, bool, bytes, tuple[str, int]]], packet_
         if traffic[n][1] == outbound and traffic[n][2] == packet:
             return n + 1
     return None
+
+
+def _resend_frames(traffic: list[tuple[float, bool, bytes, tuple[str, int]]], frames: list[int],
+                   resend_ms: float) -> list[int]:
+    """The base unit's resends of the packets at `frames` (a VRCI resent every `resend_ms` until
+    acknowledged, TS-0006 5.1.3): the copies on later serials that follow each, every one at most
+    _RESEND_GAPS intervals after the one before (a later case's copy is no resend)."""
+    out: list[int] = []
+    for frame in frames if resend_ms else []:
+        last, _, packet, _ = traffic[frame - 1]
+        for n in range(frame, len(traffic)):
+            t, outbound, data, _ = traffic[n]
+            if t - last > _RESEND_GAPS * resend_ms / 1000:
+                break
+            if outbound and len(data) == len(packet) and data[:C.ID_LEN] == packet[:C.ID_LEN] and \
+                    data == M.reserial(packet, int.from_bytes(data[M.SERIAL_OFFSET:M.SERIAL_OFFSET + 2], "little")):
+                out.append(n + 1)
+                last = t
+    return out
 
 
 def _stream_frames(traffic: list[tuple[float, bool, bytes, tuple[str, int]]], finding: Finding,
