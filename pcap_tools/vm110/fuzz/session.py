@@ -7,7 +7,8 @@ process, ticks the oracles and resends the unacknowledged VRCI until a given tim
 As the base unit does (TS-0006 5.1.3), each valid VRCI of ours a case sends is resent every
 `Settings.resend_ms` (100 ms) on the next serial until its VRAO comes or the oracle's ack timeout
 passes (while `Monitor.resending`: a VRAO with a wrong ID, or an illegal one, does not stop it);
-a mutated or illegal one, or a duplicate frame, is not. A replay plays its packets through the same session, and so resends as the run did.
+a mutated or illegal one, or a duplicate frame, is not. A replay plays its packets through the
+same session, and so resends as the run did.
 """
 from __future__ import annotations
 
