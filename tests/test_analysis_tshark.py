@@ -399,42 +399,6 @@ def test_a_long_command_s_filter_shows_its_frames_only(tshark, tmp_path):
             check_filter(ws, local, item)
 
 
-@pytest.mark.parametrize("ip", ["ipv4", "ipv6"])
-def test_ip_fragments_are_a_warning_with_a_filter_that_shows_them(ip, tmp_path):
-    """Fragments are not reassembled: the report says how many, and its filter shows exactly
-    those frames in Wireshark. IPv6 (trial): the filter's `ipv6.fragment` showed only the frame
-    each datagram was reassembled in (one in three here), and the tshark engine, reassembling
-    IPv6, analysed the packets the fast engine counted as lost."""
-    from scapy.layers.inet import IP, UDP, fragment
-    from scapy.layers.inet6 import IPv6, IPv6ExtHdrFragment, fragment6
-    from scapy.layers.l2 import Ether
-    from test_reader import pcap
-    from vm110 import constants as C
-    from vm110.analysis.findings import FRAGMENT_FILTER
-    from vm110.encode import packet, vrpo_payload
-    records, fragments = [], []
-    for i in range(6):
-        net = IP(src="10.0.0.20", dst="239.255.42.20") if ip == "ipv4" else IPv6(src="fd00::20", dst="ff02::1")
-        big = i % 2
-        if ip == "ipv6" and big:
-            net /= IPv6ExtHdrFragment(id=i)
-        datagram = net / UDP(sport=C.OUTPUT_PORT, dport=C.OUTPUT_PORT) / packet(
-            "VRPO", vrpo_payload(0, bytes(400 if big else 40)), serial=i)
-        parts = (fragment(datagram, 256) if ip == "ipv4" else fragment6(datagram, 300)) if big else [datagram]
-        for part in parts:
-            records.append((1_700_000_000 + i / 10 + len(records) / 1e4, Ether() / part))
-            if len(parts) > 1:
-                fragments.append(len(records))
-    path = tmp_path / "fragments.pcap"
-    path.write_bytes(pcap(records))
-    report = analyze(str(path))
-    [warning] = [f for f in report["verdict"]["findings"] if f["rule"] == "ip_fragments"]
-    assert warning["count"] == len(fragments) == 6 and warning["message"].endswith(FRAGMENT_FILTER)
-    shown = T.HOST.command(["-r", str(path), "-Y", FRAGMENT_FILTER, "-T", "fields", "-e", "frame.number"])
-    assert [int(n) for n in subprocess.run(shown, capture_output=True, text=True, check=True).stdout.split()] == fragments
-    assert_same(str(path))
-
-
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 def test_tunnels_are_a_warning_with_a_filter_that_shows_them(tshark, tmp_path):
     """A capture mirrored through a tunnel (GRE, VXLAN, IP in IP): the fast engine said only "no

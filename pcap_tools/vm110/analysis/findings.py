@@ -16,10 +16,13 @@ from ..words import plural
 from .collect import CODE, TYPES
 
 MAX_ITEMS = 100
-# Every IP fragment frame, reassembled or not (`ipv6.fragment` is only on the frame a datagram is
-# reassembled in); an IPv6 atomic fragment (offset 0, no more) is a whole datagram, as the reader has it.
-FRAGMENT_FILTER = ("ip.flags.mf == 1 || ip.frag_offset > 0 "
-                   "|| ipv6.fraghdr.more == 1 || ipv6.fraghdr.offset > 0")
+# The IP fragment frames of datagrams not reassembled, in Wireshark (which reassembles by default, as
+# both engines do): a fragment neither reassembled in a later frame nor the frame of a reassembly. An
+# IPv6 atomic fragment (offset 0, no more) is a whole datagram, as the reader has it. (tshark needs
+# its second pass, -2, to know `reassembled_in`.)
+FRAGMENT_FILTER = ("((ip.flags.mf == 1 || ip.frag_offset > 0) && !ip.reassembled_in && !ip.fragments) || "
+                   "((ipv6.fraghdr.more == 1 || ipv6.fraghdr.offset > 0) "
+                   "&& !ipv6.reassembled.in && !ipv6.fragments)")
 _PROTOCOLS = ", ".join(map(str, sorted(TUNNEL_PROTOCOLS)))
 TUNNEL_FILTER = (f"ip.proto in {{{_PROTOCOLS}}} || ipv6.nxt in {{{_PROTOCOLS}}} || "
                  f"udp.dstport in {{{', '.join(map(str, sorted(TUNNEL_PORTS)))}}}")   # (shows the tunnels)
@@ -300,8 +303,9 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]], no_filte
                             "message": capture_dropped(cap["dropped"], tot["lost"], cap["ports"]), "items": []})
     if cap["fragments"]:      # (not reassembled: what they carry is missing from everything above)
         findings.insert(0, {"rule": "ip_fragments", "severity": "warning", "count": cap["fragments"],
-                            "message": f"{plural(cap['fragments'], 'IP fragment')} not analysed (EG-Link packets "
-                                       f"in them count as lost): {FRAGMENT_FILTER}", "items": []})
+                            "message": f"{plural(cap['fragments'], 'IP fragment')} not analysed (never reassembled: "
+                                       f"a fragment lost or cut by the capture; EG-Link packets in them count as "
+                                       f"lost): {FRAGMENT_FILTER}", "items": []})
     if cap["unread_frames"]:  # (what they carry is missing from everything above, as with fragments)
         findings.insert(0, {"rule": "unread_link_type", "severity": "warning", "count": cap["unread_frames"],
                             "message": unread(cap["unread_frames"], cap["link_types"],

@@ -121,16 +121,24 @@ def _fragment(pkt, layers: set) -> bool:
                                  or pkt.ipv6.get_field("fraghdr_offset") not in (None, "0"))
 
 
+def _fragment_frames(pkt, layers: set) -> int:
+    """How many fragment frames made the datagram Wireshark reassembled at this one (itself included)."""
+    count = pkt.ip.get_field("fragment_count") if "ip" in layers else None
+    if count is None and "ipv6" in layers:
+        count = pkt.ipv6.get_field("fragment_count")
+    return int(count) if count is not None else 1
+
+
 class TsharkEngine:
     def __init__(self, port: int = C.INPUT_PORT, crc: str = "auto", crc_order: str = "auto") -> None:
         self.port, self.crc, self.crc_order = port, crc, crc_order
         self.stopped: Optional[str] = None     # tshark's last error line when it stopped early
 
     def _params(self, variant: str, order: str) -> list[str]:
-        # IP fragments stay fragments, IPv4 and IPv6, as the fast engine counts them (no reassembly). The heuristic
-        # first: EG-Link on a port Wireshark gives another protocol (7000: AFS) is found, as the
-        # fast engine finds it.
-        return ["-X", f"lua_script:{plugin_path()}", "-o", "ip.defragment:FALSE", "-o", "ipv6.defragment:FALSE",
+        # IP fragments reassembled, IPv4 and IPv6, as Wireshark does by default and the fast engine
+        # does too (capture/reassembly.py). The heuristic first: EG-Link on a port Wireshark gives
+        # another protocol (7000: AFS) is found, as the fast engine finds it.
+        return ["-X", f"lua_script:{plugin_path()}", "-o", "ip.defragment:TRUE", "-o", "ipv6.defragment:TRUE",
                 "-o", "udp.try_heuristic_first:TRUE",
                 "-o", f"vm110.input_port:{self.port}",
                 "-o", f"vm110.crc_variant:{variant}", "-o", f"vm110.crc_byte_order:{order}",
@@ -205,7 +213,9 @@ class TsharkEngine:
                 ts = _epoch(when, pcap)
             layers = {layer.layer_name for layer in pkt.layers}
             fragment = _fragment(pkt, layers)
-            if fragment or "udp" not in layers:
+            if fragment and "udp" in layers:    # a datagram reassembled here: its other fragments are analysed
+                got.fragments -= _fragment_frames(pkt, layers) - 1
+            elif fragment or "udp" not in layers:
                 got.non_udp += 1
                 got.fragments += fragment
                 continue

@@ -24,6 +24,7 @@ from ..errors import CliError
 from . import linktypes as L
 from .compressed import OTHER_COMPRESSIONS, Gunzip, is_gzip
 from .drops import Drops, options
+from .reassembly import Reassembly
 
 Datagram = tuple  # (ts: float, src: bytes, sport: int, dport: int, payload: bytes or None (see udp_of), frame: int)
 
@@ -79,6 +80,29 @@ def format_of(head: bytes, path: str) -> str:
         raise CaptureError(f"{path}: compressed with {kind}, which is not read here: decompress it first "
                            f"({kind} -d), or give it to --engine tshark (Wireshark 4.2 or later)")
     raise CaptureError(f"{path}: not a pcap or pcapng capture (magic 0x{magic_be:08x})")
+
+
+def _vlan_id(link: int, data: bytes, pos: int, end: int) -> int:
+    """The VLAN a frame's IP packet came on, as Wireshark's reassembly tells copies of a fragment
+    apart: the ID of its last tag other than 802.1ad (0 untagged)."""
+    if link == L.LINKTYPE_ETHERNET:
+        et_at = pos + 12
+    elif link == L.LINKTYPE_LINUX_SLL:
+        et_at = pos + 14
+    elif link == L.LINKTYPE_LINUX_SLL2:
+        et_at = pos
+    else:
+        return 0
+    tag = pos + (L.ETH_HEADER_LEN if link == L.LINKTYPE_ETHERNET else
+                 L.SLL_HEADER_LEN if link == L.LINKTYPE_LINUX_SLL else L.SLL2_HEADER_LEN)
+    vid = 0
+    et = struct.unpack_from("!H", data, et_at)[0]
+    while et in L.ETHERTYPE_VLANS and tag + L.VLAN_TAG_LEN <= end:
+        if et != 0x88A8:
+            vid = struct.unpack_from("!H", data, tag)[0] & 0x0FFF
+        et = struct.unpack_from("!H", data, tag + 2)[0]
+        tag += L.VLAN_TAG_LEN
+    return vid
 
 
 class PcapLayout(NamedTuple):
@@ -144,7 +168,7 @@ class CaptureReader:
         """The counts and per-section state that reading fills in (a stream's too)."""
         self.frames = 0            # every packet record
         self.non_udp = 0           # frames that carry no (whole) UDP datagram
-        self.fragments = 0         # IP fragments (counted in non_udp)
+        self.fragments = 0         # IP fragments of datagrams not (yet) reassembled (in non_udp)
         self.unknown_link = 0      # frames of a link type the reader does not know (in non_udp)
         self.tunnelled = 0         # frames of a tunnel it does not unwrap (in non_udp, or other UDP)
         self.snap_truncated: set[int] = set()   # frames whose UDP payload the snaplen cut short
@@ -161,6 +185,7 @@ class CaptureReader:
         self.interfaces: list[tuple] = []       # pcapng: (link, ticks/s or 0, s/tick, offset, Ethernet?)
         self.spb_snaplen = 0                    # pcapng: the section's first interface's snaplen (0: none)
         self.drops = Drops()                    # pcapng: what the capture says it dropped
+        self._reassembly = Reassembly()         # IP fragments waiting for the rest of their datagram
         self.ts_digits = 6                      # decimal digits of the finest timestamps (9: ns)
 
     def _identify(self, path: str, raw: BinaryIO) -> tuple[int, str]:
@@ -631,18 +656,20 @@ class CaptureReader:
                 return None
             proto = data[pos + 9]
             src = data[pos + 12:pos + 16]
-            if frag & L.IPV4_FRAGMENT_MASK:
-                self.fragments += 1
-                self.non_udp += 1
-                return None
             ip_end = pos + tot if tot else end
+            if frag & L.IPV4_FRAGMENT_MASK:
+                key: tuple = (4, _vlan_id(link, data, start, end), src, data[pos + 16:pos + 20], proto,
+                              data[pos + 4:pos + 6])
+                whole = tot > ihl and ip_end <= end      # (Wireshark: recorded whole, not empty)
+                return self._fragment(key, (frag & 0x1FFF) * 8, bool(frag & 0x2000),
+                                      data[pos + ihl:ip_end] if whole else None, src, proto, frame)
             pos += ihl
         else:
             if pos + L.IPV6_HEADER_LEN > end or data[pos] >> 4 != 6:
                 self.non_udp += 1
                 return None
             proto = data[pos + 6]
-            src = data[pos + 8:pos + 24]
+            src, dst = data[pos + 8:pos + 24], data[pos + 24:pos + 40]
             ip_end = pos + L.IPV6_HEADER_LEN + struct.unpack_from("!H", data, pos + 4)[0]
             pos += L.IPV6_HEADER_LEN
             while pos + 8 <= min(end, ip_end):
@@ -653,9 +680,36 @@ class CaptureReader:
                 else:
                     break
             if proto == L.IPV6_FRAGMENT:
-                self.fragments += 1
-                self.non_udp += 1
-                return None
+                if pos + 8 > min(end, ip_end):
+                    return self._fragment(None, 0, False, None, src, proto, frame)
+                field = struct.unpack_from("!H", data, pos + 2)[0]
+                key = (6, _vlan_id(link, data, start, end), src, dst, data[pos + 4:pos + 8])
+                whole = ip_end <= end and ip_end > pos + 8
+                return self._fragment(key, field & 0xFFF8, bool(field & 1),
+                                      data[pos + 8:ip_end] if whole else None, src, data[pos], frame)
+        return self._udp(version, proto, src, data, pos, ip_end, end, incl, orig, frame)
+
+    def _fragment(self, key: Optional[tuple], offset: int, more: bool, part: Optional[bytes], src: bytes,
+                  proto: int, frame: int) -> Optional[tuple[bytes, int, int, Optional[bytes]]]:
+        """An IP fragment (`part`: its bytes, None when the capture did not record it whole): the
+        datagram it completes, taken at this frame as Wireshark does, else None (counted as no UDP
+        and as a fragment not reassembled; `fragments` gives back the frames of a datagram once it
+        is whole)."""
+        self.non_udp += 1
+        self.fragments += 1
+        if key is None or part is None:
+            return None
+        done = self._reassembly.add(key, offset, more, part)
+        if done is None:
+            return None
+        datagram, frames = done
+        self.fragments -= frames
+        self.non_udp -= 1
+        return self._udp(key[0], proto, src, datagram, 0, len(datagram), len(datagram), 1, 1, frame)
+
+    def _udp(self, version: int, proto: int, src: bytes, data: bytes, pos: int, ip_end: int, end: int,
+             incl: int, orig: int, frame: int) -> Optional[tuple[bytes, int, int, Optional[bytes]]]:
+        """The UDP datagram of an IP payload from `pos` to `ip_end` (the frame's bytes end at `end`)."""
         have = min(end, ip_end)
         if proto != L.IPPROTO_UDP or pos + 4 > have:     # (Wireshark shows UDP from its ports on)
             self.non_udp += 1

@@ -1,0 +1,80 @@
+"""IP fragments put back together as Wireshark does with its default `ip.defragment` and
+`ipv6.defragment` on: a VRPO of 488 data bytes sent over a link of a small MTU arrives in
+fragments, and the base unit's IP stack (like Wireshark) receives the whole datagram.
+
+As in Wireshark's reassembly tables (epan/reassemble.c, read as a capture is read, one pass): the
+fragments of a datagram are those of one (source, destination, protocol, identification); it is
+whole once the fragment without "more fragments" has come and the fragments cover every byte up
+to its end, and it is then taken at the frame that completed it, with that frame's time; where
+fragments overlap, the bytes placed first (lowest offset, then first arrived) stand; a fragment
+the capture did not record whole takes no part. A datagram completed is forgotten: copies of its
+fragments that follow (a mirror port) begin a new one, which is a copy of the datagram once it is
+whole again.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Optional
+
+# Datagrams in reassembly at once, and their bytes: beyond either the oldest is given up (its
+# fragments stay counted as not reassembled), so that a flood of fragments never whole (another
+# protocol's, a lossy link) cannot grow memory without bound.
+MAX_PENDING = 4096
+MAX_PENDING_BYTES = 16 << 20
+MAX_DATAGRAM = 1 << 16      # the largest IP payload a fragment offset and length can reach
+
+
+class _Pending:
+    __slots__ = ("end", "frames", "parts")
+
+    def __init__(self) -> None:
+        self.parts: list[tuple[int, int, bytes]] = []    # (offset, arrival, bytes)
+        self.end: Optional[int] = None                   # the datagram's length, once its last fragment came
+        self.frames = 0                                  # fragment frames taken in
+
+    def whole(self) -> Optional[bytes]:
+        """The datagram when every byte up to its end is here, else None."""
+        if self.end is None:
+            return None
+        out = bytearray(self.end)
+        reached = 0
+        for offset, _, part in sorted(self.parts, key=lambda p: (p[0], p[1])):
+            if offset > reached:
+                return None
+            stop = min(offset + len(part), self.end)
+            if stop > reached:
+                out[reached:stop] = part[reached - offset:stop - offset]
+                reached = stop
+        return bytes(out) if reached >= self.end else None
+
+
+class Reassembly:
+    """The fragments of one capture's datagrams still waiting for the rest."""
+
+    def __init__(self) -> None:
+        self._pending: OrderedDict[tuple, _Pending] = OrderedDict()
+        self._bytes = 0
+
+    def add(self, key: tuple, offset: int, more: bool, part: bytes) -> Optional[tuple[bytes, int]]:
+        """Take in one fragment (`offset` in bytes); (the datagram, how many fragment frames made
+        it) when this one completes it, else None."""
+        pending = self._pending.get(key)
+        if pending is None:
+            pending = self._pending[key] = _Pending()
+        pending.frames += 1
+        if offset + len(part) > MAX_DATAGRAM:
+            return None
+        pending.parts.append((offset, pending.frames, part))
+        self._bytes += len(part)
+        if not more and pending.end is None:
+            pending.end = offset + len(part)
+        datagram = pending.whole()
+        if datagram is not None:
+            self._drop(key)
+            return datagram, pending.frames
+        while len(self._pending) > MAX_PENDING or self._bytes > MAX_PENDING_BYTES:
+            self._drop(next(iter(self._pending)))
+        return None
+
+    def _drop(self, key: tuple) -> None:
+        self._bytes -= sum(len(part) for _, _, part in self._pending.pop(key).parts)
