@@ -156,3 +156,45 @@ def test_the_fragments_filter_shows_the_fragments_never_reassembled_in_wireshark
         shown = ws.run(["-2", "-r", str(local), "-Y", FRAGMENT_FILTER, "-T", "fields", "-e", "frame.number"],
                        plugin=False).stdout.split()
     assert [int(n) for n in shown] == never
+
+
+def test_fragments_are_told_apart_and_overlaps_settled_as_in_wireshark(tmp_path):
+    """Found by a fuzz of fragment sets against the tshark engine: a fragment past the datagram's
+    end kept it from ever being whole, and IPv6 fragments were told apart by VLAN (Wireshark keys
+    IPv4 reassembly by VLAN, IPv6 not)."""
+    records, t = [], 0.0
+
+    def datagram(ipv6: bool) -> tuple[S.Datagram, bytes]:
+        nonlocal t
+        t += 0.1
+        src, dst = (S.CTRL_IP6, S.GROUP6) if ipv6 else (S.CTRL_IP, S.GROUP)
+        d = S.Datagram(t, src, 5827, dst, 5827, S.vrpo(round(t * 10), 0, bytes(488)))
+        return d, S.udp(d.src, d.sport, d.dst, d.dport, d.payload)
+
+    def add(d: S.Datagram, *packets: bytes, tags: tuple = ()) -> None:
+        for packet in packets:
+            records.append(S.Record(d.ts_ns + len(records) * 1000, S.on_ethernet(tags)(d, packet)))
+
+    d, body = datagram(False)           # a stray fragment past the end: whole at its tail all the same
+    a, b, c = S.ipv4_fragments(d.src, d.dst, body, 256, 1)
+    add(d, a, S.ipv4(d.src, d.dst, bytes(16), 1, offset8=100, more=True), b, c)
+    d, body = datagram(True)            # IPv6 fragments on two VLANs: one datagram
+    a, b, c = S.ipv6_fragments(d.src, d.dst, body, 256, 2)
+    add(d, a, tags=((0x8100, 10),))
+    add(d, b, c)
+    d, body = datagram(False)           # IPv4 fragments on two VLANs: never whole
+    a, b, c = S.ipv4_fragments(d.src, d.dst, body, 256, 3)
+    add(d, a, tags=((0x8100, 10),))
+    add(d, b, c)
+    d, body = datagram(False)           # garbage at offset 0 after the real first fragment: the real one stands
+    a, b, c = S.ipv4_fragments(d.src, d.dst, body, 256, 4)
+    add(d, a, S.ipv4(d.src, d.dst, body[:20] + b"\xff" * 4, 4, more=True), b, c)
+    d, body = datagram(False)           # ... before it: the garbage stands (a bad CRC)
+    a, b, c = S.ipv4_fragments(d.src, d.dst, body, 256, 5)
+    add(d, S.ipv4(d.src, d.dst, body[:20] + b"\xff" * 4, 5, more=True), a, b, c)   # (the spare field)
+    path = tmp_path / "fragments.pcap"
+    path.write_bytes(S.pcap(records, ETHERNET))
+    report = analyze(str(path))
+    assert (report["capture"]["eglink_packets"], report["capture"]["fragments"]) == (4, 3)
+    assert (report["crc"]["valid"], report["illegal"]["by_reason"]) == (3, {"bad_crc": 1})
+    assert_same(str(path))

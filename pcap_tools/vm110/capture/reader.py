@@ -683,7 +683,7 @@ class CaptureReader:
                 if pos + 8 > min(end, ip_end):
                     return self._fragment(None, 0, False, None, src, proto, frame)
                 field = struct.unpack_from("!H", data, pos + 2)[0]
-                key = (6, _vlan_id(link, data, start, end), src, dst, data[pos + 4:pos + 8])
+                key = (6, src, dst, data[pos + 4:pos + 8])     # (Wireshark: IPv6 keys no VLAN)
                 whole = ip_end <= end and ip_end > pos + 8
                 return self._fragment(key, field & 0xFFF8, bool(field & 1),
                                       data[pos + 8:ip_end] if whole else None, src, data[pos], frame)
