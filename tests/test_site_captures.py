@@ -198,3 +198,43 @@ def test_fragments_are_told_apart_and_overlaps_settled_as_in_wireshark(tmp_path)
     assert (report["capture"]["eglink_packets"], report["capture"]["fragments"]) == (4, 3)
     assert (report["crc"]["valid"], report["illegal"]["by_reason"]) == (3, {"bad_crc": 1})
     assert_same(str(path))
+
+
+def test_fragments_are_taken_or_left_as_wireshark_takes_them(tmp_path):
+    """Found by the same fuzz: Wireshark tells fragments apart by VLAN only between private or
+    link-local addresses (the same ones may be in use on several VLANs), takes a total length of 0
+    as the frame's (segmentation offload), leaves a fragment the snaplen cut out of reassembly (and
+    the tshark engine took such a first fragment, which Wireshark dissects as it is, for a datagram
+    reassembled), and shows a fragment whose IP header the capture cut."""
+    records, t = [], 0.0
+
+    def datagram(src: str) -> tuple[S.Datagram, list[bytes]]:
+        nonlocal t
+        t += 0.1
+        d = S.Datagram(t, src, 5827, S.GROUP, 5827, S.vrpo(round(t * 10), 0, bytes(488)))
+        return d, S.ipv4_fragments(d.src, d.dst, S.udp(d.src, d.sport, d.dst, d.dport, d.payload), 256, round(t * 10))
+
+    def add(d: S.Datagram, packet: bytes, tags: tuple = (), cut: int = 0) -> None:
+        frame = S.on_ethernet(tags)(d, packet)
+        records.append(S.Record(d.ts_ns + len(records) * 1000, frame[:len(frame) - cut], len(frame)))
+
+    d, (a, b, c) = datagram("198.51.100.20")    # public addresses on two VLANs: one datagram
+    add(d, a, tags=((0x8100, 10),))
+    add(d, b)
+    add(d, c)
+    d, (a, b, c) = datagram(S.CTRL_IP)          # the first fragment cut by the snaplen: never whole
+    add(d, a, cut=100)
+    add(d, b)
+    add(d, c)
+    d, (a, b, c) = datagram(S.CTRL_IP)          # a total length of 0: the frame's
+    add(d, a[:2] + b"\0\0" + a[4:])
+    add(d, b)
+    add(d, c)
+    d, (a, _, _) = datagram(S.CTRL_IP)          # an IP header cut after 10 bytes: still a fragment
+    add(d, a, cut=len(a) - 10)
+    path = tmp_path / "fragments.pcap"
+    path.write_bytes(S.pcap(records, ETHERNET))
+    report = analyze(str(path))
+    assert (report["capture"]["eglink_packets"], report["capture"]["fragments"]) == (2, 4)
+    assert report["crc"]["valid"] == 2 and report["illegal"]["total"] == 0
+    assert_same(str(path))

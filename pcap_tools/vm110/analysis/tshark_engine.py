@@ -121,12 +121,14 @@ def _fragment(pkt, layers: set) -> bool:
                                  or pkt.ipv6.get_field("fraghdr_offset") not in (None, "0"))
 
 
-def _fragment_frames(pkt, layers: set) -> int:
-    """How many fragment frames made the datagram Wireshark reassembled at this one (itself included)."""
+def _fragment_frames(pkt, layers: set) -> Optional[int]:
+    """How many fragment frames made the datagram Wireshark reassembled at this one (itself
+    included); None when it reassembled none here (a first fragment it could not take, cut short
+    by the snaplen, it dissects as it is)."""
     count = pkt.ip.get_field("fragment_count") if "ip" in layers else None
     if count is None and "ipv6" in layers:
         count = pkt.ipv6.get_field("fragment_count")
-    return int(count) if count is not None else 1
+    return int(count) if count is not None else None
 
 
 class TsharkEngine:
@@ -213,8 +215,9 @@ class TsharkEngine:
                 ts = _epoch(when, pcap)
             layers = {layer.layer_name for layer in pkt.layers}
             fragment = _fragment(pkt, layers)
-            if fragment and "udp" in layers:    # a datagram reassembled here: its other fragments are analysed
-                got.fragments -= _fragment_frames(pkt, layers) - 1
+            whole = _fragment_frames(pkt, layers) if fragment and "udp" in layers else None
+            if whole is not None:    # a datagram reassembled here: its other fragments are analysed
+                got.fragments -= whole - 1
             elif fragment or "udp" not in layers:
                 got.non_udp += 1
                 got.fragments += fragment

@@ -82,6 +82,22 @@ def format_of(head: bytes, path: str) -> str:
     raise CaptureError(f"{path}: not a pcap or pcapng capture (magic 0x{magic_be:08x})")
 
 
+def _cut_fragment(data: bytes, pos: int, end: int) -> bool:
+    """Whether an IPv4 header the capture cut short still shows a fragment (Wireshark shows its
+    fields up to the cut)."""
+    if pos + 8 > end or data[pos] >> 4 != 4 or (data[pos] & 0x0F) * 4 < L.IPV4_MIN_HEADER:
+        return False
+    tot, frag = struct.unpack_from("!H2xH", data, pos + 2)
+    return not 0 < tot < (data[pos] & 0x0F) * 4 and bool(frag & L.IPV4_FRAGMENT_MASK)
+
+
+def _private(address: bytes) -> bool:
+    """An IPv4 address of a private network (RFC 1918) or link-local, whose fragments Wireshark
+    tells apart by VLAN (the same addresses may be in use on several)."""
+    a, b = address[0], address[1]
+    return a == 10 or (a == 172 and 16 <= b < 32) or (a, b) in ((192, 168), (169, 254))
+
+
 def _vlan_id(link: int, data: bytes, pos: int, end: int) -> int:
     """The VLAN a frame's IP packet came on, as Wireshark's reassembly tells copies of a fragment
     apart: the ID of its last tag other than 802.1ad (0 untagged)."""
@@ -648,6 +664,7 @@ class CaptureReader:
         if version == 4:
             if pos + L.IPV4_MIN_HEADER > end:
                 self.non_udp += 1
+                self.fragments += _cut_fragment(data, pos, end)
                 return None
             ihl = (data[pos] & 0x0F) * 4
             tot, frag = struct.unpack_from("!H2xH", data, pos + 2)
@@ -658,11 +675,15 @@ class CaptureReader:
             src = data[pos + 12:pos + 16]
             ip_end = pos + tot if tot else end
             if frag & L.IPV4_FRAGMENT_MASK:
-                key: tuple = (4, _vlan_id(link, data, start, end), src, data[pos + 16:pos + 20], proto,
-                              data[pos + 4:pos + 6])
-                whole = tot > ihl and ip_end <= end      # (Wireshark: recorded whole, not empty)
+                # (Wireshark: a total length of 0 is the frame's as sent; a fragment cut short, or
+                # empty, takes no part)
+                sent = pos + tot if tot else start + orig
+                dst = data[pos + 16:pos + 20]
+                vlan = _vlan_id(link, data, start, end) if _private(src) or _private(dst) else 0
+                key: tuple = (4, vlan, src, dst, proto, data[pos + 4:pos + 6])
+                whole = sent > pos + ihl and sent <= end
                 return self._fragment(key, (frag & 0x1FFF) * 8, bool(frag & 0x2000),
-                                      data[pos + ihl:ip_end] if whole else None, src, proto, frame)
+                                      data[pos + ihl:sent] if whole else None, src, proto, frame)
             pos += ihl
         else:
             if pos + L.IPV6_HEADER_LEN > end or data[pos] >> 4 != 6:

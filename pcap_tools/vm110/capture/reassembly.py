@@ -3,13 +3,13 @@
 fragments, and the base unit's IP stack (like Wireshark) receives the whole datagram.
 
 As in Wireshark's reassembly tables (epan/reassemble.c, read as a capture is read, one pass): the
-fragments of a datagram are those of one (source, destination, protocol, identification; IPv4
-also VLAN); it is whole once the fragment without "more fragments" has come and the fragments
-cover every byte up to its end (a fragment past it takes no part), and it is then taken at the
-frame that completed it, with that frame's time; where fragments overlap, the bytes placed first
-(lowest offset, then first arrived) stand; a fragment the capture did not record whole takes no
-part. A datagram completed is forgotten: copies of its fragments that follow (a mirror port)
-begin a new one, which is a copy of the datagram once it is whole again.
+fragments of a datagram are those of one (source, destination, protocol, identification; and VLAN,
+for IPv4 between private or link-local addresses); it is whole once the fragment without "more
+fragments" has come and the fragments cover every byte up to its end (a fragment past it takes no
+part), and it is then taken at the frame that completed it, with that frame's time; where fragments
+overlap, the bytes placed first (lowest offset, then first arrived) stand; a fragment the capture
+did not record whole takes no part. A datagram completed is forgotten: copies of its fragments that
+follow (a mirror port) begin a new one, which is a copy of the datagram once it is whole again.
 """
 from __future__ import annotations
 
