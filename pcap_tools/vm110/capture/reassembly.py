@@ -25,29 +25,46 @@ MAX_DATAGRAM = 1 << 16      # the largest IP payload a fragment offset and lengt
 
 
 class _Pending:
-    __slots__ = ("end", "frames", "parts")
+    __slots__ = ("end", "frames", "parts", "seen", "covered")
 
     def __init__(self) -> None:
         self.parts: list[tuple[int, int, bytes]] = []    # (offset, arrival, bytes)
         self.end: Optional[int] = None                   # the datagram's length, once its last fragment came
         self.frames = 0                                  # fragment frames taken in
+        # A byte per byte of the datagram, 1 once a fragment brought it, and how many of those lie
+        # below `end`: whether it is whole costs the fragment's own length, however many came
+        # (sorting every fragment again at each one was quadratic in a capture's fragments).
+        self.seen = bytearray()
+        self.covered = 0
+
+    def take(self, offset: int, more: bool, part: bytes) -> int:
+        """One fragment's bytes; how many bytes `seen` grew by."""
+        stop = offset + len(part)
+        grown = max(0, stop - len(self.seen))
+        self.seen.extend(bytes(grown))
+        if self.end is not None and offset < self.end:
+            self.covered += self.seen.count(0, offset, min(stop, self.end))
+        self.seen[offset:stop] = b"\x01" * len(part)
+        if not more and self.end is None:
+            self.end = stop
+            self.covered = self.seen.count(1, 0, stop)
+        self.parts.append((offset, self.frames, part))
+        return grown
 
     def whole(self) -> Optional[bytes]:
         """The datagram when every byte up to its end is here, else None."""
-        if self.end is None:
+        if self.end is None or self.covered < self.end:
             return None
         out = bytearray(self.end)
         reached = 0
         for offset, _, part in sorted(self.parts, key=lambda p: (p[0], p[1])):
             if reached >= self.end:         # (a fragment past the end takes no part)
                 break
-            if offset > reached:
-                return None
             stop = min(offset + len(part), self.end)
-            if stop > reached:
+            if stop > reached:              # (where fragments overlap, the bytes placed first stand)
                 out[reached:stop] = part[reached - offset:stop - offset]
                 reached = stop
-        return bytes(out) if reached >= self.end else None
+        return bytes(out)
 
 
 class Reassembly:
@@ -66,10 +83,7 @@ class Reassembly:
         pending.frames += 1
         if offset + len(part) > MAX_DATAGRAM:
             return None
-        pending.parts.append((offset, pending.frames, part))
-        self._bytes += len(part)
-        if not more and pending.end is None:
-            pending.end = offset + len(part)
+        self._bytes += len(part) + pending.take(offset, more, part)
         datagram = pending.whole()
         if datagram is not None:
             self._drop(key)
@@ -79,4 +93,5 @@ class Reassembly:
         return None
 
     def _drop(self, key: tuple) -> None:
-        self._bytes -= sum(len(part) for _, _, part in self._pending.pop(key).parts)
+        pending = self._pending.pop(key)
+        self._bytes -= len(pending.seen) + sum(len(part) for _, _, part in pending.parts)
