@@ -1905,7 +1905,17 @@ function burst.data(b)
     return data
 end
 
-local function new_sender(name, port)
+-- (Functions in a table: the main chunk's locals are limited to 200.)
+local sender_rec = {}
+
+-- A sender's name as analyze gives it, "Input 10.0.0.10:5825 origin 0x0101" (IPv6 in brackets): its
+-- statistics section, filtered or not.
+function sender_rec.name(direction, addr, port, origin)
+    local shown = addr:find(":", 1, true) and "[" .. addr .. "]" or addr
+    return fmt("%s %s:%d origin 0x%04x", direction, shown, port, origin)
+end
+
+function sender_rec.new(name, port)
     local snd = { name = name, port = port, count = {}, duplicates = 0, late = 0, retransmissions = 0,
         states = {}, commands = 0, acked = 0, interrupted = 0, epoch = 0, open = {},
         cmds = { VRCI = {}, VRCO = {} }, -- kind -> command ID -> the sender's latest command with it
@@ -1983,8 +1993,7 @@ local function sender_of(r, pinfo, t, frame)
     local addr = tostring(WS.src(pinfo))
     local snd = by_addr[addr]
     if snd then return snd end
-    local shown = addr:find(":", 1, true) and "[" .. addr .. "]" or addr -- (IPv6 in brackets, as analyze)
-    snd = new_sender(fmt("%s %s:%d origin 0x%04x", direction, shown, port, r.origin), port)
+    snd = sender_rec.new(sender_rec.name(direction, addr, port, r.origin), port)
     by_addr[addr] = snd
     local host = fmt("%s %d %s", direction, r.origin, addr)
     local others = hosts[host]
@@ -2639,8 +2648,8 @@ function filtered_stats.new(filter)
         local r = found.r
         if not r or found.number ~= pinfo.number then return end
         local list = acc.list
-        list[#list + 1] = { fmt("%s %s:%d origin 0x%04x", r.info.direction, tostring(pinfo.src), pinfo.src_port,
-            r.origin), r.type, found.number, found.offset }
+        list[#list + 1] = { sender_rec.name(r.info.direction, tostring(pinfo.src), pinfo.src_port, r.origin), r.type,
+            found.number, found.offset }
     end
     function tap.reset() acc.list = {} end
     acc.tap = tap
@@ -2663,7 +2672,7 @@ function filtered_stats.text(acc)
         end
         s.count[id] = (s.count[id] or 0) + 1
         local res = memo_get(results, p[3], p[4])
-        local iv = res
+        local iv = type(res) == "number" and res >= 0 and res -- (a number result: -1 for no interval)
         if type(res) == "table" then
             iv = res.interval
             local missing = res.serial
@@ -2690,7 +2699,7 @@ function filtered_stats.text(acc)
             end
             if res.silent then s.silent[id] = { res.silent, p[3] } end
         end
-        if type(iv) == "number" and iv >= 0 and (id == "VRPI" or id == "VRPO") then
+        if iv and (id == "VRPI" or id == "VRPO") then -- (a negative one, time going back, counts: as unfiltered)
             local st = s.intervals[id]
             if not st then
                 st = { n = 0, sum = 0, min = iv, max = iv }

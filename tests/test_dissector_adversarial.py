@@ -1,0 +1,112 @@
+"""The dissector's stream analysis on adversarial traffic written by a capture writer of its own
+(tests/own_capture.py: every byte from TS-0006, nothing from vm110's encoder) and judged by rules
+of its own (tests/own_rules.py, from interpretation.md): two base units and two controllers behind
+two addresses, serials across the 65535 wrap, senders restarting (serials afresh, on a new port
+after a reboot), several commands open at once, command IDs shared by two base units and reused,
+acks reordered before their command, copies (from a mirror, and held back past the duplicate
+window), VRPO bursts of up to three packets with parts lost, bad CRCs, datagrams cut short,
+unknown IDs and other UDP on the EG-Link ports. Packet by packet against the rules, and the totals
+against `vm110 analyze`; then `-z vm110,stat,FILTER` against `-z vm110,stat`."""
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+import own_capture as O
+import own_rules as R
+import test_dissector_analysis as A
+import test_dissector_stats as S
+import tshark_runner as T
+from vm110.analysis import analyze
+from vm110.analysis.report import Options
+
+pytestmark = pytest.mark.tshark
+
+
+def observed(r: A.Row) -> dict:
+    """What the dissector says of one legal packet, in own_rules' terms."""
+    e = R.Expect(
+        duplicate=bool(r.get("vm110.analysis.serial_duplicate")),
+        out_of_order=bool(r.get("vm110.analysis.serial_out_of_order")),
+        missing=r.int("vm110.analysis.serial_missing") or 0,
+        restart=r.int("vm110.analysis.restart"), port_from=r.int("vm110.analysis.restart_port_from"),
+        retransmission_of=r.int("vm110.analysis.retransmission_of"),
+        retransmission_number=r.int("vm110.analysis.retransmission_number"),
+        spurious=r.has("spurious_retransmission"), ack_to=r.int("vm110.analysis.ack_to"),
+        ack_time_ms=r.float("vm110.analysis.ack_time"), ack_time_last_ms=r.float("vm110.analysis.ack_time_last"),
+        ack_in=r.int("vm110.analysis.ack_in"), interrupted_by=r.int("vm110.analysis.interrupted_by"),
+        ack_without_command=r.has("ack_without_command"), duplicate_ack=r.has("duplicate_ack"))
+    return rounded(e)
+
+
+def rounded(e: R.Expect) -> dict:
+    d = dict(vars(e))
+    for key in ("ack_time_ms", "ack_time_last_ms"):
+        if d[key] is not None:
+            d[key] = round(d[key], 3)
+    return d
+
+
+def differences(rows: list[A.Row], want: dict[int, R.Expect]) -> dict:
+    out = {}
+    for r in rows:
+        got = observed(r) if r.legal else None
+        expected = rounded(want[r.number]) if r.number in want else None
+        if got != expected:
+            out[r.number] = (got, expected)
+    return out
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+@settings(max_examples=2, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+@given(rnd=st.randoms(use_true_random=False))
+def test_random_streams_follow_the_rules_and_count_as_analyze(tshark, rnd):
+    frames = O.traffic(rnd, seconds=3.0)
+    want = R.Model().run(frames)
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            with tshark.workspace(Path(tmp)) as ws:
+                pcap = ws.dir / "adversarial.pcap"
+                O.write(pcap, frames)
+                rows, _ = A.run_fields(ws, pcap, ["-2"])
+                report = analyze(str(pcap), options=Options(serial_scope="sender"))
+        except T.TsharkUnavailable as exc:
+            pytest.fail(str(exc))
+    assert len(rows) == len(frames)
+    differ = differences(rows, want)
+    assert not differ, f"{len(differ)} frames, e.g. {list(differ.items())[:3]}"
+    got, counted = A.dissector_counts(rows), A.report_counts(report)
+    keys = [k for k in set(got) | set(counted) if got[k] != counted[k]]
+    assert {k: got[k] for k in keys} == {k: counted[k] for k in keys}
+
+
+def _appended_with_ipv6(rnd) -> list:
+    """Two runs of traffic appended (the second starts before the first ended: `mergecap -a`), with
+    a base unit on IPv6."""
+    first, second = O.traffic(rnd, 2.0), O.traffic(rnd, 2.0)
+    v6 = [O.Frame(50_000 + 125_000 * i, O.vrpi(i, 0x0303), "fe80::10", 5825, 5825) for i in range(12)]
+    return sorted(first + v6, key=lambda f: f.time_us) + [
+        O.Frame(f.time_us + 1_000_000, f.payload, f.src, f.sport, f.dport) for f in second]
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_a_filter_matching_every_packet_gives_the_whole_statistics(tshark, tmp_path):
+    """`-z vm110,stat,vm110` left out the negative intervals of a clock stepping back (appended
+    captures), which `-z vm110,stat` and analyze count (a VRPI min of 38 ms, not -1317 ms), and named
+    an IPv6 sender `Input fe80::10:5825`, where the whole statistics and analyze say `[fe80::10]:5825`."""
+    import random
+    frames = _appended_with_ipv6(random.Random(20261129))
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            pcap = ws.dir / "appended.pcap"
+            O.write(pcap, frames)
+            whole, every = (ws.run(["-r", str(pcap), "-q", "-z", arg]).stdout
+                            for arg in ("vm110,stat", "vm110,stat,vm110"))
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert "Sender Input [fe80::10]:5825 origin 0x0303" in whole
+    assert "min -" in whole, "a negative interval: the clock stepped back"
+    assert S._sections(every) == S._sections(whole)
