@@ -110,3 +110,30 @@ def test_a_filter_matching_every_packet_gives_the_whole_statistics(tshark, tmp_p
     assert "Sender Input [fe80::10]:5825 origin 0x0303" in whole
     assert "min -" in whole, "a negative interval: the clock stepped back"
     assert S._sections(every) == S._sections(whole)
+
+
+def _readme_filter(meaning: str) -> str:
+    block = (T.REPO / "README.md").read_text().split("**Stream analysis filters**", 1)[1].split("```", 2)[1]
+    return next(line.split("   ")[0].strip() for line in block.splitlines() if meaning in line)
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_the_slow_acknowledgements_filter_shows_acks_not_their_duplicates(tshark, tmp_path):
+    """The README's `vm110.analysis.ack_time > 150` ("slow acknowledgements") also showed duplicate
+    acks, which carry an ack_time too: on loss.pcapng its only frame was a duplicate ack. It shows
+    the first acks of the commands acknowledged more than 150 ms after their first transmission, as
+    analyze lists them."""
+    expression = _readme_filter("slow acknowledgements")
+    for name in ("loss.pcapng", "retransmit.pcap"):
+        capture = A.CAPTURES / name
+        report = A.report_of(capture, "sender")
+        want = sorted(c["ack_frame"] for kind in ("VRCI", "VRCO") for c in report["commands"][kind]["list"]
+                      if c["ack_frame"] is not None and c["latency_first_ms"] > 150)
+        try:
+            with tshark.workspace(tmp_path) as ws:
+                local = ws.dir / name
+                local.write_bytes(capture.read_bytes())
+                shown = ws.run(["-r", str(local), "-2", "-Y", expression, "-T", "fields", "-e", "frame.number"])
+        except T.TsharkUnavailable as exc:
+            pytest.fail(str(exc))
+        assert sorted(map(int, shown.stdout.split())) == want, name
