@@ -54,7 +54,7 @@ class Counter:
     accepted: dict = field(default_factory=dict)     # serial -> time last accepted
     gaps: dict = field(default_factory=dict)         # missing serial -> time its gap opened
     times: list = field(default_factory=list)        # times of accepted packets
-    candidate: Optional[tuple] = None                # (serial, time, frame)
+    candidate: Optional[tuple] = None                # (serial, time, frame, [confirmed?])
 
     def accept(self, s: int, t: float) -> None:
         self.accepted[s] = t
@@ -152,20 +152,22 @@ class Model:
             c.accept(s, t)
         else:
             if c.candidate is not None and s != c.candidate[0]:
-                cs, ct, cframe = c.candidate
+                cs, ct, cframe, decision = c.candidate
                 c.candidate = None
                 self.waiting.discard(id(c))
                 if 1 <= (s - cs) % MOD <= 4:             # confirmed: a restart at the candidate
                     ce = self.out[cframe]
                     ce.out_of_order, ce.restart = False, c.h
-                    self.interrupt(snd.key, ct, cframe)
+                    decision[0] = True
                     snd.counter = c = Counter(cs, ct)
                     c.accept(cs, ct)
                 self.later(None)
             if not self.serial(c, s, t, e, number):
                 return                                    # a duplicate takes no further part
-            if c.candidate is not None:
+            if c.candidate is not None:                   # the commands from here on wait for it
                 self.waiting.add(id(c))
+                decision = c.candidate[3]
+                self.later(lambda: decision[0] and self.interrupt(snd.key, t, number))
         if kind in (b"VRCI", b"VRCO"):
             cid = struct.unpack_from("<H", f.payload, 16)[0]
             self.later(lambda: self.command(kind, snd.key, cid, number, t, e))
@@ -193,7 +195,7 @@ class Model:
             c.h = s
         else:
             e.out_of_order = True                         # until a next packet confirms it
-            c.candidate = (s, t, number)
+            c.candidate = (s, t, number, [False])
         c.accept(s, t)
         return True
 
