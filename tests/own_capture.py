@@ -138,6 +138,7 @@ def traffic(rnd, seconds: float = 6.0) -> list[Frame]:
                 emit(t + 300 * n, ctl, lambda sn, n=n, size=size: vrpo(sn, n, size))
             t += 100_000 + rnd.randrange(-5000, 5000)
     # commands: each resent every 100 ms until acked (the ack may be lost, late or never sent)
+    restarts = {id(s): rnd.randrange(end) for s in bus + ctls if rnd.random() < 0.3}
     cid = {id(s): rnd.choice([65534, rnd.randrange(65536)]) for s in bus + ctls}
     for _ in range(rnd.randrange(2, 12)):
         sender = rnd.choice(bus + ctls)
@@ -151,6 +152,8 @@ def traffic(rnd, seconds: float = 6.0) -> list[Frame]:
         c = cid[id(sender)]
         t0 = rnd.randrange(end)
         sends = rnd.randrange(1, 6)
+        if rnd.random() < 0.2:                 # its sender restarts while the command is open
+            restarts[id(sender)] = t0 + rnd.randrange(1, 250_000)
         for k in range(sends):
             emit(t0 + 100_000 * k + rnd.randrange(-2000, 2000), sender,
                  lambda sn, c=c, o=sender.origin, kind=kind: command(kind, sn, c, o))
@@ -158,7 +161,6 @@ def traffic(rnd, seconds: float = 6.0) -> list[Frame]:
             t_ack = t0 + 100_000 * (sends - 1) + rnd.randrange(-30_000, 60_000)
             emit(t_ack, peer, lambda sn, c=c, o=peer.origin, k=ack_kind: ack(k, sn, c, o))
     planned.sort(key=lambda p: (p[0], p[1]))
-    restarts = {id(s): rnd.randrange(end) for s in bus + ctls if rnd.random() < 0.3}
     moved: dict[int, int] = {}
     rebooting: dict[int, int] = {}
     events = []
@@ -167,6 +169,10 @@ def traffic(rnd, seconds: float = 6.0) -> list[Frame]:
         if at is not None and t >= at:
             del restarts[id(s)]
             s.serial = rnd.choice([0, 1, rnd.randrange(65536)])
+            if rnd.random() < 0.35:    # one packet at once, then silent past the 10 s a candidate holds commands
+                events.append(Frame(t, payload_of(s.next_serial()), s.src, s.sport, 5825 if s in bus else 5827))
+                rebooting[id(s)] = t + 10_000_000 + rnd.randrange(2_000_000)
+                continue
             rebooting[id(s)] = t + rnd.choice([0, 100_000, 400_000, 3_000_000])
             if rnd.random() < 0.5:
                 moved[id(s)] = 50_000 + rnd.randrange(1000)

@@ -12,7 +12,7 @@ from typing import Optional
 
 from own_capture import PAYLOAD_SIZE, Frame, crc_mpeg2
 
-DUP_WINDOW, REUSE_GAP, FAIL, NEW_PORT_SILENCE, RATE_WINDOW = 1.0, 2.0, 2.0, 0.25, 10.0
+DUP_WINDOW, REUSE_GAP, FAIL, NEW_PORT_SILENCE, RATE_WINDOW, CANDIDATE_WAIT = 1.0, 2.0, 2.0, 0.25, 10.0, 10.0
 MOD = 65536
 
 
@@ -92,7 +92,7 @@ class Model:
         self.out: dict[int, Expect] = {}
         self.senders: dict[tuple, Sender] = {}
         self.commands: list[Command] = []
-        self.waiting: set[int] = set()               # counters with an undecided restart candidate
+        self.waiting: dict[int, tuple] = {}          # counters with an undecided restart candidate: (time, decision)
         self.queue: list = []                        # command events behind them, in order
 
     def run(self, frames: list[Frame]) -> dict[int, Expect]:
@@ -102,6 +102,14 @@ class Model:
         self.waiting.clear()
         self.later(None)
         return self.out
+
+    def release(self, t: float) -> None:
+        """A candidate holds the command events 10 s at most: then they run as if it were none."""
+        for key, (since, decision) in list(self.waiting.items()):
+            if t - since >= CANDIDATE_WAIT:
+                decision[0] = "released"
+                del self.waiting[key]
+        self.later(None)
 
     def later(self, event) -> None:
         """Command events wait while a restart candidate is undecided (it may interrupt commands)."""
@@ -144,6 +152,7 @@ class Model:
         t = f.time_us / 1e6
         direction = "Input" if kind.endswith(b"I") else "Output"
         self.out[number] = e = Expect()
+        self.release(t)
         snd = self._sender(number, f, direction, origin, t)
         snd.last = t
         c = snd.counter
@@ -154,20 +163,20 @@ class Model:
             if c.candidate is not None and s != c.candidate[0]:
                 cs, ct, cframe, decision = c.candidate
                 c.candidate = None
-                self.waiting.discard(id(c))
+                self.waiting.pop(id(c), None)
                 if 1 <= (s - cs) % MOD <= 4:             # confirmed: a restart at the candidate
                     ce = self.out[cframe]
                     ce.out_of_order, ce.restart = False, c.h
-                    decision[0] = True
+                    decision[0] = decision[0] or "restart"   # (released: it changes no command)
                     snd.counter = c = Counter(cs, ct)
                     c.accept(cs, ct)
                 self.later(None)
             if not self.serial(c, s, t, e, number):
                 return                                    # a duplicate takes no further part
             if c.candidate is not None:                   # the commands from here on wait for it
-                self.waiting.add(id(c))
                 decision = c.candidate[3]
-                self.later(lambda: decision[0] and self.interrupt(snd.key, t, number))
+                self.waiting[id(c)] = (t, decision)
+                self.later(lambda: decision[0] == "restart" and self.interrupt(snd.key, t, number))
         if kind in (b"VRCI", b"VRCO"):
             cid = struct.unpack_from("<H", f.payload, 16)[0]
             self.later(lambda: self.command(kind, snd.key, cid, number, t, e))
@@ -195,7 +204,7 @@ class Model:
             c.h = s
         else:
             e.out_of_order = True                         # until a next packet confirms it
-            c.candidate = (s, t, number, [False])
+            c.candidate = (s, t, number, [None])
         c.accept(s, t)
         return True
 
