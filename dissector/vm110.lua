@@ -1965,14 +1965,16 @@ local function join_burst(cur, res, frame, number, data, size)
     return res
 end
 
--- The highest serial of a sender's counter (per-type scope: of this type's, else the last used).
+-- The highest serial of a sender's counter (per-type scope: of this type's, else of the counter
+-- of its last legal packet, a duplicate included).
 local function highest(snd, id)
     local c = counters[snd]
     if not c or not settings.per_type then return c and c.h end
     if c[id] then return c[id].h end
-    local best = false
+    local best, best_t = false, false
     for _, x in pairs(c) do
-        if not best or x.prev > best.prev then best = x end
+        local last = x.dup and x.dup > x.prev and x.dup or x.prev
+        if not best or last > best_t then best, best_t = x, last end
     end
     return best and best.h
 end
@@ -2059,6 +2061,7 @@ local function analyse(r, s, pinfo, frame, offset)
         local missing = classify(c, serial, now)
         if missing == DUPLICATE then
             snd.duplicates = snd.duplicates + 1
+            c.dup = now -- (a legal packet all the same: highest() may need the counter of the last one)
             return DUP_RES
         elseif missing ~= 0 then
             res = { serial = missing }

@@ -137,3 +137,34 @@ def test_the_slow_acknowledgements_filter_shows_acks_not_their_duplicates(tshark
         except T.TsharkUnavailable as exc:
             pytest.fail(str(exc))
         assert sorted(map(int, shown.stdout.split())) == want, name
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_new_port_restart_from_the_counter_of_the_last_legal_packet_a_duplicate_too(tshark, tmp_path):
+    """Per-type counters: a base unit's last legal packet on its old port is a copy of its VRCI
+    (serial 5; its VRPI counter reached 9), then it comes back on a new port with a VRAI, a type it
+    had not sent. rules.md: `from` is the highest serial of the counter of its last legal packet,
+    the VRCI's: 5, as analyze says. The dissector took the counter that last accepted a packet, 9."""
+    bu = [O.Frame(125_000 * i, O.vrpi(i, 0x0101), "10.0.0.10", 5825, 5825) for i in range(10)]
+    bu[9] = O.Frame(1_125_000, bu[9].payload, "10.0.0.10", 5825, 5825)
+    vrci = O.command(b"VRCI", 5, 77, 0x0101)
+    frames = sorted(bu + [O.Frame(1_050_000, vrci, "10.0.0.10", 5825, 5825),
+                          O.Frame(1_100_000, O.ack(b"VRAO", 0, 77), "10.0.0.20", 5827, 5827),
+                          O.Frame(1_200_000, vrci, "10.0.0.10", 5825, 5825)], key=lambda f: f.time_us)
+    frames += [O.Frame(2_000_000 + 100_000 * k, O.ack(b"VRAI", 40 + k, 3, 0x0101), "10.0.0.10", 40001, 5825)
+               for k in range(2)]
+    prefs = {**A.ON, "vm110.serial_scope": "type"}
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            pcap = ws.dir / "new-port.pcap"
+            O.write(pcap, frames)
+            rows = {r.number: r for r in A.run_fields(ws, pcap, ["-2"], prefs=prefs)[0]}
+            stat = ws.run(["-r", str(pcap), "-q", "-z", "vm110,stat", *T.pref_args(prefs)]).stdout
+            report = analyze(str(pcap), options=Options(serial_scope="type"))
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert rows[13].get("vm110.analysis.serial_duplicate") and rows[13].get("vm110.type") == "VRCI"
+    assert (rows[14].int("vm110.analysis.restart"), rows[14].int("vm110.analysis.restart_port_from")) == (5, 5825)
+    event = next(e for s in report["senders"] for e in s["serial"]["restart_events"])
+    assert (event["frame"], event["from"], event["to"]) == (14, 5, 40)
+    assert "Restart in frame 14: serial 5 -> 40, port 5825 -> 40001" in stat
