@@ -1922,6 +1922,7 @@ function sender_rec.new(name, port)
         restarts = {},  -- restart records, in order
         last = false,   -- time of its last legal packet
         pred = false, taken_over = false, -- new-port restarts: the sender it restarted, the one restarting it
+        last_counter = false, -- (per-type scope) the counter of its last legal packet
         intervals = {}, -- type -> {last = time, frame, offset, n, min, max, sum}
         -- the current VRPO burst while it has one packet: no table of its own (most bursts)
         burst = { b = false, tlast = false, tstart = false, offset = false, frame = false, number = false,
@@ -1970,13 +1971,7 @@ end
 local function highest(snd, id)
     local c = counters[snd]
     if not c or not settings.per_type then return c and c.h end
-    if c[id] then return c[id].h end
-    local best, best_t = false, false
-    for _, x in pairs(c) do
-        local last = x.dup and x.dup > x.prev and x.dup or x.prev
-        if not best or last > best_t then best, best_t = x, last end
-    end
-    return best and best.h
+    return (c[id] or snd.last_counter).h
 end
 
 -- Senders by (origin, port, direction) then source address: no string built per packet. A new
@@ -2048,6 +2043,7 @@ local function analyse(r, s, pinfo, frame, offset)
             by_type[id] = c
             snd.states[#snd.states + 1] = c
         end
+        snd.last_counter = c -- (a restart on a new port may need it: highest(); per-type scope only)
     else
         c = counters[snd]
         if not c then
@@ -2061,7 +2057,6 @@ local function analyse(r, s, pinfo, frame, offset)
         local missing = classify(c, serial, now)
         if missing == DUPLICATE then
             snd.duplicates = snd.duplicates + 1
-            c.dup = now -- (a legal packet all the same: highest() may need the counter of the last one)
             return DUP_RES
         elseif missing ~= 0 then
             res = { serial = missing }

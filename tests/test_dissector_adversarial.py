@@ -168,3 +168,32 @@ def test_new_port_restart_from_the_counter_of_the_last_legal_packet_a_duplicate_
     event = next(e for s in report["senders"] for e in s["serial"]["restart_events"])
     assert (event["frame"], event["from"], event["to"]) == (14, 5, 40)
     assert "Restart in frame 14: serial 5 -> 40, port 5825 -> 40001" in stat
+
+
+@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+def test_new_port_restart_from_the_last_packet_at_a_shared_timestamp(tshark, tmp_path):
+    """Per-type counters whose last packets share one timestamp: the counter of the last legal
+    packet is the one that arrived last. Two base units differ only in that order (VRCI 5 after VRPI
+    108, and before it); the dissector judged by time, and a tie went by Lua's table order (random
+    from run to run): one of the two was wrong whatever the order."""
+    frames = []
+    for k, vrci_last in enumerate((True, False)):
+        origin, port = 0x0101 * (k + 1), 5825 + k
+        vrpi = [O.Frame(125_000 * i, O.vrpi(100 + i, origin), "10.0.0.10", port, 5825) for i in range(9)]
+        vrci = O.Frame(1_000_000, O.command(b"VRCI", 5, 77, origin), "10.0.0.10", port, 5825)
+        frames += vrpi + [vrci] if vrci_last else vrpi[:-1] + [vrci, vrpi[-1]]
+        frames += [O.Frame(2_000_000 + 100_000 * j, O.ack(b"VRAI", 40 + j, 3, origin), "10.0.0.10", 40001 + k, 5825)
+                   for j in range(2)]
+    frames.sort(key=lambda f: f.time_us)                   # (stable: the order at 1 s stays)
+    prefs = {**A.ON, "vm110.serial_scope": "type"}
+    try:
+        with tshark.workspace(tmp_path) as ws:
+            pcap = ws.dir / "tie.pcap"
+            O.write(pcap, frames)
+            rows = A.run_fields(ws, pcap, ["-2"], prefs=prefs)[0]
+            report = analyze(str(pcap), options=Options(serial_scope="type"))
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    got = {r.int("vm110.origin"): r.int("vm110.analysis.restart") for r in rows if r.get("vm110.analysis.restart")}
+    assert got == {0x0101: 5, 0x0202: 108}
+    assert {s["origin"]: e["from"] for s in report["senders"] for e in s["serial"]["restart_events"]} == got
