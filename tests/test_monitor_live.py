@@ -100,6 +100,42 @@ def test_watchdog_alarm_evidence_and_recovery_on_a_live_link(netns, tmp_path):
     assert lo["name"] == "lo" and lo["ifdrop"] is not None
 
 
+_SEND_FRAGMENTED = """
+import socket, sys, time
+from vm110 import constants as C, encode
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+s.setsockopt(socket.IPPROTO_IP, 10, 0)       # IP_MTU_DISCOVER: IP_PMTUDISC_DONT, fragmented
+s.bind((sys.argv[1], 5827))
+for serial in range(5):
+    s.sendto(encode.packet(C.PacketType.VRPO, encode.vrpo_payload(0, bytes(488)), serial=serial), (sys.argv[2], 5827))
+    time.sleep(0.05)
+"""
+
+
+@pytest.mark.skipif(shutil.which("dumpcap") is None, reason="dumpcap not installed")
+def test_a_vrpo_fragmented_by_a_small_mtu_is_monitored_whole(netns, tmp_path):
+    """A VRPO of 488 data bytes over a link of MTU 400 arrives in IP fragments, which the base
+    unit's stack and `analyze` put back together; dumpcap's filter kept only the first fragment
+    (the others show no UDP port), so that the monitor counted no VRPO and raised its watchdog."""
+    ns = ["ip", "netns", "exec", netns]
+    subprocess.run(["ip", "-n", netns, "link", "set", "lo", "mtu", "400"], check=True)
+    report = tmp_path / "report.json"
+    monitor = subprocess.Popen(ns + VM110 + ["monitor", "-i", "lo", "--no-dashboard", "--quiet", "--duration", "60",
+                                             "--json", str(report)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    time.sleep(1.5)                     # dumpcap running before the traffic starts
+    if monitor.poll() is not None:
+        pytest.skip(f"dumpcap cannot capture here: {monitor.communicate()[1].decode().strip()}")
+    subprocess.run(ns + [sys.executable, "-c", _SEND_FRAGMENTED, CTL, BU], check=True, timeout=30,
+                   env={**os.environ, "PYTHONPATH": str(ROOT / "pcap_tools")})
+    time.sleep(0.5)
+    monitor.send_signal(signal.SIGINT)
+    _, err = monitor.communicate(timeout=60)
+    got = json.loads(report.read_text())
+    assert monitor.returncode in (0, 1), err.decode()
+    assert (got["capture"]["eglink_packets"], got["capture"]["fragments"]) == (5, 0)
+    assert got["senders"][0]["by_type"] == {"VRPO": 5} and got["vrpo_bursts"]["complete"] == 5
+
+
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux not installed")
 def test_dashboard_in_tmux(tmp_path):
     capture = ROOT / "captures" / "bu-watchdog.pcap"     # controller silent 3.1 s from 4.9 s on

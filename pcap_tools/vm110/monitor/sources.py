@@ -164,16 +164,25 @@ class FollowFile(Source):
         self.file.close()
 
 
+def capture_filter(ports: tuple[int, ...]) -> str:
+    """dumpcap's filter: UDP to or from the EG-Link ports, and every IP fragment but an IPv4 first
+    one (which shows its ports): a VRPO fragmented by a small MTU is reassembled by the reader, as
+    Wireshark and `analyze` do, and the fragments after its first show no port (the IPv6 ones not
+    even UDP, behind their fragment header)."""
+    return (f"(udp and ({' or '.join(f'port {p}' for p in ports)})) or (ip[6:2] & 0x1fff != 0)"
+            " or (ip6 and ip6[6] == 44)")
+
+
 class Dumpcap(Source):
-    """Wireshark's capture engine on interface `iface`, filtered to the EG-Link ports, its pcapng
-    read from a pipe as it arrives."""
+    """Wireshark's capture engine on interface `iface`, filtered to the EG-Link ports and IP
+    fragments (`capture_filter`), its pcapng read from a pipe as it arrives."""
 
     def __init__(self, iface: str, ports: tuple[int, ...]) -> None:
         self.name = iface
         exe = shutil.which("dumpcap")
         if exe is None:
             raise CliError("dumpcap not found: install Wireshark's capture engine (Debian: tshark or wireshark-common)")
-        flt = "udp and (" + " or ".join(f"port {p}" for p in ports) + ")"
+        flt = capture_filter(ports)
         self.errors = tempfile.TemporaryFile()   # noqa: SIM115 -- dumpcap's stderr while it runs; close()
         setpriv = shutil.which("setpriv")
         tie = [setpriv, "--pdeathsig", "TERM", "--"] if setpriv else []
