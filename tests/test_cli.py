@@ -67,9 +67,10 @@ def test_decode_says_which_frames_it_could_not_read(tmp_path):
 
 
 def test_decode_says_which_frames_may_carry_packets_it_did_not_decode(tmp_path, capsys):
-    """An EG-Link packet in IP fragments, in IP in IP or in VXLAN: decode printed "0 EG-Link
-    packets" and nothing else, where `vm110 dissect` shows each (Wireshark reassembles and unwraps;
-    `analyze` warns ip_fragments and tunnels)."""
+    """An EG-Link packet in IP fragments of a datagram never whole, in IP in IP or in VXLAN: decode
+    printed "0 EG-Link packets" and nothing else, where `vm110 dissect` shows each (Wireshark
+    unwraps; `analyze` warns ip_fragments and tunnels). A datagram whose fragments all came is
+    reassembled and decoded, as Wireshark does."""
     from scapy.layers.inet import IP, UDP, fragment
     from scapy.layers.l2 import Ether
     from scapy.layers.vxlan import VXLAN
@@ -77,16 +78,18 @@ def test_decode_says_which_frames_may_carry_packets_it_did_not_decode(tmp_path, 
     from vm110.cli import main
     from vm110.layers import VM110, VRAO, VRPO
     inner = IP(src="10.0.0.20", dst="239.255.42.20") / UDP(sport=5827, dport=5827) / VM110() / VRAO(command_id=4)
-    frames = [*fragment(Ether() / IP(src="10.0.0.20", dst="239.255.42.20") / UDP(sport=5827, dport=5827)
-                        / VM110() / VRPO(periodic_data=bytes(400)), fragsize=200),
+    whole, cut = (fragment(Ether() / IP(src="10.0.0.20", dst="239.255.42.20", id=n) / UDP(sport=5827, dport=5827)
+                           / VM110(serial=n) / VRPO(periodic_data=bytes(400)), fragsize=200) for n in (1, 2))
+    frames = [*whole, *cut[:-1],
               Ether() / IP(src="10.0.0.1", dst="10.0.0.2") / inner,
               Ether() / IP(src="10.0.0.1", dst="10.0.0.2") / UDP(sport=40000, dport=4789) / VXLAN() / Ether() / inner]
     capture = tmp_path / "wrapped.pcap"
     wrpcap(str(capture), frames)
     assert main(["decode", str(capture)]) == EXIT_OK
     out, err = capsys.readouterr()
-    assert out == "0 EG-Link packets\n"
-    assert err == ("vm110 decode: 3 IP fragments not reassembled: EG-Link packets in them are not decoded "
+    assert out.endswith(" 10.0.0.20:5827        VRPO serial=1 packet_number=0\n1 EG-Link packet\n")
+    assert out.startswith("     3 ") and out.count("\n") == 2
+    assert err == ("vm110 decode: 2 IP fragments of datagrams never whole: EG-Link packets in them are not decoded "
                    "(`vm110 dissect` reads what Wireshark reads)\n"
                    "vm110 decode: 2 frames of tunnels not unwrapped (IP in IP, GRE with ERSPAN, VXLAN, GENEVE): "
                    "EG-Link packets in them are not decoded (`vm110 dissect` reads what Wireshark reads)\n")
@@ -140,7 +143,7 @@ def test_decode_hex_gives_the_fields_of_the_shared_vectors():
             assert {k: got[k] for k in vector["fields"]} == vector["fields"], vector["name"]
             assert (sorted(got["problems"]), sorted(got["warnings"])) == (vector["problems"], vector["warnings"])
     spaced = "56:52:41:4f 00 00 00 00 03 00 02 00 00 00 00 00 04 00 bf 66 3c fc"    # VRAO 4, serial 3
-    assert _decode_hex([spaced]) == (EXIT_OK, "     1 VRAO serial=3 command_id=4\n1 EG-Link packets\n", "")
+    assert _decode_hex([spaced]) == (EXIT_OK, "     1 VRAO serial=3 command_id=4\n1 EG-Link packet\n", "")
     lines = f"{spaced.replace(':', '')}\n\n{spaced[:20]}\n".encode()      # a blank line is none; one cut short
     assert _decode_hex(["-"], lines) == (EXIT_OK, ("     1 VRAO serial=3 command_id=4\n"
                                                    "     2 VRAO serial=? ILLEGAL(truncated)\n2 EG-Link packets\n"), "")

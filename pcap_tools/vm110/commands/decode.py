@@ -62,11 +62,12 @@ def eglink_datagrams(reader: CaptureReader, port: int) -> Iterator[tuple[int, fl
 
 def unread_notes(reader: CaptureReader) -> list[str]:
     """What the reader passed over that may carry EG-Link packets, which `vm110 dissect` reads: frames
-    of link types it does not read, IP fragments (not reassembled) and tunnels (not unwrapped)."""
+    of link types it does not read, IP fragments of datagrams never whole (the others are
+    reassembled, as Wireshark does) and tunnels (not unwrapped)."""
     instead = "`vm110 dissect` reads what Wireshark reads"
     notes = [unread(reader.unknown_link, reader.link_types, instead)] if reader.unknown_link else []
     if reader.fragments:
-        notes.append(f"{plural(reader.fragments, 'IP fragment')} not reassembled: EG-Link packets in them are "
+        notes.append(f"{plural(reader.fragments, 'IP fragment')} of datagrams never whole: EG-Link packets in them are "
                      f"not decoded ({instead})")
     if reader.tunnelled:
         notes.append(f"{plural(reader.tunnelled, 'frame')} of tunnels not unwrapped (IP in IP, GRE with ERSPAN, "
@@ -164,7 +165,7 @@ def run_hex(args: argparse.Namespace) -> int:
         count += 1
         print(json.dumps({"datagram": count, **_decoded(fields)}) if args.json else f"{count:>6} {_text(fields)}")
     if not args.json:
-        print(f"{count} EG-Link packets")
+        print(plural(count, "EG-Link packet"))
     return 0
 
 
@@ -188,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
             count += 1
             print((_json if args.json else _line)(number, when, start, src, fields))
     if not args.json:
-        print(f"{count} EG-Link packets")
+        print(plural(count, "EG-Link packet"))
     for note in unread_notes(reader):    # (else "0 EG-Link packets" would read as a capture without any)
         print(f"vm110 decode: {note}", file=sys.stderr)
     if reader.problem is not None:
