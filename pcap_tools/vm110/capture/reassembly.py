@@ -25,7 +25,7 @@ MAX_DATAGRAM = 1 << 16      # the largest IP payload a fragment offset and lengt
 
 
 class _Pending:
-    __slots__ = ("end", "frames", "parts", "seen", "covered")
+    __slots__ = ("covered", "end", "frames", "parts", "seen")
 
     def __init__(self) -> None:
         self.parts: list[tuple[int, int, bytes]] = []    # (offset, arrival, bytes)
