@@ -296,9 +296,10 @@ def test_folder_without_captures(tmp_path):
     one_line_error(vm110("fleet", "build", str(tmp_path / "missing"), "--out", str(tmp_path / "ds")), "no such")
 
 
-@pytest.mark.parametrize("version", [99, 1])
+@pytest.mark.parametrize("version", [99, 1, 5])
 def test_dataset_of_another_version(version, src, built, tmp_path):
-    """(1: built before the severity note; its warnings would have mixed with a new build's notes.)"""
+    """(1: built before the severity note; its warnings would have mixed with a new build's notes.
+    5: built before IP reassembly; a fragmented VRPO missing from its rows, present in a new build's.)"""
     manifest = built / "manifest.json"
     doc = json.loads(manifest.read_text())
     doc["format_version"] = version

@@ -41,8 +41,9 @@ FORMAT = "vm110-fleet"
 # acknowledgement findings (rows of 2 have none). 4: the revised `auto` serial scope (rows of 3
 # judged some per-type devices with one counter: false out-of-order packets, losses missed). 5: a
 # restart confirmed 10 s or more after its candidate changes no command (rules.md rule 5; rows of 4
-# counted the commands it interrupted).
-FORMAT_VERSION = 5
+# counted the commands it interrupted). 6: IP fragments reassembled (rows of 5 left out the EG-Link
+# packets of fragmented datagrams: a VRPO over a small MTU missing, its fragments counted).
+FORMAT_VERSION = 6
 MANIFEST = "manifest.json"
 JOURNAL = "journal"                # batches of a running build's updates to the manifest
 MAX_MANIFEST_BYTES = 256 << 20
