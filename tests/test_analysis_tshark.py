@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import os
 import shutil
 import signal
 import struct
@@ -66,6 +67,18 @@ def test_the_user_s_wireshark_preferences_change_no_number(tmp_path, monkeypatch
     monkeypatch.delenv("XDG_CONFIG_HOME", raising=False)
     monkeypatch.delenv("WIRESHARK_CONFIG_DIR", raising=False)
     assert_same(str(CAPTURES / "illegal.pcap"))
+
+
+def test_the_user_s_enabled_protocols_change_no_number(tmp_path, monkeypatch):
+    """A user who disabled vm110 in Wireshark (Analyze > Enabled Protocols: disabled_protos in
+    their configuration): the tshark engine found no EG-Link packet in normal.pcap (no_eglink),
+    where the fast engine found them all (trial-fleet). It reads with an empty configuration."""
+    config = tmp_path / "wireshark"
+    config.mkdir()
+    (config / "disabled_protos").write_text("vm110\n")
+    monkeypatch.setenv("WIRESHARK_CONFIG_DIR", str(config))
+    assert_same(str(CAPTURES / "normal.pcap"))
+    assert os.environ["WIRESHARK_CONFIG_DIR"] == str(config)
 
 
 def test_an_installed_plugin_that_differs_is_not_used_silently(tmp_path, monkeypatch):

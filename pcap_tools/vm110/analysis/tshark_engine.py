@@ -9,6 +9,7 @@ facts that tshark does not report (format, link types, a file cut short) come fr
 """
 from __future__ import annotations
 
+import contextlib
 import ipaddress
 import os
 import re
@@ -53,6 +54,25 @@ def check_available() -> None:
                        f"{first[2]}), not {plugin}: they differ; `vm110 wireshark install` updates it (or remove it)")
 
 
+@contextlib.contextmanager
+def _default_configuration() -> Iterator[None]:
+    """tshark (started meanwhile: it takes the environment then) with an empty personal
+    configuration: a protocol the user disabled in Wireshark (Enabled Protocols: vm110, or IP), a
+    heuristic switched off or a Decode As entry of theirs changed what it decoded (no EG-Link
+    packet at all, said as no_eglink), beyond what the `-o` options pin."""
+    before = os.environ.get(_CONFIG_DIR)
+    with tempfile.TemporaryDirectory(prefix="vm110-wireshark-") as empty:
+        os.environ[_CONFIG_DIR] = empty
+        try:
+            yield
+        finally:
+            if before is None:
+                del os.environ[_CONFIG_DIR]
+            else:
+                os.environ[_CONFIG_DIR] = before
+
+
+_CONFIG_DIR = "WIRESHARK_CONFIG_DIR"        # (Linux: not the plugin folder, which check_available checks)
 _LOADED_ALREADY = re.compile(r"the VM-110 dissector is loaded already from (.+) \(version ([^)]*)\)")
 
 
@@ -150,7 +170,8 @@ class TsharkEngine:
     def _packets(self, path: str, variant: str, order: str) -> Iterator:
         from .tshark_packets import TsharkStopped, packets     # pyshark: the CLI starts without it
         try:
-            yield from packets(path, self._params(variant, order))
+            with _default_configuration():
+                yield from packets(path, self._params(variant, order))
         except TsharkStopped as stop:
             self.stopped = str(stop)
 
