@@ -138,6 +138,25 @@ def test_a_vrpo_fragmented_by_a_small_mtu_is_analysed_as_wireshark_reassembles_i
     assert_same(str(path))
 
 
+def test_a_mirror_port_s_copy_of_each_fragment_is_not_said_to_be_a_loss(tmp_path):
+    """A SPAN port that repeats each frame right after it: a fragmented VRPO is whole at its last
+    fragment, whose copy then starts a datagram never whole (Wireshark's count too). The warning
+    gave one cause only, a fragment lost or cut, whose EG-Link packets count as lost (trial-fleet):
+    here nothing was lost, every VRPO analysed once."""
+    site = S.Site(vrpo_data=488, seconds=1.0)
+    records, never = _fragmented(site, 256, broken=0, copied=0)
+    path = tmp_path / "span-fragments.pcap"
+    path.write_bytes(S.pcap([S.Record(r.ts_ns + copy * 1000, r.data) for r in records for copy in (0, 1)], ETHERNET))
+    report = analyze(str(path))
+    by_type = {t: n for s in report["senders"] for t, n in s["by_type"].items()}
+    want = site.expect()
+    assert by_type == {"VRPI": 2 * want["VRPI"], "VRCI": 4, "VRAO": 2, "VRPO": want["VRPO"]}
+    assert (report["totals"]["lost"], report["totals"]["duplicates"]) == (0, len(site.datagrams) - site.vrpo_count)
+    [warning] = [f for f in report["verdict"]["findings"] if f["rule"] == "ip_fragments"]
+    assert never == [] and warning["count"] == site.vrpo_count
+    assert "a mirror port's copy of a fragment that came after its datagram was whole" in warning["message"]
+
+
 @pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
 def test_the_fragments_filter_shows_the_fragments_never_reassembled_in_wireshark(tshark, tmp_path):
     records, never = _fragmented(S.Site(vrpo_data=488, seconds=1.0), 256, broken=2, copied=3)

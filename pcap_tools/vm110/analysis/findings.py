@@ -304,8 +304,9 @@ def verdict(report: dict, located: Located, prefs: Optional[list[str]], no_filte
     if cap["fragments"]:      # (not reassembled: what they carry is missing from everything above)
         findings.insert(0, {"rule": "ip_fragments", "severity": "warning", "count": cap["fragments"],
                             "message": f"{plural(cap['fragments'], 'IP fragment')} not analysed (never reassembled: "
-                                       f"a fragment lost or cut by the capture; EG-Link packets in them count as "
-                                       f"lost): {FRAGMENT_FILTER}", "items": []})
+                                       f"a fragment lost or cut by the capture, EG-Link packets in them then "
+                                       f"counting as lost; or a mirror port's copy of a fragment that came after "
+                                       f"its datagram was whole, which was analysed): {FRAGMENT_FILTER}", "items": []})
     if cap["unread_frames"]:  # (what they carry is missing from everything above, as with fragments)
         findings.insert(0, {"rule": "unread_link_type", "severity": "warning", "count": cap["unread_frames"],
                             "message": unread(cap["unread_frames"], cap["link_types"],
