@@ -81,13 +81,13 @@ class Reassembly:
         if pending is None:
             pending = self._pending[key] = _Pending()
         pending.frames += 1
-        if offset + len(part) > MAX_DATAGRAM:
-            return None
-        self._bytes += len(part) + pending.take(offset, more, part)
-        datagram = pending.whole()
-        if datagram is not None:
-            self._drop(key)
-            return datagram, pending.frames
+        if offset + len(part) <= MAX_DATAGRAM:        # (one past it takes no part; its frame is counted)
+            self._bytes += len(part) + pending.take(offset, more, part)
+            datagram = pending.whole()
+            if datagram is not None:
+                self._drop(key)
+                return datagram, pending.frames
+        # (after a fragment past 64 KiB too: a flood of those, each a datagram of its own, is bounded)
         while len(self._pending) > MAX_PENDING or self._bytes > MAX_PENDING_BYTES:
             self._drop(next(iter(self._pending)))
         return None
