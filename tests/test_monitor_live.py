@@ -398,3 +398,46 @@ def test_a_closed_terminal_stops_dumpcap_with_the_monitor(netns, tmp_path):
     assert json.loads(report.read_text())["capture"]["packets"] == 0
     said = err.read_text()
     assert "VERDICT: " in said and "Traceback" not in said and "cannot write" not in said, said
+
+
+_SEND_TAGGED = """
+import socket, sys
+import site_captures as S
+s = socket.socket(socket.AF_PACKET, socket.SOCK_RAW)
+s.bind((sys.argv[1], 0))
+mac = S.multicast_mac(S.GROUP)
+for serial, tags in enumerate([(), ((0x8100, 42),), ((0x88A8, 100), (0x8100, 42))] * 2):
+    d = S.Datagram(0, S.CTRL_IP, 5827, S.GROUP, 5827, S.vrpo(serial, 0, bytes(488)))
+    body = S.udp(d.src, d.sport, d.dst, d.dport, d.payload)
+    parts = S.ipv4_fragments(d.src, d.dst, body, 400, serial) if serial % 2 else [S.ipv4(d.src, d.dst, body)]
+    parts.append(S.ipv4(d.src, d.dst, S.udp(d.src, 9999, d.dst, 9999, bytes(20))))   # not EG-Link: left out
+    for part in parts:
+        s.send(S.ether(S.CTRL_MAC, mac, 0x0800, part, tags))
+"""
+
+
+@pytest.mark.skipif(shutil.which("dumpcap") is None, reason="dumpcap not installed")
+def test_eg_link_behind_vlan_tags_on_a_trunk_is_monitored(netns, tmp_path):
+    """A trunk's EG-Link traffic tagged 802.1Q, or QinQ, some of it in fragments (MTU 400), as
+    analyze reads it from a capture of the trunk. dumpcap's filter read the ports and fragment
+    offsets where an untagged frame has them: every frame whose tag the kernel left in it (those
+    sent on the trunk, and the inner tag of QinQ) was dropped, and the monitor saw no VRPO."""
+    ns = ["ip", "netns", "exec", netns]
+    for cmd in (["link", "add", "va", "type", "veth", "peer", "name", "vb"], ["link", "set", "va", "up"],
+                ["link", "set", "vb", "up"]):
+        subprocess.run(["ip", "-n", netns, *cmd], check=True, capture_output=True)
+    report = tmp_path / "report.json"
+    monitor = subprocess.Popen(ns + VM110 + ["monitor", "-i", "va", "--no-dashboard", "--quiet", "--duration", "60",
+                                             "--json", str(report)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    time.sleep(1.5)                     # dumpcap running before the traffic starts
+    if monitor.poll() is not None:
+        pytest.skip(f"dumpcap cannot capture here: {monitor.communicate()[1].decode().strip()}")
+    subprocess.run(ns + [sys.executable, "-c", _SEND_TAGGED, "va"], check=True, timeout=30,
+                   env={**os.environ, "PYTHONPATH": f"{ROOT / 'pcap_tools'}{os.pathsep}{ROOT / 'tests'}"})
+    time.sleep(0.5)
+    monitor.send_signal(signal.SIGINT)
+    _, err = monitor.communicate(timeout=60)
+    assert monitor.returncode in (0, 1), err.decode()
+    got = json.loads(report.read_text())["capture"]
+    # 3 VRPO whole, 3 in two fragments each; nothing else
+    assert (got["packets"], got["eglink_packets"], got["fragments"], got["other_udp_packets"]) == (9, 6, 0, 0)

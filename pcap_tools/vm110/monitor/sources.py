@@ -168,9 +168,13 @@ def capture_filter(ports: tuple[int, ...]) -> str:
     """dumpcap's filter: UDP to or from the EG-Link ports, and every IP fragment but an IPv4 first
     one (which shows its ports): a VRPO fragmented by a small MTU is reassembled by the reader, as
     Wireshark and `analyze` do, and the fragments after its first show no port (the IPv6 ones not
-    even UDP, behind their fragment header)."""
-    return (f"(udp and ({' or '.join(f'port {p}' for p in ports)})) or (ip[6:2] & 0x1fff != 0)"
-            " or (ip6 and ip6[6] == 44)")
+    even UDP, behind their fragment header). The same behind one VLAN tag or two (802.1Q, QinQ):
+    on a trunk a tag the kernel left in the frame (a frame sent, a second tag) moves every offset
+    the plain filter reads, and libpcap reads past a tag only after `vlan`, which it applies to
+    the rest of the expression (hence nested, not `F or (vlan and F) or (vlan and vlan and F)`)."""
+    plain = (f"(udp and ({' or '.join(f'port {p}' for p in ports)})) or (ip[6:2] & 0x1fff != 0)"
+             " or (ip6 and ip6[6] == 44)")
+    return f"{plain} or (vlan and ({plain} or (vlan and ({plain}))))"
 
 
 class Dumpcap(Source):
