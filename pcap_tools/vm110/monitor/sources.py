@@ -164,17 +164,30 @@ class FollowFile(Source):
         self.file.close()
 
 
-def capture_filter(ports: tuple[int, ...]) -> str:
+def capture_filter(ports: tuple[int, ...], tagged: bool) -> str:
     """dumpcap's filter: UDP to or from the EG-Link ports, and every IP fragment but an IPv4 first
     one (which shows its ports): a VRPO fragmented by a small MTU is reassembled by the reader, as
     Wireshark and `analyze` do, and the fragments after its first show no port (the IPv6 ones not
     even UDP, behind their fragment header). The same behind one VLAN tag or two (802.1Q, QinQ):
     on a trunk a tag the kernel left in the frame (a frame sent, a second tag) moves every offset
     the plain filter reads, and libpcap reads past a tag only after `vlan`, which it applies to
-    the rest of the expression (hence nested, not `F or (vlan and F) or (vlan and vlan and F)`)."""
+    the rest of the expression (hence nested, not `F or (vlan and F) or (vlan and vlan and F)`).
+    `tagged` False: the plain filter, for a link type without VLAN tags, where libpcap refuses
+    `vlan` (`-i any`, a tun interface)."""
     plain = (f"(udp and ({' or '.join(f'port {p}' for p in ports)})) or (ip[6:2] & 0x1fff != 0)"
              " or (ip6 and ip6[6] == 44)")
-    return f"{plain} or (vlan and ({plain} or (vlan and ({plain}))))"
+    return f"{plain} or (vlan and ({plain} or (vlan and ({plain}))))" if tagged else plain
+
+
+def ethernet(iface: str) -> bool:
+    """Whether `iface` is an Ethernet interface (ARPHRD_ETHER), whose frames may carry VLAN tags."""
+    if "/" in iface:
+        return False
+    try:
+        with open(f"/sys/class/net/{iface}/type", encoding="ascii") as f:
+            return f.read().strip() == "1"
+    except (OSError, ValueError):     # (`any`, an interface number, not Linux: no tags looked for)
+        return False
 
 
 class Dumpcap(Source):
@@ -186,7 +199,7 @@ class Dumpcap(Source):
         exe = shutil.which("dumpcap")
         if exe is None:
             raise CliError("dumpcap not found: install Wireshark's capture engine (Debian: tshark or wireshark-common)")
-        flt = capture_filter(ports)
+        flt = capture_filter(ports, ethernet(iface))
         self.errors = tempfile.TemporaryFile()   # noqa: SIM115 -- dumpcap's stderr while it runs; close()
         setpriv = shutil.which("setpriv")
         tie = [setpriv, "--pdeathsig", "TERM", "--"] if setpriv else []
