@@ -313,3 +313,23 @@ def test_fragments_never_whole_hold_at_most_the_table_s_bound():
     for i in range(3 * reassembly.MAX_PENDING):
         assert table.add(("near", i), 0, True, bytes(200)) is None
     assert len(table._pending) <= reassembly.MAX_PENDING
+
+
+def test_copies_of_a_small_fragment_hold_the_table_to_its_bytes(monkeypatch):
+    """The 16 MiB bound counted the fragments' bytes alone: copies of one 8-byte fragment (a fuzzer,
+    a looping mirror) cost some 130 bytes each held, and 2.2 million took 350 MB before the bound
+    (here a bound of 1 MiB, and 40,000 copies: 6.6 MB)."""
+    import tracemalloc
+
+    from vm110.capture import reassembly
+
+    monkeypatch.setattr(reassembly, "MAX_PENDING_BYTES", 1 << 20)
+    table = reassembly.Reassembly()
+    tracemalloc.start()
+    try:
+        for i in range(40_000):
+            table.add(("key",), i % 100 * 8, True, i.to_bytes(8, "little"))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 2 << 20
