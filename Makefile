@@ -56,12 +56,13 @@ lint: setup
 # PYTHONDONTWRITEBYTECODE each would compile the package again, about 0.15 s.)
 # Workers: half again the cores. A third of the suite's time is spent waiting (fuzzed controllers'
 # timeouts, simulators' timers, subprocesses): on 2 cores, 2 workers kept them about 70 % busy
-# (914 s), 3 workers 93 % (675 s). The log ends with the 20 slowest tests: the suite must stay
-# within 15 minutes on 2 cores.
+# (914 s), 3 workers 93 % (675 s). --dist worksteal: a worker that has run out takes tests queued
+# for a busy one, so that a file's slow tests at the end do not finish the run alone. The log ends
+# with the 20 slowest tests: the suite must stay within 15 minutes on 2 cores.
 TEST_WORKERS ?= $(shell n=$$(nproc 2>/dev/null || echo 2); echo $$(( n + (n + 1) / 2 )))
 test: setup tsharks lint
 	$(PY) -m compileall -q pcap_tools tests > /dev/null
-	$(PY) -m pytest -n $(TEST_WORKERS) -q --durations=20
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist worksteal -q --durations=20
 
 # Long runs kept out of `make test` (e.g. the fuzzer against the reference controller for 60 s).
 test-long: setup
