@@ -6,6 +6,8 @@ import socket
 
 LOOPBACK = "127.0.0.1"
 _SPAN = 12_000          # ports picked from just below the kernel's ephemeral range
+# (not the random module's state, which a test may seed: two workers seeded alike picked one port)
+_PICK = random.SystemRandom()
 
 
 def _ephemeral_low() -> int:
@@ -29,7 +31,7 @@ def free_ports(count: int) -> list[int]:
         while len(socks) < count:
             s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             try:
-                s.bind((LOOPBACK, random.randrange(low, high)))
+                s.bind((LOOPBACK, _PICK.randrange(low, high)))
             except OSError:
                 s.close()
                 continue
