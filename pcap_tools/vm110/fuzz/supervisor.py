@@ -158,13 +158,15 @@ class Supervisor:
                 self.proc = subprocess.Popen(self._with_core_limit(), stdin=subprocess.DEVNULL,
                                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True,
                                              env=self.environment(), cwd=self.cwd)
+                self.started_at = time.time()
+                self.starts += 1
+                assert self.proc.stdout is not None
+                # (its start too: an interrupt inside Thread.start's wait for the thread left the
+                # lock of that wait broken, CPython's "RuntimeError: release unlocked lock")
+                self.reader = threading.Thread(target=self._read, args=(self.proc.stdout, self.ring), daemon=True)
+                self.reader.start()
         except OSError as exc:
             raise CliError(f"cannot start --target-cmd {self.argv[0]!r}: {exc.strerror}") from None
-        self.started_at = time.time()
-        self.starts += 1
-        assert self.proc.stdout is not None
-        self.reader = threading.Thread(target=self._read, args=(self.proc.stdout, self.ring), daemon=True)
-        self.reader.start()
 
     def _check_program(self) -> None:
         """The shell in front would report a missing program only as an early exit."""
