@@ -6,8 +6,11 @@ Exit codes are those of `vm110.errors`: 0 success, 1 findings (rule violations, 
 from __future__ import annotations
 
 import argparse
+import ast
 import gc
 import importlib
+import importlib.abc
+import importlib.util
 import sys
 from typing import NoReturn, Optional, Sequence
 
@@ -55,12 +58,42 @@ class Parser(argparse.ArgumentParser):
         return args
 
 
-def build_parser() -> Parser:
+def _chosen(argv: Sequence[str]) -> Optional[str]:
+    """The command `argv` names: its first word that is no option (the top parser's options,
+    --help and --version, take no value). None for none, or a word that names no command."""
+    for word in argv:
+        if word == "--":
+            return None
+        if not word.startswith("-"):
+            return word if word in COMMANDS else None
+    return None
+
+
+def _summary(module_name: str) -> Optional[str]:
+    """The first line of a command module's docstring, read without importing it."""
+    name = f"vm110.commands.{module_name}"
+    spec = importlib.util.find_spec(name)
+    loader = spec.loader if spec is not None else None
+    source = loader.get_source(name) if isinstance(loader, importlib.abc.InspectLoader) else None
+    doc = ast.get_docstring(ast.parse(source)) if source else None
+    return doc.strip().splitlines()[0] if doc else None
+
+
+def build_parser(argv: Optional[Sequence[str]] = None) -> Parser:
+    """The whole parser; given the command line, only the command it names is loaded.
+
+    (A command's module brings its libraries: all of them took a second to load before any
+    command started, `vm110 --help` included.)"""
     parser = Parser(prog="vm110", description="Tools for the VM-110 EG-Link (TS-0006).")
     parser.commands = {}
     parser.add_argument("--version", action="version", version=f"vm110 {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    chosen = _chosen(argv) if argv is not None else None
     for name, module_name in COMMANDS.items():
+        if argv is not None and name != chosen:
+            # (shown only by the top parser's help and errors, which load no command)
+            parser.commands[name] = sub.add_parser(name, help=None if chosen else _summary(module_name))
+            continue
         module = importlib.import_module(f"vm110.commands.{module_name}")
         doc = (module.__doc__ or "").strip().splitlines()
         command = sub.add_parser(name, help=doc[0] if doc else None, description=module.__doc__)
@@ -72,7 +105,7 @@ def build_parser() -> Parser:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
-        args = build_parser().parse_command(argv)
+        args = build_parser(sys.argv[1:] if argv is None else argv).parse_command(argv)
     except KeyboardInterrupt:       # while the commands' modules load (scapy's take a while)
         return EXIT_INTERRUPTED
     # A closed pipe ends the output quietly, and the final flush is made here, not at exit. It
