@@ -100,6 +100,30 @@ def test_an_installed_plugin_that_differs_is_not_used_silently(tmp_path, monkeyp
     assert done.returncode == 0, done.stderr
 
 
+def test_the_plugin_is_checked_once_per_process_while_nothing_changes(tmp_path, monkeypatch):
+    """A run of several captures ran `tshark -G protocols` again for each; a plugin file changed
+    (or another tshark, or another home) is checked again."""
+    from vm110.analysis import tshark_engine
+    from vm110.plugin import PLUGIN_ENV
+    runs = []
+    real = tshark_engine.list_protocols
+    monkeypatch.setattr(tshark_engine, "list_protocols", lambda *a: runs.append(a) or real(*a))
+    monkeypatch.setattr(tshark_engine, "_CHECKED", set())
+    plugin = tmp_path / "vm110.lua"
+    shutil.copyfile(CAPTURES.parent / "dissector" / "vm110.lua", plugin)
+    monkeypatch.setenv(PLUGIN_ENV, str(plugin))
+    from vectorlib import load_vectors, packet_bytes
+    capture = str(tmp_path / "one.pcap")
+    T.write_pcap(tmp_path / "one.pcap", [packet_bytes(load_vectors()[0])])
+    first = analyze(capture, "tshark")
+    assert first["totals"]["packets"] == 1 and analyze(capture, "tshark") == first and len(runs) == 1
+    plugin.write_text(plugin.read_text() + "\n-- changed\n")
+    analyze(capture, "tshark")
+    monkeypatch.setenv("HOME", str(tmp_path))
+    analyze(capture, "tshark")
+    assert len(runs) == 3
+
+
 @pytest.mark.parametrize("wrap", ["sll2-vlan", "ipv6-atomic-fragment", "port-7000", "radiotap"])
 def test_engines_agree_on_unusual_wrappings(wrap, tmp_path):
     """The bundled traffic as a cooked capture of a tagged interface, over IPv6 in atomic fragments

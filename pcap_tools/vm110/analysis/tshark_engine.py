@@ -35,13 +35,28 @@ _AUX = struct.Struct("<H")                 # ... then the command ID or VRPO pac
 _BATCH = 4096 * RECORD.size                # bytes of records fed to the analysis at a time
 
 
+_CHECKED: set[tuple] = set()     # the tshark and plugin files, and tshark's folders, found fine
+
+
+def _stat(path: Path) -> tuple:
+    found = path.stat()
+    return str(path.resolve()), found.st_mtime_ns, found.st_size, found.st_ino
+
+
 def check_available() -> None:
-    """CliError (exit 2) when tshark or the dissector is missing, or the dissector does not load."""
-    if shutil.which("tshark") is None:
+    """CliError (exit 2) when tshark or the dissector is missing, or the dissector does not load.
+
+    Checked once per process for the same tshark, plugin file and personal folders (a run of
+    several captures ran tshark once more for each, 0.3 s)."""
+    tshark = shutil.which("tshark")
+    if tshark is None:
         raise CliError("--engine tshark needs tshark (Wireshark's command-line tool) on the PATH")
     plugin = plugin_path()
     if not plugin.is_file():
         raise CliError(f"--engine tshark needs the Lua dissector; not found at {plugin} (set {PLUGIN_ENV})")
+    key = (_stat(Path(tshark)), _stat(plugin), os.environ.get("HOME"), os.environ.get("XDG_CONFIG_HOME"))
+    if key in _CHECKED:
+        return
     loaded, done = list_protocols("tshark", plugin)
     if not loaded:
         lines = [ln for ln in done.stderr.splitlines() if "dangerous" not in ln]
@@ -52,6 +67,7 @@ def check_available() -> None:
     if first is not None and not _same_file(Path(first[1]), plugin):
         raise CliError(f"--engine tshark would decode with the plugin tshark loads first, {first[1]} (version "
                        f"{first[2]}), not {plugin}: they differ; `vm110 wireshark install` updates it (or remove it)")
+    _CHECKED.add(key)
 
 
 @contextlib.contextmanager
