@@ -39,11 +39,11 @@ from hypothesis import strategies as st
 from reference.analyser import analyse
 from reference.generator import IN_PORT, OUT_PORT, packet, scenarios, stepped_scenarios, vrpi_payload, \
     write_capture, write_scenario, _udp_frame
+from longrun import LONG_RUN
 from tshark_runner import HOST, RUNNERS, Tshark, TsharkUnavailable
 
 REPO = Path(__file__).resolve().parents[1]
 FAILURES = REPO / "out" / "reference-failures"
-LONG = bool(os.environ.get("VM110_LONG_TESTS"))
 
 
 def _examples(count: int) -> int:
@@ -176,7 +176,6 @@ def check_engine(sc: dict, engine: str, scope: str = "sender") -> None:
                                       f"{engine}-{scope}")
 
 
-LONG_RUN = (pytest.mark.slow, pytest.mark.skipif(not LONG, reason="long run: make test-long"))
 
 
 @given(scenarios())

@@ -1,0 +1,19 @@
+"""Tests kept out of `make test` for time: `make test-long` (VM110_LONG_TESTS=1, -m slow) runs them.
+
+`make test` must stay within 15 minutes on 2 cores. What it leaves to the long run: runs longer
+than the short ones beside them, and comparisons repeated on a third Wireshark version where they
+do not depend on the dissector's Lua (wiretap and IP reading: `make test` holds them to 4.0 and 4.6)."""
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import pytest
+
+LONG = bool(os.environ.get("VM110_LONG_TESTS"))
+LONG_RUN = (pytest.mark.slow, pytest.mark.skipif(not LONG, reason="long run: make test-long"))
+
+
+def long_only(*values: Any, id: str | None = None) -> Any:
+    """A parameter (set) that only `make test-long` runs."""
+    return pytest.param(*values, marks=LONG_RUN, id=id)
