@@ -99,6 +99,19 @@ def test_a_standard_output_that_cannot_be_written_is_one_line_and_exit_2(args):
 
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+@pytest.mark.parametrize("args, said", [(["--help"], "vm110"), (["--version"], "vm110"),
+                                        (["analyze", "--help"], "vm110 analyze")])
+def test_help_that_cannot_be_written_is_one_line_and_exit_2(args, said):
+    """`vm110 --help > /dev/full` was exit 0 and no word: the help lost, unsaid."""
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([sys.executable, "-m", "vm110", *args], stdout=full, stderr=subprocess.PIPE,
+                              text=True, timeout=120, check=False)
+    assert (done.returncode, done.stderr) == (EXIT_USAGE, f"{said}: cannot write standard output: No space left on device\n")
+    got, err = closed_from_the_start(*args, cwd=Path.cwd())
+    assert (got, err) == (EXIT_OK, "")
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
 def test_analyze_on_a_full_disk_still_writes_its_report_and_says_its_verdict(tmp_path):
     """What follows the summary still runs: the report file is written and the --fail-on line said,
     and exit 2 (output incomplete) wins over 1."""

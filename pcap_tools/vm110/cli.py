@@ -104,15 +104,24 @@ def build_parser(argv: Optional[Sequence[str]] = None) -> Parser:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    try:
-        args = build_parser(sys.argv[1:] if argv is None else argv).parse_command(argv)
-    except KeyboardInterrupt:       # while the commands' modules load (scapy's take a while)
-        return EXIT_INTERRUPTED
+    words = sys.argv[1:] if argv is None else argv
+    closedpipe.said.unwritable = None
+    args: Optional[argparse.Namespace] = None
+    stopped = EXIT_OK
+    # (--help and --version print, then exit: into a full disk that was exit 0 and no word)
+    with closedpipe.tolerated(_chosen(words)):
+        try:
+            args = build_parser(words).parse_command(argv)
+        except KeyboardInterrupt:       # while the commands' modules load (scapy's take a while)
+            return EXIT_INTERRUPTED
+        except SystemExit as exc:       # --help, --version, a usage error
+            stopped = exc.code if isinstance(exc.code, int) else EXIT_USAGE
+    if args is None:        # (as argparse ends: a SystemExit, for callers in-process too)
+        raise SystemExit(EXIT_USAGE if closedpipe.said.unwritable is not None else stopped)
     # A closed pipe ends the output quietly, and the final flush is made here, not at exit. It
     # keeps the command's code; one that escapes the command keeps 0: commands with a verdict
     # (analyze) catch it around their output and go on to the verdict.
     code = EXIT_OK
-    closedpipe.said.unwritable = None
     threshold = gc.get_threshold()
     gc.set_threshold(*GC_THRESHOLD)
     with closedpipe.tolerated(args.command):

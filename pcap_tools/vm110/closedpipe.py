@@ -75,7 +75,7 @@ said = _Said()
 
 
 @contextlib.contextmanager
-def tolerated(command: str) -> Iterator[None]:
+def tolerated(command: Optional[str]) -> Iterator[None]:
     """Writes to standard output inside, then a flush. A closed pipe ends them quietly; standard
     output that cannot be written ends them with one line on standard error, `vm110 COMMAND:
     cannot write standard output: ...`, and sets `said.unwritable`. What follows the block (report
@@ -91,6 +91,7 @@ def tolerated(command: str) -> Iterator[None]:
         silence_stdout()        # (what stays in the buffer would fail again at exit)
         if said.unwritable is None:
             said.unwritable = str(exc)
-            print(f"vm110 {command}: cannot write standard output: {exc}", file=sys.stderr)
+            print(f"{' '.join(('vm110', command or '')).rstrip()}: cannot write standard output: {exc}",
+                  file=sys.stderr)
     finally:
         sys.stdout = stream
