@@ -12,10 +12,19 @@ from typing import Any
 
 import pytest
 
-LONG = bool(os.environ.get("VM110_LONG_TESTS"))
-LONG_RUN = (pytest.mark.slow, pytest.mark.skipif(not LONG, reason="long run: make test-long"))
+LONG_RUN = (pytest.mark.slow, pytest.mark.skipif(not os.environ.get("VM110_LONG_TESTS"),
+                                                  reason="long run: make test-long"))
+LONG_VERSION = "4.4"        # the version whose repeats of some tests only the long run makes
 
 
 def long_only(*values: Any, id: str | None = None) -> Any:
     """A parameter (set) that only `make test-long` runs."""
     return pytest.param(*values, marks=LONG_RUN, id=id)
+
+
+def on_runner(runner: Any, *values: Any, id: str, long: bool = True) -> Any:
+    """`runner` (a tshark_runner.Tshark) and `values` as a parameter set: on LONG_VERSION, when
+    `long`, one that only `make test-long` runs."""
+    if long and runner.version == LONG_VERSION:
+        return long_only(runner, *values, id=id)
+    return pytest.param(runner, *values, id=id)

@@ -17,13 +17,12 @@ from pathlib import Path
 import pytest
 
 import tshark_runner as T
-from longrun import long_only
+from longrun import on_runner
 
 # The profile, the glossary and the expert summaries on 4.0 and 4.6; on 4.4 (the Lua 5.4 of 4.6) in
 # the long run, for time.
 pytestmark = [pytest.mark.tshark, pytest.mark.parametrize(
-    "ws", [long_only(r, id=r.name) if r.version == "4.4" else pytest.param(r, id=r.name) for r in T.RUNNERS],
-    indirect=True)]
+    "ws", [on_runner(r, id=r.name) for r in T.RUNNERS], indirect=True)]
 
 CAPTURES = T.REPO / "captures"
 PROFILE = T.REPO / "dissector" / "profile" / "VM-110"

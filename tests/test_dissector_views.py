@@ -20,7 +20,7 @@ from typing import Callable, Iterator, Sequence
 import pytest
 
 import tshark_runner as T
-from longrun import long_only
+from longrun import on_runner
 from vectorlib import load_vectors, packet_bytes
 from vm110 import constants as C
 from vm110.capture.reader import CaptureReader, address
@@ -316,8 +316,7 @@ def info_and_sparse(ws: T.Workspace, source: str, pcap: Path, prefs: dict) -> li
 def _views() -> list:
     """(tshark, source) pairs: 4.4 and 4.6 take the same path (Lua 5.4, invisible trees), so on
     4.4 `make test` holds the vectors and the crafted capture, the long run the bundled ones too."""
-    return [long_only(r, s, id=f"{s}-{r.name}") if r.version == "4.4" and s in ANALYSED
-            else pytest.param(r, s, id=f"{s}-{r.name}") for s in SOURCES for r in T.RUNNERS]
+    return [on_runner(r, s, id=f"{s}-{r.name}", long=s in ANALYSED) for s in SOURCES for r in T.RUNNERS]
 
 
 @pytest.mark.parametrize("tshark, source", _views())

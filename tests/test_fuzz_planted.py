@@ -7,7 +7,6 @@ against the reference controller. Against the reference controller itself it mus
 from __future__ import annotations
 
 import json
-import os
 import shlex
 import socket
 import struct
@@ -22,6 +21,7 @@ import pytest
 from scapy.layers.inet import UDP
 from scapy.utils import PcapReader
 
+from longrun import LONG_RUN
 from loopback import free_ports
 from planted.bugs import BUGS
 from vm110 import cli, constants as C
@@ -158,8 +158,8 @@ def test_reference_controller_has_no_findings(tmp_path):
     _clean_run(tmp_path, "15")
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(not os.environ.get("VM110_LONG_TESTS"), reason="long run: make test-long")
+@LONG_RUN[0]
+@LONG_RUN[1]
 def test_reference_controller_has_no_findings_in_60_s(tmp_path):
     _clean_run(tmp_path, "60")
 

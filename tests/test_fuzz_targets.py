@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from longrun import LONG_RUN
 from loopback import free_ports
 from vm110 import constants as C
 from vm110.fuzz import mutate as M
@@ -276,8 +277,8 @@ def test_coverage_map_that_stays_empty_is_one_line_exit_2(tmp_path, programs):
     assert len(lines) == 1 and "coverage map stayed empty" in lines[0] and "Traceback" not in result.stderr
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(not os.environ.get("VM110_LONG_TESTS"), reason="long run: make test-long")
+@LONG_RUN[0]
+@LONG_RUN[1]
 def test_coverage_finds_deep_bug_from_scratch(tmp_path, programs):
     out = tmp_path / "out"
     result, summary = fuzz(out, programs("afl-deep"), "--coverage", "--duration", "300", "--max-findings", "1",

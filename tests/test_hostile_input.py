@@ -16,7 +16,7 @@ import pytest
 
 import report_schema
 from test_analysis_craft import T0, Traffic, vrpi
-from longrun import long_only
+from longrun import on_runner
 from tshark_runner import RUNNERS, ip_checksum
 from vm110 import constants as C
 from vm110.analysis import analyze, report_json
@@ -25,7 +25,7 @@ from vm110.cli import main
 CAPTURES = Path(__file__).resolve().parent.parent / "captures"
 
 # Wiretap and IP reading, the same on 4.0, 4.4 and 4.6 (no Lua of ours): 4.4 in the long run.
-READERS = [long_only(r, id=r.version) if r.version == "4.4" else pytest.param(r, id=r.version) for r in RUNNERS]
+READERS = [on_runner(r, id=r.version) for r in RUNNERS]
 
 
 def vm110(*args: str, stdin: bytes = b"") -> subprocess.CompletedProcess:

@@ -91,7 +91,7 @@ def tolerated(command: Optional[str]) -> Iterator[None]:
         silence_stdout()        # (what stays in the buffer would fail again at exit)
         if said.unwritable is None:
             said.unwritable = str(exc)
-            print(f"{' '.join(('vm110', command or '')).rstrip()}: cannot write standard output: {exc}",
+            print(f"{f'vm110 {command}' if command else 'vm110'}: cannot write standard output: {exc}",
                   file=sys.stderr)
     finally:
         sys.stdout = stream
