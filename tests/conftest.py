@@ -11,6 +11,7 @@ import pytest
 from hypothesis import settings
 
 import report_schema
+import sessionwide
 import tshark_runner as T
 import vm110.analysis
 
@@ -22,6 +23,12 @@ vm110.analysis.analyze = report_schema.validating(vm110.analysis.analyze)
 settings.register_profile("ci", derandomize=True, deadline=None)
 settings.register_profile("dev", deadline=None)
 settings.load_profile("ci" if os.environ.get("CI") else "dev")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _sessionwide(tmp_path_factory) -> None:
+    """The folder the workers share work in (tests/sessionwide.py)."""
+    sessionwide.start(tmp_path_factory.getbasetemp())
 
 
 @pytest.fixture(autouse=True)

@@ -15,6 +15,7 @@ import time
 import pytest
 
 import tshark_runner as T
+from longrun import runner_params
 from test_analysis_engine import build_mixed
 from test_analysis_truth import ALL_CAPTURES, CAPTURES
 from vm110 import constants as C
@@ -373,7 +374,7 @@ def test_a_datagram_cut_inside_its_header_is_truncated_alone(tshark, tmp_path):
     assert [line.split(" [")[-1] for line in info] == ["Illegal: truncated]"] * 2, info
 
 
-@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+@pytest.mark.parametrize("tshark", runner_params(T.RUNNERS))
 def test_every_filter_a_report_gives_shows_its_frames(tshark, tmp_path):
     """The display filter of each finding item, pasted into Wireshark (tshark -Y here, 4.0, 4.4
     and 4.6), selects the item's frames: exactly them, or a range holding them all."""

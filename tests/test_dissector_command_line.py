@@ -16,6 +16,7 @@ import shutil
 import pytest
 
 import tshark_runner as T
+from longrun import runner_params
 
 pytestmark = pytest.mark.tshark
 
@@ -41,7 +42,7 @@ def run(ws: T.Workspace, options: list[str], prefs: dict[str, str] | None = None
     return proc.stdout.split(), int(seen[0].rsplit(" ", 1)[1])
 
 
-@pytest.fixture(params=T.RUNNERS, ids=lambda r: r.name)
+@pytest.fixture(params=runner_params(T.RUNNERS))
 def ws(request, tmp_path):
     try:
         with request.param.workspace(tmp_path) as workspace:
@@ -53,7 +54,7 @@ def ws(request, tmp_path):
 
 def serials(ws: T.Workspace) -> list[str]:
     """vm110.serial of every packet, from the full tree (PDML)."""
-    frames = T.parse_pdml(ws.run(["-n", "-r", str(ws.dir / CAPTURE.name), "-T", "pdml"]).stdout)
+    frames = T.parse_pdml(ws.run(["-n", "-r", str(ws.dir / CAPTURE.name), "-T", "pdml"], shared=True).stdout)
     return [f.first("vm110.serial").show for f in frames if f.first("vm110.serial")]
 
 

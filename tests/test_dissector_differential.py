@@ -8,6 +8,7 @@ import pytest
 
 import dissector_packets as P
 import tshark_runner as T
+from longrun import runner_params
 from vm110.protocol import ENUM_FIELDS
 from vm110 import decode
 
@@ -49,7 +50,7 @@ def _check_frame(frame: T.Frame, data: bytes, variant: str, order: str) -> list[
     return errors
 
 
-@pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+@pytest.mark.parametrize("tshark", runner_params(T.RUNNERS))
 @pytest.mark.parametrize("variant,order", SETTINGS)
 def test_random_valid_packets_match_python(tshark, variant, order, tmp_path):
     count = COUNT if (variant, order) == ("mpeg2", "little") else PER_SETTING

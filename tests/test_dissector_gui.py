@@ -17,12 +17,12 @@ from pathlib import Path
 import pytest
 
 import tshark_runner as T
-from longrun import on_runner
+from longrun import runner_params
 
 # The profile, the glossary and the expert summaries on 4.0 and 4.6; on 4.4 (the Lua 5.4 of 4.6) in
 # the long run, for time.
 pytestmark = [pytest.mark.tshark, pytest.mark.parametrize(
-    "ws", [on_runner(r, id=r.name) for r in T.RUNNERS], indirect=True)]
+    "ws", runner_params(T.RUNNERS), indirect=True)]
 
 CAPTURES = T.REPO / "captures"
 PROFILE = T.REPO / "dissector" / "profile" / "VM-110"
@@ -36,9 +36,9 @@ MARKERS = {"Serial Gap", "Duplicate", "Out-Of-Order", "Restart", "Watchdog", "Si
            "Unacknowledged", "Interrupted", "Burst Packet Missing", "Incomplete Burst"}
 
 
-def glossary(ws: T.Workspace) -> list[list[str]]:
+def glossary(ws: T.Workspace, shared: bool = True) -> list[list[str]]:
     """The vm110 rows of `tshark -G fields` (-G must come first, so no ws.run prefix)."""
-    proc = ws.run(["-G", "fields", "-X", f"lua_script:{ws.plugin()}"], plugin=False)
+    proc = ws.run(["-G", "fields", "-X", f"lua_script:{ws.plugin()}"], plugin=False, shared=shared)
     assert T.LUA_ERROR not in proc.stderr   # (stdout lists the field "Lua Error", _ws.lua.error)
     rows = [line.split("\t") for line in proc.stdout.splitlines()]
     return [r for r in rows if (r[0] == "F" and r[2].startswith("vm110")) or (r[0] == "P" and r[2] == "vm110")]
@@ -48,6 +48,16 @@ def copy_in(ws: T.Workspace, capture: str):
     local = ws.dir / capture
     local.write_bytes((CAPTURES / capture).read_bytes())
     return local
+
+
+def default_prefs(ws: T.Workspace) -> str:
+    """`tshark -G defaultprefs` with the plugin: every preference, its description in comments."""
+    return ws.run(["-G", "defaultprefs", "-X", f"lua_script:{ws.plugin()}"], plugin=False, shared=True).stdout
+
+
+def expert_info(ws: T.Workspace, capture: str) -> str:
+    """`tshark -2 -q -z expert` of the capture, the analysis on: Expert Information's lines."""
+    return ws.run(["-r", str(copy_in(ws, capture)), "-2", "-q", "-z", "expert", *T.pref_args(ON)], shared=True).stdout
 
 
 def test_every_field_has_a_description(ws):
@@ -67,10 +77,10 @@ def test_preference_descriptions_name_the_severity(ws):
     """The preferences dialog's tooltip (`tshark -G defaultprefs`) of a limit says what a packet
     beyond it gets, with the severity Expert Information shows. Trial: the watchdogs said "Warn
     above this" of what is an Error."""
-    prefs = ws.run(["-G", "defaultprefs", "-X", f"lua_script:{ws.plugin()}"], plugin=False).stdout
+    prefs = default_prefs(ws)
     for name, (capture, summary) in PREF_SEVERITY.items():
         description = re.search(rf"^# (.*)\n(?:# .*\n)*#vm110\.{name}:", prefs, re.M)[1]
-        out = ws.run(["-r", str(copy_in(ws, capture)), "-2", "-q", "-z", "expert", *T.pref_args(ON)]).stdout
+        out = expert_info(ws, capture)
         section = re.search(rf"^(Error|Warn|Note)s \(\d+\)\n(?:(?!\n\n).)*{re.escape(summary)}", out, re.M | re.S)
         assert section and description.split()[0] == section[1], (name, description, section and section[1])
 
@@ -78,7 +88,7 @@ def test_preference_descriptions_name_the_severity(ws):
 def test_glossary_order_is_deterministic(ws):
     """Fields and experts are registered in a fixed order (Lua 5.4's pairs() order changes from run to
     run), so `tshark -G fields` is the same every time."""
-    first, second = glossary(ws), glossary(ws)
+    first, second = glossary(ws, shared=False), glossary(ws, shared=False)
     assert first == second
     names = [r[2] for r in first if r[0] == "F"]
     assert names.index("vm110.analysis.ack_in") < names.index("vm110.type")  # (sorted by key)
@@ -119,8 +129,7 @@ def test_names_in_the_docs_exist(ws):
     """Every field, expert and preference name in README.md, captures/README.md and docs/*.md is
     one the dissector registers."""
     fields = {r[2] for r in glossary(ws) if r[0] == "F"}
-    proc = ws.run(["-G", "defaultprefs", "-X", f"lua_script:{ws.plugin()}"], plugin=False)
-    prefs = set(re.findall(r"^#?(vm110\.[a-z0-9_]+):", proc.stdout, re.M))
+    prefs = set(re.findall(r"^#?(vm110\.[a-z0-9_]+):", default_prefs(ws), re.M))
     assert "vm110.analysis" in prefs and "vm110.crc_variant" in prefs
     names = doc_names()
     assert len(names) > 40 and "vm110.analysis.flags" in names
@@ -134,8 +143,7 @@ def test_names_in_the_docs_exist(ws):
 def test_expert_summaries_group(ws, capture):
     """`tshark -z expert` groups by summary: a handful of constant lines (no numbers), not one per
     packet (255 on loss.pcapng when the numbers were in the text)."""
-    proc = ws.run(["-r", str(copy_in(ws, capture)), "-2", "-q", "-z", "expert", *T.pref_args(ON)])
-    rows = [line.split(None, 3) for line in proc.stdout.splitlines()]
+    rows = [line.split(None, 3) for line in expert_info(ws, capture).splitlines()]
     summaries = [r[3] for r in rows if len(r) == 4 and r[0].isdigit() and r[2] == "VM110"]
     assert summaries and len(summaries) == len(set(summaries)) <= 12, summaries
     assert not [s for s in summaries if re.search(r"\d", s)], summaries
@@ -150,8 +158,7 @@ def test_expert_lines_read_as_the_gui_groups(ws, capture):
     the GUI said "Unknown packet ID", "Unsupported revision", "ES-Link relays open" where tshark said
     "Unknown packet ID: the payload is not decoded", ..."""
     registered = {r[1] for r in glossary(ws) if r[0] == "F" and r[2].startswith("vm110.expert.")}
-    proc = ws.run(["-r", str(copy_in(ws, capture)), "-2", "-q", "-z", "expert", *T.pref_args(ON)])
-    rows = [line.split(None, 3) for line in proc.stdout.splitlines()]
+    rows = [line.split(None, 3) for line in expert_info(ws, capture).splitlines()]
     summaries = {r[3] for r in rows if len(r) == 4 and r[0].isdigit() and r[2] == "VM110"}
     assert len(summaries) >= 6
     assert not {s for s in summaries if s not in registered and not s.startswith("Truncated: ")}, registered
@@ -167,7 +174,7 @@ def test_expert_information_screenshot_is_current(ws):
     shown = sorted((sev, summary, int(n)) for sev, summary, n in
                    re.findall(r"^\| (Error|Warning|Note) \| (.+?) \| (\d+) \|$", doc, re.M))
     summaries = {summary for _, summary, _ in shown}
-    out = ws.run(["-r", str(copy_in(ws, "restart.pcapng")), "-2", "-q", "-z", "expert", *T.pref_args(ON)]).stdout
+    out = expert_info(ws, "restart.pcapng")
     severity, flagged = "", {}
     for line in out.splitlines():
         heading = re.match(r"(Error|Warn|Note)s \(\d+\)$", line)

@@ -98,7 +98,7 @@ def test_stat_matches_truth(tshark, capture, tmp_path):
         with tshark.workspace(tmp_path) as ws:
             local = ws.dir / capture.name
             local.write_bytes(capture.read_bytes())
-            proc = ws.run(["-r", str(local), "-q", "-z", "vm110,stat"])
+            proc = ws.run(["-r", str(local), "-q", "-z", "vm110,stat"], shared=True)
     except T.TsharkUnavailable as exc:
         pytest.fail(str(exc))
     assert T.LUA_ERROR not in proc.stdout + proc.stderr
@@ -175,7 +175,7 @@ def _through_gui_stub(tshark: T.Tshark, tmp_path, stub_text: str) -> tuple:
             local.write_bytes(capture.read_bytes())
             stub = ws.dir / "gui_stub.lua"
             stub.write_text(stub_text)
-            stat = ws.run(["-r", str(local), "-q", "-z", "vm110,stat"]).stdout
+            stat = ws.run(["-r", str(local), "-q", "-z", "vm110,stat"], shared=True).stdout
             gui = ws.run(["-X", f"lua_script:{stub}", "-X", f"lua_script:{ws.plugin()}", "-r", str(local), "-q",
                           "-z", "vm110gui"], plugin=False)
     except T.TsharkUnavailable as exc:
@@ -223,7 +223,7 @@ def test_stat_honours_a_display_filter(tshark, tmp_path):
             lossy = ws.dir / "loss.pcapng"
             lossy.write_bytes((T.REPO / "captures" / "loss.pcapng").read_bytes())
             def stat(arg, *extra, pcap=local):
-                proc = ws.run(["-r", str(pcap), "-q", *extra, "-z", arg])
+                proc = ws.run(["-r", str(pcap), "-q", *extra, "-z", arg], shared=True)
                 assert T.LUA_ERROR not in proc.stdout + proc.stderr, proc.stderr
                 return proc.stdout
             whole = stat("vm110,stat")

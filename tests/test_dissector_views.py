@@ -20,7 +20,7 @@ from typing import Callable, Iterator, Sequence
 import pytest
 
 import tshark_runner as T
-from longrun import on_runner
+from longrun import on_runner, runner_params
 from vectorlib import load_vectors, packet_bytes
 from vm110 import constants as C
 from vm110.capture.reader import CaptureReader, address
@@ -31,8 +31,10 @@ pytestmark = pytest.mark.tshark
 
 CAPTURES = T.REPO / "captures"
 # Commands, retransmissions and unacknowledged ones; serial loss, duplicates and reordering; VRPO
-# bursts; illegal packets among other traffic. (bu-watchdog.pcap: display filters only.)
-ANALYSED = ("retransmit.pcap", "loss.pcapng", "vrpo-split.pcapng", "illegal.pcap")
+# bursts; illegal packets among other traffic. (bu-watchdog.pcap: display filters only.) Each with
+# the version on which `make test` holds its fast path: 4.0 (its command-line fields) or 4.6 (Lua
+# 5.4, invisible trees, as 4.4); the long run holds each on all three.
+ANALYSED = {"retransmit.pcap": "4.0", "loss.pcapng": "4.6", "vrpo-split.pcapng": "4.6", "illegal.pcap": "4.0"}
 VECTORS, CRAFTED = "vectors", "crafted"
 SOURCES = (VECTORS, CRAFTED, *ANALYSED)
 ON = {"vm110.analysis": "TRUE"}
@@ -66,7 +68,7 @@ def catalogue(ws: T.Workspace) -> dict[str, str]:
     """Every vm110 field but the experts, with its type, as `tshark -G fields` lists them with the
     plugin loaded (-G must come first, so no ws.run prefix)."""
     if ws.tshark.name not in _CATALOGUES:
-        proc = ws.run(["-G", "fields", "-X", f"lua_script:{ws.plugin_file()}"], plugin=False)
+        proc = ws.run(["-G", "fields", "-X", f"lua_script:{ws.plugin_file()}"], plugin=False, shared=True)
         rows = [line.split("\t") for line in proc.stdout.splitlines()]
         fields = {r[2]: r[3] for r in rows
                   if r[0] == "F" and r[2].startswith("vm110.") and not r[2].startswith("vm110.expert.")}
@@ -197,7 +199,7 @@ def visible(ws: T.Workspace, source: str, passes: str) -> list[T.Frame]:
     key = (ws.tshark.name, source, passes)
     if key not in _PDML:
         pcap, prefs = materialise(ws, source)
-        frames, output = T.dissect_pdml(ws, pcap, prefs, [*PASSES[passes], "-J", "vm110"])
+        frames, output = T.dissect_pdml(ws, pcap, prefs, [*PASSES[passes], "-J", "vm110"], shared=True)
         assert T.LUA_ERROR not in output
         _PDML[key] = frames
     return _PDML[key]
@@ -236,6 +238,7 @@ def workspace(runner: T.Tshark, base: Path) -> Iterator[T.Workspace]:
 
 
 runner_ids = pytest.mark.parametrize("tshark", T.RUNNERS, ids=lambda r: r.name)
+short_runners = pytest.mark.parametrize("tshark", runner_params(T.RUNNERS))
 
 
 # --- Fields, experts and the Info column per source (one test each: its PDML is read once) ---------
@@ -314,9 +317,10 @@ def info_and_sparse(ws: T.Workspace, source: str, pcap: Path, prefs: dict) -> li
 
 
 def _views() -> list:
-    """(tshark, source) pairs: 4.4 and 4.6 take the same path (Lua 5.4, invisible trees), so on
-    4.4 `make test` holds the vectors and the crafted capture, the long run the bundled ones too."""
-    return [on_runner(r, s, id=f"{s}-{r.name}", long=s in ANALYSED) for s in SOURCES for r in T.RUNNERS]
+    """(tshark, source) pairs: the vectors and the crafted capture on every version."""
+    every = [r.version for r in T.RUNNERS]
+    return [on_runner(r, s, id=f"{s}-{r.name}", short=[ANALYSED[s]] if s in ANALYSED else every)
+            for s in SOURCES for r in T.RUNNERS]
 
 
 @pytest.mark.parametrize("tshark, source", _views())
@@ -401,7 +405,7 @@ VECTOR_FILTERS = (
 )
 
 
-@runner_ids
+@short_runners
 def test_display_filters_match_independent_expectations(tshark, tmp_path):
     """`-Y` on vm110 fields (only they are built) keeps the frames the decoder or the truth names."""
     errors = []
@@ -447,7 +451,7 @@ SWITCHES = {
 }
 
 
-@runner_ids
+@short_runners
 @pytest.mark.parametrize("case", SWITCHES)
 def test_pass_switching(tshark, case, tmp_path):
     """`-2 -R <one field> -Y <another> -e <a third>` (a different reference set on each pass)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
-from fleetlib import once
+from sessionwide import once
 
 ROOT = Path(__file__).resolve().parent.parent
 BUNDLED = ROOT / "captures"
@@ -89,9 +89,9 @@ def make(root: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def fleet(tmp_path_factory):
+def fleet():
     """A small fleet built once (with --packets), and `vm110 analyze --json` of the same captures."""
-    root = once(tmp_path_factory, "rows", make)
+    root = once("rows", make)
     results = json.loads((root / "results.json").read_text())
     reports = json.loads((root / "reports.json").read_text())["reports"]
     return {"root": root, "files": {k: Path(v) for k, v in results["files"].items()}, "dataset": root / "dataset",

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy
 import pytest
-from fleetlib import once
+from sessionwide import once
 from vm110.cli import main
 from vm110.fleet import demo
 
@@ -32,8 +32,8 @@ def make(root: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    return once(tmp_path_factory, "demo", make) / "ds"
+def dataset() -> Path:
+    return once("demo", make) / "ds"
 
 
 def query(dataset: Path, *args: str) -> list[dict]:

@@ -71,3 +71,33 @@ def test_the_host_s_tshark_is_found_past_an_overlay(tmp_path, monkeypatch):
     monkeypatch.setenv("PATH", f"{overlay}{os.pathsep}{os.environ.get('PATH', '')}")
     assert shutil.which("tshark") == str(overlay / "tshark")
     assert T.host_tshark() == real
+
+
+def untimed(pdml: str) -> str:
+    return re.sub(r' time="[^"]*"', "", pdml, count=1)
+
+
+def test_a_shared_run_is_made_once_per_input_and_shows_the_caller_s_paths(tmp_path, monkeypatch):
+    """`ws.run(..., shared=True)` (tests/sessionwide.py): the same tshark, arguments and file
+    contents run once in a session, whichever workspace asks; a changed file runs again; paths in
+    the output are the asking workspace's."""
+    runner = T.RUNNERS[-1]
+    started = []
+    real = subprocess.run
+    monkeypatch.setattr(T.subprocess, "run", lambda cmd, **kw: started.append(cmd) or real(cmd, **kw))
+    outputs = []
+    try:
+        for name, capture in (("a", CAPTURE), ("b", CAPTURE), ("c", T.REPO / "captures" / "illegal.pcap")):
+            with runner.workspace(tmp_path / name) as ws:
+                local = ws.dir / "capture.pcap"
+                shutil.copyfile(capture, local)
+                shared = ws.run(["-r", str(local), "-T", "pdml", "-c", "1"], shared=True)
+                assert f'capture_file="{ws.tshark.inner(local)}"' in shared.stdout
+                own = ws.run(["-r", str(local), "-T", "pdml", "-c", "1"])
+                assert (shared.returncode, shared.stderr) == (own.returncode, own.stderr)
+                assert untimed(shared.stdout) == untimed(own.stdout)    # (PDML says when it was made)
+                outputs.append(shared.stdout)
+    except T.TsharkUnavailable as exc:
+        pytest.fail(str(exc))
+    assert len(started) == 5                       # a: shared and own; b: own alone; c: both
+    assert outputs[0] != outputs[2]

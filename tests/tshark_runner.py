@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
+import json
 import os
 import re
 import shlex
@@ -25,6 +27,7 @@ from typing import Iterable, Iterator, Optional, Sequence
 
 from lxml import etree
 
+import sessionwide
 from vm110 import constants as C
 
 REPO = Path(__file__).resolve().parents[1]
@@ -214,16 +217,42 @@ class Workspace:
         return self.tshark.inner(self.plugin_file())
 
     def run(self, args: Sequence[str], plugin: bool = True, check: bool = True,
-            timeout: float = 600) -> subprocess.CompletedProcess:
-        """Run tshark (with the plugin) and return its output; paths in `args` are host paths."""
+            timeout: float = 600, shared: bool = False) -> subprocess.CompletedProcess:
+        """Run tshark (with the plugin) and return its output; paths in `args` are host paths.
+        `shared`: the output of the same run (same tshark, arguments, files and personal folders)
+        made in this session by any test of any worker, for the runs several tests read alike."""
         inner_args = [self._translate(a) for a in args]
         if plugin:
             inner_args = ["-X", f"lua_script:{self.plugin()}"] + inner_args
-        proc = subprocess.run(self.tshark.command(inner_args), capture_output=True, text=True,
-                              timeout=timeout, errors="replace")
+        command = self.tshark.command(inner_args)
+        if shared:
+            proc = self._shared(command, timeout)
+        else:
+            proc = subprocess.run(command, capture_output=True, text=True, timeout=timeout, errors="replace")
         if check and proc.returncode != 0:
             raise AssertionError(f"tshark ({self.tshark.name}) exited {proc.returncode}: {proc.stderr[-2000:]}")
         return proc
+
+    def _shared(self, command: list[str], timeout: float) -> subprocess.CompletedProcess:
+        here = self.tshark.inner(self.dir)
+        key = [self.tshark.name, self.tshark.version, shutil.which(command[0]) or command[0],
+               *(os.environ.get(v, "") for v in ("HOME", "XDG_CONFIG_HOME", "WIRESHARK_CONFIG_DIR"))]
+        for arg in command:
+            key.append(arg.replace(here, "<workspace>"))
+            for candidate in (arg, arg.split(":", 1)[-1]):   # (a file, or lua_script:file)
+                host = Path(candidate.replace(here, str(self.dir), 1))
+                with contextlib.suppress(OSError, ValueError):
+                    if host.is_file():
+                        key.append(hashlib.sha256(host.read_bytes()).hexdigest())
+
+        def run() -> bytes:
+            proc = subprocess.run(command, capture_output=True, text=True, timeout=timeout, errors="replace")
+            return json.dumps([proc.returncode, proc.stdout.replace(here, "<workspace>"),
+                               proc.stderr.replace(here, "<workspace>")]).encode()
+
+        code, out, err = json.loads(sessionwide.value(json.dumps(key), run))
+        return subprocess.CompletedProcess(command, code, out.replace("<workspace>", here),
+                                           err.replace("<workspace>", here))
 
     def _translate(self, arg: str) -> str:
         if self.tshark.root is None:
@@ -367,10 +396,10 @@ def parse_pdml(text: str) -> list[Frame]:
 
 
 def dissect_pdml(ws: Workspace, pcap: Path, prefs: Optional[dict[str, str]] = None,
-                 extra: Sequence[str] = ()) -> tuple[list[Frame], str]:
+                 extra: Sequence[str] = (), shared: bool = False) -> tuple[list[Frame], str]:
     """One tshark run over the capture: the frames, and stdout+stderr for error checks."""
     args = ["-r", str(pcap), "-T", "pdml", *pref_args(prefs), *extra]
-    proc = ws.run(args)
+    proc = ws.run(args, shared=shared)
     return parse_pdml(proc.stdout), proc.stdout + proc.stderr
 
 
