@@ -1,10 +1,14 @@
 """Loopback helpers shared by the tests and the benchmarks that run real sockets."""
 from __future__ import annotations
 
+import errno
 import os
 import random
 import socket
 import threading
+from typing import Callable, TypeVar
+
+T = TypeVar("T")
 
 LOOPBACK = "127.0.0.1"
 _SPAN = 12_000          # ports picked from just below the kernel's ephemeral range
@@ -67,3 +71,16 @@ def free_ports(count: int) -> list[int]:
     finally:
         for s in socks:
             s.close()
+
+
+def on_free_ports(count: int, start: Callable[[list[int]], T], attempts: int = 3) -> T:
+    """`start(ports)` on `count` free ports; on other ones when it fails because a port was bound
+    meanwhile (free_ports releases them before `start` binds them: a process outside this one, even
+    outside the suite, can take one in that window)."""
+    for attempt in range(1, attempts + 1):
+        try:
+            return start(free_ports(count))
+        except Exception as exc:     # (the caller's own error, which names the bind's failure)
+            if attempt == attempts or os.strerror(errno.EADDRINUSE) not in str(exc):
+                raise
+    raise AssertionError("unreachable")

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from loopback import free_ports
+from loopback import free_ports, on_free_ports
 from test_fuzz_targets import fuzz, programs  # noqa: F401  (the fixture builds the targets)
 from vm110.fuzz.memory import MAX_SERIES, Rule, Sample, Watch, asan_allowance_kib, group_rss_kib
 from vm110.fuzz.runner import RunConfig, Runner
@@ -189,10 +189,12 @@ def test_the_rule_of_an_asan_build_allows_for_its_quarantine(tmp_path, programs,
 
 
 def _run(tmp_path: Path, exe: Path, rule: Rule, duration: float) -> dict:
-    rx, listen = free_ports(2)
-    cfg = RunConfig(settings=Settings(("127.0.0.1", rx), ("127.0.0.1", listen), rate=2000), duration_s=duration,
-                    out=tmp_path / f"out-{exe.name}", target_cmd=f"{exe} {rx} {listen}", memory=rule, max_findings=1)
-    return Runner(cfg).run()
+    def runner(ports: list[int]) -> Runner:       # (its listen socket is bound here)
+        rx, listen = ports
+        return Runner(RunConfig(settings=Settings(("127.0.0.1", rx), ("127.0.0.1", listen), rate=2000),
+                                duration_s=duration, out=tmp_path / f"out-{exe.name}", target_cmd=f"{exe} {rx} {listen}",
+                                memory=rule, max_findings=1))
+    return on_free_ports(2, runner).run()
 
 
 def test_a_leaking_controller_is_found_and_a_correct_one_is_not(tmp_path, programs):  # noqa: F811
