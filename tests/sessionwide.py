@@ -3,12 +3,13 @@ under pytest's base temporary folder (conftest names it at the start of each), a
 work has a lock there: the first worker does it, the others wait and read what it left."""
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import hashlib
 import os
 import shutil
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 _ROOT: dict[str, Path] = {}     # "": the folder the workers share, once start() named it
 
@@ -18,12 +19,19 @@ def start(basetemp: Path) -> None:
     _ROOT[""] = basetemp.parent if os.environ.get("PYTEST_XDIST_WORKER") else basetemp
 
 
+@contextlib.contextmanager
+def _locked(folder: Path, name: str) -> Iterator[None]:
+    """`name`'s lock in `folder`, held: one worker at a time does its work."""
+    with open(folder / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
 def once(name: str, make: Callable[[Path], None]) -> Path:
     """The folder `name` made by `make(folder)` once in this session."""
     root = _ROOT[""]                 # (conftest calls start() first)
     folder = root / f"once-{name}"
-    with open(root / f"once-{name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+    with _locked(root, f"once-{name}"):
         if not (folder / ".done").exists():
             if folder.exists():
                 shutil.rmtree(folder)        # a half-made one of this session (its maker failed)
@@ -41,11 +49,9 @@ def value(key: str, compute: Callable[[], bytes]) -> bytes:
     folder = _ROOT[""] / "once-values"
     folder.mkdir(exist_ok=True)
     path = folder / name
-    with open(folder / f"{name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+    with _locked(folder, name):
         if not path.exists():
-            data = compute()
             fresh = folder / f"{name}.{os.getpid()}"
-            fresh.write_bytes(data)
+            fresh.write_bytes(compute())
             os.replace(fresh, path)
     return path.read_bytes()
