@@ -903,10 +903,12 @@ do
         "A new burst starts after this gap (or after a complete burst)", 1, MS)
     vm110.prefs.machine = Pref.string("Machine", "",
         "Key of the machine-specific sub-dissectors in the vm110.periodic_data and vm110.command_data tables")
-    vm110.prefs.fields_from_command_line = Pref.bool("tshark 4.0 -T fields: build only the fields named", true,
+    vm110.prefs.fields_from_command_line = Pref.bool("tshark: only what the command line reads", true,
         "Wireshark 4.0's tshark -T fields builds every field of every packet; build only the vm110 fields its "
-        .. "command line names (-e, -Y, -R, -z), as later versions do. Off: every field (say, for a Lua script "
-        .. "of your own that reads vm110 fields with Field.new)")
+        .. "command line names (-e, -Y, -R, -z), as later versions do. A single-pass tshark whose output reads "
+        .. "nothing of the stream analysis (no analysis field, column, tap or expert field) does not run it. "
+        .. "Off: every field on 4.0, and the analysis always (say, for a Lua script of your own that reads "
+        .. "vm110 fields or expert infos)")
     vm110.prefs.tune_gc = Pref.bool("Tune Lua's garbage collector", false,
         "Collector settings that make this dissector faster (Lua 5.4: generational; Lua 5.2: pause 100, "
         .. "step multiplier 800). They apply to every Lua plugin of this Wireshark, so they are off by default")
@@ -1099,23 +1101,60 @@ local function visible_view(pinfo)
     return cmdline_view or EVERY_NO_COLUMNS
 end
 
-local function choose_view(tree, pinfo, visited)
-    if settings.single_pass and first_pass_view then return first_pass_view end
-    local visible = tree.visible
-    if visited then
-        first_pass_view = false
-        if visible then return visible_view(pinfo) end
-        if second_pass_view then return second_pass_view end
-        local view = referenced(tree, vm110_handle) and referenced_view(tree, true) or NOTHING
-        if TSHARK_OPTIONS then second_pass_view = view end
-        return view
+-- The stream analysis has readers only in what a run prints or filters. A single-pass tshark
+-- dissects each frame once and prints it before reading the next, so a run that reads none of
+-- it has no use for any of it, now or later: no analysis field referenced (-e, -Y, -R, a Lua
+-- Field.new, which 4.2+ primes), no columns (whose Info carries its markers), no tree printed, no
+-- tap (-z: expert infos, the statistics), no expert or colouring field named, and no machine
+-- sub-dissector (it gets the reassembled data). `tshark -T fields -e vm110.serial` is such a run.
+-- Expert infos a Lua script of the user's reads (Field.new of _ws.expert, an expert tap) cannot be
+-- seen from here: the preference vm110.fields_from_command_line off runs the analysis always.
+local choose_view
+do
+    local ANALYSIS = {}
+    for name, f in pairs(F) do
+        local abbr = tostring(f):match("(%S+) ftypes%.")
+        if abbr and (abbr:find("^vm110%.analysis%.") or abbr:find("^vm110%.burst%.")
+                or abbr == "vm110.reassembled") then
+            ANALYSIS[#ANALYSIS + 1] = name
+        end
     end
-    if not first_pass_view or first_pass_view.tree_visible ~= visible then
-        first_pass_view = visible and visible_view(pinfo)
-            or referenced_view(tree, tostring(pinfo.cols.info) ~= "(info)")
-        first_pass_view.tree_visible = visible
+    local function unread(view)
+        local opts = TSHARK_OPTIONS
+        if not settings.single_pass or not settings.fields_from_command_line or view.visible or view.columns
+            or settings.machine ~= "" or opts.z then
+            return false
+        end
+        local words = opts.words
+        -- (expert infos as fields, colouring rules, and 4.0's protocol item, whose label takes markers)
+        for _, word in ipairs({ "_ws.expert", "vm110.expert", "coloring", "--color", " vm110 ", "${" }) do
+            if words:find(word, 1, true) then return false end
+        end
+        for _, name in ipairs(ANALYSIS) do
+            if view[name] then return false end
+        end
+        return true
     end
-    return first_pass_view
+
+    function choose_view(tree, pinfo, visited)
+        if settings.single_pass and first_pass_view then return first_pass_view end
+        local visible = tree.visible
+        if visited then
+            first_pass_view = false
+            if visible then return visible_view(pinfo) end
+            if second_pass_view then return second_pass_view end
+            local view = referenced(tree, vm110_handle) and referenced_view(tree, true) or NOTHING
+            if TSHARK_OPTIONS then second_pass_view = view end
+            return view
+        end
+        if not first_pass_view or first_pass_view.tree_visible ~= visible then
+            first_pass_view = visible and visible_view(pinfo)
+                or referenced_view(tree, tostring(pinfo.cols.info) ~= "(info)")
+            first_pass_view.tree_visible = visible
+            settings.analysing = settings.analysis and not unread(first_pass_view)
+        end
+        return first_pass_view
+    end
 end
 
 -- TvbRanges of the packet being dissected, by offset and length: a field and the generated
@@ -1454,6 +1493,7 @@ local function read_settings()
     settings.big_endian = prefs.crc_byte_order == 2
     settings.heuristic = prefs.heuristic
     settings.analysis = prefs.analysis
+    settings.analysing = prefs.analysis -- (and something reads it: choose_view())
     settings.per_type = prefs.serial_scope == 2
     settings.dup_window, settings.reuse_gap = prefs.dup_window_ms, prefs.reuse_gap_ms
     settings.vrpi_watchdog, settings.vrpo_watchdog = prefs.vrpi_watchdog_ms, prefs.vrpo_watchdog_ms
@@ -2458,7 +2498,7 @@ local function dissect(tvb, pinfo, tree)
         if cut then r = decode(s, settings.variant, settings.big_endian, known, cut) end
     end
     local legal = r.problems == EMPTY -- (own() replaces EMPTY at the first problem)
-    if r.crc_calc and not known and not (settings.analysis and legal) then
+    if r.crc_calc and not known and not settings.single_pass and not (settings.analysis and legal) then
         memo_set(crc_memo, number, offset, r.crc_calc) -- (an analysed packet's is its stored CRC)
     end
     if want.visible or want.columns then r.info_text = summary(r) end -- (the root item's label too)
@@ -2468,7 +2508,7 @@ local function dissect(tvb, pinfo, tree)
         cols.info = r.info_text
     end
     local root = add_tree(r, tvb, tree)
-    if settings.analysis then
+    if settings.analysing then
         if not visited then -- (tshark -2 -R gives a frame the read filter drops the number of the next one it keeps)
             res = false
             -- (a datagram quoted in an ICMP error was not received: analyze reads no ICMP either)
