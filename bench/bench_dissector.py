@@ -27,7 +27,9 @@ of each version against its target: the one without the analysis, and the one wi
 Each command runs REPEAT times, interleaved over the commands and the tshark versions (4.0 with Lua
 5.2; 4.4 and 4.6 with Lua 5.4: the host's tshark for its own version, Debian chroots for the others,
 as the tests run them, tests/tshark_runner.py); the best time of each is compared: wall time, the figure of
-the issue, and CPU time (user + system), which other load on the machine disturbs less.
+the issue, and CPU time (user + system), which other load on the machine disturbs less. Beside
+it, the median over the rounds of each round's ratio: on a shared machine whose speed drifts for
+minutes at a time, one lucky plain run can move a ratio of best times by a fifth.
 
 Options: --baseline FILE also times another copy of the plugin (say, the previous commit's) in the
 same interleaved runs, so that before and after come from one measurement; --tune-gc also times
@@ -40,6 +42,7 @@ import argparse
 import contextlib
 import resource
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -126,6 +129,12 @@ def commands(ws: T.Workspace, pcap: Path, baseline: Path | None, tune_gc: bool) 
     return out
 
 
+def round_ratio(runs: dict[tuple[str, str], list], runner: str, name: str, plain: str) -> float:
+    """The median over the rounds of a round's wall time / its plain run's: a slow spell of the
+    machine, which can put one command's best run far from another's, slows both alike."""
+    return statistics.median(a[0] / b[0] for a, b in zip(runs[(runner, name)], runs[(runner, plain)]))
+
+
 def check(ws: T.Workspace, pcap: Path) -> None:
     """The timed settings (the defaults) validate CRCs and analyse the streams."""
     proc = ws.run(["-n", "-r", str(pcap), "-c", "20", "-T", "fields", "-e", "vm110.crc.status"])
@@ -171,19 +180,23 @@ def main() -> int:
             for name in cmds:
                 if name.startswith("plain"):
                     continue
-                plain = t["plain 12"] if name.endswith("analysis") else t["plain 8, -2"] if name.endswith("-2") \
-                    else t["plain 8"]
-                print(f"  {name:26s} {t[name][0]:6.2f} s  ratio {t[name][0] / plain[0]:.2f}   "
+                plain_name = "plain 12" if name.endswith("analysis") else "plain 8, -2" if name.endswith("-2") \
+                    else "plain 8"
+                plain = t[plain_name]
+                print(f"  {name:26s} {t[name][0]:6.2f} s  ratio {t[name][0] / plain[0]:.2f} "
+                      f"(median of rounds {round_ratio(runs, runner.name, name, plain_name):.2f})   "
                       f"CPU {t[name][1]:6.2f} s  ratio {t[name][1] / plain[1]:.2f}")
             print(f"  {'plain 8 / 12 columns':26s} {t['plain 8'][0]:6.2f} / {t['plain 12'][0]:.2f} s   "
                   f"CPU {t['plain 8'][1]:.2f} / {t['plain 12'][1]:.2f} s; two passes (-2) "
                   f"{t['plain 8, -2'][0]:.2f} s")
             ratio = t["vm110"][0] / t["plain 8"][0]
             ratio_a = t["vm110 + analysis"][0] / t["plain 12"][0]
-            headline.append(f"{runner.version} {ratio:.2f}x, {ratio_a:.2f}x with the analysis "
-                            f"(target <= {TARGETS.get(runner.version, '?')})")
-        print("vm110 / plain UDP, wall time, 4 vm110 fields (the analysis read by nothing: not run), and with 4 "
-              "analysis fields more (the analysis runs): " + "; ".join(headline))
+            medians = (round_ratio(runs, runner.name, "vm110", "plain 8"),
+                       round_ratio(runs, runner.name, "vm110 + analysis", "plain 12"))
+            headline.append(f"{runner.version} {ratio:.2f}x, {ratio_a:.2f}x with the analysis (medians of rounds "
+                            f"{medians[0]:.2f}x, {medians[1]:.2f}x; target <= {TARGETS.get(runner.version, '?')})")
+        print("vm110 / plain UDP, wall time, best runs, 4 vm110 fields (the analysis read by nothing: not run), "
+              "and with 4 analysis fields more (the analysis runs): " + "; ".join(headline))
     return 0
 
 
