@@ -21,25 +21,14 @@ from longrun import runner_params
 pytestmark = pytest.mark.tshark
 
 CAPTURE = T.REPO / "captures" / "normal.pcap"
-# A tap of the user's: how many vm110.crc.status values it saw.
-READER = """
-local status = Field.new("vm110.crc.status")
-local seen = 0
-local tap = Listener.new("frame", "vm110")
-function tap.packet() seen = seen + #{ status() } end
-function tap.draw() io.stderr:write("crc.status values seen: ", seen, "\\n") end
-"""
 
 
 def run(ws: T.Workspace, options: list[str], prefs: dict[str, str] | None = None) -> tuple[list[str], int]:
-    script = ws.dir / "reader.lua"
-    script.write_text(READER)
-    proc = ws.run(["-n", "-X", f"lua_script:{ws.tshark.inner(script)}", "-r", str(ws.dir / CAPTURE.name), *T.pref_args(prefs),
-                   *options, *(["-e", "vm110.serial"] if "fields" in "".join(options) else [])])
+    """(-e vm110.serial values, vm110.crc.status values a Lua tap of the user's saw)."""
+    proc = ws.run(["-n", *T.field_counter(ws, "vm110.crc.status"), "-r", str(ws.dir / CAPTURE.name),
+                   *T.pref_args(prefs), *options, *(["-e", "vm110.serial"] if "fields" in "".join(options) else [])])
     assert T.LUA_ERROR not in proc.stdout + proc.stderr, proc.stderr[-2000:]
-    seen = [line for line in proc.stderr.splitlines() if line.startswith("crc.status values seen: ")]
-    assert len(seen) == 1, proc.stderr[-2000:]
-    return proc.stdout.split(), int(seen[0].rsplit(" ", 1)[1])
+    return proc.stdout.split(), T.field_count(proc.stderr)
 
 
 @pytest.fixture(params=runner_params(T.RUNNERS))

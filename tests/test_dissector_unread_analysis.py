@@ -26,14 +26,6 @@ pytestmark = pytest.mark.tshark
 CAPTURES = T.REPO / "captures"
 LOSSY = CAPTURES / "loss.pcapng"          # serial gaps, late and duplicate packets
 EVERY_FRAME = ["-Y", "vm110.analysis.flags or not vm110.analysis.flags"]
-# A tap of the user's: how many values of a field it saw.
-READER = """
-local field = Field.new("%s")
-local seen = 0
-local tap = Listener.new("frame", "vm110")
-function tap.packet() seen = seen + #{ field() } end
-function tap.draw() io.stderr:write("values seen: ", seen, "\\n") end
-"""
 COMMAND_LINE_OFF = ["-o", "vm110.fields_from_command_line:FALSE"]
 
 
@@ -99,15 +91,8 @@ def test_a_display_filter_on_the_analysis_gets_its_frames(ws):
 
 def lua_reader(ws: T.Workspace, field: str, options: list[str]) -> int:
     """How many values of `field` a Lua script of the user's saw (as the same run that analyses)."""
-    script = ws.dir / "reader.lua"
-    script.write_text(READER % field)
-    options = ["-X", f"lua_script:{ws.tshark.inner(script)}", *options, "-e", "vm110.serial"]
-    counts = []
-    for extra in ([], EVERY_FRAME):
-        _, err = fields(ws, LOSSY, [*options, *extra])
-        seen = [line for line in err.splitlines() if line.startswith("values seen: ")]
-        assert len(seen) == 1, err[-2000:]
-        counts.append(int(seen[0].rsplit(" ", 1)[1]))
+    options = [*T.field_counter(ws, field), *options, "-e", "vm110.serial"]
+    counts = [T.field_count(fields(ws, LOSSY, [*options, *extra])[1]) for extra in ([], EVERY_FRAME)]
     assert counts[0] == counts[1]
     return counts[0]
 

@@ -408,6 +408,30 @@ def dissect_pdml(ws: Workspace, pcap: Path, prefs: Optional[dict[str, str]] = No
 DECODE_ONLY = {"vm110.analysis": "FALSE"}
 
 
+# A Lua tap of a user's own that reads one field with Field.new: how many values it saw.
+_FIELD_COUNTER = """
+local field = Field.new("%s")
+local seen = 0
+local tap = Listener.new("frame", "vm110")
+function tap.packet() seen = seen + #{ field() } end
+function tap.draw() io.stderr:write("values seen: ", seen, "\\n") end
+"""
+
+
+def field_counter(ws: "Workspace", field: str) -> list[str]:
+    """tshark options that load a Lua tap counting the values of `field` (read with field_count)."""
+    script = ws.dir / "field-counter.lua"
+    script.write_text(_FIELD_COUNTER % field)
+    return ["-X", f"lua_script:{ws.tshark.inner(script)}"]
+
+
+def field_count(stderr: str) -> int:
+    """What field_counter's tap said on tshark's standard error."""
+    seen = [line for line in stderr.splitlines() if line.startswith("values seen: ")]
+    assert len(seen) == 1, stderr[-2000:]
+    return int(seen[0].rsplit(" ", 1)[1])
+
+
 def pref_args(prefs: Optional[dict[str, str]]) -> list[str]:
     """`-o` arguments; the stream analysis is off unless `prefs` sets vm110.analysis."""
     merged = {**DECODE_ONLY, **(prefs or {})}
