@@ -36,14 +36,6 @@ MARKERS = {"Serial Gap", "Duplicate", "Out-Of-Order", "Restart", "Watchdog", "Si
            "Unacknowledged", "Interrupted", "Burst Packet Missing", "Incomplete Burst"}
 
 
-def glossary(ws: T.Workspace, shared: bool = True) -> list[list[str]]:
-    """The vm110 rows of `tshark -G fields` (-G must come first, so no ws.run prefix)."""
-    proc = ws.run(["-G", "fields", "-X", f"lua_script:{ws.plugin()}"], plugin=False, shared=shared)
-    assert T.LUA_ERROR not in proc.stderr   # (stdout lists the field "Lua Error", _ws.lua.error)
-    rows = [line.split("\t") for line in proc.stdout.splitlines()]
-    return [r for r in rows if (r[0] == "F" and r[2].startswith("vm110")) or (r[0] == "P" and r[2] == "vm110")]
-
-
 def copy_in(ws: T.Workspace, capture: str):
     local = ws.dir / capture
     local.write_bytes((CAPTURES / capture).read_bytes())
@@ -62,7 +54,7 @@ def expert_info(ws: T.Workspace, capture: str) -> str:
 
 def test_every_field_has_a_description(ws):
     """The status bar shows a field's blurb; `tshark -G fields` lists it in the 8th column."""
-    fields = [r for r in glossary(ws) if r[0] == "F" and not r[2].startswith("vm110.expert.")]
+    fields = [r for r in T.glossary(ws) if r[0] == "F" and not r[2].startswith("vm110.expert.")]
     assert len(fields) > 60 and "vm110.analysis.flags" in {r[2] for r in fields}
     missing = [r[2] for r in fields if len(r) < 8 or not r[7].strip()]
     assert not missing, f"fields without a description: {missing}"
@@ -88,7 +80,7 @@ def test_preference_descriptions_name_the_severity(ws):
 def test_glossary_order_is_deterministic(ws):
     """Fields and experts are registered in a fixed order (Lua 5.4's pairs() order changes from run to
     run), so `tshark -G fields` is the same every time."""
-    first, second = glossary(ws, shared=False), glossary(ws, shared=False)
+    first, second = T.glossary(ws, shared=False), T.glossary(ws, shared=False)
     assert first == second
     names = [r[2] for r in first if r[0] == "F"]
     assert names.index("vm110.analysis.ack_in") < names.index("vm110.type")  # (sorted by key)
@@ -128,7 +120,7 @@ def _python_name(name: str) -> bool:
 def test_names_in_the_docs_exist(ws):
     """Every field, expert and preference name in README.md, captures/README.md and docs/*.md is
     one the dissector registers."""
-    fields = {r[2] for r in glossary(ws) if r[0] == "F"}
+    fields = {r[2] for r in T.glossary(ws) if r[0] == "F"}
     prefs = set(re.findall(r"^#?(vm110\.[a-z0-9_]+):", default_prefs(ws), re.M))
     assert "vm110.analysis" in prefs and "vm110.crc_variant" in prefs
     names = doc_names()
@@ -157,7 +149,7 @@ def test_expert_lines_read_as_the_gui_groups(ws, capture):
     short by the capture (snaplen)": a line per reason, one "Truncated" group in the GUI). Trial:
     the GUI said "Unknown packet ID", "Unsupported revision", "ES-Link relays open" where tshark said
     "Unknown packet ID: the payload is not decoded", ..."""
-    registered = {r[1] for r in glossary(ws) if r[0] == "F" and r[2].startswith("vm110.expert.")}
+    registered = {r[1] for r in T.glossary(ws) if r[0] == "F" and r[2].startswith("vm110.expert.")}
     rows = [line.split(None, 3) for line in expert_info(ws, capture).splitlines()]
     summaries = {r[3] for r in rows if len(r) == 4 and r[0].isdigit() and r[2] == "VM110"}
     assert len(summaries) >= 6

@@ -50,10 +50,8 @@ def fields(ws: T.Workspace, capture, options: list[str]) -> tuple[str, str]:
 
 def decode_fields(ws: T.Workspace) -> list[str]:
     """Every vm110 field that is no analysis field, as -e options."""
-    glossary = ws.run(["-G", "fields", "-X", f"lua_script:{ws.plugin()}"], plugin=False, shared=True).stdout.splitlines()
-    names = [line.split("\t")[2] for line in glossary if line.startswith("F\t")]
-    decoded = [n for n in names if n.startswith("vm110.")
-               and not n.startswith(("vm110.analysis.", "vm110.burst.", "vm110.reassembled"))]
+    decoded = [r[2] for r in T.glossary(ws) if r[0] == "F" and r[2].startswith("vm110.")
+               and not r[2].startswith(("vm110.analysis.", "vm110.burst.", "vm110.reassembled"))]
     assert "vm110.serial" in decoded and "vm110.crc.status" in decoded
     return [arg for name in sorted(decoded) for arg in ("-e", name)]
 

@@ -66,11 +66,9 @@ _CATALOGUES: dict = {}
 
 def catalogue(ws: T.Workspace) -> dict[str, str]:
     """Every vm110 field but the experts, with its type, as `tshark -G fields` lists them with the
-    plugin loaded (-G must come first, so no ws.run prefix)."""
+    plugin loaded."""
     if ws.tshark.name not in _CATALOGUES:
-        proc = ws.run(["-G", "fields", "-X", f"lua_script:{ws.plugin_file()}"], plugin=False, shared=True)
-        rows = [line.split("\t") for line in proc.stdout.splitlines()]
-        fields = {r[2]: r[3] for r in rows
+        fields = {r[2]: r[3] for r in T.glossary(ws)
                   if r[0] == "F" and r[2].startswith("vm110.") and not r[2].startswith("vm110.expert.")}
         assert len(fields) > 50 and "vm110.analysis.ack_to" in fields, sorted(fields)
         _CATALOGUES[ws.tshark.name] = fields

@@ -408,6 +408,15 @@ def dissect_pdml(ws: Workspace, pcap: Path, prefs: Optional[dict[str, str]] = No
 DECODE_ONLY = {"vm110.analysis": "FALSE"}
 
 
+def glossary(ws: "Workspace", shared: bool = True) -> list[list[str]]:
+    """The vm110 rows of `tshark -G fields` with the plugin loaded (-G must come first, so no
+    ws.run prefix): its fields, experts included, and its protocol."""
+    proc = ws.run(["-G", "fields", "-X", f"lua_script:{ws.plugin()}"], plugin=False, shared=shared)
+    assert LUA_ERROR not in proc.stderr   # (stdout lists the field "Lua Error", _ws.lua.error)
+    rows = [line.split("\t") for line in proc.stdout.splitlines()]
+    return [r for r in rows if (r[0] == "F" and r[2].startswith("vm110")) or (r[0] == "P" and r[2] == "vm110")]
+
+
 # A Lua tap of a user's own that reads one field with Field.new: how many values it saw.
 _FIELD_COUNTER = """
 local field = Field.new("%s")
